@@ -1,0 +1,140 @@
+"""The ``liverforce`` command (thin: composes config, hands work to Snakemake or the package).
+
+Examples
+--------
+liverforce run                                  # = snakemake --cores 2 (default experiment)
+liverforce run -e smoke sweep.seed=3            # an experiment + Hydra overrides
+liverforce run -e smoke --target shards         # one stage (a rule name or a file)
+liverforce config -e smoke                      # print the composed, validated config
+liverforce stability yeoh C10=0.00161 C20=0.0125 C30=0.00531
+liverforce ui                                   # MLflow UI on 127.0.0.1
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+from liverforce.config import PROJECT_ROOT, ConfigError, compose, tracking_uri
+
+
+def _overrides(args) -> list[str]:
+    out = []
+    if getattr(args, "experiment", None):
+        out.append(f"experiment={args.experiment}")
+    out.extend(args.overrides or [])
+    return out
+
+
+def snakemake_command(cores: int, experiment: str | None, overrides: list[str], targets: list[str],
+                      extra: list[str] | None = None) -> list[str]:
+    """The snakemake command line equivalent to ``liverforce run``."""
+    exe = Path(sys.executable).with_name("snakemake")
+    cmd = [str(exe) if exe.exists() else "snakemake", "--cores", str(cores), "--snakefile", str(PROJECT_ROOT / "Snakefile")]
+    cfg = []
+    if experiment:
+        cfg.append(f"experiment={experiment}")
+    if overrides:
+        cfg.append("overrides=" + " ".join(shlex.quote(o) for o in overrides))
+    if cfg:
+        cmd += ["--config", *cfg]
+    cmd += list(extra or []) + list(targets)
+    return cmd
+
+
+def cmd_run(args) -> int:
+    # validate first: a bad key fails here, before Snakemake starts any job
+    compose(_overrides(args))
+    cmd = snakemake_command(args.cores, args.experiment, args.overrides, args.target or [],
+                            (["-n"] if args.dry_run else []) + (["--rerun-incomplete"] if args.rerun_incomplete else []))
+    print("+", " ".join(shlex.quote(c) for c in cmd), file=sys.stderr)
+    return subprocess.call(cmd, cwd=os.getcwd())
+
+
+def cmd_config(args) -> int:
+    cfg = compose(_overrides(args))
+    if args.json:
+        print(json.dumps(cfg, indent=2))
+    else:
+        import yaml
+
+        print(yaml.safe_dump(cfg, sort_keys=False))
+    return 0
+
+
+def cmd_stability(args) -> int:
+    from liverforce.fem.materials import make_material
+    from liverforce.fem.stability import check_stability
+
+    params = {}
+    for kv in args.params:
+        k, _, v = kv.partition("=")
+        params[k] = float(v)
+    mat = make_material(args.model, params, nu=args.nu)
+    rep = check_stability(mat, stretch_range=(args.lo, args.hi))
+    print(rep.message)
+    return 0 if rep.stable else 3
+
+
+def cmd_ui(args) -> int:
+    cfg = compose(_overrides(args))
+    uri = tracking_uri(cfg)
+    cmd = [str(Path(sys.executable).with_name("mlflow")), "ui", "--backend-store-uri", uri, "--host", args.host,
+           "--port", str(args.port)]
+    print("+", " ".join(cmd), file=sys.stderr)
+    return subprocess.call(cmd)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="liverforce", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="command", required=True)
+
+    def common(sp):
+        sp.add_argument("-e", "--experiment", help="experiment (config/experiment/<name>.yaml)")
+        sp.add_argument("overrides", nargs="*", help="Hydra overrides, e.g. sweep.seed=3")
+
+    r = sub.add_parser("run", help="run the workflow (Snakemake) for an experiment")
+    common(r)
+    r.add_argument("--cores", type=int, default=2)
+    r.add_argument("--target", action="append", help="a rule name (e.g. shards, models) or an output file")
+    r.add_argument("-n", "--dry-run", action="store_true")
+    r.add_argument("--rerun-incomplete", action="store_true")
+    r.set_defaults(func=cmd_run)
+
+    c = sub.add_parser("config", help="print the composed, validated configuration")
+    common(c)
+    c.add_argument("--json", action="store_true")
+    c.set_defaults(func=cmd_config)
+
+    s = sub.add_parser("stability", help="Drucker stability of a material's constants (MPa)")
+    s.add_argument("model")
+    s.add_argument("params", nargs="+", help="NAME=VALUE in MPa, e.g. C10=0.00161")
+    s.add_argument("--nu", type=float, default=0.49)
+    s.add_argument("--lo", type=float, default=0.6)
+    s.add_argument("--hi", type=float, default=1.4)
+    s.set_defaults(func=cmd_stability)
+
+    u = sub.add_parser("ui", help="open the MLflow UI on the run's tracking store (127.0.0.1)")
+    common(u)
+    u.add_argument("--host", default="127.0.0.1")
+    u.add_argument("--port", type=int, default=5000)
+    u.set_defaults(func=cmd_ui)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except ConfigError as exc:
+        print(f"liverforce: configuration error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,483 @@
+"""Compose and validate the liverforce configuration (the only Hydra import).
+
+The Hydra config groups under ``config/`` are the single source of truth. This
+module composes them once (``compose``), checks every key's type against the
+dataclass schema below and every value's range, and returns a plain ``dict``
+(no ``DictConfig`` ever leaves this module). A wrong key or value raises
+:class:`ConfigError` with the key's dotted path, before any compute.
+
+Example
+-------
+>>> from liverforce.config import compose
+>>> cfg = compose(["experiment=smoke", "sweep.force.max_n=4.0"])
+>>> cfg["sweep"]["force"]["max_n"]
+4.0
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional
+
+PROJECT_ROOT = Path(__file__).resolve().parent.parent
+CONFIG_DIR = PROJECT_ROOT / "config"
+
+SCENARIOS = ("I", "II", "III", "IV")
+MATERIAL_MODELS = (
+    "neo_hookean",
+    "mooney_rivlin_2",
+    "mooney_rivlin_3",
+    "mooney_rivlin_5",
+    "yeoh",
+    "ogden",
+)
+
+
+class ConfigError(ValueError):
+    """A configuration key is unknown, mistyped or out of range."""
+
+
+# --------------------------------------------------------------------------
+# Schema: types (checked by OmegaConf) — ranges are checked in _check_ranges.
+# --------------------------------------------------------------------------
+
+
+@dataclass
+class ProceduralGeometry:
+    count: int = 4
+    seed: int = 0
+    shape: dict[str, Any] = field(default_factory=dict)  # LiverShapeParams fields
+
+
+@dataclass
+class CubeGeometry:
+    enabled: bool = False
+    edge_mm: float = 50.0
+
+
+@dataclass
+class ImportedGeometry:
+    name: str = "???"
+    path: str = "???"
+    units: str = "mm"  # mm | cm | m | auto | a number (scale to mm)
+    label: Optional[int] = None
+
+
+@dataclass
+class GeometryConfig:
+    procedural: ProceduralGeometry = field(default_factory=ProceduralGeometry)
+    cube: CubeGeometry = field(default_factory=CubeGeometry)
+    imported: list[ImportedGeometry] = field(default_factory=list)
+
+
+@dataclass
+class MeshConfig:
+    target_nodes: int = 3000
+    mesher: str = "gmsh"
+    refine_radius_mm: float = 0.0
+    refine_edge_mm: float = 4.0
+    regions: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class MaterialConfig:
+    model: str = "yeoh"
+    params_mpa: dict[str, float] = field(default_factory=dict)
+    nu: float = 0.49
+    vary_rel: float = 0.3
+    stability_stretch: list[float] = field(default_factory=lambda: [0.6, 1.4])
+    on_unstable: str = "refuse"
+
+
+@dataclass
+class BoundaryConfig:
+    ligament_total_n_per_mm: float = 56.3
+    visceral_total_n_per_mm: float = 42.6
+    tangential_ratio: float = 1.0
+    rib_normal_n_per_mm3: float = 0.1
+
+
+@dataclass
+class ForceRange:
+    min_n: float = 0.0
+    max_n: float = 5.0
+    cone_deg: float = 30.0
+
+
+@dataclass
+class ExertionConfig:
+    n_points: int = 8
+    min_spacing_mm: float = 15.0
+
+
+@dataclass
+class ScenarioSweep:
+    n_cases: int = 100
+    geometries: str = "1"  # "1" (first liver) or "all"
+    exertion: str = "varies"  # fixed | varies
+    material: str = "fixed"  # fixed | varies
+
+
+@dataclass
+class SweepConfig:
+    design: str = "sobol"
+    seed: int = 0
+    cases_per_shard: int = 25
+    force: ForceRange = field(default_factory=ForceRange)
+    exertion: ExertionConfig = field(default_factory=ExertionConfig)
+    scenarios: dict[str, ScenarioSweep] = field(default_factory=dict)
+
+
+@dataclass
+class SimulateConfig:
+    formulation: str = "p2_mean_dilatation"
+    tool_radius_mm: float = 5.0
+    tol: float = 1e-7
+    max_iter: int = 25
+    initial_step: float = 0.25
+    min_step: float = 0.002
+    max_steps: int = 200
+    time_limit_s: float = 120.0
+    warm_start: bool = True
+    modified_newton: bool = True
+    linear_solver: str = "auto"
+
+
+@dataclass
+class DatasetConfig:
+    roi_fraction: float = 0.18
+    store_full_surface: bool = True
+    compression: str = "zstd"
+
+
+@dataclass
+class OcclusionConfig:
+    radius_mm: float = 0.0
+    mode: str = "remove"
+
+
+@dataclass
+class ModelConfig:
+    encoder: str = "pca"
+    code_size: int = 16
+    state_vector: bool = True
+    grid_size: int = 12
+    hidden: list[int] = field(default_factory=lambda: [128, 128])
+    dropout: float = 0.1
+    occlusion: OcclusionConfig = field(default_factory=OcclusionConfig)
+    noise_mm: float = 0.0
+
+
+@dataclass
+class TrainConfig:
+    scenarios: list[str] = field(default_factory=lambda: list(SCENARIOS))
+    variants: list[dict[str, Any]] = field(default_factory=list)  # each: name + model overrides
+    test_fraction: float = 0.2
+    epochs: int = 200
+    batch_size: int = 64
+    lr: float = 1e-3
+    weight_decay: float = 0.0
+    seed: int = 0
+
+
+@dataclass
+class TuneConfig:
+    enabled: bool = True
+    trials: int = 6
+    folds: int = 3
+    sobol_trials: int = 4
+    epochs: int = 60
+
+
+@dataclass
+class TrackingConfig:
+    uri: Optional[str] = None
+    experiment_prefix: str = "liverforce"
+
+
+@dataclass
+class ValidateConfig:
+    seed: int = 1000
+    n_cases: int = 60
+    material_scale: float = 1.4
+
+
+@dataclass
+class ReportConfig:
+    format: str = "html"
+
+
+@dataclass
+class RootConfig:
+    experiment: str = "default"
+    results_dir: str = "results"
+    seed: int = 0
+    threads: int = 1
+    geometry: GeometryConfig = field(default_factory=GeometryConfig)
+    mesh: MeshConfig = field(default_factory=MeshConfig)
+    material: MaterialConfig = field(default_factory=MaterialConfig)
+    boundary: BoundaryConfig = field(default_factory=BoundaryConfig)
+    sweep: SweepConfig = field(default_factory=SweepConfig)
+    simulate: SimulateConfig = field(default_factory=SimulateConfig)
+    dataset: DatasetConfig = field(default_factory=DatasetConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    tune: TuneConfig = field(default_factory=TuneConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    validate: ValidateConfig = field(default_factory=ValidateConfig)
+    report: ReportConfig = field(default_factory=ReportConfig)
+
+
+# --------------------------------------------------------------------------
+# compose
+# --------------------------------------------------------------------------
+
+
+def compose(overrides: list[str] | tuple[str, ...] | None = None) -> dict:
+    """Compose ``config/`` with Hydra overrides, validate, return a plain dict.
+
+    Parameters
+    ----------
+    overrides : list of str
+        Hydra override strings, e.g. ``["experiment=smoke", "sweep.seed=3"]``.
+
+    Returns
+    -------
+    dict
+        The validated configuration as plain Python containers.
+
+    Raises
+    ------
+    ConfigError
+        On an unknown key, a wrong type or an out-of-range value; the message
+        names the key's dotted path and what to do.
+    """
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.errors import HydraException
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    overrides = list(overrides or [])
+    if GlobalHydra.instance().is_initialized():
+        GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+            raw = hydra_compose(config_name="config", overrides=overrides)
+    except (HydraException, OmegaConfBaseException) as exc:
+        raise ConfigError(
+            f"could not compose the configuration with overrides {overrides}: {exc}. "
+            "Check the override keys against config/ (e.g. `liverforce config show`)."
+        ) from exc
+    finally:
+        GlobalHydra.instance().clear()
+
+    OmegaConf.set_struct(raw, False)
+    raw.pop("hydra", None)
+    try:
+        typed = OmegaConf.merge(OmegaConf.structured(RootConfig), raw)
+        cfg = OmegaConf.to_container(typed, resolve=True, throw_on_missing=True)
+    except OmegaConfBaseException as exc:
+        key = getattr(exc, "full_key", None) or "?"
+        msg = str(exc).splitlines()[0]
+        raise ConfigError(f"config key '{key}': {msg}") from exc
+    _check_ranges(cfg)
+    return cfg
+
+
+def _fail(key: str, problem: str, fix: str = "") -> None:
+    raise ConfigError(f"config key '{key}': {problem}" + (f" — {fix}" if fix else ""))
+
+
+def _check_ranges(cfg: dict) -> None:
+    """Range and consistency checks; each failure names the dotted key."""
+    if cfg["threads"] < 1:
+        _fail("threads", f"must be >= 1 (got {cfg['threads']})")
+    g = cfg["geometry"]
+    if g["procedural"]["count"] < 1 and not g["imported"]:
+        _fail("geometry.procedural.count", "needs at least one geometry", "set count >= 1 or list imported livers")
+    try:
+        from liverforce.geometry.procedural import LiverShapeParams
+
+        LiverShapeParams(**g["procedural"]["shape"])
+    except (TypeError, ValueError) as exc:
+        _fail("geometry.procedural.shape", str(exc))
+    for i, imp in enumerate(g["imported"]):
+        name = imp["name"]
+        if not name or not all(c.isalnum() or c in "-_" for c in name):
+            _fail(f"geometry.imported[{i}].name", f"'{name}' must be letters, digits, '-' or '_' (it names output files)")
+        _check_units(f"geometry.imported[{i}].units", imp["units"])
+    if g["cube"]["edge_mm"] <= 0:
+        _fail("geometry.cube.edge_mm", "must be > 0 mm")
+
+    m = cfg["mesh"]
+    if not 100 <= m["target_nodes"] <= 200_000:
+        _fail("mesh.target_nodes", f"must be in [100, 200000] (got {m['target_nodes']})")
+    if m["mesher"] not in ("gmsh", "tetgen"):
+        _fail("mesh.mesher", f"unknown mesher '{m['mesher']}'", "use gmsh or tetgen")
+    if m["refine_radius_mm"] < 0 or m["refine_edge_mm"] <= 0:
+        _fail("mesh.refine_radius_mm", "refine radius must be >= 0 and refine_edge_mm > 0")
+
+    mat = cfg["material"]
+    if mat["model"] not in MATERIAL_MODELS:
+        _fail("material.model", f"unknown material '{mat['model']}'", f"choose one of {', '.join(MATERIAL_MODELS)}")
+    if not mat["params_mpa"]:
+        _fail("material.params_mpa", "no material constants given")
+    if not 0.0 < mat["nu"] < 0.5:
+        _fail("material.nu", f"Poisson ratio must be in (0, 0.5) (got {mat['nu']})")
+    if not 0.0 <= mat["vary_rel"] < 1.0:
+        _fail("material.vary_rel", f"must be in [0, 1) (got {mat['vary_rel']})")
+    lo_hi = mat["stability_stretch"]
+    if len(lo_hi) != 2 or not 0 < lo_hi[0] < 1 < lo_hi[1]:
+        _fail("material.stability_stretch", f"must be [lo, hi] with 0 < lo < 1 < hi (got {lo_hi})")
+    if mat["on_unstable"] not in ("refuse", "clip"):
+        _fail("material.on_unstable", f"'{mat['on_unstable']}'", "use refuse or clip")
+
+    b = cfg["boundary"]
+    for k, v in b.items():
+        if v < 0:
+            _fail(f"boundary.{k}", f"stiffness must be >= 0 (got {v})")
+
+    s = cfg["sweep"]
+    if s["design"] not in ("sobol", "lhs"):
+        _fail("sweep.design", f"unknown design '{s['design']}'", "use sobol or lhs")
+    if s["cases_per_shard"] < 1:
+        _fail("sweep.cases_per_shard", "must be >= 1")
+    f = s["force"]
+    if f["min_n"] < 0:
+        _fail("sweep.force.min_n", f"force magnitude must be >= 0 N (got {f['min_n']})")
+    if f["max_n"] <= f["min_n"]:
+        _fail("sweep.force.max_n", f"must exceed sweep.force.min_n (got {f['max_n']} <= {f['min_n']})")
+    if f["max_n"] > 50:
+        _fail("sweep.force.max_n", f"{f['max_n']} N is far beyond surgical forces (0-5 N); units are newtons")
+    if not 0 <= f["cone_deg"] < 90:
+        _fail("sweep.force.cone_deg", f"must be in [0, 90) degrees (got {f['cone_deg']})")
+    if s["exertion"]["n_points"] < 1:
+        _fail("sweep.exertion.n_points", "must be >= 1")
+    if s["exertion"]["min_spacing_mm"] < 0:
+        _fail("sweep.exertion.min_spacing_mm", "must be >= 0 mm")
+    if not s["scenarios"]:
+        _fail("sweep.scenarios", "no scenario defined")
+    for name, sc in s["scenarios"].items():
+        key = f"sweep.scenarios.{name}"
+        if name not in SCENARIOS:
+            _fail(key, f"unknown scenario '{name}'", f"use {', '.join(SCENARIOS)}")
+        if sc["n_cases"] < 1:
+            _fail(f"{key}.n_cases", f"must be >= 1 (got {sc['n_cases']})")
+        if str(sc["geometries"]) not in ("1", "all"):
+            _fail(f"{key}.geometries", f"'{sc['geometries']}'", "use 1 or all")
+        if sc["exertion"] not in ("fixed", "varies"):
+            _fail(f"{key}.exertion", f"'{sc['exertion']}'", "use fixed or varies")
+        if sc["material"] not in ("fixed", "varies"):
+            _fail(f"{key}.material", f"'{sc['material']}'", "use fixed or varies")
+
+    sim = cfg["simulate"]
+    if sim["formulation"] not in ("p2_mean_dilatation", "p1"):
+        _fail("simulate.formulation", f"unknown '{sim['formulation']}'", "use p2_mean_dilatation or p1")
+    if sim["tool_radius_mm"] <= 0:
+        _fail("simulate.tool_radius_mm", "must be > 0 mm")
+    if not 0 < sim["tol"] < 1:
+        _fail("simulate.tol", "must be in (0, 1)")
+    if sim["max_iter"] < 1 or sim["max_steps"] < 1:
+        _fail("simulate.max_iter", "max_iter and max_steps must be >= 1")
+    if not 0 < sim["min_step"] <= sim["initial_step"] <= 1:
+        _fail("simulate.initial_step", "need 0 < min_step <= initial_step <= 1")
+    if sim["time_limit_s"] <= 0:
+        _fail("simulate.time_limit_s", "must be > 0 s")
+    if sim["linear_solver"] not in ("auto", "cholmod", "superlu"):
+        _fail("simulate.linear_solver", f"unknown '{sim['linear_solver']}'", "use auto, cholmod or superlu")
+
+    d = cfg["dataset"]
+    if not 0 < d["roi_fraction"] <= 1:
+        _fail("dataset.roi_fraction", f"must be in (0, 1] (got {d['roi_fraction']})")
+    if d["compression"] not in ("zstd", "snappy", "gzip", "none"):
+        _fail("dataset.compression", f"unknown '{d['compression']}'")
+
+    mo = cfg["model"]
+    _check_model(mo, "model")
+    t = cfg["train"]
+    for sc in t["scenarios"]:
+        if sc not in s["scenarios"]:
+            _fail("train.scenarios", f"scenario '{sc}' has no sweep (sweep.scenarios)", "add it or remove it")
+    names = [v.get("name") for v in t["variants"]]
+    if len(set(names)) != len(names) or not all(isinstance(n, str) and n for n in names):
+        _fail("train.variants", f"every variant needs a unique name (got {names})")
+    for v in t["variants"]:
+        vname = v["name"]
+        over = {k: val for k, val in v.items() if k != "name"}
+        merged = {**mo, **over}
+        unknown = set(over) - set(mo)
+        if unknown:
+            _fail(f"train.variants.{vname}", f"unknown model keys {sorted(unknown)}")
+        _check_model(merged, f"train.variants.{vname}")
+    if not 0 < t["test_fraction"] < 1:
+        _fail("train.test_fraction", "must be in (0, 1)")
+    if t["epochs"] < 1 or t["batch_size"] < 1 or t["lr"] <= 0:
+        _fail("train.epochs", "epochs, batch_size must be >= 1 and lr > 0")
+    tu = cfg["tune"]
+    if tu["trials"] < 1 or tu["folds"] < 2 or tu["epochs"] < 1:
+        _fail("tune.folds", "need trials >= 1, folds >= 2, epochs >= 1")
+    v = cfg["validate"]
+    if v["n_cases"] < 1:
+        _fail("validate.n_cases", "must be >= 1")
+    if v["seed"] in range(g["procedural"]["seed"], g["procedural"]["seed"] + g["procedural"]["count"]):
+        _fail("validate.seed", f"seed {v['seed']} is a training liver's seed", "pick a seed outside the training range")
+
+
+def _check_model(mo: dict, key: str) -> None:
+    if mo["encoder"] not in ("pca", "ae", "dae"):
+        _fail(f"{key}.encoder", f"unknown encoder '{mo['encoder']}'", "use pca, ae or dae")
+    if mo["code_size"] < 1 or mo["grid_size"] < 3:
+        _fail(f"{key}.code_size", "code_size must be >= 1 and grid_size >= 3")
+    if not 0 <= mo["dropout"] < 1:
+        _fail(f"{key}.dropout", "must be in [0, 1)")
+    occ = mo["occlusion"]
+    if occ["radius_mm"] < 0 or occ["mode"] not in ("remove", "noise"):
+        _fail(f"{key}.occlusion", "radius_mm must be >= 0 and mode remove|noise")
+    if mo["noise_mm"] < 0:
+        _fail(f"{key}.noise_mm", "must be >= 0 mm")
+
+
+def _check_units(key: str, units: str) -> None:
+    if units in ("mm", "cm", "m", "auto"):
+        return
+    try:
+        scale = float(units)
+    except ValueError:
+        _fail(key, f"unknown units '{units}'", "use mm, cm, m, auto or a number (scale to mm)")
+    if scale <= 0:
+        _fail(key, f"scale must be > 0 (got {units})")
+
+
+# --------------------------------------------------------------------------
+# helpers used by the workflow and the CLI
+# --------------------------------------------------------------------------
+
+
+def config_hash(obj: Any) -> str:
+    """Short stable hash of a JSON-serialisable config slice (for run tags)."""
+    blob = json.dumps(obj, sort_keys=True, separators=(",", ":")).encode()
+    return hashlib.sha256(blob).hexdigest()[:16]
+
+
+def results_root(cfg: dict) -> Path:
+    """``<results_dir>/<experiment>`` as an absolute path."""
+    base = Path(cfg["results_dir"])
+    if not base.is_absolute():
+        base = Path(os.getcwd()) / base
+    return base / cfg["experiment"]
+
+
+def tracking_uri(cfg: dict) -> str:
+    """MLflow tracking URI: config value, else the embedded SQLite store."""
+    if cfg["tracking"]["uri"]:
+        return cfg["tracking"]["uri"]
+    base = Path(cfg["results_dir"])
+    if not base.is_absolute():
+        base = Path(os.getcwd()) / base
+    return f"sqlite:///{base / 'mlflow.db'}"

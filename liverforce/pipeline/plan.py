@@ -1,0 +1,122 @@
+"""What the workflow will build for a composed config: ids, paths, slices.
+
+Pure bookkeeping (no I/O) shared by the Snakemake rules and the CLI, so the
+same names are used everywhere.
+
+Geometry ids
+------------
+``proc-<seed:04d>``  procedural training liver
+``cube``             the cube phantom (``geometry.cube.enabled``)
+``imp-<name>``       an imported liver
+``val-<seed:04d>``   the unseen validation liver (procedural, held-out seed)
+
+Scenarios I–III use the first training geometry, IV all of them, and the
+validation scenario ``V`` the unseen liver.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from liverforce.config import SCENARIOS, config_hash, results_root
+from liverforce.sweep.design import n_shards
+
+VALIDATION = "V"
+
+
+class Plan:
+    """Targets and per-job config slices for one composed config."""
+
+    def __init__(self, cfg: dict):
+        self.cfg = cfg
+        self.root = str(Path(cfg["results_dir"]) / cfg["experiment"])
+        self.abs_root = results_root(cfg)
+        g = cfg["geometry"]
+        self.train_geometries: list[str] = [
+            f"proc-{g['procedural']['seed'] + i:04d}" for i in range(g["procedural"]["count"])
+        ]
+        self.train_geometries += [f"imp-{imp['name']}" for imp in g["imported"]]
+        if g["cube"]["enabled"]:
+            self.train_geometries.append("cube")
+        self.validation_geometry = f"val-{cfg['validate']['seed']:04d}"
+        self.scenarios = [s for s in SCENARIOS if s in cfg["sweep"]["scenarios"]]
+
+    # ---------------------------------------------------------------- geometry
+    @property
+    def all_geometries(self) -> list[str]:
+        return self.train_geometries + [self.validation_geometry]
+
+    def geometry_spec(self, gid: str) -> dict:
+        """Everything that defines one geometry (a rule's params)."""
+        g = self.cfg["geometry"]
+        if gid.startswith("proc-") or gid.startswith("val-"):
+            return {"kind": "procedural", "seed": int(gid.split("-")[1]), "shape": dict(g["procedural"]["shape"])}
+        if gid == "cube":
+            return {"kind": "cube", "edge_mm": g["cube"]["edge_mm"]}
+        if gid.startswith("imp-"):
+            name = gid[4:]
+            for imp in g["imported"]:
+                if imp["name"] == name:
+                    return {"kind": "imported", **imp}
+        raise KeyError(f"unknown geometry id '{gid}'")
+
+    def scenario_geometries(self, scenario: str) -> list[str]:
+        if scenario == VALIDATION:
+            return [self.validation_geometry]
+        spec = self.cfg["sweep"]["scenarios"][scenario]
+        return self.train_geometries if str(spec["geometries"]) == "all" else self.train_geometries[:1]
+
+    # ------------------------------------------------------------------- sweep
+    def scenario_spec(self, scenario: str) -> dict:
+        if scenario == VALIDATION:
+            return {"n_cases": self.cfg["validate"]["n_cases"], "geometries": "1", "exertion": "varies", "material": "fixed"}
+        return dict(self.cfg["sweep"]["scenarios"][scenario])
+
+    def sweep_params(self, scenario: str) -> dict:
+        """The config slice the sweep rule of one scenario uses."""
+        s = self.cfg["sweep"]
+        material = dict(self.cfg["material"])
+        if scenario == VALIDATION:
+            scale = self.cfg["validate"]["material_scale"]
+            material["params_mpa"] = {k: v * scale for k, v in material["params_mpa"].items()}
+        seed_offset = {"I": 0, "II": 1, "III": 2, "IV": 3, VALIDATION: 4}[scenario]
+        return {
+            "scenario": scenario,
+            "spec": self.scenario_spec(scenario),
+            "geometries": self.scenario_geometries(scenario),
+            "design": s["design"],
+            "seed": s["seed"] * 10 + seed_offset,
+            "cases_per_shard": s["cases_per_shard"],
+            "force": dict(s["force"]),
+            "exertion": dict(s["exertion"]),
+            "material": material,
+            "tool_radius_mm": self.cfg["simulate"]["tool_radius_mm"],
+        }
+
+    def all_scenarios(self) -> list[str]:
+        return self.scenarios + [VALIDATION]
+
+    def shard_ids(self, scenario: str) -> list[str]:
+        spec = self.scenario_spec(scenario)
+        return [f"{i:04d}" for i in range(n_shards(spec["n_cases"], self.cfg["sweep"]["cases_per_shard"]))]
+
+    # ------------------------------------------------------------------- train
+    def variants(self) -> dict[str, dict]:
+        """Model config per variant (model group merged with the variant's overrides)."""
+        base = self.cfg["model"]
+        out = {}
+        for v in self.cfg["train"]["variants"]:
+            out[v["name"]] = {**base, **{k: val for k, val in v.items() if k != "name"}}
+        if not out:
+            out["default"] = dict(base)
+        return out
+
+    def train_scenarios(self) -> list[str]:
+        return list(self.cfg["train"]["scenarios"])
+
+    def chosen_variant(self) -> str:
+        """The variant used for validation and prediction: the first listed."""
+        return next(iter(self.variants()))
+
+    def slice_hash(self, obj) -> str:
+        return config_hash(obj)

@@ -1,0 +1,325 @@
+"""Stage adapters: read a job's input files, call the package, write its outputs.
+
+Each function takes plain values (the rule's ``params:`` slice and paths) and
+is what a workflow script calls; the math lives in the stage packages. Every
+output is written atomically (temporary name, then rename).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from liverforce.dataset import io as dio
+
+log = logging.getLogger("liverforce")
+
+
+# ----------------------------------------------------------------- geometry
+
+
+def make_geometry(spec: dict, surface_path: str | Path, meta_path: str | Path) -> dict:
+    """Build one closed liver surface (procedural, cube or imported) and save it as PLY + JSON."""
+    from liverforce.geometry.procedural import LiverShapeParams, cube_phantom, procedural_liver
+
+    kind = spec["kind"]
+    messages: list[str] = []
+    if kind == "procedural":
+        surface = procedural_liver(int(spec["seed"]), LiverShapeParams(**spec.get("shape", {})))
+    elif kind == "cube":
+        surface = cube_phantom(float(spec["edge_mm"]))
+    elif kind == "imported":
+        from liverforce.geometry.importers import load_surface
+
+        units = spec.get("units", "mm")
+        try:
+            units = float(units)
+        except (TypeError, ValueError):
+            pass
+        surface, messages = load_surface(spec["path"], units=units, label=spec.get("label"))
+    else:
+        raise ValueError(f"unknown geometry kind '{kind}'")
+    for m in messages:
+        log.info("repair: %s", m)
+    save_surface(surface, surface_path)
+    meta = {**surface.meta, "spec": spec, "repairs": messages,
+            "volume_mm3": surface.volume_mm3, "area_mm2": surface.area_mm2,
+            "extent_mm": surface.extent_mm.tolist()}
+    dio.write_json_atomic(meta, meta_path)
+    log.info("geometry %s: %d vertices, %.0f mL, extent %s mm", spec, len(surface.vertices),
+             surface.volume_mm3 / 1000, np.round(surface.extent_mm, 1).tolist())
+    return meta
+
+
+def save_surface(surface, path: str | Path) -> None:
+    import meshio
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    meshio.write(tmp, meshio.Mesh(surface.vertices, [("triangle", surface.faces)]), binary=True)
+    tmp.replace(path)
+
+
+def load_surface_file(path: str | Path):
+    import meshio
+
+    from liverforce.geometry.surface import Surface
+
+    m = meshio.read(path)
+    return Surface(m.points.astype(np.float64), m.get_cells_type("triangle").astype(np.int64), {"source": str(path)})
+
+
+# --------------------------------------------------------------------- mesh
+
+
+def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path, picture_path) -> dict:
+    """Tetrahedralise a surface, tag regions, compute features, draw the regions."""
+    from liverforce.mesh.build import build_liver_mesh
+    from liverforce.mesh.features import compute_features
+    from liverforce.mesh.io import write_mesh
+    from liverforce.mesh.plot import plot_regions
+    from liverforce.mesh.regions import RegionParams
+
+    surface = load_surface_file(surface_path)
+    meta_file = Path(surface_path).with_suffix(".json")
+    if meta_file.exists():
+        surface.meta.update(json.loads(meta_file.read_text()))
+    t0 = time.perf_counter()
+    mesh = build_liver_mesh(
+        surface,
+        target_nodes=mesh_cfg["target_nodes"],
+        region_params=RegionParams(**mesh_cfg.get("regions", {})),
+        mesher=mesh_cfg["mesher"],
+        seed=seed,
+    )
+    elapsed = time.perf_counter() - t0
+    write_mesh(mesh_path, mesh)
+    feats = compute_features(mesh)
+    feats["meshing_time_s"] = elapsed
+    dio.write_json_atomic(feats, features_path)
+    plot_regions(mesh, picture_path)
+    log.info("mesh: %d nodes, %d tets in %.1f s", len(mesh.points), len(mesh.tets), elapsed)
+    return feats
+
+
+# -------------------------------------------------------------------- sweep
+
+
+def material_checks(stretch_range):
+    """(stability_check, bulk_modulus) callables for :func:`liverforce.sweep.design.build_cases`."""
+    from liverforce.fem.materials import make_material
+    from liverforce.fem.stability import check_stability
+
+    def stable(model, params):
+        try:
+            mat = make_material(model, params, nu=0.45)
+        except ValueError as exc:
+            return False, str(exc)
+        rep = check_stability(mat, stretch_range=tuple(stretch_range))
+        return bool(rep.stable), rep.message
+
+    def bulk(model, params, nu):
+        return make_material(model, params, nu=nu).bulk
+
+    return stable, bulk
+
+
+def exertion_set(mesh, n_points: int, min_spacing_mm: float, seed: int, frame_radius_mm: float):
+    """Candidate exertion points of one mesh with their normals and local frames."""
+    from liverforce.dataset.roi import local_frame, surface_graph
+    from liverforce.sweep.design import ExertionSet, sample_exertion_points
+
+    pts = sample_exertion_points(mesh.points, mesh.facets, mesh.facet_visible, n_points, min_spacing_mm, seed)
+    surf = surface_graph(mesh.points, mesh.facets)
+    frames = np.stack([local_frame(surf, p, frame_radius_mm) for p in pts])
+    return ExertionSet(points=pts, normals=frames[:, 2], frames=frames)
+
+
+def make_sweep(params: dict, mesh_paths: list[str], cases_path, report_path) -> dict:
+    """Build and write the case table of one scenario (refusing unstable materials first)."""
+    from liverforce.mesh.io import read_mesh
+    from liverforce.sweep.design import build_cases
+
+    gids = params["geometries"]
+    by_gid = {Path(p).stem: p for p in mesh_paths}
+    stable, bulk = material_checks(params["material"]["stability_stretch"])
+    ex = {}
+    for i, gid in enumerate(gids):
+        mesh = read_mesh(by_gid[gid])
+        ex[gid] = exertion_set(mesh, params["exertion"]["n_points"], params["exertion"]["min_spacing_mm"],
+                               params["seed"] * 7919 + i, params["tool_radius_mm"])
+    result = build_cases(
+        scenario=params["scenario"], spec=params["spec"], geometry_ids=gids, exertion=ex,
+        material=params["material"], force=params["force"], design=params["design"], seed=params["seed"],
+        cases_per_shard=params["cases_per_shard"], stability_check=stable, bulk_modulus=bulk,
+    )
+    dio.write_case_table(result.rows, cases_path, extra_meta={"sweep": params})
+    report = {
+        "scenario": params["scenario"],
+        "cases": len(result.rows),
+        "dropped_unstable": result.dropped_unstable,
+        "exertion_points_mm": {g: e.points.tolist() for g, e in ex.items()},
+    }
+    dio.write_json_atomic(report, report_path)
+    if result.dropped_unstable:
+        log.warning("scenario %s: %d sampled material sets were not Drucker-stable and were dropped",
+                    params["scenario"], len(result.dropped_unstable))
+    log.info("scenario %s: %d cases on %s", params["scenario"], len(result.rows), gids)
+    return report
+
+
+# ----------------------------------------------------------------- simulate
+
+
+def region_areas(mesh) -> dict[int, float]:
+    tri = mesh.points[mesh.facets]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    return {int(r): float(area[mesh.facet_region == r].sum()) for r in np.unique(mesh.facet_region)}
+
+
+def boundary_params(mesh, cfg: dict):
+    """Per-area spring stiffness (N/mm³) from the study's total stiffness (N/mm) per region.
+
+    Interpretation (stated in config/boundary): the study's foundation
+    stiffness is the region's total stiffness spread uniformly over its
+    reference area, ``k = K_total / A``; tangential = ratio × normal.
+    """
+    from liverforce.fem.problem import BoundaryParams
+    from liverforce.mesh.types import REGION_CODES
+
+    areas = region_areas(mesh)
+    a_lig = areas.get(REGION_CODES["ligament"], 0.0)
+    a_vis = areas.get(REGION_CODES["visceral"], 0.0)
+    k_lig = cfg["ligament_total_n_per_mm"] / a_lig if a_lig > 0 else 0.0
+    k_vis = cfg["visceral_total_n_per_mm"] / a_vis if a_vis > 0 else 0.0
+    r = cfg["tangential_ratio"]
+    return BoundaryParams(
+        ligament_kn=k_lig, ligament_kt=r * k_lig, visceral_kn=k_vis, visceral_kt=r * k_vis,
+        rib_kn=cfg["rib_normal_n_per_mm3"],
+    )
+
+
+def solver_options(sim: dict):
+    from liverforce.fem.problem import SolverOptions
+
+    return SolverOptions(
+        formulation=sim["formulation"], tol=sim["tol"], max_iter=sim["max_iter"],
+        initial_step=sim["initial_step"], min_step=sim["min_step"], max_steps=sim["max_steps"],
+        time_limit_s=sim["time_limit_s"], modified_newton=sim["modified_newton"],
+        linear_solver=sim["linear_solver"],
+    )
+
+
+def simulate_shard(cases_path, mesh_paths: list[str], shard: int, sim: dict, boundary: dict, dataset: dict,
+                   shard_path) -> dict:
+    """Simulate every case of one shard and write the shard atomically.
+
+    A case that fails (no convergence, time limit, solver error) becomes a row
+    with ``converged = False`` and its reason; it never stops the shard.
+    """
+    from liverforce.dataset.roi import extract_roi, surface_graph
+    from liverforce.fem.materials import make_material
+    from liverforce.fem.problem import LiverModel, ToolLoad
+    from liverforce.mesh.features import compute_features
+    from liverforce.mesh.io import read_mesh
+
+    table = dio.read_table(cases_path)
+    cases = [r for r in table.to_pylist() if r["shard_index"] == shard]
+    by_gid = {Path(p).stem: p for p in mesh_paths}
+    options = solver_options(sim)
+    rows: list[dict] = []
+    models: dict[str, tuple] = {}
+    prev_state = None
+    prev_key = None
+    t_start = time.perf_counter()
+    for n_done, case in enumerate(cases, start=1):
+        gid = case["geometry_id"]
+        if gid not in models:
+            mesh = read_mesh(by_gid[gid])
+            feats = compute_features(mesh)
+            surf = surface_graph(mesh.points, mesh.facets)
+            first_mat = make_material(case["material_model"], dict(zip(case["material_param_names"], case["material_params_mpa"])),
+                                      bulk_mpa=case["bulk_modulus_mpa"])
+            fe = LiverModel(mesh.points, mesh.tets, mesh.facets, mesh.facet_region, first_mat,
+                            boundary_params(mesh, boundary), options)
+            models[gid] = (mesh, feats, surf, fe)
+        mesh, feats, surf, fe = models[gid]
+        material = make_material(case["material_model"], dict(zip(case["material_param_names"], case["material_params_mpa"])),
+                                 bulk_mpa=case["bulk_modulus_mpa"])
+        load = ToolLoad(point_mm=np.asarray(case["exertion_point_mm"]), force_N=np.asarray(case["force_n"]),
+                        radius_mm=sim["tool_radius_mm"])
+        warm = sim["warm_start"] and prev_key == gid and prev_state is not None
+        t0 = time.perf_counter()
+        try:
+            res = fe.solve(load, material=material, u0=prev_state if warm else None)
+            error = None
+        except Exception as exc:  # a solver crash is recorded as a failed case, never fatal to the shard
+            res, error = None, f"{type(exc).__name__}: {exc}"
+            log.exception("case %s crashed", case["case_id"])
+        wall = time.perf_counter() - t0
+        rows.append(_case_row(case, res, error, wall, mesh, feats, surf, dataset, sim["tool_radius_mm"], extract_roi))
+        if res is not None and res.converged:
+            prev_state, prev_key = res.state, gid
+        rate = n_done / (time.perf_counter() - t_start) * 3600
+        log.info("case %s (%d/%d): %s, |F| %.2f N, max|u| %.2f mm, %d it, %.2f s — %.0f cases/h",
+                 case["case_id"], n_done, len(cases), "ok" if rows[-1]["converged"] else f"FAILED ({rows[-1]['reason']})",
+                 case["force_magnitude_n"], rows[-1]["max_displacement_mm"], rows[-1]["newton_iterations"], wall, rate)
+    entry = dio.write_shard(rows, shard_path, compression=dataset["compression"],
+                            extra_meta={"simulate": sim, "boundary": boundary, "dataset": dataset})
+    if rows and entry["failed"] == len(rows):
+        log.warning("shard %s: every case failed (see the 'reason' column)", shard_path)
+    log.info("shard %s: %d rows, %d failed", shard_path, entry["rows"], entry["failed"])
+    return entry
+
+
+def _case_row(case, res, error, wall, mesh, feats, surf, dataset, tool_radius_mm, extract_roi) -> dict:
+    from liverforce.dataset.roi import local_frame
+
+    point = np.asarray(case["exertion_point_mm"])
+    frame = local_frame(surf, point, tool_radius_mm)
+    ids_local, achieved = extract_roi(surf, point, dataset["roi_fraction"])
+    node_ids = surf.node_ids[ids_local]
+    und = mesh.points[node_ids]
+    converged = bool(res is not None and res.converged)
+    if res is not None and res.u_nodes is not None and np.all(np.isfinite(res.u_nodes)):
+        u = res.u_nodes
+    else:
+        u = np.zeros_like(mesh.points)
+    de = und + u[node_ids]
+    surf_u = u[surf.node_ids] if dataset["store_full_surface"] else np.zeros((0, 3))
+    row = {k: case[k] for k in (
+        "case_id", "scenario", "geometry_id", "shard_index", "seed", "material_model", "material_param_names",
+        "material_params_mpa", "bulk_modulus_mpa", "exertion_id", "exertion_point_mm", "force_n", "force_magnitude_n")}
+    row.update(
+        frame_t1=frame[0], frame_t2=frame[1], frame_normal=frame[2],
+        liver_centroid_mm=np.asarray(feats["centroid_mm"], dtype=float),
+        inertia_mm5=np.asarray(feats["inertia_mm5"], dtype=float).reshape(9),
+        roi_fraction=float(dataset["roi_fraction"]), roi_area_fraction=achieved,
+        roi_node_ids=node_ids.astype(np.int32), roi_undeformed_mm=und.astype(np.float32),
+        roi_deformed_mm=de.astype(np.float32),
+        roi_centroid_undeformed_mm=und.mean(axis=0), roi_centroid_deformed_mm=de.mean(axis=0),
+        surface_displacement_mm=surf_u.astype(np.float32),
+        max_displacement_mm=float(np.linalg.norm(u, axis=1).max()),
+        converged=converged,
+        reason="" if converged else (error or (res.reason if res is not None else "unknown")),
+        load_fraction=float(res.load_fraction) if res is not None else 0.0,
+        load_steps=int(res.load_steps) if res is not None else 0,
+        newton_iterations=int(res.newton_iterations) if res is not None else 0,
+        final_residual=float(res.final_residual) if res is not None else float("nan"),
+        linear_solver=str(res.linear_solver) if res is not None else "",
+        wall_time_s=float(wall),
+    )
+    return row
+
+
+def make_manifest(shard_paths: list[str], manifest_path) -> dict:
+    """Manifest of a scenario's shards; prints the failure rate."""
+    m = dio.write_manifest(shard_paths, manifest_path)
+    log.info("%s: %d shards, %d rows, %d failed (failure rate %.1f %%)", manifest_path, len(m["shards"]), m["rows"],
+             m["failed"], 100 * m["failure_rate"])
+    return m

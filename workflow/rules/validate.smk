@@ -1,0 +1,22 @@
+# Stage 7: the chosen scenario-IV model on the unseen liver with unseen constants.
+
+
+rule validate:
+    input:
+        model=f"{E}/models/IV/{PLAN.chosen_variant()}/model",
+        metrics=f"{E}/models/IV/{PLAN.chosen_variant()}/metrics.json",
+        manifest=f"{E}/shards/V/manifest.json",
+    output:
+        metrics=f"{E}/validate/metrics.json",
+    params:
+        tracking_uri=TRACKING_URI,
+    log:
+        f"{E}/logs/validate/validate.log",
+    conda:
+        "../envs/liverforce.yaml"
+    threads: 1
+    resources:
+        mem_mb=2000,
+        runtime=10,
+    script:
+        "../scripts/validate.py"

@@ -1,0 +1,7 @@
+"""Snakemake adapter: mesh stage (see liverforce.pipeline.stages.make_mesh)."""
+from liverforce.pipeline.job import setup_job
+from liverforce.pipeline.stages import make_mesh
+
+sm = snakemake  # noqa: F821
+setup_job(sm.log[0], sm.threads)
+make_mesh(sm.input.surface, sm.params.mesh, sm.params.seed, sm.output.mesh, sm.output.features, sm.output.picture)

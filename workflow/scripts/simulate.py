@@ -1,0 +1,8 @@
+"""Snakemake adapter: simulate one shard (see liverforce.pipeline.stages.simulate_shard)."""
+from liverforce.pipeline.job import setup_job
+from liverforce.pipeline.stages import simulate_shard
+
+sm = snakemake  # noqa: F821
+setup_job(sm.log[0], sm.threads)
+simulate_shard(sm.input.cases, list(sm.input.meshes), int(sm.wildcards.shard), sm.params.simulate,
+               sm.params.boundary, sm.params.dataset, sm.output.shard)

@@ -1,0 +1,7 @@
+"""Snakemake adapter: sweep stage (see liverforce.pipeline.stages.make_sweep)."""
+from liverforce.pipeline.job import setup_job
+from liverforce.pipeline.stages import make_sweep
+
+sm = snakemake  # noqa: F821
+setup_job(sm.log[0], sm.threads)
+make_sweep(sm.params.sweep, list(sm.input.meshes), sm.output.cases, sm.output.report)

@@ -1,0 +1,7 @@
+"""Snakemake adapter: unseen-liver validation (see liverforce.pipeline.stages.validate_model)."""
+from liverforce.pipeline.job import setup_job
+from liverforce.pipeline.stages import validate_model
+
+sm = snakemake  # noqa: F821
+setup_job(sm.log[0], sm.threads)
+validate_model(sm.input.model, sm.input.metrics, sm.input.manifest, sm.params.tracking_uri, sm.output.metrics)
