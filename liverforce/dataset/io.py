@@ -247,7 +247,9 @@ def read_metadata(path: str | Path) -> dict[str, Any]:
     out = {}
     for k, v in meta.items():
         k = k.decode()
-        if k.startswith("liverforce."):
+        if k == "liverforce.schema_version":
+            out["schema_version"] = v.decode()
+        elif k.startswith("liverforce."):
             try:
                 out[k[len("liverforce."):]] = json.loads(v)
             except json.JSONDecodeError:

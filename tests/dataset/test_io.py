@@ -1,0 +1,141 @@
+"""Shard I/O: schema round trip, atomic writes, manifest hashes, corruption detection."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from liverforce.dataset import io as dio
+from liverforce.dataset.schema import SCHEMA_VERSION, SHARD_SCHEMA
+
+
+def fake_row(i: int, rng, converged=True) -> dict:
+    k = 5 + i  # ROI sizes differ per case
+    und = rng.normal(size=(k, 3)).astype(np.float32)
+    de = und + 0.1
+    return {
+        "case_id": f"I-{i:06d}", "scenario": "I", "geometry_id": "proc-0000", "shard_index": 0, "seed": i,
+        "material_model": "yeoh", "material_param_names": ["C10", "C20", "C30"],
+        "material_params_mpa": [0.0016, 0.0125, 0.0053], "bulk_modulus_mpa": 0.5, "exertion_id": 0,
+        "exertion_point_mm": [1.0, 2.0, 3.0], "force_n": [0.1, 0.2, -1.0 * i], "force_magnitude_n": 1.0,
+        "frame_normal": [0, 0, 1.0], "frame_t1": [1.0, 0, 0], "frame_t2": [0, 1.0, 0],
+        "liver_centroid_mm": [0, 0, 0.0], "inertia_mm5": list(np.eye(3).ravel()),
+        "roi_fraction": 0.18, "roi_area_fraction": 0.181, "roi_node_ids": np.arange(k, dtype=np.int32),
+        "roi_undeformed_mm": und, "roi_deformed_mm": de,
+        "roi_centroid_undeformed_mm": und.mean(0), "roi_centroid_deformed_mm": de.mean(0),
+        "surface_displacement_mm": np.full((7, 3), 0.1, np.float32), "max_displacement_mm": 0.17,
+        "converged": converged, "reason": "" if converged else "diverged", "load_fraction": 1.0 if converged else 0.4,
+        "load_steps": 3, "newton_iterations": 9, "final_residual": 1e-9, "linear_solver": "cholmod",
+        "wall_time_s": float(rng.random()),
+    }
+
+
+@pytest.fixture
+def rows():
+    rng = np.random.default_rng(0)
+    return [fake_row(i, rng, converged=(i != 2)) for i in range(4)]
+
+
+def test_round_trip_keeps_schema_values_and_metadata(tmp_path, rows):
+    p = tmp_path / "shard-0000.parquet"
+    entry = dio.write_shard(rows, p)
+    assert entry["rows"] == 4 and entry["failed"] == 1
+    t = dio.read_table(p)
+    assert t.schema.remove_metadata().equals(SHARD_SCHEMA)
+    assert dio.read_metadata(p)["schema_version"] == SCHEMA_VERSION
+    clouds = dio.points_column(t, "roi_deformed_mm")
+    for r, c in zip(rows, clouds):
+        np.testing.assert_array_equal(c, r["roi_deformed_mm"])
+        assert c.dtype == np.float32
+    arrays = dio.load_training_arrays([p])
+    assert len(arrays["case_id"]) == 3  # the failed case is dropped for training ...
+    assert "I-000002" not in set(arrays["case_id"])
+    assert t.num_rows == 4  # ... but stays in the shard with its reason
+    assert t.column("reason").to_pylist()[2] == "diverged"
+    np.testing.assert_allclose(arrays["force_n"][1], rows[1]["force_n"])
+
+
+def test_payload_hash_ignores_wall_time_only(tmp_path, rows):
+    a = dio.write_shard(rows, tmp_path / "a.parquet")
+    for r in rows:
+        r["wall_time_s"] += 1.0
+    b = dio.write_shard(rows, tmp_path / "b.parquet")
+    assert a["payload_sha256"] == b["payload_sha256"]
+    rows[0]["force_n"] = [9.0, 9.0, 9.0]
+    c = dio.write_shard(rows, tmp_path / "c.parquet")
+    assert c["payload_sha256"] != a["payload_sha256"]
+
+
+def test_same_rows_give_byte_identical_files(tmp_path, rows):
+    dio.write_shard(rows, tmp_path / "a.parquet")
+    dio.write_shard(rows, tmp_path / "b.parquet")
+    assert (tmp_path / "a.parquet").read_bytes() == (tmp_path / "b.parquet").read_bytes()
+
+
+def test_failed_write_leaves_nothing(tmp_path, rows, monkeypatch):
+    p = tmp_path / "shard-0000.parquet"
+
+    def broken(table, where, **kw):
+        where.write(b"PAR1 half a file")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(pq, "write_table", broken)
+    with pytest.raises(OSError):
+        dio.write_shard(rows, p)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_manifest_detects_truncation_and_bit_flips(tmp_path, rows):
+    paths = []
+    for i in range(2):
+        p = tmp_path / f"shard-{i:04d}.parquet"
+        dio.write_shard(rows, p)
+        paths.append(p)
+    m = dio.write_manifest(paths, tmp_path / "manifest.json")
+    assert m["rows"] == 8 and m["failed"] == 2
+    assert dio.verify_manifest(tmp_path / "manifest.json") == paths
+    data = bytearray(paths[1].read_bytes())
+    data[len(data) // 2] ^= 0x01
+    paths[1].write_bytes(bytes(data))
+    with pytest.raises(dio.ShardError, match="shard-0001.*does not match"):
+        dio.verify_manifest(tmp_path / "manifest.json")
+    paths[1].write_bytes(bytes(data[:100]))
+    with pytest.raises(dio.ShardError, match="truncated or corrupt"):
+        dio.verify_manifest(tmp_path / "manifest.json")
+    with pytest.raises(dio.ShardError, match="not a readable Parquet"):
+        dio.read_table(paths[1])
+    paths[1].unlink()
+    with pytest.raises(dio.ShardError, match="missing"):
+        dio.verify_manifest(tmp_path / "manifest.json")
+
+
+def test_other_schema_version_is_refused(tmp_path, rows):
+    p = tmp_path / "s.parquet"
+    dio.write_shard(rows, p)
+    man = dio.write_manifest([p], tmp_path / "manifest.json")
+    man["schema_version"] = "0.1"
+    (tmp_path / "manifest.json").write_text(json.dumps(man))
+    with pytest.raises(dio.ShardError, match="schema version"):
+        dio.verify_manifest(tmp_path / "manifest.json")
+    t = pq.read_table(p).replace_schema_metadata({b"liverforce.schema_version": b"0.1"})
+    pq.write_table(t, p)
+    with pytest.raises(dio.ShardError, match="schema version 0.1"):
+        dio.read_table(p)
+
+
+def test_empty_shard_is_valid(tmp_path):
+    e = dio.write_shard([], tmp_path / "empty.parquet")
+    assert e["rows"] == 0 and e["failed"] == 0
+
+
+def test_dataset_reads_all_shards(tmp_path, rows):
+    paths = []
+    for i in range(3):
+        p = tmp_path / f"shard-{i:04d}.parquet"
+        dio.write_shard(rows, p)
+        paths.append(p)
+    ds = dio.open_dataset(paths)
+    assert ds.count_rows() == 12
+    assert ds.to_table(columns=["force_magnitude_n"]).num_rows == 12

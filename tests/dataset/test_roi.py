@@ -1,0 +1,62 @@
+"""ROI extraction: area fraction, geodesic growth, local frame."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from liverforce.dataset.roi import extract_roi, local_frame, surface_graph
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    s = trimesh.creation.icosphere(subdivisions=4, radius=50.0)
+    return np.asarray(s.vertices), np.asarray(s.faces)
+
+
+def test_node_areas_sum_to_surface_area(sphere):
+    pts, tri = sphere
+    g = surface_graph(pts, tri)
+    assert g.total_area == pytest.approx(trimesh.Trimesh(pts, tri).area, rel=1e-12)
+
+
+@pytest.mark.parametrize("fraction", [0.05, 0.18, 0.5])
+def test_roi_area_within_2_percent_and_a_spherical_cap(sphere, fraction):
+    pts, tri = sphere
+    g = surface_graph(pts, tri)
+    p = np.array([0, 0, 50.0])
+    ids, achieved = extract_roi(g, p, fraction)
+    assert abs(achieved - fraction) < 0.02 * fraction + 1e-3
+    # on a sphere the geodesic patch is a cap: height h = 2 R f, so z >= R (1 - 2 f) (one ring of slack)
+    z = g.points[ids, 2]
+    assert z.min() > 50.0 * (1 - 2 * fraction) - 4.0
+
+
+def test_roi_grows_along_surface_not_through_space():
+    # a thin plate: the bottom face is 2 mm below the top face in space, but
+    # more than 50 mm away along the surface from the centre of the top face
+    plate = trimesh.creation.box(extents=[100, 100, 2])
+    for _ in range(4):
+        plate = plate.subdivide()
+    g = surface_graph(np.asarray(plate.vertices), np.asarray(plate.faces))
+    ids, achieved = extract_roi(g, np.array([0.0, 0.0, 1.0]), 0.1)
+    assert achieved == pytest.approx(0.1, abs=0.005)
+    assert np.all(g.points[ids, 2] > 0.0)  # only the touched (top) face
+    r = np.linalg.norm(g.points[ids, :2], axis=1)
+    assert r.max() < 30.0  # a disc of ~26 mm radius (10 % of 20,800 mm^2)
+
+
+def test_local_frame_is_right_handed_orthonormal(sphere):
+    pts, tri = sphere
+    g = surface_graph(pts, tri)
+    for p in ([0, 0, 50.0], [50.0, 0, 0], [0, -50.0, 0], [28.9, 28.9, 28.9]):
+        f = local_frame(g, np.array(p), radius_mm=6.0)
+        np.testing.assert_allclose(f @ f.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(f) == pytest.approx(1.0)
+        np.testing.assert_allclose(f[2], np.array(p) / np.linalg.norm(p), atol=0.01)  # outward normal
+
+
+def test_bad_fraction_refused(sphere):
+    g = surface_graph(*sphere)
+    with pytest.raises(ValueError, match="fraction"):
+        extract_roi(g, np.zeros(3), 0.0)
