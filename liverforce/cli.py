@@ -7,6 +7,8 @@ liverforce run -e smoke sweep.seed=3            # an experiment + Hydra override
 liverforce run -e smoke --target shards         # one stage (a rule name or a file)
 liverforce config -e smoke                      # print the composed, validated config
 liverforce stability yeoh C10=0.00161 C20=0.0125 C30=0.00531
+liverforce progress -e smoke                    # sweep progress while Snakemake runs
+liverforce show-case II-000012 -e smoke         # picture of one case
 liverforce ui                                   # MLflow UI on 127.0.0.1
 """
 
@@ -90,6 +92,45 @@ def cmd_ui(args) -> int:
     return subprocess.call(cmd)
 
 
+def cmd_progress(args) -> int:
+    from liverforce.pipeline.plan import Plan
+    from liverforce.pipeline.progress import format_progress, sweep_progress
+
+    plan = Plan(compose(_overrides(args)))
+    shards = {s: len(plan.shard_ids(s)) for s in plan.all_scenarios()}
+    cases = {s: plan.scenario_spec(s)["n_cases"] for s in plan.all_scenarios()}
+    print(format_progress(sweep_progress(plan.root, shards, cases)))
+    return 0
+
+
+def cmd_show_case(args) -> int:
+    """Draw one case: deformed surface coloured by |u|, ROI outlined, force arrow."""
+    from liverforce.dataset import io as dio
+    from liverforce.dataset.plot import plot_case
+    from liverforce.mesh.io import read_mesh
+    from liverforce.pipeline.plan import Plan
+
+    plan = Plan(compose(_overrides(args)))
+    scenario = args.case_id.split("-")[0]
+    shard_dir = Path(plan.root) / "shards" / scenario
+    shards = sorted(shard_dir.glob("shard-*.parquet"))
+    if not shards:
+        print(f"liverforce: no shards in {shard_dir}; run the sweep first (snakemake ... shards)", file=sys.stderr)
+        return 2
+    for shard in shards:
+        table = dio.read_table(shard)
+        ids = table.column("case_id").to_pylist()
+        if args.case_id in ids:
+            row = table.slice(ids.index(args.case_id), 1).to_pylist()[0]
+            mesh = read_mesh(Path(plan.root) / "mesh" / f"{row['geometry_id']}.vtu")
+            out = Path(args.out or Path(plan.root) / "cases" / f"{args.case_id}.png")
+            plot_case(mesh.points, mesh.facets, row, out, scale=args.scale)
+            print(out)
+            return 0
+    print(f"liverforce: case {args.case_id} not found in {shard_dir}", file=sys.stderr)
+    return 2
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="liverforce", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="command", required=True)
@@ -118,6 +159,17 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--lo", type=float, default=0.6)
     s.add_argument("--hi", type=float, default=1.4)
     s.set_defaults(func=cmd_stability)
+
+    pr = sub.add_parser("progress", help="sweep progress: cases done / total and the rate")
+    common(pr)
+    pr.set_defaults(func=cmd_progress)
+
+    sc = sub.add_parser("show-case", help="picture of one simulated case (PNG)")
+    sc.add_argument("case_id", help="e.g. II-000012")
+    common(sc)
+    sc.add_argument("--out", help="PNG path (default results/<exp>/cases/<case>.png)")
+    sc.add_argument("--scale", type=float, default=1.0, help="displacement magnification")
+    sc.set_defaults(func=cmd_show_case)
 
     u = sub.add_parser("ui", help="open the MLflow UI on the run's tracking store (127.0.0.1)")
     common(u)

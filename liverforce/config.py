@@ -170,6 +170,9 @@ class ModelConfig:
     dropout: float = 0.1
     occlusion: OcclusionConfig = field(default_factory=OcclusionConfig)
     noise_mm: float = 0.0
+    roi_features: str = "displacement"
+    grid_half_width_mm: float = 0.0
+    dae_input_noise: float = 0.1
 
 
 @dataclass
@@ -191,6 +194,7 @@ class TuneConfig:
     folds: int = 3
     sobol_trials: int = 4
     epochs: int = 60
+    space: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass
@@ -441,6 +445,12 @@ def _check_model(mo: dict, key: str) -> None:
         _fail(f"{key}.occlusion", "radius_mm must be >= 0 and mode remove|noise")
     if mo["noise_mm"] < 0:
         _fail(f"{key}.noise_mm", "must be >= 0 mm")
+    if mo["roi_features"] not in ("displacement", "deformed", "both"):
+        _fail(f"{key}.roi_features", f"unknown '{mo['roi_features']}'", "use displacement, deformed or both")
+    if mo["grid_half_width_mm"] < 0:
+        _fail(f"{key}.grid_half_width_mm", "must be >= 0 mm (0 = fitted)")
+    if mo["dae_input_noise"] < 0:
+        _fail(f"{key}.dae_input_noise", "must be >= 0")
 
 
 def _check_units(key: str, units: str) -> None:

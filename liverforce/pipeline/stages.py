@@ -176,12 +176,6 @@ def make_sweep(params: dict, mesh_paths: list[str], cases_path, report_path) -> 
 # ----------------------------------------------------------------- simulate
 
 
-def region_areas(mesh) -> dict[int, float]:
-    tri = mesh.points[mesh.facets]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-    return {int(r): float(area[mesh.facet_region == r].sum()) for r in np.unique(mesh.facet_region)}
-
-
 def boundary_params(mesh, cfg: dict):
     """Per-area spring stiffness (N/mm³) from the study's total stiffness (N/mm) per region.
 
@@ -190,17 +184,12 @@ def boundary_params(mesh, cfg: dict):
     reference area, ``k = K_total / A``; tangential = ratio × normal.
     """
     from liverforce.fem.problem import BoundaryParams
-    from liverforce.mesh.types import REGION_CODES
 
-    areas = region_areas(mesh)
-    a_lig = areas.get(REGION_CODES["ligament"], 0.0)
-    a_vis = areas.get(REGION_CODES["visceral"], 0.0)
-    k_lig = cfg["ligament_total_n_per_mm"] / a_lig if a_lig > 0 else 0.0
-    k_vis = cfg["visceral_total_n_per_mm"] / a_vis if a_vis > 0 else 0.0
-    r = cfg["tangential_ratio"]
-    return BoundaryParams(
-        ligament_kn=k_lig, ligament_kt=r * k_lig, visceral_kn=k_vis, visceral_kt=r * k_vis,
-        rib_kn=cfg["rib_normal_n_per_mm3"],
+    return BoundaryParams.from_totals(
+        mesh.points, mesh.facets, mesh.facet_region,
+        ligament_total_n_per_mm=cfg["ligament_total_n_per_mm"],
+        visceral_total_n_per_mm=cfg["visceral_total_n_per_mm"],
+        tangential_ratio=cfg["tangential_ratio"], rib_kn=cfg["rib_normal_n_per_mm3"],
     )
 
 
@@ -213,6 +202,12 @@ def solver_options(sim: dict):
         time_limit_s=sim["time_limit_s"], modified_newton=sim["modified_newton"],
         linear_solver=sim["linear_solver"],
     )
+
+
+def _progress_path(shard_path) -> Path:
+    shard_path = Path(shard_path)
+    # results/<exp>/shards/<scenario>/shard-NNNN.parquet -> results/<exp>/progress/<scenario>-NNNN.json
+    return shard_path.parent.parent.parent / "progress" / f"{shard_path.parent.name}-{shard_path.stem.split('-')[-1]}.json"
 
 
 def simulate_shard(cases_path, mesh_paths: list[str], shard: int, sim: dict, boundary: dict, dataset: dict,
@@ -266,6 +261,9 @@ def simulate_shard(cases_path, mesh_paths: list[str], shard: int, sim: dict, bou
         if res is not None and res.converged:
             prev_state, prev_key = res.state, gid
         rate = n_done / (time.perf_counter() - t_start) * 3600
+        dio.write_json_atomic({"done": n_done, "total": len(cases), "failed": sum(not r["converged"] for r in rows),
+                               "elapsed_s": time.perf_counter() - t_start, "updated": time.time()},
+                              _progress_path(shard_path))
         log.info("case %s (%d/%d): %s, |F| %.2f N, max|u| %.2f mm, %d it, %.2f s — %.0f cases/h",
                  case["case_id"], n_done, len(cases), "ok" if rows[-1]["converged"] else f"FAILED ({rows[-1]['reason']})",
                  case["force_magnitude_n"], rows[-1]["max_displacement_mm"], rows[-1]["newton_iterations"], wall, rate)
@@ -323,3 +321,139 @@ def make_manifest(shard_paths: list[str], manifest_path) -> dict:
     log.info("%s: %d shards, %d rows, %d failed (failure rate %.1f %%)", manifest_path, len(m["shards"]), m["rows"],
              m["failed"], 100 * m["failure_rate"])
     return m
+
+
+# -------------------------------------------------------------------- train
+
+
+def train_model(manifest_path, scenario: str, variant: str, model_cfg: dict, train_cfg: dict, tune_cfg: dict,
+                tracking_uri: str, experiment_prefix: str, experiment: str, seed: int, threads: int,
+                metrics_path, model_dir) -> dict:
+    """Train one scenario/variant from verified shards; track it in MLflow.
+
+    Every shard is checked against the manifest's hash before it is read: a
+    truncated or modified shard stops training with its name (delete it and
+    re-run to rebuild it).
+    """
+    from liverforce.config import config_hash
+    from liverforce.learn.train import train_scenario
+    from liverforce.tracking import Tracker
+
+    shards = dio.verify_manifest(manifest_path)
+    manifest = json.loads(Path(manifest_path).read_text())
+    arrays = dio.load_training_arrays(shards)
+    n = len(arrays["case_id"])
+    log.info("scenario %s / %s: %d converged cases from %d shards (data version %s)", scenario, variant, n,
+             len(shards), manifest["data_version"])
+    if n < 10:
+        raise RuntimeError(
+            f"scenario {scenario}: only {n} converged cases in {manifest_path}; too few to train "
+            f"({manifest['failed']} failed — see the 'reason' column); raise sweep.scenarios.{scenario}.n_cases"
+        )
+    out_dir = Path(metrics_path).parent
+    tracker = Tracker(tracking_uri, f"{experiment_prefix}-{experiment}-{scenario}")
+    tags = {
+        "rule": "train", "scenario": scenario, "variant": variant, "experiment": experiment,
+        "config_hash": config_hash({"model": model_cfg, "train": train_cfg, "tune": tune_cfg}),
+        "data_version": manifest["data_version"],
+    }
+    result = train_scenario(arrays, model_cfg, train_cfg, tune_cfg, scenario, variant, tracker=tracker,
+                            threads=threads, seed=seed + train_cfg["seed"], out_dir=out_dir, tags=tags)
+    result.update(encoder=model_cfg["encoder"], state_vector=bool(model_cfg["state_vector"]), model_cfg=model_cfg)
+    dio.write_json_atomic(result, metrics_path)
+    log.info("scenario %s / %s: test %s", scenario, variant,
+             {k: round(v, 4) for k, v in result.get("metrics", {}).items() if isinstance(v, float)})
+    return result
+
+
+# ----------------------------------------------------------------- validate
+
+
+def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_path, tracking_uri, out_path,
+                   experiment_name: str = "liverforce-validation") -> dict:
+    """Predict the unseen liver's cases with the chosen scenario-IV model.
+
+    Reports MAE / RMSE (N), accuracy %, and the error against force magnitude
+    and against the distance of the exertion point from the nearest training
+    exertion point (in the local frame sense: both livers are centred on their
+    centroids, since they are different shapes).
+    """
+    from liverforce.learn.metrics import force_metrics
+    from liverforce.learn.model import ForceModel
+    from liverforce.tracking import Tracker
+
+    model = ForceModel.load(Path(model_dir))
+    arrays = dio.load_training_arrays(dio.verify_manifest(manifest_path))
+    train = dio.load_training_arrays(dio.verify_manifest(train_manifest_path))
+    n = len(arrays["case_id"])
+    if n == 0:
+        raise RuntimeError(f"{manifest_path}: no converged validation case to evaluate")
+    pred = model.predict(arrays, observation_seed=int(model.meta.get("eval_observation_seed", 0)))
+    true = arrays["force_n"]
+    metrics = force_metrics(true, pred)
+    err = np.linalg.norm(pred - true, axis=1)
+    mag = np.linalg.norm(true, axis=1)
+    rel_v = arrays["exertion_point_mm"] - arrays["liver_centroid_mm"]
+    rel_t = train["exertion_point_mm"] - train["liver_centroid_mm"]
+    dist = np.min(np.linalg.norm(rel_v[:, None, :] - rel_t[None, :, :], axis=2), axis=1)
+    bins = np.linspace(0.0, max(mag.max(), 1e-9), 6)
+    by_mag = []
+    for lo, hi in zip(bins[:-1], bins[1:]):
+        sel = (mag >= lo) & (mag <= hi)
+        if sel.any():
+            by_mag.append({"force_lo_n": float(lo), "force_hi_n": float(hi), "n": int(sel.sum()),
+                           "mae_vec_n": float(err[sel].mean())})
+    model_metrics = json.loads(Path(model_metrics_path).read_text())
+    result = {
+        "n_cases": n,
+        "metrics": metrics,
+        "error_by_force_magnitude": by_mag,
+        "error_vs_distance": {"distance_mm": dist.tolist(), "error_n": err.tolist()},
+        "corr_error_distance": float(np.corrcoef(dist, err)[0, 1]) if n > 2 and dist.std() > 0 else float("nan"),
+        "model_run_id": model_metrics.get("run_id"),
+        "predictions": {"case_id": [str(c) for c in arrays["case_id"]], "true_n": true.tolist(), "pred_n": pred.tolist()},
+    }
+    out_dir = Path(out_path).parent
+    out_dir.mkdir(parents=True, exist_ok=True)
+    from liverforce.learn.plots import evaluation_figures
+
+    figures = evaluation_figures(true, pred, out_dir / "figures", title="unseen liver")
+    result["figures"] = [str(Path(f).relative_to(out_dir)) for f in figures]
+    tracker = Tracker(tracking_uri, experiment_name)
+    run_id = tracker.start_run("validation", params={"model_run_id": str(result["model_run_id"]), "n_cases": n},
+                               tags={"rule": "validate", "model_run_id": str(result["model_run_id"])})
+    tracker.log_metrics(run_id, metrics)
+    for f in figures:
+        tracker.log_artifact(run_id, f)
+    tracker.end_run(run_id)
+    result["run_id"] = run_id
+    dio.write_json_atomic(result, out_path)
+    log.info("validation on the unseen liver: MAE %.3f N, RMSE %.3f N, accuracy %.1f %% (%d cases)",
+             metrics["mae_vec"], metrics["rmse_vec"], metrics["accuracy_pct"], n)
+    return result
+
+
+# ------------------------------------------------------------------- report
+
+
+def make_report(model_metrics: list[str], manifests: list[str], validation: str, features: list[str],
+                pictures: list[str], experiment: str, out_html) -> Path:
+    """Write ``report/index.html`` from the stage outputs."""
+    from liverforce.report.html import collect, write_report
+
+    data = collect(model_metrics, manifests, validation, features)
+    data["validation_dir"] = str(Path(validation).parent)
+    walls, iters = [], []
+    for m in manifests:
+        for shard in dio.verify_manifest(m):
+            t = dio.read_table(shard, columns=["wall_time_s", "newton_iterations", "converged"])
+            walls += t.column("wall_time_s").to_pylist()
+            iters += t.column("newton_iterations").to_pylist()
+    stats = {}
+    if walls:
+        stats = {"solver wall time total (s)": round(float(np.sum(walls)), 1),
+                 "median per case (s)": round(float(np.median(walls)), 3),
+                 "median Newton iterations": float(np.median(iters))}
+    path = write_report(data, pictures, experiment, out_html, solver_stats=stats)
+    log.info("report: %s", path)
+    return path

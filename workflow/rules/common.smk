@@ -38,6 +38,6 @@ def config_slice(*keys):
 
 onstart:
     # create the embedded MLflow store once, before parallel jobs (SQLite race)
-    from liverforce.pipeline.tracking_store import ensure_store
+    from liverforce.tracking import ensure_store
 
     ensure_store(TRACKING_URI)

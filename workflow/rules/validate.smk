@@ -6,10 +6,12 @@ rule validate:
         model=f"{E}/models/IV/{PLAN.chosen_variant()}/model",
         metrics=f"{E}/models/IV/{PLAN.chosen_variant()}/metrics.json",
         manifest=f"{E}/shards/V/manifest.json",
+        train_manifest=f"{E}/shards/IV/manifest.json",
     output:
         metrics=f"{E}/validate/metrics.json",
     params:
         tracking_uri=TRACKING_URI,
+        experiment_name=f"{config_slice('tracking', 'experiment_prefix')}-{config_slice('experiment')}-validation",
     log:
         f"{E}/logs/validate/validate.log",
     conda:

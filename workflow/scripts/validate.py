@@ -4,4 +4,5 @@ from liverforce.pipeline.stages import validate_model
 
 sm = snakemake  # noqa: F821
 setup_job(sm.log[0], sm.threads)
-validate_model(sm.input.model, sm.input.metrics, sm.input.manifest, sm.params.tracking_uri, sm.output.metrics)
+validate_model(sm.input.model, sm.input.metrics, sm.input.manifest, sm.input.train_manifest, sm.params.tracking_uri,
+               sm.output.metrics, experiment_name=sm.params.experiment_name)

@@ -1,0 +1,369 @@
+"""The fitted force model: representation + scalers + encoder + regressor, with save/load.
+
+Prediction pipeline for a set of cases (``arrays`` in the input contract)::
+
+    x  = Representation.features_of(arrays)        ROI -> grid features (local frame)
+    xs = feature_scaler(x);  c = encoder(xs);  cs = code_scaler(c)
+    s  = state_scaler(state_vector(arrays))        (if the state vector is used)
+    f  = target_scaler^-1( MLP([cs, s]) )          local force (F.t1, F.t2, F.n), N
+    F  = R^T f                                     source-frame force, N
+
+Bundle format (a directory, no pickle of arbitrary code)::
+
+    model.json      format name + version, representation, encoder spec,
+                    regressor spec, scalers (JSON floats round-trip exactly), meta
+    regressor.pt    torch state_dict (loaded with ``weights_only=True``)
+    encoder.pt      AE/DAE state_dict      | pca.npz  PCA mean + components
+
+A bundle whose ``format_version`` differs from :data:`FORMAT_VERSION` is
+refused with :class:`ModelFormatError`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from liverforce.learn.encoders import AutoEncoder, Encoder, PCAEncoder
+from liverforce.learn.frames import force_to_local, force_to_source, local_rotations
+from liverforce.learn.regressor import (
+    FitParams,
+    RegressorSpec,
+    build_mlp,
+    fit_regressor,
+    predict_regressor,
+)
+from liverforce.learn.representation import Representation
+from liverforce.learn.scaling import Standardizer
+from liverforce.learn.state import STATE_INPUTS, state_vector
+from liverforce.learn.torchutil import EpochCallback
+
+FORMAT = "liverforce.force_model"
+FORMAT_VERSION = 1
+
+ROI_INPUTS = (
+    "exertion_point_mm",
+    "frame_normal",
+    "frame_t1",
+    "frame_t2",
+    "roi_undeformed_mm",
+    "roi_deformed_mm",
+)
+
+
+class ModelFormatError(ValueError):
+    """A model directory is missing, of another format, or of another format version."""
+
+
+# --------------------------------------------------------------------------
+# prepared learning inputs
+# --------------------------------------------------------------------------
+
+
+def subset(arrays: dict, idx: np.ndarray) -> dict:
+    """Rows ``idx`` of every entry of an input-contract dict (lists stay lists)."""
+    idx = np.asarray(idx)
+    out = {}
+    for k, v in arrays.items():
+        out[k] = [v[i] for i in idx] if isinstance(v, list) else np.asarray(v)[idx]
+    return out
+
+
+@dataclass
+class Prepared:
+    """Per-case learning inputs of one set of cases.
+
+    ``x_obs`` holds ``n_views`` observed feature matrices (the observation
+    model drawn with different seeds), ``x_clean`` the un-corrupted features.
+    """
+
+    x_obs: np.ndarray  # (views, n, d)
+    x_clean: np.ndarray  # (n, d)
+    state: np.ndarray  # (n, m)
+    y_local: np.ndarray  # (n, 3) N
+    force: np.ndarray  # (n, 3) N, source frame
+    R: np.ndarray  # (n, 3, 3)
+
+    def rows(self, idx: np.ndarray) -> "Prepared":
+        idx = np.asarray(idx)
+        return Prepared(self.x_obs[:, idx], self.x_clean[idx], self.state[idx], self.y_local[idx],
+                        self.force[idx], self.R[idx])
+
+
+def view_seeds(seed: int, n_views: int) -> list[int]:
+    """Observation seeds of the training views (even numbers; :func:`eval_seed` is odd)."""
+    return [2 * (int(seed) * 1000 + v) for v in range(n_views)]
+
+
+def eval_seed(seed: int) -> int:
+    """Observation seed used to evaluate on the test split (never a training view's seed)."""
+    return 2 * int(seed) * 1000 + 1
+
+
+def n_views_for(rep: Representation) -> int:
+    """Observed views per training case: 2 when the observation model is stochastic, else 1."""
+    return 2 if rep.stochastic else 1
+
+
+def prepare(arrays: dict, rep: Representation, *, observation_seeds: list[int]) -> Prepared:
+    """Features (one observed view per seed + clean), state vector and local targets of labelled cases.
+
+    Use ``view_seeds(seed, n_views_for(rep))`` for training cases and
+    ``[eval_seed(seed)]`` for the test split.
+    """
+    views = [rep.features_of(arrays, observation_seed=s) for s in observation_seeds]
+    x_clean = rep.features_of(arrays, clean=True) if rep.occludes else views[0]
+    R = local_rotations(arrays["frame_normal"], arrays["frame_t1"], arrays["frame_t2"])
+    force = np.asarray(arrays["force_n"], dtype=np.float64)
+    return Prepared(np.stack(views), x_clean, state_vector(arrays), force_to_local(force, R), force, R)
+
+
+# --------------------------------------------------------------------------
+# preprocessing: scalers + encoder
+# --------------------------------------------------------------------------
+
+
+@dataclass
+class Preprocessor:
+    """Scalers and encoder fitted on one training set; maps features (+ state) to regressor inputs."""
+
+    feature_scaler: Standardizer
+    encoder: Encoder
+    code_scaler: Standardizer
+    state_scaler: Standardizer | None
+    target_scaler: Standardizer
+
+    def inputs(self, x: np.ndarray, state: np.ndarray | None) -> np.ndarray:
+        code = self.code_scaler.transform(self.encoder.encode(self.feature_scaler.transform(x)))
+        if self.state_scaler is None:
+            return code
+        return np.hstack([code, self.state_scaler.transform(state)])
+
+    @property
+    def n_inputs(self) -> int:
+        return self.encoder.code_size + (0 if self.state_scaler is None else self.state_scaler.mean.size)
+
+
+def fit_preprocessor(
+    prep: Prepared,
+    rep: Representation,
+    *,
+    encoder: str,
+    code_size: int,
+    use_state: bool,
+    seed: int,
+    epochs: int,
+    lr: float,
+    batch_size: int,
+    dae_input_noise: float = 0.1,
+    on_epoch: EpochCallback | None = None,
+) -> Preprocessor:
+    """Fit scalers (training rows only) and the encoder.
+
+    PCA and AE learn the observed features (all views); the DAE maps observed
+    views to the clean features (same scaler for input and target).
+    """
+    v, n, d = prep.x_obs.shape
+    x_in = prep.x_obs.reshape(v * n, d)
+    fs = Standardizer.fit(x_in, groups=rep.channel_groups())
+    xs = fs.transform(x_in)
+    if encoder == "pca":
+        enc: Encoder = PCAEncoder.fit(xs, code_size)
+    elif encoder in ("ae", "dae"):
+        target = xs if encoder == "ae" else fs.transform(np.tile(prep.x_clean, (v, 1)))
+        enc = AutoEncoder.fit(
+            xs, target, code_size, kind=encoder, epochs=epochs, lr=lr, batch_size=batch_size, seed=seed,
+            input_noise=dae_input_noise if encoder == "dae" else 0.0, on_epoch=on_epoch,
+        )
+    else:
+        raise ValueError(f"unknown encoder '{encoder}': use pca, ae or dae")
+    cs = Standardizer.fit(enc.encode(xs))
+    ss = Standardizer.fit(prep.state) if use_state else None
+    ts = Standardizer.fit(prep.y_local)
+    return Preprocessor(fs, enc, cs, ss, ts)
+
+
+def regressor_data(pre: Preprocessor, prep: Prepared, *, all_views: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Scaled regressor inputs and targets; ``all_views`` stacks every observed view (augmentation)."""
+    views = prep.x_obs if all_views else prep.x_obs[:1]
+    z = np.vstack([pre.inputs(x, prep.state) for x in views])
+    y = np.tile(pre.target_scaler.transform(prep.y_local), (len(views), 1))
+    return z, y
+
+
+# --------------------------------------------------------------------------
+# the fitted model
+# --------------------------------------------------------------------------
+
+
+class ForceModel:
+    """A fitted force estimator (see the module docstring for the pipeline and bundle format)."""
+
+    def __init__(
+        self,
+        representation: Representation,
+        preprocessor: Preprocessor,
+        regressor_spec: RegressorSpec,
+        regressor: torch.nn.Module,
+        meta: dict | None = None,
+    ):
+        self.representation = representation
+        self.pre = preprocessor
+        self.regressor_spec = regressor_spec
+        self.regressor = regressor.eval()
+        self.meta = dict(meta or {})
+
+    @property
+    def uses_state(self) -> bool:
+        return self.pre.state_scaler is not None
+
+    def required_inputs(self) -> tuple[str, ...]:
+        """Input-contract keys that :meth:`predict` reads."""
+        keys = list(ROI_INPUTS)
+        if self.uses_state:
+            keys += [k for k in STATE_INPUTS if k not in keys]
+        return tuple(keys)
+
+    def predict_local(self, arrays: dict, observation_seed: int | None = None) -> np.ndarray:
+        """Force in the local frame ``(n, 3)`` N (``F.t1, F.t2, F.n``)."""
+        missing = [k for k in self.required_inputs() if k not in arrays]
+        if missing:
+            raise KeyError(f"ForceModel.predict needs the inputs {missing}")
+        x = self.representation.features_of(arrays, observation_seed=observation_seed)
+        s = state_vector(arrays) if self.uses_state else None
+        z = self.pre.inputs(x, s)
+        return self.pre.target_scaler.inverse_transform(predict_regressor(self.regressor, z))
+
+    def predict(self, arrays: dict, observation_seed: int | None = None) -> np.ndarray:
+        """Tool force ``(n, 3)`` in N, in each case's source frame.
+
+        Parameters
+        ----------
+        arrays : dict
+            Input-contract arrays (``required_inputs()``; no labels needed).
+        observation_seed : int, optional
+            Draw the stochastic observation model (tool occlusion in ``noise``
+            mode, point noise) with this seed, to evaluate on simulated data as
+            the model was trained. ``None`` for real observations (already
+            noisy); deterministic ``remove`` occlusion always applies.
+        """
+        R = local_rotations(arrays["frame_normal"], arrays["frame_t1"], arrays["frame_t2"])
+        return force_to_source(self.predict_local(arrays, observation_seed), R)
+
+    # ------------------------------------------------------------------
+    def save(self, path: str | Path) -> Path:
+        """Write the bundle directory ``path`` atomically (temp dir, then rename)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=path.parent))
+        try:
+            enc = self.pre.encoder
+            doc = {
+                "format": FORMAT,
+                "format_version": FORMAT_VERSION,
+                "representation": self.representation.to_dict(),
+                "encoder": enc.spec(),
+                "regressor": self.regressor_spec.to_dict(),
+                "scalers": {
+                    "feature": self.pre.feature_scaler.to_dict(),
+                    "code": self.pre.code_scaler.to_dict(),
+                    "state": None if self.pre.state_scaler is None else self.pre.state_scaler.to_dict(),
+                    "target": self.pre.target_scaler.to_dict(),
+                },
+                "meta": self.meta,
+            }
+            (tmp / "model.json").write_text(json.dumps(doc, indent=1, sort_keys=True))
+            torch.save(self.regressor.state_dict(), tmp / "regressor.pt")
+            if isinstance(enc, PCAEncoder):
+                np.savez(tmp / "pca.npz", **enc.arrays())
+            else:
+                torch.save(enc.net.state_dict(), tmp / "encoder.pt")
+            if path.exists():
+                shutil.rmtree(path)
+            os.replace(tmp, path)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> "ForceModel":
+        """Load a bundle written by :meth:`save` (no arbitrary code is unpickled)."""
+        path = Path(path)
+        meta_file = path / "model.json"
+        if not meta_file.is_file():
+            raise ModelFormatError(f"{path} is not a liverforce model directory (no model.json)")
+        doc = json.loads(meta_file.read_text())
+        if doc.get("format") != FORMAT:
+            raise ModelFormatError(f"{meta_file}: format '{doc.get('format')}' is not '{FORMAT}'")
+        if doc.get("format_version") != FORMAT_VERSION:
+            raise ModelFormatError(
+                f"{meta_file}: model format version {doc.get('format_version')} is not supported by this "
+                f"liverforce (expects {FORMAT_VERSION}); retrain the model or use the liverforce version "
+                "that wrote it"
+            )
+        espec = doc["encoder"]
+        if espec["kind"] == "pca":
+            with np.load(path / "pca.npz", allow_pickle=False) as z:
+                enc: Encoder = PCAEncoder(z["mean"], z["components"])
+        else:
+            enc = AutoEncoder.from_state(espec, torch.load(path / "encoder.pt", weights_only=True))
+        sc = doc["scalers"]
+        pre = Preprocessor(
+            Standardizer.from_dict(sc["feature"]),
+            enc,
+            Standardizer.from_dict(sc["code"]),
+            None if sc["state"] is None else Standardizer.from_dict(sc["state"]),
+            Standardizer.from_dict(sc["target"]),
+        )
+        rspec = RegressorSpec.from_dict(doc["regressor"])
+        net = build_mlp(rspec)
+        net.load_state_dict(torch.load(path / "regressor.pt", weights_only=True))
+        return cls(Representation.from_dict(doc["representation"]), pre, rspec, net, doc.get("meta"))
+
+
+def fit_force_model(
+    prep: Prepared,
+    rep: Representation,
+    *,
+    encoder: str,
+    code_size: int,
+    use_state: bool,
+    hidden: list[int],
+    dropout: float,
+    fit: FitParams,
+    seed: int,
+    encoder_epochs: int | None = None,
+    dae_input_noise: float = 0.1,
+    monitor: tuple[Prepared, str] | None = None,
+    on_epoch: EpochCallback | None = None,
+    meta: dict | None = None,
+) -> tuple[ForceModel, dict[str, list[float]]]:
+    """Fit preprocessing and regressor on ``prep`` (training rows) and bundle them.
+
+    ``monitor=(prepared, name)`` records the eval-mode loss on another set
+    per epoch under ``history["<name>_loss"]`` (monitoring only; nothing is
+    selected on it).
+    """
+    pre = fit_preprocessor(
+        prep, rep, encoder=encoder, code_size=code_size, use_state=use_state, seed=seed,
+        epochs=encoder_epochs or fit.epochs, lr=fit.lr, batch_size=fit.batch_size, dae_input_noise=dae_input_noise,
+    )
+    z, y = regressor_data(pre, prep)
+    zv = yv = None
+    if monitor is not None:
+        zv, yv = regressor_data(pre, monitor[0], all_views=False)
+    spec = RegressorSpec(pre.n_inputs, tuple(int(h) for h in hidden), float(dropout))
+    net, hist = fit_regressor(z, y, spec, fit, seed=seed, z_val=zv, y_val=yv, on_epoch=on_epoch)
+    if monitor is not None:
+        hist[f"{monitor[1]}_loss"] = hist.pop("val_loss")
+    else:
+        hist.pop("val_loss")
+    return ForceModel(rep, pre, spec, net, meta), hist

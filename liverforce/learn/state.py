@@ -1,0 +1,93 @@
+"""The pre-operative state vector S, expressed in the local frame at the exertion point.
+
+S gives the regressor what the ROI alone cannot: where on the liver the tool
+pushes, the liver's shape and the material. To be comparable across exertion
+points, geometries and (arbitrary) source frames, every geometric entry is
+expressed in the local frame ``R = [t1; t2; n]`` with the exertion point
+``p`` as origin (:mod:`liverforce.learn.frames`):
+
+======================  ======  ==================================================
+entry                   size    definition (units)
+======================  ======  ==================================================
+liver_centroid          3       ``R (c_liver - p)``, mm. The exertion point is the
+                                origin, so its position on the liver is carried
+                                by this offset (and by the inertia below).
+roi_centroid_undeformed 3       ``R (c_roi,undef - p)``, mm
+roi_centroid_deformed   3       ``R (c_roi,def - p)``, mm
+inertia                 6       upper triangle (xx, xy, xz, yy, yz, zz) of
+                                ``R I R^T``, mm^5 (unit density). ``I`` must be
+                                taken about the liver centroid, so it is
+                                translation-invariant and rotates as a tensor.
+                                Rotating into the local frame keeps the liver's
+                                orientation relative to the surface normal
+                                (eigenvalues alone would lose it).
+material                p       material constants as given, MPa
+======================  ======  ==================================================
+
+A rigid motion of the liver (points, frames, centroids, ``I -> Q I Q^T``)
+leaves S unchanged.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from liverforce.learn.frames import local_rotations, offsets_to_local
+
+STATE_INPUTS = (
+    "exertion_point_mm",
+    "frame_normal",
+    "frame_t1",
+    "frame_t2",
+    "liver_centroid_mm",
+    "roi_centroid_undeformed_mm",
+    "roi_centroid_deformed_mm",
+    "inertia_mm5",
+    "material_params_mpa",
+)
+
+_TRIU = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+
+
+def state_vector(arrays: dict) -> np.ndarray:
+    """State vectors ``(n, 15 + p)`` float64 of the cases in ``arrays`` (module table).
+
+    Parameters
+    ----------
+    arrays : dict
+        The input-contract arrays; uses the keys in ``STATE_INPUTS``.
+
+    Returns
+    -------
+    (n, 15 + p) float64
+        Columns as in :func:`state_names`.
+    """
+    missing = [k for k in STATE_INPUTS if k not in arrays]
+    if missing:
+        raise KeyError(f"state vector needs the columns {missing}; they are missing from the input arrays")
+    R = local_rotations(arrays["frame_normal"], arrays["frame_t1"], arrays["frame_t2"])
+    p = np.asarray(arrays["exertion_point_mm"], dtype=np.float64)
+    n = len(p)
+    inertia = np.asarray(arrays["inertia_mm5"], dtype=np.float64).reshape(n, 3, 3)
+    inertia = 0.5 * (inertia + np.transpose(inertia, (0, 2, 1)))
+    I_loc = R @ inertia @ np.transpose(R, (0, 2, 1))
+    mat = np.asarray(arrays["material_params_mpa"], dtype=np.float64).reshape(n, -1)
+    return np.column_stack(
+        [
+            offsets_to_local(arrays["liver_centroid_mm"], p, R),
+            offsets_to_local(arrays["roi_centroid_undeformed_mm"], p, R),
+            offsets_to_local(arrays["roi_centroid_deformed_mm"], p, R),
+            np.stack([I_loc[:, a, b] for a, b in _TRIU], axis=1),
+            mat,
+        ]
+    )
+
+
+def state_names(n_material: int) -> list[str]:
+    """Column names of :func:`state_vector` for ``n_material`` material constants."""
+    names = []
+    for base in ("liver_centroid", "roi_centroid_undeformed", "roi_centroid_deformed"):
+        names += [f"{base}_{ax}_mm" for ax in ("t1", "t2", "n")]
+    names += [f"inertia_{'xyz'[a]}{'xyz'[b]}_mm5" for a, b in _TRIU]
+    names += [f"material_{j}_mpa" for j in range(n_material)]
+    return names

@@ -1,0 +1,309 @@
+"""Train one (scenario, variant): split, representation, CV + Ax tuning, final fit, test metrics.
+
+Steps (every fitted quantity sees the training split only):
+
+1. held-out test split (by case; by geometry for scenario IV) — never seen by
+   tuning (:mod:`.splits`);
+2. representation fitted on the training cases (grid extent), features with
+   the observation model (:mod:`.representation`). The grid extent (a median
+   of ROI sizes, no labels) is shared by the CV folds; scalers and encoders
+   are refitted per fold;
+3. if ``tune.enabled``: k-fold CV folds inside the training split; per fold the
+   scalers + encoder are fitted on the fold's training part once, then Ax
+   proposes regressor hyper-parameters scored by CV MSE (:mod:`.tune`); else
+   the configured hyper-parameters are used;
+4. the best configuration is refitted on the whole training split
+   (``train.epochs``) and evaluated on the test split in the source frame
+   (:mod:`.metrics`), the stochastic observation model drawn with
+   :func:`~liverforce.learn.model.eval_seed` (stored in the model). The
+   per-epoch ``test_loss`` of this final fit is logged for monitoring only:
+   no choice (epochs, parameters) is made from it;
+5. outputs: ``out_dir/model/`` (bundle), ``out_dir/figures/*.png``,
+   ``out_dir/test_predictions.csv`` and ``out_dir/metrics.json`` (atomic);
+   with a ``tracker`` everything is also logged (parent run per scenario +
+   variant, one nested run per Ax trial). The tracker is duck-typed (see
+   :class:`liverforce.tracking.Tracker`); this module never imports mlflow.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from liverforce.learn.metrics import force_metrics
+from liverforce.learn.model import (
+    ForceModel,
+    eval_seed,
+    fit_force_model,
+    fit_preprocessor,
+    n_views_for,
+    prepare,
+    regressor_data,
+    subset,
+    view_seeds,
+)
+from liverforce.learn.plots import evaluation_figures
+from liverforce.learn.regressor import FitParams
+from liverforce.learn.representation import representation_from_config
+from liverforce.learn.splits import cv_folds, group_key, train_test_split
+from liverforce.learn.torchutil import configure_torch
+from liverforce.learn.tune import FoldData, cv_score, tune
+
+REQUIRED_ARRAYS = (
+    "case_id", "geometry_id", "force_n", "exertion_point_mm", "frame_normal", "frame_t1", "frame_t2",
+    "liver_centroid_mm", "inertia_mm5", "material_params_mpa", "roi_undeformed_mm", "roi_deformed_mm",
+    "roi_centroid_undeformed_mm", "roi_centroid_deformed_mm",
+)
+
+
+def check_arrays(arrays: dict) -> int:
+    """Validate the input contract; returns the number of cases."""
+    missing = [k for k in REQUIRED_ARRAYS if k not in arrays]
+    if missing:
+        raise KeyError(f"training arrays lack {missing}; the loader must provide every input-contract key")
+    n = len(arrays["case_id"])
+    bad = {k: len(arrays[k]) for k in REQUIRED_ARRAYS if len(arrays[k]) != n}
+    if bad:
+        raise ValueError(f"training arrays disagree on the number of cases ({n} case ids): {bad}")
+    force = np.asarray(arrays["force_n"], dtype=np.float64)
+    if force.shape != (n, 3) or not np.isfinite(force).all():
+        raise ValueError("force_n must be a finite (n, 3) array in N")
+    return n
+
+
+def _flatten(prefix: str, d: dict) -> dict:
+    out = {}
+    for k, v in d.items():
+        key = f"{prefix}.{k}" if prefix else str(k)
+        if isinstance(v, dict):
+            out.update(_flatten(key, v))
+        else:
+            out[key] = v
+    return out
+
+
+def slice_hash(*slices: dict) -> str:
+    """Short stable hash of config slices (tag ``config_hash`` when the caller gives none)."""
+    blob = json.dumps(slices, sort_keys=True, separators=(",", ":"), default=str).encode()
+    return hashlib.sha256(blob).hexdigest()[:16]
+
+
+def write_json_atomic(path: Path, doc: dict) -> None:
+    """Write ``doc`` to ``path`` through a temporary file in the same folder and ``os.replace``."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as fh:
+            json.dump(doc, fh, indent=2, sort_keys=True, allow_nan=True)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def train_scenario(
+    arrays: dict,
+    model_cfg: dict,
+    train_cfg: dict,
+    tune_cfg: dict,
+    scenario: str,
+    variant: str,
+    tracker=None,
+    threads: int = 1,
+    seed: int | None = None,
+    *,
+    out_dir: str | Path,
+    tags: dict | None = None,
+) -> dict:
+    """Train and evaluate one scenario + variant; returns the result dict (also in ``metrics.json``).
+
+    Parameters
+    ----------
+    arrays : dict
+        Converged cases of one scenario in the input contract (mm, N, MPa).
+    model_cfg, train_cfg, tune_cfg : dict
+        The ``model`` (with the variant's overrides merged in), ``train`` and
+        ``tune`` config slices. Optional model keys: ``roi_features``
+        (default ``displacement``), ``grid_half_width_mm`` (0 = fit),
+        ``dae_input_noise`` (0.1); optional tune key ``space``.
+    scenario, variant : str
+        ``I``..``IV`` (IV splits by geometry) and the variant name.
+    tracker : liverforce.tracking.Tracker, optional
+        Receives the parent run, nested trial runs, metrics, figures, model.
+    threads : int
+        torch intra-op threads (the config's ``threads``).
+    seed : int, optional
+        Master seed of split, folds, weights and observation noise; default
+        ``train_cfg["seed"]``.
+    out_dir : path
+        Output folder.
+    tags : dict, optional
+        Run tags, e.g. ``{"rule": "train", "config_hash": ..., "data_version": ...}``.
+
+    Returns
+    -------
+    dict
+        ``metrics`` (test, N and %), ``best_params``, ``cv_mse``, ``run_id``,
+        ``model_uri``, ``model_path``, split sizes and notes, ``trials``.
+    """
+    t_start = time.perf_counter()
+    configure_torch(threads)
+    seed = int(train_cfg.get("seed", 0) if seed is None else seed)
+    out_dir = Path(out_dir)
+    n = check_arrays(arrays)
+    geo = np.asarray(arrays["geometry_id"]).astype(str)
+
+    tr, te = train_test_split(geo, scenario=scenario, test_fraction=float(train_cfg["test_fraction"]), seed=seed)
+    train_arrays, test_arrays = subset(arrays, tr), subset(arrays, te)
+    rep = representation_from_config(model_cfg, train_arrays)
+    encoder = str(model_cfg["encoder"])
+    use_state = bool(model_cfg["state_vector"])
+    code_size = int(model_cfg["code_size"])
+    dae_noise = float(model_cfg.get("dae_input_noise", 0.1))
+    weight_decay = float(train_cfg.get("weight_decay", 0.0))
+
+    run_tags = {"scenario": scenario, "variant": variant, "config_hash": slice_hash(model_cfg, train_cfg, tune_cfg)}
+    run_tags.update({k: str(v) for k, v in (tags or {}).items()})
+    run_id = None
+    if tracker is not None:
+        params = {
+            **_flatten("model", model_cfg), **_flatten("train", train_cfg), **_flatten("tune", tune_cfg),
+            "scenario": scenario, "variant": variant, "seed": seed, "threads": threads,
+            "n_cases": n, "n_train": len(tr), "n_test": len(te), "split_by": group_key(scenario),
+            "grid_half_width_mm": rep.half_width_mm, "roi_features": rep.features,
+        }
+        run_id = tracker.start_run(f"{scenario}-{variant}", params=params, tags=run_tags)
+    try:
+        with threadpool_limits(limits=int(threads)):  # BLAS (SVD, scipy) as well as torch
+            result = _train(
+            tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_cfg, train_cfg, tune_cfg,
+                scenario, variant, seed, encoder, use_state, code_size, dae_noise, weight_decay, out_dir,
+            )
+        result.update(run_id=run_id, tags=run_tags, n_cases=n, seconds=time.perf_counter() - t_start)
+        if tracker is not None:
+            result["model_uri"] = tracker.log_force_model(run_id, result["model_path"], subset(test_arrays, [0]))
+            tracker.log_metrics(run_id, {"wall_time_s": result["seconds"]})
+            tracker.end_run(run_id)
+    except BaseException:
+        if tracker is not None and run_id is not None:
+            tracker.end_run(run_id, status="FAILED")
+        raise
+    write_json_atomic(out_dir / "metrics.json", result)
+    return result
+
+
+def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_cfg, train_cfg, tune_cfg,
+           scenario, variant, seed, encoder, use_state, code_size, dae_noise, weight_decay, out_dir) -> dict:
+    prep_train = prepare(train_arrays, rep, observation_seeds=view_seeds(seed, n_views_for(rep)))
+    prep_test = prepare(test_arrays, rep, observation_seeds=[eval_seed(seed)])
+    notes: list[str] = []
+    trials: list[dict] = []
+    cv_grouping = None
+    best_cv = None
+
+    if tune_cfg.get("enabled", True):
+        folds = cv_folds(np.arange(len(tr)), geo[tr], scenario=scenario, folds=int(tune_cfg["folds"]), seed=seed)
+        notes += folds.notes
+        cv_grouping = folds.grouping
+        tune_epochs = int(tune_cfg["epochs"])
+        fold_data = []
+        for k, (ftr, fva) in enumerate(folds.pairs):
+            rows_tr, rows_va = prep_train.rows(ftr), prep_train.rows(fva)
+            pre = fit_preprocessor(
+                rows_tr, rep, encoder=encoder, code_size=code_size, use_state=use_state, seed=seed + 17 * k,
+                epochs=tune_epochs, lr=float(train_cfg["lr"]), batch_size=int(train_cfg["batch_size"]),
+                dae_input_noise=dae_noise,
+            )
+            z_tr, y_tr = regressor_data(pre, rows_tr)
+            z_va, y_va = regressor_data(pre, rows_va, all_views=False)
+            fold_data.append(FoldData(z_tr, y_tr, z_va, y_va))
+
+        def evaluate(params: dict):
+            return cv_score(fold_data, params, epochs=tune_epochs, seed=seed, weight_decay=weight_decay)
+
+        on_trial = None
+        if tracker is not None:
+            def on_trial(report):
+                tracker.log_trial(run_id, report)
+
+        res = tune(evaluate, trials=int(tune_cfg["trials"]), sobol_trials=int(tune_cfg["sobol_trials"]),
+                   seed=seed, space=tune_cfg.get("space"), on_trial=on_trial)
+        best = dict(res.best_params)
+        best_cv = res.best_cv_mse
+        trials = [{"index": r.index, "params": r.params, "cv_mse": r.cv_mse, "status": r.status,
+                   "seconds": round(r.seconds, 3)} for r in res.trials]
+        hidden = [int(best["width"])] * int(best["n_layers"])
+        dropout, lr, batch_size = float(best["dropout"]), float(best["lr"]), int(best["batch_size"])
+    else:
+        hidden = [int(h) for h in model_cfg["hidden"]]
+        dropout, lr, batch_size = float(model_cfg["dropout"]), float(train_cfg["lr"]), int(train_cfg["batch_size"])
+        best = {"hidden": hidden, "dropout": dropout, "lr": lr, "batch_size": batch_size}
+
+    fit = FitParams(lr=lr, batch_size=batch_size, epochs=int(train_cfg["epochs"]), weight_decay=weight_decay)
+    meta = {
+        "scenario": scenario, "variant": variant, "seed": seed, "eval_observation_seed": eval_seed(seed),
+        "encoder": encoder, "state_vector": use_state, "hyper_parameters": best,
+        "test_case_ids": [str(c) for c in test_arrays["case_id"]],
+    }
+    model, history = fit_force_model(
+        prep_train, rep, encoder=encoder, code_size=code_size, use_state=use_state, hidden=hidden,
+        dropout=dropout, fit=fit, seed=seed, dae_input_noise=dae_noise, monitor=(prep_test, "test"), meta=meta,
+    )
+    pred = model.predict(test_arrays, observation_seed=eval_seed(seed))
+    metrics = force_metrics(prep_test.force, pred)
+    model.meta["test_metrics"] = metrics
+    model_path = model.save(out_dir / "model")
+    # the saved bundle must reproduce the metrics exactly (guards the format)
+    reloaded = ForceModel.load(model_path).predict(test_arrays, observation_seed=eval_seed(seed))
+    if not np.array_equal(reloaded, pred):
+        raise RuntimeError(f"the saved model at {model_path} does not reproduce its predictions")
+    figures = evaluation_figures(prep_test.force, pred, out_dir / "figures", title=f"{scenario} {variant}")
+    _write_predictions(out_dir / "test_predictions.csv", test_arrays["case_id"], prep_test.force, pred)
+
+    if tracker is not None:
+        tracker.log_history(run_id, history)
+        tracker.log_metrics(run_id, {**metrics, **({"cv_mse": best_cv} if best_cv is not None else {})})
+        tracker.log_params(run_id, {f"best.{k}": v for k, v in best.items()})
+        for path in figures:
+            tracker.log_artifact(run_id, path, "figures")
+        tracker.log_artifacts(run_id, model_path, "force_model")
+
+    return {
+        "scenario": scenario,
+        "variant": variant,
+        "seed": seed,
+        "metrics": metrics,
+        "cv_mse": best_cv,
+        "best_params": best,
+        "trials": trials,
+        "n_train": int(len(tr)),
+        "n_test": int(len(te)),
+        "split": {
+            "by": group_key(scenario),
+            "cv_grouping": cv_grouping,
+            "test_geometries": sorted(set(np.asarray(test_arrays["geometry_id"]).astype(str).tolist())),
+            "notes": notes,
+        },
+        "representation": rep.to_dict(),
+        "eval_observation_seed": eval_seed(seed),
+        "final_train_loss": history["train_loss"][-1],
+        "model_path": str(model_path),
+        "model_uri": None,
+        "figures": [str(p) for p in figures],
+    }
+
+
+def _write_predictions(path: Path, case_ids, true: np.ndarray, pred: np.ndarray) -> None:
+    lines = ["case_id,fx_true_n,fy_true_n,fz_true_n,fx_pred_n,fy_pred_n,fz_pred_n"]
+    for cid, t, p in zip(case_ids, true, pred):
+        lines.append(",".join([str(cid), *(repr(float(v)) for v in (*t, *p))]))
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text("\n".join(lines) + "\n")
+    os.replace(tmp, path)

@@ -1,0 +1,75 @@
+"""The whole workflow for real on the smoke experiment, then the re-run rules.
+
+One Snakemake run (session fixture) feeds every test here: the outputs of
+every stage exist and agree with each other, the report cites MLflow runs
+whose numbers it shows, and changing one config value re-runs exactly that
+value's stage and its descendants.
+"""
+from __future__ import annotations
+
+import json
+import re
+
+import pytest
+
+from test_workflow import job_counts, snakemake
+
+pytestmark = pytest.mark.workflow
+
+
+@pytest.fixture(scope="session")
+def smoke_run(tmp_path_factory):
+    work = tmp_path_factory.mktemp("smoke")
+    snakemake("--cores", "2", "--directory", str(work), "--config", "experiment=smoke")
+    return work
+
+
+def test_every_stage_produced_its_outputs(smoke_run):
+    root = smoke_run / "results" / "smoke"
+    assert sorted(p.name for p in (root / "mesh").glob("*.vtu")) == ["proc-0000.vtu", "proc-0001.vtu", "proc-0002.vtu", "val-1000.vtu"]
+    for scenario in ("I", "II", "III", "IV", "V"):
+        m = json.loads((root / "shards" / scenario / "manifest.json").read_text())
+        assert m["rows"] == 12 if scenario != "V" else m["rows"] == 6
+        assert m["failed"] <= m["rows"] // 4, f"too many failed cases in {scenario}: {m}"
+    for scenario in ("I", "II", "III", "IV"):
+        for variant in ("pca_sv", "ae_sv"):
+            metrics = json.loads((root / "models" / scenario / variant / "metrics.json").read_text())
+            assert metrics["run_id"]
+    assert (root / "validate" / "metrics.json").exists()
+    assert (root / "report" / "index.html").stat().st_size > 1000
+    # no half-written file anywhere
+    assert not list(root.rglob(".*.tmp*"))
+
+
+def test_report_numbers_match_the_mlflow_runs_they_cite(smoke_run):
+    import mlflow
+
+    root = smoke_run / "results" / "smoke"
+    html = (root / "report" / "index.html").read_text()
+    client = mlflow.tracking.MlflowClient(tracking_uri=f"sqlite:///{smoke_run / 'results' / 'mlflow.db'}")
+    cited = re.findall(r"<tr><td>(I|II|III|IV)</td><td>(\w+)</td>.*?<td>([\d.]+)</td><td>[\d.–]+</td><td>([\d.]+)</td>.*?<code>(\w+)</code>", html)
+    assert len(cited) == 8
+    for scenario, variant, acc, mae, run_id in cited:
+        run = client.get_run(run_id)
+        assert run.data.tags["scenario"] == scenario and run.data.tags["variant"] == variant
+        assert float(acc) == pytest.approx(run.data.metrics["accuracy_pct"], abs=0.051)
+        assert float(mae) == pytest.approx(run.data.metrics["mae_vec"], abs=0.0006)
+        # Ax trials are nested runs under the scenario's run
+        children = client.search_runs([run.info.experiment_id], f"tags.mlflow.parentRunId = '{run_id}'")
+        assert len(children) == 2
+
+
+def test_changing_one_value_reruns_only_its_stage_and_descendants(smoke_run):
+    def rerun(override):
+        out = snakemake("-n", "--directory", str(smoke_run), "--config", "experiment=smoke",
+                        f"overrides={override}").stdout
+        return job_counts(out) if "Job stats" in out else {}
+
+    assert rerun("tracking.experiment_prefix=liverforce") == {}  # nothing changed: nothing to do
+    counts = rerun("model.dropout=0.3")
+    assert set(counts) == {"train", "validate", "report", "all"}
+    counts = rerun("sweep.force.max_n=4.0")
+    assert {"sweep", "simulate", "manifest", "train"} <= set(counts)
+    assert "geometry" not in counts and "mesh" not in counts
+    counts = rerun("mesh.target_nodes=900")
+    assert "mesh" in counts and "geometry" not in counts
