@@ -65,7 +65,9 @@ def plot_case(points: np.ndarray, facets: np.ndarray, row: dict, path: str | Pat
     cmap = matplotlib.colormaps["viridis"]
     for k, (elev, azim) in enumerate([(25, -60), (60, 30)]):
         ax = fig.add_subplot(1, 2, k + 1, projection="3d")
-        poly = Poly3DCollection(x[facets], facecolors=cmap(norm(face_mag)), edgecolors="none", linewidths=0)
+        roi_face = in_roi[facets].all(axis=1)
+        edge = np.where(roi_face[:, None], np.array([[0.85, 0.1, 0.1, 0.9]]), np.array([[0, 0, 0, 0.0]]))
+        poly = Poly3DCollection(x[facets], facecolors=cmap(norm(face_mag)), edgecolors=edge, linewidths=0.4)
         ax.add_collection3d(poly)
         if len(outline):
             ax.add_collection3d(Line3DCollection(x[outline], colors="red", linewidths=1.5))
