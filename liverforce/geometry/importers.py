@@ -1,0 +1,236 @@
+"""Import a segmented liver: surface/volume meshes or label volumes → Surface (mm).
+
+Supported inputs (by suffix, then by content where a suffix is ambiguous):
+
+=================================  ==========================================
+STL, OBJ, PLY, OFF                 trimesh
+legacy VTK ``DATASET POLYDATA``    own reader (ASCII and BINARY)
+legacy VTK other datasets, VTU     meshio (boundary of tets, else triangles)
+Gmsh MSH v1                        own reader (ASCII)
+Gmsh MSH v2, v4                    meshio
+NIfTI ``.nii``/``.nii.gz``, NRRD   label volume → marching cubes (mm)
+=================================  ==========================================
+
+Volume meshes give their boundary surface (faces of exactly one tet).  The
+result is then scaled to mm (``units``), checked for a liver-like size, and
+checked/repaired by :func:`~liverforce.geometry.repair.repair_surface`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from liverforce.geometry import readers
+from liverforce.geometry.errors import GeometryError, refuse
+from liverforce.geometry.repair import repair_surface
+from liverforce.geometry.surface import Surface
+from liverforce.geometry.units import LIVER_EXTENT_MM, check_liver_size, guess_units, parse_units
+from liverforce.geometry.volumes import is_volume_file, label_surface, read_label_volume
+
+__all__ = ["GeometryError", "SUPPORTED_SUFFIXES", "load_surface", "sha256_file"]
+
+log = logging.getLogger(__name__)
+
+SUPPORTED_SUFFIXES = (".stl", ".obj", ".ply", ".off", ".vtk", ".vtu", ".msh", ".nii", ".nii.gz", ".nrrd", ".nhdr")
+
+
+def sha256_file(path: str | Path) -> str:
+    """Hex SHA-256 of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def load_surface(
+    path: str | Path,
+    units="mm",
+    label: int | None = None,
+    *,
+    size_range_mm: tuple[float, float] | None = LIVER_EXTENT_MM,
+    check_self_intersections: bool = True,
+    max_edge_mm: float | None = 5.0,
+) -> tuple[Surface, list[str]]:
+    """Read a liver surface or label volume as a closed surface in mm.
+
+    Parameters
+    ----------
+    path : str or Path
+        Input file (see module docstring for formats).
+    units : {"mm", "cm", "m", "auto"} or float
+        Unit of the file's coordinates, or mm per file unit (e.g. ``40``),
+        or ``"auto"``: guessed from the largest bounding-box extent so that
+        the liver is 100–450 mm (label volumes: the unit stated in the
+        header, mm if none); the guess is logged and reported.
+    label : int, optional
+        Label value of the liver in a label volume (required if the volume
+        holds several labels).  Ignored for meshes.
+    size_range_mm : (float, float) or None
+        Plausible largest extent (mm) after scaling; outside it the units
+        are taken to be wrong and the file refused.  ``None`` disables it.
+    check_self_intersections : bool
+        Detect self-intersections (skipped for label volumes, whose
+        marching-cubes surfaces cannot self-intersect); local ones are
+        repaired by voxel remeshing, many are refused.
+    max_edge_mm : float or None
+        A coarse surface (mean edge longer than this, e.g. the boundary of a
+        toy tet mesh) is smoothed and refined by Loop subdivision until its
+        mean edge is below it, so the mesher does not resolve facet creases
+        as slivers; reported.  ``None`` keeps the facets.
+
+    Returns
+    -------
+    surface : Surface
+        Closed, manifold, outward-oriented surface in mm, with ``meta``:
+        ``source``, ``sha256``, ``format``, ``units``, ``scale_to_mm``,
+        ``label`` (volumes), ``repairs``.
+    messages : list of str
+        Repairs and guesses made (empty if the file was clean).
+
+    Raises
+    ------
+    GeometryError
+        Naming the file, the problem and what to do.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise refuse(path, "file not found", "Check the path")
+    if path.is_dir():
+        raise refuse(path, "is a folder, not a file", "Give the path of a surface or label-volume file")
+    if path.stat().st_size == 0:
+        raise refuse(path, "the file is empty (0 bytes)", "Export the liver surface again")
+    scale, unit_label = parse_units(units, path)
+    name = path.name.lower()
+    msgs: list[str] = []
+    used_label = None
+    if is_volume_file(path):
+        volume = read_label_volume(path)
+        vertices, faces, vmsgs, used_label = label_surface(volume, label, path)
+        msgs += vmsgs
+        if scale is None:
+            file_unit = volume.units or "mm"
+            scale, unit_label = {"mm": 1.0, "m": 1000.0, "um": 1e-3}[file_unit], file_unit
+            msgs.append(f"units '{file_unit}' taken from the image header" if volume.units
+                        else "units assumed mm (the image header states none)")
+        fmt = volume.format
+        check_si = False
+    else:
+        raw = _read_mesh_file(path, name)
+        vertices, faces = _surface_of(raw, path)
+        fmt = raw.format
+        check_si = check_self_intersections
+        if label is not None:
+            msgs.append(f"label={label} ignored (not a label volume)")
+    if len(faces) == 0:
+        raise refuse(path, "the file contains no triangles or tetrahedra",
+                     "Export the liver as a closed triangle surface or a tetrahedral mesh")
+    if scale is None:
+        used = np.unique(faces)
+        extent = float(np.ptp(vertices[used], axis=0).max())
+        scale, unit_label = guess_units(extent, path)
+        guess = f"units guessed as '{unit_label}' (largest extent {extent:.4g} file units -> {extent * scale:.4g} mm)"
+        log.info("%s: %s", path, guess)
+        msgs.append(guess)
+    vertices = np.asarray(vertices, dtype=np.float64) * scale
+    vertices, faces, rmsgs = repair_surface(vertices, faces, path, check_self_intersections=check_si, unit="mm")
+    msgs += rmsgs
+    extent_mm = float(np.ptp(vertices, axis=0).max())
+    check_liver_size(extent_mm, scale, unit_label, path, size_range_mm)
+    if max_edge_mm is not None:
+        vertices, faces, smsg = _refine_coarse(vertices, faces, max_edge_mm)
+        msgs += smsg
+    meta = {
+        "source": str(path),
+        "sha256": sha256_file(path),
+        "format": fmt,
+        "units": unit_label,
+        "scale_to_mm": float(scale),
+        "label": used_label,
+        "repairs": list(msgs),
+    }
+    for m in msgs:
+        log.info("%s: %s", path, m)
+    return Surface(vertices, faces, meta), msgs
+
+
+def _refine_coarse(vertices: np.ndarray, faces: np.ndarray, max_edge_mm: float):
+    """Loop-subdivide (smoothing) while the mean edge exceeds ``max_edge_mm`` (≤ 400k triangles)."""
+    import trimesh
+
+    from liverforce.geometry.surface import signed_volume
+
+    def mean_edge(v, f):
+        return float(np.linalg.norm(v[f] - v[np.roll(f, 1, axis=1)], axis=2).mean())
+
+    before, vol0 = mean_edge(vertices, faces), signed_volume(vertices, faces)
+    levels = 0
+    while mean_edge(vertices, faces) > max_edge_mm and 4 * len(faces) <= 400_000:
+        vertices, faces = trimesh.remesh.subdivide_loop(vertices, faces, iterations=1)
+        levels += 1
+    if not levels:
+        return vertices, faces, []
+    change = 100.0 * (signed_volume(vertices, faces) / vol0 - 1.0)
+    return vertices, np.asarray(faces, dtype=np.int64), [
+        f"coarse surface (mean edge {before:.3g} mm) smoothed by {levels} levels of Loop subdivision "
+        f"(mean edge now {mean_edge(vertices, faces):.3g} mm, volume change {change:+.2g} %)"
+    ]
+
+
+def _read_mesh_file(path: Path, name: str) -> readers.RawMesh:
+    """Dispatch on suffix (and content for .vtk/.msh) to a reader."""
+    if name.endswith(readers.TRIMESH_SUFFIXES):
+        return readers.read_trimesh(path)
+    if name.endswith(".vtk"):
+        if readers.is_vtk_polydata(path):
+            return readers.read_vtk_polydata(path)
+        with open(path, "rb") as fh:
+            if not fh.read(64).lower().startswith(b"# vtk datafile"):
+                raise refuse(path, "not a legacy VTK file (first line is not '# vtk DataFile Version')",
+                             "Check the file type or extension")
+        return readers.read_meshio(path, "vtk")
+    if name.endswith(".vtu"):
+        return readers.read_meshio(path, "vtu")
+    if name.endswith(".msh"):
+        version = readers.msh_version(path)
+        if version == "1":
+            return readers.read_gmsh_v1(path)
+        if version.startswith(("2", "4")):
+            return readers.read_meshio(path, "gmsh")
+        raise refuse(path, f"unrecognised Gmsh file (version {version or 'unknown'}; expected a "
+                           "'$NOD' (v1) or '$MeshFormat' 2.x/4.x header)", "Save it from gmsh as MSH v4 or v2")
+    raise refuse(path, f"unsupported file type '{path.suffix}'",
+                 f"Use one of {', '.join(SUPPORTED_SUFFIXES)}")
+
+
+def _surface_of(raw: readers.RawMesh, path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Boundary of the tets if any, else the triangles (units unchanged)."""
+    if len(raw.tets):
+        return raw.points, _tet_boundary(raw.points, raw.tets, path)
+    return raw.points, raw.triangles
+
+
+def _tet_boundary(points: np.ndarray, tets: np.ndarray, path: Path) -> np.ndarray:
+    """Outward boundary triangles of a tet mesh of any orientation.
+
+    Zero-volume tets are dropped, negative ones reoriented; a face is on the
+    boundary if exactly one tet has it.
+    """
+    if tets.min() < 0 or tets.max() >= len(points):
+        raise refuse(path, "tetrahedron indices out of range", "The file is corrupted; re-export it")
+    a, b, c, d = (points[tets[:, i]] for i in range(4))
+    vol = np.einsum("ij,ij->i", b - a, np.cross(c - a, d - a))
+    flat = np.abs(vol) <= 1e-14 * max(np.abs(vol).max(), 1e-300)
+    tets = tets[~flat]
+    tets = np.where((vol[~flat] < 0)[:, None], tets[:, [0, 1, 3, 2]], tets)
+    # outward faces of a positive tet (a, b, c, d): opposite node i
+    faces = tets[:, [[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]]].reshape(-1, 3)
+    _, inv, counts = np.unique(np.sort(faces, axis=1), axis=0, return_inverse=True, return_counts=True)
+    if (counts > 2).any():
+        raise refuse(path, f"invalid tetrahedral mesh ({int((counts > 2).sum())} faces shared by more "
+                           "than two tetrahedra)", "Re-export the volume mesh")
+    return faces[counts[inv.ravel()] == 1]

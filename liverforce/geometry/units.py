@@ -1,0 +1,84 @@
+"""Length units of input geometries and the plausibility of a liver's size."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from liverforce.geometry.errors import refuse
+
+#: Millimetres per unit.
+UNIT_TO_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
+#: Largest bounding-box extent (mm) a human liver plausibly has; used by
+#: ``units="auto"`` to pick a unit and to refuse wrong units.
+LIVER_EXTENT_MM = (100.0, 450.0)
+
+
+def parse_units(units, path=None) -> tuple[float | None, str]:
+    """Turn ``units`` into ``(mm per file unit, label)``; ``(None, "auto")`` for auto.
+
+    Parameters
+    ----------
+    units : {"mm", "cm", "m", "auto"} or float
+        A unit name, ``"auto"`` or a positive number of mm per file unit
+        (e.g. ``40`` for the SOFA livers, whose units are arbitrary).
+    """
+    if isinstance(units, bool):
+        raise refuse(path, f"invalid units {units!r}", "Use 'mm', 'cm', 'm', 'auto' or a positive number")
+    if isinstance(units, (int, float, np.integer, np.floating)):
+        if not np.isfinite(units) or units <= 0:
+            raise refuse(path, f"invalid units scale {units!r}", "Give a positive number of mm per file unit")
+        return float(units), f"x{float(units):g}"
+    if isinstance(units, str):
+        key = units.strip().lower()
+        if key == "auto":
+            return None, "auto"
+        if key in UNIT_TO_MM:
+            return UNIT_TO_MM[key], key
+        try:
+            return parse_units(float(key), path)
+        except ValueError:
+            pass
+    raise refuse(path, f"invalid units {units!r}", "Use 'mm', 'cm', 'm', 'auto' or a positive number")
+
+
+def guess_units(extent: float, path=None) -> tuple[float, str]:
+    """Pick mm, cm or m so that the largest extent looks like a liver.
+
+    Parameters
+    ----------
+    extent : float
+        Largest bounding-box edge in file units.
+
+    Raises
+    ------
+    GeometryError
+        If no unit puts the extent in :data:`LIVER_EXTENT_MM`.
+    """
+    lo, hi = LIVER_EXTENT_MM
+    for name, scale in UNIT_TO_MM.items():
+        if lo <= extent * scale <= hi:
+            return scale, name
+    options = ", ".join(f"{extent * s:.3g} mm if {n}" for n, s in UNIT_TO_MM.items())
+    raise refuse(
+        path,
+        f"cannot guess the units: the largest extent is {extent:.4g} file units ({options}); "
+        f"none is liver-sized ({lo:g}-{hi:g} mm)",
+        "State the units explicitly: 'mm', 'cm', 'm' or a number of mm per file unit "
+        "(e.g. units=40 for the SOFA livers, about 6 units across)",
+    )
+
+
+def check_liver_size(extent_mm: float, scale: float, label: str, path=None, size_range_mm=LIVER_EXTENT_MM) -> None:
+    """Refuse a surface whose largest extent (mm) is outside ``size_range_mm``."""
+    if size_range_mm is None:
+        return
+    lo, hi = size_range_mm
+    if not lo <= extent_mm <= hi:
+        raise refuse(
+            path,
+            f"with units {label} (x{scale:g} to mm) the surface is {extent_mm:.4g} mm across "
+            f"(largest extent), outside the {lo:g}-{hi:g} mm expected of a liver: the units are "
+            "probably wrong",
+            "Give the right units ('mm', 'cm', 'm' or a number of mm per file unit), or pass "
+            "size_range_mm=None for a non-liver phantom",
+        )

@@ -1,0 +1,249 @@
+"""Boundary regions of a liver mesh, computed from geometry (no painting).
+
+Frame: the anatomical directions come from :class:`RegionParams`
+(``anterior`` and ``superior`` unit vectors, default the RAS frame of the
+procedural livers: anterior = +y, superior = +z); patient right is
+``anterior × superior`` (+x in RAS).  For an imported liver give the
+directions of its own frame.
+
+Normalised coordinates of a facet centroid ``c``: ``r, a, s ∈ [0, 1]`` along
+right, anterior and superior, measured over the liver's extent (0 = most
+left / posterior / inferior point).  Normals are facet normals averaged over
+a ball of ``normal_smoothing_mm`` (area-weighted) to ignore facet noise.
+
+Regions (codes as :data:`~liverforce.mesh.types.REGION_CODES`):
+
+* **3 visceral** – lower (visceral) face: smoothed normal within
+  ``visceral_angle_deg`` of inferior.
+* **4 rib** – anterior(-superior) face of the right lobe, under the ribs:
+  normal within ``rib_cone_deg`` of the direction ``rib_direction`` (weights
+  on right, anterior, superior) and ``r ≥ rib_min_right``.
+* **2 ligament** – coronary/triangular ligament band on the
+  posterior-superior face: ``a ≤ ligament_band_fraction`` and normal with a
+  superior component ``n·S ≥ cos(ligament_angle_deg)``.
+* **1 IVC** – patch of radius ``ivc_radius_mm`` on the posterior face around
+  the most posterior surface point near ``(r, s) = ivc_position``.
+
+Later regions override earlier ones (order visceral, rib, ligament, IVC).
+Small specks (connected pieces under ``min_patch_fraction`` of their
+region's area) are returned to free.  ``visible`` = free facets whose normal
+is within ``visible_cone_deg`` of the viewing direction (anterior tilted
+``visible_tilt_deg`` toward superior) and at least ``visible_margin_mm`` from
+any tagged facet.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from liverforce.mesh.boundary import facet_normals
+from liverforce.mesh.types import REGION_CODES
+
+
+@dataclass(frozen=True)
+class RegionParams:
+    """Parameters of :func:`tag_regions` (lengths in mm, angles in degrees).
+
+    Parameters
+    ----------
+    anterior, superior : tuple of 3 float
+        Anatomical directions in the mesh frame (normalised internally; must
+        not be parallel).  Default RAS: anterior +y, superior +z.
+    ivc_radius_mm : float
+        Radius of the IVC patch (default 20 mm).
+    ivc_position : tuple of 2 float
+        ``(r, s)`` normalised right/superior position of the IVC centre on
+        the posterior face (default 0.55, 0.6: just right of the middle,
+        upper half).
+    ligament_band_fraction : float
+        Posterior fraction of the antero-posterior extent holding the
+        ligament band (default 0.3).
+    ligament_angle_deg : float
+        Ligament facets face up: angle of the normal to superior at most
+        this (default 65°).
+    visceral_angle_deg : float
+        Visceral facets: angle of the normal to inferior at most this
+        (default 50°).
+    rib_direction : tuple of 3 float
+        Weights (right, anterior, superior) of the rib-contact direction
+        (default 0.7, 0.5, 0.5).
+    rib_cone_deg : float
+        Half-angle of the rib normal cone (default 40°).
+    rib_min_right : float
+        Rib facets lie right of this normalised ``r`` (default 0.5).
+    visible_tilt_deg : float
+        Viewing direction = anterior tilted this much toward superior
+        (default 30°).
+    visible_cone_deg : float
+        Half-angle of the visible normal cone (default 60°).
+    visible_margin_mm : float
+        Minimum distance of visible facets from tagged facets (default 5 mm).
+    normal_smoothing_mm : float
+        Radius of the normal averaging ball (default 8 mm; 0 = raw normals).
+    min_patch_fraction : float
+        Connected pieces below this fraction of their region's area are
+        dropped (default 0.05).
+    """
+
+    anterior: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    superior: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    ivc_radius_mm: float = 20.0
+    ivc_position: tuple[float, float] = (0.55, 0.6)
+    ligament_band_fraction: float = 0.3
+    ligament_angle_deg: float = 65.0
+    visceral_angle_deg: float = 50.0
+    rib_direction: tuple[float, float, float] = (0.7, 0.5, 0.5)
+    rib_cone_deg: float = 40.0
+    rib_min_right: float = 0.5
+    visible_tilt_deg: float = 30.0
+    visible_cone_deg: float = 60.0
+    visible_margin_mm: float = 5.0
+    normal_smoothing_mm: float = 8.0
+    min_patch_fraction: float = 0.05
+
+    def __post_init__(self) -> None:
+        a = np.asarray(self.anterior, dtype=float)
+        s = np.asarray(self.superior, dtype=float)
+        if a.shape != (3,) or s.shape != (3,) or np.linalg.norm(a) == 0 or np.linalg.norm(s) == 0:
+            raise ValueError("RegionParams: anterior and superior must be non-zero 3-vectors")
+        if np.linalg.norm(np.cross(a, s)) < 0.5 * np.linalg.norm(a) * np.linalg.norm(s):
+            raise ValueError("RegionParams: anterior and superior must be far from parallel (> 30°)")
+        if self.ivc_radius_mm <= 0 or self.visible_margin_mm < 0 or self.normal_smoothing_mm < 0:
+            raise ValueError("RegionParams: ivc_radius_mm > 0, visible_margin_mm >= 0, normal_smoothing_mm >= 0")
+        for name in ("ligament_band_fraction", "rib_min_right", "min_patch_fraction"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"RegionParams: {name} must be in [0, 1]")
+
+    def frame(self) -> np.ndarray:
+        """Rows: unit right, anterior, superior (right-handed, superior orthogonalised)."""
+        a = np.asarray(self.anterior, dtype=float)
+        a = a / np.linalg.norm(a)
+        s = np.asarray(self.superior, dtype=float)
+        s = s - (s @ a) * a
+        s = s / np.linalg.norm(s)
+        return np.stack([np.cross(a, s), a, s])
+
+
+def tag_regions(points: np.ndarray, facets: np.ndarray, params: RegionParams | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Region code and visibility of each boundary facet.
+
+    Parameters
+    ----------
+    points : numpy.ndarray
+        ``(n, 3)`` node coordinates, mm.
+    facets : numpy.ndarray
+        ``(k, 3)`` outward-oriented boundary triangles.
+    params : RegionParams, optional
+        Defaults if ``None``.
+
+    Returns
+    -------
+    facet_region : numpy.ndarray
+        ``(k,)`` int8 codes (0 free, 1 ivc, 2 ligament, 3 visceral, 4 rib).
+    facet_visible : numpy.ndarray
+        ``(k,)`` bool; ``True`` only where ``facet_region == 0``.
+    """
+    p = params or RegionParams()
+    points = np.asarray(points, dtype=np.float64)
+    facets = np.asarray(facets, dtype=np.int64)
+    R = p.frame()  # rows right, anterior, superior
+    centre = points[facets].mean(axis=1)
+    raw = facet_normals(points, facets, unit=False)
+    area = 0.5 * np.linalg.norm(raw, axis=1)
+    normal = _smoothed_normals(centre, raw, p.normal_smoothing_mm)
+    local = centre @ R.T  # (right, anterior, superior) coordinates
+    lo, hi = local.min(axis=0), local.max(axis=0)
+    frac = (local - lo) / np.maximum(hi - lo, 1e-12)
+    n_loc = normal @ R.T
+
+    region = np.zeros(len(facets), dtype=np.int8)
+    visceral = n_loc[:, 2] <= -np.cos(np.deg2rad(p.visceral_angle_deg))
+    region[visceral] = REGION_CODES["visceral"]
+
+    d_rib = np.asarray(p.rib_direction, dtype=float)
+    d_rib = d_rib / np.linalg.norm(d_rib)
+    rib = (n_loc @ d_rib >= np.cos(np.deg2rad(p.rib_cone_deg))) & (frac[:, 0] >= p.rib_min_right)
+    region[rib] = REGION_CODES["rib"]
+
+    ligament = (frac[:, 1] <= p.ligament_band_fraction) & (n_loc[:, 2] >= np.cos(np.deg2rad(p.ligament_angle_deg)))
+    region[ligament] = REGION_CODES["ligament"]
+
+    ivc = _ivc_patch(local, frac, n_loc, p)
+    region[ivc] = REGION_CODES["ivc"]
+
+    region = _drop_specks(facets, region, area, p.min_patch_fraction)
+
+    view = np.array([0.0, np.cos(np.deg2rad(p.visible_tilt_deg)), np.sin(np.deg2rad(p.visible_tilt_deg))])
+    visible = (region == 0) & (n_loc @ view >= np.cos(np.deg2rad(p.visible_cone_deg)))
+    tagged = region != 0
+    if p.visible_margin_mm > 0 and tagged.any() and visible.any():
+        from scipy.spatial import cKDTree
+
+        tagged_pts = points[np.unique(facets[tagged])]
+        dist, _ = cKDTree(tagged_pts).query(points[facets[visible]].reshape(-1, 3))
+        near = (dist.reshape(-1, 3) < p.visible_margin_mm).any(axis=1)
+        idx = np.flatnonzero(visible)
+        visible[idx[near]] = False
+    vis_code = np.where(visible, 1, 0).astype(np.int8)
+    visible = _drop_specks(facets, vis_code, area, p.min_patch_fraction) == 1
+    return region, visible
+
+
+def _smoothed_normals(centre: np.ndarray, raw: np.ndarray, radius: float) -> np.ndarray:
+    """Area-weighted average of facet normals within ``radius`` (unit vectors)."""
+    if radius > 0:
+        import scipy.sparse as sp
+        from scipy.spatial import cKDTree
+
+        pairs = cKDTree(centre).query_pairs(radius, output_type="ndarray")
+        k = len(centre)
+        rows = np.concatenate([pairs[:, 0], pairs[:, 1], np.arange(k)])
+        cols = np.concatenate([pairs[:, 1], pairs[:, 0], np.arange(k)])
+        W = sp.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(k, k)).tocsr()
+        raw = W @ raw  # raw normals have length 2 × area: area weighting built in
+    return raw / np.maximum(np.linalg.norm(raw, axis=1, keepdims=True), 1e-300)
+
+
+def _ivc_patch(local: np.ndarray, frac: np.ndarray, n_loc: np.ndarray, p: RegionParams) -> np.ndarray:
+    """Facets of the IVC patch: a ball around the most posterior point near the IVC line."""
+    posterior = n_loc[:, 1] <= -0.3
+    if not posterior.any():
+        return np.zeros(len(local), dtype=bool)
+    span = local.max(axis=0) - local.min(axis=0)
+    target = np.array(p.ivc_position)
+    d_rs = np.hypot((frac[:, 0] - target[0]) * span[0], (frac[:, 2] - target[1]) * span[2])
+    near = posterior & (d_rs <= max(p.ivc_radius_mm, np.sort(d_rs[posterior])[0] + 1e-9))
+    centre = local[np.flatnonzero(near)[np.argmin(local[near, 1])]]
+    return (np.linalg.norm(local - centre, axis=1) <= p.ivc_radius_mm) & (n_loc[:, 1] < 0.0)
+
+
+def _drop_specks(facets: np.ndarray, region: np.ndarray, area: np.ndarray, fraction: float) -> np.ndarray:
+    """Return connected pieces smaller than ``fraction`` of their region's area to 0."""
+    if fraction <= 0:
+        return region
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    region = region.copy()
+    k = len(facets)
+    edges = np.concatenate([facets[:, [0, 1]], facets[:, [1, 2]], facets[:, [2, 0]]])
+    key = np.sort(edges, axis=1)
+    owner = np.tile(np.arange(k), 3)
+    order = np.lexsort((key[:, 1], key[:, 0]))
+    key, owner = key[order], owner[order]
+    same = np.all(key[1:] == key[:-1], axis=1)
+    a, b = owner[:-1][same], owner[1:][same]
+    for code in np.unique(region):
+        if code == 0:
+            continue
+        member = region == code
+        keep_edge = member[a] & member[b]
+        g = sp.coo_matrix((np.ones(keep_edge.sum()), (a[keep_edge], b[keep_edge])), shape=(k, k))
+        _, comp = connected_components(g, directed=False)
+        comp_area = np.bincount(comp[member], weights=area[member], minlength=comp.max() + 1)
+        total = area[member].sum()
+        small = comp_area < fraction * total
+        region[member & small[comp]] = 0
+    return region

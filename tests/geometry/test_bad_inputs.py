@@ -1,0 +1,219 @@
+"""Bad inputs are repaired (and say so) or refused with a GeometryError naming the file."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from liverforce.geometry import GeometryError, load_surface
+from liverforce.geometry.procedural import cube_phantom
+
+EDGE = 200.0
+
+
+def save(tmp_path, name, vertices, faces):
+    path = tmp_path / name
+    trimesh.Trimesh(np.asarray(vertices, float), np.asarray(faces), process=False).export(path)
+    return path
+
+
+def cube(edge=EDGE, div=2, centre=(0.0, 0.0, 0.0)):
+    c = cube_phantom(edge, divisions=div, centre_mm=centre)
+    return c.vertices, c.faces
+
+
+def load(path, **kw):
+    kw.setdefault("max_edge_mm", None)
+    return load_surface(path, **kw)
+
+
+def test_empty_file(tmp_path):
+    path = tmp_path / "empty.stl"
+    path.write_bytes(b"")
+    with pytest.raises(GeometryError, match=r"empty\.stl: the file is empty \(0 bytes\)\. Export"):
+        load(path)
+
+
+@pytest.mark.parametrize("name", ["garbage.stl", "garbage.obj", "garbage.ply", "garbage.vtk", "garbage.vtu", "garbage.msh"])
+def test_garbage_bytes(tmp_path, name):
+    path = tmp_path / name
+    path.write_bytes(np.random.default_rng(0).integers(0, 256, 4096, dtype=np.uint8).tobytes())
+    with pytest.raises(GeometryError, match=name.replace(".", r"\.")):
+        load(path)
+
+
+def test_unsupported_suffix(tmp_path):
+    path = tmp_path / "liver.xyz"
+    path.write_text("1 2 3\n")
+    with pytest.raises(GeometryError, match=r"liver\.xyz: unsupported file type '\.xyz'\. Use one of"):
+        load(path)
+
+
+def test_meshio_sys_exit_becomes_geometry_error(tmp_path):
+    # a legacy VTK dataset meshio 5.3.5 does not support makes it call sys.exit(1)
+    path = tmp_path / "grid.vtk"
+    path.write_text("# vtk DataFile Version 3.0\nx\nASCII\nDATASET RECTILINEAR_GRID\nDIMENSIONS 2 2 2\n")
+    with pytest.raises(GeometryError, match=r"grid\.vtk: meshio could not read"):
+        load(path)
+
+
+def test_open_box_holes_are_filled(tmp_path):
+    v, f = cube(div=2)
+    top = v[f].mean(axis=1)[:, 2] > EDGE / 2 - 1e-9
+    path = save(tmp_path, "open_box.ply", v, f[~top])
+    s, msgs = load(path)
+    assert any(m.startswith("holes filled (1 holes") for m in msgs), msgs
+    m = s.to_trimesh()
+    assert m.is_watertight and m.is_winding_consistent and s.volume_mm3 > 0
+    # the fan over the 8-edge square loop closes the box exactly (planar hole)
+    assert s.volume_mm3 == pytest.approx(EDGE**3, rel=1e-9)
+
+
+def test_too_open_surface_is_refused(tmp_path):
+    v, f = cube(div=2)
+    keep = v[f].mean(axis=1)[:, 2] < -EDGE / 2 + 1e-9  # only the bottom face
+    keep |= np.abs(v[f].mean(axis=1)[:, 0]) > EDGE / 2 - 1e-9  # plus two side faces
+    path = save(tmp_path, "sheet.ply", v, f[keep])
+    with pytest.raises(GeometryError, match=r"sheet\.ply: open surface.*(too large|touch)"):
+        load(path)
+
+
+def test_small_second_component_is_dropped(tmp_path):
+    v1, f1 = cube()
+    v2, f2 = cube(edge=20.0, centre=(400.0, 0.0, 0.0))
+    path = save(tmp_path, "two.stl", np.vstack([v1, v2]), np.vstack([f1, f2 + len(v1)]))
+    s, msgs = load(path)
+    assert any("largest component kept (1 smaller components dropped" in m for m in msgs), msgs
+    assert s.volume_mm3 == pytest.approx(EDGE**3, rel=1e-9)
+
+
+def test_two_comparable_components_are_refused(tmp_path):
+    v1, f1 = cube()
+    v2, f2 = cube(centre=(400.0, 0.0, 0.0))
+    path = save(tmp_path, "two_livers.stl", np.vstack([v1, v2]), np.vstack([f1, f2 + len(v1)]))
+    with pytest.raises(GeometryError, match=r"two_livers\.stl: 2 disconnected components.*Keep only the liver"):
+        load(path)
+
+
+def test_inverted_normals_are_flipped(tmp_path):
+    v, f = cube()
+    path = save(tmp_path, "inside_out.ply", v, f[:, ::-1])
+    s, msgs = load(path)
+    assert any(m.startswith("normals flipped") for m in msgs), msgs
+    assert s.volume_mm3 == pytest.approx(EDGE**3, rel=1e-9)
+
+
+def test_inconsistent_winding_is_fixed(tmp_path):
+    v, f = cube()
+    f = f.copy()
+    f[::3] = f[::3, ::-1]
+    path = save(tmp_path, "mixed.ply", v, f)
+    s, msgs = load(path)
+    assert any(m.startswith("winding made consistent") for m in msgs), msgs
+    assert s.volume_mm3 == pytest.approx(EDGE**3, rel=1e-9)
+
+
+def test_degenerate_triangles_are_removed(tmp_path):
+    v, f = cube()
+    bad = np.array([[0, 0, 1], [2, 3, 3], [5, 5, 5]])
+    path = save(tmp_path, "degenerate.ply", v, np.vstack([f, bad]))
+    s, msgs = load(path)
+    assert any(m.startswith("degenerate triangles removed (3") for m in msgs), msgs
+    assert s.volume_mm3 == pytest.approx(EDGE**3, rel=1e-9) and len(s.faces) == len(f)
+
+
+def test_duplicate_vertices_and_triangles_are_merged(tmp_path):
+    v, f = cube()
+    v2 = np.vstack([v, v])  # every vertex twice; second copy used by a duplicate of every face
+    f2 = np.vstack([f, f + len(v)])
+    path = save(tmp_path, "dup.ply", v2, f2)
+    s, msgs = load(path)
+    assert any("duplicate vertices" in m for m in msgs) and any("duplicate triangles" in m for m in msgs), msgs
+    assert s.volume_mm3 == pytest.approx(EDGE**3, rel=1e-9)
+
+
+def test_collinear_zero_area_triangles_are_refused(tmp_path):
+    v, f = cube()
+    extra = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [20.0, 0.0, 0.0]]) + 500.0
+    path = save(tmp_path, "sliver.ply", np.vstack([v, extra]), np.vstack([f, [[len(v), len(v) + 1, len(v) + 2]]]))
+    with pytest.raises(GeometryError, match=r"sliver\.ply: 1 zero-area triangles with .* collinear"):
+        load(path)
+
+
+def test_non_manifold_edges_are_refused(tmp_path):
+    v, f = cube()
+    a, b = f[0][:2]  # a fin: a third triangle on an existing edge
+    fin = np.vstack([v, [[0.0, 0.0, 500.0]]])
+    path = save(tmp_path, "fin.ply", fin, np.vstack([f, [[a, b, len(v)]]]))
+    with pytest.raises(GeometryError, match=r"fin\.ply: non-manifold surface: 1 edges .*more than two"):
+        load(path)
+
+
+def sphere(radius=120.0, subdivisions=3):
+    s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    return np.asarray(s.vertices), np.asarray(s.faces)
+
+
+def test_local_self_intersection_is_remeshed(tmp_path):
+    v, f = sphere()
+    v = v.copy()
+    i = int(np.argmax(v[:, 2]))
+    v[i] = [3.0, 2.0, -150.0]  # the north pole dives through the body and out of the south cap
+    path = save(tmp_path, "folded.ply", v, f)
+    s, msgs = load(path)
+    assert any(m.startswith("self-intersections removed by voxel remeshing") for m in msgs), msgs
+    m = s.to_trimesh()
+    assert m.is_watertight and s.volume_mm3 > 0
+
+
+def test_many_self_intersections_are_refused(tmp_path):
+    v, f = sphere()
+    v = v.copy()
+    v[::3] *= -0.9  # a third of the vertices thrown through the centre
+    path = save(tmp_path, "crumpled.ply", v, f)
+    with pytest.raises(GeometryError, match=r"crumpled\.ply: the surface intersects itself .*too many"):
+        load(path)
+
+
+def test_liver_with_wrong_units_is_refused(tmp_path):
+    from liverforce.geometry.procedural import procedural_liver
+
+    s = procedural_liver(0)
+    path = save(tmp_path, "tiny_liver.stl", s.vertices / 40.0, s.faces)  # ~6 mm across
+    with pytest.raises(GeometryError, match=r"tiny_liver\.stl: with units mm .* 6\.\d+ mm across.*units are probably wrong"):
+        load(path, units="mm")
+    with pytest.raises(GeometryError, match=r"tiny_liver\.stl: with units m .*6\d{3}(\.\d+)? mm across"):
+        load(path, units="m")
+    with pytest.raises(GeometryError, match=r"tiny_liver\.stl: cannot guess the units"):
+        load(path, units="auto")
+    ok, _ = load(path, units=40)
+    assert 240 < ok.extent_mm.max() < 280
+
+
+@pytest.mark.parametrize("units", ["inch", -2.0, 0, "", True])
+def test_invalid_units_are_refused(tmp_path, units):
+    v, f = cube()
+    path = save(tmp_path, "cube.stl", v, f)
+    with pytest.raises(GeometryError, match=r"cube\.stl: invalid units"):
+        load(path, units=units)
+
+
+def test_nifti_without_the_label(tmp_path):
+    import nibabel as nib
+
+    data = np.zeros((20, 20, 20), dtype=np.int16)
+    data[5:15, 5:15, 5:15] = 1
+    path = tmp_path / "seg_no_liver.nii.gz"
+    nib.save(nib.Nifti1Image(data, np.diag([12.0, 12.0, 12.0, 1.0])), path)
+    with pytest.raises(GeometryError, match=r"seg_no_liver\.nii\.gz: label 6 is not present .*\[1\].*label="):
+        load_surface(path, label=6)
+    empty = tmp_path / "seg_empty.nii"
+    nib.save(nib.Nifti1Image(np.zeros((8, 8, 8), dtype=np.uint8), np.eye(4)), empty)
+    with pytest.raises(GeometryError, match=r"seg_empty\.nii: the volume holds no non-zero label"):
+        load_surface(empty)
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(GeometryError, match=r"nowhere\.stl: file not found"):
+        load(tmp_path / "nowhere.stl")
