@@ -64,3 +64,29 @@ def test_bad_override_stops_before_any_job(tmp_path):
     assert proc.returncode != 0
     assert "dataset.roi_fraction" in proc.stdout + proc.stderr
     assert not (tmp_path / "results").exists()
+
+
+def test_imported_liver_runs_through_geometry_and_mesh_rules(tmp_path, shared_livers):
+    src = shared_livers / "liver-smooth.obj"
+    override = f"overrides=geometry.imported=[{{name:sofa,path:{src},units:'40'}}]"
+    snakemake("--cores", "1", "--directory", str(tmp_path), "--config", "experiment=smoke", override,
+              "--", "results/smoke/mesh/imp-sofa.vtu")
+    from liverforce.mesh.io import read_mesh
+
+    mesh = read_mesh(tmp_path / "results/smoke/mesh/imp-sofa.vtu")
+    assert 500 < len(mesh.points) < 1200  # smoke target 800 nodes
+    assert set(mesh.facet_region.tolist()) >= {1, 2, 3, 4}
+    log = (tmp_path / "results/smoke/logs/geometry/imp-sofa.log").read_text()
+    assert "self-intersections removed" in log  # the repair is reported to the user
+
+
+def test_broken_import_stops_with_the_file_named(tmp_path, shared_livers):
+    src = shared_livers / "liver_for_test_broken.vtk"
+    override = f"overrides=geometry.imported=[{{name:broken,path:{src},units:mm}}]"
+    proc = snakemake("--cores", "1", "--directory", str(tmp_path), "--config", "experiment=smoke", override,
+                     "--", "results/smoke/geometry/imp-broken.ply", check=False)
+    assert proc.returncode != 0
+    log = (tmp_path / "results/smoke/logs/geometry/imp-broken.log")
+    text = proc.stderr + proc.stdout + (log.read_text() if log.exists() else "")
+    assert "liver_for_test_broken.vtk" in text and "GeometryError" in text
+    assert not (tmp_path / "results/smoke/geometry/imp-broken.ply").exists()
