@@ -176,6 +176,10 @@ def build_parser() -> argparse.ArgumentParser:
     u.add_argument("--host", default="127.0.0.1")
     u.add_argument("--port", type=int, default=5000)
     u.set_defaults(func=cmd_ui)
+
+    from liverforce.serve.cli import register as register_predict
+
+    register_predict(sub)
     return p
 
 

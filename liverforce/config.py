@@ -76,7 +76,7 @@ class GeometryConfig:
 
 @dataclass
 class MeshConfig:
-    target_nodes: int = 3000
+    target_nodes: int = 800
     mesher: str = "gmsh"
     refine_radius_mm: float = 0.0
     refine_edge_mm: float = 4.0

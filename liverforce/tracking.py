@@ -7,7 +7,11 @@ Layout of one experiment (``<experiment_prefix>-<experiment>``, named by the cal
   final model's per-epoch ``train_loss``/``test_loss``, test metrics
   (``mae_x/y/z/vec``, ``rmse_x/y/z/vec`` in N, ``accuracy_pct``), ``cv_mse``,
   figures, the model bundle (artifact ``force_model/``) and an MLflow pyfunc
-  model (reloadable by run id: ``mlflow.pyfunc.load_model(f"runs:/{run_id}/model")``);
+  model (reloadable by run id: ``mlflow.pyfunc.load_model(f"runs:/{run_id}/model")``),
+  logged as "models from code" (no cloudpickle) with a signature and an input
+  example, so ``mlflow models serve -m runs:/<id>/model --env-manager local``
+  serves it; its ``predict`` runs the serving checks of :mod:`liverforce.serve`
+  (a refused row becomes HTTP 400 with the reason);
 - a **nested run** per Ax trial (``log_trial``; tag ``mlflow.parentRunId``)
   with the trial's hyper-parameters, per-epoch fold-mean ``train_loss`` /
   ``val_loss``, per-fold MSE and ``cv_mse``.
@@ -20,6 +24,11 @@ schema at once fail); it is idempotent and serialised by a lock file.
 
 Runs are addressed by id through ``MlflowClient`` (no global active run), so
 one process may log several runs safely.
+
+For serving, :func:`download_force_model` fetches the bundle of a logged model
+(run id, ``runs:/``/``models:/`` URI or registered name) for
+:meth:`liverforce.learn.model.ForceModel.load` (nothing unpickled), and
+:meth:`Tracker.register_force_model` registers a logged model under a name.
 """
 
 from __future__ import annotations
@@ -28,19 +37,25 @@ import fcntl
 import math
 import os
 import random
+import re
+import tempfile
 import time
 from pathlib import Path
 from typing import Any, Callable, TypeVar
 
 import mlflow
+import mlflow.artifacts
 import mlflow.pyfunc
 import numpy as np
 import pandas as pd
 from mlflow.entities import Metric, Param
 from mlflow.exceptions import MlflowException
+from mlflow.protos.databricks_pb2 import INVALID_PARAMETER_VALUE
 from mlflow.models import infer_signature
 from mlflow.types import ColSpec, Schema
 from mlflow.tracking import MlflowClient
+
+from liverforce.serve.errors import PredictionInputError
 
 T = TypeVar("T")
 
@@ -177,10 +192,36 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
         self.model = ForceModel.load(context.artifacts["force_model"])
 
     def predict(self, context, model_input: pd.DataFrame, params: dict | None = None) -> pd.DataFrame:
+        from liverforce.serve.predictor import Predictor
+
         seed = int((params or {}).get("observation_seed", -1))
         arrays = frame_to_arrays(pd.DataFrame(model_input))
-        force = self.model.predict(arrays, observation_seed=None if seed < 0 else seed)
+        # the serving checks (shape, NaN/inf, units against the training scale, exertion point on the
+        # surface) refuse bad rows with a PredictionInputError naming the row; then the reference path
+        try:
+            force = Predictor(self.model).predict_arrays(arrays, observation_seed=None if seed < 0 else seed)
+        except PredictionInputError as exc:
+            raise PyfuncInputError(str(exc)) from exc
         return pd.DataFrame(force, columns=list(OUTPUT_COLUMNS))
+
+
+class PyfuncInputError(PredictionInputError, MlflowException):
+    """A refused input inside the pyfunc: a :class:`PredictionInputError` that MLflow's scoring
+    server answers with HTTP 400 and this message (other exceptions become a generic error)."""
+
+    def __init__(self, message: str):
+        MlflowException.__init__(self, message, error_code=INVALID_PARAMETER_VALUE)
+
+
+#: MLflow "models from code" entry: logged instead of a cloudpickled object, so that loading or
+#: serving the pyfunc model runs this file (an import of liverforce) and unpickles nothing
+_PYFUNC_CODE = '''"""MLflow pyfunc entry of a liverforce force model (models from code; no pickle)."""
+import mlflow
+
+from liverforce.tracking import ForceModelPyfunc
+
+mlflow.models.set_model(ForceModelPyfunc())
+'''
 
 
 # --------------------------------------------------------------------------
@@ -310,20 +351,32 @@ class Tracker:
 
         def _log():
             mlflow.set_tracking_uri(self.uri)
-            # resumes the run; leaving the block marks it FINISHED (FAILED on error) —
-            # call this last, end_run then sets the final status
-            with mlflow.start_run(run_id=run_id):
-                mlflow.pyfunc.log_model(
-                    name=MODEL_NAME,
-                    python_model=ForceModelPyfunc(),
-                    artifacts={"force_model": str(model_dir)},
-                    signature=signature,
-                    input_example=example,
-                    pip_requirements=_requirements(),
-                )
+            with tempfile.TemporaryDirectory(prefix="liverforce-pyfunc-") as tmp:
+                code = Path(tmp) / "liverforce_force_model.py"
+                code.write_text(_PYFUNC_CODE)
+                # resumes the run; leaving the block marks it FINISHED (FAILED on error) —
+                # call this last, end_run then sets the final status
+                with mlflow.start_run(run_id=run_id):
+                    mlflow.pyfunc.log_model(
+                        name=MODEL_NAME,
+                        python_model=str(code),
+                        artifacts={"force_model": str(model_dir)},
+                        signature=signature,
+                        input_example=example,
+                        pip_requirements=_requirements(),
+                    )
 
         self._call(_log)
         return f"runs:/{run_id}/{MODEL_NAME}"
+
+    def register_force_model(self, model_uri: str, name: str) -> str:
+        """Register a logged model (e.g. ``runs:/<run_id>/model``) under ``name``; returns the new version."""
+        def _register():
+            mlflow.set_tracking_uri(self.uri)
+            mlflow.set_registry_uri(self.uri)
+            return mlflow.register_model(model_uri, name)
+
+        return str(self._call(_register).version)
 
     def end_run(self, run_id: str, status: str = "FINISHED") -> None:
         self._call(self.client.set_terminated, run_id, status)
@@ -353,6 +406,48 @@ def load_pyfunc(model_uri: str, tracking_uri: str | None = None):
     if tracking_uri:
         mlflow.set_tracking_uri(tracking_uri)
     return mlflow.pyfunc.load_model(model_uri)
+
+
+def resolve_model_uri(ref: str) -> str:
+    """Run id (32 hex) -> ``runs:/<id>/model``; a name without scheme -> ``models:/<name>/latest``; URIs as given."""
+    if re.fullmatch(r"[0-9a-f]{32}", ref):
+        return f"runs:/{ref}/{MODEL_NAME}"
+    if ":/" in ref:
+        return ref
+    return f"models:/{ref}/latest"
+
+
+def download_force_model(model_ref: str, dst_dir: str | Path | None = None, tracking_uri: str | None = None) -> Path:
+    """Download a logged force model and return its liverforce bundle directory.
+
+    Parameters
+    ----------
+    model_ref : str
+        ``runs:/<run_id>/model``, a bare run id, ``models:/<name>/<version>``,
+        ``models:/<name>@<alias>`` or a registered model name (latest version).
+    dst_dir : path, optional
+        Where to download (default: a new temporary folder).
+    tracking_uri : str, optional
+        Tracking (and registry) store; default: MLflow's current one.
+
+    Returns
+    -------
+    Path
+        The bundle (``model.json`` + weights) inside the downloaded pyfunc
+        model; load it with :meth:`liverforce.learn.model.ForceModel.load`,
+        which never unpickles (the pyfunc's own code is not executed).
+    """
+    uri = resolve_model_uri(model_ref)
+    if tracking_uri:
+        mlflow.set_tracking_uri(tracking_uri)
+        mlflow.set_registry_uri(tracking_uri)
+    dst = Path(dst_dir) if dst_dir is not None else Path(tempfile.mkdtemp(prefix="liverforce-model-"))
+    dst.mkdir(parents=True, exist_ok=True)
+    local = Path(with_retry(mlflow.artifacts.download_artifacts, artifact_uri=uri, dst_path=str(dst)))
+    hits = sorted(local.glob("artifacts/*/model.json")) or sorted(local.glob("**/model.json"))
+    if not hits:
+        raise FileNotFoundError(f"{uri}: the logged model holds no liverforce bundle (artifacts/*/model.json)")
+    return hits[0].parent
 
 
 def predict_pyfunc(pyfunc_model, arrays: dict, observation_seed: int | None = None) -> np.ndarray:

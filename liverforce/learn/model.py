@@ -329,6 +329,44 @@ class ForceModel:
         return cls(Representation.from_dict(doc["representation"]), pre, rspec, net, doc.get("meta"))
 
 
+def training_scale(prep: Prepared, rep: Representation) -> dict:
+    """Ranges of the training inputs, recorded in the bundle (``meta["training_scale"]``) for serving.
+
+    Serving (:mod:`liverforce.serve`) refuses inputs far outside these ranges
+    (e.g. a liver in metres or a material in Pa) instead of returning a
+    silently wrong force. All from the training rows ``prep``:
+
+    ``inertia_length_mm``
+        ``[min, max]`` of ``(tr I / 2)^(1/5)`` (mm), a length that scales with
+        the liver (``tr I = 2 V r_g^2`` for unit density).
+    ``centroid_distance_mm``
+        ``[min, max]`` of ``|c_liver - p|`` (mm).
+    ``material_params_mpa``
+        ``[[min...], [max...]]`` per constant (MPa).
+    ``feature_abs_max``
+        Largest ``|feature|`` per representation channel (mm): displacement
+        components and/or deformed height, as sampled on the grid.
+    ``force_magnitude_n``
+        ``[min, max]`` of ``|F|`` (N).
+    """
+    s = prep.state
+    trace = s[:, 9] + s[:, 12] + s[:, 14]  # inertia xx + yy + zz (state.py column order)
+    length = np.power(np.maximum(trace, 0.0) / 2.0, 0.2)
+    dist = np.linalg.norm(s[:, 0:3], axis=1)
+    mat = s[:, 15:]
+    g2 = rep.grid_size**2
+    x = np.abs(np.concatenate([prep.x_clean, *prep.x_obs], axis=0))
+    feat_max = [float(x[:, c * g2:(c + 1) * g2].max()) for c in range(rep.channels)]
+    fmag = np.linalg.norm(prep.force, axis=1)
+    return {
+        "inertia_length_mm": [float(length.min()), float(length.max())],
+        "centroid_distance_mm": [float(dist.min()), float(dist.max())],
+        "material_params_mpa": [mat.min(axis=0).tolist(), mat.max(axis=0).tolist()],
+        "feature_abs_max": feat_max,
+        "force_magnitude_n": [float(fmag.min()), float(fmag.max())],
+    }
+
+
 def fit_force_model(
     prep: Prepared,
     rep: Representation,
@@ -366,4 +404,6 @@ def fit_force_model(
         hist[f"{monitor[1]}_loss"] = hist.pop("val_loss")
     else:
         hist.pop("val_loss")
+    meta = dict(meta or {})
+    meta.setdefault("training_scale", training_scale(prep, rep))
     return ForceModel(rep, pre, spec, net, meta), hist

@@ -43,7 +43,9 @@ class Standardizer:
             for g in np.unique(groups):
                 cols = groups == g
                 scale[cols] = np.sqrt(np.mean((x[:, cols] - mean[cols]) ** 2))
-        scale = np.where(np.isfinite(scale) & (scale > 1e-12 * max(1.0, float(np.abs(mean).max()))), scale, 1.0)
+        # a column is constant when its spread is negligible against ITS OWN magnitude (a global
+        # threshold let inertia columns ~1e9 mm^5 swallow material constants ~1e-3 MPa)
+        scale = np.where(np.isfinite(scale) & (scale > 1e-12 * np.maximum(1.0, np.abs(mean))), scale, 1.0)
         return cls(mean=mean, scale=scale)
 
     def transform(self, x: np.ndarray) -> np.ndarray:

@@ -121,6 +121,7 @@ def train_scenario(
     *,
     out_dir: str | Path,
     tags: dict | None = None,
+    model_meta: dict | None = None,
 ) -> dict:
     """Train and evaluate one scenario + variant; returns the result dict (also in ``metrics.json``).
 
@@ -155,6 +156,9 @@ def train_scenario(
     """
     t_start = time.perf_counter()
     configure_torch(threads)
+    if model_meta:
+        # provenance stored in the model bundle (e.g. ROI fraction, frame radius for serving)
+        model_cfg = {**model_cfg, "_meta": dict(model_meta)}
     seed = int(train_cfg.get("seed", 0) if seed is None else seed)
     out_dir = Path(out_dir)
     n = check_arrays(arrays)
@@ -251,6 +255,7 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
         "scenario": scenario, "variant": variant, "seed": seed, "eval_observation_seed": eval_seed(seed),
         "encoder": encoder, "state_vector": use_state, "hyper_parameters": best,
         "test_case_ids": [str(c) for c in test_arrays["case_id"]],
+        **(model_cfg.get("_meta") or {}),
     }
     model, history = fit_force_model(
         prep_train, rep, encoder=encoder, code_size=code_size, use_state=use_state, hidden=hidden,

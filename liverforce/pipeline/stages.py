@@ -357,8 +357,15 @@ def train_model(manifest_path, scenario: str, variant: str, model_cfg: dict, tra
         "config_hash": config_hash({"model": model_cfg, "train": train_cfg, "tune": tune_cfg}),
         "data_version": manifest["data_version"],
     }
+    shard_meta = dio.read_metadata(shards[0])
+    model_meta = {
+        "roi_fraction": float(shard_meta["dataset"]["roi_fraction"]),
+        "frame_radius_mm": float(shard_meta["simulate"]["tool_radius_mm"]),
+        "data_version": manifest["data_version"],
+    }
     result = train_scenario(arrays, model_cfg, train_cfg, tune_cfg, scenario, variant, tracker=tracker,
-                            threads=threads, seed=seed + train_cfg["seed"], out_dir=out_dir, tags=tags)
+                            threads=threads, seed=seed + train_cfg["seed"], out_dir=out_dir, tags=tags,
+                            model_meta=model_meta)
     result.update(encoder=model_cfg["encoder"], state_vector=bool(model_cfg["state_vector"]), model_cfg=model_cfg)
     dio.write_json_atomic(result, metrics_path)
     log.info("scenario %s / %s: test %s", scenario, variant,

@@ -80,3 +80,16 @@ def test_standardizer_grouped_scale_and_round_trip():
     t = Standardizer.from_dict(s.to_dict())
     np.testing.assert_array_equal(t.mean, s.mean)
     np.testing.assert_array_equal(t.scale, s.scale)
+
+
+def test_standardizer_scales_small_columns_beside_huge_ones():
+    import numpy as np
+
+    from liverforce.learn.scaling import Standardizer
+
+    rng = np.random.default_rng(0)
+    x = np.column_stack([4e9 + 1e8 * rng.normal(size=50), 0.0016 + 3e-4 * rng.normal(size=50), np.full(50, 2.0)])
+    s = Standardizer.fit(x)
+    z = s.transform(x)
+    np.testing.assert_allclose(z[:, :2].std(axis=0), 1.0, rtol=1e-12)  # material column is standardised
+    assert s.scale[2] == 1.0 and np.all(z[:, 2] == 0.0)  # a constant column stays 0

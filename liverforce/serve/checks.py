@@ -1,0 +1,252 @@
+"""Input checks against the model's training scale: refuse, never guess.
+
+A force model only knows the range it was trained on. Before predicting,
+every case is checked (each failure is a :class:`PredictionInputError` that
+names the input and the likely cause):
+
+===========================  ==================================================
+check                        refused when
+===========================  ==================================================
+shape / finiteness           not ``(k, 3)``; NaN or inf anywhere; empty
+ROI size                     fewer than ``min_roi_points`` nodes
+ROI extent (units)           the ROI's centred tangent half-extent is more than
+                             ``scale_factor`` x the model's grid half-width
+                             ``h``, or its largest tangent extent is below
+                             ``h / scale_factor`` (a liver in m, cm or µm)
+exertion point on surface    the undeformed ROI's height at the exertion
+                             point (a quadratic fit of the nearest nodes in the
+                             local frame) is more than ``surface_tol_mm`` off,
+                             or the point lies outside its ROI
+displacement (units)         largest ROI displacement above ``scale_factor`` x
+                             the largest grid feature seen in training
+liver size (units)           ``(tr I / 2)^(1/5)`` outside the training range
+                             by more than ``scale_factor`` (inertia in mm⁵)
+centroid distance            ``|c_liver - p|`` likewise
+material (units)             a constant outside its training range by more
+                             than ``scale_factor`` (e.g. Pa or kPa for MPa)
+===========================  ==================================================
+
+The ranges come from ``meta["training_scale"]`` of the bundle
+(:func:`liverforce.learn.model.training_scale`); bundles written before it
+existed fall back to ranges derived from the fitted scalers (approximate,
+said so in :attr:`TrainingScale.source`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from liverforce.learn.frames import local_rotations
+from liverforce.serve.errors import PredictionInputError
+from liverforce.serve.preop import _points, _vector
+
+#: how the state vector is laid out (liverforce.learn.state)
+_STATE_MATERIAL_START = 15
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Tolerances of the input checks (module table)."""
+
+    scale_factor: float = 4.0
+    surface_tol_mm: float = 2.0
+    min_roi_points: int = 10
+    min_cloud_points: int = 20
+
+
+@dataclass(frozen=True)
+class TrainingScale:
+    """Ranges of the training inputs of one model (``None``: not known, not checked)."""
+
+    half_width_mm: float
+    inertia_length_mm: tuple[float, float] | None
+    centroid_distance_mm: tuple[float, float] | None
+    material_lo: np.ndarray | None
+    material_hi: np.ndarray | None
+    feature_abs_max: tuple[float, ...] | None
+    n_material: int | None
+    source: str
+
+    @classmethod
+    def of(cls, model) -> "TrainingScale":
+        """From the bundle's ``meta["training_scale"]``, else approximately from the scalers."""
+        rep = model.representation
+        ss = model.pre.state_scaler
+        n_mat = None if ss is None else int(ss.mean.size - _STATE_MATERIAL_START)
+        rec = (model.meta or {}).get("training_scale")
+        if rec:
+            lo, hi = (np.asarray(v, dtype=np.float64) for v in rec["material_params_mpa"])
+            return cls(rep.half_width_mm, tuple(rec["inertia_length_mm"]), tuple(rec["centroid_distance_mm"]),
+                       lo, hi, tuple(rec["feature_abs_max"]), n_mat if n_mat is not None else int(lo.size),
+                       "bundle meta training_scale")
+        fs = model.pre.feature_scaler
+        g2 = rep.grid_size**2
+        feat = tuple(float(np.max(np.abs(fs.mean[c * g2:(c + 1) * g2]) + 4 * fs.scale[c * g2:(c + 1) * g2]))
+                     for c in range(rep.channels))
+        if ss is None:
+            return cls(rep.half_width_mm, None, None, None, None, feat, None,
+                       "approximate: fitted feature scaler (bundle has no training_scale)")
+        m, s = ss.mean, ss.scale
+        trace = m[9] + m[12] + m[14]
+        length = float(np.power(max(trace, 0.0) / 2.0, 0.2))
+        dist = float(np.linalg.norm(m[0:3]))
+        mm, ms = m[_STATE_MATERIAL_START:], s[_STATE_MATERIAL_START:]
+        # the scaler may have replaced a tiny spread by 1 (degenerate): then trust the mean alone
+        ms = np.where(ms < np.abs(mm), ms, 0.0)
+        return cls(rep.half_width_mm, (length, length), (0.5 * dist, 2.0 * dist), mm - 3 * ms, mm + 3 * ms, feat,
+                   n_mat, "approximate: fitted scalers (bundle has no training_scale)")
+
+
+def _outside(value: float, lo: float, hi: float, factor: float) -> bool:
+    return value > hi * factor or value < lo / factor
+
+
+def _fmt_range(lo: float, hi: float) -> str:
+    return f"{lo:.4g}" if np.isclose(lo, hi) else f"{lo:.4g}..{hi:.4g}"
+
+
+def check_material(material: np.ndarray, scale: TrainingScale, limits: Limits, label: str) -> None:
+    """Count and magnitude of the material constants (MPa) against the training range."""
+    if scale.n_material is not None and material.size != scale.n_material:
+        raise PredictionInputError(
+            f"{label}material_params_mpa: the model was trained with {scale.n_material} material constants "
+            f"(MPa), got {material.size}"
+        )
+    if scale.material_lo is None:
+        return
+    for j, (v, lo, hi) in enumerate(zip(material, scale.material_lo, scale.material_hi)):
+        a, b = sorted((abs(lo), abs(hi)))
+        if lo * hi <= 0:
+            a = 0.0
+        big = abs(v) > b * limits.scale_factor
+        small = a > 0 and abs(v) < a / limits.scale_factor
+        if big or small:
+            ratio = abs(v) / (b if big else a)
+            raise PredictionInputError(
+                f"{label}material_params_mpa[{j}] = {v:.6g} MPa is {ratio:.3g}x the training range "
+                f"({_fmt_range(lo, hi)} MPa): material constants must be in MPa (N/mm²), not Pa or kPa"
+            )
+
+
+def check_liver(centroid: np.ndarray, inertia: np.ndarray, point: np.ndarray, scale: TrainingScale, limits: Limits,
+                label: str) -> None:
+    """Liver size (from the inertia tensor) and exertion-point-to-centroid distance against training."""
+    inertia = inertia.reshape(3, 3)
+    trace = float(np.trace(inertia))
+    if not trace > 0:
+        raise PredictionInputError(
+            f"{label}inertia_mm5: the trace of the inertia tensor is {trace:.4g}; it must be positive "
+            "(volume inertia about the centroid, unit density, mm^5)"
+        )
+    length = (trace / 2.0) ** 0.2
+    if scale.inertia_length_mm is not None and _outside(length, *scale.inertia_length_mm, limits.scale_factor):
+        lo, hi = scale.inertia_length_mm
+        raise PredictionInputError(
+            f"{label}the liver's size (tr(I)/2)^(1/5) = {length:.4g} mm is {length / (hi if length > hi else lo):.3g}x "
+            f"the training livers' ({_fmt_range(lo, hi)} mm): are the surface and inertia in mm (mm^5)?"
+        )
+    dist = float(np.linalg.norm(centroid - point))
+    if scale.centroid_distance_mm is not None and _outside(dist, *scale.centroid_distance_mm, limits.scale_factor):
+        lo, hi = scale.centroid_distance_mm
+        raise PredictionInputError(
+            f"{label}the exertion point is {dist:.4g} mm from the liver centroid; training cases were "
+            f"{_fmt_range(lo, hi)} mm: wrong units, or a point and a liver from different frames?"
+        )
+
+
+def check_roi(U_loc: np.ndarray, scale: TrainingScale, limits: Limits, label: str) -> None:
+    """ROI extent (units) and exertion point on the undeformed surface, in the local frame."""
+    h = scale.half_width_mm
+    f = limits.scale_factor
+    tang = U_loc[:, :2]
+    centred = float(min(tang[:, 0].max(), -tang[:, 0].min(), tang[:, 1].max(), -tang[:, 1].min()))
+    largest = float(np.abs(tang).max())
+    if centred > f * h:
+        raise PredictionInputError(
+            f"{label}the ROI spans +-{centred:.4g} mm around the exertion point, {centred / h:.3g}x the model's grid "
+            f"(+-{h:.4g} mm): are the points in mm (a unit 10x or 1000x too small)? "
+            "Pass the ROI patch, not the whole liver"
+        )
+    if largest < h / f:
+        raise PredictionInputError(
+            f"{label}the ROI reaches only {largest:.3g} mm from the exertion point, {h / max(largest, 1e-300):.3g}x "
+            f"smaller than the model's grid (+-{h:.4g} mm): are the points in mm (not cm or m)? Too few points?"
+        )
+    r = np.hypot(tang[:, 0], tang[:, 1])
+    n_fit = min(len(r), 12)
+    near = np.argpartition(r, n_fit - 1)[:n_fit] if n_fit < len(r) else np.arange(len(r))
+    if r[near].min() > h:
+        raise PredictionInputError(
+            f"{label}the exertion point lies {r[near].min():.3g} mm (in the tangent plane) from the nearest ROI node: "
+            "it is not inside its ROI"
+        )
+    u, v, z = tang[near, 0], tang[near, 1], U_loc[near, 2]
+    cols = [np.ones_like(u), u, v] + ([u * u, u * v, v * v] if n_fit >= 9 else [])
+    A = np.column_stack(cols)
+    coef, *_ = np.linalg.lstsq(A, z, rcond=None)
+    z0 = float(coef[0])
+    if not np.isfinite(z0) or abs(z0) > limits.surface_tol_mm:
+        raise PredictionInputError(
+            f"{label}the exertion point is {abs(z0):.3g} mm off the undeformed surface (along its normal; tolerance "
+            f"{limits.surface_tol_mm} mm): put it on the pre-operative surface (same frame and units as the ROI)"
+        )
+
+
+def check_displacement(disp_max_mm: float, scale: TrainingScale, limits: Limits, label: str) -> None:
+    """The largest ROI displacement (mm) against the largest grid feature seen in training."""
+    if scale.feature_abs_max is None:
+        return
+    ref = max(scale.feature_abs_max[:3] if len(scale.feature_abs_max) >= 3 else scale.feature_abs_max)
+    if disp_max_mm > limits.scale_factor * max(ref, 1e-6):
+        raise PredictionInputError(
+            f"{label}the ROI moved by up to {disp_max_mm:.4g} mm, {disp_max_mm / ref:.3g}x the largest displacement "
+            f"in training ({ref:.4g} mm): are the deformed and undeformed points in the same units (mm) and frame, "
+            "and in the same node order?"
+        )
+
+
+def check_case(arrays: dict, i: int, model, scale: TrainingScale, limits: Limits, *, label: str | None = None,
+               correspondence: bool = True) -> None:
+    """Check row ``i`` of input-contract ``arrays`` (module table); raise :class:`PredictionInputError`."""
+    if label is None:
+        ids = arrays.get("case_id")
+        many = len(arrays["exertion_point_mm"]) > 1
+        label = f"case {ids[i]}: " if ids is not None else (f"row {i}: " if many else "")
+    try:
+        U = _points("roi_undeformed_mm", arrays["roi_undeformed_mm"][i], min_points=limits.min_roi_points)
+        D = _points("roi_deformed_mm", arrays["roi_deformed_mm"][i], min_points=limits.min_roi_points)
+        p = _vector("exertion_point_mm", arrays["exertion_point_mm"][i], 3)
+        frame = [_vector(k, arrays[k][i], 3) for k in ("frame_normal", "frame_t1", "frame_t2")]
+    except PredictionInputError as exc:
+        raise PredictionInputError(f"{label}{exc}") from None
+    if correspondence and U.shape != D.shape:
+        raise PredictionInputError(
+            f"{label}roi_undeformed_mm has {len(U)} nodes but roi_deformed_mm has {len(D)}: in correspondence mode "
+            "they list the same nodes in the same order (for an unordered camera cloud use Predictor.predict_cloud)"
+        )
+    try:
+        R = local_rotations(*(f[None] for f in frame))[0]
+    except ValueError as exc:
+        raise PredictionInputError(f"{label}{exc}") from None
+    U_loc = (U - p) @ R.T
+    check_roi(U_loc, scale, limits, label)
+    if correspondence:
+        check_displacement(float(np.abs(D - U).max()), scale, limits, label)
+    if model.uses_state:
+        try:
+            c = _vector("liver_centroid_mm", arrays["liver_centroid_mm"][i], 3)
+            inertia = _vector("inertia_mm5", arrays["inertia_mm5"][i], 9)
+            mat = _vector("material_params_mpa", arrays["material_params_mpa"][i])
+            for k in ("roi_centroid_undeformed_mm", "roi_centroid_deformed_mm"):
+                _vector(k, arrays[k][i], 3)
+        except KeyError as exc:
+            raise PredictionInputError(
+                f"{label}the model uses the state vector and needs {exc.args[0]} (liver centroid and inertia from "
+                "the closed pre-operative surface, material constants in MPa)"
+            ) from None
+        except PredictionInputError as exc:
+            raise PredictionInputError(f"{label}{exc}") from None
+        check_liver(c, inertia, p, scale, limits, label)
+        check_material(mat, scale, limits, label)

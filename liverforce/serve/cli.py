@@ -1,0 +1,116 @@
+"""``liverforce predict``: a force from a point-cloud file, or forces for whole shards.
+
+Examples
+--------
+liverforce predict -m results/exp/models/II-pca/model cloud.ply --context ctx.yaml
+liverforce predict -m runs:/<run_id>/model nodes.npy --mode nodes --context ctx.json --out force.json
+liverforce predict -m <run_id> cloud.csv --surface liver.stl --exertion-point 12 -40 88 --material 0.0016 0.0125
+liverforce predict -m my-registered-model --shards results/exp/shards/II --out preds.parquet
+liverforce predict -m results/exp/models/II-pca/model --describe
+
+Modes for the point-cloud file: ``cloud`` (default) an unordered observed
+cloud; ``nodes`` the deformed ROI nodes in the context's ROI order; ``surface``
+the deformed positions of every vertex of the context's surface file. Exit
+codes: 0 done, 2 input refused (the message says why).
+
+Wire into the main parser with ``liverforce.serve.cli.register(sub)``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+import numpy as np
+
+from liverforce.serve.errors import PredictionInputError
+
+
+def register(subparsers) -> argparse.ArgumentParser:
+    """Add the ``predict`` subcommand to an ``argparse`` subparsers object; returns the subparser."""
+    p = subparsers.add_parser(
+        "predict", help="predict the tool force from a point cloud (or whole shards) with a trained model",
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("-m", "--model", required=True,
+                   help="model directory, MLflow run id, runs:/<id>/model, models:/<name>/<version> "
+                        "or a registered name")
+    p.add_argument("points", nargs="?", help="point-cloud file (.ply, .csv, .npy), mm in the liver frame")
+    p.add_argument("--mode", choices=("cloud", "nodes", "surface"), default="cloud",
+                   help="what the point file holds (default: an unordered observed cloud)")
+    p.add_argument("--approximate", action="store_true",
+                   help="cloud mode for models that need correspondence: normal-only displacement estimate")
+    p.add_argument("--context", help="JSON/YAML context: exertion point, material, surface or ROI + frame")
+    p.add_argument("--surface", help="undeformed liver surface file (overrides the context's)")
+    p.add_argument("--exertion-point", nargs=3, type=float, metavar=("X", "Y", "Z"), help="tool contact point, mm")
+    p.add_argument("--material", nargs="+", type=float, metavar="MPA", help="material constants, MPa")
+    p.add_argument("--units", choices=("mm", "cm", "m"), help="units of every point input (default mm)")
+    p.add_argument("--shards", nargs="+", metavar="PATH", help="batch: shard files, folders or manifest.json")
+    p.add_argument("--observation-seed", type=int, help="batch: draw the evaluation's observation model")
+    p.add_argument("--reference", action="store_true", help="batch: skip the compiled fast path")
+    p.add_argument("--out", help="write the result (.json or .csv for one force; .parquet or .csv for shards)")
+    p.add_argument("--tracking-uri", help="MLflow tracking URI (default: MLFLOW_TRACKING_URI / MLflow's default)")
+    p.add_argument("--describe", action="store_true", help="print what the model needs and how it was trained")
+    p.set_defaults(func=cmd_predict)
+    return p
+
+
+def _error(msg: str) -> int:
+    print(f"liverforce predict: error: {msg}", file=sys.stderr)
+    return 2
+
+
+def cmd_predict(args) -> int:
+    """Run ``liverforce predict``; returns the exit code."""
+    import torch
+
+    if torch.get_num_threads() != 1:
+        torch.set_num_threads(1)
+    try:
+        return _run(args)
+    except PredictionInputError as exc:
+        return _error(str(exc))
+
+
+def _run(args) -> int:
+    from liverforce.serve.files import load_context, read_points, write_atomic_text
+    from liverforce.serve.predictor import Predictor
+
+    predictor = Predictor.load(args.model, tracking_uri=args.tracking_uri)
+    if args.describe:
+        print(json.dumps(predictor.describe(), indent=2, default=str))
+        return 0
+    if args.shards:
+        from liverforce.serve.batch import predict_shards
+
+        if args.points:
+            return _error("give either a point-cloud file or --shards, not both")
+        summary = predict_shards(predictor, args.shards, args.out, observation_seed=args.observation_seed,
+                                 fast=not args.reference)
+        summary.pop("frame")
+        print(json.dumps(summary, indent=2, default=float))
+        return 0
+    if not args.points:
+        return _error("give a point-cloud file (or --shards for batch prediction)")
+    overrides = {"exertion_point_mm": args.exertion_point, "material_params_mpa": args.material, "units": args.units}
+    if args.surface:
+        overrides["surface"] = args.surface
+    preop = load_context(args.context, predictor, overrides=overrides)
+    pts = read_points(args.points, args.units)
+    info: dict = {"mode": args.mode}
+    if args.mode == "cloud":
+        force, extra = predictor.predict_cloud(pts, preop, approximate=args.approximate, return_info=True)
+        info.update(extra)
+    elif args.mode == "surface":
+        force = predictor.predict(preop.roi_of_surface(pts), preop)
+    else:
+        force = predictor.predict(pts, preop)
+    doc = {"force_n": [float(v) for v in force], "magnitude_n": float(np.linalg.norm(force)),
+           "frame": "liver (source) frame of the inputs", "model": predictor.source, **info}
+    if args.out and args.out.lower().endswith(".csv"):
+        write_atomic_text(args.out, "fx_n,fy_n,fz_n\n" + ",".join(repr(float(v)) for v in force) + "\n")
+    elif args.out:
+        write_atomic_text(args.out, json.dumps(doc, indent=2) + "\n")
+    print(json.dumps(doc))
+    return 0

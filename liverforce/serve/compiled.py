@@ -1,0 +1,320 @@
+"""Fast path for a fixed ROI topology: the whole pre-processing as one precomputed affine map.
+
+In a haptic loop the tool rests at one exertion point while the camera (or a
+tracker) reports, many times a second, the deformed positions of the same ROI
+nodes. Everything before the first nonlinearity is then affine in the
+deformed positions ``D`` (``k x 3``, liver frame, mm) for models with
+``roi_features: displacement``:
+
+    D_loc = (D - p) R^T                       local frame
+    d     = D_loc - U_loc                     node displacement
+    x     = W d  (channel-major)              grid resampling: W (g² x k) are the
+                                              piecewise-linear (Delaunay) / nearest
+                                              weights over the fixed undeformed
+                                              tangent coordinates
+    c     = C (x - mu_f) / s_f - ...           PCA + scalers (AE/DAE: first Linear)
+    s     = (state(D) - mu_s) / s_s           deformed ROI centroid = mean D; the
+                                              rest of the state is constant
+
+so :class:`CompiledROI` precomputes ``z = A vec(D) + b`` once (``W`` is read
+off the reference interpolant itself, :func:`liverforce.learn.representation._interpolate`
+applied to the identity, so the resampling is the reference one by
+construction). A call is then one matrix-vector product plus the small MLP
+in NumPy (float32 like the torch reference; batch norm folded into the
+preceding linear layer, dropout dropped, the target scaling and the rotation
+back to the liver frame applied at the end).
+
+The reference path (:meth:`liverforce.learn.model.ForceModel.predict`) stays
+the oracle: tests check both agree to 1e-6 N.
+
+Per call only cheap checks run: the input's shape, a finite output (a NaN or
+inf anywhere in ``D`` makes every output non-finite, which is then reported
+with the row that caused it) and the displacement magnitude. The context
+(ROI, frame, liver, material) is checked once, when compiling.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from torch import nn
+
+from liverforce.learn.encoders import PCAEncoder
+from liverforce.learn.frames import local_rotations
+from liverforce.learn.representation import _interpolate
+from liverforce.learn.state import state_vector
+from liverforce.serve.checks import Limits, TrainingScale, check_displacement, check_material
+from liverforce.serve.errors import PredictionInputError
+from liverforce.serve.preop import Preop, _points, _vector
+
+_STATE_DEF_CENTROID = slice(6, 9)  # roi_centroid_deformed columns of the state vector
+_STATE_MATERIAL_START = 15
+
+
+def numpy_layers(seq: nn.Sequential) -> list[tuple[np.ndarray, np.ndarray, float | None]]:
+    """``(W, b, slope)`` per affine layer of an eval-mode ``Sequential`` (float64).
+
+    ``Linear`` layers, each optionally followed by ``BatchNorm1d`` (folded in:
+    ``W' = g W / sqrt(var + eps)``, ``b' = g (b - mu) / sqrt(var + eps) + beta``)
+    and an activation: ``slope`` 0 for ReLU, the negative slope for
+    LeakyReLU, ``None`` for none. ``Dropout`` is the identity in eval mode.
+    """
+    out: list[list] = []
+    for m in seq:
+        if isinstance(m, nn.Linear):
+            out.append([m.weight.detach().double().numpy().copy(), m.bias.detach().double().numpy().copy(), None])
+        elif isinstance(m, nn.BatchNorm1d):
+            W, b, _ = out[-1]
+            g = m.weight.detach().double().numpy() / np.sqrt(m.running_var.double().numpy() + m.eps)
+            out[-1][0] = W * g[:, None]
+            out[-1][1] = (b - m.running_mean.double().numpy()) * g + m.bias.detach().double().numpy()
+        elif isinstance(m, nn.ReLU):
+            out[-1][2] = 0.0
+        elif isinstance(m, nn.LeakyReLU):
+            out[-1][2] = float(m.negative_slope)
+        elif isinstance(m, nn.Dropout):
+            continue
+        else:
+            raise TypeError(f"numpy_layers: unsupported layer {type(m).__name__}")
+    return [(W, b, s) for W, b, s in out]
+
+
+def _act(h: np.ndarray, slope: float | None) -> np.ndarray:
+    if slope is None:
+        return h
+    if slope == 0.0:
+        return np.maximum(h, 0.0, out=h)
+    return np.where(h > 0, h, slope * h)
+
+
+class CompiledROI:
+    """A model specialised to one :class:`~liverforce.serve.preop.Preop` (module docstring).
+
+    Parameters
+    ----------
+    model : liverforce.learn.model.ForceModel
+        With ``roi_features: displacement`` (any encoder, with or without the
+        state vector).
+    preop : Preop
+        The fixed context; checked by the caller (:meth:`Predictor.compile`).
+    limits, scale : Limits, TrainingScale
+        For the per-call displacement check.
+    """
+
+    def __init__(self, model, preop: Preop, *, limits: Limits | None = None, scale: TrainingScale | None = None):
+        rep = model.representation
+        if rep.features != "displacement":
+            raise PredictionInputError(
+                f"the fixed-topology fast path needs a model trained with roi_features: displacement (this one uses "
+                f"'{rep.features}', whose grid depends on the deformed positions); use Predictor.predict"
+            )
+        self.limits = limits or Limits()
+        self.scale = scale or TrainingScale.of(model)
+        self.preop = preop
+        p = preop.exertion_point_mm
+        R = local_rotations(preop.frame[2][None], preop.frame[0][None], preop.frame[1][None])[0]
+        self.R = R
+        U = preop.roi_undeformed_mm
+        k = len(U)
+        self.k = k
+        self._U_flat = U.ravel().copy()
+        U_loc = (U - p) @ R.T
+        keep = np.ones(k, dtype=bool)
+        if rep.occlusion_radius_mm > 0 and rep.occlusion_mode == "remove":
+            keep = np.hypot(U_loc[:, 0], U_loc[:, 1]) >= rep.occlusion_radius_mm
+            if keep.sum() < 3:
+                raise PredictionInputError(
+                    f"only {int(keep.sum())} ROI nodes remain outside the model's occlusion radius "
+                    f"{rep.occlusion_radius_mm} mm; the ROI is too small"
+                )
+        kk = int(keep.sum())
+        g2 = rep.grid_size**2
+        W = np.zeros((g2, k))
+        W[:, keep] = _interpolate(U_loc[keep, :2], np.eye(kk), rep.grid(), "compiled ROI")
+        # x[c g2 + i] = sum_j W[i, j] (R (D_j - p) - U_loc_j)[c]
+        M = np.einsum("ij,ca->cija", W, R).reshape(3 * g2, 3 * k)
+        off = p @ R.T + U_loc  # (k, 3)
+        x0 = -(W @ off).T.ravel()
+        pre = model.pre
+        fs = pre.feature_scaler
+        Mx = M / fs.scale[:, None]
+        bx = (x0 - fs.mean) / fs.scale
+        enc = pre.encoder
+        cs = pre.code_scaler
+        if isinstance(enc, PCAEncoder):
+            A_code = enc.components @ Mx
+            b_code = enc.components @ (bx - enc.mean)
+            self._enc_layers: list = []
+            A_code = A_code / cs.scale[:, None]
+            b_code = (b_code - cs.mean) / cs.scale
+        else:
+            layers = numpy_layers(enc.net.encoder)
+            W1, b1, s1 = layers[0]
+            A_code = W1 @ Mx
+            b_code = W1 @ bx + b1
+            self._first_slope = s1
+            self._enc_layers = layers[1:]
+            self._cs = (cs.mean, cs.scale)
+        self._pca = isinstance(enc, PCAEncoder)
+        self.A_code, self.b_code = A_code, b_code
+        # state vector: constant except the deformed ROI centroid (affine in D) and, per call, the material
+        self.uses_state = model.uses_state
+        if self.uses_state:
+            ss = pre.state_scaler
+            s_ref = state_vector(preop.to_arrays(U))[0]  # deformed centroid = undeformed here; replaced below
+            self._s_mean, self._s_scale = ss.mean, ss.scale
+            s0 = (s_ref - ss.mean) / ss.scale
+            sc = _STATE_DEF_CENTROID
+            # columns 6..8: R (mean_j D_j - p) -> scaled
+            Rs = R / ss.scale[sc][:, None]
+            self._S_c = Rs  # (3, 3) acting on the centroid
+            s0 = s0.copy()
+            s0[sc] = -(Rs @ p) - ss.mean[sc] / ss.scale[sc]
+            self._s0 = s0
+            mean_op = np.zeros((3, 3 * k))
+            for a in range(3):
+                mean_op[a, a::3] = 1.0 / k
+            A_state = np.zeros((s0.size, 3 * k))
+            A_state[sc] = Rs @ mean_op
+            self.A_state = A_state
+            self._mat_slice = slice(_STATE_MATERIAL_START, s0.size)
+        self._reg = numpy_layers(model.regressor)
+        self._tmean, self._tscale = pre.target_scaler.mean, pre.target_scaler.scale
+        self._rebuild()
+
+    # ------------------------------------------------------------------
+    def _rebuild(self) -> None:
+        """Stack the code and state parts into one ``z = A vec(D) + b`` (first network input)."""
+        parts_A, parts_b = [self.A_code], [self.b_code]  # PCA code, or the AE's first pre-activation
+        if self.uses_state:
+            parts_A.append(self.A_state)
+            parts_b.append(self._s0)
+        self.A = np.ascontiguousarray(np.vstack(parts_A))
+        self.b = np.concatenate(parts_b)
+        # applied to the displacement Δ = vec(D) - vec(U) (small numbers: no cancellation of large offsets)
+        self.bU = self.b + self.A @ self._U_flat
+        self._n_code = self.A_code.shape[0]
+        # rows of z that depend on D (code + deformed centroid); the rest of the state is constant
+        self._dyn = np.flatnonzero(np.abs(self.A).max(axis=1) > 0)
+        self._A_dyn = np.ascontiguousarray(self.A[self._dyn])
+        self._all_dyn = len(self._dyn) == len(self.A)
+        self._reg32 = [(W.astype(np.float32), b.astype(np.float32), s) for W, b, s in self._reg]
+        self._enc32 = [(W.astype(np.float32), b.astype(np.float32), s) for W, b, s in self._enc_layers]
+
+    def with_material(self, material_params_mpa) -> "CompiledROI":
+        """Change the material constants (MPa) of the compiled context in place; returns self."""
+        if not self.uses_state:
+            return self
+        mat = np.asarray(material_params_mpa, dtype=np.float64).ravel()
+        sl = self._mat_slice
+        if mat.size != sl.stop - sl.start:
+            raise PredictionInputError(f"material_params_mpa: expected {sl.stop - sl.start} constants, got {mat.size}")
+        check_material(_vector("material_params_mpa", mat), self.scale, self.limits, "")
+        self._s0[sl] = (mat - self._s_mean[sl]) / self._s_scale[sl]
+        self._rebuild()
+        return self
+
+    # ------------------------------------------------------------------
+    def _network(self, z: np.ndarray) -> np.ndarray:
+        """Rows ``z`` (float64, first-stage outputs) -> local force (float64), float32 like the reference."""
+        nc = self._n_code
+        if self._pca:
+            h = z.astype(np.float32)
+        else:
+            e = _act(z[..., :nc].astype(np.float32), self._first_slope)
+            for W, b, s in self._enc32:
+                e = _act(e @ W.T + b, s)
+            code = (e.astype(np.float64) - self._cs[0]) / self._cs[1]
+            h = np.concatenate([code, z[..., nc:]], axis=-1).astype(np.float32) if self.uses_state else \
+                code.astype(np.float32)
+        for W, b, s in self._reg32:
+            h = _act(h @ W.T + b, s)
+        return h.astype(np.float64) * self._tscale + self._tmean
+
+    def _fail(self, D: np.ndarray, label: str = "") -> None:
+        _points(f"{label}roi_deformed_mm", D.reshape(-1, 3))  # names NaN/inf rows
+        raise PredictionInputError(f"{label}roi_deformed_mm: the prediction is not finite")
+
+    def predict(self, deformed_roi_mm: np.ndarray) -> np.ndarray:
+        """Force ``(3,)`` N in the liver frame for the deformed ROI ``(k, 3)`` mm (same node order as the context)."""
+        D = np.asarray(deformed_roi_mm, dtype=np.float64)
+        z, dmax = self.first_stage(D)
+        return self.finish(z, dmax, D)
+
+    def first_stage(self, D: np.ndarray) -> tuple[np.ndarray, float]:
+        """Preprocessing of one call: shape check, displacement, ``z = A Δ + b`` and the largest displacement."""
+        if D.shape != (self.k, 3):
+            raise PredictionInputError(
+                f"roi_deformed_mm: expected shape ({self.k}, 3) (the compiled ROI's nodes in order), got {D.shape}"
+            )
+        d = D.ravel() - self._U_flat
+        if self._all_dyn:
+            return self._A_dyn @ d + self.bU, np.abs(d).max()
+        z = self.bU.copy()
+        z[self._dyn] += self._A_dyn @ d
+        return z, np.abs(d).max()
+
+    def finish(self, z: np.ndarray, dmax: float, D: np.ndarray) -> np.ndarray:
+        """Network of one call: MLP (and AE encoder), target scaling, rotation to the liver frame, checks."""
+        f = self._network(z) @ self.R
+        if not (np.isfinite(f).all() and np.isfinite(dmax)):
+            self._fail(D)
+        if dmax > self._dlim:
+            check_displacement(float(dmax), self.scale, self.limits, "")
+        return f
+
+    @property
+    def _dlim(self) -> float:
+        fam = self.scale.feature_abs_max
+        if fam is None:
+            return np.inf
+        return self.limits.scale_factor * max(max(fam[:3]), 1e-6)
+
+    def predict_batch(self, deformed_roi_mm: np.ndarray, *, roi_centroid_deformed_mm: np.ndarray | None = None,
+                      material_params_mpa: np.ndarray | None = None) -> np.ndarray:
+        """Forces ``(n, 3)`` N for ``n`` deformed ROIs ``(n, k, 3)`` of the compiled context.
+
+        ``roi_centroid_deformed_mm`` ``(n, 3)`` overrides the mean of each
+        deformed ROI (shards store it from float64 positions);
+        ``material_params_mpa`` ``(n, p)`` gives per-row material constants.
+        """
+        D = np.asarray(deformed_roi_mm, dtype=np.float64)
+        if D.ndim != 3 or D.shape[1:] != (self.k, 3):
+            raise PredictionInputError(f"roi_deformed_mm: expected shape (n, {self.k}, 3), got {D.shape}")
+        n = len(D)
+        X = D.reshape(n, 3 * self.k) - self._U_flat  # displacements
+        dmax = np.maximum(X.max(axis=1), -X.min(axis=1))
+        if self.uses_state and (roi_centroid_deformed_mm is not None or material_params_mpa is not None):
+            nc = self._n_code
+            z = np.empty((n, self.A.shape[0]))
+            z[:, :nc] = X @ self.A[:nc].T + self.bU[:nc]
+            z[:, nc:] = self._s0
+            sc = slice(nc + _STATE_DEF_CENTROID.start, nc + _STATE_DEF_CENTROID.stop)
+            if roi_centroid_deformed_mm is None:
+                z[:, sc] = X @ self.A[sc].T + self.bU[sc]
+            else:
+                c = np.asarray(roi_centroid_deformed_mm, dtype=np.float64).reshape(n, 3)
+                z[:, sc] = c @ self._S_c.T + self.b[sc]
+            if material_params_mpa is not None:
+                ms = self._mat_slice
+                mat = np.asarray(material_params_mpa, dtype=np.float64).reshape(n, -1)
+                if mat.shape[1] != ms.stop - ms.start:
+                    raise PredictionInputError(
+                        f"material_params_mpa: expected {ms.stop - ms.start} constants per row, got {mat.shape[1]}")
+                for row in np.unique(mat, axis=0):
+                    check_material(_vector("material_params_mpa", row), self.scale, self.limits, "")
+                z[:, nc + ms.start:nc + ms.stop] = (mat - self._s_mean[ms]) / self._s_scale[ms]
+        else:
+            z = np.empty((n, len(self.bU)))
+            z[:] = self.bU
+            z[:, self._dyn] += X @ self._A_dyn.T
+        F = self._network(z) @ self.R
+        bad = ~(np.isfinite(F).all(axis=1) & np.isfinite(dmax))
+        if bad.any():
+            i = int(np.argmax(bad))
+            self._fail(D[i], f"row {i}: ")
+        over = dmax > self._dlim
+        if over.any():
+            i = int(np.argmax(over))
+            check_displacement(float(dmax[i]), self.scale, self.limits, f"row {i}: ")
+        return F
+

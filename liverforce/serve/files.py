@@ -1,0 +1,361 @@
+"""Files in and out of serving: point clouds, surfaces, context files, results (atomic).
+
+Point clouds (``read_points``), one point per row, mm unless ``units`` says otherwise:
+
+- ``.npy``: an ``(n, 3)`` float array (read with ``allow_pickle=False``);
+- ``.csv`` / ``.txt``: three numeric columns ``x, y, z`` (comma, semicolon,
+  tab or space separated; one optional header line; extra columns refused);
+- ``.ply``: ASCII or binary (little/big endian), the ``vertex`` element's
+  ``x y z`` properties (other vertex properties and later elements ignored).
+
+Surfaces (``read_surface``): ``.ply`` with faces, ``.npz`` with ``points`` and
+``facets``, or anything meshio reads (STL, OBJ, OFF, VTU, VTK, ...); a
+tetrahedral mesh gives its boundary triangles.
+
+Context files (``load_context``): JSON or YAML with
+
+.. code-block:: yaml
+
+    exertion_point_mm: [x, y, z]          # required
+    material_params_mpa: [0.0016, 0.0125] # state-vector models
+    surface: liver_preop.stl              # undeformed surface (path relative to this file), or
+    roi_undeformed: roi.npy               #   the undeformed ROI nodes plus
+    frame: {normal: [..], t1: [..], t2: [..]}
+    liver_centroid_mm: [..]               #   and, for state-vector models, the liver features
+    inertia_mm5: [[..], [..], [..]]
+    units: mm                             # mm (default), cm or m: scales every point and the inertia
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from liverforce.serve.errors import PredictionInputError
+from liverforce.serve.preop import Preop
+
+#: length of one unit in mm
+UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
+
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2", "ushort": "u2",
+    "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4", "float": "f4", "float32": "f4",
+    "double": "f8", "float64": "f8",
+}
+
+
+def unit_scale(units: str | None) -> float:
+    """Millimetres per unit (``mm``, ``cm``, ``m``)."""
+    u = (units or "mm").strip().lower()
+    if u not in UNITS_MM:
+        raise PredictionInputError(f"units '{units}': use one of {sorted(UNITS_MM)} (the model works in mm)")
+    return UNITS_MM[u]
+
+
+# --------------------------------------------------------------------------- PLY
+def _ply_header(fh) -> tuple[str, list[tuple[str, int, list[tuple[str, ...]]]]]:
+    if fh.readline().strip() != b"ply":
+        raise PredictionInputError(f"{fh.name}: not a PLY file (no 'ply' magic line)")
+    fmt, elements = None, []
+    while True:
+        line = fh.readline()
+        if not line:
+            raise PredictionInputError(f"{fh.name}: PLY header has no end_header")
+        words = line.decode("ascii", "replace").split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        if words[0] == "format":
+            fmt = words[1]
+        elif words[0] == "element":
+            elements.append((words[1], int(words[2]), []))
+        elif words[0] == "property":
+            elements[-1][2].append(tuple(words[1:]))
+        elif words[0] == "end_header":
+            break
+    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise PredictionInputError(f"{fh.name}: unsupported PLY format '{fmt}'")
+    return fmt, elements
+
+
+def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """``(points (n, 3), faces (m, 3) or None)`` of a PLY file (triangles only for faces)."""
+    path = Path(path)
+    with open(path, "rb") as fh:
+        fmt, elements = _ply_header(fh)
+        endian = ">" if fmt == "binary_big_endian" else "<"
+        points = faces = None
+        text = fh.read().decode("ascii", "replace").split() if fmt == "ascii" else None
+        pos = 0
+        if fmt != "ascii":
+            fh.seek(0)
+            raw = fh.read()
+            pos = raw.index(b"end_header") + len(b"end_header")
+            pos = raw.index(b"\n", pos) + 1
+        for name, count, props in elements:
+            lists = [p for p in props if p[0] == "list"]
+            if fmt == "ascii":
+                if name == "vertex":
+                    width = len(props)
+                    if lists:
+                        raise PredictionInputError(f"{path}: list properties in the vertex element are not supported")
+                    vals = np.asarray(text[pos:pos + width * count], dtype=np.float64).reshape(count, width)
+                    names = [p[1] for p in props]
+                    points = vals[:, [names.index(a) for a in "xyz"]]
+                    pos += width * count
+                elif name == "face" and lists:
+                    tri = []
+                    for _ in range(count):
+                        n = int(text[pos])
+                        tri.append(text[pos + 1:pos + 1 + n])
+                        pos += 1 + n
+                    faces = _triangles(tri, path)
+                else:
+                    if lists:
+                        break  # cannot skip variable-length elements we do not read
+                    pos += len(props) * count
+            else:
+                if lists:
+                    if name != "face" or len(props) != 1:
+                        break
+                    cnt_t, idx_t = _PLY_TYPES[props[0][1]], _PLY_TYPES[props[0][2]]
+                    cs, isz = np.dtype(cnt_t).itemsize, np.dtype(idx_t).itemsize
+                    # fast path: all triangles
+                    dt = np.dtype([("n", endian + cnt_t), ("v", endian + idx_t, (3,))])
+                    block = np.frombuffer(raw, dtype=dt, count=count, offset=pos)
+                    if (block["n"] != 3).any():
+                        raise PredictionInputError(f"{path}: only triangular faces are supported")
+                    faces = block["v"].astype(np.int64)
+                    pos += count * (cs + 3 * isz)
+                else:
+                    dt = np.dtype([(p[1], endian + _PLY_TYPES[p[0]]) for p in props])
+                    block = np.frombuffer(raw, dtype=dt, count=count, offset=pos)
+                    if name == "vertex":
+                        points = np.column_stack([block[a].astype(np.float64) for a in "xyz"])
+                    pos += count * dt.itemsize
+    if points is None:
+        raise PredictionInputError(f"{path}: the PLY file has no vertex element with x, y, z")
+    return points, faces
+
+
+def _triangles(rows: list, path) -> np.ndarray:
+    if any(len(r) != 3 for r in rows):
+        raise PredictionInputError(f"{path}: only triangular faces are supported")
+    return np.asarray(rows, dtype=np.int64).reshape(-1, 3)
+
+
+# --------------------------------------------------------------------------- clouds and surfaces
+def read_points(path: str | Path, units: str | None = "mm") -> np.ndarray:
+    """An ``(n, 3)`` point cloud in mm from ``.npy``, ``.csv``/``.txt`` or ``.ply`` (module docstring)."""
+    path = Path(path)
+    if not path.is_file():
+        raise PredictionInputError(f"{path}: no such point-cloud file")
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".npy":
+            pts = np.load(path, allow_pickle=False)
+        elif suffix in (".csv", ".txt", ".xyz"):
+            pts = _read_table(path)
+        elif suffix == ".ply":
+            pts, _ = read_ply(path)
+        else:
+            raise PredictionInputError(f"{path}: unknown point-cloud format '{suffix}' (use .npy, .csv or .ply)")
+    except (ValueError, OSError) as exc:
+        if isinstance(exc, PredictionInputError):
+            raise
+        raise PredictionInputError(f"{path}: cannot read the point cloud ({exc})") from exc
+    pts = np.asarray(pts)
+    if pts.ndim != 2 or pts.shape[1] != 3 or not np.issubdtype(pts.dtype, np.number):
+        raise PredictionInputError(f"{path}: expected n rows of x, y, z numbers, got an array of shape {pts.shape}")
+    return pts.astype(np.float64) * unit_scale(units)
+
+
+def _read_table(path: Path) -> np.ndarray:
+    lines = [ln for ln in path.read_text().splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    if not lines:
+        return np.zeros((0, 3))
+    split = re.compile(r"[,;\t ]+")
+    first = split.split(lines[0].strip())
+    try:
+        [float(x) for x in first]
+    except ValueError:
+        lines = lines[1:]  # a header
+    rows = [split.split(ln.strip()) for ln in lines]
+    widths = {len(r) for r in rows}
+    if widths and widths != {3}:
+        raise PredictionInputError(f"{path}: every row must hold exactly x, y, z (found {sorted(widths)} columns)")
+    try:
+        return np.asarray(rows, dtype=np.float64).reshape(-1, 3)
+    except ValueError as exc:
+        raise PredictionInputError(f"{path}: non-numeric value ({exc})") from exc
+
+
+def read_surface(path: str | Path, units: str | None = "mm") -> tuple[np.ndarray, np.ndarray]:
+    """``(points (s, 3) mm, triangles (m, 3))`` of a surface or volume mesh file."""
+    path = Path(path)
+    if not path.is_file():
+        raise PredictionInputError(f"{path}: no such surface file")
+    scale = unit_scale(units)
+    suffix = path.suffix.lower()
+    if suffix == ".ply":
+        pts, faces = read_ply(path)
+        if faces is None:
+            raise PredictionInputError(f"{path}: a surface needs faces; this PLY file holds only points")
+        return pts * scale, faces
+    if suffix == ".npz":
+        with np.load(path, allow_pickle=False) as z:
+            return np.asarray(z["points"], dtype=np.float64) * scale, np.asarray(z["facets"], dtype=np.int64)
+    import meshio
+
+    try:
+        mesh = meshio.read(path)
+    except SystemExit as exc:  # meshio 5.3.5 calls sys.exit on some unreadable files
+        raise PredictionInputError(f"{path}: meshio cannot read this file (exit {exc.code})") from None
+    except Exception as exc:  # noqa: BLE001 - meshio raises many types; re-raised with the file named
+        raise PredictionInputError(f"{path}: meshio cannot read this file ({type(exc).__name__}: {exc})") from exc
+    tris = [c.data for c in mesh.cells if c.type == "triangle"]
+    if tris:
+        return np.asarray(mesh.points, dtype=np.float64)[:, :3] * scale, np.vstack(tris).astype(np.int64)
+    tets = [c.data for c in mesh.cells if c.type == "tetra"]
+    if tets:
+        pts = np.asarray(mesh.points, dtype=np.float64)[:, :3]
+        return pts * scale, tet_boundary(np.vstack(tets), pts)
+    raise PredictionInputError(f"{path}: no triangles or tetrahedra in this mesh")
+
+
+def tet_boundary(tets: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Boundary triangles of a tet mesh (faces used by one tet), oriented outwards.
+
+    Tets are first made positively oriented (a swap of two vertices where the
+    signed volume is negative), so the faces ``(1 2 3), (0 3 2), (0 1 3), (0 2 1)``
+    point out of their tet.
+    """
+    tets = np.asarray(tets, dtype=np.int64).copy()
+    e = points[tets[:, 1:]] - points[tets[:, :1]]
+    neg = np.einsum("ti,ti->t", e[:, 0], np.cross(e[:, 1], e[:, 2])) < 0
+    tets[neg] = tets[neg][:, [0, 2, 1, 3]]
+    faces = np.concatenate([tets[:, [1, 2, 3]], tets[:, [0, 3, 2]], tets[:, [0, 1, 3]], tets[:, [0, 2, 1]]])
+    key = np.sort(faces, axis=1)
+    _, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    return faces[counts[inv.ravel()] == 1]
+
+
+# --------------------------------------------------------------------------- context
+def _read_doc(path: Path) -> dict:
+    text = path.read_text()
+    try:
+        if path.suffix.lower() in (".yaml", ".yml"):
+            import yaml
+
+            doc = yaml.safe_load(text)
+        else:
+            doc = json.loads(text)
+    except Exception as exc:  # noqa: BLE001 - JSON and YAML parse errors, re-raised with the file named
+        raise PredictionInputError(f"{path}: not valid {path.suffix.lstrip('.').upper()} ({exc})") from exc
+    if not isinstance(doc, dict):
+        raise PredictionInputError(f"{path}: the context must be a mapping of keys to values")
+    return doc
+
+
+CONTEXT_KEYS = {"exertion_point_mm", "material_params_mpa", "surface", "roi_undeformed", "frame", "liver_centroid_mm",
+                "inertia_mm5", "units", "roi_fraction", "frame_radius_mm"}
+
+
+def load_context(source: str | Path | dict, predictor, *, overrides: dict | None = None) -> Preop:
+    """A checked :class:`Preop` from a context file (module docstring) or dict, plus ``overrides``.
+
+    Relative file paths in a file are taken relative to it. ``roi_fraction``
+    and ``frame_radius_mm`` default to the model's (bundle meta or shipped
+    defaults).
+    """
+    if isinstance(source, dict):
+        doc, base = dict(source), Path.cwd()
+    elif source is None:
+        doc, base = {}, Path.cwd()
+    else:
+        path = Path(source)
+        if not path.is_file():
+            raise PredictionInputError(f"{path}: no such context file")
+        doc, base = _read_doc(path), path.parent
+    doc.update({k: v for k, v in (overrides or {}).items() if v is not None})
+    unknown = set(doc) - CONTEXT_KEYS
+    if unknown:
+        raise PredictionInputError(f"context: unknown keys {sorted(unknown)}; known: {sorted(CONTEXT_KEYS)}")
+    if "exertion_point_mm" not in doc:
+        raise PredictionInputError("context: exertion_point_mm is required (the tool contact point, mm)")
+    s = unit_scale(doc.get("units"))
+    point = np.asarray(doc["exertion_point_mm"], dtype=np.float64) * s
+    material = doc.get("material_params_mpa")
+
+    def rel(p):
+        p = Path(p)
+        return p if p.is_absolute() else base / p
+
+    if "surface" in doc:
+        pts, tri = read_surface(rel(doc["surface"]), doc.get("units"))
+        preop = Preop.from_surface(pts, tri, point, material,
+                                roi_fraction=float(doc.get("roi_fraction", predictor.roi_fraction)),
+                                frame_radius_mm=float(doc.get("frame_radius_mm", predictor.frame_radius_mm)))
+        if "liver_centroid_mm" in doc or "inertia_mm5" in doc:
+            raise PredictionInputError("context: give either a surface or liver_centroid_mm/inertia_mm5, not both")
+    elif "roi_undeformed" in doc:
+        if "frame" not in doc:
+            raise PredictionInputError("context: with roi_undeformed, give the local frame {normal, t1, t2} too")
+        fr = doc["frame"]
+        try:
+            frame = np.array([fr["t1"], fr["t2"], fr["normal"]], dtype=np.float64)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise PredictionInputError(f"context: frame must be {{normal: [3], t1: [3], t2: [3]}} ({exc})") from exc
+        roi = doc["roi_undeformed"]
+        roi = read_points(rel(roi), doc.get("units")) if isinstance(roi, (str, Path)) else np.asarray(roi, float) * s
+        preop = Preop(
+            exertion_point_mm=point, frame=frame, roi_undeformed_mm=roi, material_params_mpa=material,
+            liver_centroid_mm=(None if "liver_centroid_mm" not in doc
+                               else np.asarray(doc["liver_centroid_mm"], float) * s),
+            inertia_mm5=None if "inertia_mm5" not in doc else np.asarray(doc["inertia_mm5"], float) * s**5,
+        )
+    else:
+        raise PredictionInputError("context: give the undeformed 'surface' file, or 'roi_undeformed' with 'frame'")
+    predictor.check_preop(preop)
+    return preop
+
+
+# --------------------------------------------------------------------------- atomic writes
+def write_atomic_text(path: str | Path, text: str) -> Path:
+    """Write ``text`` through a dot-prefixed temporary file in the same folder, then rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def write_frame(df, path: str | Path) -> Path:
+    """Write a pandas DataFrame as Parquet (``.parquet``) or CSV (``.csv``) atomically."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in (".parquet", ".csv"):
+        raise PredictionInputError(f"{path}: results are written as .parquet or .csv")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    os.close(fd)
+    try:
+        if suffix == ".parquet":
+            df.to_parquet(tmp, index=False)
+        else:
+            df.to_csv(tmp, index=False, float_format="%.9g")
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path

@@ -1,0 +1,255 @@
+"""Use a trained force model: one object, three ways to feed it.
+
+>>> pred = Predictor.load("results/exp/models/II-pca/model")          # doctest: +SKIP
+>>> ctx = pred.preop_from_surface(verts, tris, point_mm, material_mpa)  # doctest: +SKIP
+>>> pred.predict(deformed_roi_nodes, ctx)          # (a) tracked ROI nodes -> (Fx, Fy, Fz) N
+>>> pred.predict_cloud(camera_points, ctx)         # (b) unordered cloud (see serve.cloud)
+>>> fast = pred.compile(ctx); fast.predict(deformed_roi_nodes)   # (a) at haptic rates
+
+Inputs are in the liver (source) frame, mm; material constants in MPa; the
+force comes back in the liver frame, N. The preprocessing of training (local
+frame, ROI resampling, scalers, encoder, state vector) lives in the model
+(:class:`liverforce.learn.model.ForceModel`); the predictor only assembles
+the input-contract arrays, checks them against the model's training scale
+(:mod:`liverforce.serve.checks`) and calls the model.
+
+Loading: :meth:`Predictor.load` takes a bundle directory, an MLflow run id,
+``runs:/<id>/model``, ``models:/<name>/<version>`` or a registered name; the
+bundle is read by :meth:`ForceModel.load` (JSON + ``torch.load(weights_only=True)``
++ ``np.load(allow_pickle=False)``), never by unpickling.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import pickle
+from pathlib import Path
+
+import numpy as np
+
+from liverforce.learn.model import ForceModel, ModelFormatError
+from liverforce.serve.checks import Limits, TrainingScale, check_case
+from liverforce.serve.cloud import cloud_support, cloud_to_arrays
+from liverforce.serve.compiled import CompiledROI
+from liverforce.serve.errors import PredictionInputError
+from liverforce.serve.preop import DEFAULT_FRAME_RADIUS_MM, DEFAULT_ROI_FRACTION, Preop, _points
+
+#: keys of one case's pre-operative context in the input contract (everything but the deformed ROI)
+CONTEXT_KEYS = ("exertion_point_mm", "frame_normal", "frame_t1", "frame_t2", "roi_undeformed_mm",
+                "liver_centroid_mm", "inertia_mm5")
+
+
+class Predictor:
+    """A loaded force model plus the serving checks.
+
+    Parameters
+    ----------
+    model : ForceModel
+    limits : Limits, optional
+        Tolerances of the input checks.
+    source : str
+        Where the model came from (for messages and ``describe``).
+    """
+
+    def __init__(self, model: ForceModel, *, limits: Limits | None = None, source: str = ""):
+        self.model = model
+        self.limits = limits or Limits()
+        self.scale = TrainingScale.of(model)
+        self.source = source
+
+    # ------------------------------------------------------------------ loading
+    @classmethod
+    def from_dir(cls, path: str | Path, **kw) -> "Predictor":
+        """Load a bundle directory written by :meth:`ForceModel.save`."""
+        try:
+            model = ForceModel.load(path)
+        except ModelFormatError as exc:
+            raise PredictionInputError(f"model: {exc}") from exc
+        except (KeyError, ValueError, RuntimeError, OSError, pickle.UnpicklingError) as exc:
+            # truncated or edited bundle; a weights file holding pickled code is refused by weights_only=True
+            raise PredictionInputError(f"model {path}: unreadable bundle ({type(exc).__name__}: {exc})") from exc
+        return cls(model, source=str(path), **kw)
+
+    @classmethod
+    def from_mlflow(cls, model_ref: str, *, tracking_uri: str | None = None, dst_dir: str | Path | None = None,
+                    **kw) -> "Predictor":
+        """Load by run id, ``runs:/`` or ``models:/`` URI or registered name (through :mod:`liverforce.tracking`)."""
+        from liverforce.tracking import MlflowException, download_force_model
+
+        try:
+            path = download_force_model(model_ref, dst_dir=dst_dir, tracking_uri=tracking_uri)
+        except (MlflowException, FileNotFoundError, OSError) as exc:
+            raise PredictionInputError(f"model {model_ref}: cannot fetch it from MLflow ({exc})") from exc
+        pred = cls.from_dir(path, **kw)
+        pred.source = model_ref
+        return pred
+
+    @classmethod
+    def load(cls, ref: str | Path, *, tracking_uri: str | None = None, **kw) -> "Predictor":
+        """A bundle directory if ``ref`` is one, else an MLflow reference (:meth:`from_mlflow`)."""
+        if Path(ref).is_dir():
+            return cls.from_dir(ref, **kw)
+        if Path(ref).exists():
+            raise PredictionInputError(f"model {ref}: a file, not a model directory (model.json + weights)")
+        return cls.from_mlflow(str(ref), tracking_uri=tracking_uri, **kw)
+
+    # ------------------------------------------------------------------ context
+    @property
+    def roi_fraction(self) -> float:
+        """ROI area fraction of the training data (bundle meta, else the shipped default)."""
+        return float(self.model.meta.get("roi_fraction", DEFAULT_ROI_FRACTION))
+
+    @property
+    def frame_radius_mm(self) -> float:
+        """Frame averaging radius of the training data (bundle meta, else the shipped default)."""
+        return float(self.model.meta.get("frame_radius_mm", DEFAULT_FRAME_RADIUS_MM))
+
+    def preop_from_surface(self, points, facets, exertion_point_mm, material_params_mpa=None) -> Preop:
+        """:meth:`Preop.from_surface` with this model's ROI fraction and frame radius; checked."""
+        preop = Preop.from_surface(points, facets, exertion_point_mm, material_params_mpa,
+                                   roi_fraction=self.roi_fraction, frame_radius_mm=self.frame_radius_mm)
+        self.check_preop(preop)
+        return preop
+
+    def check_preop(self, preop: Preop) -> None:
+        """Refuse a context the model cannot use (missing state inputs, units, point off the surface)."""
+        self._check_state_inputs(preop)
+        check_case(preop.to_arrays(preop.roi_undeformed_mm), 0, self.model, self.scale, self.limits, label="")
+
+    def _check_state_inputs(self, preop: Preop) -> None:
+        if self.model.uses_state:
+            missing = [k for k in ("liver_centroid_mm", "inertia_mm5", "material_params_mpa")
+                       if getattr(preop, k) is None]
+            if missing:
+                raise PredictionInputError(
+                    f"the model uses the state vector and the context lacks {missing}: give the material constants "
+                    "(MPa) and a closed pre-operative surface (or the liver centroid and inertia tensor)"
+                )
+
+    # ------------------------------------------------------------------ predictions
+    def predict(self, deformed_roi_mm, preop: Preop) -> np.ndarray:
+        """(a) Force ``(3,)`` N from the deformed ROI nodes ``(k, 3)`` mm (order of ``preop.roi_undeformed_mm``)."""
+        D = _points("roi_deformed_mm", deformed_roi_mm, min_points=1)
+        if D.shape != preop.roi_undeformed_mm.shape:
+            raise PredictionInputError(
+                f"roi_deformed_mm: {len(D)} points but the context's ROI has {len(preop.roi_undeformed_mm)} nodes; "
+                "in correspondence mode give the deformed position of every ROI node, in the same order "
+                "(Preop.roi_of_surface slices a deformed surface), or use predict_cloud for an unordered cloud"
+            )
+        self._check_state_inputs(preop)
+        arrays = preop.to_arrays(D)
+        check_case(arrays, 0, self.model, self.scale, self.limits, label="")
+        return self.model.predict(arrays)[0]
+
+    def predict_cloud(self, cloud_mm, preop: Preop, *, approximate: bool = False,
+                      return_info: bool = False) -> np.ndarray | tuple[np.ndarray, dict]:
+        """(b) Force ``(3,)`` N from an unordered observed cloud ``(m, 3)`` mm (:mod:`liverforce.serve.cloud`).
+
+        Exact for models trained with ``roi_features: deformed`` and no state
+        vector; other models only with ``approximate=True`` (normal-only
+        displacement estimate), refused otherwise.
+        """
+        self.check_preop(preop)
+        arrays, info = cloud_to_arrays(self.model, cloud_mm, preop, approximate=approximate, scale=self.scale,
+                                       limits=self.limits)
+        if info["mode"] == "approximate" and self.model.representation.features != "deformed":
+            check_case(arrays, 0, self.model, self.scale, self.limits, label="")
+        force = self.model.predict(arrays)[0]
+        return (force, info) if return_info else force
+
+    @property
+    def cloud_support(self) -> str:
+        """``exact`` or ``approximate``: what :meth:`predict_cloud` can do for this model."""
+        return cloud_support(self.model)
+
+    def compile(self, preop: Preop) -> CompiledROI:
+        """The fixed-topology fast path for ``preop`` (checked once here)."""
+        self.check_preop(preop)
+        return CompiledROI(self.model, preop, limits=self.limits, scale=self.scale)
+
+    def predict_arrays(self, arrays: dict, *, observation_seed: int | None = None, fast: bool = False,
+                       min_group: int = 2) -> np.ndarray:
+        """Forces ``(n, 3)`` N for input-contract arrays (e.g. a shard), every row checked first.
+
+        Parameters
+        ----------
+        arrays : dict
+            ``ForceModel.required_inputs()`` (``case_id`` optional).
+        observation_seed : int, optional
+            Draw the stochastic observation model as in evaluation (simulated data only).
+        fast : bool
+            Rows sharing one context (same ROI, point, frame, liver; material
+            may differ) in groups of at least ``min_group`` go through
+            :class:`CompiledROI` (equal to the reference to ~1e-6 N); needs
+            ``roi_features: displacement`` and no stochastic observation.
+        """
+        missing = [k for k in self.model.required_inputs() if k not in arrays]
+        if missing:
+            raise PredictionInputError(f"the model needs the inputs {missing}; they are missing")
+        n = len(arrays["exertion_point_mm"])
+        bad = {k: len(arrays[k]) for k in self.model.required_inputs() if len(arrays[k]) != n}
+        if bad:
+            raise PredictionInputError(f"inputs disagree on the number of cases ({n} exertion points): {bad}")
+        if n == 0:
+            return np.zeros((0, 3))
+        for i in range(n):
+            check_case(arrays, i, self.model, self.scale, self.limits)
+        rep = self.model.representation
+        can_fast = fast and rep.features == "displacement" and not (observation_seed is not None and rep.stochastic)
+        if not can_fast:
+            return self.model.predict(arrays, observation_seed=observation_seed)
+        from liverforce.learn.model import subset
+
+        groups: dict[bytes, list[int]] = {}
+        for i in range(n):
+            groups.setdefault(_context_key(arrays, i), []).append(i)
+        out = np.empty((n, 3))
+        slow = []
+        for rows in groups.values():
+            if len(rows) < min_group:
+                slow += rows
+                continue
+            preop = Preop.from_arrays(arrays, rows[0])
+            comp = CompiledROI(self.model, preop, limits=self.limits, scale=self.scale)
+            D = np.stack([np.asarray(arrays["roi_deformed_mm"][i], dtype=np.float64) for i in rows])
+            kw = {}
+            if self.model.uses_state:
+                kw = {"roi_centroid_deformed_mm": np.asarray(arrays["roi_centroid_deformed_mm"])[rows],
+                      "material_params_mpa": np.asarray(arrays["material_params_mpa"])[rows]}
+            out[rows] = comp.predict_batch(D, **kw)
+        if slow:
+            slow = np.array(sorted(slow))
+            out[slow] = self.model.predict(subset(arrays, slow), observation_seed=observation_seed)
+        return out
+
+    # ------------------------------------------------------------------ info
+    def describe(self) -> dict:
+        """What the model needs and how it was trained (JSON-ready)."""
+        m = self.model
+        return {
+            "source": self.source,
+            "representation": m.representation.to_dict(),
+            "encoder": m.pre.encoder.spec(),
+            "uses_state_vector": m.uses_state,
+            "n_material_params": self.scale.n_material,
+            "required_inputs": list(m.required_inputs()),
+            "cloud_support": self.cloud_support,
+            "roi_fraction": self.roi_fraction,
+            "frame_radius_mm": self.frame_radius_mm,
+            "training_scale_source": self.scale.source,
+            "scenario": m.meta.get("scenario"),
+            "variant": m.meta.get("variant"),
+            "test_metrics": m.meta.get("test_metrics"),
+        }
+
+
+def _context_key(arrays: dict, i: int) -> bytes:
+    """Hash of row ``i``'s context (ROI shape and bytes, point, frame, liver); material excluded."""
+    h = hashlib.blake2b(digest_size=16)
+    for k in CONTEXT_KEYS:
+        if k in arrays:
+            a = np.ascontiguousarray(np.asarray(arrays[k][i]))
+            h.update(k.encode())
+            h.update(str(a.shape).encode())
+            h.update(a.tobytes())
+    return h.digest()

@@ -1,0 +1,189 @@
+"""Bad input is refused with a PredictionInputError naming the problem — never a silent wrong force."""
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from liverforce.serve import PredictionInputError, Predictor, Preop
+
+
+@pytest.fixture(scope="module")
+def pred(trained):
+    return Predictor.load(trained("disp"))
+
+
+@pytest.fixture(scope="module")
+def case(test_cases):
+    return Preop.from_arrays(test_cases, 0), np.asarray(test_cases["roi_deformed_mm"][0])
+
+
+def scaled(ctx: Preop, D: np.ndarray, s: float) -> tuple[Preop, np.ndarray]:
+    """Every length times ``s`` (a liver in the wrong units); inertia scales with s^5."""
+    return (replace(ctx, exertion_point_mm=ctx.exertion_point_mm * s, roi_undeformed_mm=ctx.roi_undeformed_mm * s,
+                    liver_centroid_mm=ctx.liver_centroid_mm * s, inertia_mm5=ctx.inertia_mm5 * s**5), D * s)
+
+
+def test_the_good_case_passes(pred, case):
+    ctx, D = case
+    assert np.isfinite(pred.predict(D, ctx)).all()
+
+
+@pytest.mark.parametrize("bad, msg", [
+    (lambda D: D[:, :2], r"expected an \(n, 3\) array"),
+    (lambda D: D.ravel(), r"expected an \(n, 3\) array"),
+    (lambda D: D[:-1], "points but the context's ROI has"),
+    (lambda D: np.zeros((0, 3)), "points but the context's ROI has|empty"),
+    (lambda D: [["a", "b", "c"]], "not a numeric array"),
+])
+def test_wrong_shape(pred, case, bad, msg):
+    ctx, D = case
+    with pytest.raises(PredictionInputError, match=msg):
+        pred.predict(bad(D.copy()), ctx)
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
+def test_nan_and_inf(pred, case, value):
+    ctx, D = case
+    D = D.copy()
+    D[7, 1] = value
+    with pytest.raises(PredictionInputError, match="1 of .* points contain NaN or inf \\(first at row 7\\)"):
+        pred.predict(D, ctx)
+    with pytest.raises(PredictionInputError, match="exertion_point_mm: contains NaN or inf"):
+        Preop(np.array([0.0, value, 0.0]), ctx.frame, ctx.roi_undeformed_mm)
+
+
+def test_empty_cloud(pred, case):
+    ctx, _ = case
+    with pytest.raises(PredictionInputError, match="cloud: 0 points.*the cloud is empty"):
+        pred.predict_cloud(np.zeros((0, 3)), ctx, approximate=True)
+
+
+def test_too_few_points_in_the_roi(pred, case):
+    ctx, D = case
+    small = replace(ctx, roi_undeformed_mm=ctx.roi_undeformed_mm[:6])
+    with pytest.raises(PredictionInputError, match="roi_undeformed_mm: 6 points; at least 10 are needed"):
+        pred.predict(D[:6], small)
+    # enough nodes, but all within 2 mm of the tool: far smaller than the model's grid
+    r = np.linalg.norm(ctx.roi_undeformed_mm - ctx.exertion_point_mm, axis=1)
+    near = np.argsort(r)[:12]
+    tiny = replace(ctx, roi_undeformed_mm=ctx.roi_undeformed_mm[near])
+    with pytest.raises(PredictionInputError, match="reaches only .* smaller than the model's grid"):
+        pred.predict(D[near], tiny)
+    # an unordered cloud with only a handful of points on the ROI
+    with pytest.raises(PredictionInputError, match="only 5 of 5 points lie on the ROI footprint"):
+        pred.predict_cloud(D[:5], ctx, approximate=True)
+
+
+@pytest.mark.parametrize("s, msg", [
+    (10.0, "times|x the model's grid"),        # cm read as mm... (liver 10x too big)
+    (0.1, "smaller than the model's grid"),   # mm read as cm
+    (1000.0, "x the model's grid"),           # m <-> mm
+    (0.001, "smaller than the model's grid"),
+    (0.03, "smaller than the model's grid"),  # a liver 6 mm across
+    (30.0, "x the model's grid"),             # a liver 6 m across
+])
+def test_units_off_by_10_or_1000(pred, case, s, msg):
+    ctx, D = case
+    c2, D2 = scaled(ctx, D, s)
+    with pytest.raises(PredictionInputError, match=msg) as exc:
+        pred.predict(D2, c2)
+    assert "mm" in str(exc.value)
+
+
+def test_units_of_the_liver_features_and_material(pred, case):
+    ctx, D = case
+    with pytest.raises(PredictionInputError, match=r"size \(tr\(I\)/2\)\^\(1/5\).*in mm \(mm\^5\)"):
+        pred.predict(D, replace(ctx, inertia_mm5=ctx.inertia_mm5 * 1e5))  # inertia of a liver in cm, as mm
+    with pytest.raises(PredictionInputError, match="from the liver centroid"):
+        pred.predict(D, replace(ctx, liver_centroid_mm=ctx.liver_centroid_mm * 1000 + 1e4))
+    for factor in (1e3, 1e6, 1e-3):  # kPa, Pa, GPa read as MPa
+        with pytest.raises(PredictionInputError, match="material_params_mpa\\[0\\].*must be in MPa"):
+            pred.predict(D, ctx.with_material(ctx.material_params_mpa * factor))
+    with pytest.raises(PredictionInputError, match="trained with 2 material constants"):
+        pred.predict(D, ctx.with_material([0.0016, 0.0125, 0.005]))
+
+
+def test_deformed_cloud_in_other_units_than_the_context(pred, case):
+    ctx, D = case
+    # deformed points in cm (x0.1) against an undeformed ROI in mm: huge apparent displacement
+    with pytest.raises(PredictionInputError, match="moved by up to .* same units"):
+        pred.predict(D * 0.1, ctx)
+
+
+def test_exertion_point_off_the_surface(pred, case):
+    ctx, D = case
+    n = ctx.frame[2]
+    ok = replace(ctx, exertion_point_mm=ctx.exertion_point_mm + 0.5 * n)
+    assert np.isfinite(pred.predict(D, ok)).all()  # within the 2 mm tolerance
+    for off in (10.0, -6.0):
+        bad = replace(ctx, exertion_point_mm=ctx.exertion_point_mm + off * n)
+        with pytest.raises(PredictionInputError, match=f"{abs(off):.3g} mm off the undeformed surface"):
+            pred.predict(D, bad)
+    side = replace(ctx, exertion_point_mm=ctx.exertion_point_mm + 80.0 * ctx.frame[0])
+    with pytest.raises(PredictionInputError, match="not inside its ROI|x the model's grid"):
+        pred.predict(D, side)
+
+
+def test_frame_not_orthonormal(pred, case):
+    ctx, D = case
+    bad = replace(ctx, frame=ctx.frame * np.array([[1.0], [1.3], [1.0]]))
+    with pytest.raises(PredictionInputError, match="not orthonormal"):
+        pred.predict(D, bad)
+
+
+def test_model_of_another_format_version(trained, tmp_path):
+    path = Path(shutil.copytree(trained("disp"), tmp_path / "m"))
+    doc = json.loads((path / "model.json").read_text())
+    doc["format_version"] = 999
+    (path / "model.json").write_text(json.dumps(doc))
+    with pytest.raises(PredictionInputError, match="format version 999 is not supported"):
+        Predictor.load(path)
+
+
+class _Evil:
+    def __reduce__(self):  # would create a file if unpickled
+        return (Path.touch, (Path(_Evil.marker),))
+
+
+def test_model_weights_never_unpickle_code(trained, tmp_path):
+    path = Path(shutil.copytree(trained("disp"), tmp_path / "m"))
+    _Evil.marker = str(tmp_path / "PWNED")
+    torch.save({"0.weight": _Evil()}, path / "regressor.pt")
+    with pytest.raises(PredictionInputError, match="unreadable bundle.*UnpicklingError"):
+        Predictor.load(path)
+    assert not (tmp_path / "PWNED").exists()
+
+
+def test_shard_of_another_schema_version(tmp_path, pred):
+    import pandas as pd
+
+    from liverforce.serve.batch import predict_shards
+
+    p = tmp_path / "shard-0000.parquet"
+    pd.DataFrame({"case_id": ["x"], "converged": [True]}).to_parquet(p)  # no liverforce schema metadata
+    with pytest.raises(PredictionInputError, match="schema version"):
+        predict_shards(pred, [p])
+
+
+def test_bundles_without_a_training_scale_fall_back_to_the_scalers(trained, case, tmp_path):
+    path = Path(shutil.copytree(trained("disp"), tmp_path / "old"))
+    doc = json.loads((path / "model.json").read_text())
+    del doc["meta"]["training_scale"]
+    (path / "model.json").write_text(json.dumps(doc))
+    pred = Predictor.load(path)
+    assert pred.scale.source.startswith("approximate")
+    ctx, D = case
+    assert np.isfinite(pred.predict(D, ctx)).all()
+    for s in (10.0, 0.001):
+        with pytest.raises(PredictionInputError, match="mm"):
+            pred.predict(*scaled(ctx, D, s)[::-1])
+    with pytest.raises(PredictionInputError, match="must be in MPa"):
+        pred.predict(D, ctx.with_material(ctx.material_params_mpa * 1e3))
+    with pytest.raises(PredictionInputError, match=r"in mm \(mm\^5\)"):
+        pred.predict(D, replace(ctx, inertia_mm5=ctx.inertia_mm5 * 1e5))

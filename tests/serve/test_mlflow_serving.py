@@ -1,0 +1,144 @@
+"""Models logged to MLflow: load by run id / URI / registered name, the pyfunc, and ``mlflow models serve``."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from liverforce.learn.model import subset
+from liverforce.learn.train import train_scenario
+from liverforce.serve import PredictionInputError, Predictor
+from liverforce.tracking import Tracker, download_force_model, load_pyfunc, predict_pyfunc
+
+
+@pytest.fixture(scope="module")
+def logged(data, tmp_path_factory, configs):
+    BASE, TRAIN, NO_TUNE = configs
+    root = tmp_path_factory.mktemp("mlflow")
+    uri = f"sqlite:///{root / 'mlflow.db'}"
+    tracker = Tracker(uri, "serve-test")
+    res = train_scenario(subset(data, np.arange(60)), BASE, {**TRAIN, "epochs": 10}, NO_TUNE, "III", "pca",
+                         tracker=tracker, out_dir=root / "out")
+    return {"uri": uri, "tracker": tracker, "root": root, **res}
+
+
+def test_the_logged_model_has_a_signature_an_example_and_no_pickle(logged, tmp_path):
+    bundle = download_force_model(logged["run_id"], tmp_path, tracking_uri=logged["uri"])
+    model_dir = bundle.parent.parent
+    mlmodel = yaml.safe_load((model_dir / "MLmodel").read_text())
+    inputs = {c["name"] for c in json.loads(mlmodel["signature"]["inputs"])}
+    assert {"roi_undeformed_mm", "roi_deformed_mm", "exertion_point_mm", "material_params_mpa"} <= inputs
+    assert [c["name"] for c in json.loads(mlmodel["signature"]["outputs"])] == ["fx_n", "fy_n", "fz_n"]
+    assert (model_dir / "serving_input_example.json").is_file()
+    assert not list(model_dir.rglob("*.pkl"))  # models from code: nothing to unpickle
+    assert (bundle / "model.json").is_file()
+
+
+def test_load_by_run_id_uri_and_registered_name(logged, data):
+    uri = logged["uri"]
+    local = Predictor.from_dir(logged["model_path"])
+    cases = subset(data, np.arange(60, 70))
+    ref = local.predict_arrays(cases)
+    for ref_str in (logged["run_id"], f"runs:/{logged['run_id']}/model"):
+        np.testing.assert_array_equal(Predictor.load(ref_str, tracking_uri=uri).predict_arrays(cases), ref)
+    version = logged["tracker"].register_force_model(logged["model_uri"], "liverforce-serve-test")
+    assert version == "1"
+    for ref_str in ("models:/liverforce-serve-test/1", "liverforce-serve-test"):
+        pred = Predictor.load(ref_str, tracking_uri=uri)
+        assert pred.source == ref_str
+        np.testing.assert_array_equal(pred.predict_arrays(cases), ref)
+    with pytest.raises(PredictionInputError, match="cannot fetch it from MLflow"):
+        Predictor.load("0123456789abcdef0123456789abcdef", tracking_uri=uri)
+
+
+def test_pyfunc_predicts_like_the_predictor_and_refuses_bad_rows(logged, data):
+    pf = load_pyfunc(f"runs:/{logged['run_id']}/model", logged["uri"])
+    cases = subset(data, np.arange(60, 66))
+    local = Predictor.from_dir(logged["model_path"])
+    np.testing.assert_array_equal(predict_pyfunc(pf, cases), local.predict_arrays(cases))
+    bad = dict(cases)
+    bad["material_params_mpa"] = cases["material_params_mpa"] * 1e6  # Pa, not MPa
+    with pytest.raises(PredictionInputError, match=r"case S-000060: material_params_mpa\[0\].*must be in MPa"):
+        predict_pyfunc(pf, bad)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _post(url: str, doc: dict, timeout: float = 30.0) -> tuple[int, dict]:
+    req = urllib.request.Request(url, data=json.dumps(doc).encode(), headers={"Content-Type": "application/json"})
+    try:
+        with urllib.request.urlopen(req, timeout=timeout) as r:
+            return r.status, json.loads(r.read())
+    except urllib.error.HTTPError as e:
+        return e.code, json.loads(e.read() or b"{}")
+
+
+def test_mlflow_models_serve_answers_over_http(logged, data, tmp_path):
+    port = _free_port()
+    # `mlflow models serve` runs `uvicorn` through the shell: the venv's bin must be on PATH
+    venv_bin = Path(sys.executable).parent
+    env = {**os.environ, "MLFLOW_TRACKING_URI": logged["uri"], "PATH": f"{venv_bin}:{os.environ['PATH']}",
+           "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "mlflow", "models", "serve", "-m", f"runs:/{logged['run_id']}/model",
+           "--host", "127.0.0.1", "--port", str(port), "--env-manager", "local"]
+    log = open(tmp_path / "serve.log", "w")
+    proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+    base = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 120.0
+        while True:
+            if proc.poll() is not None:
+                log_text = (tmp_path / "serve.log").read_text()
+                pytest.fail(f"mlflow models serve exited with {proc.returncode}:\n{log_text}")
+            try:
+                with urllib.request.urlopen(f"{base}/ping", timeout=2.0) as r:
+                    if r.status == 200:
+                        break
+            except (urllib.error.URLError, ConnectionError, TimeoutError):
+                pass
+            if time.monotonic() > deadline:
+                pytest.fail(f"server not ready after 120 s:\n{(tmp_path / 'serve.log').read_text()}")
+            time.sleep(0.5)
+        bundle = download_force_model(logged["run_id"], tmp_path / "dl", tracking_uri=logged["uri"])
+        example = json.loads((bundle.parent.parent / "serving_input_example.json").read_text())
+        status, body = _post(f"{base}/invocations", example)
+        assert status == 200, body
+        assert set(body["predictions"][0]) == {"fx_n", "fy_n", "fz_n"}
+        # a request built from new cases equals the local predictor
+        from liverforce.tracking import arrays_to_frame
+
+        cases = subset(data, np.arange(60, 63))
+        pred = Predictor.from_dir(logged["model_path"])
+        frame = arrays_to_frame(cases, list(pred.model.required_inputs()))
+        status, body = _post(f"{base}/invocations", {"dataframe_split": frame.to_dict(orient="split")})
+        assert status == 200, body
+        got = np.array([[p["fx_n"], p["fy_n"], p["fz_n"]] for p in body["predictions"]])
+        np.testing.assert_allclose(got, pred.predict_arrays(cases), atol=1e-9)
+        # bad input: a clear refusal, not a force
+        cases["roi_deformed_mm"] = [d * 0.1 for d in cases["roi_deformed_mm"]]
+        frame = arrays_to_frame(cases, list(pred.model.required_inputs()))
+        status, body = _post(f"{base}/invocations", {"dataframe_split": frame.to_dict(orient="split")})
+        assert status >= 400 and "moved by up to" in body.get("message", ""), body
+    finally:
+        os.killpg(proc.pid, signal.SIGTERM)
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(timeout=10)
+        log.close()
