@@ -90,3 +90,14 @@ def test_broken_import_stops_with_the_file_named(tmp_path, shared_livers):
     text = proc.stderr + proc.stdout + (log.read_text() if log.exists() else "")
     assert "liver_for_test_broken.vtk" in text and "GeometryError" in text
     assert not (tmp_path / "results/smoke/geometry/imp-broken.ply").exists()
+
+
+def test_ci_runs_exactly_the_readme_test_command():
+    readme = (ROOT / "README.md").read_text()
+    block = readme[readme.index("## The two commands"):]
+    commands = [ln.strip() for ln in block.split("```bash", 1)[1].split("```", 1)[0].splitlines()
+                if ln.strip() and not ln.strip().startswith("#")]
+    assert len(commands) == 2
+    assert commands[0].endswith("snakemake --cores 2")
+    ci = [ln.strip() for ln in (ROOT / ".ci" / "run").read_text().splitlines() if ln.strip() and not ln.startswith("#")]
+    assert commands[1] in ci
