@@ -46,4 +46,12 @@ def setup_job(log_path: str | Path | None, threads: int = 1) -> logging.Logger:
         fh = logging.FileHandler(log_path, mode="w")
         fh.setFormatter(fmt)
         logger.addHandler(fh)
+
+    def _log_uncaught(exc_type, exc, tb, _previous=sys.excepthook):
+        # the job's log must say why it failed (Snakemake points the user to it)
+        logger.critical("job failed: %s: %s", exc_type.__name__, exc, exc_info=(exc_type, exc, tb))
+        for h in logger.handlers:
+            h.flush()
+
+    sys.excepthook = _log_uncaught
     return logger
