@@ -51,9 +51,12 @@ def test_dry_run_lists_the_whole_dag(experiment, tmp_path):
 
 
 def test_overrides_reach_the_jobs(tmp_path):
+    from liverforce.config import compose
+
+    count = compose(["experiment=smoke"])["geometry"]["procedural"]["count"]
     base = job_counts(snakemake("-n", "--directory", str(tmp_path), "--config", "experiment=smoke").stdout)
     more = job_counts(snakemake("-n", "--directory", str(tmp_path), "--config", "experiment=smoke",
-                                "overrides=geometry.procedural.count=3 sweep.cases_per_shard=3").stdout)
+                                f"overrides=geometry.procedural.count={count + 1} sweep.cases_per_shard=3").stdout)
     assert more["geometry"] == base["geometry"] + 1
     assert more["simulate"] > base["simulate"]
 
