@@ -216,6 +216,44 @@ class ReportConfig:
 
 
 @dataclass
+class StudyValues:
+    enabled: bool = True
+    scenarios: list[str] = field(default_factory=list)
+    values: list[Any] = field(default_factory=list)
+
+
+@dataclass
+class StateVectorStudy:
+    enabled: bool = True
+    scenarios: list[str] = field(default_factory=list)
+    values: list[bool] = field(default_factory=lambda: [False, True])
+    encoder: str = "pca"
+
+
+@dataclass
+class OcclusionStudy:
+    enabled: bool = True
+    scenarios: list[str] = field(default_factory=list)
+    radii_mm: list[float] = field(default_factory=list)
+    encoders: list[str] = field(default_factory=lambda: ["dae"])
+    modes: list[str] = field(default_factory=lambda: ["noise"])
+
+
+@dataclass
+class StudyConfig:
+    """Comparison studies on existing shards (liverforce.learn.study)."""
+
+    enabled: bool = True
+    epochs: int = 100
+    hyper_parameters: str = "main"  # main | config
+    roi_fraction: StudyValues = field(default_factory=StudyValues)
+    encoder: StudyValues = field(default_factory=StudyValues)
+    state_vector: StateVectorStudy = field(default_factory=StateVectorStudy)
+    occlusion: OcclusionStudy = field(default_factory=OcclusionStudy)
+    noise: StudyValues = field(default_factory=StudyValues)
+
+
+@dataclass
 class RootConfig:
     experiment: str = "default"
     results_dir: str = "results"
@@ -234,6 +272,7 @@ class RootConfig:
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     validate: ValidateConfig = field(default_factory=ValidateConfig)
     report: ReportConfig = field(default_factory=ReportConfig)
+    study: StudyConfig = field(default_factory=StudyConfig)
 
 
 # --------------------------------------------------------------------------
@@ -431,6 +470,7 @@ def _check_ranges(cfg: dict) -> None:
         _fail("validate.n_cases", "must be >= 1")
     if v["seed"] in range(g["procedural"]["seed"], g["procedural"]["seed"] + g["procedural"]["count"]):
         _fail("validate.seed", f"seed {v['seed']} is a training liver's seed", "pick a seed outside the training range")
+    _check_study(cfg)
 
 
 def _check_model(mo: dict, key: str) -> None:
@@ -451,6 +491,47 @@ def _check_model(mo: dict, key: str) -> None:
         _fail(f"{key}.grid_half_width_mm", "must be >= 0 mm (0 = fitted)")
     if mo["dae_input_noise"] < 0:
         _fail(f"{key}.dae_input_noise", "must be >= 0")
+
+
+def _check_study(cfg: dict) -> None:
+    """Ranges of the ``study`` group; study scenarios need shards and (for tuned values) a main model."""
+    st = cfg["study"]
+    if st["epochs"] < 1:
+        _fail("study.epochs", f"must be >= 1 (got {st['epochs']})")
+    if st["hyper_parameters"] not in ("main", "config"):
+        _fail("study.hyper_parameters", f"unknown '{st['hyper_parameters']}'", "use main or config")
+    if not st["enabled"]:
+        return
+    for name in ("roi_fraction", "encoder", "state_vector", "occlusion", "noise"):
+        sub = st[name]
+        if not sub["enabled"]:
+            continue
+        for sc in sub["scenarios"]:
+            if sc not in cfg["train"]["scenarios"]:
+                _fail(f"study.{name}.scenarios", f"scenario '{sc}' is not trained (train.scenarios)",
+                      "the study reuses the scenario's shards and main model; add it to train.scenarios")
+    for f in st["roi_fraction"]["values"]:
+        if not isinstance(f, (int, float)) or not 0 < f <= 1:
+            _fail("study.roi_fraction.values", f"ROI fractions must be in (0, 1] (got {f})")
+    if st["roi_fraction"]["enabled"] and st["roi_fraction"]["scenarios"] and st["roi_fraction"]["values"] \
+            and not cfg["dataset"]["store_full_surface"]:
+        _fail("study.roi_fraction", "needs the full surface in the shards",
+              "set dataset.store_full_surface=true or study.roi_fraction.enabled=false")
+    for e in st["encoder"]["values"]:
+        if e not in ("pca", "ae", "dae"):
+            _fail("study.encoder.values", f"unknown encoder '{e}'", "use pca, ae or dae")
+    if st["state_vector"]["encoder"] not in ("pca", "ae", "dae"):
+        _fail("study.state_vector.encoder", f"unknown encoder '{st['state_vector']['encoder']}'")
+    occ = st["occlusion"]
+    if any(r < 0 for r in occ["radii_mm"]):
+        _fail("study.occlusion.radii_mm", f"radii must be >= 0 mm (got {occ['radii_mm']})")
+    if any(e not in ("pca", "ae", "dae") for e in occ["encoders"]):
+        _fail("study.occlusion.encoders", f"unknown encoder in {occ['encoders']}", "use pca, ae or dae")
+    if any(m not in ("remove", "noise") for m in occ["modes"]):
+        _fail("study.occlusion.modes", f"unknown mode in {occ['modes']}", "use remove or noise")
+    for v in st["noise"]["values"]:
+        if not isinstance(v, (int, float)) or v < 0 or v > 20:
+            _fail("study.noise.values", f"noise must be in [0, 20] mm (got {v}); units are mm")
 
 
 def _check_units(key: str, units: str) -> None:

@@ -352,3 +352,80 @@ def representation_from_config(model_cfg: dict, train_arrays: dict) -> Represent
         occlusion_mode=str(occ.get("mode", "remove")),
         noise_mm=float(model_cfg.get("noise_mm", 0.0)),
     )
+
+
+# --------------------------------------------------------------------------
+# ROI fraction at training time (no new simulation)
+# --------------------------------------------------------------------------
+
+
+def with_roi_fraction(arrays: dict, fraction: float, surfaces: dict) -> dict:
+    """The cases of ``arrays`` with the ROI re-selected at another area ``fraction``.
+
+    The shards store every surface node's displacement
+    (``dataset.store_full_surface``), so the geodesic ROI of any fraction can be
+    grown again from the exertion point (:func:`liverforce.dataset.roi.extract_roi`,
+    the rule the simulation used) without a new FE solve. With the shard's own
+    fraction this reproduces the stored ROI (same nodes, same order).
+
+    Parameters
+    ----------
+    arrays : dict
+        Input-contract arrays plus ``surface_displacement_mm`` (list of
+        ``(s, 3)`` per case, in the order of the geometry's surface nodes) and
+        ``geometry_id``.
+    fraction : float in (0, 1]
+        Share of the liver's surface area covered by the ROI.
+    surfaces : dict
+        ``geometry_id -> SurfaceGraph`` of each geometry (built from its mesh
+        with :func:`liverforce.dataset.roi.surface_graph`, as the simulation did).
+
+    Returns
+    -------
+    dict
+        A shallow copy of ``arrays`` with ``roi_undeformed_mm``,
+        ``roi_deformed_mm``, ``roi_node_ids`` (mesh point ids),
+        ``roi_centroid_undeformed_mm`` and ``roi_centroid_deformed_mm``
+        replaced, and ``roi_area_fraction`` (achieved) added. Frames,
+        exertion points and forces are unchanged.
+    """
+    from liverforce.dataset.roi import extract_roi
+
+    if not 0.0 < float(fraction) <= 1.0:
+        raise ValueError(f"ROI fraction must be in (0, 1], got {fraction}")
+    if "surface_displacement_mm" not in arrays:
+        raise KeyError("re-selecting the ROI needs 'surface_displacement_mm' (the full-surface displacements)")
+    P = np.asarray(arrays["exertion_point_mm"], dtype=np.float64)
+    geo = np.asarray(arrays["geometry_id"]).astype(str)
+    und, dfm, ids, achieved = [], [], [], []
+    cache: dict[tuple, tuple[np.ndarray, float]] = {}
+    for i in range(len(P)):
+        gid = geo[i]
+        if gid not in surfaces:
+            raise KeyError(f"no surface graph for geometry '{gid}' (needed to re-select the ROI)")
+        surf = surfaces[gid]
+        u = np.asarray(arrays["surface_displacement_mm"][i], dtype=np.float64).reshape(-1, 3)
+        if len(u) != len(surf.node_ids):
+            raise ValueError(
+                f"case {arrays['case_id'][i] if 'case_id' in arrays else i}: {len(u)} stored surface displacements "
+                f"but geometry '{gid}' has {len(surf.node_ids)} surface nodes; the shards were written without "
+                "dataset.store_full_surface or for another mesh"
+            )
+        key = (gid, *np.round(P[i], 6))
+        if key not in cache:
+            cache[key] = extract_roi(surf, P[i], float(fraction))
+        local, frac = cache[key]
+        x0 = surf.points[local]
+        x1 = x0 + u[local]
+        und.append(x0.astype(np.float32))
+        dfm.append(x1.astype(np.float32))
+        ids.append(surf.node_ids[local].astype(np.int64))
+        achieved.append(frac)
+    out = dict(arrays)
+    out["roi_undeformed_mm"] = und
+    out["roi_deformed_mm"] = dfm
+    out["roi_node_ids"] = ids
+    out["roi_centroid_undeformed_mm"] = np.array([x.astype(np.float64).mean(axis=0) for x in und]).reshape(-1, 3)
+    out["roi_centroid_deformed_mm"] = np.array([x.astype(np.float64).mean(axis=0) for x in dfm]).reshape(-1, 3)
+    out["roi_area_fraction"] = np.asarray(achieved, dtype=np.float64)
+    return out
