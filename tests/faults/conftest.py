@@ -1,0 +1,93 @@
+"""Fault-injection tests: a ledger of what each test injected and what survived.
+
+Every fault test calls ``fault_ledger.record(...)`` once per fault it injects,
+with the rows it expected and the rows it found afterwards (measured, e.g.
+case ids of the final shards against the reference run). At the end of the
+session pytest prints
+
+    faults injected: N, runs survived: M, rows lost: R
+
+and writes the same numbers, one record per fault, to ``faults.json`` in
+pytest's base temporary folder (and to ``$LIVERFORCE_FAULT_REPORT`` if set).
+"""
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import pytest
+
+_RECORDS: list["FaultRecord"] = []
+_REPORT_PATH: list[Path] = []
+
+
+@dataclass
+class FaultRecord:
+    test: str
+    fault: str
+    survived: bool
+    rows_expected: int = 0
+    rows_found: int = 0
+    detail: dict = field(default_factory=dict)
+
+    @property
+    def rows_lost(self) -> int:
+        return max(0, self.rows_expected - self.rows_found)
+
+
+class FaultLedger:
+    def __init__(self, test: str):
+        self.test = test
+
+    def record(self, fault: str, *, survived: bool, rows_expected: int = 0, rows_found: int = 0, **detail) -> FaultRecord:
+        """One injected fault; ``survived`` = the run finished correctly afterwards."""
+        rec = FaultRecord(self.test, fault, bool(survived), int(rows_expected), int(rows_found), detail)
+        _RECORDS.append(rec)
+        _write()
+        return rec
+
+
+def summary() -> dict:
+    return {
+        "faults_injected": len(_RECORDS),
+        "runs_survived": sum(r.survived for r in _RECORDS),
+        "rows_lost": sum(r.rows_lost for r in _RECORDS),
+        "faults": [{**asdict(r), "rows_lost": r.rows_lost} for r in _RECORDS],
+    }
+
+
+def _write() -> None:
+    text = json.dumps(summary(), indent=2, default=str)
+    for p in _REPORT_PATH:
+        p.write_text(text)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _fault_report_path(tmp_path_factory):
+    _REPORT_PATH.clear()
+    _REPORT_PATH.append(tmp_path_factory.getbasetemp() / "faults.json")
+    if os.environ.get("LIVERFORCE_FAULT_REPORT"):
+        _REPORT_PATH.append(Path(os.environ["LIVERFORCE_FAULT_REPORT"]))
+    yield
+
+
+@pytest.fixture
+def fault_ledger(request) -> FaultLedger:
+    return FaultLedger(request.node.nodeid)
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    if not _RECORDS:
+        return
+    s = summary()
+    tr = terminalreporter
+    tr.section("fault injection")
+    for r in _RECORDS:
+        tr.write_line(f"{'survived' if r.survived else 'NOT SURVIVED'}: {r.fault} "
+                      f"(rows {r.rows_found}/{r.rows_expected}) [{r.test}]")
+    tr.write_line(f"faults injected: {s['faults_injected']}, runs survived: {s['runs_survived']}, "
+                  f"rows lost: {s['rows_lost']}")
+    if _REPORT_PATH:
+        tr.write_line(f"fault report: {_REPORT_PATH[0]}")
