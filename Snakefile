@@ -1,4 +1,4 @@
-# liverforce workflow: geometry -> mesh -> sweep -> simulate -> shards -> train -> validate -> report
+# liverforce workflow: geometry -> mesh -> sweep -> simulate -> shards -> train -> validate + studies -> report
 #
 #   snakemake --cores 2                                   # default experiment
 #   snakemake --cores 2 --config experiment=smoke         # another experiment
@@ -14,6 +14,7 @@ include: "workflow/rules/sweep.smk"
 include: "workflow/rules/simulate.smk"
 include: "workflow/rules/train.smk"
 include: "workflow/rules/validate.smk"
+include: "workflow/rules/study.smk"
 include: "workflow/rules/report.smk"
 
 

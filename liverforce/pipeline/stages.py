@@ -440,27 +440,121 @@ def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_
     return result
 
 
+# -------------------------------------------------------------------- study
+
+
+def load_study_arrays(manifest_path, full_surface: bool = False) -> dict:
+    """Converged cases of one scenario (verified shards); with ``surface_displacement_mm`` if ``full_surface``."""
+    shards = dio.verify_manifest(manifest_path)
+    arrays = dio.load_training_arrays(shards)
+    if full_surface:
+        surf = []
+        for p in shards:
+            t = dio.read_table(p, columns=["converged", "surface_displacement_mm"])
+            conv = t.column("converged").to_pylist()
+            surf += [x for x, c in zip(dio.points_column(t, "surface_displacement_mm"), conv) if c]
+        if any(len(x) == 0 for x in surf):
+            raise RuntimeError(
+                f"{manifest_path}: the shards hold no full-surface displacements (dataset.store_full_surface "
+                "was false when they were simulated); the ROI-fraction study needs them — set it to true and "
+                "re-run the sweep"
+            )
+        arrays["surface_displacement_mm"] = surf
+    return arrays
+
+
+def run_study_stage(study: str, study_cfg: dict, manifests: dict, main_metrics: dict, mesh_paths: list[str],
+                    model_cfg: dict, train_cfg: dict, tracking_uri: str, experiment_prefix: str, experiment: str,
+                    seed: int, threads: int, out_json, out_png) -> dict:
+    """Run one comparison study on the existing shards; write ``studies/<study>.json`` + PNG, log MLflow runs.
+
+    ``manifests`` / ``main_metrics``: scenario -> path. The points reuse the
+    main model's split seed (``seed + train.seed``) and tuned hyper-parameters.
+    """
+    from liverforce.learn.study import plot_study, run_study
+    from liverforce.tracking import Tracker
+
+    surfaces = None
+    if study == "roi_fraction":
+        from liverforce.dataset.roi import surface_graph
+        from liverforce.mesh.io import read_mesh
+
+        surfaces = {}
+        for p in mesh_paths:
+            mesh = read_mesh(p)
+            surfaces[Path(p).stem] = surface_graph(mesh.points, mesh.facets)
+    data, versions = {}, {}
+    for sc, mp in manifests.items():
+        data[sc] = load_study_arrays(mp, full_surface=study == "roi_fraction")
+        versions[sc] = json.loads(Path(mp).read_text())["data_version"]
+        log.info("study %s: scenario %s, %d converged cases (data version %s)", study, sc,
+                 len(data[sc]["case_id"]), versions[sc])
+    mains = {sc: json.loads(Path(p).read_text()) for sc, p in main_metrics.items()}
+    tracker = Tracker(tracking_uri, f"{experiment_prefix}-{experiment}-studies")
+    doc = run_study(study, study_cfg, data, model_cfg, mains, train_cfg, seed=seed + int(train_cfg["seed"]),
+                    threads=threads, surfaces=surfaces, tracker=tracker,
+                    tags={"experiment": experiment,
+                          "data_version": ",".join(f"{k}:{v}" for k, v in sorted(versions.items()))})
+    doc["data_version"] = versions
+    doc["main_model_runs"] = {sc: m.get("run_id") for sc, m in mains.items()}
+    plot_study(doc, out_png)
+    doc["figure"] = Path(out_png).name
+    dio.write_json_atomic(doc, out_json)
+    ok = sum(p["status"] == "ok" for p in doc["points"])
+    log.info("study %s: %d/%d points in %.1f s", study, ok, len(doc["points"]), doc["seconds"])
+    return doc
+
+
 # ------------------------------------------------------------------- report
 
 
-def make_report(model_metrics: list[str], manifests: list[str], validation: str, features: list[str],
-                pictures: list[str], experiment: str, out_html) -> Path:
-    """Write ``report/index.html`` from the stage outputs."""
-    from liverforce.report.html import collect, write_report
-
-    data = collect(model_metrics, manifests, validation, features)
-    data["validation_dir"] = str(Path(validation).parent)
-    walls, iters = [], []
+def solver_statistics(manifests: list[str]) -> dict:
+    """Cases, failures (with reasons) and solve times per scenario, read from the verified shards."""
+    per, reasons = {}, {}
+    all_walls = []
     for m in manifests:
+        walls, iters, steps, umax = [], [], [], []
         for shard in dio.verify_manifest(m):
-            t = dio.read_table(shard, columns=["wall_time_s", "newton_iterations", "converged"])
+            t = dio.read_table(shard, columns=["wall_time_s", "newton_iterations", "load_steps", "converged",
+                                               "reason", "max_displacement_mm"])
             walls += t.column("wall_time_s").to_pylist()
             iters += t.column("newton_iterations").to_pylist()
-    stats = {}
-    if walls:
-        stats = {"solver wall time total (s)": round(float(np.sum(walls)), 1),
-                 "median per case (s)": round(float(np.median(walls)), 3),
-                 "median Newton iterations": float(np.median(iters))}
-    path = write_report(data, pictures, experiment, out_html, solver_stats=stats)
+            steps += t.column("load_steps").to_pylist()
+            conv = t.column("converged").to_pylist()
+            umax += [u for u, c in zip(t.column("max_displacement_mm").to_pylist(), conv) if c]
+            for r, c in zip(t.column("reason").to_pylist(), conv):
+                if not c:
+                    key = (r or "unknown").split(":")[0][:80]
+                    reasons[key] = reasons.get(key, 0) + 1
+        all_walls += walls
+        if walls:
+            per[Path(m).parent.name] = {
+                "solve_time_total_s": float(np.sum(walls)), "solve_time_median_s": float(np.median(walls)),
+                "solve_time_max_s": float(np.max(walls)), "newton_iterations_median": float(np.median(iters)),
+                "load_steps_median": float(np.median(steps)),
+                "max_displacement_median_mm": float(np.median(umax)) if umax else None,
+            }
+    overall = {}
+    if all_walls:
+        overall = {"cases simulated": len(all_walls),
+                   "solver wall time total (s)": round(float(np.sum(all_walls)), 1),
+                   "median per case (s)": round(float(np.median(all_walls)), 3)}
+    return {"overall": overall, "per_scenario": per, "reasons": dict(sorted(reasons.items(), key=lambda kv: -kv[1]))}
+
+
+def make_report(model_metrics: list[str], manifests: list[str], validation: str, features: list[str],
+                pictures: list[str], experiment: str, out_html, studies: list[str] = (),
+                setup: dict | None = None) -> Path:
+    """Write ``report/index.html`` (+ ``report/figures/``) from the stage outputs.
+
+    ``studies``: the ``studies/<study>.json`` files (their PNGs beside them);
+    ``setup``: the config slices the setup section shows.
+    """
+    from liverforce.report.html import collect, write_report
+
+    data = collect(model_metrics, manifests, validation, features, studies)
+    data["validation_dir"] = str(Path(validation).parent)
+    stats = solver_statistics(manifests)
+    path = write_report(data, pictures, experiment, out_html, solver_stats=stats, setup=setup)
     log.info("report: %s", path)
     return path

@@ -1,9 +1,16 @@
 """The run report: one HTML page (tables + PNG figures) a surgeon-engineer can read.
 
 Every number in the report is read from the stage outputs (``metrics.json`` of
-each model, the shard manifests, the validation metrics), and each model row
-carries the MLflow run id it came from, so the report can be checked against
-the tracking store.
+each model, the shard manifests and shards, the validation metrics, the study
+results ``studies/<study>.json``), and every number that comes from a model
+names the MLflow run it was logged to, so the report can be checked against
+the tracking store (``tests/test_smoke_workflow.py`` does).
+
+Sections, in order: the headline (the study's Table 5.9 layout with our
+numbers beside the study's, encoders, the unseen-liver MAE); the setup
+(geometries as pictures, material, boundary, sweep); simulations and solver
+statistics; every trained model; the unseen-liver validation with its figures;
+the comparison studies with their plots; where the MLflow runs are.
 """
 
 from __future__ import annotations
@@ -13,6 +20,8 @@ import json
 import os
 from pathlib import Path
 
+import numpy as np
+
 #: the study's accuracies (Table 5.9), % — deformation only / with state vector
 STUDY_ACCURACY = {
     "I": {"without": 92.1, "with": 95.8},
@@ -21,25 +30,69 @@ STUDY_ACCURACY = {
     "IV": {"without": 65.7, "with": 84.8},
 }
 STUDY_VALIDATION_MAE_N = 0.249
+STUDY_OCCLUSION_COST_POINTS = 4.2
+SCENARIO_TEXT = {
+    "I": "fixed exertion point, one liver, one material",
+    "II": "exertion point varies, one liver, one material",
+    "III": "exertion point and material vary, one liver",
+    "IV": "exertion point, material and liver vary (test livers unseen in training)",
+}
+STUDY_TEXT = {
+    "roi_fraction": "How much of the liver surface around the tool the camera must see. The ROI is re-grown "
+                    "from the stored full-surface displacements at each fraction (no new simulation). The study "
+                    "judged 18 % enough.",
+    "encoder": "How the ROI grid is compressed before the regressor: PCA, an autoencoder (AE) or a denoising "
+               "autoencoder (DAE, trained to undo occlusion and noise).",
+    "state_vector": "Deformation alone vs deformation plus the pre-operative state vector (liver centroid, ROI "
+                    "centroids, inertia tensor, material constants, in the local frame).",
+    "occlusion": "The tool hides the surface around it: nodes within the radius are removed before resampling "
+                 "(remove) or replaced by noise (noise). The study reported a cost of 4.2 accuracy points.",
+    "noise": "Gaussian noise on every observed point (a stereo endoscope reconstructs the surface with roughly "
+             "0.5-2 mm error).",
+}
 
 
 def _rel(path: str | Path, start: Path) -> str:
     return html.escape(os.path.relpath(Path(path).resolve(), start.resolve()))
 
 
-def _table(header: list[str], rows: list[list]) -> str:
+def _table(header: list[str], rows: list[list], cls: str = "", row_cls: str = "") -> str:
     th = "".join(f"<th>{html.escape(str(h))}</th>" for h in header)
-    body = "".join("<tr>" + "".join(f"<td>{c}</td>" for c in r) + "</tr>" for r in rows)
-    return f"<table><thead><tr>{th}</tr></thead><tbody>{body}</tbody></table>"
+    tr = f"<tr class='{row_cls}'>" if row_cls else "<tr>"
+    body = "".join(tr + "".join(f"<td>{c}</td>" for c in r) + "</tr>" for r in rows)
+    c = f" class='{cls}'" if cls else ""
+    return f"<table{c}><thead><tr>{th}</tr></thead><tbody>{body}</tbody></table>"
 
 
 def _fmt(v, nd=3) -> str:
-    return "–" if v is None else (f"{v:.{nd}f}" if isinstance(v, float) else html.escape(str(v)))
+    if v is None:
+        return "–"
+    if isinstance(v, float):
+        return "–" if not np.isfinite(v) else f"{v:.{nd}f}"
+    return html.escape(str(v))
+
+
+def _run(run_id) -> str:
+    return f"<code>{html.escape(str(run_id))}</code>"
+
+
+def _small_run(run_id) -> str:
+    return f"<br><small>run <code>{html.escape(str(run_id))}</code></small>" if run_id else ""
+
+
+def _figure(src: str | Path, out_dir: Path, caption: str = "", width: int = 420) -> str:
+    cap = f"<figcaption>{html.escape(caption)}</figcaption>" if caption else ""
+    return f"<figure><img src='{_rel(src, out_dir)}' width='{width}'>{cap}</figure>"
+
+
+# --------------------------------------------------------------------------
+# collect
+# --------------------------------------------------------------------------
 
 
 def collect(model_metrics: list[str | Path], manifests: list[str | Path], validation: str | Path,
-            features: list[str | Path]) -> dict:
-    """Read every number the report shows (also used by the report test)."""
+            features: list[str | Path], studies: list[str | Path] = ()) -> dict:
+    """Read every number the report shows (also used by the report tests)."""
     models = []
     for p in model_metrics:
         m = json.loads(Path(p).read_text())
@@ -48,52 +101,265 @@ def collect(model_metrics: list[str | Path], manifests: list[str | Path], valida
             "variant": m.get("variant") or Path(p).parent.name,
             "state_vector": m.get("state_vector"), "encoder": m.get("encoder"),
             "metrics": m.get("metrics", {}), "run_id": m.get("run_id"), "n_cases": m.get("n_cases"),
+            "n_train": m.get("n_train"), "n_test": m.get("n_test"), "best_params": m.get("best_params"),
             "seconds": m.get("seconds"), "path": str(p),
         })
     shards = []
     for p in manifests:
         m = json.loads(Path(p).read_text())
         shards.append({"scenario": Path(p).parent.name, "rows": m["rows"], "failed": m["failed"],
-                       "shards": len(m["shards"]), "data_version": m["data_version"]})
+                       "shards": len(m["shards"]), "data_version": m["data_version"], "manifest": str(p)})
     val = json.loads(Path(validation).read_text())
     geoms = []
     for p in features:
         f = json.loads(Path(p).read_text())
         geoms.append({"id": Path(p).name.removesuffix(".features.json"), **f})
-    return {"models": models, "shards": shards, "validation": val, "geometries": geoms}
+    study_docs = []
+    for p in studies:
+        d = json.loads(Path(p).read_text())
+        d["path"] = str(p)
+        study_docs.append(d)
+    return {"models": models, "shards": shards, "validation": val, "geometries": geoms, "studies": study_docs}
+
+
+# --------------------------------------------------------------------------
+# the Table 5.9 layout
+# --------------------------------------------------------------------------
+
+
+def table59(data: dict, main_variant: str | None = None) -> list[dict]:
+    """Per scenario: our accuracy/MAE without and with the state vector, the study's, and the source run.
+
+    Preference for each cell: a fully trained (Ax-tuned) model variant — the
+    main variant, else the same encoder, else any — then a point of the
+    ``state_vector`` study (trained without Ax), marked as such.
+    """
+    out = []
+    scenarios = sorted({m["scenario"] for m in data["models"]}, key=lambda s: ("I", "II", "III", "IV").index(s)
+                       if s in ("I", "II", "III", "IV") else 9)
+    sv_study = next((d for d in data.get("studies", []) if d["study"] == "state_vector"), None)
+    for sc in scenarios:
+        row = {"scenario": sc}
+        ms = [m for m in data["models"] if m["scenario"] == sc]
+        main = next((m for m in ms if m["variant"] == main_variant), ms[0] if ms else None)
+        for key, want in (("without", False), ("with", True)):
+            cands = [m for m in ms if bool(m.get("state_vector")) == want]
+            cands.sort(key=lambda m: (m is not main, m.get("encoder") != (main or {}).get("encoder"), m["variant"]))
+            cell = None
+            if cands:
+                m = cands[0]
+                cell = {"accuracy_pct": m["metrics"].get("accuracy_pct"), "mae_vec": m["metrics"].get("mae_vec"),
+                        "run_id": m["run_id"], "source": f"model {m['variant']}"}
+            elif sv_study:
+                p = next((p for p in sv_study["points"] if p["scenario"] == sc and p["status"] == "ok"
+                          and bool(p["state_vector"]) == want), None)
+                if p:
+                    cell = {"accuracy_pct": p["metrics"]["accuracy_pct"], "mae_vec": p["metrics"]["mae_vec"],
+                            "run_id": p.get("run_id"), "source": f"state-vector study ({p['encoder']}, no Ax)"}
+            row[key] = cell
+            row[f"study_{key}"] = STUDY_ACCURACY.get(sc, {}).get(key)
+        out.append(row)
+    return out
+
+
+# --------------------------------------------------------------------------
+# figures made by the report
+# --------------------------------------------------------------------------
+
+
+def validation_figures(val: dict, out_dir: Path) -> list[Path]:
+    """Error vs force magnitude and error vs distance from the training exertion points (PNG)."""
+    from liverforce.learn.plots import _plt
+
+    plt = _plt()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = []
+    pred = val.get("predictions") or {}
+    if pred.get("true_n"):
+        t = np.asarray(pred["true_n"], dtype=float)
+        p = np.asarray(pred["pred_n"], dtype=float)
+        err = np.linalg.norm(p - t, axis=1)
+        mag = np.linalg.norm(t, axis=1)
+        fig, ax = plt.subplots(figsize=(4.6, 3.6), dpi=100)
+        ax.scatter(mag, err, s=10, alpha=0.7, label="case")
+        bins = val.get("error_by_force_magnitude", [])
+        if bins:
+            ax.plot([(b["force_lo_n"] + b["force_hi_n"]) / 2 for b in bins], [b["mae_vec_n"] for b in bins],
+                    "o-", color="C3", label="MAE per bin")
+        ax.set_xlabel("true |F| (N)")
+        ax.set_ylabel("|F_pred − F_true| (N)")
+        ax.set_title("unseen liver: error vs force magnitude", fontsize=9)
+        ax.legend(fontsize=7)
+        ax.grid(alpha=0.3)
+        fig.tight_layout()
+        path = out_dir / "validation_error_vs_force.png"
+        fig.savefig(path)
+        plt.close(fig)
+        paths.append(path)
+    ed = val.get("error_vs_distance") or {}
+    if ed.get("distance_mm"):
+        fig, ax = plt.subplots(figsize=(4.6, 3.6), dpi=100)
+        ax.scatter(ed["distance_mm"], ed["error_n"], s=10, alpha=0.7)
+        ax.set_xlabel("distance to nearest training exertion point (mm)")
+        ax.set_ylabel("|F_pred − F_true| (N)")
+        r = val.get("corr_error_distance")
+        ax.set_title(f"unseen liver: error vs distance (r = {_fmt(r, 2)})", fontsize=9)
+        ax.grid(alpha=0.3)
+        fig.tight_layout()
+        path = out_dir / "validation_error_vs_distance.png"
+        fig.savefig(path)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+# --------------------------------------------------------------------------
+# write
+# --------------------------------------------------------------------------
 
 
 def write_report(data: dict, pictures: list[str | Path], experiment: str, out_html: str | Path,
-                 solver_stats: dict | None = None) -> Path:
+                 solver_stats: dict | None = None, setup: dict | None = None) -> Path:
+    """Write the HTML page (atomically) and its figures under ``report/figures``.
+
+    ``solver_stats``: ``{"overall": {...}, "per_scenario": {scenario: {...}}, "reasons": {...}}``
+    or a flat dict (shown as one line). ``setup``: config slices shown in the
+    setup section (``material``, ``boundary``, ``sweep``, ``mesh``,
+    ``dataset``, ``validate``, ``train``, ``tune``, ``study``, ``tracking``).
+    """
     out_html = Path(out_html)
     out_dir = out_html.parent
     out_dir.mkdir(parents=True, exist_ok=True)
+    setup = setup or {}
+    main_variant = setup.get("main_variant")
+    v = data["validation"]
+    vm = v["metrics"]
     parts = [f"<h1>liverforce report — experiment <code>{html.escape(experiment)}</code></h1>",
-             "<p>Units: mm, N, MPa. Accuracy % = 100 × (1 − Σ‖F̂ − F‖ / Σ‖F‖) over the test cases. "
-             "Every model row names the MLflow run it came from.</p>"]
+             "<p>liverforce estimates the tool force (Fx, Fy, Fz, in newtons) from how the liver surface around "
+             "the tool deforms. The training labels come from finite-element simulations of a tool pushing on "
+             "livers. Units: mm, N, MPa. <b>Accuracy %</b> = 100 × (1 − Σ‖F̂ − F‖ / Σ‖F‖) over the held-out "
+             "test cases (the study did not define its own; 100 % is perfect, 0 % is as large an error as the "
+             "force itself). <b>MAE</b> is the mean length of the force-error vector, in N. Every number that "
+             "comes from a model names its MLflow run (<code>run …</code>); see the last section to open "
+             "them.</p>"]
 
-    # setup: geometries
-    parts.append("<h2>Geometries</h2>")
+    # ------------------------------------------------------------ headline
+    parts.append("<h2 id='headline'>Headline: the study's Table 5.9, ours beside it</h2>")
+    rows = []
+    for r in table59(data, main_variant):
+        cells = [r["scenario"], html.escape(SCENARIO_TEXT.get(r["scenario"], ""))]
+        for key in ("without", "with"):
+            c = r[key]
+            if c:
+                cells.append(f"{_fmt(c['accuracy_pct'], 1)} %<br><small>MAE {_fmt(c['mae_vec'])} N; "
+                             f"{html.escape(c['source'])}</small>{_small_run(c['run_id'])}")
+            else:
+                cells.append("– <small>(not trained)</small>")
+            cells.append(f"{_fmt(r[f'study_{key}'], 1)} %")
+        rows.append(cells)
+    parts.append("<p>Accuracy on the held-out test split of each scenario (scenario IV: test livers never seen "
+                 "in training), deformation only and with the state vector, beside the study's published values "
+                 "(ANSYS data, 24 CT livers).</p>")
+    parts.append(_table(["scenario", "what varies", "ours: deformation only", "study: deformation only",
+                         "ours: with state vector", "study: with state vector"], rows, cls="t59"))
+
+    enc = next((d for d in data.get("studies", []) if d["study"] == "encoder"), None)
+    if enc:
+        encs = list(dict.fromkeys(p["label"] for p in enc["points"]))
+        rows = []
+        for sc in dict.fromkeys(p["scenario"] for p in enc["points"]):
+            row = [sc]
+            for e in encs:
+                p = next((p for p in enc["points"] if p["scenario"] == sc and p["label"] == e), None)
+                if p and p["status"] == "ok":
+                    row.append(f"{_fmt(p['metrics']['accuracy_pct'], 1)} %<br><small>MAE "
+                               f"{_fmt(p['metrics']['mae_vec'])} N</small>{_small_run(p.get('run_id'))}")
+                else:
+                    row.append("– <small>failed</small>" if p else "–")
+            rows.append(row)
+        parts.append(f"<h3>PCA vs autoencoder vs denoising autoencoder</h3><p>Same data, split and regressor "
+                     f"settings, only the encoder changes (trained without Ax, {enc['epochs']} epochs; details in "
+                     f"the studies section).</p>")
+        parts.append(_table(["scenario", *[e.upper() for e in encs]], rows))
+    parts.append(f"<p><b>Unseen-liver validation</b> (a liver shape and material constants never seen in "
+                 f"training): MAE <b>{_fmt(vm['mae_vec'])} N</b>, accuracy {_fmt(vm['accuracy_pct'], 1)} % over "
+                 f"{v['n_cases']} cases; the study: MAE {_fmt(STUDY_VALIDATION_MAE_N)} N. "
+                 f"{_small_run(v.get('run_id'))}</p>")
+
+    # ------------------------------------------------------------ setup
+    parts.append("<h2 id='setup'>Setup</h2>")
+    parts.append("<h3>Livers</h3><p>Procedural livers (seeded) or imported segmentations, meshed with "
+                 "tetrahedra. Pictures: the boundary regions (fixed vena cava patch, ligament and visceral "
+                 "springs, rib contact, the visible surface where the tool may push). "
+                 "<code>val-…</code> is the unseen validation liver.</p>")
     rows = []
     for g in data["geometries"]:
         vol = g.get("volume_mm3")
-        rows.append([html.escape(g["id"]), _fmt(vol / 1e6 if vol else None, 3), _fmt(g.get("n_nodes"), 0),
+        ext = g.get("extent_mm")
+        rows.append([html.escape(g["id"]), _fmt(vol / 1e6 if vol else None, 3),
+                     " × ".join(f"{e:.0f}" for e in ext) if ext else "–", _fmt(g.get("n_nodes"), 0),
                      _fmt(g.get("n_tets"), 0), _fmt(g.get("meshing_time_s"), 1)])
-    parts.append(_table(["geometry", "volume (L)", "nodes", "tets", "meshing (s)"], rows))
+    parts.append(_table(["geometry", "volume (L)", "extent (mm)", "nodes", "tets", "meshing (s)"], rows))
     parts.append("<div class='pics'>" + "".join(
-        f"<figure><img src='{_rel(p, out_dir)}' width='420'><figcaption>{html.escape(Path(p).name)}</figcaption></figure>"
-        for p in pictures) + "</div>")
+        _figure(p, out_dir, Path(p).name.removesuffix(".regions.png"), 360) for p in pictures) + "</div>")
+    mat = setup.get("material")
+    if mat:
+        consts = ", ".join(f"{k} = {val:g}" for k, val in (mat.get("params_mpa") or {}).items())
+        parts.append(f"<h3>Material</h3><p>{html.escape(str(mat.get('model')))} hyperelastic, constants (MPa): "
+                     f"{html.escape(consts)}; Poisson ratio {_fmt(mat.get('nu'), 3)} (nearly incompressible). "
+                     f"Where the material varies, each constant is drawn within ±{100 * mat.get('vary_rel', 0):.0f} %"
+                     f" (unstable sets refused before solving). Validation liver: constants × "
+                     f"{_fmt((setup.get('validate') or {}).get('material_scale'), 2)} (outside the training range)."
+                     "</p>")
+    bnd = setup.get("boundary")
+    if bnd:
+        parts.append("<p>Boundary: " + html.escape(", ".join(f"{k} = {val:g}" for k, val in bnd.items())) + "</p>")
+    sw = setup.get("sweep")
+    if sw:
+        rows = [[sc, s["n_cases"], html.escape(str(s["geometries"])), s["exertion"], s["material"]]
+                for sc, s in sw.get("scenarios", {}).items()]
+        val_cfg = setup.get("validate") or {}
+        rows.append(["V (validation)", val_cfg.get("n_cases", "–"), "unseen", "varies", "unseen"])
+        f = sw.get("force", {})
+        parts.append(f"<h3>Simulation sweep</h3><p>Force magnitude {_fmt(f.get('min_n'), 1)}–"
+                     f"{_fmt(f.get('max_n'), 1)} N within {_fmt(f.get('cone_deg'), 0)}° of the inward normal; "
+                     f"{sw.get('exertion', {}).get('n_points', '–')} candidate exertion points per liver; "
+                     f"{html.escape(str(sw.get('design')))} design. ROI: "
+                     f"{_fmt(100 * (setup.get('dataset') or {}).get('roi_fraction', float('nan')), 0)} % of the "
+                     f"surface; mesh target {(setup.get('mesh') or {}).get('target_nodes', '–')} vertices.</p>")
+        parts.append(_table(["scenario", "cases", "livers", "exertion point", "material"], rows))
+    tr, tu = setup.get("train"), setup.get("tune")
+    if tr and tu:
+        parts.append(f"<p>Training: {tr.get('epochs')} epochs; Ax tuning {'on' if tu.get('enabled') else 'off'} "
+                     f"({tu.get('trials')} trials × {tu.get('folds')}-fold CV); test fraction "
+                     f"{_fmt(tr.get('test_fraction'), 2)} (scenario IV: split by liver).</p>")
 
-    # simulations
-    parts.append("<h2>Simulations</h2>")
-    rows = [[s["scenario"], s["rows"], s["failed"], _fmt(100 * s["failed"] / s["rows"] if s["rows"] else 0.0, 1),
-             s["shards"], s["data_version"]] for s in data["shards"]]
-    parts.append(_table(["scenario", "cases", "failed", "failed %", "shards", "data version"], rows))
+    # ------------------------------------------------------------ simulations
+    parts.append("<h2 id='simulations'>Simulations and solver statistics</h2>")
+    per = (solver_stats or {}).get("per_scenario", {}) if isinstance(solver_stats, dict) else {}
+    rows = []
+    for s in data["shards"]:
+        st = per.get(s["scenario"], {})
+        rows.append([s["scenario"], s["rows"], s["failed"],
+                     _fmt(100 * s["failed"] / s["rows"] if s["rows"] else 0.0, 1), s["shards"],
+                     _fmt(st.get("solve_time_total_s"), 1), _fmt(st.get("solve_time_median_s"), 2),
+                     _fmt(st.get("solve_time_max_s"), 1), _fmt(st.get("newton_iterations_median"), 0),
+                     _fmt(st.get("load_steps_median"), 0), _fmt(st.get("max_displacement_median_mm"), 1),
+                     f"<code>{html.escape(s['data_version'])}</code>"])
+    parts.append(_table(["scenario", "cases", "failed", "failed %", "shards", "solve time total (s)",
+                         "median per case (s)", "max per case (s)", "median Newton iterations", "median load steps",
+                         "median max |u| (mm)", "data version"], rows))
     if solver_stats:
-        parts.append("<p>" + html.escape(", ".join(f"{k}: {v}" for k, v in solver_stats.items())) + "</p>")
+        overall = solver_stats.get("overall", solver_stats if "per_scenario" not in solver_stats else {})
+        if overall:
+            parts.append("<p>" + html.escape(", ".join(f"{k}: {val}" for k, val in overall.items())) + "</p>")
+        reasons = solver_stats.get("reasons") or {}
+        if reasons:
+            parts.append("<p>Why cases failed (recorded in the shards' <code>reason</code> column):</p>")
+            parts.append(_table(["reason", "cases"], [[html.escape(k), n] for k, n in reasons.items()]))
 
-    # the accuracy table, like the study's Table 5.9
-    parts.append("<h2>Accuracy per scenario (cf. the study's Table 5.9)</h2>")
+    # ------------------------------------------------------------ every model
+    parts.append("<h2 id='models'>Accuracy per scenario and variant (every trained model)</h2>")
     rows = []
     for m in sorted(data["models"], key=lambda m: (m["scenario"], m["variant"])):
         sv = "with" if m.get("state_vector") else "without"
@@ -102,29 +368,82 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
         rows.append([m["scenario"], html.escape(m["variant"]), html.escape(str(m.get("encoder"))), sv,
                      _fmt(mt.get("accuracy_pct"), 1), _fmt(study, 1), _fmt(mt.get("mae_vec")), _fmt(mt.get("rmse_vec")),
                      _fmt(mt.get("mae_x")), _fmt(mt.get("mae_y")), _fmt(mt.get("mae_z")),
-                     f"<code>{html.escape(str(m.get('run_id')))}</code>"])
+                     _run(m.get("run_id")), _fmt(m.get("n_train"), 0), _fmt(m.get("n_test"), 0),
+                     _fmt(m.get("seconds"), 0)])
     parts.append(_table(["scenario", "variant", "encoder", "state vector", "accuracy %", "study %", "MAE (N)",
-                         "RMSE (N)", "MAE x", "MAE y", "MAE z", "MLflow run"], rows))
+                         "RMSE (N)", "MAE x", "MAE y", "MAE z", "MLflow run", "train cases", "test cases",
+                         "train time (s)"], rows))
 
-    # validation
-    v = data["validation"]
-    vm = v["metrics"]
-    parts.append("<h2>Unseen liver (validation)</h2>")
+    # ------------------------------------------------------------ validation
+    parts.append("<h2 id='validation'>Unseen liver (validation)</h2>")
+    parts.append("<p>The main scenario-IV model predicts every case simulated on a liver shape and with material "
+                 "constants it never saw in training.</p>")
     parts.append(_table(["cases", "MAE (N)", "RMSE (N)", "accuracy %", "study MAE (N)", "MLflow run", "model run"],
                         [[v["n_cases"], _fmt(vm["mae_vec"]), _fmt(vm["rmse_vec"]), _fmt(vm["accuracy_pct"], 1),
-                          _fmt(STUDY_VALIDATION_MAE_N), f"<code>{html.escape(str(v.get('run_id')))}</code>",
-                          f"<code>{html.escape(str(v.get('model_run_id')))}</code>"]]))
+                          _fmt(STUDY_VALIDATION_MAE_N), _run(v.get("run_id")), _run(v.get("model_run_id"))]]))
+    parts.append("<h3>Error against force magnitude</h3>")
     parts.append(_table(["|F| from (N)", "to (N)", "cases", "MAE (N)"],
                         [[_fmt(b["force_lo_n"], 2), _fmt(b["force_hi_n"], 2), b["n"], _fmt(b["mae_vec_n"])]
                          for b in v.get("error_by_force_magnitude", [])]))
+    ed = v.get("error_vs_distance") or {}
+    if ed.get("distance_mm"):
+        d = np.asarray(ed["distance_mm"], dtype=float)
+        parts.append(f"<p>Distance of each validation exertion point from the nearest training exertion point "
+                     f"(both livers centred on their centroids): median {_fmt(float(np.median(d)), 1)} mm, max "
+                     f"{_fmt(float(d.max()), 1)} mm; correlation of error with distance r = "
+                     f"{_fmt(v.get('corr_error_distance'), 2)}.</p>")
     val_dir = Path(data.get("validation_dir", out_dir))
-    parts.append("<div class='pics'>" + "".join(
-        f"<figure><img src='{_rel(val_dir / f, out_dir)}' width='420'></figure>" for f in v.get("figures", [])) + "</div>")
+    figs = [val_dir / f for f in v.get("figures", [])]
+    figs += validation_figures(v, out_dir / "figures")
+    parts.append("<div class='pics'>" + "".join(_figure(f, out_dir, width=380) for f in figs) + "</div>")
 
-    style = ("<style>body{font-family:sans-serif;max-width:1200px;margin:auto}table{border-collapse:collapse;"
-             "margin:8px 0}td,th{border:1px solid #bbb;padding:3px 8px;text-align:right}"
-             ".pics{display:flex;flex-wrap:wrap;gap:8px}</style>")
-    doc = f"<!doctype html><html><head><meta charset='utf-8'><title>liverforce {html.escape(experiment)}</title>{style}</head><body>{''.join(parts)}</body></html>"
+    # ------------------------------------------------------------ studies
+    parts.append("<h2 id='studies'>Comparison studies</h2>")
+    if data.get("studies"):
+        parts.append("<p>Each study reuses the simulated shards (no new FE). Every point starts from the "
+                     "scenario's main model (its settings and Ax-tuned hyper-parameters), changes one setting, "
+                     "is trained without Ax on the main model's training split and evaluated on its test "
+                     "split.</p>")
+    else:
+        parts.append("<p>No comparison study in this run (<code>study.enabled</code>).</p>")
+    for d in data.get("studies", []):
+        name = d["study"]
+        parts.append(f"<h3 id='study-{html.escape(name)}'>{html.escape(d.get('title', name))}</h3>")
+        parts.append(f"<p>{html.escape(STUDY_TEXT.get(name, ''))} {d.get('epochs')} epochs per point; "
+                     f"MLflow experiment <code>{html.escape(str(d.get('experiment_name')))}</code>.</p>")
+        png = Path(d["path"]).with_suffix(".png")
+        if png.exists():
+            parts.append(_figure(png, out_dir, width=760))
+        rows = []
+        for p in d["points"]:
+            mt = p.get("metrics") or {}
+            status = "ok" if p["status"] == "ok" else f"failed: {p.get('reason', '')}"
+            rows.append([html.escape(name), p["scenario"], html.escape(p["label"]), _fmt(mt.get("accuracy_pct"), 1),
+                         _fmt(mt.get("mae_vec")), _fmt(mt.get("rmse_vec")), _fmt(p.get("roi_nodes_mean"), 0),
+                         _fmt(p.get("seconds"), 1), html.escape(status), _run(p.get("run_id"))])
+        parts.append(_table(["study", "scenario", "setting", "accuracy %", "MAE (N)", "RMSE (N)", "ROI nodes",
+                             "time (s)", "status", "MLflow run"], rows, row_cls="study-point"))
+
+    # ------------------------------------------------------------ MLflow
+    trk = setup.get("tracking") or {}
+    prefix = trk.get("experiment_prefix", "liverforce")
+    parts.append("<h2 id='mlflow'>Where the numbers come from (MLflow)</h2>")
+    parts.append(f"<p>Runs are in the tracking store <code>{html.escape(str(setup.get('tracking_uri', 'results/mlflow.db')))}"
+                 f"</code>, experiments <code>{html.escape(prefix)}-{html.escape(experiment)}-&lt;scenario&gt;</code> "
+                 f"(trained models, Ax trials nested), <code>{html.escape(prefix)}-{html.escape(experiment)}-validation"
+                 f"</code> and <code>{html.escape(prefix)}-{html.escape(experiment)}-studies</code> (one run per study "
+                 "point, tags <code>study</code>, <code>value</code>, <code>scenario</code>). Open them with "
+                 "<code>.venv/bin/liverforce ui</code> (or <code>mlflow ui --backend-store-uri "
+                 "sqlite:///results/mlflow.db --host 127.0.0.1</code>) and paste a run id into the search "
+                 "(<code>attributes.run_id = '…'</code>).</p>")
+
+    style = ("<style>body{font-family:sans-serif;max-width:1250px;margin:auto;line-height:1.35}"
+             "table{border-collapse:collapse;margin:8px 0}td,th{border:1px solid #bbb;padding:3px 8px;"
+             "text-align:right;vertical-align:top}th{background:#f0f0f0}small{color:#555}"
+             ".t59 td:nth-child(4),.t59 td:nth-child(6){color:#666}"
+             ".pics{display:flex;flex-wrap:wrap;gap:8px}figure{margin:4px}figcaption{font-size:small}</style>")
+    doc = (f"<!doctype html><html><head><meta charset='utf-8'><title>liverforce {html.escape(experiment)}</title>"
+           f"{style}</head><body>{''.join(parts)}</body></html>")
     tmp = out_html.with_name(f".{out_html.name}.tmp")
     tmp.write_text(doc)
     tmp.replace(out_html)

@@ -1,4 +1,4 @@
-# Stage 8: one human-readable summary of the run.
+# Stage 8: one human-readable summary of the run (needs the comparison studies too).
 
 
 rule report:
@@ -8,11 +8,25 @@ rule report:
         validation=f"{E}/validate/metrics.json",
         features=expand(f"{E}/mesh/{{gid}}.features.json", gid=PLAN.all_geometries),
         pictures=expand(f"{E}/mesh/{{gid}}.regions.png", gid=PLAN.all_geometries),
+        studies=expand(f"{E}/studies/{{study}}.json", study=STUDY_NAMES),
     output:
         html=f"{E}/report/index.html",
     params:
         report=config_slice("report"),
         experiment=config_slice("experiment"),
+        setup={
+            "main_variant": PLAN.chosen_variant(),
+            "material": config_slice("material"),
+            "boundary": config_slice("boundary"),
+            "sweep": config_slice("sweep"),
+            "mesh": config_slice("mesh"),
+            "dataset": config_slice("dataset"),
+            "validate": config_slice("validate"),
+            "train": {k: v for k, v in config_slice("train").items() if k != "variants"},
+            "tune": {k: v for k, v in config_slice("tune").items() if k != "space"},
+            "tracking": config_slice("tracking"),
+            "tracking_uri": TRACKING_URI,
+        },
     log:
         f"{E}/logs/report/report.log",
     conda:
