@@ -36,6 +36,10 @@ def test_every_stage_produced_its_outputs(smoke_run):
             metrics = json.loads((root / "models" / scenario / variant / "metrics.json").read_text())
             assert metrics["run_id"]
     assert (root / "validate" / "metrics.json").exists()
+    for study in ("roi_fraction", "encoder", "state_vector", "occlusion", "noise"):
+        doc = json.loads((root / "studies" / f"{study}.json").read_text())
+        assert len(doc["points"]) == 2 and (root / "studies" / f"{study}.png").stat().st_size > 5000
+        assert all(p["run_id"] for p in doc["points"])
     assert (root / "report" / "index.html").stat().st_size > 1000
     # no half-written file anywhere
     assert not list(root.rglob(".*.tmp*"))
@@ -60,6 +64,35 @@ def test_report_numbers_match_the_mlflow_runs_they_cite(smoke_run):
         assert len(children) == 2
 
 
+def test_report_study_numbers_match_their_mlflow_runs(smoke_run):
+    import mlflow
+
+    root = smoke_run / "results" / "smoke"
+    html = (root / "report" / "index.html").read_text()
+    html = html[html.index("id='studies'"):]
+    client = mlflow.tracking.MlflowClient(tracking_uri=f"sqlite:///{smoke_run / 'results' / 'mlflow.db'}")
+    rows = re.findall(r"<tr class='study-point'><td>(\w+)</td><td>(I|II|III|IV)</td><td>([^<]+)</td>"
+                      r"<td>([-\d.–]+)</td><td>([\d.–]+)</td>.*?<code>(\w+)</code>", html)
+    assert len(rows) == 10  # 5 studies x 2 points (smoke)
+    ok = 0
+    for study, scenario, label, acc, mae, run_id in rows:
+        run = client.get_run(run_id)
+        assert run.data.tags["study"] == study and run.data.tags["scenario"] == scenario
+        assert run.data.tags["label"] == label
+        assert client.get_experiment(run.info.experiment_id).name == "liverforce-smoke-studies"
+        if acc != "–":
+            ok += 1
+            assert float(acc) == pytest.approx(run.data.metrics["accuracy_pct"], abs=0.051)
+            assert float(mae) == pytest.approx(run.data.metrics["mae_vec"], abs=0.0006)
+    assert ok >= 8
+    # the Table 5.9 cells cite runs too, and those runs hold the numbers shown
+    full = (root / "report" / "index.html").read_text()
+    t59 = full[full.index("class='t59'"):]
+    t59 = t59[:t59.index("</table>")]
+    for acc, run_id in re.findall(r"<td>([-\d.]+) %<br>.*?run <code>(\w+)</code>", t59):
+        assert float(acc) == pytest.approx(client.get_run(run_id).data.metrics["accuracy_pct"], abs=0.051)
+
+
 def test_changing_one_value_reruns_only_its_stage_and_descendants(smoke_run):
     def rerun(override):
         out = snakemake("-n", "--directory", str(smoke_run), "--config", "experiment=smoke",
@@ -68,7 +101,9 @@ def test_changing_one_value_reruns_only_its_stage_and_descendants(smoke_run):
 
     assert rerun("tracking.experiment_prefix=liverforce") == {}  # nothing changed: nothing to do
     counts = rerun("model.dropout=0.3")
-    assert set(counts) == {"train", "validate", "report", "all"}
+    assert set(counts) == {"train", "study", "validate", "report", "all"}
+    counts = rerun("study.noise.values=[0.0,1.0]")  # one study's setting: that study and the report only
+    assert counts == {"study": 1, "report": 1, "all": 1}
     counts = rerun("sweep.force.max_n=4.0")
     assert {"sweep", "simulate", "manifest", "train"} <= set(counts)
     assert "geometry" not in counts and "mesh" not in counts

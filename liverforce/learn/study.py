@@ -87,6 +87,19 @@ def study_scenarios(study: str, study_cfg: dict) -> list[str]:
     return list(study_cfg[study]["scenarios"])
 
 
+def study_slice(study: str, study_cfg: dict) -> dict:
+    """The part of the ``study`` config one study uses (its rule's params: only its own change re-runs it)."""
+    common = {k: v for k, v in study_cfg.items() if k not in STUDIES}
+    return {**common, study: study_cfg[study]}
+
+
+def study_geometries(study: str, study_cfg: dict, plan) -> list[str]:
+    """Geometry ids whose meshes a study needs (the ROI-fraction study re-grows ROIs on them)."""
+    if study != "roi_fraction":
+        return []
+    return sorted({g for s in study_scenarios(study, study_cfg) for g in plan.scenario_geometries(s)})
+
+
 def study_points(study: str, study_cfg: dict) -> list[StudyPoint]:
     """Expand one study's config into its points (scenario-major)."""
     s = study_cfg[study]

@@ -3,24 +3,11 @@
 # scenario's main model (first train.variants entry: settings + tuned
 # hyper-parameters), trains without Ax and is one MLflow run under
 # "<prefix>-<experiment>-studies" (tags study, value, scenario).
-from liverforce.learn.study import STUDIES, enabled_studies, study_scenarios
+from liverforce.learn.study import STUDIES, enabled_studies, study_geometries, study_scenarios, study_slice
 
 STUDY_CFG = config_slice("study")
 STUDY_NAMES = enabled_studies(STUDY_CFG)
 MAIN_VARIANT = PLAN.chosen_variant()
-
-
-def _study_slice(study):
-    """The part of the study config one study uses (its params: only its change re-runs it)."""
-    common = {k: v for k, v in STUDY_CFG.items() if k not in STUDIES}
-    return {**common, study: STUDY_CFG[study]}
-
-
-def _study_meshes(study):
-    if study != "roi_fraction":
-        return []
-    gids = sorted({g for s in study_scenarios(study, STUDY_CFG) for g in PLAN.scenario_geometries(s)})
-    return [f"{E}/mesh/{g}.vtu" for g in gids]
 
 
 wildcard_constraints:
@@ -31,12 +18,12 @@ rule study:
     input:
         manifests=lambda wc: [f"{E}/shards/{s}/manifest.json" for s in study_scenarios(wc.study, STUDY_CFG)],
         main_metrics=lambda wc: [f"{E}/models/{s}/{MAIN_VARIANT}/metrics.json" for s in study_scenarios(wc.study, STUDY_CFG)],
-        meshes=lambda wc: _study_meshes(wc.study),
+        meshes=lambda wc: [f"{E}/mesh/{g}.vtu" for g in study_geometries(wc.study, STUDY_CFG, PLAN)],
     output:
         json=f"{E}/studies/{{study}}.json",
         png=f"{E}/studies/{{study}}.png",
     params:
-        study=lambda wc: _study_slice(wc.study),
+        study=lambda wc: study_slice(wc.study, STUDY_CFG),
         scenarios=lambda wc: study_scenarios(wc.study, STUDY_CFG),
         model=PLAN.variants()[MAIN_VARIANT],
         train=config_slice("train"),
