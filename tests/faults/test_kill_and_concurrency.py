@@ -1,0 +1,256 @@
+"""SIGKILL of the whole workflow mid-sweep and mid-training; two trainings on one SQLite store at once.
+
+A small slice of the smoke experiment (scenario I, 12 cases in 4 shards, both
+variants trained) runs once uninterrupted: the reference. Its two training
+jobs run together (``--cores 2``) and log to the same embedded SQLite MLflow
+store: no "database is locked" failure, no lost run, and the two runs really
+overlapped in time.
+
+Then, in copies of the reference folder (Snakemake metadata kept), the
+workflow's process group is SIGKILLed
+
+- mid-sweep: at least one shard written, not all;
+- mid-training: a training job's MLflow run has started;
+
+and resumed with the README's command (``snakemake --unlock`` then
+``snakemake --cores 2 --rerun-incomplete``). The final shards' payload hashes,
+their case ids and the models' metrics must equal the reference's. Rows lost
+are measured (case ids of the final shards against the reference) and go to
+the fault ledger.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import sqlite3
+import subprocess
+import time
+from pathlib import Path
+
+import pyarrow.parquet as pq
+import pytest
+
+from test_workflow import ROOT, SNAKEMAKE, job_counts, snakemake
+
+pytestmark = [pytest.mark.slow, pytest.mark.workflow]
+
+EXPERIMENT = "smoke"
+N_CASES, PER_SHARD = 12, 3
+N_SHARDS = N_CASES // PER_SHARD
+OVERRIDES = f"sweep.scenarios.I.n_cases={N_CASES} sweep.cases_per_shard={PER_SHARD} mesh.target_nodes=300"
+RESULTS = Path("results") / EXPERIMENT
+VARIANTS = ("pca_sv", "ae_sv")
+TARGETS = [str(RESULTS / "models" / "I" / v / "metrics.json") for v in VARIANTS]
+#: metrics that depend on the wall clock or the run, not on data and config
+VOLATILE = {"run_id", "seconds", "wall_time_s", "model_uri", "model_path", "trial_seconds", "started", "finished"}
+
+
+def args(work: Path, *extra: str) -> list[str]:
+    return [*extra, "--directory", str(work), "--config", f"experiment={EXPERIMENT}", f"overrides={OVERRIDES}",
+            "--", *TARGETS]
+
+
+def shard_dir(work: Path) -> Path:
+    return work / RESULTS / "shards" / "I"
+
+
+def payloads(work: Path) -> dict[str, str]:
+    m = json.loads((shard_dir(work) / "manifest.json").read_text())
+    return {e["file"]: e["payload_sha256"] for e in m["shards"]}
+
+
+def case_ids(work: Path) -> set[str]:
+    ids: list[str] = []
+    for p in sorted(shard_dir(work).glob("shard-*.parquet")):
+        ids += pq.read_table(p, columns=["case_id"]).column("case_id").to_pylist()
+    assert len(ids) == len(set(ids)), "a case is in two shards"
+    return set(ids)
+
+
+def stable(value):
+    if isinstance(value, dict):
+        return {k: stable(v) for k, v in value.items() if k not in VOLATILE}
+    if isinstance(value, list):
+        return [stable(v) for v in value]
+    return value
+
+
+def model_metrics(work: Path) -> dict[str, dict]:
+    return {v: stable(json.loads((work / RESULTS / "models" / "I" / v / "metrics.json").read_text()))
+            for v in VARIANTS}
+
+
+def store_runs(work: Path) -> list[tuple]:
+    """(run name, status, start ms, end ms, parent run id or None) of every run in the embedded store."""
+    con = sqlite3.connect(work / "results" / "mlflow.db")
+    try:
+        rows = con.execute(
+            "select r.name, r.status, r.start_time, r.end_time, "
+            "(select value from tags t where t.run_uuid = r.run_uuid and t.key = 'mlflow.parentRunId') "
+            "from runs r").fetchall()
+    finally:
+        con.close()
+    return rows
+
+
+def all_logs(work: Path) -> str:
+    return "\n".join(p.read_text(errors="replace") for p in (work / RESULTS / "logs").rglob("*.log"))
+
+
+def copy_run(src: Path, dst: Path) -> Path:
+    shutil.copytree(src, dst, symlinks=True)
+    return dst
+
+
+def _group_alive(pgid: int) -> bool:
+    try:
+        os.killpg(pgid, 0)
+        return True
+    except ProcessLookupError:
+        return False
+
+
+def run_and_kill(work: Path, log: Path, ready) -> dict:
+    """Start the workflow in its own process group; SIGKILL the group as soon as ``ready()`` is truthy."""
+    cmd = [SNAKEMAKE, "--snakefile", str(ROOT / "Snakefile"), *args(work, "--cores", "2")]
+    with open(log, "w") as out:
+        proc = subprocess.Popen(cmd, cwd=ROOT, stdout=out, stderr=subprocess.STDOUT, start_new_session=True,
+                                env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        deadline = time.monotonic() + 600
+        state = None
+        try:
+            while time.monotonic() < deadline and proc.poll() is None:
+                state = ready()
+                if state:
+                    os.killpg(proc.pid, signal.SIGKILL)
+                    break
+                time.sleep(0.05)
+        finally:
+            if proc.poll() is None and not state:
+                os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(timeout=60)
+    assert proc.returncode == -signal.SIGKILL and state, (
+        f"the workflow was not killed at the intended moment (return code {proc.returncode}):\n"
+        f"{log.read_text()[-3000:]}")
+    t0 = time.monotonic()
+    while _group_alive(proc.pid) and time.monotonic() - t0 < 30:
+        time.sleep(0.1)
+    assert not _group_alive(proc.pid), "jobs of the killed workflow are still running"
+    return state
+
+
+def resume_with_readme_command(work: Path) -> str:
+    """``snakemake --unlock && snakemake --cores 2 --rerun-incomplete`` (as the README says)."""
+    readme = (ROOT / "README.md").read_text()
+    assert "snakemake --unlock && .venv/bin/snakemake --cores 2 --rerun-incomplete" in readme
+    snakemake(*args(work, "--unlock"))
+    res = snakemake(*args(work, "--cores", "2", "--rerun-incomplete"))
+    return res.stdout + res.stderr
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory) -> Path:
+    work = tmp_path_factory.mktemp("reference")
+    res = snakemake(*args(work, "--cores", "2"))
+    counts = job_counts(res.stdout + res.stderr)
+    assert counts.get("simulate") == N_SHARDS and counts.get("train") == len(VARIANTS), counts
+    return work
+
+
+def test_two_trainings_share_the_sqlite_store_at_once(reference, fault_ledger):
+    text = all_logs(reference)
+    runs = store_runs(reference)
+    parents = {name: (status, start, end) for name, status, start, end, parent in runs if parent is None}
+    assert set(parents) == {f"I-{v}" for v in VARIANTS}, parents
+    (s1, a1, b1), (s2, a2, b2) = parents.values()
+    assert s1 == s2 == "FINISHED"
+    overlap_ms = min(b1, b2) - max(a1, a2)
+    assert overlap_ms > 0, f"the two trainings did not run at the same time: {parents}"
+    nested = [r for r in runs if r[4] is not None]
+    per_parent = {}
+    for r in nested:
+        per_parent[r[4]] = per_parent.get(r[4], 0) + 1
+    assert len(per_parent) == 2 and len(set(per_parent.values())) == 1 and min(per_parent.values()) >= 1
+    assert all(r[1] == "FINISHED" for r in runs), runs
+    assert "database is locked" not in text.lower()
+    for v in VARIANTS:
+        m = json.loads((reference / RESULTS / "models" / "I" / v / "metrics.json").read_text())
+        assert m["run_id"] in {row for row in _run_ids(reference)}
+    fault_ledger.record("two trainings writing one SQLite MLflow store at once", survived=True,
+                        rows_expected=len(runs), rows_found=sum(r[1] == "FINISHED" for r in runs),
+                        overlap_s=round(overlap_ms / 1000, 1), runs=len(runs))
+
+
+def _run_ids(work: Path) -> list[str]:
+    con = sqlite3.connect(work / "results" / "mlflow.db")
+    try:
+        return [r[0] for r in con.execute("select run_uuid from runs")]
+    finally:
+        con.close()
+
+
+def test_sigkill_mid_sweep_then_resume_equals_uninterrupted(reference, tmp_path, fault_ledger):
+    work = copy_run(reference, tmp_path / "sweep-killed")
+    shutil.rmtree(shard_dir(work))  # keep geometry, mesh, case table: the sweep starts again
+    shutil.rmtree(work / RESULTS / "models")
+    shutil.rmtree(work / RESULTS / "progress", ignore_errors=True)
+
+    def ready():
+        on_disk = sorted(p.name for p in shard_dir(work).glob("shard-*.parquet")) if shard_dir(work).exists() else []
+        return on_disk if 1 <= len(on_disk) < N_SHARDS else None
+
+    killed_with = run_and_kill(work, tmp_path / "killed.out", ready)
+    assert not (shard_dir(work) / "manifest.json").exists()
+    text = resume_with_readme_command(work)
+    counts = job_counts(text)
+    assert 1 <= counts.get("simulate", 0) < N_SHARDS, counts  # finished shards were kept
+    assert not {"geometry", "mesh", "sweep"} & set(counts), counts
+
+    ref_ids, ids = case_ids(reference), case_ids(work)
+    survived = payloads(work) == payloads(reference) and model_metrics(work) == model_metrics(reference)
+    fault_ledger.record("SIGKILL of the workflow mid-sweep", survived=survived, rows_expected=len(ref_ids),
+                        rows_found=len(ids & ref_ids), shards_on_disk_at_kill=len(killed_with),
+                        simulate_rerun=counts.get("simulate", 0))
+    assert ids == ref_ids
+    assert payloads(work) == payloads(reference)
+    assert model_metrics(work) == model_metrics(reference)
+    assert not list((work / RESULTS).rglob(".*.tmp*"))
+
+
+def test_sigkill_mid_training_then_resume_equals_uninterrupted(reference, tmp_path, fault_ledger):
+    work = copy_run(reference, tmp_path / "train-killed")
+    shutil.rmtree(work / RESULTS / "models")  # shards stay: only the trainings run again
+    before = set(_run_ids(work))
+
+    def ready():
+        logs = list((work / RESULTS / "logs" / "train").glob("*.log"))
+        try:
+            started = set(_run_ids(work)) - before
+        except sqlite3.Error:
+            return None
+        # a training job has begun logging to MLflow (its parent run exists), and no model is complete
+        done = list((work / RESULTS / "models").rglob("metrics.json"))
+        return started if started and logs and not done else None
+
+    started = run_and_kill(work, tmp_path / "killed.out", ready)
+    assert not list((work / RESULTS / "models").rglob("metrics.json"))
+    text = resume_with_readme_command(work)
+    counts = job_counts(text)
+    assert set(counts) <= {"train"} and counts.get("train") == len(VARIANTS), counts
+
+    after = store_runs(work)
+    finished_parents = [r for r in after if r[4] is None and r[1] == "FINISHED"]
+    ref_ids = case_ids(reference)
+    survived = payloads(work) == payloads(reference) and model_metrics(work) == model_metrics(reference)
+    fault_ledger.record("SIGKILL of the workflow mid-training", survived=survived, rows_expected=len(ref_ids),
+                        rows_found=len(case_ids(work) & ref_ids), runs_started_before_kill=len(started))
+    assert payloads(work) == payloads(reference)
+    assert model_metrics(work) == model_metrics(reference)
+    # every model's metrics.json names a finished run of the store (the killed run is not the one cited)
+    finished_ids = {r for r in _run_ids(work)}
+    for v in VARIANTS:
+        m = json.loads((work / RESULTS / "models" / "I" / v / "metrics.json").read_text())
+        assert m["run_id"] in finished_ids and m["run_id"] not in started
+    assert len(finished_parents) >= 2 * len(VARIANTS)  # the reference's two + the resumed two

@@ -1,0 +1,201 @@
+"""The disk filling up or a write failing mid-shard: no partial file is ever taken as complete.
+
+Faults injected for real:
+
+- the file handle raises ``ENOSPC`` after a byte budget, in the middle of the
+  Parquet bytes (first shard write, and a rewrite over an older complete shard);
+- ``fsync`` fails (the kernel reports the lost write late);
+- the final rename fails;
+- a real full disk: a 16 KiB tmpfs mounted inside the test (root only).
+
+After each: no file under the shard's name (or the older complete one, byte for
+byte), no temporary file left, the manifest cannot be written over the missing
+shard (and an older manifest is untouched), and a rerun without the fault
+writes the same payload as a clean write.
+"""
+from __future__ import annotations
+
+import errno
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from liverforce.dataset import io as dio
+
+
+def row(i: int, rng, k: int = 8) -> dict:
+    und = rng.normal(size=(k, 3)).astype(np.float32)
+    de = und + 0.1
+    return {
+        "case_id": f"I-{i:06d}", "scenario": "I", "geometry_id": "proc-0000", "shard_index": 0, "seed": i,
+        "material_model": "yeoh", "material_param_names": ["C10", "C20", "C30"],
+        "material_params_mpa": [0.0016, 0.0125, 0.0053], "bulk_modulus_mpa": 0.5, "exertion_id": 0,
+        "exertion_point_mm": [1.0, 2.0, 3.0], "force_n": [0.1, 0.2, -1.0 * i], "force_magnitude_n": 1.0,
+        "frame_normal": [0, 0, 1.0], "frame_t1": [1.0, 0, 0], "frame_t2": [0, 1.0, 0],
+        "liver_centroid_mm": [0, 0, 0.0], "inertia_mm5": list(np.eye(3).ravel()),
+        "roi_fraction": 0.18, "roi_area_fraction": 0.181, "roi_node_ids": np.arange(k, dtype=np.int32),
+        "roi_undeformed_mm": und, "roi_deformed_mm": de,
+        "roi_centroid_undeformed_mm": und.mean(0), "roi_centroid_deformed_mm": de.mean(0),
+        "surface_displacement_mm": np.full((7, 3), 0.1, np.float32), "max_displacement_mm": 0.17,
+        "converged": True, "reason": "", "load_fraction": 1.0,
+        "load_steps": 3, "newton_iterations": 9, "final_residual": 1e-9, "linear_solver": "cholmod",
+        "wall_time_s": 0.5,
+    }
+
+
+def make_rows(n: int, seed: int = 0, k: int = 8) -> list[dict]:
+    rng = np.random.default_rng(seed)
+    return [row(i, rng, k) for i in range(n)]
+
+
+class FullDisk:
+    """A binary file object that raises ENOSPC once ``budget`` bytes have been written."""
+
+    def __init__(self, fh, budget: int):
+        self._fh, self.budget, self.written = fh, budget, 0
+
+    def write(self, data) -> int:
+        if self.written + len(data) > self.budget:
+            part = self.budget - self.written
+            if part > 0:
+                self._fh.write(bytes(data[:part]))
+                self.written += part
+            raise OSError(errno.ENOSPC, "No space left on device")
+        self.written += len(data)
+        return self._fh.write(data)
+
+    def __getattr__(self, name):
+        return getattr(self._fh, name)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self._fh.close()
+        return False
+
+
+def leftovers(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if p.name.startswith("."))
+
+
+def check_rerun(folder: Path, rows: list[dict], reference: dict) -> None:
+    """Without the fault: the shard is written, listed, verified, and has the clean payload."""
+    entry = dio.write_shard(rows, folder / "shard-0000.parquet")
+    assert entry["payload_sha256"] == reference["payload_sha256"]
+    dio.write_manifest([folder / "shard-0000.parquet"], folder / "manifest.json")
+    assert [p.name for p in dio.verify_manifest(folder / "manifest.json")] == ["shard-0000.parquet"]
+    assert pq.read_table(folder / "shard-0000.parquet").num_rows == len(rows)
+    assert leftovers(folder) == []
+
+
+@pytest.fixture
+def rows():
+    return make_rows(20)
+
+
+@pytest.fixture
+def clean(tmp_path, rows) -> dict:
+    d = tmp_path / "clean"
+    return dio.write_shard(rows, d / "shard-0000.parquet")
+
+
+@pytest.mark.parametrize("budget", [0, 4, 2000])
+def test_disk_full_mid_shard_leaves_no_shard(tmp_path, rows, clean, monkeypatch, budget, fault_ledger):
+    folder = tmp_path / "shards"
+    folder.mkdir()
+    real_open = open
+
+    def full_open(path, mode="r", *a, **kw):
+        fh = real_open(path, mode, *a, **kw)
+        return FullDisk(fh, budget) if "w" in mode and Path(path).name.startswith(".shard-") else fh
+
+    monkeypatch.setattr(dio, "open", full_open, raising=False)
+    with pytest.raises(OSError) as err:
+        dio.write_shard(rows, folder / "shard-0000.parquet")
+    assert err.value.errno == errno.ENOSPC
+    assert list(folder.iterdir()) == []  # neither the shard nor its temporary file
+    with pytest.raises((FileNotFoundError, dio.ShardError), match="shard-0000"):  # cannot list what is not there
+        dio.write_manifest([folder / "shard-0000.parquet"], folder / "manifest.json")
+    assert not (folder / "manifest.json").exists()
+    monkeypatch.undo()
+    check_rerun(folder, rows, clean)
+    fault_ledger.record(f"ENOSPC after {budget} bytes of a shard", survived=True, rows_expected=len(rows),
+                        rows_found=pq.read_table(folder / "shard-0000.parquet").num_rows)
+
+
+def test_failed_rewrite_keeps_the_older_complete_shard_and_manifest(tmp_path, rows, clean, monkeypatch, fault_ledger):
+    folder = tmp_path / "shards"
+    old_rows = make_rows(20, seed=7)
+    dio.write_shard(old_rows, folder / "shard-0000.parquet")
+    dio.write_manifest([folder / "shard-0000.parquet"], folder / "manifest.json")
+    old_bytes = (folder / "shard-0000.parquet").read_bytes()
+    old_manifest = (folder / "manifest.json").read_bytes()
+    real_open = open
+
+    def full_open(path, mode="r", *a, **kw):  # room for 3000 bytes of a shard, 50 of a manifest
+        fh = real_open(path, mode, *a, **kw)
+        return FullDisk(fh, 3000 if ".shard-" in str(path) else 50) if "w" in mode else fh
+
+    monkeypatch.setattr(dio, "open", full_open, raising=False)
+    with pytest.raises(OSError):
+        dio.write_shard(rows, folder / "shard-0000.parquet")
+    with pytest.raises(OSError):  # the manifest rewrite fails too: the old one stays whole
+        dio.write_manifest([folder / "shard-0000.parquet"], folder / "manifest.json")
+    assert (folder / "shard-0000.parquet").read_bytes() == old_bytes
+    assert (folder / "manifest.json").read_bytes() == old_manifest
+    assert leftovers(folder) == []
+    dio.verify_manifest(folder / "manifest.json")  # still consistent: old shard, old manifest
+    monkeypatch.undo()
+    check_rerun(folder, rows, clean)
+    fault_ledger.record("ENOSPC while rewriting a shard and its manifest", survived=True, rows_expected=len(rows),
+                        rows_found=pq.read_table(folder / "shard-0000.parquet").num_rows)
+
+
+@pytest.mark.parametrize("step", ["fsync", "replace"])
+def test_late_write_errors_leave_no_shard(tmp_path, rows, clean, monkeypatch, step, fault_ledger):
+    folder = tmp_path / "shards"
+    folder.mkdir()
+
+    def boom(*a, **kw):
+        raise OSError(errno.ENOSPC if step == "fsync" else errno.EIO, f"{step} failed")
+
+    monkeypatch.setattr(dio.os, step, boom)
+    with pytest.raises(OSError):
+        dio.write_shard(rows, folder / "shard-0000.parquet")
+    monkeypatch.undo()
+    assert list(folder.iterdir()) == []
+    check_rerun(folder, rows, clean)
+    fault_ledger.record(f"{step} failing after a shard's bytes were written", survived=True,
+                        rows_expected=len(rows), rows_found=len(rows))
+
+
+def test_real_full_tmpfs(tmp_path, fault_ledger):
+    if os.geteuid() != 0 or shutil.which("mount") is None:
+        pytest.skip("mounting a tmpfs needs root (the ENOSPC tests above inject the same fault without it)")
+    mnt = tmp_path / "tiny"
+    mnt.mkdir()
+    rows = make_rows(20, k=200)  # ~100 KB of point clouds: cannot fit 16 KiB
+    proc = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=16k", "tmpfs", str(mnt)], capture_output=True, text=True)
+    if proc.returncode != 0:
+        pytest.skip(f"mount -t tmpfs refused here: {proc.stderr.strip()}")
+    try:
+        folder = mnt / "shards"
+        with pytest.raises(OSError) as err:
+            dio.write_shard(rows, folder / "shard-0000.parquet")
+        assert err.value.errno == errno.ENOSPC
+        assert list(folder.iterdir()) == []  # the partial temporary file was removed
+        assert not (folder / "manifest.json").exists()
+        # more room, then the rerun completes
+        subprocess.run(["mount", "-o", "remount,size=4m", str(mnt)], check=True)
+        clean = dio.write_shard(rows, tmp_path / "clean" / "shard-0000.parquet")
+        check_rerun(folder, rows, clean)
+        found = pq.read_table(folder / "shard-0000.parquet").num_rows
+    finally:
+        subprocess.run(["umount", str(mnt)], check=False)
+    fault_ledger.record("real full disk (16 KiB tmpfs)", survived=True, rows_expected=len(rows), rows_found=found)
