@@ -23,6 +23,25 @@ def _overrides_from_snakemake_config(config):
 
 
 CFG = compose(_overrides_from_snakemake_config(config))
+
+
+def _refuse_unstable_material(cfg):
+    """Drucker-check the configured material constants once, before any job runs.
+
+    The sweep rule checks them again with every sampled set; checking here
+    means unstable constants stop the workflow before geometry and meshing.
+    """
+    from liverforce.config import ConfigError
+    from liverforce.pipeline.stages import material_checks
+
+    mat = cfg["material"]
+    stable, _ = material_checks(mat["stability_stretch"])
+    ok, why = stable(mat["model"], dict(mat["params_mpa"]))
+    if not ok:
+        raise ConfigError(f"config key 'material.params_mpa': {why}")
+
+
+_refuse_unstable_material(CFG)
 PLAN = plan.Plan(CFG)
 E = PLAN.root  # results/<experiment>
 TRACKING_URI = tracking_uri(CFG)
