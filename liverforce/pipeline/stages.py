@@ -501,7 +501,8 @@ def run_study_stage(study: str, study_cfg: dict, manifests: dict, main_metrics: 
     doc["figure"] = Path(out_png).name
     dio.write_json_atomic(doc, out_json)
     ok = sum(p["status"] == "ok" for p in doc["points"])
-    log.info("study %s: %d/%d points in %.1f s", study, ok, len(doc["points"]), doc["seconds"])
+    log.info("study %s: %d/%d points in %.1f s (%.1f s CPU)", study, ok, len(doc["points"]), doc["seconds"],
+             doc["cpu_seconds"])
     return doc
 
 
