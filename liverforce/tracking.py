@@ -9,7 +9,7 @@ Layout of one experiment (``<experiment_prefix>-<experiment>``, named by the cal
   figures, the model bundle (artifact ``force_model/``) and an MLflow pyfunc
   model (reloadable by run id: ``mlflow.pyfunc.load_model(f"runs:/{run_id}/model")``),
   logged as "models from code" (no cloudpickle) with a signature and an input
-  example, so ``mlflow models serve -m runs:/<id>/model --env-manager local``
+  example, so ``mlflow models serve -m runs:/<id>/model --host 127.0.0.1 --env-manager local``
   serves it; its ``predict`` runs the serving checks of :mod:`liverforce.serve`
   (a refused row becomes HTTP 400 with the reason);
 - a **nested run** per Ax trial (``log_trial``; tag ``mlflow.parentRunId``)

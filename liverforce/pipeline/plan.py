@@ -16,12 +16,22 @@ validation scenario ``V`` the unseen liver.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
-from liverforce.config import SCENARIOS, config_hash, results_root
+from liverforce.config import SCENARIOS, ConfigError, config_hash, results_root
 from liverforce.sweep.design import n_shards
 
 VALIDATION = "V"
+_SAFE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]*")
+
+
+def _safe_name(key: str, name) -> str:
+    """A name that becomes a path component under results/: no separators, no '..'."""
+    if not isinstance(name, str) or not _SAFE_NAME.fullmatch(name):
+        raise ConfigError(f"config key '{key}': '{name}' must be letters, digits, '-' or '_' "
+                          "(it names folders under the results directory)")
+    return name
 
 
 class Plan:
@@ -29,6 +39,11 @@ class Plan:
 
     def __init__(self, cfg: dict):
         self.cfg = cfg
+        _safe_name("experiment", cfg["experiment"])
+        for i, imp in enumerate(cfg["geometry"]["imported"]):
+            _safe_name(f"geometry.imported[{i}].name", imp["name"])
+        for v in cfg["train"]["variants"]:
+            _safe_name("train.variants.name", v.get("name"))
         self.root = str(Path(cfg["results_dir"]) / cfg["experiment"])
         self.abs_root = results_root(cfg)
         g = cfg["geometry"]
