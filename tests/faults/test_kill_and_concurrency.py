@@ -269,3 +269,58 @@ def test_sigkill_mid_training_then_resume_equals_uninterrupted(reference, tmp_pa
         m = json.loads((work / RESULTS / "models" / "I" / v / "metrics.json").read_text())
         assert m["run_id"] in finished_ids and m["run_id"] not in started
     assert len(finished_parents) >= 2 * len(VARIANTS)  # the reference's two + the resumed two
+
+
+@pytest.mark.parametrize("fault", ["slow_solver", "diverging", "crash"])
+def test_hanging_diverging_or_crashing_cases_are_bounded_and_recorded(reference, tmp_path, monkeypatch, fault,
+                                                                     fault_ledger):
+    """One shard of the reference's case table simulated with a solver fault: every case becomes a row
+    with its reason, each case is bounded by the configured limits, and the shard is written."""
+    from liverforce.config import compose
+    from liverforce.fem.linsolve import LinearSolver
+    from liverforce.fem.problem import LiverModel
+    from liverforce.pipeline import stages
+
+    cfg = compose([f"experiment={EXPERIMENT}", *OVERRIDES.split()])
+    sim = dict(cfg["simulate"])
+    cases = reference / RESULTS / "sweep" / "I" / "cases.parquet"
+    meshes = [str(p) for p in sorted((reference / RESULTS / "mesh").glob("*.vtu"))]
+    expected = [r["case_id"] for r in pq.read_table(cases).to_pylist() if r["shard_index"] == 0]
+    if fault == "slow_solver":  # every linear solve takes 0.3 s: a case would run far past its limit
+        real_solve = LinearSolver.solve
+        monkeypatch.setattr(LinearSolver, "solve", lambda self, b: (time.sleep(0.3), real_solve(self, b))[1])
+        sim["time_limit_s"] = 1.0
+        sim["warm_start"] = False
+    elif fault == "diverging":
+        sim["max_iter"], sim["max_steps"] = 1, 2
+    else:  # the second case's solve raises
+        real = LiverModel.solve
+        calls = []
+
+        def flaky(self, *a, **kw):
+            calls.append(1)
+            if len(calls) == 2:
+                raise FloatingPointError("injected solver crash")
+            return real(self, *a, **kw)
+
+        monkeypatch.setattr(LiverModel, "solve", flaky)
+    out = tmp_path / RESULTS / "shards" / "I" / "shard-0000.parquet"
+    t0 = time.monotonic()
+    entry = stages.simulate_shard(str(cases), meshes, 0, sim, cfg["boundary"], cfg["dataset"], str(out))
+    elapsed = time.monotonic() - t0
+    rows = pq.read_table(out).to_pylist()
+    fault_ledger.record(f"solver fault: {fault}", survived=entry["rows"] == len(expected),
+                        rows_expected=len(expected), rows_found=len({r["case_id"] for r in rows} & set(expected)),
+                        failed=entry["failed"], seconds=round(elapsed, 1))
+    assert [r["case_id"] for r in rows] == expected  # no case dropped, the shard went on after each failure
+    failed = [r for r in rows if not r["converged"]]
+    if fault == "slow_solver":
+        assert failed and all("time limit" in r["reason"] for r in failed), [r["reason"] for r in rows]
+        assert max(r["wall_time_s"] for r in rows) < sim["time_limit_s"] + 5.0  # bounded by the limit
+    elif fault == "diverging":
+        assert len(failed) == len(rows) and all("max_steps=2" in r["reason"] for r in failed)
+    else:
+        assert [r["case_id"] for r in failed][:1] == [expected[1]]
+        assert "FloatingPointError: injected solver crash" in failed[0]["reason"]
+        assert sum(r["converged"] for r in rows) >= len(rows) - 1 - 1  # the others solved as usual
+    assert entry["failed"] == len(failed)
