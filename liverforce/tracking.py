@@ -25,6 +25,13 @@ schema at once fail); it is idempotent and serialised by a lock file.
 Runs are addressed by id through ``MlflowClient`` (no global active run), so
 one process may log several runs safely.
 
+Every run carries the host and process id that created it (tags
+``liverforce.host``, ``liverforce.pid``). A run left ``RUNNING`` by a process
+that no longer exists on this host (a SIGKILLed job) is marked ``KILLED`` when
+the next :class:`Tracker` opens the experiment (:meth:`Tracker.close_stale_runs`),
+so a resumed workflow leaves no phantom running runs; runs of live processes
+and of other hosts are never touched.
+
 For serving, :func:`download_force_model` fetches the bundle of a logged model
 (run id, ``runs:/``/``models:/`` URI or registered name) for
 :meth:`liverforce.learn.model.ForceModel.load` (nothing unpickled), and
@@ -38,6 +45,7 @@ import math
 import os
 import random
 import re
+import socket
 import tempfile
 import time
 from pathlib import Path
@@ -63,6 +71,7 @@ T = TypeVar("T")
 os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
 
 PARENT_TAG = "mlflow.parentRunId"
+HOST_TAG, PID_TAG = "liverforce.host", "liverforce.pid"
 MODEL_NAME = "model"
 #: columns of the pyfunc output frame (source-frame force, N)
 OUTPUT_COLUMNS = ("fx_n", "fy_n", "fz_n")
@@ -271,6 +280,7 @@ class Tracker:
                 self.experiment_id = exp.experiment_id
         else:
             self.experiment_id = exp.experiment_id
+        self.close_stale_runs()
 
     def _call(self, fn: Callable[..., T], *args, **kwargs) -> T:
         return with_retry(fn, *args, retries=self.retries, backoff_s=self.backoff_s, **kwargs)
@@ -280,6 +290,8 @@ class Tracker:
                   parent_run_id: str | None = None) -> str:
         """Create a run (nested under ``parent_run_id`` if given); returns its id."""
         all_tags = {k: str(v) for k, v in (tags or {}).items()}
+        all_tags.setdefault(HOST_TAG, socket.gethostname())
+        all_tags.setdefault(PID_TAG, str(os.getpid()))
         if parent_run_id:
             all_tags[PARENT_TAG] = parent_run_id
         run = self._call(self.client.create_run, self.experiment_id, tags=all_tags, run_name=run_name)
@@ -287,6 +299,31 @@ class Tracker:
         if params:
             self.log_params(run_id, params)
         return run_id
+
+    def close_stale_runs(self) -> list[str]:
+        """Mark ``KILLED`` the runs left ``RUNNING`` by processes of this host that no longer exist.
+
+        Returns the ids of the runs it closed. Runs without host/pid tags, of
+        another host, or of a live process are left alone.
+        """
+        host = socket.gethostname()
+        try:
+            running = self._call(self.client.search_runs, [self.experiment_id],
+                                 filter_string="attributes.status = 'RUNNING'", max_results=10000)
+        except MlflowException:
+            return []
+        closed = []
+        for run in running:
+            tags = run.data.tags
+            if tags.get(HOST_TAG) != host or not str(tags.get(PID_TAG, "")).isdigit():
+                continue
+            if _pid_alive(int(tags[PID_TAG])):
+                continue
+            self._call(self.client.set_tag, run.info.run_id, "liverforce.stale",
+                       f"process {tags[PID_TAG]} on {host} ended without closing the run")
+            self._call(self.client.set_terminated, run.info.run_id, "KILLED")
+            closed.append(run.info.run_id)
+        return closed
 
     def log_params(self, run_id: str, params: dict) -> None:
         items = [Param(str(k), _param_value(v)) for k, v in params.items()]
@@ -387,6 +424,18 @@ class Tracker:
             self.client.search_runs, [self.experiment_id],
             filter_string=f"tags.`{PARENT_TAG}` = '{parent_run_id}'", max_results=10000,
         )
+
+
+def _pid_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    return True
 
 
 def _requirements() -> list[str]:
