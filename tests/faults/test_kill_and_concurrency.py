@@ -169,7 +169,15 @@ def reference(tmp_path_factory) -> Path:
     res = snakemake(*args(work, "--cores", "2"))
     counts = job_counts(res.stdout + res.stderr)
     assert counts.get("simulate") == N_SHARDS and counts.get("train") == len(VARIANTS), counts
+    (work.parent / "reference-payloads.json").write_text(json.dumps(payloads(work)))
     return work
+
+
+def reference_payloads(reference: Path) -> dict[str, str]:
+    """The reference's payload hashes as first written (and a check that nothing changed them since)."""
+    first = json.loads((reference.parent / "reference-payloads.json").read_text())
+    assert payloads(reference) == first, "the reference run's shards changed during the session"
+    return first
 
 
 def test_two_trainings_share_the_sqlite_store_at_once(reference, fault_ledger):
@@ -224,12 +232,12 @@ def test_sigkill_mid_sweep_then_resume_equals_uninterrupted(reference, tmp_path,
     assert not {"geometry", "mesh", "sweep"} & set(counts), counts
 
     ref_ids, ids = case_ids(reference), case_ids(work)
-    survived = payloads(work) == payloads(reference) and model_metrics(work) == model_metrics(reference)
+    survived = payloads(work) == reference_payloads(reference) and model_metrics(work) == model_metrics(reference)
     fault_ledger.record("SIGKILL of the workflow mid-sweep", survived=survived, rows_expected=len(ref_ids),
                         rows_found=len(ids & ref_ids), shards_finished_at_kill=len(killed_with),
                         simulate_rerun=counts.get("simulate", 0))
     assert ids == ref_ids
-    assert payloads(work) == payloads(reference)
+    assert payloads(work) == reference_payloads(reference)
     assert model_metrics(work) == model_metrics(reference)
     assert not list((work / RESULTS).rglob(".*.tmp*"))
 
@@ -250,6 +258,9 @@ def test_sigkill_mid_training_then_resume_equals_uninterrupted(reference, tmp_pa
         return started if started and logs and not done else None
 
     started = run_and_kill(work, tmp_path / "killed.out", ready)
+    killed_text = (tmp_path / "killed.out").read_text()
+    killed_counts = job_counts(killed_text) if "Job stats" in killed_text else {}
+    assert set(killed_counts) <= {"train"}, killed_counts  # the killed run had only trainings to do
     assert not list((work / RESULTS / "models").rglob("metrics.json"))
     text = resume_with_readme_command(work)
     counts = job_counts(text)
@@ -258,10 +269,10 @@ def test_sigkill_mid_training_then_resume_equals_uninterrupted(reference, tmp_pa
     after = store_runs(work)
     finished_parents = [r for r in after if r[4] is None and r[1] == "FINISHED"]
     ref_ids = case_ids(reference)
-    survived = payloads(work) == payloads(reference) and model_metrics(work) == model_metrics(reference)
+    survived = payloads(work) == reference_payloads(reference) and model_metrics(work) == model_metrics(reference)
     fault_ledger.record("SIGKILL of the workflow mid-training", survived=survived, rows_expected=len(ref_ids),
                         rows_found=len(case_ids(work) & ref_ids), runs_started_before_kill=len(started))
-    assert payloads(work) == payloads(reference)
+    assert payloads(work) == reference_payloads(reference)
     assert model_metrics(work) == model_metrics(reference)
     # every model's metrics.json names a finished run of the store (the killed run is not the one cited)
     finished_ids = {r for r in _run_ids(work)}
@@ -269,6 +280,20 @@ def test_sigkill_mid_training_then_resume_equals_uninterrupted(reference, tmp_pa
         m = json.loads((work / RESULTS / "models" / "I" / v / "metrics.json").read_text())
         assert m["run_id"] in finished_ids and m["run_id"] not in started
     assert len(finished_parents) >= 2 * len(VARIANTS)  # the reference's two + the resumed two
+    # the killed jobs' runs are not left RUNNING: the resumed jobs' trackers marked them KILLED
+    killed_runs = {r for r in started}
+    statuses = {run_id: status for run_id, status in _run_status(work)}
+    assert {statuses[r] for r in killed_runs} <= {"KILLED", "FINISHED"}  # trials done before the kill stay
+    assert "KILLED" in {statuses[r] for r in killed_runs}, {r: statuses[r] for r in killed_runs}
+    assert "RUNNING" not in statuses.values()
+
+
+def _run_status(work: Path) -> list[tuple[str, str]]:
+    con = sqlite3.connect(work / "results" / "mlflow.db")
+    try:
+        return list(con.execute("select run_uuid, status from runs"))
+    finally:
+        con.close()
 
 
 @pytest.mark.parametrize("fault", ["slow_solver", "diverging", "crash"])
