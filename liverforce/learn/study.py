@@ -28,6 +28,7 @@ This module never imports mlflow: the tracker is duck-typed
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from dataclasses import dataclass, field
@@ -276,19 +277,28 @@ def run_study(
     t0, c0 = time.perf_counter(), time.process_time()
     epochs = int(study_cfg["epochs"])
     points_out = []
+    done: dict[str, dict] = {}  # identical settings (e.g. radius 0 in both occlusion modes) are trained once
     for pt in study_points(study, study_cfg):
         mcfg = _merge(model_cfg, pt.model_overrides)
         hp = hyper_parameters(main_metrics.get(pt.scenario), model_cfg, train_cfg,
                               str(study_cfg.get("hyper_parameters", "main")))
+        if mcfg["occlusion"]["radius_mm"] == 0:
+            mcfg = _merge(mcfg, {"occlusion": {"mode": "remove"}})  # no occlusion: the mode does not matter
+        key = json.dumps([pt.scenario, mcfg, pt.roi_fraction, hp], sort_keys=True, default=str)
         doc: dict[str, Any] = {"study": study, "scenario": pt.scenario, "value": pt.value, "label": pt.label,
                                "series": pt.series, "overrides": pt.model_overrides, "roi_fraction": pt.roi_fraction,
                                "encoder": mcfg["encoder"], "state_vector": bool(mcfg["state_vector"]),
                                "hyper_parameters": hp, "epochs": epochs}
         try:
-            res = run_point(data[pt.scenario], mcfg, hp, scenario=pt.scenario, seed=seed,
-                            test_fraction=float(train_cfg["test_fraction"]), epochs=epochs, threads=threads,
-                            roi_fraction=pt.roi_fraction, surfaces=surfaces)
-            doc.update(res, status="ok")
+            if key in done:
+                doc.update(done[key], status="ok", same_as=done[key]["label"])
+            else:
+                res = run_point(data[pt.scenario], mcfg, hp, scenario=pt.scenario, seed=seed,
+                                test_fraction=float(train_cfg["test_fraction"]), epochs=epochs, threads=threads,
+                                roi_fraction=pt.roi_fraction, surfaces=surfaces)
+                done[key] = {**res, "label": pt.label}
+                doc.update(res, status="ok")
+            doc["label"] = pt.label
         except (ValueError, RuntimeError) as exc:  # a point that cannot be trained is recorded, not fatal
             log.warning("study %s, %s %s: failed: %s", study, pt.scenario, pt.label, exc)
             doc.update(status="failed", reason=f"{type(exc).__name__}: {exc}", metrics={})

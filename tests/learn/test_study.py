@@ -181,15 +181,20 @@ def test_run_study_logs_one_run_per_point_and_records_failures(data, tmp_path):
     cfg = {
         "enabled": True, "epochs": 5, "hyper_parameters": "config",
         "occlusion": {"enabled": True, "scenarios": ["II"], "radii_mm": [0.0, 500.0], "encoders": ["pca"],
-                      "modes": ["remove"]},
+                      "modes": ["noise", "remove"]},
     }
     tracker = FakeTracker()
     doc = run_study("occlusion", cfg, {"II": arrays}, MODEL, {"II": None},
                     {"lr": 3e-3, "batch_size": 32, "test_fraction": 0.25, "seed": 0}, seed=0, tracker=tracker)
-    ok, failed = doc["points"]
-    assert ok["status"] == "ok" and failed["status"] == "failed"
+    ok, noise500, same, failed = doc["points"]
+    assert ok["status"] == "ok" and noise500["status"] == "ok" and failed["status"] == "failed"
     assert "occlusion" in failed["reason"]  # a 500 mm radius hides the whole ROI: recorded, not fatal
-    assert len(tracker.runs) == 2
+    # radius 0 is the same model in both modes: trained once, reported (and logged) under both labels
+    assert same["same_as"] == "pca/noise/0mm" and same["label"] == "pca/remove/0mm"
+    assert same["metrics"] == ok["metrics"] and "same_as" not in ok
+    # hiding the whole ROI behind noise leaves nothing to learn from: worse than seeing it
+    assert noise500["metrics"]["mae_vec"] > ok["metrics"]["mae_vec"]
+    assert len(tracker.runs) == 4
     run = tracker.runs[ok["run_id"]]
     assert run["tags"]["study"] == "occlusion" and run["tags"]["value"] == "0.0" and run["tags"]["scenario"] == "II"
     assert run["metrics"]["accuracy_pct"] == ok["metrics"]["accuracy_pct"]
