@@ -8,8 +8,9 @@ Prints medians over repeats:
    ``--quick``, the ~20k-node resolution: time per case, cases per core-hour,
    share of time in assembly / factorisation / solves;
 2. FElupe vs ours on the same P1 mesh and case (same answer checked);
-3. mesh convergence: surface displacement near the tool at 3 N on a mesh and
-   on one with twice the node density.
+3. mesh convergence: surface displacement near the tool and support reactions
+   at 3 N on the default mesh and on one with twice the node density, with and
+   without the default refinement at the exertion points.
 
 Usage: ``python benchmarks/bench_fem.py [--quick] [--repeats N] [--cases N] [--threads N]``
 
@@ -66,29 +67,33 @@ def tag_regions(points, tets):
     return facets, region, visible
 
 
-def liver_mesh(target_vertices: int):
-    """(points, tets, facets, region, visible, source) with about ``target_vertices`` vertices."""
+def liver_mesh(target_vertices: int, refine_edge_mm: float | None = 6.0):
+    """(points, tets, facets, region, visible, source, x0) with a bulk of about ``target_vertices`` vertices.
+
+    As the mesh stage builds it by default: conforming regions, refined to
+    ``refine_edge_mm`` within 10 mm of 8 candidate exertion points and on the
+    IVC patch (None: no refinement); ``x0`` is the first candidate.
+    """
     try:  # the project's own mesh stage, when present
+        from liverforce.geometry.procedural import procedural_liver
         from liverforce.mesh.build import build_liver_mesh  # type: ignore
+        from liverforce.pipeline.stages import closest_surface_points
 
-        from liverforce.geometry.procedural import procedural_liver
-
-        m = build_liver_mesh(procedural_liver(0), target_nodes=target_vertices)
-        return (m.points, m.tets, m.facets, m.facet_region, m.facet_visible, "liverforce.mesh.build")
-    except Exception:  # noqa: BLE001 - fall through to the next source
+        m = build_liver_mesh(procedural_liver(0), target_nodes=target_vertices, refine_radius_mm=10.0,
+                             refine_edge_mm=refine_edge_mm, refine_ivc_edge_mm=refine_edge_mm,
+                             exertion_sampling={"n_points": 8, "min_spacing_mm": 15.0, "seed": 0})
+        if refine_edge_mm is None:
+            m.meta["refine_points"] = None
+        x0 = closest_surface_points(m.points, m.facets[m.facet_visible], m.meta["exertion_candidates_mm"][0])[0]
+        src = "liverforce.mesh.build" + (f", refined to {refine_edge_mm:.2f} mm at 8 exertion points"
+                                         if refine_edge_mm else ", no refinement")
+        return (m.points, m.tets, m.facets, m.facet_region, m.facet_visible, src, x0)
+    except ImportError:  # noqa: BLE001 - fall through to the next source
         pass
-    try:
-        from liverforce.geometry.procedural import procedural_liver
-        from liverforce.mesh.tetra import tetrahedralise
-
-        points, tets = tetrahedralise(procedural_liver(0), target_nodes=target_vertices)
-        facets, region, visible = tag_regions(points, tets)
-        return points, tets, facets, region, visible, "procedural liver + liverforce.mesh.tetra (regions by rule)"
-    except Exception as exc:  # noqa: BLE001
-        print(f"  (procedural liver unavailable: {exc}; using an ellipsoid)")
     nrefs = 3 if target_vertices < 3000 else 4
     L = ellipsoid_liver(nrefs)
-    return L["points"], L["tets"], L["facets"], L["facet_region"], L["facet_visible"], f"ellipsoid nrefs={nrefs}"
+    x0 = exertion_point(L["points"], L["facets"], L["facet_visible"])
+    return L["points"], L["tets"], L["facets"], L["facet_region"], L["facet_visible"], f"ellipsoid nrefs={nrefs}", x0
 
 
 def exertion_point(points, facets, visible):
@@ -112,13 +117,12 @@ def sweep_forces(n, seed=0):
 
 # ----------------------------------------------------------------------------
 def bench_resolution(label, target_vertices, n_cases, repeats):
-    points, tets, facets, region, visible, source = liver_mesh(target_vertices)
+    points, tets, facets, region, visible, source, x0 = liver_mesh(target_vertices)
     mat = make_material("yeoh", YEOH, nu=0.49)
     bp = BoundaryParams.from_totals(points, facets, region)
     t0 = time.perf_counter()
     model = LiverModel(points, tets, facets, region, mat, bp, SolverOptions(modified_newton=True))
     t_build = time.perf_counter() - t0
-    x0 = exertion_point(points, facets, visible)
     print(f"\n== {label}: {source}")
     print(f"   {len(points)} vertices, {len(tets)} tets -> P2 {model.disc.n_nodes} nodes, {model.n_dofs} dofs;"
           f" model build {t_build:.2f} s")
@@ -196,53 +200,46 @@ def bench_felupe(points, tets, facets, region, x0):
           f" max |u| difference {diff:.1e} (relative)")
 
 
-def bench_mesh_convergence(target_vertices, radius_mm):
-    """Surface displacement near the tool on a mesh and on one with twice the node density."""
-    from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
+def bench_mesh_convergence(target_vertices, refine_edge_mm):
+    """Displacement near the tool and support reactions at 3 N: a mesh vs one with twice the node density.
 
+    Near-tool displacement = Gaussian(width)-weighted surface mean of the FE field,
+    integrated exactly by the consistent nodal weights of a unit Gaussian traction.
+    """
     runs = []
-    for tv in (target_vertices, 2 * target_vertices):
-        points, tets, facets, region, visible, _ = liver_mesh(tv)
-        x0 = exertion_point(points, facets, visible) if not runs else runs[0]["x0"]
+    for scale in (1, 2):
+        edge = None if refine_edge_mm is None else refine_edge_mm / scale ** (1 / 3)
+        points, tets, facets, region, visible, src, x0 = liver_mesh(scale * target_vertices, edge)
+        x0 = x0 if not runs else runs[0]["x0"]
         mat = make_material("yeoh", YEOH, nu=0.49)
         model = LiverModel(points, tets, facets, region, mat, BoundaryParams.from_totals(points, facets, region))
-        load = ToolLoad(x0, [0.0, 0.0, -3.0], radius_mm)
-        r = model.solve(load)
-        work = float(model.nodal_loads(load) @ r.state) / 3.0  # load-weighted (work-conjugate) displacement
-        runs.append({"x0": x0, "points": points, "facets": facets, "u": r.u_nodes, "n": model.disc.n_nodes,
-                     "ok": r.converged, "work": work})
+        r = model.solve(ToolLoad(x0, [0.0, 0.0, -3.0], 5.0))
+        ubar = {w: np.stack([model.nodal_loads(ToolLoad(x0, e, w)) for e in np.eye(3)]) @ r.state for w in (5.0, 10.0)}
+        runs.append({"x0": x0, "n": model.disc.n_nodes, "ok": r.converged, "ubar": ubar, "src": src,
+                     "reac": {k: np.asarray(r.reactions[k]) for k in ("ivc", "ligament", "visceral", "rib")}})
     c, f = runs
-    surf = np.unique(c["facets"])
-    roi = surf[np.linalg.norm(c["points"][surf] - c["x0"], axis=1) < 20.0]
-    lin = LinearNDInterpolator(f["points"], f["u"])
-    u_f = lin(c["points"][roi])
-    miss = np.isnan(u_f[:, 0])
-    if miss.any():  # coarse surface points just outside the fine hull
-        u_f[miss] = NearestNDInterpolator(f["points"], f["u"])(c["points"][roi][miss])
-    u_c = c["u"][roi]
-    tip = np.argmin(np.linalg.norm(c["points"][roi] - c["x0"], axis=1))
-    rel = np.linalg.norm(u_c - u_f) / np.linalg.norm(u_f)
-    print(f"\n== mesh convergence at 3 N, tool radius {radius_mm:g} mm (P2 mean dilatation): {c['n']} vs {f['n']} P2 nodes"
-          f" (converged {c['ok']}, {f['ok']}); {len(roi)} surface points within 20 mm of the tool")
-    print(f"   load-weighted displacement F.u/|F| {c['work']:.3f} vs {f['work']:.3f} mm"
-          f" ({100 * (c['work'] - f['work']) / f['work']:+.1f} %)")
-    print(f"   |u| at the tool {np.linalg.norm(u_c[tip]):.3f} vs {np.linalg.norm(u_f[tip]):.3f} mm;"
-          f" ROI mean |u| {np.linalg.norm(u_c, axis=1).mean():.3f} vs {np.linalg.norm(u_f, axis=1).mean():.3f} mm;"
-          f" relative L2 difference of the ROI displacement field {100 * rel:.1f} %"
-          " (fine field linearly interpolated from its vertices)")
+    print(f"\n== mesh convergence at 3 N (P2 mean dilatation, tool width 5 mm): {c['n']} vs {f['n']} P2 nodes"
+          f" (converged {c['ok']}, {f['ok']}); {c['src']}")
+    for w in (5.0, 10.0):
+        rel = np.linalg.norm(c["ubar"][w] - f["ubar"][w]) / np.linalg.norm(f["ubar"][w])
+        print(f"   surface displacement within a {w:g} mm Gaussian of the tool: |u| {np.linalg.norm(c['ubar'][w]):.3f}"
+              f" vs {np.linalg.norm(f['ubar'][w]):.3f} mm, change {100 * rel:.1f} %")
+    print("   support reactions (N) and change: " + ", ".join(
+        f"{k} {np.linalg.norm(f['reac'][k]):.3f} "
+        f"({100 * np.linalg.norm(c['reac'][k] - f['reac'][k]) / np.linalg.norm(f['reac'][k]):.1f} %)" for k in c["reac"]))
 
 
 def main():
     print(f"liverforce.fem benchmark (threads={ARGS.threads}, python {sys.version.split()[0]})")
     n_cases = min(ARGS.cases, 12) if ARGS.quick else ARGS.cases
-    default_vertices = 750  # ~5k P2 nodes
+    default_vertices = 600  # bulk; with the default refinement ~6k P2 nodes
     pts, tets, facets, region, visible, x0 = bench_resolution("default resolution", default_vertices, n_cases, ARGS.repeats)
     bench_felupe(pts, tets, facets, region, x0)
     if not ARGS.quick:
         big = bench_resolution("~20k P2 nodes", 3000, max(10, n_cases // 2), max(1, ARGS.repeats - 2))
         bench_felupe(big[0], big[1], big[2], big[3], big[5])
-    for radius in (5.0, 10.0):
-        bench_mesh_convergence(default_vertices, radius)
+    for edge in (6.0, None):  # the default (refined at the exertion points and the IVC) and no refinement
+        bench_mesh_convergence(default_vertices, edge)
 
 
 if __name__ == "__main__":

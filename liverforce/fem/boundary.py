@@ -67,14 +67,37 @@ def _facet_quadrature(disc: TetDiscretization, points, facets):
     return fn, Xq, W, N, normal, area
 
 
+def vertex_normals(points: np.ndarray, facets: np.ndarray) -> np.ndarray:
+    """Unit outward normals at the vertices (n, 3): area-weighted mean of the adjacent facet normals.
+
+    Vertices on no facet get a zero vector.
+    """
+    points = np.asarray(points, float)
+    facets = np.asarray(facets, np.int64)
+    area, n = facet_geometry(points, facets)
+    vn = np.zeros((len(points), 3))
+    for i in range(3):
+        np.add.at(vn, facets[:, i], area[:, None] * n)
+    length = np.linalg.norm(vn, axis=1, keepdims=True)
+    return np.divide(vn, length, out=np.zeros_like(vn), where=length > 0)
+
+
 def spring_matrix(
     disc: TetDiscretization,
     points: np.ndarray,
     facets: np.ndarray,
     facet_region: np.ndarray,
     stiffness: dict[int, tuple[float, float]],
+    normals: np.ndarray | None = None,
 ) -> sp.csr_matrix:
-    """Global (n_dofs × n_dofs) foundation stiffness for regions ``{id: (k_n, k_t)}`` (N/mm³)."""
+    """Global (n_dofs × n_dofs) foundation stiffness for regions ``{id: (k_n, k_t)}`` (N/mm³).
+
+    ``normals`` : optional (n_vertices, 3) vertex normals (e.g. :func:`vertex_normals`),
+    interpolated linearly over each facet and normalised at the quadrature points: a
+    continuous normal field, so that a penalty on normal motion (``k_t = 0``) lets the
+    surface slide along itself instead of locking at the kinks between flat facets.
+    Default: the (piecewise constant) facet normals.
+    """
     facets = np.asarray(facets, np.int64)
     reg = np.asarray(facet_region)
     rows, cols, vals = [], [], []
@@ -83,9 +106,16 @@ def spring_matrix(
         if not np.any(sel) or (kn == 0.0 and kt == 0.0):
             continue
         fn, _, W, N, n, _ = _facet_quadrature(disc, points, facets[sel])
-        M = np.einsum("kq,qa,qb->kab", W, N, N)  # (k, nfn, nfn)
-        S = kn * np.einsum("ki,kj->kij", n, n) + kt * (np.eye(3) - np.einsum("ki,kj->kij", n, n))
-        blk = np.einsum("kab,kij->kaibj", M, S)  # (k, nfn, 3, nfn, 3)
+        if normals is None or kn == kt:  # isotropic springs do not need a normal
+            M = np.einsum("kq,qa,qb->kab", W, N, N)  # (k, nfn, nfn)
+            S = kn * np.einsum("ki,kj->kij", n, n) + kt * (np.eye(3) - np.einsum("ki,kj->kij", n, n))
+            blk = np.einsum("kab,kij->kaibj", M, S)  # (k, nfn, 3, nfn, 3)
+        else:
+            nq = np.einsum("qm,kmi->kqi", TRI_Q7[0], np.asarray(normals, float)[facets[sel]])
+            nq /= np.maximum(np.linalg.norm(nq, axis=-1, keepdims=True), 1e-300)
+            nn = np.einsum("kqi,kqj->kqij", nq, nq)
+            S = kn * nn + kt * (np.eye(3) - nn)  # (k, nq, 3, 3)
+            blk = np.einsum("kq,qa,qb,kqij->kaibj", W, N, N, S)
         dofs = (3 * fn[:, :, None] + np.arange(3)).reshape(len(fn), -1)
         nd = dofs.shape[1]
         rows.append(np.repeat(dofs, nd, axis=1).ravel())

@@ -8,7 +8,14 @@ Backends, in order of preference:
              If CHOLMOD reports "not positive definite" (far-from-equilibrium
              iterates, buckling), the same matrix is factorised by CHOLMOD's
              simplicial ``L D L^T`` (no pivoting; indefinite matrices are fine
-             unless a pivot is exactly zero), then by SuperLU.
+             unless a pivot is exactly zero), then by SuperLU. With
+             ``factorize(A, shift=True)`` (what the Newton solver asks for), an
+             indefinite ``A`` is instead factorised as ``A + tau diag(A)`` with
+             the smallest ``tau`` in 1e-3, 1e-2, ... 10 that makes it positive
+             definite (supernodal, same analysis; backend "cholmod-llt-shifted"):
+             a descent direction for the energy at the cost of one or two
+             supernodal factorisations, where the simplicial ``L D L^T`` costs
+             about ten (measured on a 25k-dof P2 liver tangent: 0.4 s vs 3.5 s).
 ``superlu``  scipy's SuperLU (``splu``) in symmetric mode; used when
              scikit-sparse is not importable. Several times slower on large
              meshes (see the project's stack notes).
@@ -43,6 +50,8 @@ class LinearSolver:
     Parameters
     ----------
     method : "auto" (CHOLMOD if available, else SuperLU), "cholmod" or "superlu".
+    ordering : CHOLMOD fill-reducing ordering ("default": AMD, and METIS/NESDIS
+        if AMD fills in badly; or "amd", "metis", "nesdis", "best").
 
     Notes
     -----
@@ -52,7 +61,10 @@ class LinearSolver:
     sweep on one geometry.
     """
 
-    def __init__(self, method: str = "auto"):
+    #: relative diagonal shifts tried by ``factorize(A, shift=True)``
+    shifts = (1e-3, 1e-2, 1e-1, 1.0, 10.0)
+
+    def __init__(self, method: str = "auto", ordering: str = "default"):
         if method not in ("auto", "cholmod", "superlu"):
             raise ValueError(f"linear_solver must be 'auto', 'cholmod' or 'superlu', got {method!r}")
         if method == "cholmod" and _cholmod is None:
@@ -63,6 +75,8 @@ class LinearSolver:
         self.method = "cholmod" if (method == "auto" and _cholmod is not None) else method
         if self.method == "auto":
             self.method = "superlu"
+        self.ordering = ordering
+        self.last_shift = 0.0
         self._analyses: dict = {}
         self._factor = None
         self._solve = None
@@ -81,16 +95,51 @@ class LinearSolver:
         key = self._key(A_csc, mode)
         f = self._analyses.get(key)
         if f is None:
-            f = _cholmod.analyze(A_csc, mode=mode, ordering_method="default")
+            f = _cholmod.analyze(A_csc, mode=mode, ordering_method=self.ordering)
             self._analyses[key] = f
         f.cholesky_inplace(A_csc)
         return f
 
+    @staticmethod
+    def _diagonal_positions(A_csc) -> np.ndarray:
+        """Positions of the diagonal entries in ``A_csc.data`` (all present in a stiffness pattern)."""
+        n = A_csc.shape[0]
+        col = np.repeat(np.arange(n), np.diff(A_csc.indptr))
+        pos = np.flatnonzero(A_csc.indices == col)
+        if pos.size != n:
+            raise ValueError("matrix pattern lacks diagonal entries")
+        return pos
+
+    def _cholmod_shifted(self, A_csc):
+        """Supernodal ``L L^T`` of ``A + tau diag(A)`` for the smallest working ``tau``; None if none works."""
+        key = self._key(A_csc, "diag")
+        pos = self._analyses.get(key)
+        if pos is None:
+            pos = self._analyses[key] = self._diagonal_positions(A_csc)
+        d = A_csc.data[pos]
+        scale = np.where(d > 0, d, np.abs(d).mean() + 1e-300)
+        B = A_csc.copy()
+        for tau in self.shifts:
+            B.data[pos] = d + tau * scale
+            try:
+                f = self._cholmod_factor(B, "supernodal")
+            except _cholmod.CholmodNotPositiveDefiniteError:
+                continue
+            self.last_shift = tau
+            return f
+        return None
+
     # -- public --------------------------------------------------------------
-    def factorize(self, A: sp.spmatrix) -> str:
-        """Numerically factorise ``A`` (symmetric); returns the backend used."""
+    def factorize(self, A: sp.spmatrix, shift: bool = False) -> str:
+        """Numerically factorise ``A`` (symmetric); returns the backend used.
+
+        ``shift`` : if ``A`` is not positive definite, factorise the smallest
+        positive-definite ``A + tau diag(A)`` instead (see the module notes), an
+        approximation meant for descent directions, not an exact solve.
+        """
         t0 = time.perf_counter()
         self.n_factorizations += 1
+        self.last_shift = 0.0
         if self.method == "cholmod":
             A_csc = A.T if sp.isspmatrix_csr(A) else A.tocsc()  # symmetric: A^T == A
             with warnings.catch_warnings():
@@ -100,11 +149,15 @@ class LinearSolver:
                     self._set(f.solve_A, "cholmod-llt")
                 except _cholmod.CholmodNotPositiveDefiniteError:
                     self.n_fallbacks += 1
-                    try:
-                        f = self._cholmod_factor(A_csc, "simplicial")
-                        self._set(f.solve_A, "cholmod-ldlt")
-                    except _cholmod.CholmodError:
-                        self._superlu(A)
+                    f = self._cholmod_shifted(A_csc) if shift else None
+                    if f is not None:
+                        self._set(f.solve_A, "cholmod-llt-shifted")
+                    else:
+                        try:
+                            f = self._cholmod_factor(A_csc, "simplicial")
+                            self._set(f.solve_A, "cholmod-ldlt")
+                        except _cholmod.CholmodError:
+                            self._superlu(A)
         else:
             self._superlu(A)
         self.time_factorize += time.perf_counter() - t0

@@ -317,7 +317,7 @@ class DiscreteSystem:
         if not ev1.valid:
             return None
         try:
-            self.linear.factorize(self.tangent_matrix(ev0.data))
+            self.linear.factorize(self.tangent_matrix(ev0.data), shift=True)
         except (RuntimeError, ValueError):
             return None
         stats["factorizations"] += 1
@@ -375,7 +375,7 @@ class DiscreteSystem:
                     ev_t, _, _ = self._evaluate(u, material, f_load, tangent=True)
                     ev.data = ev_t.data
                 try:
-                    self.linear.factorize(self.tangent_matrix(ev.data))
+                    self.linear.factorize(self.tangent_matrix(ev.data), shift=True)
                 except (RuntimeError, ValueError) as exc:
                     raise _StepFailure(f"linear solver failed at load fraction {lam:.4g}: {exc}") from exc
                 stats["factorizations"] += 1

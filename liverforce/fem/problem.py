@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .boundary import per_area_stiffness, region_areas, spring_matrix, tool_nodal_forces
+from .boundary import per_area_stiffness, region_areas, spring_matrix, tool_nodal_forces, vertex_normals
 from .elements import build_discretization
 from .materials import Material
 from .newton import DiscreteSystem, SolverOptions
@@ -56,6 +56,11 @@ class BoundaryParams:
     visceral_kt: float = 0.0016
     rib_kn: float = 0.1
     rib_kt: float = 0.0
+    normals: str = "vertex"
+
+    def __post_init__(self):
+        if self.normals not in ("vertex", "facet"):
+            raise ValueError(f"BoundaryParams.normals must be 'vertex' or 'facet', got {self.normals!r}")
 
     @classmethod
     def from_totals(cls, points, facets, facet_region, ligament_total_n_per_mm: float = 56.3,
@@ -175,9 +180,12 @@ class LiverModel:
         fixed_nodes = np.unique(fnodes[region == IVC])
         fixed_dofs = (3 * fixed_nodes[:, None] + np.arange(3)).ravel()
         stiff = self.boundary.region_stiffness()
-        self.region_springs = {
-            REGION_NAMES[r]: spring_matrix(self.disc, points, facets, region, {r: kk}) for r, kk in stiff.items()
-        }
+        self.region_springs = {}
+        for r, kk in stiff.items():
+            # a region's own facets define its normal field: a support is a surface of its own,
+            # and averaging across a sharp edge into a neighbouring region would tilt it
+            normals = vertex_normals(points, facets[region == r]) if self.boundary.normals == "vertex" else None
+            self.region_springs[REGION_NAMES[r]] = spring_matrix(self.disc, points, facets, region, {r: kk}, normals)
         spring = sum(self.region_springs.values())
         self.system = DiscreteSystem(points, tets, fixed_dofs, spring, self.options, disc=self.disc)
         self._load_mask = region != IVC

@@ -114,3 +114,100 @@ def _boundary_loop_count(faces: np.ndarray) -> int:
     g = sp.coo_matrix((np.ones(len(inv)), (inv[:, 0], inv[:, 1])), shape=(len(verts), len(verts)))
     ncomp, _ = connected_components(g, directed=False)
     return int(ncomp)
+
+
+def disc_patches(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, max_depth: int = 8) -> np.ndarray:
+    """Split a labelled closed surface into disc-like patches of one label each.
+
+    Each connected piece of a label that is not a topological disc (one
+    boundary loop, Euler characteristic 1) is cut in two along the median
+    level set of its own Fiedler vector, recursively (up to ``max_depth``
+    levels). Returns a patch id per face (0, 1, ...); a piece that cannot be
+    cut is left as it is (the mesher may still split it).
+    """
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    faces = np.asarray(faces, dtype=np.int64)
+    labels = np.asarray(labels, dtype=np.int64)
+    fa = _face_adjacency(faces).tocsr()
+    rows, cols = fa.nonzero()
+    same = labels[rows] == labels[cols]
+    g = sp.coo_matrix((np.ones(same.sum()), (rows[same], cols[same])), shape=fa.shape)
+    _, comp = connected_components(g, directed=False)
+    todo = [np.flatnonzero(comp == c) for c in np.unique(comp)]
+    done: list[np.ndarray] = []
+    depth = {0: todo}
+    for level in range(max_depth + 1):
+        nxt = []
+        for idx in depth.get(level, []):
+            if _is_disc(faces[idx]) or level == max_depth:
+                done.append(idx)
+                continue
+            parts = _fiedler_split(vertices, faces, idx, fa)
+            if parts is None:
+                done.append(idx)
+            else:
+                nxt.extend(parts)
+        if not nxt:
+            break
+        depth[level + 1] = nxt
+    out = np.empty(len(faces), dtype=np.int64)
+    for k, idx in enumerate(sorted(done, key=lambda a: int(a.min()))):
+        out[idx] = k
+    return out
+
+
+def _is_disc(patch_faces: np.ndarray) -> bool:
+    """One boundary loop, Euler characteristic 1 and no vertex where the boundary touches itself."""
+    edges = np.sort(np.concatenate([patch_faces[:, [0, 1]], patch_faces[:, [1, 2]], patch_faces[:, [2, 0]]]), axis=1)
+    uniq, counts = np.unique(edges, axis=0, return_counts=True)
+    nv = len(np.unique(patch_faces))
+    if nv - len(uniq) + len(patch_faces) != 1 or _boundary_loop_count(patch_faces) != 1:
+        return False
+    bnd = uniq[counts == 1]
+    return bool((np.bincount(bnd.ravel()) <= 2).all())
+
+
+def _fiedler_split(vertices, faces, idx, fa):
+    """Two connected halves of the face set ``idx`` (median Fiedler level set), or None."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as sla
+    from scipy.sparse.csgraph import connected_components
+
+    if len(idx) < 8:
+        return None
+    sub = faces[idx]
+    verts, inv = np.unique(sub.ravel(), return_inverse=True)
+    tri = inv.reshape(-1, 3)
+    n = len(verts)
+    e = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
+    adj = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)).tocsr()
+    adj = ((adj + adj.T) > 0).astype(np.float64)
+    lap = (sp.diags(np.asarray(adj.sum(axis=1)).ravel()) - adj).tocsc()
+    p = vertices[verts]
+    axis = int(np.argmax(np.ptp(p, axis=0)))
+    try:
+        w, vec = sla.eigsh(lap, k=2, sigma=-1e-3, which="LM", v0=p[:, axis] - p[:, axis].mean())
+    except Exception:  # ARPACK failure: leave the piece whole
+        return None
+    value = vec[:, np.argsort(w)[1]][tri].mean(axis=1)
+    half = value > np.median(value)
+    sfa = fa[idx][:, idx]
+    parts = []
+    for side in (half, ~half):
+        loc = np.flatnonzero(side)
+        if loc.size == 0:
+            return None
+        ncomp, comp = connected_components(sfa[loc][:, loc], directed=False)
+        parts.append((loc, ncomp, comp))
+    # strays (small components) join the other half
+    assign = half.copy()
+    for flag, (loc, ncomp, comp) in zip((True, False), parts):
+        if ncomp > 1:
+            keep = np.argmax(np.bincount(comp))
+            assign[loc[comp != keep]] = not flag
+    a, b = idx[assign], idx[~assign]
+    if len(a) == 0 or len(b) == 0:
+        return None
+    return [a, b]

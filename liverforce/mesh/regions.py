@@ -174,7 +174,29 @@ def tag_regions(points: np.ndarray, facets: np.ndarray, params: RegionParams | N
     region[ivc] = REGION_CODES["ivc"]
 
     region = _drop_specks(facets, region, area, p.min_patch_fraction)
+    return region, _visible(points, facets, region, n_loc, area, p)
 
+
+def visible_facets(points: np.ndarray, facets: np.ndarray, facet_region: np.ndarray,
+                   params: RegionParams | None = None) -> np.ndarray:
+    """The ``visible`` mask of :func:`tag_regions` for given region codes.
+
+    Used when the regions come from elsewhere (e.g. transferred from the
+    input surface to a mesh that conforms to them).
+    """
+    p = params or RegionParams()
+    points = np.asarray(points, dtype=np.float64)
+    facets = np.asarray(facets, dtype=np.int64)
+    R = p.frame()
+    centre = points[facets].mean(axis=1)
+    raw = facet_normals(points, facets, unit=False)
+    area = 0.5 * np.linalg.norm(raw, axis=1)
+    n_loc = _smoothed_normals(centre, raw, p.normal_smoothing_mm) @ R.T
+    return _visible(points, facets, np.asarray(facet_region), n_loc, area, p)
+
+
+def _visible(points, facets, region, n_loc, area, p: RegionParams) -> np.ndarray:
+    """Free facets facing the viewer, ``visible_margin_mm`` away from tagged facets, specks dropped."""
     view = np.array([0.0, np.cos(np.deg2rad(p.visible_tilt_deg)), np.sin(np.deg2rad(p.visible_tilt_deg))])
     visible = (region == 0) & (n_loc @ view >= np.cos(np.deg2rad(p.visible_cone_deg)))
     tagged = region != 0
@@ -187,8 +209,7 @@ def tag_regions(points: np.ndarray, facets: np.ndarray, params: RegionParams | N
         idx = np.flatnonzero(visible)
         visible[idx[near]] = False
     vis_code = np.where(visible, 1, 0).astype(np.int8)
-    visible = _drop_specks(facets, vis_code, area, p.min_patch_fraction) == 1
-    return region, visible
+    return _drop_specks(facets, vis_code, area, p.min_patch_fraction) == 1
 
 
 def _smoothed_normals(centre: np.ndarray, raw: np.ndarray, radius: float) -> np.ndarray:

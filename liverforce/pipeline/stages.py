@@ -77,8 +77,22 @@ def load_surface_file(path: str | Path):
 # --------------------------------------------------------------------- mesh
 
 
-def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path, picture_path) -> dict:
-    """Tetrahedralise a surface, tag regions, compute features, draw the regions."""
+def exertion_seed(seed: int, gid: str) -> int:
+    """Seed of a geometry's candidate exertion points: the config seed and the geometry id."""
+    import zlib
+
+    return int(np.random.SeedSequence([int(seed), zlib.crc32(gid.encode())]).generate_state(1)[0])
+
+
+def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path, picture_path,
+              exertion: dict | None = None) -> dict:
+    """Tetrahedralise a surface, tag regions, compute features, draw the regions.
+
+    ``exertion`` (the ``sweep.exertion`` config: ``n_points``, ``min_spacing_mm``):
+    the geometry's candidate exertion points are sampled on the visible input
+    surface here, refined around (``mesh.refine_radius_mm`` / ``refine_edge_mm``),
+    and written to the features JSON, from which every scenario's sweep takes them.
+    """
     from liverforce.mesh.build import build_liver_mesh
     from liverforce.mesh.features import compute_features
     from liverforce.mesh.io import write_mesh
@@ -96,11 +110,20 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
         region_params=RegionParams(**mesh_cfg.get("regions", {})),
         mesher=mesh_cfg["mesher"],
         seed=seed,
+        refine_radius_mm=mesh_cfg.get("refine_radius_mm", 0.0),
+        refine_edge_mm=mesh_cfg.get("refine_edge_mm"),
+        refine_ivc_edge_mm=mesh_cfg.get("refine_ivc_edge_mm"),
+        exertion_sampling=None if exertion is None else {
+            "n_points": exertion["n_points"], "min_spacing_mm": exertion["min_spacing_mm"],
+            "seed": exertion_seed(seed, Path(mesh_path).stem)},
     )
     elapsed = time.perf_counter() - t0
     write_mesh(mesh_path, mesh)
     feats = compute_features(mesh)
     feats["meshing_time_s"] = elapsed
+    feats["exertion_candidates_mm"] = mesh.meta.get("exertion_candidates_mm")
+    feats["refine_points"] = mesh.meta.get("refine_points")
+    feats["regions_tagged_on"] = mesh.meta.get("regions_tagged_on")
     dio.write_json_atomic(feats, features_path)
     plot_regions(mesh, picture_path)
     log.info("mesh: %d nodes, %d tets in %.1f s", len(mesh.points), len(mesh.tets), elapsed)
@@ -129,15 +152,47 @@ def material_checks(stretch_range):
     return stable, bulk
 
 
-def exertion_set(mesh, n_points: int, min_spacing_mm: float, seed: int, frame_radius_mm: float):
-    """Candidate exertion points of one mesh with their normals and local frames."""
-    from liverforce.dataset.roi import local_frame, surface_graph
-    from liverforce.sweep.design import ExertionSet, sample_exertion_points
+def exertion_set(mesh, n_points: int, min_spacing_mm: float, seed: int, frame_radius_mm: float,
+                 candidates=None):
+    """Candidate exertion points of one mesh with their normals and local frames.
 
-    pts = sample_exertion_points(mesh.points, mesh.facets, mesh.facet_visible, n_points, min_spacing_mm, seed)
+    ``candidates`` : points chosen at the mesh stage (on the input surface, where
+    the mesh is refined), moved onto the nearest visible mesh facet; else
+    ``n_points`` are sampled on the mesh's visible facets with ``seed``.
+    """
+    from liverforce.dataset.roi import local_frame, surface_graph
+    from liverforce.sweep.design import ExertionSet, SweepError, sample_exertion_points
+
+    if candidates is not None:
+        cand = np.asarray(candidates, float).reshape(-1, 3)
+        if len(cand) < n_points:
+            raise SweepError(f"the mesh carries {len(cand)} exertion candidates, the sweep asks {n_points}: "
+                             "re-run the mesh stage with this sweep.exertion config")
+        pts = closest_surface_points(mesh.points, mesh.facets[mesh.facet_visible], cand[:n_points])
+    else:
+        pts = sample_exertion_points(mesh.points, mesh.facets, mesh.facet_visible, n_points, min_spacing_mm, seed)
     surf = surface_graph(mesh.points, mesh.facets)
     frames = np.stack([local_frame(surf, p, frame_radius_mm) for p in pts])
     return ExertionSet(points=pts, normals=frames[:, 2], frames=frames)
+
+
+def closest_surface_points(points, facets, query, k: int = 16) -> np.ndarray:
+    """The closest point on the triangles ``points[facets]`` to each query point (mm).
+
+    Searched over the ``k`` triangles with the nearest centroids (query points
+    lie on or near the surface).
+    """
+    from scipy.spatial import cKDTree
+    from trimesh.triangles import closest_point
+
+    tri = np.asarray(points, float)[np.asarray(facets)]
+    query = np.atleast_2d(np.asarray(query, float))
+    k = min(k, len(tri))
+    _, near = cKDTree(tri.mean(axis=1)).query(query, k=k)
+    near = near.reshape(len(query), k)
+    cp = closest_point(tri[near.ravel()], np.repeat(query, k, axis=0)).reshape(len(query), k, 3)
+    best = np.argmin(np.linalg.norm(cp - query[:, None], axis=2), axis=1)
+    return cp[np.arange(len(query)), best]
 
 
 def make_sweep(params: dict, mesh_paths: list[str], cases_path, report_path) -> dict:
@@ -151,8 +206,10 @@ def make_sweep(params: dict, mesh_paths: list[str], cases_path, report_path) -> 
     ex = {}
     for i, gid in enumerate(gids):
         mesh = read_mesh(by_gid[gid])
+        feats = Path(by_gid[gid]).with_suffix(".features.json")
+        cand = json.loads(feats.read_text()).get("exertion_candidates_mm") if feats.exists() else None
         ex[gid] = exertion_set(mesh, params["exertion"]["n_points"], params["exertion"]["min_spacing_mm"],
-                               params["seed"] * 7919 + i, params["tool_radius_mm"])
+                               params["seed"] * 7919 + i, params["tool_radius_mm"], candidates=cand)
     result = build_cases(
         scenario=params["scenario"], spec=params["spec"], geometry_ids=gids, exertion=ex,
         material=params["material"], force=params["force"], design=params["design"], seed=params["seed"],

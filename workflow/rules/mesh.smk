@@ -11,6 +11,7 @@ rule mesh:
     params:
         mesh=config_slice("mesh"),
         seed=config_slice("seed"),
+        exertion=config_slice("sweep", "exertion"),
     log:
         f"{E}/logs/mesh/{{gid}}.log",
     conda:

@@ -4,6 +4,7 @@
 rule sweep:
     input:
         meshes=lambda wc: expand(f"{E}/mesh/{{gid}}.vtu", gid=PLAN.scenario_geometries(wc.scenario)),
+        features=lambda wc: expand(f"{E}/mesh/{{gid}}.features.json", gid=PLAN.scenario_geometries(wc.scenario)),
     output:
         cases=f"{E}/sweep/{{scenario}}/cases.parquet",
         report=f"{E}/sweep/{{scenario}}/sweep.json",

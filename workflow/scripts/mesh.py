@@ -4,4 +4,5 @@ from liverforce.pipeline.stages import make_mesh
 
 sm = snakemake  # noqa: F821
 setup_job(sm.log[0], sm.threads)
-make_mesh(sm.input.surface, sm.params.mesh, sm.params.seed, sm.output.mesh, sm.output.features, sm.output.picture)
+make_mesh(sm.input.surface, sm.params.mesh, sm.params.seed, sm.output.mesh, sm.output.features, sm.output.picture,
+          exertion=sm.params.exertion)
