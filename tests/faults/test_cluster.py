@@ -225,6 +225,9 @@ PartitionName=test Nodes={host} Default=YES MaxTime=INFINITE State=UP
         _kill_pidfile(root / "run" / "slurmctld.pid")
         if started_munge is not None:
             _kill_pidfile(started_munge)
+        cache = Path("/run/slurm/conf")  # slurmd's configless cache link, pointing into our tmp folder
+        if cache.is_symlink() and str(root) in os.readlink(cache):
+            cache.unlink()
 
 
 @pytest.mark.slow
