@@ -80,7 +80,7 @@ def liver_mesh(target_vertices: int, refine_edge_mm: float | None = 6.0):
         from liverforce.pipeline.stages import closest_surface_points
 
         m = build_liver_mesh(procedural_liver(0), target_nodes=target_vertices, refine_radius_mm=10.0,
-                             refine_edge_mm=refine_edge_mm, refine_ivc_edge_mm=refine_edge_mm,
+                             refine_edge_mm=refine_edge_mm, refine_ivc_edge_mm=refine_edge_mm, refine_growth=0.6,
                              exertion_sampling={"n_points": 8, "min_spacing_mm": 15.0, "seed": 0})
         if refine_edge_mm is None:
             m.meta["refine_points"] = None
@@ -232,7 +232,7 @@ def bench_mesh_convergence(target_vertices, refine_edge_mm):
 def main():
     print(f"liverforce.fem benchmark (threads={ARGS.threads}, python {sys.version.split()[0]})")
     n_cases = min(ARGS.cases, 12) if ARGS.quick else ARGS.cases
-    default_vertices = 600  # bulk; with the default refinement ~6k P2 nodes
+    default_vertices = 800  # with the default refinement ~5.5k P2 nodes
     pts, tets, facets, region, visible, x0 = bench_resolution("default resolution", default_vertices, n_cases, ARGS.repeats)
     bench_felupe(pts, tets, facets, region, x0)
     if not ARGS.quick:

@@ -76,10 +76,11 @@ class GeometryConfig:
 
 @dataclass
 class MeshConfig:
-    target_nodes: int = 600
+    target_nodes: int = 800
     mesher: str = "gmsh"
     refine_radius_mm: float = 10.0
     refine_edge_mm: float = 6.0
+    refine_growth: float = 0.6
     refine_ivc_edge_mm: float = 6.0
     regions: dict[str, Any] = field(default_factory=dict)
 
@@ -366,6 +367,8 @@ def _check_ranges(cfg: dict) -> None:
         _fail("mesh.mesher", f"unknown mesher '{m['mesher']}'", "use gmsh or tetgen")
     if m["refine_radius_mm"] < 0 or m["refine_edge_mm"] <= 0:
         _fail("mesh.refine_radius_mm", "refine radius must be >= 0 and refine_edge_mm > 0")
+    if not m["refine_growth"] > 0:
+        _fail("mesh.refine_growth", "must be > 0 (mm of size per mm of distance)")
     if m["refine_ivc_edge_mm"] < 0:
         _fail("mesh.refine_ivc_edge_mm", "must be >= 0 mm (0 = no refinement at the IVC)")
 

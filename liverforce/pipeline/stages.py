@@ -113,6 +113,7 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
         refine_radius_mm=mesh_cfg.get("refine_radius_mm", 0.0),
         refine_edge_mm=mesh_cfg.get("refine_edge_mm"),
         refine_ivc_edge_mm=mesh_cfg.get("refine_ivc_edge_mm"),
+        refine_growth=mesh_cfg.get("refine_growth", 0.3),
         exertion_sampling=None if exertion is None else {
             "n_points": exertion["n_points"], "min_spacing_mm": exertion["min_spacing_mm"],
             "seed": exertion_seed(seed, Path(mesh_path).stem)},
