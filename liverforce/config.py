@@ -253,6 +253,7 @@ class StudyConfig:
     state_vector: StateVectorStudy = field(default_factory=StateVectorStudy)
     occlusion: OcclusionStudy = field(default_factory=OcclusionStudy)
     noise: StudyValues = field(default_factory=StudyValues)
+    train_size: StudyValues = field(default_factory=StudyValues)
 
 
 @dataclass
@@ -508,7 +509,7 @@ def _check_study(cfg: dict) -> None:
         _fail("study.hyper_parameters", f"unknown '{st['hyper_parameters']}'", "use main or config")
     if not st["enabled"]:
         return
-    for name in ("roi_fraction", "encoder", "state_vector", "occlusion", "noise"):
+    for name in ("roi_fraction", "encoder", "state_vector", "occlusion", "noise", "train_size"):
         sub = st[name]
         if not sub["enabled"]:
             continue
@@ -523,6 +524,9 @@ def _check_study(cfg: dict) -> None:
             and not cfg["dataset"]["store_full_surface"]:
         _fail("study.roi_fraction", "needs the full surface in the shards",
               "set dataset.store_full_surface=true or study.roi_fraction.enabled=false")
+    for f in st["train_size"]["values"]:
+        if not isinstance(f, (int, float)) or not 0 < f <= 1:
+            _fail("study.train_size.values", f"training-set fractions must be in (0, 1] (got {f})")
     for e in st["encoder"]["values"]:
         if e not in ("pca", "ae", "dae"):
             _fail("study.encoder.values", f"unknown encoder '{e}'", "use pca, ae or dae")

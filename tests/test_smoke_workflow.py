@@ -36,7 +36,7 @@ def test_every_stage_produced_its_outputs(smoke_run):
             metrics = json.loads((root / "models" / scenario / variant / "metrics.json").read_text())
             assert metrics["run_id"]
     assert (root / "validate" / "metrics.json").exists()
-    for study in ("roi_fraction", "encoder", "state_vector", "occlusion", "noise"):
+    for study in ("roi_fraction", "encoder", "state_vector", "occlusion", "noise", "train_size"):
         doc = json.loads((root / "studies" / f"{study}.json").read_text())
         assert len(doc["points"]) == 2 and (root / "studies" / f"{study}.png").stat().st_size > 5000
         assert all(p["run_id"] for p in doc["points"])

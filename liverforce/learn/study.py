@@ -47,7 +47,7 @@ from liverforce.learn.torchutil import configure_torch
 
 log = logging.getLogger("liverforce")
 
-STUDIES = ("roi_fraction", "encoder", "state_vector", "occlusion", "noise")
+STUDIES = ("roi_fraction", "encoder", "state_vector", "occlusion", "noise", "train_size")
 
 #: what each study varies, for titles and axis labels
 STUDY_TITLES = {
@@ -56,6 +56,7 @@ STUDY_TITLES = {
     "state_vector": ("With vs without the state vector", "state vector"),
     "occlusion": ("Tool occlusion", "occlusion radius (mm)"),
     "noise": ("Point-cloud noise", "Gaussian noise σ (mm)"),
+    "train_size": ("Learning curve: accuracy vs training-set size", "fraction of the training split used"),
 }
 
 
@@ -69,6 +70,7 @@ class StudyPoint:
     label: str
     model_overrides: dict = field(default_factory=dict)
     roi_fraction: float | None = None
+    train_fraction: float | None = None  # learning curve: use this fraction of the training split
     series: str = ""  # curve the point belongs to in the plot (e.g. "dae / noise")
 
 
@@ -125,6 +127,9 @@ def study_points(study: str, study_cfg: dict) -> list[StudyPoint]:
         elif study == "noise":
             pts += [StudyPoint(study, sc, float(v), f"{float(v):g}mm", {"noise_mm": float(v)}, series=sc)
                     for v in s["values"]]
+        elif study == "train_size":
+            pts += [StudyPoint(study, sc, float(v), f"{float(v):g}", train_fraction=float(v), series=sc)
+                    for v in s["values"]]
         else:
             raise ValueError(f"unknown study '{study}': use one of {STUDIES}")
     return pts
@@ -177,6 +182,7 @@ def run_point(
     threads: int = 1,
     roi_fraction: float | None = None,
     surfaces: dict | None = None,
+    train_fraction: float | None = None,
 ) -> dict:
     """Train one model on the train split (no tuning) and evaluate it on the test split.
 
@@ -199,6 +205,9 @@ def run_point(
     roi_fraction, surfaces
         Re-select the ROI at this area fraction (``surfaces``: geometry id ->
         SurfaceGraph) before anything else.
+    train_fraction
+        Train on a seeded random subset of this fraction of the training split
+        (every training geometry keeps its share); the test split is unchanged.
 
     Returns
     -------
@@ -215,6 +224,8 @@ def run_point(
             arrays = with_roi_fraction(arrays, roi_fraction, surfaces)
         geo = np.asarray(arrays["geometry_id"]).astype(str)
         tr, te = train_test_split(geo, scenario=scenario, test_fraction=float(test_fraction), seed=int(seed))
+        if train_fraction is not None and train_fraction < 1.0:
+            tr = subsample_per_geometry(tr, geo, float(train_fraction), seed=int(seed))
         train_arrays, test_arrays = subset(arrays, tr), subset(arrays, te)
         rep = representation_from_config(model_cfg, train_arrays)
         prep_train = prepare(train_arrays, rep, observation_seeds=view_seeds(seed, n_views_for(rep)))
@@ -239,6 +250,21 @@ def run_point(
         "seconds": time.perf_counter() - t0,
         "cpu_seconds": time.process_time() - c0,
     }
+
+
+def subsample_per_geometry(idx, geometry_ids, fraction: float, seed: int) -> np.ndarray:
+    """A seeded subset of ``fraction`` of the indices ``idx``, taken per geometry (each keeps >= 1 case)."""
+    if not 0 < fraction <= 1:
+        raise ValueError(f"train fraction must be in (0, 1], got {fraction}")
+    idx = np.asarray(idx)
+    geo = np.asarray(geometry_ids)[idx]
+    rng = np.random.default_rng([int(seed), 7])
+    keep = []
+    for g in np.unique(geo):
+        members = idx[geo == g]
+        n = max(1, int(round(fraction * len(members))))
+        keep.append(rng.choice(members, size=n, replace=False))
+    return np.sort(np.concatenate(keep))
 
 
 # --------------------------------------------------------------------------
@@ -284,9 +310,10 @@ def run_study(
                               str(study_cfg.get("hyper_parameters", "main")))
         if mcfg["occlusion"]["radius_mm"] == 0:
             mcfg = _merge(mcfg, {"occlusion": {"mode": "remove"}})  # no occlusion: the mode does not matter
-        key = json.dumps([pt.scenario, mcfg, pt.roi_fraction, hp], sort_keys=True, default=str)
+        key = json.dumps([pt.scenario, mcfg, pt.roi_fraction, pt.train_fraction, hp], sort_keys=True, default=str)
         doc: dict[str, Any] = {"study": study, "scenario": pt.scenario, "value": pt.value, "label": pt.label,
                                "series": pt.series, "overrides": pt.model_overrides, "roi_fraction": pt.roi_fraction,
+                               "train_fraction": pt.train_fraction,
                                "encoder": mcfg["encoder"], "state_vector": bool(mcfg["state_vector"]),
                                "hyper_parameters": hp, "epochs": epochs}
         try:
@@ -295,7 +322,7 @@ def run_study(
             else:
                 res = run_point(data[pt.scenario], mcfg, hp, scenario=pt.scenario, seed=seed,
                                 test_fraction=float(train_cfg["test_fraction"]), epochs=epochs, threads=threads,
-                                roi_fraction=pt.roi_fraction, surfaces=surfaces)
+                                roi_fraction=pt.roi_fraction, surfaces=surfaces, train_fraction=pt.train_fraction)
                 done[key] = {**res, "label": pt.label}
                 doc.update(res, status="ok")
             doc["label"] = pt.label
@@ -307,6 +334,7 @@ def run_study(
                       "encoder": mcfg["encoder"], "state_vector": bool(mcfg["state_vector"]),
                       "occlusion.radius_mm": mcfg["occlusion"]["radius_mm"], "occlusion.mode": mcfg["occlusion"]["mode"],
                       "noise_mm": mcfg["noise_mm"], "roi_fraction": pt.roi_fraction, "epochs": epochs,
+                      "train_fraction": pt.train_fraction,
                       "seed": seed, "hidden": hp["hidden"], "dropout": hp["dropout"], "lr": hp["lr"],
                       "batch_size": hp["batch_size"], "hyper_parameters_from": hp["source"]}
             run_tags = {"rule": "study", "study": study, "value": str(pt.value), "scenario": pt.scenario,

@@ -49,6 +49,8 @@ STUDY_TEXT = {
                  "(remove) or replaced by noise (noise). The study reported a cost of 4.2 accuracy points.",
     "noise": "Gaussian noise on every observed point (a stereo endoscope reconstructs the surface with roughly "
              "0.5-2 mm error).",
+    "train_size": "Learning curve: the same model trained on a fraction of the training split, tested on the same "
+                  "test split. A curve still rising at 1.0 means more simulated cases would raise the accuracy.",
 }
 
 

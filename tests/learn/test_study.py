@@ -126,6 +126,30 @@ def test_clean_linear_problem_is_learned_and_heavy_noise_does_not_help(data):
     assert noisy["metrics"]["accuracy_pct"] < clean["metrics"]["accuracy_pct"]
 
 
+def test_learning_curve_uses_fewer_training_cases_same_test_split_and_fewer_cases_do_worse(data):
+    arrays, _ = data
+    full = run_point(arrays, MODEL, HP, scenario="II", seed=0, test_fraction=0.25, epochs=EPOCHS)
+    few = run_point(arrays, MODEL, HP, scenario="II", seed=0, test_fraction=0.25, epochs=EPOCHS,
+                    train_fraction=0.1)
+    assert (few["n_train"], few["n_test"]) == (12, 40) and full["n_train"] == 120
+    # 12 cases for a 3-output map through a 4-component code and a 64x64 MLP: clearly worse than 120
+    assert few["metrics"]["mae_vec"] > 1.5 * full["metrics"]["mae_vec"], (few["metrics"], full["metrics"])
+
+
+def test_training_subsample_is_per_geometry_seeded_and_inside_the_split():
+    from liverforce.learn.study import subsample_per_geometry
+
+    geo = np.array(["a"] * 40 + ["b"] * 20)
+    idx = np.arange(0, 60, 2)  # 20 of a, 10 of b
+    sub = subsample_per_geometry(idx, geo, 0.5, seed=3)
+    assert set(sub) <= set(idx)
+    assert (geo[sub] == "a").sum() == 10 and (geo[sub] == "b").sum() == 5
+    assert np.array_equal(sub, subsample_per_geometry(idx, geo, 0.5, seed=3))
+    assert not np.array_equal(sub, subsample_per_geometry(idx, geo, 0.5, seed=4))
+    with pytest.raises(ValueError, match="train fraction"):
+        subsample_per_geometry(idx, geo, 0.0, seed=3)
+
+
 def test_study_points_expand_the_config():
     cfg = {
         "enabled": True, "epochs": 3, "hyper_parameters": "main",
@@ -135,8 +159,11 @@ def test_study_points_expand_the_config():
         "occlusion": {"enabled": True, "scenarios": ["IV"], "radii_mm": [0, 5, 10], "encoders": ["dae", "pca"],
                       "modes": ["noise", "remove"]},
         "noise": {"enabled": False, "scenarios": ["II"], "values": [0, 1]},
+        "train_size": {"enabled": True, "scenarios": ["II", "IV"], "values": [0.25, 1.0]},
     }
-    assert enabled_studies(cfg) == ["roi_fraction", "encoder", "state_vector", "occlusion"]
+    assert enabled_studies(cfg) == ["roi_fraction", "encoder", "state_vector", "occlusion", "train_size"]
+    ts = study_points("train_size", cfg)
+    assert [(p.scenario, p.train_fraction) for p in ts] == [("II", 0.25), ("II", 1.0), ("IV", 0.25), ("IV", 1.0)]
     assert len(study_points("encoder", cfg)) == 6
     occ = study_points("occlusion", cfg)
     assert len(occ) == 12
@@ -144,7 +171,7 @@ def test_study_points_expand_the_config():
     sv = study_points("state_vector", cfg)
     assert [p.model_overrides["state_vector"] for p in sv] == [False, True]
     assert enabled_studies({**cfg, "enabled": False}) == []
-    assert set(STUDIES) == {"roi_fraction", "encoder", "state_vector", "occlusion", "noise"}
+    assert set(STUDIES) == {"roi_fraction", "encoder", "state_vector", "occlusion", "noise", "train_size"}
 
 
 def test_hyper_parameters_come_from_the_tuned_main_model():
