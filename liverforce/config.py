@@ -175,6 +175,7 @@ class ModelConfig:
     roi_features: str = "displacement"
     grid_half_width_mm: float = 0.0
     dae_input_noise: float = 0.1
+    roi_fraction: Optional[float] = None  # None: the shards' dataset.roi_fraction
 
 
 @dataclass
@@ -445,6 +446,13 @@ def _check_ranges(cfg: dict) -> None:
     d = cfg["dataset"]
     if not 0 < d["roi_fraction"] <= 1:
         _fail("dataset.roi_fraction", f"must be in (0, 1] (got {d['roi_fraction']})")
+    mf = cfg["model"]["roi_fraction"]
+    if mf is not None:
+        if not 0 < mf <= 1:
+            _fail("model.roi_fraction", f"must be in (0, 1] or null (got {mf})")
+        if not d["store_full_surface"]:
+            _fail("model.roi_fraction", "re-selecting the ROI at training time needs the full surface in the shards",
+                  "set dataset.store_full_surface=true, or change dataset.roi_fraction (re-simulates)")
     if d["compression"] not in ("zstd", "snappy", "gzip", "none"):
         _fail("dataset.compression", f"unknown '{d['compression']}'")
 

@@ -109,3 +109,24 @@ def test_changing_one_value_reruns_only_its_stage_and_descendants(smoke_run):
     assert "geometry" not in counts and "mesh" not in counts
     counts = rerun("mesh.target_nodes=900")
     assert "mesh" in counts and "geometry" not in counts
+
+
+def test_a_variant_can_train_on_another_roi_fraction_without_new_simulations(smoke_run):
+    """model.roi_fraction re-grows the ROI from the stored full surface; the saved model serves that fraction."""
+    from liverforce.serve import Predictor
+
+    root = smoke_run / "results" / "smoke"
+    shards_before = {p: p.stat().st_mtime_ns for p in (root / "shards").rglob("*.parquet")}
+    variant = "[{name:roi30,encoder:pca,state_vector:true,roi_fraction:0.3}]"
+    proc = snakemake("--cores", "2", "--directory", str(smoke_run), "--config", "experiment=smoke",
+                     f"overrides=train.variants={variant}", "--", "results/smoke/models/II/roi30/metrics.json")
+    assert "rule simulate" not in proc.stdout and "rule mesh" not in proc.stdout
+    assert {p: p.stat().st_mtime_ns for p in (root / "shards").rglob("*.parquet")} == shards_before
+    metrics = json.loads((root / "models" / "II" / "roi30" / "metrics.json").read_text())
+    base = json.loads((root / "models" / "II" / "pca_sv" / "metrics.json").read_text())
+    assert metrics["run_id"] and metrics["metrics"]["mae_vec"] > 0
+    assert Predictor.load(root / "models" / "II" / "roi30" / "model").roi_fraction == pytest.approx(0.3)
+    assert Predictor.load(root / "models" / "II" / "pca_sv" / "model").roi_fraction == pytest.approx(0.18)
+    log = (root / "logs" / "train" / "II-roi30.log").read_text()
+    assert "ROI re-grown at 0.300" in log
+    assert metrics["model_cfg"]["roi_fraction"] == 0.3 and base["model_cfg"].get("roi_fraction") is None

@@ -386,12 +386,15 @@ def make_manifest(shard_paths: list[str], manifest_path) -> dict:
 
 def train_model(manifest_path, scenario: str, variant: str, model_cfg: dict, train_cfg: dict, tune_cfg: dict,
                 tracking_uri: str, experiment_prefix: str, experiment: str, seed: int, threads: int,
-                metrics_path, model_dir) -> dict:
+                metrics_path, model_dir, mesh_paths: list[str] | None = None) -> dict:
     """Train one scenario/variant from verified shards; track it in MLflow.
 
     Every shard is checked against the manifest's hash before it is read: a
     truncated or modified shard stops training with its name (delete it and
-    re-run to rebuild it).
+    re-run to rebuild it). With ``model_cfg["roi_fraction"]`` set, the ROI is
+    re-grown at that area fraction from the stored full-surface displacements
+    (``mesh_paths``: the scenario's meshes) and the model is trained and saved
+    for that fraction.
     """
     from liverforce.config import config_hash
     from liverforce.learn.train import train_scenario
@@ -399,7 +402,26 @@ def train_model(manifest_path, scenario: str, variant: str, model_cfg: dict, tra
 
     shards = dio.verify_manifest(manifest_path)
     manifest = json.loads(Path(manifest_path).read_text())
-    arrays = dio.load_training_arrays(shards)
+    shard_meta = dio.read_metadata(shards[0])
+    roi_fraction = float(shard_meta["dataset"]["roi_fraction"])
+    wanted = model_cfg.get("roi_fraction")
+    if wanted is not None and abs(float(wanted) - roi_fraction) > 1e-12:
+        from liverforce.dataset.roi import surface_graph
+        from liverforce.learn.representation import with_roi_fraction
+        from liverforce.mesh.io import read_mesh
+
+        if not 0 < float(wanted) <= 1:
+            raise ValueError(f"variant {variant}: model.roi_fraction must be in (0, 1], got {wanted}")
+        if not mesh_paths:
+            raise ValueError(f"variant {variant}: model.roi_fraction={wanted} needs the scenario's meshes")
+        surfaces = {Path(p).stem: surface_graph(read_mesh(p).points, read_mesh(p).facets) for p in mesh_paths}
+        arrays = with_roi_fraction(load_study_arrays(manifest_path, full_surface=True), float(wanted), surfaces)
+        arrays.pop("surface_displacement_mm", None)
+        log.info("scenario %s / %s: ROI re-grown at %.3f of the surface (shards: %.3f; achieved mean %.3f)",
+                 scenario, variant, float(wanted), roi_fraction, float(np.mean(arrays["roi_area_fraction"])))
+        roi_fraction = float(wanted)
+    else:
+        arrays = dio.load_training_arrays(shards)
     n = len(arrays["case_id"])
     log.info("scenario %s / %s: %d converged cases from %d shards (data version %s)", scenario, variant, n,
              len(shards), manifest["data_version"])
@@ -415,9 +437,8 @@ def train_model(manifest_path, scenario: str, variant: str, model_cfg: dict, tra
         "config_hash": config_hash({"model": model_cfg, "train": train_cfg, "tune": tune_cfg}),
         "data_version": manifest["data_version"],
     }
-    shard_meta = dio.read_metadata(shards[0])
     model_meta = {
-        "roi_fraction": float(shard_meta["dataset"]["roi_fraction"]),
+        "roi_fraction": roi_fraction,
         "frame_radius_mm": float(shard_meta["simulate"]["tool_radius_mm"]),
         "data_version": manifest["data_version"],
     }

@@ -4,6 +4,9 @@
 rule train:
     input:
         manifest=f"{E}/shards/{{scenario}}/manifest.json",
+        # the meshes only when the variant re-selects the ROI (model.roi_fraction): their surface graphs
+        meshes=lambda wc: (expand(f"{E}/mesh/{{gid}}.vtu", gid=PLAN.scenario_geometries(wc.scenario))
+                           if PLAN.variants()[wc.variant].get("roi_fraction") is not None else []),
     output:
         metrics=f"{E}/models/{{scenario}}/{{variant}}/metrics.json",
         model=directory(f"{E}/models/{{scenario}}/{{variant}}/model"),

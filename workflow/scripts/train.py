@@ -18,4 +18,5 @@ train_model(
     threads=sm.threads,
     metrics_path=sm.output.metrics,
     model_dir=sm.output.model,
+    mesh_paths=list(sm.input.meshes),
 )
