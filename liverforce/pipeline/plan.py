@@ -130,8 +130,13 @@ class Plan:
         return list(self.cfg["train"]["scenarios"])
 
     def chosen_variant(self) -> str:
-        """The variant used for validation and prediction: the first listed."""
+        """The main variant (the first listed): the studies' starting point and the report's main column."""
         return next(iter(self.variants()))
+
+    def validation_variants(self) -> list[str]:
+        """Scenario-IV variants the validate rule chooses among (``validate.variant``: auto = all)."""
+        how = self.cfg["validate"].get("variant", "auto")
+        return list(self.variants()) if how == "auto" else [how]
 
     def slice_hash(self, obj) -> str:
         return config_hash(obj)

@@ -455,9 +455,33 @@ def train_model(manifest_path, scenario: str, variant: str, model_cfg: dict, tra
 # ----------------------------------------------------------------- validate
 
 
+def choose_variant(metrics_paths: list, how: str = "auto") -> tuple[int, str]:
+    """Index of the scenario-IV model to validate, and why.
+
+    ``auto``: the lowest Ax cross-validation MSE (folds by liver, training split
+    only: neither the IV test liver nor the unseen liver informs the choice);
+    the first listed when no variant was tuned. Else the variant of that name.
+    """
+    docs = [json.loads(Path(p).read_text()) for p in metrics_paths]
+    names = [d.get("variant") or Path(p).parent.name for d, p in zip(docs, metrics_paths)]
+    if how != "auto":
+        if how not in names:
+            raise ValueError(f"validate.variant '{how}' is not among the trained scenario-IV variants {names}")
+        return names.index(how), f"validate.variant={how}"
+    cv = [d.get("cv_mse") for d in docs]
+    if any(c is None for c in cv):
+        return 0, "first listed variant (not every variant was tuned, no CV score to compare)"
+    best = int(np.argmin(cv))
+    return best, ("lowest cross-validation MSE on the training livers: "
+                  + ", ".join(f"{n} {c:.4f}" for n, c in zip(names, cv)))
+
+
 def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_path, tracking_uri, out_path,
-                   experiment_name: str = "liverforce-validation") -> dict:
+                   experiment_name: str = "liverforce-validation", variant: str = "auto") -> dict:
     """Predict the unseen liver's cases with the chosen scenario-IV model.
+
+    ``model_dir`` / ``model_metrics_path`` may be lists (every scenario-IV
+    variant): :func:`choose_variant` picks one by ``variant``.
 
     Reports MAE / RMSE (N), accuracy %, and the error against force magnitude
     and against the distance of the exertion point from the nearest training
@@ -468,6 +492,11 @@ def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_
     from liverforce.learn.model import ForceModel
     from liverforce.tracking import Tracker
 
+    choice = "the only model given"
+    if isinstance(model_metrics_path, (list, tuple)):
+        k, choice = choose_variant(list(model_metrics_path), variant)
+        model_dir, model_metrics_path = list(model_dir)[k], list(model_metrics_path)[k]
+    log.info("validating %s (%s)", model_dir, choice)
     model = ForceModel.load(Path(model_dir))
     arrays = dio.load_training_arrays(dio.verify_manifest(manifest_path))
     train = dio.load_training_arrays(dio.verify_manifest(train_manifest_path))
@@ -497,6 +526,8 @@ def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_
         "error_vs_distance": {"distance_mm": dist.tolist(), "error_n": err.tolist()},
         "corr_error_distance": float(np.corrcoef(dist, err)[0, 1]) if n > 2 and dist.std() > 0 else float("nan"),
         "model_run_id": model_metrics.get("run_id"),
+        "model_variant": model_metrics.get("variant") or Path(model_metrics_path).parent.name,
+        "variant_choice": choice,
         "predictions": {"case_id": [str(c) for c in arrays["case_id"]], "true_n": true.tolist(), "pred_n": pred.tolist()},
     }
     out_dir = Path(out_path).parent
@@ -506,7 +537,8 @@ def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_
     figures = evaluation_figures(true, pred, out_dir / "figures", title="unseen liver")
     result["figures"] = [str(Path(f).relative_to(out_dir)) for f in figures]
     tracker = Tracker(tracking_uri, experiment_name)
-    run_id = tracker.start_run("validation", params={"model_run_id": str(result["model_run_id"]), "n_cases": n},
+    run_id = tracker.start_run("validation", params={"model_run_id": str(result["model_run_id"]), "n_cases": n,
+                                                     "model_variant": result["model_variant"]},
                                tags={"rule": "validate", "model_run_id": str(result["model_run_id"])})
     tracker.log_metrics(run_id, metrics)
     for f in figures:

@@ -378,8 +378,12 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
 
     # ------------------------------------------------------------ validation
     parts.append("<h2 id='validation'>Unseen liver (validation)</h2>")
-    parts.append("<p>The main scenario-IV model predicts every case simulated on a liver shape and with material "
-                 "constants it never saw in training.</p>")
+    chosen = v.get("model_variant")
+    why = v.get("variant_choice")
+    parts.append("<p>A scenario-IV model predicts every case simulated on a liver shape and with material "
+                 "constants it never saw in training"
+                 + (f": variant <code>{html.escape(str(chosen))}</code>, chosen by {html.escape(str(why))}"
+                    if chosen else "") + ".</p>")
     parts.append(_table(["cases", "MAE (N)", "RMSE (N)", "accuracy %", "study MAE (N)", "MLflow run", "model run"],
                         [[v["n_cases"], _fmt(vm["mae_vec"]), _fmt(vm["rmse_vec"]), _fmt(vm["accuracy_pct"], 1),
                           _fmt(STUDY_VALIDATION_MAE_N), _run(v.get("run_id")), _run(v.get("model_run_id"))]]))

@@ -3,14 +3,16 @@
 
 rule validate:
     input:
-        model=f"{E}/models/IV/{PLAN.chosen_variant()}/model",
-        metrics=f"{E}/models/IV/{PLAN.chosen_variant()}/metrics.json",
+        # every scenario-IV variant (validate.variant=auto picks by cross-validation score) or the one named
+        model=expand(f"{E}/models/IV/{{v}}/model", v=PLAN.validation_variants()),
+        metrics=expand(f"{E}/models/IV/{{v}}/metrics.json", v=PLAN.validation_variants()),
         manifest=f"{E}/shards/V/manifest.json",
         train_manifest=f"{E}/shards/IV/manifest.json",
     output:
         metrics=f"{E}/validate/metrics.json",
     params:
         tracking_uri=TRACKING_URI,
+        variant=config_slice("validate", "variant"),
         experiment_name=f"{config_slice('tracking', 'experiment_prefix')}-{config_slice('experiment')}-validation",
     log:
         f"{E}/logs/validate/validate.log",

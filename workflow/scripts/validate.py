@@ -4,5 +4,6 @@ from liverforce.pipeline.stages import validate_model
 
 sm = snakemake  # noqa: F821
 setup_job(sm.log[0], sm.threads)
-validate_model(sm.input.model, sm.input.metrics, sm.input.manifest, sm.input.train_manifest, sm.params.tracking_uri,
-               sm.output.metrics, experiment_name=sm.params.experiment_name)
+validate_model(list(sm.input.model), list(sm.input.metrics), sm.input.manifest, sm.input.train_manifest,
+               sm.params.tracking_uri, sm.output.metrics, experiment_name=sm.params.experiment_name,
+               variant=sm.params.variant)
