@@ -211,7 +211,7 @@ class ValidateConfig:
     seed: int = 1000
     n_cases: int = 60
     material_scale: float = 1.4
-    variant: str = "auto"  # auto: the scenario-IV variant with the lowest Ax cross-validation MSE | a variant name
+    variant: str = "main"  # main: the first of train.variants | auto: lowest Ax CV MSE | a variant name
 
 
 @dataclass
@@ -448,9 +448,9 @@ def _check_ranges(cfg: dict) -> None:
     if not 0 < d["roi_fraction"] <= 1:
         _fail("dataset.roi_fraction", f"must be in (0, 1] (got {d['roi_fraction']})")
     names = [v.get("name") for v in cfg["train"]["variants"]] or ["default"]
-    if cfg["validate"]["variant"] not in ["auto", *names]:
+    if cfg["validate"]["variant"] not in ["main", "auto", *names]:
         _fail("validate.variant", f"unknown variant '{cfg['validate']['variant']}'",
-              f"use auto or one of train.variants: {', '.join(map(str, names))}")
+              f"use main, auto or one of train.variants: {', '.join(map(str, names))}")
     mf = cfg["model"]["roi_fraction"]
     if mf is not None:
         if not 0 < mf <= 1:

@@ -35,7 +35,9 @@ def test_every_stage_produced_its_outputs(smoke_run):
         for variant in ("pca_sv", "ae_sv"):
             metrics = json.loads((root / "models" / scenario / variant / "metrics.json").read_text())
             assert metrics["run_id"]
-    assert (root / "validate" / "metrics.json").exists()
+    val = json.loads((root / "validate" / "metrics.json").read_text())
+    assert set(val["all_variants"]) == {"pca_sv", "ae_sv"} and val["model_variant"] == "pca_sv"  # main
+    assert val["metrics"] == pytest.approx(val["all_variants"]["pca_sv"]["metrics"])
     for study in ("roi_fraction", "encoder", "state_vector", "occlusion", "noise", "train_size"):
         doc = json.loads((root / "studies" / f"{study}.json").read_text())
         assert len(doc["points"]) == 2 and (root / "studies" / f"{study}.png").stat().st_size > 5000

@@ -458,12 +458,15 @@ def train_model(manifest_path, scenario: str, variant: str, model_cfg: dict, tra
 def choose_variant(metrics_paths: list, how: str = "auto") -> tuple[int, str]:
     """Index of the scenario-IV model to validate, and why.
 
-    ``auto``: the lowest Ax cross-validation MSE (folds by liver, training split
-    only: neither the IV test liver nor the unseen liver informs the choice);
-    the first listed when no variant was tuned. Else the variant of that name.
+    ``main``: the first listed (the main variant). ``auto``: the lowest Ax
+    cross-validation MSE (folds by liver, training split only: neither the IV
+    test liver nor the unseen liver informs the choice); the first listed when
+    no variant was tuned. Else the variant of that name.
     """
     docs = [json.loads(Path(p).read_text()) for p in metrics_paths]
     names = [d.get("variant") or Path(p).parent.name for d, p in zip(docs, metrics_paths)]
+    if how == "main":
+        return 0, "validate.variant=main (the first of train.variants)"
     if how != "auto":
         if how not in names:
             raise ValueError(f"validate.variant '{how}' is not among the trained scenario-IV variants {names}")
@@ -493,12 +496,19 @@ def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_
     from liverforce.tracking import Tracker
 
     choice = "the only model given"
+    others = {}
+    arrays = dio.load_training_arrays(dio.verify_manifest(manifest_path))
     if isinstance(model_metrics_path, (list, tuple)):
         k, choice = choose_variant(list(model_metrics_path), variant)
+        for d, mp in zip(model_dir, model_metrics_path):  # every candidate on the unseen liver, for the report
+            m = ForceModel.load(Path(d))
+            others[Path(mp).parent.name] = {
+                "metrics": force_metrics(arrays["force_n"], m.predict(
+                    arrays, observation_seed=int(m.meta.get("eval_observation_seed", 0)))),
+                "model_run_id": json.loads(Path(mp).read_text()).get("run_id")}
         model_dir, model_metrics_path = list(model_dir)[k], list(model_metrics_path)[k]
     log.info("validating %s (%s)", model_dir, choice)
     model = ForceModel.load(Path(model_dir))
-    arrays = dio.load_training_arrays(dio.verify_manifest(manifest_path))
     train = dio.load_training_arrays(dio.verify_manifest(train_manifest_path))
     n = len(arrays["case_id"])
     if n == 0:
@@ -528,6 +538,7 @@ def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_
         "model_run_id": model_metrics.get("run_id"),
         "model_variant": model_metrics.get("variant") or Path(model_metrics_path).parent.name,
         "variant_choice": choice,
+        "all_variants": others,
         "predictions": {"case_id": [str(c) for c in arrays["case_id"]], "true_n": true.tolist(), "pred_n": pred.tolist()},
     }
     out_dir = Path(out_path).parent

@@ -387,6 +387,13 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
     parts.append(_table(["cases", "MAE (N)", "RMSE (N)", "accuracy %", "study MAE (N)", "MLflow run", "model run"],
                         [[v["n_cases"], _fmt(vm["mae_vec"]), _fmt(vm["rmse_vec"]), _fmt(vm["accuracy_pct"], 1),
                           _fmt(STUDY_VALIDATION_MAE_N), _run(v.get("run_id")), _run(v.get("model_run_id"))]]))
+    allv = v.get("all_variants") or {}
+    if len(allv) > 1:
+        parts.append("<p>Every scenario-IV variant on the same unseen cases:</p>")
+        parts.append(_table(["variant", "MAE (N)", "RMSE (N)", "accuracy %", "model run"],
+                            [[html.escape(name), _fmt(d["metrics"]["mae_vec"]), _fmt(d["metrics"]["rmse_vec"]),
+                              _fmt(d["metrics"]["accuracy_pct"], 1), _run(d.get("model_run_id"))]
+                             for name, d in allv.items()]))
     parts.append("<h3>Error against force magnitude</h3>")
     parts.append(_table(["|F| from (N)", "to (N)", "cases", "MAE (N)"],
                         [[_fmt(b["force_lo_n"], 2), _fmt(b["force_hi_n"], 2), b["n"], _fmt(b["mae_vec_n"])]

@@ -32,6 +32,11 @@ def test_a_named_variant_is_taken_and_an_unknown_one_refused(tmp_path):
         choose_variant(paths, "dae_sv")
 
 
+def test_main_is_the_first_listed(tmp_path):
+    paths = _metrics(tmp_path, {"pca_sv": 0.3, "ae_sv": 0.1})
+    assert choose_variant(paths, "main")[0] == 0
+
+
 def test_without_tuning_the_first_variant_is_used(tmp_path):
     paths = _metrics(tmp_path, {"pca_sv": None, "ae_sv": 0.1})
     k, why = choose_variant(paths, "auto")
@@ -42,3 +47,4 @@ def test_config_refuses_a_validation_variant_that_is_not_trained():
     with pytest.raises(ConfigError, match="validate.variant"):
         compose(["experiment=smoke", "validate.variant=nope"])
     assert compose(["experiment=smoke", "validate.variant=ae_sv"])["validate"]["variant"] == "ae_sv"
+    assert compose(["experiment=smoke"])["validate"]["variant"] == "main"
