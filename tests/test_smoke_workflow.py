@@ -75,7 +75,7 @@ def test_report_study_numbers_match_their_mlflow_runs(smoke_run):
     client = mlflow.tracking.MlflowClient(tracking_uri=f"sqlite:///{smoke_run / 'results' / 'mlflow.db'}")
     rows = re.findall(r"<tr class='study-point'><td>(\w+)</td><td>(I|II|III|IV)</td><td>([^<]+)</td>"
                       r"<td>([-\d.–]+)</td><td>([\d.–]+)</td>.*?<code>(\w+)</code>", html)
-    assert len(rows) == 10  # 5 studies x 2 points (smoke)
+    assert len(rows) == 12  # 6 studies x 2 points (smoke)
     ok = 0
     for study, scenario, label, acc, mae, run_id in rows:
         run = client.get_run(run_id)

@@ -98,6 +98,7 @@ def test_config_key_points_the_pipeline_at_a_server():
 
 
 @pytest.mark.timeout(600)
+@pytest.mark.slow  # starts a real server (~50 s)
 def test_training_logs_run_metrics_and_model_to_an_mlflow_server(mlflow_server, tmp_path):
     from mlflow.tracking import MlflowClient
 
