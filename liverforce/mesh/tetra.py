@@ -507,13 +507,7 @@ def _patch_majority(patches: np.ndarray, labels: np.ndarray) -> np.ndarray:
 
 def _label_boundary_edges(faces: np.ndarray, labels: np.ndarray) -> np.ndarray:
     """Edges ``(e, 2)`` shared by two triangles of different labels."""
-    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    owner = np.tile(np.arange(len(faces)), 3)
-    key = np.sort(edges, axis=1)
-    order = np.lexsort((key[:, 1], key[:, 0]))
-    key, owner = key[order], owner[order]
-    same = np.all(key[1:] == key[:-1], axis=1)
-    a, b, k = owner[:-1][same], owner[1:][same], key[:-1][same]
+    k, a, b = _edge_pairs(faces)
     return k[labels[a] != labels[b]]
 
 

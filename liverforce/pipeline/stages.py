@@ -406,16 +406,14 @@ def train_model(manifest_path, scenario: str, variant: str, model_cfg: dict, tra
     roi_fraction = float(shard_meta["dataset"]["roi_fraction"])
     wanted = model_cfg.get("roi_fraction")
     if wanted is not None and abs(float(wanted) - roi_fraction) > 1e-12:
-        from liverforce.dataset.roi import surface_graph
         from liverforce.learn.representation import with_roi_fraction
-        from liverforce.mesh.io import read_mesh
 
         if not 0 < float(wanted) <= 1:
             raise ValueError(f"variant {variant}: model.roi_fraction must be in (0, 1], got {wanted}")
         if not mesh_paths:
             raise ValueError(f"variant {variant}: model.roi_fraction={wanted} needs the scenario's meshes")
-        surfaces = {Path(p).stem: surface_graph(read_mesh(p).points, read_mesh(p).facets) for p in mesh_paths}
-        arrays = with_roi_fraction(load_study_arrays(manifest_path, full_surface=True), float(wanted), surfaces)
+        arrays = with_roi_fraction(load_study_arrays(manifest_path, full_surface=True), float(wanted),
+                                   surface_graphs(mesh_paths))
         arrays.pop("surface_displacement_mm", None)
         log.info("scenario %s / %s: ROI re-grown at %.3f of the surface (shards: %.3f; achieved mean %.3f)",
                  scenario, variant, float(wanted), roi_fraction, float(np.mean(arrays["roi_area_fraction"])))
@@ -495,25 +493,27 @@ def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_
     from liverforce.learn.model import ForceModel
     from liverforce.tracking import Tracker
 
+    def predict(d):
+        m = ForceModel.load(Path(d))
+        return m.predict(arrays, observation_seed=int(m.meta.get("eval_observation_seed", 0)))
+
     choice = "the only model given"
     others = {}
     arrays = dio.load_training_arrays(dio.verify_manifest(manifest_path))
-    if isinstance(model_metrics_path, (list, tuple)):
-        k, choice = choose_variant(list(model_metrics_path), variant)
-        for d, mp in zip(model_dir, model_metrics_path):  # every candidate on the unseen liver, for the report
-            m = ForceModel.load(Path(d))
-            others[Path(mp).parent.name] = {
-                "metrics": force_metrics(arrays["force_n"], m.predict(
-                    arrays, observation_seed=int(m.meta.get("eval_observation_seed", 0)))),
-                "model_run_id": json.loads(Path(mp).read_text()).get("run_id")}
-        model_dir, model_metrics_path = list(model_dir)[k], list(model_metrics_path)[k]
-    log.info("validating %s (%s)", model_dir, choice)
-    model = ForceModel.load(Path(model_dir))
-    train = dio.load_training_arrays(dio.verify_manifest(train_manifest_path))
     n = len(arrays["case_id"])
     if n == 0:
         raise RuntimeError(f"{manifest_path}: no converged validation case to evaluate")
-    pred = model.predict(arrays, observation_seed=int(model.meta.get("eval_observation_seed", 0)))
+    if isinstance(model_metrics_path, (list, tuple)):
+        k, choice = choose_variant(list(model_metrics_path), variant)
+        preds = [predict(d) for d in model_dir]  # every candidate on the unseen liver, for the report
+        for p, mp in zip(preds, model_metrics_path):
+            others[Path(mp).parent.name] = {"metrics": force_metrics(arrays["force_n"], p),
+                                            "model_run_id": json.loads(Path(mp).read_text()).get("run_id")}
+        model_dir, model_metrics_path, pred = list(model_dir)[k], list(model_metrics_path)[k], preds[k]
+    else:
+        pred = predict(model_dir)
+    log.info("validated %s (%s)", model_dir, choice)
+    train = dio.load_training_arrays(dio.verify_manifest(train_manifest_path))
     true = arrays["force_n"]
     metrics = force_metrics(true, pred)
     err = np.linalg.norm(pred - true, axis=1)
@@ -565,6 +565,18 @@ def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_
 # -------------------------------------------------------------------- study
 
 
+def surface_graphs(mesh_paths) -> dict:
+    """Geometry id (mesh file stem) -> surface graph of its mesh, as the simulation built it (ROI re-growing)."""
+    from liverforce.dataset.roi import surface_graph
+    from liverforce.mesh.io import read_mesh
+
+    out = {}
+    for p in mesh_paths:
+        mesh = read_mesh(p)
+        out[Path(p).stem] = surface_graph(mesh.points, mesh.facets)
+    return out
+
+
 def load_study_arrays(manifest_path, full_surface: bool = False) -> dict:
     """Converged cases of one scenario (verified shards); with ``surface_displacement_mm`` if ``full_surface``."""
     shards = dio.verify_manifest(manifest_path)
@@ -596,15 +608,7 @@ def run_study_stage(study: str, study_cfg: dict, manifests: dict, main_metrics: 
     from liverforce.learn.study import plot_study, run_study
     from liverforce.tracking import Tracker
 
-    surfaces = None
-    if study == "roi_fraction":
-        from liverforce.dataset.roi import surface_graph
-        from liverforce.mesh.io import read_mesh
-
-        surfaces = {}
-        for p in mesh_paths:
-            mesh = read_mesh(p)
-            surfaces[Path(p).stem] = surface_graph(mesh.points, mesh.facets)
+    surfaces = surface_graphs(mesh_paths) if study == "roi_fraction" else None
     data, versions = {}, {}
     for sc, mp in manifests.items():
         data[sc] = load_study_arrays(mp, full_surface=study == "roi_fraction")

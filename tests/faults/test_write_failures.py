@@ -27,30 +27,12 @@ import pytest
 
 from liverforce.dataset import io as dio
 
-
-def row(i: int, rng, k: int = 8) -> dict:
-    und = rng.normal(size=(k, 3)).astype(np.float32)
-    de = und + 0.1
-    return {
-        "case_id": f"I-{i:06d}", "scenario": "I", "geometry_id": "proc-0000", "shard_index": 0, "seed": i,
-        "material_model": "yeoh", "material_param_names": ["C10", "C20", "C30"],
-        "material_params_mpa": [0.0016, 0.0125, 0.0053], "bulk_modulus_mpa": 0.5, "exertion_id": 0,
-        "exertion_point_mm": [1.0, 2.0, 3.0], "force_n": [0.1, 0.2, -1.0 * i], "force_magnitude_n": 1.0,
-        "frame_normal": [0, 0, 1.0], "frame_t1": [1.0, 0, 0], "frame_t2": [0, 1.0, 0],
-        "liver_centroid_mm": [0, 0, 0.0], "inertia_mm5": list(np.eye(3).ravel()),
-        "roi_fraction": 0.18, "roi_area_fraction": 0.181, "roi_node_ids": np.arange(k, dtype=np.int32),
-        "roi_undeformed_mm": und, "roi_deformed_mm": de,
-        "roi_centroid_undeformed_mm": und.mean(0), "roi_centroid_deformed_mm": de.mean(0),
-        "surface_displacement_mm": np.full((7, 3), 0.1, np.float32), "max_displacement_mm": 0.17,
-        "converged": True, "reason": "", "load_fraction": 1.0,
-        "load_steps": 3, "newton_iterations": 9, "final_residual": 1e-9, "linear_solver": "cholmod",
-        "wall_time_s": 0.5,
-    }
+from fake_rows import fake_row
 
 
 def make_rows(n: int, seed: int = 0, k: int = 8) -> list[dict]:
     rng = np.random.default_rng(seed)
-    return [row(i, rng, k) for i in range(n)]
+    return [fake_row(i, rng, k=k) for i in range(n)]
 
 
 class FullDisk:
