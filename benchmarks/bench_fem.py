@@ -6,7 +6,10 @@ Prints medians over repeats:
    1-5 N within a 30 degree cone, chained nearest-neighbour) with the default
    formulation (P2 mean dilatation) at the default (~5k P2 nodes) and, unless
    ``--quick``, the ~20k-node resolution: time per case, cases per core-hour,
-   share of time in assembly / factorisation / solves;
+   share of time in assembly / factorisation / solves; and a shard as the
+   pipeline runs it (the design's cases at one exertion point, 0-5 N, the
+   first one cold, warm starts from the pool of recent solutions), with
+   fixed (scenario II) and varied (III) material constants;
 2. FElupe vs ours on the same P1 mesh and case (same answer checked);
 3. mesh convergence: surface displacement near the tool and support reactions
    at 3 N on the default mesh and on one with twice the node density, with and
@@ -67,6 +70,9 @@ def tag_regions(points, tets):
     return facets, region, visible
 
 
+MESHES: dict = {}  # LiverMesh objects built by liver_mesh, by target size
+
+
 def liver_mesh(target_vertices: int, refine_edge_mm: float | None = 6.0):
     """(points, tets, facets, region, visible, source, x0) with a bulk of about ``target_vertices`` vertices.
 
@@ -85,6 +91,7 @@ def liver_mesh(target_vertices: int, refine_edge_mm: float | None = 6.0):
                              exertion_sampling={"n_points": 8, "min_spacing_mm": 15.0, "seed": 0})
         if refine_edge_mm is None:
             m.meta["refine_points"] = None
+        MESHES[target_vertices] = m
         x0 = closest_surface_points(m.points, m.facets[m.facet_visible], m.meta["exertion_candidates_mm"][0])[0]
         src = "liverforce.mesh.build" + (f", refined to {refine_edge_mm:.2f} mm at 8 exertion points"
                                          if refine_edge_mm else ", no refinement")
@@ -158,6 +165,45 @@ def bench_resolution(label, target_vertices, n_cases, repeats):
                                                    ("factorisation", tm["factorize"]), ("solves", tm["solve"])])
           + f", other {100 * (1 - sum(tm.values()) / total):.0f}%")
     return points, tets, facets, region, visible, x0
+
+
+def bench_shard(label, target_vertices, scenario, n_cases=25):
+    """A shard as the pipeline runs it: the sweep design's cases (first exertion point, chained for warm
+    starts), the first one cold, each next one from the nearest of the recent solutions (WarmStartPool)."""
+    from liverforce.fem.continuation import WarmStartPool
+    from liverforce.pipeline.stages import exertion_set, material_checks
+    from liverforce.sweep.design import build_cases
+
+    m = MESHES.get(target_vertices)
+    if m is None:
+        print(f"\n== shard ({label}): needs liverforce.mesh; skipped")
+        return
+    ex = exertion_set(m, 8, 15.0, 0, 5.0, candidates=m.meta["exertion_candidates_mm"])
+    spec = {"n_cases": 8 * n_cases, "exertion": "varies", "material": "varies" if scenario == "III" else "fixed"}
+    material = {"model": "yeoh", "params_mpa": YEOH, "nu": 0.49, "vary_rel": 0.3, "on_unstable": "clip"}
+    stable, bulk = material_checks([0.6, 1.4])
+    rows = build_cases(scenario, spec, ["g"], {"g": ex}, material, {"min_n": 0.0, "max_n": 5.0, "cone_deg": 30.0},
+                       "sobol", 0, n_cases, stable, bulk).rows
+    rows = [r for r in rows if r["exertion_id"] == rows[0]["exertion_id"]][:n_cases]
+    fe, pool, times, facs, failed = None, WarmStartPool(), [], [], 0
+    for c in rows:
+        mat = make_material(c["material_model"], dict(zip(c["material_param_names"], c["material_params_mpa"])),
+                            bulk_mpa=c["bulk_modulus_mpa"])
+        if fe is None:
+            fe = LiverModel(m.points, m.tets, m.facets, m.facet_region, mat,
+                            BoundaryParams.from_totals(m.points, m.facets, m.facet_region),
+                            SolverOptions(modified_newton=True, max_iter=25, initial_step=0.25, min_step=0.002,
+                                          max_steps=200))
+        load = ToolLoad(np.asarray(c["exertion_point_mm"]), np.asarray(c["force_n"]), 5.0)
+        r = fe.solve(load, material=mat, u0=pool.nearest(load, c["material_params_mpa"]))
+        pool.add(r, c["material_params_mpa"])
+        times.append(r.wall_time_s)
+        facs.append(r.factorizations)
+        failed += not r.converged
+    print(f"\n== shard ({label}, scenario {scenario}: {len(rows)} cases at one exertion point, 0-5 N in a 30 degree"
+          f" cone{', constants +-30 %' if scenario == 'III' else ''}; the first case cold): mean {np.mean(times):.2f} s"
+          f" per case -> {3600 / np.mean(times):.0f} cases per core-hour; median {np.median(times):.2f} s;"
+          f" cold first case {times[0]:.2f} s; factorisations {np.mean(facs):.2f} per case; failed {failed}")
 
 
 def bench_felupe(points, tets, facets, region, x0):
@@ -245,8 +291,12 @@ def main():
     default_vertices = 800  # with the default refinement ~5.5k P2 nodes
     pts, tets, facets, region, visible, x0 = bench_resolution("default resolution", default_vertices, n_cases, ARGS.repeats)
     bench_felupe(pts, tets, facets, region, x0)
+    for scenario in ("II", "III"):
+        bench_shard("default resolution", default_vertices, scenario)
     if not ARGS.quick:
         big = bench_resolution("~20k P2 nodes", 3000, max(10, n_cases // 2), max(1, ARGS.repeats - 2))
+        for scenario in ("II", "III"):
+            bench_shard("~20k P2 nodes", 3000, scenario)
         bench_felupe(big[0], big[1], big[2], big[3], big[5])
     for edge in (6.0, None):  # the default (refined at the exertion points and the IVC) and no refinement
         bench_mesh_convergence(default_vertices, edge)

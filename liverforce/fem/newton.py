@@ -56,7 +56,10 @@ class SolverOptions:
     formulation : "p2_mean_dilatation" (default, locking-free), "p1" or "p2".
     tol : relative force-residual tolerance.
     tol_disp : relative tolerance on the last Newton correction (safeguard).
-    max_iter : Newton iterations per load step before a cut-back.
+    max_iter : Newton iterations per load step before a cut-back. With
+        ``modified_newton``, iterations on a kept factorisation cost about
+        ``1 / refactor_cost`` of a factorised one and the cap is
+        ``max_iter + ceil(refactor_cost)``.
     max_total_iter : Newton iterations per case.
     initial_step : first load fraction of a cold start.
     min_step : smallest load-fraction increment before giving up.
@@ -75,7 +78,7 @@ class SolverOptions:
         [6, 60]. With a kept factorisation, a new one is computed when the
         current contraction rate ``rho`` predicts more than ``refactor_cost + 4``
         further iterations to reach ``tol`` (a fresh tangent needs ~4), when
-        that rate would exceed ``max_iter``, or when ``rho > modified_ratio_max``.
+        that rate would exceed the step's iteration cap, or when ``rho > modified_ratio_max``.
     modified_ratio_max : contraction factor that always triggers a refactorisation.
     quasi_newton : with ``modified_newton``, improve the kept factorisation by
         L-BFGS updates (secant pairs of the residual) between refactorisations.
@@ -353,7 +356,9 @@ class DiscreteSystem:
         best, stall = norm, 0
         refactor = full or not self.linear.has_factor
         memory: list = []  # BFGS pairs (s, y, 1/(y.s)) on top of a kept factorisation
-        for it in range(opt.max_iter + 1):
+        # cheap iterations on a kept factorisation may run past max_iter, up to one factorisation's worth
+        limit = opt.max_iter if full else opt.max_iter + int(np.ceil(self._refactor_cost(opt)))
+        for it in range(limit + 1):
             stats["last_res"] = norm / ref
             if not np.isfinite(norm):
                 raise _StepFailure(f"NaN residual at load fraction {lam:.4g}")
@@ -362,7 +367,7 @@ class DiscreteSystem:
                 return u, it, ev.f_int
             if du_inf <= 1e-13 * u_inf and norm <= 1e-5 * ref:  # limited by round-off
                 return u, it, ev.f_int
-            if it == opt.max_iter:
+            if it == limit:
                 break
             if stats["iters"] >= opt.max_total_iter:
                 raise _StepFailure(f"max_total_iter={opt.max_total_iter} Newton iterations reached")
@@ -411,12 +416,14 @@ class DiscreteSystem:
                 refactor = True
             else:  # predicted iterations to tol at the current rate vs the cost of a fresh tangent
                 remaining = np.log(max(opt.tol * ref / n_new, 1e-300)) / np.log(max(ratio, 1e-300))
-                refactor = remaining > self._refactor_cost(opt) + 4.0 or it + 1 + remaining > opt.max_iter
+                refactor = remaining > self._refactor_cost(opt) + 4.0 or it + 1 + remaining > limit
             best = min(best, norm)
             stall = 0 if progress else stall + 1
             if stall >= 4:
                 raise _StepFailure(f"no progress in 4 Newton iterations at load fraction {lam:.4g}")
-        raise _StepFailure(f"max_iter={opt.max_iter} reached at load fraction {lam:.4g} (residual {norm / ref:.2e})")
+        raise _StepFailure(f"{limit} Newton iterations (max_iter={opt.max_iter}"
+                           f"{'' if full else ' + refactor_cost'}) reached at load fraction {lam:.4g}"
+                           f" (residual {norm / ref:.2e})")
 
     def _refactor_cost(self, opt) -> float:
         if opt.refactor_cost is not None:
@@ -443,14 +450,15 @@ class DiscreteSystem:
     def _line_search(self, u, du, ev, norm, slope, material, f_load, full, opt):
         """Backtracking on the potential (Armijo, quadratic interpolation).
 
-        Trials that invert an element are halved. When the energy change is
-        below round-off (close to convergence) or ``du`` is not a descent
-        direction (indefinite tangent), a decrease of the residual norm is
-        accepted instead. Returns (alpha, evaluation, R, |R_free|, ref) or None.
+        Trials that invert an element are halved. When the energy change or
+        the decrease the slope predicts is below the energy's round-off (close
+        to convergence, tiny loads) or ``du`` is not a descent direction
+        (indefinite tangent), a decrease of the residual norm is accepted
+        instead. Returns (alpha, evaluation, R, |R_free|, ref) or None.
         """
         free = self.free
         e0 = ev.energy
-        noise = 1e-11 * (abs(e0) + abs(float(f_load @ u)) + 1e-30)
+        noise = 1e-10 * (abs(e0) + abs(float(f_load @ u)) + 1e-30)
         alpha, best = 1.0, None
         tries = opt.max_line_search + 1 if opt.line_search else 1
         for _ in range(tries):
@@ -467,7 +475,9 @@ class DiscreteSystem:
             if not opt.line_search:
                 return cand
             if slope < 0:
-                if de <= 1e-4 * alpha * slope or (abs(de) <= noise and n_t < norm):
+                # the expected decrease below the energy's round-off: only the residual can judge the step
+                blind = -alpha * slope <= 10.0 * noise
+                if de <= 1e-4 * alpha * slope or ((abs(de) <= noise or blind) and n_t < norm):
                     return cand
                 if best is None or ev_t.energy < best[1].energy:
                     best = cand

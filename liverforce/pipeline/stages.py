@@ -276,6 +276,7 @@ def simulate_shard(cases_path, mesh_paths: list[str], shard: int, sim: dict, bou
     with ``converged = False`` and its reason; it never stops the shard.
     """
     from liverforce.dataset.roi import extract_roi, surface_graph
+    from liverforce.fem.continuation import WarmStartPool
     from liverforce.fem.materials import make_material
     from liverforce.fem.problem import LiverModel, ToolLoad
     from liverforce.mesh.features import compute_features
@@ -287,8 +288,7 @@ def simulate_shard(cases_path, mesh_paths: list[str], shard: int, sim: dict, bou
     options = solver_options(sim)
     rows: list[dict] = []
     models: dict[str, tuple] = {}
-    prev_state = None
-    prev_key = None
+    pools: dict[str, WarmStartPool] = {}  # recent converged solutions per geometry, for warm starts
     t_start = time.perf_counter()
     for n_done, case in enumerate(cases, start=1):
         gid = case["geometry_id"]
@@ -301,15 +301,16 @@ def simulate_shard(cases_path, mesh_paths: list[str], shard: int, sim: dict, bou
             fe = LiverModel(mesh.points, mesh.tets, mesh.facets, mesh.facet_region, first_mat,
                             boundary_params(mesh, boundary), options)
             models[gid] = (mesh, feats, surf, fe)
+            pools[gid] = WarmStartPool(size=8)
         mesh, feats, surf, fe = models[gid]
         material = make_material(case["material_model"], dict(zip(case["material_param_names"], case["material_params_mpa"])),
                                  bulk_mpa=case["bulk_modulus_mpa"])
         load = ToolLoad(point_mm=np.asarray(case["exertion_point_mm"]), force_N=np.asarray(case["force_n"]),
                         radius_mm=sim["tool_radius_mm"])
-        warm = sim["warm_start"] and prev_key == gid and prev_state is not None
+        start = pools[gid].nearest(load, case["material_params_mpa"]) if sim["warm_start"] else None
         t0 = time.perf_counter()
         try:
-            res = fe.solve(load, material=material, u0=prev_state if warm else None)
+            res = fe.solve(load, material=material, u0=start)
             error = None
         except Exception as exc:  # a solver crash is recorded as a failed case, never fatal to the shard
             res, error = None, f"{type(exc).__name__}: {exc}"
@@ -317,7 +318,7 @@ def simulate_shard(cases_path, mesh_paths: list[str], shard: int, sim: dict, bou
         wall = time.perf_counter() - t0
         rows.append(_case_row(case, res, error, wall, mesh, feats, surf, dataset, sim["tool_radius_mm"], extract_roi))
         if res is not None and res.converged:
-            prev_state, prev_key = res.state, gid
+            pools[gid].add(res, case["material_params_mpa"])
         rate = n_done / (time.perf_counter() - t_start) * 3600
         dio.write_json_atomic({"done": n_done, "total": len(cases), "failed": sum(not r["converged"] for r in rows),
                                "elapsed_s": time.perf_counter() - t_start, "updated": time.time()},

@@ -157,8 +157,9 @@ def build_cases(
     Returns
     -------
     DesignResult
-        ``rows`` ordered for warm starts (geometry, exertion point, force
-        magnitude) with their shard index; ``dropped_unstable`` the refused sets.
+        ``rows`` ordered for warm starts (geometry, exertion point, then a
+        nearest-neighbour chain of forces, see :func:`warm_start_order`) with
+        their shard index; ``dropped_unstable`` the refused sets.
     """
     n = int(spec["n_cases"])
     names = sorted(material["params_mpa"])
@@ -216,12 +217,34 @@ def build_cases(
         )
     if not rows:
         raise SweepError(f"scenario {scenario}: every sampled material set was unstable; narrow material.vary_rel")
-    # warm-start order: geometry, exertion point, then force magnitude (each case starts from its
-    # neighbour's solution; material constants vary smoothly enough not to break the chain)
-    rows.sort(key=lambda r: (r["geometry_id"], r["exertion_id"], r["force_magnitude_n"], r["case_id"]))
+    rows = warm_start_order(rows)
     for j, r in enumerate(rows):
         r["shard_index"] = j // cases_per_shard
     return DesignResult(rows=rows, dropped_unstable=dropped)
+
+
+def warm_start_order(rows: list[dict]) -> list[dict]:
+    """Rows ordered for warm starts: by geometry and exertion point, then a nearest-neighbour chain.
+
+    Each case starts from a neighbouring case's solution, so within one
+    (geometry, exertion point) group the chain starts at the smallest force
+    and always moves to the closest case not yet visited
+    (:func:`liverforce.fem.continuation.case_distance`: the change of load,
+    with a material change counted as the load it unbalances). Sorting by magnitude
+    alone lets consecutive forces differ in direction by up to twice the cone
+    angle; the chain keeps the steps short. Deterministic.
+    """
+    from liverforce.fem.continuation import chain_order
+
+    groups: dict = {}
+    for r in sorted(rows, key=lambda r: (r["geometry_id"], r["exertion_id"], r["case_id"])):
+        groups.setdefault((r["geometry_id"], r["exertion_id"]), []).append(r)
+    out = []
+    for key in sorted(groups):
+        g = groups[key]
+        order = chain_order([r["force_n"] for r in g], [r["material_params_mpa"] for r in g])
+        out.extend(g[i] for i in order)
+    return out
 
 
 def n_shards(n_cases: int, cases_per_shard: int) -> int:

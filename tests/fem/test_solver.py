@@ -122,3 +122,29 @@ def test_superlu_backend_gives_the_same_answer(liver):
     b = _model(liver, "p1", tol=1e-10, linear_solver="auto").solve(load)
     assert a.converged and b.converged and a.linear_solver == "superlu"
     assert np.abs(a.u_nodes - b.u_nodes).max() <= 1e-7 * np.abs(b.u_nodes).max()
+
+
+def test_modified_newton_cheap_iterations_may_run_past_max_iter(liver):
+    # iterations on a kept factorisation cost ~1/refactor_cost of a factorised one: the step's cap is
+    # max_iter + refactor_cost, so a slowly contracting warm case is not refactorised (or failed) at max_iter
+    opts = dict(tol=1e-9, max_iter=3, refactor_cost=40.0, modified_newton=True)
+    model = _model(liver, **opts)
+    first = model.solve(ToolLoad(liver["x0"], [0.0, 0.0, -2.0], 5.0))
+    assert first.converged
+    near = ToolLoad(liver["x0"], [0.3, -0.2, -2.6], 5.0)
+    warm = model.solve(near, u0=first)
+    assert warm.converged and warm.load_steps == 1, warm.history
+    assert warm.newton_iterations > 3 and warm.factorizations <= 1, (warm.newton_iterations, warm.factorizations)
+    ref = _model(liver, tol=1e-11).solve(near)
+    assert np.abs(warm.u_nodes - ref.u_nodes).max() <= 1e-6 * np.abs(ref.u_nodes).max()
+
+
+def test_tiny_load_cold_start_is_not_stalled_by_energy_round_off(liver):
+    # at 0.03 N the energy decrease of the last Newton steps is below the energy's round-off; the line
+    # search then judges by the residual (it used to reject full steps: 37 iterations, 23 factorisations)
+    model = _model(liver, modified_newton=True, initial_step=0.25)
+    r = model.solve(ToolLoad(liver["x0"], [0.0, 0.0, -0.03], 5.0))
+    assert r.converged
+    assert r.factorizations <= 2 and r.newton_iterations <= 15, (r.factorizations, r.newton_iterations)
+    ref = _model(liver, tol=1e-10).solve(ToolLoad(liver["x0"], [0.0, 0.0, -0.03], 5.0))
+    assert np.abs(r.u_nodes - ref.u_nodes).max() <= 1e-5 * np.abs(ref.u_nodes).max()

@@ -96,6 +96,13 @@ def test_shards_and_warm_start_order(exertion):
     assert shards == sorted(shards) and max(shards) == n_shards(35, 10) - 1
     keys = [(r["geometry_id"], r["exertion_id"]) for r in res.rows]
     assert keys == sorted(keys)
+    # within a (geometry, point) group: a nearest-neighbour chain of forces from the smallest one
+    for key in set(keys):
+        g = [r for r in res.rows if (r["geometry_id"], r["exertion_id"]) == key]
+        f = np.array([r["force_n"] for r in g])
+        assert np.linalg.norm(f[0]) == pytest.approx(np.linalg.norm(f, axis=1).min())
+        for k in range(len(g) - 2):
+            assert np.linalg.norm(f[k + 1] - f[k]) <= np.linalg.norm(f[k + 2:] - f[k], axis=1).min() + 1e-12
     assert {r["geometry_id"] for r in res.rows} == {"g0", "g1"}
     assert len({r["case_id"] for r in res.rows}) == 35
 
