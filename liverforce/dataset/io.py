@@ -287,12 +287,15 @@ def load_training_arrays(paths: Sequence[str | Path], converged_only: bool = Tru
     """The arrays the learning stage consumes (see ``liverforce.learn``).
 
     Failed cases are dropped when ``converged_only`` (their rows stay in the
-    shards with their reason).
+    shards with their reason). Rows come in case-id order, whatever order the
+    sweep simulated and sharded them in, so that a seeded split depends only
+    on the cases and the seed.
     """
     tables = [read_table(p) for p in paths]
     table = pa.concat_tables(tables) if tables else SHARD_SCHEMA.empty_table()
     if converged_only:
         table = table.filter(table.column("converged"))
+    table = table.sort_by([("case_id", "ascending")])
     out: dict[str, Any] = {
         "case_id": np.asarray(table.column("case_id").to_pylist(), dtype=object),
         "geometry_id": np.asarray(table.column("geometry_id").to_pylist(), dtype=object),

@@ -583,11 +583,14 @@ def load_study_arrays(manifest_path, full_surface: bool = False) -> dict:
     shards = dio.verify_manifest(manifest_path)
     arrays = dio.load_training_arrays(shards)
     if full_surface:
-        surf = []
+        by_case = {}
         for p in shards:
-            t = dio.read_table(p, columns=["converged", "surface_displacement_mm"])
-            conv = t.column("converged").to_pylist()
-            surf += [x for x, c in zip(dio.points_column(t, "surface_displacement_mm"), conv) if c]
+            t = dio.read_table(p, columns=["case_id", "converged", "surface_displacement_mm"])
+            for cid, x, c in zip(t.column("case_id").to_pylist(), dio.points_column(t, "surface_displacement_mm"),
+                                 t.column("converged").to_pylist()):
+                if c:
+                    by_case[cid] = x
+        surf = [by_case[cid] for cid in arrays["case_id"]]  # the arrays' (case-id) order
         if any(len(x) == 0 for x in surf):
             raise RuntimeError(
                 f"{manifest_path}: the shards hold no full-surface displacements (dataset.store_full_surface "
