@@ -283,13 +283,15 @@ def table_to_pylist(table: pa.Table) -> list[dict]:
     return table.to_pylist()
 
 
-def load_training_arrays(paths: Sequence[str | Path], converged_only: bool = True) -> dict[str, Any]:
+def load_training_arrays(paths: Sequence[str | Path], converged_only: bool = True,
+                         full_surface: bool = False) -> dict[str, Any]:
     """The arrays the learning stage consumes (see ``liverforce.learn``).
 
     Failed cases are dropped when ``converged_only`` (their rows stay in the
     shards with their reason). Rows come in case-id order, whatever order the
     sweep simulated and sharded them in, so that a seeded split depends only
-    on the cases and the seed.
+    on the cases and the seed. ``full_surface`` adds ``surface_displacement_mm``
+    (empty arrays when the shards were written without it).
     """
     tables = [read_table(p) for p in paths]
     table = pa.concat_tables(tables) if tables else SHARD_SCHEMA.empty_table()
@@ -319,4 +321,6 @@ def load_training_arrays(paths: Sequence[str | Path], converged_only: bool = Tru
     ):
         out[name] = vector_column(table, name).astype(np.float64)
     out["force_magnitude_n"] = table.column("force_magnitude_n").to_numpy()
+    if full_surface:
+        out["surface_displacement_mm"] = points_column(table, "surface_displacement_mm")
     return out

@@ -35,19 +35,22 @@ def _relative_change(params_a, params_b) -> np.ndarray:
     return np.sqrt(np.mean(((a - b) / scale) ** 2, axis=-1))
 
 
+def _distances(point, force, params, points, forces, params_rows, same_point_mm: float = 1e-6) -> np.ndarray:
+    """:func:`case_distance` from one case to each row of ``points``, ``forces``, ``params_rows``."""
+    f = np.asarray(force, dtype=float)
+    F = np.asarray(forces, dtype=float).reshape(-1, 3)
+    na, nb = float(np.linalg.norm(f)), np.linalg.norm(F, axis=1)
+    same = np.linalg.norm(np.asarray(points, float).reshape(-1, 3) - np.asarray(point, float), axis=1) <= same_point_mm
+    d_load = np.where(same, np.linalg.norm(F - f, axis=1), np.hypot(na, nb))
+    return np.hypot(d_load, 0.5 * (na + nb) * _relative_change(params, params_rows))
+
+
 def case_distance(point_a, force_a, params_a, point_b, force_b, params_b, same_point_mm: float = 1e-6) -> float:
-    """Distance of two cases (N) for warm starts; see the module notes."""
-    fa = np.asarray(force_a, dtype=float)
-    fb = np.asarray(force_b, dtype=float)
-    na, nb = float(np.linalg.norm(fa)), float(np.linalg.norm(fb))
-    if np.linalg.norm(np.asarray(point_a, float) - np.asarray(point_b, float)) <= same_point_mm:
-        d_load = float(np.linalg.norm(fa - fb))
-    else:
-        d_load = float(np.hypot(na, nb))
+    """Distance of two cases (N) for warm starts; see the module notes (inf for another material model)."""
     pa, pb = np.ravel(params_a), np.ravel(params_b)
     if pa.shape != pb.shape:
         return np.inf
-    return float(np.hypot(d_load, 0.5 * (na + nb) * float(_relative_change(pa, pb))))
+    return float(_distances(point_a, force_a, pa, [point_b], [force_b], pb[None], same_point_mm)[0])
 
 
 def chain_order(forces, params) -> list[int]:
@@ -61,17 +64,16 @@ def chain_order(forces, params) -> list[int]:
     if len(f) == 0:
         return []
     p = np.asarray(params, dtype=float).reshape(len(f), -1)
-    mag = np.linalg.norm(f, axis=1)
+    at = np.zeros_like(f)  # one exertion point
     left = np.ones(len(f), bool)
-    i = int(np.argmin(mag))
+    i = int(np.argmin(np.linalg.norm(f, axis=1)))
     order = []
     while True:
         order.append(i)
         left[i] = False
         if not left.any():
             return order
-        d = np.hypot(np.linalg.norm(f - f[i], axis=1), 0.5 * (mag + mag[i]) * _relative_change(p[i], p))
-        i = int(np.argmin(np.where(left, d, np.inf)))
+        i = int(np.argmin(np.where(left, _distances(at[i], f[i], p[i], at, f, p), np.inf)))
 
 
 class WarmStartPool:

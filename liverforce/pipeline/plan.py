@@ -133,9 +133,5 @@ class Plan:
         """The main variant (the first listed): the studies' starting point and the report's main column."""
         return next(iter(self.variants()))
 
-    def validation_variants(self) -> list[str]:
-        """Scenario-IV variants the validate rule evaluates (all; ``validate.variant`` names the headline one)."""
-        return list(self.variants())
-
     def slice_hash(self, obj) -> str:
         return config_hash(obj)

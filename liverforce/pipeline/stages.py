@@ -409,8 +409,6 @@ def train_model(manifest_path, scenario: str, variant: str, model_cfg: dict, tra
     if wanted is not None and abs(float(wanted) - roi_fraction) > 1e-12:
         from liverforce.learn.representation import with_roi_fraction
 
-        if not 0 < float(wanted) <= 1:
-            raise ValueError(f"variant {variant}: model.roi_fraction must be in (0, 1], got {wanted}")
         if not mesh_paths:
             raise ValueError(f"variant {variant}: model.roi_fraction={wanted} needs the scenario's meshes")
         arrays = with_roi_fraction(load_study_arrays(manifest_path, full_surface=True), float(wanted),
@@ -580,24 +578,13 @@ def surface_graphs(mesh_paths) -> dict:
 
 def load_study_arrays(manifest_path, full_surface: bool = False) -> dict:
     """Converged cases of one scenario (verified shards); with ``surface_displacement_mm`` if ``full_surface``."""
-    shards = dio.verify_manifest(manifest_path)
-    arrays = dio.load_training_arrays(shards)
-    if full_surface:
-        by_case = {}
-        for p in shards:
-            t = dio.read_table(p, columns=["case_id", "converged", "surface_displacement_mm"])
-            for cid, x, c in zip(t.column("case_id").to_pylist(), dio.points_column(t, "surface_displacement_mm"),
-                                 t.column("converged").to_pylist()):
-                if c:
-                    by_case[cid] = x
-        surf = [by_case[cid] for cid in arrays["case_id"]]  # the arrays' (case-id) order
-        if any(len(x) == 0 for x in surf):
-            raise RuntimeError(
-                f"{manifest_path}: the shards hold no full-surface displacements (dataset.store_full_surface "
-                "was false when they were simulated); the ROI-fraction study needs them — set it to true and "
-                "re-run the sweep"
-            )
-        arrays["surface_displacement_mm"] = surf
+    arrays = dio.load_training_arrays(dio.verify_manifest(manifest_path), full_surface=full_surface)
+    if full_surface and any(len(x) == 0 for x in arrays["surface_displacement_mm"]):
+        raise RuntimeError(
+            f"{manifest_path}: the shards hold no full-surface displacements (dataset.store_full_surface "
+            "was false when they were simulated); the ROI-fraction study needs them — set it to true and "
+            "re-run the sweep"
+        )
     return arrays
 
 

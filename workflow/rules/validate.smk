@@ -4,8 +4,8 @@
 rule validate:
     input:
         # every scenario-IV variant (validate.variant=auto picks by cross-validation score) or the one named
-        model=expand(f"{E}/models/IV/{{v}}/model", v=PLAN.validation_variants()),
-        metrics=expand(f"{E}/models/IV/{{v}}/metrics.json", v=PLAN.validation_variants()),
+        model=expand(f"{E}/models/IV/{{v}}/model", v=list(PLAN.variants())),
+        metrics=expand(f"{E}/models/IV/{{v}}/metrics.json", v=list(PLAN.variants())),
         manifest=f"{E}/shards/V/manifest.json",
         train_manifest=f"{E}/shards/IV/manifest.json",
     output:
