@@ -83,7 +83,7 @@ def liver_mesh(target_vertices: int, refine_edge_mm: float | None = 6.0):
     try:  # the project's own mesh stage, when present
         from liverforce.geometry.procedural import procedural_liver
         from liverforce.mesh.build import build_liver_mesh  # type: ignore
-        from liverforce.pipeline.stages import closest_surface_points
+        from liverforce.pipeline.sweep import closest_surface_points
 
         m = build_liver_mesh(procedural_liver(0), target_nodes=target_vertices,
                              refine_radius_mm=10.0 if refine_edge_mm else 0.0,
@@ -168,41 +168,39 @@ def bench_resolution(label, target_vertices, n_cases, repeats):
 
 
 def bench_shard(label, target_vertices, scenario, n_cases=25):
-    """A shard as the pipeline runs it: the sweep design's cases (first exertion point, chained for warm
-    starts), the first one cold, each next one from the nearest of the recent solutions (WarmStartPool)."""
-    from liverforce.fem.continuation import WarmStartPool
-    from liverforce.pipeline.stages import exertion_set, material_checks
+    """A shard as the pipeline runs it, through the product's own loop
+    (:func:`liverforce.pipeline.simulate.simulate_cases`) with the default config's ``simulate``,
+    ``boundary`` and ``dataset`` slices: the sweep design's cases at the first exertion point
+    (chained for warm starts), the first one cold, each next one from the nearest recent solution."""
+    from liverforce.config import compose
+    from liverforce.pipeline.simulate import simulate_cases
+    from liverforce.pipeline.sweep import exertion_set, material_checks
     from liverforce.sweep.design import build_cases
 
     m = MESHES.get(target_vertices)
     if m is None:
         print(f"\n== shard ({label}): needs liverforce.mesh; skipped")
         return
-    ex = exertion_set(m, 8, 15.0, 0, 5.0, candidates=m.meta["exertion_candidates_mm"])
+    cfg = compose([])
+    sim = dict(cfg["simulate"], time_limit_s=600.0)  # measure every case to its end, as on a cluster
+    ex = exertion_set(m, 8, 15.0, 0, sim["tool_radius_mm"], candidates=m.meta["exertion_candidates_mm"])
     spec = {"n_cases": 8 * n_cases, "exertion": "varies", "material": "varies" if scenario == "III" else "fixed"}
-    material = {"model": "yeoh", "params_mpa": YEOH, "nu": 0.49, "vary_rel": 0.3, "on_unstable": "clip"}
-    stable, bulk = material_checks([0.6, 1.4])
-    rows = build_cases(scenario, spec, ["g"], {"g": ex}, material, {"min_n": 0.0, "max_n": 5.0, "cone_deg": 30.0},
-                       "sobol", 0, n_cases, stable, bulk).rows
-    rows = [r for r in rows if r["exertion_id"] == rows[0]["exertion_id"]][:n_cases]
-    fe, pool, times, facs, failed = None, WarmStartPool(), [], [], 0
-    for c in rows:
-        mat = make_material(c["material_model"], dict(zip(c["material_param_names"], c["material_params_mpa"])),
-                            bulk_mpa=c["bulk_modulus_mpa"])
-        if fe is None:
-            fe = LiverModel(m.points, m.tets, m.facets, m.facet_region, mat,
-                            BoundaryParams.from_totals(m.points, m.facets, m.facet_region),
-                            SolverOptions(modified_newton=True, max_iter=25, initial_step=0.25, min_step=0.002,
-                                          max_steps=200))
-        load = ToolLoad(np.asarray(c["exertion_point_mm"]), np.asarray(c["force_n"]), 5.0)
-        r = fe.solve(load, material=mat, u0=pool.nearest(load, c["material_params_mpa"]))
-        pool.add(r, c["material_params_mpa"])
-        times.append(r.wall_time_s)
-        facs.append(r.factorizations)
-        failed += not r.converged
-    print(f"\n== shard ({label}, scenario {scenario}: {len(rows)} cases at one exertion point, 0-5 N in a 30 degree"
-          f" cone{', constants +-30 %' if scenario == 'III' else ''}; the first case cold): mean {np.mean(times):.2f} s"
-          f" per case -> {3600 / np.mean(times):.0f} cases per core-hour; median {np.median(times):.2f} s;"
+    material = dict(cfg["material"], on_unstable="clip")
+    stable, bulk = material_checks(material["stability_stretch"])
+    cases = build_cases(scenario, spec, ["g"], {"g": ex}, material, dict(cfg["sweep"]["force"]), "sobol", 0,
+                        n_cases, stable, bulk).rows
+    cases = [r for r in cases if r["exertion_id"] == cases[0]["exertion_id"]][:n_cases]
+    facs = []
+    rows = simulate_cases(cases, {"g": m}, sim, cfg["boundary"], cfg["dataset"],
+                          progress=lambda n, total, rows, res: facs.append(0 if res is None else res.factorizations))
+    times = [r["wall_time_s"] for r in rows]
+    failed = sum(not r["converged"] for r in rows)
+    print(f"\n== shard ({label}, scenario {scenario}: {len(rows)} cases at one exertion point, "
+          f"{cfg['sweep']['force']['min_n']:g}-{cfg['sweep']['force']['max_n']:g} N in a "
+          f"{cfg['sweep']['force']['cone_deg']:g} degree cone"
+          f"{', constants +-%g %%' % (100 * material['vary_rel']) if scenario == 'III' else ''}; the first case cold;"
+          f" liverforce.pipeline.simulate.simulate_cases): mean {np.mean(times):.2f} s per case -> "
+          f"{3600 / np.mean(times):.0f} cases per core-hour; median {np.median(times):.2f} s;"
           f" cold first case {times[0]:.2f} s; factorisations {np.mean(facs):.2f} per case; failed {failed}")
 
 

@@ -22,7 +22,7 @@ field                       shape      meaning
 
 :meth:`Preop.from_surface` computes everything from the undeformed liver
 surface exactly as the data factory does (:mod:`liverforce.dataset.roi` and
-:mod:`liverforce.pipeline.stages`): frame by :func:`~liverforce.dataset.roi.local_frame`
+:mod:`liverforce.pipeline.simulate`): frame by :func:`~liverforce.dataset.roi.local_frame`
 with the tool radius, ROI by :func:`~liverforce.dataset.roi.extract_roi` with the
 ROI area fraction, and the volume centroid and inertia of the closed surface
 (divergence theorem: exact for the polyhedron, so equal to the tet mesh's

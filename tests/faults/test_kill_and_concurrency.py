@@ -304,7 +304,7 @@ def test_hanging_diverging_or_crashing_cases_are_bounded_and_recorded(reference,
     from liverforce.config import compose
     from liverforce.fem.linsolve import LinearSolver
     from liverforce.fem.problem import LiverModel
-    from liverforce.pipeline import stages
+    from liverforce.pipeline.simulate import simulate_shard
 
     cfg = compose([f"experiment={EXPERIMENT}", *OVERRIDES.split()])
     sim = dict(cfg["simulate"])
@@ -331,7 +331,7 @@ def test_hanging_diverging_or_crashing_cases_are_bounded_and_recorded(reference,
         monkeypatch.setattr(LiverModel, "solve", flaky)
     out = tmp_path / RESULTS / "shards" / "I" / "shard-0000.parquet"
     t0 = time.monotonic()
-    entry = stages.simulate_shard(str(cases), meshes, 0, sim, cfg["boundary"], cfg["dataset"], str(out))
+    entry = simulate_shard(str(cases), meshes, 0, sim, cfg["boundary"], cfg["dataset"], str(out))
     elapsed = time.monotonic() - t0
     rows = pq.read_table(out).to_pylist()
     fault_ledger.record(f"solver fault: {fault}", survived=entry["rows"] == len(expected),

@@ -18,7 +18,7 @@ from liverforce.config import compose
 from liverforce.fem import LiverModel, ToolLoad, make_material
 from liverforce.geometry.procedural import procedural_liver
 from liverforce.mesh.build import build_liver_mesh
-from liverforce.pipeline.stages import closest_surface_points
+from liverforce.pipeline.sweep import closest_surface_points
 
 pytestmark = pytest.mark.slow
 

@@ -6,7 +6,7 @@ import json
 import pytest
 
 from liverforce.config import ConfigError, compose
-from liverforce.pipeline.stages import choose_variant
+from liverforce.pipeline.validate import choose_variant
 
 
 def _metrics(tmp_path, cv):

@@ -32,7 +32,7 @@ def _refuse_unstable_material(cfg):
     means unstable constants stop the workflow before geometry and meshing.
     """
     from liverforce.config import ConfigError
-    from liverforce.pipeline.stages import material_checks
+    from liverforce.pipeline.sweep import material_checks
 
     mat = cfg["material"]
     stable, _ = material_checks(mat["stability_stretch"])

@@ -1,6 +1,6 @@
-"""Snakemake adapter: mesh stage (see liverforce.pipeline.stages.make_mesh)."""
+"""Snakemake adapter: mesh stage (see liverforce.pipeline.mesh.make_mesh)."""
 from liverforce.pipeline.job import setup_job
-from liverforce.pipeline.stages import make_mesh
+from liverforce.pipeline.mesh import make_mesh
 
 sm = snakemake  # noqa: F821
 setup_job(sm.log[0], sm.threads)

@@ -1,6 +1,6 @@
 """Snakemake adapter: the run report (see liverforce.report)."""
 from liverforce.pipeline.job import setup_job
-from liverforce.pipeline.stages import make_report
+from liverforce.pipeline.report import make_report
 
 sm = snakemake  # noqa: F821
 setup_job(sm.log[0], sm.threads)

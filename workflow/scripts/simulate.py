@@ -1,6 +1,6 @@
-"""Snakemake adapter: simulate one shard (see liverforce.pipeline.stages.simulate_shard)."""
+"""Snakemake adapter: simulate one shard (see liverforce.pipeline.simulate.simulate_shard)."""
 from liverforce.pipeline.job import setup_job
-from liverforce.pipeline.stages import simulate_shard
+from liverforce.pipeline.simulate import simulate_shard
 
 sm = snakemake  # noqa: F821
 setup_job(sm.log[0], sm.threads)

@@ -1,6 +1,6 @@
-"""Snakemake adapter: one comparison study (see liverforce.pipeline.stages.run_study_stage)."""
+"""Snakemake adapter: one comparison study (see liverforce.pipeline.study.run_study_stage)."""
 from liverforce.pipeline.job import setup_job
-from liverforce.pipeline.stages import run_study_stage
+from liverforce.pipeline.study import run_study_stage
 
 sm = snakemake  # noqa: F821
 setup_job(sm.log[0], sm.threads)

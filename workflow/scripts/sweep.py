@@ -1,6 +1,6 @@
-"""Snakemake adapter: sweep stage (see liverforce.pipeline.stages.make_sweep)."""
+"""Snakemake adapter: sweep stage (see liverforce.pipeline.sweep.make_sweep)."""
 from liverforce.pipeline.job import setup_job
-from liverforce.pipeline.stages import make_sweep
+from liverforce.pipeline.sweep import make_sweep
 
 sm = snakemake  # noqa: F821
 setup_job(sm.log[0], sm.threads)

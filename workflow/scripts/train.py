@@ -1,6 +1,6 @@
-"""Snakemake adapter: train one scenario/variant (see liverforce.pipeline.stages.train_model)."""
+"""Snakemake adapter: train one scenario/variant (see liverforce.pipeline.train.train_model)."""
 from liverforce.pipeline.job import setup_job
-from liverforce.pipeline.stages import train_model
+from liverforce.pipeline.train import train_model
 
 sm = snakemake  # noqa: F821
 setup_job(sm.log[0], sm.threads)

@@ -1,6 +1,6 @@
-"""Snakemake adapter: unseen-liver validation (see liverforce.pipeline.stages.validate_model)."""
+"""Snakemake adapter: unseen-liver validation (see liverforce.pipeline.validate.validate_model)."""
 from liverforce.pipeline.job import setup_job
-from liverforce.pipeline.stages import validate_model
+from liverforce.pipeline.validate import validate_model
 
 sm = snakemake  # noqa: F821
 setup_job(sm.log[0], sm.threads)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import pytest
 
 from liverforce.config import compose
-from liverforce.pipeline.stages import material_checks
+from liverforce.pipeline.sweep import material_checks
 from liverforce.sweep.design import SweepError, build_cases
 
 

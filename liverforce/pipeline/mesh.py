@@ -1,0 +1,71 @@
+"""Mesh stage adapter: tetrahedralise a surface, tag regions, features, a picture of the regions."""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from liverforce.dataset import io as dio
+from liverforce.pipeline.shared import load_surface_file
+
+log = logging.getLogger("liverforce")
+
+
+def exertion_seed(seed: int, gid: str) -> int:
+    """Seed of a geometry's candidate exertion points: the config seed and the geometry id."""
+    import zlib
+
+    return int(np.random.SeedSequence([int(seed), zlib.crc32(gid.encode())]).generate_state(1)[0])
+
+
+def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path, picture_path,
+              exertion: dict | None = None) -> dict:
+    """Tetrahedralise a surface, tag regions, compute features, draw the regions.
+
+    ``exertion`` (the ``sweep.exertion`` config: ``n_points``, ``min_spacing_mm``):
+    the geometry's candidate exertion points are sampled on the visible input
+    surface here, refined around (``mesh.refine_radius_mm`` / ``refine_edge_mm``),
+    and written to the features JSON, from which every scenario's sweep takes them.
+    """
+    from liverforce.mesh.build import build_liver_mesh
+    from liverforce.mesh.features import compute_features
+    from liverforce.mesh.io import write_mesh
+    from liverforce.mesh.plot import plot_regions
+    from liverforce.mesh.regions import RegionParams
+
+    surface = load_surface_file(surface_path)
+    meta_file = Path(surface_path).with_suffix(".json")
+    if meta_file.exists():
+        surface.meta.update(json.loads(meta_file.read_text()))
+    t0 = time.perf_counter()
+    mesh = build_liver_mesh(
+        surface,
+        target_nodes=mesh_cfg["target_nodes"],
+        region_params=RegionParams(**mesh_cfg.get("regions", {})),
+        mesher=mesh_cfg["mesher"],
+        seed=seed,
+        refine_radius_mm=mesh_cfg.get("refine_radius_mm", 0.0),
+        refine_edge_mm=mesh_cfg.get("refine_edge_mm"),
+        refine_ivc_edge_mm=mesh_cfg.get("refine_ivc_edge_mm"),
+        refine_growth=mesh_cfg.get("refine_growth", 0.3),
+        exertion_sampling=None if exertion is None else {
+            "n_points": exertion["n_points"], "min_spacing_mm": exertion["min_spacing_mm"],
+            "seed": exertion_seed(seed, Path(mesh_path).stem)},
+    )
+    elapsed = time.perf_counter() - t0
+    write_mesh(mesh_path, mesh)
+    feats = compute_features(mesh)
+    feats["meshing_time_s"] = elapsed
+    feats["exertion_candidates_mm"] = mesh.meta.get("exertion_candidates_mm")
+    feats["refine_points"] = mesh.meta.get("refine_points")
+    feats["regions_tagged_on"] = mesh.meta.get("regions_tagged_on")
+    dio.write_json_atomic(feats, features_path)
+    plot_regions(mesh, picture_path)
+    log.info("mesh: %d nodes, %d tets in %.1f s", len(mesh.points), len(mesh.tets), elapsed)
+    return feats
+
+

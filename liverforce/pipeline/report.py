@@ -1,0 +1,64 @@
+"""Report stage adapter: the run's HTML report from the stage outputs."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from liverforce.dataset import io as dio
+
+log = logging.getLogger("liverforce")
+
+
+def solver_statistics(manifests: list[str]) -> dict:
+    """Cases, failures (with reasons) and solve times per scenario, read from the verified shards."""
+    per, reasons = {}, {}
+    all_walls = []
+    for m in manifests:
+        walls, iters, steps, umax = [], [], [], []
+        for shard in dio.verify_manifest(m):
+            t = dio.read_table(shard, columns=["wall_time_s", "newton_iterations", "load_steps", "converged",
+                                               "reason", "max_displacement_mm"])
+            walls += t.column("wall_time_s").to_pylist()
+            iters += t.column("newton_iterations").to_pylist()
+            steps += t.column("load_steps").to_pylist()
+            conv = t.column("converged").to_pylist()
+            umax += [u for u, c in zip(t.column("max_displacement_mm").to_pylist(), conv) if c]
+            for r, c in zip(t.column("reason").to_pylist(), conv):
+                if not c:
+                    key = (r or "unknown").split(":")[0][:80]
+                    reasons[key] = reasons.get(key, 0) + 1
+        all_walls += walls
+        if walls:
+            per[Path(m).parent.name] = {
+                "solve_time_total_s": float(np.sum(walls)), "solve_time_median_s": float(np.median(walls)),
+                "solve_time_max_s": float(np.max(walls)), "newton_iterations_median": float(np.median(iters)),
+                "load_steps_median": float(np.median(steps)),
+                "max_displacement_median_mm": float(np.median(umax)) if umax else None,
+            }
+    overall = {}
+    if all_walls:
+        overall = {"cases simulated": len(all_walls),
+                   "solver wall time total (s)": round(float(np.sum(all_walls)), 1),
+                   "median per case (s)": round(float(np.median(all_walls)), 3)}
+    return {"overall": overall, "per_scenario": per, "reasons": dict(sorted(reasons.items(), key=lambda kv: -kv[1]))}
+
+
+def make_report(model_metrics: list[str], manifests: list[str], validation: str, features: list[str],
+                pictures: list[str], experiment: str, out_html, studies: list[str] = (),
+                setup: dict | None = None) -> Path:
+    """Write ``report/index.html`` (+ ``report/figures/``) from the stage outputs.
+
+    ``studies``: the ``studies/<study>.json`` files (their PNGs beside them);
+    ``setup``: the config slices the setup section shows.
+    """
+    from liverforce.report.html import collect, write_report
+
+    data = collect(model_metrics, manifests, validation, features, studies)
+    data["validation_dir"] = str(Path(validation).parent)
+    stats = solver_statistics(manifests)
+    path = write_report(data, pictures, experiment, out_html, solver_stats=stats, setup=setup)
+    log.info("report: %s", path)
+    return path

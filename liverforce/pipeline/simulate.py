@@ -1,0 +1,197 @@
+"""Simulate stage adapter: FE solves of a shard's cases (in memory, then one atomic Parquet shard), the manifest."""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from liverforce.dataset import io as dio
+
+log = logging.getLogger("liverforce")
+
+
+def boundary_params(mesh, cfg: dict):
+    """Per-area spring stiffness (N/mm³) from the study's total stiffness (N/mm) per region.
+
+    Interpretation (stated in config/boundary): the study's foundation
+    stiffness is the region's total stiffness spread uniformly over its
+    reference area, ``k = K_total / A``; tangential = ratio × normal.
+    """
+    from liverforce.fem.problem import BoundaryParams
+
+    return BoundaryParams.from_totals(
+        mesh.points, mesh.facets, mesh.facet_region,
+        ligament_total_n_per_mm=cfg["ligament_total_n_per_mm"],
+        visceral_total_n_per_mm=cfg["visceral_total_n_per_mm"],
+        tangential_ratio=cfg["tangential_ratio"], rib_kn=cfg["rib_normal_n_per_mm3"],
+    )
+
+
+def solver_options(sim: dict):
+    from liverforce.fem.problem import SolverOptions
+
+    return SolverOptions(
+        formulation=sim["formulation"], tol=sim["tol"], max_iter=sim["max_iter"],
+        initial_step=sim["initial_step"], min_step=sim["min_step"], max_steps=sim["max_steps"],
+        time_limit_s=sim["time_limit_s"], modified_newton=sim["modified_newton"],
+        linear_solver=sim["linear_solver"],
+    )
+
+
+def _progress_path(shard_path) -> Path:
+    shard_path = Path(shard_path)
+    # results/<exp>/shards/<scenario>/shard-NNNN.parquet -> results/<exp>/progress/<scenario>-NNNN.json
+    return shard_path.parent.parent.parent / "progress" / f"{shard_path.parent.name}-{shard_path.stem.split('-')[-1]}.json"
+
+
+def simulate_cases(cases: list[dict], meshes: dict, sim: dict, boundary: dict, dataset: dict,
+                   progress=None) -> list[dict]:
+    """Simulate cases in memory: one shard row per case, in the order given.
+
+    Parameters
+    ----------
+    cases : the case-table rows (``liverforce.sweep.design.build_cases``), already in chain order.
+    meshes : geometry id -> :class:`liverforce.mesh.types.LiverMesh` (every ``geometry_id`` of ``cases``).
+    sim, boundary, dataset : the ``simulate``, ``boundary`` and ``dataset`` config slices.
+    progress : optional callable ``progress(n_done, total, rows, result)`` after every case
+        (``result``: the case's :class:`liverforce.fem.problem.CaseResult`, or None when the solve raised).
+
+    Returns
+    -------
+    list of dict
+        Shard rows (:mod:`liverforce.dataset.schema`); each row's ``wall_time_s`` is the solve time.
+
+    Notes
+    -----
+    One FE model per geometry is built on first use and kept. Each case starts
+    from the nearest of the last 8 converged solutions of its geometry
+    (``sim["warm_start"]``; rest when rest is nearer). A case that fails (no
+    convergence, time limit, solver error) becomes a row with ``converged =
+    False`` and its reason; it never stops the loop. This is the loop the
+    simulate rule runs and ``benchmarks/bench_fem.py`` measures.
+    """
+    from liverforce.dataset.roi import surface_graph
+    from liverforce.fem.continuation import WarmStartPool
+    from liverforce.fem.materials import make_material
+    from liverforce.fem.problem import LiverModel, ToolLoad
+    from liverforce.mesh.features import compute_features
+
+    options = solver_options(sim)
+    rows: list[dict] = []
+    models: dict[str, tuple] = {}
+    pools: dict[str, WarmStartPool] = {}  # recent converged solutions per geometry, for warm starts
+    t_start = time.perf_counter()
+    for n_done, case in enumerate(cases, start=1):
+        gid = case["geometry_id"]
+        material = make_material(case["material_model"], dict(zip(case["material_param_names"], case["material_params_mpa"])),
+                                 bulk_mpa=case["bulk_modulus_mpa"])
+        if gid not in models:
+            mesh = meshes[gid]
+            fe = LiverModel(mesh.points, mesh.tets, mesh.facets, mesh.facet_region, material,
+                            boundary_params(mesh, boundary), options)
+            models[gid] = (mesh, compute_features(mesh), surface_graph(mesh.points, mesh.facets), fe)
+            pools[gid] = WarmStartPool(size=8)
+        mesh, feats, surf, fe = models[gid]
+        load = ToolLoad(point_mm=np.asarray(case["exertion_point_mm"]), force_N=np.asarray(case["force_n"]),
+                        radius_mm=sim["tool_radius_mm"])
+        start = pools[gid].nearest(load, case["material_params_mpa"]) if sim["warm_start"] else None
+        t0 = time.perf_counter()
+        try:
+            res = fe.solve(load, material=material, u0=start)
+            error = None
+        except Exception as exc:  # a solver crash is recorded as a failed case, never fatal to the shard
+            res, error = None, f"{type(exc).__name__}: {exc}"
+            log.exception("case %s crashed", case["case_id"])
+        wall = time.perf_counter() - t0
+        rows.append(_case_row(case, res, error, wall, mesh, feats, surf, dataset, sim["tool_radius_mm"]))
+        if res is not None and res.converged:
+            pools[gid].add(res, case["material_params_mpa"])
+        rate = n_done / (time.perf_counter() - t_start) * 3600
+        if progress is not None:
+            progress(n_done, len(cases), rows, res)
+        log.info("case %s (%d/%d): %s, |F| %.2f N, max|u| %.2f mm, %d it, %.2f s — %.0f cases/h",
+                 case["case_id"], n_done, len(cases), "ok" if rows[-1]["converged"] else f"FAILED ({rows[-1]['reason']})",
+                 case["force_magnitude_n"], rows[-1]["max_displacement_mm"], rows[-1]["newton_iterations"], wall, rate)
+    return rows
+
+
+def simulate_shard(cases_path, mesh_paths: list[str], shard: int, sim: dict, boundary: dict, dataset: dict,
+                   shard_path) -> dict:
+    """Simulate every case of one shard (:func:`simulate_cases`) and write the shard atomically.
+
+    Progress (cases done, failed, elapsed) is written to
+    ``results/<exp>/progress/<scenario>-NNNN.json`` after every case.
+    """
+    from liverforce.mesh.io import read_mesh
+
+    table = dio.read_table(cases_path)
+    cases = [r for r in table.to_pylist() if r["shard_index"] == shard]
+    by_gid = {Path(p).stem: p for p in mesh_paths}
+    meshes = {gid: read_mesh(by_gid[gid]) for gid in dict.fromkeys(c["geometry_id"] for c in cases)}
+    t_start = time.perf_counter()
+
+    def progress(n_done, total, rows, _result):
+        dio.write_json_atomic({"done": n_done, "total": total, "failed": sum(not r["converged"] for r in rows),
+                               "elapsed_s": time.perf_counter() - t_start, "updated": time.time()},
+                              _progress_path(shard_path))
+
+    rows = simulate_cases(cases, meshes, sim, boundary, dataset, progress=progress)
+    entry = dio.write_shard(rows, shard_path, compression=dataset["compression"],
+                            extra_meta={"simulate": sim, "boundary": boundary, "dataset": dataset})
+    if rows and entry["failed"] == len(rows):
+        log.warning("shard %s: every case failed (see the 'reason' column)", shard_path)
+    log.info("shard %s: %d rows, %d failed", shard_path, entry["rows"], entry["failed"])
+    return entry
+
+
+def _case_row(case, res, error, wall, mesh, feats, surf, dataset, tool_radius_mm) -> dict:
+    from liverforce.dataset.roi import extract_roi, local_frame
+
+    point = np.asarray(case["exertion_point_mm"])
+    frame = local_frame(surf, point, tool_radius_mm)
+    ids_local, achieved = extract_roi(surf, point, dataset["roi_fraction"])
+    node_ids = surf.node_ids[ids_local]
+    und = mesh.points[node_ids]
+    converged = bool(res is not None and res.converged)
+    if res is not None and res.u_nodes is not None and np.all(np.isfinite(res.u_nodes)):
+        u = res.u_nodes
+    else:
+        u = np.zeros_like(mesh.points)
+    de = und + u[node_ids]
+    surf_u = u[surf.node_ids] if dataset["store_full_surface"] else np.zeros((0, 3))
+    row = {k: case[k] for k in (
+        "case_id", "scenario", "geometry_id", "shard_index", "seed", "material_model", "material_param_names",
+        "material_params_mpa", "bulk_modulus_mpa", "exertion_id", "exertion_point_mm", "force_n", "force_magnitude_n")}
+    row.update(
+        frame_t1=frame[0], frame_t2=frame[1], frame_normal=frame[2],
+        liver_centroid_mm=np.asarray(feats["centroid_mm"], dtype=float),
+        inertia_mm5=np.asarray(feats["inertia_mm5"], dtype=float).reshape(9),
+        roi_fraction=float(dataset["roi_fraction"]), roi_area_fraction=achieved,
+        roi_node_ids=node_ids.astype(np.int32), roi_undeformed_mm=und.astype(np.float32),
+        roi_deformed_mm=de.astype(np.float32),
+        roi_centroid_undeformed_mm=und.mean(axis=0), roi_centroid_deformed_mm=de.mean(axis=0),
+        surface_displacement_mm=surf_u.astype(np.float32),
+        max_displacement_mm=float(np.linalg.norm(u, axis=1).max()),
+        converged=converged,
+        reason="" if converged else (error or (res.reason if res is not None else "unknown")),
+        load_fraction=float(res.load_fraction) if res is not None else 0.0,
+        load_steps=int(res.load_steps) if res is not None else 0,
+        newton_iterations=int(res.newton_iterations) if res is not None else 0,
+        final_residual=float(res.final_residual) if res is not None else float("nan"),
+        linear_solver=str(res.linear_solver) if res is not None else "",
+        wall_time_s=float(wall),
+    )
+    return row
+
+
+def make_manifest(shard_paths: list[str], manifest_path) -> dict:
+    """Manifest of a scenario's shards; prints the failure rate."""
+    m = dio.write_manifest(shard_paths, manifest_path)
+    log.info("%s: %d shards, %d rows, %d failed (failure rate %.1f %%)", manifest_path, len(m["shards"]), m["rows"],
+             m["failed"], 100 * m["failure_rate"])
+    return m
+
+

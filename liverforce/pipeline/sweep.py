@@ -1,0 +1,112 @@
+"""Sweep stage adapter: exertion points per geometry and the case table of one scenario."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from liverforce.dataset import io as dio
+
+log = logging.getLogger("liverforce")
+
+
+def material_checks(stretch_range):
+    """(stability_check, bulk_modulus) callables for :func:`liverforce.sweep.design.build_cases`."""
+    from liverforce.fem.materials import make_material
+    from liverforce.fem.stability import check_stability
+
+    def stable(model, params):
+        try:
+            mat = make_material(model, params, nu=0.45)
+        except ValueError as exc:
+            return False, str(exc)
+        rep = check_stability(mat, stretch_range=tuple(stretch_range))
+        return bool(rep.stable), rep.message
+
+    def bulk(model, params, nu):
+        return make_material(model, params, nu=nu).bulk
+
+    return stable, bulk
+
+
+def exertion_set(mesh, n_points: int, min_spacing_mm: float, seed: int, frame_radius_mm: float,
+                 candidates=None):
+    """Candidate exertion points of one mesh with their normals and local frames.
+
+    ``candidates`` : points chosen at the mesh stage (on the input surface, where
+    the mesh is refined), moved onto the nearest visible mesh facet; else
+    ``n_points`` are sampled on the mesh's visible facets with ``seed``.
+    """
+    from liverforce.dataset.roi import local_frame, surface_graph
+    from liverforce.sweep.design import ExertionSet, SweepError, sample_exertion_points
+
+    if candidates is not None:
+        cand = np.asarray(candidates, float).reshape(-1, 3)
+        if len(cand) < n_points:
+            raise SweepError(f"the mesh carries {len(cand)} exertion candidates, the sweep asks {n_points}: "
+                             "re-run the mesh stage with this sweep.exertion config")
+        pts = closest_surface_points(mesh.points, mesh.facets[mesh.facet_visible], cand[:n_points])
+    else:
+        pts = sample_exertion_points(mesh.points, mesh.facets, mesh.facet_visible, n_points, min_spacing_mm, seed)
+    surf = surface_graph(mesh.points, mesh.facets)
+    frames = np.stack([local_frame(surf, p, frame_radius_mm) for p in pts])
+    return ExertionSet(points=pts, normals=frames[:, 2], frames=frames)
+
+
+def closest_surface_points(points, facets, query, k: int = 16) -> np.ndarray:
+    """The closest point on the triangles ``points[facets]`` to each query point (mm).
+
+    Searched over the ``k`` triangles with the nearest centroids (query points
+    lie on or near the surface).
+    """
+    from scipy.spatial import cKDTree
+    from trimesh.triangles import closest_point
+
+    tri = np.asarray(points, float)[np.asarray(facets)]
+    query = np.atleast_2d(np.asarray(query, float))
+    k = min(k, len(tri))
+    _, near = cKDTree(tri.mean(axis=1)).query(query, k=k)
+    near = near.reshape(len(query), k)
+    cp = closest_point(tri[near.ravel()], np.repeat(query, k, axis=0)).reshape(len(query), k, 3)
+    best = np.argmin(np.linalg.norm(cp - query[:, None], axis=2), axis=1)
+    return cp[np.arange(len(query)), best]
+
+
+def make_sweep(params: dict, mesh_paths: list[str], cases_path, report_path) -> dict:
+    """Build and write the case table of one scenario (refusing unstable materials first)."""
+    from liverforce.mesh.io import read_mesh
+    from liverforce.sweep.design import build_cases
+
+    gids = params["geometries"]
+    by_gid = {Path(p).stem: p for p in mesh_paths}
+    stable, bulk = material_checks(params["material"]["stability_stretch"])
+    ex = {}
+    for i, gid in enumerate(gids):
+        mesh = read_mesh(by_gid[gid])
+        feats = Path(by_gid[gid]).with_suffix(".features.json")
+        cand = json.loads(feats.read_text()).get("exertion_candidates_mm") if feats.exists() else None
+        ex[gid] = exertion_set(mesh, params["exertion"]["n_points"], params["exertion"]["min_spacing_mm"],
+                               params["seed"] * 7919 + i, params["tool_radius_mm"], candidates=cand)
+    result = build_cases(
+        scenario=params["scenario"], spec=params["spec"], geometry_ids=gids, exertion=ex,
+        material=params["material"], force=params["force"], design=params["design"], seed=params["seed"],
+        cases_per_shard=params["cases_per_shard"], stability_check=stable, bulk_modulus=bulk,
+    )
+    dio.write_case_table(result.rows, cases_path, extra_meta={"sweep": params})
+    report = {
+        "scenario": params["scenario"],
+        "cases": len(result.rows),
+        "dropped_unstable": result.dropped_unstable,
+        "exertion_points_mm": {g: e.points.tolist() for g, e in ex.items()},
+    }
+    dio.write_json_atomic(report, report_path)
+    if result.dropped_unstable:
+        log.warning("scenario %s: %d sampled material sets were not Drucker-stable and were dropped",
+                    params["scenario"], len(result.dropped_unstable))
+    log.info("scenario %s: %d cases on %s", params["scenario"], len(result.rows), gids)
+    return report
+
+

@@ -1,0 +1,80 @@
+"""Train stage adapter: one scenario/variant from verified shards, tracked in MLflow."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from liverforce.dataset import io as dio
+from liverforce.pipeline.shared import load_study_arrays, surface_graphs
+
+log = logging.getLogger("liverforce")
+
+
+def train_model(manifest_path, scenario: str, variant: str, model_cfg: dict, train_cfg: dict, tune_cfg: dict,
+                tracking_uri: str, experiment_prefix: str, experiment: str, seed: int, threads: int,
+                metrics_path, model_dir, mesh_paths: list[str] | None = None) -> dict:
+    """Train one scenario/variant from verified shards; track it in MLflow.
+
+    Every shard is checked against the manifest's hash before it is read: a
+    truncated or modified shard stops training with its name (delete it and
+    re-run to rebuild it). With ``model_cfg["roi_fraction"]`` set, the ROI is
+    re-grown at that area fraction from the stored full-surface displacements
+    (``mesh_paths``: the scenario's meshes) and the model is trained and saved
+    for that fraction.
+    """
+    from liverforce.config import config_hash
+    from liverforce.learn.train import train_scenario
+    from liverforce.tracking import Tracker
+
+    shards = dio.verify_manifest(manifest_path)
+    manifest = json.loads(Path(manifest_path).read_text())
+    shard_meta = dio.read_metadata(shards[0])
+    roi_fraction = float(shard_meta["dataset"]["roi_fraction"])
+    wanted = model_cfg.get("roi_fraction")
+    if wanted is not None and abs(float(wanted) - roi_fraction) > 1e-12:
+        from liverforce.learn.representation import with_roi_fraction
+
+        if not mesh_paths:
+            raise ValueError(f"variant {variant}: model.roi_fraction={wanted} needs the scenario's meshes")
+        arrays = with_roi_fraction(load_study_arrays(manifest_path, full_surface=True), float(wanted),
+                                   surface_graphs(mesh_paths))
+        arrays.pop("surface_displacement_mm", None)
+        log.info("scenario %s / %s: ROI re-grown at %.3f of the surface (shards: %.3f; achieved mean %.3f)",
+                 scenario, variant, float(wanted), roi_fraction, float(np.mean(arrays["roi_area_fraction"])))
+        roi_fraction = float(wanted)
+    else:
+        arrays = dio.load_training_arrays(shards)
+    n = len(arrays["case_id"])
+    log.info("scenario %s / %s: %d converged cases from %d shards (data version %s)", scenario, variant, n,
+             len(shards), manifest["data_version"])
+    if n < 10:
+        raise RuntimeError(
+            f"scenario {scenario}: only {n} converged cases in {manifest_path}; too few to train "
+            f"({manifest['failed']} failed — see the 'reason' column); raise sweep.scenarios.{scenario}.n_cases"
+        )
+    out_dir = Path(metrics_path).parent
+    tracker = Tracker(tracking_uri, f"{experiment_prefix}-{experiment}-{scenario}")
+    tags = {
+        "rule": "train", "scenario": scenario, "variant": variant, "experiment": experiment,
+        "config_hash": config_hash({"model": model_cfg, "train": train_cfg, "tune": tune_cfg}),
+        "data_version": manifest["data_version"],
+    }
+    model_meta = {
+        "roi_fraction": roi_fraction,
+        "frame_radius_mm": float(shard_meta["simulate"]["tool_radius_mm"]),
+        "data_version": manifest["data_version"],
+    }
+    result = train_scenario(arrays, model_cfg, train_cfg, tune_cfg, scenario, variant, tracker=tracker,
+                            threads=threads, seed=seed + train_cfg["seed"], out_dir=out_dir, tags=tags,
+                            model_meta=model_meta)
+    result.update(encoder=model_cfg["encoder"], state_vector=bool(model_cfg["state_vector"]), model_cfg=model_cfg)
+    dio.write_json_atomic(result, metrics_path)
+    log.info("scenario %s / %s: test %s", scenario, variant,
+             {k: round(v, 4) for k, v in result.get("metrics", {}).items() if isinstance(v, float)})
+    return result
+
+

@@ -1,0 +1,124 @@
+"""Validate stage adapter: the chosen scenario-IV model on the unseen liver."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from liverforce.dataset import io as dio
+
+log = logging.getLogger("liverforce")
+
+
+def choose_variant(metrics_paths: list, how: str = "auto") -> tuple[int, str]:
+    """Index of the scenario-IV model to validate, and why.
+
+    ``main``: the first listed (the main variant). ``auto``: the lowest Ax
+    cross-validation MSE (folds by liver, training split only: neither the IV
+    test liver nor the unseen liver informs the choice); the first listed when
+    no variant was tuned. Else the variant of that name.
+    """
+    docs = [json.loads(Path(p).read_text()) for p in metrics_paths]
+    names = [d.get("variant") or Path(p).parent.name for d, p in zip(docs, metrics_paths)]
+    if how == "main":
+        return 0, "validate.variant=main (the first of train.variants)"
+    if how != "auto":
+        if how not in names:
+            raise ValueError(f"validate.variant '{how}' is not among the trained scenario-IV variants {names}")
+        return names.index(how), f"validate.variant={how}"
+    cv = [d.get("cv_mse") for d in docs]
+    if any(c is None for c in cv):
+        return 0, "first listed variant (not every variant was tuned, no CV score to compare)"
+    best = int(np.argmin(cv))
+    return best, ("lowest cross-validation MSE on the training livers: "
+                  + ", ".join(f"{n} {c:.4f}" for n, c in zip(names, cv)))
+
+
+def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_path, tracking_uri, out_path,
+                   experiment_name: str = "liverforce-validation", variant: str = "auto") -> dict:
+    """Predict the unseen liver's cases with the chosen scenario-IV model.
+
+    ``model_dir`` / ``model_metrics_path`` may be lists (every scenario-IV
+    variant): :func:`choose_variant` picks one by ``variant``.
+
+    Reports MAE / RMSE (N), accuracy %, and the error against force magnitude
+    and against the distance of the exertion point from the nearest training
+    exertion point (in the local frame sense: both livers are centred on their
+    centroids, since they are different shapes).
+    """
+    from liverforce.learn.metrics import force_metrics
+    from liverforce.learn.model import ForceModel
+    from liverforce.tracking import Tracker
+
+    def predict(d):
+        m = ForceModel.load(Path(d))
+        return m.predict(arrays, observation_seed=int(m.meta.get("eval_observation_seed", 0)))
+
+    choice = "the only model given"
+    others = {}
+    arrays = dio.load_training_arrays(dio.verify_manifest(manifest_path))
+    n = len(arrays["case_id"])
+    if n == 0:
+        raise RuntimeError(f"{manifest_path}: no converged validation case to evaluate")
+    if isinstance(model_metrics_path, (list, tuple)):
+        k, choice = choose_variant(list(model_metrics_path), variant)
+        preds = [predict(d) for d in model_dir]  # every candidate on the unseen liver, for the report
+        for p, mp in zip(preds, model_metrics_path):
+            others[Path(mp).parent.name] = {"metrics": force_metrics(arrays["force_n"], p),
+                                            "model_run_id": json.loads(Path(mp).read_text()).get("run_id")}
+        model_dir, model_metrics_path, pred = list(model_dir)[k], list(model_metrics_path)[k], preds[k]
+    else:
+        pred = predict(model_dir)
+    log.info("validated %s (%s)", model_dir, choice)
+    train = dio.load_training_arrays(dio.verify_manifest(train_manifest_path))
+    true = arrays["force_n"]
+    metrics = force_metrics(true, pred)
+    err = np.linalg.norm(pred - true, axis=1)
+    mag = np.linalg.norm(true, axis=1)
+    rel_v = arrays["exertion_point_mm"] - arrays["liver_centroid_mm"]
+    rel_t = train["exertion_point_mm"] - train["liver_centroid_mm"]
+    dist = np.min(np.linalg.norm(rel_v[:, None, :] - rel_t[None, :, :], axis=2), axis=1)
+    bins = np.linspace(0.0, max(mag.max(), 1e-9), 6)
+    by_mag = []
+    for lo, hi in zip(bins[:-1], bins[1:]):
+        sel = (mag >= lo) & (mag <= hi)
+        if sel.any():
+            by_mag.append({"force_lo_n": float(lo), "force_hi_n": float(hi), "n": int(sel.sum()),
+                           "mae_vec_n": float(err[sel].mean())})
+    model_metrics = json.loads(Path(model_metrics_path).read_text())
+    result = {
+        "n_cases": n,
+        "metrics": metrics,
+        "error_by_force_magnitude": by_mag,
+        "error_vs_distance": {"distance_mm": dist.tolist(), "error_n": err.tolist()},
+        "corr_error_distance": float(np.corrcoef(dist, err)[0, 1]) if n > 2 and dist.std() > 0 else float("nan"),
+        "model_run_id": model_metrics.get("run_id"),
+        "model_variant": model_metrics.get("variant") or Path(model_metrics_path).parent.name,
+        "variant_choice": choice,
+        "all_variants": others,
+        "predictions": {"case_id": [str(c) for c in arrays["case_id"]], "true_n": true.tolist(), "pred_n": pred.tolist()},
+    }
+    out_dir = Path(out_path).parent
+    out_dir.mkdir(parents=True, exist_ok=True)
+    from liverforce.learn.plots import evaluation_figures
+
+    figures = evaluation_figures(true, pred, out_dir / "figures", title="unseen liver")
+    result["figures"] = [str(Path(f).relative_to(out_dir)) for f in figures]
+    tracker = Tracker(tracking_uri, experiment_name)
+    run_id = tracker.start_run("validation", params={"model_run_id": str(result["model_run_id"]), "n_cases": n,
+                                                     "model_variant": result["model_variant"]},
+                               tags={"rule": "validate", "model_run_id": str(result["model_run_id"])})
+    tracker.log_metrics(run_id, metrics)
+    for f in figures:
+        tracker.log_artifact(run_id, f)
+    tracker.end_run(run_id)
+    result["run_id"] = run_id
+    dio.write_json_atomic(result, out_path)
+    log.info("validation on the unseen liver: MAE %.3f N, RMSE %.3f N, accuracy %.1f %% (%d cases)",
+             metrics["mae_vec"], metrics["rmse_vec"], metrics["accuracy_pct"], n)
+    return result
+
+
