@@ -188,6 +188,7 @@ class TrainConfig:
     lr: float = 1e-3
     weight_decay: float = 0.0
     seed: int = 0
+    repeats: int = 5  # seeded train/test splits per model (the first is the saved model's): mean +- sd
 
 
 @dataclass
@@ -208,8 +209,9 @@ class TrackingConfig:
 
 @dataclass
 class ValidateConfig:
-    seed: int = 1000
-    n_cases: int = 60
+    seed: int = 1000  # unseen liver i has the procedural seed seed + i
+    livers: int = 8  # unseen livers
+    n_cases: int = 30  # cases per unseen liver
     material_scale: float = 1.4
     variant: str = "main"  # main: the first of train.variants | auto: lowest Ax CV MSE | a variant name
 
@@ -256,6 +258,7 @@ class StudyConfig:
     occlusion: OcclusionStudy = field(default_factory=OcclusionStudy)
     noise: StudyValues = field(default_factory=StudyValues)
     train_size: StudyValues = field(default_factory=StudyValues)
+    train_livers: StudyValues = field(default_factory=StudyValues)
 
 
 @dataclass
@@ -480,6 +483,8 @@ def _check_ranges(cfg: dict) -> None:
         _check_model(merged, f"train.variants.{vname}")
     if not 0 < t["test_fraction"] < 1:
         _fail("train.test_fraction", "must be in (0, 1)")
+    if t["repeats"] < 1:
+        _fail("train.repeats", "must be >= 1 (the number of seeded train/test splits per model)")
     if t["epochs"] < 1 or t["batch_size"] < 1 or t["lr"] <= 0:
         _fail("train.epochs", "epochs, batch_size must be >= 1 and lr > 0")
     tu = cfg["tune"]
@@ -488,8 +493,14 @@ def _check_ranges(cfg: dict) -> None:
     v = cfg["validate"]
     if v["n_cases"] < 1:
         _fail("validate.n_cases", "must be >= 1")
-    if v["seed"] in range(g["procedural"]["seed"], g["procedural"]["seed"] + g["procedural"]["count"]):
-        _fail("validate.seed", f"seed {v['seed']} is a training liver's seed", "pick a seed outside the training range")
+    if v["livers"] < 1:
+        _fail("validate.livers", "must be >= 1")
+    train_seeds = set(range(g["procedural"]["seed"], g["procedural"]["seed"] + g["procedural"]["count"]))
+    shared = sorted(train_seeds & set(range(v["seed"], v["seed"] + v["livers"])))
+    if shared:
+        _fail("validate.seed", f"seeds {shared} of the unseen livers are training livers' seeds",
+              f"pick validate.seed outside [{g['procedural']['seed']}, "
+              f"{g['procedural']['seed'] + g['procedural']['count']}) minus validate.livers")
     _check_study(cfg)
 
 
@@ -522,7 +533,7 @@ def _check_study(cfg: dict) -> None:
         _fail("study.hyper_parameters", f"unknown '{st['hyper_parameters']}'", "use main or config")
     if not st["enabled"]:
         return
-    for name in ("roi_fraction", "encoder", "state_vector", "occlusion", "noise", "train_size"):
+    for name in ("roi_fraction", "encoder", "state_vector", "occlusion", "noise", "train_size", "train_livers"):
         sub = st[name]
         if not sub["enabled"]:
             continue
@@ -540,6 +551,12 @@ def _check_study(cfg: dict) -> None:
     for f in st["train_size"]["values"]:
         if not isinstance(f, (int, float)) or not 0 < f <= 1:
             _fail("study.train_size.values", f"training-set fractions must be in (0, 1] (got {f})")
+    for k in st["train_livers"]["values"]:
+        if not isinstance(k, int) or isinstance(k, bool) or k < 1:
+            _fail("study.train_livers.values", f"numbers of training livers must be integers >= 1 (got {k})")
+    if st["train_livers"]["enabled"] and any(sc != "IV" for sc in st["train_livers"]["scenarios"]):
+        _fail("study.train_livers.scenarios", "the livers learning curve applies to scenario IV only "
+              "(I-III train on one liver)")
     for e in st["encoder"]["values"]:
         if e not in ("pca", "ae", "dae"):
             _fail("study.encoder.values", f"unknown encoder '{e}'", "use pca, ae or dae")

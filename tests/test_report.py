@@ -17,7 +17,7 @@ def test_study_rules_are_in_the_dry_run_dag_and_feed_the_report(experiment, tmp_
     out = snakemake("-n", "-p", "--directory", str(tmp_path), "--config", f"experiment={experiment}").stdout
     counts = job_counts(out)
     names = enabled_studies(compose([f"experiment={experiment}"])["study"])
-    assert names == ["roi_fraction", "encoder", "state_vector", "occlusion", "noise", "train_size"]
+    assert names == ["roi_fraction", "encoder", "state_vector", "occlusion", "noise", "train_size", "train_livers"]
     assert counts["study"] == len(names)
     for name in names:
         assert f"results/{experiment}/studies/{name}.json" in out

@@ -26,7 +26,7 @@ def smoke_run(tmp_path_factory):
 
 def test_every_stage_produced_its_outputs(smoke_run):
     root = smoke_run / "results" / "smoke"
-    assert sorted(p.name for p in (root / "mesh").glob("*.vtu")) == ["proc-0000.vtu", "proc-0001.vtu", "proc-0002.vtu", "val-1000.vtu"]
+    assert sorted(p.name for p in (root / "mesh").glob("*.vtu")) == ["proc-0000.vtu", "proc-0001.vtu", "proc-0002.vtu", "val-1000.vtu", "val-1001.vtu"]
     for scenario in ("I", "II", "III", "IV", "V"):
         m = json.loads((root / "shards" / scenario / "manifest.json").read_text())
         assert m["rows"] == 12 if scenario != "V" else m["rows"] == 6
@@ -38,7 +38,7 @@ def test_every_stage_produced_its_outputs(smoke_run):
     val = json.loads((root / "validate" / "metrics.json").read_text())
     assert set(val["all_variants"]) == {"pca_sv", "ae_sv"} and val["model_variant"] == "pca_sv"  # main
     assert val["metrics"] == pytest.approx(val["all_variants"]["pca_sv"]["metrics"])
-    for study in ("roi_fraction", "encoder", "state_vector", "occlusion", "noise", "train_size"):
+    for study in ("roi_fraction", "encoder", "state_vector", "occlusion", "noise", "train_size", "train_livers"):
         doc = json.loads((root / "studies" / f"{study}.json").read_text())
         assert len(doc["points"]) == 2 and (root / "studies" / f"{study}.png").stat().st_size > 5000
         assert all(p["run_id"] for p in doc["points"])

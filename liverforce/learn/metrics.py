@@ -62,3 +62,54 @@ def force_metrics(force_true: np.ndarray, force_pred: np.ndarray) -> dict[str, f
     out["rmse_vec"] = float(np.sqrt(np.mean(norm**2)))
     out["accuracy_pct"] = float(100.0 * (1.0 - norm.sum() / total)) if total > 0 else float("nan")
     return out
+
+
+def metrics_by_group(force_true: np.ndarray, force_pred: np.ndarray, groups) -> dict:
+    """Metrics per group (e.g. per unseen liver) and their mean and spread over the groups.
+
+    Returns
+    -------
+    dict
+        ``per_group`` {group: metrics + ``n``}, ``mean`` and ``sd`` (sample sd,
+        ddof 1; 0 for one group) of every metric over the groups (each group
+        weighs the same, whatever its number of cases), ``worst`` the group of
+        the largest ``mae_vec``, ``n_groups``.
+    """
+    t = np.asarray(force_true, dtype=np.float64).reshape(-1, 3)
+    p = np.asarray(force_pred, dtype=np.float64).reshape(-1, 3)
+    g = np.asarray(groups).astype(str)
+    per = {}
+    for name in sorted(set(g.tolist())):
+        sel = g == name
+        per[name] = {**force_metrics(t[sel], p[sel]), "n": int(sel.sum())}
+    vals = {k: np.array([m[k] for m in per.values()]) for k in METRIC_NAMES}
+    return {
+        "per_group": per,
+        "n_groups": len(per),
+        "mean": {k: float(v.mean()) for k, v in vals.items()},
+        "sd": {k: float(v.std(ddof=1)) if len(v) > 1 else 0.0 for k, v in vals.items()},
+        "worst": max(per, key=lambda k: per[k]["mae_vec"]),
+    }
+
+
+def error_by_force_bin(force_true: np.ndarray, force_pred: np.ndarray, n_bins: int = 5) -> list[dict]:
+    """MAE of the force vector in equal-width bins of the true force magnitude (N).
+
+    Each bin: ``force_lo_n``, ``force_hi_n``, ``n``, ``mean_force_n``, ``mae_vec_n`` and
+    ``relative_mae`` = MAE / mean force of the bin (a model biased towards a
+    constant force shows a large relative error in the lowest bin).
+    """
+    t = np.asarray(force_true, dtype=np.float64).reshape(-1, 3)
+    p = np.asarray(force_pred, dtype=np.float64).reshape(-1, 3)
+    err = np.linalg.norm(p - t, axis=1)
+    mag = np.linalg.norm(t, axis=1)
+    edges = np.linspace(0.0, max(float(mag.max()), 1e-9), n_bins + 1)
+    out = []
+    for i, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
+        sel = (mag >= lo) & ((mag < hi) if i < n_bins - 1 else (mag <= hi))
+        if sel.any():
+            mean_f = float(mag[sel].mean())
+            out.append({"force_lo_n": float(lo), "force_hi_n": float(hi), "n": int(sel.sum()),
+                        "mean_force_n": mean_f, "mae_vec_n": float(err[sel].mean()),
+                        "relative_mae": float(err[sel].mean() / mean_f) if mean_f > 0 else float("nan")})
+    return out

@@ -10,6 +10,10 @@ Studies (config group ``study``; each lists its ``scenarios`` and values)
 ``occlusion``     tool occlusion radius (mm) per encoder and mode
                   (``remove`` | ``noise``).
 ``noise``         Gaussian point-cloud noise (mm, stereo endoscope).
+``train_size``    fraction of the training split used (learning curve).
+``train_livers``  number of training livers used (scenario IV learning curve
+                  over the population: 2, 4, 8, ... livers, nested subsets of
+                  the main split's training livers; the test livers are fixed).
 
 Every study point starts from the scenario's *main model* (the first
 ``train.variants`` entry: its model settings, and its Ax-tuned
@@ -47,7 +51,7 @@ from liverforce.learn.torchutil import configure_torch
 
 log = logging.getLogger("liverforce")
 
-STUDIES = ("roi_fraction", "encoder", "state_vector", "occlusion", "noise", "train_size")
+STUDIES = ("roi_fraction", "encoder", "state_vector", "occlusion", "noise", "train_size", "train_livers")
 
 #: what each study varies, for titles and axis labels
 STUDY_TITLES = {
@@ -57,6 +61,8 @@ STUDY_TITLES = {
     "occlusion": ("Tool occlusion", "occlusion radius (mm)"),
     "noise": ("Point-cloud noise", "Gaussian noise σ (mm)"),
     "train_size": ("Learning curve: accuracy vs training-set size", "fraction of the training split used"),
+    "train_livers": ("Learning curve over livers: accuracy on unseen test livers vs training livers",
+                     "number of training livers"),
 }
 
 
@@ -71,6 +77,7 @@ class StudyPoint:
     model_overrides: dict = field(default_factory=dict)
     roi_fraction: float | None = None
     train_fraction: float | None = None  # learning curve: use this fraction of the training split
+    train_livers: int | None = None  # learning curve over livers: use this many training livers
     series: str = ""  # curve the point belongs to in the plot (e.g. "dae / noise")
 
 
@@ -130,6 +137,9 @@ def study_points(study: str, study_cfg: dict) -> list[StudyPoint]:
         elif study == "train_size":
             pts += [StudyPoint(study, sc, float(v), f"{float(v):g}", train_fraction=float(v), series=sc)
                     for v in s["values"]]
+        elif study == "train_livers":
+            pts += [StudyPoint(study, sc, int(v), f"{int(v)} livers", train_livers=int(v), series=sc)
+                    for v in s["values"]]
         else:
             raise ValueError(f"unknown study '{study}': use one of {STUDIES}")
     return pts
@@ -183,6 +193,7 @@ def run_point(
     roi_fraction: float | None = None,
     surfaces: dict | None = None,
     train_fraction: float | None = None,
+    train_livers: int | None = None,
 ) -> dict:
     """Train one model on the train split (no tuning) and evaluate it on the test split.
 
@@ -208,6 +219,10 @@ def run_point(
     train_fraction
         Train on a seeded random subset of this fraction of the training split
         (every training geometry keeps its share); the test split is unchanged.
+    train_livers
+        Train on the cases of this many training geometries only (a seeded
+        order of the training geometries, so 2 livers are a subset of 4, ...;
+        all of them when there are fewer); the test split is unchanged.
 
     Returns
     -------
@@ -226,6 +241,8 @@ def run_point(
         tr, te = train_test_split(geo, scenario=scenario, test_fraction=float(test_fraction), seed=int(seed))
         if train_fraction is not None and train_fraction < 1.0:
             tr = subsample_per_geometry(tr, geo, float(train_fraction), seed=int(seed))
+        if train_livers is not None:
+            tr = first_geometries(tr, geo, int(train_livers), seed=int(seed))
         train_arrays, test_arrays = subset(arrays, tr), subset(arrays, te)
         rep = representation_from_config(model_cfg, train_arrays)
         prep_train = prepare(train_arrays, rep, observation_seeds=view_seeds(seed, n_views_for(rep)))
@@ -242,6 +259,8 @@ def run_point(
         "metrics": metrics,
         "n_train": int(len(tr)),
         "n_test": int(len(te)),
+        "n_train_geometries": int(len(set(geo[tr].tolist()))),
+        "test_geometries": sorted(set(geo[te].tolist())),
         "roi_nodes_mean": float(np.mean([len(x) for x in arrays["roi_undeformed_mm"]])),
         "roi_area_fraction_mean": (float(np.mean(arrays["roi_area_fraction"])) if "roi_area_fraction" in arrays
                                    else None),
@@ -265,6 +284,21 @@ def subsample_per_geometry(idx, geometry_ids, fraction: float, seed: int) -> np.
         n = max(1, int(round(fraction * len(members))))
         keep.append(rng.choice(members, size=n, replace=False))
     return np.sort(np.concatenate(keep))
+
+
+def first_geometries(idx, geometry_ids, k: int, seed: int) -> np.ndarray:
+    """The indices ``idx`` of the first ``k`` geometries in a seeded order of those ``idx`` covers.
+
+    The order depends on the seed and the set of geometries only, so the
+    subsets are nested (the first 2 are among the first 4). ``k`` larger than
+    the number of geometries keeps them all.
+    """
+    if k < 1:
+        raise ValueError(f"the number of training livers must be >= 1, got {k}")
+    idx = np.asarray(idx)
+    geo = np.asarray(geometry_ids).astype(str)[idx]
+    order = np.random.default_rng([int(seed), 31]).permutation(np.unique(geo))
+    return np.sort(idx[np.isin(geo, order[:k])])
 
 
 # --------------------------------------------------------------------------
@@ -310,10 +344,11 @@ def run_study(
                               str(study_cfg.get("hyper_parameters", "main")))
         if mcfg["occlusion"]["radius_mm"] == 0:
             mcfg = _merge(mcfg, {"occlusion": {"mode": "remove"}})  # no occlusion: the mode does not matter
-        key = json.dumps([pt.scenario, mcfg, pt.roi_fraction, pt.train_fraction, hp], sort_keys=True, default=str)
+        key = json.dumps([pt.scenario, mcfg, pt.roi_fraction, pt.train_fraction, pt.train_livers, hp],
+                         sort_keys=True, default=str)
         doc: dict[str, Any] = {"study": study, "scenario": pt.scenario, "value": pt.value, "label": pt.label,
                                "series": pt.series, "overrides": pt.model_overrides, "roi_fraction": pt.roi_fraction,
-                               "train_fraction": pt.train_fraction,
+                               "train_fraction": pt.train_fraction, "train_livers": pt.train_livers,
                                "encoder": mcfg["encoder"], "state_vector": bool(mcfg["state_vector"]),
                                "hyper_parameters": hp, "epochs": epochs}
         try:
@@ -322,7 +357,8 @@ def run_study(
             else:
                 res = run_point(data[pt.scenario], mcfg, hp, scenario=pt.scenario, seed=seed,
                                 test_fraction=float(train_cfg["test_fraction"]), epochs=epochs, threads=threads,
-                                roi_fraction=pt.roi_fraction, surfaces=surfaces, train_fraction=pt.train_fraction)
+                                roi_fraction=pt.roi_fraction, surfaces=surfaces, train_fraction=pt.train_fraction,
+                                train_livers=pt.train_livers)
                 done[key] = {**res, "label": pt.label}
                 doc.update(res, status="ok")
             doc["label"] = pt.label
@@ -334,7 +370,7 @@ def run_study(
                       "encoder": mcfg["encoder"], "state_vector": bool(mcfg["state_vector"]),
                       "occlusion.radius_mm": mcfg["occlusion"]["radius_mm"], "occlusion.mode": mcfg["occlusion"]["mode"],
                       "noise_mm": mcfg["noise_mm"], "roi_fraction": pt.roi_fraction, "epochs": epochs,
-                      "train_fraction": pt.train_fraction,
+                      "train_fraction": pt.train_fraction, "train_livers": pt.train_livers,
                       "seed": seed, "hidden": hp["hidden"], "dropout": hp["dropout"], "lr": hp["lr"],
                       "batch_size": hp["batch_size"], "hyper_parameters_from": hp["source"]}
             run_tags = {"rule": "study", "study": study, "value": str(pt.value), "scenario": pt.scenario,

@@ -18,7 +18,14 @@ Steps (every fitted quantity sees the training split only):
    :func:`~liverforce.learn.model.eval_seed` (stored in the model). The
    per-epoch ``test_loss`` of this final fit is logged for monitoring only:
    no choice (epochs, parameters) is made from it;
-5. outputs: ``out_dir/model/`` (bundle), ``out_dir/figures/*.png``,
+5. uncertainty: with ``train.repeats = R > 1`` the same configuration is
+   refitted on ``R - 1`` further seeded splits (``seed + r``; other test
+   cases, for IV other test livers) and scored on each split's own test set.
+   ``metrics_mean`` / ``metrics_sd`` summarise the ``R`` splits (the first is
+   the main model's). The hyper-parameters tuned on the first split's training
+   side are reused: the repeats measure the spread due to the split, not a
+   fresh tuning;
+6. outputs: ``out_dir/model/`` (bundle), ``out_dir/figures/*.png``,
    ``out_dir/test_predictions.csv`` and ``out_dir/metrics.json`` (atomic);
    with a ``tracker`` everything is also logged (parent run per scenario +
    variant, one nested run per Ax trial). The tracker is duck-typed (see
@@ -272,9 +279,17 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
     figures = evaluation_figures(prep_test.force, pred, out_dir / "figures", title=f"{scenario} {variant}")
     _write_predictions(out_dir / "test_predictions.csv", test_arrays["case_id"], prep_test.force, pred)
 
+    repeats = [{"split_seed": seed, "test_geometries": _geometries(test_arrays), "metrics": metrics}]
+    repeats += repeated_splits(train_arrays, test_arrays, rep, model_cfg, train_cfg, scenario, seed, encoder,
+                               use_state, code_size, dae_noise, hidden, dropout, fit)
+    summary = summarise_repeats([r["metrics"] for r in repeats])
+
     if tracker is not None:
         tracker.log_history(run_id, history)
-        tracker.log_metrics(run_id, {**metrics, **({"cv_mse": best_cv} if best_cv is not None else {})})
+        tracker.log_metrics(run_id, {**metrics, **({"cv_mse": best_cv} if best_cv is not None else {}),
+                                     **{f"{k}_mean": v for k, v in summary["mean"].items()},
+                                     **{f"{k}_sd": v for k, v in summary["sd"].items()},
+                                     "n_splits": summary["n"]})
         tracker.log_params(run_id, {f"best.{k}": v for k, v in best.items()})
         for path in figures:
             tracker.log_artifact(run_id, path, "figures")
@@ -285,6 +300,10 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
         "variant": variant,
         "seed": seed,
         "metrics": metrics,
+        "metrics_mean": summary["mean"],
+        "metrics_sd": summary["sd"],
+        "n_splits": summary["n"],
+        "repeats": repeats,
         "cv_mse": best_cv,
         "best_params": best,
         "trials": trials,
@@ -303,6 +322,53 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
         "model_uri": None,
         "figures": [str(p) for p in figures],
     }
+
+
+def _geometries(arrays: dict) -> list[str]:
+    return sorted(set(np.asarray(arrays["geometry_id"]).astype(str).tolist()))
+
+
+def repeated_splits(train_arrays, test_arrays, rep, model_cfg, train_cfg, scenario, seed, encoder, use_state,
+                    code_size, dae_noise, hidden, dropout, fit) -> list[dict]:
+    """Refit the chosen configuration on ``train.repeats - 1`` further seeded splits; their test metrics.
+
+    The cases are the union of the main split's training and test cases; split
+    ``r`` uses seed ``seed + r`` (:func:`~liverforce.learn.splits.train_test_split`,
+    by geometry for IV), and its own observation seeds.
+    """
+    n_rep = int(train_cfg.get("repeats", 1))
+    if n_rep <= 1:
+        return []
+    all_arrays = {k: (list(train_arrays[k]) + list(test_arrays[k]) if isinstance(train_arrays[k], list)
+                      else np.concatenate([np.asarray(train_arrays[k]), np.asarray(test_arrays[k])]))
+                  for k in train_arrays}
+    order = np.argsort(np.asarray(all_arrays["case_id"]).astype(str), kind="stable")  # independent of the main split
+    all_arrays = subset(all_arrays, order)
+    geo = np.asarray(all_arrays["geometry_id"]).astype(str)
+    out = []
+    for r in range(1, n_rep):
+        split_seed = int(seed) + r
+        tr, te = train_test_split(geo, scenario=scenario, test_fraction=float(train_cfg["test_fraction"]),
+                                  seed=split_seed)
+        a_tr, a_te = subset(all_arrays, tr), subset(all_arrays, te)
+        rep_r = representation_from_config(model_cfg, a_tr)
+        prep_tr = prepare(a_tr, rep_r, observation_seeds=view_seeds(split_seed, n_views_for(rep_r)))
+        model, _ = fit_force_model(prep_tr, rep_r, encoder=encoder, code_size=code_size, use_state=use_state,
+                                   hidden=hidden, dropout=dropout, fit=fit, seed=split_seed,
+                                   dae_input_noise=dae_noise)
+        pred = model.predict(a_te, observation_seed=eval_seed(split_seed))
+        out.append({"split_seed": split_seed, "test_geometries": _geometries(a_te),
+                    "metrics": force_metrics(np.asarray(a_te["force_n"], float), pred)})
+    return out
+
+
+def summarise_repeats(metrics: list[dict]) -> dict:
+    """Mean and sample standard deviation (ddof 1; 0 for one split) of every metric over the splits."""
+    keys = [k for k in metrics[0] if all(isinstance(m.get(k), (int, float)) for m in metrics)]
+    vals = {k: np.array([float(m[k]) for m in metrics]) for k in keys}
+    return {"n": len(metrics),
+            "mean": {k: float(v.mean()) for k, v in vals.items()},
+            "sd": {k: float(v.std(ddof=1)) if len(v) > 1 else 0.0 for k, v in vals.items()}}
 
 
 def _write_predictions(path: Path, case_ids, true: np.ndarray, pred: np.ndarray) -> None:

@@ -8,10 +8,11 @@ Geometry ids
 ``proc-<seed:04d>``  procedural training liver
 ``cube``             the cube phantom (``geometry.cube.enabled``)
 ``imp-<name>``       an imported liver
-``val-<seed:04d>``   the unseen validation liver (procedural, held-out seed)
+``val-<seed:04d>``   an unseen validation liver (procedural, held-out seeds ``validate.seed + i``)
 
 Scenarios I–III use the first training geometry, IV all of them, and the
-validation scenario ``V`` the unseen liver.
+validation scenario ``V`` the unseen livers
+(``validate.livers`` of them, ``validate.n_cases`` cases each).
 """
 
 from __future__ import annotations
@@ -53,13 +54,14 @@ class Plan:
         self.train_geometries += [f"imp-{imp['name']}" for imp in g["imported"]]
         if g["cube"]["enabled"]:
             self.train_geometries.append("cube")
-        self.validation_geometry = f"val-{cfg['validate']['seed']:04d}"
+        v = cfg["validate"]
+        self.validation_geometries: list[str] = [f"val-{v['seed'] + i:04d}" for i in range(v["livers"])]
         self.scenarios = [s for s in SCENARIOS if s in cfg["sweep"]["scenarios"]]
 
     # ---------------------------------------------------------------- geometry
     @property
     def all_geometries(self) -> list[str]:
-        return self.train_geometries + [self.validation_geometry]
+        return self.train_geometries + self.validation_geometries
 
     def geometry_spec(self, gid: str) -> dict:
         """Everything that defines one geometry (a rule's params)."""
@@ -77,14 +79,16 @@ class Plan:
 
     def scenario_geometries(self, scenario: str) -> list[str]:
         if scenario == VALIDATION:
-            return [self.validation_geometry]
+            return list(self.validation_geometries)
         spec = self.cfg["sweep"]["scenarios"][scenario]
         return self.train_geometries if str(spec["geometries"]) == "all" else self.train_geometries[:1]
 
     # ------------------------------------------------------------------- sweep
     def scenario_spec(self, scenario: str) -> dict:
         if scenario == VALIDATION:
-            return {"n_cases": self.cfg["validate"]["n_cases"], "geometries": "1", "exertion": "varies", "material": "fixed"}
+            v = self.cfg["validate"]
+            return {"n_cases": v["n_cases"] * v["livers"], "geometries": "all", "exertion": "varies",
+                    "material": "fixed"}
         return dict(self.cfg["sweep"]["scenarios"][scenario])
 
     def sweep_params(self, scenario: str) -> dict:

@@ -39,17 +39,20 @@ def choose_variant(metrics_paths: list, how: str = "auto") -> tuple[int, str]:
 
 def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_path, tracking_uri, out_path,
                    experiment_name: str = "liverforce-validation", variant: str = "auto") -> dict:
-    """Predict the unseen liver's cases with the chosen scenario-IV model.
+    """Predict the unseen livers' cases with the chosen scenario-IV model.
 
     ``model_dir`` / ``model_metrics_path`` may be lists (every scenario-IV
     variant): :func:`choose_variant` picks one by ``variant``.
 
-    Reports MAE / RMSE (N), accuracy %, and the error against force magnitude
-    and against the distance of the exertion point from the nearest training
-    exertion point (in the local frame sense: both livers are centred on their
-    centroids, since they are different shapes).
+    Reports MAE / RMSE (N) and accuracy % over all cases, per unseen liver
+    with their mean ± sd over the livers and the worst liver named, the error
+    in bins of force magnitude (absolute and relative to the bin's mean
+    force), and the error against the distance of the exertion point from the
+    nearest training exertion point (both livers centred on their centroids,
+    since they are different shapes). Refuses to run when an unseen liver is
+    also a training liver of the model.
     """
-    from liverforce.learn.metrics import force_metrics
+    from liverforce.learn.metrics import error_by_force_bin, force_metrics, metrics_by_group
     from liverforce.learn.model import ForceModel
     from liverforce.tracking import Tracker
 
@@ -67,31 +70,36 @@ def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_
         k, choice = choose_variant(list(model_metrics_path), variant)
         preds = [predict(d) for d in model_dir]  # every candidate on the unseen liver, for the report
         for p, mp in zip(preds, model_metrics_path):
+            grouped = metrics_by_group(arrays["force_n"], p, arrays["geometry_id"])
             others[Path(mp).parent.name] = {"metrics": force_metrics(arrays["force_n"], p),
+                                            "livers": {"mean": grouped["mean"], "sd": grouped["sd"],
+                                                       "worst": grouped["worst"]},
                                             "model_run_id": json.loads(Path(mp).read_text()).get("run_id")}
         model_dir, model_metrics_path, pred = list(model_dir)[k], list(model_metrics_path)[k], preds[k]
     else:
         pred = predict(model_dir)
     log.info("validated %s (%s)", model_dir, choice)
     train = dio.load_training_arrays(dio.verify_manifest(train_manifest_path))
+    unseen = set(np.asarray(arrays["geometry_id"]).astype(str).tolist())
+    shared = sorted(unseen & set(np.asarray(train["geometry_id"]).astype(str).tolist()))
+    if shared:
+        raise RuntimeError(f"validation livers {shared} are also training livers of {model_dir}: "
+                           "the validation would not be on unseen livers")
     true = arrays["force_n"]
     metrics = force_metrics(true, pred)
     err = np.linalg.norm(pred - true, axis=1)
-    mag = np.linalg.norm(true, axis=1)
     rel_v = arrays["exertion_point_mm"] - arrays["liver_centroid_mm"]
     rel_t = train["exertion_point_mm"] - train["liver_centroid_mm"]
     dist = np.min(np.linalg.norm(rel_v[:, None, :] - rel_t[None, :, :], axis=2), axis=1)
-    bins = np.linspace(0.0, max(mag.max(), 1e-9), 6)
-    by_mag = []
-    for lo, hi in zip(bins[:-1], bins[1:]):
-        sel = (mag >= lo) & (mag <= hi)
-        if sel.any():
-            by_mag.append({"force_lo_n": float(lo), "force_hi_n": float(hi), "n": int(sel.sum()),
-                           "mae_vec_n": float(err[sel].mean())})
+    by_mag = error_by_force_bin(true, pred)
+    by_liver = metrics_by_group(true, pred, arrays["geometry_id"])
     model_metrics = json.loads(Path(model_metrics_path).read_text())
     result = {
         "n_cases": n,
         "metrics": metrics,
+        "per_liver": by_liver["per_group"],
+        "livers": {"n": by_liver["n_groups"], "mean": by_liver["mean"], "sd": by_liver["sd"],
+                   "worst": by_liver["worst"]},
         "error_by_force_magnitude": by_mag,
         "error_vs_distance": {"distance_mm": dist.tolist(), "error_n": err.tolist()},
         "corr_error_distance": float(np.corrcoef(dist, err)[0, 1]) if n > 2 and dist.std() > 0 else float("nan"),
@@ -105,20 +113,24 @@ def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_
     out_dir.mkdir(parents=True, exist_ok=True)
     from liverforce.learn.plots import evaluation_figures
 
-    figures = evaluation_figures(true, pred, out_dir / "figures", title="unseen liver")
+    figures = evaluation_figures(true, pred, out_dir / "figures", title="unseen livers")
     result["figures"] = [str(Path(f).relative_to(out_dir)) for f in figures]
     tracker = Tracker(tracking_uri, experiment_name)
     run_id = tracker.start_run("validation", params={"model_run_id": str(result["model_run_id"]), "n_cases": n,
                                                      "model_variant": result["model_variant"]},
                                tags={"rule": "validate", "model_run_id": str(result["model_run_id"])})
-    tracker.log_metrics(run_id, metrics)
+    tracker.log_metrics(run_id, {**metrics, **{f"{k}_livers_mean": v for k, v in by_liver["mean"].items()},
+                                 **{f"{k}_livers_sd": v for k, v in by_liver["sd"].items()},
+                                 "n_livers": by_liver["n_groups"]})
     for f in figures:
         tracker.log_artifact(run_id, f)
     tracker.end_run(run_id)
     result["run_id"] = run_id
     dio.write_json_atomic(result, out_path)
-    log.info("validation on the unseen liver: MAE %.3f N, RMSE %.3f N, accuracy %.1f %% (%d cases)",
-             metrics["mae_vec"], metrics["rmse_vec"], metrics["accuracy_pct"], n)
+    log.info("validation on %d unseen livers: MAE %.3f +- %.3f N (mean +- sd over livers), accuracy %.1f +- %.1f %%;"
+             " worst liver %s (MAE %.3f N); %d cases", by_liver["n_groups"], by_liver["mean"]["mae_vec"],
+             by_liver["sd"]["mae_vec"], by_liver["mean"]["accuracy_pct"], by_liver["sd"]["accuracy_pct"],
+             by_liver["worst"], by_liver["per_group"][by_liver["worst"]]["mae_vec"], n)
     return result
 
 

@@ -51,6 +51,10 @@ STUDY_TEXT = {
              "0.5-2 mm error).",
     "train_size": "Learning curve: the same model trained on a fraction of the training split, tested on the same "
                   "test split. A curve still rising at 1.0 means more simulated cases would raise the accuracy.",
+    "train_livers": "Learning curve over the liver population (scenario IV): the same model trained on the cases of "
+                    "2, 4, 8, … training livers, tested on the same held-out livers. A curve still rising at the "
+                    "largest count means more livers (not more cases per liver) would raise the accuracy on a new "
+                    "patient.",
 }
 
 

@@ -160,8 +160,12 @@ def test_study_points_expand_the_config():
                       "modes": ["noise", "remove"]},
         "noise": {"enabled": False, "scenarios": ["II"], "values": [0, 1]},
         "train_size": {"enabled": True, "scenarios": ["II", "IV"], "values": [0.25, 1.0]},
+        "train_livers": {"enabled": True, "scenarios": ["IV"], "values": [2, 8]},
     }
-    assert enabled_studies(cfg) == ["roi_fraction", "encoder", "state_vector", "occlusion", "train_size"]
+    assert enabled_studies(cfg) == ["roi_fraction", "encoder", "state_vector", "occlusion", "train_size",
+                                    "train_livers"]
+    tl = study_points("train_livers", cfg)
+    assert [(p.scenario, p.train_livers, p.label) for p in tl] == [("IV", 2, "2 livers"), ("IV", 8, "8 livers")]
     ts = study_points("train_size", cfg)
     assert [(p.scenario, p.train_fraction) for p in ts] == [("II", 0.25), ("II", 1.0), ("IV", 0.25), ("IV", 1.0)]
     assert len(study_points("encoder", cfg)) == 6
@@ -171,7 +175,23 @@ def test_study_points_expand_the_config():
     sv = study_points("state_vector", cfg)
     assert [p.model_overrides["state_vector"] for p in sv] == [False, True]
     assert enabled_studies({**cfg, "enabled": False}) == []
-    assert set(STUDIES) == {"roi_fraction", "encoder", "state_vector", "occlusion", "noise", "train_size"}
+    assert set(STUDIES) == {"roi_fraction", "encoder", "state_vector", "occlusion", "noise", "train_size",
+                            "train_livers"}
+
+
+def test_first_geometries_are_nested_seeded_subsets_of_the_training_livers():
+    from liverforce.learn.study import first_geometries
+
+    geo = np.repeat([f"g{i}" for i in range(10)], 3)
+    idx = np.flatnonzero(~np.isin(geo, ["g0", "g5"]))  # the training split: 8 livers
+    subsets = {k: set(geo[first_geometries(idx, geo, k, seed=4)]) for k in (1, 2, 4, 8, 30)}
+    assert [len(subsets[k]) for k in (1, 2, 4, 8, 30)] == [1, 2, 4, 8, 8]
+    assert subsets[1] < subsets[2] < subsets[4] < subsets[8] == subsets[30]
+    assert not subsets[8] & {"g0", "g5"}  # never a test liver
+    assert all(len(first_geometries(idx, geo, 2, seed=4)) == 6 for _ in range(2))  # every case of those livers
+    assert subsets[4] != set(geo[first_geometries(idx, geo, 4, seed=5)])  # another seed, another order
+    with pytest.raises(ValueError):
+        first_geometries(idx, geo, 0, seed=4)
 
 
 def test_hyper_parameters_come_from_the_tuned_main_model():

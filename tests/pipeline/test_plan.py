@@ -10,8 +10,22 @@ def test_geometries_per_scenario():
     assert plan.train_geometries == ["proc-0000", "proc-0001", "proc-0002"]
     assert plan.scenario_geometries("I") == ["proc-0000"]
     assert plan.scenario_geometries("IV") == plan.train_geometries
-    assert plan.scenario_geometries(VALIDATION) == ["val-1000"]
-    assert plan.validation_geometry not in plan.train_geometries
+    assert plan.scenario_geometries(VALIDATION) == ["val-1000", "val-1001"]
+    assert not set(plan.validation_geometries) & set(plan.train_geometries)
+    assert plan.scenario_spec(VALIDATION)["n_cases"] == 2 * 4  # livers x cases per liver
+
+
+def test_unseen_livers_never_share_a_seed_with_training():
+    import pytest
+
+    from liverforce.config import ConfigError
+
+    plan = Plan(compose(["geometry.procedural.count=24", "validate.livers=8"]))
+    seeds = lambda ids: {int(g.split("-")[1]) for g in ids}  # noqa: E731
+    assert len(plan.validation_geometries) == 8
+    assert not seeds(plan.validation_geometries) & seeds(plan.train_geometries)
+    with pytest.raises(ConfigError, match="validate.seed"):  # 995..1002 overlaps training seeds 995..1018
+        compose(["geometry.procedural.seed=995", "geometry.procedural.count=24"])
 
 
 def test_imported_and_cube_geometries_join_training():
