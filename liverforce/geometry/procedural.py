@@ -56,6 +56,12 @@ class LiverShapeParams:
         Marching-cubes grid spacing (mm); smaller = finer surface, slower.
     smoothing_iterations : int
         Taubin smoothing iterations applied after marching cubes.
+    volume_range_l : (float, float) or None
+        Population spread of the liver volume: each seed draws a target volume
+        uniformly in this range (litres) and the extracted liver is scaled
+        about its centre to it (shape factors unchanged). ``None`` keeps the
+        volume the shape factors give (about 1.3-1.8 L at ``size_scale`` 1).
+        Adult livers are about 1.0-2.2 L.
     """
 
     size_scale: float = 1.0
@@ -67,8 +73,11 @@ class LiverShapeParams:
     variation: float = 0.12
     voxel_mm: float = 2.5
     smoothing_iterations: int = 15
+    volume_range_l: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
+        if self.volume_range_l is not None:
+            object.__setattr__(self, "volume_range_l", tuple(float(v) for v in self.volume_range_l))
         checks = {
             "size_scale": self.size_scale > 0,
             "lobe_ratio": 0.02 <= self.lobe_ratio <= 1.5,
@@ -79,6 +88,8 @@ class LiverShapeParams:
             "variation": 0 <= self.variation <= 0.4,
             "voxel_mm": 0.2 <= self.voxel_mm <= 10 * self.size_scale,
             "smoothing_iterations": self.smoothing_iterations >= 0,
+            "volume_range_l": self.volume_range_l is None or (
+                len(self.volume_range_l) == 2 and 0.05 <= self.volume_range_l[0] <= self.volume_range_l[1] <= 10.0),
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
@@ -301,6 +312,12 @@ def procedural_liver(seed: int, params: LiverShapeParams | None = None) -> Surfa
     vertices, faces = _extract_surface(f, lo, h, p.smoothing_iterations)
     lo_b, hi_b = vertices.min(axis=0), vertices.max(axis=0)
     vertices = vertices - 0.5 * (lo_b + hi_b)
+    target_l = None
+    if p.volume_range_l is not None:
+        lo_v, hi_v = p.volume_range_l
+        target_l = float(np.random.default_rng(np.random.SeedSequence([int(seed), 0x7015])).uniform(lo_v, hi_v))
+        volume_l = Surface(vertices, faces, {}).volume_mm3 / 1e6
+        vertices = vertices * (target_l / volume_l) ** (1.0 / 3.0)
     meta = {
         "source": "procedural",
         "generator": GENERATOR_VERSION,
@@ -309,6 +326,7 @@ def procedural_liver(seed: int, params: LiverShapeParams | None = None) -> Surfa
         "units": "mm",
         "scale_to_mm": 1.0,
         "frame": "RAS: +x patient right, +y anterior, +z superior",
+        "volume_target_l": target_l,
     }
     return Surface(vertices, faces, meta)
 

@@ -157,3 +157,22 @@ def test_cube_phantom_is_exact(edge, div):
     assert np.allclose(c.bbox_mm[0], np.array([1.0, 2.0, 3.0]) - edge / 2)
     assert np.allclose(c.bbox_mm[1], np.array([1.0, 2.0, 3.0]) + edge / 2)
     assert len(c.faces) == 12 * div**2
+
+
+def test_volume_range_spreads_the_population_over_adult_volumes():
+    """Each seed draws its own volume in the range (here 1.0-2.2 L) and the liver is scaled to it exactly."""
+    p = LiverShapeParams(volume_range_l=[1.0, 2.2], voxel_mm=4.0, smoothing_iterations=5)
+    vols = []
+    for seed in range(8):
+        s = procedural_liver(seed, p)
+        assert s.volume_mm3 / 1e6 == pytest.approx(s.meta["volume_target_l"], rel=1e-9)
+        vols.append(s.volume_mm3 / 1e6)
+    assert 1.0 <= min(vols) and max(vols) <= 2.2
+    assert max(vols) - min(vols) > 0.5  # a real spread, not a constant
+    # the same seed without a range keeps its shape: scaling is the only change
+    base = procedural_liver(3, LiverShapeParams(voxel_mm=4.0, smoothing_iterations=5))
+    scaled = procedural_liver(3, p)
+    k = (scaled.volume_mm3 / base.volume_mm3) ** (1 / 3)
+    assert scaled.vertices == pytest.approx(base.vertices * k, abs=1e-6)
+    with pytest.raises(ValueError, match="volume_range_l"):
+        LiverShapeParams(volume_range_l=[2.0, 1.0])
