@@ -177,10 +177,25 @@ def build_parser() -> argparse.ArgumentParser:
     u.add_argument("--port", type=int, default=5000)
     u.set_defaults(func=cmd_ui)
 
-    from liverforce.serve.cli import register as register_predict
-
     register_predict(sub)
     return p
+
+
+def fetch_from_mlflow(ref: str, *, tracking_uri: str | None = None) -> Path:
+    """The bundle directory of a logged model (run id, ``runs:/``/``models:/`` URI, registered name).
+
+    Imports MLflow only when ``liverforce predict -m`` names such a reference.
+    """
+    from liverforce.tracking.model import fetch_force_model
+
+    return fetch_force_model(ref, tracking_uri=tracking_uri)
+
+
+def register_predict(subparsers):
+    """The ``predict`` subcommand of :mod:`liverforce.serve.cli`, with models fetched from MLflow by reference."""
+    from liverforce.serve.cli import register
+
+    return register(subparsers, fetch=fetch_from_mlflow)
 
 
 def main(argv: list[str] | None = None) -> int:

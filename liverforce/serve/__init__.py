@@ -2,9 +2,12 @@
 
 Public API
 ----------
-- :class:`~liverforce.serve.predictor.Predictor` — load (directory, run id,
-  ``runs:/``/``models:/`` URI, registered name) and predict from (a) tracked
-  ROI nodes, (b) an unordered point cloud, or input-contract arrays.
+- :class:`~liverforce.serve.predictor.Predictor` — load (a directory, or any
+  reference through a ``fetch`` callable) and predict from (a) tracked ROI
+  nodes, (b) an unordered point cloud, or input-contract arrays. Models logged
+  to MLflow (run id, ``runs:/``/``models:/`` URI, registered name) load with
+  :class:`liverforce.tracking.MlflowPredictor`: tracking builds on serving,
+  serving never imports tracking.
 - :class:`~liverforce.serve.preop.Preop` — the pre-operative context of one
   exertion point (from the undeformed surface or given directly).
 - :class:`~liverforce.serve.compiled.CompiledROI` — the fixed-topology fast

@@ -13,7 +13,10 @@ cloud; ``nodes`` the deformed ROI nodes in the context's ROI order; ``surface``
 the deformed positions of every vertex of the context's surface file. Exit
 codes: 0 done, 2 input refused (the message says why).
 
-Wire into the main parser with ``liverforce.serve.cli.register(sub)``.
+Wire into the main parser with ``liverforce.serve.cli.register(sub, fetch=...)``:
+``fetch(ref, tracking_uri=...)`` downloads a model given by reference (the main
+CLI, :mod:`liverforce.cli`, passes the MLflow one of :mod:`liverforce.tracking`;
+serving never imports tracking). Without it ``-m`` takes directories only.
 """
 
 from __future__ import annotations
@@ -21,14 +24,22 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from functools import partial
+from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
 from liverforce.serve.errors import PredictionInputError
 
 
-def register(subparsers) -> argparse.ArgumentParser:
-    """Add the ``predict`` subcommand to an ``argparse`` subparsers object; returns the subparser."""
+def register(subparsers, *, fetch: Callable[..., str | Path] | None = None) -> argparse.ArgumentParser:
+    """Add the ``predict`` subcommand to an ``argparse`` subparsers object; returns the subparser.
+
+    ``fetch(ref, tracking_uri=...)`` returns the bundle directory of a model
+    reference that is not a directory (run id, ``runs:/``/``models:/`` URI,
+    registered name) or raises :class:`PredictionInputError`.
+    """
     p = subparsers.add_parser(
         "predict", help="predict the tool force from a point cloud (or whole shards) with a trained model",
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -52,7 +63,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--out", help="write the result (.json or .csv for one force; .parquet or .csv for shards)")
     p.add_argument("--tracking-uri", help="MLflow tracking URI (default: MLFLOW_TRACKING_URI / MLflow's default)")
     p.add_argument("--describe", action="store_true", help="print what the model needs and how it was trained")
-    p.set_defaults(func=cmd_predict)
+    p.set_defaults(func=cmd_predict, fetch_model=fetch)
     return p
 
 
@@ -77,7 +88,9 @@ def _run(args) -> int:
     from liverforce.serve.files import load_context, read_points, write_atomic_text
     from liverforce.serve.predictor import Predictor
 
-    predictor = Predictor.load(args.model, tracking_uri=args.tracking_uri)
+    fetch_model = getattr(args, "fetch_model", None)
+    fetch = partial(fetch_model, tracking_uri=args.tracking_uri) if fetch_model is not None else None
+    predictor = Predictor.load(args.model, fetch=fetch)
     if args.describe:
         print(json.dumps(predictor.describe(), indent=2, default=str))
         return 0

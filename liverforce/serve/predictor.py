@@ -13,10 +13,14 @@ frame, ROI resampling, scalers, encoder, state vector) lives in the model
 the input-contract arrays, checks them against the model's training scale
 (:mod:`liverforce.serve.checks`) and calls the model.
 
-Loading: :meth:`Predictor.load` takes a bundle directory, an MLflow run id,
-``runs:/<id>/model``, ``models:/<name>/<version>`` or a registered name; the
-bundle is read by :meth:`ForceModel.load` (JSON + ``torch.load(weights_only=True)``
-+ ``np.load(allow_pickle=False)``), never by unpickling.
+Loading: :meth:`Predictor.load` takes a bundle directory; any other reference
+(an MLflow run id, ``runs:/<id>/model``, ``models:/<name>/<version>`` or a
+registered name) goes through a ``fetch`` callable that returns the downloaded
+bundle directory. Serving never imports :mod:`liverforce.tracking` (tracking
+builds on serving): :class:`liverforce.tracking.MlflowPredictor` and
+``liverforce predict`` pass the MLflow fetcher. The bundle is read by
+:meth:`ForceModel.load` (JSON + ``torch.load(weights_only=True)`` +
+``np.load(allow_pickle=False)``), never by unpickling.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ from __future__ import annotations
 import hashlib
 import pickle
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -37,6 +42,11 @@ from liverforce.serve.preop import DEFAULT_FRAME_RADIUS_MM, DEFAULT_ROI_FRACTION
 #: keys of one case's pre-operative context in the input contract (everything but the deformed ROI)
 CONTEXT_KEYS = ("exertion_point_mm", "frame_normal", "frame_t1", "frame_t2", "roi_undeformed_mm",
                 "liver_centroid_mm", "inertia_mm5")
+
+#: turns a model reference that is not a directory (run id, ``runs:/``/``models:/`` URI, registered name)
+#: into a local bundle directory, or raises :class:`PredictionInputError` saying why it cannot
+#: (e.g. :func:`liverforce.tracking.fetch_force_model`)
+ModelFetcher = Callable[[str], "str | Path"]
 
 
 class Predictor:
@@ -71,27 +81,31 @@ class Predictor:
         return cls(model, source=str(path), **kw)
 
     @classmethod
-    def from_mlflow(cls, model_ref: str, *, tracking_uri: str | None = None, dst_dir: str | Path | None = None,
-                    **kw) -> "Predictor":
-        """Load by run id, ``runs:/`` or ``models:/`` URI or registered name (through :mod:`liverforce.tracking`)."""
-        from liverforce.tracking import MlflowException, download_force_model
+    def load(cls, ref: str | Path, *, fetch: ModelFetcher | None = None, **kw) -> "Predictor":
+        """A bundle directory if ``ref`` is one, else whatever ``fetch(ref)`` downloads (the source stays ``ref``).
 
-        try:
-            path = download_force_model(model_ref, dst_dir=dst_dir, tracking_uri=tracking_uri)
-        except (MlflowException, FileNotFoundError, OSError) as exc:
-            raise PredictionInputError(f"model {model_ref}: cannot fetch it from MLflow ({exc})") from exc
-        pred = cls.from_dir(path, **kw)
-        pred.source = model_ref
-        return pred
-
-    @classmethod
-    def load(cls, ref: str | Path, *, tracking_uri: str | None = None, **kw) -> "Predictor":
-        """A bundle directory if ``ref`` is one, else an MLflow reference (:meth:`from_mlflow`)."""
+        Parameters
+        ----------
+        ref : str or path
+            A bundle directory, or a reference ``fetch`` understands (for the
+            MLflow fetcher: a run id, ``runs:/`` or ``models:/`` URI, or a registered name).
+        fetch : callable, optional
+            ``fetch(ref) -> bundle directory``, raising :class:`PredictionInputError`
+            when it cannot; without it only directories load
+            (:class:`liverforce.tracking.MlflowPredictor` passes the MLflow one).
+        """
         if Path(ref).is_dir():
             return cls.from_dir(ref, **kw)
         if Path(ref).exists():
             raise PredictionInputError(f"model {ref}: a file, not a model directory (model.json + weights)")
-        return cls.from_mlflow(str(ref), tracking_uri=tracking_uri, **kw)
+        if fetch is None:
+            raise PredictionInputError(
+                f"model {ref}: no such model directory; to load an MLflow run id, runs:/ or models:/ URI or "
+                "registered name use liverforce.tracking.MlflowPredictor.load (or `liverforce predict -m`)"
+            )
+        pred = cls.from_dir(fetch(str(ref)), **kw)
+        pred.source = str(ref)
+        return pred
 
     # ------------------------------------------------------------------ context
     @property

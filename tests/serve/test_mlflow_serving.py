@@ -18,7 +18,8 @@ import yaml
 
 from liverforce.learn.model import subset
 from liverforce.learn.train import train_scenario
-from liverforce.serve import PredictionInputError, Predictor
+from liverforce.serve import PredictionInputError
+from liverforce.tracking import MlflowPredictor as Predictor
 from liverforce.tracking import Tracker, download_force_model, load_pyfunc, predict_pyfunc
 
 

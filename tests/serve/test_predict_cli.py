@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 
 from liverforce.serve import Predictor, Preop
-from liverforce.serve.cli import register
+from liverforce.cli import register_predict as register
 from liverforce.serve.files import read_points, read_surface
 
 

@@ -1,0 +1,295 @@
+"""Force models in MLflow: the pyfunc wrapper, logging a bundle as a model, downloading it for serving.
+
+A logged model is an MLflow pyfunc (reloadable by run id:
+``mlflow.pyfunc.load_model(f"runs:/{run_id}/model")``) written as "models from
+code" (no cloudpickle) with a signature and an input example, so
+``mlflow models serve -m runs:/<id>/model --host 127.0.0.1 --env-manager local``
+serves it. Its ``predict`` runs the serving checks of :mod:`liverforce.serve`
+(a refused row becomes HTTP 400 with the reason).
+
+For serving, :func:`download_force_model` fetches the bundle of a logged model
+(run id, ``runs:/``/``models:/`` URI or registered name) for
+:meth:`liverforce.learn.model.ForceModel.load` (nothing unpickled), and
+:class:`MlflowPredictor` is the :class:`~liverforce.serve.predictor.Predictor`
+that loads such references.
+
+Import direction: this module builds on :mod:`liverforce.serve` (the pyfunc is
+the serving predictor behind MLflow's interface); serving never imports
+tracking and receives the MLflow download as a ``fetch`` callable.
+"""
+
+from __future__ import annotations
+
+import re
+import tempfile
+from functools import partial
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+from typing import Callable
+
+import mlflow
+import mlflow.artifacts
+import mlflow.pyfunc
+import numpy as np
+import pandas as pd
+from mlflow.exceptions import MlflowException
+from mlflow.models import infer_signature
+from mlflow.protos.databricks_pb2 import INVALID_PARAMETER_VALUE
+from mlflow.types import ColSpec, Schema
+
+from liverforce.learn.model import ForceModel
+from liverforce.serve.errors import PredictionInputError
+from liverforce.serve.predictor import Predictor
+from liverforce.tracking.store import with_retry
+
+MODEL_NAME = "model"
+#: columns of the pyfunc output frame (source-frame force, N)
+OUTPUT_COLUMNS = ("fx_n", "fy_n", "fz_n")
+_ROI_KEYS = ("roi_undeformed_mm", "roi_deformed_mm")
+
+
+# --------------------------------------------------------------------------
+# DataFrame <-> input-contract arrays
+# --------------------------------------------------------------------------
+
+
+def arrays_to_frame(arrays: dict, keys: tuple[str, ...] | list[str]) -> pd.DataFrame:
+    """One row per case: vectors as lists of floats, ROI clouds flattened to ``3 k`` floats, ids as str."""
+    cols = {}
+    for k in keys:
+        v = arrays[k]
+        if k in _ROI_KEYS:
+            cols[k] = [np.asarray(a, dtype=np.float64).ravel().tolist() for a in v]
+        elif k in ("case_id", "geometry_id"):
+            cols[k] = [str(x) for x in v]
+        else:
+            a = np.asarray(v, dtype=np.float64)
+            cols[k] = [row.tolist() for row in a.reshape(len(a), -1)]
+    return pd.DataFrame(cols)
+
+
+def frame_to_arrays(df: pd.DataFrame) -> dict:
+    """Inverse of :func:`arrays_to_frame`."""
+    out: dict = {}
+    for k in df.columns:
+        col = list(df[k])
+        if k in _ROI_KEYS:
+            out[k] = [np.asarray(x, dtype=np.float64).reshape(-1, 3) for x in col]
+        elif k in ("case_id", "geometry_id"):
+            out[k] = np.array([str(x) for x in col], dtype=object)
+        else:
+            out[k] = np.stack([np.asarray(x, dtype=np.float64).ravel() for x in col])
+    return out
+
+
+# --------------------------------------------------------------------------
+# the pyfunc wrapper
+# --------------------------------------------------------------------------
+
+
+class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
+    """MLflow pyfunc around a :class:`liverforce.learn.model.ForceModel` bundle (artifact ``force_model``).
+
+    Input: a DataFrame, one row per case, columns as :func:`arrays_to_frame`
+    writes them. Output: a DataFrame ``fx_n, fy_n, fz_n`` (source frame, N).
+    Param ``observation_seed`` (int, -1 = none) draws the stochastic
+    observation model as in evaluation.
+    """
+
+    def load_context(self, context) -> None:
+        self.model = ForceModel.load(context.artifacts["force_model"])
+
+    def predict(self, context, model_input: pd.DataFrame, params: dict | None = None) -> pd.DataFrame:
+        seed = int((params or {}).get("observation_seed", -1))
+        arrays = frame_to_arrays(pd.DataFrame(model_input))
+        # the serving checks (shape, NaN/inf, units against the training scale, exertion point on the
+        # surface) refuse bad rows with a PredictionInputError naming the row; then the reference path
+        try:
+            force = Predictor(self.model).predict_arrays(arrays, observation_seed=None if seed < 0 else seed)
+        except PredictionInputError as exc:
+            raise PyfuncInputError(str(exc)) from exc
+        return pd.DataFrame(force, columns=list(OUTPUT_COLUMNS))
+
+
+class PyfuncInputError(PredictionInputError, MlflowException):
+    """A refused input inside the pyfunc: a :class:`PredictionInputError` that MLflow's scoring
+    server answers with HTTP 400 and this message (other exceptions become a generic error)."""
+
+    def __init__(self, message: str):
+        MlflowException.__init__(self, message, error_code=INVALID_PARAMETER_VALUE)
+
+
+#: MLflow "models from code" entry: logged instead of a cloudpickled object, so that loading or
+#: serving the pyfunc model runs this file (an import of liverforce) and unpickles nothing.
+#: Models logged before the tracking package was split import ``liverforce.tracking.ForceModelPyfunc``:
+#: the package keeps that name.
+_PYFUNC_CODE = '''"""MLflow pyfunc entry of a liverforce force model (models from code; no pickle)."""
+import mlflow
+
+from liverforce.tracking.model import ForceModelPyfunc
+
+mlflow.models.set_model(ForceModelPyfunc())
+'''
+
+
+# --------------------------------------------------------------------------
+# logging
+# --------------------------------------------------------------------------
+
+
+def log_force_model(uri: str, run_id: str, model_dir: str | Path, example_arrays: dict, *,
+                    call: Callable = with_retry) -> str:
+    """Log the bundle ``model_dir`` as the MLflow pyfunc model of run ``run_id`` (signature + input example).
+
+    Parameters
+    ----------
+    uri : str
+        Tracking URI of the run.
+    run_id : str
+        Resumed for the logging; leaving it marks the run ``FINISHED``
+        (``FAILED`` on error): call this last, then set the final status.
+    model_dir : path
+        A bundle written by :meth:`ForceModel.save`.
+    example_arrays : dict
+        Input-contract arrays of at least one case (the input example; ``case_id`` optional).
+    call : callable
+        How to call the store, ``call(fn)`` (default :func:`~liverforce.tracking.store.with_retry`).
+
+    Returns
+    -------
+    str
+        The model URI ``runs:/<run_id>/model``.
+    """
+    model = ForceModel.load(model_dir)
+    keys = list(model.required_inputs())
+    if "case_id" in example_arrays:
+        keys.insert(0, "case_id")
+    example = arrays_to_frame(example_arrays, keys)
+    output = pd.DataFrame(model.predict(frame_to_arrays(example)), columns=list(OUTPUT_COLUMNS))
+    signature = infer_signature(example, output, params={"observation_seed": -1})
+    # case_id only seeds the per-case observation noise: optional
+    signature.inputs = Schema([
+        ColSpec(c.type, c.name, required=c.name != "case_id") for c in signature.inputs.inputs
+    ])
+
+    def _log():
+        mlflow.set_tracking_uri(uri)
+        with tempfile.TemporaryDirectory(prefix="liverforce-pyfunc-") as tmp:
+            code = Path(tmp) / "liverforce_force_model.py"
+            code.write_text(_PYFUNC_CODE)
+            with mlflow.start_run(run_id=run_id):
+                mlflow.pyfunc.log_model(
+                    name=MODEL_NAME,
+                    python_model=str(code),
+                    artifacts={"force_model": str(model_dir)},
+                    signature=signature,
+                    input_example=example,
+                    pip_requirements=_requirements(),
+                )
+
+    call(_log)
+    return f"runs:/{run_id}/{MODEL_NAME}"
+
+
+def _requirements() -> list[str]:
+    reqs = []
+    for pkg in ("torch", "numpy", "scipy", "pandas", "liverforce"):
+        try:
+            reqs.append(f"{pkg}=={version(pkg).split('+')[0]}")
+        except PackageNotFoundError:
+            continue
+    return reqs
+
+
+# --------------------------------------------------------------------------
+# loading, downloading, serving
+# --------------------------------------------------------------------------
+
+
+def load_pyfunc(model_uri: str, tracking_uri: str | None = None):
+    """``mlflow.pyfunc.load_model`` (e.g. ``runs:/<run_id>/model``)."""
+    if tracking_uri:
+        mlflow.set_tracking_uri(tracking_uri)
+    return mlflow.pyfunc.load_model(model_uri)
+
+
+def resolve_model_uri(ref: str) -> str:
+    """Run id (32 hex) -> ``runs:/<id>/model``; a name without scheme -> ``models:/<name>/latest``; URIs as given."""
+    if re.fullmatch(r"[0-9a-f]{32}", ref):
+        return f"runs:/{ref}/{MODEL_NAME}"
+    if ":/" in ref:
+        return ref
+    return f"models:/{ref}/latest"
+
+
+def download_force_model(model_ref: str, dst_dir: str | Path | None = None, tracking_uri: str | None = None) -> Path:
+    """Download a logged force model and return its liverforce bundle directory.
+
+    Parameters
+    ----------
+    model_ref : str
+        ``runs:/<run_id>/model``, a bare run id, ``models:/<name>/<version>``,
+        ``models:/<name>@<alias>`` or a registered model name (latest version).
+    dst_dir : path, optional
+        Where to download (default: a new temporary folder).
+    tracking_uri : str, optional
+        Tracking (and registry) store; default: MLflow's current one.
+
+    Returns
+    -------
+    Path
+        The bundle (``model.json`` + weights) inside the downloaded pyfunc
+        model; load it with :meth:`liverforce.learn.model.ForceModel.load`,
+        which never unpickles (the pyfunc's own code is not executed).
+    """
+    uri = resolve_model_uri(model_ref)
+    if tracking_uri:
+        mlflow.set_tracking_uri(tracking_uri)
+        mlflow.set_registry_uri(tracking_uri)
+    dst = Path(dst_dir) if dst_dir is not None else Path(tempfile.mkdtemp(prefix="liverforce-model-"))
+    dst.mkdir(parents=True, exist_ok=True)
+    local = Path(with_retry(mlflow.artifacts.download_artifacts, artifact_uri=uri, dst_path=str(dst)))
+    hits = sorted(local.glob("artifacts/*/model.json")) or sorted(local.glob("**/model.json"))
+    if not hits:
+        raise FileNotFoundError(f"{uri}: the logged model holds no liverforce bundle (artifacts/*/model.json)")
+    return hits[0].parent
+
+
+def fetch_force_model(model_ref: str, *, tracking_uri: str | None = None, dst_dir: str | Path | None = None) -> Path:
+    """:func:`download_force_model` for serving: a failure is a :class:`PredictionInputError` naming the reference.
+
+    This is the ``fetch`` that :meth:`liverforce.serve.predictor.Predictor.load`
+    and ``liverforce predict`` receive for references that are not directories.
+    """
+    try:
+        return download_force_model(model_ref, dst_dir=dst_dir, tracking_uri=tracking_uri)
+    except (MlflowException, FileNotFoundError, OSError) as exc:
+        raise PredictionInputError(f"model {model_ref}: cannot fetch it from MLflow ({exc})") from exc
+
+
+class MlflowPredictor(Predictor):
+    """A :class:`~liverforce.serve.predictor.Predictor` whose :meth:`load` also takes logged models.
+
+    >>> pred = MlflowPredictor.load("runs:/<run_id>/model", tracking_uri="sqlite:///results/mlflow.db")  # doctest: +SKIP
+    """
+
+    @classmethod
+    def load(cls, ref: str | Path, *, tracking_uri: str | None = None, dst_dir: str | Path | None = None,
+             **kw) -> "MlflowPredictor":
+        """A bundle directory if ``ref`` is one, else an MLflow run id, ``runs:/`` or ``models:/`` URI or
+        registered name, downloaded (to ``dst_dir``, default a temporary folder) from ``tracking_uri``."""
+        fetch = partial(fetch_force_model, tracking_uri=tracking_uri, dst_dir=dst_dir)
+        return super().load(ref, fetch=fetch, **kw)
+
+
+def predict_pyfunc(pyfunc_model, arrays: dict, observation_seed: int | None = None) -> np.ndarray:
+    """Run a loaded pyfunc model on input-contract ``arrays``; returns ``(n, 3)`` N."""
+    keys = [k for k in arrays if k in _pyfunc_inputs(pyfunc_model)]
+    df = arrays_to_frame(arrays, keys)
+    out = pyfunc_model.predict(df, params={"observation_seed": -1 if observation_seed is None else observation_seed})
+    return np.asarray(pd.DataFrame(out)[list(OUTPUT_COLUMNS)], dtype=np.float64)
+
+
+def _pyfunc_inputs(pyfunc_model) -> set[str]:
+    schema = pyfunc_model.metadata.get_input_schema()
+    return set(schema.input_names()) if schema is not None else set()
