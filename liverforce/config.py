@@ -176,6 +176,7 @@ class ModelConfig:
     grid_half_width_mm: float = 0.0
     dae_input_noise: float = 0.1
     roi_fraction: Optional[float] = None  # None: the shards' dataset.roi_fraction
+    force_scaling: str = "stiffness"  # stiffness | none (state-vector models: force / (C10 / C10_ref))
 
 
 @dataclass
@@ -522,6 +523,8 @@ def _check_model(mo: dict, key: str) -> None:
         _fail(f"{key}.grid_half_width_mm", "must be >= 0 mm (0 = fitted)")
     if mo["dae_input_noise"] < 0:
         _fail(f"{key}.dae_input_noise", "must be >= 0")
+    if mo["force_scaling"] not in ("none", "stiffness"):
+        _fail(f"{key}.force_scaling", f"unknown '{mo['force_scaling']}'", "use stiffness or none")
 
 
 def _check_study(cfg: dict) -> None:

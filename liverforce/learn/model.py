@@ -8,6 +8,20 @@ Prediction pipeline for a set of cases (``arrays`` in the input contract)::
     f  = target_scaler^-1( MLP([cs, s]) )          local force (F.t1, F.t2, F.n), N
     F  = R^T f                                     source-frame force, N
 
+With ``force_scaling: stiffness`` (state-vector models) the material enters
+by construction the way hyperelasticity does: scaling every constant of a
+strain energy by ``k`` scales the stress at a given deformation by ``k``. The
+model sees the constants' *ratios* ``c / c_1`` in the state vector and learns
+the force divided by the stiffness ``k = c_1 / c_1,ref`` (``c_1`` the first
+constant, C10 for neo-Hooke, Mooney-Rivlin and Yeoh; ``c_1,ref`` its training
+mean)::
+
+    s_mat = c / c_1;   f = k * target_scaler^-1( MLP([cs, s]) )
+
+so constants x0.5 ... x2 scale the predicted force x0.5 ... x2 at the same
+surface deformation, even outside the training range. (The supports' springs
+do not scale with the liver: the true force scales slightly less.)
+
 Bundle format (a directory, no pickle of arbitrary code)::
 
     model.json      format name + version, representation, encoder spec,
@@ -42,7 +56,7 @@ from liverforce.learn.regressor import (
 )
 from liverforce.learn.representation import Representation
 from liverforce.learn.scaling import Standardizer
-from liverforce.learn.state import STATE_INPUTS, state_vector
+from liverforce.learn.state import MATERIAL_START, STATE_INPUTS, state_vector
 from liverforce.learn.torchutil import EpochCallback
 
 FORMAT = "liverforce.force_model"
@@ -65,6 +79,11 @@ class ModelFormatError(ValueError):
 # --------------------------------------------------------------------------
 # prepared learning inputs
 # --------------------------------------------------------------------------
+
+
+def force_scaling_of(model_cfg: dict) -> str:
+    """The force scaling a model config asks for: ``model.force_scaling`` for state-vector models, else none."""
+    return str(model_cfg.get("force_scaling", "none")) if bool(model_cfg.get("state_vector")) else "none"
 
 
 def subset(arrays: dict, idx: np.ndarray) -> dict:
@@ -139,12 +158,27 @@ class Preprocessor:
     code_scaler: Standardizer
     state_scaler: Standardizer | None
     target_scaler: Standardizer
+    stiffness_ref: float | None = None  # force_scaling: stiffness (first material constant's training mean, MPa)
 
     def inputs(self, x: np.ndarray, state: np.ndarray | None) -> np.ndarray:
         code = self.code_scaler.transform(self.encoder.encode(self.feature_scaler.transform(x)))
         if self.state_scaler is None:
             return code
-        return np.hstack([code, self.state_scaler.transform(state)])
+        return np.hstack([code, self.state_scaler.transform(self.state_features(state))])
+
+    def state_features(self, state: np.ndarray) -> np.ndarray:
+        """The state vector as the regressor sees it: material constants as ratios ``c / c_1`` when scaled."""
+        if self.stiffness_ref is None:
+            return state
+        out = np.array(state, dtype=np.float64, copy=True)
+        out[:, MATERIAL_START:] = out[:, MATERIAL_START:] / out[:, MATERIAL_START:MATERIAL_START + 1]
+        return out
+
+    def stiffness(self, state: np.ndarray | None, n: int) -> np.ndarray:
+        """Per-row stiffness factor ``k = c_1 / c_1,ref`` (ones without force scaling), shape ``(n, 1)``."""
+        if self.stiffness_ref is None:
+            return np.ones((n, 1))
+        return (np.asarray(state, dtype=np.float64)[:, MATERIAL_START] / self.stiffness_ref).reshape(n, 1)
 
     @property
     def n_inputs(self) -> int:
@@ -164,11 +198,14 @@ def fit_preprocessor(
     batch_size: int,
     dae_input_noise: float = 0.1,
     on_epoch: EpochCallback | None = None,
+    force_scaling: str = "none",
 ) -> Preprocessor:
     """Fit scalers (training rows only) and the encoder.
 
     PCA and AE learn the observed features (all views); the DAE maps observed
     views to the clean features (same scaler for input and target).
+    ``force_scaling="stiffness"`` (needs ``use_state``) learns the force
+    divided by the stiffness factor (module docstring).
     """
     v, n, d = prep.x_obs.shape
     x_in = prep.x_obs.reshape(v * n, d)
@@ -185,16 +222,30 @@ def fit_preprocessor(
     else:
         raise ValueError(f"unknown encoder '{encoder}': use pca, ae or dae")
     cs = Standardizer.fit(enc.encode(xs))
-    ss = Standardizer.fit(prep.state) if use_state else None
-    ts = Standardizer.fit(prep.y_local)
-    return Preprocessor(fs, enc, cs, ss, ts)
+    ref = None
+    if force_scaling == "stiffness":
+        if not use_state:
+            raise ValueError("force_scaling: stiffness needs the state vector (the material constants)")
+        c1 = prep.state[:, MATERIAL_START]
+        if not np.all(c1 > 0):
+            raise ValueError(f"force_scaling: stiffness needs a positive first material constant (C10); the "
+                             f"training cases have {float(c1.min()):.4g} MPa")
+        ref = float(c1.mean())
+    elif force_scaling != "none":
+        raise ValueError(f"unknown force_scaling '{force_scaling}': use none or stiffness")
+    pre = Preprocessor(fs, enc, cs, None, Standardizer.fit(prep.y_local), ref)
+    if use_state:
+        pre.state_scaler = Standardizer.fit(pre.state_features(prep.state))
+    pre.target_scaler = Standardizer.fit(prep.y_local / pre.stiffness(prep.state, len(prep.state)))
+    return pre
 
 
 def regressor_data(pre: Preprocessor, prep: Prepared, *, all_views: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Scaled regressor inputs and targets; ``all_views`` stacks every observed view (augmentation)."""
     views = prep.x_obs if all_views else prep.x_obs[:1]
     z = np.vstack([pre.inputs(x, prep.state) for x in views])
-    y = np.tile(pre.target_scaler.transform(prep.y_local), (len(views), 1))
+    y_scaled = prep.y_local / pre.stiffness(prep.state, len(prep.state))
+    y = np.tile(pre.target_scaler.transform(y_scaled), (len(views), 1))
     return z, y
 
 
@@ -239,7 +290,8 @@ class ForceModel:
         x = self.representation.features_of(arrays, observation_seed=observation_seed)
         s = state_vector(arrays) if self.uses_state else None
         z = self.pre.inputs(x, s)
-        return self.pre.target_scaler.inverse_transform(predict_regressor(self.regressor, z))
+        return self.pre.target_scaler.inverse_transform(predict_regressor(self.regressor, z)) \
+            * self.pre.stiffness(s, len(z))
 
     def predict(self, arrays: dict, observation_seed: int | None = None) -> np.ndarray:
         """Tool force ``(n, 3)`` in N, in each case's source frame.
@@ -276,6 +328,7 @@ class ForceModel:
                     "code": self.pre.code_scaler.to_dict(),
                     "state": None if self.pre.state_scaler is None else self.pre.state_scaler.to_dict(),
                     "target": self.pre.target_scaler.to_dict(),
+                    "stiffness_ref": self.pre.stiffness_ref,
                 },
                 "meta": self.meta,
             }
@@ -322,6 +375,7 @@ class ForceModel:
             Standardizer.from_dict(sc["code"]),
             None if sc["state"] is None else Standardizer.from_dict(sc["state"]),
             Standardizer.from_dict(sc["target"]),
+            sc.get("stiffness_ref"),
         )
         rspec = RegressorSpec.from_dict(doc["regressor"])
         net = build_mlp(rspec)
@@ -383,6 +437,7 @@ def fit_force_model(
     monitor: tuple[Prepared, str] | None = None,
     on_epoch: EpochCallback | None = None,
     meta: dict | None = None,
+    force_scaling: str = "none",
 ) -> tuple[ForceModel, dict[str, list[float]]]:
     """Fit preprocessing and regressor on ``prep`` (training rows) and bundle them.
 
@@ -393,6 +448,7 @@ def fit_force_model(
     pre = fit_preprocessor(
         prep, rep, encoder=encoder, code_size=code_size, use_state=use_state, seed=seed,
         epochs=encoder_epochs or fit.epochs, lr=fit.lr, batch_size=fit.batch_size, dae_input_noise=dae_input_noise,
+        force_scaling=force_scaling,
     )
     z, y = regressor_data(pre, prep)
     zv = yv = None

@@ -47,6 +47,7 @@ STATE_INPUTS = (
 )
 
 _TRIU = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+MATERIAL_START = 15  #: first material column of the state vector
 
 
 def state_vector(arrays: dict) -> np.ndarray:

@@ -48,6 +48,7 @@ from liverforce.learn.metrics import force_metrics
 from liverforce.learn.model import (
     ForceModel,
     eval_seed,
+    force_scaling_of,
     fit_force_model,
     fit_preprocessor,
     n_views_for,
@@ -230,7 +231,7 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
             pre = fit_preprocessor(
                 rows_tr, rep, encoder=encoder, code_size=code_size, use_state=use_state, seed=seed + 17 * k,
                 epochs=tune_epochs, lr=float(train_cfg["lr"]), batch_size=int(train_cfg["batch_size"]),
-                dae_input_noise=dae_noise,
+                dae_input_noise=dae_noise, force_scaling=force_scaling_of(model_cfg),
             )
             z_tr, y_tr = regressor_data(pre, rows_tr)
             z_va, y_va = regressor_data(pre, rows_va, all_views=False)
@@ -267,6 +268,7 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
     model, history = fit_force_model(
         prep_train, rep, encoder=encoder, code_size=code_size, use_state=use_state, hidden=hidden,
         dropout=dropout, fit=fit, seed=seed, dae_input_noise=dae_noise, monitor=(prep_test, "test"), meta=meta,
+        force_scaling=force_scaling_of(model_cfg),
     )
     pred = model.predict(test_arrays, observation_seed=eval_seed(seed))
     metrics = force_metrics(prep_test.force, pred)
@@ -355,7 +357,7 @@ def repeated_splits(train_arrays, test_arrays, rep, model_cfg, train_cfg, scenar
         prep_tr = prepare(a_tr, rep_r, observation_seeds=view_seeds(split_seed, n_views_for(rep_r)))
         model, _ = fit_force_model(prep_tr, rep_r, encoder=encoder, code_size=code_size, use_state=use_state,
                                    hidden=hidden, dropout=dropout, fit=fit, seed=split_seed,
-                                   dae_input_noise=dae_noise)
+                                   dae_input_noise=dae_noise, force_scaling=force_scaling_of(model_cfg))
         pred = model.predict(a_te, observation_seed=eval_seed(split_seed))
         out.append({"split_seed": split_seed, "test_geometries": _geometries(a_te),
                     "metrics": force_metrics(np.asarray(a_te["force_n"], float), pred)})

@@ -160,7 +160,9 @@ class CompiledROI:
         self.uses_state = model.uses_state
         if self.uses_state:
             ss = pre.state_scaler
-            s_ref = state_vector(preop.to_arrays(U))[0]  # deformed centroid = undeformed here; replaced below
+            s_ref = state_vector(preop.to_arrays(U))  # deformed centroid = undeformed here; replaced below
+            self._stiff = float(pre.stiffness(s_ref, 1)[0, 0])  # force scaling by the material's stiffness
+            s_ref = pre.state_features(s_ref)[0]
             self._s_mean, self._s_scale = ss.mean, ss.scale
             s0 = (s_ref - ss.mean) / ss.scale
             sc = _STATE_DEF_CENTROID
@@ -177,6 +179,9 @@ class CompiledROI:
             A_state[sc] = Rs @ mean_op
             self.A_state = A_state
             self._mat_slice = slice(_STATE_MATERIAL_START, s0.size)
+        else:
+            self._stiff = 1.0
+        self._pre = pre
         self._reg = numpy_layers(model.regressor)
         self._tmean, self._tscale = pre.target_scaler.mean, pre.target_scaler.scale
         self._rebuild()
@@ -209,7 +214,10 @@ class CompiledROI:
         if mat.size != sl.stop - sl.start:
             raise PredictionInputError(f"material_params_mpa: expected {sl.stop - sl.start} constants, got {mat.size}")
         check_material(_vector("material_params_mpa", mat), self.scale, self.limits, "")
-        self._s0[sl] = (mat - self._s_mean[sl]) / self._s_scale[sl]
+        full = np.zeros((1, sl.stop))
+        full[0, sl] = mat
+        self._stiff = float(self._pre.stiffness(full, 1)[0, 0])
+        self._s0[sl] = (self._pre.state_features(full)[0, sl] - self._s_mean[sl]) / self._s_scale[sl]
         self._rebuild()
         return self
 
@@ -255,7 +263,7 @@ class CompiledROI:
 
     def finish(self, z: np.ndarray, dmax: float, D: np.ndarray) -> np.ndarray:
         """Network of one call: MLP (and AE encoder), target scaling, rotation to the liver frame, checks."""
-        f = self._network(z) @ self.R
+        f = (self._network(z) * self._stiff) @ self.R
         if not (np.isfinite(f).all() and np.isfinite(dmax)):
             self._fail(D)
         if dmax > self._dlim:
@@ -283,6 +291,7 @@ class CompiledROI:
         n = len(D)
         X = D.reshape(n, 3 * self.k) - self._U_flat  # displacements
         dmax = np.maximum(X.max(axis=1), -X.min(axis=1))
+        stiff = np.full((n, 1), self._stiff)
         if self.uses_state and (roi_centroid_deformed_mm is not None or material_params_mpa is not None):
             nc = self._n_code
             z = np.empty((n, self.A.shape[0]))
@@ -302,12 +311,16 @@ class CompiledROI:
                         f"material_params_mpa: expected {ms.stop - ms.start} constants per row, got {mat.shape[1]}")
                 for row in np.unique(mat, axis=0):
                     check_material(_vector("material_params_mpa", row), self.scale, self.limits, "")
-                z[:, nc + ms.start:nc + ms.stop] = (mat - self._s_mean[ms]) / self._s_scale[ms]
+                full = np.zeros((n, ms.stop))
+                full[:, ms] = mat
+                stiff = self._pre.stiffness(full, n)
+                z[:, nc + ms.start:nc + ms.stop] = (self._pre.state_features(full)[:, ms] - self._s_mean[ms]) \
+                    / self._s_scale[ms]
         else:
             z = np.empty((n, len(self.bU)))
             z[:] = self.bU
             z[:, self._dyn] += X @ self._A_dyn.T
-        F = self._network(z) @ self.R
+        F = (self._network(z) * stiff) @ self.R
         bad = ~(np.isfinite(F).all(axis=1) & np.isfinite(dmax))
         if bad.any():
             i = int(np.argmax(bad))

@@ -1,0 +1,85 @@
+"""Force scaling by the material's stiffness: constants x k move the prediction as hyperelasticity does.
+
+Scaling every constant of a strain energy by k scales the stress at a given
+deformation by k; equivalently the same force on a k-times stiffer liver gives
+a k-times smaller displacement. The synthetic cases follow exactly that law
+(displacement = compliance x force / stiffness), so a model that respects it
+holds outside the training range of the constants (here +-30 %).
+"""
+
+import numpy as np
+import pytest
+
+from liverforce.learn.metrics import force_metrics
+from liverforce.learn.model import ForceModel
+from liverforce.learn.synthetic import synthetic_arrays
+from liverforce.learn.train import train_scenario
+
+MODEL = {
+    "encoder": "pca", "code_size": 3, "state_vector": True, "grid_size": 8, "hidden": [64, 64],
+    "dropout": 0.0, "occlusion": {"radius_mm": 0.0, "mode": "remove"}, "noise_mm": 0.0,
+}
+TRAIN = {"test_fraction": 0.2, "epochs": 150, "batch_size": 32, "lr": 3e-3, "weight_decay": 0.0, "seed": 0}
+NO_TUNE = {"enabled": False, "trials": 1, "folds": 2, "sobol_trials": 1, "epochs": 1}
+
+
+@pytest.fixture(scope="module")
+def data():
+    return synthetic_arrays(300, seed=5, nodes=(200, 260), dent_width_mm=12.0, material_varies=True)
+
+
+@pytest.fixture(scope="module")
+def models(data, tmp_path_factory):
+    out = {}
+    for scaling in ("stiffness", "none"):
+        res = train_scenario(data, {**MODEL, "force_scaling": scaling}, TRAIN, NO_TUNE, "III", scaling,
+                             out_dir=tmp_path_factory.mktemp(scaling))
+        out[scaling] = ForceModel.load(res["model_path"])
+    return out
+
+
+def stiffer(arrays: dict, k: float) -> dict:
+    """The same cases on a liver whose constants are all x k: the same force, displacements / k."""
+    out = dict(arrays)
+    out["material_params_mpa"] = np.asarray(arrays["material_params_mpa"]) * k
+    out["roi_deformed_mm"] = [u + (d - u) / k for u, d in zip(arrays["roi_undeformed_mm"], arrays["roi_deformed_mm"])]
+    c_u, c_d = np.asarray(arrays["roi_centroid_undeformed_mm"]), np.asarray(arrays["roi_centroid_deformed_mm"])
+    out["roi_centroid_deformed_mm"] = c_u + (c_d - c_u) / k
+    return out
+
+
+@pytest.mark.parametrize("k", [0.5, 0.8, 1.25, 2.0])
+def test_constants_times_k_scale_the_prediction_by_k_at_the_same_deformation(models, data, k):
+    model = models["stiffness"]
+    base = model.predict(data)
+    scaled = dict(data, material_params_mpa=np.asarray(data["material_params_mpa"]) * k)
+    np.testing.assert_allclose(model.predict(scaled), k * base, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("k", [0.5, 2.0])
+def test_stiffness_scaled_model_holds_outside_the_training_range(models, data, k):
+    """Constants x0.5 / x2 (the training range is x0.7..x1.3): the scaled model keeps its accuracy."""
+    shifted = stiffer(data, k)
+    true = np.asarray(data["force_n"], dtype=float)
+    acc = {s: force_metrics(true, m.predict(shifted))["accuracy_pct"] for s, m in models.items()}
+    inside = force_metrics(true, models["stiffness"].predict(data))["accuracy_pct"]
+    assert acc["stiffness"] > 90.0 and acc["stiffness"] > inside - 5.0, (acc, inside)
+    assert acc["none"] < acc["stiffness"] - 10.0, acc  # without it the model extrapolates badly
+
+
+def test_compiled_fast_path_applies_the_same_scaling(models, data):
+    from liverforce.serve.compiled import CompiledROI
+    from liverforce.serve.preop import Preop
+
+    model = models["stiffness"]
+    i = 0
+    case = {k: v[i:i + 1] for k, v in data.items()}
+    comp = CompiledROI(model, Preop.from_arrays(data, i))
+    D = np.asarray(data["roi_deformed_mm"][i], dtype=float)
+    ref = model.predict(case)[0]
+    np.testing.assert_allclose(comp.predict(D), ref, atol=1e-5)
+    mat = np.asarray(data["material_params_mpa"][i]) * 1.7
+    comp.with_material(mat)
+    ref2 = model.predict(dict(case, material_params_mpa=mat[None]))[0]
+    np.testing.assert_allclose(ref2, 1.7 * ref, rtol=1e-9)
+    np.testing.assert_allclose(comp.predict(D), ref2, atol=1e-5)
