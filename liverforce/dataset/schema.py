@@ -28,6 +28,8 @@ force_magnitude_n : float64
 frame_normal, frame_t1, frame_t2 : fixed_size_list<float64,3>
 liver_centroid_mm : fixed_size_list<float64,3>
 inertia_mm5 : fixed_size_list<float64,9>   volume second-moment (inertia) tensor, unit density
+tool_thickness_mm : float64   tissue thickness under the tool: from the exertion point along the
+    inward normal to the opposite surface (pre-operative, from the undeformed surface)
 roi_fraction : float64   target ROI area fraction
 roi_area_fraction : float64   achieved ROI area fraction
 roi_node_ids : list<int32>    mesh point ids of the ROI surface nodes
@@ -50,7 +52,7 @@ from __future__ import annotations
 
 import pyarrow as pa
 
-SCHEMA_VERSION = "1.0"
+SCHEMA_VERSION = "1.1"
 
 #: columns excluded from the deterministic payload hash (vary run to run)
 NONDETERMINISTIC_COLUMNS = ("wall_time_s",)
@@ -78,6 +80,7 @@ SHARD_SCHEMA = pa.schema(
         ("frame_t2", _V3),
         ("liver_centroid_mm", _V3),
         ("inertia_mm5", pa.list_(pa.float64(), 9)),
+        ("tool_thickness_mm", pa.float64()),
         ("roi_fraction", pa.float64()),
         ("roi_area_fraction", pa.float64()),
         ("roi_node_ids", pa.list_(pa.int32())),
@@ -126,6 +129,7 @@ UNITS = {
     "bulk_modulus_mpa": "MPa",
     "liver_centroid_mm": "mm",
     "inertia_mm5": "mm^5 (unit density)",
+    "tool_thickness_mm": "mm",
     "roi_undeformed_mm": "mm",
     "roi_deformed_mm": "mm",
     "surface_displacement_mm": "mm",

@@ -56,11 +56,11 @@ from liverforce.learn.regressor import (
 )
 from liverforce.learn.representation import Representation
 from liverforce.learn.scaling import Standardizer
-from liverforce.learn.state import MATERIAL_START, STATE_INPUTS, state_vector
+from liverforce.learn.state import MATERIAL_START, STATE_INPUTS, THICKNESS_COLUMN, state_vector
 from liverforce.learn.torchutil import EpochCallback
 
 FORMAT = "liverforce.force_model"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: the state vector carries tool_thickness_mm (material from column 16)
 
 ROI_INPUTS = (
     "exertion_point_mm",
@@ -397,6 +397,8 @@ def training_scale(prep: Prepared, rep: Representation) -> dict:
         ``[min, max]`` of ``|c_liver - p|`` (mm).
     ``material_params_mpa``
         ``[[min...], [max...]]`` per constant (MPa).
+    ``tool_thickness_mm``
+        ``[min, max]`` of the tissue thickness under the tool (mm).
     ``feature_abs_max``
         Largest ``|feature|`` per representation channel (mm): displacement
         components and/or deformed height, as sampled on the grid.
@@ -407,7 +409,8 @@ def training_scale(prep: Prepared, rep: Representation) -> dict:
     trace = s[:, 9] + s[:, 12] + s[:, 14]  # inertia xx + yy + zz (state.py column order)
     length = np.power(np.maximum(trace, 0.0) / 2.0, 0.2)
     dist = np.linalg.norm(s[:, 0:3], axis=1)
-    mat = s[:, 15:]
+    mat = s[:, MATERIAL_START:]
+    thick = s[:, THICKNESS_COLUMN]
     g2 = rep.grid_size**2
     x = np.abs(np.concatenate([prep.x_clean, *prep.x_obs], axis=0))
     feat_max = [float(x[:, c * g2:(c + 1) * g2].max()) for c in range(rep.channels)]
@@ -416,6 +419,7 @@ def training_scale(prep: Prepared, rep: Representation) -> dict:
         "inertia_length_mm": [float(length.min()), float(length.max())],
         "centroid_distance_mm": [float(dist.min()), float(dist.max())],
         "material_params_mpa": [mat.min(axis=0).tolist(), mat.max(axis=0).tolist()],
+        "tool_thickness_mm": [float(thick.min()), float(thick.max())],
         "feature_abs_max": feat_max,
         "force_magnitude_n": [float(fmag.min()), float(fmag.max())],
     }

@@ -21,6 +21,9 @@ inertia                 6       upper triangle (xx, xy, xz, yy, yz, zz) of
                                 Rotating into the local frame keeps the liver's
                                 orientation relative to the surface normal
                                 (eigenvalues alone would lose it).
+tool_thickness          1       tissue thickness under the tool along the inward
+                                normal, mm (a local, physical feature: a thin
+                                lobe bends, a thick one indents)
 material                p       material constants as given, MPa
 ======================  ======  ==================================================
 
@@ -43,15 +46,17 @@ STATE_INPUTS = (
     "roi_centroid_undeformed_mm",
     "roi_centroid_deformed_mm",
     "inertia_mm5",
+    "tool_thickness_mm",
     "material_params_mpa",
 )
 
 _TRIU = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
-MATERIAL_START = 15  #: first material column of the state vector
+THICKNESS_COLUMN = 15  #: tool_thickness_mm column of the state vector
+MATERIAL_START = 16  #: first material column of the state vector
 
 
 def state_vector(arrays: dict) -> np.ndarray:
-    """State vectors ``(n, 15 + p)`` float64 of the cases in ``arrays`` (module table).
+    """State vectors ``(n, 16 + p)`` float64 of the cases in ``arrays`` (module table).
 
     Parameters
     ----------
@@ -60,7 +65,7 @@ def state_vector(arrays: dict) -> np.ndarray:
 
     Returns
     -------
-    (n, 15 + p) float64
+    (n, 16 + p) float64
         Columns as in :func:`state_names`.
     """
     missing = [k for k in STATE_INPUTS if k not in arrays]
@@ -79,6 +84,7 @@ def state_vector(arrays: dict) -> np.ndarray:
             offsets_to_local(arrays["roi_centroid_undeformed_mm"], p, R),
             offsets_to_local(arrays["roi_centroid_deformed_mm"], p, R),
             np.stack([I_loc[:, a, b] for a, b in _TRIU], axis=1),
+            np.asarray(arrays["tool_thickness_mm"], dtype=np.float64).reshape(n),
             mat,
         ]
     )
@@ -90,5 +96,6 @@ def state_names(n_material: int) -> list[str]:
     for base in ("liver_centroid", "roi_centroid_undeformed", "roi_centroid_deformed"):
         names += [f"{base}_{ax}_mm" for ax in ("t1", "t2", "n")]
     names += [f"inertia_{'xyz'[a]}{'xyz'[b]}_mm5" for a, b in _TRIU]
+    names += ["tool_thickness_mm"]
     names += [f"material_{j}_mpa" for j in range(n_material)]
     return names

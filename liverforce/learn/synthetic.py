@@ -57,8 +57,8 @@ def synthetic_arrays(
     fixed_angles = rng.uniform([0.3, 0.3], [2.5, 1.2])
     out: dict[str, list] = {k: [] for k in (
         "case_id", "geometry_id", "force_n", "exertion_point_mm", "frame_normal", "frame_t1", "frame_t2",
-        "liver_centroid_mm", "inertia_mm5", "material_params_mpa", "roi_undeformed_mm", "roi_deformed_mm",
-        "roi_centroid_undeformed_mm", "roi_centroid_deformed_mm")}
+        "liver_centroid_mm", "inertia_mm5", "tool_thickness_mm", "material_params_mpa", "roi_undeformed_mm",
+        "roi_deformed_mm", "roi_centroid_undeformed_mm", "roi_centroid_deformed_mm")}
     ct, cn = compliance_mm_per_n
     for i in range(n_cases):
         g = i % n_geometries
@@ -100,6 +100,7 @@ def synthetic_arrays(
         out["frame_t2"].append(t2)
         out["liver_centroid_mm"].append(c)
         out["inertia_mm5"].append(inertia.ravel())
+        out["tool_thickness_mm"].append(ellipsoid_chord(axes, y, n_g))
         out["material_params_mpa"].append(material)
         out["roi_undeformed_mm"].append(und.astype(dtype))
         out["roi_deformed_mm"].append(dfm.astype(dtype))
@@ -114,6 +115,14 @@ def synthetic_arrays(
         else:
             arrays[key] = np.asarray(vals, dtype=np.float64)
     return arrays
+
+
+def ellipsoid_chord(axes: np.ndarray, y: np.ndarray, n: np.ndarray) -> float:
+    """Thickness along the inward normal: the chord from ``y`` on the ellipsoid ``sum (x/a)^2 = 1`` along ``-n``."""
+    d = -np.asarray(n, float) / axes
+    y_s = np.asarray(y, float) / axes
+    # |y_s + t d|^2 = 1 with |y_s| = 1: t = -2 (y_s . d) / |d|^2
+    return float(-2.0 * y_s.dot(d) / d.dot(d))
 
 
 def rigid_motion(arrays: dict, Q: np.ndarray, c: np.ndarray) -> dict:

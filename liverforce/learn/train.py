@@ -66,7 +66,7 @@ from liverforce.learn.tune import FoldData, cv_score, tune
 
 REQUIRED_ARRAYS = (
     "case_id", "geometry_id", "force_n", "exertion_point_mm", "frame_normal", "frame_t1", "frame_t2",
-    "liver_centroid_mm", "inertia_mm5", "material_params_mpa", "roi_undeformed_mm", "roi_deformed_mm",
+    "liver_centroid_mm", "inertia_mm5", "tool_thickness_mm", "material_params_mpa", "roi_undeformed_mm", "roi_deformed_mm",
     "roi_centroid_undeformed_mm", "roi_centroid_deformed_mm",
 )
 
@@ -83,6 +83,11 @@ def check_arrays(arrays: dict) -> int:
     force = np.asarray(arrays["force_n"], dtype=np.float64)
     if force.shape != (n, 3) or not np.isfinite(force).all():
         raise ValueError("force_n must be a finite (n, 3) array in N")
+    thick = np.asarray(arrays["tool_thickness_mm"], dtype=np.float64)
+    if not np.all(np.isfinite(thick) & (thick > 0)):
+        bad = [str(c) for c, t in zip(arrays["case_id"], thick) if not (np.isfinite(t) and t > 0)][:5]
+        raise ValueError(f"tool_thickness_mm must be finite and > 0 mm; cases {bad} are not (an open surface "
+                         "under the tool?)")
     return n
 
 

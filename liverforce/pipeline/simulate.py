@@ -148,7 +148,7 @@ def simulate_shard(cases_path, mesh_paths: list[str], shard: int, sim: dict, bou
 
 
 def _case_row(case, res, error, wall, mesh, feats, surf, dataset, tool_radius_mm) -> dict:
-    from liverforce.dataset.roi import extract_roi, local_frame
+    from liverforce.dataset.roi import extract_roi, local_frame, thickness_along_normal
 
     point = np.asarray(case["exertion_point_mm"])
     frame = local_frame(surf, point, tool_radius_mm)
@@ -169,6 +169,7 @@ def _case_row(case, res, error, wall, mesh, feats, surf, dataset, tool_radius_mm
         frame_t1=frame[0], frame_t2=frame[1], frame_normal=frame[2],
         liver_centroid_mm=np.asarray(feats["centroid_mm"], dtype=float),
         inertia_mm5=np.asarray(feats["inertia_mm5"], dtype=float).reshape(9),
+        tool_thickness_mm=thickness_along_normal(mesh.points, mesh.facets, point, frame[2]),
         roi_fraction=float(dataset["roi_fraction"]), roi_area_fraction=achieved,
         roi_node_ids=node_ids.astype(np.int32), roi_undeformed_mm=und.astype(np.float32),
         roi_deformed_mm=de.astype(np.float32),

@@ -39,11 +39,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from liverforce.learn.frames import local_rotations
+from liverforce.learn.state import MATERIAL_START
 from liverforce.serve.errors import PredictionInputError
 from liverforce.serve.preop import _points, _vector
 
 #: how the state vector is laid out (liverforce.learn.state)
-_STATE_MATERIAL_START = 15
+_STATE_MATERIAL_START = MATERIAL_START
 
 
 @dataclass(frozen=True)
@@ -68,6 +69,7 @@ class TrainingScale:
     feature_abs_max: tuple[float, ...] | None
     n_material: int | None
     source: str
+    thickness_mm: tuple[float, float] | None = None
 
     @classmethod
     def of(cls, model) -> "TrainingScale":
@@ -78,9 +80,10 @@ class TrainingScale:
         rec = (model.meta or {}).get("training_scale")
         if rec:
             lo, hi = (np.asarray(v, dtype=np.float64) for v in rec["material_params_mpa"])
+            thick = rec.get("tool_thickness_mm")
             return cls(rep.half_width_mm, tuple(rec["inertia_length_mm"]), tuple(rec["centroid_distance_mm"]),
                        lo, hi, tuple(rec["feature_abs_max"]), n_mat if n_mat is not None else int(lo.size),
-                       "bundle meta training_scale")
+                       "bundle meta training_scale", None if thick is None else tuple(thick))
         fs = model.pre.feature_scaler
         g2 = rep.grid_size**2
         feat = tuple(float(np.max(np.abs(fs.mean[c * g2:(c + 1) * g2]) + 4 * fs.scale[c * g2:(c + 1) * g2]))
@@ -250,3 +253,18 @@ def check_case(arrays: dict, i: int, model, scale: TrainingScale, limits: Limits
             raise PredictionInputError(f"{label}{exc}") from None
         check_liver(c, inertia, p, scale, limits, label)
         check_material(mat, scale, limits, label)
+        check_thickness(arrays, i, scale, limits, label)
+
+
+def check_thickness(arrays: dict, i: int, scale: TrainingScale, limits: Limits, label: str) -> None:
+    """Tissue thickness under the tool (mm): present, positive, and within ``scale_factor`` of training."""
+    if "tool_thickness_mm" not in arrays:
+        raise PredictionInputError(f"{label}the model uses the state vector and needs tool_thickness_mm (the tissue "
+                                   "thickness under the tool, from the closed pre-operative surface)")
+    t = float(_vector("tool_thickness_mm", np.atleast_1d(arrays["tool_thickness_mm"][i]), 1)[0])
+    if not t > 0:
+        raise PredictionInputError(f"{label}tool_thickness_mm = {t:.4g} mm: it must be positive")
+    if scale.thickness_mm is not None and _outside(t, scale.thickness_mm[0], scale.thickness_mm[1], limits.scale_factor):
+        raise PredictionInputError(
+            f"{label}tool_thickness_mm = {t:.4g} mm is far outside the training range "
+            f"({_fmt_range(*scale.thickness_mm)} mm): is it in mm?")

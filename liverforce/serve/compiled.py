@@ -41,13 +41,13 @@ from torch import nn
 from liverforce.learn.encoders import PCAEncoder
 from liverforce.learn.frames import local_rotations
 from liverforce.learn.representation import _interpolate
-from liverforce.learn.state import state_vector
+from liverforce.learn.state import MATERIAL_START, state_vector
 from liverforce.serve.checks import Limits, TrainingScale, check_displacement, check_material
 from liverforce.serve.errors import PredictionInputError
 from liverforce.serve.preop import Preop, _points, _vector
 
 _STATE_DEF_CENTROID = slice(6, 9)  # roi_centroid_deformed columns of the state vector
-_STATE_MATERIAL_START = 15
+_STATE_MATERIAL_START = MATERIAL_START
 
 
 def numpy_layers(seq: nn.Sequential) -> list[tuple[np.ndarray, np.ndarray, float | None]]:

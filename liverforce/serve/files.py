@@ -23,6 +23,7 @@ Context files (``load_context``): JSON or YAML with
     frame: {normal: [..], t1: [..], t2: [..]}
     liver_centroid_mm: [..]               #   and, for state-vector models, the liver features
     inertia_mm5: [[..], [..], [..]]
+    tool_thickness_mm: 60.0               # tissue thickness under the tool along the inward normal
     units: mm                             # mm (default), cm or m: scales every point and the inertia
 """
 
@@ -262,7 +263,7 @@ def _read_doc(path: Path) -> dict:
 
 
 CONTEXT_KEYS = {"exertion_point_mm", "material_params_mpa", "surface", "roi_undeformed", "frame", "liver_centroid_mm",
-                "inertia_mm5", "units", "roi_fraction", "frame_radius_mm"}
+                "inertia_mm5", "tool_thickness_mm", "units", "roi_fraction", "frame_radius_mm"}
 
 
 def load_context(source: str | Path | dict, predictor, *, overrides: dict | None = None) -> Preop:
@@ -300,8 +301,9 @@ def load_context(source: str | Path | dict, predictor, *, overrides: dict | None
         preop = Preop.from_surface(pts, tri, point, material,
                                 roi_fraction=float(doc.get("roi_fraction", predictor.roi_fraction)),
                                 frame_radius_mm=float(doc.get("frame_radius_mm", predictor.frame_radius_mm)))
-        if "liver_centroid_mm" in doc or "inertia_mm5" in doc:
-            raise PredictionInputError("context: give either a surface or liver_centroid_mm/inertia_mm5, not both")
+        if "liver_centroid_mm" in doc or "inertia_mm5" in doc or "tool_thickness_mm" in doc:
+            raise PredictionInputError("context: give either a surface or liver_centroid_mm/inertia_mm5/"
+                                       "tool_thickness_mm, not both")
     elif "roi_undeformed" in doc:
         if "frame" not in doc:
             raise PredictionInputError("context: with roi_undeformed, give the local frame {normal, t1, t2} too")
@@ -317,6 +319,7 @@ def load_context(source: str | Path | dict, predictor, *, overrides: dict | None
             liver_centroid_mm=(None if "liver_centroid_mm" not in doc
                                else np.asarray(doc["liver_centroid_mm"], float) * s),
             inertia_mm5=None if "inertia_mm5" not in doc else np.asarray(doc["inertia_mm5"], float) * s**5,
+            tool_thickness_mm=None if "tool_thickness_mm" not in doc else float(doc["tool_thickness_mm"]) * s,
         )
     else:
         raise PredictionInputError("context: give the undeformed 'surface' file, or 'roi_undeformed' with 'frame'")

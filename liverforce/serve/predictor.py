@@ -132,12 +132,13 @@ class Predictor:
 
     def _check_state_inputs(self, preop: Preop) -> None:
         if self.model.uses_state:
-            missing = [k for k in ("liver_centroid_mm", "inertia_mm5", "material_params_mpa")
+            missing = [k for k in ("liver_centroid_mm", "inertia_mm5", "material_params_mpa", "tool_thickness_mm")
                        if getattr(preop, k) is None]
             if missing:
                 raise PredictionInputError(
                     f"the model uses the state vector and the context lacks {missing}: give the material constants "
-                    "(MPa) and a closed pre-operative surface (or the liver centroid and inertia tensor)"
+                    "(MPa) and a closed pre-operative surface (or the liver centroid, inertia tensor and the tissue "
+                    "thickness under the tool)"
                 )
 
     # ------------------------------------------------------------------ predictions

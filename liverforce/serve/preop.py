@@ -16,6 +16,8 @@ field                       shape      meaning
 ``liver_centroid_mm``       (3,)       volume centroid of the liver (state only)
 ``inertia_mm5``             (3, 3)     volume inertia tensor about the centroid,
                                        unit density (state only)
+``tool_thickness_mm``       scalar     tissue thickness under the tool along the
+                                       inward normal, mm (state only)
 ``roi_point_ids``           (k,)       optional: rows of the surface the ROI came
                                        from (``deformed_surface[roi_point_ids]``)
 ==========================  =========  =============================================
@@ -122,6 +124,7 @@ class Preop:
     liver_centroid_mm: np.ndarray | None = None
     inertia_mm5: np.ndarray | None = None
     roi_point_ids: np.ndarray | None = field(default=None, compare=False)
+    tool_thickness_mm: float | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "exertion_point_mm", _vector("exertion_point_mm", self.exertion_point_mm, 3))
@@ -136,6 +139,11 @@ class Preop:
             object.__setattr__(self, "inertia_mm5", _vector("inertia_mm5", self.inertia_mm5, 9).reshape(3, 3))
         if self.roi_point_ids is not None:
             object.__setattr__(self, "roi_point_ids", np.asarray(self.roi_point_ids, dtype=np.int64).ravel())
+        if self.tool_thickness_mm is not None:
+            t = float(_vector("tool_thickness_mm", self.tool_thickness_mm, 1)[0])
+            if not t > 0:
+                raise PredictionInputError(f"tool_thickness_mm: must be > 0 mm, got {t}")
+            object.__setattr__(self, "tool_thickness_mm", t)
 
     # ------------------------------------------------------------------
     @classmethod
@@ -171,7 +179,7 @@ class Preop:
         Liver centroid and inertia need a closed surface; an open one leaves
         them ``None`` (a state-vector model then refuses the context).
         """
-        from liverforce.dataset.roi import extract_roi, local_frame, surface_graph
+        from liverforce.dataset.roi import extract_roi, local_frame, surface_graph, thickness_along_normal
 
         pts = _points("surface points", points, min_points=4)
         try:
@@ -196,6 +204,7 @@ class Preop:
         frame = local_frame(surf, p, float(frame_radius_mm))
         ids, _ = extract_roi(surf, p, float(roi_fraction))
         point_ids = surf.node_ids[ids]
+        thickness = thickness_along_normal(pts, tri, p, frame[2]) if closed else float("nan")
         return cls(
             exertion_point_mm=p,
             frame=frame,
@@ -204,6 +213,7 @@ class Preop:
             liver_centroid_mm=centroid if closed and volume > 0 else None,
             inertia_mm5=inertia if closed and volume > 0 else None,
             roi_point_ids=point_ids,
+            tool_thickness_mm=thickness if np.isfinite(thickness) else None,
         )
 
     @classmethod
@@ -222,6 +232,7 @@ class Preop:
             liver_centroid_mm=get("liver_centroid_mm"),
             inertia_mm5=get("inertia_mm5"),
             roi_point_ids=None if ids is None else ids[i],
+            tool_thickness_mm=get("tool_thickness_mm"),
         )
 
     def with_material(self, material_params_mpa) -> "Preop":
@@ -260,6 +271,8 @@ class Preop:
             out["inertia_mm5"] = self.inertia_mm5.reshape(1, 9)
         if self.material_params_mpa is not None:
             out["material_params_mpa"] = self.material_params_mpa[None]
+        if self.tool_thickness_mm is not None:
+            out["tool_thickness_mm"] = np.array([self.tool_thickness_mm])
         return out
 
     def to_dict(self) -> dict:
@@ -273,10 +286,12 @@ class Preop:
             v = getattr(self, k)
             if v is not None:
                 d[k] = v.tolist()
+        if self.tool_thickness_mm is not None:
+            d["tool_thickness_mm"] = float(self.tool_thickness_mm)
         return d
 
     @classmethod
     def from_dict(cls, d: dict) -> "Preop":
         return cls(**{k: d[k] for k in (
             "exertion_point_mm", "frame", "roi_undeformed_mm", "material_params_mpa", "liver_centroid_mm",
-            "inertia_mm5", "roi_point_ids") if k in d})
+            "inertia_mm5", "roi_point_ids", "tool_thickness_mm") if k in d})

@@ -60,3 +60,23 @@ def test_bad_fraction_refused(sphere):
     g = surface_graph(*sphere)
     with pytest.raises(ValueError, match="fraction"):
         extract_roi(g, np.zeros(3), 0.0)
+
+
+def test_thickness_along_the_inward_normal_is_the_chord():
+    """Cube: its edge from the centre of a face; sphere: the diameter from any point; open surface: nan."""
+    import trimesh
+
+    from liverforce.dataset.roi import thickness_along_normal
+    from liverforce.geometry.procedural import cube_phantom
+
+    cube = cube_phantom(50.0, divisions=6)
+    assert thickness_along_normal(cube.vertices, cube.faces, [0, 0, 25.0], [0, 0, 1.0]) == pytest.approx(50.0)
+    # off-centre and tilted: the chord of a tilted ray through the cube
+    n = np.array([0.0, 0.3, 1.0]) / np.linalg.norm([0.0, 0.3, 1.0])
+    assert thickness_along_normal(cube.vertices, cube.faces, [5.0, 0, 25.0], n) == pytest.approx(50.0 / n[2])
+    s = trimesh.creation.icosphere(subdivisions=4, radius=40.0)
+    for v in s.vertices[[0, 17, 300]]:
+        t = thickness_along_normal(s.vertices, s.faces, v, v / np.linalg.norm(v))
+        assert t == pytest.approx(80.0, rel=2e-3)  # the polyhedron's chord is a hair shorter than 2 R
+    top = s.faces[s.vertices[s.faces].mean(axis=1)[:, 2] > -20.0]  # a bowl: open at the bottom
+    assert np.isnan(thickness_along_normal(s.vertices, top, [0, 0, 40.0], [0, 0, 1.0]))

@@ -85,3 +85,4 @@ def test_roi_area_on_a_procedural_liver(procedural_mesh, fraction):
 def test_roi_area_on_the_imported_sofa_liver(sofa_mesh, fraction):
     surf, problems = check_rois(sofa_mesh, fraction)
     assert not problems, f"{len(surf.node_ids)} surface nodes:\n" + "\n".join(problems)
+

@@ -26,7 +26,8 @@ def case(test_cases):
 def scaled(ctx: Preop, D: np.ndarray, s: float) -> tuple[Preop, np.ndarray]:
     """Every length times ``s`` (a liver in the wrong units); inertia scales with s^5."""
     return (replace(ctx, exertion_point_mm=ctx.exertion_point_mm * s, roi_undeformed_mm=ctx.roi_undeformed_mm * s,
-                    liver_centroid_mm=ctx.liver_centroid_mm * s, inertia_mm5=ctx.inertia_mm5 * s**5), D * s)
+                    liver_centroid_mm=ctx.liver_centroid_mm * s, inertia_mm5=ctx.inertia_mm5 * s**5,
+                    tool_thickness_mm=ctx.tool_thickness_mm * s), D * s)
 
 
 def test_the_good_case_passes(pred, case):
@@ -187,3 +188,12 @@ def test_bundles_without_a_training_scale_fall_back_to_the_scalers(trained, case
         pred.predict(D, ctx.with_material(ctx.material_params_mpa * 1e3))
     with pytest.raises(PredictionInputError, match=r"in mm \(mm\^5\)"):
         pred.predict(D, replace(ctx, inertia_mm5=ctx.inertia_mm5 * 1e5))
+
+
+def test_tissue_thickness_in_the_wrong_units_or_missing_is_refused(pred, case):
+    ctx, D = case
+    with pytest.raises(PredictionInputError, match="tool_thickness_mm .* is far outside the training range"):
+        pred.predict(D, replace(ctx, tool_thickness_mm=ctx.tool_thickness_mm * 1000))  # 1000x too thick: micrometres given as mm
+    with pytest.raises(PredictionInputError, match="tool_thickness_mm"):
+        pred.predict(D, replace(ctx, tool_thickness_mm=None))
+    np.testing.assert_array_equal(pred.predict(D, ctx), pred.predict(D, replace(ctx)))  # the good one passes

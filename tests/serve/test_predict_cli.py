@@ -52,7 +52,7 @@ def context_doc(ctx: Preop, roi_file: str, with_state=True) -> dict:
     if with_state:
         doc.update(material_params_mpa=ctx.material_params_mpa.tolist(),
                    liver_centroid_mm=ctx.liver_centroid_mm.tolist(),
-                   inertia_mm5=ctx.inertia_mm5.tolist())
+                   inertia_mm5=ctx.inertia_mm5.tolist(), tool_thickness_mm=ctx.tool_thickness_mm)
     return doc
 
 
@@ -104,6 +104,7 @@ def test_nodes_mode_yaml_context_and_outputs(trained, test_cases, tmp_path, caps
     doc = context_doc(in_m, "roi_m.npy")
     doc["liver_centroid_mm"] = (ctx.liver_centroid_mm / 1000).tolist()
     doc["inertia_mm5"] = (ctx.inertia_mm5 / 1e15).tolist()
+    doc["tool_thickness_mm"] = ctx.tool_thickness_mm / 1000
     np.save(tmp_path / "roi_m.npy", ctx.roi_undeformed_mm / 1000)
     np.save(tmp_path / "nodes_m.npy", D / 1000)
     (tmp_path / "ctx_m.json").write_text(json.dumps(doc))

@@ -101,7 +101,7 @@ def test_preop_round_trips_through_a_dict(test_cases):
     ctx = Preop.from_arrays(test_cases, 1)
     back = Preop.from_dict(ctx.to_dict())
     for k in ("exertion_point_mm", "frame", "roi_undeformed_mm", "material_params_mpa", "liver_centroid_mm",
-              "inertia_mm5"):
+              "inertia_mm5", "tool_thickness_mm"):
         np.testing.assert_array_equal(getattr(back, k), getattr(ctx, k))
 
 
