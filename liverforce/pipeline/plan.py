@@ -133,6 +133,23 @@ class Plan:
     def train_scenarios(self) -> list[str]:
         return list(self.cfg["train"]["scenarios"])
 
+    def train_settings(self) -> dict:
+        """The ``train`` settings every training job shares: the group without ``variants`` and ``scenarios``.
+
+        A training job's params carry these and its own variant's model config
+        only, so adding or changing one variant (or scenario) re-runs that
+        variant's jobs and what depends on them, not every training.
+        """
+        return {k: v for k, v in self.cfg["train"].items() if k not in ("variants", "scenarios")}
+
+    def wildcard_patterns(self) -> dict[str, str]:
+        """Regular expressions of every wildcard: exactly the values this plan knows."""
+        def alt(values):
+            return "|".join(re.escape(v) for v in values)
+
+        return {"scenario": alt(self.all_scenarios()), "variant": alt(self.variants()),
+                "gid": alt(self.all_geometries), "shard": r"\d{4}"}
+
     def chosen_variant(self) -> str:
         """The main variant (the first listed): the studies' starting point and the report's main column."""
         return next(iter(self.variants()))

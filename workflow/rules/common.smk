@@ -47,6 +47,10 @@ E = PLAN.root  # results/<experiment>
 TRACKING_URI = tracking_uri(CFG)
 
 
+wildcard_constraints:
+    **PLAN.wildcard_patterns(),
+
+
 def config_slice(*keys):
     """A plain-dict slice of the composed config (what `params:` carries)."""
     node = CFG

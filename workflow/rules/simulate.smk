@@ -1,4 +1,5 @@
 # Stages 4-5: FE simulation of one shard of cases -> one Parquet shard; the manifest.
+import math
 
 
 rule simulate:
@@ -17,8 +18,10 @@ rule simulate:
         "../envs/liverforce.yaml"
     threads: 1
     resources:
-        mem_mb=4000,
-        runtime=120,
+        # every case may use its whole time limit: the shard's worst case, more on each retry (SLURM --time, --mem)
+        mem_mb=lambda wc, attempt: 4000 * attempt,
+        runtime=lambda wc, attempt: attempt * (5 + math.ceil(
+            config_slice("sweep", "cases_per_shard") * config_slice("simulate", "time_limit_s") / 60)),
     script:
         "../scripts/simulate.py"
 

@@ -26,7 +26,7 @@ rule study:
         study=lambda wc: study_slice(wc.study, STUDY_CFG),
         scenarios=lambda wc: study_scenarios(wc.study, STUDY_CFG),
         model=PLAN.variants()[MAIN_VARIANT],
-        train=config_slice("train"),
+        train=PLAN.train_settings(),
         tracking_uri=TRACKING_URI,
         experiment_prefix=config_slice("tracking", "experiment_prefix"),
         experiment=config_slice("experiment"),

@@ -12,7 +12,7 @@ rule train:
         model=directory(f"{E}/models/{{scenario}}/{{variant}}/model"),
     params:
         model=lambda wc: PLAN.variants()[wc.variant],
-        train=config_slice("train"),
+        train=PLAN.train_settings(),
         tune=config_slice("tune"),
         tracking_uri=TRACKING_URI,
         experiment_prefix=config_slice("tracking", "experiment_prefix"),
