@@ -62,7 +62,7 @@ from liverforce.learn.regressor import FitParams
 from liverforce.learn.representation import representation_from_config
 from liverforce.learn.splits import cv_folds, group_key, train_test_split
 from liverforce.learn.torchutil import configure_torch
-from liverforce.learn.tune import FoldData, cv_score, tune
+from liverforce.learn.tune import FoldData, cv_force_mae, cv_score, tune
 
 REQUIRED_ARRAYS = (
     "case_id", "geometry_id", "force_n", "exertion_point_mm", "frame_normal", "frame_t1", "frame_t2",
@@ -224,13 +224,14 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
     trials: list[dict] = []
     cv_grouping = None
     best_cv = None
+    cv_mae_n = None
 
     if tune_cfg.get("enabled", True):
         folds = cv_folds(np.arange(len(tr)), geo[tr], scenario=scenario, folds=int(tune_cfg["folds"]), seed=seed)
         notes += folds.notes
         cv_grouping = folds.grouping
         tune_epochs = int(tune_cfg["epochs"])
-        fold_data = []
+        fold_data, to_newton, y_val_n = [], [], []
         for k, (ftr, fva) in enumerate(folds.pairs):
             rows_tr, rows_va = prep_train.rows(ftr), prep_train.rows(fva)
             pre = fit_preprocessor(
@@ -241,6 +242,9 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
             z_tr, y_tr = regressor_data(pre, rows_tr)
             z_va, y_va = regressor_data(pre, rows_va, all_views=False)
             fold_data.append(FoldData(z_tr, y_tr, z_va, y_va))
+            stiff = pre.stiffness(rows_va.state, len(fva))
+            to_newton.append(lambda out, ts=pre.target_scaler, k_=stiff: ts.inverse_transform(out) * k_)
+            y_val_n.append(rows_va.y_local)
 
         def evaluate(params: dict):
             return cv_score(fold_data, params, epochs=tune_epochs, seed=seed, weight_decay=weight_decay)
@@ -254,6 +258,9 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
                    seed=seed, space=tune_cfg.get("space"), on_trial=on_trial)
         best = dict(res.best_params)
         best_cv = res.best_cv_mse
+        # the best configuration's CV error in newtons: comparable between variants (validate.variant: auto)
+        cv_mae_n = cv_force_mae(fold_data, to_newton, y_val_n, best, epochs=tune_epochs, seed=seed,
+                                weight_decay=weight_decay)
         trials = [{"index": r.index, "params": r.params, "cv_mse": r.cv_mse, "status": r.status,
                    "seconds": round(r.seconds, 3)} for r in res.trials]
         hidden = [int(best["width"])] * int(best["n_layers"])
@@ -294,6 +301,7 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
     if tracker is not None:
         tracker.log_history(run_id, history)
         tracker.log_metrics(run_id, {**metrics, **({"cv_mse": best_cv} if best_cv is not None else {}),
+                                     **({"cv_mae_n": cv_mae_n} if cv_mae_n is not None else {}),
                                      **{f"{k}_mean": v for k, v in summary["mean"].items()},
                                      **{f"{k}_sd": v for k, v in summary["sd"].items()},
                                      "n_splits": summary["n"]})
@@ -312,6 +320,7 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
         "n_splits": summary["n"],
         "repeats": repeats,
         "cv_mse": best_cv,
+        "cv_mae_n": cv_mae_n,
         "best_params": best,
         "trials": trials,
         "n_train": int(len(tr)),

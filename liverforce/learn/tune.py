@@ -34,7 +34,7 @@ from typing import Callable
 
 import numpy as np
 
-from liverforce.learn.regressor import FitParams, RegressorSpec, fit_regressor
+from liverforce.learn.regressor import FitParams, RegressorSpec, fit_regressor, predict_regressor
 
 DEFAULT_SPACE: dict[str, dict] = {
     "lr": {"bounds": [1e-4, 1e-2], "scaling": "log"},
@@ -98,6 +98,28 @@ def cv_score(
         hists.append(hist)
     history = {key: np.mean([h[key] for h in hists], axis=0).tolist() for key in ("train_loss", "val_loss")}
     return float(np.mean(fold_mse)), fold_mse, history
+
+
+def cv_force_mae(
+    folds: list[FoldData], to_newton: list[Callable[[np.ndarray], np.ndarray]], y_val_n: list[np.ndarray],
+    params: dict, *, epochs: int, seed: int, weight_decay: float = 0.0,
+) -> float:
+    """Mean over the folds of the validation MAE of the force vector in N, for one parameterization.
+
+    The same fits as :func:`cv_score` (same seeds), scored in newtons: ``to_newton[k]``
+    maps fold ``k``'s scaled regressor outputs back to local forces (N), ``y_val_n[k]``
+    are its true local forces. Unlike the CV MSE of the scaled targets, this is
+    comparable between variants (other scalings, with or without the state vector).
+    """
+    fit = FitParams(lr=float(params["lr"]), batch_size=int(params["batch_size"]), epochs=int(epochs),
+                    weight_decay=weight_decay)
+    maes = []
+    for k, f in enumerate(folds):
+        spec = regressor_from_params(params, f.z_train.shape[1])
+        net, _ = fit_regressor(f.z_train, f.y_train, spec, fit, seed=seed + k)
+        pred = to_newton[k](predict_regressor(net, f.z_val))
+        maes.append(float(np.linalg.norm(pred - y_val_n[k], axis=1).mean()))
+    return float(np.mean(maes))
 
 
 def _parameter_configs(space: dict[str, dict]):

@@ -16,10 +16,12 @@ log = logging.getLogger("liverforce")
 def choose_variant(metrics_paths: list, how: str = "auto") -> tuple[int, str]:
     """Index of the scenario-IV model to validate, and why.
 
-    ``main``: the first listed (the main variant). ``auto``: the lowest Ax
-    cross-validation MSE (folds by liver, training split only: neither the IV
-    test liver nor the unseen liver informs the choice); the first listed when
-    no variant was tuned. Else the variant of that name.
+    ``main``: the first listed (the main variant). ``auto``: the lowest
+    cross-validation error of the force in N (``cv_mae_n``: the best Ax
+    configuration's folds, by liver, training split only: neither the IV test
+    livers nor the unseen livers inform the choice; the Ax MSE of older
+    metrics files, of scaled targets, when not every variant has it); the
+    first listed when no variant was tuned. Else the variant of that name.
     """
     docs = [json.loads(Path(p).read_text()) for p in metrics_paths]
     names = [d.get("variant") or Path(p).parent.name for d, p in zip(docs, metrics_paths)]
@@ -29,12 +31,13 @@ def choose_variant(metrics_paths: list, how: str = "auto") -> tuple[int, str]:
         if how not in names:
             raise ValueError(f"validate.variant '{how}' is not among the trained scenario-IV variants {names}")
         return names.index(how), f"validate.variant={how}"
-    cv = [d.get("cv_mse") for d in docs]
-    if any(c is None for c in cv):
-        return 0, "first listed variant (not every variant was tuned, no CV score to compare)"
-    best = int(np.argmin(cv))
-    return best, ("lowest cross-validation MSE on the training livers: "
-                  + ", ".join(f"{n} {c:.4f}" for n, c in zip(names, cv)))
+    for key, what in (("cv_mae_n", "lowest cross-validation MAE (N) on the training livers"),
+                      ("cv_mse", "lowest cross-validation MSE (scaled targets) on the training livers")):
+        cv = [d.get(key) for d in docs]
+        if all(c is not None for c in cv):
+            best = int(np.argmin(cv))
+            return best, f"{what}: " + ", ".join(f"{n} {c:.4f}" for n, c in zip(names, cv))
+    return 0, "first listed variant (not every variant was tuned, no CV score to compare)"
 
 
 def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_path, tracking_uri, out_path,

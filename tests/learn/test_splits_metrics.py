@@ -93,3 +93,26 @@ def test_standardizer_scales_small_columns_beside_huge_ones():
     z = s.transform(x)
     np.testing.assert_allclose(z[:, :2].std(axis=0), 1.0, rtol=1e-12)  # material column is standardised
     assert s.scale[2] == 1.0 and np.all(z[:, 2] == 0.0)  # a constant column stays 0
+
+
+def test_cv_force_mae_scores_the_same_fits_in_newtons():
+    """cv_force_mae refits each fold as cv_score does (same seeds) and maps the outputs back to N."""
+    from liverforce.learn.regressor import FitParams, fit_regressor, predict_regressor
+    from liverforce.learn.tune import FoldData, cv_force_mae, regressor_from_params
+
+    rng = np.random.default_rng(0)
+    z = rng.normal(size=(120, 4))
+    y = z[:, :3] * 0.5
+    folds = [FoldData(z[:80], y[:80], z[80:], y[80:]), FoldData(z[40:], y[40:], z[:40], y[:40])]
+    scale = np.array([2.0, 3.0, 4.0])  # "newtons" = scaled output x scale + 1
+    to_n = [lambda out: out * scale + 1.0] * 2
+    truth = [f.y_val * scale + 1.0 for f in folds]
+    params = {"width": 16, "n_layers": 1, "dropout": 0.0, "lr": 0.01, "batch_size": 16}
+    got = cv_force_mae(folds, to_n, truth, params, epochs=30, seed=5)
+    manual = []
+    for k, f in enumerate(folds):
+        net, _ = fit_regressor(f.z_train, f.y_train, regressor_from_params(params, 4),
+                               FitParams(lr=0.01, batch_size=16, epochs=30), seed=5 + k)
+        manual.append(np.linalg.norm(predict_regressor(net, f.z_val) * scale + 1.0 - truth[k], axis=1).mean())
+    assert got == pytest.approx(np.mean(manual), rel=1e-12)
+    assert 0 < got < 0.5 * np.linalg.norm(truth[0] - truth[0].mean(0), axis=1).mean()  # it learned something
