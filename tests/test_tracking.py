@@ -2,7 +2,6 @@
 
 import multiprocessing as mp
 import sqlite3
-import time
 
 import numpy as np
 import pytest
@@ -110,10 +109,11 @@ def test_retry_on_locked_database_only():
     assert len(calls) == 3
 
 
-def _log_many(uri: str, name: str, start_at: float, n_runs: int, queue) -> None:
+def _log_many(uri: str, name: str, barrier, n_runs: int, queue) -> None:
     try:
-        while time.time() < start_at:  # both processes hit the fresh store at the same moment
-            time.sleep(0.005)
+        import mlflow  # noqa: F401  (imported before the barrier: both then hit the fresh store at once)
+
+        barrier.wait(timeout=120)
         ensure_store(uri)
         tracker = Tracker(uri, "concurrent")
         for i in range(n_runs):
@@ -130,8 +130,8 @@ def test_two_processes_log_to_a_fresh_sqlite_store_at_once(tmp_path):
     uri = f"sqlite:///{tmp_path / 'shared.db'}"
     ctx = mp.get_context("spawn")
     queue = ctx.Queue()
-    start_at = time.time() + 8.0  # after both have imported mlflow
-    procs = [ctx.Process(target=_log_many, args=(uri, name, start_at, 15, queue)) for name in ("a", "b")]
+    barrier = ctx.Barrier(2)  # released when both have imported mlflow
+    procs = [ctx.Process(target=_log_many, args=(uri, name, barrier, 15, queue)) for name in ("a", "b")]
     for p in procs:
         p.start()
     for p in procs:

@@ -1,9 +1,18 @@
 """Fault-injection tests: a ledger of what each test injected and what survived.
 
-Every fault test calls ``fault_ledger.record(...)`` once per fault it injects,
-with the rows it expected and the rows it found afterwards (measured, e.g.
-case ids of the final shards against the reference run). At the end of the
-session pytest prints
+Every fault test records each fault it injects, with the rows it expected and
+the rows it found afterwards (measured, e.g. case ids of the final shards
+against the reference run), before any verdict is taken:
+
+- ``with fault_ledger.check(fault, rows_expected=n) as seen:`` around the
+  checks: ``seen.rows_found`` (and ``seen.detail``) are set from what was
+  observed; the fault counts as survived only if every check in the block
+  passed, and as NOT survived (recorded, then re-raised) if one failed;
+- ``fault_ledger.record(fault, survived=<a measured boolean>, ...)`` where the
+  verdict is computed from observations (``tests/faults/test_ledger.py`` fails
+  on a literal ``survived=True``).
+
+At the end of the session pytest prints
 
     faults injected: N, runs survived: M, rows lost: R
 
@@ -14,6 +23,7 @@ from __future__ import annotations
 
 import json
 import os
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -37,9 +47,30 @@ class FaultRecord:
         return max(0, self.rows_expected - self.rows_found)
 
 
+@dataclass
+class Observation:
+    """What a fault test saw, filled in inside :meth:`FaultLedger.check`."""
+
+    rows_found: int = 0
+    detail: dict = field(default_factory=dict)
+
+
 class FaultLedger:
     def __init__(self, test: str):
         self.test = test
+
+    @contextmanager
+    def check(self, fault: str, *, rows_expected: int = 0, **detail):
+        """Record ``fault`` as survived only if the block's checks all pass; a failure is recorded, then raised."""
+        seen = Observation(detail=dict(detail))
+        try:
+            yield seen
+        except BaseException as exc:
+            self.record(fault, survived=False, rows_expected=rows_expected, rows_found=seen.rows_found,
+                        failure=f"{type(exc).__name__}: {exc}"[:500], **seen.detail)
+            raise
+        self.record(fault, survived=True, rows_expected=rows_expected, rows_found=seen.rows_found,
+                    **seen.detail)
 
     def record(self, fault: str, *, survived: bool, rows_expected: int = 0, rows_found: int = 0, **detail) -> FaultRecord:
         """One injected fault; ``survived`` = the run finished correctly afterwards."""

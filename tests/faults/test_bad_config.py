@@ -32,23 +32,23 @@ UNSTABLE = [
 
 @pytest.mark.parametrize("override, key", BAD)
 def test_bad_value_is_refused_when_composed(override, key, fault_ledger):
-    with pytest.raises(ConfigError) as err:
-        compose(["experiment=smoke", override])
-    assert f"'{key}'" in str(err.value)
-    fault_ledger.record(f"bad config {override}", survived=True)
+    with fault_ledger.check(f"bad config {override}"):
+        with pytest.raises(ConfigError) as err:
+            compose(["experiment=smoke", override])
+        assert f"'{key}'" in str(err.value)
 
 
 @pytest.mark.workflow
 @pytest.mark.parametrize("override, key", [*UNSTABLE, BAD[0], BAD[6]])
 def test_workflow_refuses_before_any_job(override, key, tmp_path, fault_ledger):
-    proc = snakemake("-n", "--directory", str(tmp_path), "--config", "experiment=smoke", f"overrides={override}",
-                     check=False)
-    text = proc.stdout + proc.stderr
-    assert proc.returncode != 0
-    assert f"config key '{key}'" in text, text[-2000:]
-    assert "Job stats" not in text and "rule geometry" not in text  # no job was planned
-    assert not (tmp_path / "results").exists()
-    fault_ledger.record(f"bad config {override} (workflow)", survived=True)
+    with fault_ledger.check(f"bad config {override} (workflow)"):
+        proc = snakemake("-n", "--directory", str(tmp_path), "--config", "experiment=smoke",
+                         f"overrides={override}", check=False)
+        text = proc.stdout + proc.stderr
+        assert proc.returncode != 0
+        assert f"config key '{key}'" in text, text[-2000:]
+        assert "Job stats" not in text and "rule geometry" not in text  # no job was planned
+        assert not (tmp_path / "results").exists()
 
 
 def test_stable_defaults_still_pass_the_start_up_check(tmp_path):

@@ -42,23 +42,23 @@ def test_runs_of_killed_processes_are_closed_live_ones_are_not(tmp_path, fault_l
     try:
         os.killpg(victim.pid, signal.SIGKILL)
         victim.wait(timeout=30)
-        tracker = Tracker(uri, "stale-test")  # closes stale runs on opening the experiment
-        own_run = tracker.start_run("own")
-        closed_again = tracker.close_stale_runs()
-        client = tracker.client
-        victim_info = client.get_run(victim_run)
-        assert victim_info.info.status == "KILLED"
-        assert str(victim.pid) in victim_info.data.tags["liverforce.stale"]
-        assert victim_info.data.metrics["epoch_loss"] == 1.0  # what it logged is kept
-        assert client.get_run(alive_run).info.status == "RUNNING"
-        assert client.get_run(own_run).info.status == "RUNNING"
-        assert client.get_run(own_run).data.tags[PID_TAG] == str(os.getpid())
-        assert HOST_TAG in client.get_run(own_run).data.tags
-        assert closed_again == []
-        runs = client.search_runs([tracker.experiment_id])
-        fault_ledger.record("SIGKILL of a process with an open MLflow run", survived=True, rows_expected=3,
-                            rows_found=len(runs))
-        assert len(runs) == 3  # nothing deleted
+        with fault_ledger.check("SIGKILL of a process with an open MLflow run", rows_expected=3) as seen:
+            tracker = Tracker(uri, "stale-test")  # closes stale runs on opening the experiment
+            own_run = tracker.start_run("own")
+            closed_again = tracker.close_stale_runs()
+            client = tracker.client
+            runs = client.search_runs([tracker.experiment_id])
+            seen.rows_found = len(runs)
+            victim_info = client.get_run(victim_run)
+            assert victim_info.info.status == "KILLED"
+            assert str(victim.pid) in victim_info.data.tags["liverforce.stale"]
+            assert victim_info.data.metrics["epoch_loss"] == 1.0  # what it logged is kept
+            assert client.get_run(alive_run).info.status == "RUNNING"
+            assert client.get_run(own_run).info.status == "RUNNING"
+            assert client.get_run(own_run).data.tags[PID_TAG] == str(os.getpid())
+            assert HOST_TAG in client.get_run(own_run).data.tags
+            assert closed_again == []
+            assert len(runs) == 3  # nothing deleted
     finally:
         if alive.poll() is None:
             os.killpg(alive.pid, signal.SIGKILL)

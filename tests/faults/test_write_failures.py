@@ -98,17 +98,17 @@ def test_disk_full_mid_shard_leaves_no_shard(tmp_path, rows, clean, monkeypatch,
         return FullDisk(fh, budget) if "w" in mode and Path(path).name.startswith(".shard-") else fh
 
     monkeypatch.setattr(dio, "open", full_open, raising=False)
-    with pytest.raises(OSError) as err:
-        dio.write_shard(rows, folder / "shard-0000.parquet")
-    assert err.value.errno == errno.ENOSPC
-    assert list(folder.iterdir()) == []  # neither the shard nor its temporary file
-    with pytest.raises((FileNotFoundError, dio.ShardError), match="shard-0000"):  # cannot list what is not there
-        dio.write_manifest([folder / "shard-0000.parquet"], folder / "manifest.json")
-    assert not (folder / "manifest.json").exists()
-    monkeypatch.undo()
-    check_rerun(folder, rows, clean)
-    fault_ledger.record(f"ENOSPC after {budget} bytes of a shard", survived=True, rows_expected=len(rows),
-                        rows_found=pq.read_table(folder / "shard-0000.parquet").num_rows)
+    with fault_ledger.check(f"ENOSPC after {budget} bytes of a shard", rows_expected=len(rows)) as seen:
+        with pytest.raises(OSError) as err:
+            dio.write_shard(rows, folder / "shard-0000.parquet")
+        assert err.value.errno == errno.ENOSPC
+        assert list(folder.iterdir()) == []  # neither the shard nor its temporary file
+        with pytest.raises((FileNotFoundError, dio.ShardError), match="shard-0000"):  # cannot list what is not there
+            dio.write_manifest([folder / "shard-0000.parquet"], folder / "manifest.json")
+        assert not (folder / "manifest.json").exists()
+        monkeypatch.undo()
+        check_rerun(folder, rows, clean)
+        seen.rows_found = pq.read_table(folder / "shard-0000.parquet").num_rows
 
 
 def test_failed_rewrite_keeps_the_older_complete_shard_and_manifest(tmp_path, rows, clean, monkeypatch, fault_ledger):
@@ -125,18 +125,18 @@ def test_failed_rewrite_keeps_the_older_complete_shard_and_manifest(tmp_path, ro
         return FullDisk(fh, 3000 if ".shard-" in str(path) else 50) if "w" in mode else fh
 
     monkeypatch.setattr(dio, "open", full_open, raising=False)
-    with pytest.raises(OSError):
-        dio.write_shard(rows, folder / "shard-0000.parquet")
-    with pytest.raises(OSError):  # the manifest rewrite fails too: the old one stays whole
-        dio.write_manifest([folder / "shard-0000.parquet"], folder / "manifest.json")
-    assert (folder / "shard-0000.parquet").read_bytes() == old_bytes
-    assert (folder / "manifest.json").read_bytes() == old_manifest
-    assert leftovers(folder) == []
-    dio.verify_manifest(folder / "manifest.json")  # still consistent: old shard, old manifest
-    monkeypatch.undo()
-    check_rerun(folder, rows, clean)
-    fault_ledger.record("ENOSPC while rewriting a shard and its manifest", survived=True, rows_expected=len(rows),
-                        rows_found=pq.read_table(folder / "shard-0000.parquet").num_rows)
+    with fault_ledger.check("ENOSPC while rewriting a shard and its manifest", rows_expected=len(rows)) as seen:
+        with pytest.raises(OSError):
+            dio.write_shard(rows, folder / "shard-0000.parquet")
+        with pytest.raises(OSError):  # the manifest rewrite fails too: the old one stays whole
+            dio.write_manifest([folder / "shard-0000.parquet"], folder / "manifest.json")
+        assert (folder / "shard-0000.parquet").read_bytes() == old_bytes
+        assert (folder / "manifest.json").read_bytes() == old_manifest
+        assert leftovers(folder) == []
+        dio.verify_manifest(folder / "manifest.json")  # still consistent: old shard, old manifest
+        monkeypatch.undo()
+        check_rerun(folder, rows, clean)
+        seen.rows_found = pq.read_table(folder / "shard-0000.parquet").num_rows
 
 
 @pytest.mark.parametrize("step", ["fsync", "replace"])
@@ -148,13 +148,13 @@ def test_late_write_errors_leave_no_shard(tmp_path, rows, clean, monkeypatch, st
         raise OSError(errno.ENOSPC if step == "fsync" else errno.EIO, f"{step} failed")
 
     monkeypatch.setattr(dio.os, step, boom)
-    with pytest.raises(OSError):
-        dio.write_shard(rows, folder / "shard-0000.parquet")
-    monkeypatch.undo()
-    assert list(folder.iterdir()) == []
-    check_rerun(folder, rows, clean)
-    fault_ledger.record(f"{step} failing after a shard's bytes were written", survived=True,
-                        rows_expected=len(rows), rows_found=len(rows))
+    with fault_ledger.check(f"{step} failing after a shard's bytes were written", rows_expected=len(rows)) as seen:
+        with pytest.raises(OSError):
+            dio.write_shard(rows, folder / "shard-0000.parquet")
+        monkeypatch.undo()
+        assert list(folder.iterdir()) == []
+        check_rerun(folder, rows, clean)
+        seen.rows_found = pq.read_table(folder / "shard-0000.parquet").num_rows
 
 
 def test_real_full_tmpfs(tmp_path, fault_ledger):
@@ -168,16 +168,16 @@ def test_real_full_tmpfs(tmp_path, fault_ledger):
         pytest.skip(f"mount -t tmpfs refused here: {proc.stderr.strip()}")
     try:
         folder = mnt / "shards"
-        with pytest.raises(OSError) as err:
-            dio.write_shard(rows, folder / "shard-0000.parquet")
-        assert err.value.errno == errno.ENOSPC
-        assert list(folder.iterdir()) == []  # the partial temporary file was removed
-        assert not (folder / "manifest.json").exists()
-        # more room, then the rerun completes
-        subprocess.run(["mount", "-o", "remount,size=4m", str(mnt)], check=True)
-        clean = dio.write_shard(rows, tmp_path / "clean" / "shard-0000.parquet")
-        check_rerun(folder, rows, clean)
-        found = pq.read_table(folder / "shard-0000.parquet").num_rows
+        with fault_ledger.check("real full disk (16 KiB tmpfs)", rows_expected=len(rows)) as seen:
+            with pytest.raises(OSError) as err:
+                dio.write_shard(rows, folder / "shard-0000.parquet")
+            assert err.value.errno == errno.ENOSPC
+            assert list(folder.iterdir()) == []  # the partial temporary file was removed
+            assert not (folder / "manifest.json").exists()
+            # more room, then the rerun completes
+            subprocess.run(["mount", "-o", "remount,size=4m", str(mnt)], check=True)
+            clean = dio.write_shard(rows, tmp_path / "clean" / "shard-0000.parquet")
+            check_rerun(folder, rows, clean)
+            seen.rows_found = pq.read_table(folder / "shard-0000.parquet").num_rows
     finally:
         subprocess.run(["umount", str(mnt)], check=False)
-    fault_ledger.record("real full disk (16 KiB tmpfs)", survived=True, rows_expected=len(rows), rows_found=found)

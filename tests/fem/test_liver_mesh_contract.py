@@ -1,11 +1,9 @@
 """Contract with the mesh stage: a real LiverMesh solves, regions all carry load."""
 import numpy as np
-import pytest
 
 from liverforce.fem import BoundaryParams, LiverModel, SolverOptions, ToolLoad, make_material
-
-build = pytest.importorskip("liverforce.mesh.build")
-procedural = pytest.importorskip("liverforce.geometry.procedural")
+from liverforce.geometry import procedural
+from liverforce.mesh import build
 
 
 def test_procedural_liver_mesh_solves_with_balanced_reactions():

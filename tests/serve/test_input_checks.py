@@ -30,9 +30,10 @@ def scaled(ctx: Preop, D: np.ndarray, s: float) -> tuple[Preop, np.ndarray]:
                     tool_thickness_mm=ctx.tool_thickness_mm * s), D * s)
 
 
-def test_the_good_case_passes(pred, case):
+def test_the_good_case_passes(pred, case, test_cases):
     ctx, D = case
-    assert np.isfinite(pred.predict(D, ctx)).all()
+    # through the context and every check: the model's force for the case as the shard holds it
+    np.testing.assert_array_equal(pred.predict(D, ctx), pred.model.predict({k: v[:1] for k, v in test_cases.items()})[0])
 
 
 @pytest.mark.parametrize("bad, msg", [
@@ -117,11 +118,13 @@ def test_deformed_cloud_in_other_units_than_the_context(pred, case):
         pred.predict(D * 0.1, ctx)
 
 
-def test_exertion_point_off_the_surface(pred, case):
+def test_exertion_point_off_the_surface(pred, case, test_cases):
     ctx, D = case
     n = ctx.frame[2]
     ok = replace(ctx, exertion_point_mm=ctx.exertion_point_mm + 0.5 * n)
-    assert np.isfinite(pred.predict(D, ok)).all()  # within the 2 mm tolerance
+    shifted = {k: np.asarray(v[:1]) if not isinstance(v, list) else v[:1] for k, v in test_cases.items()}
+    shifted["exertion_point_mm"] = shifted["exertion_point_mm"] + 0.5 * n
+    np.testing.assert_array_equal(pred.predict(D, ok), pred.model.predict(shifted)[0])  # within the 2 mm tolerance
     for off in (10.0, -6.0):
         bad = replace(ctx, exertion_point_mm=ctx.exertion_point_mm + off * n)
         with pytest.raises(PredictionInputError, match=f"{abs(off):.3g} mm off the undeformed surface"):
@@ -172,7 +175,7 @@ def test_shard_of_another_schema_version(tmp_path, pred):
         predict_shards(pred, [p])
 
 
-def test_bundles_without_a_training_scale_fall_back_to_the_scalers(trained, case, tmp_path):
+def test_bundles_without_a_training_scale_fall_back_to_the_scalers(trained, case, tmp_path, test_cases):
     path = Path(shutil.copytree(trained("disp"), tmp_path / "old"))
     doc = json.loads((path / "model.json").read_text())
     del doc["meta"]["training_scale"]
@@ -180,7 +183,7 @@ def test_bundles_without_a_training_scale_fall_back_to_the_scalers(trained, case
     pred = Predictor.load(path)
     assert pred.scale.source.startswith("approximate")
     ctx, D = case
-    assert np.isfinite(pred.predict(D, ctx)).all()
+    np.testing.assert_array_equal(pred.predict(D, ctx), pred.model.predict({k: v[:1] for k, v in test_cases.items()})[0])
     for s in (10.0, 0.001):
         with pytest.raises(PredictionInputError, match="mm"):
             pred.predict(*scaled(ctx, D, s)[::-1])
