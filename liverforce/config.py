@@ -65,6 +65,8 @@ class ImportedGeometry:
     path: str = "???"
     units: str = "mm"  # mm | cm | m | auto | a number (scale to mm)
     label: Optional[int] = None
+    # RAS | LPS (3D Slicer models, DICOM) | a 4x4 [[...],...,[0,0,0,1]]: file mm (after units) -> RAS mm
+    frame: Any = "RAS"
 
 
 @dataclass
@@ -83,6 +85,7 @@ class MeshConfig:
     refine_growth: float = 0.6
     refine_ivc_edge_mm: float = 6.0
     regions: dict[str, Any] = field(default_factory=dict)
+    regions_check: str = "warn"  # warn | strict | off: anatomical plausibility of the tagged regions
 
 
 @dataclass
@@ -267,7 +270,6 @@ class RootConfig:
     experiment: str = "default"
     results_dir: str = "results"
     seed: int = 0
-    threads: int = 1
     geometry: GeometryConfig = field(default_factory=GeometryConfig)
     mesh: MeshConfig = field(default_factory=MeshConfig)
     material: MaterialConfig = field(default_factory=MaterialConfig)
@@ -348,8 +350,6 @@ def _fail(key: str, problem: str, fix: str = "") -> None:
 
 def _check_ranges(cfg: dict) -> None:
     """Range and consistency checks; each failure names the dotted key."""
-    if cfg["threads"] < 1:
-        _fail("threads", f"must be >= 1 (got {cfg['threads']})")
     g = cfg["geometry"]
     if g["procedural"]["count"] < 1 and not g["imported"]:
         _fail("geometry.procedural.count", "needs at least one geometry", "set count >= 1 or list imported livers")
@@ -364,6 +364,7 @@ def _check_ranges(cfg: dict) -> None:
         if not name or not all(c.isalnum() or c in "-_" for c in name):
             _fail(f"geometry.imported[{i}].name", f"'{name}' must be letters, digits, '-' or '_' (it names output files)")
         _check_units(f"geometry.imported[{i}].units", imp["units"])
+        _check_frame(f"geometry.imported[{i}].frame", imp["frame"])
     if g["cube"]["edge_mm"] <= 0:
         _fail("geometry.cube.edge_mm", "must be > 0 mm")
 
@@ -378,6 +379,8 @@ def _check_ranges(cfg: dict) -> None:
         _fail("mesh.refine_growth", "must be > 0 (mm of size per mm of distance)")
     if m["refine_ivc_edge_mm"] < 0:
         _fail("mesh.refine_ivc_edge_mm", "must be >= 0 mm (0 = no refinement at the IVC)")
+    if m["regions_check"] not in ("warn", "strict", "off"):
+        _fail("mesh.regions_check", f"unknown '{m['regions_check']}'", "use warn, strict or off")
 
     mat = cfg["material"]
     if mat["model"] not in MATERIAL_MODELS:
@@ -575,6 +578,15 @@ def _check_study(cfg: dict) -> None:
     for v in st["noise"]["values"]:
         if not isinstance(v, (int, float)) or v < 0 or v > 20:
             _fail("study.noise.values", f"noise must be in [0, 20] mm (got {v}); units are mm")
+
+
+def _check_frame(key: str, frame: Any) -> None:
+    from liverforce.geometry.frames import frame_matrix
+
+    try:
+        frame_matrix(frame)
+    except ValueError as exc:
+        _fail(key, str(exc))
 
 
 def _check_units(key: str, units: str) -> None:

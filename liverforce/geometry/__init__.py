@@ -1,8 +1,9 @@
 """Geometry stage: procedural livers, a cube phantom, importers, repair, units.
 
-Everything returns a :class:`~liverforce.geometry.surface.Surface` in mm
-(frame: RAS, +x patient right, +y anterior, +z superior for built-in shapes;
-imported files keep their own frame).
+Everything returns a :class:`~liverforce.geometry.surface.Surface` in mm,
+in the RAS frame (+x patient right, +y anterior, +z superior): built-in shapes
+are made in it, imported files are converted to it from the frame they state
+(``frame``: RAS, LPS or a 4×4, see :mod:`liverforce.geometry.frames`).
 """
 
 from liverforce.geometry.errors import GeometryError

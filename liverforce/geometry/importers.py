@@ -12,8 +12,11 @@ NIfTI ``.nii``/``.nii.gz``, NRRD   label volume → marching cubes (mm)
 =================================  ==========================================
 
 Volume meshes give their boundary surface (faces of exactly one tet).  The
-result is then scaled to mm (``units``), checked for a liver-like size, and
-checked/repaired by :func:`~liverforce.geometry.repair.repair_surface`.
+result is then scaled to mm (``units``), converted from the file's stated
+``frame`` (RAS, LPS or a 4×4, see :mod:`liverforce.geometry.frames`) to RAS,
+checked/repaired by :func:`~liverforce.geometry.repair.repair_surface`, and
+checked for a liver-like size.  What was converted is logged and recorded in
+``Surface.meta["conversion"]``.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ import numpy as np
 
 from liverforce.geometry import readers
 from liverforce.geometry.errors import GeometryError, refuse
+from liverforce.geometry.frames import describe_frame, frame_matrix, to_ras
 from liverforce.geometry.repair import repair_surface
 from liverforce.geometry.surface import Surface
 from liverforce.geometry.units import LIVER_EXTENT_MM, check_liver_size, guess_units, parse_units
@@ -52,6 +56,7 @@ def load_surface(
     units="mm",
     label: int | None = None,
     *,
+    frame="RAS",
     size_range_mm: tuple[float, float] | None = LIVER_EXTENT_MM,
     check_self_intersections: bool = True,
     max_edge_mm: float | None = 5.0,
@@ -70,6 +75,13 @@ def load_surface(
     label : int, optional
         Label value of the liver in a label volume (required if the volume
         holds several labels).  Ignored for meshes.
+    frame : {"RAS", "LPS"} or array_like (4, 4)
+        Frame of the file's coordinates (see :mod:`liverforce.geometry.frames`):
+        ``"RAS"`` (default, kept), ``"LPS"`` (3D Slicer models, DICOM:
+        x and y negated), or a 4×4 affine mapping file coordinates *after
+        unit scaling* (mm) to RAS mm (column vectors, translation in mm).
+        Label volumes are converted to RAS from their header; for them only
+        ``"RAS"`` or a 4×4 (applied after the header's map) are accepted.
     size_range_mm : (float, float) or None
         Plausible largest extent (mm) after scaling; outside it the units
         are taken to be wrong and the file refused.  ``None`` disables it.
@@ -86,11 +98,15 @@ def load_surface(
     Returns
     -------
     surface : Surface
-        Closed, manifold, outward-oriented surface in mm, with ``meta``:
+        Closed, manifold, outward-oriented surface in RAS mm, with ``meta``:
         ``source``, ``sha256``, ``format``, ``units``, ``scale_to_mm``,
-        ``label`` (volumes), ``repairs``.
+        ``frame``, ``label`` (volumes), ``repairs`` and ``conversion``
+        (``units``, ``scale_to_mm``, ``frame``, ``frame_matrix`` (file mm →
+        RAS mm), ``to_ras_mm`` (file units → RAS mm, scale included),
+        ``winding_reversed``, ``summary``: one line, also logged).
     messages : list of str
-        Repairs and guesses made (empty if the file was clean).
+        Repairs and guesses made (empty if the file was clean; the unit and
+        frame conversion is in ``meta["conversion"]``).
 
     Raises
     ------
@@ -105,10 +121,15 @@ def load_surface(
     if path.stat().st_size == 0:
         raise refuse(path, "the file is empty (0 bytes)", "Export the liver surface again")
     scale, unit_label = parse_units(units, path)
+    frame_m, frame_label = frame_matrix(frame, path)
     name = path.name.lower()
     msgs: list[str] = []
     used_label = None
     if is_volume_file(path):
+        if frame_label == "LPS":
+            raise refuse(path, "frame LPS given for a label volume, whose header already states its frame "
+                               "(NIfTI: RAS; NRRD: its 'space', converted to RAS on reading)",
+                         "Leave frame at RAS for label volumes (a 4x4 is applied after the header's map)")
         volume = read_label_volume(path)
         vertices, faces, vmsgs, used_label = label_surface(volume, label, path)
         msgs += vmsgs
@@ -137,6 +158,7 @@ def load_surface(
         log.info("%s: %s", path, guess)
         msgs.append(guess)
     vertices = np.asarray(vertices, dtype=np.float64) * scale
+    vertices, faces, finfo = to_ras(vertices, faces, frame_m)
     vertices, faces, rmsgs = repair_surface(vertices, faces, path, check_self_intersections=check_si, unit="mm")
     msgs += rmsgs
     extent_mm = float(np.ptp(vertices, axis=0).max())
@@ -144,15 +166,34 @@ def load_surface(
     if max_edge_mm is not None:
         vertices, faces, smsg = _refine_coarse(vertices, faces, max_edge_mm)
         msgs += smsg
+    to_ras_mm = frame_m @ np.diag([scale, scale, scale, 1.0])
+    summary = (f"units {unit_label} (x{scale:g} to mm); " + describe_frame(frame_label, frame_m, finfo)
+               + ("; label volume: header frame converted to RAS first" if is_volume_file(path) else ""))
+    conversion = {
+        "units": unit_label,
+        "scale_to_mm": float(scale),
+        "frame": frame_label,
+        "frame_matrix": frame_m.tolist(),
+        "to_ras_mm": to_ras_mm.tolist(),
+        "winding_reversed": bool(finfo["winding_reversed"]),
+        "rigid": finfo["rigid"],
+        "summary": summary,
+    }
     meta = {
         "source": str(path),
         "sha256": sha256_file(path),
         "format": fmt,
         "units": unit_label,
         "scale_to_mm": float(scale),
+        "frame": frame_label,
         "label": used_label,
         "repairs": list(msgs),
+        "conversion": conversion,
     }
+    log.info("%s: %s", path, summary)
+    if not finfo["rigid"]:
+        log.warning("%s: the frame matrix is not rigid: the liver is scaled/sheared (singular values %s)",
+                    path, np.round(finfo["singular_values"], 4).tolist())
     for m in msgs:
         log.info("%s: %s", path, m)
     return Surface(vertices, faces, meta), msgs

@@ -11,9 +11,22 @@ defect                                 outcome
 no triangles / non-finite coordinates  refused
 duplicate vertices                     merged (reported)
 triangles with a repeated vertex       removed ("degenerate triangles removed")
-zero-area triangles (collinear)        refused (cannot be removed safely)
 duplicate triangles                    removed (reported)
-edges shared by > 2 triangles          refused (non-manifold)
+edges shared by > 2 triangles          a few (≤ ``max_non_manifold_fraction``
+(non-manifold)                         of the edges): dangling triangles on
+                                       them (fins: a triangle with an open
+                                       edge) removed; triangles around the
+                                       edges still shared > 2 times cut out,
+                                       their hole re-filled below, if they are
+                                       ≤ ``max_cut_fraction`` of the area
+                                       ("non-manifold edges repaired");
+                                       more: refused
+zero-area triangles (three distinct    removed by splitting the neighbour
+but collinear vertices)                across the long edge at the middle
+                                       vertex (the surface stays closed), or
+                                       dropped when there is none
+                                       ("zero-area triangles repaired");
+                                       more than ``max(10, 1 %)``: refused
 several disconnected components        smaller ones dropped if each is
                                        < ``component_ratio`` of the largest
                                        ("largest component kept"), else refused
@@ -45,6 +58,8 @@ def repair_surface(
     check_self_intersections: bool = True,
     remesh_self_intersections: bool = True,
     max_intersecting_fraction: float = 0.02,
+    max_non_manifold_fraction: float = 0.01,
+    max_cut_fraction: float = 0.02,
     unit: str = "mm",
 ) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """Check and repair a triangle surface (units unchanged).
@@ -68,6 +83,12 @@ def repair_surface(
         of the triangles, or 10 pairs) by :func:`voxel_remesh`; otherwise refuse.
     max_intersecting_fraction : float
         See above.
+    max_non_manifold_fraction : float
+        Non-manifold edges are repaired only if at most this fraction of the
+        edges (and at least 20 are always allowed); otherwise refused.
+    max_cut_fraction : float
+        Triangles cut out around non-manifold edges may be at most this
+        fraction of the surface area; otherwise refused.
     unit : str
         Unit of the coordinates, for messages.
 
@@ -112,16 +133,6 @@ def repair_surface(
         msgs.append(f"degenerate triangles removed ({int(repeated.sum())} with a repeated vertex)")
     if len(mesh.faces) == 0:
         raise refuse(path, "all triangles are degenerate", "Export a valid closed triangle surface")
-    areas = triangle_areas(np.asarray(mesh.vertices), np.asarray(mesh.faces))
-    tiny = areas <= 1e-10 * max(areas.mean(), 1e-300)
-    if tiny.any():
-        c = np.asarray(mesh.vertices)[np.asarray(mesh.faces)[tiny][0]].mean(axis=0)
-        raise refuse(
-            path,
-            f"{int(tiny.sum())} zero-area triangles with three distinct but collinear vertices "
-            f"(e.g. near {np.round(c, 3).tolist()}); they cannot be removed without opening the surface",
-            "Remesh or clean the surface (e.g. MeshLab 'Remove Zero Area Faces' + 'Close holes')",
-        )
     key = np.sort(np.asarray(mesh.faces), axis=1)
     _, first = np.unique(key, axis=0, return_index=True)
     if len(first) < len(mesh.faces):
@@ -131,7 +142,14 @@ def repair_surface(
         mesh.update_faces(keep)
     mesh.remove_unreferenced_vertices()
 
-    _check_manifold_edges(mesh, path)
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    f = _repair_non_manifold(v, np.asarray(mesh.faces, dtype=np.int64), path, max_non_manifold_fraction,
+                             max_cut_fraction, msgs)
+    f = _repair_zero_area(v, f, path, unit, msgs)
+    if len(f) == 0:
+        raise refuse(path, "no triangles left after removing the defective ones", "Re-export the surface")
+    mesh = trimesh.Trimesh(v, f, process=False)
+    mesh.remove_unreferenced_vertices()
     mesh = _keep_largest_component(mesh, path, component_ratio, msgs)
 
     if not mesh.is_winding_consistent:
@@ -180,17 +198,164 @@ def repair_surface(
     return v, np.ascontiguousarray(fc), msgs
 
 
-def _check_manifold_edges(mesh, path) -> None:
-    edges = np.sort(np.asarray(mesh.edges), axis=1)
-    _, counts = np.unique(edges, axis=0, return_counts=True)
-    bad = int((counts > 2).sum())
-    if bad:
-        raise refuse(
-            path,
-            f"non-manifold surface: {bad} edges are shared by more than two triangles",
-            "Repair it (e.g. MeshLab 'Repair non Manifold Edges') or re-segment; a liver "
-            "surface must be a single closed 2-manifold",
-        )
+def _edge_counts(f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per face, the number of faces on each of its three edges ``(k, 3)``; and the edge ids ``(k, 3)``."""
+    k = len(f)
+    key = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    _, inv, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    inv = inv.ravel()
+    return counts[inv].reshape(3, k).T, inv.reshape(3, k).T
+
+
+def _pinch_vertices(f: np.ndarray) -> np.ndarray:
+    """Vertices where holes touch: on more than two boundary (open) edges, whatever the winding."""
+    if len(f) == 0:
+        return np.zeros(0, dtype=np.int64)
+    per_face, _ = _edge_counts(f)
+    half = np.stack([f, np.roll(f, -1, axis=1)], axis=2)  # (k, 3, 2): edge (f[i], f[i+1])
+    v, n = np.unique(half[per_face == 1].ravel(), return_counts=True)
+    return v[n > 2]
+
+
+def _repair_non_manifold(v, f, path, max_fraction: float, max_cut: float, msgs: list[str]) -> np.ndarray:
+    """Remove fins and cut out the triangles around edges shared by more than two triangles.
+
+    The holes left are filled later by :func:`_fill_holes`; pieces cut loose
+    are dropped by :func:`_keep_largest_component`.
+    """
+    per_face, edge_id = _edge_counts(f)
+    n_bad = len(np.unique(edge_id[per_face > 2]))
+    if n_bad == 0:
+        return f
+    n_edges = int(edge_id.max()) + 1
+    what = f"non-manifold surface: {n_bad} edges are shared by more than two triangles"
+    todo = "Repair it (e.g. MeshLab 'Repair non Manifold Edges') or re-segment; a liver surface must be " \
+           "a single closed 2-manifold"
+    if n_bad > max(20, max_fraction * n_edges):
+        raise refuse(path, f"{what} ({100 * n_bad / n_edges:.2g} % of the edges): too many to repair "
+                           "automatically", todo)
+    area = triangle_areas(v, f)
+    keep = np.ones(len(f), dtype=bool)
+    dangling = 0
+    for _ in range(20):  # fins: triangles on a non-manifold edge with an open edge of their own
+        per_face, _ = _edge_counts(f[keep])
+        fin = (per_face > 2).any(axis=1) & (per_face == 1).any(axis=1)
+        if not fin.any():
+            break
+        idx = np.flatnonzero(keep)[fin]
+        keep[idx] = False
+        dangling += len(idx)
+    per_face, edge_id = _edge_counts(f[keep])
+    around = (per_face > 2).any(axis=1)
+    n_cut_edges = len(np.unique(edge_id[per_face > 2]))
+    cut = 0
+    if around.any():
+        idx = np.flatnonzero(keep)[around]
+        keep[idx] = False
+        cut += len(idx)
+        for _ in range(20):  # widen the cut where two holes touch at a vertex
+            pinch = _pinch_vertices(f[keep])
+            if len(pinch) == 0:
+                break
+            hit = np.isin(f[keep], pinch).any(axis=1)
+            idx = np.flatnonzero(keep)[hit]
+            keep[idx] = False
+            cut += len(idx)
+        else:
+            raise refuse(path, f"{what}; cutting them out leaves holes that touch each other", todo)
+        frac = float(area[~keep].sum() / area.sum())
+        if frac > max_cut:
+            raise refuse(path, f"{what}; cutting them out would remove {100 * frac:.2g} % of the area (more "
+                               f"than {100 * max_cut:g} %): too much to repair safely", todo)
+    text = f"non-manifold edges repaired ({n_bad} edges shared by more than two triangles: " \
+           f"{dangling} dangling triangles removed"
+    if cut:
+        text += f", {cut} triangles around {n_cut_edges} edges cut out (the hole is filled below)"
+    msgs.append(text + ")")
+    return f[keep]
+
+
+def _repair_zero_area(v, f, path, unit: str, msgs: list[str]) -> np.ndarray:
+    """Remove zero-area triangles whose three distinct vertices are collinear, keeping the surface closed.
+
+    Notes
+    -----
+    Such a triangle ``(p, m, q)`` has ``m`` on its long edge ``pq``.  The
+    neighbour across ``pq``, ``(p, q, d)`` in its own order, is split at
+    ``m`` into ``(p, m, d)`` and ``(m, q, d)``, which then share ``pm`` and
+    ``mq`` with the triangles the zero-area one shared them with, so the
+    zero-area triangle is dropped without opening the surface.  Without a
+    neighbour across ``pq`` (an isolated sliver, or one on an open border)
+    it is simply dropped.
+    """
+    area = triangle_areas(v, f)
+    tiny = np.flatnonzero(area <= 1e-10 * max(area.mean(), 1e-300))
+    if len(tiny) == 0:
+        return f
+    where = np.round(v[f[tiny[0]]].mean(axis=0), 3).tolist()
+    if len(tiny) > max(10, 0.01 * len(f)):
+        raise refuse(path, f"{len(tiny)} zero-area triangles with three distinct but collinear vertices (e.g. "
+                           f"near {where} {unit}): too many to repair automatically",
+                     "Remesh or clean the surface (e.g. MeshLab 'Remove Zero Area Faces' + 'Close holes')")
+    faces = [list(t) for t in f.tolist()]
+    alive = [True] * len(faces)
+    on_edge: dict[tuple[int, int], set[int]] = {}
+
+    def edges(t):
+        return [(min(t[i], t[(i + 1) % 3]), max(t[i], t[(i + 1) % 3])) for i in range(3)]
+
+    def add(i):
+        for e in edges(faces[i]):
+            on_edge.setdefault(e, set()).add(i)
+
+    def remove(i):
+        for e in edges(faces[i]):
+            on_edge[e].discard(i)
+
+    for i in range(len(faces)):
+        add(i)
+    queue, split, dropped = list(tiny.tolist()), 0, 0
+    while queue:
+        i = queue.pop()
+        if not alive[i]:
+            continue
+        t = faces[i]
+        lengths = [np.linalg.norm(v[t[(j + 1) % 3]] - v[t[j]]) for j in range(3)]
+        j = int(np.argmax(lengths))
+        p, q, m = t[j], t[(j + 1) % 3], t[(j + 2) % 3]
+        across = on_edge[(min(p, q), max(p, q))] - {i}
+        remove(i)
+        alive[i] = False
+        if not across:
+            dropped += 1
+            continue
+        n = across.pop()
+        if across or m in faces[n]:
+            raise refuse(path, f"a zero-area triangle with collinear vertices near "
+                               f"{np.round(v[t].mean(axis=0), 3).tolist()} {unit} sits on a non-manifold edge "
+                               "and cannot be removed without opening the surface",
+                         "Remesh or clean the surface (e.g. MeshLab 'Remove Zero Area Faces' + 'Close holes')")
+        a, b, d = faces[n]
+        while {a, b} != {p, q}:  # rotate the neighbour so that (a, b) is the shared edge in its own order
+            a, b, d = b, d, a
+        remove(n)
+        faces[n] = [a, m, d]
+        faces.append([m, b, d])
+        alive.append(True)
+        add(n)
+        add(len(faces) - 1)
+        split += 1
+        for k in (n, len(faces) - 1):
+            if triangle_areas(v, np.array([faces[k]]))[0] <= 1e-10 * max(area.mean(), 1e-300):
+                queue.append(k)
+        if split > 4 * len(tiny) + 10:
+            raise refuse(path, f"zero-area triangles near {where} {unit} could not be removed (their "
+                               "neighbours are degenerate too)",
+                         "Remesh or clean the surface (e.g. MeshLab 'Remove Zero Area Faces' + 'Close holes')")
+    msgs.append(f"zero-area triangles repaired ({len(tiny)} with three collinear vertices, e.g. near {where} "
+                f"{unit}: {split} removed by splitting the neighbour across their long edge, {dropped} dropped "
+                "with no neighbour there)")
+    return np.asarray([t for t, ok in zip(faces, alive) if ok], dtype=np.int64).reshape(-1, 3)
 
 
 def _keep_largest_component(mesh, path, ratio: float, msgs: list[str]):

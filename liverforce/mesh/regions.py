@@ -3,8 +3,11 @@
 Frame: the anatomical directions come from :class:`RegionParams`
 (``anterior`` and ``superior`` unit vectors, default the RAS frame of the
 procedural livers: anterior = +y, superior = +z); patient right is
-``anterior × superior`` (+x in RAS).  For an imported liver give the
-directions of its own frame.
+``anterior × superior`` (+x in RAS).  Imported livers are converted to RAS
+at import from the frame they state (``geometry.imported[].frame``), so the
+defaults apply to them; other directions are for meshes built in another
+frame.  Whether the tags look anatomical is checked by
+:mod:`liverforce.mesh.plausibility`.
 
 Normalised coordinates of a facet centroid ``c``: ``r, a, s ∈ [0, 1]`` along
 right, anterior and superior, measured over the liver's extent (0 = most

@@ -1,4 +1,9 @@
-"""Geometry stage adapter: one closed liver surface (procedural, cube or imported) to PLY + JSON."""
+"""Geometry stage adapter: one closed liver surface (procedural, cube or imported) to PLY + JSON.
+
+The JSON records the spec, the repairs and, for imported files, the unit and
+frame conversion to RAS mm (``conversion``: units, scale, frame, the 4x4
+applied), which the mesh stage reads back to word its plausibility checks.
+"""
 
 from __future__ import annotations
 
@@ -7,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from liverforce.dataset import io as dio
+from liverforce.atomic import write_json_atomic
 
 log = logging.getLogger("liverforce")
 
@@ -30,16 +35,17 @@ def make_geometry(spec: dict, surface_path: str | Path, meta_path: str | Path) -
             units = float(units)
         except (TypeError, ValueError):
             pass
-        surface, messages = load_surface(spec["path"], units=units, label=spec.get("label"))
+        surface, messages = load_surface(spec["path"], units=units, label=spec.get("label"),
+                                         frame=spec.get("frame", "RAS"))  # logs the conversion
     else:
         raise ValueError(f"unknown geometry kind '{kind}'")
     for m in messages:
         log.info("repair: %s", m)
     save_surface(surface, surface_path)
-    meta = {**surface.meta, "spec": spec, "repairs": messages,
+    meta = {"frame": "RAS", **surface.meta, "spec": spec, "repairs": messages,
             "volume_mm3": surface.volume_mm3, "area_mm2": surface.area_mm2,
             "extent_mm": surface.extent_mm.tolist()}
-    dio.write_json_atomic(meta, meta_path)
+    write_json_atomic(meta_path, meta)
     log.info("geometry %s: %d vertices, %.0f mL, extent %s mm", spec, len(surface.vertices),
              surface.volume_mm3 / 1000, np.round(surface.extent_mm, 1).tolist())
     return meta

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from liverforce.dataset import io as dio
+from liverforce.atomic import write_json_atomic
 from liverforce.pipeline.shared import load_surface_file
 
 log = logging.getLogger("liverforce")
@@ -30,6 +30,12 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
     the geometry's candidate exertion points are sampled on the visible input
     surface here, refined around (``mesh.refine_radius_mm`` / ``refine_edge_mm``),
     and written to the features JSON, from which every scenario's sweep takes them.
+
+    The tagged regions are then checked for anatomical plausibility in the frame
+    the liver was given in (``mesh.regions_check``: ``warn`` logs and records the
+    failed checks in the features JSON under ``regions_check``; ``strict`` refuses,
+    before meshing on the input surface's tags and again on the mesh's, before
+    writing anything; ``off`` skips; the cube phantom is never checked).
     """
     from liverforce.mesh.build import build_liver_mesh
     from liverforce.mesh.features import compute_features
@@ -41,6 +47,11 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
     meta_file = Path(surface_path).with_suffix(".json")
     if meta_file.exists():
         surface.meta.update(json.loads(meta_file.read_text()))
+    if mesh_cfg.get("regions_check", "warn") == "strict":  # refuse before meshing: tags of the input surface
+        from liverforce.mesh.regions import tag_regions
+
+        region, visible = tag_regions(surface.vertices, surface.faces, RegionParams(**mesh_cfg.get("regions", {})))
+        _regions_check(surface.vertices, surface.faces, region, visible, surface.meta, mesh_cfg, Path(mesh_path).stem)
     t0 = time.perf_counter()
     mesh = build_liver_mesh(
         surface,
@@ -57,15 +68,29 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
             "seed": exertion_seed(seed, Path(mesh_path).stem)},
     )
     elapsed = time.perf_counter() - t0
+    checked = _regions_check(mesh.points, mesh.facets, mesh.facet_region, mesh.facet_visible, surface.meta,
+                             mesh_cfg, Path(mesh_path).stem)
     write_mesh(mesh_path, mesh)
     feats = compute_features(mesh)
     feats["meshing_time_s"] = elapsed
     feats["exertion_candidates_mm"] = mesh.meta.get("exertion_candidates_mm")
     feats["refine_points"] = mesh.meta.get("refine_points")
     feats["regions_tagged_on"] = mesh.meta.get("regions_tagged_on")
-    dio.write_json_atomic(feats, features_path)
+    feats["regions_check"] = checked
+    write_json_atomic(features_path, feats)
     plot_regions(mesh, picture_path)
     log.info("mesh: %d nodes, %d tets in %.1f s", len(mesh.points), len(mesh.tets), elapsed)
     return feats
 
 
+def _regions_check(points, facets, region, visible, surface_meta: dict, mesh_cfg: dict, gid: str) -> dict:
+    """Plausibility of tagged regions for the stated frame (raises under ``strict``)."""
+    from liverforce.mesh.plausibility import regions_check
+    from liverforce.mesh.regions import RegionParams
+
+    mode = mesh_cfg.get("regions_check", "warn")
+    if (surface_meta.get("spec") or {}).get("kind") == "cube" or surface_meta.get("source") == "cube_phantom":
+        mode = "off"  # a phantom has no anatomy to check
+    return regions_check(points, facets, region, visible, mode=mode,
+                         params=RegionParams(**mesh_cfg.get("regions", {})), frame=surface_meta.get("frame"),
+                         where=f"{gid} ({surface_meta.get('source', '?')})")

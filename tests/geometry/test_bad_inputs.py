@@ -133,20 +133,49 @@ def test_duplicate_vertices_and_triangles_are_merged(tmp_path):
     assert s.volume_mm3 == pytest.approx(EDGE**3, rel=1e-9)
 
 
-def test_collinear_zero_area_triangles_are_refused(tmp_path):
+def test_isolated_collinear_triangle_is_dropped(tmp_path):
     v, f = cube()
     extra = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [20.0, 0.0, 0.0]]) + 500.0
     path = save(tmp_path, "sliver.ply", np.vstack([v, extra]), np.vstack([f, [[len(v), len(v) + 1, len(v) + 2]]]))
-    with pytest.raises(GeometryError, match=r"sliver\.ply: 1 zero-area triangles with .* collinear"):
-        load(path)
+    s, msgs = load(path)
+    assert any(m.startswith("zero-area triangles repaired (1 with three collinear") and "1 dropped" in m
+               for m in msgs), msgs
+    assert s.volume_mm3 == pytest.approx(EDGE**3, rel=1e-9) and len(s.faces) == len(f)
 
 
-def test_non_manifold_edges_are_refused(tmp_path):
+def test_collinear_triangle_in_the_surface_is_removed_by_a_split(tmp_path):
+    """A zero-area triangle (a, b, m), m the midpoint of ab, closing a split of one side of ab."""
+    v, f = cube()
+    a, b, c = f[0]
+    m = len(v)
+    v = np.vstack([v, 0.5 * (v[a] + v[b])])
+    f = np.vstack([f[1:], [[a, m, c], [m, b, c], [a, b, m]]])  # the other side of ab stays unsplit
+    path = save(tmp_path, "cap.ply", v, f)
+    s, msgs = load(path)
+    assert any(m.startswith("zero-area triangles repaired (1 ") and "1 removed by splitting" in m for m in msgs), msgs
+    mesh = s.to_trimesh()
+    assert mesh.is_watertight and mesh.is_winding_consistent
+    assert s.volume_mm3 == pytest.approx(EDGE**3, rel=1e-9) and s.area_mm2 == pytest.approx(6 * EDGE**2, rel=1e-9)
+
+
+def test_non_manifold_fin_is_removed(tmp_path):
     v, f = cube()
     a, b = f[0][:2]  # a fin: a third triangle on an existing edge
     fin = np.vstack([v, [[0.0, 0.0, 500.0]]])
     path = save(tmp_path, "fin.ply", fin, np.vstack([f, [[a, b, len(v)]]]))
-    with pytest.raises(GeometryError, match=r"fin\.ply: non-manifold surface: 1 edges .*more than two"):
+    s, msgs = load(path)
+    assert any(m.startswith("non-manifold edges repaired (1 edges shared by more than two triangles: "
+                            "1 dangling triangles removed") for m in msgs), msgs
+    assert s.volume_mm3 == pytest.approx(EDGE**3, rel=1e-9) and len(s.faces) == len(f)
+
+
+def test_boxes_glued_on_a_face_are_refused(tmp_path):
+    """Two boxes sharing a face: the shared wall makes its whole rim non-manifold; cutting it out is too much."""
+    v1, f1 = cube()
+    v2, f2 = cube(centre=(EDGE, 0.0, 0.0))
+    path = save(tmp_path, "glued.stl", np.vstack([v1, v2]), np.vstack([f1, f2 + len(v1)]))
+    with pytest.raises(GeometryError, match=r"glued\.stl: non-manifold surface: \d+ edges are shared by more "
+                                            r"than two triangles.*(too much|too many).*MeshLab"):
         load(path)
 
 
