@@ -26,9 +26,10 @@ visceral inferior, rib right-lateral) unless the mesh package provides them.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
+
+from liverforce.pipeline.job import thread_env
 
 _ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 _ap.add_argument("--quick", action="store_true", help="default mesh only, fewer cases")
@@ -36,8 +37,7 @@ _ap.add_argument("--repeats", type=int, default=3, help="repeats of the cold cas
 _ap.add_argument("--cases", type=int, default=24, help="cases in the warm-started sweep")
 _ap.add_argument("--threads", type=int, default=1, help="BLAS/numba threads (default 1)")
 ARGS = _ap.parse_args()
-for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
-    os.environ[_v] = str(ARGS.threads)
+thread_env(ARGS.threads)
 
 import numpy as np  # noqa: E402
 from scipy.stats import qmc  # noqa: E402

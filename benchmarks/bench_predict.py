@@ -23,9 +23,10 @@ nodes; the shipped model config: 12 x 12 grid, PCA 16 (or DAE), state vector, ML
 from __future__ import annotations
 
 import argparse
-import os
 import tempfile
 import time
+
+from liverforce.pipeline.job import thread_env
 
 _ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 _ap.add_argument("--quick", action="store_true", help="fewer calls and a smaller batch")
@@ -33,8 +34,7 @@ _ap.add_argument("--calls", type=int, default=None, help="single-sample calls pe
 _ap.add_argument("--batch", type=int, default=None, help="rows per batch call (default 20000; quick 5000)")
 _ap.add_argument("--nodes", type=int, default=450, help="ROI nodes per case (the study's ROI order)")
 ARGS = _ap.parse_args()
-for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
-    os.environ[_v] = "1"
+thread_env(1)
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402

@@ -37,6 +37,8 @@ import tempfile
 import time
 from collections import defaultdict
 from datetime import datetime
+
+from liverforce.pipeline.job import thread_env
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -83,9 +85,7 @@ def one_run(experiment: str, cores: int, overrides: str, keep: bool) -> dict:
     if overrides:
         cmd.append(f"overrides={overrides}")
     cmd += ["--", "shards"]
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
-        env.setdefault(var, "1")
+    env = thread_env(1, {**os.environ, "PYTHONUNBUFFERED": "1"}, override=False)
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, env=env)
     wall = time.perf_counter() - t0

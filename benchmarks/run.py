@@ -15,6 +15,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from liverforce.pipeline.job import thread_env
+
 HERE = Path(__file__).resolve().parent
 
 
@@ -24,9 +26,7 @@ def main(argv: list[str]) -> int:
     scripts = sorted(HERE.glob("bench_*.py"))
     if names:
         scripts = [s for s in scripts if s.stem.removeprefix("bench_") in names]
-    env = {**os.environ, "PYTHONPATH": str(HERE.parent)}
-    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
-        env.setdefault(var, "1")
+    env = thread_env(1, {**os.environ, "PYTHONPATH": str(HERE.parent)}, override=False)
     rc = 0
     for s in scripts:
         print(f"\n##### {s.name}", flush=True)

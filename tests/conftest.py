@@ -1,17 +1,17 @@
 """Shared fixtures: paths, the shared data folder, small meshes."""
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pytest
+
+from liverforce.pipeline.job import thread_env
 
 ROOT = Path(__file__).resolve().parent.parent
 SHARED_LIVERS = ROOT.parent / "shared" / "data" / "livers"
 
 # one thread per pool in tests (2-core machine)
-for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
-    os.environ.setdefault(_v, "1")
+thread_env(1, override=False)
 
 
 @pytest.fixture(scope="session")

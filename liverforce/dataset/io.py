@@ -18,6 +18,7 @@ import pyarrow as pa
 import pyarrow.dataset as pads
 import pyarrow.parquet as pq
 
+from liverforce.atomic import atomic_path
 from liverforce.dataset.schema import (
     CASE_SCHEMA,
     NONDETERMINISTIC_COLUMNS,
@@ -47,10 +48,7 @@ def _metadata(extra: dict[str, Any] | None = None) -> dict[bytes, bytes]:
 
 
 def _atomic_write_table(table: pa.Table, path: Path, compression: str) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
+    with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
             pq.write_table(
                 table,
@@ -61,10 +59,6 @@ def _atomic_write_table(table: pa.Table, path: Path, compression: str) -> None:
             )
             fh.flush()
             os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 def _column(name: str, values: list, typ: pa.DataType) -> pa.Array:
@@ -166,23 +160,17 @@ def write_manifest(shard_paths: Iterable[str | Path], path: str | Path, extra: d
         "data_version": hashlib.sha256("".join(e["payload_sha256"] for e in entries).encode()).hexdigest()[:16],
         **(extra or {}),
     }
-    write_json_atomic(manifest, path)
+    _write_manifest_json(manifest, path)
     return manifest
 
 
-def write_json_atomic(obj: Any, path: str | Path) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
+def _write_manifest_json(obj: Any, path: str | Path) -> None:
+    """The manifest through this module's ``open`` (so disk faults can be injected here), fsynced, atomically."""
+    with atomic_path(path) as tmp:
         with open(tmp, "w") as fh:
             json.dump(obj, fh, indent=2, sort_keys=True)
             fh.flush()
             os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 def verify_manifest(manifest_path: str | Path) -> list[Path]:
@@ -277,10 +265,6 @@ def vector_column(table: pa.Table, name: str) -> np.ndarray:
         return np.zeros((0, 0))
     flat = col.flatten().to_numpy(zero_copy_only=False)
     return flat.reshape(len(col), -1)
-
-
-def table_to_pylist(table: pa.Table) -> list[dict]:
-    return table.to_pylist()
 
 
 def load_training_arrays(paths: Sequence[str | Path], converged_only: bool = True,

@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from liverforce.atomic import atomic_path
+
 
 def roi_boundary_edges(facets: np.ndarray, in_roi: np.ndarray) -> np.ndarray:
     """Edges between a facet with all nodes in the ROI and one without (the outline)."""
@@ -90,9 +92,7 @@ def plot_case(points: np.ndarray, facets: np.ndarray, row: dict, path: str | Pat
         f"(red), {status}" + (f", displacement x{scale:g}" if scale != 1 else "")
     )
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp.png")
-    fig.savefig(tmp, dpi=110)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110)
     plt.close(fig)
-    tmp.replace(path)
     return path

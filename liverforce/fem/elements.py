@@ -18,6 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from liverforce.mesh.quality import orient_positive as orient_tets  # the one tet-orientation rule
+
 TET_EDGES = np.array([(0, 1), (1, 2), (0, 2), (0, 3), (1, 3), (2, 3)])
 TRI_EDGES = np.array([(0, 1), (1, 2), (0, 2)])
 
@@ -35,33 +37,6 @@ TRI_Q7 = (
               [_a2, _b2, _b2], [_b2, _a2, _b2], [_b2, _b2, _a2]]),
     np.array([0.225, _w1, _w1, _w1, _w2, _w2, _w2]),
 )
-
-
-def orient_tets(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    """Return ``tets`` with every element positively oriented (swap nodes 1, 2 where needed).
-
-    Raises ValueError for degenerate (zero-volume) elements.
-    """
-    tets = np.array(tets, dtype=np.int64, copy=True)
-    X = points[tets]
-    vol6 = np.einsum("ij,ij->i", np.cross(X[:, 1] - X[:, 0], X[:, 2] - X[:, 0]), X[:, 3] - X[:, 0])
-    scale = np.abs(vol6).max() if vol6.size else 1.0
-    bad = np.abs(vol6) <= 1e-12 * scale
-    if np.any(bad):
-        raise ValueError(f"{int(bad.sum())} degenerate tetrahedra (zero volume), e.g. element {int(np.argmax(bad))}")
-    neg = vol6 < 0
-    tets[neg, 1], tets[neg, 2] = tets[neg, 2].copy(), tets[neg, 1].copy()
-    return tets
-
-
-def tet_shape(order: int, bary: np.ndarray) -> np.ndarray:
-    """Shape function values at barycentric points ``(nq, 4)`` -> ``(nq, nen)``."""
-    if order == 1:
-        return bary.copy()
-    L = bary
-    vert = L * (2 * L - 1)
-    edge = 4 * L[:, TET_EDGES[:, 0]] * L[:, TET_EDGES[:, 1]]
-    return np.concatenate([vert, edge], axis=1)
 
 
 def tet_shape_bary_grad(order: int, bary: np.ndarray) -> np.ndarray:

@@ -106,16 +106,6 @@ def tangent_data(A, dN, w, G, kappa, pos, nnz):
 
 
 @njit(cache=True)
-def scatter_add(data, values, positions):
-    """``data[positions[i]] += values[i]`` for ``positions[i] >= 0``."""
-    for i in range(values.shape[0]):
-        p = positions[i]
-        if p >= 0:
-            data[p] += values[i]
-    return data
-
-
-@njit(cache=True)
 def kinematic_scalars(F):
     """Per point: ``J = det F``, ``cof F``, ``I1 = F:F`` and ``I2 = (I1^2 - C:C)/2``."""
     n = F.shape[0]

@@ -364,11 +364,6 @@ class Material:
         e4 = (Ellipsis, None, None, None, None)
         return A + d2U[e4] * kin.outer(cof, cof) + dU[e4] * d2J
 
-    def second_piola(self, F: np.ndarray) -> np.ndarray:
-        """Second Piola–Kirchhoff stress ``S = F^{-1} P`` (MPa)."""
-        F = np.asarray(F, dtype=float)
-        return np.linalg.solve(F, self.stress(F))
-
     # -- incompressible principal-stretch form (stability, fitting) ---------
     def incompressible_dW(self, stretches: np.ndarray):
         """Isochoric ``W`` and ``dW/d lambda_a`` at principal stretches with J = 1.

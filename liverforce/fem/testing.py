@@ -1,4 +1,4 @@
-"""Small synthetic meshes for tests and benchmarks (no dependency on liverforce.mesh).
+"""Small synthetic meshes for tests and benchmarks (topology from liverforce.mesh.boundary).
 
 * :func:`box_mesh` — a structured tetrahedral block.
 * :func:`ellipsoid_liver` — an ellipsoid with liver-like facet regions
@@ -10,18 +10,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from .elements import orient_tets
+from liverforce.mesh.boundary import boundary_facets as mesh_boundary_facets
 
-_TET_FACES = np.array([(1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1)])  # outward for positive tets
+from .elements import orient_tets
 
 
 def boundary_facets(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    """Boundary triangles (k, 3) of a tet mesh, ordered so normals point outward."""
-    tets = orient_tets(points, tets)
-    faces = tets[:, _TET_FACES].reshape(-1, 3)
-    key = np.sort(faces, axis=1)
-    _, idx, counts = np.unique(key, axis=0, return_index=True, return_counts=True)
-    return faces[np.sort(idx[counts == 1])]
+    """Boundary triangles (k, 3) of a tet mesh in any orientation, normals outward (:mod:`liverforce.mesh.boundary`)."""
+    return mesh_boundary_facets(orient_tets(points, tets))
 
 
 def box_mesh(shape=(2, 2, 2), size=(1.0, 1.0, 1.0), origin=(0.0, 0.0, 0.0)):

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from liverforce.atomic import atomic_path
+
 
 def _plt():
     import matplotlib
@@ -39,7 +41,8 @@ def evaluation_figures(force_true: np.ndarray, force_pred: np.ndarray, out_dir: 
         ax.set_aspect("equal", adjustable="datalim")
         fig.tight_layout()
         path = out / f"pred_vs_true_{ax_name}.png"
-        fig.savefig(path)
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp)
         plt.close(fig)
         paths.append(path)
     err = np.linalg.norm(p - t, axis=1)
@@ -50,7 +53,8 @@ def evaluation_figures(force_true: np.ndarray, force_pred: np.ndarray, out_dir: 
     ax.set_title(f"{title} force error".strip())
     fig.tight_layout()
     path = out / "error_histogram.png"
-    fig.savefig(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp)
     plt.close(fig)
     paths.append(path)
     return paths

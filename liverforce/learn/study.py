@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from liverforce.atomic import atomic_path
 from liverforce.learn.metrics import force_metrics
 from liverforce.learn.model import (
     eval_seed,
@@ -441,6 +442,7 @@ def plot_study(doc: dict, path: str | Path) -> Path:
     axes[0].legend(fontsize=7, title="scenario", title_fontsize=7, loc="lower left" if categorical else "best")
     fig.suptitle(doc["title"], fontsize=10)
     fig.tight_layout()
-    fig.savefig(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp)
     plt.close(fig)
-    return path
+    return Path(path)

@@ -26,7 +26,8 @@ Steps (every fitted quantity sees the training split only):
    side are reused: the repeats measure the spread due to the split, not a
    fresh tuning;
 6. outputs: ``out_dir/model/`` (bundle), ``out_dir/figures/*.png``,
-   ``out_dir/test_predictions.csv`` and ``out_dir/metrics.json`` (atomic);
+   ``out_dir/test_predictions.csv`` (atomic) and the result dict, which the
+   caller writes to ``metrics.json`` (:mod:`liverforce.pipeline.train`, its only writer);
    with a ``tracker`` everything is also logged (parent run per scenario +
    variant, one nested run per Ax trial). The tracker is duck-typed (see
    :class:`liverforce.tracking.Tracker`); this module never imports mlflow.
@@ -34,16 +35,14 @@ Steps (every fitted quantity sees the training split only):
 
 from __future__ import annotations
 
-import hashlib
-import json
-import os
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from liverforce.atomic import write_text_atomic
+from liverforce.config import config_hash
 from liverforce.learn.metrics import force_metrics
 from liverforce.learn.model import (
     ForceModel,
@@ -102,25 +101,6 @@ def _flatten(prefix: str, d: dict) -> dict:
     return out
 
 
-def slice_hash(*slices: dict) -> str:
-    """Short stable hash of config slices (tag ``config_hash`` when the caller gives none)."""
-    blob = json.dumps(slices, sort_keys=True, separators=(",", ":"), default=str).encode()
-    return hashlib.sha256(blob).hexdigest()[:16]
-
-
-def write_json_atomic(path: Path, doc: dict) -> None:
-    """Write ``doc`` to ``path`` through a temporary file in the same folder and ``os.replace``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(doc, fh, indent=2, sort_keys=True, allow_nan=True)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def train_scenario(
     arrays: dict,
     model_cfg: dict,
@@ -136,7 +116,7 @@ def train_scenario(
     tags: dict | None = None,
     model_meta: dict | None = None,
 ) -> dict:
-    """Train and evaluate one scenario + variant; returns the result dict (also in ``metrics.json``).
+    """Train and evaluate one scenario + variant; returns the result dict (the pipeline writes ``metrics.json``).
 
     Parameters
     ----------
@@ -186,7 +166,8 @@ def train_scenario(
     dae_noise = float(model_cfg.get("dae_input_noise", 0.1))
     weight_decay = float(train_cfg.get("weight_decay", 0.0))
 
-    run_tags = {"scenario": scenario, "variant": variant, "config_hash": slice_hash(model_cfg, train_cfg, tune_cfg)}
+    run_tags = {"scenario": scenario, "variant": variant, "config_hash": config_hash(
+        {"model": {k: v for k, v in model_cfg.items() if k != "_meta"}, "train": train_cfg, "tune": tune_cfg})}
     run_tags.update({k: str(v) for k, v in (tags or {}).items()})
     run_id = None
     if tracker is not None:
@@ -212,7 +193,6 @@ def train_scenario(
         if tracker is not None and run_id is not None:
             tracker.end_run(run_id, status="FAILED")
         raise
-    write_json_atomic(out_dir / "metrics.json", result)
     return result
 
 
@@ -391,6 +371,4 @@ def _write_predictions(path: Path, case_ids, true: np.ndarray, pred: np.ndarray)
     lines = ["case_id,fx_true_n,fy_true_n,fz_true_n,fx_pred_n,fy_pred_n,fz_pred_n"]
     for cid, t, p in zip(case_ids, true, pred):
         lines.append(",".join([str(cid), *(repr(float(v)) for v in (*t, *p))]))
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text("\n".join(lines) + "\n")
-    os.replace(tmp, path)
+    write_text_atomic(path, "\n".join(lines) + "\n")

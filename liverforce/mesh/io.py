@@ -10,21 +10,16 @@ atomic: a dot-prefixed temporary file in the same folder, then
 
 from __future__ import annotations
 
-import json
-import os
 from pathlib import Path
 
 import numpy as np
 
+from liverforce.atomic import atomic_path, write_json_atomic
 from liverforce.mesh.types import LiverMesh
 
 
 class MeshFileError(ValueError):
     """A mesh file could not be read as a liver mesh."""
-
-
-def _temp_name(path: Path) -> Path:
-    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
 
 
 def write_mesh(path: str | Path, mesh: LiverMesh) -> None:
@@ -50,13 +45,8 @@ def write_mesh(path: str | Path, mesh: LiverMesh) -> None:
             "visible": [np.zeros(m, dtype=np.int8), mesh.facet_visible.astype(np.int8)],
         },
     )
-    tmp = _temp_name(path)
-    try:
+    with atomic_path(path) as tmp:
         meshio.write(tmp, out, file_format="vtu")
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
 
 
 def read_mesh(path: str | Path) -> LiverMesh:
@@ -103,13 +93,5 @@ def read_mesh(path: str | Path) -> LiverMesh:
 
 
 def write_json(path: str | Path, obj: dict) -> None:
-    """Write ``obj`` as indented, key-sorted JSON atomically."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _temp_name(path)
-    try:
-        tmp.write_text(json.dumps(obj, indent=2, sort_keys=True) + "\n")
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    """Write ``obj`` as indented, key-sorted JSON atomically (:func:`liverforce.atomic.write_json_atomic`)."""
+    write_json_atomic(path, obj)

@@ -38,9 +38,9 @@ def plot_regions(mesh: LiverMesh, path: str | Path, views=None, title: str | Non
     dpi : int
         Resolution.
     """
-    import os
-
     from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from liverforce.atomic import atomic_path
     from matplotlib.figure import Figure
     from matplotlib.patches import Patch
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
@@ -85,15 +85,8 @@ def plot_regions(mesh: LiverMesh, path: str | Path, views=None, title: str | Non
     handles.append(Patch(color=VISIBLE_COLOUR, label="visible (free)"))
     fig.legend(handles=handles, loc="lower center", ncol=len(handles), fontsize=8, frameon=False)
     fig.suptitle(title or f"boundary regions: {len(mesh.points)} nodes, {len(mesh.tets)} tets", fontsize=10)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
+    with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=dpi, format="png")
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
 
 
 def _anatomical_frame(mesh: LiverMesh) -> np.ndarray:

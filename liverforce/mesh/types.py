@@ -62,10 +62,6 @@ class LiverMesh:
     def n_tets(self) -> int:
         return int(len(self.tets))
 
-    def surface_nodes(self) -> np.ndarray:
-        """Sorted indices of the nodes on the boundary."""
-        return np.unique(self.facets)
-
     def validate(self) -> None:
         """Check the data contract; raise ``ValueError`` naming the first breach."""
         from liverforce.mesh.boundary import boundary_facets

@@ -7,7 +7,18 @@ import os
 import sys
 from pathlib import Path
 
+#: the environment variables that size every thread pool of a process (the one list; stdlib-only module,
+#: so scripts can import it before numpy)
 THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
+
+
+def thread_env(n: int = 1, env=None, *, override: bool = True) -> dict:
+    """``env`` (default ``os.environ``) with every :data:`THREAD_VARS` set to ``n`` (kept if set and not ``override``)."""
+    target = os.environ if env is None else env
+    for var in THREAD_VARS:
+        if override or var not in target:
+            target[var] = str(int(n))
+    return target
 
 
 def limit_threads(n: int) -> None:

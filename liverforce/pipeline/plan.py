@@ -20,7 +20,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from liverforce.config import SCENARIOS, ConfigError, config_hash, results_root
+from liverforce.config import SCENARIOS, ConfigError, results_root
 from liverforce.sweep.design import n_shards
 
 VALIDATION = "V"
@@ -153,6 +153,3 @@ class Plan:
     def chosen_variant(self) -> str:
         """The main variant (the first listed): the studies' starting point and the report's main column."""
         return next(iter(self.variants()))
-
-    def slice_hash(self, obj) -> str:
-        return config_hash(obj)

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from liverforce.atomic import write_json_atomic
 from liverforce.dataset import io as dio
 
 log = logging.getLogger("liverforce")
@@ -134,9 +135,9 @@ def simulate_shard(cases_path, mesh_paths: list[str], shard: int, sim: dict, bou
     t_start = time.perf_counter()
 
     def progress(n_done, total, rows, _result):
-        dio.write_json_atomic({"done": n_done, "total": total, "failed": sum(not r["converged"] for r in rows),
-                               "elapsed_s": time.perf_counter() - t_start, "updated": time.time()},
-                              _progress_path(shard_path))
+        write_json_atomic(_progress_path(shard_path), {
+            "done": n_done, "total": total, "failed": sum(not r["converged"] for r in rows),
+            "elapsed_s": time.perf_counter() - t_start, "updated": time.time()})
 
     rows = simulate_cases(cases, meshes, sim, boundary, dataset, progress=progress)
     entry = dio.write_shard(rows, shard_path, compression=dataset["compression"],

@@ -6,7 +6,7 @@ import json
 import logging
 from pathlib import Path
 
-from liverforce.dataset import io as dio
+from liverforce.atomic import write_json_atomic
 from liverforce.pipeline.shared import load_study_arrays, surface_graphs
 
 log = logging.getLogger("liverforce")
@@ -40,7 +40,7 @@ def run_study_stage(study: str, study_cfg: dict, manifests: dict, main_metrics: 
     doc["main_model_runs"] = {sc: m.get("run_id") for sc, m in mains.items()}
     plot_study(doc, out_png)
     doc["figure"] = Path(out_png).name
-    dio.write_json_atomic(doc, out_json)
+    write_json_atomic(out_json, doc)
     ok = sum(p["status"] == "ok" for p in doc["points"])
     log.info("study %s: %d/%d points in %.1f s (%.1f s CPU)", study, ok, len(doc["points"]), doc["seconds"],
              doc["cpu_seconds"])

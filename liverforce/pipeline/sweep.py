@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from liverforce.atomic import write_json_atomic
 from liverforce.dataset import io as dio
 
 log = logging.getLogger("liverforce")
@@ -102,7 +103,7 @@ def make_sweep(params: dict, mesh_paths: list[str], cases_path, report_path) -> 
         "dropped_unstable": result.dropped_unstable,
         "exertion_points_mm": {g: e.points.tolist() for g, e in ex.items()},
     }
-    dio.write_json_atomic(report, report_path)
+    write_json_atomic(report_path, report)
     if result.dropped_unstable:
         log.warning("scenario %s: %d sampled material sets were not Drucker-stable and were dropped",
                     params["scenario"], len(result.dropped_unstable))

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from liverforce.atomic import write_json_atomic
 from liverforce.dataset import io as dio
 from liverforce.pipeline.shared import load_study_arrays, surface_graphs
 
@@ -72,7 +73,7 @@ def train_model(manifest_path, scenario: str, variant: str, model_cfg: dict, tra
                             threads=threads, seed=seed + train_cfg["seed"], out_dir=out_dir, tags=tags,
                             model_meta=model_meta)
     result.update(encoder=model_cfg["encoder"], state_vector=bool(model_cfg["state_vector"]), model_cfg=model_cfg)
-    dio.write_json_atomic(result, metrics_path)
+    write_json_atomic(metrics_path, result)
     log.info("scenario %s / %s: test %s", scenario, variant,
              {k: round(v, 4) for k, v in result.get("metrics", {}).items() if isinstance(v, float)})
     return result

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from liverforce.atomic import write_json_atomic
 from liverforce.dataset import io as dio
 
 log = logging.getLogger("liverforce")
@@ -129,7 +130,7 @@ def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_
         tracker.log_artifact(run_id, f)
     tracker.end_run(run_id)
     result["run_id"] = run_id
-    dio.write_json_atomic(result, out_path)
+    write_json_atomic(out_path, result)
     log.info("validation on %d unseen livers: MAE %.3f +- %.3f N (mean +- sd over livers), accuracy %.1f +- %.1f %%;"
              " worst liver %s (MAE %.3f N); %d cases", by_liver["n_groups"], by_liver["mean"]["mae_vec"],
              by_liver["sd"]["mae_vec"], by_liver["mean"]["accuracy_pct"], by_liver["sd"]["accuracy_pct"],

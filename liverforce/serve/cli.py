@@ -85,7 +85,8 @@ def cmd_predict(args) -> int:
 
 
 def _run(args) -> int:
-    from liverforce.serve.files import load_context, read_points, write_atomic_text
+    from liverforce.atomic import write_text_atomic
+    from liverforce.serve.files import load_context, read_points
     from liverforce.serve.predictor import Predictor
 
     fetch_model = getattr(args, "fetch_model", None)
@@ -122,8 +123,8 @@ def _run(args) -> int:
     doc = {"force_n": [float(v) for v in force], "magnitude_n": float(np.linalg.norm(force)),
            "frame": "liver (source) frame of the inputs", "model": predictor.source, **info}
     if args.out and args.out.lower().endswith(".csv"):
-        write_atomic_text(args.out, "fx_n,fy_n,fz_n\n" + ",".join(repr(float(v)) for v in force) + "\n")
+        write_text_atomic(args.out, "fx_n,fy_n,fz_n\n" + ",".join(repr(float(v)) for v in force) + "\n")
     elif args.out:
-        write_atomic_text(args.out, json.dumps(doc, indent=2) + "\n")
+        write_text_atomic(args.out, json.dumps(doc, indent=2) + "\n")
     print(json.dumps(doc))
     return 0

@@ -30,13 +30,12 @@ Context files (``load_context``): JSON or YAML with
 from __future__ import annotations
 
 import json
-import os
 import re
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from liverforce.atomic import atomic_path
 from liverforce.serve.errors import PredictionInputError
 from liverforce.serve.preop import Preop
 
@@ -328,37 +327,15 @@ def load_context(source: str | Path | dict, predictor, *, overrides: dict | None
 
 
 # --------------------------------------------------------------------------- atomic writes
-def write_atomic_text(path: str | Path, text: str) -> Path:
-    """Write ``text`` through a dot-prefixed temporary file in the same folder, then rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
-
-
 def write_frame(df, path: str | Path) -> Path:
     """Write a pandas DataFrame as Parquet (``.parquet``) or CSV (``.csv``) atomically."""
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in (".parquet", ".csv"):
         raise PredictionInputError(f"{path}: results are written as .parquet or .csv")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         if suffix == ".parquet":
             df.to_parquet(tmp, index=False)
         else:
             df.to_csv(tmp, index=False, float_format="%.9g")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
     return path

@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import os
+import math
 import re
 import shutil
 import signal
@@ -39,10 +40,10 @@ def rule_declarations() -> dict[str, dict]:
         for name, body in zip(blocks[1::2], blocks[2::2]):
             body = re.split(r"^\S", body, maxsplit=1, flags=re.M)[0]  # up to the next top-level statement
             decl = {"runs": bool(re.search(r"^\s+(script|shell|run|notebook|wrapper):", body, re.M))}
-            for key, pat in (("threads", r"^\s+threads:\s*(\d+)"), ("mem_mb", r"^\s+mem_mb\s*=\s*(\d+)"),
-                             ("runtime", r"^\s+runtime\s*=\s*(\d+)")):
+            for key, pat in (("threads", r"^\s+threads:\s*(\d+|lambda)"), ("mem_mb", r"^\s+mem_mb\s*=\s*(\d+|lambda)"),
+                             ("runtime", r"^\s+runtime\s*=\s*(\d+|lambda)")):
                 m = re.search(pat, body, re.M)
-                decl[key] = int(m.group(1)) if m else None
+                decl[key] = None if not m else ("callable" if m.group(1) == "lambda" else int(m.group(1)))
             out[name] = decl
     return out
 
@@ -108,7 +109,14 @@ def test_dry_run_through_the_profile_gives_every_job_its_resources(tmp_path):
             assert res["mem_mb"] == defaults["mem_mb"] and res["runtime"] == defaults["runtime"], job
             continue
         assert job["threads"] == d["threads"], job
-        assert int(res["mem_mb"]) == d["mem_mb"] and int(res["runtime"]) == d["runtime"], (job, d)
+        expect = dict(d)
+        if job["rule"] == "simulate":  # the shard's worst case: cases x time limit (+5 min), first attempt
+            from liverforce.config import compose
+
+            c = compose(["experiment=default"])
+            expect["mem_mb"] = 4000
+            expect["runtime"] = 5 + math.ceil(c["sweep"]["cases_per_shard"] * c["simulate"]["time_limit_s"] / 60)
+        assert int(res["mem_mb"]) == expect["mem_mb"] and int(res["runtime"]) == expect["runtime"], (job, expect)
         assert 1 <= job["threads"] <= 64 and 256 <= int(res["mem_mb"]) <= 256_000
         assert 1 <= int(res["runtime"]) <= 7 * 24 * 60
         checked += 1

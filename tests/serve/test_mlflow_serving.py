@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import yaml
 
+from liverforce.pipeline.job import thread_env
 from liverforce.learn.model import subset
 from liverforce.learn.train import train_scenario
 from liverforce.serve import PredictionInputError
@@ -93,8 +94,8 @@ def test_mlflow_models_serve_answers_over_http(logged, data, tmp_path):
     port = _free_port()
     # `mlflow models serve` runs `uvicorn` through the shell: the venv's bin must be on PATH
     venv_bin = Path(sys.executable).parent
-    env = {**os.environ, "MLFLOW_TRACKING_URI": logged["uri"], "PATH": f"{venv_bin}:{os.environ['PATH']}",
-           "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+    env = thread_env(1, {**os.environ, "MLFLOW_TRACKING_URI": logged["uri"],
+                         "PATH": f"{venv_bin}:{os.environ['PATH']}"})
     cmd = [sys.executable, "-m", "mlflow", "models", "serve", "-m", f"runs:/{logged['run_id']}/model",
            "--host", "127.0.0.1", "--port", str(port), "--env-manager", "local"]
     log = open(tmp_path / "serve.log", "w")

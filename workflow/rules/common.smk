@@ -1,13 +1,12 @@
 # Helpers and the composed configuration. No rules here.
-import os
 import shlex
 
 from liverforce.config import compose, tracking_uri
 from liverforce.pipeline import plan
+from liverforce.pipeline.job import thread_env
 
 # one thread per BLAS / numba / torch pool in every job: 2 jobs on 2 cores
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+thread_env(1, override=False)
 
 
 def _overrides_from_snakemake_config(config):

@@ -1,0 +1,67 @@
+"""Atomic file writes: a temporary name beside the target, then a rename (the only implementation).
+
+A reader never sees a half-written file under the final name: the content goes
+to a dot-prefixed temporary file in the same folder (``.<stem>.<random>.tmp<suffix>``,
+same file system, so the rename is atomic) and :func:`os.replace` puts it in
+place only when writing finished without error; on any error the temporary file
+is removed and the error raised. Standard library only, so every layer may use it.
+
+Example
+-------
+>>> import tempfile, pathlib
+>>> d = pathlib.Path(tempfile.mkdtemp())
+>>> write_json_atomic(d / "a.json", {"b": 1})
+PosixPath('.../a.json')  # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, Iterator
+
+
+@contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """A temporary path to write ``path`` through; renamed onto ``path`` if the block ends without error.
+
+    The temporary name keeps the suffix, for writers that infer the format
+    from it (matplotlib, meshio). The folder is created if needed.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    os.close(fd)
+    tmp = Path(name)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def write_bytes_atomic(path: str | Path, data: bytes, *, fsync: bool = False) -> Path:
+    """Write ``data`` to ``path`` atomically; ``fsync`` flushes it to the disk before the rename."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            if fsync:
+                fh.flush()
+                os.fsync(fh.fileno())
+    return path
+
+
+def write_text_atomic(path: str | Path, text: str, *, fsync: bool = False) -> Path:
+    """Write ``text`` (UTF-8) to ``path`` atomically."""
+    return write_bytes_atomic(path, text.encode("utf-8"), fsync=fsync)
+
+
+def write_json_atomic(path: str | Path, obj: Any, *, fsync: bool = False, indent: int = 2) -> Path:
+    """Write ``obj`` as key-sorted JSON to ``path`` atomically (NaN allowed, as Python's json writes it)."""
+    return write_text_atomic(path, json.dumps(obj, indent=indent, sort_keys=True, allow_nan=True) + "\n",
+                             fsync=fsync)
