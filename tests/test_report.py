@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import re
 
+import numpy as np
 import pytest
 
 from test_workflow import job_counts, snakemake
@@ -57,27 +58,72 @@ def _write(path, obj):
     return path
 
 
-def test_report_lays_out_table_59_encoders_and_studies_with_their_run_ids(tmp_path):
-    from liverforce.report.html import STUDY_ACCURACY, collect, write_report
+def _text(cell: str) -> str:
+    """A table cell's text: tags dropped, entities kept as written."""
+    return re.sub(r"<[^>]+>", "", cell).strip()
 
+
+def _rows(table_html: str, cls: str) -> list[list[str]]:
+    """The cells (raw HTML) of every ``<tr class='cls'>`` row."""
+    return [re.findall(r"<t[dh]>(.*?)</t[dh]>", r) for r in re.findall(rf"<tr class='{cls}'>(.*?)</tr>", table_html)]
+
+
+def _section(html: str, start: str, end: str) -> str:
+    return html[html.index(start):html.index(end, html.index(start))]
+
+
+@pytest.fixture
+def stage_outputs(tmp_path):
+    """Hand-made stage outputs of every kind the report reads (with repeated splits and 3 unseen livers)."""
     root = tmp_path / "results" / "x"
     metrics = []
-    for sc, acc in (("I", 97.0), ("II", 93.0), ("III", 89.0), ("IV", 80.0)):
+    for k, (sc, acc) in enumerate((("I", 97.0), ("II", 93.0), ("III", 89.0), ("IV", 80.0))):
         for variant, sv in (("pca_sv", True), ("pca_nosv", False)):
+            split = {"accuracy_pct": acc - (0 if sv else 5), "mae_vec": 0.1 + 0.01 * k, "rmse_vec": 0.2}
+            reps = [split, {**split, "accuracy_pct": split["accuracy_pct"] - 2.5 - k, "mae_vec": 0.15 + 0.02 * k},
+                    {**split, "accuracy_pct": split["accuracy_pct"] + 0.7, "mae_vec": 0.09}]
+            mean = {key: float(np.mean([r[key] for r in reps])) for key in split}
+            sd = {key: float(np.std([r[key] for r in reps], ddof=1)) for key in split}
             metrics.append(_write(root / "models" / sc / variant / "metrics.json", {
-                "scenario": sc, "variant": variant, "encoder": "pca", "state_vector": sv,
-                "metrics": {"accuracy_pct": acc - (0 if sv else 5), "mae_vec": 0.1, "rmse_vec": 0.2},
-                "run_id": f"run{sc}{variant}"}))
+                "scenario": sc, "variant": variant, "encoder": "pca", "state_vector": sv, "metrics": split,
+                "metrics_mean": mean, "metrics_sd": sd, "n_splits": 3,
+                "repeats": [{"split_seed": 7 + i, "test_geometries": ["g"], "metrics": r} for i, r in enumerate(reps)],
+                "run_id": f"run{sc}{variant}", "n_train": 9, "n_test": 3}))
     manifest = _write(root / "shards" / "IV" / "manifest.json",
                       {"rows": 10, "failed": 1, "shards": [{}], "data_version": "abc"})
+    per_liver = {"val-1000": {"mae_vec": 0.21, "rmse_vec": 0.30, "accuracy_pct": 84.0, "n": 4},
+                 "val-1001": {"mae_vec": 0.55, "rmse_vec": 0.71, "accuracy_pct": 66.2, "n": 3},
+                 "val-1002": {"mae_vec": 0.32, "rmse_vec": 0.40, "accuracy_pct": 78.5, "n": 4}}
+    keys = ("mae_vec", "rmse_vec", "accuracy_pct")
+    livers = {"n": 3, "worst": "val-1001",
+              "mean": {k: float(np.mean([m[k] for m in per_liver.values()])) for k in keys},
+              "sd": {k: float(np.std([m[k] for m in per_liver.values()], ddof=1)) for k in keys}}
     val = _write(root / "validate" / "metrics.json", {
-        "n_cases": 3, "metrics": {"mae_vec": 0.3, "rmse_vec": 0.4, "accuracy_pct": 81.0}, "run_id": "runval",
-        "model_run_id": "runIVpca_sv", "figures": [],
-        "error_by_force_magnitude": [{"force_lo_n": 0.0, "force_hi_n": 2.0, "n": 3, "mae_vec_n": 0.3}],
+        "n_cases": 11, "metrics": {"mae_vec": 0.34, "rmse_vec": 0.45, "accuracy_pct": 77.0}, "run_id": "runval",
+        "model_run_id": "runIVpca_sv", "model_variant": "pca_sv", "variant_choice": "validate.variant=main",
+        "figures": [], "per_liver": per_liver, "livers": livers,
+        "all_variants": {
+            "pca_sv": {"metrics": {"mae_vec": 0.34, "rmse_vec": 0.45, "accuracy_pct": 77.0}, "livers": livers,
+                       "model_run_id": "runIVpca_sv"},
+            "pca_nosv": {"metrics": {"mae_vec": 0.50, "rmse_vec": 0.62, "accuracy_pct": 70.1},
+                         "livers": {"mean": {"mae_vec": 0.52, "accuracy_pct": 69.0},
+                                    "sd": {"mae_vec": 0.11, "accuracy_pct": 4.4}, "worst": "val-1002"},
+                         "model_run_id": "runIVpca_nosv"}},
+        "error_by_force_magnitude": [
+            {"force_lo_n": 0.0, "force_hi_n": 1.0, "n": 3, "mean_force_n": 0.62, "mae_vec_n": 0.31,
+             "relative_mae": 0.31 / 0.62},
+            {"force_lo_n": 1.0, "force_hi_n": 2.0, "n": 4, "mean_force_n": 1.5, "mae_vec_n": 0.29,
+             "relative_mae": 0.29 / 1.5},
+            {"force_lo_n": 2.0, "force_hi_n": 3.0, "n": 4, "mean_force_n": 2.6, "mae_vec_n": 0.39,
+             "relative_mae": 0.39 / 2.6}],
         "error_vs_distance": {"distance_mm": [1.0, 5.0, 9.0], "error_n": [0.1, 0.3, 0.5]},
         "corr_error_distance": 1.0,
         "predictions": {"case_id": ["a", "b", "c"], "true_n": [[1, 0, 0], [0, 2, 0], [0, 0, 3]],
                         "pred_n": [[1.1, 0, 0], [0, 2.2, 0], [0, 0, 2.6]]}})
+    features = [_write(root / "mesh" / f"{g}.features.json", {"volume_mm3": vol, "extent_mm": [200.0, 150.0, 90.0],
+                                                              "n_nodes": 400, "n_tets": 1500})
+                for g, vol in (("proc-0000", 1.05e6), ("proc-0001", 1.9e6), ("val-1000", 1.31e6),
+                               ("val-1001", 2.12e6), ("val-1002", 1.62e6))]
     enc = _write(root / "studies" / "encoder.json", {
         "study": "encoder", "title": "encoders", "x_label": "encoder", "epochs": 7, "experiment_name": "e-studies",
         "points": [{"study": "encoder", "scenario": "II", "label": e, "value": e, "series": "II", "status": "ok",
@@ -86,13 +132,38 @@ def test_report_lays_out_table_59_encoders_and_studies_with_their_run_ids(tmp_pa
                    for e, a, m in (("pca", 91.0, 0.21), ("ae", 90.0, 0.22), ("dae", 89.5, 0.23))]
         + [{"study": "encoder", "scenario": "IV", "label": "dae", "value": "dae", "series": "IV", "status": "failed",
             "reason": "ValueError: too few", "encoder": "dae", "state_vector": True, "metrics": {}, "run_id": "f1"}]})
-    data = collect(metrics, [manifest], val, [], [enc])
-    html = write_report(data, [], "x", root / "report" / "index.html",
+    livers_study = _write(root / "studies" / "train_livers.json", {
+        "study": "train_livers", "title": "Learning curve over livers", "x_label": "number of training livers",
+        "epochs": 7, "experiment_name": "e-studies",
+        "points": [{"study": "train_livers", "scenario": "IV", "label": f"{k} livers", "value": k, "series": "IV",
+                    "status": "ok", "train_livers": k, "n_train_geometries": min(k, 2), "n_train": 6 * min(k, 2),
+                    "metrics": {"accuracy_pct": a, "mae_vec": m, "rmse_vec": m}, "roi_nodes_mean": 90.0,
+                    "seconds": 1.0, "run_id": f"livers{k}"}
+                   for k, a, m in ((1, 60.0, 0.6), (2, 71.5, 0.42), (4, 71.5, 0.42))]})
+    return {"root": root, "metrics": metrics, "manifest": manifest, "validation": val, "features": features,
+            "studies": [enc, livers_study]}
+
+
+def _report(out, population_png=None):
+    from liverforce.report.html import collect, write_report
+
+    data = collect(out["metrics"], [out["manifest"]], out["validation"], out["features"], out["studies"])
+    setup = {"main_variant": "pca_sv", "validate": {"material_scale": 1.4},
+             "material": {"model": "yeoh", "params_mpa": {"C10": 0.0016}, "nu": 0.49, "vary_rel": 0.3},
+             "population": {"training": ["proc-0000", "proc-0001"], "unseen": ["val-1000", "val-1001", "val-1002"],
+                            "volume_range_l": [1.0, 2.2]}}
+    return write_report(data, [], "x", out["root"] / "report" / "index.html",
                         solver_stats={"overall": {"cases simulated": 10}, "per_scenario": {
                             "IV": {"solve_time_total_s": 12.5, "solve_time_median_s": 1.1}},
                             "reasons": {"NewtonDiverged": 1}},
-                        setup={"main_variant": "pca_sv", "material": {"model": "yeoh", "params_mpa": {"C10": 0.0016},
-                                                                      "nu": 0.49, "vary_rel": 0.3}}).read_text()
+                        setup=setup, population_png=population_png).read_text()
+
+
+def test_report_lays_out_table_59_encoders_and_studies_with_their_run_ids(stage_outputs):
+    from liverforce.report.html import STUDY_ACCURACY
+
+    html = _report(stage_outputs)
+    root = stage_outputs["root"]
     # Table 5.9 layout: scenario rows; ours without / study without / ours with / study with, with run ids
     t59 = html[html.index("class='t59'"):]
     t59 = t59[:t59.index("</table>")]
@@ -100,22 +171,121 @@ def test_report_lays_out_table_59_encoders_and_studies_with_their_run_ids(tmp_pa
     assert [r[0] for r in rows] == ["I", "II", "III", "IV"]
     for sc, row in rows:
         cells = re.findall(r"<td>(.*?)</td>", row)
-        assert cells[1].startswith("92.0 %" if sc == "I" else "") and f"run{sc}pca_nosv" in cells[1]
+        assert f"run{sc}pca_nosv" in cells[1] and f"run{sc}pca_sv" in cells[3]
         assert f"{STUDY_ACCURACY[sc]['without']:.1f} %" == cells[2]
-        assert f"run{sc}pca_sv" in cells[3] and f"{STUDY_ACCURACY[sc]['with']:.1f} %" == cells[4]
+        assert f"{STUDY_ACCURACY[sc]['with']:.1f} %" == cells[4]
+        # each of our cells: accuracy and MAE as mean ± sd over the repeated splits, as in metrics.json
+        for cell, variant in ((cells[1], "pca_nosv"), (cells[3], "pca_sv")):
+            doc = json.loads((root / "models" / sc / variant / "metrics.json").read_text())
+            mean, sd = doc["metrics_mean"], doc["metrics_sd"]
+            assert sd["accuracy_pct"] > 0.5 and sd["mae_vec"] > 0.005  # the test data do spread
+            assert _text(cell).startswith(f"{mean['accuracy_pct']:.1f} ± {sd['accuracy_pct']:.1f} %"), cell
+            assert f"MAE {mean['mae_vec']:.3f} ± {sd['mae_vec']:.3f} N; {doc['n_splits']} splits" in cell
+            assert f"saved model's split: <span class='split'>{doc['metrics']['accuracy_pct']:.1f} %" in cell
+    caption = html[html.index("id='headline'"):html.index("class='t59'")]
+    assert "mean ± sd over 3 repeated seeded" in caption
+    # every model: mean ± sd and the number of splits beside the saved split
+    models = _section(html, "id='models'", "id='validation'")
+    for cells in _rows(models, "model"):
+        doc = json.loads((root / "models" / cells[0] / cells[1] / "metrics.json").read_text())
+        mean, sd = doc["metrics_mean"], doc["metrics_sd"]
+        assert cells[4:8] == [f"{mean['accuracy_pct']:.1f} ± {sd['accuracy_pct']:.1f}",
+                              f"{mean['mae_vec']:.3f} ± {sd['mae_vec']:.3f}", "3",
+                              f"{doc['metrics']['accuracy_pct']:.1f}"]
+    assert len(_rows(models, "model")) == 8
     # encoders table and the study rows cite their runs; a failed point says why
     assert "PCA vs autoencoder" in html and "studydae" in html
-    pts = re.findall(r"<tr class='study-point'><td>(\w+)</td><td>(\w+)</td><td>(\w+)</td><td>([\d.–]+)</td>"
+    pts = re.findall(r"<tr class='study-point'><td>(\w+)</td><td>(\w+)</td><td>([\w ]+)</td><td>([\d.–]+)</td>"
                      r"<td>([\d.–]+)</td>.*?<code>(\w+)</code>", html)
     assert [(p[1], p[2], p[3], p[5]) for p in pts] == [
         ("II", "pca", "91.0", "studypca"), ("II", "ae", "90.0", "studyae"), ("II", "dae", "89.5", "studydae"),
-        ("IV", "dae", "–", "f1")]
+        ("IV", "dae", "–", "f1"),
+        ("IV", "1 livers", "60.0", "livers1"), ("IV", "2 livers", "71.5", "livers2"), ("IV", "4 livers", "71.5", "livers4")]
     assert "failed: ValueError: too few" in html
+    # the livers learning curve: its own section, the training livers used per point, the measured trend
+    livers = _section(html, "id='study-train_livers'", "</table>")
+    assert [c[6:8] for c in _rows(livers, "study-point")] == [["1", "6"], ["2", "12"], ["2", "12"]]
+    assert "From 1 to 2 training livers the accuracy on the fixed test livers changed by <b>+11.5 points" in livers
+    assert "only 2 training livers exist" in livers
     # validation figures made by the report, solver statistics, failure reasons
     figs = root / "report" / "figures"
-    assert (figs / "validation_error_vs_force.png").stat().st_size > 3000
-    assert (figs / "validation_error_vs_distance.png").stat().st_size > 3000
-    assert "validation_error_vs_distance.png" in html and "12.5" in html and "NewtonDiverged" in html
+    for name in ("validation_error_vs_force.png", "validation_error_vs_distance.png",
+                 "validation_mae_per_liver.png"):
+        assert (figs / name).stat().st_size > 3000 and f"figures/{name}" in html
+    assert "12.5" in html and "NewtonDiverged" in html
     assert "C10 = 0.0016" in html
     # the sections the smoke test slices on come in this order
-    assert html.index("Accuracy per scenario") < html.index("Unseen liver") < html.index("id='studies'")
+    assert html.index("id='models'") < html.index("id='validation'") < html.index("id='studies'")
+    assert not list(root.rglob(".*.tmp*"))
+
+
+def test_report_validates_on_every_unseen_liver_with_mean_sd_and_the_worst_named(stage_outputs):
+    html = _report(stage_outputs)
+    val = json.loads(stage_outputs["validation"].read_text())
+    lv, per = val["livers"], val["per_liver"]
+    feats = {p.name.removesuffix(".features.json"): json.loads(p.read_text()) for p in stage_outputs["features"]}
+    # the headline sentence: mean ± sd over the N unseen livers, the worst named
+    head = _section(html, "id='unseen-headline'", "</p>")
+    assert (f"MAE <b>{lv['mean']['mae_vec']:.3f} ± {lv['sd']['mae_vec']:.3f} N</b>, accuracy "
+            f"<b>{lv['mean']['accuracy_pct']:.1f} ± {lv['sd']['accuracy_pct']:.1f} %</b> (mean ± sd over the 3 "
+            f"livers)") in head
+    assert f"worst liver <code>{lv['worst']}</code> (MAE {per[lv['worst']]['mae_vec']:.3f} N)" in head
+    # the per-liver table: one row per unseen liver with its own numbers, then the mean ± sd row
+    sec = _section(html, "id='validation'", "id='studies'")
+    table = sec[sec.index("class='per-liver'"):]
+    table = table[:table.index("</table>")]
+    rows = _rows(table, "liver")
+    assert [_text(c[0]).split()[0] for c in rows] == sorted(per)
+    for cells in rows:
+        gid = _text(cells[0]).split()[0]
+        m = per[gid]
+        assert cells[1:] == [f"{feats[gid]['volume_mm3'] / 1e6:.2f}", str(m["n"]), f"{m['mae_vec']:.3f}",
+                             f"{m['rmse_vec']:.3f}", f"{m['accuracy_pct']:.1f}"]
+        assert ("(worst)" in cells[0]) == (gid == lv["worst"])
+    foot = _rows(table, "livers-mean")
+    assert foot == [[f"mean ± sd ({lv['n']} livers)", "", str(val["n_cases"]),
+                     f"{lv['mean']['mae_vec']:.3f} ± {lv['sd']['mae_vec']:.3f}",
+                     f"{lv['mean']['rmse_vec']:.3f} ± {lv['sd']['rmse_vec']:.3f}",
+                     f"{lv['mean']['accuracy_pct']:.1f} ± {lv['sd']['accuracy_pct']:.1f}"]]
+    # error against force magnitude: relative MAE per bin, bins at or above 20 % flagged
+    bins = _rows(sec, "force-bin")
+    assert len(bins) == len(val["error_by_force_magnitude"])
+    for cells, b in zip(bins, val["error_by_force_magnitude"]):
+        assert cells[:5] == [f"{b['force_lo_n']:.2f}", f"{b['force_hi_n']:.2f}", str(b["n"]),
+                             f"{b['mean_force_n']:.2f}", f"{b['mae_vec_n']:.3f}"]
+        assert _text(cells[5]).startswith(f"{100 * b['relative_mae']:.1f} %")
+        assert ("⚠" in cells[5]) == (b["mae_vec_n"] / b["mean_force_n"] >= 0.2)
+    n_flag = sum(b["mae_vec_n"] / b["mean_force_n"] >= 0.2 for b in val["error_by_force_magnitude"])
+    assert n_flag == 1 and f"{n_flag} of {len(bins)} bins at or above 20 %" in sec
+    # every variant: mean ± sd over the livers and its worst liver
+    variants = _rows(sec, "variant")
+    assert [_text(c[0]).split()[0] for c in variants] == list(val["all_variants"])
+    for cells, d in zip(variants, val["all_variants"].values()):
+        dl = d["livers"]
+        assert cells[1:4] == [f"{dl['mean']['mae_vec']:.3f} ± {dl['sd']['mae_vec']:.3f}",
+                              f"{dl['mean']['accuracy_pct']:.1f} ± {dl['sd']['accuracy_pct']:.1f}",
+                              f"<code>{dl['worst']}</code>"]
+
+
+def test_report_refuses_a_validation_without_per_liver_metrics(stage_outputs):
+    from liverforce.report.html import collect
+
+    path = stage_outputs["validation"]
+    doc = json.loads(path.read_text())
+    del doc["per_liver"]
+    path.write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match="per_liver.*re-run the validate stage"):
+        collect(stage_outputs["metrics"], [stage_outputs["manifest"]], path, [], [])
+
+
+def test_report_shows_the_population_picture_and_each_livers_role(stage_outputs):
+    png = stage_outputs["root"] / "report" / "figures" / "population.png"
+    png.parent.mkdir(parents=True)
+    png.write_bytes(b"png")
+    html = _report(stage_outputs, population_png=png)
+    setup = html[html.index("id='setup'"):html.index("id='simulations'")]
+    assert "<figure class='population'><img src='figures/population.png'" in setup
+    assert "training livers in blue, unseen validation livers in orange" in setup
+    roles = re.findall(r"<tr><td>([\w-]+)</td><td>(unseen|training[^<]*)</td>", setup)
+    assert roles == [("proc-0000", "training, I–IV"), ("proc-0001", "training"), ("val-1000", "unseen"),
+                     ("val-1001", "unseen"), ("val-1002", "unseen")]

@@ -38,13 +38,23 @@ def test_every_stage_produced_its_outputs(smoke_run):
     val = json.loads((root / "validate" / "metrics.json").read_text())
     assert set(val["all_variants"]) == {"pca_sv", "ae_sv"} and val["model_variant"] == "pca_sv"  # main
     assert val["metrics"] == pytest.approx(val["all_variants"]["pca_sv"]["metrics"])
+    assert sorted(val["per_liver"]) == ["val-1000", "val-1001"] and val["livers"]["n"] == 2
     for study in ("roi_fraction", "encoder", "state_vector", "occlusion", "noise", "train_size", "train_livers"):
         doc = json.loads((root / "studies" / f"{study}.json").read_text())
         assert len(doc["points"]) == 2 and (root / "studies" / f"{study}.png").stat().st_size > 5000
         assert all(p["run_id"] for p in doc["points"])
     assert (root / "report" / "index.html").stat().st_size > 1000
+    assert (root / "report" / "figures" / "population.png").stat().st_size > 20000
     # no half-written file anywhere
     assert not list(root.rglob(".*.tmp*"))
+
+
+def _cells(row_html: str) -> list[str]:
+    return re.findall(r"<t[dh]>(.*?)</t[dh]>", row_html)
+
+
+def _text(cell: str) -> str:
+    return re.sub(r"<[^>]+>", "", cell).strip()
 
 
 def test_report_numbers_match_the_mlflow_runs_they_cite(smoke_run):
@@ -52,18 +62,63 @@ def test_report_numbers_match_the_mlflow_runs_they_cite(smoke_run):
 
     root = smoke_run / "results" / "smoke"
     html = (root / "report" / "index.html").read_text()
-    html = html[html.index("Accuracy per scenario"):html.index("Unseen liver")]
+    html = html[html.index("id='models'"):html.index("id='validation'")]
     client = mlflow.tracking.MlflowClient(tracking_uri=f"sqlite:///{smoke_run / 'results' / 'mlflow.db'}")
-    cited = re.findall(r"<tr><td>(I|II|III|IV)</td><td>(\w+)</td>.*?<td>([\d.]+)</td><td>[\d.–]+</td><td>([\d.]+)</td>.*?<code>(\w+)</code>", html)
-    assert len(cited) == 8
-    for scenario, variant, acc, mae, run_id in cited:
+    rows = [_cells(r) for r in re.findall(r"<tr class='model'>(.*?)</tr>", html)]
+    assert len(rows) == 8
+    for c in rows:
+        scenario, variant = c[0], c[1]
+        acc_pm, mae_pm, n_splits, acc, mae = c[4], c[5], c[6], c[7], c[9]
+        run_id = re.search(r"<code>(\w+)</code>", c[12]).group(1)
+        doc = json.loads((root / "models" / scenario / variant / "metrics.json").read_text())
         run = client.get_run(run_id)
+        assert doc["run_id"] == run_id
         assert run.data.tags["scenario"] == scenario and run.data.tags["variant"] == variant
         assert float(acc) == pytest.approx(run.data.metrics["accuracy_pct"], abs=0.051)
         assert float(mae) == pytest.approx(run.data.metrics["mae_vec"], abs=0.0006)
+        # mean ± sd over the repeated splits: in metrics.json and in the run, and the splits really differ
+        assert int(n_splits) == doc["n_splits"] == len(doc["repeats"]) == 2 == run.data.metrics["n_splits"]
+        assert len({json.dumps(r["metrics"], sort_keys=True) for r in doc["repeats"]}) == 2
+        for shown, key, nd in ((acc_pm, "accuracy_pct", 1), (mae_pm, "mae_vec", 3)):
+            assert shown == f"{doc['metrics_mean'][key]:.{nd}f} ± {doc['metrics_sd'][key]:.{nd}f}"
+            m, sd = (float(x) for x in shown.split(" ± "))
+            assert m == pytest.approx(run.data.metrics[f"{key}_mean"], abs=0.6 * 10 ** -nd)
+            assert sd == pytest.approx(run.data.metrics[f"{key}_sd"], abs=0.6 * 10 ** -nd)
         # Ax trials are nested runs under the scenario's run
         children = client.search_runs([run.info.experiment_id], f"tags.mlflow.parentRunId = '{run_id}'")
         assert len(children) == 2
+
+
+def test_report_shows_every_unseen_liver_as_the_validation_json_and_run_have_it(smoke_run):
+    import mlflow
+
+    root = smoke_run / "results" / "smoke"
+    html = (root / "report" / "index.html").read_text()
+    val = json.loads((root / "validate" / "metrics.json").read_text())
+    lv, per = val["livers"], val["per_liver"]
+    client = mlflow.tracking.MlflowClient(tracking_uri=f"sqlite:///{smoke_run / 'results' / 'mlflow.db'}")
+    run = client.get_run(val["run_id"])
+    assert run.data.metrics["mae_vec_livers_mean"] == pytest.approx(lv["mean"]["mae_vec"])
+    head = html[html.index("id='unseen-headline'"):]
+    head = head[:head.index("</p>")]
+    assert (f"MAE <b>{lv['mean']['mae_vec']:.3f} ± {lv['sd']['mae_vec']:.3f} N</b>, accuracy "
+            f"<b>{lv['mean']['accuracy_pct']:.1f} ± {lv['sd']['accuracy_pct']:.1f} %</b> (mean ± sd over the "
+            f"{len(per)} livers)") in head and f"worst liver <code>{lv['worst']}</code>" in head
+    sec = html[html.index("id='validation'"):html.index("id='studies'")]
+    rows = [_cells(r) for r in re.findall(r"<tr class='liver'>(.*?)</tr>", sec)]
+    assert [_text(c[0]).split()[0] for c in rows] == sorted(per)
+    for c in rows:
+        m = per[_text(c[0]).split()[0]]
+        assert c[2:] == [str(m["n"]), f"{m['mae_vec']:.3f}", f"{m['rmse_vec']:.3f}", f"{m['accuracy_pct']:.1f}"]
+    mean_row = _cells(re.search(r"<tr class='livers-mean'>(.*?)</tr>", sec).group(1))
+    assert mean_row[3] == f"{lv['mean']['mae_vec']:.3f} ± {lv['sd']['mae_vec']:.3f}"
+    bins = [_cells(r) for r in re.findall(r"<tr class='force-bin'>(.*?)</tr>", sec)]
+    assert len(bins) == len(val["error_by_force_magnitude"]) >= 1
+    for c, b in zip(bins, val["error_by_force_magnitude"]):
+        assert _text(c[5]).startswith(f"{100 * b['relative_mae']:.1f} %")
+        assert ("⚠" in c[5]) == (b["relative_mae"] >= 0.2)
+    # the population picture of every training and unseen liver, with its caption
+    assert "<figure class='population'><img src='figures/population.png'" in html
 
 
 def test_report_study_numbers_match_their_mlflow_runs(smoke_run):
@@ -91,8 +146,14 @@ def test_report_study_numbers_match_their_mlflow_runs(smoke_run):
     full = (root / "report" / "index.html").read_text()
     t59 = full[full.index("class='t59'"):]
     t59 = t59[:t59.index("</table>")]
-    for acc, run_id in re.findall(r"<td>([-\d.]+) %<br>.*?run <code>(\w+)</code>", t59):
-        assert float(acc) == pytest.approx(client.get_run(run_id).data.metrics["accuracy_pct"], abs=0.051)
+    cells = re.findall(r"<span class='pm'>([-\d.]+) ± ([\d.]+) %</span>.*?<span class='split'>([-\d.]+) %"
+                       r"</span>.*?run <code>(\w+)</code>", t59)
+    assert len(cells) == 4  # smoke: scenarios I-IV with the state vector, each mean ± sd over the splits
+    for mean, sd, acc, run_id in cells:
+        metrics = client.get_run(run_id).data.metrics
+        assert float(acc) == pytest.approx(metrics["accuracy_pct"], abs=0.051)
+        assert float(mean) == pytest.approx(metrics["accuracy_pct_mean"], abs=0.051)
+        assert float(sd) == pytest.approx(metrics["accuracy_pct_sd"], abs=0.051)
 
 
 def test_changing_one_value_reruns_only_its_stage_and_descendants(smoke_run):

@@ -147,7 +147,8 @@ def study_points(study: str, study_cfg: dict) -> list[StudyPoint]:
             pts += [StudyPoint(study, sc, float(v), f"{float(v):g}", train_fraction=float(v), series=sc)
                     for v in s["values"]]
         elif study == "train_livers":
-            pts += [StudyPoint(study, sc, int(v), f"{int(v)} livers", train_livers=int(v), series=sc)
+            pts += [StudyPoint(study, sc, int(v), f"{int(v)} liver{'s' if int(v) != 1 else ''}", train_livers=int(v),
+                               series=sc)
                     for v in s["values"]]
         else:
             raise ValueError(f"unknown study '{study}': use one of {STUDIES}")
@@ -430,7 +431,9 @@ def plot_study(doc: dict, path: str | Path) -> Path:
             axes[0].bar(x, [p["metrics"]["accuracy_pct"] for p in sp], width, label=s)
             axes[1].bar(x, [p["metrics"]["mae_vec"] for p in sp], width, label=s)
         else:
-            x = [float(p["value"]) for p in sp]
+            # the livers curve is over the livers actually used (a requested count above the population is "all")
+            x = [float(p.get("n_train_geometries") or p["value"]) if doc["study"] == "train_livers" else float(p["value"])
+                 for p in sp]
             axes[0].plot(x, [p["metrics"]["accuracy_pct"] for p in sp], "o-", label=s)
             axes[1].plot(x, [p["metrics"]["mae_vec"] for p in sp], "o-", label=s)
     for ax, name in zip(axes, ("accuracy % (test split)", "MAE of the force vector (N)")):
@@ -438,6 +441,11 @@ def plot_study(doc: dict, path: str | Path) -> Path:
         ax.set_xlabel(doc["x_label"])
         if categorical:
             ax.set_xticks(range(len(cats)), cats)
+        elif doc["study"] == "train_livers":
+            ax.set_xscale("log", base=2)
+            ticks = sorted({int(p.get("n_train_geometries") or p["value"]) for p in pts})
+            ax.set_xticks(ticks, [str(t) for t in ticks])
+            ax.minorticks_off()
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=7, title="scenario", title_fontsize=7, loc="lower left" if categorical else "best")
     fig.suptitle(doc["title"], fontsize=10)

@@ -48,17 +48,33 @@ def solver_statistics(manifests: list[str]) -> dict:
 
 def make_report(model_metrics: list[str], manifests: list[str], validation: str, features: list[str],
                 pictures: list[str], experiment: str, out_html, studies: list[str] = (),
-                setup: dict | None = None) -> Path:
+                setup: dict | None = None, surfaces: list[str] = ()) -> Path:
     """Write ``report/index.html`` (+ ``report/figures/``) from the stage outputs.
 
     ``studies``: the ``studies/<study>.json`` files (their PNGs beside them);
-    ``setup``: the config slices the setup section shows.
+    ``setup``: the config slices the setup section shows (``population``:
+    ``{"training": [ids], "unseen": [ids], "volume_range_l": [lo, hi]}``);
+    ``surfaces``: the ``geometry/<id>.ply`` of every liver, drawn as the
+    population picture ``report/figures/population.png`` (volumes from the
+    mesh features).
     """
     from liverforce.report.html import collect, write_report
 
+    setup = setup or {}
     data = collect(model_metrics, manifests, validation, features, studies)
     data["validation_dir"] = str(Path(validation).parent)
     stats = solver_statistics(manifests)
-    path = write_report(data, pictures, experiment, out_html, solver_stats=stats, setup=setup)
+    population_png = None
+    if surfaces:
+        from liverforce.report.population import load_population, population_figure
+
+        pop = setup.get("population") or {}
+        livers = load_population({Path(p).stem: p for p in surfaces},
+                                 {g["id"]: g.get("volume_mm3") for g in data["geometries"]},
+                                 training=pop.get("training", ()), unseen=pop.get("unseen", ()))
+        population_png = population_figure(livers, Path(out_html).parent / "figures" / "population.png",
+                                           volume_range_l=pop.get("volume_range_l"))
+    path = write_report(data, pictures, experiment, out_html, solver_stats=stats, setup=setup,
+                        population_png=population_png)
     log.info("report: %s", path)
     return path

@@ -7,10 +7,13 @@ names the MLflow run it was logged to, so the report can be checked against
 the tracking store (``tests/test_smoke_workflow.py`` does).
 
 Sections, in order: the headline (the study's Table 5.9 layout with our
-numbers beside the study's, encoders, the unseen-liver MAE); the setup
-(geometries as pictures, material, boundary, sweep); simulations and solver
-statistics; every trained model; the unseen-liver validation with its figures;
-the comparison studies with their plots; where the MLflow runs are.
+numbers, mean ± sd over repeated seeded splits, beside the study's; encoders;
+the unseen-liver MAE as mean ± sd over the unseen livers); the setup (the
+liver population as a picture, the geometries, material, boundary, sweep);
+simulations and solver statistics; every trained model; the unseen-liver
+validation (per liver, mean ± sd, the worst liver, error against force
+magnitude, every variant) with its figures; the comparison studies with their
+plots (the learning curve over livers among them); where the MLflow runs are.
 """
 
 from __future__ import annotations
@@ -22,6 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
+from liverforce.atomic import atomic_path, write_text_atomic
+
 #: the study's accuracies (Table 5.9), % — deformation only / with state vector
 STUDY_ACCURACY = {
     "I": {"without": 92.1, "with": 95.8},
@@ -31,6 +36,8 @@ STUDY_ACCURACY = {
 }
 STUDY_VALIDATION_MAE_N = 0.249
 STUDY_OCCLUSION_COST_POINTS = 4.2
+#: a force bin whose MAE is at least this fraction of its mean force is flagged (issue target: below 20 %)
+REL_MAE_LIMIT = 0.20
 SCENARIO_TEXT = {
     "I": "fixed exertion point, one liver, one material",
     "II": "exertion point varies, one liver, one material",
@@ -78,6 +85,23 @@ def _fmt(v, nd=3) -> str:
     return html.escape(str(v))
 
 
+def _pm(mean, sd, nd=3) -> str:
+    """``mean ± sd`` (``–`` when the mean is unknown, the mean alone when the sd is)."""
+    if mean is None or not np.isfinite(float(mean)):
+        return "–"
+    if sd is None or not np.isfinite(float(sd)):
+        return _fmt(float(mean), nd)
+    return f"{_fmt(float(mean), nd)} ± {_fmt(float(sd), nd)}"
+
+
+def _rel_mae(b: dict) -> float | None:
+    """Relative MAE of a force bin: ``relative_mae``, else MAE / mean force (None when neither is known)."""
+    r = b.get("relative_mae")
+    if r is None and b.get("mean_force_n"):
+        r = b["mae_vec_n"] / b["mean_force_n"]
+    return None if r is None or not np.isfinite(r) else float(r)
+
+
 def _run(run_id) -> str:
     return f"<code>{html.escape(str(run_id))}</code>"
 
@@ -109,6 +133,8 @@ def collect(model_metrics: list[str | Path], manifests: list[str | Path], valida
             "metrics": m.get("metrics", {}), "run_id": m.get("run_id"), "n_cases": m.get("n_cases"),
             "n_train": m.get("n_train"), "n_test": m.get("n_test"), "best_params": m.get("best_params"),
             "seconds": m.get("seconds"), "path": str(p),
+            "metrics_mean": m.get("metrics_mean") or {}, "metrics_sd": m.get("metrics_sd") or {},
+            "n_splits": m.get("n_splits"), "repeats": m.get("repeats") or [],
         })
     shards = []
     for p in manifests:
@@ -116,6 +142,10 @@ def collect(model_metrics: list[str | Path], manifests: list[str | Path], valida
         shards.append({"scenario": Path(p).parent.name, "rows": m["rows"], "failed": m["failed"],
                        "shards": len(m["shards"]), "data_version": m["data_version"], "manifest": str(p)})
     val = json.loads(Path(validation).read_text())
+    missing = [k for k in ("per_liver", "livers", "error_by_force_magnitude") if k not in val]
+    if missing:
+        raise ValueError(f"{validation}: no {', '.join(missing)} (a validation from before the set of unseen "
+                         "livers); re-run the validate stage (snakemake --forcerun validate) and then the report")
     geoms = []
     for p in features:
         f = json.loads(Path(p).read_text())
@@ -136,6 +166,13 @@ def collect(model_metrics: list[str | Path], manifests: list[str | Path], valida
 def table59(data: dict, main_variant: str | None = None) -> list[dict]:
     """Per scenario: our accuracy/MAE without and with the state vector, the study's, and the source run.
 
+    Each cell: ``accuracy_mean`` ± ``accuracy_sd`` and ``mae_mean`` ±
+    ``mae_sd`` over the model's ``n_splits`` repeated seeded train/test splits
+    (``metrics_mean`` / ``metrics_sd`` of its ``metrics.json``; None when the
+    cell comes from a study point, which has one split), and
+    ``accuracy_pct`` / ``mae_vec`` of the saved model's own split (the one its
+    MLflow run logs as ``accuracy_pct``).
+
     Preference for each cell: a fully trained (Ax-tuned) model variant — the
     main variant, else the same encoder, else any — then a point of the
     ``state_vector`` study (trained without Ax), marked as such.
@@ -154,18 +191,49 @@ def table59(data: dict, main_variant: str | None = None) -> list[dict]:
             cell = None
             if cands:
                 m = cands[0]
+                mean, sd = m.get("metrics_mean") or {}, m.get("metrics_sd") or {}
                 cell = {"accuracy_pct": m["metrics"].get("accuracy_pct"), "mae_vec": m["metrics"].get("mae_vec"),
-                        "run_id": m["run_id"], "source": f"model {m['variant']}"}
+                        "accuracy_mean": mean.get("accuracy_pct"), "accuracy_sd": sd.get("accuracy_pct"),
+                        "mae_mean": mean.get("mae_vec"), "mae_sd": sd.get("mae_vec"),
+                        "n_splits": m.get("n_splits"), "run_id": m["run_id"], "source": f"model {m['variant']}"}
             elif sv_study:
                 p = next((p for p in sv_study["points"] if p["scenario"] == sc and p["status"] == "ok"
                           and bool(p["state_vector"]) == want), None)
                 if p:
                     cell = {"accuracy_pct": p["metrics"]["accuracy_pct"], "mae_vec": p["metrics"]["mae_vec"],
-                            "run_id": p.get("run_id"), "source": f"state-vector study ({p['encoder']}, no Ax)"}
+                            "accuracy_mean": None, "accuracy_sd": None, "mae_mean": None, "mae_sd": None,
+                            "n_splits": 1, "run_id": p.get("run_id"),
+                            "source": f"state-vector study ({p['encoder']}, no Ax, one split)"}
             row[key] = cell
             row[f"study_{key}"] = STUDY_ACCURACY.get(sc, {}).get(key)
         out.append(row)
     return out
+
+
+def livers_curve_text(doc: dict) -> str:
+    """One measured sentence on the ``train_livers`` study: does accuracy still rise with more livers?
+
+    Compares the two points with the most training livers actually used
+    (``n_train_geometries``; a requested count above the training livers
+    available uses them all, so such points coincide).
+    """
+    pts = {}
+    for p in doc["points"]:
+        if p["status"] == "ok" and p.get("n_train_geometries"):
+            pts.setdefault(int(p["n_train_geometries"]), p)  # same count twice: the same model
+    if len(pts) < 2:
+        return "<p>Fewer than two distinct numbers of training livers: no trend to read.</p>"
+    ks = sorted(pts)
+    a, b = pts[ks[-2]], pts[ks[-1]]
+    d_acc = b["metrics"]["accuracy_pct"] - a["metrics"]["accuracy_pct"]
+    d_mae = b["metrics"]["mae_vec"] - a["metrics"]["mae_vec"]
+    capped = [p["label"] for p in doc["points"] if p.get("train_livers") and p.get("n_train_geometries")
+              and int(p["train_livers"]) > int(p["n_train_geometries"])]
+    note = (f" (requested {', '.join(html.escape(c) for c in capped)}: only {ks[-1]} training livers exist, so "
+            "those points use them all)") if capped else ""
+    return (f"<p class='livers-trend'>From {ks[-2]} to {ks[-1]} training livers the accuracy on the fixed test "
+            f"livers changed by <b>{d_acc:+.1f} points</b> and the MAE by {d_mae:+.3f} N{note}. One split per "
+            f"point: read changes of a few points against the ± sd of Table 5.9.</p>")
 
 
 # --------------------------------------------------------------------------
@@ -173,35 +241,64 @@ def table59(data: dict, main_variant: str | None = None) -> list[dict]:
 # --------------------------------------------------------------------------
 
 
-def validation_figures(val: dict, out_dir: Path) -> list[Path]:
-    """Error vs force magnitude and error vs distance from the training exertion points (PNG)."""
+def validation_figures(val: dict, out_dir: Path) -> dict[str, Path]:
+    """Error per unseen liver, vs force magnitude and vs distance from the training exertion points (PNG).
+
+    Returns ``{"per_liver" | "force" | "distance": path}`` for the figures the data allow.
+    """
     from liverforce.learn.plots import _plt
 
     plt = _plt()
     out_dir.mkdir(parents=True, exist_ok=True)
-    paths = []
+    paths = {}
+
+    def save(fig, key, name):
+        path = out_dir / name
+        fig.tight_layout()
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, format="png")
+        plt.close(fig)
+        paths[key] = path
+
+    per = val.get("per_liver") or {}
+    if per:
+        ids = list(per)
+        mae = np.array([per[g]["mae_vec"] for g in ids])
+        lv = val["livers"]
+        fig, ax = plt.subplots(figsize=(max(4.6, 0.45 * len(ids) + 1.5), 3.6), dpi=100)
+        colours = ["C3" if g == lv["worst"] else "C1" for g in ids]
+        ax.bar(range(len(ids)), mae, color=colours)
+        m, sd = lv["mean"]["mae_vec"], lv["sd"]["mae_vec"]
+        ax.axhspan(m - sd, m + sd, color="0.85", zorder=0, label=f"mean ± sd {m:.3f} ± {sd:.3f} N")
+        ax.axhline(m, color="0.3", lw=1)
+        ax.set_xticks(range(len(ids)))
+        ax.set_xticklabels(ids, rotation=45, ha="right", fontsize=7)
+        ax.set_ylabel("MAE (N)")
+        ax.set_title(f"MAE per unseen liver (worst: {lv['worst']})", fontsize=9)
+        ax.set_ylim(0, float(mae.max()) * 1.3)  # head room for the legend
+        ax.legend(fontsize=7, loc="upper left")
+        ax.grid(alpha=0.3, axis="y")
+        save(fig, "per_liver", "validation_mae_per_liver.png")
     pred = val.get("predictions") or {}
     if pred.get("true_n"):
         t = np.asarray(pred["true_n"], dtype=float)
         p = np.asarray(pred["pred_n"], dtype=float)
         err = np.linalg.norm(p - t, axis=1)
         mag = np.linalg.norm(t, axis=1)
-        fig, ax = plt.subplots(figsize=(4.6, 3.6), dpi=100)
-        ax.scatter(mag, err, s=10, alpha=0.7, label="case")
+        fig, ax = plt.subplots(figsize=(4.6, 3.9), dpi=100)
+        ax.scatter(mag, err, s=10, alpha=0.6, label="case")
+        line = np.array([0.0, float(mag.max())])
+        ax.plot(line, REL_MAE_LIMIT * line, "--", color="0.4", lw=1, label=f"{100 * REL_MAE_LIMIT:.0f} % of |F|")
         bins = val.get("error_by_force_magnitude", [])
         if bins:
-            ax.plot([(b["force_lo_n"] + b["force_hi_n"]) / 2 for b in bins], [b["mae_vec_n"] for b in bins],
-                    "o-", color="C3", label="MAE per bin")
+            ax.plot([b.get("mean_force_n", (b["force_lo_n"] + b["force_hi_n"]) / 2) for b in bins],
+                    [b["mae_vec_n"] for b in bins], "o-", color="C3", label="MAE per bin")
         ax.set_xlabel("true |F| (N)")
         ax.set_ylabel("|F_pred − F_true| (N)")
-        ax.set_title("unseen liver: error vs force magnitude", fontsize=9)
-        ax.legend(fontsize=7)
+        ax.set_title("unseen livers: error vs force magnitude", fontsize=9)
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=3, frameon=False)  # off the data
         ax.grid(alpha=0.3)
-        fig.tight_layout()
-        path = out_dir / "validation_error_vs_force.png"
-        fig.savefig(path)
-        plt.close(fig)
-        paths.append(path)
+        save(fig, "force", "validation_error_vs_force.png")
     ed = val.get("error_vs_distance") or {}
     if ed.get("distance_mm"):
         fig, ax = plt.subplots(figsize=(4.6, 3.6), dpi=100)
@@ -209,13 +306,9 @@ def validation_figures(val: dict, out_dir: Path) -> list[Path]:
         ax.set_xlabel("distance to nearest training exertion point (mm)")
         ax.set_ylabel("|F_pred − F_true| (N)")
         r = val.get("corr_error_distance")
-        ax.set_title(f"unseen liver: error vs distance (r = {_fmt(r, 2)})", fontsize=9)
+        ax.set_title(f"unseen livers: error vs distance (r = {_fmt(r, 2)})", fontsize=9)
         ax.grid(alpha=0.3)
-        fig.tight_layout()
-        path = out_dir / "validation_error_vs_distance.png"
-        fig.savefig(path)
-        plt.close(fig)
-        paths.append(path)
+        save(fig, "distance", "validation_error_vs_distance.png")
     return paths
 
 
@@ -225,8 +318,14 @@ def validation_figures(val: dict, out_dir: Path) -> list[Path]:
 
 
 def write_report(data: dict, pictures: list[str | Path], experiment: str, out_html: str | Path,
-                 solver_stats: dict | None = None, setup: dict | None = None) -> Path:
+                 solver_stats: dict | None = None, setup: dict | None = None,
+                 population_png: str | Path | None = None) -> Path:
     """Write the HTML page (atomically) and its figures under ``report/figures``.
+
+    ``population_png``: the population picture
+    (:func:`liverforce.report.population.population_figure`), shown in the
+    setup section; ``setup["population"]``: ``{"training": [ids], "unseen":
+    [ids], "volume_range_l": [lo, hi]}`` names each liver's role.
 
     ``solver_stats``: ``{"overall": {...}, "per_scenario": {scenario: {...}}, "reasons": {...}}``
     or a flat dict (shown as one line). ``setup``: config slices shown in the
@@ -252,20 +351,35 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
     # ------------------------------------------------------------ headline
     parts.append("<h2 id='headline'>Headline: the study's Table 5.9, ours beside it</h2>")
     rows = []
-    for r in table59(data, main_variant):
+    t59 = table59(data, main_variant)
+    ours = [r[k] for r in t59 for k in ("without", "with") if r[k]]
+    splits = sorted({c["n_splits"] for c in ours if c["n_splits"] and c["accuracy_mean"] is not None})
+    for r in t59:
         cells = [r["scenario"], html.escape(SCENARIO_TEXT.get(r["scenario"], ""))]
         for key in ("without", "with"):
             c = r[key]
-            if c:
-                cells.append(f"{_fmt(c['accuracy_pct'], 1)} %<br><small>MAE {_fmt(c['mae_vec'])} N; "
-                             f"{html.escape(c['source'])}</small>{_small_run(c['run_id'])}")
+            if c and c["accuracy_mean"] is not None:
+                cells.append(f"<span class='pm'>{_pm(c['accuracy_mean'], c['accuracy_sd'], 1)} %</span><br>"
+                             f"<small>MAE {_pm(c['mae_mean'], c['mae_sd'])} N; {c['n_splits']} splits<br>"
+                             f"saved model's split: <span class='split'>{_fmt(c['accuracy_pct'], 1)} %</span>, "
+                             f"MAE {_fmt(c['mae_vec'])} N; {html.escape(c['source'])}</small>"
+                             f"{_small_run(c['run_id'])}")
+            elif c:
+                cells.append(f"<span class='split'>{_fmt(c['accuracy_pct'], 1)} %</span><br><small>MAE "
+                             f"{_fmt(c['mae_vec'])} N; {html.escape(c['source'])}</small>{_small_run(c['run_id'])}")
             else:
                 cells.append("– <small>(not trained)</small>")
             cells.append(f"{_fmt(r[f'study_{key}'], 1)} %")
         rows.append(cells)
-    parts.append("<p>Accuracy on the held-out test split of each scenario (scenario IV: test livers never seen "
-                 "in training), deformation only and with the state vector, beside the study's published values "
-                 "(ANSYS data, 24 CT livers).</p>")
+    n_txt = (f"{splits[0]}" if len(splits) == 1 else "/".join(map(str, splits))) if splits else "–"
+    parts.append(f"<p>Accuracy on the held-out test split of each scenario (scenario IV: test livers never seen "
+                 f"in training), deformation only and with the state vector, beside the study's published values "
+                 f"(ANSYS data, 24 CT livers). <b>Our cells are mean ± sd over {n_txt} repeated seeded "
+                 f"train/test splits</b> (<code>train.repeats</code>: the chosen configuration refitted on each "
+                 f"split; sample sd); below it, the single split of the saved model (the one served, validated and "
+                 f"logged as <code>accuracy_pct</code> in its MLflow run; the run also holds "
+                 f"<code>accuracy_pct_mean</code>/<code>_sd</code>). The study reported one split, without "
+                 f"spread.</p>")
     parts.append(_table(["scenario", "what varies", "ours: deformation only", "study: deformation only",
                          "ours: with state vector", "study: with state vector"], rows, cls="t59"))
 
@@ -287,34 +401,63 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
                      f"settings, only the encoder changes (trained without Ax, {enc['epochs']} epochs; details in "
                      f"the studies section).</p>")
         parts.append(_table(["scenario", *[e.upper() for e in encs]], rows))
-    parts.append(f"<p><b>Unseen-liver validation</b> (a liver shape and material constants never seen in "
-                 f"training): MAE <b>{_fmt(vm['mae_vec'])} N</b>, accuracy {_fmt(vm['accuracy_pct'], 1)} % over "
-                 f"{v['n_cases']} cases; the study: MAE {_fmt(STUDY_VALIDATION_MAE_N)} N. "
-                 f"{_small_run(v.get('run_id'))}</p>")
+    lv = v["livers"]
+    worst = lv["worst"]
+    scale = (setup.get("validate") or {}).get("material_scale")
+    parts.append(
+        f"<p id='unseen-headline'><b>Unseen-liver validation</b> ({lv['n']} liver shapes never seen in training"
+        + (f", material constants × {_fmt(scale, 2)}" if scale is not None else "") + "): MAE "
+        f"<b>{_pm(lv['mean']['mae_vec'], lv['sd']['mae_vec'])} N</b>, accuracy "
+        f"<b>{_pm(lv['mean']['accuracy_pct'], lv['sd']['accuracy_pct'], 1)} %</b> (mean ± sd over the "
+        f"{lv['n']} livers); worst liver <code>{html.escape(str(worst))}</code> (MAE "
+        f"{_fmt(v['per_liver'][worst]['mae_vec'])} N). All {v['n_cases']} cases pooled: MAE "
+        f"{_fmt(vm['mae_vec'])} N, accuracy {_fmt(vm['accuracy_pct'], 1)} %. The study: MAE "
+        f"{_fmt(STUDY_VALIDATION_MAE_N)} N on one liver. {_small_run(v.get('run_id'))}</p>")
 
     # ------------------------------------------------------------ setup
     parts.append("<h2 id='setup'>Setup</h2>")
-    parts.append("<h3>Livers</h3><p>Procedural livers (seeded) or imported segmentations, meshed with "
-                 "tetrahedra. Pictures: the boundary regions (fixed vena cava patch, ligament and visceral "
-                 "springs, rib contact, the visible surface where the tool may push). "
-                 "<code>val-…</code> is the unseen validation liver.</p>")
+    pop = setup.get("population") or {}
+    unseen = set(pop.get("unseen") or [g["id"] for g in data["geometries"] if g["id"].startswith("val-")])
+    first = (pop.get("training") or [g["id"] for g in data["geometries"] if g["id"] not in unseen] or [None])[0]
+    n_train = sum(g["id"] not in unseen for g in data["geometries"])
+    parts.append(f"<h3>Livers</h3><p>Procedural livers (seeded) or imported segmentations, meshed with "
+                 f"tetrahedra: {n_train} training livers (scenario IV; scenarios I–III use the first, "
+                 f"<code>{html.escape(str(first))}</code>) and {len(unseen)} unseen livers (<code>val-…</code>, "
+                 f"held-out seeds, validation only).</p>")
+    if population_png:
+        vr = pop.get("volume_range_l")
+        parts.append("<figure class='population'>" + f"<img src='{_rel(population_png, out_dir)}' "
+                     "style='max-width:100%'><figcaption>The liver population: the top view (x–y, seen from "
+                     "superior; x patient right, y anterior) of every liver surface at the same scale, labelled "
+                     "by id and volume, training livers in blue, unseen validation livers in orange; below, "
+                     "the histogram of their volumes"
+                     + (f" (procedural volumes are drawn in {vr[0]:g}–{vr[1]:g} L, shaded)" if vr else "")
+                     + ".</figcaption></figure>")
     rows = []
     for g in data["geometries"]:
         vol = g.get("volume_mm3")
         ext = g.get("extent_mm")
-        rows.append([html.escape(g["id"]), _fmt(vol / 1e6 if vol else None, 3),
+        role = "unseen" if g["id"] in unseen else ("training, I–IV" if g["id"] == first else "training")
+        rows.append([html.escape(g["id"]), role, _fmt(vol / 1e6 if vol else None, 3),
                      " × ".join(f"{e:.0f}" for e in ext) if ext else "–", _fmt(g.get("n_nodes"), 0),
                      _fmt(g.get("n_tets"), 0), _fmt(g.get("meshing_time_s"), 1)])
-    parts.append(_table(["geometry", "volume (L)", "extent (mm)", "nodes", "tets", "meshing (s)"], rows))
-    parts.append("<div class='pics'>" + "".join(
-        _figure(p, out_dir, Path(p).name.removesuffix(".regions.png"), 360) for p in pictures) + "</div>")
+    parts.append(_table(["geometry", "role", "volume (L)", "extent (mm)", "nodes", "tets", "meshing (s)"], rows,
+                        cls="geometries"))
+    pics = "<div class='pics'>" + "".join(
+        _figure(p, out_dir, Path(p).name.removesuffix(".regions.png"), 300) for p in pictures) + "</div>"
+    what = ("the boundary regions (fixed vena cava patch, ligament and visceral springs, rib contact, the "
+            "visible surface where the tool may push)")
+    if len(pictures) > 6:
+        parts.append(f"<details><summary>Pictures of {what}, per liver ({len(pictures)})</summary>{pics}</details>")
+    elif pictures:
+        parts.append(f"<p>Pictures: {what}.</p>{pics}")
     mat = setup.get("material")
     if mat:
         consts = ", ".join(f"{k} = {val:g}" for k, val in (mat.get("params_mpa") or {}).items())
         parts.append(f"<h3>Material</h3><p>{html.escape(str(mat.get('model')))} hyperelastic, constants (MPa): "
                      f"{html.escape(consts)}; Poisson ratio {_fmt(mat.get('nu'), 3)} (nearly incompressible). "
                      f"Where the material varies, each constant is drawn within ±{100 * mat.get('vary_rel', 0):.0f} %"
-                     f" (unstable sets refused before solving). Validation liver: constants × "
+                     f" (unstable sets refused before solving). Unseen validation livers: constants × "
                      f"{_fmt((setup.get('validate') or {}).get('material_scale'), 2)} (outside the training range)."
                      "</p>")
     bnd = setup.get("boundary")
@@ -366,42 +509,99 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
 
     # ------------------------------------------------------------ every model
     parts.append("<h2 id='models'>Accuracy per scenario and variant (every trained model)</h2>")
+    parts.append("<p>Mean ± sd over the repeated seeded splits (<code>train.repeats</code>), then the saved "
+                 "model's own split (the numbers of its MLflow run's <code>accuracy_pct</code>, <code>mae_vec</code>"
+                 ", …).</p>")
     rows = []
     for m in sorted(data["models"], key=lambda m: (m["scenario"], m["variant"])):
         sv = "with" if m.get("state_vector") else "without"
         study = STUDY_ACCURACY.get(m["scenario"], {}).get(sv)
-        mt = m["metrics"]
+        mt, mean, sd = m["metrics"], m["metrics_mean"], m["metrics_sd"]
         rows.append([m["scenario"], html.escape(m["variant"]), html.escape(str(m.get("encoder"))), sv,
-                     _fmt(mt.get("accuracy_pct"), 1), _fmt(study, 1), _fmt(mt.get("mae_vec")), _fmt(mt.get("rmse_vec")),
-                     _fmt(mt.get("mae_x")), _fmt(mt.get("mae_y")), _fmt(mt.get("mae_z")),
-                     _run(m.get("run_id")), _fmt(m.get("n_train"), 0), _fmt(m.get("n_test"), 0),
+                     _pm(mean.get("accuracy_pct"), sd.get("accuracy_pct"), 1), _pm(mean.get("mae_vec"), sd.get("mae_vec")),
+                     _fmt(m.get("n_splits"), 0), _fmt(mt.get("accuracy_pct"), 1), _fmt(study, 1),
+                     _fmt(mt.get("mae_vec")), _fmt(mt.get("rmse_vec")),
+                     " / ".join(_fmt(mt.get(f"mae_{a}")) for a in "xyz"),
+                     _run(m.get("run_id")), f"{_fmt(m.get('n_train'), 0)} / {_fmt(m.get('n_test'), 0)}",
                      _fmt(m.get("seconds"), 0)])
-    parts.append(_table(["scenario", "variant", "encoder", "state vector", "accuracy %", "study %", "MAE (N)",
-                         "RMSE (N)", "MAE x", "MAE y", "MAE z", "MLflow run", "train cases", "test cases",
-                         "train time (s)"], rows))
+    parts.append(_table(["scenario", "variant", "encoder", "state vector", "accuracy % mean ± sd", "MAE (N) mean ± sd",
+                         "splits", "accuracy % (saved split)", "study %", "MAE (N) (saved split)", "RMSE (N)",
+                         "MAE x / y / z (N)", "MLflow run", "train / test cases", "train time (s)"], rows,
+                        cls="models", row_cls="model"))
 
     # ------------------------------------------------------------ validation
-    parts.append("<h2 id='validation'>Unseen liver (validation)</h2>")
+    parts.append("<h2 id='validation'>Unseen livers (validation)</h2>")
     chosen = v.get("model_variant")
     why = v.get("variant_choice")
-    parts.append("<p>A scenario-IV model predicts every case simulated on a liver shape and with material "
-                 "constants it never saw in training"
+    n_liv = lv["n"]
+    parts.append(f"<p>A scenario-IV model predicts every case simulated on {n_liv} liver shapes it never saw in "
+                 "training (held-out seeds; no seed, geometry or case shared with training), with material "
+                 "constants outside the training range"
                  + (f": variant <code>{html.escape(str(chosen))}</code>, chosen by {html.escape(str(why))}"
-                    if chosen else "") + ".</p>")
-    parts.append(_table(["cases", "MAE (N)", "RMSE (N)", "accuracy %", "study MAE (N)", "MLflow run", "model run"],
-                        [[v["n_cases"], _fmt(vm["mae_vec"]), _fmt(vm["rmse_vec"]), _fmt(vm["accuracy_pct"], 1),
-                          _fmt(STUDY_VALIDATION_MAE_N), _run(v.get("run_id")), _run(v.get("model_run_id"))]]))
+                    if chosen else "") + ". Each liver weighs the same in the mean ± sd (sample sd over the "
+                 "livers), whatever its number of converged cases.</p>")
+    vols = {g["id"]: g.get("volume_mm3") for g in data["geometries"]}
+    rows = []
+    for gid, m in v["per_liver"].items():
+        name = f"<b>{html.escape(gid)}</b> <small>(worst)</small>" if gid == worst else html.escape(gid)
+        vol = vols.get(gid)
+        rows.append([name, _fmt(vol / 1e6 if vol else None, 2), m["n"], _fmt(m["mae_vec"]), _fmt(m["rmse_vec"]),
+                     _fmt(m["accuracy_pct"], 1)])
+    per = _table(["liver", "volume (L)", "cases", "MAE (N)", "RMSE (N)", "accuracy %"], rows, cls="per-liver",
+                 row_cls="liver")
+    foot = (f"<tr class='livers-mean'><th>mean ± sd ({n_liv} livers)</th><td></td><td>{v['n_cases']}</td>"
+            f"<td>{_pm(lv['mean']['mae_vec'], lv['sd']['mae_vec'])}</td>"
+            f"<td>{_pm(lv['mean']['rmse_vec'], lv['sd']['rmse_vec'])}</td>"
+            f"<td>{_pm(lv['mean']['accuracy_pct'], lv['sd']['accuracy_pct'], 1)}</td></tr>"
+            f"<tr class='livers-pooled'><th>all cases pooled</th><td></td><td>{v['n_cases']}</td>"
+            f"<td>{_fmt(vm['mae_vec'])}</td><td>{_fmt(vm['rmse_vec'])}</td><td>{_fmt(vm['accuracy_pct'], 1)}</td></tr>")
+    vfigs = validation_figures(v, out_dir / "figures")
+    table = per.replace("</tbody>", "</tbody><tfoot>" + foot + "</tfoot>")
+    fig = (_figure(vfigs["per_liver"], out_dir, "MAE per unseen liver; the band is the mean ± sd over the livers, "
+                   "the worst liver in red.", 460) if "per_liver" in vfigs else "")
+    parts.append(f"<h3>Per unseen liver</h3><div class='side'>{table}{fig}</div>")
+    parts.append(f"<p>Worst liver: <code>{html.escape(str(worst))}</code> (largest MAE). The study's single "
+                 f"unseen liver: MAE {_fmt(STUDY_VALIDATION_MAE_N)} N. MLflow: validation run "
+                 f"{_run(v.get('run_id'))} (per-liver mean/sd as <code>mae_vec_livers_mean</code>, "
+                 f"<code>…_sd</code>), model run {_run(v.get('model_run_id'))}.</p>")
     allv = v.get("all_variants") or {}
     if len(allv) > 1:
-        parts.append("<p>Every scenario-IV variant on the same unseen cases:</p>")
-        parts.append(_table(["variant", "MAE (N)", "RMSE (N)", "accuracy %", "model run"],
-                            [[html.escape(name), _fmt(d["metrics"]["mae_vec"]), _fmt(d["metrics"]["rmse_vec"]),
-                              _fmt(d["metrics"]["accuracy_pct"], 1), _run(d.get("model_run_id"))]
-                             for name, d in allv.items()]))
+        parts.append("<h3>Every scenario-IV variant on the same unseen livers</h3>")
+        rows = []
+        for name, d in allv.items():
+            dl = d.get("livers") or {}
+            mean, sd = dl.get("mean") or {}, dl.get("sd") or {}
+            label = html.escape(name) + (" <small>(validated)</small>" if name == chosen else "")
+            rows.append([label, _pm(mean.get("mae_vec"), sd.get("mae_vec")),
+                         _pm(mean.get("accuracy_pct"), sd.get("accuracy_pct"), 1),
+                         f"<code>{html.escape(str(dl.get('worst', '–')))}</code>", _fmt(d["metrics"]["mae_vec"]),
+                         _fmt(d["metrics"]["rmse_vec"]), _fmt(d["metrics"]["accuracy_pct"], 1),
+                         _run(d.get("model_run_id"))])
+        parts.append(_table(["variant", "MAE (N), mean ± sd over livers", "accuracy %, mean ± sd over livers",
+                             "worst liver", "MAE pooled (N)", "RMSE pooled (N)", "accuracy pooled %", "model run"],
+                            rows, cls="variants", row_cls="variant"))
     parts.append("<h3>Error against force magnitude</h3>")
-    parts.append(_table(["|F| from (N)", "to (N)", "cases", "MAE (N)"],
-                        [[_fmt(b["force_lo_n"], 2), _fmt(b["force_hi_n"], 2), b["n"], _fmt(b["mae_vec_n"])]
-                         for b in v.get("error_by_force_magnitude", [])]))
+    bins = v["error_by_force_magnitude"]
+    flagged = [b for b in bins if _rel_mae(b) is not None and _rel_mae(b) >= REL_MAE_LIMIT]
+    parts.append(f"<p>All unseen cases in equal-width bins of the true force magnitude. Relative MAE = MAE / the "
+                 f"bin's mean |F|; the target is below {100 * REL_MAE_LIMIT:.0f} % in every bin (a model biased "
+                 f"towards a constant force fails it in the lowest bin). "
+                 + (f"<b class='flag'>{len(flagged)} of {len(bins)} bins at or above "
+                    f"{100 * REL_MAE_LIMIT:.0f} %</b> (marked ⚠)." if flagged else
+                    f"Every bin is below {100 * REL_MAE_LIMIT:.0f} %.") + "</p>")
+    rows = []
+    for b in bins:
+        r = _rel_mae(b)
+        bad = r is not None and r >= REL_MAE_LIMIT
+        rel = "–" if r is None else f"{100 * r:.1f} %"
+        rows.append([_fmt(b["force_lo_n"], 2), _fmt(b["force_hi_n"], 2), b["n"], _fmt(b.get("mean_force_n"), 2),
+                     _fmt(b["mae_vec_n"]), f"<b class='flag'>{rel} ⚠</b>" if bad else rel])
+    table = _table(["|F| from (N)", "to (N)", "cases", "mean |F| (N)", "MAE (N)", "relative MAE"], rows,
+                   cls="force-bins", row_cls="force-bin")
+    fig = (_figure(vfigs["force"], out_dir, f"Error of every unseen case against its true force magnitude; red: "
+                   f"the MAE per bin at the bin's mean |F|; dashed: {100 * REL_MAE_LIMIT:.0f} % of |F| (the "
+                   f"target is below it).", 420) if "force" in vfigs else "")
+    parts.append(f"<div class='side'>{table}{fig}</div>")
     ed = v.get("error_vs_distance") or {}
     if ed.get("distance_mm"):
         d = np.asarray(ed["distance_mm"], dtype=float)
@@ -411,7 +611,9 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
                      f"{_fmt(v.get('corr_error_distance'), 2)}.</p>")
     val_dir = Path(data.get("validation_dir", out_dir))
     figs = [val_dir / f for f in v.get("figures", [])]
-    figs += validation_figures(v, out_dir / "figures")
+    if "distance" in vfigs:
+        figs.append(vfigs["distance"])
+    parts.append("<h3>Predicted against true force, all unseen cases</h3>")
     parts.append("<div class='pics'>" + "".join(_figure(f, out_dir, width=380) for f in figs) + "</div>")
 
     # ------------------------------------------------------------ studies
@@ -431,15 +633,19 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
         png = Path(d["path"]).with_suffix(".png")
         if png.exists():
             parts.append(_figure(png, out_dir, width=760))
+        if name == "train_livers":
+            parts.append(livers_curve_text(d))
         rows = []
         for p in d["points"]:
             mt = p.get("metrics") or {}
             status = "ok" if p["status"] == "ok" else f"failed: {p.get('reason', '')}"
             rows.append([html.escape(name), p["scenario"], html.escape(p["label"]), _fmt(mt.get("accuracy_pct"), 1),
-                         _fmt(mt.get("mae_vec")), _fmt(mt.get("rmse_vec")), _fmt(p.get("roi_nodes_mean"), 0),
+                         _fmt(mt.get("mae_vec")), _fmt(mt.get("rmse_vec")), _fmt(p.get("n_train_geometries"), 0),
+                         _fmt(p.get("n_train"), 0), _fmt(p.get("roi_nodes_mean"), 0),
                          _fmt(p.get("seconds"), 1), html.escape(status), _run(p.get("run_id"))])
-        parts.append(_table(["study", "scenario", "setting", "accuracy %", "MAE (N)", "RMSE (N)", "ROI nodes",
-                             "time (s)", "status", "MLflow run"], rows, row_cls="study-point"))
+        parts.append(_table(["study", "scenario", "setting", "accuracy %", "MAE (N)", "RMSE (N)", "training livers",
+                             "training cases", "ROI nodes", "time (s)", "status", "MLflow run"], rows,
+                            row_cls="study-point"))
 
     # ------------------------------------------------------------ MLflow
     trk = setup.get("tracking") or {}
@@ -458,10 +664,14 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
              "table{border-collapse:collapse;margin:8px 0}td,th{border:1px solid #bbb;padding:3px 8px;"
              "text-align:right;vertical-align:top}th{background:#f0f0f0}small{color:#555}"
              ".t59 td:nth-child(4),.t59 td:nth-child(6){color:#666}"
+             ".t59 .pm{font-weight:bold}.t59 td:nth-child(2){text-align:left}"
+             ".models td{white-space:nowrap}.models{font-size:13px}.models code{font-size:11px}"
+             ".side{display:flex;flex-wrap:wrap;gap:24px;align-items:flex-start}"
+             ".side figure,.pics figure{display:table}.side figcaption,.pics figcaption{display:table-caption;"
+             "caption-side:bottom}.flag{color:#b00}tfoot th,tfoot td{background:#f7f7f7;font-weight:bold}"
+             "tfoot th{text-align:left}.population img{border:1px solid #ddd}summary{cursor:pointer;margin:6px 0}"
              ".pics{display:flex;flex-wrap:wrap;gap:8px}figure{margin:4px}figcaption{font-size:small}</style>")
     doc = (f"<!doctype html><html><head><meta charset='utf-8'><title>liverforce {html.escape(experiment)}</title>"
            f"{style}</head><body>{''.join(parts)}</body></html>")
-    tmp = out_html.with_name(f".{out_html.name}.tmp")
-    tmp.write_text(doc)
-    tmp.replace(out_html)
+    write_text_atomic(out_html, doc)
     return out_html

@@ -8,6 +8,7 @@ rule report:
         validation=f"{E}/validate/metrics.json",
         features=expand(f"{E}/mesh/{{gid}}.features.json", gid=PLAN.all_geometries),
         pictures=expand(f"{E}/mesh/{{gid}}.regions.png", gid=PLAN.all_geometries),
+        surfaces=expand(f"{E}/geometry/{{gid}}.ply", gid=PLAN.all_geometries),
         studies=expand(f"{E}/studies/{{study}}.json", study=STUDY_NAMES),
     output:
         html=f"{E}/report/index.html",
@@ -26,6 +27,11 @@ rule report:
             "tune": {k: v for k, v in config_slice("tune").items() if k != "space"},
             "tracking": config_slice("tracking"),
             "tracking_uri": TRACKING_URI,
+            "population": {
+                "training": PLAN.train_geometries,
+                "unseen": PLAN.validation_geometries,
+                "volume_range_l": config_slice("geometry", "procedural", "shape").get("volume_range_l"),
+            },
         },
     log:
         f"{E}/logs/report/report.log",
