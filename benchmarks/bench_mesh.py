@@ -1,6 +1,17 @@
 """Benchmark of the geometry and mesh stages (liverforce.geometry, liverforce.mesh).
 
-Prints, per geometry, the median over ``--repeats`` runs of:
+First, the PIPELINE meshing as the mesh rule runs it
+(:func:`liverforce.pipeline.mesh.make_mesh` with the composed config's ``mesh``,
+``seed`` and ``sweep.exertion``, on the geometry stage's PLY of each liver):
+seconds per liver (the ``meshing_time_s`` the stage records, i.e. the
+``build_liver_mesh`` call, and the whole ``make_mesh`` call with region check,
+features, VTU and picture, in wall time and in this process's CPU time, which
+other jobs on a shared machine disturb less), remesh attempts, node count against the target and
+the minimum radius ratio, with the median over the livers. Default config on
+proc-0000..0003 (``--livers``) and the smoke config (``experiment=smoke``) on
+its own livers. Issue #14: <= 5 s per liver at the default resolution.
+
+Then, per geometry, the median over ``--repeats`` runs of:
 
 1. surface generation / import time;
 2. ``tetrahedralise`` wall time at the default resolution (~5k nodes) and at
@@ -12,21 +23,24 @@ Prints, per geometry, the median over ``--repeats`` runs of:
 Geometries: procedural livers (seeds 0, 1, 2), the 50 mm cube phantom and,
 when ../shared/data/livers exists, the SOFA liver-smooth.obj (units=40).
 
-Usage: ``python benchmarks/bench_mesh.py [--repeats N] [--quick] [--mesher gmsh|tetgen]``
-(``--quick``: one procedural liver and the cube, 5k nodes only, 1 repeat).
+Usage: ``python benchmarks/bench_mesh.py [--repeats N] [--quick] [--mesher gmsh|tetgen]
+[--only pipeline|tetra] [--livers N]``
+(``--quick``: pipeline on two livers, then one procedural liver and the cube, 5k nodes only, 1 repeat;
+``--only pipeline``: the pipeline meshing figures alone).
 """
 
 from __future__ import annotations
 
 import argparse
-import os
 import statistics
 import sys
+import tempfile
 import time
 from pathlib import Path
 
-for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
-    os.environ.setdefault(_v, "1")
+from liverforce.pipeline.job import thread_env
+
+thread_env(1, override=False)
 
 ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
@@ -53,6 +67,64 @@ def median_time(fn, repeats: int):
     return statistics.median(times), out
 
 
+def pipeline_meshing(experiment: str, livers: int | None) -> list[dict]:
+    """Mesh the experiment's first training livers as the mesh rule does; one row per liver.
+
+    The surfaces are made by the geometry stage (PLY + JSON in a temporary
+    folder; not timed). Meshing is deterministic, so each liver is meshed once
+    and the figure is the median over livers.
+    """
+    from liverforce.config import compose
+    from liverforce.pipeline.geometry import make_geometry
+    from liverforce.pipeline.mesh import make_mesh
+    from liverforce.pipeline.plan import Plan
+
+    cfg = compose([f"experiment={experiment}"])
+    plan = Plan(cfg)
+    gids = [g for g in plan.train_geometries if g.startswith("proc-")]
+    if livers is not None:
+        seed0 = cfg["geometry"]["procedural"]["seed"]
+        gids = [f"proc-{seed0 + i:04d}" for i in range(livers)]
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="bench_mesh_") as tmp:
+        for gid in gids:
+            surface = Path(tmp) / f"{gid}.ply"
+            make_geometry(plan.geometry_spec(gid), surface, surface.with_suffix(".json"))
+            t0, c0 = time.perf_counter(), time.process_time()
+            feats = make_mesh(surface, cfg["mesh"], cfg["seed"], Path(tmp) / f"{gid}.vtu",
+                              Path(tmp) / f"{gid}.features.json", Path(tmp) / f"{gid}.regions.png",
+                              exertion=cfg["sweep"]["exertion"])
+            total, cpu = time.perf_counter() - t0, time.process_time() - c0
+            meshing = feats["provenance"]["meshing"]
+            rows.append({"experiment": experiment, "gid": gid, "mesh_s": feats["meshing_time_s"], "stage_s": total,
+                         "cpu_s": cpu,
+                         "attempts": len(meshing["attempts"]), "nodes": feats["n_nodes"],
+                         "target": cfg["mesh"]["target_nodes"], "route": meshing["route"],
+                         "h": meshing["edge_length_mm"], "rr_min": feats["quality"]["radius_ratio_min"],
+                         "tries": " ".join(f"{a['edge_length_mm']:.1f}:{a['n_nodes']}" for a in meshing["attempts"])})
+            r = rows[-1]
+            print(f"{experiment:8s} {gid:10s} {r['mesh_s']:7.2f} {r['stage_s']:8.2f} {r['cpu_s']:6.2f} "
+                  f"{r['attempts']:5d} {r['nodes']:6d} {r['target']:6d} {r['route']:>9s} {r['rr_min']:6.3f}  "
+                  f"{r['tries']}", flush=True)
+    return rows
+
+
+def run_pipeline(quick: bool, livers: int) -> None:
+    print("\n== pipeline meshing (pipeline.mesh.make_mesh as the mesh rule runs it; one run per liver) ==")
+    print(f"{'config':8s} {'liver':10s} {'mesh s':>7s} {'stage s':>8s} {'cpu s':>6s} {'tries':>5s} {'nodes':>6s} "
+          f"{'target':>6s} {'route':>9s} {'rr min':>6s}  attempts (h mm:nodes)")
+    summary = []
+    for experiment, n in (("default", 2 if quick else livers), ("smoke", 2 if quick else None)):
+        rows = pipeline_meshing(experiment, n)
+        med = lambda key: statistics.median(r[key] for r in rows)  # noqa: E731
+        summary.append(f"{experiment:8s} {len(rows)} livers: median {med('mesh_s'):.2f} s per liver "
+                       f"(stage {med('stage_s'):.2f} s, stage CPU {med('cpu_s'):.2f} s), "
+                       f"attempts {[r['attempts'] for r in rows]}, "
+                       f"nodes {[r['nodes'] for r in rows]} (target {rows[0]['target']}), "
+                       f"min rr {min(r['rr_min'] for r in rows):.3f}")
+    print("\n".join(summary))
+
+
 def geometries(quick: bool):
     items = [("procedural seed 0", lambda: procedural_liver(0))]
     if not quick:
@@ -71,7 +143,13 @@ def main() -> int:
     ap.add_argument("--repeats", type=int, default=3, help="timed repeats per measurement (median reported)")
     ap.add_argument("--quick", action="store_true", help="one liver + cube, 5k nodes, 1 repeat")
     ap.add_argument("--mesher", default="gmsh", choices=("gmsh", "tetgen"))
+    ap.add_argument("--only", choices=("pipeline", "tetra"), help="run one part only")
+    ap.add_argument("--livers", type=int, default=4, help="default-config livers for the pipeline part (proc-0000..)")
     args = ap.parse_args()
+    if args.only != "tetra":
+        run_pipeline(args.quick, args.livers)
+        if args.only == "pipeline":
+            return 0
     repeats = 1 if args.quick else max(1, args.repeats)
     targets = (5000,) if args.quick else (5000, 20000)
     print(f"bench_mesh: mesher={args.mesher}, repeats={repeats} (medians), targets={targets}, 1 thread")

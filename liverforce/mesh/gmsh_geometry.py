@@ -12,9 +12,15 @@ Routes (see :func:`liverforce.mesh.tetra.tetrahedralise`):
   geometry, so the mesh conforms to them.
 
 ``createGeometry`` then reparametrises the patches.
+
+What a route computes from the surface alone (the two-patch split and its cut
+loop; the cleaned labels, their disc patches and borders) is prepared once per
+route by :func:`prepare_geometry`, not on every remesh attempt.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -23,16 +29,57 @@ from liverforce.mesh.meshing_info import MeshingError
 from liverforce.mesh.patches import cut_loop, disc_patches, two_patch_labels
 from liverforce.mesh.surface_labels import clean_labels, label_boundary_edges, patch_majority
 
-__all__ = ["load_geometry"]
+__all__ = ["PreparedGeometry", "load_geometry", "prepare_geometry"]
+
+
+@dataclass(frozen=True)
+class PreparedGeometry:
+    """Per-face data of a route that depends on the surface (and its labels) only.
+
+    ``"two_patch"``: ``labels`` are the two patches (0, 1), ``loop`` the cut
+    between them; ``"labelled"``: ``labels`` are the cleaned labels (each disc
+    patch at its majority label), ``patches`` the disc patches, ``border`` the
+    edges ``(e, 2)`` between patches; other routes: nothing.
+    """
+
+    route: str
+    labels: np.ndarray | None = None
+    patches: np.ndarray | None = None
+    border: np.ndarray | None = None
+    loop: np.ndarray | None = None
+
+
+def prepare_geometry(surface: Surface, route: str, labels: np.ndarray | None = None) -> PreparedGeometry:
+    """What :func:`load_geometry` needs besides gmsh, computed once for all attempts of a route."""
+    verts, faces = surface.vertices, surface.faces
+    if route == "two_patch":
+        split = two_patch_labels(verts, faces)
+        return PreparedGeometry(route, labels=split, loop=cut_loop(faces[split == 0]))
+    if route == "labelled":
+        if labels is None:
+            raise ValueError("route 'labelled' needs per-triangle labels")
+        cleaned = clean_labels(faces, labels)
+        patches = clean_labels(faces, disc_patches(verts, faces, cleaned))
+        # a patch takes the label most of its triangles have (cleaning moved a few)
+        return PreparedGeometry(route, labels=patch_majority(patches, cleaned), patches=patches,
+                                border=label_boundary_edges(faces, patches))
+    return PreparedGeometry(route)
 
 
 def load_geometry(gmsh, surface: Surface, route: str, feature_angle_deg: float | None,
-                   labels: np.ndarray | None = None) -> dict[int, int] | None:
+                  labels: np.ndarray | None = None, prepared: PreparedGeometry | None = None,
+                  ) -> dict[int, int] | None:
     """Put the surface into gmsh as reparametrised discrete patches + a volume.
 
     Route ``"labelled"``: the label boundaries enter as a discrete curve, which
     ``classifySurfaces`` keeps as patch borders; returns ``{surface tag: label}``.
+    ``prepared`` (from :func:`prepare_geometry` for this surface and route) saves
+    recomputing the route's patches; without it they are computed from ``labels``.
     """
+    if prepared is None:
+        prepared = prepare_geometry(surface, route, labels)
+    elif prepared.route != route:
+        raise ValueError(f"geometry prepared for route {prepared.route!r}, not {route!r}")
     verts, faces = surface.vertices, surface.faces
     patch_labels = None
     gmsh.model.add("liverforce")
@@ -41,8 +88,7 @@ def load_geometry(gmsh, surface: Surface, route: str, feature_angle_deg: float |
         # explicit topology (point, closed curve, two discs): gmsh's own
         # createTopology starts the loop at a memory-order-dependent node,
         # which made meshes differ from run to run
-        labels = two_patch_labels(verts, faces)
-        loop = cut_loop(faces[labels == 0])
+        labels, loop = prepared.labels, prepared.loop
         on_loop = np.zeros(len(verts), dtype=bool)
         on_loop[loop] = True
         p = gmsh.model.addDiscreteEntity(0)
@@ -62,11 +108,7 @@ def load_geometry(gmsh, surface: Surface, route: str, feature_angle_deg: float |
         gmsh.model.mesh.addNodes(2, s1, tags, verts.ravel())
         gmsh.model.mesh.addElementsByType(s1, 2, [], (faces + 1).ravel())
         if route == "labelled":
-            labels = clean_labels(faces, labels)
-            patches = clean_labels(faces, disc_patches(verts, faces, labels))
-            # a patch takes the label most of its triangles have (cleaning moved a few)
-            labels = patch_majority(patches, labels)
-            border = label_boundary_edges(faces, patches)
+            labels, border = prepared.labels, prepared.border
             if len(border):
                 c = gmsh.model.addDiscreteEntity(1)
                 gmsh.model.mesh.addElementsByType(c, 1, [], (border + 1).ravel())

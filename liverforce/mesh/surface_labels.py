@@ -21,24 +21,29 @@ def clean_labels(faces: np.ndarray, labels: np.ndarray, passes: int = 20) -> np.
     2. At a vertex where a label occupies two or more separate sectors of the
        triangle fan (a "pinch", which no patch parametrisation accepts), the
        triangles of that label around the vertex take the fan's most common
-       other label.
+       other label (ties: the smallest label), vertex by vertex in the order
+       of ``vertex * n_labels + label``.
     Repeated until nothing changes (at most ``passes`` times). Changes are at
     the scale of one triangle of ``faces``.
+
+    The edge adjacency, the neighbour table and the vertex fans depend on
+    ``faces`` only: they are built once (vectorised), each pass only reads them.
     """
     faces = np.asarray(faces, dtype=np.int64)
     lab = np.asarray(labels, dtype=np.int64).copy()
-    _, ta, tb = _edge_pairs(faces)
     k = len(faces)
+    if k == 0:
+        return lab
+    keys, ta, tb = _edge_pairs(faces)
+    nbr = _neighbour_table(k, ta, tb)
+    fan_start, fan_faces = _vertex_fans(faces)
     nl = int(lab.max()) + 1 if lab.size else 1
+    v_of = faces.ravel()
+    n_codes = (int(faces.max()) + 1) * nl
+    ev = keys.ravel()  # both ends of every interior edge, edge by edge
     for _ in range(passes):
         changed = False
         # 1. majority of the edge neighbours
-        nbr = np.full((k, 3), -1, dtype=np.int64)
-        fill = np.zeros(k, dtype=np.int64)
-        for x, y in ((ta, tb), (tb, ta)):
-            for t, o in zip(x, y):
-                nbr[t, fill[t]] = o
-                fill[t] += 1
         nl_ = lab[nbr]
         agree = np.where(nl_[:, 0] == nl_[:, 1], nl_[:, 0], np.where(nl_[:, 1] == nl_[:, 2], nl_[:, 1],
                                                                      np.where(nl_[:, 0] == nl_[:, 2], nl_[:, 0], -1)))
@@ -47,27 +52,57 @@ def clean_labels(faces: np.ndarray, labels: np.ndarray, passes: int = 20) -> np.
             lab[flip] = agree[flip]
             changed = True
         # 2. pinches: sectors(v, L) = #triangles(v, L) - #edges(v, L) between two L triangles
-        v_of = faces.ravel()
-        code_t = v_of * nl + np.repeat(lab, 3)
-        n_t = np.bincount(code_t, minlength=len(v_of) and (faces.max() + 1) * nl)
-        same = lab[ta] == lab[tb]
-        keys, _, _ = _edge_pairs(faces)
-        ev = keys[same].ravel()
-        code_e = ev * nl + np.repeat(lab[ta][same], 2)
-        n_e = np.bincount(code_e, minlength=n_t.size)
+        n_t = np.bincount(v_of * nl + np.repeat(lab, 3), minlength=n_codes)
+        la = lab[ta]
+        same = np.repeat(la == lab[tb], 2)
+        n_e = np.bincount((ev * nl + np.repeat(la, 2))[same], minlength=n_codes)
         pinch = np.flatnonzero(n_t - n_e >= 2)
         if pinch.size:
             for code in pinch:
                 v, L = divmod(int(code), nl)
-                fan = np.flatnonzero((faces == v).any(axis=1))
-                mine = fan[lab[fan] == L]
-                others = lab[fan][lab[fan] != L]
+                fan = fan_faces[fan_start[v]:fan_start[v + 1]]
+                fl = lab[fan]
+                others = fl[fl != L]
                 if others.size:
-                    lab[mine] = np.bincount(others).argmax()
+                    lab[fan[fl == L]] = np.bincount(others).argmax()
             changed = True
         if not changed:
             break
     return lab
+
+
+def _neighbour_table(k: int, ta: np.ndarray, tb: np.ndarray) -> np.ndarray:
+    """``(k, 3)`` edge neighbours of each triangle (-1 where an edge has none).
+
+    Per triangle, its neighbours across the edges where it is ``ta`` (in edge
+    order), then those where it is ``tb``.
+    """
+    t_all = np.concatenate([ta, tb])
+    o_all = np.concatenate([tb, ta])
+    order = np.argsort(t_all, kind="stable")
+    t_s, o_s = t_all[order], o_all[order]
+    start = np.searchsorted(t_s, np.arange(k))
+    slot = np.arange(len(t_s)) - start[t_s]
+    if slot.size and slot.max() >= 3:
+        raise ValueError("surface is not manifold: a triangle has more than three edge neighbours")
+    nbr = np.full((k, 3), -1, dtype=np.int64)
+    nbr[t_s, slot] = o_s
+    return nbr
+
+
+def _vertex_fans(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """CSR fans: the triangles around vertex ``v`` are ``fan_faces[fan_start[v]:fan_start[v + 1]]`` (ascending)."""
+    n_v = int(faces.max()) + 1
+    v_of = faces.ravel()
+    order = np.argsort(v_of, kind="stable")
+    tri = order // 3
+    # a degenerate triangle repeating a vertex appears once in that vertex's fan
+    keep = np.ones(len(order), dtype=bool)
+    sv = v_of[order]
+    keep[1:] = (sv[1:] != sv[:-1]) | (tri[1:] != tri[:-1])
+    counts = np.bincount(sv[keep], minlength=n_v)
+    fan_start = np.concatenate([[0], np.cumsum(counts)])
+    return fan_start, tri[keep]
 
 
 def patch_majority(patches: np.ndarray, labels: np.ndarray) -> np.ndarray:

@@ -13,10 +13,13 @@ Pipeline (one gmsh session per attempt, one thread, no GUI, no config files):
    tried (``classifySurfaces`` with parametrisable patches only).
 2. The surface is remeshed and the volume meshed at a uniform edge length
    ``h`` or with refinement zones (:mod:`liverforce.mesh.gmsh_mesher`).
-3. When a node count is requested, ``h`` comes from a small model
-   ``n ≈ k (V / (1.44 h³) + A / (1.19 h²))`` (fitted on livers;
-   :mod:`liverforce.mesh.sizing`) and the factor ``k`` is corrected from the
-   count obtained, for up to ``max_attempts`` remeshes of the same geometry.
+3. When a node count is requested, ``h`` comes from a small model: the
+   size field integrated over the volume and the surface,
+   ``n ≈ ∫ dV / (1.44 s³) + ∫ dA / (1.19 s²)`` (``V / (1.44 h³) + A / (1.19 h²)``
+   without refinement), plus a few size-independent nodes (fitted on livers;
+   :mod:`liverforce.mesh.sizing`); it is corrected from the counts obtained,
+   for up to ``max_attempts`` remeshes of the same geometry (one is usually
+   enough).
 4. Every tet is made positively oriented; flat boundary tets (slivers with
    two or more faces on the surface, radius ratio < 0.15, which gmsh's
    optimiser cannot move) are peeled off; unused nodes are dropped

@@ -7,7 +7,9 @@ import pytest
 
 from liverforce.geometry.procedural import cube_phantom
 from liverforce.mesh.boundary import boundary_facets
+from liverforce.mesh.build import build_liver_mesh
 from liverforce.mesh.quality import dihedral_angles, mesh_quality, radius_ratio, signed_volumes
+from liverforce.mesh.sizing import NodeCountModel, inside_grid, refinement_zone
 from liverforce.mesh.tetra import tetrahedralise, tetrahedralise_with_info
 
 #: Quality bounds asserted for gmsh meshes (measured ≈ 0.2–0.3 / ≈ 8–12°).
@@ -108,3 +110,46 @@ def test_bad_arguments_are_refused(liver_surface):
         tetrahedralise(liver_surface, mesher="netgen")
     with pytest.raises(ValueError, match="refine_radius_mm"):
         tetrahedralise(liver_surface, refine_points=[[0, 0, 0]])
+
+
+def test_inside_grid_fills_a_closed_surface():
+    import trimesh
+
+    s = trimesh.creation.icosphere(subdivisions=4, radius=40.0)
+    for step in (2.0, 5.0):
+        g = inside_grid(np.asarray(s.vertices), np.asarray(s.faces), step)
+        assert len(g) * step**3 == pytest.approx(s.volume, rel=0.01)
+        assert np.linalg.norm(g, axis=1).max() < 40.0
+
+
+def test_node_count_model_integrates_the_size_field(liver_surface):
+    s = liver_surface
+    uniform = NodeCountModel(s.volume_mm3, s.area_mm2)
+    # without zones: the former closed form plus the size-independent offset
+    assert uniform.integral(12.0) == pytest.approx(s.volume_mm3 / (1.44 * 12.0**3) + s.area_mm2 / (1.19 * 12.0**2))
+    assert uniform.expected(12.0) == pytest.approx(uniform.integral(12.0) + uniform.offset(12.0))
+    v = s.vertices
+    zone = refinement_zone(v[[np.argmax(v[:, 1] + v[:, 2])]], 10.0, 6.0, 0.6)
+    refined = NodeCountModel(s.volume_mm3, s.area_mm2, [zone], v, s.faces)
+    # a zone finer than h adds nodes, a zone no finer than h adds none
+    assert refined.integral(15.0) > uniform.integral(15.0)
+    assert refined.integral(6.0) == uniform.integral(6.0)
+    # fewer nodes as h grows, and edge_for inverts expected
+    counts = [refined.expected(h) for h in (8.0, 12.0, 16.0, 24.0)]
+    assert all(a > b for a, b in zip(counts, counts[1:]))
+    h = refined.edge_for(1000)
+    assert refined.expected(h) == pytest.approx(1000, rel=1e-6)
+    assert refined.edge_for(10, h_max=30.0) == 30.0  # unreachable: the cap
+
+
+def test_pipeline_mesh_reaches_its_target_in_one_attempt(liver_surface):
+    """The mesh stage's default (config/mesh/default.yaml + sweep.exertion): the node-count model,
+    with the refinement zones and label patches, lands within tolerance on the first attempt."""
+    mesh = build_liver_mesh(liver_surface, target_nodes=800, refine_radius_mm=10.0, refine_edge_mm=6.0,
+                            refine_ivc_edge_mm=6.0, refine_growth=0.6,
+                            exertion_sampling={"n_points": 8, "min_spacing_mm": 15.0, "seed": 0})
+    meshing = mesh.meta["meshing"]
+    assert meshing["route"] == "labelled"
+    assert len(meshing["attempts"]) == 1, meshing["attempts"]
+    assert abs(len(mesh.points) / 800 - 1) <= 0.15
+    assert mesh.meta["quality"]["radius_ratio_min"] > MIN_RADIUS_RATIO
