@@ -67,6 +67,12 @@ class ImportedGeometry:
     label: Optional[int] = None
     # RAS | LPS (3D Slicer models, DICOM) | a 4x4 [[...],...,[0,0,0,1]]: file mm (after units) -> RAS mm
     frame: Any = "RAS"
+    # own supports, in the file's frame (liverforce.mesh.supports): {mode: replace|add, list: [{name, kind:
+    # fixed|foundation|sliding, sphere|box|file: {...}, region: ligament|visceral, stiffness: {...}}]}
+    supports: Optional[Any] = None
+    # own exertion points, in the file's frame: {coordinates_mm: [[x,y,z],...]} | {vertex_ids: [...]}
+    # | {path: pts.npy|txt|csv, units: ...}; the sweep uses all of them instead of sampled ones
+    exertion_points: Optional[Any] = None
 
 
 @dataclass
@@ -365,6 +371,7 @@ def _check_ranges(cfg: dict) -> None:
             _fail(f"geometry.imported[{i}].name", f"'{name}' must be letters, digits, '-' or '_' (it names output files)")
         _check_units(f"geometry.imported[{i}].units", imp["units"])
         _check_frame(f"geometry.imported[{i}].frame", imp["frame"])
+        _check_user_scene(f"geometry.imported[{i}]", imp)
     if g["cube"]["edge_mm"] <= 0:
         _fail("geometry.cube.edge_mm", "must be > 0 mm")
 
@@ -587,6 +594,33 @@ def _check_frame(key: str, frame: Any) -> None:
         frame_matrix(frame)
     except ValueError as exc:
         _fail(key, str(exc))
+
+
+def _check_user_scene(key: str, imp: dict) -> None:
+    """Syntax of an imported geometry's own supports and exertion points (files are read at the mesh stage)."""
+    from liverforce.mesh.supports import SupportError, parse_supports
+
+    try:
+        parse_supports(imp.get("supports"), where=f"{key}.supports")
+    except SupportError as exc:
+        _fail(str(exc).split(":")[0], str(exc).split(":", 1)[1].strip())
+    ep = imp.get("exertion_points")
+    if ep is None:
+        return
+    ep = dict(ep)
+    keys = set(ep) - {"units"}
+    if keys not in ({"coordinates_mm"}, {"vertex_ids"}, {"path"}):
+        _fail(f"{key}.exertion_points", f"give one of coordinates_mm, vertex_ids or path, got {sorted(ep)}")
+    if "coordinates_mm" in ep:
+        import numpy as np
+
+        a = np.asarray(ep["coordinates_mm"], dtype=float)
+        if a.ndim != 2 or a.shape[1] != 3 or len(a) == 0:
+            _fail(f"{key}.exertion_points.coordinates_mm", f"must be a list of [x, y, z] in mm (shape {a.shape})")
+    if "vertex_ids" in ep and (len(ep["vertex_ids"]) == 0 or min(int(v) for v in ep["vertex_ids"]) < 0):
+        _fail(f"{key}.exertion_points.vertex_ids", "must be a non-empty list of vertex ids >= 0")
+    if ep.get("units") is not None:
+        _check_units(f"{key}.exertion_points.units", ep["units"])
 
 
 def _check_units(key: str, units: str) -> None:

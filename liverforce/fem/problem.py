@@ -76,6 +76,22 @@ class BoundaryParams:
         vis = per_area_stiffness(visceral_total_n_per_mm, areas[VISCERAL]) if areas.get(VISCERAL, 0) > 0 else 0.0
         return cls(lig, tangential_ratio * lig, vis, tangential_ratio * vis, rib_kn, 0.0)
 
+    def with_supports(self, support_boundary: dict | None) -> "BoundaryParams":
+        """These parameters with a user's foundation stiffnesses (N/mm³) in place.
+
+        ``support_boundary`` : ``{"ligament_kn": ..., "visceral_kt": ...}`` as
+        :func:`liverforce.mesh.supports.support_stiffness` returns (the mesh
+        stage writes it to the features JSON); None or empty: unchanged.
+        """
+        from dataclasses import fields, replace
+
+        allowed = {f.name for f in fields(self)} - {"normals"}
+        bad = set(support_boundary or {}) - allowed
+        if bad:
+            raise ValueError(f"support_boundary: unknown BoundaryParams fields {sorted(bad)} "
+                             f"(allowed {sorted(allowed)})")
+        return replace(self, **{k: float(v) for k, v in (support_boundary or {}).items()})
+
     def region_stiffness(self) -> dict[int, tuple[float, float]]:
         return {
             LIGAMENT: (self.ligament_kn, self.ligament_kt),

@@ -35,6 +35,10 @@ def build_liver_mesh(
     mesher: str = "gmsh",
     seed: int = 0,
     require_regions: bool = False,
+    supports: tuple | None = None,
+    support_frame=None,
+    file_vertices=None,
+    exertion_points=None,
 ) -> LiverMesh:
     """Tetrahedralise ``surface``, extract and tag its boundary facets.
 
@@ -89,6 +93,21 @@ def build_liver_mesh(
         Volume mesher (see :func:`~liverforce.mesh.tetra.tetrahedralise`).
     seed : int
         Mesher seed.
+    supports : tuple, optional
+        ``(mode, [Support])`` from :func:`liverforce.mesh.supports.parse_supports`:
+        user supports applied to the input surface's facets (replacing or on top
+        of the auto-tagged regions) before meshing; the mesh conforms to their
+        borders. ``meta["supports"]`` lists each with its facet count and, for
+        point files, the snapping distance.
+    support_frame : PointFrame, optional
+        How the geometry file's coordinates map to ``surface`` (identity if None).
+    file_vertices : callable, optional
+        Returns the geometry file's vertices as read (for selectors by vertex id).
+    exertion_points : array-like, optional
+        ``(k, 3)`` given exertion points in the surface's frame (mm): snapped to the
+        input surface (refused beyond 5 mm or on a fixed support), used instead of
+        ``exertion_sampling`` as ``meta["exertion_candidates_mm"]``, refined around;
+        ``meta["exertion_snap_mm"]`` holds the snapping distances.
     require_regions : bool
         Raise ``ValueError`` if a region (1–4) or the visible set is empty;
         otherwise empty ones are only logged and listed in
@@ -108,11 +127,32 @@ def build_liver_mesh(
     zones = []
     surface_labels = None
     candidates = None
-    if conforming_regions or refine_visible_edge_mm or exertion_sampling or refine_ivc_edge_mm:
+    support_report, snap = None, None
+    user = supports is not None and len(supports[1]) > 0
+    if (conforming_regions or refine_visible_edge_mm or exertion_sampling or refine_ivc_edge_mm or user
+            or exertion_points is not None):
         s_region, s_visible = tag_regions(surface.vertices, surface.faces, params)
-        if conforming_regions:
+        if user:
+            from liverforce.mesh.supports import PointFrame, apply_supports
+
+            s_region, support_report = apply_supports(
+                surface.vertices, surface.faces, s_region, supports[0], supports[1],
+                support_frame or PointFrame(), file_vertices)
+            s_visible = visible_facets(surface.vertices, surface.faces, s_region, params)
+            for info in support_report:
+                log.info("support %s (%s, %s): %d facets%s", info["name"], info["kind"], info["selector"],
+                         info["n_facets"], f", snapped up to {info['snap_mm']['max']:.3g} mm"
+                         if "snap_mm" in info else "")
+        if conforming_regions or user:
             surface_labels = s_region
-        if exertion_sampling:
+        if exertion_points is not None:
+            from liverforce.mesh.supports import snap_exertion_points
+
+            candidates, snap = snap_exertion_points(surface.vertices, surface.faces, s_region, exertion_points)
+            log.info("%d given exertion points snapped to the surface (max %.3g mm)", len(candidates), snap.max())
+            if refine_points is None and refine_radius_mm:
+                refine_points = candidates
+        elif exertion_sampling:
             from liverforce.sweep.design import sample_exertion_points
 
             candidates = sample_exertion_points(
@@ -161,7 +201,10 @@ def build_liver_mesh(
         msg = f"empty boundary regions {empty} on surface {surface.meta.get('source', '?')}"
         if require_regions:
             raise ValueError(msg + ": adjust RegionParams (e.g. anterior/superior for an imported liver)")
-        log.warning(msg)
+        if user and supports[0] == "replace" and "visible" not in empty:
+            log.info(msg + " (the user's supports replace the auto-tagged regions)")
+        else:
+            log.warning(msg)
     meta = {
         "surface": dict(surface.meta),
         "meshing": info.as_dict(),
@@ -172,6 +215,9 @@ def build_liver_mesh(
         "refine_ivc_edge_mm": float(refine_ivc_edge_mm) if refine_ivc_edge_mm else None,
         "quality": mesh_quality(points, tets),
         "exertion_candidates_mm": None if candidates is None else candidates.tolist(),
+        "exertion_given": exertion_points is not None,
+        "exertion_snap_mm": None if snap is None else snap.tolist(),
+        "supports": support_report,
         "refine_points": (None if refine_points is None or not refine_radius_mm else
                           {"n": int(len(np.atleast_2d(refine_points))), "radius_mm": float(refine_radius_mm),
                            "edge_mm": None if refine_edge_mm is None else float(refine_edge_mm)}),

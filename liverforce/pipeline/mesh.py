@@ -35,7 +35,17 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
     the liver was given in (``mesh.regions_check``: ``warn`` logs and records the
     failed checks in the features JSON under ``regions_check``; ``strict`` refuses,
     before meshing on the input surface's tags and again on the mesh's, before
-    writing anything; ``off`` skips; the cube phantom is never checked).
+    writing anything; ``off`` skips; the cube phantom is never checked, nor a liver
+    whose supports replace the auto-tagged ones).
+
+    An imported geometry may give its own supports and exertion points
+    (``geometry.imported[].supports`` / ``.exertion_points``, carried in the
+    surface JSON's ``spec``; see :mod:`liverforce.mesh.supports`). Supports are
+    applied to the input surface before meshing; the features JSON lists them
+    under ``supports`` (facets, snapping distances) and their foundation
+    stiffness under ``support_boundary`` (N/mm³, ``BoundaryParams`` fields).
+    Given exertion points replace the sampled candidates (``exertion_given``:
+    true, snapping distances in ``exertion_snap_mm``).
     """
     from liverforce.mesh.build import build_liver_mesh
     from liverforce.mesh.features import compute_features
@@ -47,6 +57,10 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
     meta_file = Path(surface_path).with_suffix(".json")
     if meta_file.exists():
         surface.meta.update(json.loads(meta_file.read_text()))
+    spec = surface.meta.get("spec") or {}
+    user = _user_scene(spec, surface.meta)
+    if user["supports"][1] and user["supports"][0] == "replace":
+        mesh_cfg = {**mesh_cfg, "regions_check": "off"}  # the user's supports are not anatomy to check
     if mesh_cfg.get("regions_check", "warn") == "strict":  # refuse before meshing: tags of the input surface
         from liverforce.mesh.regions import tag_regions
 
@@ -63,7 +77,9 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
         refine_edge_mm=mesh_cfg.get("refine_edge_mm"),
         refine_ivc_edge_mm=mesh_cfg.get("refine_ivc_edge_mm"),
         refine_growth=mesh_cfg.get("refine_growth", 0.3),
-        exertion_sampling=None if exertion is None else {
+        supports=user["supports"], support_frame=user["frame"], file_vertices=user["file_vertices"],
+        exertion_points=user["exertion_points"],
+        exertion_sampling=None if exertion is None or user["exertion_points"] is not None else {
             "n_points": exertion["n_points"], "min_spacing_mm": exertion["min_spacing_mm"],
             "seed": exertion_seed(seed, Path(mesh_path).stem)},
     )
@@ -74,6 +90,10 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
     feats = compute_features(mesh)
     feats["meshing_time_s"] = elapsed
     feats["exertion_candidates_mm"] = mesh.meta.get("exertion_candidates_mm")
+    feats["exertion_given"] = bool(mesh.meta.get("exertion_given"))
+    feats["exertion_snap_mm"] = mesh.meta.get("exertion_snap_mm")
+    feats["supports"] = mesh.meta.get("supports")
+    feats["support_boundary"] = _support_boundary(mesh, user["supports"][1])
     feats["refine_points"] = mesh.meta.get("refine_points")
     feats["regions_tagged_on"] = mesh.meta.get("regions_tagged_on")
     feats["regions_check"] = checked
@@ -81,6 +101,43 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
     plot_regions(mesh, picture_path)
     log.info("mesh: %d nodes, %d tets in %.1f s", len(mesh.points), len(mesh.tets), elapsed)
     return feats
+
+
+def _user_scene(spec: dict, surface_meta: dict) -> dict:
+    """Supports, exertion points (mesh frame, mm) and the file frame of an imported geometry's spec."""
+    from liverforce.mesh.supports import PointFrame, exertion_points_mesh, parse_supports
+
+    frame = PointFrame.from_surface_meta(surface_meta)
+    cache: dict = {}
+
+    def file_vertices():  # the geometry file's vertices as read (file units and frame): what vertex ids index
+        if "v" not in cache:
+            from liverforce.geometry.importers import _read_mesh_file
+            from liverforce.geometry.volumes import is_volume_file
+            from liverforce.mesh.supports import SupportError
+
+            path = Path(spec["path"])
+            if is_volume_file(path):
+                raise SupportError(f"geometry.imported[{name}]: {path} is a label volume, it has no vertex ids; "
+                                   "give coordinates (coordinates_mm or a file of x, y, z) instead")
+            cache["v"] = _read_mesh_file(path, path.name.lower()).points
+        return cache["v"]
+
+    name = spec.get("name", "?")
+    supports = parse_supports(spec.get("supports"), where=f"geometry.imported[{name}].supports")
+    points = spec.get("exertion_points")
+    if points is not None:
+        points = exertion_points_mesh(points, frame, file_vertices if spec.get("path") else None)
+    return {"supports": supports, "exertion_points": points, "frame": frame,
+            "file_vertices": file_vertices if spec.get("path") else None}
+
+
+def _support_boundary(mesh, supports) -> dict:
+    """Foundation stiffness (N/mm³) of the user's foundations on this mesh (``BoundaryParams`` fields)."""
+    from liverforce.fem.boundary import region_areas
+    from liverforce.mesh.supports import support_stiffness
+
+    return support_stiffness(supports, region_areas(mesh.points, mesh.facets, mesh.facet_region))
 
 
 def _regions_check(points, facets, region, visible, surface_meta: dict, mesh_cfg: dict, gid: str) -> dict:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from pathlib import Path
@@ -49,7 +50,7 @@ def _progress_path(shard_path) -> Path:
 
 
 def simulate_cases(cases: list[dict], meshes: dict, sim: dict, boundary: dict, dataset: dict,
-                   progress=None) -> list[dict]:
+                   progress=None, supports: dict | None = None) -> list[dict]:
     """Simulate cases in memory: one shard row per case, in the order given.
 
     Parameters
@@ -57,6 +58,8 @@ def simulate_cases(cases: list[dict], meshes: dict, sim: dict, boundary: dict, d
     cases : the case-table rows (``liverforce.sweep.design.build_cases``), already in chain order.
     meshes : geometry id -> :class:`liverforce.mesh.types.LiverMesh` (every ``geometry_id`` of ``cases``).
     sim, boundary, dataset : the ``simulate``, ``boundary`` and ``dataset`` config slices.
+    supports : optional geometry id -> a liver's own foundation stiffness (``support_boundary`` of its
+        features JSON: user-given supports, :mod:`liverforce.mesh.supports`), in place of the config's.
     progress : optional callable ``progress(n_done, total, rows, result)`` after every case
         (``result``: the case's :class:`liverforce.fem.problem.CaseResult`, or None when the solve raised).
 
@@ -91,8 +94,8 @@ def simulate_cases(cases: list[dict], meshes: dict, sim: dict, boundary: dict, d
                                  bulk_mpa=case["bulk_modulus_mpa"])
         if gid not in models:
             mesh = meshes[gid]
-            fe = LiverModel(mesh.points, mesh.tets, mesh.facets, mesh.facet_region, material,
-                            boundary_params(mesh, boundary), options)
+            bp = boundary_params(mesh, boundary).with_supports((supports or {}).get(gid))
+            fe = LiverModel(mesh.points, mesh.tets, mesh.facets, mesh.facet_region, material, bp, options)
             models[gid] = (mesh, compute_features(mesh), surface_graph(mesh.points, mesh.facets), fe)
             pools[gid] = WarmStartPool(size=8)
         mesh, feats, surf, fe = models[gid]
@@ -132,6 +135,11 @@ def simulate_shard(cases_path, mesh_paths: list[str], shard: int, sim: dict, bou
     cases = [r for r in table.to_pylist() if r["shard_index"] == shard]
     by_gid = {Path(p).stem: p for p in mesh_paths}
     meshes = {gid: read_mesh(by_gid[gid]) for gid in dict.fromkeys(c["geometry_id"] for c in cases)}
+    supports = {}
+    for gid in meshes:  # user-given foundation stiffness, written by the mesh stage
+        feats = Path(by_gid[gid]).with_suffix(".features.json")
+        if feats.exists():
+            supports[gid] = json.loads(feats.read_text()).get("support_boundary") or {}
     t_start = time.perf_counter()
 
     def progress(n_done, total, rows, _result):
@@ -139,7 +147,7 @@ def simulate_shard(cases_path, mesh_paths: list[str], shard: int, sim: dict, bou
             "done": n_done, "total": total, "failed": sum(not r["converged"] for r in rows),
             "elapsed_s": time.perf_counter() - t_start, "updated": time.time()})
 
-    rows = simulate_cases(cases, meshes, sim, boundary, dataset, progress=progress)
+    rows = simulate_cases(cases, meshes, sim, boundary, dataset, progress=progress, supports=supports)
     entry = dio.write_shard(rows, shard_path, compression=dataset["compression"],
                             extra_meta={"simulate": sim, "boundary": boundary, "dataset": dataset})
     if rows and entry["failed"] == len(rows):

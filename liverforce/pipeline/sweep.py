@@ -34,17 +34,23 @@ def material_checks(stretch_range):
 
 
 def exertion_set(mesh, n_points: int, min_spacing_mm: float, seed: int, frame_radius_mm: float,
-                 candidates=None):
+                 candidates=None, given: bool = False):
     """Candidate exertion points of one mesh with their normals and local frames.
 
     ``candidates`` : points chosen at the mesh stage (on the input surface, where
     the mesh is refined), moved onto the nearest visible mesh facet; else
     ``n_points`` are sampled on the mesh's visible facets with ``seed``.
+    ``given`` : the candidates are the user's exertion points
+    (``geometry.imported[].exertion_points``): all of them are used, whatever
+    ``n_points``, each moved onto the nearest mesh facet that is not fixed.
     """
     from liverforce.dataset.roi import local_frame, surface_graph
     from liverforce.sweep.design import ExertionSet, SweepError, sample_exertion_points
 
-    if candidates is not None:
+    if candidates is not None and given:
+        pts = closest_surface_points(mesh.points, mesh.facets[mesh.facet_region != 1],
+                                     np.asarray(candidates, float).reshape(-1, 3))
+    elif candidates is not None:
         cand = np.asarray(candidates, float).reshape(-1, 3)
         if len(cand) < n_points:
             raise SweepError(f"the mesh carries {len(cand)} exertion candidates, the sweep asks {n_points}: "
@@ -84,13 +90,22 @@ def make_sweep(params: dict, mesh_paths: list[str], cases_path, report_path) -> 
     gids = params["geometries"]
     by_gid = {Path(p).stem: p for p in mesh_paths}
     stable, bulk = material_checks(params["material"]["stability_stretch"])
-    ex = {}
+    ex, given_by = {}, {}
     for i, gid in enumerate(gids):
         mesh = read_mesh(by_gid[gid])
         feats = Path(by_gid[gid]).with_suffix(".features.json")
-        cand = json.loads(feats.read_text()).get("exertion_candidates_mm") if feats.exists() else None
+        fj = json.loads(feats.read_text()) if feats.exists() else {}
+        cand, given = fj.get("exertion_candidates_mm"), bool(fj.get("exertion_given"))
         ex[gid] = exertion_set(mesh, params["exertion"]["n_points"], params["exertion"]["min_spacing_mm"],
-                               params["seed"] * 7919 + i, params["tool_radius_mm"], candidates=cand)
+                               params["seed"] * 7919 + i, params["tool_radius_mm"], candidates=cand, given=given)
+        if given:
+            moved = np.linalg.norm(ex[gid].points - np.asarray(cand, float).reshape(-1, 3), axis=1)
+            given_by[gid] = {"n_points": len(moved), "moved_to_mesh_mm": moved.tolist()}
+            log.info("%s: %d exertion points given by the user (sweep.exertion.n_points ignored), moved up to "
+                     "%.3g mm from the input surface onto the mesh", gid, len(moved), moved.max())
+            if moved.max() > 1.0:
+                log.warning("%s: a given exertion point moved %.3g mm onto the mesh surface: refine the mesh "
+                            "there (mesh.refine_radius_mm, refine_edge_mm)", gid, moved.max())
     result = build_cases(
         scenario=params["scenario"], spec=params["spec"], geometry_ids=gids, exertion=ex,
         material=params["material"], force=params["force"], design=params["design"], seed=params["seed"],
@@ -102,6 +117,7 @@ def make_sweep(params: dict, mesh_paths: list[str], cases_path, report_path) -> 
         "cases": len(result.rows),
         "dropped_unstable": result.dropped_unstable,
         "exertion_points_mm": {g: e.points.tolist() for g, e in ex.items()},
+        "exertion_given": given_by,
     }
     write_json_atomic(report_path, report)
     if result.dropped_unstable:

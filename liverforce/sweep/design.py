@@ -33,7 +33,7 @@ class SweepError(ValueError):
 
 @dataclass
 class ExertionSet:
-    """Candidate exertion points of one geometry (on the visible surface)."""
+    """Candidate exertion points of one geometry (sampled on the visible surface, or the user's own)."""
 
     points: np.ndarray  # (k, 3) mm
     normals: np.ndarray  # (k, 3) outward unit normals

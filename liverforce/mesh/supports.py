@@ -1,0 +1,354 @@
+"""Supports and exertion points given by the user, applied to the input surface before meshing.
+
+A support is a selector (which facets), a kind (how they are held) and, for a
+foundation, its stiffness. Kinds map onto the region codes of
+:data:`~liverforce.mesh.types.REGION_CODES` and the per-region parameters of
+:class:`liverforce.fem.problem.BoundaryParams`:
+
+============ =============================== ======================================
+kind         region code                     boundary term
+============ =============================== ======================================
+fixed        1 (ivc)                         all nodes clamped (Dirichlet)
+foundation   2 (ligament) or 3 (visceral)    springs ``(k_n, k_t)`` N/mm³ per area
+sliding      4 (rib)                         normal penalty, free sliding
+============ =============================== ======================================
+
+A foundation picks its slot with ``region: ligament | visceral`` (default
+ligament); its stiffness is ``{normal_n_per_mm3, tangential_n_per_mm3}`` or
+``{total_n_per_mm, tangential_ratio}`` (the total spread over the region's area,
+as the study's). Two foundations in one slot must have the same stiffness.
+
+Selectors, all in the frame of the geometry file (``geometry.imported[].frame``),
+lengths in mm:
+
+* ``sphere: {center_mm: [x, y, z], radius_mm: r}`` and
+  ``box: {min_mm: [x, y, z], max_mm: [x, y, z]}`` select a facet when its
+  **centroid** lies inside (the mesh then conforms to the border of the
+  selected facets);
+* ``file: {path: ..., units: ...}`` (``.npy``, ``.txt`` or ``.csv``): one
+  integer column = vertex ids of the file as read (before repair), or three
+  columns = coordinates in ``units`` (default: the geometry's units). Each is
+  snapped to the nearest surface vertex (snapping distance reported); a facet is
+  selected when **all three** of its vertices are.
+
+Physical groups / cell tags of the mesh file are not supported yet: the
+surface importer keeps the geometry only (:mod:`liverforce.geometry.readers`).
+
+Supports are applied in order (a later one overrides an earlier one) onto zero
+regions (``mode: replace``) or onto the auto-tagged ones (``mode: add``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from liverforce.mesh.types import REGION_CODES
+
+KIND_CODES = {"fixed": REGION_CODES["ivc"], "sliding": REGION_CODES["rib"]}
+FOUNDATION_SLOTS = ("ligament", "visceral")
+SELECTORS = ("sphere", "box", "file")
+#: exertion points and support coordinates farther than this from the surface are refused (mm)
+MAX_SNAP_MM = 5.0
+
+
+class SupportError(ValueError):
+    """A user support or exertion point cannot be applied."""
+
+
+@dataclass(frozen=True)
+class Support:
+    """One user support: ``selector`` = ``(kind, dict)``, ``kind`` fixed | foundation | sliding."""
+
+    name: str
+    kind: str
+    selector: tuple[str, dict]
+    region: str = "ligament"
+    stiffness: dict = field(default_factory=dict)
+
+    @property
+    def code(self) -> int:
+        return KIND_CODES.get(self.kind, REGION_CODES.get(self.region, 0))
+
+
+@dataclass(frozen=True)
+class PointFrame:
+    """How user coordinates map to the surface: ``x_mesh = R @ (scale * x_file) + t`` (mm, RAS).
+
+    ``scale`` converts the geometry file's units to mm; ``matrix`` (4×4) maps
+    file mm to mesh mm (identity for procedural livers and the cube).
+    """
+
+    scale: float = 1.0
+    matrix: tuple = tuple(map(tuple, np.eye(4)))
+
+    @classmethod
+    def from_surface_meta(cls, meta: dict) -> "PointFrame":
+        conv = meta.get("conversion") or {}
+        return cls(float(conv.get("scale_to_mm", 1.0)),
+                   tuple(map(tuple, conv.get("frame_matrix", np.eye(4).tolist()))))
+
+    def to_mesh(self, xyz_mm: np.ndarray) -> np.ndarray:
+        M = np.asarray(self.matrix, float)
+        return np.asarray(xyz_mm, float) @ M[:3, :3].T + M[:3, 3]
+
+    def to_file(self, xyz_mesh: np.ndarray) -> np.ndarray:
+        M = np.linalg.inv(np.asarray(self.matrix, float))
+        return np.asarray(xyz_mesh, float) @ M[:3, :3].T + M[:3, 3]
+
+
+def parse_supports(cfg, where: str = "supports") -> tuple[str, list[Support]]:
+    """``{mode, list}`` config → ``(mode, [Support])``; ``ValueError`` naming the key on a bad entry."""
+    if cfg is None:
+        return "add", []
+    cfg = dict(cfg)
+    mode = cfg.get("mode", "replace")
+    if mode not in ("replace", "add"):
+        raise SupportError(f"{where}.mode: '{mode}' must be replace or add")
+    extra = set(cfg) - {"mode", "list"}
+    if extra:
+        raise SupportError(f"{where}: unknown keys {sorted(extra)} (use mode and list)")
+    out = []
+    for i, s in enumerate(cfg.get("list") or []):
+        key = f"{where}.list[{i}]"
+        s = dict(s)
+        kind = s.get("kind")
+        if kind not in ("fixed", "foundation", "sliding"):
+            raise SupportError(f"{key}.kind: '{kind}' must be fixed, foundation or sliding")
+        sel = [k for k in SELECTORS if s.get(k) is not None]
+        if len(sel) != 1:
+            raise SupportError(f"{key}: give exactly one selector of {list(SELECTORS)} (got {sel or 'none'})")
+        extra = set(s) - {"name", "kind", "region", "stiffness", *SELECTORS}
+        if extra:
+            raise SupportError(f"{key}: unknown keys {sorted(extra)}")
+        selector = (sel[0], dict(s[sel[0]]))
+        _check_selector(selector, f"{key}.{sel[0]}")
+        region = s.get("region", "ligament")
+        stiffness = dict(s.get("stiffness") or {})
+        if kind == "foundation":
+            if region not in FOUNDATION_SLOTS:
+                raise SupportError(f"{key}.region: '{region}' must be one of {list(FOUNDATION_SLOTS)}")
+            _check_stiffness(stiffness, f"{key}.stiffness")
+        elif stiffness or "region" in s:
+            raise SupportError(f"{key}: stiffness and region are for kind foundation only")
+        out.append(Support(str(s.get("name") or f"support{i}"), kind, selector, region, stiffness))
+    return mode, out
+
+
+def _check_selector(selector, key):
+    kind, d = selector
+    need = {"sphere": {"center_mm", "radius_mm"}, "box": {"min_mm", "max_mm"}, "file": {"path"}}[kind]
+    allowed = need | ({"units"} if kind == "file" else set())
+    if not need <= set(d) or not set(d) <= allowed:
+        raise SupportError(f"{key}: needs keys {sorted(need)} (optional {sorted(allowed - need)}), got {sorted(d)}")
+    if kind == "sphere" and (np.shape(d["center_mm"]) != (3,) or not float(d["radius_mm"]) > 0):
+        raise SupportError(f"{key}: center_mm must be [x, y, z] and radius_mm > 0")
+    if kind == "box" and (np.shape(d["min_mm"]) != (3,) or np.shape(d["max_mm"]) != (3,)
+                          or not (np.asarray(d["max_mm"], float) > np.asarray(d["min_mm"], float)).all()):
+        raise SupportError(f"{key}: min_mm and max_mm must be [x, y, z] with max > min on every axis")
+
+
+def _check_stiffness(st: dict, key: str):
+    per_area = {"normal_n_per_mm3", "tangential_n_per_mm3"}
+    total = {"total_n_per_mm", "tangential_ratio"}
+    if set(st) == per_area or set(st) == {"normal_n_per_mm3"}:
+        vals = [st[k] for k in st]
+    elif set(st) in ({"total_n_per_mm"}, total):
+        vals = [st[k] for k in st]
+    else:
+        raise SupportError(f"{key}: give {{normal_n_per_mm3, tangential_n_per_mm3}} (N/mm³) or "
+                           f"{{total_n_per_mm, tangential_ratio}} (N/mm over the region), got {sorted(st)}")
+    if any(not float(v) >= 0 for v in vals):
+        raise SupportError(f"{key}: stiffness values must be >= 0 (got {st})")
+
+
+def read_point_file(path) -> np.ndarray:
+    """Vertex ids ``(k,)`` int or coordinates ``(k, 3)`` float from ``.npy``, ``.txt`` or ``.csv``.
+
+    Text files: one id or one ``x y z`` (``x,y,z`` in csv) per line, ``#`` comments.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise SupportError(f"{path}: file not found")
+    if path.suffix == ".npy":
+        a = np.load(path)
+    elif path.suffix in (".txt", ".csv"):
+        a = np.loadtxt(path, delimiter="," if path.suffix == ".csv" else None, ndmin=2, comments="#")
+    else:
+        raise SupportError(f"{path}: use .npy, .txt or .csv")
+    a = np.asarray(a)
+    if a.ndim == 1 or (a.ndim == 2 and a.shape[1] == 1):
+        ids = a.reshape(-1)
+        if not np.allclose(ids, np.round(ids)) or (ids < 0).any():
+            raise SupportError(f"{path}: one column must hold non-negative integer vertex ids")
+        return ids.astype(np.int64)
+    if a.ndim == 2 and a.shape[1] == 3:
+        return a.astype(float)
+    raise SupportError(f"{path}: expected one column of vertex ids or three of coordinates, got shape {a.shape}")
+
+
+def snap_to_vertices(vertices: np.ndarray, xyz: np.ndarray, what: str, max_mm: float = MAX_SNAP_MM):
+    """Nearest surface vertex of each point; refuse beyond ``max_mm``. Returns ``(ids, distances)``."""
+    from scipy.spatial import cKDTree
+
+    d, idx = cKDTree(vertices).query(np.atleast_2d(xyz))
+    if (d > max_mm).any():
+        j = int(np.argmax(d))
+        raise SupportError(f"{what}: point {np.round(np.atleast_2d(xyz)[j], 3).tolist()} (mesh frame, mm) is "
+                           f"{d[j]:.3g} mm from the surface (limit {max_mm} mm): check its units and frame")
+    return idx, d
+
+
+def select_facets(vertices, faces, support: Support, frame: PointFrame = PointFrame(),
+                  file_vertices=None, base_dir=None) -> tuple[np.ndarray, dict]:
+    """Facets of the surface ``(vertices, faces)`` (mesh frame, mm) selected by ``support``.
+
+    ``file_vertices`` : callable returning the geometry file's vertices as read
+    (file units and frame), for selectors of vertex ids. Returns ``(mask, info)``,
+    ``info`` with the count and, for files, the snapping distances (mm).
+    """
+    vertices = np.asarray(vertices, float)
+    faces = np.asarray(faces, np.int64)
+    kind, d = support.selector
+    info: dict = {"name": support.name, "kind": support.kind, "selector": kind}
+    if kind in ("sphere", "box"):
+        cent = frame.to_file(vertices[faces].mean(axis=1))  # file frame, mm
+        if kind == "sphere":
+            mask = np.linalg.norm(cent - np.asarray(d["center_mm"], float), axis=1) <= float(d["radius_mm"])
+        else:
+            mask = ((cent >= np.asarray(d["min_mm"], float)) & (cent <= np.asarray(d["max_mm"], float))).all(axis=1)
+    else:
+        path = Path(d["path"])
+        if not path.is_absolute() and base_dir is not None:
+            path = Path(base_dir) / path
+        a = read_point_file(path)
+        if a.ndim == 1:
+            if file_vertices is None:
+                raise SupportError(f"support '{support.name}': vertex ids need the geometry file's vertices "
+                                   "(an imported geometry)")
+            fv = np.asarray(file_vertices(), float)
+            if a.max() >= len(fv):
+                raise SupportError(f"support '{support.name}': vertex id {int(a.max())} out of range "
+                                   f"(the file has {len(fv)} vertices)")
+            xyz = frame.to_mesh(fv[a] * frame.scale)
+        else:
+            scale = frame.scale if d.get("units") is None else _units_scale(d["units"])
+            xyz = frame.to_mesh(a * scale)
+        ids, dist = snap_to_vertices(vertices, xyz, f"support '{support.name}' ({path})")
+        chosen = np.zeros(len(vertices), bool)
+        chosen[ids] = True
+        mask = chosen[faces].all(axis=1)
+        info["snap_mm"] = {"max": float(dist.max()), "mean": float(dist.mean()), "n_points": int(len(dist))}
+    info["n_facets"] = int(mask.sum())
+    if not mask.any():
+        raise SupportError(f"support '{support.name}': its {kind} selector {d} selects no surface facet "
+                           "(coordinates are in the geometry file's frame, mm): enlarge it or check the frame")
+    return mask, info
+
+
+def _units_scale(units) -> float:
+    from liverforce.geometry.units import parse_units
+
+    scale, _ = parse_units(units)
+    if scale is None:
+        raise SupportError(f"units '{units}' cannot be guessed for a point file: give mm, cm, m or a number")
+    return float(scale)
+
+
+def apply_supports(vertices, faces, auto_region: np.ndarray, mode: str, supports: list[Support],
+                   frame: PointFrame = PointFrame(), file_vertices=None, base_dir=None) -> tuple[np.ndarray, list]:
+    """Region codes of the input surface's facets after the user supports (in order; later override)."""
+    region = np.asarray(auto_region, np.int8).copy() if mode == "add" else np.zeros(len(faces), np.int8)
+    report = []
+    for s in supports:
+        mask, info = select_facets(vertices, faces, s, frame, file_vertices, base_dir)
+        region[mask] = s.code
+        info["region_code"] = int(s.code)
+        report.append(info)
+    return region, report
+
+
+def support_stiffness(supports: list[Support], region_area_mm2: dict[int, float]) -> dict[str, float]:
+    """Foundation parameters for :class:`~liverforce.fem.problem.BoundaryParams` (``ligament_kn`` ...).
+
+    ``{total_n_per_mm}`` is spread over the final area of the slot's region.
+    """
+    out: dict[str, float] = {}
+    for s in supports:
+        if s.kind != "foundation":
+            continue
+        st = s.stiffness
+        if "total_n_per_mm" in st:
+            area = region_area_mm2.get(REGION_CODES[s.region], 0.0)
+            if not area > 0:
+                raise SupportError(f"support '{s.name}': its region '{s.region}' has no area on the mesh")
+            kn = float(st["total_n_per_mm"]) / area
+            kt = float(st.get("tangential_ratio", 1.0)) * kn
+        else:
+            kn = float(st["normal_n_per_mm3"])
+            kt = float(st.get("tangential_n_per_mm3", kn))
+        prev = (out.get(f"{s.region}_kn"), out.get(f"{s.region}_kt"))
+        if prev[0] is not None and not np.allclose(prev, (kn, kt)):
+            raise SupportError(f"support '{s.name}': two foundations in region '{s.region}' with different "
+                               "stiffness; put the other one in the other slot (ligament / visceral)")
+        out[f"{s.region}_kn"], out[f"{s.region}_kt"] = kn, kt
+    return out
+
+
+def snap_exertion_points(vertices, faces, region, xyz_mesh: np.ndarray, max_mm: float = MAX_SNAP_MM):
+    """Closest point on the surface to each given exertion point, refusing far points and fixed supports.
+
+    Returns ``(points (k, 3), distances (k,))`` in mm (mesh frame).
+    """
+    from scipy.spatial import cKDTree
+    from trimesh.triangles import closest_point
+
+    tri = np.asarray(vertices, float)[np.asarray(faces)]
+    q = np.atleast_2d(np.asarray(xyz_mesh, float))
+    k = min(16, len(tri))
+    _, near = cKDTree(tri.mean(axis=1)).query(q, k=k)
+    near = near.reshape(len(q), k)
+    cp = closest_point(tri[near.ravel()], np.repeat(q, k, axis=0)).reshape(len(q), k, 3)
+    dist = np.linalg.norm(cp - q[:, None], axis=2)
+    best = np.argmin(dist, axis=1)
+    pts, d = cp[np.arange(len(q)), best], dist[np.arange(len(q)), best]
+    facet = near[np.arange(len(q)), best]
+    for j in range(len(q)):
+        if d[j] > max_mm:
+            raise SupportError(f"exertion point {j} {np.round(q[j], 3).tolist()} (mesh frame, mm) is {d[j]:.3g} mm "
+                               f"from the surface (limit {max_mm} mm): check its units and frame")
+        if region is not None and int(region[facet[j]]) == REGION_CODES["ivc"]:
+            raise SupportError(f"exertion point {j} {np.round(q[j], 3).tolist()} lies on a fixed support: "
+                               "the tool cannot push a clamped surface; move the point or the support")
+    return pts, d
+
+
+def exertion_points_mesh(spec, frame: PointFrame = PointFrame(), file_vertices=None, base_dir=None) -> np.ndarray:
+    """Given exertion points → mesh-frame mm: ``{coordinates_mm: [[x,y,z],..]}``,
+    ``{vertex_ids: [..]}`` or ``{path: ..., units: ...}`` (a point file, as support files)."""
+    spec = dict(spec)
+    keys = set(spec) - {"units"}
+    if keys == {"coordinates_mm"}:
+        a = np.asarray(spec["coordinates_mm"], float)
+        if a.ndim != 2 or a.shape[1] != 3 or not len(a):
+            raise SupportError(f"exertion_points.coordinates_mm must be a list of [x, y, z], got shape {a.shape}")
+        return frame.to_mesh(a)
+    if keys == {"vertex_ids"}:
+        a = np.asarray(spec["vertex_ids"], np.int64).reshape(-1)
+    elif keys == {"path"}:
+        p = Path(spec["path"])
+        a = read_point_file(p if p.is_absolute() or base_dir is None else Path(base_dir) / p)
+        if a.ndim == 2:
+            scale = frame.scale if spec.get("units") is None else _units_scale(spec["units"])
+            return frame.to_mesh(a * scale)
+    else:
+        raise SupportError("exertion_points: give one of coordinates_mm, vertex_ids or path "
+                           f"(with optional units), got {sorted(spec)}")
+    if file_vertices is None:
+        raise SupportError("exertion_points.vertex_ids need the geometry file's vertices (an imported geometry)")
+    fv = np.asarray(file_vertices(), float)
+    if len(a) == 0 or a.min() < 0 or a.max() >= len(fv):
+        raise SupportError(f"exertion_points.vertex_ids must be in [0, {len(fv)}) (the file's vertices)")
+    return frame.to_mesh(fv[a] * frame.scale)
