@@ -468,7 +468,8 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
         rows = [[sc, s["n_cases"], html.escape(str(s["geometries"])), s["exertion"], s["material"]]
                 for sc, s in sw.get("scenarios", {}).items()]
         val_cfg = setup.get("validate") or {}
-        rows.append(["V (validation)", val_cfg.get("n_cases", "–"), "unseen", "varies", "unseen"])
+        n_val = (val_cfg["n_cases"] * val_cfg.get("livers", 1)) if "n_cases" in val_cfg else "–"
+        rows.append(["V (validation)", n_val, f"{val_cfg.get('livers', 1)} unseen", "varies", "unseen"])
         f = sw.get("force", {})
         parts.append(f"<h3>Simulation sweep</h3><p>Force magnitude {_fmt(f.get('min_n'), 1)}–"
                      f"{_fmt(f.get('max_n'), 1)} N within {_fmt(f.get('cone_deg'), 0)}° of the inward normal; "
