@@ -96,6 +96,7 @@ def dry_runs(tmp_path_factory) -> dict[tuple[str, ...], tuple[int, str]]:
         return dict(zip(unique, results))
 
 
+@pytest.mark.slow  # 16 dry runs: in the CI slow set, keeping the default set well under 15 minutes
 @pytest.mark.parametrize("args", COMMANDS, ids=[shlex.join(c)[:80] for c in COMMANDS])
 def test_readme_command_dry_runs(args, dry_runs):
     rc, out = dry_runs[tuple(args)]

@@ -173,7 +173,7 @@ def read_point_file(path) -> np.ndarray:
     if not path.exists():
         raise SupportError(f"{path}: file not found")
     if path.suffix == ".npy":
-        a = np.load(path)
+        a = np.load(path, allow_pickle=False)
     elif path.suffix in (".txt", ".csv"):
         a = np.loadtxt(path, delimiter="," if path.suffix == ".csv" else None, ndmin=2, comments="#")
     else:
