@@ -44,7 +44,6 @@ from liverforce.serve.errors import PredictionInputError
 from liverforce.serve.preop import _points, _vector
 
 #: how the state vector is laid out (liverforce.learn.state)
-_STATE_MATERIAL_START = MATERIAL_START
 
 
 @dataclass(frozen=True)
@@ -76,7 +75,7 @@ class TrainingScale:
         """From the bundle's ``meta["training_scale"]``, else approximately from the scalers."""
         rep = model.representation
         ss = model.pre.state_scaler
-        n_mat = None if ss is None else int(ss.mean.size - _STATE_MATERIAL_START)
+        n_mat = None if ss is None else int(ss.mean.size - MATERIAL_START)
         rec = (model.meta or {}).get("training_scale")
         if rec:
             lo, hi = (np.asarray(v, dtype=np.float64) for v in rec["material_params_mpa"])
@@ -95,7 +94,7 @@ class TrainingScale:
         trace = m[9] + m[12] + m[14]
         length = float(np.power(max(trace, 0.0) / 2.0, 0.2))
         dist = float(np.linalg.norm(m[0:3]))
-        mm, ms = m[_STATE_MATERIAL_START:], s[_STATE_MATERIAL_START:]
+        mm, ms = m[MATERIAL_START:], s[MATERIAL_START:]
         # the scaler may have replaced a tiny spread by 1 (degenerate): then trust the mean alone
         ms = np.where(ms < np.abs(mm), ms, 0.0)
         return cls(rep.half_width_mm, (length, length), (0.5 * dist, 2.0 * dist), mm - 3 * ms, mm + 3 * ms, feat,

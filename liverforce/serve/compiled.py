@@ -47,7 +47,6 @@ from liverforce.serve.errors import PredictionInputError
 from liverforce.serve.preop import Preop, _points, _vector
 
 _STATE_DEF_CENTROID = slice(6, 9)  # roi_centroid_deformed columns of the state vector
-_STATE_MATERIAL_START = MATERIAL_START
 
 
 def numpy_layers(seq: nn.Sequential) -> list[tuple[np.ndarray, np.ndarray, float | None]]:
@@ -178,7 +177,7 @@ class CompiledROI:
             A_state = np.zeros((s0.size, 3 * k))
             A_state[sc] = Rs @ mean_op
             self.A_state = A_state
-            self._mat_slice = slice(_STATE_MATERIAL_START, s0.size)
+            self._mat_slice = slice(MATERIAL_START, s0.size)
         else:
             self._stiff = 1.0
         self._pre = pre
