@@ -73,6 +73,9 @@ class ImportedGeometry:
     # own exertion points, in the file's frame: {coordinates_mm: [[x,y,z],...]} | {vertex_ids: [...]}
     # | {path: pts.npy|txt|csv, units: ...}; the sweep uses all of them instead of sampled ones
     exertion_points: Optional[Any] = None
+    # auto (a file holding tetrahedra: as_given; anything else: remesh) | as_given (the file's tets and node
+    # numbering, linear tets raised to P2 by the solver) | remesh (tetrahedralise its surface, as for an STL)
+    mesh: str = "auto"
 
 
 @dataclass
@@ -98,6 +101,10 @@ class MeshConfig:
 class MaterialConfig:
     model: str = "yeoh"
     params_mpa: dict[str, float] = field(default_factory=dict)
+    # neo_hookean from a paper's Young's modulus, in Pa or in MPa (give one): params_mpa is then derived,
+    # C10 = mu / 2 with mu = E / (2 (1 + nu)) (liverforce.fem.materials.neo_hookean_from_young)
+    E_pa: Optional[float] = None
+    E_mpa: Optional[float] = None
     nu: float = 0.49
     vary_rel: float = 0.3
     stability_stretch: list[float] = field(default_factory=lambda: [0.6, 1.4])
@@ -370,6 +377,7 @@ def _check_ranges(cfg: dict) -> None:
         if not name or not all(c.isalnum() or c in "-_" for c in name):
             _fail(f"geometry.imported[{i}].name", f"'{name}' must be letters, digits, '-' or '_' (it names output files)")
         _check_units(f"geometry.imported[{i}].units", imp["units"])
+        _check_mesh_mode(f"geometry.imported[{i}]", imp)
         _check_frame(f"geometry.imported[{i}].frame", imp["frame"])
         _check_user_scene(f"geometry.imported[{i}]", imp)
     if g["cube"]["edge_mm"] <= 0:
@@ -392,10 +400,12 @@ def _check_ranges(cfg: dict) -> None:
     mat = cfg["material"]
     if mat["model"] not in MATERIAL_MODELS:
         _fail("material.model", f"unknown material '{mat['model']}'", f"choose one of {', '.join(MATERIAL_MODELS)}")
-    if not mat["params_mpa"]:
-        _fail("material.params_mpa", "no material constants given")
     if not 0.0 < mat["nu"] < 0.5:
         _fail("material.nu", f"Poisson ratio must be in (0, 0.5) (got {mat['nu']})")
+    _material_from_young(mat)
+    if not mat["params_mpa"]:
+        _fail("material.params_mpa", "no material constants given", "give params_mpa (MPa), or E_pa / E_mpa "
+              "for a neo_hookean material")
     if not 0.0 <= mat["vary_rel"] < 1.0:
         _fail("material.vary_rel", f"must be in [0, 1) (got {mat['vary_rel']})")
     lo_hi = mat["stability_stretch"]
@@ -585,6 +595,53 @@ def _check_study(cfg: dict) -> None:
     for v in st["noise"]["values"]:
         if not isinstance(v, (int, float)) or v < 0 or v > 20:
             _fail("study.noise.values", f"noise must be in [0, 20] mm (got {v}); units are mm")
+
+
+def _material_from_young(mat: dict) -> None:
+    """``material.E_pa`` / ``E_mpa`` + ``nu`` → ``params_mpa`` (neo-Hookean), logged and kept in
+    ``material.conversion``; the two keys are dropped when unset (the slice is then as before)."""
+    import logging
+
+    e_pa, e_mpa = mat.pop("E_pa", None), mat.pop("E_mpa", None)
+    if e_pa is None and e_mpa is None:
+        return
+    if e_pa is not None and e_mpa is not None:
+        _fail("material.E_pa", "both E_pa and E_mpa are given", "give Young's modulus once, in Pa or in MPa")
+    key, value = ("material.E_pa", e_pa) if e_pa is not None else ("material.E_mpa", e_mpa)
+    if mat["model"] != "neo_hookean":
+        _fail(key, f"Young's modulus defines a neo_hookean material, not '{mat['model']}'",
+              "set material.model=neo_hookean (e.g. material=neo_hookean_from_e), or give params_mpa")
+    from liverforce.fem.materials import neo_hookean_from_young
+
+    try:
+        params, note = neo_hookean_from_young(value, mat["nu"], unit="Pa" if e_pa is not None else "MPa")
+    except ValueError as exc:
+        _fail(key, str(exc))
+    given = mat["params_mpa"]
+    if given and not (set(given) == {"C10"} and abs(float(given["C10"]) - params["C10"]) <= 1e-12 + 1e-9 * params["C10"]):
+        _fail("material.params_mpa", f"{given} given beside {key.split('.')[1]} {value} (which gives {params})",
+              "give Young's modulus or params_mpa, not both (material.params_mpa={} clears it)")
+    mat["params_mpa"] = params
+    if e_pa is not None:
+        mat["E_pa"] = float(e_pa)
+    else:
+        mat["E_mpa"] = float(e_mpa)
+    mat["conversion"] = note
+    logging.getLogger("liverforce").info("material: %s", note)
+
+
+def _check_mesh_mode(key: str, imp: dict) -> None:
+    mode = imp.get("mesh", "auto")
+    if mode not in ("auto", "as_given", "remesh"):
+        _fail(f"{key}.mesh", f"unknown '{mode}'", "use auto, as_given or remesh")
+    if mode == "as_given":
+        from liverforce.geometry.volume_mesh import VOLUME_MESH_SUFFIXES
+
+        if not str(imp["path"]).lower().endswith(VOLUME_MESH_SUFFIXES):
+            _fail(f"{key}.mesh", f"as_given needs a tetrahedral mesh file ({', '.join(VOLUME_MESH_SUFFIXES)}), "
+                                 f"got {imp['path']}", "use remesh (or auto) for surfaces and label volumes")
+        if imp.get("label") is not None:
+            _fail(f"{key}.label", "a label value is for label volumes, not a mesh taken as given")
 
 
 def _check_frame(key: str, frame: Any) -> None:

@@ -182,6 +182,51 @@ def bulk_from_poisson(mu0: float, nu: float) -> float:
     return 2.0 * mu0 * (1.0 + nu) / (3.0 * (1.0 - 2.0 * nu))
 
 
+#: Pa per unit of a Young's modulus stated in a paper.
+_TO_PA = {"Pa": 1.0, "kPa": 1e3, "MPa": 1e6}
+
+
+def neo_hookean_from_young(E: float, nu: float, unit: str = "Pa") -> tuple[dict[str, float], str]:
+    """Neo-Hookean constants (MPa) from a Young's modulus and Poisson ratio, as papers state them.
+
+    ``mu = E / (2 (1 + nu))``, ``C10 = mu / 2`` (``W = C10 (I1b - 3)``, so ``mu0 = 2 C10``),
+    and the bulk modulus this module derives from ``nu`` (:func:`bulk_from_poisson`),
+    ``K = 2 mu (1 + nu) / (3 (1 - 2 nu)) = E / (3 (1 - 2 nu))``, i.e. ANSYS' ``D1 = 2 / K``.
+
+    Parameters
+    ----------
+    E : Young's modulus in ``unit``.
+    nu : Poisson ratio in (0, 0.5).
+    unit : ``"Pa"``, ``"kPa"`` or ``"MPa"``.
+
+    Returns
+    -------
+    params : ``{"C10": ...}`` in MPa, for :func:`make_material` with the same ``nu``.
+    note : one line saying what was converted, e.g.
+        ``"E 14.9 kPa, nu 0.49 -> mu 0.005 MPa, C10 0.0025 MPa, K 0.248 MPa (D1 = 2/K = 8.05 1/MPa)"``.
+
+    Example
+    -------
+    >>> neo_hookean_from_young(14900.0, 0.49)[0]["C10"]
+    0.0025
+    """
+    if unit not in _TO_PA:
+        raise ValueError(f"unit '{unit}' must be one of {list(_TO_PA)}")
+    E_pa = float(E) * _TO_PA[unit]
+    if not (np.isfinite(E_pa) and E_pa > 0):
+        raise ValueError(f"Young's modulus must be > 0 (got {E} {unit})")
+    if not 0.0 < nu < 0.5:
+        raise ValueError(f"Poisson ratio must be in (0, 0.5) (got {nu})")
+    E_mpa = E_pa * 1e-6
+    mu = E_mpa / (2.0 * (1.0 + nu))
+    c10 = round(mu / 2.0, 15)  # round off the Pa -> MPa float noise only
+    K = bulk_from_poisson(2.0 * c10, nu)
+    shown = f"{E_pa / 1e3:.4g} kPa" if E_pa < 1e6 else f"{E_mpa:.4g} MPa"
+    note = (f"E {shown}, nu {nu:g} -> mu {mu:.4g} MPa, C10 {c10:.4g} MPa, K {K:.4g} MPa "
+            f"(D1 = 2/K = {2.0 / K:.4g} 1/MPa); neo_hookean, mm/N/MPa")
+    return {"C10": c10}, note
+
+
 @dataclass(frozen=True)
 class Material:
     """A nearly incompressible hyperelastic material (build with :func:`make_material`).

@@ -8,6 +8,7 @@ legacy VTK ``DATASET POLYDATA``    own reader (ASCII and BINARY)
 legacy VTK other datasets, VTU     meshio (boundary of tets, else triangles)
 Gmsh MSH v1                        own reader (ASCII)
 Gmsh MSH v2, v4                    meshio
+XDMF ``.xdmf``/``.xmf``             meshio (HDF5 data needs h5py)
 NIfTI ``.nii``/``.nii.gz``, NRRD   label volume → marching cubes (mm)
 =================================  ==========================================
 
@@ -39,7 +40,8 @@ __all__ = ["GeometryError", "SUPPORTED_SUFFIXES", "load_surface", "sha256_file"]
 
 log = logging.getLogger(__name__)
 
-SUPPORTED_SUFFIXES = (".stl", ".obj", ".ply", ".off", ".vtk", ".vtu", ".msh", ".nii", ".nii.gz", ".nrrd", ".nhdr")
+SUPPORTED_SUFFIXES = (".stl", ".obj", ".ply", ".off", ".vtk", ".vtu", ".msh", ".xdmf", ".xmf", ".nii", ".nii.gz",
+                      ".nrrd", ".nhdr")
 
 
 def sha256_file(path: str | Path) -> str:
@@ -236,6 +238,8 @@ def _read_mesh_file(path: Path, name: str) -> readers.RawMesh:
         return readers.read_meshio(path, "vtk")
     if name.endswith(".vtu"):
         return readers.read_meshio(path, "vtu")
+    if name.endswith((".xdmf", ".xmf")):
+        return readers.read_meshio(path, "xdmf")
     if name.endswith(".msh"):
         version = readers.msh_version(path)
         if version == "1":

@@ -9,7 +9,7 @@ a file it cannot read.  Two formats meshio 5.3.5 cannot read are parsed here:
 * Gmsh MSH version 1 (ASCII ``$NOD``/``$ELM``), see :func:`read_gmsh_v1`.
 
 Everything else goes through trimesh (STL, OBJ, PLY, OFF) or meshio (VTU,
-legacy VTK UNSTRUCTURED_GRID, Gmsh MSH 2 and 4), each call wrapped so that
+legacy VTK UNSTRUCTURED_GRID, Gmsh MSH 2 and 4, XDMF), each call wrapped so that
 meshio's ``sys.exit`` on unknown content becomes a ``GeometryError``.
 """
 
@@ -387,20 +387,29 @@ def read_gmsh_v1(path: str | Path) -> RawMesh:
 
 
 # ---------------------------------------------------------- meshio, trimesh
-def read_meshio(path: str | Path, file_format: str | None = None) -> RawMesh:
-    """Read with meshio, turning its ``SystemExit``/exceptions into ``GeometryError``."""
+def read_meshio_mesh(path: str | Path, file_format: str | None = None):
+    """``meshio.read`` with cell data and field data kept, its ``SystemExit``/exceptions as ``GeometryError``."""
     import meshio
 
     path = Path(path)
     try:
-        m = meshio.read(path, file_format=file_format)
+        return meshio.read(path, file_format=file_format)
     except SystemExit as exc:  # meshio 5.3.5 calls sys.exit(1) on unsupported content
         raise refuse(path, f"meshio could not read the file (it called sys.exit({exc.code}); the "
                            "format or version is unsupported or the content is corrupted)",
                      "Convert it to STL, PLY, VTU or Gmsh MSH v4") from None
+    except ImportError as exc:  # e.g. XDMF with HDF5 data and no h5py
+        raise refuse(path, f"meshio needs a package that is not installed to read this file ({exc})",
+                     "Install it (e.g. pip install h5py for XDMF with HDF5 data) or save the mesh as VTU") from None
     except Exception as exc:  # meshio raises many types (ReadError, ValueError, KeyError, ...)
         raise refuse(path, f"meshio could not read the file ({type(exc).__name__}: {exc})",
                      "Check the file opens in ParaView or gmsh, or convert it to STL/PLY/VTU") from None
+
+
+def read_meshio(path: str | Path, file_format: str | None = None) -> RawMesh:
+    """Read with meshio, turning its ``SystemExit``/exceptions into ``GeometryError``."""
+    path = Path(path)
+    m = read_meshio_mesh(path, file_format)
     tris, tets = [], []
     for block in m.cells:
         if block.type == "triangle":

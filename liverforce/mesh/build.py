@@ -39,6 +39,7 @@ def build_liver_mesh(
     support_frame=None,
     file_vertices=None,
     exertion_points=None,
+    file_groups=None,
 ) -> LiverMesh:
     """Tetrahedralise ``surface``, extract and tag its boundary facets.
 
@@ -103,6 +104,9 @@ def build_liver_mesh(
         How the geometry file's coordinates map to ``surface`` (identity if None).
     file_vertices : callable, optional
         Returns the geometry file's vertices as read (for selectors by vertex id).
+    file_groups : callable, optional
+        Returns the geometry file's tagged groups (:func:`liverforce.mesh.groups.read_file_groups`),
+        for ``group`` selectors: the groups are transferred onto the input surface.
     exertion_points : array-like, optional
         ``(k, 3)`` given exertion points in the surface's frame (mm): snapped to the
         input surface (refused beyond 5 mm or on a fixed support), used instead of
@@ -137,7 +141,7 @@ def build_liver_mesh(
 
             s_region, support_report = apply_supports(
                 surface.vertices, surface.faces, s_region, supports[0], supports[1],
-                support_frame or PointFrame(), file_vertices)
+                support_frame or PointFrame(), file_vertices, file_groups=file_groups)
             s_visible = visible_facets(surface.vertices, surface.faces, s_region, params)
             for info in support_report:
                 log.info("support %s (%s, %s): %d facets%s", info["name"], info["kind"], info["selector"],

@@ -31,8 +31,13 @@ lengths in mm:
   snapped to the nearest surface vertex (snapping distance reported); a facet is
   selected when **all three** of its vertices are.
 
-Physical groups / cell tags of the mesh file are not supported yet: the
-surface importer keeps the geometry only (:mod:`liverforce.geometry.readers`).
+* ``group: <name or number>`` or ``group: {array: <cell-data name>, value: <n>}``:
+  a Gmsh physical group or a VTU/VTK/XDMF cell-data tag of the geometry file
+  (:mod:`liverforce.mesh.groups`). Its faces select the surface facets whose
+  nearest boundary triangle of the file is one of them (exactly the tagged
+  faces on a mesh imported as given; transferred onto a remeshed surface, the
+  largest centroid distance reported as ``transfer_mm``); a group of nodes only
+  (vertex or line cells) is snapped as a file of vertex ids.
 
 Supports are applied in order (a later one overrides an earlier one) onto zero
 regions (``mode: replace``) or onto the auto-tagged ones (``mode: add``).
@@ -49,7 +54,7 @@ from liverforce.mesh.types import REGION_CODES
 
 KIND_CODES = {"fixed": REGION_CODES["ivc"], "sliding": REGION_CODES["rib"]}
 FOUNDATION_SLOTS = ("ligament", "visceral")
-SELECTORS = ("sphere", "box", "file")
+SELECTORS = ("sphere", "box", "file", "group")
 #: exertion points and support coordinates farther than this from the surface are refused (mm)
 MAX_SNAP_MM = 5.0
 
@@ -123,7 +128,7 @@ def parse_supports(cfg, where: str = "supports") -> tuple[str, list[Support]]:
         extra = set(s) - {"name", "kind", "region", "stiffness", *SELECTORS}
         if extra:
             raise SupportError(f"{key}: unknown keys {sorted(extra)}")
-        selector = (sel[0], dict(s[sel[0]]))
+        selector = (sel[0], _group_spec(s[sel[0]], f"{key}.group") if sel[0] == "group" else dict(s[sel[0]]))
         _check_selector(selector, f"{key}.{sel[0]}")
         region = s.get("region", "ligament")
         stiffness = dict(s.get("stiffness") or {})
@@ -137,8 +142,36 @@ def parse_supports(cfg, where: str = "supports") -> tuple[str, list[Support]]:
     return mode, out
 
 
+def _group_spec(value, key: str) -> dict:
+    """``group:`` value → ``{name}`` (a string), ``{value}`` (an integer) or ``{array[, value]}``."""
+    if isinstance(value, bool):
+        raise SupportError(f"{key}: '{value}' must be a group name, a tag number or {{array, value}}")
+    if isinstance(value, (int, np.integer)):
+        return {"value": int(value)}
+    if isinstance(value, str):
+        return {"value": int(value)} if value.strip().lstrip("-").isdigit() else {"name": value}
+    if isinstance(value, float) and value.is_integer():
+        return {"value": int(value)}
+    try:
+        d = dict(value)
+    except (TypeError, ValueError):
+        raise SupportError(f"{key}: '{value}' must be a group name, a tag number or {{array, value}}") from None
+    if not d or not set(d) <= {"array", "value", "name"} or ("name" in d and len(d) > 1):
+        raise SupportError(f"{key}: give a name, a number, or {{array: <cell-data name>, value: <n>}}, got {d}")
+    if "value" in d:
+        try:
+            if float(d["value"]) != int(float(d["value"])):
+                raise ValueError
+            d["value"] = int(float(d["value"]))
+        except (TypeError, ValueError):
+            raise SupportError(f"{key}.value: '{d['value']}' must be an integer tag") from None
+    return d
+
+
 def _check_selector(selector, key):
     kind, d = selector
+    if kind == "group":
+        return
     need = {"sphere": {"center_mm", "radius_mm"}, "box": {"min_mm", "max_mm"}, "file": {"path"}}[kind]
     allowed = need | ({"units"} if kind == "file" else set())
     if not need <= set(d) or not set(d) <= allowed:
@@ -202,18 +235,26 @@ def snap_to_vertices(vertices: np.ndarray, xyz: np.ndarray, what: str, max_mm: f
 
 
 def select_facets(vertices, faces, support: Support, frame: PointFrame = PointFrame(),
-                  file_vertices=None, base_dir=None) -> tuple[np.ndarray, dict]:
+                  file_vertices=None, base_dir=None, file_groups=None) -> tuple[np.ndarray, dict]:
     """Facets of the surface ``(vertices, faces)`` (mesh frame, mm) selected by ``support``.
 
     ``file_vertices`` : callable returning the geometry file's vertices as read
-    (file units and frame), for selectors of vertex ids. Returns ``(mask, info)``,
-    ``info`` with the count and, for files, the snapping distances (mm).
+    (file units and frame), for selectors of vertex ids. ``file_groups`` : callable
+    returning the file's :class:`~liverforce.mesh.groups.FileGroups`, for ``group``
+    selectors. Returns ``(mask, info)``, ``info`` with the count and, for files,
+    the snapping distances (mm).
     """
     vertices = np.asarray(vertices, float)
     faces = np.asarray(faces, np.int64)
     kind, d = support.selector
     info: dict = {"name": support.name, "kind": support.kind, "selector": kind}
-    if kind in ("sphere", "box"):
+    if kind == "group":
+        if file_groups is None:
+            raise SupportError(f"support '{support.name}': a group selector needs the geometry's mesh file "
+                               "(an imported Gmsh MSH, VTU, VTK or XDMF file with tags)")
+        mask, ginfo = _select_group(vertices, faces, support, frame, file_groups())
+        info.update(ginfo)
+    elif kind in ("sphere", "box"):
         cent = frame.to_file(vertices[faces].mean(axis=1))  # file frame, mm
         if kind == "sphere":
             mask = np.linalg.norm(cent - np.asarray(d["center_mm"], float), axis=1) <= float(d["radius_mm"])
@@ -248,6 +289,49 @@ def select_facets(vertices, faces, support: Support, frame: PointFrame = PointFr
     return mask, info
 
 
+def _select_group(vertices, faces, support: Support, frame: PointFrame, groups) -> tuple[np.ndarray, dict]:
+    """Facets selected by a file group (see :mod:`liverforce.mesh.groups`)."""
+    from scipy.spatial import cKDTree
+    from trimesh.triangles import closest_point
+
+    from liverforce.mesh.groups import GroupError
+
+    where = f"support '{support.name}' group {support.selector[1]}"
+    try:
+        gfaces, gnodes = groups.select(support.selector[1], where)
+    except GroupError as exc:
+        raise SupportError(str(exc)) from None
+    P = frame.to_mesh(groups.points * frame.scale)
+    info: dict = {"file": groups.path}
+    if len(gfaces):
+        B, n = groups.boundary, len(groups.points)
+        key = lambda t: np.sort(t, axis=1) @ np.array([n * n, n, 1], dtype=np.int64)  # noqa: E731
+        in_group = np.isin(key(B), key(gfaces))
+        if not in_group.any():
+            raise SupportError(f"{where}: its {len(gfaces)} faces in {groups.path} are none on the boundary "
+                               "of the mesh; a support must be a part of the outer surface")
+        tri = P[B]
+        q = vertices[faces].mean(axis=1)
+        k = min(8, len(tri))
+        _, near = cKDTree(tri.mean(axis=1)).query(q, k=k)
+        near = near.reshape(len(q), k)
+        cp = closest_point(tri[near.ravel()], np.repeat(q, k, axis=0)).reshape(len(q), k, 3)
+        dist = np.linalg.norm(cp - q[:, None], axis=2)
+        best = np.argmin(dist, axis=1)
+        mask = in_group[near[np.arange(len(q)), best]]
+        d = dist[np.arange(len(q)), best]
+        info["group_faces"] = int(in_group.sum())
+        info["transfer_mm"] = float(d[mask].max()) if mask.any() else 0.0
+    else:  # a group of nodes only (vertex or line cells): snapped as a file of vertex ids
+        ids, dist = snap_to_vertices(vertices, P[gnodes], where)
+        chosen = np.zeros(len(vertices), bool)
+        chosen[ids] = True
+        mask = chosen[faces].all(axis=1)
+        info["group_nodes"] = int(len(gnodes))
+        info["snap_mm"] = {"max": float(dist.max()), "mean": float(dist.mean()), "n_points": int(len(dist))}
+    return mask, info
+
+
 def _units_scale(units) -> float:
     from liverforce.geometry.units import parse_units
 
@@ -258,12 +342,13 @@ def _units_scale(units) -> float:
 
 
 def apply_supports(vertices, faces, auto_region: np.ndarray, mode: str, supports: list[Support],
-                   frame: PointFrame = PointFrame(), file_vertices=None, base_dir=None) -> tuple[np.ndarray, list]:
+                   frame: PointFrame = PointFrame(), file_vertices=None, base_dir=None,
+                   file_groups=None) -> tuple[np.ndarray, list]:
     """Region codes of the input surface's facets after the user supports (in order; later override)."""
     region = np.asarray(auto_region, np.int8).copy() if mode == "add" else np.zeros(len(faces), np.int8)
     report = []
     for s in supports:
-        mask, info = select_facets(vertices, faces, s, frame, file_vertices, base_dir)
+        mask, info = select_facets(vertices, faces, s, frame, file_vertices, base_dir, file_groups)
         region[mask] = s.code
         info["region_code"] = int(s.code)
         report.append(info)

@@ -3,6 +3,13 @@
 The JSON records the spec, the repairs and, for imported files, the unit and
 frame conversion to RAS mm (``conversion``: units, scale, frame, the 4x4
 applied), which the mesh stage reads back to word its plausibility checks.
+
+An imported tet mesh taken as given (``geometry.imported[].mesh``: ``as_given``,
+or ``auto`` on a file that holds tetrahedra) is read and checked here
+(:func:`liverforce.geometry.volume_mesh.load_volume_mesh`: bad meshes are refused
+before any meshing); the PLY is then its boundary, unrepaired, and the JSON says
+``mesh_mode: as_given``. The
+mesh stage reads the file itself again (checked against the recorded SHA-256).
 """
 
 from __future__ import annotations
@@ -35,8 +42,18 @@ def make_geometry(spec: dict, surface_path: str | Path, meta_path: str | Path) -
             units = float(units)
         except (TypeError, ValueError):
             pass
-        surface, messages = load_surface(spec["path"], units=units, label=spec.get("label"),
-                                         frame=spec.get("frame", "RAS"))  # logs the conversion
+        mode = mesh_mode(spec)
+        if mode == "as_given":
+            from liverforce.geometry.volume_mesh import boundary_surface, load_volume_mesh
+
+            volume, messages = load_volume_mesh(spec["path"], units=units, frame=spec.get("frame", "RAS"))
+            surface = boundary_surface(volume)
+        else:
+            surface, messages = load_surface(spec["path"], units=units, label=spec.get("label"),
+                                             frame=spec.get("frame", "RAS"))  # logs the conversion
+        surface.meta["mesh_mode"] = mode
+        log.info("geometry %s: mesh %s (geometry.imported[].mesh: %s)", spec.get("name"), mode,
+                 spec.get("mesh", "auto"))
     else:
         raise ValueError(f"unknown geometry kind '{kind}'")
     for m in messages:
@@ -51,11 +68,21 @@ def make_geometry(spec: dict, surface_path: str | Path, meta_path: str | Path) -
     return meta
 
 
+def mesh_mode(spec: dict) -> str:
+    """``as_given`` or ``remesh`` for an imported geometry: ``auto`` (the default) takes a file that
+    holds tetrahedra as given and remeshes anything else (surfaces, label volumes)."""
+    mode = spec.get("mesh") or "auto"
+    if mode != "auto":
+        return mode
+    from liverforce.geometry.volume_mesh import has_tetrahedra
+
+    return "as_given" if has_tetrahedra(spec["path"]) else "remesh"
+
+
 def save_surface(surface, path: str | Path) -> None:
     import meshio
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
-    meshio.write(tmp, meshio.Mesh(surface.vertices, [("triangle", surface.faces)]), binary=True)
-    tmp.replace(path)
+    from liverforce.atomic import atomic_path
+
+    with atomic_path(path) as tmp:
+        meshio.write(tmp, meshio.Mesh(surface.vertices, [("triangle", surface.faces)]), binary=True)

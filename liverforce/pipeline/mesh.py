@@ -46,8 +46,14 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
     stiffness under ``support_boundary`` (N/mm³, ``BoundaryParams`` fields).
     Given exertion points replace the sampled candidates (``exertion_given``:
     true, snapping distances in ``exertion_snap_mm``).
+
+    An imported tet mesh taken as given (the geometry JSON's ``mesh_mode:
+    as_given``) is not remeshed: the VTU holds the file's nodes in the file's
+    order (RAS mm) and its tets, regions are tagged on its boundary facets
+    (:func:`liverforce.mesh.given.build_given_mesh`), and the features JSON says
+    ``mesh_mode: as_given`` and ``node_numbering: file``. ``mesh.target_nodes``,
+    ``mesher`` and ``refine_*`` do not apply to it.
     """
-    from liverforce.mesh.build import build_liver_mesh
     from liverforce.mesh.features import compute_features
     from liverforce.mesh.io import write_mesh
     from liverforce.mesh.plot import plot_regions
@@ -67,28 +73,21 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
         region, visible = tag_regions(surface.vertices, surface.faces, RegionParams(**mesh_cfg.get("regions", {})))
         _regions_check(surface.vertices, surface.faces, region, visible, surface.meta, mesh_cfg, Path(mesh_path).stem)
     t0 = time.perf_counter()
-    mesh = build_liver_mesh(
-        surface,
-        target_nodes=mesh_cfg["target_nodes"],
-        region_params=RegionParams(**mesh_cfg.get("regions", {})),
-        mesher=mesh_cfg["mesher"],
-        seed=seed,
-        refine_radius_mm=mesh_cfg.get("refine_radius_mm", 0.0),
-        refine_edge_mm=mesh_cfg.get("refine_edge_mm"),
-        refine_ivc_edge_mm=mesh_cfg.get("refine_ivc_edge_mm"),
-        refine_growth=mesh_cfg.get("refine_growth", 0.3),
-        supports=user["supports"], support_frame=user["frame"], file_vertices=user["file_vertices"],
-        exertion_points=user["exertion_points"],
-        exertion_sampling=None if exertion is None or user["exertion_points"] is not None else {
-            "n_points": exertion["n_points"], "min_spacing_mm": exertion["min_spacing_mm"],
-            "seed": exertion_seed(seed, Path(mesh_path).stem)},
-    )
+    if surface.meta.get("mesh_mode") == "as_given":
+        mesh = _given_mesh(surface.meta, spec, user, mesh_cfg, exertion, seed, Path(mesh_path).stem)
+    else:
+        mesh = _remeshed(surface, user, mesh_cfg, exertion, seed, Path(mesh_path).stem)
     elapsed = time.perf_counter() - t0
     checked = _regions_check(mesh.points, mesh.facets, mesh.facet_region, mesh.facet_visible, surface.meta,
                              mesh_cfg, Path(mesh_path).stem)
     write_mesh(mesh_path, mesh)
     feats = compute_features(mesh)
     feats["meshing_time_s"] = elapsed
+    feats["mesh_mode"] = surface.meta.get("mesh_mode", "remesh")
+    feats["node_numbering"] = mesh.meta.get("node_numbering", "mesher")
+    if feats["mesh_mode"] == "as_given":
+        feats["given_mesh"] = {k: mesh.meta["meshing"][k] for k in ("n_nodes", "n_tets", "mean_boundary_edge_mm")}
+        feats["given_mesh"]["reoriented_in_file"] = surface.meta.get("reoriented_in_file", 0)
     feats["exertion_candidates_mm"] = mesh.meta.get("exertion_candidates_mm")
     feats["exertion_given"] = bool(mesh.meta.get("exertion_given"))
     feats["exertion_snap_mm"] = mesh.meta.get("exertion_snap_mm")
@@ -101,6 +100,59 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
     plot_regions(mesh, picture_path)
     log.info("mesh: %d nodes, %d tets in %.1f s", len(mesh.points), len(mesh.tets), elapsed)
     return feats
+
+
+def _remeshed(surface, user: dict, mesh_cfg: dict, exertion: dict | None, seed: int, gid: str):
+    """Tetrahedralise the stage's input surface (procedural livers, surfaces, remeshed volume files)."""
+    from liverforce.mesh.build import build_liver_mesh
+    from liverforce.mesh.regions import RegionParams
+
+    return build_liver_mesh(
+        surface,
+        target_nodes=mesh_cfg["target_nodes"],
+        region_params=RegionParams(**mesh_cfg.get("regions", {})),
+        mesher=mesh_cfg["mesher"],
+        seed=seed,
+        refine_radius_mm=mesh_cfg.get("refine_radius_mm", 0.0),
+        refine_edge_mm=mesh_cfg.get("refine_edge_mm"),
+        refine_ivc_edge_mm=mesh_cfg.get("refine_ivc_edge_mm"),
+        refine_growth=mesh_cfg.get("refine_growth", 0.3),
+        supports=user["supports"], support_frame=user["frame"], file_vertices=user["file_vertices"],
+        file_groups=user["file_groups"], exertion_points=user["exertion_points"],
+        exertion_sampling=None if exertion is None or user["exertion_points"] is not None else {
+            "n_points": exertion["n_points"], "min_spacing_mm": exertion["min_spacing_mm"],
+            "seed": exertion_seed(seed, gid)},
+    )
+
+
+def _given_mesh(meta: dict, spec: dict, user: dict, mesh_cfg: dict, exertion: dict | None, seed: int, gid: str):
+    """The imported tet mesh as given (its nodes and tets), regions tagged on its boundary."""
+    from liverforce.geometry.volume_mesh import load_volume_mesh
+    from liverforce.mesh.given import build_given_mesh
+    from liverforce.mesh.regions import RegionParams
+
+    path = Path(spec["path"])
+    volume, _ = load_volume_mesh(path, units=meta.get("scale_to_mm", spec.get("units", "mm")),
+                                 frame=meta["conversion"]["frame_matrix"])
+    if meta.get("sha256") and volume.meta["sha256"] != meta["sha256"]:
+        from liverforce.geometry.errors import refuse
+
+        raise refuse(path, "the file changed since the geometry stage read it (SHA-256 differs)",
+                     f"Re-run the geometry stage for {gid} (e.g. snakemake --forcerun geometry)")
+    ignored = [k for k in ("target_nodes", "mesher", "refine_radius_mm", "refine_edge_mm", "refine_ivc_edge_mm")
+               if k in mesh_cfg]
+    log.info("%s: mesh as given (%d nodes, %d tets, node numbering of the file); mesh settings %s do not apply "
+             "(geometry.imported[].mesh: remesh to use them)", gid, len(volume.points), len(volume.tets), ignored)
+    return build_given_mesh(
+        volume.points, volume.tets, {**meta, **{k: volume.meta[k] for k in ("n_nodes", "n_tets")}},
+        RegionParams(**mesh_cfg.get("regions", {})),
+        supports=user["supports"], support_frame=user["frame"], file_vertices=user["file_vertices"],
+        file_groups=user["file_groups"], exertion_points=user["exertion_points"],
+        exertion_sampling=None if exertion is None or user["exertion_points"] is not None else {
+            "n_points": exertion["n_points"], "min_spacing_mm": exertion["min_spacing_mm"],
+            "seed": exertion_seed(seed, gid)},
+        coarse_edge_mm=2 * float(mesh_cfg.get("refine_edge_mm") or 0) or None,
+    )
 
 
 def _user_scene(spec: dict, surface_meta: dict) -> dict:
@@ -123,13 +175,27 @@ def _user_scene(spec: dict, surface_meta: dict) -> dict:
             cache["v"] = _read_mesh_file(path, path.name.lower()).points
         return cache["v"]
 
+    def file_groups():  # the geometry file's tagged cells (Gmsh physical groups, cell data)
+        if "g" not in cache:
+            from liverforce.geometry.volume_mesh import VOLUME_MESH_SUFFIXES
+            from liverforce.mesh.groups import read_file_groups
+            from liverforce.mesh.supports import SupportError
+
+            path = Path(spec["path"])
+            if not path.name.lower().endswith(VOLUME_MESH_SUFFIXES):
+                raise SupportError(f"geometry.imported[{name}]: {path} carries no tagged groups (only Gmsh MSH, "
+                                   "VTU, VTK and XDMF files do); select the support by sphere, box or file")
+            cache["g"] = read_file_groups(path)
+        return cache["g"]
+
     name = spec.get("name", "?")
     supports = parse_supports(spec.get("supports"), where=f"geometry.imported[{name}].supports")
     points = spec.get("exertion_points")
     if points is not None:
         points = exertion_points_mesh(points, frame, file_vertices if spec.get("path") else None)
     return {"supports": supports, "exertion_points": points, "frame": frame,
-            "file_vertices": file_vertices if spec.get("path") else None}
+            "file_vertices": file_vertices if spec.get("path") else None,
+            "file_groups": file_groups if spec.get("path") else None}
 
 
 def _support_boundary(mesh, supports) -> dict:

@@ -1,0 +1,146 @@
+"""Tagged groups of a mesh file (Gmsh physical groups, VTU/VTK/XDMF cell data) as support selectors.
+
+A support may select its surface with ``group:`` (see :mod:`liverforce.mesh.supports`):
+
+``group: ivc``
+    a Gmsh physical group by name (``$PhysicalNames``), else an integer cell-data
+    array of that name whose non-zero cells form the group;
+``group: 7``
+    a tag value: of the Gmsh physical tags (``gmsh:physical``), or of the file's
+    one integer cell-data array (a VTU/VTK with several integer arrays needs the
+    explicit form);
+``group: {array: CellEntityIds, value: 7}``
+    a value of a named cell-data array (``{array: name}`` alone: its non-zero cells).
+
+The group's cells give faces and nodes: triangles (and quads, split in two) are
+faces; tetrahedra give their faces that lie on the boundary; lines and vertices
+give nodes. On a surface (the mesh's boundary facets, or the input surface of
+a remeshed liver) a facet is selected when the nearest boundary triangle of the
+file is a face of the group (exact on a mesh imported as given, whose facets
+*are* the file's boundary triangles; a label transfer on a remeshed surface), or,
+for a group of nodes only, when its three vertices are the nearest surface
+vertices of group nodes (as a file of vertex ids); see
+:func:`liverforce.mesh.supports.select_facets`.
+
+meshio 5.3.5 gives Gmsh physical tags as the cell data ``gmsh:physical`` (one
+per element) and the names as ``field_data`` ``{name: [tag, dim]}`` for MSH 2.2
+and 4.1 alike; its ``cell_sets`` also hold ``gmsh:bounding_entities`` and are not
+used here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+#: Cell-data arrays that are Gmsh bookkeeping, not user tags.
+_GMSH_BOOKKEEPING = ("gmsh:geometrical",)
+_DIM = {"vertex": 0, "line": 1, "line3": 1, "triangle": 2, "triangle6": 2, "quad": 2, "tetra": 3, "tetra10": 3}
+
+
+class GroupError(ValueError):
+    """A ``group`` selector names no group of the file."""
+
+
+@dataclass
+class FileGroups:
+    """Cells and integer cell data of a mesh file (file units and frame) and its boundary triangles."""
+
+    path: str
+    points: np.ndarray
+    cells: list  # [(type, (k, n) int64)]
+    cell_data: dict  # name -> [array per block]
+    field_data: dict  # name -> [tag, dim]
+    boundary: np.ndarray  # (b, 3) boundary triangles of the file: faces of exactly one tet, else its triangles
+
+    def describe(self) -> str:
+        names = sorted(self.field_data)
+        arrays = sorted(self._int_arrays())
+        return (f"Gmsh physical names {names or 'none'}; integer cell-data arrays {arrays or 'none'}"
+                + (f" (values of gmsh:physical: {self._values('gmsh:physical')})" if "gmsh:physical" in arrays else ""))
+
+    def _int_arrays(self) -> list[str]:
+        out = []
+        for k, v in self.cell_data.items():
+            if k in _GMSH_BOOKKEEPING:
+                continue
+            if all(np.asarray(a).ndim == 1 and (np.issubdtype(np.asarray(a).dtype, np.integer)
+                                                 or np.allclose(a, np.round(a))) for a in v):
+                out.append(k)
+        return out
+
+    def _values(self, name: str) -> list[int]:
+        return sorted({int(x) for a in self.cell_data[name] for x in np.unique(a)})
+
+    def select(self, spec: dict, where: str = "group") -> tuple[np.ndarray, np.ndarray]:
+        """Faces ``(k, 3)`` and nodes ``(j,)`` (file node ids) of the group ``spec`` (``name|value|array``).
+
+        Raises :class:`GroupError` naming what the file holds when nothing matches.
+        """
+        spec = dict(spec)
+        masks = self._masks(spec, where)
+        faces, nodes = [], []
+        for (t, a), m in zip(self.cells, masks):
+            if not m.any():
+                continue
+            sel = a[m]
+            if t in ("triangle", "triangle6"):
+                faces.append(sel[:, :3])
+            elif t == "quad":
+                faces += [sel[:, [0, 1, 2]], sel[:, [0, 2, 3]]]
+            elif t in ("tetra", "tetra10"):
+                faces.append(sel[:, [[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]]].reshape(-1, 3))
+            nodes.append(sel.ravel() if t in ("vertex", "line", "line3") else sel[:, :min(sel.shape[1], 4)].ravel())
+        if not nodes:
+            raise GroupError(f"{where}: {spec} selects no cell of {self.path}; it holds {self.describe()}")
+        faces = np.concatenate(faces).astype(np.int64) if faces else np.zeros((0, 3), np.int64)
+        return faces, np.unique(np.concatenate(nodes)).astype(np.int64)
+
+    def _masks(self, spec: dict, where: str) -> list[np.ndarray]:
+        if "name" in spec:
+            name = str(spec["name"])
+            if name in self.field_data and "gmsh:physical" in self.cell_data:
+                tag, dim = (int(x) for x in np.asarray(self.field_data[name]).ravel()[:2])
+                return [(np.asarray(v) == tag) & (_DIM.get(t, -1) == dim)
+                        for (t, _), v in zip(self.cells, self.cell_data["gmsh:physical"])]
+            if name in self._int_arrays():
+                return [np.asarray(v) != 0 for v in self.cell_data[name]]
+            raise GroupError(f"{where}: '{name}' is no group of {self.path}; it holds {self.describe()}")
+        array = spec.get("array")
+        if array is None:
+            cands = ["gmsh:physical"] if "gmsh:physical" in self.cell_data else self._int_arrays()
+            if len(cands) != 1:
+                raise GroupError(f"{where}: a tag value needs one integer cell-data array, {self.path} has "
+                                 f"{cands or 'none'}: give group: {{array: <name>, value: {spec.get('value')}}}")
+            array = cands[0]
+        if array not in self.cell_data:
+            raise GroupError(f"{where}: no cell-data array '{array}' in {self.path}; it holds {self.describe()}")
+        if "value" not in spec:
+            return [np.asarray(v) != 0 for v in self.cell_data[array]]
+        value = int(spec["value"])
+        masks = [np.asarray(v) == value for v in self.cell_data[array]]
+        if not any(m.any() for m in masks):
+            raise GroupError(f"{where}: no cell has {array} = {value} in {self.path} (values: "
+                             f"{self._values(array) if array in self._int_arrays() else '?'})")
+        return masks
+
+
+def read_file_groups(path) -> FileGroups:
+    """Read the cells, cell data and Gmsh names of a mesh file (see the module docstring)."""
+    from liverforce.geometry.volume_mesh import read_tet_file
+
+    tf = read_tet_file(path)
+    tets = [a for t, a in tf.cells if t == "tetra"]
+    if tets:
+        t = np.concatenate(tets)
+        faces = t[:, [[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]]].reshape(-1, 3)
+        _, inv, counts = np.unique(np.sort(faces, axis=1), axis=0, return_inverse=True, return_counts=True)
+        boundary = faces[counts[inv.ravel()] == 1]
+    else:
+        tris = [a[:, :3] for t, a in tf.cells if t in ("triangle", "triangle6")]
+        tris += [q for t, a in tf.cells if t == "quad" for q in (a[:, [0, 1, 2]], a[:, [0, 2, 3]])]
+        boundary = np.concatenate(tris) if tris else np.zeros((0, 3), np.int64)
+    return FileGroups(str(Path(path)), tf.points, tf.cells, tf.cell_data, tf.field_data,
+                      np.asarray(boundary, np.int64))

@@ -1,0 +1,200 @@
+"""A liver tet mesh imported as given, through the geometry, mesh, sweep and simulate stages.
+
+A procedural liver is meshed the normal way; the same mesh is then written as a
+real Gmsh MSH 4.1 file (gmsh API) in metres and LPS, with its nodes shuffled,
+some tets inverted, and its vena-cava and lower-face facets as physical groups.
+Imported as given with supports selected by those groups and an exertion point
+given as a vertex id of the file, it must keep the file's node numbering, carry
+the same regions, and give the same solution as the original mesh (P2 by the
+product's simulate loop; P1 against FElupe).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_byo_volume_files import write_gmsh
+
+from liverforce.config import compose
+from liverforce.mesh.types import REGION_CODES
+
+LPS = np.array([-1.0, -1.0, 1.0])
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    from liverforce.geometry.procedural import procedural_liver
+    from liverforce.mesh.build import build_liver_mesh
+    from liverforce.pipeline.geometry import make_geometry
+    from liverforce.pipeline.mesh import make_mesh
+
+    tmp = tmp_path_factory.mktemp("asgiven")
+    orig = build_liver_mesh(procedural_liver(0), target_nodes=400, seed=0)
+    perm = np.random.default_rng(0).permutation(len(orig.points))  # file node j = original node perm[j]
+    inv = np.argsort(perm)
+    tets = inv[orig.tets]
+    tets[::3] = tets[::3][:, [0, 1, 3, 2]]  # a third of the tets inverted in the file
+    write_gmsh(tmp / "liver.msh", orig.points[perm] * LPS / 1000.0, tets,
+               {"cava": (7, inv[orig.facets[orig.facet_region == 1]]),
+                "floor": (8, inv[orig.facets[orig.facet_region == 3]])}, 4.1)
+    vis = orig.facets[np.flatnonzero(orig.facet_visible)[len(np.flatnonzero(orig.facet_visible)) // 2]]
+    vertex_id = int(inv[vis[0]])  # a visible vertex, as the file numbers it
+    spec = {"kind": "imported", "name": "lab", "path": str(tmp / "liver.msh"), "units": "m", "label": None,
+            "frame": "LPS", "mesh": "auto",
+            "supports": {"mode": "replace", "list": [
+                {"name": "cava", "kind": "fixed", "group": "cava"},
+                {"name": "floor", "kind": "foundation", "region": "visceral", "group": 8,
+                 "stiffness": {"total_n_per_mm": 40.0}}]},
+            "exertion_points": {"vertex_ids": [vertex_id]}}
+    geo = make_geometry(spec, tmp / "imp-lab.ply", tmp / "imp-lab.json")
+    cfg = compose(["experiment=smoke", "material=neo_hookean_from_e"])
+    feats = make_mesh(tmp / "imp-lab.ply", cfg["mesh"], 0, tmp / "imp-lab.vtu", tmp / "imp-lab.features.json",
+                      tmp / "imp-lab.regions.png", exertion=cfg["sweep"]["exertion"])
+    return {"orig": orig, "perm": perm, "inv": inv, "spec": spec, "geo": geo, "feats": feats, "cfg": cfg,
+            "tmp": tmp, "vertex_id": vertex_id}
+
+
+def test_the_mesh_keeps_the_files_nodes_in_the_files_order(scene):
+    from liverforce.mesh.io import read_mesh
+
+    mesh = read_mesh(scene["tmp"] / "imp-lab.vtu")
+    orig, perm = scene["orig"], scene["perm"]
+    np.testing.assert_allclose(mesh.points, orig.points[perm], atol=1e-9)  # m -> mm, LPS -> RAS, order kept
+    assert len(mesh.tets) == len(orig.tets)
+    assert scene["geo"]["mesh_mode"] == "as_given" and scene["feats"]["mesh_mode"] == "as_given"
+    assert scene["feats"]["node_numbering"] == "file"
+    assert scene["feats"]["given_mesh"]["reoriented_in_file"] == len(orig.tets[::3])
+    mesh.validate()  # positive tets, outward facets
+
+
+def test_supports_by_group_are_exactly_the_tagged_facets(scene):
+    from liverforce.mesh.io import read_mesh
+
+    mesh = read_mesh(scene["tmp"] / "imp-lab.vtu")
+    orig, perm = scene["orig"], scene["perm"]
+    key = lambda f: tuple(sorted(f))  # noqa: E731
+    want = {key(perm[f]): r for f, r in zip(mesh.facets, mesh.facet_region)}  # in original node ids
+    expected = {key(f): (r if r in (1, 3) else 0) for f, r in zip(orig.facets, orig.facet_region)}
+    assert want == expected
+    sup = {s["name"]: s for s in scene["feats"]["supports"]}
+    assert sup["cava"]["n_facets"] == int((orig.facet_region == 1).sum())
+    assert sup["floor"]["n_facets"] == int((orig.facet_region == 3).sum())
+
+
+def test_an_exertion_point_given_by_vertex_id_is_that_node(scene):
+    from liverforce.mesh.io import read_mesh
+    from liverforce.pipeline.sweep import exertion_set
+
+    mesh = read_mesh(scene["tmp"] / "imp-lab.vtu")
+    cand = np.asarray(scene["feats"]["exertion_candidates_mm"])
+    np.testing.assert_array_equal(cand, mesh.points[[scene["vertex_id"]]])
+    ex = exertion_set(mesh, 8, 15.0, 0, 5.0, candidates=cand, given=True)
+    np.testing.assert_allclose(ex.points, cand, atol=1e-9)
+
+
+def _case(scene, force):
+    cfg = scene["cfg"]
+    mat = cfg["material"]
+    from liverforce.fem.materials import make_material
+
+    return {"case_id": "c0", "scenario": "I", "geometry_id": "imp-lab", "shard_index": 0, "seed": 0,
+            "material_model": mat["model"], "material_param_names": ["C10"],
+            "material_params_mpa": [mat["params_mpa"]["C10"]],
+            "bulk_modulus_mpa": make_material(mat["model"], mat["params_mpa"], nu=mat["nu"]).bulk,
+            "exertion_id": 0, "exertion_point_mm": np.asarray(scene["feats"]["exertion_candidates_mm"][0]),
+            "force_n": np.asarray(force, float), "force_magnitude_n": float(np.linalg.norm(force))}
+
+
+def test_simulate_on_the_mesh_as_given_matches_the_original_mesh(scene):
+    """The product's simulate loop (P2 mean dilatation, the user's foundation stiffness) on the imported mesh
+    against a LiverModel on the original mesh with the same regions: same displacements, node for node."""
+    from liverforce.fem.materials import make_material
+    from liverforce.fem.problem import LiverModel, ToolLoad
+    from liverforce.mesh.io import read_mesh
+    from liverforce.pipeline.simulate import boundary_params, simulate_cases, solver_options
+
+    cfg, orig, perm = scene["cfg"], scene["orig"], scene["perm"]
+    mesh = read_mesh(scene["tmp"] / "imp-lab.vtu")
+    case = _case(scene, [0.0, -1.0, -1.5])
+    sim = {**cfg["simulate"], "tol": 1e-10}
+    dataset = {**cfg["dataset"], "store_full_surface": True}
+    rows = simulate_cases([case], {"imp-lab": mesh}, sim, cfg["boundary"], dataset,
+                          supports={"imp-lab": scene["feats"]["support_boundary"]})
+    assert rows[0]["converged"], rows[0]["reason"]
+
+    region = np.where(np.isin(orig.facet_region, [1, 3]), orig.facet_region, 0)
+    ref_mesh = type(orig)(orig.points, orig.tets, orig.facets, region, orig.facet_visible)
+    bp = boundary_params(ref_mesh, cfg["boundary"]).with_supports(scene["feats"]["support_boundary"])
+    assert bp.visceral_kn == pytest.approx(scene["feats"]["support_boundary"]["visceral_kn"])
+    mat = make_material("neo_hookean", cfg["material"]["params_mpa"], nu=cfg["material"]["nu"])
+    ref = LiverModel(orig.points, orig.tets, orig.facets, region, mat, bp, solver_options(sim)).solve(
+        ToolLoad(case["exertion_point_mm"], case["force_n"], sim["tool_radius_mm"]))
+    assert ref.converged
+    u_ref = ref.u_nodes[perm]  # in the file's node order
+    assert np.abs(u_ref).max() > 1.0  # a real indentation, mm
+    from liverforce.dataset.roi import surface_graph
+
+    surf = surface_graph(mesh.points, mesh.facets)
+    u_surf = np.asarray(rows[0]["surface_displacement_mm"], float)  # float32 in the shard
+    np.testing.assert_allclose(u_surf, u_ref[surf.node_ids], atol=1e-5 * np.abs(u_ref).max())
+    assert rows[0]["max_displacement_mm"] == pytest.approx(np.linalg.norm(u_ref, axis=1).max(), rel=1e-7)
+
+
+def test_p1_on_the_imported_mesh_matches_felupe(scene):
+    """Same mesh (as imported), fixed support (the 'cava' group), tool load as nodal forces: FElupe 11.3."""
+    fem = pytest.importorskip("felupe")
+    from liverforce.fem.materials import make_material
+    from liverforce.fem.newton import SolverOptions
+    from liverforce.fem.problem import BoundaryParams, LiverModel, ToolLoad
+    from liverforce.mesh.io import read_mesh
+
+    mesh = read_mesh(scene["tmp"] / "imp-lab.vtu")
+    C10, K = 0.0025, 0.25
+    fixed_only = np.where(mesh.facet_region == REGION_CODES["ivc"], 1, 0)
+    none = BoundaryParams(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    model = LiverModel(mesh.points, mesh.tets, mesh.facets, fixed_only, make_material("neo_hookean", {"C10": C10},
+                       bulk_mpa=K), none, SolverOptions(formulation="p1", tol=1e-12))
+    load = ToolLoad(scene["feats"]["exertion_candidates_mm"][0], [0.0, -0.2, -0.3], 5.0)
+    res = model.solve(load)
+    assert res.converged
+    F = model.nodal_loads(load).reshape(-1, 3)
+    loaded = np.flatnonzero(np.abs(F).sum(axis=1) > 0)
+    fixed = np.zeros(len(mesh.points), bool)
+    fixed[np.unique(mesh.facets[fixed_only == 1])] = True
+
+    fm = fem.Mesh(mesh.points, mesh.tets, cell_type="tetra")
+    field = fem.FieldContainer([fem.Field(fem.RegionTetra(fm), dim=3)])
+    solid = fem.SolidBody(fem.NeoHooke(mu=2 * C10, bulk=K), field)
+    pl = fem.PointLoad(field, loaded, F[loaded])
+    step = fem.Step(items=[solid, pl], ramp={pl: fem.math.linsteps([0, 1], num=4)[:, None, None] * F[loaded]},
+                    boundaries={"fixed": fem.dof.Boundary(field[0], mask=fixed)})
+    fem.Job(steps=[step]).evaluate(tol=1e-12, verbose=0)
+    u_fe = field[0].values
+    assert np.abs(u_fe).max() > 1.0
+    assert np.abs(res.u_nodes - u_fe).max() <= 1e-6 * np.abs(u_fe).max()
+
+
+def test_remesh_instead_carries_supports_and_exertion_points_over(scene):
+    """mesh: remesh on the same file: a new (gmsh) mesh, the groups transferred, the vertex-id point kept."""
+    from liverforce.fem.boundary import region_areas
+    from liverforce.mesh.io import read_mesh
+    from liverforce.pipeline.geometry import make_geometry
+    from liverforce.pipeline.mesh import make_mesh
+
+    tmp, orig = scene["tmp"], scene["orig"]
+    spec = {**scene["spec"], "name": "lab2", "mesh": "remesh"}
+    geo = make_geometry(spec, tmp / "imp-lab2.ply", tmp / "imp-lab2.json")
+    assert geo["mesh_mode"] == "remesh"
+    mesh_cfg = {**scene["cfg"]["mesh"], "target_nodes": 600}
+    feats = make_mesh(tmp / "imp-lab2.ply", mesh_cfg, 0, tmp / "imp-lab2.vtu", tmp / "imp-lab2.features.json",
+                      tmp / "imp-lab2.regions.png", exertion=scene["cfg"]["sweep"]["exertion"])
+    assert feats["mesh_mode"] == "remesh" and feats["node_numbering"] == "mesher"
+    mesh = read_mesh(tmp / "imp-lab2.vtu")
+    assert len(mesh.points) != len(orig.points)
+    a_new = region_areas(mesh.points, mesh.facets, mesh.facet_region)
+    a_old = region_areas(orig.points, orig.facets, orig.facet_region)
+    for code in (REGION_CODES["ivc"], REGION_CODES["visceral"]):  # the coarse file's surface is smoothed: ~
+        assert a_new[code] == pytest.approx(a_old[code], rel=0.2)
+    assert set(np.unique(mesh.facet_region)) == {0, REGION_CODES["ivc"], REGION_CODES["visceral"]}
+    given = orig.points[scene["perm"][scene["vertex_id"]]]
+    assert np.linalg.norm(np.asarray(feats["exertion_candidates_mm"][0]) - given) < 5.0
