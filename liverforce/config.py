@@ -68,7 +68,8 @@ class ImportedGeometry:
     # RAS | LPS (3D Slicer models, DICOM) | a 4x4 [[...],...,[0,0,0,1]]: file mm (after units) -> RAS mm
     frame: Any = "RAS"
     # own supports, in the file's frame (liverforce.mesh.supports): {mode: replace|add, list: [{name, kind:
-    # fixed|foundation|sliding, sphere|box|file: {...}, region: ligament|visceral, stiffness: {...}}]}
+    # fixed|foundation|sliding, sphere|box|file: {...} | group: name|tag|{array, value}, region:
+    # ligament|visceral, stiffness: {...}}]}
     supports: Optional[Any] = None
     # own exertion points, in the file's frame: {coordinates_mm: [[x,y,z],...]} | {vertex_ids: [...]}
     # | {path: pts.npy|txt|csv, units: ...}; the sweep uses all of them instead of sampled ones

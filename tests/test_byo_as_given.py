@@ -198,3 +198,35 @@ def test_remesh_instead_carries_supports_and_exertion_points_over(scene):
     assert set(np.unique(mesh.facet_region)) == {0, REGION_CODES["ivc"], REGION_CODES["visceral"]}
     given = orig.points[scene["perm"][scene["vertex_id"]]]
     assert np.linalg.norm(np.asarray(feats["exertion_candidates_mm"][0]) - given) < 5.0
+
+
+@pytest.mark.parametrize("name, units", [("liver.msh", 40), ("liver2.msh", 120)])
+def test_real_sofa_tet_livers_are_taken_as_given_and_solve(shared_livers, tmp_path, name, units):
+    """The public SOFA liver tet meshes (Gmsh v1) through the geometry and mesh stages as given, then one P2 case."""
+    from liverforce.fem.materials import make_material
+    from liverforce.fem.problem import LiverModel, ToolLoad
+    from liverforce.geometry.readers import read_gmsh_v1
+    from liverforce.mesh.io import read_mesh
+    from liverforce.pipeline.geometry import make_geometry
+    from liverforce.pipeline.mesh import make_mesh
+    from liverforce.pipeline.simulate import boundary_params, solver_options
+
+    spec = {"kind": "imported", "name": "sofa", "path": str(shared_livers / name), "units": units, "label": None,
+            "frame": "RAS"}
+    geo = make_geometry(spec, tmp_path / "imp-sofa.ply", tmp_path / "imp-sofa.json")
+    assert geo["mesh_mode"] == "as_given"
+    cfg = compose(["experiment=smoke"])
+    feats = make_mesh(tmp_path / "imp-sofa.ply", cfg["mesh"], 0, tmp_path / "imp-sofa.vtu",
+                      tmp_path / "imp-sofa.features.json", tmp_path / "imp-sofa.png", exertion=cfg["sweep"]["exertion"])
+    mesh = read_mesh(tmp_path / "imp-sofa.vtu")
+    file_points = read_gmsh_v1(shared_livers / name).points  # in the file's $NOD order
+    np.testing.assert_allclose(mesh.points, file_points * units, atol=1e-9)  # numbering and coordinates kept
+    assert feats["node_numbering"] == "file" and len(feats["exertion_candidates_mm"]) == 3
+    mat = make_material("neo_hookean", {"C10": 0.0025}, nu=0.49)
+    model = LiverModel.from_mesh(mesh, mat, boundary_params(mesh, cfg["boundary"]), solver_options(cfg["simulate"]))
+    point = np.asarray(feats["exertion_candidates_mm"][0])
+    normal = point - np.asarray(feats["centroid_mm"])
+    res = model.solve(ToolLoad(point, -1.0 * normal / np.linalg.norm(normal), 5.0))
+    assert res.converged, res.reason
+    assert 0.1 < np.linalg.norm(res.u_nodes, axis=1).max() < 50.0  # mm under 1 N
+    assert np.linalg.norm(res.reactions["imbalance"]) < 1e-6

@@ -7,8 +7,9 @@ holds tetrahedra). Formats: Gmsh MSH 2 and 4 (and v1), VTU, legacy VTK
 What is kept, what is changed
 -----------------------------
 * Node ``i`` of the result is node ``i`` of the file (the order meshio reads:
-  for Gmsh, the order of ``$Nodes``; for VTK/VTU/XDMF, the points array), so a
-  supports file or exertion points given as vertex ids stay valid.
+  for Gmsh, the order of ``$Nodes``, i.e. node tag − 1 when the tags run 1..n;
+  for VTK/VTU/XDMF, the points array), so a supports file or exertion points
+  given as vertex ids (0-based) stay valid.
 * Coordinates are scaled to mm (``units``) and mapped to RAS (``frame``), as a
   surface import does (:mod:`liverforce.geometry.frames`); the conversion is
   logged and recorded (``meta["conversion"]``, same keys as

@@ -85,6 +85,11 @@ def build_given_mesh(points, tets, meta: dict | None = None, region_params: Regi
         log.warning("the given mesh is coarse for the tool: mean boundary edge %.3g mm (> %.3g mm); the "
                     "indentation will depend on the mesh (import it with mesh: remesh to refine around the "
                     "exertion points)", edge, coarse_edge_mm)
+    quality = mesh_quality(points, tets)
+    if quality["n_below_bound"]:
+        log.warning("the given mesh has %d of %d tets with radius ratio below %.2g (min %.3g): the solution near "
+                    "them is less accurate and Newton may need more steps (mesh: remesh gives a quality mesh)",
+                    quality["n_below_bound"], len(tets), quality["quality_bound"], quality["radius_ratio_min"])
     empty = [name for name, code in REGION_CODES.items() if code and not (region == code).any()]
     if not visible.any():
         empty.append("visible")
@@ -98,7 +103,7 @@ def build_given_mesh(points, tets, meta: dict | None = None, region_params: Regi
         "node_numbering": "file",
         "region_params": _plain(params),
         "regions_tagged_on": "mesh facets (mesh as given)",
-        "quality": mesh_quality(points, tets),
+        "quality": quality,
         "exertion_candidates_mm": None if candidates is None else np.asarray(candidates).tolist(),
         "exertion_given": exertion_points is not None,
         "exertion_snap_mm": None if snap is None else snap.tolist(),

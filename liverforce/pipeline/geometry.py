@@ -57,7 +57,8 @@ def make_geometry(spec: dict, surface_path: str | Path, meta_path: str | Path) -
     else:
         raise ValueError(f"unknown geometry kind '{kind}'")
     for m in messages:
-        log.info("repair: %s", m)
+        log.info("%s: %s", "import" if spec.get("kind") == "imported" and
+                 surface.meta.get("mesh_mode") == "as_given" else "repair", m)
     save_surface(surface, surface_path)
     meta = {"frame": "RAS", **surface.meta, "spec": spec, "repairs": messages,
             "volume_mm3": surface.volume_mm3, "area_mm2": surface.area_mm2,

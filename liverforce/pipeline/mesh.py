@@ -132,8 +132,7 @@ def _given_mesh(meta: dict, spec: dict, user: dict, mesh_cfg: dict, exertion: di
     from liverforce.mesh.regions import RegionParams
 
     path = Path(spec["path"])
-    volume, _ = load_volume_mesh(path, units=meta.get("scale_to_mm", spec.get("units", "mm")),
-                                 frame=meta["conversion"]["frame_matrix"])
+    volume, _ = load_volume_mesh(path, units=spec.get("units", "mm"), frame=spec.get("frame", "RAS"))
     if meta.get("sha256") and volume.meta["sha256"] != meta["sha256"]:
         from liverforce.geometry.errors import refuse
 

@@ -88,6 +88,8 @@ def make_sweep(params: dict, mesh_paths: list[str], cases_path, report_path) -> 
     from liverforce.sweep.design import build_cases
 
     gids = params["geometries"]
+    if params["material"].get("conversion"):  # constants derived from a Young's modulus (liverforce.config)
+        log.info("material: %s", params["material"]["conversion"])
     by_gid = {Path(p).stem: p for p in mesh_paths}
     stable, bulk = material_checks(params["material"]["stability_stretch"])
     ex, given_by = {}, {}
