@@ -1,0 +1,466 @@
+"""Unordered camera cloud -> fixed-size, correspondence-free grid features.
+
+A camera cloud (:mod:`liverforce.learn.observation`) has no node ids, a
+varying number of points, holes where the tool or the liver itself hides the
+surface, and noise. This module turns it into a fixed-length vector on the
+same tangent-plane grid as :class:`liverforce.learn.representation.Representation`
+(``g x g`` points ``(u_j, v_i)``, ``u_j = -h + 2 h j / (g - 1)``, row-major
+in ``v`` then ``u``: feature ``i * g + j``), using only what is known in
+surgery: the pre-operative surface near the exertion point, the local frame
+there, and the cloud.
+
+Per case
+--------
+1. **Reference** (pre-operative, once per exertion point;
+   :meth:`ReferenceSurface.build`): the undeformed surface points near the
+   exertion point are moved into the local frame ``x_loc = R (x - p)`` (rows
+   of ``R``: ``t1, t2, n``; :mod:`liverforce.learn.frames`) and their normal
+   height ``z_ref(u, v)`` is rasterised on a fine grid (the piecewise-linear
+   Delaunay interpolant of ``representation``, nearest node outside the
+   hull), later read bilinearly.
+2. **Cloud**: points in the local frame; exact duplicate points are merged
+   and the rest put in a canonical (sorted) order, so the result depends on
+   neither the point order nor repeated points (bit for bit). Each point gets
+   its signed normal height over the pre-operative surface
+   ``dz = z - z_ref(u, v)`` at its own tangent coordinates (an Eulerian
+   height change: no correspondence needed); points with
+   ``|dz| > max_abs_height_mm`` (another sheet of the surface, stray points)
+   are ignored.
+3. **Per cell**: from the points within ``rho = kernel_radius_cells x
+   spacing`` of the grid point (``spacing = 2 h / (g - 1)``), weighted by
+   the biweight kernel ``w = (1 - d^2/rho^2)^2``: by default (``estimator:
+   linear``) the intercept of the weighted least-squares plane
+   ``dz ~ a + b du + c dv`` (local linear regression), which has no bias from
+   the slope where the points lie on one side only (the edge of the tool's
+   shadow, the edge of the view); the weighted mean of ``dz`` where the points
+   are too close to a line for a plane, or with ``estimator: mean``.
+   Subtracting the reference first means the pre-operative curvature does not
+   bias the estimate; only the deformation's own curvature does, by about
+   ``rho^2 / 16 x laplacian(dz)`` inside a full disc of points (for a Gaussian
+   dent of depth ``D`` and width ``s`` that is ``rho^2 D / (8 s^2)`` at its
+   centre). With ``n`` points in the support, noise of standard deviation
+   ``s`` averages down to about ``1.2 s / sqrt(n)`` inside the cloud.
+4. **Validity and filling**: a cell is *valid* when at least ``min_points``
+   distinct points lie within ``rho`` and they surround the grid point well
+   enough: its squared Mahalanobis distance from their weighted centroid
+   (weighted covariance of ``(du, dv)``) is at most ``max_leverage``. Other
+   cells (hidden by the tool, out of view, too sparse, only a thin sliver of
+   points at one side) are filled by the ``fill`` rule:
+
+   - ``laplace`` (default): the harmonic interpolant of the valid cells
+     (discrete Laplace equation on the 4-neighbour grid, valid cells fixed,
+     zero normal slope at the grid border): smooth, no new extrema;
+   - ``zero``: 0, i.e. "as pre-operative";
+   - ``nearest``: the value of the nearest valid cell (ties: lowest index).
+
+   With no valid cell at all every cell is 0. The validity mask can be
+   appended as a second channel (``include_mask``) so a model knows what was
+   filled.
+
+Adding :attr:`CloudGrid.reference` back gives the absolute deformed height
+in the local frame, the quantity of representation's ``deformed`` features.
+
+Example
+-------
+>>> import numpy as np
+>>> spec = CloudGridSpec(grid_size=5, half_width_mm=10.0)
+>>> u = np.linspace(-20, 20, 41)
+>>> U = np.array([[a, b, 0.0] for a in u for b in u])          # flat pre-operative patch
+>>> ref = ReferenceSurface.build(U, [0, 0, 0], [0, 0, 1], [1, 0, 0], [0, 1, 0], spec)
+>>> cloud = U + [0.0, 0.0, -1.0]                                # pushed 1 mm down
+>>> np.allclose(cloud_features(cloud, ref, spec), -1.0)
+True
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+
+import numpy as np
+
+from liverforce.learn.frames import local_rotations
+from liverforce.learn.representation import Representation, _interpolate
+
+FILL_RULES = ("laplace", "zero", "nearest")
+ESTIMATORS = ("linear", "mean")
+
+
+@dataclass(frozen=True)
+class CloudGridSpec:
+    """Settings of the cloud -> grid feature map (JSON-serialisable; store them with a model).
+
+    Parameters
+    ----------
+    grid_size : int
+        Grid points per side ``g`` (>= 3), as ``Representation.grid_size``.
+    half_width_mm : float
+        Half the grid's side ``h`` (mm), as ``Representation.half_width_mm``.
+    kernel_radius_cells : float
+        Kernel support radius in grid spacings (default 1.0: a point counts
+        for every grid point within one spacing).
+    min_points : int
+        Distinct points within the support for a cell to be valid (default 3;
+        see also ``max_leverage``).
+    fill : str
+        Rule for invalid cells: ``laplace`` (default), ``zero`` or ``nearest``.
+    max_abs_height_mm : float
+        Points farther than this from the pre-operative surface along the
+        normal are ignored (default 25 mm).
+    reference_oversample : int
+        Resolution of the pre-operative height raster, per grid spacing
+        (default 4).
+    estimator : str
+        ``linear`` (default): kernel-weighted least-squares plane through the
+        points, read at the grid point (local linear regression: no bias from
+        the slope where points lie on one side only, e.g. at the tool's
+        shadow); ``mean``: kernel-weighted mean (Nadaraya-Watson).
+    max_leverage : float
+        A cell is valid only if its grid point lies within ``sqrt(max_leverage)``
+        weighted standard deviations (Mahalanobis distance) of its points'
+        weighted centroid (default 4: two), so a plane is never extrapolated far
+        from a thin sliver of points.
+    """
+
+    grid_size: int
+    half_width_mm: float
+    kernel_radius_cells: float = 1.0
+    min_points: int = 3
+    fill: str = "laplace"
+    max_abs_height_mm: float = 25.0
+    reference_oversample: int = 4
+    estimator: str = "linear"
+    max_leverage: float = 4.0
+
+    def __post_init__(self) -> None:
+        for k, f in (("grid_size", int), ("min_points", int), ("reference_oversample", int),
+                     ("half_width_mm", float), ("kernel_radius_cells", float), ("max_abs_height_mm", float),
+                     ("max_leverage", float)):
+            object.__setattr__(self, k, f(getattr(self, k)))
+        checks = {
+            "grid_size": self.grid_size >= 3,
+            "half_width_mm": self.half_width_mm > 0,
+            "kernel_radius_cells": 0.25 <= self.kernel_radius_cells <= 5.0,
+            "min_points": self.min_points >= 1,
+            "fill": self.fill in FILL_RULES,
+            "max_abs_height_mm": self.max_abs_height_mm > 0,
+            "reference_oversample": 1 <= self.reference_oversample <= 32,
+            "estimator": self.estimator in ESTIMATORS,
+            "max_leverage": self.max_leverage > 0,
+        }
+        bad = [k for k, ok in checks.items() if not ok]
+        if bad:
+            raise ValueError(
+                "CloudGridSpec: invalid " + ", ".join(f"{k}={getattr(self, k)!r}" for k in bad)
+                + f" (grid_size >= 3, half_width_mm > 0, kernel_radius_cells in [0.25, 5], min_points >= 1, "
+                f"fill one of {FILL_RULES}, max_abs_height_mm > 0, reference_oversample in [1, 32], "
+                f"estimator one of {ESTIMATORS}, max_leverage > 0)"
+            )
+
+    @property
+    def spacing_mm(self) -> float:
+        """Distance between neighbouring grid points, ``2 h / (g - 1)``."""
+        return 2.0 * self.half_width_mm / (self.grid_size - 1)
+
+    @property
+    def kernel_radius_mm(self) -> float:
+        return self.kernel_radius_cells * self.spacing_mm
+
+    def n_features(self, include_mask: bool = False) -> int:
+        return (2 if include_mask else 1) * self.grid_size**2
+
+    def grid(self) -> np.ndarray:
+        """Grid points ``(g^2, 2)`` mm: exactly ``Representation.grid()`` for the same ``g`` and ``h``."""
+        return Representation(self.grid_size, self.half_width_mm, features="deformed").grid()
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "CloudGridSpec":
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ValueError(f"unknown cloud-grid setting(s) {unknown}; known: {sorted(known)}")
+        return cls(**d)
+
+
+# --------------------------------------------------------------------------
+# the pre-operative reference
+# --------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ReferenceSurface:
+    """Pre-operative surface height over the tangent plane at one exertion point (local frame).
+
+    Attributes
+    ----------
+    origin : (3,) exertion point, mm
+    R : (3, 3) rotation, rows ``t1, t2, n``
+    lo : float            tangent coordinate (mm) of raster node 0 in ``u`` and ``v``
+    step : float          raster spacing, mm
+    raster : (r, r)       ``z_ref`` at ``(u, v) = (lo + step j, lo + step i)`` (row ``i`` = ``v``)
+    grid_height : (g, g)  ``z_ref`` at the feature grid points
+    """
+
+    origin: np.ndarray
+    R: np.ndarray
+    lo: float
+    step: float
+    raster: np.ndarray
+    grid_height: np.ndarray
+
+    @classmethod
+    def build(cls, undeformed_points_mm, exertion_point_mm, normal, t1, t2, spec: CloudGridSpec,
+              label: str = "reference") -> "ReferenceSurface":
+        """From the pre-operative surface points near the exertion point (e.g. ``roi_undeformed_mm``).
+
+        Parameters
+        ----------
+        undeformed_points_mm : (k, 3) surface points (any order), source frame
+        exertion_point_mm, normal, t1, t2 : (3,) the local frame (``frame_normal``, ``frame_t1``, ``frame_t2``)
+        spec : CloudGridSpec
+        label : str  names the case in error messages
+        """
+        R = local_rotations(np.asarray(normal)[None], np.asarray(t1)[None], np.asarray(t2)[None])[0]
+        p = np.asarray(exertion_point_mm, dtype=np.float64).reshape(3)
+        U = (np.asarray(undeformed_points_mm, dtype=np.float64).reshape(-1, 3) - p) @ R.T
+        if len(U) < 3 or not np.isfinite(U).all():
+            raise ValueError(f"{label}: the pre-operative surface needs at least 3 finite points (got {len(U)}, "
+                             f"{int((~np.isfinite(U)).any(axis=1).sum())} not finite)")
+        step = spec.spacing_mm / spec.reference_oversample
+        reach = spec.half_width_mm + spec.kernel_radius_mm
+        n_half = int(math.ceil(reach / step)) + 1
+        lo = -n_half * step
+        axis = lo + step * np.arange(2 * n_half + 1)
+        uu, vv = np.meshgrid(axis, axis)
+        raster = _interpolate(U[:, :2], U[:, 2:3], np.column_stack([uu.ravel(), vv.ravel()]), label)[:, 0]
+        raster = raster.reshape(uu.shape)
+        ref = cls(p, R, float(lo), float(step), raster, np.empty(0))
+        g = spec.grid()
+        object.__setattr__(ref, "grid_height", ref.height(g[:, 0], g[:, 1]).reshape(spec.grid_size, spec.grid_size))
+        return ref
+
+    def to_local(self, points_mm) -> np.ndarray:
+        """``R (x - p)`` for points ``(k, 3)`` of the source frame."""
+        return (np.asarray(points_mm, dtype=np.float64).reshape(-1, 3) - self.origin) @ self.R.T
+
+    def height(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """``z_ref`` at tangent coordinates (bilinear on the raster; clamped to the raster's extent)."""
+        r = self.raster.shape[0]
+        fu = np.clip((np.asarray(u) - self.lo) / self.step, 0.0, r - 1.000001)
+        fv = np.clip((np.asarray(v) - self.lo) / self.step, 0.0, r - 1.000001)
+        j, i = fu.astype(np.int64), fv.astype(np.int64)
+        a, b = fu - j, fv - i
+        Z = self.raster
+        return ((1 - a) * (1 - b) * Z[i, j] + a * (1 - b) * Z[i, j + 1]
+                + (1 - a) * b * Z[i + 1, j] + a * b * Z[i + 1, j + 1])
+
+
+# --------------------------------------------------------------------------
+# the cloud on the grid
+# --------------------------------------------------------------------------
+
+
+@dataclass
+class CloudGrid:
+    """One cloud on the grid (arrays ``(g, g)``, row ``i`` = ``v_i``, column ``j`` = ``u_j``).
+
+    Attributes
+    ----------
+    height : signed normal height change over the pre-operative surface (mm), invalid cells filled
+    valid : cells with at least ``min_points`` distinct points within the kernel support, around the grid point
+    count : distinct points within the kernel support
+    weight : sum of kernel weights
+    reference : pre-operative height ``z_ref`` at the grid points (local frame, mm)
+    n_points : distinct points used (after cropping)
+    """
+
+    height: np.ndarray
+    valid: np.ndarray
+    count: np.ndarray
+    weight: np.ndarray
+    reference: np.ndarray
+    n_points: int
+
+    def features(self, include_mask: bool = False) -> np.ndarray:
+        """Flat feature vector: ``height`` (``g^2``), then the validity mask as 0/1 if ``include_mask``."""
+        h = self.height.ravel()
+        return np.concatenate([h, self.valid.ravel().astype(np.float64)]) if include_mask else h.copy()
+
+
+def _canonical(P: np.ndarray) -> np.ndarray:
+    """Rows in a canonical order (sorted by ``u``, ties by ``v`` then ``z``), exact duplicates removed."""
+    if len(P) < 2:
+        return P
+    order = np.argsort(P[:, 0])
+    Q = P[order]
+    tie = Q[1:, 0] == Q[:-1, 0]
+    if tie.any():  # equal u (duplicates or coincident tangent coordinate): full lexicographic order
+        Q = P[np.lexsort((P[:, 2], P[:, 1], P[:, 0]))]
+        keep = np.ones(len(Q), dtype=bool)
+        keep[1:] = (Q[1:] != Q[:-1]).any(axis=1)
+        Q = Q[keep]
+    return Q
+
+
+def cloud_grid(cloud_mm, reference: ReferenceSurface, spec: CloudGridSpec) -> CloudGrid:
+    """Grid the cloud of one case (module docstring).
+
+    Parameters
+    ----------
+    cloud_mm : (k, 3)
+        The observed deformed surface points, source frame, mm, any order (may be empty).
+    reference : ReferenceSurface
+        The pre-operative reference of the same case (same frame and ``spec``).
+    spec : CloudGridSpec
+    """
+    g, h = spec.grid_size, spec.half_width_mm
+    step = spec.spacing_mm
+    P = np.asarray(cloud_mm, dtype=np.float64).reshape(-1, 3)
+    P = P[np.isfinite(P).all(axis=1)]
+    L = reference.to_local(P)
+    reach = h + spec.kernel_radius_mm
+    L = L[(np.abs(L[:, 0]) < reach) & (np.abs(L[:, 1]) < reach)]
+    L = _canonical(L)
+    u, v = L[:, 0], L[:, 1]
+    dz = L[:, 2] - reference.height(u, v)
+    ok = np.abs(dz) <= spec.max_abs_height_mm
+    u, v, dz = u[ok], v[ok], dz[ok]
+    W = np.zeros(g * g)
+    S = np.zeros(g * g)
+    N = np.zeros(g * g, dtype=np.int64)
+    valid = np.zeros(g * g, dtype=bool)
+    if len(u):
+        fu, fv = (u + h) / step, (v + h) / step  # grid-index coordinates
+        jc, ic = np.rint(fu).astype(np.int64), np.rint(fv).astype(np.int64)
+        kr2 = spec.kernel_radius_cells ** 2
+        c = int(math.ceil(spec.kernel_radius_cells))
+        cells, wts, dus, dvs, dzs = [], [], [], [], []
+        for di in range(-c, c + 1):
+            i = ic + di
+            dv = fv - i
+            for dj in range(-c, c + 1):
+                j = jc + dj
+                du = fu - j
+                q = (du * du + dv * dv) / kr2
+                m = np.flatnonzero((q < 1.0) & (i >= 0) & (i < g) & (j >= 0) & (j < g))
+                cells.append(i[m] * g + j[m])
+                wts.append((1.0 - q[m]) ** 2)
+                dus.append(du[m])
+                dvs.append(dv[m])
+                dzs.append(dz[m])
+        cells, w = np.concatenate(cells), np.concatenate(wts)
+        du, dv, z = np.concatenate(dus), np.concatenate(dvs), np.concatenate(dzs)
+
+        def wsum(x=None):
+            return np.bincount(cells, weights=w if x is None else w * x, minlength=g * g)
+
+        W, N = wsum(), np.bincount(cells, minlength=g * g)
+        Wp = np.where(W > 0, W, 1.0)
+        zbar = wsum(z) / Wp
+        ub, vb = wsum(du) / Wp, wsum(dv) / Wp  # weighted centroid of the points, relative to the grid point
+        cuu, cvv, cuv = wsum(du * du) / Wp - ub * ub, wsum(dv * dv) / Wp - vb * vb, wsum(du * dv) / Wp - ub * vb
+        det = cuu * cvv - cuv * cuv
+        spread = det > 1e-6 * kr2 * kr2  # (a full disc of radius k grid units gives about k^4 / 64)
+        dp = np.where(spread, det, 1.0)
+        # squared Mahalanobis distance of the grid point from the points' weighted centroid
+        leverage = np.where(spread, (cvv * ub * ub - 2.0 * cuv * ub * vb + cuu * vb * vb) / dp, np.inf)
+        S = zbar
+        if spec.estimator == "linear":
+            cuz, cvz = wsum(du * z) / Wp - ub * zbar, wsum(dv * z) / Wp - vb * zbar
+            b = (cvv * cuz - cuv * cvz) / dp
+            cc = (cuu * cvz - cuv * cuz) / dp
+            S = np.where(spread, zbar - b * ub - cc * vb, zbar)
+        valid = (N >= spec.min_points) & (W > 0) & (leverage <= spec.max_leverage)
+    height = np.zeros(g * g)
+    height[valid] = S[valid]
+    height = _fill(height.reshape(g, g), valid.reshape(g, g), spec.fill)
+    return CloudGrid(height=height, valid=valid.reshape(g, g), count=N.reshape(g, g).astype(np.int64),
+                     weight=W.reshape(g, g), reference=reference.grid_height.copy(), n_points=int(len(u)))
+
+
+def _fill(H: np.ndarray, valid: np.ndarray, rule: str) -> np.ndarray:
+    """Fill the invalid cells of ``H`` (module docstring); all zero if nothing is valid."""
+    H = H.copy()
+    bad = ~valid
+    if not bad.any():
+        return H
+    if not valid.any() or rule == "zero":
+        H[bad] = 0.0
+        return H
+    g = H.shape[0]
+    if rule == "nearest":
+        from scipy.spatial import cKDTree
+
+        ii, jj = np.indices(H.shape)
+        vi = np.flatnonzero(valid.ravel())
+        bi = np.flatnonzero(bad.ravel())
+        pts = np.column_stack([ii.ravel(), jj.ravel()]).astype(np.float64)
+        d, _ = cKDTree(pts[vi]).query(pts[bi], k=1)
+        # lowest-index valid cell among those at the nearest distance (deterministic ties)
+        for b, dist in zip(bi, d):
+            dd = np.hypot(pts[vi, 0] - pts[b, 0], pts[vi, 1] - pts[b, 1])
+            H.flat[b] = H.flat[vi[np.flatnonzero(dd <= dist + 1e-9)[0]]]
+        return H
+    # laplace: for each unknown cell, sum over grid neighbours (f_cell - f_nb) = 0
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import spsolve
+
+    idx = -np.ones(g * g, dtype=np.int64)
+    unk = np.flatnonzero(bad.ravel())
+    idx[unk] = np.arange(unk.size)
+    rows, cols, vals = [], [], []
+    rhs = np.zeros(unk.size)
+    diag = np.zeros(unk.size)
+    ui, uj = np.divmod(unk, g)
+    for di, dj in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        ni, nj = ui + di, uj + dj
+        inside = (ni >= 0) & (ni < g) & (nj >= 0) & (nj < g)
+        r = np.flatnonzero(inside)
+        nb = ni[r] * g + nj[r]
+        diag[r] += 1.0
+        known = idx[nb] < 0
+        rhs[r[known]] += H.flat[nb[known]]
+        rows.append(r[~known])
+        cols.append(idx[nb[~known]])
+        vals.append(-np.ones(int((~known).sum())))
+    rows.append(np.arange(unk.size))
+    cols.append(np.arange(unk.size))
+    vals.append(diag)
+    A = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(unk.size,) * 2)
+    H.flat[unk] = spsolve(A.tocsc(), rhs)
+    return H
+
+
+def cloud_features(cloud_mm, reference: ReferenceSurface, spec: CloudGridSpec,
+                   include_mask: bool = False) -> np.ndarray:
+    """Feature vector of one cloud: ``cloud_grid(...).features(include_mask)``."""
+    return cloud_grid(cloud_mm, reference, spec).features(include_mask)
+
+
+def cloud_feature_matrix(clouds, references, spec: CloudGridSpec, include_mask: bool = False) -> np.ndarray:
+    """Feature matrix ``(n, spec.n_features(include_mask))`` for ``n`` clouds and their references."""
+    if len(clouds) != len(references):
+        raise ValueError(f"{len(clouds)} clouds but {len(references)} references")
+    out = np.empty((len(clouds), spec.n_features(include_mask)))
+    for i, (c, r) in enumerate(zip(clouds, references)):
+        out[i] = cloud_features(c, r, spec, include_mask)
+    return out
+
+
+def references_from_arrays(arrays: dict, spec: CloudGridSpec) -> list[ReferenceSurface]:
+    """One :class:`ReferenceSurface` per case from input-contract arrays.
+
+    Uses ``roi_undeformed_mm`` (the pre-operative ROI points: known before
+    surgery, no correspondence is used), ``exertion_point_mm``,
+    ``frame_normal``, ``frame_t1``, ``frame_t2``; ``case_id`` names cases in errors.
+    """
+    ids = arrays.get("case_id")
+    out = []
+    for i, U in enumerate(arrays["roi_undeformed_mm"]):
+        out.append(ReferenceSurface.build(
+            U, arrays["exertion_point_mm"][i], arrays["frame_normal"][i], arrays["frame_t1"][i],
+            arrays["frame_t2"][i], spec, label=f"case {ids[i] if ids is not None else i}"))
+    return out
