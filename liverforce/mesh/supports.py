@@ -291,9 +291,6 @@ def select_facets(vertices, faces, support: Support, frame: PointFrame = PointFr
 
 def _select_group(vertices, faces, support: Support, frame: PointFrame, groups) -> tuple[np.ndarray, dict]:
     """Facets selected by a file group (see :mod:`liverforce.mesh.groups`)."""
-    from scipy.spatial import cKDTree
-    from trimesh.triangles import closest_point
-
     from liverforce.mesh.groups import GroupError
 
     where = f"support '{support.name}' group {support.selector[1]}"
@@ -310,16 +307,8 @@ def _select_group(vertices, faces, support: Support, frame: PointFrame, groups) 
         if not in_group.any():
             raise SupportError(f"{where}: its {len(gfaces)} faces in {groups.path} are none on the boundary "
                                "of the mesh; a support must be a part of the outer surface")
-        tri = P[B]
-        q = vertices[faces].mean(axis=1)
-        k = min(8, len(tri))
-        _, near = cKDTree(tri.mean(axis=1)).query(q, k=k)
-        near = near.reshape(len(q), k)
-        cp = closest_point(tri[near.ravel()], np.repeat(q, k, axis=0)).reshape(len(q), k, 3)
-        dist = np.linalg.norm(cp - q[:, None], axis=2)
-        best = np.argmin(dist, axis=1)
-        mask = in_group[near[np.arange(len(q)), best]]
-        d = dist[np.arange(len(q)), best]
+        _, d, facet = closest_on_triangles(P[B], vertices[faces].mean(axis=1), k=8)
+        mask = in_group[facet]
         info["group_faces"] = int(in_group.sum())
         info["transfer_mm"] = float(d[mask].max()) if mask.any() else 0.0
     else:  # a group of nodes only (vertex or line cells): snapped as a file of vertex ids
@@ -382,24 +371,32 @@ def support_stiffness(supports: list[Support], region_area_mm2: dict[int, float]
     return out
 
 
-def snap_exertion_points(vertices, faces, region, xyz_mesh: np.ndarray, max_mm: float = MAX_SNAP_MM):
-    """Closest point on the surface to each given exertion point, refusing far points and fixed supports.
 
-    Returns ``(points (k, 3), distances (k,))`` in mm (mesh frame).
+def closest_on_triangles(tri: np.ndarray, q: np.ndarray, k: int = 16):
+    """Closest point on a triangle set ``tri (m, 3, 3)`` to each query ``q (n, 3)``.
+
+    Searches the ``k`` triangles with the nearest centroids. Returns
+    ``(points (n, 3), distances (n,), triangle index (n,))``.
     """
     from scipy.spatial import cKDTree
     from trimesh.triangles import closest_point
 
-    tri = np.asarray(vertices, float)[np.asarray(faces)]
-    q = np.atleast_2d(np.asarray(xyz_mesh, float))
-    k = min(16, len(tri))
+    k = min(int(k), len(tri))
     _, near = cKDTree(tri.mean(axis=1)).query(q, k=k)
     near = near.reshape(len(q), k)
     cp = closest_point(tri[near.ravel()], np.repeat(q, k, axis=0)).reshape(len(q), k, 3)
     dist = np.linalg.norm(cp - q[:, None], axis=2)
     best = np.argmin(dist, axis=1)
-    pts, d = cp[np.arange(len(q)), best], dist[np.arange(len(q)), best]
-    facet = near[np.arange(len(q)), best]
+    rows = np.arange(len(q))
+    return cp[rows, best], dist[rows, best], near[rows, best]
+
+def snap_exertion_points(vertices, faces, region, xyz_mesh: np.ndarray, max_mm: float = MAX_SNAP_MM):
+    """Closest point on the surface to each given exertion point, refusing far points and fixed supports.
+
+    Returns ``(points (k, 3), distances (k,))`` in mm (mesh frame).
+    """
+    q = np.atleast_2d(np.asarray(xyz_mesh, float))
+    pts, d, facet = closest_on_triangles(np.asarray(vertices, float)[np.asarray(faces)], q, k=16)
     for j in range(len(q)):
         if d[j] > max_mm:
             raise SupportError(f"exertion point {j} {np.round(q[j], 3).tolist()} (mesh frame, mm) is {d[j]:.3g} mm "
