@@ -13,7 +13,6 @@ rule report:
     output:
         html=f"{E}/report/index.html",
     params:
-        report=config_slice("report"),
         experiment=config_slice("experiment"),
         setup={
             "main_variant": PLAN.chosen_variant(),
