@@ -63,6 +63,8 @@ def main() -> None:
     ap.add_argument("--results", default="results/default")
     ap.add_argument("--variant", default="pca_sv")
     ap.add_argument("--config", default="config")
+    ap.add_argument("--no-linear-force", action="store_true",
+                    help="add only the compliance entries (no C^-1 u_w, which reads the displacement under the tool)")
     args = ap.parse_args()
     results, cfg = Path(args.results), Path(args.config)
 
@@ -95,7 +97,9 @@ def main() -> None:
             uw.append((w[:, None] * (de - und)).sum(0) / w.sum())
         u_loc = np.einsum("nij,nj->ni", R, np.array(uw))
         f_lin = np.linalg.solve(C, u_loc[:, :, None])[:, :, 0]
-        extra = np.column_stack([np.stack([C[:, a, b] for a, b in TRIU], 1), f_lin])
+        extra = np.stack([C[:, a, b] for a, b in TRIU], 1)
+        if not args.no_linear_force:
+            extra = np.column_stack([extra, f_lin])
         return np.column_stack([s[:, :base_start], extra, s[:, base_start:]])
 
     model = y("model/default.yaml")
@@ -106,7 +110,7 @@ def main() -> None:
     train = {k: val for k, val in train.items() if k != "variants"}
     arrays = dio.load_training_arrays(dio.verify_manifest(results / "shards/IV/manifest.json"))
     unseen = dio.load_training_arrays(dio.verify_manifest(results / "shards/V/manifest.json"))
-    for name, state, start in (("state vector", base_state, base_start), ("+ probe", probe_state, base_start + 9)):
+    for name, state, start in (("state vector", base_state, base_start), ("+ probe", probe_state, base_start + (6 if args.no_linear_force else 9))):
         M.state_vector, M.MATERIAL_START = state, start
         t = time.perf_counter()
         res = train_scenario(arrays, model, train, tune, "IV", args.variant, out_dir=f"/tmp/probe-exp-{start}")
