@@ -17,8 +17,10 @@ Example
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import json
 import os
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
@@ -27,14 +29,6 @@ PROJECT_ROOT = Path(__file__).resolve().parent.parent
 CONFIG_DIR = PROJECT_ROOT / "config"
 
 SCENARIOS = ("I", "II", "III", "IV")
-MATERIAL_MODELS = (
-    "neo_hookean",
-    "mooney_rivlin_2",
-    "mooney_rivlin_3",
-    "mooney_rivlin_5",
-    "yeoh",
-    "ogden",
-)
 
 
 class ConfigError(ValueError):
@@ -362,6 +356,85 @@ def _fail(key: str, problem: str, fix: str = "") -> None:
     raise ConfigError(f"config key '{key}': {problem}" + (f" — {fix}" if fix else ""))
 
 
+def _check_choice(key: str, value: Any, choices, what: str = "") -> None:
+    """Refuse ``value`` unless it is one of ``choices``; the error names the key, the value and the choices."""
+    choices = tuple(choices)
+    if value not in choices:
+        _fail(key, f"unknown {what + ' ' if what else ''}'{value}'", f"choose one of {', '.join(map(str, choices))}")
+
+
+# --------------------------------------------------------------------------
+# Choice registries: each choice key is checked against the names exported by the module that implements
+# it (read at check time, so a name added to a registry is valid here without touching this module).
+# Imported inside the functions: importing this module stays light.
+# --------------------------------------------------------------------------
+
+
+def material_models() -> tuple[str, ...]:
+    """``material.model``: the models :func:`liverforce.fem.materials.make_material` builds."""
+    from liverforce.fem.materials import available_models
+
+    return tuple(available_models())
+
+
+def formulations() -> tuple[str, ...]:
+    """``simulate.formulation``: :data:`liverforce.fem.assembly.FORMULATIONS` (``formulation_spec``)."""
+    from liverforce.fem.assembly import FORMULATIONS
+
+    return tuple(FORMULATIONS)
+
+
+def linear_solvers() -> tuple[str, ...]:
+    """``simulate.linear_solver``: the methods :class:`liverforce.fem.linsolve.LinearSolver` accepts."""
+    from liverforce.fem import linsolve
+
+    return tuple(linsolve.METHODS)
+
+
+def sweep_designs() -> tuple[str, ...]:
+    """``sweep.design``: the samplers of :data:`liverforce.sweep.design.DESIGNS`."""
+    from liverforce.sweep.design import design_names
+
+    return design_names()
+
+
+#: ``mesh.mesher`` (liverforce.mesh.tetra.tetrahedralise_with_info checks the same two)
+MESHERS = ("gmsh", "tetgen")
+#: ``report.format`` (liverforce.report writes HTML only)
+REPORT_FORMATS = ("html",)
+
+
+def _learn_names():
+    """:mod:`liverforce.learn.names` (encoders, ROI features, occlusion modes), loaded from its file when the
+    ``liverforce.learn`` package is not imported yet: the package's ``__init__`` imports torch, the names
+    module imports nothing. Registered under its own name, so the learn modules share this module object."""
+    name = "liverforce.learn.names"
+    mod = sys.modules.get(name)
+    if mod is None:
+        if "liverforce.learn" in sys.modules:
+            return importlib.import_module(name)
+        spec = importlib.util.spec_from_file_location(name, Path(__file__).resolve().parent / "learn" / "names.py")
+        mod = importlib.util.module_from_spec(spec)
+        sys.modules[name] = mod
+        spec.loader.exec_module(mod)
+    return mod
+
+
+def encoders() -> tuple[str, ...]:
+    """``model.encoder`` and the study's encoder lists: :data:`liverforce.learn.names.ENCODERS`."""
+    return tuple(_learn_names().ENCODERS)
+
+
+def roi_features() -> tuple[str, ...]:
+    """``model.roi_features``: :data:`liverforce.learn.names.ROI_FEATURE_CHANNELS` (the representation's)."""
+    return tuple(_learn_names().ROI_FEATURE_CHANNELS)
+
+
+def occlusion_modes() -> tuple[str, ...]:
+    """``model.occlusion.mode`` and ``study.occlusion.modes``: :data:`liverforce.learn.names.OCCLUSION_MODES`."""
+    return tuple(_learn_names().OCCLUSION_MODES)
+
+
 def _check_ranges(cfg: dict) -> None:
     """Range and consistency checks; each failure names the dotted key."""
     g = cfg["geometry"]
@@ -387,20 +460,17 @@ def _check_ranges(cfg: dict) -> None:
     m = cfg["mesh"]
     if not 100 <= m["target_nodes"] <= 200_000:
         _fail("mesh.target_nodes", f"must be in [100, 200000] (got {m['target_nodes']})")
-    if m["mesher"] not in ("gmsh", "tetgen"):
-        _fail("mesh.mesher", f"unknown mesher '{m['mesher']}'", "use gmsh or tetgen")
+    _check_choice("mesh.mesher", m["mesher"], MESHERS, "mesher")
     if m["refine_radius_mm"] < 0 or m["refine_edge_mm"] <= 0:
         _fail("mesh.refine_radius_mm", "refine radius must be >= 0 and refine_edge_mm > 0")
     if not m["refine_growth"] > 0:
         _fail("mesh.refine_growth", "must be > 0 (mm of size per mm of distance)")
     if m["refine_ivc_edge_mm"] < 0:
         _fail("mesh.refine_ivc_edge_mm", "must be >= 0 mm (0 = no refinement at the IVC)")
-    if m["regions_check"] not in ("warn", "strict", "off"):
-        _fail("mesh.regions_check", f"unknown '{m['regions_check']}'", "use warn, strict or off")
+    _check_choice("mesh.regions_check", m["regions_check"], ("warn", "strict", "off"))
 
     mat = cfg["material"]
-    if mat["model"] not in MATERIAL_MODELS:
-        _fail("material.model", f"unknown material '{mat['model']}'", f"choose one of {', '.join(MATERIAL_MODELS)}")
+    _check_choice("material.model", mat["model"], material_models(), "material")
     if not 0.0 < mat["nu"] < 0.5:
         _fail("material.nu", f"Poisson ratio must be in (0, 0.5) (got {mat['nu']})")
     _material_from_young(mat)
@@ -412,8 +482,7 @@ def _check_ranges(cfg: dict) -> None:
     lo_hi = mat["stability_stretch"]
     if len(lo_hi) != 2 or not 0 < lo_hi[0] < 1 < lo_hi[1]:
         _fail("material.stability_stretch", f"must be [lo, hi] with 0 < lo < 1 < hi (got {lo_hi})")
-    if mat["on_unstable"] not in ("refuse", "clip"):
-        _fail("material.on_unstable", f"'{mat['on_unstable']}'", "use refuse or clip")
+    _check_choice("material.on_unstable", mat["on_unstable"], ("refuse", "clip"))
 
     b = cfg["boundary"]
     for k, v in b.items():
@@ -421,8 +490,7 @@ def _check_ranges(cfg: dict) -> None:
             _fail(f"boundary.{k}", f"stiffness must be >= 0 (got {v})")
 
     s = cfg["sweep"]
-    if s["design"] not in ("sobol", "lhs"):
-        _fail("sweep.design", f"unknown design '{s['design']}'", "use sobol or lhs")
+    _check_choice("sweep.design", s["design"], sweep_designs(), "design")
     if s["cases_per_shard"] < 1:
         _fail("sweep.cases_per_shard", "must be >= 1")
     f = s["force"]
@@ -446,16 +514,12 @@ def _check_ranges(cfg: dict) -> None:
             _fail(key, f"unknown scenario '{name}'", f"use {', '.join(SCENARIOS)}")
         if sc["n_cases"] < 1:
             _fail(f"{key}.n_cases", f"must be >= 1 (got {sc['n_cases']})")
-        if str(sc["geometries"]) not in ("1", "all"):
-            _fail(f"{key}.geometries", f"'{sc['geometries']}'", "use 1 or all")
-        if sc["exertion"] not in ("fixed", "varies"):
-            _fail(f"{key}.exertion", f"'{sc['exertion']}'", "use fixed or varies")
-        if sc["material"] not in ("fixed", "varies"):
-            _fail(f"{key}.material", f"'{sc['material']}'", "use fixed or varies")
+        _check_choice(f"{key}.geometries", str(sc["geometries"]), ("1", "all"))
+        _check_choice(f"{key}.exertion", sc["exertion"], ("fixed", "varies"))
+        _check_choice(f"{key}.material", sc["material"], ("fixed", "varies"))
 
     sim = cfg["simulate"]
-    if sim["formulation"] not in ("p2_mean_dilatation", "p1"):
-        _fail("simulate.formulation", f"unknown '{sim['formulation']}'", "use p2_mean_dilatation or p1")
+    _check_choice("simulate.formulation", sim["formulation"], formulations(), "formulation")
     if sim["tool_radius_mm"] <= 0:
         _fail("simulate.tool_radius_mm", "must be > 0 mm")
     if not 0 < sim["tol"] < 1:
@@ -466,16 +530,14 @@ def _check_ranges(cfg: dict) -> None:
         _fail("simulate.initial_step", "need 0 < min_step <= initial_step <= 1")
     if sim["time_limit_s"] <= 0:
         _fail("simulate.time_limit_s", "must be > 0 s")
-    if sim["linear_solver"] not in ("auto", "cholmod", "superlu"):
-        _fail("simulate.linear_solver", f"unknown '{sim['linear_solver']}'", "use auto, cholmod or superlu")
+    _check_choice("simulate.linear_solver", sim["linear_solver"], linear_solvers(), "linear solver")
 
     d = cfg["dataset"]
     if not 0 < d["roi_fraction"] <= 1:
         _fail("dataset.roi_fraction", f"must be in (0, 1] (got {d['roi_fraction']})")
     names = [v.get("name") for v in cfg["train"]["variants"]] or ["default"]
-    if cfg["validate"]["variant"] not in ["main", "auto", *names]:
-        _fail("validate.variant", f"unknown variant '{cfg['validate']['variant']}'",
-              f"use main, auto or one of train.variants: {', '.join(map(str, names))}")
+    # main | auto | a name of train.variants
+    _check_choice("validate.variant", cfg["validate"]["variant"], ["main", "auto", *names], "variant")
     mf = cfg["model"]["roi_fraction"]
     if mf is not None:
         if not 0 < mf <= 1:
@@ -483,8 +545,7 @@ def _check_ranges(cfg: dict) -> None:
         if not d["store_full_surface"]:
             _fail("model.roi_fraction", "re-selecting the ROI at training time needs the full surface in the shards",
                   "set dataset.store_full_surface=true, or change dataset.roi_fraction (re-simulates)")
-    if d["compression"] not in ("zstd", "snappy", "gzip", "none"):
-        _fail("dataset.compression", f"unknown '{d['compression']}'")
+    _check_choice("dataset.compression", d["compression"], ("zstd", "snappy", "gzip", "none"), "compression")
 
     mo = cfg["model"]
     _check_model(mo, "model")
@@ -523,29 +584,28 @@ def _check_ranges(cfg: dict) -> None:
         _fail("validate.seed", f"seeds {shared} of the unseen livers are training livers' seeds",
               f"pick validate.seed outside [{g['procedural']['seed']}, "
               f"{g['procedural']['seed'] + g['procedural']['count']}) minus validate.livers")
+    _check_choice("report.format", cfg["report"]["format"], REPORT_FORMATS, "report format")
     _check_study(cfg)
 
 
 def _check_model(mo: dict, key: str) -> None:
-    if mo["encoder"] not in ("pca", "ae", "dae"):
-        _fail(f"{key}.encoder", f"unknown encoder '{mo['encoder']}'", "use pca, ae or dae")
+    _check_choice(f"{key}.encoder", mo["encoder"], encoders(), "encoder")
     if mo["code_size"] < 1 or mo["grid_size"] < 3:
         _fail(f"{key}.code_size", "code_size must be >= 1 and grid_size >= 3")
     if not 0 <= mo["dropout"] < 1:
         _fail(f"{key}.dropout", "must be in [0, 1)")
     occ = mo["occlusion"]
-    if occ["radius_mm"] < 0 or occ["mode"] not in ("remove", "noise"):
-        _fail(f"{key}.occlusion", "radius_mm must be >= 0 and mode remove|noise")
+    if occ["radius_mm"] < 0:
+        _fail(f"{key}.occlusion.radius_mm", f"must be >= 0 mm (got {occ['radius_mm']})")
+    _check_choice(f"{key}.occlusion.mode", occ["mode"], occlusion_modes(), "occlusion mode")
     if mo["noise_mm"] < 0:
         _fail(f"{key}.noise_mm", "must be >= 0 mm")
-    if mo["roi_features"] not in ("displacement", "deformed", "both"):
-        _fail(f"{key}.roi_features", f"unknown '{mo['roi_features']}'", "use displacement, deformed or both")
+    _check_choice(f"{key}.roi_features", mo["roi_features"], roi_features(), "ROI features")
     if mo["grid_half_width_mm"] < 0:
         _fail(f"{key}.grid_half_width_mm", "must be >= 0 mm (0 = fitted)")
     if mo["dae_input_noise"] < 0:
         _fail(f"{key}.dae_input_noise", "must be >= 0")
-    if mo["force_scaling"] not in ("none", "stiffness"):
-        _fail(f"{key}.force_scaling", f"unknown '{mo['force_scaling']}'", "use stiffness or none")
+    _check_choice(f"{key}.force_scaling", mo["force_scaling"], ("stiffness", "none"))
 
 
 def _check_study(cfg: dict) -> None:
@@ -553,8 +613,7 @@ def _check_study(cfg: dict) -> None:
     st = cfg["study"]
     if st["epochs"] < 1:
         _fail("study.epochs", f"must be >= 1 (got {st['epochs']})")
-    if st["hyper_parameters"] not in ("main", "config"):
-        _fail("study.hyper_parameters", f"unknown '{st['hyper_parameters']}'", "use main or config")
+    _check_choice("study.hyper_parameters", st["hyper_parameters"], ("main", "config"))
     if not st["enabled"]:
         return
     for name in ("roi_fraction", "encoder", "state_vector", "occlusion", "noise", "train_size", "train_livers"):
@@ -582,17 +641,15 @@ def _check_study(cfg: dict) -> None:
         _fail("study.train_livers.scenarios", "the livers learning curve applies to scenario IV only "
               "(I-III train on one liver)")
     for e in st["encoder"]["values"]:
-        if e not in ("pca", "ae", "dae"):
-            _fail("study.encoder.values", f"unknown encoder '{e}'", "use pca, ae or dae")
-    if st["state_vector"]["encoder"] not in ("pca", "ae", "dae"):
-        _fail("study.state_vector.encoder", f"unknown encoder '{st['state_vector']['encoder']}'")
+        _check_choice("study.encoder.values", e, encoders(), "encoder")
+    _check_choice("study.state_vector.encoder", st["state_vector"]["encoder"], encoders(), "encoder")
     occ = st["occlusion"]
     if any(r < 0 for r in occ["radii_mm"]):
         _fail("study.occlusion.radii_mm", f"radii must be >= 0 mm (got {occ['radii_mm']})")
-    if any(e not in ("pca", "ae", "dae") for e in occ["encoders"]):
-        _fail("study.occlusion.encoders", f"unknown encoder in {occ['encoders']}", "use pca, ae or dae")
-    if any(m not in ("remove", "noise") for m in occ["modes"]):
-        _fail("study.occlusion.modes", f"unknown mode in {occ['modes']}", "use remove or noise")
+    for e in occ["encoders"]:
+        _check_choice("study.occlusion.encoders", e, encoders(), "encoder")
+    for mode in occ["modes"]:
+        _check_choice("study.occlusion.modes", mode, occlusion_modes(), "occlusion mode")
     for v in st["noise"]["values"]:
         if not isinstance(v, (int, float)) or v < 0 or v > 20:
             _fail("study.noise.values", f"noise must be in [0, 20] mm (got {v}); units are mm")
@@ -633,8 +690,7 @@ def _material_from_young(mat: dict) -> None:
 
 def _check_mesh_mode(key: str, imp: dict) -> None:
     mode = imp.get("mesh", "auto")
-    if mode not in ("auto", "as_given", "remesh"):
-        _fail(f"{key}.mesh", f"unknown '{mode}'", "use auto, as_given or remesh")
+    _check_choice(f"{key}.mesh", mode, ("auto", "as_given", "remesh"), "mesh mode")
     if mode == "as_given":
         from liverforce.geometry.volume_mesh import VOLUME_MESH_SUFFIXES
 

@@ -1,8 +1,15 @@
 """The composed configuration: experiments compose, bad values fail with their key."""
 from __future__ import annotations
 
-import pytest
+import subprocess
+import sys
+from pathlib import Path
 
+import numpy as np
+import pytest
+import yaml
+
+from liverforce import config as config_mod
 from liverforce.config import ConfigError, compose, config_hash
 
 
@@ -74,3 +81,210 @@ def test_config_hash_is_stable_and_sensitive():
     assert config_hash(a) == config_hash(b)
     assert config_hash(a["sweep"]) != config_hash(c["sweep"])
     assert config_hash(a["mesh"]) == config_hash(c["mesh"])
+
+
+# --------------------------------------------------------------------------
+# choice keys: checked against the registry of the module that implements them
+# --------------------------------------------------------------------------
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _variant_choices():
+    names = [v["name"] for v in compose([])["train"]["variants"]] or ["default"]
+    return ["main", "auto", *names]
+
+
+# (override with a bad value, dotted key, bad value, the valid choices)
+BAD_CHOICES = [
+    ("material.model=rubber", "material.model", "rubber", config_mod.material_models),
+    ("material.on_unstable=ignore", "material.on_unstable", "ignore", lambda: ("refuse", "clip")),
+    ("simulate.formulation=p3", "simulate.formulation", "p3", config_mod.formulations),
+    ("simulate.linear_solver=mumps", "simulate.linear_solver", "mumps", config_mod.linear_solvers),
+    ("sweep.design=grid", "sweep.design", "grid", config_mod.sweep_designs),
+    ("sweep.scenarios.I.exertion=random", "sweep.scenarios.I.exertion", "random", lambda: ("fixed", "varies")),
+    ("sweep.scenarios.I.material=random", "sweep.scenarios.I.material", "random", lambda: ("fixed", "varies")),
+    ("sweep.scenarios.I.geometries=3", "sweep.scenarios.I.geometries", "3", lambda: ("1", "all")),
+    ("mesh.mesher=magic", "mesh.mesher", "magic", lambda: config_mod.MESHERS),
+    ("mesh.regions_check=loud", "mesh.regions_check", "loud", lambda: ("warn", "strict", "off")),
+    ("dataset.compression=lz4", "dataset.compression", "lz4", lambda: ("zstd", "snappy", "gzip", "none")),
+    ("model.encoder=vae", "model.encoder", "vae", config_mod.encoders),
+    ("model.roi_features=curvature", "model.roi_features", "curvature", config_mod.roi_features),
+    ("model.occlusion.mode=blur", "model.occlusion.mode", "blur", config_mod.occlusion_modes),
+    ("model.force_scaling=log", "model.force_scaling", "log", lambda: ("stiffness", "none")),
+    ("validate.variant=nope", "validate.variant", "nope", _variant_choices),
+    ("report.format=pdf", "report.format", "pdf", lambda: config_mod.REPORT_FORMATS),
+    ("study.hyper_parameters=best", "study.hyper_parameters", "best", lambda: ("main", "config")),
+    ("study.encoder.values=[vae]", "study.encoder.values", "vae", config_mod.encoders),
+    ("study.state_vector.encoder=vae", "study.state_vector.encoder", "vae", config_mod.encoders),
+    ("study.occlusion.encoders=[vae]", "study.occlusion.encoders", "vae", config_mod.encoders),
+    ("study.occlusion.modes=[blur]", "study.occlusion.modes", "blur", config_mod.occlusion_modes),
+]
+
+
+@pytest.mark.parametrize("override, key, bad, choices", BAD_CHOICES, ids=[b[1] for b in BAD_CHOICES])
+def test_a_bad_choice_names_the_key_the_value_and_the_valid_choices(override, key, bad, choices):
+    with pytest.raises(ConfigError) as err:
+        compose([override])
+    msg = str(err.value)
+    assert msg.startswith(f"config key '{key}': "), msg
+    assert f"'{bad}'" in msg, msg
+    valid = tuple(choices())
+    assert valid and bad not in valid
+    assert "choose one of " + ", ".join(map(str, valid)) in msg, msg
+
+
+def test_registries_are_the_implementations_own():
+    from liverforce.fem import linsolve
+    from liverforce.fem.assembly import FORMULATIONS
+    from liverforce.fem.materials import available_models
+    from liverforce.sweep.design import DESIGNS
+
+    names = config_mod._learn_names()
+    assert config_mod.material_models() == tuple(available_models())
+    assert config_mod.formulations() == tuple(FORMULATIONS)
+    assert config_mod.linear_solvers() == tuple(linsolve.METHODS)
+    assert config_mod.sweep_designs() == tuple(DESIGNS)
+    assert config_mod.encoders() == tuple(names.ENCODERS)
+    assert config_mod.roi_features() == tuple(names.ROI_FEATURE_CHANNELS)
+    assert config_mod.occlusion_modes() == tuple(names.OCCLUSION_MODES)
+
+
+# every name of a registry is accepted by the config
+ACCEPTED = [
+    ("material.model", config_mod.material_models),
+    ("simulate.formulation", config_mod.formulations),
+    ("simulate.linear_solver", config_mod.linear_solvers),
+    ("sweep.design", config_mod.sweep_designs),
+    ("model.encoder", config_mod.encoders),
+    ("model.roi_features", config_mod.roi_features),
+    ("model.occlusion.mode", config_mod.occlusion_modes),
+    ("mesh.mesher", lambda: config_mod.MESHERS),
+    ("report.format", lambda: config_mod.REPORT_FORMATS),
+    ("validate.variant", _variant_choices),
+]
+
+
+@pytest.mark.parametrize("key, choices", ACCEPTED, ids=[a[0] for a in ACCEPTED])
+def test_every_registered_name_is_accepted(key, choices):
+    for name in choices():
+        cfg = compose([f"{key}={name}"])
+        node = cfg
+        for part in key.split("."):
+            node = node[part]
+        assert node == name
+
+
+# constants for the models that have no config/material/*.yaml (every registered model needs one of the two)
+EXTRA_MATERIAL_PARAMS = {
+    "mooney_rivlin_2": {"C10": 0.002, "C01": 0.0005},
+    "mooney_rivlin_3": {"C10": 0.002, "C01": 0.0005, "C11": 0.001},
+    "ogden": {"mu1": 0.005, "alpha1": 2.0, "mu2": 0.001, "alpha2": -2.0},
+}
+
+
+def test_make_material_builds_every_registered_model():
+    from liverforce.fem.materials import make_material
+
+    params = dict(EXTRA_MATERIAL_PARAMS)
+    for path in sorted((ROOT / "config" / "material").glob("*.yaml")):
+        y = yaml.safe_load(path.read_text())
+        if y.get("params_mpa"):
+            params.setdefault(y["model"], y["params_mpa"])
+    missing = [m for m in config_mod.material_models() if m not in params]
+    assert not missing, f"give constants for {missing} (a config/material yaml or EXTRA_MATERIAL_PARAMS)"
+    for model in config_mod.material_models():
+        mat = make_material(model, params[model], nu=0.49)
+        assert mat.model == model and mat.mu0 > 0 and mat.bulk > mat.mu0
+    # the composed configs build too (the Young's modulus one is derived at compose time)
+    for group in ("yeoh", "neo_hookean", "neo_hookean_from_e"):
+        m = compose([f"material={group}"])["material"]
+        assert make_material(m["model"], m["params_mpa"], nu=m["nu"]).model == m["model"]
+
+
+def test_every_formulation_has_a_spec():
+    from liverforce.fem.assembly import formulation_spec
+
+    for name in config_mod.formulations():
+        order, mean_dilatation = formulation_spec(name)
+        assert order in (1, 2) and isinstance(mean_dilatation, bool)
+    assert formulation_spec(compose([])["simulate"]["formulation"]) == (2, True)
+
+
+def test_every_linear_solver_method_solves_or_says_what_it_needs():
+    import scipy.sparse as sp
+
+    from liverforce.fem.linsolve import LinearSolver, cholmod_available
+
+    n = 30
+    A = sp.diags([-np.ones(n - 1), 4 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1], format="csc")
+    b = np.arange(1.0, n + 1)
+    for method in config_mod.linear_solvers():
+        if method == "cholmod" and not cholmod_available():
+            with pytest.raises(ImportError, match="scikit-sparse"):
+                LinearSolver(method)
+            continue
+        solver = LinearSolver(method)
+        solver.factorize(A)
+        np.testing.assert_allclose(A @ solver.solve(b), b, rtol=1e-10)
+    with pytest.raises(ValueError, match="linear_solver"):
+        LinearSolver("mumps")
+
+
+def test_every_sweep_design_samples_the_unit_cube():
+    from liverforce.sweep.design import SweepError, _unit_samples
+
+    for design in config_mod.sweep_designs():
+        u = _unit_samples(design, 10, 4, seed=3)
+        assert u.shape == (10, 4) and np.all((u >= 0) & (u < 1))
+        np.testing.assert_array_equal(u, _unit_samples(design, 10, 4, seed=3))
+    with pytest.raises(SweepError, match="sobol"):
+        _unit_samples("grid", 10, 4, seed=3)
+
+
+def test_every_encoder_roi_feature_and_occlusion_mode_fits():
+    from liverforce.learn.model import fit_preprocessor, prepare
+    from liverforce.learn.representation import Representation
+    from liverforce.learn.synthetic import synthetic_arrays
+
+    arrays = synthetic_arrays(24, seed=1, nodes=(200, 300))
+    for features in config_mod.roi_features():
+        for mode in config_mod.occlusion_modes():
+            rep = Representation(grid_size=5, half_width_mm=14.0, features=features,
+                                 occlusion_radius_mm=4.0, occlusion_mode=mode)
+            prep = prepare(arrays, rep, observation_seeds=[0])
+            assert prep.x_obs.shape[-1] == rep.n_features
+    for encoder in config_mod.encoders():
+        pre = fit_preprocessor(prep, rep, encoder=encoder, code_size=2, use_state=False, seed=0, epochs=2,
+                               lr=1e-3, batch_size=8)
+        assert pre.encoder.code_size == 2 and pre.encoder.kind == encoder
+
+
+def test_config_reads_the_registries_not_a_copy(monkeypatch):
+    from liverforce.fem import assembly, linsolve, materials
+    from liverforce.sweep import design
+
+    names = config_mod._learn_names()
+    monkeypatch.setitem(materials._MODELS, "soft_tissue", materials._MODELS["neo_hookean"])
+    monkeypatch.setitem(assembly.FORMULATIONS, "p2_new", (2, False))
+    monkeypatch.setattr(linsolve, "METHODS", (*linsolve.METHODS, "pardiso"))
+    monkeypatch.setitem(design.DESIGNS, "halton", design.DESIGNS["sobol"])
+    monkeypatch.setattr(names, "ENCODERS", (*names.ENCODERS, "vae"))
+    monkeypatch.setitem(names.ROI_FEATURE_CHANNELS, "normals", 3)
+    monkeypatch.setattr(names, "OCCLUSION_MODES", (*names.OCCLUSION_MODES, "blur"))
+    cfg = compose(["material.model=soft_tissue", "simulate.formulation=p2_new", "simulate.linear_solver=pardiso",
+                   "sweep.design=halton", "model.encoder=vae", "model.roi_features=normals",
+                   "model.occlusion.mode=blur", "study.encoder.values=[vae]", "study.occlusion.modes=[blur]"])
+    assert cfg["material"]["model"] == "soft_tissue" and cfg["model"]["encoder"] == "vae"
+    assert cfg["model"]["roi_features"] == "normals" and cfg["sweep"]["design"] == "halton"
+    # and the implementations see the same names: the representation accepts the new feature name
+    assert "normals" in config_mod.roi_features() and "halton" in design.design_names()
+    assert "soft_tissue" in materials.available_models()
+
+
+def test_composing_does_not_import_torch():
+    code = ("import sys; from liverforce.config import compose; compose([]); "
+            "assert 'torch' not in sys.modules and 'liverforce.learn' not in sys.modules, 'torch imported'; "
+            "import liverforce.learn.representation as r, liverforce.learn.names as n; "
+            "assert r.names is n is sys.modules['liverforce.learn.names']")
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT, timeout=120)

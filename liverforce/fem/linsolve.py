@@ -39,6 +39,11 @@ except ImportError:  # pragma: no cover - depends on the environment
     _cholmod = None
 
 
+#: ``method`` values :class:`LinearSolver` accepts ("auto": CHOLMOD if importable, else SuperLU);
+#: ``simulate.linear_solver`` is checked against this
+METHODS = ("auto", "cholmod", "superlu")
+
+
 def cholmod_available() -> bool:
     """True if scikit-sparse's CHOLMOD is importable."""
     return _cholmod is not None
@@ -65,8 +70,8 @@ class LinearSolver:
     shifts = (1e-3, 1e-2, 1e-1, 1.0, 10.0)
 
     def __init__(self, method: str = "auto", ordering: str = "default"):
-        if method not in ("auto", "cholmod", "superlu"):
-            raise ValueError(f"linear_solver must be 'auto', 'cholmod' or 'superlu', got {method!r}")
+        if method not in METHODS:
+            raise ValueError(f"linear_solver must be one of {METHODS}, got {method!r}")
         if method == "cholmod" and _cholmod is None:
             raise ImportError(
                 "linear_solver='cholmod' needs scikit-sparse (pip install scikit-sparse==0.4.16 "

@@ -32,9 +32,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from liverforce.learn.names import ENCODERS as ENCODER_KINDS
 from liverforce.learn.torchutil import EpochCallback, forward_numpy, train_loop
-
-ENCODER_KINDS = ("pca", "ae", "dae")
 
 #: negative slope of the autoencoders' LeakyReLU
 LEAKY_SLOPE = 0.2

@@ -78,10 +78,11 @@ import numpy as np
 from scipy.interpolate import NearestNDInterpolator
 from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 
+from liverforce.learn import names
 from liverforce.learn.frames import local_rotations, points_to_local
 
-FEATURE_KINDS = ("displacement", "deformed", "both")
-OCCLUSION_MODES = ("remove", "noise")
+FEATURE_KINDS = names.roi_features()
+OCCLUSION_MODES = names.OCCLUSION_MODES
 
 
 @dataclass(frozen=True)
@@ -116,10 +117,10 @@ class Representation:
             raise ValueError(f"grid_size must be >= 3 (got {self.grid_size})")
         if not float(self.half_width_mm) > 0:
             raise ValueError(f"grid half width must be > 0 mm (got {self.half_width_mm})")
-        if self.features not in FEATURE_KINDS:
-            raise ValueError(f"unknown ROI features '{self.features}': use one of {FEATURE_KINDS}")
-        if self.occlusion_mode not in OCCLUSION_MODES:
-            raise ValueError(f"unknown occlusion mode '{self.occlusion_mode}': use remove or noise")
+        if self.features not in names.ROI_FEATURE_CHANNELS:
+            raise ValueError(f"unknown ROI features '{self.features}': use one of {names.roi_features()}")
+        if self.occlusion_mode not in names.OCCLUSION_MODES:
+            raise ValueError(f"unknown occlusion mode '{self.occlusion_mode}': use one of {names.OCCLUSION_MODES}")
         if self.occlusion_radius_mm < 0 or self.noise_mm < 0:
             raise ValueError("occlusion radius_mm and noise_mm must be >= 0 mm")
 
@@ -127,7 +128,7 @@ class Representation:
     @property
     def channels(self) -> int:
         """Number of grid channels (3, 1 or 4)."""
-        return {"displacement": 3, "deformed": 1, "both": 4}[self.features]
+        return names.ROI_FEATURE_CHANNELS[self.features]
 
     @property
     def n_features(self) -> int:

@@ -96,16 +96,29 @@ def sample_exertion_points(
     return np.asarray(chosen)
 
 
+def _sobol(n: int, d: int, seed: int) -> np.ndarray:
+    sampler = qmc.Sobol(d=d, scramble=True, seed=seed)
+    m = int(np.ceil(np.log2(max(n, 2))))
+    return sampler.random_base2(m)[:n]
+
+
+def _lhs(n: int, d: int, seed: int) -> np.ndarray:
+    return qmc.LatinHypercube(d=d, seed=seed).random(n)
+
+
+#: design name -> sampler ``(n, d, seed) -> (n, d)`` points in the unit cube
+DESIGNS = {"sobol": _sobol, "lhs": _lhs}
+
+
+def design_names() -> tuple[str, ...]:
+    """Names accepted as ``sweep.design`` (the keys of :data:`DESIGNS`)."""
+    return tuple(DESIGNS)
+
+
 def _unit_samples(design: str, n: int, d: int, seed: int) -> np.ndarray:
-    if design == "sobol":
-        sampler = qmc.Sobol(d=d, scramble=True, seed=seed)
-        m = int(np.ceil(np.log2(max(n, 2))))
-        u = sampler.random_base2(m)[:n]
-    elif design == "lhs":
-        u = qmc.LatinHypercube(d=d, seed=seed).random(n)
-    else:
-        raise SweepError(f"unknown design '{design}' (sobol or lhs)")
-    return u
+    if design not in DESIGNS:
+        raise SweepError(f"unknown design '{design}' (one of {', '.join(design_names())})")
+    return DESIGNS[design](n, d, seed)
 
 
 def force_vectors(u_mag, u_cos, u_az, frames, min_n, max_n, cone_deg) -> np.ndarray:

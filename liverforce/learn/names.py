@@ -1,0 +1,24 @@
+"""Names of the learning stage's choices, in a module without imports (no torch).
+
+:mod:`liverforce.config` validates ``model.encoder``, ``model.roi_features``,
+``model.occlusion.mode`` and the ``study`` lists against these, and the
+implementations dispatch on them (:mod:`liverforce.learn.encoders`,
+:mod:`liverforce.learn.representation`), so a name added here is valid in
+the config and must be implemented there. Keep this module import-free: the
+config loads it without importing the ``liverforce.learn`` package (which
+imports torch).
+"""
+
+#: ROI feature encoders (liverforce.learn.encoders, fitted by liverforce.learn.model.fit_preprocessor)
+ENCODERS = ("pca", "ae", "dae")
+
+#: ROI features -> grid channels per point (liverforce.learn.representation.Representation)
+ROI_FEATURE_CHANNELS = {"displacement": 3, "deformed": 1, "both": 4}
+
+#: how the tool's occlusion hides ROI points (liverforce.learn.representation.Representation)
+OCCLUSION_MODES = ("remove", "noise")
+
+
+def roi_features() -> tuple[str, ...]:
+    """Names accepted as ``model.roi_features``."""
+    return tuple(ROI_FEATURE_CHANNELS)
