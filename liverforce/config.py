@@ -17,10 +17,9 @@ Example
 from __future__ import annotations
 
 import hashlib
-import importlib.util
+import importlib
 import json
 import os
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
@@ -405,19 +404,9 @@ REPORT_FORMATS = ("html",)
 
 
 def _learn_names():
-    """:mod:`liverforce.learn.names` (encoders, ROI features, occlusion modes), loaded from its file when the
-    ``liverforce.learn`` package is not imported yet: the package's ``__init__`` imports torch, the names
-    module imports nothing. Registered under its own name, so the learn modules share this module object."""
-    name = "liverforce.learn.names"
-    mod = sys.modules.get(name)
-    if mod is None:
-        if "liverforce.learn" in sys.modules:
-            return importlib.import_module(name)
-        spec = importlib.util.spec_from_file_location(name, Path(__file__).resolve().parent / "learn" / "names.py")
-        mod = importlib.util.module_from_spec(spec)
-        sys.modules[name] = mod
-        spec.loader.exec_module(mod)
-    return mod
+    """:mod:`liverforce.learn.names` (encoders, ROI features, occlusion modes); it and the package's
+    ``__init__`` import nothing heavy (no torch)."""
+    return importlib.import_module("liverforce.learn.names")
 
 
 def encoders() -> tuple[str, ...]:

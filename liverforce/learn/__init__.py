@@ -11,15 +11,21 @@ Public entry points
 - :func:`liverforce.learn.metrics.force_metrics`.
 """
 
-from liverforce.learn.metrics import force_metrics
-from liverforce.learn.model import ForceModel, ModelFormatError
-
 __all__ = ["ForceModel", "ModelFormatError", "force_metrics", "train_scenario"]
 
+_LAZY = {
+    "ForceModel": "liverforce.learn.model",
+    "ModelFormatError": "liverforce.learn.model",
+    "force_metrics": "liverforce.learn.metrics",
+    "train_scenario": "liverforce.learn.train",
+}
 
-def __getattr__(name: str):  # lazy: importing the driver pulls in Ax only when needed
-    if name == "train_scenario":
-        from liverforce.learn.train import train_scenario
 
-        return train_scenario
+def __getattr__(name: str):
+    """Lazy exports: importing ``liverforce.learn.<light module>`` (e.g. ``names``, from the config
+    check) must not load torch or Ax; the heavy modules load on first use of their names."""
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
     raise AttributeError(name)
