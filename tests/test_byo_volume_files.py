@@ -224,7 +224,7 @@ def test_auto_takes_tet_files_as_given_and_remeshes_surfaces(tmp_path):
 
 
 @pytest.mark.parametrize("entry, key, text", [
-    ("{name:a,path:/x/liver.msh,mesh:keep}", "geometry.imported[0].mesh", "unknown 'keep'"),
+    ("{name:a,path:/x/liver.msh,mesh:keep}", "geometry.imported[0].mesh", "unknown mesh mode 'keep' — choose one of auto, as_given, remesh"),
     ("{name:a,path:/x/liver.stl,mesh:as_given}", "geometry.imported[0].mesh", "as_given needs a tetrahedral mesh"),
     ("{name:a,path:/x/liver.msh,mesh:as_given,supports:{list:[{kind:fixed,group:[1]}]}}",
      "geometry.imported[0].supports.list[0].group", "must be a group name, a tag number"),

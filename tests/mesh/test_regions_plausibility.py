@@ -154,5 +154,5 @@ def test_config_regions_check_is_validated():
 
     assert compose([])["mesh"]["regions_check"] == "warn"
     assert compose(["mesh.regions_check=strict"])["mesh"]["regions_check"] == "strict"
-    with pytest.raises(ConfigError, match=r"'mesh\.regions_check': unknown 'loud' — use warn, strict or off"):
+    with pytest.raises(ConfigError, match=r"'mesh\.regions_check': unknown 'loud' — choose one of warn, strict, off"):
         compose(["mesh.regions_check=loud"])
