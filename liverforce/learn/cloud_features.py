@@ -80,7 +80,7 @@ from dataclasses import asdict, dataclass, fields
 import numpy as np
 
 from liverforce.learn.frames import local_rotations
-from liverforce.learn.representation import Representation, _interpolate
+from liverforce.learn.representation import Representation, interpolate_to_grid
 
 FILL_RULES = ("laplace", "zero", "nearest")
 ESTIMATORS = ("linear", "mean")
@@ -235,7 +235,7 @@ class ReferenceSurface:
         lo = -n_half * step
         axis = lo + step * np.arange(2 * n_half + 1)
         uu, vv = np.meshgrid(axis, axis)
-        raster = _interpolate(U[:, :2], U[:, 2:3], np.column_stack([uu.ravel(), vv.ravel()]), label)[:, 0]
+        raster = interpolate_to_grid(U[:, :2], U[:, 2:3], np.column_stack([uu.ravel(), vv.ravel()]), label)[:, 0]
         raster = raster.reshape(uu.shape)
         ref = cls(p, R, float(lo), float(step), raster, np.empty(0))
         g = spec.grid()

@@ -240,9 +240,9 @@ class Representation:
     def _resample(self, U: np.ndarray, D: np.ndarray, grid: np.ndarray, label: str) -> np.ndarray:
         parts = []
         if self.features in ("displacement", "both"):
-            parts.append(_interpolate(U[:, :2], D - U, grid, label))
+            parts.append(interpolate_to_grid(U[:, :2], D - U, grid, label))
         if self.features in ("deformed", "both"):
-            parts.append(_interpolate(D[:, :2], D[:, 2:3], grid, label))
+            parts.append(interpolate_to_grid(D[:, :2], D[:, 2:3], grid, label))
         return np.concatenate([p.T.ravel() for p in parts])
 
 
@@ -254,7 +254,7 @@ def _barycentric(p: np.ndarray, A: np.ndarray, e1: np.ndarray, e2: np.ndarray, d
     return np.stack([1.0 - l1 - l2, l1, l2], axis=-1)
 
 
-def _interpolate(xy: np.ndarray, values: np.ndarray, grid: np.ndarray, label: str) -> np.ndarray:
+def interpolate_to_grid(xy: np.ndarray, values: np.ndarray, grid: np.ndarray, label: str) -> np.ndarray:
     """Linear interpolation on the Delaunay triangulation, nearest node outside the hull -> ``(g^2, m)``.
 
     The same piecewise-linear interpolant as ``LinearNDInterpolator``. Point

@@ -53,7 +53,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from liverforce.learn.frames import local_rotations
-from liverforce.learn.representation import _interpolate
+from liverforce.learn.representation import interpolate_to_grid
 from liverforce.serve.checks import Limits, TrainingScale
 from liverforce.serve.errors import PredictionInputError
 from liverforce.serve.preop import Preop, _points
@@ -128,7 +128,7 @@ def cloud_to_arrays(model, cloud_mm, preop: Preop, *, approximate: bool, scale: 
         out["roi_undeformed_mm"] = [O_src]
         out["roi_deformed_mm"] = [O_src]
         return out, {"mode": "exact", "points_given": len(O), "points_used": n_used}
-    z = _interpolate(Ok[:, :2], Ok[:, 2:3], U_loc[:, :2], "cloud")[:, 0]
+    z = interpolate_to_grid(Ok[:, :2], Ok[:, 2:3], U_loc[:, :2], "cloud")[:, 0]
     D_loc = np.column_stack([U_loc[:, :2], z])
     D_est = p + D_loc @ R
     out["roi_centroid_deformed_mm"] = D_est.mean(axis=0)[None]

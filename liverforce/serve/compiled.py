@@ -17,7 +17,7 @@ deformed positions ``D`` (``k x 3``, liver frame, mm) for models with
                                               rest of the state is constant
 
 so :class:`CompiledROI` precomputes ``z = A vec(D) + b`` once (``W`` is read
-off the reference interpolant itself, :func:`liverforce.learn.representation._interpolate`
+off the reference interpolant itself, :func:`liverforce.learn.representation.interpolate_to_grid`
 applied to the identity, so the resampling is the reference one by
 construction). A call is then one matrix-vector product plus the small MLP
 in NumPy (float32 like the torch reference; batch norm folded into the
@@ -40,7 +40,7 @@ from torch import nn
 
 from liverforce.learn.encoders import PCAEncoder
 from liverforce.learn.frames import local_rotations
-from liverforce.learn.representation import _interpolate
+from liverforce.learn.representation import interpolate_to_grid
 from liverforce.learn.state import MATERIAL_START, state_vector
 from liverforce.serve.checks import Limits, TrainingScale, check_displacement, check_material
 from liverforce.serve.errors import PredictionInputError
@@ -128,7 +128,7 @@ class CompiledROI:
         kk = int(keep.sum())
         g2 = rep.grid_size**2
         W = np.zeros((g2, k))
-        W[:, keep] = _interpolate(U_loc[keep, :2], np.eye(kk), rep.grid(), "compiled ROI")
+        W[:, keep] = interpolate_to_grid(U_loc[keep, :2], np.eye(kk), rep.grid(), "compiled ROI")
         # x[c g2 + i] = sum_j W[i, j] (R (D_j - p) - U_loc_j)[c]
         M = np.einsum("ij,ca->cija", W, R).reshape(3 * g2, 3 * k)
         off = p @ R.T + U_loc  # (k, 3)
