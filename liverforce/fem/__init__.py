@@ -10,11 +10,27 @@ Units: mm, N, MPa (N/mm²). Public entry points:
   a tool pushing on a meshed liver.
 """
 
-from .fitting import FitResult, fit_material
-from .materials import Material, available_models, bulk_from_poisson, make_material
-from .newton import DiscreteSystem, NewtonResult, SolverOptions
-from .problem import BoundaryParams, CaseResult, LiverModel, ToolLoad, solve_case
-from .stability import StabilityReport, UnstableMaterialError, check_stability, require_stable
+_LAZY = {
+    "FitResult": "fitting", "fit_material": "fitting",
+    "Material": "materials", "available_models": "materials", "bulk_from_poisson": "materials",
+    "make_material": "materials",
+    "DiscreteSystem": "newton", "NewtonResult": "newton", "SolverOptions": "newton",
+    "BoundaryParams": "problem", "CaseResult": "problem", "LiverModel": "problem", "ToolLoad": "problem",
+    "solve_case": "problem",
+    "StabilityReport": "stability", "UnstableMaterialError": "stability", "check_stability": "stability",
+    "require_stable": "stability",
+}
+
+
+def __getattr__(name: str):
+    """Lazy exports: the config check imports ``fem.materials`` / ``fem.assembly`` for their registries
+    and must not pay for scipy.optimize and numba (the fitting and solver modules) at start-up."""
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(f"{__name__}.{_LAZY[name]}"), name)
+    raise AttributeError(name)
+
 
 __all__ = [
     "BoundaryParams",

@@ -24,7 +24,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.stats import qmc
 
 
 class SweepError(ValueError):
@@ -97,12 +96,16 @@ def sample_exertion_points(
 
 
 def _sobol(n: int, d: int, seed: int) -> np.ndarray:
+    from scipy.stats import qmc  # here: scipy.stats costs ~0.6 s to import, and the config check imports this module
+
     sampler = qmc.Sobol(d=d, scramble=True, seed=seed)
     m = int(np.ceil(np.log2(max(n, 2))))
     return sampler.random_base2(m)[:n]
 
 
 def _lhs(n: int, d: int, seed: int) -> np.ndarray:
+    from scipy.stats import qmc
+
     return qmc.LatinHypercube(d=d, seed=seed).random(n)
 
 
