@@ -21,4 +21,4 @@ include: "workflow/rules/report.smk"
 rule all:
     default_target: True
     input:
-        report=f"{E}/report/index.html",
+        report=P.report(),

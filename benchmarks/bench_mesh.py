@@ -75,6 +75,7 @@ def pipeline_meshing(experiment: str, livers: int | None) -> list[dict]:
     and the figure is the median over livers.
     """
     from liverforce.config import compose
+    from liverforce.layout import Layout
     from liverforce.pipeline.geometry import make_geometry
     from liverforce.pipeline.mesh import make_mesh
     from liverforce.pipeline.plan import Plan
@@ -83,17 +84,17 @@ def pipeline_meshing(experiment: str, livers: int | None) -> list[dict]:
     plan = Plan(cfg)
     gids = [g for g in plan.train_geometries if g.startswith("proc-")]
     if livers is not None:
-        seed0 = cfg["geometry"]["procedural"]["seed"]
-        gids = [f"proc-{seed0 + i:04d}" for i in range(livers)]
+        plan = Plan(compose([f"experiment={experiment}", f"geometry.procedural.count={livers}"]))
+        gids = [g for g in plan.train_geometries if g.startswith("proc-")]
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench_mesh_") as tmp:
         for gid in gids:
-            surface = Path(tmp) / f"{gid}.ply"
-            make_geometry(plan.geometry_spec(gid), surface, surface.with_suffix(".json"))
+            paths = Layout(tmp)
+            surface = paths.surface(gid)
+            make_geometry(plan.geometry_spec(gid), surface, paths.surface_meta(gid))
             t0, c0 = time.perf_counter(), time.process_time()
-            feats = make_mesh(surface, cfg["mesh"], cfg["seed"], Path(tmp) / f"{gid}.vtu",
-                              Path(tmp) / f"{gid}.features.json", Path(tmp) / f"{gid}.regions.png",
-                              exertion=cfg["sweep"]["exertion"])
+            feats = make_mesh(surface, cfg["mesh"], plan.seed("mesh", gid), paths.mesh(gid), paths.features(gid),
+                              paths.regions_picture(gid), exertion=cfg["sweep"]["exertion"])
             total, cpu = time.perf_counter() - t0, time.process_time() - c0
             meshing = feats["provenance"]["meshing"]
             rows.append({"experiment": experiment, "gid": gid, "mesh_s": feats["meshing_time_s"], "stage_s": total,

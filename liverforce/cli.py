@@ -96,10 +96,7 @@ def cmd_progress(args) -> int:
     from liverforce.pipeline.plan import Plan
     from liverforce.pipeline.progress import format_progress, sweep_progress
 
-    plan = Plan(compose(_overrides(args)))
-    shards = {s: len(plan.shard_ids(s)) for s in plan.all_scenarios()}
-    cases = {s: plan.scenario_spec(s)["n_cases"] for s in plan.all_scenarios()}
-    print(format_progress(sweep_progress(plan.root, shards, cases)))
+    print(format_progress(sweep_progress(Plan(compose(_overrides(args))))))
     return 0
 
 
@@ -107,13 +104,15 @@ def cmd_show_case(args) -> int:
     """Draw one case: deformed surface coloured by |u|, ROI outlined, force arrow."""
     from liverforce.dataset import io as dio
     from liverforce.dataset.plot import plot_case
+    from liverforce.layout import scenario_of_case
     from liverforce.mesh.io import read_mesh
     from liverforce.pipeline.plan import Plan
 
     plan = Plan(compose(_overrides(args)))
-    scenario = args.case_id.split("-")[0]
-    shard_dir = Path(plan.root) / "shards" / scenario
-    shards = sorted(shard_dir.glob("shard-*.parquet"))
+    scenario = scenario_of_case(args.case_id)
+    shard_dir = plan.paths.shard_dir(scenario)
+    known = plan.shard_ids(scenario) if scenario in plan.all_scenarios() else []
+    shards = [Path(plan.paths.shard(scenario, s)) for s in known if Path(plan.paths.shard(scenario, s)).exists()]
     if not shards:
         print(f"liverforce: no shards in {shard_dir}; run the sweep first (snakemake ... shards)", file=sys.stderr)
         return 2
@@ -122,8 +121,8 @@ def cmd_show_case(args) -> int:
         ids = table.column("case_id").to_pylist()
         if args.case_id in ids:
             row = table.slice(ids.index(args.case_id), 1).to_pylist()[0]
-            mesh = read_mesh(Path(plan.root) / "mesh" / f"{row['geometry_id']}.vtu")
-            out = Path(args.out or Path(plan.root) / "cases" / f"{args.case_id}.png")
+            mesh = read_mesh(plan.paths.mesh(row["geometry_id"]))
+            out = Path(args.out or plan.paths.case_picture(args.case_id))
             plot_case(mesh.points, mesh.facets, row, out, scale=args.scale)
             print(out)
             return 0

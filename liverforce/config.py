@@ -30,26 +30,36 @@ CONFIG_DIR = PROJECT_ROOT / "config"
 SCENARIOS = ("I", "II", "III", "IV")
 
 
+#: omegaconf.MISSING (a mandatory value), spelled here so that importing this module does not import omegaconf
+MISSING = "???"
+
+
 class ConfigError(ValueError):
     """A configuration key is unknown, mistyped or out of range."""
 
 
 # --------------------------------------------------------------------------
 # Schema: types (checked by OmegaConf) — ranges are checked in _check_ranges.
+#
+# No defaults here: every value comes from config/*.yaml (MISSING marks a field
+# the YAML must give; tests/test_config.py checks that no field has a default).
+# The one exception is ImportedGeometry, the schema of each entry of the
+# user's geometry.imported list: no YAML file can hold defaults for list
+# entries, so an entry's optional keys default here (and only here).
 # --------------------------------------------------------------------------
 
 
 @dataclass
 class ProceduralGeometry:
-    count: int = 4
-    seed: int = 0
-    shape: dict[str, Any] = field(default_factory=dict)  # LiverShapeParams fields
+    count: int = MISSING
+    seed: int = MISSING
+    shape: dict[str, Any] = MISSING  # LiverShapeParams fields
 
 
 @dataclass
 class CubeGeometry:
-    enabled: bool = False
-    edge_mm: float = 50.0
+    enabled: bool = MISSING
+    edge_mm: float = MISSING
 
 
 @dataclass
@@ -76,193 +86,193 @@ class ImportedGeometry:
 class GeometryConfig:
     procedural: ProceduralGeometry = field(default_factory=ProceduralGeometry)
     cube: CubeGeometry = field(default_factory=CubeGeometry)
-    imported: list[ImportedGeometry] = field(default_factory=list)
+    imported: list[ImportedGeometry] = MISSING
 
 
 @dataclass
 class MeshConfig:
-    target_nodes: int = 800
-    mesher: str = "gmsh"
-    refine_radius_mm: float = 10.0
-    refine_edge_mm: float = 6.0
-    refine_growth: float = 0.6
-    refine_ivc_edge_mm: float = 6.0
-    regions: dict[str, Any] = field(default_factory=dict)
-    regions_check: str = "warn"  # warn | strict | off: anatomical plausibility of the tagged regions
+    target_nodes: int = MISSING
+    mesher: str = MISSING
+    refine_radius_mm: float = MISSING
+    refine_edge_mm: float = MISSING
+    refine_growth: float = MISSING
+    refine_ivc_edge_mm: float = MISSING
+    regions: dict[str, Any] = MISSING
+    regions_check: str = MISSING  # warn | strict | off: anatomical plausibility of the tagged regions
 
 
 @dataclass
 class MaterialConfig:
-    model: str = "yeoh"
-    params_mpa: dict[str, float] = field(default_factory=dict)
+    model: str = MISSING
+    params_mpa: dict[str, float] = MISSING
     # neo_hookean from a paper's Young's modulus, in Pa or in MPa (give one): params_mpa is then derived,
     # C10 = mu / 2 with mu = E / (2 (1 + nu)) (liverforce.fem.materials.neo_hookean_from_young)
-    E_pa: Optional[float] = None
-    E_mpa: Optional[float] = None
-    nu: float = 0.49
-    vary_rel: float = 0.3
-    stability_stretch: list[float] = field(default_factory=lambda: [0.6, 1.4])
-    on_unstable: str = "refuse"
+    E_pa: Optional[float] = MISSING
+    E_mpa: Optional[float] = MISSING
+    nu: float = MISSING
+    vary_rel: float = MISSING
+    stability_stretch: list[float] = MISSING
+    on_unstable: str = MISSING
 
 
 @dataclass
 class BoundaryConfig:
-    ligament_total_n_per_mm: float = 56.3
-    visceral_total_n_per_mm: float = 42.6
-    tangential_ratio: float = 1.0
-    rib_normal_n_per_mm3: float = 0.1
+    ligament_total_n_per_mm: float = MISSING
+    visceral_total_n_per_mm: float = MISSING
+    tangential_ratio: float = MISSING
+    rib_normal_n_per_mm3: float = MISSING
 
 
 @dataclass
 class ForceRange:
-    min_n: float = 0.0
-    max_n: float = 5.0
-    cone_deg: float = 30.0
+    min_n: float = MISSING
+    max_n: float = MISSING
+    cone_deg: float = MISSING
 
 
 @dataclass
 class ExertionConfig:
-    n_points: int = 8
-    min_spacing_mm: float = 15.0
+    n_points: int = MISSING
+    min_spacing_mm: float = MISSING
 
 
 @dataclass
 class ScenarioSweep:
-    n_cases: int = 100
-    geometries: str = "1"  # "1" (first liver) or "all"
-    exertion: str = "varies"  # fixed | varies
-    material: str = "fixed"  # fixed | varies
+    n_cases: int = MISSING
+    geometries: str = MISSING  # "1" (first liver) or "all"
+    exertion: str = MISSING  # fixed | varies
+    material: str = MISSING  # fixed | varies
 
 
 @dataclass
 class SweepConfig:
-    design: str = "sobol"
-    seed: int = 0
-    cases_per_shard: int = 25
+    design: str = MISSING
+    seed: int = MISSING
+    cases_per_shard: int = MISSING
     force: ForceRange = field(default_factory=ForceRange)
     exertion: ExertionConfig = field(default_factory=ExertionConfig)
-    scenarios: dict[str, ScenarioSweep] = field(default_factory=dict)
+    scenarios: dict[str, ScenarioSweep] = MISSING
 
 
 @dataclass
 class SimulateConfig:
-    formulation: str = "p2_mean_dilatation"
-    tool_radius_mm: float = 5.0
-    tol: float = 1e-7
-    max_iter: int = 25
-    initial_step: float = 0.25
-    min_step: float = 0.002
-    max_steps: int = 200
-    time_limit_s: float = 120.0
-    warm_start: bool = True
-    modified_newton: bool = True
-    linear_solver: str = "auto"
+    formulation: str = MISSING
+    tool_radius_mm: float = MISSING
+    tol: float = MISSING
+    max_iter: int = MISSING
+    initial_step: float = MISSING
+    min_step: float = MISSING
+    max_steps: int = MISSING
+    time_limit_s: float = MISSING
+    warm_start: bool = MISSING
+    modified_newton: bool = MISSING
+    linear_solver: str = MISSING
 
 
 @dataclass
 class DatasetConfig:
-    roi_fraction: float = 0.18
-    store_full_surface: bool = True
-    compression: str = "zstd"
+    roi_fraction: float = MISSING
+    store_full_surface: bool = MISSING
+    compression: str = MISSING
 
 
 @dataclass
 class OcclusionConfig:
-    radius_mm: float = 0.0
-    mode: str = "remove"
+    radius_mm: float = MISSING
+    mode: str = MISSING
 
 
 @dataclass
 class ModelConfig:
-    encoder: str = "pca"
-    code_size: int = 16
-    state_vector: bool = True
-    grid_size: int = 12
-    hidden: list[int] = field(default_factory=lambda: [128, 128])
-    dropout: float = 0.1
+    encoder: str = MISSING
+    code_size: int = MISSING
+    state_vector: bool = MISSING
+    grid_size: int = MISSING
+    hidden: list[int] = MISSING
+    dropout: float = MISSING
     occlusion: OcclusionConfig = field(default_factory=OcclusionConfig)
-    noise_mm: float = 0.0
-    roi_features: str = "displacement"
-    grid_half_width_mm: float = 0.0
-    dae_input_noise: float = 0.1
-    roi_fraction: Optional[float] = None  # None: the shards' dataset.roi_fraction
-    force_scaling: str = "stiffness"  # stiffness | none (state-vector models: force / (C10 / C10_ref))
+    noise_mm: float = MISSING
+    roi_features: str = MISSING
+    grid_half_width_mm: float = MISSING
+    dae_input_noise: float = MISSING
+    roi_fraction: Optional[float] = MISSING  # None: the shards' dataset.roi_fraction
+    force_scaling: str = MISSING  # stiffness | none (state-vector models: force / (C10 / C10_ref))
 
 
 @dataclass
 class TrainConfig:
-    scenarios: list[str] = field(default_factory=lambda: list(SCENARIOS))
-    variants: list[dict[str, Any]] = field(default_factory=list)  # each: name + model overrides
-    test_fraction: float = 0.2
-    epochs: int = 200
-    batch_size: int = 64
-    lr: float = 1e-3
-    weight_decay: float = 0.0
-    seed: int = 0
-    repeats: int = 5  # seeded train/test splits per model (the first is the saved model's): mean +- sd
+    scenarios: list[str] = MISSING
+    variants: list[dict[str, Any]] = MISSING  # each: name + model overrides
+    test_fraction: float = MISSING
+    epochs: int = MISSING
+    batch_size: int = MISSING
+    lr: float = MISSING
+    weight_decay: float = MISSING
+    seed: int = MISSING
+    repeats: int = MISSING  # seeded train/test splits per model (the first is the saved model's): mean +- sd
 
 
 @dataclass
 class TuneConfig:
-    enabled: bool = True
-    trials: int = 6
-    folds: int = 3
-    sobol_trials: int = 4
-    epochs: int = 60
-    space: dict[str, Any] = field(default_factory=dict)
+    enabled: bool = MISSING
+    trials: int = MISSING
+    folds: int = MISSING
+    sobol_trials: int = MISSING
+    epochs: int = MISSING
+    space: dict[str, Any] = MISSING
 
 
 @dataclass
 class TrackingConfig:
-    uri: Optional[str] = None
-    experiment_prefix: str = "liverforce"
+    uri: Optional[str] = MISSING
+    experiment_prefix: str = MISSING
 
 
 @dataclass
 class ValidateConfig:
-    seed: int = 1000  # unseen liver i has the procedural seed seed + i
-    livers: int = 8  # unseen livers
-    n_cases: int = 30  # cases per unseen liver
-    material_scale: float = 1.4
-    variant: str = "auto"  # auto: lowest CV MAE (N) on the training livers | main: the first variant | a name
+    seed: int = MISSING  # unseen liver i has the procedural seed seed + i
+    livers: int = MISSING  # unseen livers
+    n_cases: int = MISSING  # cases per unseen liver
+    material_scale: float = MISSING
+    variant: str = MISSING  # auto: lowest CV MAE (N) on the training livers | main: the first variant | a name
 
 
 @dataclass
 class ReportConfig:
-    format: str = "html"
+    format: str = MISSING
 
 
 @dataclass
 class StudyValues:
-    enabled: bool = True
-    scenarios: list[str] = field(default_factory=list)
-    values: list[Any] = field(default_factory=list)
+    enabled: bool = MISSING
+    scenarios: list[str] = MISSING
+    values: list[Any] = MISSING
 
 
 @dataclass
 class StateVectorStudy:
-    enabled: bool = True
-    scenarios: list[str] = field(default_factory=list)
-    values: list[bool] = field(default_factory=lambda: [False, True])
-    encoder: str = "pca"
+    enabled: bool = MISSING
+    scenarios: list[str] = MISSING
+    values: list[bool] = MISSING
+    encoder: str = MISSING
 
 
 @dataclass
 class OcclusionStudy:
-    enabled: bool = True
-    scenarios: list[str] = field(default_factory=list)
-    radii_mm: list[float] = field(default_factory=list)
-    encoders: list[str] = field(default_factory=lambda: ["dae"])
-    modes: list[str] = field(default_factory=lambda: ["noise"])
+    enabled: bool = MISSING
+    scenarios: list[str] = MISSING
+    radii_mm: list[float] = MISSING
+    encoders: list[str] = MISSING
+    modes: list[str] = MISSING
 
 
 @dataclass
 class StudyConfig:
     """Comparison studies on existing shards (liverforce.learn.study)."""
 
-    enabled: bool = True
-    epochs: int = 100
-    hyper_parameters: str = "main"  # main | config
+    enabled: bool = MISSING
+    epochs: int = MISSING
+    hyper_parameters: str = MISSING  # main | config
     roi_fraction: StudyValues = field(default_factory=StudyValues)
     encoder: StudyValues = field(default_factory=StudyValues)
     state_vector: StateVectorStudy = field(default_factory=StateVectorStudy)
@@ -274,9 +284,9 @@ class StudyConfig:
 
 @dataclass
 class RootConfig:
-    experiment: str = "default"
-    results_dir: str = "results"
-    seed: int = 0
+    experiment: str = MISSING
+    results_dir: str = MISSING
+    seed: int = MISSING
     geometry: GeometryConfig = field(default_factory=GeometryConfig)
     mesh: MeshConfig = field(default_factory=MeshConfig)
     material: MaterialConfig = field(default_factory=MaterialConfig)
@@ -567,12 +577,17 @@ def _check_ranges(cfg: dict) -> None:
         _fail("validate.n_cases", "must be >= 1")
     if v["livers"] < 1:
         _fail("validate.livers", "must be >= 1")
-    train_seeds = set(range(g["procedural"]["seed"], g["procedural"]["seed"] + g["procedural"]["count"]))
-    shared = sorted(train_seeds & set(range(v["seed"], v["seed"] + v["livers"])))
+    from liverforce.seeds import liver_seeds
+
+    for key, value in (("seed", cfg["seed"]), ("sweep.seed", s["seed"]), ("train.seed", t["seed"]),
+                       ("geometry.procedural.seed", g["procedural"]["seed"]), ("validate.seed", v["seed"])):
+        if value < 0:
+            _fail(key, f"seeds are integers >= 0 (got {value})")
+    train_seeds = liver_seeds(g["procedural"]["seed"], g["procedural"]["count"])
+    shared = sorted(set(train_seeds) & set(liver_seeds(v["seed"], v["livers"])))
     if shared:
         _fail("validate.seed", f"seeds {shared} of the unseen livers are training livers' seeds",
-              f"pick validate.seed outside [{g['procedural']['seed']}, "
-              f"{g['procedural']['seed'] + g['procedural']['count']}) minus validate.livers")
+              f"pick validate.seed outside [{train_seeds.start}, {train_seeds.stop}) minus validate.livers")
     _check_choice("report.format", cfg["report"]["format"], REPORT_FORMATS, "report format")
     _check_study(cfg)
 

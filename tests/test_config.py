@@ -289,3 +289,93 @@ def test_composing_does_not_import_torch():
             "import liverforce.learn.representation as r, liverforce.learn.names as n; "
             "assert r.names is n is sys.modules['liverforce.learn.names']")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT, timeout=120)
+
+
+# --------------------------------------------------------------------------
+# defaults are written once: in config/*.yaml, never in the schema or the stage adapters
+# --------------------------------------------------------------------------
+
+#: list-entry schemas: no YAML file holds defaults for the entries of a list, so theirs live in the schema only
+ENTRY_SCHEMAS = {"ImportedGeometry"}
+
+
+def _schema_fields(cls, prefix=""):
+    """(dotted key, field, resolved type) of every field reachable from ``cls``; list / dict entries as ``key[]``."""
+    import dataclasses
+    import typing
+
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        key, typ = f"{prefix}{f.name}", hints[f.name]
+        yield key, f, typ
+        inner = [a for a in typing.get_args(typ) if dataclasses.is_dataclass(a)]
+        if dataclasses.is_dataclass(typ):
+            yield from _schema_fields(typ, key + ".")
+        for entry in inner:
+            if entry.__name__ not in ENTRY_SCHEMAS:
+                yield from _schema_fields(entry, key + "[].")
+
+
+def test_the_schema_carries_no_defaults():
+    """Every value comes from config/*.yaml: a schema field has no default (MISSING), a group is its dataclass."""
+    import dataclasses
+
+    import omegaconf
+
+    assert config_mod.MISSING == omegaconf.MISSING
+    with_default = []
+    for key, f, typ in _schema_fields(config_mod.RootConfig):
+        if dataclasses.is_dataclass(typ):  # a nested group: structure, not a default
+            assert f.default_factory is typ, key
+        elif f.default is not config_mod.MISSING or f.default_factory is not dataclasses.MISSING:
+            with_default.append(key)
+    assert not with_default, f"defaults belong in config/*.yaml, not in liverforce/config.py: {with_default}"
+    assert compose([])["geometry"]["imported"] == []  # the one entry schema has no YAML entry to disagree with
+
+
+def test_a_key_the_yaml_does_not_give_is_an_error_not_a_default(tmp_path, monkeypatch):
+    import shutil
+
+    conf = tmp_path / "config"
+    shutil.copytree(config_mod.CONFIG_DIR, conf)
+    text = (conf / "mesh" / "default.yaml").read_text()
+    (conf / "mesh" / "default.yaml").write_text("\n".join(ln for ln in text.splitlines()
+                                                          if not ln.startswith("refine_growth:")))
+    monkeypatch.setattr(config_mod, "CONFIG_DIR", conf)
+    with pytest.raises(ConfigError, match="mesh.refine_growth"):
+        compose([])
+
+
+def test_stage_adapters_default_nothing_the_config_gives(tmp_path, monkeypatch):
+    """validate_model takes the variant and experiment name from its rule; the mesh stage takes every mesh key
+    from the composed config (no silent refine_growth 0.3 beside the YAML's 0.6)."""
+    import inspect
+
+    import liverforce.mesh.build as build
+    from liverforce.pipeline.geometry import make_geometry
+    from liverforce.pipeline.mesh import make_mesh
+    from liverforce.pipeline.validate import validate_model
+
+    sig = inspect.signature(validate_model)
+    assert all(sig.parameters[k].default is inspect.Parameter.empty for k in ("variant", "experiment_name"))
+
+    cfg = compose([])
+    make_geometry({"kind": "cube", "edge_mm": 50.0}, tmp_path / "cube.ply", tmp_path / "cube.json")
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def fake_build(surface, **kw):
+        seen.update(kw)
+        raise Stop
+
+    monkeypatch.setattr(build, "build_liver_mesh", fake_build)
+    out = [tmp_path / n for n in ("cube.vtu", "cube.features.json", "cube.regions.png")]
+    with pytest.raises(Stop):
+        make_mesh(tmp_path / "cube.ply", cfg["mesh"], 7, *out)
+    assert seen["refine_growth"] == cfg["mesh"]["refine_growth"] == 0.6
+    assert seen["refine_radius_mm"] == cfg["mesh"]["refine_radius_mm"] and seen["seed"] == 7
+    partial = {k: v for k, v in cfg["mesh"].items() if k != "refine_growth"}
+    with pytest.raises(KeyError, match="refine_growth"):
+        make_mesh(tmp_path / "cube.ply", partial, 7, *out)

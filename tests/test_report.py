@@ -144,11 +144,11 @@ def stage_outputs(tmp_path):
             "studies": [enc, livers_study]}
 
 
-def _report(out, population_png=None):
+def _report(out, population_png=None, mlflow_experiments=None):
     from liverforce.report.html import collect, write_report
 
     data = collect(out["metrics"], [out["manifest"]], out["validation"], out["features"], out["studies"])
-    setup = {"main_variant": "pca_sv", "validate": {"material_scale": 1.4},
+    setup = {"main_variant": "pca_sv", "validate": {"material_scale": 1.4}, "mlflow_experiments": mlflow_experiments,
              "material": {"model": "yeoh", "params_mpa": {"C10": 0.0016}, "nu": 0.49, "vary_rel": 0.3},
              "population": {"training": ["proc-0000", "proc-0001"], "unseen": ["val-1000", "val-1001", "val-1002"],
                             "volume_range_l": [1.0, 2.2]}}
@@ -289,3 +289,18 @@ def test_report_shows_the_population_picture_and_each_livers_role(stage_outputs)
     roles = re.findall(r"<tr><td>([\w-]+)</td><td>(unseen|training[^<]*)</td>", setup)
     assert roles == [("proc-0000", "training, I–IV"), ("proc-0001", "training"), ("val-1000", "unseen"),
                      ("val-1001", "unseen"), ("val-1002", "unseen")]
+
+
+def test_report_names_the_mlflow_experiments_the_plan_gives(stage_outputs):
+    """The report's MLflow section names the experiments the jobs logged to (Plan.experiment_name, passed by the
+    report rule), not a spelling of its own."""
+    from liverforce.config import compose
+    from liverforce.pipeline.plan import Plan
+
+    plan = Plan(compose(["experiment=smoke", "tracking.experiment_prefix=lab"]))
+    names = {"models": plan.experiment_name("<scenario>"), "validation": plan.experiment_name("validation"),
+             "studies": plan.experiment_name("studies")}
+    mlflow = _section(_report(stage_outputs, mlflow_experiments=names), "id='mlflow'", "</p>")
+    for shown in ("lab-smoke-&lt;scenario&gt;", "lab-smoke-validation", "lab-smoke-studies"):
+        assert f"<code>{shown}</code>" in mlflow
+    assert "liverforce-" not in mlflow  # no name of the report's own making

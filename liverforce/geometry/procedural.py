@@ -20,6 +20,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from liverforce.geometry.surface import Surface
+from liverforce.seeds import liver_rng
 
 GENERATOR_VERSION = "procedural-liver-1"
 
@@ -125,7 +126,7 @@ class _Shape:
 
 def _draw_shape(seed: int, p: LiverShapeParams) -> _Shape:
     """Draw the concrete shape factors for ``seed`` (NumPy PCG64 stream)."""
-    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x11FE5]))
+    rng = liver_rng(seed, "shape")
     v = p.variation
 
     def jit(n: int = 1) -> np.ndarray:
@@ -315,7 +316,7 @@ def procedural_liver(seed: int, params: LiverShapeParams | None = None) -> Surfa
     target_l = None
     if p.volume_range_l is not None:
         lo_v, hi_v = p.volume_range_l
-        target_l = float(np.random.default_rng(np.random.SeedSequence([int(seed), 0x7015])).uniform(lo_v, hi_v))
+        target_l = float(liver_rng(seed, "volume").uniform(lo_v, hi_v))
         volume_l = Surface(vertices, faces, {}).volume_mm3 / 1e6
         vertices = vertices * (target_l / volume_l) ** (1.0 / 3.0)
     meta = {

@@ -72,8 +72,8 @@ API
 
 Randomness
 ----------
-``seed`` (an int or a sequence of ints, e.g. ``[observation_seed,
-crc32(case_id)]``) seeds a :class:`numpy.random.SeedSequence` that is split
+``seed`` (an int or a sequence of ints, e.g. ``case_seed(observation_seed,
+case_id)``) seeds a :class:`numpy.random.SeedSequence` that is split
 into three independent streams: camera pose, sampling (count and points) and
 noise. The same seed and inputs give the same cloud, bit for bit; the noisy
 cloud equals the noise-free cloud of the same seed plus the noise.
@@ -108,10 +108,11 @@ modelled; the cloud holds liver surface points only.
 from __future__ import annotations
 
 import math
-import zlib
 from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
+
+from liverforce.seeds import derive, spawn_rngs
 
 #: reasons a candidate point is not in the cloud, in the order they are tested
 DROP_REASONS = ("outside_roi", "out_of_view", "backfacing", "inside_tool", "tool_shadow", "self_occluded")
@@ -790,11 +791,11 @@ def _half_window(config: ObservationConfig, d: float) -> float:
 
 
 def _streams(seed) -> tuple[np.random.Generator, np.random.Generator, np.random.Generator]:
-    entropy = [int(s) for s in np.atleast_1d(np.asarray(seed, dtype=object)).ravel()]
-    if any(s < 0 for s in entropy):
-        raise ValueError(f"observation seeds must be non-negative integers (got {seed!r})")
-    cam, smp, noi = np.random.SeedSequence(entropy).spawn(3)
-    return np.random.default_rng(cam), np.random.default_rng(smp), np.random.default_rng(noi)
+    try:
+        cam, smp, noi = spawn_rngs(seed, 3)
+    except ValueError:
+        raise ValueError(f"observation seeds must be non-negative integers (got {seed!r})") from None
+    return cam, smp, noi
 
 
 def draw_count(rng: np.random.Generator, config: ObservationConfig) -> int:
@@ -834,7 +835,7 @@ def observe(
     config : ObservationConfig, optional
         Settings (defaults if ``None``).
     seed : int or sequence of int
-        Seed (module docstring); e.g. ``[observation_seed, crc32(case_id)]``.
+        Seed (module docstring); e.g. ``case_seed(observation_seed, case_id)``.
     tool_axis : (3,), optional
         Direction the tool comes from (``-F/|F|``); default ``normal``.
     camera_position_mm : (3,), optional
@@ -1037,14 +1038,14 @@ def _closest_on_triangles(p, A, B, C):
     return best_q, best_l
 
 
-def case_seed(observation_seed: int, key) -> list[int]:
-    """Per-case seed ``[observation_seed, key]``; a string key (e.g. a case id) is hashed with CRC-32.
+def case_seed(observation_seed: int, key) -> int:
+    """Per-case seed ``derive(observation_seed, "observation.camera", key)`` (:mod:`liverforce.seeds`).
 
-    Using the case id rather than a row index makes the draw independent of
-    the row order (as :mod:`liverforce.learn.representation` does).
+    ``key``: a case id (or a row index). Using the case id rather than a row
+    index makes the draw independent of the row order (as
+    :mod:`liverforce.learn.representation` does).
     """
-    k = zlib.crc32(str(key).encode()) if isinstance(key, (str, np.str_)) else int(key)
-    return [int(observation_seed), int(k)]
+    return derive(observation_seed, "observation.camera", key)
 
 
 def observe_many(

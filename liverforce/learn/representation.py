@@ -57,9 +57,9 @@ cylinder along the normal) are
 Point noise ``N(0, noise_mm^2)`` is added to every deformed coordinate in the
 local frame (stochastic). Stochastic parts run only when an
 ``observation_seed`` is given; each case draws from its own generator seeded
-by ``(observation_seed, crc32(case_id))``, so the draw does not depend on the
-row order, and because it is drawn in the local frame a rigid motion of the
-input leaves the features unchanged.
+by ``derive(observation_seed, "observation", case_id)`` (:mod:`liverforce.seeds`),
+so the draw does not depend on the row order, and because it is drawn in the
+local frame a rigid motion of the input leaves the features unchanged.
 
 Notes
 -----
@@ -71,7 +71,6 @@ position, so permuting the node order gives the same features (to rounding).
 
 from __future__ import annotations
 
-import zlib
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -80,6 +79,7 @@ from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 
 from liverforce.learn import names
 from liverforce.learn.frames import local_rotations, points_to_local
+from liverforce.seeds import derive
 
 FEATURE_KINDS = names.roi_features()
 OCCLUSION_MODES = names.OCCLUSION_MODES
@@ -209,8 +209,8 @@ class Representation:
             if not clean:
                 rng = None
                 if observation_seed is not None and self.stochastic:
-                    key = zlib.crc32(str(ids[i]).encode()) if ids is not None else i
-                    rng = np.random.default_rng([int(observation_seed), int(key)])
+                    key = ids[i] if ids is not None else i
+                    rng = np.random.default_rng(derive(observation_seed, "observation", key))
                 U, D = self._observe(U, D, rng, label)
             out[i] = self._resample(U, D, grid, label)
         return out

@@ -19,6 +19,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from liverforce.seeds import derive
+
 GROUPED_SCENARIOS = ("IV",)
 
 
@@ -47,7 +49,7 @@ def train_test_split(
     """
     geo = np.asarray(geometry_ids).astype(str)
     n = len(geo)
-    rng = np.random.default_rng([int(seed), 7919])
+    rng = np.random.default_rng(derive(seed, "split.test"))
     if group_key(scenario) == "geometry":
         groups = np.unique(geo)
         if len(groups) < 2:
@@ -74,7 +76,7 @@ def cv_folds(
     """k-fold CV inside the training indices (grouped by geometry for scenario IV)."""
     train_idx = np.asarray(train_idx)
     geo = np.asarray(geometry_ids).astype(str)[train_idx]
-    rng = np.random.default_rng([int(seed), 104729])
+    rng = np.random.default_rng(derive(seed, "split.cv"))
     notes: list[str] = []
     grouping = group_key(scenario)
     if grouping == "geometry":

@@ -57,6 +57,7 @@ from liverforce.learn.regressor import FitParams
 from liverforce.learn.representation import representation_from_config, with_roi_fraction
 from liverforce.learn.splits import train_test_split
 from liverforce.learn.torchutil import configure_torch
+from liverforce.seeds import derive
 
 log = logging.getLogger("liverforce")
 
@@ -288,7 +289,7 @@ def subsample_per_geometry(idx, geometry_ids, fraction: float, seed: int) -> np.
         raise ValueError(f"train fraction must be in (0, 1], got {fraction}")
     idx = np.asarray(idx)
     geo = np.asarray(geometry_ids)[idx]
-    rng = np.random.default_rng([int(seed), 7])
+    rng = np.random.default_rng(derive(seed, "study.train_size"))
     keep = []
     for g in np.unique(geo):
         members = idx[geo == g]
@@ -308,7 +309,7 @@ def first_geometries(idx, geometry_ids, k: int, seed: int) -> np.ndarray:
         raise ValueError(f"the number of training livers must be >= 1, got {k}")
     idx = np.asarray(idx)
     geo = np.asarray(geometry_ids).astype(str)[idx]
-    order = np.random.default_rng([int(seed), 31]).permutation(np.unique(geo))
+    order = np.random.default_rng(derive(seed, "study.train_livers")).permutation(np.unique(geo))
     return np.sort(idx[np.isin(geo, order[:k])])
 
 

@@ -13,6 +13,8 @@ from typing import Callable
 import numpy as np
 import torch
 
+from liverforce.seeds import derive
+
 #: callback ``on_epoch(epoch, train_loss, val_loss_or_None)``
 EpochCallback = Callable[[int, float, "float | None"], None]
 
@@ -81,7 +83,7 @@ def train_loop(
         raise ValueError(f"need at least 2 training samples, got {len(xt)}")
     xv = as_tensor(x_val) if x_val is not None else None
     yv = as_tensor(y_val) if y_val is not None else None
-    gen = torch.Generator().manual_seed(int(seed) + 1)
+    gen = torch.Generator().manual_seed(derive(seed, "torch.batches"))
     # fused: one kernel per step over all parameters instead of a Python loop over tensors (about 1.5x
     # faster per step for these small networks on CPU); deterministic for a given thread count
     opt = torch.optim.Adam(model.parameters(), lr=float(lr), weight_decay=float(weight_decay), fused=True)

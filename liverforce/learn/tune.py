@@ -35,6 +35,7 @@ from typing import Callable
 import numpy as np
 
 from liverforce.learn.regressor import FitParams, RegressorSpec, fit_regressor, predict_regressor
+from liverforce.seeds import derive
 
 DEFAULT_SPACE: dict[str, dict] = {
     "lr": {"bounds": [1e-4, 1e-2], "scaling": "log"},
@@ -84,6 +85,11 @@ def regressor_from_params(params: dict, n_inputs: int) -> RegressorSpec:
     return RegressorSpec(n_inputs, tuple([int(params["width"])] * int(params["n_layers"])), float(params["dropout"]))
 
 
+def fold_seed(seed: int, k: int) -> int:
+    """Seed of fold ``k``'s regressor fit in :func:`cv_score` and :func:`cv_force_mae` (:mod:`liverforce.seeds`)."""
+    return derive(seed, "tune.fold", k)
+
+
 def cv_score(
     folds: list[FoldData], params: dict, *, epochs: int, seed: int, weight_decay: float = 0.0
 ) -> tuple[float, list[float], dict[str, list[float]]]:
@@ -93,7 +99,8 @@ def cv_score(
                     weight_decay=weight_decay)
     for k, f in enumerate(folds):
         spec = regressor_from_params(params, f.z_train.shape[1])
-        _, hist = fit_regressor(f.z_train, f.y_train, spec, fit, seed=seed + k, z_val=f.z_val, y_val=f.y_val)
+        _, hist = fit_regressor(f.z_train, f.y_train, spec, fit, seed=fold_seed(seed, k), z_val=f.z_val,
+                                y_val=f.y_val)
         fold_mse.append(hist["val_loss"][-1])
         hists.append(hist)
     history = {key: np.mean([h[key] for h in hists], axis=0).tolist() for key in ("train_loss", "val_loss")}
@@ -116,7 +123,7 @@ def cv_force_mae(
     maes = []
     for k, f in enumerate(folds):
         spec = regressor_from_params(params, f.z_train.shape[1])
-        net, _ = fit_regressor(f.z_train, f.y_train, spec, fit, seed=seed + k)
+        net, _ = fit_regressor(f.z_train, f.y_train, spec, fit, seed=fold_seed(seed, k))
         pred = to_newton[k](predict_regressor(net, f.z_val))
         maes.append(float(np.linalg.norm(pred - y_val_n[k], axis=1).mean()))
     return float(np.mean(maes))
@@ -180,13 +187,14 @@ def tune(
 
     quiet_ax()
     full_space = {**DEFAULT_SPACE, **(space or {})}
-    client = Client(random_seed=int(seed))
+    ax_seed = derive(seed, "tune.ax")
+    client = Client(random_seed=ax_seed)
     client.configure_experiment(parameters=_parameter_configs(full_space), name="liverforce_regressor")
     client.configure_optimization(objective=f"-{OBJECTIVE}")
     client.configure_generation_strategy(
         method="fast",
         initialization_budget=int(max(1, min(sobol_trials, trials))),
-        initialization_random_seed=int(seed),
+        initialization_random_seed=ax_seed,
     )
     reports: list[TrialReport] = []
     for _ in range(int(trials)):

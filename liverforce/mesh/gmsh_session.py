@@ -9,6 +9,7 @@ from __future__ import annotations
 from contextlib import contextmanager
 
 from liverforce.mesh.meshing_info import MeshingError
+from liverforce.seeds import gmsh_random_seed
 
 __all__ = ["gmsh_session", "last_errors"]
 
@@ -27,7 +28,7 @@ def gmsh_session(seed: int):
         gmsh.option.setNumber("General.NumThreads", 1)
         gmsh.option.setNumber("Mesh.MaxNumThreads2D", 1)
         gmsh.option.setNumber("Mesh.MaxNumThreads3D", 1)
-        gmsh.option.setNumber("Mesh.RandomSeed", int(seed) + 1)
+        gmsh.option.setNumber("Mesh.RandomSeed", gmsh_random_seed(seed))
         gmsh.logger.start()
         yield gmsh
     finally:

@@ -7,24 +7,23 @@ import logging
 import time
 from pathlib import Path
 
-import numpy as np
-
 from liverforce.atomic import write_json_atomic
+from liverforce.layout import gid_of, surface_meta_of
 from liverforce.pipeline.shared import load_surface_file
+from liverforce.seeds import derive
 
 log = logging.getLogger("liverforce")
-
-
-def exertion_seed(seed: int, gid: str) -> int:
-    """Seed of a geometry's candidate exertion points: the config seed and the geometry id."""
-    import zlib
-
-    return int(np.random.SeedSequence([int(seed), zlib.crc32(gid.encode())]).generate_state(1)[0])
 
 
 def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path, picture_path,
               exertion: dict | None = None) -> dict:
     """Tetrahedralise a surface, tag regions, compute features, draw the regions.
+
+    ``mesh_cfg`` is the composed ``mesh`` group (every key; its values come from
+    ``config/mesh/``, none is defaulted here). ``seed`` is the geometry's mesh
+    seed (:meth:`liverforce.pipeline.plan.Plan.seed` ``("mesh", gid)``): the
+    mesher's, and through ``derive(seed, "mesh.exertion")`` the candidate
+    exertion points' (:mod:`liverforce.seeds`).
 
     ``exertion`` (the ``sweep.exertion`` config: ``n_points``, ``min_spacing_mm``):
     the geometry's candidate exertion points are sampled on the visible input
@@ -59,27 +58,28 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
     from liverforce.mesh.plot import plot_regions
     from liverforce.mesh.regions import RegionParams
 
+    gid = gid_of(mesh_path)
     surface = load_surface_file(surface_path)
-    meta_file = Path(surface_path).with_suffix(".json")
+    meta_file = surface_meta_of(surface_path)
     if meta_file.exists():
         surface.meta.update(json.loads(meta_file.read_text()))
     spec = surface.meta.get("spec") or {}
     user = _user_scene(spec, surface.meta)
     if user["supports"][1] and user["supports"][0] == "replace":
         mesh_cfg = {**mesh_cfg, "regions_check": "off"}  # the user's supports are not anatomy to check
-    if mesh_cfg.get("regions_check", "warn") == "strict":  # refuse before meshing: tags of the input surface
+    if mesh_cfg["regions_check"] == "strict":  # refuse before meshing: tags of the input surface
         from liverforce.mesh.regions import tag_regions
 
-        region, visible = tag_regions(surface.vertices, surface.faces, RegionParams(**mesh_cfg.get("regions", {})))
-        _regions_check(surface.vertices, surface.faces, region, visible, surface.meta, mesh_cfg, Path(mesh_path).stem)
+        region, visible = tag_regions(surface.vertices, surface.faces, RegionParams(**mesh_cfg["regions"]))
+        _regions_check(surface.vertices, surface.faces, region, visible, surface.meta, mesh_cfg, gid)
     t0 = time.perf_counter()
     if surface.meta.get("mesh_mode") == "as_given":
-        mesh = _given_mesh(surface.meta, spec, user, mesh_cfg, exertion, seed, Path(mesh_path).stem)
+        mesh = _given_mesh(surface.meta, spec, user, mesh_cfg, exertion, seed, gid)
     else:
-        mesh = _remeshed(surface, user, mesh_cfg, exertion, seed, Path(mesh_path).stem)
+        mesh = _remeshed(surface, user, mesh_cfg, exertion, seed, gid)
     elapsed = time.perf_counter() - t0
     checked = _regions_check(mesh.points, mesh.facets, mesh.facet_region, mesh.facet_visible, surface.meta,
-                             mesh_cfg, Path(mesh_path).stem)
+                             mesh_cfg, gid)
     write_mesh(mesh_path, mesh)
     feats = compute_features(mesh)
     feats["meshing_time_s"] = elapsed
@@ -110,18 +110,18 @@ def _remeshed(surface, user: dict, mesh_cfg: dict, exertion: dict | None, seed: 
     return build_liver_mesh(
         surface,
         target_nodes=mesh_cfg["target_nodes"],
-        region_params=RegionParams(**mesh_cfg.get("regions", {})),
+        region_params=RegionParams(**mesh_cfg["regions"]),
         mesher=mesh_cfg["mesher"],
         seed=seed,
-        refine_radius_mm=mesh_cfg.get("refine_radius_mm", 0.0),
-        refine_edge_mm=mesh_cfg.get("refine_edge_mm"),
-        refine_ivc_edge_mm=mesh_cfg.get("refine_ivc_edge_mm"),
-        refine_growth=mesh_cfg.get("refine_growth", 0.3),
+        refine_radius_mm=mesh_cfg["refine_radius_mm"],
+        refine_edge_mm=mesh_cfg["refine_edge_mm"],
+        refine_ivc_edge_mm=mesh_cfg["refine_ivc_edge_mm"],
+        refine_growth=mesh_cfg["refine_growth"],
         supports=user["supports"], support_frame=user["frame"], file_vertices=user["file_vertices"],
         file_groups=user["file_groups"], exertion_points=user["exertion_points"],
         exertion_sampling=None if exertion is None or user["exertion_points"] is not None else {
             "n_points": exertion["n_points"], "min_spacing_mm": exertion["min_spacing_mm"],
-            "seed": exertion_seed(seed, gid)},
+            "seed": derive(seed, "mesh.exertion")},
     )
 
 
@@ -144,13 +144,13 @@ def _given_mesh(meta: dict, spec: dict, user: dict, mesh_cfg: dict, exertion: di
              "(geometry.imported[].mesh: remesh to use them)", gid, len(volume.points), len(volume.tets), ignored)
     return build_given_mesh(
         volume.points, volume.tets, {**meta, **{k: volume.meta[k] for k in ("n_nodes", "n_tets")}},
-        RegionParams(**mesh_cfg.get("regions", {})),
+        RegionParams(**mesh_cfg["regions"]),
         supports=user["supports"], support_frame=user["frame"], file_vertices=user["file_vertices"],
         file_groups=user["file_groups"], exertion_points=user["exertion_points"],
         exertion_sampling=None if exertion is None or user["exertion_points"] is not None else {
             "n_points": exertion["n_points"], "min_spacing_mm": exertion["min_spacing_mm"],
-            "seed": exertion_seed(seed, gid)},
-        coarse_edge_mm=2 * float(mesh_cfg.get("refine_edge_mm") or 0) or None,
+            "seed": derive(seed, "mesh.exertion")},
+        coarse_edge_mm=2 * float(mesh_cfg["refine_edge_mm"] or 0) or None,
     )
 
 
@@ -210,9 +210,9 @@ def _regions_check(points, facets, region, visible, surface_meta: dict, mesh_cfg
     from liverforce.mesh.plausibility import regions_check
     from liverforce.mesh.regions import RegionParams
 
-    mode = mesh_cfg.get("regions_check", "warn")
+    mode = mesh_cfg["regions_check"]
     if (surface_meta.get("spec") or {}).get("kind") == "cube" or surface_meta.get("source") == "cube_phantom":
         mode = "off"  # a phantom has no anatomy to check
     return regions_check(points, facets, region, visible, mode=mode,
-                         params=RegionParams(**mesh_cfg.get("regions", {})), frame=surface_meta.get("frame"),
+                         params=RegionParams(**mesh_cfg["regions"]), frame=surface_meta.get("frame"),
                          where=f"{gid} ({surface_meta.get('source', '?')})")

@@ -1,7 +1,13 @@
-"""What the workflow will build for a composed config: ids, paths, slices.
+"""What the workflow will build for a composed config: ids, paths, names, seeds, slices.
 
-Pure bookkeeping (no I/O) shared by the Snakemake rules and the CLI, so the
-same names are used everywhere.
+Pure bookkeeping (no I/O) shared by the Snakemake rules, the CLI and the
+progress display, so the same names are used everywhere:
+
+- paths: :attr:`Plan.paths`, a :class:`liverforce.layout.Layout` of
+  ``<results_dir>/<experiment>`` (the only place file names are spelled);
+- MLflow experiment names: :meth:`Plan.experiment_name`;
+- seeds: :meth:`Plan.seed` (``liverforce.seeds.derive`` from the master
+  ``seed``); no rule or stage does arithmetic on a seed.
 
 Geometry ids
 ------------
@@ -20,7 +26,9 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+from liverforce import layout
 from liverforce.config import SCENARIOS, ConfigError, results_root
+from liverforce.seeds import derive, liver_seeds
 from liverforce.sweep.design import n_shards
 
 VALIDATION = "V"
@@ -47,16 +55,39 @@ class Plan:
             _safe_name("train.variants.name", v.get("name"))
         self.root = str(Path(cfg["results_dir"]) / cfg["experiment"])
         self.abs_root = results_root(cfg)
+        #: every output path of the run (relative to the working directory when ``results_dir`` is)
+        self.paths = layout.Layout(self.root)
         g = cfg["geometry"]
         self.train_geometries: list[str] = [
-            f"proc-{g['procedural']['seed'] + i:04d}" for i in range(g["procedural"]["count"])
+            f"proc-{s:04d}" for s in liver_seeds(g["procedural"]["seed"], g["procedural"]["count"])
         ]
         self.train_geometries += [f"imp-{imp['name']}" for imp in g["imported"]]
         if g["cube"]["enabled"]:
             self.train_geometries.append("cube")
         v = cfg["validate"]
-        self.validation_geometries: list[str] = [f"val-{v['seed'] + i:04d}" for i in range(v["livers"])]
+        self.validation_geometries: list[str] = [f"val-{s:04d}" for s in liver_seeds(v["seed"], v["livers"])]
         self.scenarios = [s for s in SCENARIOS if s in cfg["sweep"]["scenarios"]]
+
+    # ------------------------------------------------------------ names, seeds
+    def experiment_name(self, kind: str) -> str:
+        """MLflow experiment of this run: ``kind`` a scenario (its trained models), ``validation`` or ``studies``."""
+        return layout.experiment_name(self.cfg["tracking"]["experiment_prefix"], self.cfg["experiment"], kind)
+
+    def seed(self, stage: str, *keys) -> int:
+        """The seed of one stochastic stage of this run: :func:`liverforce.seeds.derive` of the master ``seed``.
+
+        Stages the workflow uses: ``("mesh", gid)`` (mesher and exertion
+        candidates of one geometry), ``("sweep", sweep.seed, scenario)`` (a
+        scenario's case table, :meth:`sweep_params`), ``("train",
+        train.seed)`` (the split seed every training and study job shares,
+        :meth:`train_seed`).
+        """
+        return derive(self.cfg["seed"], stage, *keys)
+
+    def train_seed(self) -> int:
+        """The split seed of every training and comparison-study job (all variants and scenarios share it,
+        so the variants are compared on the same splits and the studies reuse the main model's)."""
+        return self.seed("train", self.cfg["train"]["seed"])
 
     # ---------------------------------------------------------------- geometry
     @property
@@ -98,13 +129,12 @@ class Plan:
         if scenario == VALIDATION:
             scale = self.cfg["validate"]["material_scale"]
             material["params_mpa"] = {k: v * scale for k, v in material["params_mpa"].items()}
-        seed_offset = {"I": 0, "II": 1, "III": 2, "IV": 3, VALIDATION: 4}[scenario]
         return {
             "scenario": scenario,
             "spec": self.scenario_spec(scenario),
             "geometries": self.scenario_geometries(scenario),
             "design": s["design"],
-            "seed": s["seed"] * 10 + seed_offset,
+            "seed": self.seed("sweep", s["seed"], scenario),
             "cases_per_shard": s["cases_per_shard"],
             "force": dict(s["force"]),
             "exertion": dict(s["exertion"]),
@@ -117,7 +147,7 @@ class Plan:
 
     def shard_ids(self, scenario: str) -> list[str]:
         spec = self.scenario_spec(scenario)
-        return [f"{i:04d}" for i in range(n_shards(spec["n_cases"], self.cfg["sweep"]["cases_per_shard"]))]
+        return [layout.shard_id(i) for i in range(n_shards(spec["n_cases"], self.cfg["sweep"]["cases_per_shard"]))]
 
     # ------------------------------------------------------------------- train
     def variants(self) -> dict[str, dict]:

@@ -1,9 +1,9 @@
 """Sweep progress: cases done / total and the rate, from the jobs' progress files.
 
-Each simulate job rewrites ``<results>/progress/<scenario>-<shard>.json``
-(atomically) after every case; finished shards count fully. Read-only: safe to
-call while Snakemake runs (``liverforce progress -e default``, or
-``watch -n 5 liverforce progress``).
+Each simulate job rewrites its progress file (``Plan.paths.progress``:
+``<results>/progress/<scenario>-<shard>.json``, atomically) after every case;
+finished shards count fully. Read-only: safe to call while Snakemake runs
+(``liverforce progress -e default``, or ``watch -n 5 liverforce progress``).
 """
 
 from __future__ import annotations
@@ -13,17 +13,16 @@ import time
 from pathlib import Path
 
 
-def sweep_progress(root: str | Path, shard_counts: dict[str, int], case_counts: dict[str, int]) -> dict:
-    """Summarise progress under ``root`` (``results/<experiment>``)."""
-    root = Path(root)
+def sweep_progress(plan) -> dict:
+    """Summarise the progress of every scenario's shards of ``plan`` (a :class:`~liverforce.pipeline.plan.Plan`)."""
     done = failed = 0
     rates = []
     now = time.time()
     running = 0
-    for scenario, n_shards in shard_counts.items():
-        for i in range(n_shards):
-            pfile = root / "progress" / f"{scenario}-{i:04d}.json"
-            shard = root / "shards" / scenario / f"shard-{i:04d}.parquet"
+    for scenario in plan.all_scenarios():
+        for sid in plan.shard_ids(scenario):
+            pfile = Path(plan.paths.progress(scenario, sid))
+            shard = Path(plan.paths.shard(scenario, sid))
             if not pfile.exists():
                 continue
             try:
@@ -36,7 +35,7 @@ def sweep_progress(root: str | Path, shard_counts: dict[str, int], case_counts: 
                 rates.append(p["done"] / p["elapsed_s"] * 3600)
             if not shard.exists() and now - p["updated"] < 600:
                 running += 1
-    total = sum(case_counts.values())
+    total = sum(plan.scenario_spec(s)["n_cases"] for s in plan.all_scenarios())
     return {"done": done, "total": total, "failed": failed, "running_shards": running,
             "cases_per_hour_per_job": (sum(rates) / len(rates)) if rates else 0.0}
 

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from liverforce.dataset import io as dio
+from liverforce.layout import gid_of, scenario_of_manifest
 
 log = logging.getLogger("liverforce")
 
@@ -32,7 +33,7 @@ def solver_statistics(manifests: list[str]) -> dict:
                     reasons[key] = reasons.get(key, 0) + 1
         all_walls += walls
         if walls:
-            per[Path(m).parent.name] = {
+            per[scenario_of_manifest(m)] = {
                 "solve_time_total_s": float(np.sum(walls)), "solve_time_median_s": float(np.median(walls)),
                 "solve_time_max_s": float(np.max(walls)), "newton_iterations_median": float(np.median(iters)),
                 "load_steps_median": float(np.median(steps)),
@@ -69,7 +70,7 @@ def make_report(model_metrics: list[str], manifests: list[str], validation: str,
         from liverforce.report.population import load_population, population_figure
 
         pop = setup.get("population") or {}
-        livers = load_population({Path(p).stem: p for p in surfaces},
+        livers = load_population({gid_of(p): p for p in surfaces},
                                  {g["id"]: g.get("volume_mm3") for g in data["geometries"]},
                                  training=pop.get("training", ()), unseen=pop.get("unseen", ()))
         population_png = population_figure(livers, Path(out_html).parent / "figures" / "population.png",

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from liverforce.dataset import io as dio
+from liverforce.layout import gid_of
 
 
 def load_surface_file(path: str | Path):
@@ -26,7 +27,7 @@ def surface_graphs(mesh_paths) -> dict:
     out = {}
     for p in mesh_paths:
         mesh = read_mesh(p)
-        out[Path(p).stem] = surface_graph(mesh.points, mesh.facets)
+        out[gid_of(p)] = surface_graph(mesh.points, mesh.facets)
     return out
 
 

@@ -13,12 +13,15 @@ log = logging.getLogger("liverforce")
 
 
 def run_study_stage(study: str, study_cfg: dict, manifests: dict, main_metrics: dict, mesh_paths: list[str],
-                    model_cfg: dict, train_cfg: dict, tracking_uri: str, experiment_prefix: str, experiment: str,
+                    model_cfg: dict, train_cfg: dict, tracking_uri: str, experiment_name: str, experiment: str,
                     seed: int, threads: int, out_json, out_png) -> dict:
     """Run one comparison study on the existing shards; write ``studies/<study>.json`` + PNG, log MLflow runs.
 
-    ``manifests`` / ``main_metrics``: scenario -> path. The points reuse the
-    main model's split seed (``seed + train.seed``) and tuned hyper-parameters.
+    ``manifests`` / ``main_metrics``: scenario -> path. ``experiment_name``:
+    the MLflow experiment (``Plan.experiment_name("studies")``); ``experiment``
+    the run's experiment, a tag. The points reuse the main model's split seed
+    (``seed``: ``Plan.train_seed()``, as the training jobs) and tuned
+    hyper-parameters.
     """
     from liverforce.learn.study import plot_study, run_study
     from liverforce.tracking import Tracker
@@ -31,8 +34,8 @@ def run_study_stage(study: str, study_cfg: dict, manifests: dict, main_metrics: 
         log.info("study %s: scenario %s, %d converged cases (data version %s)", study, sc,
                  len(data[sc]["case_id"]), versions[sc])
     mains = {sc: json.loads(Path(p).read_text()) for sc, p in main_metrics.items()}
-    tracker = Tracker(tracking_uri, f"{experiment_prefix}-{experiment}-studies")
-    doc = run_study(study, study_cfg, data, model_cfg, mains, train_cfg, seed=seed + int(train_cfg["seed"]),
+    tracker = Tracker(tracking_uri, experiment_name)
+    doc = run_study(study, study_cfg, data, model_cfg, mains, train_cfg, seed=seed,
                     threads=threads, surfaces=surfaces, tracker=tracker,
                     tags={"experiment": experiment,
                           "data_version": ",".join(f"{k}:{v}" for k, v in sorted(versions.items()))})

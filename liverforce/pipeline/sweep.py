@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import json
 import logging
-from pathlib import Path
 
 import numpy as np
 
 from liverforce.atomic import write_json_atomic
 from liverforce.dataset import io as dio
+from liverforce.layout import features_of_mesh, gid_of
+from liverforce.seeds import derive
 
 log = logging.getLogger("liverforce")
 
@@ -90,16 +91,17 @@ def make_sweep(params: dict, mesh_paths: list[str], cases_path, report_path) -> 
     gids = params["geometries"]
     if params["material"].get("conversion"):  # constants derived from a Young's modulus (liverforce.config)
         log.info("material: %s", params["material"]["conversion"])
-    by_gid = {Path(p).stem: p for p in mesh_paths}
+    by_gid = {gid_of(p): p for p in mesh_paths}
     stable, bulk = material_checks(params["material"]["stability_stretch"])
     ex, given_by = {}, {}
-    for i, gid in enumerate(gids):
+    for gid in gids:
         mesh = read_mesh(by_gid[gid])
-        feats = Path(by_gid[gid]).with_suffix(".features.json")
+        feats = features_of_mesh(by_gid[gid])
         fj = json.loads(feats.read_text()) if feats.exists() else {}
         cand, given = fj.get("exertion_candidates_mm"), bool(fj.get("exertion_given"))
         ex[gid] = exertion_set(mesh, params["exertion"]["n_points"], params["exertion"]["min_spacing_mm"],
-                               params["seed"] * 7919 + i, params["tool_radius_mm"], candidates=cand, given=given)
+                               derive(params["seed"], "sweep.exertion", gid), params["tool_radius_mm"],
+                               candidates=cand, given=given)
         if given:
             moved = np.linalg.norm(ex[gid].points - np.asarray(cand, float).reshape(-1, 3), axis=1)
             given_by[gid] = {"n_points": len(moved), "moved_to_mesh_mm": moved.tolist()}

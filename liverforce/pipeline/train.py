@@ -16,9 +16,13 @@ log = logging.getLogger("liverforce")
 
 
 def train_model(manifest_path, scenario: str, variant: str, model_cfg: dict, train_cfg: dict, tune_cfg: dict,
-                tracking_uri: str, experiment_prefix: str, experiment: str, seed: int, threads: int,
+                tracking_uri: str, experiment_name: str, experiment: str, seed: int, threads: int,
                 metrics_path, model_dir, mesh_paths: list[str] | None = None) -> dict:
     """Train one scenario/variant from verified shards; track it in MLflow.
+
+    ``experiment_name``: the MLflow experiment (``Plan.experiment_name(scenario)``);
+    ``experiment`` the run's experiment, a tag. ``seed``: the split seed every
+    variant of the run shares (``Plan.train_seed()``).
 
     Every shard is checked against the manifest's hash before it is read: a
     truncated or modified shard stops training with its name (delete it and
@@ -58,7 +62,7 @@ def train_model(manifest_path, scenario: str, variant: str, model_cfg: dict, tra
             f"({manifest['failed']} failed — see the 'reason' column); raise sweep.scenarios.{scenario}.n_cases"
         )
     out_dir = Path(metrics_path).parent
-    tracker = Tracker(tracking_uri, f"{experiment_prefix}-{experiment}-{scenario}")
+    tracker = Tracker(tracking_uri, experiment_name)
     tags = {
         "rule": "train", "scenario": scenario, "variant": variant, "experiment": experiment,
         "config_hash": config_hash({"model": model_cfg, "train": train_cfg, "tune": tune_cfg}),
@@ -70,7 +74,7 @@ def train_model(manifest_path, scenario: str, variant: str, model_cfg: dict, tra
         "data_version": manifest["data_version"],
     }
     result = train_scenario(arrays, model_cfg, train_cfg, tune_cfg, scenario, variant, tracker=tracker,
-                            threads=threads, seed=seed + train_cfg["seed"], out_dir=out_dir, tags=tags,
+                            threads=threads, seed=seed, out_dir=out_dir, tags=tags,
                             model_meta=model_meta)
     result.update(encoder=model_cfg["encoder"], state_vector=bool(model_cfg["state_vector"]), model_cfg=model_cfg)
     write_json_atomic(metrics_path, result)

@@ -10,6 +10,7 @@ import numpy as np
 
 from liverforce.atomic import write_json_atomic
 from liverforce.dataset import io as dio
+from liverforce.layout import model_of_metrics
 
 log = logging.getLogger("liverforce")
 
@@ -25,7 +26,7 @@ def choose_variant(metrics_paths: list, how: str = "auto") -> tuple[int, str]:
     first listed when no variant was tuned. Else the variant of that name.
     """
     docs = [json.loads(Path(p).read_text()) for p in metrics_paths]
-    names = [d.get("variant") or Path(p).parent.name for d, p in zip(docs, metrics_paths)]
+    names = [d.get("variant") or model_of_metrics(p)[1] for d, p in zip(docs, metrics_paths)]
     if how == "main":
         return 0, "validate.variant=main (the first of train.variants)"
     if how != "auto":
@@ -41,12 +42,14 @@ def choose_variant(metrics_paths: list, how: str = "auto") -> tuple[int, str]:
     return 0, "first listed variant (not every variant was tuned, no CV score to compare)"
 
 
-def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_path, tracking_uri, out_path,
-                   experiment_name: str = "liverforce-validation", variant: str = "auto") -> dict:
+def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_path, tracking_uri, out_path, *,
+                   experiment_name: str, variant: str) -> dict:
     """Predict the unseen livers' cases with the chosen scenario-IV model.
 
     ``model_dir`` / ``model_metrics_path`` may be lists (every scenario-IV
-    variant): :func:`choose_variant` picks one by ``variant``.
+    variant): :func:`choose_variant` picks one by ``variant``
+    (``validate.variant``). ``experiment_name``: the MLflow experiment
+    (``Plan.experiment_name("validation")``).
 
     Reports MAE / RMSE (N) and accuracy % over all cases, per unseen liver
     with their mean ± sd over the livers and the worst liver named, the error
@@ -75,7 +78,7 @@ def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_
         preds = [predict(d) for d in model_dir]  # every candidate on the unseen liver, for the report
         for p, mp in zip(preds, model_metrics_path):
             grouped = metrics_by_group(arrays["force_n"], p, arrays["geometry_id"])
-            others[Path(mp).parent.name] = {"metrics": force_metrics(arrays["force_n"], p),
+            others[model_of_metrics(mp)[1]] = {"metrics": force_metrics(arrays["force_n"], p),
                                             "livers": {"mean": grouped["mean"], "sd": grouped["sd"],
                                                        "worst": grouped["worst"]},
                                             "model_run_id": json.loads(Path(mp).read_text()).get("run_id")}
@@ -108,7 +111,7 @@ def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_
         "error_vs_distance": {"distance_mm": dist.tolist(), "error_n": err.tolist()},
         "corr_error_distance": float(np.corrcoef(dist, err)[0, 1]) if n > 2 and dist.std() > 0 else float("nan"),
         "model_run_id": model_metrics.get("run_id"),
-        "model_variant": model_metrics.get("variant") or Path(model_metrics_path).parent.name,
+        "model_variant": model_metrics.get("variant") or model_of_metrics(model_metrics_path)[1],
         "variant_choice": choice,
         "all_variants": others,
         "predictions": {"case_id": [str(c) for c in arrays["case_id"]], "true_n": true.tolist(), "pred_n": pred.tolist()},

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from liverforce.atomic import atomic_path, write_text_atomic
+from liverforce.layout import gid_of, model_of_metrics, scenario_of_manifest, study_picture_of
 
 #: the study's accuracies (Table 5.9), % — deformation only / with state vector
 STUDY_ACCURACY = {
@@ -127,8 +128,8 @@ def collect(model_metrics: list[str | Path], manifests: list[str | Path], valida
     for p in model_metrics:
         m = json.loads(Path(p).read_text())
         models.append({
-            "scenario": m.get("scenario") or Path(p).parent.parent.name,
-            "variant": m.get("variant") or Path(p).parent.name,
+            "scenario": m.get("scenario") or model_of_metrics(p)[0],
+            "variant": m.get("variant") or model_of_metrics(p)[1],
             "state_vector": m.get("state_vector"), "encoder": m.get("encoder"),
             "metrics": m.get("metrics", {}), "run_id": m.get("run_id"), "n_cases": m.get("n_cases"),
             "n_train": m.get("n_train"), "n_test": m.get("n_test"), "best_params": m.get("best_params"),
@@ -139,7 +140,7 @@ def collect(model_metrics: list[str | Path], manifests: list[str | Path], valida
     shards = []
     for p in manifests:
         m = json.loads(Path(p).read_text())
-        shards.append({"scenario": Path(p).parent.name, "rows": m["rows"], "failed": m["failed"],
+        shards.append({"scenario": scenario_of_manifest(p), "rows": m["rows"], "failed": m["failed"],
                        "shards": len(m["shards"]), "data_version": m["data_version"], "manifest": str(p)})
     val = json.loads(Path(validation).read_text())
     missing = [k for k in ("per_liver", "livers", "error_by_force_magnitude") if k not in val]
@@ -149,7 +150,7 @@ def collect(model_metrics: list[str | Path], manifests: list[str | Path], valida
     geoms = []
     for p in features:
         f = json.loads(Path(p).read_text())
-        geoms.append({"id": Path(p).name.removesuffix(".features.json"), **f})
+        geoms.append({"id": gid_of(p), **f})
     study_docs = []
     for p in studies:
         d = json.loads(Path(p).read_text())
@@ -330,7 +331,9 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
     ``solver_stats``: ``{"overall": {...}, "per_scenario": {scenario: {...}}, "reasons": {...}}``
     or a flat dict (shown as one line). ``setup``: config slices shown in the
     setup section (``material``, ``boundary``, ``sweep``, ``mesh``,
-    ``dataset``, ``validate``, ``train``, ``tune``, ``study``, ``tracking``).
+    ``dataset``, ``validate``, ``train``, ``tune``, ``study``, ``tracking``);
+    ``setup["mlflow_experiments"]``: ``{"models", "validation", "studies"}``,
+    the run's MLflow experiment names (``Plan.experiment_name``).
     """
     out_html = Path(out_html)
     out_dir = out_html.parent
@@ -444,7 +447,7 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
     parts.append(_table(["geometry", "role", "volume (L)", "extent (mm)", "nodes", "tets", "meshing (s)"], rows,
                         cls="geometries"))
     pics = "<div class='pics'>" + "".join(
-        _figure(p, out_dir, Path(p).name.removesuffix(".regions.png"), 300) for p in pictures) + "</div>"
+        _figure(p, out_dir, gid_of(p), 300) for p in pictures) + "</div>"
     what = ("the boundary regions (fixed vena cava patch, ligament and visceral springs, rib contact, the "
             "visible surface where the tool may push)")
     if len(pictures) > 6:
@@ -631,7 +634,7 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
         parts.append(f"<h3 id='study-{html.escape(name)}'>{html.escape(d.get('title', name))}</h3>")
         parts.append(f"<p>{html.escape(STUDY_TEXT.get(name, ''))} {d.get('epochs')} epochs per point; "
                      f"MLflow experiment <code>{html.escape(str(d.get('experiment_name')))}</code>.</p>")
-        png = Path(d["path"]).with_suffix(".png")
+        png = study_picture_of(d["path"])
         if png.exists():
             parts.append(_figure(png, out_dir, width=760))
         if name == "train_livers":
@@ -649,13 +652,14 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
                             row_cls="study-point"))
 
     # ------------------------------------------------------------ MLflow
-    trk = setup.get("tracking") or {}
-    prefix = trk.get("experiment_prefix", "liverforce")
+    # the run's MLflow experiment names, as the jobs logged them (Plan.experiment_name, via the report rule)
+    mlflow_names = {k: f"<code>{html.escape(str(v))}</code>"
+                    for k, v in (setup.get("mlflow_experiments") or {}).items()}
     parts.append("<h2 id='mlflow'>Where the numbers come from (MLflow)</h2>")
     parts.append(f"<p>Runs are in the tracking store <code>{html.escape(str(setup.get('tracking_uri', 'results/mlflow.db')))}"
-                 f"</code>, experiments <code>{html.escape(prefix)}-{html.escape(experiment)}-&lt;scenario&gt;</code> "
-                 f"(trained models, Ax trials nested), <code>{html.escape(prefix)}-{html.escape(experiment)}-validation"
-                 f"</code> and <code>{html.escape(prefix)}-{html.escape(experiment)}-studies</code> (one run per study "
+                 f"</code>, experiments {mlflow_names.get('models', 'per scenario')} "
+                 f"(trained models, Ax trials nested), {mlflow_names.get('validation', 'of the validation')}"
+                 f" and {mlflow_names.get('studies', 'of the studies')} (one run per study "
                  "point, tags <code>study</code>, <code>value</code>, <code>scenario</code>). Open them with "
                  "<code>.venv/bin/liverforce ui</code> (or <code>mlflow ui --backend-store-uri "
                  "sqlite:///results/mlflow.db --host 127.0.0.1</code>) and paste a run id into the search "

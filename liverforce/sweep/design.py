@@ -1,8 +1,10 @@
 """Design of experiments: the case table of a scenario.
 
 A case = (geometry, material constants, exertion point, force vector, seed).
-Factors are drawn from one scrambled Sobol sequence (or a Latin hypercube),
-seeded from the config, so the same config gives the same table.
+Factors are drawn from one scrambled Sobol sequence (or a Latin hypercube)
+seeded with the scenario's seed (``Plan.seed("sweep", ...)``), so the same
+config gives the same table; case ``i`` records ``derive(seed, "sweep.case", i)``
+(:mod:`liverforce.seeds`).
 
 Force model
 -----------
@@ -24,6 +26,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from liverforce.layout import case_id
+from liverforce.seeds import derive
 
 
 class SweepError(ValueError):
@@ -215,11 +220,11 @@ def build_cases(
         f = force_vectors(u[i:i + 1, 0], u[i:i + 1, 1], u[i:i + 1, 2], ex.frames[k:k + 1], force["min_n"], force["max_n"], force["cone_deg"])[0]
         rows.append(
             {
-                "case_id": f"{scenario}-{i:06d}",
+                "case_id": case_id(scenario, i),
                 "scenario": scenario,
                 "geometry_id": gid,
                 "shard_index": -1,
-                "seed": int(seed) * 1_000_003 + i,
+                "seed": derive(seed, "sweep.case", i),
                 "material_model": model,
                 "material_param_names": names,
                 "material_params_mpa": params.tolist(),

@@ -98,7 +98,7 @@ def test_standardizer_scales_small_columns_beside_huge_ones():
 def test_cv_force_mae_scores_the_same_fits_in_newtons():
     """cv_force_mae refits each fold as cv_score does (same seeds) and maps the outputs back to N."""
     from liverforce.learn.regressor import FitParams, fit_regressor, predict_regressor
-    from liverforce.learn.tune import FoldData, cv_force_mae, regressor_from_params
+    from liverforce.learn.tune import FoldData, cv_force_mae, fold_seed, regressor_from_params
 
     rng = np.random.default_rng(0)
     z = rng.normal(size=(120, 4))
@@ -112,7 +112,7 @@ def test_cv_force_mae_scores_the_same_fits_in_newtons():
     manual = []
     for k, f in enumerate(folds):
         net, _ = fit_regressor(f.z_train, f.y_train, regressor_from_params(params, 4),
-                               FitParams(lr=0.01, batch_size=16, epochs=30), seed=5 + k)
+                               FitParams(lr=0.01, batch_size=16, epochs=30), seed=fold_seed(5, k))
         manual.append(np.linalg.norm(predict_regressor(net, f.z_val) * scale + 1.0 - truth[k], axis=1).mean())
     assert got == pytest.approx(np.mean(manual), rel=1e-12)
     assert 0 < got < 0.5 * np.linalg.norm(truth[0] - truth[0].mean(0), axis=1).mean()  # it learned something

@@ -42,7 +42,7 @@ def _refuse_unstable_material(cfg):
 
 _refuse_unstable_material(CFG)
 PLAN = plan.Plan(CFG)
-E = PLAN.root  # results/<experiment>
+P = PLAN.paths  # every output path (liverforce.layout): results/<experiment>/...
 TRACKING_URI = tracking_uri(CFG)
 
 

@@ -3,12 +3,12 @@
 
 rule geometry:
     output:
-        surface=f"{E}/geometry/{{gid}}.ply",
-        meta=f"{E}/geometry/{{gid}}.json",
+        surface=P.surface(),
+        meta=P.surface_meta(),
     params:
         spec=lambda wc: PLAN.geometry_spec(wc.gid),
     log:
-        f"{E}/logs/geometry/{{gid}}.log",
+        P.log("geometry", "{gid}"),
     conda:
         "../envs/liverforce.yaml"
     threads: 1

@@ -3,17 +3,17 @@
 
 rule mesh:
     input:
-        surface=f"{E}/geometry/{{gid}}.ply",
+        surface=P.surface(),
     output:
-        mesh=f"{E}/mesh/{{gid}}.vtu",
-        features=f"{E}/mesh/{{gid}}.features.json",
-        picture=f"{E}/mesh/{{gid}}.regions.png",
+        mesh=P.mesh(),
+        features=P.features(),
+        picture=P.regions_picture(),
     params:
         mesh=config_slice("mesh"),
-        seed=config_slice("seed"),
+        seed=lambda wc: PLAN.seed("mesh", wc.gid),
         exertion=config_slice("sweep", "exertion"),
     log:
-        f"{E}/logs/mesh/{{gid}}.log",
+        P.log("mesh", "{gid}"),
     conda:
         "../envs/liverforce.yaml"
     threads: 1
@@ -26,4 +26,4 @@ rule mesh:
 
 rule meshes:
     input:
-        expand(f"{E}/mesh/{{gid}}.vtu", gid=PLAN.all_geometries),
+        [P.mesh(g) for g in PLAN.all_geometries],

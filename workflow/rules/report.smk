@@ -3,15 +3,15 @@
 
 rule report:
     input:
-        models=expand(f"{E}/models/{{scenario}}/{{variant}}/metrics.json", scenario=PLAN.train_scenarios(), variant=list(PLAN.variants())),
-        manifests=expand(f"{E}/shards/{{scenario}}/manifest.json", scenario=PLAN.all_scenarios()),
-        validation=f"{E}/validate/metrics.json",
-        features=expand(f"{E}/mesh/{{gid}}.features.json", gid=PLAN.all_geometries),
-        pictures=expand(f"{E}/mesh/{{gid}}.regions.png", gid=PLAN.all_geometries),
-        surfaces=expand(f"{E}/geometry/{{gid}}.ply", gid=PLAN.all_geometries),
-        studies=expand(f"{E}/studies/{{study}}.json", study=STUDY_NAMES),
+        models=[P.model_metrics(s, v) for s in PLAN.train_scenarios() for v in PLAN.variants()],
+        manifests=[P.manifest(s) for s in PLAN.all_scenarios()],
+        validation=P.validation_metrics(),
+        features=[P.features(g) for g in PLAN.all_geometries],
+        pictures=[P.regions_picture(g) for g in PLAN.all_geometries],
+        surfaces=[P.surface(g) for g in PLAN.all_geometries],
+        studies=[P.study(s) for s in STUDY_NAMES],
     output:
-        html=f"{E}/report/index.html",
+        html=P.report(),
     params:
         experiment=config_slice("experiment"),
         setup={
@@ -26,6 +26,9 @@ rule report:
             "tune": {k: v for k, v in config_slice("tune").items() if k != "space"},
             "tracking": config_slice("tracking"),
             "tracking_uri": TRACKING_URI,
+            "mlflow_experiments": {"models": PLAN.experiment_name("<scenario>"),
+                                   "validation": PLAN.experiment_name("validation"),
+                                   "studies": PLAN.experiment_name("studies")},
             "population": {
                 "training": PLAN.train_geometries,
                 "unseen": PLAN.validation_geometries,
@@ -33,7 +36,7 @@ rule report:
             },
         },
     log:
-        f"{E}/logs/report/report.log",
+        P.log("report", "report"),
     conda:
         "../envs/liverforce.yaml"
     threads: 1

@@ -4,16 +4,16 @@ import math
 
 rule simulate:
     input:
-        cases=f"{E}/sweep/{{scenario}}/cases.parquet",
-        meshes=lambda wc: expand(f"{E}/mesh/{{gid}}.vtu", gid=PLAN.scenario_geometries(wc.scenario)),
+        cases=P.cases(),
+        meshes=lambda wc: [P.mesh(g) for g in PLAN.scenario_geometries(wc.scenario)],
     output:
-        shard=f"{E}/shards/{{scenario}}/shard-{{shard}}.parquet",
+        shard=P.shard(),
     params:
         simulate=config_slice("simulate"),
         boundary=config_slice("boundary"),
         dataset=config_slice("dataset"),
     log:
-        f"{E}/logs/simulate/{{scenario}}-{{shard}}.log",
+        P.log("simulate", "{scenario}-{shard}"),
     conda:
         "../envs/liverforce.yaml"
     threads: 1
@@ -28,11 +28,11 @@ rule simulate:
 
 rule manifest:
     input:
-        shards=lambda wc: expand(f"{E}/shards/{{scenario}}/shard-{{shard}}.parquet", scenario=wc.scenario, shard=PLAN.shard_ids(wc.scenario)),
+        shards=lambda wc: [P.shard(wc.scenario, s) for s in PLAN.shard_ids(wc.scenario)],
     output:
-        manifest=f"{E}/shards/{{scenario}}/manifest.json",
+        manifest=P.manifest(),
     log:
-        f"{E}/logs/manifest/{{scenario}}.log",
+        P.log("manifest", "{scenario}"),
     conda:
         "../envs/liverforce.yaml"
     threads: 1
@@ -45,4 +45,4 @@ rule manifest:
 
 rule shards:
     input:
-        expand(f"{E}/shards/{{scenario}}/manifest.json", scenario=PLAN.all_scenarios()),
+        [P.manifest(s) for s in PLAN.all_scenarios()],

@@ -2,7 +2,7 @@
 # on the shards already simulated; no new FE. Each study point reuses the
 # scenario's main model (first train.variants entry: settings + tuned
 # hyper-parameters), trains without Ax and is one MLflow run under
-# "<prefix>-<experiment>-studies" (tags study, value, scenario).
+# PLAN.experiment_name("studies") (tags study, value, scenario).
 from liverforce.learn.study import STUDIES, enabled_studies, study_geometries, study_scenarios, study_slice
 
 STUDY_CFG = config_slice("study")
@@ -16,23 +16,23 @@ wildcard_constraints:
 
 rule study:
     input:
-        manifests=lambda wc: [f"{E}/shards/{s}/manifest.json" for s in study_scenarios(wc.study, STUDY_CFG)],
-        main_metrics=lambda wc: [f"{E}/models/{s}/{MAIN_VARIANT}/metrics.json" for s in study_scenarios(wc.study, STUDY_CFG)],
-        meshes=lambda wc: [f"{E}/mesh/{g}.vtu" for g in study_geometries(wc.study, STUDY_CFG, PLAN)],
+        manifests=lambda wc: [P.manifest(s) for s in study_scenarios(wc.study, STUDY_CFG)],
+        main_metrics=lambda wc: [P.model_metrics(s, MAIN_VARIANT) for s in study_scenarios(wc.study, STUDY_CFG)],
+        meshes=lambda wc: [P.mesh(g) for g in study_geometries(wc.study, STUDY_CFG, PLAN)],
     output:
-        json=f"{E}/studies/{{study}}.json",
-        png=f"{E}/studies/{{study}}.png",
+        json=P.study(),
+        png=P.study_picture(),
     params:
         study=lambda wc: study_slice(wc.study, STUDY_CFG),
         scenarios=lambda wc: study_scenarios(wc.study, STUDY_CFG),
         model=PLAN.variants()[MAIN_VARIANT],
         train=PLAN.train_settings(),
         tracking_uri=TRACKING_URI,
-        experiment_prefix=config_slice("tracking", "experiment_prefix"),
+        experiment_name=PLAN.experiment_name("studies"),
         experiment=config_slice("experiment"),
-        seed=config_slice("seed"),
+        seed=PLAN.train_seed(),
     log:
-        f"{E}/logs/study/{{study}}.log",
+        P.log("study", "{study}"),
     conda:
         "../envs/liverforce.yaml"
     threads: 1
@@ -45,4 +45,4 @@ rule study:
 
 rule studies:
     input:
-        expand(f"{E}/studies/{{study}}.json", study=STUDY_NAMES),
+        [P.study(s) for s in STUDY_NAMES],

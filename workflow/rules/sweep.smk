@@ -3,15 +3,15 @@
 
 rule sweep:
     input:
-        meshes=lambda wc: expand(f"{E}/mesh/{{gid}}.vtu", gid=PLAN.scenario_geometries(wc.scenario)),
-        features=lambda wc: expand(f"{E}/mesh/{{gid}}.features.json", gid=PLAN.scenario_geometries(wc.scenario)),
+        meshes=lambda wc: [P.mesh(g) for g in PLAN.scenario_geometries(wc.scenario)],
+        features=lambda wc: [P.features(g) for g in PLAN.scenario_geometries(wc.scenario)],
     output:
-        cases=f"{E}/sweep/{{scenario}}/cases.parquet",
-        report=f"{E}/sweep/{{scenario}}/sweep.json",
+        cases=P.cases(),
+        report=P.sweep_report(),
     params:
         sweep=lambda wc: PLAN.sweep_params(wc.scenario),
     log:
-        f"{E}/logs/sweep/{{scenario}}.log",
+        P.log("sweep", "{scenario}"),
     conda:
         "../envs/liverforce.yaml"
     threads: 1

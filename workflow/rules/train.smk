@@ -3,23 +3,23 @@
 
 rule train:
     input:
-        manifest=f"{E}/shards/{{scenario}}/manifest.json",
+        manifest=P.manifest(),
         # the meshes only when the variant re-selects the ROI (model.roi_fraction): their surface graphs
-        meshes=lambda wc: (expand(f"{E}/mesh/{{gid}}.vtu", gid=PLAN.scenario_geometries(wc.scenario))
+        meshes=lambda wc: ([P.mesh(g) for g in PLAN.scenario_geometries(wc.scenario)]
                            if PLAN.variants()[wc.variant].get("roi_fraction") is not None else []),
     output:
-        metrics=f"{E}/models/{{scenario}}/{{variant}}/metrics.json",
-        model=directory(f"{E}/models/{{scenario}}/{{variant}}/model"),
+        metrics=P.model_metrics(),
+        model=directory(P.model_dir()),
     params:
         model=lambda wc: PLAN.variants()[wc.variant],
         train=PLAN.train_settings(),
         tune=config_slice("tune"),
         tracking_uri=TRACKING_URI,
-        experiment_prefix=config_slice("tracking", "experiment_prefix"),
+        experiment_name=lambda wc: PLAN.experiment_name(wc.scenario),
         experiment=config_slice("experiment"),
-        seed=config_slice("seed"),
+        seed=PLAN.train_seed(),
     log:
-        f"{E}/logs/train/{{scenario}}-{{variant}}.log",
+        P.log("train", "{scenario}-{variant}"),
     conda:
         "../envs/liverforce.yaml"
     threads: 1
@@ -32,4 +32,4 @@ rule train:
 
 rule models:
     input:
-        expand(f"{E}/models/{{scenario}}/{{variant}}/metrics.json", scenario=PLAN.train_scenarios(), variant=list(PLAN.variants())),
+        [P.model_metrics(s, v) for s in PLAN.train_scenarios() for v in PLAN.variants()],

@@ -4,18 +4,18 @@
 rule validate:
     input:
         # every scenario-IV variant (validate.variant=auto picks by cross-validation score) or the one named
-        model=expand(f"{E}/models/IV/{{v}}/model", v=list(PLAN.variants())),
-        metrics=expand(f"{E}/models/IV/{{v}}/metrics.json", v=list(PLAN.variants())),
-        manifest=f"{E}/shards/V/manifest.json",
-        train_manifest=f"{E}/shards/IV/manifest.json",
+        model=[P.model_dir("IV", v) for v in PLAN.variants()],
+        metrics=[P.model_metrics("IV", v) for v in PLAN.variants()],
+        manifest=P.manifest(plan.VALIDATION),
+        train_manifest=P.manifest("IV"),
     output:
-        metrics=f"{E}/validate/metrics.json",
+        metrics=P.validation_metrics(),
     params:
         tracking_uri=TRACKING_URI,
         variant=config_slice("validate", "variant"),
-        experiment_name=f"{config_slice('tracking', 'experiment_prefix')}-{config_slice('experiment')}-validation",
+        experiment_name=PLAN.experiment_name("validation"),
     log:
-        f"{E}/logs/validate/validate.log",
+        P.log("validate", "validate"),
     conda:
         "../envs/liverforce.yaml"
     threads: 1

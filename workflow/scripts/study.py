@@ -14,7 +14,7 @@ run_study_stage(
     model_cfg=sm.params.model,
     train_cfg=sm.params.train,
     tracking_uri=sm.params.tracking_uri,
-    experiment_prefix=sm.params.experiment_prefix,
+    experiment_name=sm.params.experiment_name,
     experiment=sm.params.experiment,
     seed=sm.params.seed,
     threads=sm.threads,

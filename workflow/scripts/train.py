@@ -12,7 +12,7 @@ train_model(
     train_cfg=sm.params.train,
     tune_cfg=sm.params.tune,
     tracking_uri=sm.params.tracking_uri,
-    experiment_prefix=sm.params.experiment_prefix,
+    experiment_name=sm.params.experiment_name,
     experiment=sm.params.experiment,
     seed=sm.params.seed,
     threads=sm.threads,
