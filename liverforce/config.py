@@ -197,6 +197,7 @@ class ModelConfig:
     dae_input_noise: float = MISSING
     roi_fraction: Optional[float] = MISSING  # None: the shards' dataset.roi_fraction
     force_scaling: str = MISSING  # stiffness | none (state-vector models: force / (C10 / C10_ref))
+    probe_force_radius_mm: float = MISSING  # Gaussian radius of the linear force estimate C^-1 u_w (0 = off)
 
 
 @dataclass

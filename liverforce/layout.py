@@ -180,6 +180,11 @@ def surface_meta_of(surface_path: str | Path) -> Path:
     return p.with_name(gid_of(p) + _SURFACE_META)
 
 
+def shards_in(folder: str | Path) -> list[Path]:
+    """The shard files of a scenario's folder (``shard-<NNNN>.parquet``), sorted."""
+    return sorted(Path(folder).glob(f"{_SHARD_PREFIX}*{_SHARD_SUFFIX}"))
+
+
 def progress_of_shard(shard_path: str | Path) -> Path:
     """The progress file of the job writing ``shards/<scenario>/shard-<NNNN>.parquet``.
 

@@ -16,7 +16,7 @@ def fake_row(i: int, rng, converged: bool = True, k: int | None = None) -> dict:
         "exertion_point_mm": [1.0, 2.0, 3.0], "force_n": [0.1, 0.2, -1.0 * i], "force_magnitude_n": 1.0,
         "frame_normal": [0, 0, 1.0], "frame_t1": [1.0, 0, 0], "frame_t2": [0, 1.0, 0],
         "liver_centroid_mm": [0, 0, 0.0], "inertia_mm5": list(np.eye(3).ravel()),
-        "tool_thickness_mm": 40.0,
+        "tool_thickness_mm": 40.0, "probe_compliance_mm_per_n": list(np.diag([1.0, 1.0, 2.0]).ravel()),
         "roi_fraction": 0.18, "roi_area_fraction": 0.181, "roi_node_ids": np.arange(k, dtype=np.int32),
         "roi_undeformed_mm": und, "roi_deformed_mm": de,
         "roi_centroid_undeformed_mm": und.mean(0), "roi_centroid_deformed_mm": de.mean(0),

@@ -230,3 +230,51 @@ def test_real_sofa_tet_livers_are_taken_as_given_and_solve(shared_livers, tmp_pa
     assert res.converged, res.reason
     assert 0.1 < np.linalg.norm(res.u_nodes, axis=1).max() < 50.0  # mm under 1 N
     assert np.linalg.norm(res.reactions["imbalance"]) < 1e-6
+
+
+def test_the_stiffness_probe_column_and_serving_agree_on_the_users_liver(scene):
+    """The shard's probe compliance on the imported liver (the user's supports from its features JSON) is the
+    linear compliance of that liver at the reference material, symmetric and positive definite; serving
+    recomputes it from the mesh file with the model's recorded settings, to round-off."""
+    from liverforce.dataset.roi import local_frame, surface_graph
+    from liverforce.fem.materials import make_material
+    from liverforce.fem.probe import ComplianceProbe
+    from liverforce.fem.problem import LiverModel
+    from liverforce.mesh.io import read_mesh
+    from liverforce.pipeline.simulate import boundary_params, probe_reference, simulate_cases, solver_options
+    from liverforce.serve.preop import Preop
+    from liverforce.serve.probe import with_probe
+
+    cfg = scene["cfg"]
+    mesh = read_mesh(scene["tmp"] / "imp-lab.vtu")
+    case = _case(scene, [0.0, -0.5, -1.0])
+    sim = dict(cfg["simulate"])
+    ref = probe_reference(cfg["material"])
+    assert ref["model"] == "neo_hookean" and ref["params_mpa"] == cfg["material"]["params_mpa"]
+    supports = scene["feats"]["support_boundary"]
+    rows = simulate_cases([case], {"imp-lab": mesh}, sim, cfg["boundary"], cfg["dataset"],
+                          supports={"imp-lab": supports}, probe=ref)
+    C = np.asarray(rows[0]["probe_compliance_mm_per_n"], float).reshape(3, 3)
+    np.testing.assert_allclose(C, C.T, atol=1e-12)
+    assert np.linalg.eigvalsh(C)[0] > 0
+    # independently: the rest tangent of this liver with the user's supports, in the row's local frame
+    frame = np.stack([rows[0]["frame_t1"], rows[0]["frame_t2"], rows[0]["frame_normal"]])
+    p = np.asarray(case["exertion_point_mm"], float)
+    np.testing.assert_allclose(frame, local_frame(surface_graph(mesh.points, mesh.facets), p, sim["tool_radius_mm"]))
+    mat = make_material(ref["model"], ref["params_mpa"], bulk_mpa=ref["bulk_mpa"])
+    fe = LiverModel(mesh.points, mesh.tets, mesh.facets, mesh.facet_region, mat,
+                    boundary_params(mesh, cfg["boundary"]).with_supports(supports), solver_options(sim))
+    C_direct = ComplianceProbe(fe).compliance(p, frame, sim["tool_radius_mm"])
+    np.testing.assert_allclose(C, C_direct, rtol=1e-9, atol=1e-12 * np.abs(C).max())
+    # the config's own supports (not the user's) give another compliance (here by ~0.2 %: at this point the
+    # local indentation dominates), so the match above is the user's supports, not a coincidence
+    fe_cfg = LiverModel(mesh.points, mesh.tets, mesh.facets, mesh.facet_region, mat,
+                        boundary_params(mesh, cfg["boundary"]), solver_options(sim))
+    C_cfg = ComplianceProbe(fe_cfg).compliance(p, frame, sim["tool_radius_mm"])
+    assert np.abs(C_cfg - C).max() > 1e-4 * np.abs(C).max()
+    # serving: from the mesh file (supports read from its features JSON) with the bundle's settings
+    meta = {"probe": {"reference": ref, "boundary": cfg["boundary"], "simulate": sim,
+                      "tool_radius_mm": sim["tool_radius_mm"]}}
+    preop = Preop(exertion_point_mm=p, frame=frame, roi_undeformed_mm=np.asarray(rows[0]["roi_undeformed_mm"]))
+    served = with_probe(preop, scene["tmp"] / "imp-lab.vtu", meta).probe_compliance_mm_per_n
+    np.testing.assert_allclose(served, C, rtol=1e-9, atol=1e-12 * np.abs(C).max())

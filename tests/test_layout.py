@@ -109,12 +109,7 @@ def test_cli_show_case_looks_in_the_plans_shards(tmp_path, capsys):
 
 #: files another change is still rewriting; each still spells a layout name itself (remove an entry once the
 #: file uses liverforce.layout: the test fails on a stale entry)
-PENDING = {
-    "liverforce/pipeline/simulate.py": "its progress path (layout.progress_of_shard) and the features beside a "
-                                       "mesh (layout.features_of_mesh)",
-    "liverforce/serve/probe.py": "the features beside a mesh (layout.features_of_mesh)",
-    "liverforce/serve/batch.py": "shard-*.parquet in a folder of shards",
-}
+PENDING: dict[str, str] = {}
 _FRAGMENTS = (".features.json", ".regions.png", "shard-", "manifest.json", "metrics.json", "/progress/", "/shards/",
               "/models/", "/mesh/", "/geometry/", "/logs/")
 _FOLDERS = {"shards", "progress", "models", "mesh", "geometry", "sweep", "studies", "validate", "report", "logs",

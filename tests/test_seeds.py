@@ -111,8 +111,6 @@ def test_negative_config_seeds_are_refused():
 #: files another change is still rewriting; each still derives seeds by hand (remove an entry once the file
 #: uses liverforce.seeds: the test fails on a stale entry)
 PENDING = {
-    "liverforce/learn/model.py": "view_seeds / eval_seed: 2 * (seed * 1000 + v) and 2 * seed * 1000 + 1",
-    "liverforce/learn/train.py": "seed + 17 * k (CV-fold encoders) and seed + r (repeated splits)",
 }
 _ARITHMETIC = (ast.Add, ast.Sub, ast.Mult, ast.FloorDiv, ast.Mod, ast.Pow, ast.LShift, ast.RShift, ast.BitXor)
 _MAGIC = {7919, 104729, 1_000_003, 0x11FE5, 0x7015}

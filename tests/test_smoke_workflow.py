@@ -206,3 +206,32 @@ def test_adding_a_variant_reruns_only_that_variants_jobs(smoke_run):
     assert set(counts) <= {"train", "models", "validate", "report", "all"}, counts
     trained = re.findall(r"wildcards: scenario=(\w+), variant=(\w+)", out)
     assert sorted(trained) == [(s, "dae_sv") for s in ("I", "II", "III", "IV")]
+
+
+def test_predict_from_the_liver_files_matches_the_data_factory(smoke_run, tmp_path):
+    """`liverforce predict` with only files a lab has (the liver's tet mesh for the surface and the stiffness
+    probe, the deformed ROI nodes, the exertion point, the material) gives the model's prediction on the
+    shard row: the context (frame, ROI, liver features, thickness, probe compliance) is rebuilt exactly."""
+    import numpy as np
+
+    from liverforce.dataset import io as dio
+    from liverforce.learn.model import ForceModel
+    from liverforce.cli import main
+
+    root = smoke_run / "results" / "smoke"
+    model_dir = root / "models" / "IV" / "pca_sv" / "model"
+    model = ForceModel.load(model_dir)
+    assert model.meta["probe"]["reference"]["model"] and model.pre.linear_force_weights is not None
+    a = dio.load_training_arrays(dio.verify_manifest(root / "shards" / "IV" / "manifest.json"))
+    i = 0
+    row = {k: (v[i:i + 1] if not isinstance(v, list) else v[i:i + 1]) for k, v in a.items()}
+    expect = model.predict(row)[0]
+    np.save(tmp_path / "nodes.npy", np.asarray(a["roi_deformed_mm"][i], float))
+    mesh = root / "mesh" / f"{a['geometry_id'][i]}.vtu"
+    args = ["predict", "-m", str(model_dir), str(tmp_path / "nodes.npy"), "--mode", "nodes", "--surface", str(mesh),
+            "--exertion-point", *map(str, a["exertion_point_mm"][i]),
+            "--material", *map(str, a["material_params_mpa"][i]), "--out", str(tmp_path / "f.json")]
+    assert main(args) == 2  # without the mesh for the probe: refused, naming --mesh
+    assert main(args + ["--mesh", str(mesh)]) == 0
+    got = json.loads((tmp_path / "f.json").read_text())["force_n"]
+    np.testing.assert_allclose(got, expect, atol=1e-5)

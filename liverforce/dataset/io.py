@@ -306,6 +306,7 @@ def load_training_arrays(paths: Sequence[str | Path], converged_only: bool = Tru
         out[name] = vector_column(table, name).astype(np.float64)
     out["force_magnitude_n"] = table.column("force_magnitude_n").to_numpy()
     out["tool_thickness_mm"] = table.column("tool_thickness_mm").to_numpy().astype(np.float64)
+    out["probe_compliance_mm_per_n"] = vector_column(table, "probe_compliance_mm_per_n").astype(np.float64)
     if full_surface:
         out["surface_displacement_mm"] = points_column(table, "surface_displacement_mm")
     return out

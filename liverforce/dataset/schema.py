@@ -30,6 +30,11 @@ liver_centroid_mm : fixed_size_list<float64,3>
 inertia_mm5 : fixed_size_list<float64,9>   volume second-moment (inertia) tensor, unit density
 tool_thickness_mm : float64   tissue thickness under the tool: from the exertion point along the
     inward normal to the opposite surface (pre-operative, from the undeformed surface)
+probe_compliance_mm_per_n : fixed_size_list<float64,9>   the pre-operative linear stiffness probe
+    (:mod:`liverforce.fem.probe`): compliance C (3 x 3, row-major, mm/N) of the liver on its
+    supports at the exertion point, in the local frame (rows/columns t1, t2, n), for the
+    experiment's reference material (``material`` config at its nominal constants; recorded in
+    the file metadata ``liverforce.probe``). One factorisation per liver, no intraoperative cost.
 roi_fraction : float64   target ROI area fraction
 roi_area_fraction : float64   achieved ROI area fraction
 roi_node_ids : list<int32>    mesh point ids of the ROI surface nodes
@@ -52,7 +57,7 @@ from __future__ import annotations
 
 import pyarrow as pa
 
-SCHEMA_VERSION = "1.1"
+SCHEMA_VERSION = "1.2"  # 1.2: probe_compliance_mm_per_n
 
 #: columns excluded from the deterministic payload hash (vary run to run)
 NONDETERMINISTIC_COLUMNS = ("wall_time_s",)
@@ -81,6 +86,7 @@ SHARD_SCHEMA = pa.schema(
         ("liver_centroid_mm", _V3),
         ("inertia_mm5", pa.list_(pa.float64(), 9)),
         ("tool_thickness_mm", pa.float64()),
+        ("probe_compliance_mm_per_n", pa.list_(pa.float64(), 9)),
         ("roi_fraction", pa.float64()),
         ("roi_area_fraction", pa.float64()),
         ("roi_node_ids", pa.list_(pa.int32())),
@@ -130,6 +136,7 @@ UNITS = {
     "liver_centroid_mm": "mm",
     "inertia_mm5": "mm^5 (unit density)",
     "tool_thickness_mm": "mm",
+    "probe_compliance_mm_per_n": "mm/N (local frame t1, t2, n; reference material)",
     "roi_undeformed_mm": "mm",
     "roi_deformed_mm": "mm",
     "surface_displacement_mm": "mm",

@@ -12,11 +12,12 @@ pre-operative.
 By reciprocity (Maxwell-Betti) ``C`` is symmetric: the load and the
 displacement are paired through the same weights.
 
-An offline experiment on the default data (20 procedural livers, scenario IV,
-5 seeded splits, PCA + state vector) added the 6 entries of ``C`` in the local
-frame and the linear force estimate ``C^-1 u_w`` to the state vector: test
-accuracy 83.9 +- 2.8 -> 88.8 +- 3.1 %, unseen-liver MAE 0.414 -> 0.314 N
-(8 livers). Wiring it into the shards and the model is open work (issue #14).
+The data factory stores ``C`` for every case (shard column
+``probe_compliance_mm_per_n``, :func:`liverforce.pipeline.simulate.probe_compliances`),
+state-vector models read it (:mod:`liverforce.learn.state`) together with the
+linear force estimate ``C^-1 u_w`` (:mod:`liverforce.learn.model`), and serving
+recomputes it from a liver's mesh (:mod:`liverforce.serve.probe`).
+``benchmarks/experiment_probe_features.py`` measures what it adds.
 """
 
 from __future__ import annotations

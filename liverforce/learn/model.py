@@ -22,6 +22,20 @@ so constants x0.5 ... x2 scale the predicted force x0.5 ... x2 at the same
 surface deformation, even outside the training range. (The supports' springs
 do not scale with the liver: the true force scales slightly less.)
 
+Linear force estimate (state-vector models with displacement features): the
+state vector carries the pre-operative probe's compliance ``C`` at the
+exertion point (local frame, reference material). The regressor also sees
+``f_lin = C^-1 u_w``, with ``u_w`` the displacement *as observed* (the grid
+features, after occlusion and noise) averaged with a Gaussian of the tool
+radius over the grid. It is the small-load answer of the linear problem; the
+network learns the nonlinear correction. It reads only what the model's
+features already hold, so occlusion and noise reach it as they reach the
+encoder::
+
+    u_w = sum_ij w_ij d(u_j, v_i),  w_ij ~ exp(-(u_j^2 + v_i^2) / (2 r^2));   f_lin = C^-1 u_w
+
+(``r``: ``model.probe_force_radius_mm``, the tool radius; 0 turns it off.)
+
 Bundle format (a directory, no pickle of arbitrary code)::
 
     model.json      format name + version, representation, encoder spec,
@@ -56,11 +70,19 @@ from liverforce.learn.regressor import (
 )
 from liverforce.learn.representation import Representation
 from liverforce.learn.scaling import Standardizer
-from liverforce.learn.state import MATERIAL_START, STATE_INPUTS, THICKNESS_COLUMN, state_vector
+from liverforce.learn.state import (
+    COMPLIANCE_COLUMNS,
+    MATERIAL_START,
+    STATE_INPUTS,
+    THICKNESS_COLUMN,
+    compliance_matrices,
+    state_vector,
+)
 from liverforce.learn.torchutil import EpochCallback
+from liverforce.seeds import derive
 
 FORMAT = "liverforce.force_model"
-FORMAT_VERSION = 2  # 2: the state vector carries tool_thickness_mm (material from column 16)
+FORMAT_VERSION = 3  # 3: probe compliance in the state vector (material from column 22), linear force estimate
 
 ROI_INPUTS = (
     "exertion_point_mm",
@@ -79,6 +101,23 @@ class ModelFormatError(ValueError):
 # --------------------------------------------------------------------------
 # prepared learning inputs
 # --------------------------------------------------------------------------
+
+
+def linear_force_radius_of(model_cfg: dict) -> float:
+    """Gaussian radius (mm) of the linear force estimate's ``u_w``; 0 when the model has none.
+
+    Needs the state vector (the compliance) and displacement features (``displacement`` or ``both``).
+    """
+    if not bool(model_cfg.get("state_vector")) or model_cfg.get("roi_features", "displacement") == "deformed":
+        return 0.0
+    return float(model_cfg.get("probe_force_radius_mm") or 0.0)
+
+
+def linear_force_weights(rep: Representation, radius_mm: float) -> np.ndarray:
+    """Grid weights ``(g^2,)`` (sum 1) of ``u_w``: a Gaussian of ``radius_mm`` about the exertion point."""
+    xy = rep.grid()
+    w = np.exp(-0.5 * (xy[:, 0] ** 2 + xy[:, 1] ** 2) / float(radius_mm) ** 2)
+    return w / w.sum()
 
 
 def force_scaling_of(model_cfg: dict) -> str:
@@ -117,13 +156,13 @@ class Prepared:
 
 
 def view_seeds(seed: int, n_views: int) -> list[int]:
-    """Observation seeds of the training views (even numbers; :func:`eval_seed` is odd)."""
-    return [2 * (int(seed) * 1000 + v) for v in range(n_views)]
+    """Observation seeds of the training views (stage ``observation.view``; :func:`eval_seed` is another stage)."""
+    return [derive(seed, "observation.view", v) for v in range(n_views)]
 
 
 def eval_seed(seed: int) -> int:
-    """Observation seed used to evaluate on the test split (never a training view's seed)."""
-    return 2 * int(seed) * 1000 + 1
+    """Observation seed used to evaluate on the test split (stage ``observation.eval``: no training view's)."""
+    return derive(seed, "observation.eval")
 
 
 def n_views_for(rep: Representation) -> int:
@@ -159,20 +198,48 @@ class Preprocessor:
     state_scaler: Standardizer | None
     target_scaler: Standardizer
     stiffness_ref: float | None = None  # force_scaling: stiffness (first material constant's training mean, MPa)
+    linear_force_weights: np.ndarray | None = None  # (g^2,) grid weights of u_w; None: no linear force estimate
 
     def inputs(self, x: np.ndarray, state: np.ndarray | None) -> np.ndarray:
         code = self.code_scaler.transform(self.encoder.encode(self.feature_scaler.transform(x)))
         if self.state_scaler is None:
             return code
-        return np.hstack([code, self.state_scaler.transform(self.state_features(state))])
+        return np.hstack([code, self.state_scaler.transform(self.state_features(state, x))])
 
-    def state_features(self, state: np.ndarray) -> np.ndarray:
-        """The state vector as the regressor sees it: material constants as ratios ``c / c_1`` when scaled."""
+    def base_state_features(self, state: np.ndarray) -> np.ndarray:
+        """The state vector with material constants as ratios ``c / c_1`` when force-scaled (same columns)."""
         if self.stiffness_ref is None:
-            return state
+            return np.asarray(state, dtype=np.float64)
         out = np.array(state, dtype=np.float64, copy=True)
         out[:, MATERIAL_START:] = out[:, MATERIAL_START:] / out[:, MATERIAL_START:MATERIAL_START + 1]
         return out
+
+    def linear_force(self, x: np.ndarray, state: np.ndarray) -> np.ndarray:
+        """``f_lin = C^-1 u_w`` ``(n, 3)`` N, local frame (module docstring), from features ``x`` and the state."""
+        w = self.linear_force_weights
+        n = len(x)
+        u_w = np.asarray(x, dtype=np.float64)[:, :3 * w.size].reshape(n, 3, w.size) @ w
+        return np.linalg.solve(compliance_matrices(state), u_w[:, :, None])[:, :, 0]
+
+    def state_features(self, state: np.ndarray, x: np.ndarray | None = None) -> np.ndarray:
+        """The state vector as the regressor sees it: :meth:`base_state_features`, then ``f_lin`` if used."""
+        out = self.base_state_features(state)
+        if self.linear_force_weights is None:
+            return out
+        if x is None:
+            raise ValueError("this model's state features include the linear force estimate: pass the features x")
+        return np.hstack([out, self.linear_force(x, state)])
+
+    @property
+    def n_linear_force(self) -> int:
+        return 0 if self.linear_force_weights is None else 3
+
+    @property
+    def n_material(self) -> int | None:
+        """Material constants in the state vector (None without the state vector)."""
+        if self.state_scaler is None:
+            return None
+        return int(self.state_scaler.mean.size - MATERIAL_START - self.n_linear_force)
 
     def stiffness(self, state: np.ndarray | None, n: int) -> np.ndarray:
         """Per-row stiffness factor ``k = c_1 / c_1,ref`` (ones without force scaling), shape ``(n, 1)``."""
@@ -199,8 +266,13 @@ def fit_preprocessor(
     dae_input_noise: float = 0.1,
     on_epoch: EpochCallback | None = None,
     force_scaling: str = "none",
+    linear_force_radius_mm: float = 0.0,
 ) -> Preprocessor:
     """Fit scalers (training rows only) and the encoder.
+
+    ``linear_force_radius_mm > 0`` (needs ``use_state`` and displacement
+    features) adds the linear force estimate ``C^-1 u_w`` to the state
+    features (module docstring).
 
     PCA and AE learn the observed features (all views); the DAE maps observed
     views to the clean features (same scaler for input and target).
@@ -234,8 +306,13 @@ def fit_preprocessor(
     elif force_scaling != "none":
         raise ValueError(f"unknown force_scaling '{force_scaling}': use none or stiffness")
     pre = Preprocessor(fs, enc, cs, None, Standardizer.fit(prep.y_local), ref)
+    if linear_force_radius_mm > 0:
+        if not use_state or rep.features == "deformed":
+            raise ValueError("the linear force estimate needs the state vector (the probe compliance) and "
+                             "displacement features (roi_features: displacement or both)")
+        pre.linear_force_weights = linear_force_weights(rep, linear_force_radius_mm)
     if use_state:
-        pre.state_scaler = Standardizer.fit(pre.state_features(prep.state))
+        pre.state_scaler = Standardizer.fit(np.vstack([pre.state_features(prep.state, xv) for xv in prep.x_obs]))
     pre.target_scaler = Standardizer.fit(prep.y_local / pre.stiffness(prep.state, len(prep.state)))
     return pre
 
@@ -329,6 +406,8 @@ class ForceModel:
                     "state": None if self.pre.state_scaler is None else self.pre.state_scaler.to_dict(),
                     "target": self.pre.target_scaler.to_dict(),
                     "stiffness_ref": self.pre.stiffness_ref,
+                    "linear_force_weights": None if self.pre.linear_force_weights is None
+                    else [float(v) for v in self.pre.linear_force_weights],
                 },
                 "meta": self.meta,
             }
@@ -376,6 +455,7 @@ class ForceModel:
             None if sc["state"] is None else Standardizer.from_dict(sc["state"]),
             Standardizer.from_dict(sc["target"]),
             sc.get("stiffness_ref"),
+            None if sc.get("linear_force_weights") is None else np.asarray(sc["linear_force_weights"], np.float64),
         )
         rspec = RegressorSpec.from_dict(doc["regressor"])
         net = build_mlp(rspec)
@@ -399,6 +479,8 @@ def training_scale(prep: Prepared, rep: Representation) -> dict:
         ``[[min...], [max...]]`` per constant (MPa).
     ``tool_thickness_mm``
         ``[min, max]`` of the tissue thickness under the tool (mm).
+    ``probe_compliance_mm_per_n``
+        ``[min, max]`` of the trace of the probe compliance (mm/N).
     ``feature_abs_max``
         Largest ``|feature|`` per representation channel (mm): displacement
         components and/or deformed height, as sampled on the grid.
@@ -411,6 +493,7 @@ def training_scale(prep: Prepared, rep: Representation) -> dict:
     dist = np.linalg.norm(s[:, 0:3], axis=1)
     mat = s[:, MATERIAL_START:]
     thick = s[:, THICKNESS_COLUMN]
+    ctr = s[:, COMPLIANCE_COLUMNS][:, [0, 3, 5]].sum(axis=1)
     g2 = rep.grid_size**2
     x = np.abs(np.concatenate([prep.x_clean, *prep.x_obs], axis=0))
     feat_max = [float(x[:, c * g2:(c + 1) * g2].max()) for c in range(rep.channels)]
@@ -420,6 +503,7 @@ def training_scale(prep: Prepared, rep: Representation) -> dict:
         "centroid_distance_mm": [float(dist.min()), float(dist.max())],
         "material_params_mpa": [mat.min(axis=0).tolist(), mat.max(axis=0).tolist()],
         "tool_thickness_mm": [float(thick.min()), float(thick.max())],
+        "probe_compliance_mm_per_n": [float(ctr.min()), float(ctr.max())],
         "feature_abs_max": feat_max,
         "force_magnitude_n": [float(fmag.min()), float(fmag.max())],
     }
@@ -442,6 +526,7 @@ def fit_force_model(
     on_epoch: EpochCallback | None = None,
     meta: dict | None = None,
     force_scaling: str = "none",
+    linear_force_radius_mm: float = 0.0,
 ) -> tuple[ForceModel, dict[str, list[float]]]:
     """Fit preprocessing and regressor on ``prep`` (training rows) and bundle them.
 
@@ -452,7 +537,7 @@ def fit_force_model(
     pre = fit_preprocessor(
         prep, rep, encoder=encoder, code_size=code_size, use_state=use_state, seed=seed,
         epochs=encoder_epochs or fit.epochs, lr=fit.lr, batch_size=fit.batch_size, dae_input_noise=dae_input_noise,
-        force_scaling=force_scaling,
+        force_scaling=force_scaling, linear_force_radius_mm=linear_force_radius_mm,
     )
     z, y = regressor_data(pre, prep)
     zv = yv = None

@@ -24,6 +24,13 @@ inertia                 6       upper triangle (xx, xy, xz, yy, yz, zz) of
 tool_thickness          1       tissue thickness under the tool along the inward
                                 normal, mm (a local, physical feature: a thin
                                 lobe bends, a thick one indents)
+probe_compliance        6       upper triangle (t1t1, t1t2, t1n, t2t2, t2n, nn) of
+                                the pre-operative stiffness probe's compliance at
+                                the exertion point (:mod:`liverforce.fem.probe`),
+                                mm/N, already in the local frame. What the
+                                liver's shape, thickness and supports do to the
+                                force-displacement map right there, for the
+                                experiment's reference material.
 material                p       material constants as given, MPa
 ======================  ======  ==================================================
 
@@ -47,16 +54,27 @@ STATE_INPUTS = (
     "roi_centroid_deformed_mm",
     "inertia_mm5",
     "tool_thickness_mm",
+    "probe_compliance_mm_per_n",
     "material_params_mpa",
 )
 
 _TRIU = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 THICKNESS_COLUMN = 15  #: tool_thickness_mm column of the state vector
-MATERIAL_START = 16  #: first material column of the state vector
+COMPLIANCE_COLUMNS = slice(16, 22)  #: probe compliance (upper triangle, local frame) columns
+MATERIAL_START = 22  #: first material column of the state vector
+
+
+def compliance_matrices(state: np.ndarray) -> np.ndarray:
+    """The probe compliance ``(n, 3, 3)`` mm/N (local frame) rebuilt from state-vector rows."""
+    c = np.asarray(state, dtype=np.float64)[:, COMPLIANCE_COLUMNS]
+    out = np.empty((len(c), 3, 3))
+    for j, (a, b) in enumerate(_TRIU):
+        out[:, a, b] = out[:, b, a] = c[:, j]
+    return out
 
 
 def state_vector(arrays: dict) -> np.ndarray:
-    """State vectors ``(n, 16 + p)`` float64 of the cases in ``arrays`` (module table).
+    """State vectors ``(n, 22 + p)`` float64 of the cases in ``arrays`` (module table).
 
     Parameters
     ----------
@@ -65,7 +83,7 @@ def state_vector(arrays: dict) -> np.ndarray:
 
     Returns
     -------
-    (n, 16 + p) float64
+    (n, 22 + p) float64
         Columns as in :func:`state_names`.
     """
     missing = [k for k in STATE_INPUTS if k not in arrays]
@@ -78,6 +96,8 @@ def state_vector(arrays: dict) -> np.ndarray:
     inertia = 0.5 * (inertia + np.transpose(inertia, (0, 2, 1)))
     I_loc = R @ inertia @ np.transpose(R, (0, 2, 1))
     mat = np.asarray(arrays["material_params_mpa"], dtype=np.float64).reshape(n, -1)
+    C = np.asarray(arrays["probe_compliance_mm_per_n"], dtype=np.float64).reshape(n, 3, 3)
+    C = 0.5 * (C + np.transpose(C, (0, 2, 1)))
     return np.column_stack(
         [
             offsets_to_local(arrays["liver_centroid_mm"], p, R),
@@ -85,6 +105,7 @@ def state_vector(arrays: dict) -> np.ndarray:
             offsets_to_local(arrays["roi_centroid_deformed_mm"], p, R),
             np.stack([I_loc[:, a, b] for a, b in _TRIU], axis=1),
             np.asarray(arrays["tool_thickness_mm"], dtype=np.float64).reshape(n),
+            np.stack([C[:, a, b] for a, b in _TRIU], axis=1),
             mat,
         ]
     )
@@ -97,5 +118,6 @@ def state_names(n_material: int) -> list[str]:
         names += [f"{base}_{ax}_mm" for ax in ("t1", "t2", "n")]
     names += [f"inertia_{'xyz'[a]}{'xyz'[b]}_mm5" for a, b in _TRIU]
     names += ["tool_thickness_mm"]
+    names += [f"probe_compliance_{('t1', 't2', 'n')[a]}{('t1', 't2', 'n')[b]}_mm_per_n" for a, b in _TRIU]
     names += [f"material_{j}_mpa" for j in range(n_material)]
     return names

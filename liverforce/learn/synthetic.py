@@ -57,7 +57,8 @@ def synthetic_arrays(
     fixed_angles = rng.uniform([0.3, 0.3], [2.5, 1.2])
     out: dict[str, list] = {k: [] for k in (
         "case_id", "geometry_id", "force_n", "exertion_point_mm", "frame_normal", "frame_t1", "frame_t2",
-        "liver_centroid_mm", "inertia_mm5", "tool_thickness_mm", "material_params_mpa", "roi_undeformed_mm",
+        "liver_centroid_mm", "inertia_mm5", "tool_thickness_mm", "probe_compliance_mm_per_n", "material_params_mpa",
+        "roi_undeformed_mm",
         "roi_deformed_mm", "roi_centroid_undeformed_mm", "roi_centroid_deformed_mm")}
     ct, cn = compliance_mm_per_n
     for i in range(n_cases):
@@ -101,6 +102,8 @@ def synthetic_arrays(
         out["liver_centroid_mm"].append(c)
         out["inertia_mm5"].append(inertia.ravel())
         out["tool_thickness_mm"].append(ellipsoid_chord(axes, y, n_g))
+        # the probe at the base material: the dent's displacement at its centre per newton (local frame)
+        out["probe_compliance_mm_per_n"].append(np.diag([ct, ct, cn]).ravel())
         out["material_params_mpa"].append(material)
         out["roi_undeformed_mm"].append(und.astype(dtype))
         out["roi_deformed_mm"].append(dfm.astype(dtype))

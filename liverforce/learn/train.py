@@ -48,6 +48,7 @@ from liverforce.learn.model import (
     ForceModel,
     eval_seed,
     force_scaling_of,
+    linear_force_radius_of,
     fit_force_model,
     fit_preprocessor,
     n_views_for,
@@ -62,10 +63,12 @@ from liverforce.learn.representation import representation_from_config
 from liverforce.learn.splits import cv_folds, group_key, train_test_split
 from liverforce.learn.torchutil import configure_torch
 from liverforce.learn.tune import FoldData, cv_force_mae, cv_score, tune
+from liverforce.seeds import derive
 
 REQUIRED_ARRAYS = (
     "case_id", "geometry_id", "force_n", "exertion_point_mm", "frame_normal", "frame_t1", "frame_t2",
-    "liver_centroid_mm", "inertia_mm5", "tool_thickness_mm", "material_params_mpa", "roi_undeformed_mm", "roi_deformed_mm",
+    "liver_centroid_mm", "inertia_mm5", "tool_thickness_mm", "probe_compliance_mm_per_n", "material_params_mpa",
+    "roi_undeformed_mm", "roi_deformed_mm",
     "roi_centroid_undeformed_mm", "roi_centroid_deformed_mm",
 )
 
@@ -87,6 +90,15 @@ def check_arrays(arrays: dict) -> int:
         bad = [str(c) for c, t in zip(arrays["case_id"], thick) if not (np.isfinite(t) and t > 0)][:5]
         raise ValueError(f"tool_thickness_mm must be finite and > 0 mm; cases {bad} are not (an open surface "
                          "under the tool?)")
+    C = np.asarray(arrays["probe_compliance_mm_per_n"], dtype=np.float64).reshape(n, 3, 3)
+    finite = np.isfinite(C).all(axis=(1, 2))
+    ok = finite.copy()
+    ok[finite] = np.linalg.eigvalsh(0.5 * (C[finite] + np.transpose(C[finite], (0, 2, 1))))[:, 0] > 0
+    if not ok.all():
+        bad = [str(c) for c, good in zip(arrays["case_id"], ok) if not good][:5]
+        raise ValueError(f"probe_compliance_mm_per_n must be a finite, positive-definite 3x3 (mm/N); cases {bad} "
+                         "are not (the stiffness probe failed for their liver: see the simulate log; a liver "
+                         "without supports has no finite compliance)")
     return n
 
 
@@ -215,9 +227,10 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
         for k, (ftr, fva) in enumerate(folds.pairs):
             rows_tr, rows_va = prep_train.rows(ftr), prep_train.rows(fva)
             pre = fit_preprocessor(
-                rows_tr, rep, encoder=encoder, code_size=code_size, use_state=use_state, seed=seed + 17 * k,
+                rows_tr, rep, encoder=encoder, code_size=code_size, use_state=use_state, seed=derive(seed, "encoder.fold", k),
                 epochs=tune_epochs, lr=float(train_cfg["lr"]), batch_size=int(train_cfg["batch_size"]),
                 dae_input_noise=dae_noise, force_scaling=force_scaling_of(model_cfg),
+                linear_force_radius_mm=linear_force_radius_of(model_cfg),
             )
             z_tr, y_tr = regressor_data(pre, rows_tr)
             z_va, y_va = regressor_data(pre, rows_va, all_views=False)
@@ -261,6 +274,7 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
         prep_train, rep, encoder=encoder, code_size=code_size, use_state=use_state, hidden=hidden,
         dropout=dropout, fit=fit, seed=seed, dae_input_noise=dae_noise, monitor=(prep_test, "test"), meta=meta,
         force_scaling=force_scaling_of(model_cfg),
+        linear_force_radius_mm=linear_force_radius_of(model_cfg),
     )
     pred = model.predict(test_arrays, observation_seed=eval_seed(seed))
     metrics = force_metrics(prep_test.force, pred)
@@ -343,7 +357,7 @@ def repeated_splits(train_arrays, test_arrays, rep, model_cfg, train_cfg, scenar
     geo = np.asarray(all_arrays["geometry_id"]).astype(str)
     out = []
     for r in range(1, n_rep):
-        split_seed = int(seed) + r
+        split_seed = derive(seed, "split.repeat", r)
         tr, te = train_test_split(geo, scenario=scenario, test_fraction=float(train_cfg["test_fraction"]),
                                   seed=split_seed)
         a_tr, a_te = subset(all_arrays, tr), subset(all_arrays, te)
@@ -351,7 +365,8 @@ def repeated_splits(train_arrays, test_arrays, rep, model_cfg, train_cfg, scenar
         prep_tr = prepare(a_tr, rep_r, observation_seeds=view_seeds(split_seed, n_views_for(rep_r)))
         model, _ = fit_force_model(prep_tr, rep_r, encoder=encoder, code_size=code_size, use_state=use_state,
                                    hidden=hidden, dropout=dropout, fit=fit, seed=split_seed,
-                                   dae_input_noise=dae_noise, force_scaling=force_scaling_of(model_cfg))
+                                   dae_input_noise=dae_noise, force_scaling=force_scaling_of(model_cfg),
+                                   linear_force_radius_mm=linear_force_radius_of(model_cfg))
         pred = model.predict(a_te, observation_seed=eval_seed(split_seed))
         out.append({"split_seed": split_seed, "test_geometries": _geometries(a_te),
                     "metrics": force_metrics(np.asarray(a_te["force_n"], float), pred)})

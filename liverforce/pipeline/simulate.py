@@ -5,12 +5,12 @@ from __future__ import annotations
 import json
 import logging
 import time
-from pathlib import Path
 
 import numpy as np
 
 from liverforce.atomic import write_json_atomic
 from liverforce.dataset import io as dio
+from liverforce.layout import features_of_mesh, gid_of, progress_of_shard
 
 log = logging.getLogger("liverforce")
 
@@ -43,14 +43,49 @@ def solver_options(sim: dict):
     )
 
 
-def _progress_path(shard_path) -> Path:
-    shard_path = Path(shard_path)
-    # results/<exp>/shards/<scenario>/shard-NNNN.parquet -> results/<exp>/progress/<scenario>-NNNN.json
-    return shard_path.parent.parent.parent / "progress" / f"{shard_path.parent.name}-{shard_path.stem.split('-')[-1]}.json"
+def probe_reference(material_cfg: dict) -> dict:
+    """The stiffness probe's reference material: the ``material`` config at its nominal constants.
+
+    The probe (:mod:`liverforce.fem.probe`) measures what the liver's shape and
+    supports do to the force-displacement map; one material for every case keeps
+    it a property of the liver alone (the case's own constants enter the state
+    vector separately). Returns ``{"model", "params_mpa" (name -> MPa), "bulk_mpa"}``.
+    """
+    from liverforce.fem.materials import make_material
+
+    params = {str(k): float(v) for k, v in material_cfg["params_mpa"].items()}
+    return {"model": str(material_cfg["model"]), "params_mpa": params,
+            "bulk_mpa": float(make_material(material_cfg["model"], params, nu=material_cfg["nu"]).bulk)}
+
+
+def probe_compliances(fe, surf, points: dict, reference: dict, tool_radius_mm: float) -> dict:
+    """Compliance (3 x 3, mm/N, local frame at each point) of one liver model at ``points`` (key -> point).
+
+    One factorisation of the rest tangent for ``reference`` (:func:`probe_reference`),
+    three back-solves per point. A point that cannot be probed gets NaN and a
+    logged reason (the training stage names such cases).
+    """
+    from liverforce.dataset.roi import local_frame
+    from liverforce.fem.materials import make_material
+    from liverforce.fem.probe import ComplianceProbe
+
+    mat = make_material(reference["model"], reference["params_mpa"], bulk_mpa=reference["bulk_mpa"])
+    out = {k: np.full((3, 3), np.nan) for k in points}
+    try:
+        probe = ComplianceProbe(fe, material=mat)
+    except Exception as exc:  # recorded as NaN compliance; training refuses such rows by name
+        log.error("stiffness probe failed for this liver (%s: %s); its cases get a NaN compliance",
+                  type(exc).__name__, exc)
+        return out
+    for key, point in points.items():
+        point = np.asarray(point, dtype=float)
+        C = probe.compliance(point, local_frame(surf, point, tool_radius_mm), tool_radius_mm)
+        out[key] = 0.5 * (C + C.T)  # symmetric by reciprocity; remove round-off asymmetry
+    return out
 
 
 def simulate_cases(cases: list[dict], meshes: dict, sim: dict, boundary: dict, dataset: dict,
-                   progress=None, supports: dict | None = None) -> list[dict]:
+                   progress=None, supports: dict | None = None, probe: dict | None = None) -> list[dict]:
     """Simulate cases in memory: one shard row per case, in the order given.
 
     Parameters
@@ -62,6 +97,8 @@ def simulate_cases(cases: list[dict], meshes: dict, sim: dict, boundary: dict, d
         features JSON: user-given supports, :mod:`liverforce.mesh.supports`), in place of the config's.
     progress : optional callable ``progress(n_done, total, rows, result)`` after every case
         (``result``: the case's :class:`liverforce.fem.problem.CaseResult`, or None when the solve raised).
+    probe : the stiffness probe's reference material (:func:`probe_reference`); None: each
+        liver's first case's material (for tests and benchmarks; the pipeline passes the config's).
 
     Returns
     -------
@@ -72,7 +109,9 @@ def simulate_cases(cases: list[dict], meshes: dict, sim: dict, boundary: dict, d
     -----
     One FE model per geometry is built on first use and kept. Each case starts
     from the nearest of the last 8 converged solutions of its geometry
-    (``sim["warm_start"]``; rest when rest is nearer). A case that fails (no
+    (``sim["warm_start"]``; rest when rest is nearer). When a geometry's model
+    is built, the pre-operative stiffness probe runs at each of its exertion
+    points in ``cases`` (:func:`probe_compliances`). A case that fails (no
     convergence, time limit, solver error) becomes a row with ``converged =
     False`` and its reason; it never stops the loop. This is the loop the
     simulate rule runs and ``benchmarks/bench_fem.py`` measures.
@@ -96,9 +135,14 @@ def simulate_cases(cases: list[dict], meshes: dict, sim: dict, boundary: dict, d
             mesh = meshes[gid]
             bp = boundary_params(mesh, boundary).with_supports((supports or {}).get(gid))
             fe = LiverModel(mesh.points, mesh.tets, mesh.facets, mesh.facet_region, material, bp, options)
-            models[gid] = (mesh, compute_features(mesh), surface_graph(mesh.points, mesh.facets), fe)
+            surf = surface_graph(mesh.points, mesh.facets)
+            points = {tuple(c["exertion_point_mm"]): c["exertion_point_mm"] for c in cases if c["geometry_id"] == gid}
+            ref = probe or {"model": case["material_model"], "bulk_mpa": case["bulk_modulus_mpa"],
+                            "params_mpa": dict(zip(case["material_param_names"], case["material_params_mpa"]))}
+            comp = probe_compliances(fe, surf, points, ref, sim["tool_radius_mm"])
+            models[gid] = (mesh, compute_features(mesh), surf, fe, comp)
             pools[gid] = WarmStartPool(size=8)
-        mesh, feats, surf, fe = models[gid]
+        mesh, feats, surf, fe, comp = models[gid]
         load = ToolLoad(point_mm=np.asarray(case["exertion_point_mm"]), force_N=np.asarray(case["force_n"]),
                         radius_mm=sim["tool_radius_mm"])
         start = pools[gid].nearest(load, case["material_params_mpa"]) if sim["warm_start"] else None
@@ -110,7 +154,8 @@ def simulate_cases(cases: list[dict], meshes: dict, sim: dict, boundary: dict, d
             res, error = None, f"{type(exc).__name__}: {exc}"
             log.exception("case %s crashed", case["case_id"])
         wall = time.perf_counter() - t0
-        rows.append(_case_row(case, res, error, wall, mesh, feats, surf, dataset, sim["tool_radius_mm"]))
+        rows.append(_case_row(case, res, error, wall, mesh, feats, surf, dataset, sim["tool_radius_mm"],
+                              comp[tuple(case["exertion_point_mm"])]))
         if res is not None and res.converged:
             pools[gid].add(res, case["material_params_mpa"])
         rate = n_done / (time.perf_counter() - t_start) * 3600
@@ -123,8 +168,12 @@ def simulate_cases(cases: list[dict], meshes: dict, sim: dict, boundary: dict, d
 
 
 def simulate_shard(cases_path, mesh_paths: list[str], shard: int, sim: dict, boundary: dict, dataset: dict,
-                   shard_path) -> dict:
+                   shard_path, material: dict | None = None) -> dict:
     """Simulate every case of one shard (:func:`simulate_cases`) and write the shard atomically.
+
+    ``material`` is the ``material`` config slice: the stiffness probe's
+    reference (:func:`probe_reference`), recorded in the shard metadata
+    (``liverforce.probe``).
 
     Progress (cases done, failed, elapsed) is written to
     ``results/<exp>/progress/<scenario>-NNNN.json`` after every case.
@@ -133,30 +182,31 @@ def simulate_shard(cases_path, mesh_paths: list[str], shard: int, sim: dict, bou
 
     table = dio.read_table(cases_path)
     cases = [r for r in table.to_pylist() if r["shard_index"] == shard]
-    by_gid = {Path(p).stem: p for p in mesh_paths}
+    by_gid = {gid_of(p): p for p in mesh_paths}
     meshes = {gid: read_mesh(by_gid[gid]) for gid in dict.fromkeys(c["geometry_id"] for c in cases)}
     supports = {}
     for gid in meshes:  # user-given foundation stiffness, written by the mesh stage
-        feats = Path(by_gid[gid]).with_suffix(".features.json")
+        feats = features_of_mesh(by_gid[gid])
         if feats.exists():
             supports[gid] = json.loads(feats.read_text()).get("support_boundary") or {}
     t_start = time.perf_counter()
 
     def progress(n_done, total, rows, _result):
-        write_json_atomic(_progress_path(shard_path), {
+        write_json_atomic(progress_of_shard(shard_path), {
             "done": n_done, "total": total, "failed": sum(not r["converged"] for r in rows),
             "elapsed_s": time.perf_counter() - t_start, "updated": time.time()})
 
-    rows = simulate_cases(cases, meshes, sim, boundary, dataset, progress=progress, supports=supports)
+    probe = probe_reference(material) if material is not None else None
+    rows = simulate_cases(cases, meshes, sim, boundary, dataset, progress=progress, supports=supports, probe=probe)
     entry = dio.write_shard(rows, shard_path, compression=dataset["compression"],
-                            extra_meta={"simulate": sim, "boundary": boundary, "dataset": dataset})
+                            extra_meta={"simulate": sim, "boundary": boundary, "dataset": dataset, "probe": probe})
     if rows and entry["failed"] == len(rows):
         log.warning("shard %s: every case failed (see the 'reason' column)", shard_path)
     log.info("shard %s: %d rows, %d failed", shard_path, entry["rows"], entry["failed"])
     return entry
 
 
-def _case_row(case, res, error, wall, mesh, feats, surf, dataset, tool_radius_mm) -> dict:
+def _case_row(case, res, error, wall, mesh, feats, surf, dataset, tool_radius_mm, compliance) -> dict:
     from liverforce.dataset.roi import extract_roi, local_frame, thickness_along_normal
 
     point = np.asarray(case["exertion_point_mm"])
@@ -179,6 +229,7 @@ def _case_row(case, res, error, wall, mesh, feats, surf, dataset, tool_radius_mm
         liver_centroid_mm=np.asarray(feats["centroid_mm"], dtype=float),
         inertia_mm5=np.asarray(feats["inertia_mm5"], dtype=float).reshape(9),
         tool_thickness_mm=thickness_along_normal(mesh.points, mesh.facets, point, frame[2]),
+        probe_compliance_mm_per_n=np.asarray(compliance, dtype=float).reshape(9),
         roi_fraction=float(dataset["roi_fraction"]), roi_area_fraction=achieved,
         roi_node_ids=node_ids.astype(np.int32), roi_undeformed_mm=und.astype(np.float32),
         roi_deformed_mm=de.astype(np.float32),

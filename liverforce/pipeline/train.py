@@ -73,6 +73,10 @@ def train_model(manifest_path, scenario: str, variant: str, model_cfg: dict, tra
         "frame_radius_mm": float(shard_meta["simulate"]["tool_radius_mm"]),
         "data_version": manifest["data_version"],
     }
+    if shard_meta.get("probe"):  # what serving needs to recompute the probe compliance from a liver's mesh
+        model_meta["probe"] = {"reference": shard_meta["probe"], "boundary": shard_meta["boundary"],
+                               "simulate": shard_meta["simulate"],
+                               "tool_radius_mm": float(shard_meta["simulate"]["tool_radius_mm"])}
     result = train_scenario(arrays, model_cfg, train_cfg, tune_cfg, scenario, variant, tracker=tracker,
                             threads=threads, seed=seed, out_dir=out_dir, tags=tags,
                             model_meta=model_meta)

@@ -20,6 +20,7 @@ from typing import Sequence
 import numpy as np
 import pandas as pd
 
+from liverforce.layout import shards_in
 from liverforce.learn.metrics import force_metrics
 from liverforce.serve.errors import PredictionInputError
 from liverforce.serve.files import write_frame
@@ -33,7 +34,7 @@ def shard_paths(inputs: Sequence[str | Path]) -> list[Path]:
     for item in inputs:
         p = Path(item)
         if p.is_dir():
-            found = sorted(p.glob("shard-*.parquet")) or sorted(p.glob("*.parquet"))
+            found = shards_in(p) or sorted(p.glob("*.parquet"))
             if not found:
                 raise PredictionInputError(f"{p}: no Parquet shards in this folder")
             out += found

@@ -69,20 +69,23 @@ class TrainingScale:
     n_material: int | None
     source: str
     thickness_mm: tuple[float, float] | None = None
+    compliance_trace: tuple[float, float] | None = None
 
     @classmethod
     def of(cls, model) -> "TrainingScale":
         """From the bundle's ``meta["training_scale"]``, else approximately from the scalers."""
         rep = model.representation
         ss = model.pre.state_scaler
-        n_mat = None if ss is None else int(ss.mean.size - MATERIAL_START)
+        n_mat = model.pre.n_material
         rec = (model.meta or {}).get("training_scale")
         if rec:
             lo, hi = (np.asarray(v, dtype=np.float64) for v in rec["material_params_mpa"])
             thick = rec.get("tool_thickness_mm")
+            ctr = rec.get("probe_compliance_mm_per_n")
             return cls(rep.half_width_mm, tuple(rec["inertia_length_mm"]), tuple(rec["centroid_distance_mm"]),
                        lo, hi, tuple(rec["feature_abs_max"]), n_mat if n_mat is not None else int(lo.size),
-                       "bundle meta training_scale", None if thick is None else tuple(thick))
+                       "bundle meta training_scale", None if thick is None else tuple(thick),
+                       None if ctr is None else tuple(ctr))
         fs = model.pre.feature_scaler
         g2 = rep.grid_size**2
         feat = tuple(float(np.max(np.abs(fs.mean[c * g2:(c + 1) * g2]) + 4 * fs.scale[c * g2:(c + 1) * g2]))
@@ -94,7 +97,7 @@ class TrainingScale:
         trace = m[9] + m[12] + m[14]
         length = float(np.power(max(trace, 0.0) / 2.0, 0.2))
         dist = float(np.linalg.norm(m[0:3]))
-        mm, ms = m[MATERIAL_START:], s[MATERIAL_START:]
+        mm, ms = m[MATERIAL_START:MATERIAL_START + n_mat], s[MATERIAL_START:MATERIAL_START + n_mat]
         # the scaler may have replaced a tiny spread by 1 (degenerate): then trust the mean alone
         ms = np.where(ms < np.abs(mm), ms, 0.0)
         return cls(rep.half_width_mm, (length, length), (0.5 * dist, 2.0 * dist), mm - 3 * ms, mm + 3 * ms, feat,
@@ -178,7 +181,10 @@ def check_roi(U_loc: np.ndarray, scale: TrainingScale, limits: Limits, label: st
         )
     r = np.hypot(tang[:, 0], tang[:, 1])
     n_fit = min(len(r), 12)
-    near = np.argpartition(r, n_fit - 1)[:n_fit] if n_fit < len(r) else np.arange(len(r))
+    # the nodes nearest in 3-D, not in the tangent plane: near a thin edge the ROI also holds nodes of the
+    # opposite face, which project next to the point but lie tens of mm below it
+    d3 = np.linalg.norm(U_loc, axis=1)
+    near = np.argpartition(d3, n_fit - 1)[:n_fit] if n_fit < len(r) else np.arange(len(r))
     if r[near].min() > h:
         raise PredictionInputError(
             f"{label}the exertion point lies {r[near].min():.3g} mm (in the tangent plane) from the nearest ROI node: "
@@ -253,6 +259,28 @@ def check_case(arrays: dict, i: int, model, scale: TrainingScale, limits: Limits
         check_liver(c, inertia, p, scale, limits, label)
         check_material(mat, scale, limits, label)
         check_thickness(arrays, i, scale, limits, label)
+        check_compliance(arrays, i, scale, limits, label)
+
+
+def check_compliance(arrays: dict, i: int, scale: TrainingScale, limits: Limits, label: str) -> None:
+    """The probe compliance (3 x 3, mm/N): present, positive definite, trace within ``scale_factor`` of training."""
+    if "probe_compliance_mm_per_n" not in arrays:
+        raise PredictionInputError(
+            f"{label}the model uses the state vector and needs probe_compliance_mm_per_n (the liver's pre-operative "
+            "stiffness at the exertion point): give the liver's tet mesh (`liverforce predict --mesh liver.vtu`, "
+            "liverforce.serve.probe.with_probe) or the 3x3 compliance in the context")
+    C = _vector("probe_compliance_mm_per_n", np.asarray(arrays["probe_compliance_mm_per_n"][i]).ravel(), 9)
+    C = C.reshape(3, 3)
+    ev = np.linalg.eigvalsh(0.5 * (C + C.T))
+    if not ev[0] > 0:
+        raise PredictionInputError(f"{label}probe_compliance_mm_per_n: not positive definite (eigenvalues "
+                                   f"{np.round(ev, 6).tolist()} mm/N)")
+    tr = float(np.trace(C))
+    if scale.compliance_trace is not None and _outside(tr, *scale.compliance_trace, limits.scale_factor):
+        raise PredictionInputError(
+            f"{label}probe_compliance_mm_per_n: trace {tr:.4g} mm/N is far outside the training range "
+            f"({_fmt_range(*scale.compliance_trace)} mm/N): is it in mm/N, for the model's reference material "
+            "and supports (liverforce.serve.probe computes it with the model's settings)?")
 
 
 def check_thickness(arrays: dict, i: int, scale: TrainingScale, limits: Limits, label: str) -> None:

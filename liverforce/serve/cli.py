@@ -54,6 +54,8 @@ def register(subparsers, *, fetch: Callable[..., str | Path] | None = None) -> a
                    help="cloud mode for models that need correspondence: normal-only displacement estimate")
     p.add_argument("--context", help="JSON/YAML context: exertion point, material, surface or ROI + frame")
     p.add_argument("--surface", help="undeformed liver surface file (overrides the context's)")
+    p.add_argument("--mesh", help="the liver's tet mesh (mm, support regions tagged, e.g. results/<exp>/mesh/<id>.vtu):"
+                                  " state-vector models compute the pre-operative stiffness probe from it")
     p.add_argument("--exertion-point", nargs=3, type=float, metavar=("X", "Y", "Z"), help="tool contact point, mm")
     p.add_argument("--material", nargs="+", type=float, metavar="MPA", help="material constants, MPa")
     p.add_argument("--units", choices=("mm", "cm", "m"), help="units of every point input (default mm)")
@@ -110,6 +112,8 @@ def _run(args) -> int:
     overrides = {"exertion_point_mm": args.exertion_point, "material_params_mpa": args.material, "units": args.units}
     if args.surface:
         overrides["surface"] = args.surface
+    if args.mesh:
+        overrides["mesh"] = args.mesh
     preop = load_context(args.context, predictor, overrides=overrides)
     pts = read_points(args.points, args.units)
     info: dict = {"mode": args.mode}

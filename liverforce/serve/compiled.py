@@ -13,8 +13,9 @@ deformed positions ``D`` (``k x 3``, liver frame, mm) for models with
                                               weights over the fixed undeformed
                                               tangent coordinates
     c     = C (x - mu_f) / s_f - ...           PCA + scalers (AE/DAE: first Linear)
-    s     = (state(D) - mu_s) / s_s           deformed ROI centroid = mean D; the
-                                              rest of the state is constant
+    s     = (state(D) - mu_s) / s_s           deformed ROI centroid = mean D and the
+                                              linear force estimate C^-1 sum w x: affine;
+                                              the rest of the state is constant
 
 so :class:`CompiledROI` precomputes ``z = A vec(D) + b`` once (``W`` is read
 off the reference interpolant itself, :func:`liverforce.learn.representation.interpolate_to_grid`
@@ -41,7 +42,7 @@ from torch import nn
 from liverforce.learn.encoders import PCAEncoder
 from liverforce.learn.frames import local_rotations
 from liverforce.learn.representation import interpolate_to_grid
-from liverforce.learn.state import MATERIAL_START, state_vector
+from liverforce.learn.state import MATERIAL_START, compliance_matrices, state_vector
 from liverforce.serve.checks import Limits, TrainingScale, check_displacement, check_material
 from liverforce.serve.errors import PredictionInputError
 from liverforce.serve.preop import Preop, _points, _vector
@@ -159,9 +160,9 @@ class CompiledROI:
         self.uses_state = model.uses_state
         if self.uses_state:
             ss = pre.state_scaler
-            s_ref = state_vector(preop.to_arrays(U))  # deformed centroid = undeformed here; replaced below
-            self._stiff = float(pre.stiffness(s_ref, 1)[0, 0])  # force scaling by the material's stiffness
-            s_ref = pre.state_features(s_ref)[0]
+            s_state = state_vector(preop.to_arrays(U))  # deformed centroid = undeformed here; replaced below
+            self._stiff = float(pre.stiffness(s_state, 1)[0, 0])  # force scaling by the material's stiffness
+            s_ref = pre.state_features(s_state, np.zeros((1, 3 * g2)))[0]  # features at rest: no displacement
             self._s_mean, self._s_scale = ss.mean, ss.scale
             s0 = (s_ref - ss.mean) / ss.scale
             sc = _STATE_DEF_CENTROID
@@ -176,8 +177,19 @@ class CompiledROI:
                 mean_op[a, a::3] = 1.0 / k
             A_state = np.zeros((s0.size, 3 * k))
             A_state[sc] = Rs @ mean_op
+            self._lin_slice = None
+            if pre.linear_force_weights is not None:
+                # f_lin = C^-1 u_w, u_w = sum_i w_i x_c,i (channels 0..2): affine in D like the grid features
+                lc = slice(s_state.shape[1], s_state.shape[1] + 3)
+                w = pre.linear_force_weights
+                Cinv = np.linalg.inv(compliance_matrices(s_state)[0])
+                Mw = np.stack([w @ M[c * g2:(c + 1) * g2] for c in range(3)])
+                xw0 = np.array([w @ x0[c * g2:(c + 1) * g2] for c in range(3)])
+                A_state[lc] = (Cinv @ Mw) / ss.scale[lc][:, None]
+                s0[lc] = (Cinv @ xw0 - ss.mean[lc]) / ss.scale[lc]
+                self._lin_slice = lc
             self.A_state = A_state
-            self._mat_slice = slice(MATERIAL_START, s0.size)
+            self._mat_slice = slice(MATERIAL_START, MATERIAL_START + pre.n_material)
         else:
             self._stiff = 1.0
         self._pre = pre
@@ -216,7 +228,7 @@ class CompiledROI:
         full = np.zeros((1, sl.stop))
         full[0, sl] = mat
         self._stiff = float(self._pre.stiffness(full, 1)[0, 0])
-        self._s0[sl] = (self._pre.state_features(full)[0, sl] - self._s_mean[sl]) / self._s_scale[sl]
+        self._s0[sl] = (self._pre.base_state_features(full)[0, sl] - self._s_mean[sl]) / self._s_scale[sl]
         self._rebuild()
         return self
 
@@ -302,6 +314,9 @@ class CompiledROI:
             else:
                 c = np.asarray(roi_centroid_deformed_mm, dtype=np.float64).reshape(n, 3)
                 z[:, sc] = c @ self._S_c.T + self.b[sc]
+            if self._lin_slice is not None:  # the linear force estimate: affine in D
+                lc = slice(nc + self._lin_slice.start, nc + self._lin_slice.stop)
+                z[:, lc] = X @ self.A[lc].T + self.bU[lc]
             if material_params_mpa is not None:
                 ms = self._mat_slice
                 mat = np.asarray(material_params_mpa, dtype=np.float64).reshape(n, -1)
@@ -313,7 +328,7 @@ class CompiledROI:
                 full = np.zeros((n, ms.stop))
                 full[:, ms] = mat
                 stiff = self._pre.stiffness(full, n)
-                z[:, nc + ms.start:nc + ms.stop] = (self._pre.state_features(full)[:, ms] - self._s_mean[ms]) \
+                z[:, nc + ms.start:nc + ms.stop] = (self._pre.base_state_features(full)[:, ms] - self._s_mean[ms]) \
                     / self._s_scale[ms]
         else:
             z = np.empty((n, len(self.bU)))

@@ -24,6 +24,9 @@ Context files (``load_context``): JSON or YAML with
     liver_centroid_mm: [..]               #   and, for state-vector models, the liver features
     inertia_mm5: [[..], [..], [..]]
     tool_thickness_mm: 60.0               # tissue thickness under the tool along the inward normal
+    mesh: liver.vtu                       # state-vector models: the liver's tet mesh (mm, supports tagged),
+                                          #   for the pre-operative stiffness probe, or
+    probe_compliance_mm_per_n: [[..], [..], [..]]   # the probe's compliance itself (local frame)
     units: mm                             # mm (default), cm or m: scales every point and the inertia
 """
 
@@ -262,7 +265,8 @@ def _read_doc(path: Path) -> dict:
 
 
 CONTEXT_KEYS = {"exertion_point_mm", "material_params_mpa", "surface", "roi_undeformed", "frame", "liver_centroid_mm",
-                "inertia_mm5", "tool_thickness_mm", "units", "roi_fraction", "frame_radius_mm"}
+                "inertia_mm5", "tool_thickness_mm", "units", "roi_fraction", "frame_radius_mm", "mesh",
+                "probe_compliance_mm_per_n"}
 
 
 def load_context(source: str | Path | dict, predictor, *, overrides: dict | None = None) -> Preop:
@@ -322,6 +326,15 @@ def load_context(source: str | Path | dict, predictor, *, overrides: dict | None
         )
     else:
         raise PredictionInputError("context: give the undeformed 'surface' file, or 'roi_undeformed' with 'frame'")
+    if "probe_compliance_mm_per_n" in doc:
+        if "mesh" in doc:
+            raise PredictionInputError("context: give either the tet 'mesh' or probe_compliance_mm_per_n, not both")
+        C = np.asarray(doc["probe_compliance_mm_per_n"], dtype=np.float64) * s  # m/N -> mm/N with units: m
+        preop = preop.with_compliance(C)
+    elif "mesh" in doc and predictor.model.uses_state:
+        from liverforce.serve.probe import with_probe
+
+        preop = with_probe(preop, rel(doc["mesh"]), predictor.model.meta)
     predictor.check_preop(preop)
     return preop
 

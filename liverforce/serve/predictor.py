@@ -118,10 +118,23 @@ class Predictor:
         """Frame averaging radius of the training data (bundle meta, else the shipped default)."""
         return float(self.model.meta.get("frame_radius_mm", DEFAULT_FRAME_RADIUS_MM))
 
-    def preop_from_surface(self, points, facets, exertion_point_mm, material_params_mpa=None) -> Preop:
-        """:meth:`Preop.from_surface` with this model's ROI fraction and frame radius; checked."""
+    def preop_from_surface(self, points, facets, exertion_point_mm, material_params_mpa=None, *,
+                           mesh=None, probe_compliance_mm_per_n=None) -> Preop:
+        """:meth:`Preop.from_surface` with this model's ROI fraction and frame radius; checked.
+
+        A state-vector model also needs the stiffness probe at the point: give the
+        liver's tet ``mesh`` (path or :class:`~liverforce.mesh.types.LiverMesh`;
+        :func:`liverforce.serve.probe.with_probe` computes it with the model's
+        settings) or the compliance itself (3 x 3, mm/N, local frame).
+        """
         preop = Preop.from_surface(points, facets, exertion_point_mm, material_params_mpa,
                                    roi_fraction=self.roi_fraction, frame_radius_mm=self.frame_radius_mm)
+        if probe_compliance_mm_per_n is not None:
+            preop = preop.with_compliance(probe_compliance_mm_per_n)
+        elif mesh is not None and self.model.uses_state:
+            from liverforce.serve.probe import with_probe
+
+            preop = with_probe(preop, mesh, self.model.meta)
         self.check_preop(preop)
         return preop
 
@@ -132,13 +145,14 @@ class Predictor:
 
     def _check_state_inputs(self, preop: Preop) -> None:
         if self.model.uses_state:
-            missing = [k for k in ("liver_centroid_mm", "inertia_mm5", "material_params_mpa", "tool_thickness_mm")
-                       if getattr(preop, k) is None]
+            missing = [k for k in ("liver_centroid_mm", "inertia_mm5", "material_params_mpa", "tool_thickness_mm",
+                                   "probe_compliance_mm_per_n") if getattr(preop, k) is None]
             if missing:
                 raise PredictionInputError(
                     f"the model uses the state vector and the context lacks {missing}: give the material constants "
-                    "(MPa) and a closed pre-operative surface (or the liver centroid, inertia tensor and the tissue "
-                    "thickness under the tool)"
+                    "(MPa), a closed pre-operative surface (or the liver centroid, inertia tensor and the tissue "
+                    "thickness under the tool) and the liver's tet mesh for the stiffness probe (`--mesh`; or "
+                    "probe_compliance_mm_per_n)"
                 )
 
     # ------------------------------------------------------------------ predictions

@@ -18,6 +18,10 @@ field                       shape      meaning
                                        unit density (state only)
 ``tool_thickness_mm``       scalar     tissue thickness under the tool along the
                                        inward normal, mm (state only)
+``probe_compliance_mm_per_n`` (3, 3)   the pre-operative stiffness probe at the
+                                       point: compliance in the local frame, mm/N
+                                       (state only; :mod:`liverforce.serve.probe`
+                                       computes it from the tet mesh)
 ``roi_point_ids``           (k,)       optional: rows of the surface the ROI came
                                        from (``deformed_surface[roi_point_ids]``)
 ==========================  =========  =============================================
@@ -125,6 +129,7 @@ class Preop:
     inertia_mm5: np.ndarray | None = None
     roi_point_ids: np.ndarray | None = field(default=None, compare=False)
     tool_thickness_mm: float | None = None
+    probe_compliance_mm_per_n: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "exertion_point_mm", _vector("exertion_point_mm", self.exertion_point_mm, 3))
@@ -144,6 +149,14 @@ class Preop:
             if not t > 0:
                 raise PredictionInputError(f"tool_thickness_mm: must be > 0 mm, got {t}")
             object.__setattr__(self, "tool_thickness_mm", t)
+        if self.probe_compliance_mm_per_n is not None:
+            C = _vector("probe_compliance_mm_per_n", self.probe_compliance_mm_per_n, 9).reshape(3, 3)
+            C = 0.5 * (C + C.T)
+            if not np.linalg.eigvalsh(C)[0] > 0:
+                raise PredictionInputError(
+                    f"probe_compliance_mm_per_n: must be positive definite (mm/N), got eigenvalues "
+                    f"{np.round(np.linalg.eigvalsh(C), 6).tolist()}")
+            object.__setattr__(self, "probe_compliance_mm_per_n", C)
 
     # ------------------------------------------------------------------
     @classmethod
@@ -233,11 +246,16 @@ class Preop:
             inertia_mm5=get("inertia_mm5"),
             roi_point_ids=None if ids is None else ids[i],
             tool_thickness_mm=get("tool_thickness_mm"),
+            probe_compliance_mm_per_n=get("probe_compliance_mm_per_n"),
         )
 
     def with_material(self, material_params_mpa) -> "Preop":
         """The same context with other material constants (MPa)."""
         return replace(self, material_params_mpa=material_params_mpa)
+
+    def with_compliance(self, probe_compliance_mm_per_n) -> "Preop":
+        """The same context with the probe compliance (3 x 3, mm/N, local frame)."""
+        return replace(self, probe_compliance_mm_per_n=probe_compliance_mm_per_n)
 
     def roi_of_surface(self, deformed_surface_mm) -> np.ndarray:
         """The ROI rows of a deformed surface with the vertex order of the one the context was built from."""
@@ -273,6 +291,8 @@ class Preop:
             out["material_params_mpa"] = self.material_params_mpa[None]
         if self.tool_thickness_mm is not None:
             out["tool_thickness_mm"] = np.array([self.tool_thickness_mm])
+        if self.probe_compliance_mm_per_n is not None:
+            out["probe_compliance_mm_per_n"] = self.probe_compliance_mm_per_n.reshape(1, 9)
         return out
 
     def to_dict(self) -> dict:
@@ -282,7 +302,8 @@ class Preop:
             "frame": self.frame.tolist(),
             "roi_undeformed_mm": self.roi_undeformed_mm.tolist(),
         }
-        for k in ("material_params_mpa", "liver_centroid_mm", "inertia_mm5", "roi_point_ids"):
+        for k in ("material_params_mpa", "liver_centroid_mm", "inertia_mm5", "roi_point_ids",
+                  "probe_compliance_mm_per_n"):
             v = getattr(self, k)
             if v is not None:
                 d[k] = v.tolist()
@@ -294,4 +315,4 @@ class Preop:
     def from_dict(cls, d: dict) -> "Preop":
         return cls(**{k: d[k] for k in (
             "exertion_point_mm", "frame", "roi_undeformed_mm", "material_params_mpa", "liver_centroid_mm",
-            "inertia_mm5", "roi_point_ids", "tool_thickness_mm") if k in d})
+            "inertia_mm5", "roi_point_ids", "tool_thickness_mm", "probe_compliance_mm_per_n") if k in d})

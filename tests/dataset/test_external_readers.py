@@ -35,6 +35,7 @@ def shard_row(shard: int, i: int, rng) -> dict:
         "exertion_point_mm": rng.normal(size=3) * 50, "force_n": force, "force_magnitude_n": float(np.linalg.norm(force)),
         "frame_normal": [0, 0, 1.0], "frame_t1": [1.0, 0, 0], "frame_t2": [0, 1.0, 0],
         "liver_centroid_mm": [1.0, 2.0, 3.0], "inertia_mm5": rng.normal(size=9), "tool_thickness_mm": 45.0,
+        "probe_compliance_mm_per_n": np.diag([1.0, 1.0, 2.0]).ravel(),
         "roi_fraction": 0.18, "roi_area_fraction": 0.1801, "roi_node_ids": rng.permutation(500)[:k].astype(np.int32),
         "roi_undeformed_mm": und, "roi_deformed_mm": de,
         "roi_centroid_undeformed_mm": und.mean(0), "roi_centroid_deformed_mm": de.mean(0),

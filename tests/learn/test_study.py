@@ -43,7 +43,8 @@ def _cases(n: int, seed: int = 0, radius: float = 60.0, base_fraction: float = 0
     upper = np.flatnonzero(surf.points[:, 2] > 0.3 * radius)
     cand = rng.choice(upper, size=12, replace=False)  # 12 candidate exertion points, as a sweep has
     out = {k: [] for k in ("case_id", "geometry_id", "force_n", "exertion_point_mm", "frame_normal", "frame_t1",
-                           "frame_t2", "liver_centroid_mm", "inertia_mm5", "tool_thickness_mm", "material_params_mpa",
+                           "frame_t2", "liver_centroid_mm", "inertia_mm5", "tool_thickness_mm", "probe_compliance_mm_per_n",
+                           "material_params_mpa",
                            "surface_displacement_mm")}
     inertia = np.eye(3) * 0.4 * radius**2 * (4 / 3 * np.pi * radius**3)
     for i in range(n):
@@ -64,6 +65,7 @@ def _cases(n: int, seed: int = 0, radius: float = 60.0, base_fraction: float = 0
         out["liver_centroid_mm"].append(np.zeros(3))
         out["inertia_mm5"].append(inertia.ravel())
         out["tool_thickness_mm"].append(2.0 * radius)  # a chord through the sphere's centre
+        out["probe_compliance_mm_per_n"].append(np.diag([0.8, 0.8, 1.5]).ravel())  # the dent at its centre, per N
         out["material_params_mpa"].append(np.array([0.0016, 0.0125]))
         out["surface_displacement_mm"].append((d_loc @ R).astype(np.float32))
     arrays = {k: (np.array(v, dtype=object) if k in ("case_id", "geometry_id") else

@@ -125,6 +125,7 @@ def shard_rows(arrays: dict, idx, scenario="III", converged=True, scale=1.0, suf
             "frame_normal": arrays["frame_normal"][i], "frame_t1": arrays["frame_t1"][i],
             "frame_t2": arrays["frame_t2"][i], "liver_centroid_mm": arrays["liver_centroid_mm"][i],
             "inertia_mm5": arrays["inertia_mm5"][i], "tool_thickness_mm": float(arrays["tool_thickness_mm"][i]),
+            "probe_compliance_mm_per_n": np.asarray(arrays["probe_compliance_mm_per_n"][i]).ravel(),
             "roi_fraction": 0.18, "roi_area_fraction": 0.18,
             "roi_node_ids": np.arange(len(und), dtype=np.int32), "roi_undeformed_mm": und.astype(np.float32),
             "roi_deformed_mm": de.astype(np.float32), "roi_centroid_undeformed_mm": und.mean(0),

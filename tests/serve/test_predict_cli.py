@@ -52,7 +52,8 @@ def context_doc(ctx: Preop, roi_file: str, with_state=True) -> dict:
     if with_state:
         doc.update(material_params_mpa=ctx.material_params_mpa.tolist(),
                    liver_centroid_mm=ctx.liver_centroid_mm.tolist(),
-                   inertia_mm5=ctx.inertia_mm5.tolist(), tool_thickness_mm=ctx.tool_thickness_mm)
+                   inertia_mm5=ctx.inertia_mm5.tolist(), tool_thickness_mm=ctx.tool_thickness_mm,
+                   probe_compliance_mm_per_n=ctx.probe_compliance_mm_per_n.tolist())
     return doc
 
 
@@ -105,6 +106,7 @@ def test_nodes_mode_yaml_context_and_outputs(trained, test_cases, tmp_path, caps
     doc["liver_centroid_mm"] = (ctx.liver_centroid_mm / 1000).tolist()
     doc["inertia_mm5"] = (ctx.inertia_mm5 / 1e15).tolist()
     doc["tool_thickness_mm"] = ctx.tool_thickness_mm / 1000
+    doc["probe_compliance_mm_per_n"] = (ctx.probe_compliance_mm_per_n / 1000).tolist()  # m/N
     np.save(tmp_path / "roi_m.npy", ctx.roi_undeformed_mm / 1000)
     np.save(tmp_path / "nodes_m.npy", D / 1000)
     (tmp_path / "ctx_m.json").write_text(json.dumps(doc))
@@ -127,12 +129,17 @@ def test_surface_mode_with_flags(trained, tmp_path, capsys, ellipsoid):
     np.testing.assert_array_equal(t2, tri)
     p = pts[123]
     pred = Predictor.load(model)
-    ctx = Preop.from_surface(pts, tri, p, [0.0016, 0.0125], roi_fraction=pred.roi_fraction)
+    C = np.diag([0.8, 0.8, 1.5])  # the synthetic training data's probe compliance, mm/N
+    ctx = Preop.from_surface(pts, tri, p, [0.0016, 0.0125], roi_fraction=pred.roi_fraction).with_compliance(C)
     dent = pts.copy()
     dent[ctx.roi_point_ids] -= 2.0 * ctx.frame[2] * np.exp(-np.sum((pts[ctx.roi_point_ids] - p) ** 2, 1) / 200)[:, None]
     np.save(tmp_path / "deformed_surface.npy", dent)
-    rc, out, err = run(["-m", model, tmp_path / "deformed_surface.npy", "--mode", "surface", "--surface",
-                        tmp_path / "liver.ply", "--exertion-point", *p, "--material", 0.0016, 0.0125], capsys)
+    flags = ["-m", model, tmp_path / "deformed_surface.npy", "--mode", "surface", "--surface", tmp_path / "liver.ply",
+             "--exertion-point", *p, "--material", 0.0016, 0.0125]
+    rc, out, err = run(flags, capsys)  # a state-vector model without the stiffness probe: refused, naming --mesh
+    assert rc == 2 and "probe_compliance_mm_per_n" in err and "--mesh" in err
+    (tmp_path / "probe.yaml").write_text(f"probe_compliance_mm_per_n: {C.tolist()}\n")
+    rc, out, err = run(flags + ["--context", tmp_path / "probe.yaml"], capsys)
     assert rc == 0, err
     np.testing.assert_allclose(json.loads(out)["force_n"], pred.predict(ctx.roi_of_surface(dent), ctx), atol=1e-9)
 

@@ -71,6 +71,8 @@ def test_surface_moments_match_tet_integration_and_the_ellipsoid(ellipsoid):
 
 
 def test_context_from_surface_is_the_data_factorys(trained, ellipsoid):
+    from liverforce.serve import PredictionInputError
+
     pts, tri = ellipsoid()
     p = pts[123]  # a vertex on the upper half
     ctx = Preop.from_surface(pts, tri[:, [0, 2, 1]], p, [0.0016, 0.0125], roi_fraction=0.05, frame_radius_mm=5.0)
@@ -85,14 +87,15 @@ def test_context_from_surface_is_the_data_factorys(trained, ellipsoid):
     np.testing.assert_allclose(ctx.liver_centroid_mm, 0.0, atol=1e-3)  # Fibonacci points: nearly symmetric
     # a deformed copy of the whole surface -> its ROI rows -> a finite force, through the checks
     pred = Predictor.load(trained("disp"))
+    with pytest.raises(PredictionInputError, match=r"lacks \['probe_compliance_mm_per_n'\].*--mesh"):
+        pred.check_preop(ctx)  # a state-vector model needs the stiffness probe too
+    ctx = ctx.with_compliance(np.diag([0.8, 0.8, 1.5]))  # the synthetic training data's, mm/N
     pred.check_preop(ctx)
     dent = pts + 0.0
     dent[ctx.roi_point_ids] -= 2.0 * ctx.frame[2] * np.exp(-np.sum((pts[ctx.roi_point_ids] - p) ** 2, 1) / 200)[:, None]
     f = pred.predict(ctx.roi_of_surface(dent), ctx)
     assert np.isfinite(f).all() and f @ ctx.frame[2] < 0  # a dent along -n: the tool pushes into the surface
     # an open surface has no volume features: a state-vector model refuses it
-    from liverforce.serve import PredictionInputError
-
     open_ctx = Preop.from_surface(pts, tri[10:], p, [0.0016, 0.0125], roi_fraction=0.05)
     assert open_ctx.liver_centroid_mm is None
     with pytest.raises(PredictionInputError, match="liver_centroid_mm"):
@@ -103,7 +106,7 @@ def test_preop_round_trips_through_a_dict(test_cases):
     ctx = Preop.from_arrays(test_cases, 1)
     back = Preop.from_dict(ctx.to_dict())
     for k in ("exertion_point_mm", "frame", "roi_undeformed_mm", "material_params_mpa", "liver_centroid_mm",
-              "inertia_mm5", "tool_thickness_mm"):
+              "inertia_mm5", "tool_thickness_mm", "probe_compliance_mm_per_n"):
         np.testing.assert_array_equal(getattr(back, k), getattr(ctx, k))
 
 

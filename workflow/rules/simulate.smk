@@ -12,6 +12,7 @@ rule simulate:
         simulate=config_slice("simulate"),
         boundary=config_slice("boundary"),
         dataset=config_slice("dataset"),
+        material=config_slice("material"),  # the stiffness probe's reference material
     log:
         P.log("simulate", "{scenario}-{shard}"),
     conda:
