@@ -177,6 +177,12 @@ class DatasetConfig:
 
 
 @dataclass
+class IntervalConfig:
+    coverage: float = MISSING  # nominal coverage of the per-component interval (split conformal)
+    calibration_fraction: float = MISSING  # of the training split, held out to calibrate it
+
+
+@dataclass
 class OcclusionConfig:
     radius_mm: float = MISSING
     mode: str = MISSING
@@ -211,6 +217,7 @@ class TrainConfig:
     weight_decay: float = MISSING
     seed: int = MISSING
     repeats: int = MISSING  # seeded train/test splits per model (the first is the saved model's): mean +- sd
+    interval: IntervalConfig = field(default_factory=IntervalConfig)
 
 
 @dataclass
@@ -568,6 +575,11 @@ def _check_ranges(cfg: dict) -> None:
         _fail("train.test_fraction", "must be in (0, 1)")
     if t["repeats"] < 1:
         _fail("train.repeats", "must be >= 1 (the number of seeded train/test splits per model)")
+    if not 0.0 < t["interval"]["coverage"] < 1.0:
+        _fail("train.interval.coverage", f"must be in (0, 1), got {t['interval']['coverage']}", "e.g. 0.9")
+    if not 0.0 < t["interval"]["calibration_fraction"] < 1.0:
+        _fail("train.interval.calibration_fraction",
+              f"must be in (0, 1), got {t['interval']['calibration_fraction']}", "e.g. 0.2")
     if t["epochs"] < 1 or t["batch_size"] < 1 or t["lr"] <= 0:
         _fail("train.epochs", "epochs, batch_size must be >= 1 and lr > 0")
     tu = cfg["tune"]

@@ -102,6 +102,9 @@ def stage_outputs(tmp_path):
         "n_cases": 11, "metrics": {"mae_vec": 0.34, "rmse_vec": 0.45, "accuracy_pct": 77.0}, "run_id": "runval",
         "model_run_id": "runIVpca_sv", "model_variant": "pca_sv", "variant_choice": "validate.variant=main",
         "figures": [], "per_liver": per_liver, "livers": livers,
+        "interval": {"nominal": 0.9, "bounded": True, "n_calibration": 64, "coverage": [0.875, 0.9, 0.8125],
+                     "coverage_per_liver": {}, "half_width_mean_n": [0.41, 0.38, 0.52],
+                     "test_coverage": [0.9, 0.95, 0.85]},
         "all_variants": {
             "pca_sv": {"metrics": {"mae_vec": 0.34, "rmse_vec": 0.45, "accuracy_pct": 77.0}, "livers": livers,
                        "model_run_id": "runIVpca_sv"},
@@ -257,6 +260,10 @@ def test_report_validates_on_every_unseen_liver_with_mean_sd_and_the_worst_named
         assert ("⚠" in cells[5]) == (b["mae_vec_n"] / b["mean_force_n"] >= 0.2)
     n_flag = sum(b["mae_vec_n"] / b["mean_force_n"] >= 0.2 for b in val["error_by_force_magnitude"])
     assert n_flag == 1 and f"{n_flag} of {len(bins)} bins at or above 20 %" in sec
+    # the calibrated interval: its coverage on the unseen livers, flagged outside the 88-92 % band
+    iv = _section(sec, "<h3>Calibrated interval</h3>", "</p>")
+    assert "64 cases, nominal 90 %" in iv and "87.5, 90.0, 81.2 % of the cases (" in iv and "outside" in iv
+    assert "IV test livers in 90.0, 95.0, 85.0 %" in iv and "0.410, 0.380, 0.520 N" in iv
     # every variant: mean ± sd over the livers and its worst liver
     variants = _rows(sec, "variant")
     assert [_text(c[0]).split()[0] for c in variants] == list(val["all_variants"])

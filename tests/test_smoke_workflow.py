@@ -39,6 +39,9 @@ def test_every_stage_produced_its_outputs(smoke_run):
     assert set(val["all_variants"]) == {"pca_sv", "ae_sv"} and val["model_variant"] == "pca_sv"  # main
     assert val["metrics"] == pytest.approx(val["all_variants"]["pca_sv"]["metrics"])
     assert sorted(val["per_liver"]) == ["val-1000", "val-1001"] and val["livers"]["n"] == 2
+    # the calibrated interval, measured on the unseen livers (smoke: too few calibration cases -> unbounded)
+    iv = val["interval"]
+    assert iv["nominal"] == 0.9 and len(iv["coverage"]) == 3 and sorted(iv["coverage_per_liver"]) == ["val-1000", "val-1001"]
     for study in ("roi_fraction", "encoder", "state_vector", "occlusion", "noise", "train_size", "train_livers"):
         doc = json.loads((root / "studies" / f"{study}.json").read_text())
         assert len(doc["points"]) == 2 and (root / "studies" / f"{study}.png").stat().st_size > 5000

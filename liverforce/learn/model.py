@@ -370,6 +370,33 @@ class ForceModel:
         return self.pre.target_scaler.inverse_transform(predict_regressor(self.regressor, z)) \
             * self.pre.stiffness(s, len(z))
 
+    @property
+    def interval(self):
+        """The calibrated interval (:class:`liverforce.learn.interval.ConformalInterval`), or None."""
+        from liverforce.learn.interval import ConformalInterval
+
+        d = self.meta.get("interval")
+        return None if not d else ConformalInterval.from_dict(d)
+
+    def predict_interval(self, arrays: dict, observation_seed: int | None = None) -> dict:
+        """Force with its calibrated interval per local component.
+
+        Returns ``force_n`` ``(n, 3)`` (source frame), ``force_local_n`` ``(n, 3)``
+        (``F.t1, F.t2, F.n``), ``half_width_local_n`` ``(n, 3)`` (the interval is
+        ``force_local_n +- half_width_local_n``), ``coverage`` (nominal) and
+        ``frame`` ``(n, 3, 3)`` (rows t1, t2, n). A model without a calibrated
+        interval raises ``ValueError``.
+        """
+        ci = self.interval
+        if ci is None:
+            raise ValueError("this model has no calibrated interval (trained without train.interval)")
+        f_local = self.predict_local(arrays, observation_seed)
+        s = state_vector(arrays) if self.uses_state else None
+        half = ci.half_widths(self.pre.stiffness(s, len(f_local)))
+        R = local_rotations(arrays["frame_normal"], arrays["frame_t1"], arrays["frame_t2"])
+        return {"force_n": force_to_source(f_local, R), "force_local_n": f_local, "half_width_local_n": half,
+                "coverage": ci.coverage, "frame": R}
+
     def predict(self, arrays: dict, observation_seed: int | None = None) -> np.ndarray:
         """Tool force ``(n, 3)`` in N, in each case's source frame.
 

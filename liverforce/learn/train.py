@@ -43,6 +43,7 @@ from threadpoolctl import threadpool_limits
 
 from liverforce.atomic import write_text_atomic
 from liverforce.config import config_hash
+from liverforce.learn.interval import coverage_per_component, fit_conformal
 from liverforce.learn.metrics import force_metrics
 from liverforce.learn.model import (
     ForceModel,
@@ -279,6 +280,20 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
     pred = model.predict(test_arrays, observation_seed=eval_seed(seed))
     metrics = force_metrics(prep_test.force, pred)
     model.meta["test_metrics"] = metrics
+    interval = None
+    ci = None
+    if (train_cfg.get("interval") or {}).get("coverage"):
+        try:
+            ci = calibrate_interval(train_arrays, model_cfg, train_cfg["interval"], scenario, seed, encoder,
+                                    use_state, code_size, dae_noise, hidden, dropout, fit)
+        except ValueError as exc:  # e.g. one training liver in IV: nothing to hold out by liver
+            notes.append(f"no calibrated interval: {exc}")
+    if ci is not None:
+        model.meta["interval"] = ci.to_dict()
+        got = model.predict_interval(test_arrays, observation_seed=eval_seed(seed))
+        interval = {**ci.to_dict(), "test_coverage": coverage_per_component(
+            prep_test.y_local, got["force_local_n"], got["half_width_local_n"])}
+        model.meta["interval_test_coverage"] = interval["test_coverage"]
     model_path = model.save(out_dir / "model")
     # the saved bundle must reproduce the metrics exactly (guards the format)
     reloaded = ForceModel.load(model_path).predict(test_arrays, observation_seed=eval_seed(seed))
@@ -315,6 +330,7 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
         "repeats": repeats,
         "cv_mse": best_cv,
         "cv_mae_n": cv_mae_n,
+        "interval": interval,
         "best_params": best,
         "trials": trials,
         "n_train": int(len(tr)),
@@ -332,6 +348,32 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
         "model_uri": None,
         "figures": [str(p) for p in figures],
     }
+
+
+def calibrate_interval(train_arrays, model_cfg, interval_cfg, scenario, seed, encoder, use_state, code_size,
+                       dae_noise, hidden, dropout, fit):
+    """Split-conformal interval (:mod:`liverforce.learn.interval`) from the training split alone.
+
+    The training cases are split again (by liver in IV, as the test split) into a
+    fitting part and ``interval_cfg["calibration_fraction"]`` for calibration; a
+    model with the chosen settings is fitted on the first and scored on the second.
+    """
+    geo = np.asarray(train_arrays["geometry_id"]).astype(str)
+    fit_idx, cal_idx = train_test_split(geo, scenario=scenario,
+                                        test_fraction=float(interval_cfg["calibration_fraction"]),
+                                        seed=derive(seed, "split.calibration"))
+    a_fit, a_cal = subset(train_arrays, fit_idx), subset(train_arrays, cal_idx)
+    cal_seed = derive(seed, "interval.fit")
+    rep_c = representation_from_config(model_cfg, a_fit)
+    prep_fit = prepare(a_fit, rep_c, observation_seeds=view_seeds(cal_seed, n_views_for(rep_c)))
+    model, _ = fit_force_model(prep_fit, rep_c, encoder=encoder, code_size=code_size, use_state=use_state,
+                               hidden=hidden, dropout=dropout, fit=fit, seed=cal_seed, dae_input_noise=dae_noise,
+                               force_scaling=force_scaling_of(model_cfg),
+                               linear_force_radius_mm=linear_force_radius_of(model_cfg))
+    prep_cal = prepare(a_cal, rep_c, observation_seeds=[eval_seed(cal_seed)])
+    f_cal = model.predict_local(a_cal, observation_seed=eval_seed(cal_seed))
+    k = model.pre.stiffness(prep_cal.state if use_state else None, len(f_cal))
+    return fit_conformal(prep_cal.y_local, f_cal, k, float(interval_cfg["coverage"]), group_key(scenario))
 
 
 def _geometries(arrays: dict) -> list[str]:

@@ -42,6 +42,29 @@ def choose_variant(metrics_paths: list, how: str = "auto") -> tuple[int, str]:
     return 0, "first listed variant (not every variant was tuned, no CV score to compare)"
 
 
+def interval_on_unseen(model_dir, arrays: dict) -> dict | None:
+    """Coverage of the model's calibrated interval per local component on the unseen livers (None without one)."""
+    from liverforce.learn.frames import force_to_local
+    from liverforce.learn.interval import coverage_per_component
+    from liverforce.learn.model import ForceModel
+
+    m = ForceModel.load(Path(model_dir))
+    ci = m.interval
+    if ci is None:
+        return None
+    got = m.predict_interval(arrays, observation_seed=int(m.meta.get("eval_observation_seed", 0)))
+    true_local = force_to_local(np.asarray(arrays["force_n"], float), got["frame"])
+    half = got["half_width_local_n"]
+    geo = np.asarray(arrays["geometry_id"]).astype(str)
+    per = {g: coverage_per_component(true_local[geo == g], got["force_local_n"][geo == g], half[geo == g])
+           for g in sorted(set(geo))}
+    return {"nominal": ci.coverage, "bounded": ci.bounded, "n_calibration": ci.n_calibration,
+            "coverage": coverage_per_component(true_local, got["force_local_n"], half),
+            "coverage_per_liver": per,
+            "half_width_mean_n": [float(v) if np.isfinite(v) else None for v in half.mean(axis=0)],
+            "test_coverage": m.meta.get("interval_test_coverage")}
+
+
 def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_path, tracking_uri, out_path, *,
                    experiment_name: str, variant: str) -> dict:
     """Predict the unseen livers' cases with the chosen scenario-IV model.
@@ -101,6 +124,7 @@ def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_
     by_mag = error_by_force_bin(true, pred)
     by_liver = metrics_by_group(true, pred, arrays["geometry_id"])
     model_metrics = json.loads(Path(model_metrics_path).read_text())
+    interval = interval_on_unseen(model_dir, arrays)
     result = {
         "n_cases": n,
         "metrics": metrics,
@@ -114,6 +138,7 @@ def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_
         "model_variant": model_metrics.get("variant") or model_of_metrics(model_metrics_path)[1],
         "variant_choice": choice,
         "all_variants": others,
+        "interval": interval,
         "predictions": {"case_id": [str(c) for c in arrays["case_id"]], "true_n": true.tolist(), "pred_n": pred.tolist()},
     }
     out_dir = Path(out_path).parent
@@ -126,7 +151,8 @@ def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_
     run_id = tracker.start_run("validation", params={"model_run_id": str(result["model_run_id"]), "n_cases": n,
                                                      "model_variant": result["model_variant"]},
                                tags={"rule": "validate", "model_run_id": str(result["model_run_id"])})
-    tracker.log_metrics(run_id, {**metrics, **{f"{k}_livers_mean": v for k, v in by_liver["mean"].items()},
+    cov = {} if not interval else {f"interval_coverage_{ax}": v for ax, v in zip(("t1", "t2", "n"), interval["coverage"])}
+    tracker.log_metrics(run_id, {**metrics, **cov, **{f"{k}_livers_mean": v for k, v in by_liver["mean"].items()},
                                  **{f"{k}_livers_sd": v for k, v in by_liver["sd"].items()},
                                  "n_livers": by_liver["n_groups"]})
     for f in figures:

@@ -568,6 +568,21 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
                  f"unseen liver: MAE {_fmt(STUDY_VALIDATION_MAE_N)} N. MLflow: validation run "
                  f"{_run(v.get('run_id'))} (per-liver mean/sd as <code>mae_vec_livers_mean</code>, "
                  f"<code>…_sd</code>), model run {_run(v.get('model_run_id'))}.</p>")
+    iv = v.get("interval")
+    if iv:
+        cov = iv["coverage"]
+        band = "within" if all(0.88 <= c <= 0.92 for c in cov) else "<b class='flag'>outside</b>"
+        test = iv.get("test_coverage")
+        parts.append(
+            "<h3>Calibrated interval</h3><p>Every prediction comes with an interval per local force component "
+            f"(split conformal on a training-side calibration split of {iv['n_calibration']} cases, nominal "
+            f"{100 * iv['nominal']:.0f} %). On the unseen livers it covers the true tangential (t1, t2) and normal "
+            f"(n) force in {', '.join(f'{100 * c:.1f}' for c in cov)} % of the cases ({band} the 88–92 % band); "
+            + (f"on the IV test livers in {', '.join(f'{100 * c:.1f}' for c in test)} %; " if test else "")
+            + "mean half-widths "
+            + ", ".join("unbounded" if h is None else f"{h:.3f}" for h in iv["half_width_mean_n"])
+            + " N. Coverage below nominal on the unseen livers means they differ from the training population "
+              "(their constants lie outside its range).</p>")
     allv = v.get("all_variants") or {}
     if len(allv) > 1:
         parts.append("<h3>Every scenario-IV variant on the same unseen livers</h3>")

@@ -122,8 +122,12 @@ def _run(args) -> int:
         info.update(extra)
     elif args.mode == "surface":
         force = predictor.predict(preop.roi_of_surface(pts), preop)
+        info["interval"] = predictor.interval(preop.roi_of_surface(pts), preop)
     else:
         force = predictor.predict(pts, preop)
+        info["interval"] = predictor.interval(pts, preop)
+    if info.get("interval") is None:
+        info.pop("interval", None)
     doc = {"force_n": [float(v) for v in force], "magnitude_n": float(np.linalg.norm(force)),
            "frame": "liver (source) frame of the inputs", "model": predictor.source, **info}
     if args.out and args.out.lower().endswith(".csv"):

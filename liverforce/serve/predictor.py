@@ -170,6 +170,20 @@ class Predictor:
         check_case(arrays, 0, self.model, self.scale, self.limits, label="")
         return self.model.predict(arrays)[0]
 
+    def interval(self, deformed_roi_mm, preop: Preop) -> dict | None:
+        """The calibrated interval of :meth:`predict`'s force (None for a model without one).
+
+        ``{"coverage", "frame" (rows t1, t2, n), "force_local_n", "half_width_local_n",
+        "lower_local_n", "upper_local_n"}``: per local component, the interval
+        ``force_local_n +- half_width_local_n`` covers the true component with the
+        nominal probability on livers like the calibration livers (the unseen-liver
+        validation reports the coverage actually reached).
+        """
+        if self.model.interval is None:
+            return None
+        self.predict(deformed_roi_mm, preop)  # every check
+        return interval_doc(self.model, preop.to_arrays(_points("roi_deformed_mm", deformed_roi_mm)))
+
     def predict_cloud(self, cloud_mm, preop: Preop, *, approximate: bool = False,
                       return_info: bool = False) -> np.ndarray | tuple[np.ndarray, dict]:
         """(b) Force ``(3,)`` N from an unordered observed cloud ``(m, 3)`` mm (:mod:`liverforce.serve.cloud`).
@@ -184,6 +198,8 @@ class Predictor:
         if info["mode"] == "approximate" and self.model.representation.features != "deformed":
             check_case(arrays, 0, self.model, self.scale, self.limits, label="")
         force = self.model.predict(arrays)[0]
+        if return_info and self.model.interval is not None:
+            info["interval"] = interval_doc(self.model, arrays)
         return (force, info) if return_info else force
 
     @property
@@ -282,3 +298,15 @@ def _context_key(arrays: dict, i: int) -> bytes:
             h.update(str(a.shape).encode())
             h.update(a.tobytes())
     return h.digest()
+
+
+def interval_doc(model, arrays: dict) -> dict:
+    """JSON-ready interval of the first row of ``arrays`` (:meth:`Predictor.interval`)."""
+    got = model.predict_interval(arrays)
+    f, h = got["force_local_n"][0], got["half_width_local_n"][0]
+
+    def fl(v):
+        return [float(x) if np.isfinite(x) else None for x in v]
+
+    return {"coverage": got["coverage"], "frame": got["frame"][0].tolist(), "force_local_n": fl(f),
+            "half_width_local_n": fl(h), "lower_local_n": fl(f - h), "upper_local_n": fl(f + h)}

@@ -45,6 +45,8 @@ from liverforce.tracking.store import with_retry
 MODEL_NAME = "model"
 #: columns of the pyfunc output frame (source-frame force, N)
 OUTPUT_COLUMNS = ("fx_n", "fy_n", "fz_n")
+#: further columns for a model with a calibrated interval: the local force (t1, t2, n) and its half-widths, N
+INTERVAL_COLUMNS = ("ft1_n", "ft2_n", "fn_n", "ft1_half_n", "ft2_half_n", "fn_half_n")
 _ROI_KEYS = ("roi_undeformed_mm", "roi_deformed_mm")
 
 
@@ -91,8 +93,10 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
     """MLflow pyfunc around a :class:`liverforce.learn.model.ForceModel` bundle (artifact ``force_model``).
 
     Input: a DataFrame, one row per case, columns as :func:`arrays_to_frame`
-    writes them. Output: a DataFrame ``fx_n, fy_n, fz_n`` (source frame, N).
-    Param ``observation_seed`` (int, -1 = none) draws the stochastic
+    writes them. Output: a DataFrame ``fx_n, fy_n, fz_n`` (source frame, N),
+    and for a model with a calibrated interval also the local force
+    ``ft1_n, ft2_n, fn_n`` and its interval half-widths ``ft1_half_n, ft2_half_n,
+    fn_half_n`` (nominal coverage in the bundle's ``meta["interval"]``). Param ``observation_seed`` (int, -1 = none) draws the stochastic
     observation model as in evaluation.
     """
 
@@ -108,7 +112,18 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
             force = Predictor(self.model).predict_arrays(arrays, observation_seed=None if seed < 0 else seed)
         except PredictionInputError as exc:
             raise PyfuncInputError(str(exc)) from exc
-        return pd.DataFrame(force, columns=list(OUTPUT_COLUMNS))
+        return _output_frame(self.model, arrays, force, None if seed < 0 else seed)
+
+
+def _output_frame(model: ForceModel, arrays: dict, force: np.ndarray, seed: int | None) -> pd.DataFrame:
+    out = pd.DataFrame(force, columns=list(OUTPUT_COLUMNS))
+    if model.interval is not None:
+        got = model.predict_interval(arrays, observation_seed=seed)
+        for j, c in enumerate(INTERVAL_COLUMNS[:3]):
+            out[c] = got["force_local_n"][:, j]
+        for j, c in enumerate(INTERVAL_COLUMNS[3:]):
+            out[c] = got["half_width_local_n"][:, j]
+    return out
 
 
 class PyfuncInputError(PredictionInputError, MlflowException):
@@ -165,7 +180,8 @@ def log_force_model(uri: str, run_id: str, model_dir: str | Path, example_arrays
     if "case_id" in example_arrays:
         keys.insert(0, "case_id")
     example = arrays_to_frame(example_arrays, keys)
-    output = pd.DataFrame(model.predict(frame_to_arrays(example)), columns=list(OUTPUT_COLUMNS))
+    ex = frame_to_arrays(example)
+    output = _output_frame(model, ex, model.predict(ex), None)
     signature = infer_signature(example, output, params={"observation_seed": -1})
     # case_id only seeds the per-case observation noise: optional
     signature.inputs = Schema([

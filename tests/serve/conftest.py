@@ -19,7 +19,8 @@ BASE = {
     "encoder": "pca", "code_size": 4, "state_vector": True, "grid_size": 8, "hidden": [32, 32], "dropout": 0.0,
     "occlusion": {"radius_mm": 3.0, "mode": "remove"}, "noise_mm": 0.0,
 }
-TRAIN = {"test_fraction": 0.2, "epochs": 40, "batch_size": 32, "lr": 3e-3, "weight_decay": 0.0, "seed": 0}
+TRAIN = {"test_fraction": 0.2, "epochs": 40, "batch_size": 32, "lr": 3e-3, "weight_decay": 0.0, "seed": 0,
+         "interval": {"coverage": 0.9, "calibration_fraction": 0.2}}
 NO_TUNE = {"enabled": False, "trials": 1, "folds": 2, "sobol_trials": 1, "epochs": 1}
 
 

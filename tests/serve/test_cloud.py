@@ -30,7 +30,9 @@ def test_exact_for_a_deformed_height_model_in_any_order(trained, test_cases):
         ctx = Preop.from_arrays(test_cases, i)
         D = np.asarray(test_cases["roi_deformed_mm"][i])
         f, info = pred.predict_cloud(D[rng.permutation(len(D))], ctx, return_info=True)
+        iv = info.pop("interval")  # the calibrated interval of the same force, per local component
         assert info == {"mode": "exact", "points_given": len(D), "points_used": len(D)}
+        np.testing.assert_allclose(iv["force_local_n"], ctx.frame @ f, atol=1e-9)
         np.testing.assert_allclose(f, ref[i], atol=1e-6)
 
 

@@ -41,7 +41,8 @@ def test_the_logged_model_has_a_signature_an_example_and_no_pickle(logged, tmp_p
     mlmodel = yaml.safe_load((model_dir / "MLmodel").read_text())
     inputs = {c["name"] for c in json.loads(mlmodel["signature"]["inputs"])}
     assert {"roi_undeformed_mm", "roi_deformed_mm", "exertion_point_mm", "material_params_mpa"} <= inputs
-    assert [c["name"] for c in json.loads(mlmodel["signature"]["outputs"])] == ["fx_n", "fy_n", "fz_n"]
+    assert [c["name"] for c in json.loads(mlmodel["signature"]["outputs"])] == [
+        "fx_n", "fy_n", "fz_n", "ft1_n", "ft2_n", "fn_n", "ft1_half_n", "ft2_half_n", "fn_half_n"]  # + the interval
     assert (model_dir / "serving_input_example.json").is_file()
     assert not list(model_dir.rglob("*.pkl"))  # models from code: nothing to unpickle
     assert (bundle / "model.json").is_file()
@@ -120,7 +121,8 @@ def test_mlflow_models_serve_answers_over_http(logged, data, tmp_path):
         example = json.loads((bundle.parent.parent / "serving_input_example.json").read_text())
         status, body = _post(f"{base}/invocations", example)
         assert status == 200, body
-        assert set(body["predictions"][0]) == {"fx_n", "fy_n", "fz_n"}
+        assert set(body["predictions"][0]) == {"fx_n", "fy_n", "fz_n", "ft1_n", "ft2_n", "fn_n", "ft1_half_n",
+                                               "ft2_half_n", "fn_half_n"}
         # a request built from new cases equals the local predictor
         from liverforce.tracking import arrays_to_frame
 
@@ -131,6 +133,9 @@ def test_mlflow_models_serve_answers_over_http(logged, data, tmp_path):
         assert status == 200, body
         got = np.array([[p["fx_n"], p["fy_n"], p["fz_n"]] for p in body["predictions"]])
         np.testing.assert_allclose(got, pred.predict_arrays(cases), atol=1e-9)
+        iv = pred.model.predict_interval(cases)  # the served interval is the model's
+        got = np.array([[p["ft1_half_n"], p["ft2_half_n"], p["fn_half_n"]] for p in body["predictions"]])
+        np.testing.assert_allclose(got, iv["half_width_local_n"], rtol=1e-9)
         # bad input: a clear refusal, not a force
         cases["roi_deformed_mm"] = [d * 0.1 for d in cases["roi_deformed_mm"]]
         frame = arrays_to_frame(cases, list(pred.model.required_inputs()))

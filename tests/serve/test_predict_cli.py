@@ -95,7 +95,17 @@ def test_nodes_mode_yaml_context_and_outputs(trained, test_cases, tmp_path, caps
     rc, out, err = run(["-m", model, tmp_path / "nodes.npy", "--mode", "nodes", "--context", tmp_path / "ctx.yaml",
                         "--out", tmp_path / "f.json"], capsys)
     assert rc == 0, err
-    np.testing.assert_allclose(json.loads((tmp_path / "f.json").read_text())["force_n"], expect, atol=1e-12)
+    doc = json.loads((tmp_path / "f.json").read_text())
+    np.testing.assert_allclose(doc["force_n"], expect, atol=1e-12)
+    # the calibrated interval per local component (t1, t2, n) comes with the force
+    iv, m = doc["interval"], Predictor.load(model).model
+    np.testing.assert_allclose(iv["frame"], ctx.frame, atol=1e-12)
+    np.testing.assert_allclose(iv["force_local_n"], ctx.frame @ expect, atol=1e-9)
+    k = 1.0 if m.pre.stiffness_ref is None else ctx.material_params_mpa[0] / m.pre.stiffness_ref
+    np.testing.assert_allclose(iv["half_width_local_n"], k * np.asarray(m.interval.half_width_n), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(iv["upper_local_n"]) - iv["lower_local_n"],
+                               2 * np.asarray(iv["half_width_local_n"]), rtol=1e-12)
+    assert iv["coverage"] == 0.9 and m.interval.n_calibration >= 9 and min(iv["half_width_local_n"]) > 0
     rc, out, err = run(["-m", model, tmp_path / "nodes.npy", "--mode", "nodes", "--context", tmp_path / "ctx.yaml",
                         "--out", tmp_path / "f.csv"], capsys)
     assert rc == 0

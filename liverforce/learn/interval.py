@@ -1,0 +1,96 @@
+"""Calibrated intervals per force component: split conformal prediction on a training-side split.
+
+Every prediction of a model comes with an interval for each local force
+component ``(F.t1, F.t2, F.n)`` (the local frame at the exertion point,
+:mod:`liverforce.learn.frames`): the tangential and the normal force, the
+components a surgeon-engineer reads.
+
+Calibration (split conformal, Vovk et al. 2005; Lei et al. 2018): the training
+split is split again, by liver where the test split is by liver (scenario IV).
+A model with the main model's settings and hyper-parameters is fitted on the
+larger part and predicts the calibration part (with the evaluation's
+observation model). With force scaling, the scores are the absolute residuals
+divided by the stiffness factor ``k`` of each case
+(:meth:`liverforce.learn.model.Preprocessor.stiffness`), so the interval
+scales with the material as the force does:
+
+    s_ij = |f_ij - f^_ij| / k_i,      q_j = s_(ceil((n + 1) c)) of component j,
+    interval_ij = f^_ij +- k_i q_j
+
+For ``n`` calibration cases exchangeable with a new case, the interval covers
+the new case's component with probability at least ``c`` (and below
+``c + 1/(n+1)``). A new liver is exchangeable with calibration livers only
+if it comes from the same population: the validation on unseen livers
+(constants outside the training range) measures the coverage actually
+reached.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class ConformalInterval:
+    """Half-widths ``q`` (3,) N per local component (before the stiffness factor) at nominal ``coverage``."""
+
+    coverage: float
+    half_width_n: tuple[float, float, float]
+    n_calibration: int
+    grouping: str  # what the calibration split held out: "geometry" (livers) or "case"
+
+    def half_widths(self, stiffness: np.ndarray) -> np.ndarray:
+        """Half-widths ``(n, 3)`` N for rows with stiffness factors ``(n, 1)``."""
+        return np.asarray(stiffness, dtype=np.float64).reshape(-1, 1) * np.asarray(self.half_width_n)[None, :]
+
+    @property
+    def bounded(self) -> bool:
+        """False when there were too few calibration cases (:func:`min_calibration_cases`): infinite width."""
+        return all(math.isfinite(v) for v in self.half_width_n)
+
+    def to_dict(self) -> dict:
+        """JSON-ready; an unbounded half-width is written as null."""
+        return {"coverage": float(self.coverage),
+                "half_width_n": [float(v) if math.isfinite(v) else None for v in self.half_width_n],
+                "n_calibration": int(self.n_calibration), "grouping": self.grouping}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ConformalInterval":
+        return cls(float(d["coverage"]), tuple(math.inf if v is None else float(v) for v in d["half_width_n"]),
+                   int(d["n_calibration"]), str(d["grouping"]))
+
+
+def fit_conformal(true_local: np.ndarray, pred_local: np.ndarray, stiffness: np.ndarray, coverage: float,
+                  grouping: str) -> ConformalInterval:
+    """The split-conformal quantile per component (module docstring) from calibration predictions."""
+    if not 0.0 < coverage < 1.0:
+        raise ValueError(f"interval coverage must be in (0, 1), got {coverage}")
+    s = np.abs(np.asarray(true_local, float) - np.asarray(pred_local, float)) / np.asarray(stiffness, float).reshape(-1, 1)
+    n = len(s)
+    rank = _rank(n, coverage)
+    if rank > n:  # too few cases for this coverage: the honest split-conformal interval is unbounded
+        return ConformalInterval(float(coverage), (math.inf,) * 3, int(n), grouping)
+    q = np.sort(s, axis=0)[rank - 1]
+    return ConformalInterval(float(coverage), tuple(float(v) for v in q), int(n), grouping)
+
+
+def _rank(n: int, coverage: float) -> int:
+    """``ceil((n + 1) c)``, robust to round-off in ``(n + 1) c`` (10 x 0.9 is 9.000000000000002 in floats)."""
+    return math.ceil((n + 1) * coverage - 1e-9)
+
+
+def min_calibration_cases(coverage: float) -> int:
+    """The fewest calibration cases that bound a ``coverage`` interval: ``ceil((n + 1) c) <= n``."""
+    n = 1
+    while _rank(n, coverage) > n:
+        n += 1
+    return n
+
+
+def coverage_per_component(true_local: np.ndarray, pred_local: np.ndarray, half: np.ndarray) -> list[float]:
+    """Fraction of rows whose true component lies in ``pred +- half``, per local component."""
+    inside = np.abs(np.asarray(true_local, float) - np.asarray(pred_local, float)) <= np.asarray(half, float)
+    return [float(v) for v in inside.mean(axis=0)]
