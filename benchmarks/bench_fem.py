@@ -186,7 +186,7 @@ def bench_shard(label, target_vertices, scenario, n_cases=25):
     ex = exertion_set(m, 8, 15.0, 0, sim["tool_radius_mm"], candidates=m.meta["exertion_candidates_mm"])
     spec = {"n_cases": 8 * n_cases, "exertion": "varies", "material": "varies" if scenario == "III" else "fixed"}
     material = dict(cfg["material"], on_unstable="clip")
-    stable, bulk = material_checks(material["stability_stretch"])
+    stable, bulk = material_checks(material["stability_stretch"], material["nu"])
     cases = build_cases(scenario, spec, ["g"], {"g": ex}, material, dict(cfg["sweep"]["force"]), "sobol", 0,
                         n_cases, stable, bulk).rows
     cases = [r for r in cases if r["exertion_id"] == cases[0]["exertion_id"]][:n_cases]

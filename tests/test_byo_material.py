@@ -60,7 +60,7 @@ def test_the_converted_material_passes_the_sweeps_drucker_check():
     from liverforce.pipeline.sweep import material_checks
 
     m = compose(["material=neo_hookean_from_e", "material.E_pa=4500"])["material"]
-    stable, _ = material_checks(m["stability_stretch"])
+    stable, _ = material_checks(m["stability_stretch"], m["nu"])
     ok, message = stable(m["model"], m["params_mpa"])
     assert ok, message
 

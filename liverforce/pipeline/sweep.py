@@ -15,14 +15,20 @@ from liverforce.seeds import derive
 log = logging.getLogger("liverforce")
 
 
-def material_checks(stretch_range):
-    """(stability_check, bulk_modulus) callables for :func:`liverforce.sweep.design.build_cases`."""
+def material_checks(stretch_range, nu: float):
+    """(stability_check, bulk_modulus) callables for :func:`liverforce.sweep.design.build_cases`.
+
+    ``stretch_range`` : ``material.stability_stretch``; ``nu`` : ``material.nu``, the
+    Poisson ratio the cases are simulated with: the check builds that same material.
+    (The Drucker check itself walks the incompressible test modes, so its verdict
+    depends on the isochoric constants only; ``nu`` sets the bulk modulus.)
+    """
     from liverforce.fem.materials import make_material
     from liverforce.fem.stability import check_stability
 
     def stable(model, params):
         try:
-            mat = make_material(model, params, nu=0.45)
+            mat = make_material(model, params, nu=nu)
         except ValueError as exc:
             return False, str(exc)
         rep = check_stability(mat, stretch_range=tuple(stretch_range))
@@ -92,7 +98,7 @@ def make_sweep(params: dict, mesh_paths: list[str], cases_path, report_path) -> 
     if params["material"].get("conversion"):  # constants derived from a Young's modulus (liverforce.config)
         log.info("material: %s", params["material"]["conversion"])
     by_gid = {gid_of(p): p for p in mesh_paths}
-    stable, bulk = material_checks(params["material"]["stability_stretch"])
+    stable, bulk = material_checks(params["material"]["stability_stretch"], params["material"]["nu"])
     ex, given_by = {}, {}
     for gid in gids:
         mesh = read_mesh(by_gid[gid])

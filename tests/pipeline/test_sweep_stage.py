@@ -10,7 +10,7 @@ from liverforce.sweep.design import SweepError, build_cases
 
 def test_study_mooney_rivlin_constants_are_refused_before_solving():
     cfg = compose(["material=mooney_rivlin_study"])
-    stable, bulk = material_checks(cfg["material"]["stability_stretch"])
+    stable, bulk = material_checks(cfg["material"]["stability_stretch"], cfg["material"]["nu"])
     ok, why = stable(cfg["material"]["model"], cfg["material"]["params_mpa"])
     assert not ok and "uniaxial" in why and "0.865" in why
     with pytest.raises(SweepError, match="not Drucker-stable"):
@@ -20,8 +20,32 @@ def test_study_mooney_rivlin_constants_are_refused_before_solving():
 
 def test_study_yeoh_constants_are_stable_and_bulk_follows_nu():
     cfg = compose([])
-    stable, bulk = material_checks(cfg["material"]["stability_stretch"])
+    stable, bulk = material_checks(cfg["material"]["stability_stretch"], cfg["material"]["nu"])
     ok, why = stable("yeoh", cfg["material"]["params_mpa"])
     assert ok, why
     mu0 = 2 * cfg["material"]["params_mpa"]["C10"]
     assert bulk("yeoh", cfg["material"]["params_mpa"], 0.49) == pytest.approx(2 * mu0 * 1.49 / (3 * 0.02))
+
+
+@pytest.mark.parametrize("nu", [0.49, 0.3])
+def test_the_drucker_check_builds_the_material_with_the_configured_nu(monkeypatch, nu):
+    """The check ran on a nu-0.45 material whatever material.nu said (issue 18): it must check the
+    material the cases are simulated with (same constants, same bulk modulus)."""
+    import liverforce.fem.stability as stability
+    from liverforce.fem.materials import make_material
+
+    cfg = compose([f"material.nu={nu}"])["material"]
+    seen = []
+    real = stability.check_stability
+
+    def spy(material, *a, **kw):
+        seen.append(material)
+        return real(material, *a, **kw)
+
+    monkeypatch.setattr(stability, "check_stability", spy)
+    stable, bulk = material_checks(cfg["stability_stretch"], cfg["nu"])
+    ok, why = stable(cfg["model"], cfg["params_mpa"])
+    assert ok, why
+    simulated = make_material(cfg["model"], cfg["params_mpa"], nu=cfg["nu"])
+    assert [m.bulk for m in seen] == [pytest.approx(simulated.bulk, rel=1e-12)]
+    assert bulk(cfg["model"], cfg["params_mpa"], cfg["nu"]) == pytest.approx(simulated.bulk, rel=1e-12)

@@ -34,7 +34,7 @@ def _refuse_unstable_material(cfg):
     from liverforce.pipeline.sweep import material_checks
 
     mat = cfg["material"]
-    stable, _ = material_checks(mat["stability_stretch"])
+    stable, _ = material_checks(mat["stability_stretch"], mat["nu"])
     ok, why = stable(mat["model"], dict(mat["params_mpa"]))
     if not ok:
         raise ConfigError(f"config key 'material.params_mpa': {why}")
