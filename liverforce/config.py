@@ -116,11 +116,20 @@ class MaterialConfig:
 
 
 @dataclass
+class GravityConfig:
+    enabled: bool = MISSING
+    density_kg_per_m3: float = MISSING
+    direction: list[float] = MISSING  # in the mesh frame (RAS for procedural livers), normalised
+
+
+@dataclass
 class BoundaryConfig:
     ligament_total_n_per_mm: float = MISSING
     visceral_total_n_per_mm: float = MISSING
     tangential_ratio: float = MISSING
     rib_normal_n_per_mm3: float = MISSING
+    rib_contact: str = MISSING  # bilateral | unilateral
+    gravity: GravityConfig = field(default_factory=GravityConfig)
 
 
 @dataclass
@@ -492,9 +501,17 @@ def _check_ranges(cfg: dict) -> None:
     _check_choice("material.on_unstable", mat["on_unstable"], ("refuse", "clip"))
 
     b = cfg["boundary"]
-    for k, v in b.items():
-        if v < 0:
-            _fail(f"boundary.{k}", f"stiffness must be >= 0 (got {v})")
+    for k in ("ligament_total_n_per_mm", "visceral_total_n_per_mm", "tangential_ratio", "rib_normal_n_per_mm3"):
+        if b[k] < 0:
+            _fail(f"boundary.{k}", f"stiffness must be >= 0 (got {b[k]})")
+    _check_choice("boundary.rib_contact", b["rib_contact"], ("bilateral", "unilateral"), "rib contact")
+    grav = b["gravity"]
+    if not 100 <= grav["density_kg_per_m3"] <= 5000:
+        _fail("boundary.gravity.density_kg_per_m3", f"must be in [100, 5000] kg/m^3 (got {grav['density_kg_per_m3']})",
+              "liver tissue is about 1060 kg/m^3; units are kg/m^3, not g/cm^3")
+    d = grav["direction"]
+    if len(d) != 3 or not sum(x * x for x in d) > 0:
+        _fail("boundary.gravity.direction", f"must be a non-zero 3-vector (got {d})")
 
     s = cfg["sweep"]
     _check_choice("sweep.design", s["design"], sweep_designs(), "design")

@@ -10,8 +10,34 @@ area with separate normal and tangential stiffness (N/mm³):
     \\big(k_n n_i n_k + k_t(\\delta_{ik} - n_i n_k)\\big)\\, dA
 
 with ``n`` the reference outward normal (a linear, constant stiffness). The
-rib region is the same term with a large ``k_n`` and ``k_t = 0`` (no normal
-motion, free sliding by penalty).
+normal and tangential stiffnesses are independent parameters (the config sets
+``k_t = tangential_ratio * k_n``). The rib region is, by default, the same term
+with a large ``k_n`` and ``k_t = 0`` (no normal motion, free sliding by
+penalty): a *bilateral* support that holds the liver back when it is pulled
+away as firmly as when it is pushed in.
+
+Unilateral rib contact (:class:`UnilateralPenalty`): the rib only pushes. With
+``n`` the liver's outward normal on the rib region (the rib lies outside, so
+motion along ``+n`` goes into the rib) the normal gap is ``g_n = -u . n``
+(small sliding, reference normals, ribs touching at rest) and the penalty
+energy is
+
+.. math::
+
+    \Pi_c(u) = \int_{\Gamma_{rib}} \tfrac12 k_n \langle g_n \rangle_-^2\, dA,
+    \qquad \langle g \rangle_- = \min(g, 0),
+
+evaluated at the 7 facet quadrature points. Residual
+``f_ai = int k_n <u.n>_+ N_a n_i dA`` (it only pushes the liver inward) and the
+generalised (semismooth Newton) tangent
+``K_ai,bk = int k_n H(u.n) N_a N_b n_i n_k dA`` over the active set
+``u.n >= 0`` (points touching the rib count as active, so at rest and under a
+push the tangent equals the bilateral one). Where every quadrature point is in
+contact the term equals the bilateral penalty exactly.
+
+Gravity (:func:`gravity_body_force`, :func:`body_force_loads`): a dead body
+force density ``b = rho g d`` (N/mm³) on the reference volume, nodal loads
+``f_a = int N_a b dV``; they sum to the liver's weight ``V rho g``.
 
 Tool load: a dead load ``F`` (N) spread as a smooth traction of fixed
 physical width around the exertion point ``x0``,
@@ -184,3 +210,104 @@ def tool_nodal_forces(
     for i in range(3):
         np.add.at(f, 3 * fn.ravel() + i, wa.ravel() * F[i])
     return f
+
+
+#: standard gravity (m/s²)
+STANDARD_GRAVITY = 9.80665
+
+
+def gravity_body_force(density_kg_per_m3: float, direction=(0.0, 0.0, -1.0),
+                       g_m_per_s2: float = STANDARD_GRAVITY) -> np.ndarray:
+    """Body force density (3,) in N/mm³ of a tissue of density ``rho`` (kg/m³) under gravity.
+
+    ``rho g`` is in N/m³ (kg/m³ x m/s²); 1 m³ = 1e9 mm³, so
+    ``b = rho * g * 1e-9`` N/mm³ along the unit ``direction`` (normalised
+    here). Liver, 1060 kg/m³: 1.0395e-5 N/mm³, i.e. 13.1 N for a 1.26 L liver.
+    """
+    d = np.asarray(direction, float).reshape(3)
+    length = np.linalg.norm(d)
+    if not length > 0:
+        raise ValueError(f"gravity direction must be a non-zero 3-vector, got {direction}")
+    if not density_kg_per_m3 >= 0:
+        raise ValueError(f"density must be >= 0 kg/m³, got {density_kg_per_m3}")
+    return float(density_kg_per_m3) * float(g_m_per_s2) * 1e-9 * d / length
+
+
+def body_force_loads(disc: TetDiscretization, body_force_n_per_mm3) -> np.ndarray:
+    """Consistent nodal loads (n_dofs,) of a uniform dead body force ``b`` (N/mm³): ``f_a = b int N_a dV``.
+
+    Exact integrals on straight tets: P1 ``V/4`` per vertex; P2 ``-V/20`` per
+    vertex and ``V/5`` per edge node. They sum to ``b * sum(V)``.
+    """
+    b = np.asarray(body_force_n_per_mm3, float).reshape(3)
+    V = disc.volume
+    if disc.order == 1:
+        share = np.broadcast_to(np.array([0.25] * 4), (len(V), 4))
+    else:
+        share = np.broadcast_to(np.array([-0.05] * 4 + [0.2] * 6), (len(V), 10))
+    nodal = np.bincount(disc.conn.ravel(), weights=(V[:, None] * share).ravel(), minlength=disc.n_nodes)
+    return (nodal[:, None] * b[None, :]).ravel()
+
+
+class UnilateralPenalty:
+    """Frictionless unilateral normal penalty on a facet set: ``0.5 k_n <u.n>_+^2`` per unit area.
+
+    Parameters
+    ----------
+    disc : discretisation (P1 or P2 facets).
+    points : (n, 3) reference vertices (mm).
+    facets : (k, 3) the contact facets (outward normals: the obstacle lies along ``+n``).
+    kn : penalty stiffness (N/mm³).
+    normals : optional (n_vertices, 3) vertex normals interpolated at the quadrature points
+        (as :func:`spring_matrix`); default the facet normals.
+
+    The static block structure (``rows``, ``cols``: full dofs of every facet's
+    ``(3 nfn)²`` block) is fixed; :meth:`tangent_values` gives its values at a
+    state ``u`` in the same order.
+    """
+
+    def __init__(self, disc: TetDiscretization, points, facets, kn: float, normals=None):
+        points = np.asarray(points, float)
+        facets = np.asarray(facets, np.int64).reshape(-1, 3)
+        self.kn = float(kn)
+        self.n_dofs = disc.n_dofs
+        fn, _, W, N, n, _ = _facet_quadrature(disc, points, facets)
+        nq = len(TRI_Q7[1])
+        if normals is None:
+            nqv = np.broadcast_to(n[:, None, :], (len(facets), nq, 3)).copy()
+        else:
+            nqv = np.einsum("qm,kmi->kqi", TRI_Q7[0], np.asarray(normals, float)[facets])
+            nqv /= np.maximum(np.linalg.norm(nqv, axis=-1, keepdims=True), 1e-300)
+        self.W = W  # (k, nq) area weights
+        # B[k, q, a*3+i] = N_qa n_kqi: the normal displacement u_n = B . u_facet
+        self.B = np.einsum("qa,kqi->kqai", N, nqv).reshape(len(facets), nq, -1)
+        self.dofs = (3 * fn[:, :, None] + np.arange(3)).reshape(len(fn), -1)  # (k, 3 nfn)
+        nd = self.dofs.shape[1]
+        self.rows = np.repeat(self.dofs, nd, axis=1).ravel()
+        self.cols = np.tile(self.dofs, (1, nd)).ravel()
+
+    def normal_displacement(self, u: np.ndarray) -> np.ndarray:
+        """``u . n`` (k, nq) at the quadrature points (mm); > 0 is penetration into the obstacle."""
+        return np.einsum("kqd,kd->kq", self.B, np.asarray(u, float)[self.dofs])
+
+    def active(self, u: np.ndarray) -> np.ndarray:
+        """(k, nq) bool: quadrature points in contact (``u . n >= 0``)."""
+        return self.normal_displacement(u) >= 0.0
+
+    def energy_force(self, u: np.ndarray) -> tuple[float, np.ndarray]:
+        """Penalty energy (N mm) and its gradient (n_dofs,): the force the liver exerts on the obstacle."""
+        pen = np.maximum(self.normal_displacement(u), 0.0)
+        energy = 0.5 * self.kn * float(np.sum(self.W * pen**2))
+        local = self.kn * np.einsum("kq,kqd->kd", self.W * pen, self.B)
+        f = np.bincount(self.dofs.ravel(), weights=local.ravel(), minlength=self.n_dofs)
+        return energy, f
+
+    def tangent_values(self, u: np.ndarray) -> np.ndarray:
+        """Values of the generalised tangent on (``rows``, ``cols``) at ``u`` (active set ``u.n >= 0``)."""
+        w = self.kn * self.W * self.active(u)
+        return np.einsum("kq,kqa,kqb->kab", w, self.B, self.B).ravel()
+
+    def tangent_matrix(self, u: np.ndarray) -> sp.csr_matrix:
+        """Full (n_dofs x n_dofs) generalised tangent at ``u``."""
+        n = self.n_dofs
+        return sp.coo_matrix((self.tangent_values(u), (self.rows, self.cols)), shape=(n, n)).tocsr()

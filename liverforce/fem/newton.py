@@ -7,7 +7,10 @@ The discrete problem is stationarity of the potential
     \Pi(u) = \Pi_{int}(u) + \tfrac12 u^T K_s u - f^T u,
     \qquad u_c = \bar u_c \ \text{on constrained dofs},
 
-with dead loads ``f`` and prescribed values ``u_bar`` moved along a load
+plus, optionally, a piecewise-smooth contact penalty ``Pi_c(u)`` (the
+unilateral rib, :class:`~liverforce.fem.boundary.UnilateralPenalty`; Newton
+then uses its generalised tangent on the current active set: semismooth
+Newton), with dead loads ``f`` and prescribed values ``u_bar`` moved along a load
 path ``f(lambda)``, ``lambda`` in (0, 1]: ``lambda f_ext`` from rest (cold
 start) or ``f0 + lambda (f_ext - f0)`` from a neighbouring solution ``u0`` in
 equilibrium with ``f0`` (warm start; tried first at ``lambda = 1``).
@@ -154,10 +157,15 @@ class DiscreteSystem:
     spring : (n_dofs, n_dofs) constant foundation stiffness or None.
     options : :class:`SolverOptions`.
     disc : optional prebuilt discretisation (must match the formulation order).
+    contact : optional nonlinear boundary term (e.g.
+        :class:`~liverforce.fem.boundary.UnilateralPenalty`) with ``energy_force(u)``,
+        ``tangent_values(u)`` on its static ``rows`` / ``cols``: its energy joins the
+        potential, its force the residual and its generalised tangent the Newton
+        matrix (semismooth Newton on a piecewise-smooth penalty).
     """
 
     def __init__(self, points, tets, fixed_dofs, spring=None, options: SolverOptions | None = None,
-                 disc: TetDiscretization | None = None):
+                 disc: TetDiscretization | None = None, contact=None):
         self.options = options or SolverOptions()
         order, mean_dil = formulation_spec(self.options.formulation)
         self.disc = disc if disc is not None else build_discretization(points, tets, order)
@@ -175,22 +183,46 @@ class DiscreteSystem:
         pos = self.pattern.positions(coo.row, coo.col)
         self._spring_pos = pos[pos >= 0]
         self._spring_val = coo.data[pos >= 0]
+        self.contact = contact
+        if contact is not None:
+            cpos = self.pattern.positions(contact.rows, contact.cols)
+            self._contact_keep = cpos >= 0
+            self._contact_pos = cpos[self._contact_keep]
         self.linear = LinearSolver(self.options.linear_solver)
 
     # ------------------------------------------------------------------
-    def tangent_matrix(self, data: np.ndarray) -> sp.csr_matrix:
-        """Reduced tangent (free × free) from element data plus the foundation springs."""
+    def tangent_matrix(self, data: np.ndarray, u: np.ndarray | None = None) -> sp.csr_matrix:
+        """Reduced tangent (free × free) from element data plus the foundation springs.
+
+        With a ``contact`` term, its generalised tangent at ``u`` (default the rest
+        state, where a unilateral contact counts as touching) is added too.
+        """
         d = data.copy()
         np.add.at(d, self._spring_pos, self._spring_val)
+        if self.contact is not None:
+            uc = np.zeros(self.disc.n_dofs) if u is None else u
+            vals = self.contact.tangent_values(uc)[self._contact_keep]
+            d += np.bincount(self._contact_pos, weights=vals, minlength=d.size)
         return self.pattern.matrix(d)
+
+    def boundary_force(self, u: np.ndarray) -> np.ndarray:
+        """Force of the foundation springs and the contact term at ``u`` (full dofs)."""
+        fs = self.spring @ u
+        if self.contact is not None:
+            fs = fs + self.contact.energy_force(u)[1]
+        return fs
 
     def _evaluate(self, u, material, f_load, tangent):
         ev = self.assembler.evaluate(u, material, tangent)
         if not ev.valid:
             return ev, None, None
         fs = self.spring @ u
-        R = ev.f_int + fs - f_load
         energy = ev.energy + 0.5 * float(u @ fs) - float(f_load @ u)
+        if self.contact is not None:
+            e_c, f_c = self.contact.energy_force(u)
+            energy += e_c
+            fs = fs + f_c
+        R = ev.f_int + fs - f_load
         ev.energy = energy
         ref = max(
             float(np.linalg.norm(f_load)),
@@ -320,7 +352,7 @@ class DiscreteSystem:
         if not ev1.valid:
             return None
         try:
-            self.linear.factorize(self.tangent_matrix(ev0.data), shift=True)
+            self.linear.factorize(self.tangent_matrix(ev0.data, u), shift=True)
         except (RuntimeError, ValueError):
             return None
         stats["factorizations"] += 1
@@ -380,7 +412,7 @@ class DiscreteSystem:
                     ev_t, _, _ = self._evaluate(u, material, f_load, tangent=True)
                     ev.data = ev_t.data
                 try:
-                    self.linear.factorize(self.tangent_matrix(ev.data), shift=True)
+                    self.linear.factorize(self.tangent_matrix(ev.data, u), shift=True)
                 except (RuntimeError, ValueError) as exc:
                     raise _StepFailure(f"linear solver failed at load fraction {lam:.4g}: {exc}") from exc
                 stats["factorizations"] += 1

@@ -7,8 +7,12 @@ Facet regions (``facet_region`` of :class:`liverforce.mesh.types.LiverMesh`):
 1  ivc          fixed (homogeneous Dirichlet on all nodes of the region)
 2  ligament     elastic foundation ``(k_n, k_t)`` per unit area
 3  visceral     elastic foundation ``(k_n, k_t)`` per unit area
-4  rib          no normal motion, free sliding: normal penalty ``rib_kn``
+4  rib          free sliding, normal penalty ``rib_kn``: bilateral (no normal
+                motion) or unilateral (pushes only, the liver may separate)
 == ============ ==========================================================
+
+An optional uniform body force (gravity, ``body_force_n_per_mm3``) acts on the
+reference volume as a dead load, ramped together with the tool load.
 
 Example
 -------
@@ -30,7 +34,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .boundary import per_area_stiffness, region_areas, spring_matrix, tool_nodal_forces, vertex_normals
+from .boundary import (UnilateralPenalty, body_force_loads, per_area_stiffness, region_areas, spring_matrix,
+                       tool_nodal_forces, vertex_normals)
 from .elements import build_discretization
 from .materials import Material
 from .newton import DiscreteSystem, SolverOptions
@@ -38,6 +43,7 @@ from .assembly import formulation_spec
 
 FREE, IVC, LIGAMENT, VISCERAL, RIB = 0, 1, 2, 3, 4
 REGION_NAMES = {FREE: "free", IVC: "ivc", LIGAMENT: "ligament", VISCERAL: "visceral", RIB: "rib"}
+RIB_CONTACTS = ("bilateral", "unilateral")
 
 
 @dataclass
@@ -48,6 +54,13 @@ class BoundaryParams:
     visceral face) spread over the regions of a 1.26 L prototype liver with
     equal normal and tangential springs, and a rib normal penalty of
     0.1 N/mm³; use :meth:`from_totals` for a given mesh.
+
+    Normal and tangential foundation stiffnesses are independent fields.
+    ``rib_contact``: "bilateral" (default: the rib penalty holds the liver in
+    both directions) or "unilateral" (frictionless, pushes only:
+    :class:`~liverforce.fem.boundary.UnilateralPenalty`; needs ``rib_kt == 0``).
+    ``body_force_n_per_mm3``: uniform dead body force (N/mm³), e.g.
+    :func:`~liverforce.fem.boundary.gravity_body_force`; default none.
     """
 
     ligament_kn: float = 0.0041
@@ -57,24 +70,37 @@ class BoundaryParams:
     rib_kn: float = 0.1
     rib_kt: float = 0.0
     normals: str = "vertex"
+    rib_contact: str = "bilateral"
+    body_force_n_per_mm3: tuple = (0.0, 0.0, 0.0)
 
     def __post_init__(self):
         if self.normals not in ("vertex", "facet"):
             raise ValueError(f"BoundaryParams.normals must be 'vertex' or 'facet', got {self.normals!r}")
+        if self.rib_contact not in RIB_CONTACTS:
+            raise ValueError(f"BoundaryParams.rib_contact must be one of {RIB_CONTACTS}, got {self.rib_contact!r}")
+        if self.rib_contact == "unilateral" and self.rib_kt != 0.0:
+            raise ValueError("unilateral rib contact is frictionless: rib_kt must be 0")
+        b = tuple(float(x) for x in np.asarray(self.body_force_n_per_mm3, float).reshape(-1))
+        if len(b) != 3 or not all(np.isfinite(b)):
+            raise ValueError(f"BoundaryParams.body_force_n_per_mm3 must be a finite 3-vector, got {b}")
+        self.body_force_n_per_mm3 = b
 
     @classmethod
     def from_totals(cls, points, facets, facet_region, ligament_total_n_per_mm: float = 56.3,
                     visceral_total_n_per_mm: float = 42.6, tangential_ratio: float = 1.0,
-                    rib_kn: float = 0.1) -> "BoundaryParams":
+                    rib_kn: float = 0.1, rib_contact: str = "bilateral",
+                    body_force_n_per_mm3=(0.0, 0.0, 0.0)) -> "BoundaryParams":
         """Per-area stiffness = region total (N/mm) / region reference area (mm²).
 
-        ``tangential_ratio`` sets ``k_t = ratio * k_n`` for both foundations.
+        ``tangential_ratio`` sets ``k_t = ratio * k_n`` for both foundations
+        (tangential stiffness independent of the normal one; 1 = isotropic springs).
         A region missing from the mesh gets zero stiffness.
         """
         areas = region_areas(points, facets, facet_region)
         lig = per_area_stiffness(ligament_total_n_per_mm, areas[LIGAMENT]) if areas.get(LIGAMENT, 0) > 0 else 0.0
         vis = per_area_stiffness(visceral_total_n_per_mm, areas[VISCERAL]) if areas.get(VISCERAL, 0) > 0 else 0.0
-        return cls(lig, tangential_ratio * lig, vis, tangential_ratio * vis, rib_kn, 0.0)
+        return cls(lig, tangential_ratio * lig, vis, tangential_ratio * vis, rib_kn, 0.0,
+                   rib_contact=rib_contact, body_force_n_per_mm3=body_force_n_per_mm3)
 
     def with_supports(self, support_boundary: dict | None) -> "BoundaryParams":
         """These parameters with a user's foundation stiffnesses (N/mm³) in place.
@@ -85,7 +111,7 @@ class BoundaryParams:
         """
         from dataclasses import fields, replace
 
-        allowed = {f.name for f in fields(self)} - {"normals"}
+        allowed = {f.name for f in fields(self)} - {"normals", "rib_contact", "body_force_n_per_mm3"}
         bad = set(support_boundary or {}) - allowed
         if bad:
             raise ValueError(f"support_boundary: unknown BoundaryParams fields {sorted(bad)} "
@@ -129,7 +155,8 @@ class CaseResult:
     linear_solver : backend of the last factorisation.
     reactions : total force (N, 3-vector) exerted on the liver by each support
         region ("ivc", "ligament", "visceral", "rib"), the applied "tool" load,
-        and "imbalance" = sum of all of them (≈ 0 at equilibrium).
+        the body force "gravity" (zero unless enabled) and "imbalance" = sum of
+        all of them (≈ 0 at equilibrium).
     state : full dof vector (all nodes of the formulation) for warm starts.
     formulation, n_dofs, factorizations : solver facts of this case.
     timings : seconds in material/kernel assembly, factorisation and solves.
@@ -196,14 +223,23 @@ class LiverModel:
         fixed_nodes = np.unique(fnodes[region == IVC])
         fixed_dofs = (3 * fixed_nodes[:, None] + np.arange(3)).ravel()
         stiff = self.boundary.region_stiffness()
+        unilateral = self.boundary.rib_contact == "unilateral"
         self.region_springs = {}
+        self.rib_contact = None
         for r, kk in stiff.items():
             # a region's own facets define its normal field: a support is a surface of its own,
             # and averaging across a sharp edge into a neighbouring region would tilt it
             normals = vertex_normals(points, facets[region == r]) if self.boundary.normals == "vertex" else None
+            if r == RIB and unilateral:
+                if kk[0] > 0 and np.any(region == RIB):
+                    self.rib_contact = UnilateralPenalty(self.disc, points, facets[region == RIB], kk[0], normals)
+                continue
             self.region_springs[REGION_NAMES[r]] = spring_matrix(self.disc, points, facets, region, {r: kk}, normals)
         spring = sum(self.region_springs.values())
-        self.system = DiscreteSystem(points, tets, fixed_dofs, spring, self.options, disc=self.disc)
+        self.system = DiscreteSystem(points, tets, fixed_dofs, spring, self.options, disc=self.disc,
+                                     contact=self.rib_contact)
+        b = np.asarray(self.boundary.body_force_n_per_mm3, float)
+        self.f_body = body_force_loads(self.disc, b) if np.any(b != 0.0) else None
         self._load_mask = region != IVC
         if not np.any(self._load_mask):
             self._load_mask = np.ones(len(facets), bool)
@@ -239,16 +275,29 @@ class LiverModel:
             return U.ravel()
         raise ValueError(f"u0 must be a state vector of size {self.n_dofs} or ({self.n_vertices}, 3) vertex displacements")
 
-    def reactions(self, u: np.ndarray, f_int: np.ndarray, f_ext: np.ndarray) -> dict:
-        """Force (N) exerted on the liver by each support region, the tool load, and their sum."""
-        R = f_int + self.system.spring @ u - f_ext
+    def gravity_loads(self) -> np.ndarray:
+        """Nodal loads (n_dofs,) of the body force (zeros without one); they sum to the weight."""
+        return self.f_body.copy() if self.f_body is not None else np.zeros(self.n_dofs)
+
+    def reactions(self, u: np.ndarray, f_int: np.ndarray, f_ext: np.ndarray,
+                  f_gravity: np.ndarray | None = None) -> dict:
+        """Force (N) exerted on the liver by each support region, the tool load, the body force and their sum.
+
+        ``f_ext`` : all applied nodal loads; ``f_gravity`` : the body-force part of them (default none).
+        """
+        R = f_int + self.system.boundary_force(u) - f_ext
         out = {}
         fx = self.system.fixed
         out["ivc"] = np.bincount(fx % 3, weights=R[fx], minlength=3) if fx.size else np.zeros(3)
         for name, K in self.region_springs.items():
             out[name] = -(K @ u).reshape(-1, 3).sum(axis=0)
-        out["tool"] = f_ext.reshape(-1, 3).sum(axis=0)
-        out["imbalance"] = sum(out[k] for k in ("ivc", "ligament", "visceral", "rib", "tool"))
+        if self.boundary.rib_contact == "unilateral":
+            out["rib"] = (-self.rib_contact.energy_force(u)[1].reshape(-1, 3).sum(axis=0)
+                          if self.rib_contact is not None else np.zeros(3))
+        grav = np.zeros(3) if f_gravity is None else f_gravity.reshape(-1, 3).sum(axis=0)
+        out["tool"] = f_ext.reshape(-1, 3).sum(axis=0) - grav
+        out["gravity"] = grav
+        out["imbalance"] = sum(out[k] for k in ("ivc", "ligament", "visceral", "rib", "tool", "gravity"))
         return out
 
     def solve(self, load: ToolLoad, u0=None, material: Material | None = None,
@@ -266,11 +315,15 @@ class LiverModel:
         opt = options or self.options
         if opt.formulation != self.options.formulation:
             raise ValueError("options.formulation must match the LiverModel's formulation")
-        f_ext = self.nodal_loads(load)
-        f0 = None
+        f_tool = self.nodal_loads(load)
+        f_ext, f0, f_tool0 = f_tool, None, None
+        if self.f_body is not None:  # gravity: a dead load on the same load path as the tool
+            f_ext = f_tool + self.f_body
         if isinstance(u0, CaseResult):
             if u0.converged and u0.load is not None and u0.state is not None:
-                f0 = self.nodal_loads(u0.load)
+                f0 = f_tool0 = self.nodal_loads(u0.load)
+                if self.f_body is not None:
+                    f0 = f_tool0 + self.f_body
             u0 = u0.state if u0.state is not None else u0.u_nodes
         start = self.expand_state(u0) if u0 is not None else None
         res = self.system.solve(mat, f_ext=f_ext, u0=start, f0=f0, options=opt)
@@ -279,7 +332,16 @@ class LiverModel:
             ev = self.system.assembler.evaluate(res.u, mat, tangent=False)
             f_int = ev.f_int if ev.valid else np.full(self.n_dofs, np.nan)
         f_now = res.f_load if res.f_load is not None else res.load_fraction * f_ext
-        reac = self.reactions(res.u, f_int, f_now)
+        f_grav = None
+        if self.f_body is not None:
+            # the load path is affine between loads that all hold the whole body force or none of
+            # it: read its share from the dofs no tool load touches (interior nodes)
+            m = (f_tool == 0.0) & (self.f_body != 0.0)
+            if f_tool0 is not None:
+                m &= f_tool0 == 0.0
+            fb = self.f_body[m]
+            f_grav = self.f_body * (float(f_now[m] @ fb) / float(fb @ fb) if fb.size else res.load_fraction)
+        reac = self.reactions(res.u, f_int, f_now, f_grav)
         return CaseResult(
             u_nodes=res.u.reshape(-1, 3)[: self.n_vertices].copy(),
             converged=res.converged,

@@ -21,14 +21,24 @@ def boundary_params(mesh, cfg: dict):
     Interpretation (stated in config/boundary): the study's foundation
     stiffness is the region's total stiffness spread uniformly over its
     reference area, ``k = K_total / A``; tangential = ratio × normal.
+    ``rib_contact`` (bilateral | unilateral) and ``gravity`` (body force
+    ``rho g`` in N/mm³ = kg/m³ × m/s² × 1e-9) as in config/boundary/study.yaml.
+    A slice recorded before those two keys existed (a model bundle's probe
+    settings) has neither: it meant a bilateral rib and no gravity.
     """
+    from liverforce.fem.boundary import gravity_body_force
     from liverforce.fem.problem import BoundaryParams
 
+    legacy = "rib_contact" not in cfg and "gravity" not in cfg
+    grav = None if legacy else cfg["gravity"]
+    body = (gravity_body_force(grav["density_kg_per_m3"], grav["direction"]) if grav and grav["enabled"]
+            else (0.0, 0.0, 0.0))
     return BoundaryParams.from_totals(
         mesh.points, mesh.facets, mesh.facet_region,
         ligament_total_n_per_mm=cfg["ligament_total_n_per_mm"],
         visceral_total_n_per_mm=cfg["visceral_total_n_per_mm"],
         tangential_ratio=cfg["tangential_ratio"], rib_kn=cfg["rib_normal_n_per_mm3"],
+        rib_contact="bilateral" if legacy else cfg["rib_contact"], body_force_n_per_mm3=body,
     )
 
 
