@@ -21,6 +21,7 @@ def fake_row(i: int, rng, converged: bool = True, k: int | None = None) -> dict:
         "roi_undeformed_mm": und, "roi_deformed_mm": de,
         "roi_centroid_undeformed_mm": und.mean(0), "roi_centroid_deformed_mm": de.mean(0),
         "surface_displacement_mm": np.full((7, 3), 0.1, np.float32), "max_displacement_mm": 0.17,
+        "max_principal_stretch": 1.12, "min_principal_stretch": 0.91,
         "converged": converged, "reason": "" if converged else "diverged", "load_fraction": 1.0 if converged else 0.4,
         "load_steps": 3, "newton_iterations": 9, "final_residual": 1e-9, "linear_solver": "cholmod",
         "wall_time_s": float(rng.random()),

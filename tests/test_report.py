@@ -311,3 +311,69 @@ def test_report_names_the_mlflow_experiments_the_plan_gives(stage_outputs):
     for shown in ("lab-smoke-&lt;scenario&gt;", "lab-smoke-validation", "lab-smoke-studies"):
         assert f"<code>{shown}</code>" in mlflow
     assert "liverforce-" not in mlflow  # no name of the report's own making
+
+
+def test_stretch_statistics_count_and_name_the_cases_outside_the_checked_range():
+    from liverforce.pipeline.report import stretch_statistics
+
+    ids = ["I-0", "I-1", "I-2", "I-3", "I-4"]
+    lo = [0.9, 0.55, 0.7, float("nan"), 0.8]
+    hi = [1.1, 1.2, 1.9, float("nan"), 1.41]
+    st = stretch_statistics(ids, lo, hi, (0.6, 1.4))
+    # I-3 crashed (NaN): not counted; the most extreme first (ln 1.9/1.4 > ln 0.6/0.55 > ln 1.41/1.4)
+    assert st == {"n": 4, "min": 0.55, "max": 1.9, "n_outside": 3, "outside_ids": ["I-2", "I-1", "I-4"]}
+    assert stretch_statistics(ids, lo, hi, (0.6, 1.4), n_named=1)["outside_ids"] == ["I-2"]
+    assert stretch_statistics(ids, lo, hi)["n_outside"] is None
+    assert stretch_statistics([], [], [], (0.6, 1.4)) == {"n": 0, "min": None, "max": None, "n_outside": 0,
+                                                           "outside_ids": []}
+
+
+def test_solver_statistics_read_the_stretches_from_the_shards(tmp_path):
+    from fake_rows import fake_row
+
+    from liverforce.dataset import io as dio
+    from liverforce.pipeline.report import solver_statistics
+
+    rng = np.random.default_rng(0)
+    rows = [fake_row(i, rng) for i in range(4)]
+    for r, (lo, hi) in zip(rows, [(0.9, 1.1), (0.5, 1.3), (0.8, 1.6), (0.95, 1.05)]):
+        r["min_principal_stretch"], r["max_principal_stretch"] = lo, hi
+    folder = tmp_path / "shards" / "I"
+    paths = [folder / "shard-0000.parquet", folder / "shard-0001.parquet"]
+    dio.write_shard(rows[:2], paths[0])
+    dio.write_shard(rows[2:], paths[1])
+    dio.write_manifest(paths, folder / "manifest.json")
+    stats = solver_statistics([str(folder / "manifest.json")], [0.6, 1.4])
+    assert stats["stretch_range_checked"] == [0.6, 1.4]
+    assert stats["per_scenario"]["I"]["stretch"] == {"n": 4, "min": 0.5, "max": 1.6, "n_outside": 2,
+                                                     "outside_ids": ["I-000001", "I-000002"]}
+
+
+def test_report_shows_the_stretch_range_reached_against_the_drucker_range(stage_outputs):
+    from liverforce.report.html import collect, write_report
+
+    out = stage_outputs
+    data = collect(out["metrics"], [out["manifest"]], out["validation"], out["features"], out["studies"])
+    stretch = {"n": 10, "min": 0.512, "max": 1.734, "n_outside": 3, "outside_ids": ["IV-000004", "IV-000009"]}
+    stats = {"overall": {}, "per_scenario": {"IV": {"solve_time_total_s": 12.5, "stretch": stretch}},
+             "reasons": {}, "stretch_range_checked": [0.6, 1.4]}
+    boundary = {"ligament_total_n_per_mm": 56.3, "rib_contact": "unilateral",  # not only numbers in the slice
+                "gravity": {"enabled": False, "density_kg_per_m3": 1060.0}}
+    html = write_report(data, [], "x", out["root"] / "report" / "index.html", solver_stats=stats,
+                        setup={"main_variant": "pca_sv", "boundary": boundary}).read_text()
+    assert "ligament_total_n_per_mm = 56.3, rib_contact = unilateral, gravity = {" in html
+    sec = _section(html, "id='simulations'", "id='models'")
+    assert "Stretches reached and the Drucker check" in sec and "(0.60–1.40, <code>material.stability_stretch" in sec
+    assert "<b>3 of 10 cases leave the checked range</b> (e.g. IV-000004, IV-000009)." in sec
+    assert _rows(sec, "stretch") == [["IV", "10", "0.512", "1.734", "3", "IV-000004, IV-000009"]]
+    # every case inside: said so, nothing named
+    stats["per_scenario"]["IV"]["stretch"] = {**stretch, "min": 0.8, "max": 1.2, "n_outside": 0, "outside_ids": []}
+    html = write_report(data, [], "x", out["root"] / "report" / "index.html", solver_stats=stats,
+                        setup={"main_variant": "pca_sv"}).read_text()
+    sec = _section(html, "id='simulations'", "id='models'")
+    assert "All 10 cases stay inside it." in sec and _rows(sec, "stretch")[0][4:] == ["0", "–"]
+    # solver statistics without stretches (an older caller): no section
+    stats["per_scenario"]["IV"].pop("stretch")
+    html = write_report(data, [], "x", out["root"] / "report" / "index.html", solver_stats=stats,
+                        setup={"main_variant": "pca_sv"}).read_text()
+    assert "Stretches reached" not in html

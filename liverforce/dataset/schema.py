@@ -44,6 +44,11 @@ roi_centroid_undeformed_mm, roi_centroid_deformed_mm : fixed_size_list<float64,3
 surface_displacement_mm : list<fixed_size_list<float32,3>>  every surface node (order: the
     mesh's sorted surface node ids), so ROI studies need no new simulation; empty if not stored
 max_displacement_mm : float64
+max_principal_stretch, min_principal_stretch : float64   largest and smallest principal stretch
+    (sqrt of the eigenvalues of C = F^T F, dimensionless) over every quadrature point of the FE
+    elements at the returned state (the converged one, or a failed case's last accepted state;
+    NaN when the solve crashed). Compare with the Drucker-checked range
+    ``material.stability_stretch``: outside it, the material's stability was never checked.
 converged : bool
 reason : str             empty when converged
 load_fraction : float64  fraction of the load reached
@@ -57,7 +62,7 @@ from __future__ import annotations
 
 import pyarrow as pa
 
-SCHEMA_VERSION = "1.2"  # 1.2: probe_compliance_mm_per_n
+SCHEMA_VERSION = "1.3"  # 1.2: probe_compliance_mm_per_n; 1.3: max/min_principal_stretch
 
 #: columns excluded from the deterministic payload hash (vary run to run)
 NONDETERMINISTIC_COLUMNS = ("wall_time_s",)
@@ -96,6 +101,8 @@ SHARD_SCHEMA = pa.schema(
         ("roi_centroid_deformed_mm", _V3),
         ("surface_displacement_mm", pa.list_(_P3)),
         ("max_displacement_mm", pa.float64()),
+        ("max_principal_stretch", pa.float64()),
+        ("min_principal_stretch", pa.float64()),
         ("converged", pa.bool_()),
         ("reason", pa.string()),
         ("load_fraction", pa.float64()),
@@ -141,5 +148,7 @@ UNITS = {
     "roi_deformed_mm": "mm",
     "surface_displacement_mm": "mm",
     "max_displacement_mm": "mm",
+    "max_principal_stretch": "1 (stretch ratio, dimensionless)",
+    "min_principal_stretch": "1 (stretch ratio, dimensionless)",
     "wall_time_s": "s",
 }

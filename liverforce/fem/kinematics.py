@@ -149,3 +149,34 @@ def trace_power(F: np.ndarray, alpha: float, hessian: bool = True):
     t2 = np.einsum("...ia,...Jb,...ab,...ka,...Lb->...iJkL", FQ, Q, h1, FQ, Q, optimize=True)
     d2 = 2.0 * np.einsum("ik,...LJ->...iJkL", _EYE, G) + 2.0 * (t1 + t2)
     return g, dg, d2
+
+
+def principal_stretches(F: np.ndarray) -> np.ndarray:
+    """Principal stretches ``lambda_a = sqrt(eig(C))``, ``C = F^T F``, ascending, shape ``(..., 3)``.
+
+    The stretches of the total ``F`` (volume change included; ``J = prod lambda_a``),
+    the quantity the Drucker check (:mod:`liverforce.fem.stability`) ranges over.
+    """
+    C = np.einsum("...ki,...kj->...ij", F, F)
+    return np.sqrt(np.maximum(np.linalg.eigvalsh(C), 0.0))
+
+
+def principal_stretch_range(disc, u: np.ndarray) -> tuple[float, float]:
+    """(min, max) principal stretch over every quadrature point of ``disc`` at the dof vector ``u``.
+
+    ``F = I + grad u`` is evaluated at the quadrature points of the element
+    (4 per P2 tet, 1 per P1 tet: the points where the material is evaluated).
+    Returns (NaN, NaN) if ``u`` is not finite or does not match ``disc``.
+
+    Parameters
+    ----------
+    disc : :class:`~liverforce.fem.elements.TetDiscretization`
+    u : (3 * n_nodes,) or (n_nodes, 3) displacement of all nodes of ``disc`` (mm).
+    """
+    from .kernels import deformation_gradient
+
+    u = np.asarray(u, dtype=float)
+    if u.size != disc.n_dofs or not np.all(np.isfinite(u)):
+        return float("nan"), float("nan")
+    lam = principal_stretches(deformation_gradient(np.ascontiguousarray(u.reshape(-1, 3)), disc.conn, disc.dN))
+    return float(lam[..., 0].min()), float(lam[..., 2].max())

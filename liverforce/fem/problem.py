@@ -37,6 +37,7 @@ import numpy as np
 from .boundary import (UnilateralPenalty, body_force_loads, per_area_stiffness, region_areas, spring_matrix,
                        tool_nodal_forces, vertex_normals)
 from .elements import build_discretization
+from .kinematics import principal_stretch_range
 from .materials import Material
 from .newton import DiscreteSystem, SolverOptions
 from .assembly import formulation_spec
@@ -163,6 +164,11 @@ class CaseResult:
     history : load steps as ``(attempt, load fraction, accepted, iterations or reason)``.
     load : the :class:`ToolLoad` of this case (a converged result passed as
         ``u0`` lets the next case continue along the load path from it).
+    min_principal_stretch, max_principal_stretch : smallest and largest principal
+        stretch of ``F`` over every quadrature point of the formulation's elements at
+        the returned state (the converged one, or the last accepted state of a failed
+        case); NaN if that state is not finite. Compare with the Drucker-checked
+        range (``material.stability_stretch``).
     """
 
     u_nodes: np.ndarray
@@ -182,6 +188,8 @@ class CaseResult:
     factorizations: int = 0
     timings: dict = field(default_factory=dict)
     history: list = field(default_factory=list)
+    min_principal_stretch: float = float("nan")
+    max_principal_stretch: float = float("nan")
 
 
 class LiverModel:
@@ -342,6 +350,7 @@ class LiverModel:
             fb = self.f_body[m]
             f_grav = self.f_body * (float(f_now[m] @ fb) / float(fb @ fb) if fb.size else res.load_fraction)
         reac = self.reactions(res.u, f_int, f_now, f_grav)
+        lam_min, lam_max = principal_stretch_range(self.disc, res.u)
         return CaseResult(
             u_nodes=res.u.reshape(-1, 3)[: self.n_vertices].copy(),
             converged=res.converged,
@@ -360,6 +369,8 @@ class LiverModel:
             factorizations=res.factorizations,
             timings=res.timings,
             history=res.history,
+            min_principal_stretch=lam_min,
+            max_principal_stretch=lam_max,
         )
 
 

@@ -95,7 +95,8 @@ def probe_compliances(fe, surf, points: dict, reference: dict, tool_radius_mm: f
 
 
 def simulate_cases(cases: list[dict], meshes: dict, sim: dict, boundary: dict, dataset: dict,
-                   progress=None, supports: dict | None = None, probe: dict | None = None) -> list[dict]:
+                   progress=None, supports: dict | None = None, probe: dict | None = None,
+                   stretch_range=None) -> list[dict]:
     """Simulate cases in memory: one shard row per case, in the order given.
 
     Parameters
@@ -109,6 +110,8 @@ def simulate_cases(cases: list[dict], meshes: dict, sim: dict, boundary: dict, d
         (``result``: the case's :class:`liverforce.fem.problem.CaseResult`, or None when the solve raised).
     probe : the stiffness probe's reference material (:func:`probe_reference`); None: each
         liver's first case's material (for tests and benchmarks; the pipeline passes the config's).
+    stretch_range : the Drucker-checked stretch range ``(lo, hi)`` (``material.stability_stretch``);
+        a case whose principal stretches leave it is logged as a warning. None: no check.
 
     Returns
     -------
@@ -168,6 +171,11 @@ def simulate_cases(cases: list[dict], meshes: dict, sim: dict, boundary: dict, d
                               comp[tuple(case["exertion_point_mm"])]))
         if res is not None and res.converged:
             pools[gid].add(res, case["material_params_mpa"])
+        lam_lo, lam_hi = rows[-1]["min_principal_stretch"], rows[-1]["max_principal_stretch"]
+        if stretch_range is not None and (lam_lo < stretch_range[0] or lam_hi > stretch_range[1]):
+            log.warning("case %s: principal stretches %.3f-%.3f leave the Drucker-checked range %g-%g "
+                        "(material.stability_stretch): the material's stability is unchecked there",
+                        case["case_id"], lam_lo, lam_hi, stretch_range[0], stretch_range[1])
         rate = n_done / (time.perf_counter() - t_start) * 3600
         if progress is not None:
             progress(n_done, len(cases), rows, res)
@@ -207,7 +215,8 @@ def simulate_shard(cases_path, mesh_paths: list[str], shard: int, sim: dict, bou
             "elapsed_s": time.perf_counter() - t_start, "updated": time.time()})
 
     probe = probe_reference(material) if material is not None else None
-    rows = simulate_cases(cases, meshes, sim, boundary, dataset, progress=progress, supports=supports, probe=probe)
+    rows = simulate_cases(cases, meshes, sim, boundary, dataset, progress=progress, supports=supports, probe=probe,
+                          stretch_range=material["stability_stretch"] if material is not None else None)
     entry = dio.write_shard(rows, shard_path, compression=dataset["compression"],
                             extra_meta={"simulate": sim, "boundary": boundary, "dataset": dataset, "probe": probe})
     if rows and entry["failed"] == len(rows):
@@ -246,6 +255,8 @@ def _case_row(case, res, error, wall, mesh, feats, surf, dataset, tool_radius_mm
         roi_centroid_undeformed_mm=und.mean(axis=0), roi_centroid_deformed_mm=de.mean(axis=0),
         surface_displacement_mm=surf_u.astype(np.float32),
         max_displacement_mm=float(np.linalg.norm(u, axis=1).max()),
+        max_principal_stretch=float(res.max_principal_stretch) if res is not None else float("nan"),
+        min_principal_stretch=float(res.min_principal_stretch) if res is not None else float("nan"),
         converged=converged,
         reason="" if converged else (error or (res.reason if res is not None else "unknown")),
         load_fraction=float(res.load_fraction) if res is not None else 0.0,

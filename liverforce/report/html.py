@@ -318,6 +318,37 @@ def validation_figures(val: dict, out_dir: Path) -> dict[str, Path]:
 # --------------------------------------------------------------------------
 
 
+def stretch_section(shards: list[dict], solver_stats: dict) -> str:
+    """The principal stretches the cases reached against the Drucker-checked range (HTML; "" if unknown).
+
+    ``solver_stats["per_scenario"][sc]["stretch"]``: ``{"n", "min", "max",
+    "n_outside", "outside_ids"}`` (:func:`liverforce.pipeline.report.stretch_statistics`);
+    ``solver_stats["stretch_range_checked"]``: ``[lo, hi]`` (``material.stability_stretch``).
+    """
+    per = solver_stats.get("per_scenario") or {}
+    stats = {s["scenario"]: per.get(s["scenario"], {}).get("stretch") for s in shards}
+    stats = {sc: st for sc, st in stats.items() if st}
+    if not stats:
+        return ""
+    rng = solver_stats.get("stretch_range_checked")
+    checked = f"{_fmt(float(rng[0]), 2)}–{_fmt(float(rng[1]), 2)}" if rng else "–"
+    rows = [[sc, st["n"], _fmt(st["min"]), _fmt(st["max"]), _fmt(st["n_outside"]),
+             html.escape(", ".join(st["outside_ids"])) or "–"] for sc, st in stats.items()]
+    n = sum(st["n"] for st in stats.values())
+    n_out = sum(st["n_outside"] or 0 for st in stats.values())
+    text = (f"<h3>Stretches reached and the Drucker check</h3><p>The smallest and largest principal stretch "
+            f"anywhere in the liver (every quadrature point of the FE solution; a failed case at its last accepted "
+            f"state), against the stretch range the material's Drucker stability check covers ({checked}, "
+            f"<code>material.stability_stretch</code>). Outside it the constants' stability was never checked.")
+    if rng and n_out:
+        ids = [i for st in stats.values() for i in st["outside_ids"]][:5]
+        text += f" <b>{n_out} of {n} cases leave the checked range</b> (e.g. {html.escape(', '.join(ids))})."
+    elif rng:
+        text += f" All {n} cases stay inside it."
+    return text + "</p>" + _table(["scenario", "cases", "min stretch", "max stretch", f"cases outside {checked}",
+                                   "most extreme outside"], rows, cls="stretch", row_cls="stretch")
+
+
 def write_report(data: dict, pictures: list[str | Path], experiment: str, out_html: str | Path,
                  solver_stats: dict | None = None, setup: dict | None = None,
                  population_png: str | Path | None = None) -> Path:
@@ -465,7 +496,9 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
                      "</p>")
     bnd = setup.get("boundary")
     if bnd:
-        parts.append("<p>Boundary: " + html.escape(", ".join(f"{k} = {val:g}" for k, val in bnd.items())) + "</p>")
+        num = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool)  # noqa: E731
+        parts.append("<p>Boundary: " + html.escape(", ".join(f"{k} = {val:g}" if num(val) else f"{k} = {val}"
+                                                             for k, val in bnd.items())) + "</p>")
     sw = setup.get("sweep")
     if sw:
         rows = [[sc, s["n_cases"], html.escape(str(s["geometries"])), s["exertion"], s["material"]]
@@ -510,6 +543,7 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
         if reasons:
             parts.append("<p>Why cases failed (recorded in the shards' <code>reason</code> column):</p>")
             parts.append(_table(["reason", "cases"], [[html.escape(k), n] for k, n in reasons.items()]))
+        parts.append(stretch_section(data["shards"], solver_stats))
 
     # ------------------------------------------------------------ every model
     parts.append("<h2 id='models'>Accuracy per scenario and variant (every trained model)</h2>")

@@ -40,6 +40,7 @@ def shard_row(shard: int, i: int, rng) -> dict:
         "roi_undeformed_mm": und, "roi_deformed_mm": de,
         "roi_centroid_undeformed_mm": und.mean(0), "roi_centroid_deformed_mm": de.mean(0),
         "surface_displacement_mm": rng.normal(size=(40, 3)).astype(np.float32), "max_displacement_mm": 3.2,
+        "max_principal_stretch": 1.25, "min_principal_stretch": 0.8,
         "converged": converged, "reason": "" if converged else "max_steps=2 load steps reached",
         "load_fraction": 1.0 if converged else 0.5, "load_steps": 4, "newton_iterations": 11,
         "final_residual": 1e-9 if converged else float("nan"), "linear_solver": "cholmod",

@@ -131,7 +131,8 @@ def shard_rows(arrays: dict, idx, scenario="III", converged=True, scale=1.0, suf
             "roi_node_ids": np.arange(len(und), dtype=np.int32), "roi_undeformed_mm": und.astype(np.float32),
             "roi_deformed_mm": de.astype(np.float32), "roi_centroid_undeformed_mm": und.mean(0),
             "roi_centroid_deformed_mm": de.mean(0), "surface_displacement_mm": np.zeros((0, 3), np.float32),
-            "max_displacement_mm": 1.0, "converged": converged, "reason": "" if converged else "diverged",
+            "max_displacement_mm": 1.0, "max_principal_stretch": 1.1, "min_principal_stretch": 0.9,
+            "converged": converged, "reason": "" if converged else "diverged",
             "load_fraction": 1.0, "load_steps": 1, "newton_iterations": 3, "final_residual": 1e-9,
             "linear_solver": "cholmod", "wall_time_s": 0.1,
         })
