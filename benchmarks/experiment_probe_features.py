@@ -5,7 +5,9 @@ trains the scenario-IV model of one variant three ways on the same seeded
 splits: without the probe (its 6 state-vector columns held at their mean, so
 they carry nothing), with the compliance only (``probe_force_radius_mm: 0``),
 and with the compliance and the linear force estimate ``C^-1 u_w`` (the
-default). Prints test accuracy/MAE (mean +- sd over ``train.repeats`` splits)
+default), and the default once more with the global shape features (liver
+centroid offset, inertia) held at their mean, so only local features vary.
+Prints test accuracy/MAE (mean +- sd over ``train.repeats`` splits)
 and the MAE on the unseen livers (scenario V) of the first split's model.
 
     PYTHONPATH=. .venv/bin/python benchmarks/experiment_probe_features.py --results results/default
@@ -25,6 +27,7 @@ def main() -> None:
     ap.add_argument("--results", default="results/default")
     ap.add_argument("--variant", default="pca_sv")
     ap.add_argument("--overrides", nargs="*", default=[], help="config overrides (as for snakemake --config)")
+    ap.add_argument("--only", nargs="*", help="run only these rows (by name)")
     args = ap.parse_args()
     results = Path(args.results)
 
@@ -46,9 +49,23 @@ def main() -> None:
         out["probe_compliance_mm_per_n"] = np.tile(mean_c, (len(a["case_id"]), 1))
         return out
 
+    trace = np.mean([np.trace(np.reshape(i, (3, 3))) for i in arrays["inertia_mm5"]])
+
+    def local_only(a):
+        """The global shape features held constant: centroid offset 0 (centroid := exertion point) and an
+        isotropic inertia of the mean trace (the same in every local frame); only local features vary."""
+        out = dict(a)
+        n = len(a["case_id"])
+        out["liver_centroid_mm"] = np.asarray(a["exertion_point_mm"], float).copy()
+        out["inertia_mm5"] = np.tile((trace / 3.0) * np.eye(3).ravel(), (n, 1))
+        return out
+
     runs = (("no probe", without_probe, {"probe_force_radius_mm": 0.0}),
             ("+ compliance", lambda a: a, {"probe_force_radius_mm": 0.0}),
-            ("+ C and C^-1 u_w", lambda a: a, {}))
+            ("+ C and C^-1 u_w", lambda a: a, {}),
+            ("  without global", local_only, {}))
+    if args.only:
+        runs = tuple(r for r in runs if r[0].strip() in args.only)
     for name, data, over in runs:
         t = time.perf_counter()
         res = train_scenario(data(arrays), {**model, **over}, train, cfg["tune"], "IV", args.variant,
