@@ -208,7 +208,7 @@ def test_report_lays_out_table_59_encoders_and_studies_with_their_run_ids(stage_
     # the livers learning curve: its own section, the training livers used per point, the measured trend
     livers = _section(html, "id='study-train_livers'", "</table>")
     assert [c[6:8] for c in _rows(livers, "study-point")] == [["1", "6"], ["2", "12"], ["2", "12"]]
-    assert "From 1 to 2 training livers the accuracy on the fixed test livers changed by <b>+11.5 points" in livers
+    assert "From 1 to 2 training livers the accuracy on the fixed validation livers changed by <b>+11.5 points" in livers
     assert "only 2 training livers exist" in livers
     # validation figures made by the report, solver statistics, failure reasons
     figs = root / "report" / "figures"

@@ -13,15 +13,17 @@ Studies (config group ``study``; each lists its ``scenarios`` and values)
 ``train_size``    fraction of the training split used (learning curve).
 ``train_livers``  number of training livers used (scenario IV learning curve
                   over the population: 2, 4, 8, ... livers, nested subsets of
-                  the main split's training livers; the test livers are fixed).
+                  the fitting livers; the validation livers are fixed).
 
 Every study point starts from the scenario's *main model* (the first
 ``train.variants`` entry: its model settings, and its Ax-tuned
 hyper-parameters read from its ``metrics.json`` when
 ``study.hyper_parameters: main``), changes one thing, and is trained **without
-Ax** for ``study.epochs`` epochs on the same train/test split as the main model
-(same seed), then evaluated on the held-out test split with the metrics of
-:mod:`liverforce.learn.metrics` (MAE/RMSE in N, accuracy %). Points of one
+Ax** for ``study.epochs`` epochs on the main model's training split minus a
+validation part (by liver in IV), then evaluated on that validation part with
+the metrics of :mod:`liverforce.learn.metrics` (MAE/RMSE in N, accuracy %).
+The main model's test split is never read by a study, so choosing a setting
+from a study does not select on the test set. Points of one
 study therefore differ in the studied setting only. A point that cannot be
 trained (e.g. an occlusion radius that hides the whole ROI) is recorded with
 ``status: failed`` and its reason; it does not stop the study.
@@ -72,7 +74,7 @@ STUDY_TITLES = {
     "occlusion": ("Tool occlusion", "occlusion radius (mm)"),
     "noise": ("Point-cloud noise", "Gaussian noise σ (mm)"),
     "train_size": ("Learning curve: accuracy vs training-set size", "fraction of the training split used"),
-    "train_livers": ("Learning curve over livers: accuracy on unseen test livers vs training livers",
+    "train_livers": ("Learning curve over livers: accuracy on held-out validation livers vs training livers",
                      "number of training livers"),
 }
 
@@ -207,7 +209,11 @@ def run_point(
     train_fraction: float | None = None,
     train_livers: int | None = None,
 ) -> dict:
-    """Train one model on the train split (no tuning) and evaluate it on the test split.
+    """Train one model on part of the main model's training split (no tuning); score it on the rest.
+
+    The main model's test split is never read: the point trains on the training
+    split minus a validation part (:func:`validation_split`, by liver in IV) and is
+    scored on that validation part.
 
     Parameters
     ----------
@@ -221,25 +227,25 @@ def run_point(
     scenario : str
         ``I``..``IV`` (IV splits by geometry).
     seed : int
-        Split, weights and observation-noise seed (the main model's, so the
-        test split is the main model's).
+        Split, weights and observation-noise seed (the main model's, so its test
+        split is the one left out; the validation split derives from it).
     test_fraction, epochs, threads
         As in ``train``; ``epochs`` is ``study.epochs``.
     roi_fraction, surfaces
         Re-select the ROI at this area fraction (``surfaces``: geometry id ->
         SurfaceGraph) before anything else.
     train_fraction
-        Train on a seeded random subset of this fraction of the training split
-        (every training geometry keeps its share); the test split is unchanged.
+        Train on a seeded random subset of this fraction of the fitting part
+        (every geometry keeps its share); the validation split is unchanged.
     train_livers
         Train on the cases of this many training geometries only (a seeded
         order of the training geometries, so 2 livers are a subset of 4, ...;
-        all of them when there are fewer); the test split is unchanged.
+        all of them when there are fewer); the validation split is unchanged.
 
     Returns
     -------
     dict
-        ``metrics`` (test, N and %), ``n_train``, ``n_test``, ``roi_nodes_mean``
+        ``metrics`` (validation split, N and %), ``n_train``, ``n_val``, ``roi_nodes_mean``
         (ROI nodes per case), ``seconds``, ``representation``.
     """
     t0, c0 = time.perf_counter(), time.process_time()
@@ -249,8 +255,12 @@ def run_point(
             if surfaces is None:
                 raise ValueError("an ROI fraction needs the surface graphs of the geometries")
             arrays = with_roi_fraction(arrays, roi_fraction, surfaces)
+        # the main model's split: its test part is dropped here, before anything reads it
+        main_tr, _ = train_test_split(np.asarray(arrays["geometry_id"]).astype(str), scenario=scenario,
+                                      test_fraction=float(test_fraction), seed=int(seed))
+        arrays = subset(arrays, main_tr)
         geo = np.asarray(arrays["geometry_id"]).astype(str)
-        tr, te = train_test_split(geo, scenario=scenario, test_fraction=float(test_fraction), seed=int(seed))
+        tr, te = validation_split(geo, scenario, float(test_fraction), int(seed))
         if train_fraction is not None and train_fraction < 1.0:
             tr = subsample_per_geometry(tr, geo, float(train_fraction), seed=int(seed))
         if train_livers is not None:
@@ -271,10 +281,11 @@ def run_point(
     metrics = force_metrics(np.asarray(test_arrays["force_n"], dtype=np.float64), pred)
     return {
         "metrics": metrics,
+        "evaluated_on": "validation",
         "n_train": int(len(tr)),
-        "n_test": int(len(te)),
+        "n_val": int(len(te)),
         "n_train_geometries": int(len(set(geo[tr].tolist()))),
-        "test_geometries": sorted(set(geo[te].tolist())),
+        "val_geometries": sorted(set(geo[te].tolist())),
         "roi_nodes_mean": float(np.mean([len(x) for x in arrays["roi_undeformed_mm"]])),
         "roi_area_fraction_mean": (float(np.mean(arrays["roi_area_fraction"])) if "roi_area_fraction" in arrays
                                    else None),
@@ -283,6 +294,17 @@ def run_point(
         "seconds": time.perf_counter() - t0,
         "cpu_seconds": time.process_time() - c0,
     }
+
+
+def validation_split(geometry_ids, scenario: str, fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(fit, validation)`` indices of the main model's *training* cases for a study point.
+
+    Split like the test split (by liver in IV) with stage ``split.study``, so a study
+    point is scored on training-side cases only: choosing a setting from a study
+    never selects on the test split, which stays for the main models' single score.
+    """
+    return train_test_split(np.asarray(geometry_ids).astype(str), scenario=scenario, test_fraction=fraction,
+                            seed=derive(seed, "split.study"))
 
 
 def subsample_per_geometry(idx, geometry_ids, fraction: float, seed: int) -> np.ndarray:
@@ -439,7 +461,7 @@ def plot_study(doc: dict, path: str | Path) -> Path:
                  for p in sp]
             axes[0].plot(x, [p["metrics"]["accuracy_pct"] for p in sp], "o-", label=s)
             axes[1].plot(x, [p["metrics"]["mae_vec"] for p in sp], "o-", label=s)
-    for ax, name in zip(axes, ("accuracy % (test split)", "MAE of the force vector (N)")):
+    for ax, name in zip(axes, ("accuracy % (validation split)", "MAE of the force vector (N)")):
         ax.set_ylabel(name)
         ax.set_xlabel(doc["x_label"])
         if categorical:

@@ -57,10 +57,10 @@ STUDY_TEXT = {
                  "(remove) or replaced by noise (noise). The study reported a cost of 4.2 accuracy points.",
     "noise": "Gaussian noise on every observed point (a stereo endoscope reconstructs the surface with roughly "
              "0.5-2 mm error).",
-    "train_size": "Learning curve: the same model trained on a fraction of the training split, tested on the same "
-                  "test split. A curve still rising at 1.0 means more simulated cases would raise the accuracy.",
+    "train_size": "Learning curve: the same model trained on a fraction of the fitting part, scored on the same "
+                  "validation split. A curve still rising at 1.0 means more simulated cases would raise the accuracy.",
     "train_livers": "Learning curve over the liver population (scenario IV): the same model trained on the cases of "
-                    "2, 4, 8, … training livers, tested on the same held-out livers. A curve still rising at the "
+                    "2, 4, 8, … training livers, scored on the same held-out validation livers. A curve still rising at the "
                     "largest count means more livers (not more cases per liver) would raise the accuracy on a new "
                     "patient.",
 }
@@ -232,7 +232,7 @@ def livers_curve_text(doc: dict) -> str:
               and int(p["train_livers"]) > int(p["n_train_geometries"])]
     note = (f" (requested {', '.join(html.escape(c) for c in capped)}: only {ks[-1]} training livers exist, so "
             "those points use them all)") if capped else ""
-    return (f"<p class='livers-trend'>From {ks[-2]} to {ks[-1]} training livers the accuracy on the fixed test "
+    return (f"<p class='livers-trend'>From {ks[-2]} to {ks[-1]} training livers the accuracy on the fixed validation "
             f"livers changed by <b>{d_acc:+.1f} points</b> and the MAE by {d_mae:+.3f} N{note}. One split per "
             f"point: read changes of a few points against the ± sd of Table 5.9.</p>")
 
@@ -432,8 +432,8 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
                     row.append("– <small>failed</small>" if p else "–")
             rows.append(row)
         parts.append(f"<h3>PCA vs autoencoder vs denoising autoencoder</h3><p>Same data, split and regressor "
-                     f"settings, only the encoder changes (trained without Ax, {enc['epochs']} epochs; details in "
-                     f"the studies section).</p>")
+                     f"settings, only the encoder changes (trained without Ax, {enc['epochs']} epochs, scored on the "
+                     f"training-side validation split; details in the studies section).</p>")
         parts.append(_table(["scenario", *[e.upper() for e in encs]], rows))
     lv = v["livers"]
     worst = lv["worst"]
@@ -674,8 +674,10 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
     if data.get("studies"):
         parts.append("<p>Each study reuses the simulated shards (no new FE). Every point starts from the "
                      "scenario's main model (its settings and Ax-tuned hyper-parameters), changes one setting, "
-                     "is trained without Ax on the main model's training split and evaluated on its test "
-                     "split.</p>")
+                     "is trained without Ax on the main model's training split minus a validation part (by liver "
+                     "in IV) and scored on that validation part: no study reads the test split, so a setting "
+                     "chosen from a study is not chosen on the test set. Study numbers are therefore not the "
+                     "test-split numbers of the tables above.</p>")
     else:
         parts.append("<p>No comparison study in this run (<code>study.enabled</code>).</p>")
     for d in data.get("studies", []):

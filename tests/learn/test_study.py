@@ -98,7 +98,12 @@ def test_roi_fraction_changes_the_nodes_used_and_keeps_the_geodesic_rule(data):
     assert all(np.array_equal(a, b) for a, b in zip(again["roi_deformed_mm"], arrays["roi_deformed_mm"]))
     # centroids follow the new ROI (the state vector uses them)
     assert not np.allclose(small["roi_centroid_undeformed_mm"], large["roi_centroid_undeformed_mm"])
-    # the study point reports the nodes it really used
+    # the study point reports the nodes it really used (the main model's training split: the test part is dropped)
+    from liverforce.learn.splits import train_test_split
+
+    tr, _ = train_test_split(np.asarray(arrays["geometry_id"]).astype(str), scenario="II", test_fraction=0.25, seed=0)
+    n_small = np.mean([len(small["roi_undeformed_mm"][i]) for i in tr])
+    n_large = np.mean([len(large["roi_undeformed_mm"][i]) for i in tr])
     a = run_point(arrays, MODEL, HP, scenario="II", seed=0, test_fraction=0.25, epochs=5, roi_fraction=0.05,
                   surfaces=surfaces)
     b = run_point(arrays, MODEL, HP, scenario="II", seed=0, test_fraction=0.25, epochs=5, roi_fraction=0.30,
@@ -122,7 +127,7 @@ def test_clean_linear_problem_is_learned_and_heavy_noise_does_not_help(data):
     clean = run_point(arrays, MODEL, HP, scenario="II", seed=0, test_fraction=0.25, epochs=EPOCHS)
     noisy = run_point(arrays, {**MODEL, "noise_mm": 2.0}, HP, scenario="II", seed=0, test_fraction=0.25,
                       epochs=EPOCHS)
-    assert clean["n_test"] == 40 and clean["n_train"] == 120
+    assert clean["n_val"] == 30 and clean["n_train"] == 90  # 160 cases: test 40 (never read), val 30, fit 90
     assert clean["metrics"]["accuracy_pct"] > 90.0, clean["metrics"]
     # 2 mm noise on a clean, noise-free linear map cannot make the estimate better
     assert noisy["metrics"]["mae_vec"] > clean["metrics"]["mae_vec"]
@@ -134,9 +139,27 @@ def test_learning_curve_uses_fewer_training_cases_same_test_split_and_fewer_case
     full = run_point(arrays, MODEL, HP, scenario="II", seed=0, test_fraction=0.25, epochs=EPOCHS)
     few = run_point(arrays, MODEL, HP, scenario="II", seed=0, test_fraction=0.25, epochs=EPOCHS,
                     train_fraction=0.1)
-    assert (few["n_train"], few["n_test"]) == (12, 40) and full["n_train"] == 120
-    # 12 cases for a 3-output map through a 4-component code and a 64x64 MLP: clearly worse than 120
+    assert (few["n_train"], few["n_val"]) == (9, 30) and full["n_train"] == 90
+    # 9 cases for a 3-output map through a 4-component code and a 64x64 MLP: clearly worse than 120
     assert few["metrics"]["mae_vec"] > 1.5 * full["metrics"]["mae_vec"], (few["metrics"], full["metrics"])
+
+
+def test_a_study_point_never_reads_the_test_split(data):
+    """The main model's test cases can be anything (NaN forces, garbage ROIs): a study point gives exactly the
+    same result, because it fits and scores on the training split only."""
+    from liverforce.learn.splits import train_test_split
+
+    arrays, _ = data
+    _, te = train_test_split(np.asarray(arrays["geometry_id"]).astype(str), scenario="II", test_fraction=0.25, seed=0)
+    spoiled = dict(arrays)
+    spoiled["force_n"] = np.array(arrays["force_n"], dtype=float)
+    spoiled["force_n"][te] = np.nan
+    spoiled["roi_deformed_mm"] = [np.full_like(d, np.nan) if i in set(te) else d
+                                  for i, d in enumerate(arrays["roi_deformed_mm"])]
+    a = run_point(arrays, MODEL, HP, scenario="II", seed=0, test_fraction=0.25, epochs=5)
+    b = run_point(spoiled, MODEL, HP, scenario="II", seed=0, test_fraction=0.25, epochs=5)
+    assert a["metrics"] == b["metrics"] and np.isfinite(b["metrics"]["mae_vec"])
+    assert a["evaluated_on"] == "validation"
 
 
 def test_training_subsample_is_per_geometry_seeded_and_inside_the_split():
