@@ -36,6 +36,7 @@ Stages used by the package (``stage`` strings; keys in brackets)::
     encoder.fold [k]           fold k's scalers and encoder in cross-validation (from the split seed)
     split.repeat [r]           the r-th repeated train/test split (r >= 1; from the split seed)
     split.calibration          the interval's calibration split inside the training split (from the split seed)
+    split.study                a study point's validation split inside the training split (from the split seed)
     interval.fit               the calibration model's fit and observation draws (from the split seed)
     observation.view [v]       the v-th observed training view (from a split seed)
     observation.eval           the observation drawn to evaluate a test split (from a split seed)
