@@ -107,9 +107,6 @@ def test_cli_show_case_looks_in_the_plans_shards(tmp_path, capsys):
 # nobody else spells a file name of the layout
 # --------------------------------------------------------------------------
 
-#: files another change is still rewriting; each still spells a layout name itself (remove an entry once the
-#: file uses liverforce.layout: the test fails on a stale entry)
-PENDING: dict[str, str] = {}
 _FRAGMENTS = (".features.json", ".regions.png", "shard-", "manifest.json", "metrics.json", "/progress/", "/shards/",
               "/models/", "/mesh/", "/geometry/", "/logs/")
 _FOLDERS = {"shards", "progress", "models", "mesh", "geometry", "sweep", "studies", "validate", "report", "logs",
@@ -139,10 +136,7 @@ def test_the_package_spells_layout_names_only_in_liverforce_layout():
         rel = path.relative_to(ROOT).as_posix()
         if rel != "liverforce/layout.py" and (hits := layout_spellings(path)):
             found[rel] = hits
-    new = {k: v for k, v in found.items() if k not in PENDING}
-    assert not new, f"take paths from liverforce.layout (Plan.paths), do not spell them: {new}"
-    stale = sorted(k for k in set(PENDING) - set(found) if (ROOT / k).exists())  # (a new file may not be in yet)
-    assert not stale, f"{stale} no longer spell layout names: remove them from PENDING"
+    assert not found, f"take paths from liverforce.layout (Plan.paths), do not spell them: {found}"
 
 
 def test_rules_spell_no_paths_and_no_experiment_names():

@@ -108,10 +108,6 @@ def test_negative_config_seeds_are_refused():
 # no seed arithmetic outside liverforce/seeds.py
 # --------------------------------------------------------------------------
 
-#: files another change is still rewriting; each still derives seeds by hand (remove an entry once the file
-#: uses liverforce.seeds: the test fails on a stale entry)
-PENDING = {
-}
 _ARITHMETIC = (ast.Add, ast.Sub, ast.Mult, ast.FloorDiv, ast.Mod, ast.Pow, ast.LShift, ast.RShift, ast.BitXor)
 _MAGIC = {7919, 104729, 1_000_003, 0x11FE5, 0x7015}
 
@@ -174,10 +170,7 @@ def test_no_seed_arithmetic_outside_liverforce_seeds():
         hits = seed_derivations(path)
         if hits:
             found[rel] = hits
-    new = {k: v for k, v in found.items() if k not in PENDING}
-    assert not new, f"derive seeds with liverforce.seeds.derive (or Plan.seed), not by hand: {new}"
-    stale = sorted(k for k in set(PENDING) - set(found) if (ROOT / k).exists())  # (a new file may not be in yet)
-    assert not stale, f"{stale} no longer derive seeds by hand: remove them from PENDING"
+    assert not found, f"derive seeds with liverforce.seeds.derive (or Plan.seed), not by hand: {found}"
 
 
 def test_rules_take_seeds_from_the_plan():

@@ -120,14 +120,12 @@ def _run(args) -> int:
     if args.mode == "cloud":
         force, extra = predictor.predict_cloud(pts, preop, approximate=args.approximate, return_info=True)
         info.update(extra)
-    elif args.mode == "surface":
-        force = predictor.predict(preop.roi_of_surface(pts), preop)
-        info["interval"] = predictor.interval(preop.roi_of_surface(pts), preop)
     else:
-        force = predictor.predict(pts, preop)
-        info["interval"] = predictor.interval(pts, preop)
-    if info.get("interval") is None:
-        info.pop("interval", None)
+        nodes = preop.roi_of_surface(pts) if args.mode == "surface" else pts
+        iv = predictor.interval(nodes, preop)  # the force and its interval in one pass (None: no interval)
+        force = predictor.predict(nodes, preop) if iv is None else np.asarray(iv.pop("force_n"))
+        if iv is not None:
+            info["interval"] = iv
     doc = {"force_n": [float(v) for v in force], "magnitude_n": float(np.linalg.norm(force)),
            "frame": "liver (source) frame of the inputs", "model": predictor.source, **info}
     if args.out and args.out.lower().endswith(".csv"):

@@ -156,8 +156,8 @@ class Predictor:
                 )
 
     # ------------------------------------------------------------------ predictions
-    def predict(self, deformed_roi_mm, preop: Preop) -> np.ndarray:
-        """(a) Force ``(3,)`` N from the deformed ROI nodes ``(k, 3)`` mm (order of ``preop.roi_undeformed_mm``)."""
+    def _checked_arrays(self, deformed_roi_mm, preop: Preop) -> dict:
+        """One-row input arrays of a deformed ROI in node correspondence, every check run."""
         D = _points("roi_deformed_mm", deformed_roi_mm, min_points=1)
         if D.shape != preop.roi_undeformed_mm.shape:
             raise PredictionInputError(
@@ -168,21 +168,24 @@ class Predictor:
         self._check_state_inputs(preop)
         arrays = preop.to_arrays(D)
         check_case(arrays, 0, self.model, self.scale, self.limits, label="")
-        return self.model.predict(arrays)[0]
+        return arrays
+
+    def predict(self, deformed_roi_mm, preop: Preop) -> np.ndarray:
+        """(a) Force ``(3,)`` N from the deformed ROI nodes ``(k, 3)`` mm (order of ``preop.roi_undeformed_mm``)."""
+        return self.model.predict(self._checked_arrays(deformed_roi_mm, preop))[0]
 
     def interval(self, deformed_roi_mm, preop: Preop) -> dict | None:
-        """The calibrated interval of :meth:`predict`'s force (None for a model without one).
+        """The force of :meth:`predict` with its calibrated interval (None for a model without one).
 
-        ``{"coverage", "frame" (rows t1, t2, n), "force_local_n", "half_width_local_n",
-        "lower_local_n", "upper_local_n"}``: per local component, the interval
-        ``force_local_n +- half_width_local_n`` covers the true component with the
+        ``{"force_n" (liver frame), "coverage", "frame" (rows t1, t2, n), "force_local_n",
+        "half_width_local_n", "lower_local_n", "upper_local_n"}``: per local component, the
+        interval ``force_local_n +- half_width_local_n`` covers the true component with the
         nominal probability on livers like the calibration livers (the unseen-liver
         validation reports the coverage actually reached).
         """
         if self.model.interval is None:
             return None
-        self.predict(deformed_roi_mm, preop)  # every check
-        return interval_doc(self.model, preop.to_arrays(_points("roi_deformed_mm", deformed_roi_mm)))
+        return interval_doc(self.model, self._checked_arrays(deformed_roi_mm, preop))
 
     def predict_cloud(self, cloud_mm, preop: Preop, *, approximate: bool = False,
                       return_info: bool = False) -> np.ndarray | tuple[np.ndarray, dict]:
@@ -308,5 +311,6 @@ def interval_doc(model, arrays: dict) -> dict:
     def fl(v):
         return [float(x) if np.isfinite(x) else None for x in v]
 
-    return {"coverage": got["coverage"], "frame": got["frame"][0].tolist(), "force_local_n": fl(f),
+    return {"force_n": got["force_n"][0].tolist(), "coverage": got["coverage"], "frame": got["frame"][0].tolist(),
+            "force_local_n": fl(f),
             "half_width_local_n": fl(h), "lower_local_n": fl(f - h), "upper_local_n": fl(f + h)}

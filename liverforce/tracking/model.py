@@ -116,6 +116,7 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
 
 
 def _output_frame(model: ForceModel, arrays: dict, force: np.ndarray, seed: int | None) -> pd.DataFrame:
+    """The output columns: ``force`` (already computed), and the interval columns when the model has one."""
     out = pd.DataFrame(force, columns=list(OUTPUT_COLUMNS))
     if model.interval is not None:
         got = model.predict_interval(arrays, observation_seed=seed)
