@@ -198,6 +198,13 @@ class OcclusionConfig:
 
 
 @dataclass
+class CameraConfig:
+    observation: dict[str, Any] = MISSING  # ObservationConfig fields (liverforce.learn.observation)
+    grid: dict[str, Any] = MISSING  # CloudGridSpec fields other than grid_size and half_width_mm
+    tip_noise_mm: float = MISSING  # Gaussian noise of the tool tip position (robot kinematics), per coordinate
+
+
+@dataclass
 class ModelConfig:
     encoder: str = MISSING
     code_size: int = MISSING
@@ -213,6 +220,7 @@ class ModelConfig:
     roi_fraction: Optional[float] = MISSING  # None: the shards' dataset.roi_fraction
     force_scaling: str = MISSING  # stiffness | none (state-vector models: force / (C10 / C10_ref))
     probe_force_radius_mm: float = MISSING  # Gaussian radius of the linear force estimate C^-1 u_w (0 = off)
+    camera: CameraConfig = field(default_factory=CameraConfig)  # roi_features: cloud (liverforce.learn.camera)
 
 
 @dataclass
@@ -252,6 +260,8 @@ class ValidateConfig:
     n_cases: int = MISSING  # cases per unseen liver
     material_scale: float = MISSING
     variant: str = MISSING  # auto: lowest CV MAE (N) on the training livers | main: the first variant | a name
+    input: str = MISSING  # camera: auto chooses among the camera-cloud variants (what surgery has) | any
+    camera_sensitivity: dict[str, Any] = MISSING  # setting -> values re-observed for the camera-cloud model
 
 
 @dataclass
@@ -562,6 +572,10 @@ def _check_ranges(cfg: dict) -> None:
     names = [v.get("name") for v in cfg["train"]["variants"]] or ["default"]
     # main | auto | a name of train.variants
     _check_choice("validate.variant", cfg["validate"]["variant"], ["main", "auto", *names], "variant")
+    _check_choice("validate.input", cfg["validate"]["input"], ["camera", "any"], "validation input")
+    for k in cfg["validate"]["camera_sensitivity"]:
+        _check_choice("validate.camera_sensitivity", k, ["n_points", "noise_sd_mm", "cone_half_angle_deg",
+                                                        "tip_noise_mm"], "camera setting")
     mf = cfg["model"]["roi_fraction"]
     if mf is not None:
         if not 0 < mf <= 1:
@@ -640,6 +654,23 @@ def _check_model(mo: dict, key: str) -> None:
     if mo["dae_input_noise"] < 0:
         _fail(f"{key}.dae_input_noise", "must be >= 0")
     _check_choice(f"{key}.force_scaling", mo["force_scaling"], ("stiffness", "none"))
+    cam = mo["camera"]
+    if cam["tip_noise_mm"] < 0:
+        _fail(f"{key}.camera.tip_noise_mm", f"must be >= 0 mm (got {cam['tip_noise_mm']})")
+    from liverforce.learn.cloud_features import CloudGridSpec
+    from liverforce.learn.observation import ObservationConfig
+
+    try:
+        ObservationConfig.from_dict({k: v for k, v in cam["observation"].items() if v is not None})
+    except (TypeError, ValueError) as exc:
+        _fail(f"{key}.camera.observation", str(exc))
+    try:
+        CloudGridSpec(grid_size=3, half_width_mm=1.0, **cam["grid"])
+    except (TypeError, ValueError) as exc:
+        _fail(f"{key}.camera.grid", str(exc))
+    if mo["roi_features"] == "cloud" and (mo["occlusion"]["radius_mm"] > 0 or mo["noise_mm"] > 0):
+        _fail(f"{key}.roi_features", "a camera-cloud model (cloud) observes the surface with model.camera; "
+              "model.occlusion.radius_mm and model.noise_mm apply to node features only", "set them to 0")
 
 
 def _check_study(cfg: dict) -> None:

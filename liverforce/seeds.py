@@ -46,6 +46,7 @@ Stages used by the package (``stage`` strings; keys in brackets)::
     study.train_livers         the order of the training livers in their learning curve (from the split seed)
     observation [case]         a case's occlusion and noise draw (from an observation seed)
     observation.camera [case]  a case's camera observation draw (from an observation seed)
+    observation.tip [case]     a case's tool-tip (robot kinematics) noise draw (from an observation seed)
 
 Helpers that also touch seeds live here, so no other module does:
 :func:`spawn_rngs` (independent streams of one draw), :func:`liver_seeds`

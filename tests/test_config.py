@@ -28,7 +28,7 @@ def test_experiment_overrides_defaults_and_cli_overrides_experiment():
     assert smoke["mesh"]["target_nodes"] < default["mesh"]["target_nodes"]
     assert compose(["experiment=smoke", "mesh.target_nodes=950"])["mesh"]["target_nodes"] == 950
     # variants are a list: an experiment replaces them, it does not merge them
-    assert [v["name"] for v in smoke["train"]["variants"]] == ["pca_sv", "ae_sv"]
+    assert [v["name"] for v in smoke["train"]["variants"]] == ["pca_sv", "ae_sv", "cloud_sv"]
 
 
 def test_thesis_is_the_study_scale():
@@ -249,6 +249,13 @@ def test_every_encoder_roi_feature_and_occlusion_mode_fits():
 
     arrays = synthetic_arrays(24, seed=1, nodes=(200, 300))
     for features in config_mod.roi_features():
+        if features == "cloud":  # a camera cloud: the camera model's own occlusion, no node occlusion
+            from liverforce.learn.synthetic import synthetic_surface_arrays
+
+            rep = Representation(grid_size=5, half_width_mm=14.0, features=features, camera={})
+            prep = prepare(synthetic_surface_arrays(6, seed=1, n_vertices=3000), rep, observation_seeds=[0])
+            assert prep.x_obs.shape[-1] == rep.n_features == 2 * 25 + 3
+            continue
         for mode in config_mod.occlusion_modes():
             rep = Representation(grid_size=5, half_width_mm=14.0, features=features,
                                  occlusion_radius_mm=4.0, occlusion_mode=mode)

@@ -32,12 +32,17 @@ def test_every_stage_produced_its_outputs(smoke_run):
         assert m["rows"] == (12 if scenario != "V" else 2 * 4)  # V: 2 unseen livers x 4 cases
         assert m["failed"] <= m["rows"] // 4, f"too many failed cases in {scenario}: {m}"
     for scenario in ("I", "II", "III", "IV"):
-        for variant in ("pca_sv", "ae_sv"):
+        for variant in ("pca_sv", "ae_sv", "cloud_sv"):
             metrics = json.loads((root / "models" / scenario / variant / "metrics.json").read_text())
             assert metrics["run_id"]
     val = json.loads((root / "validate" / "metrics.json").read_text())
-    assert set(val["all_variants"]) == {"pca_sv", "ae_sv"} and val["model_variant"] == "pca_sv"  # main
-    assert val["metrics"] == pytest.approx(val["all_variants"]["pca_sv"]["metrics"])
+    # validate.input: camera -> the main camera-cloud variant is validated; the node models are the reference
+    assert set(val["all_variants"]) == {"pca_sv", "ae_sv", "cloud_sv"} and val["model_variant"] == "cloud_sv"
+    assert val["metrics"] == pytest.approx(val["all_variants"]["cloud_sv"]["metrics"])
+    sens = val["camera_sensitivity"]
+    assert [r["value"] for r in sens["n_points"]] == [200, 1000, 5000, 20000]
+    assert all(np.isfinite(r["mae_vec"]) for k in ("n_points", "noise_sd_mm", "cone_half_angle_deg", "tip_noise_mm")
+               for r in sens[k])
     assert sorted(val["per_liver"]) == ["val-1000", "val-1001"] and val["livers"]["n"] == 2
     # the calibrated interval, measured on the unseen livers (smoke: too few calibration cases -> unbounded)
     iv = val["interval"]
@@ -47,6 +52,8 @@ def test_every_stage_produced_its_outputs(smoke_run):
         assert len(doc["points"]) == 2 and (root / "studies" / f"{study}.png").stat().st_size > 5000
         assert all(p["run_id"] for p in doc["points"])
     assert (root / "report" / "index.html").stat().st_size > 1000
+    page = (root / "report" / "index.html").read_text()
+    assert "id='camera'" in page and "class='camera-sens'" in page  # camera vs correspondence, sensitivity
     assert (root / "report" / "figures" / "population.png").stat().st_size > 20000
     # no half-written file anywhere
     assert not list(root.rglob(".*.tmp*"))

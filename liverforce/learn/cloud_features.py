@@ -80,7 +80,7 @@ from dataclasses import asdict, dataclass, fields
 import numpy as np
 
 from liverforce.learn.frames import local_rotations
-from liverforce.learn.representation import Representation, interpolate_to_grid
+from liverforce.learn.grid import interpolate_to_grid
 
 FILL_RULES = ("laplace", "zero", "nearest")
 ESTIMATORS = ("linear", "mean")
@@ -171,7 +171,9 @@ class CloudGridSpec:
 
     def grid(self) -> np.ndarray:
         """Grid points ``(g^2, 2)`` mm: exactly ``Representation.grid()`` for the same ``g`` and ``h``."""
-        return Representation(self.grid_size, self.half_width_mm, features="deformed").grid()
+        t = np.linspace(-self.half_width_mm, self.half_width_mm, self.grid_size)
+        uu, vv = np.meshgrid(t, t)  # uu[i, j] = t[j], vv[i, j] = t[i]
+        return np.column_stack([uu.ravel(), vv.ravel()])
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -35,6 +35,9 @@ encoder::
     u_w = sum_ij w_ij d(u_j, v_i),  w_ij ~ exp(-(u_j^2 + v_i^2) / (2 r^2));   f_lin = C^-1 u_w
 
 (``r``: ``model.probe_force_radius_mm``, the tool radius; 0 turns it off.)
+A camera-cloud model (``roi_features: cloud``) has no grid displacement; it
+uses the tool tip's displacement the robot reports instead,
+``f_lin = C^-1 tip`` (:mod:`liverforce.learn.camera`).
 
 Bundle format (a directory, no pickle of arbitrary code)::
 
@@ -125,11 +128,18 @@ def force_scaling_of(model_cfg: dict) -> str:
     return str(model_cfg.get("force_scaling", "none")) if bool(model_cfg.get("state_vector")) else "none"
 
 
+#: entries of an arrays dict that are not per-case columns (passed through by :func:`subset`)
+PER_RUN_KEYS = ("surface_meshes",)
+
+
 def subset(arrays: dict, idx: np.ndarray) -> dict:
-    """Rows ``idx`` of every entry of an input-contract dict (lists stay lists)."""
+    """Rows ``idx`` of every entry of an input-contract dict (lists stay lists; :data:`PER_RUN_KEYS` as they are)."""
     idx = np.asarray(idx)
     out = {}
     for k, v in arrays.items():
+        if k in PER_RUN_KEYS:
+            out[k] = v
+            continue
         out[k] = [v[i] for i in idx] if isinstance(v, list) else np.asarray(v)[idx]
     return out
 
@@ -180,7 +190,8 @@ def prepare(arrays: dict, rep: Representation, *, observation_seeds: list[int]) 
     x_clean = rep.features_of(arrays, clean=True) if rep.occludes else views[0]
     R = local_rotations(arrays["frame_normal"], arrays["frame_t1"], arrays["frame_t2"])
     force = np.asarray(arrays["force_n"], dtype=np.float64)
-    return Prepared(np.stack(views), x_clean, state_vector(arrays), force_to_local(force, R), force, R)
+    return Prepared(np.stack(views), x_clean, state_vector(rep.state_arrays(arrays)), force_to_local(force, R),
+                    force, R)
 
 
 # --------------------------------------------------------------------------
@@ -199,6 +210,7 @@ class Preprocessor:
     target_scaler: Standardizer
     stiffness_ref: float | None = None  # force_scaling: stiffness (first material constant's training mean, MPa)
     linear_force_weights: np.ndarray | None = None  # (g^2,) grid weights of u_w; None: no linear force estimate
+    linear_force_tip: bool = False  # camera models: f_lin = C^-1 (tool tip displacement, the features' last 3)
 
     def inputs(self, x: np.ndarray, state: np.ndarray | None) -> np.ndarray:
         code = self.code_scaler.transform(self.encoder.encode(self.feature_scaler.transform(x)))
@@ -218,13 +230,16 @@ class Preprocessor:
         """``f_lin = C^-1 u_w`` ``(n, 3)`` N, local frame (module docstring), from features ``x`` and the state."""
         w = self.linear_force_weights
         n = len(x)
-        u_w = np.asarray(x, dtype=np.float64)[:, :3 * w.size].reshape(n, 3, w.size) @ w
+        if self.linear_force_tip:
+            u_w = np.asarray(x, dtype=np.float64)[:, -3:]
+        else:
+            u_w = np.asarray(x, dtype=np.float64)[:, :3 * w.size].reshape(n, 3, w.size) @ w
         return np.linalg.solve(compliance_matrices(state), u_w[:, :, None])[:, :, 0]
 
     def state_features(self, state: np.ndarray, x: np.ndarray | None = None) -> np.ndarray:
         """The state vector as the regressor sees it: :meth:`base_state_features`, then ``f_lin`` if used."""
         out = self.base_state_features(state)
-        if self.linear_force_weights is None:
+        if self.n_linear_force == 0:
             return out
         if x is None:
             raise ValueError("this model's state features include the linear force estimate: pass the features x")
@@ -232,7 +247,7 @@ class Preprocessor:
 
     @property
     def n_linear_force(self) -> int:
-        return 0 if self.linear_force_weights is None else 3
+        return 0 if self.linear_force_weights is None and not self.linear_force_tip else 3
 
     @property
     def n_material(self) -> int | None:
@@ -309,8 +324,11 @@ def fit_preprocessor(
     if linear_force_radius_mm > 0:
         if not use_state or rep.features == "deformed":
             raise ValueError("the linear force estimate needs the state vector (the probe compliance) and "
-                             "displacement features (roi_features: displacement or both)")
-        pre.linear_force_weights = linear_force_weights(rep, linear_force_radius_mm)
+                             "displacement features (roi_features: displacement, both or cloud)")
+        if rep.is_camera:
+            pre.linear_force_tip = True
+        else:
+            pre.linear_force_weights = linear_force_weights(rep, linear_force_radius_mm)
     if use_state:
         pre.state_scaler = Standardizer.fit(np.vstack([pre.state_features(prep.state, xv) for xv in prep.x_obs]))
     pre.target_scaler = Standardizer.fit(prep.y_local / pre.stiffness(prep.state, len(prep.state)))
@@ -357,6 +375,8 @@ class ForceModel:
         keys = list(ROI_INPUTS)
         if self.uses_state:
             keys += [k for k in STATE_INPUTS if k not in keys]
+        if self.representation.is_camera:  # the camera cloud and tool tip are checked by liverforce.learn.camera
+            keys = [k for k in keys if k not in ("roi_deformed_mm", "roi_centroid_deformed_mm")]
         return tuple(keys)
 
     def predict_local(self, arrays: dict, observation_seed: int | None = None) -> np.ndarray:
@@ -365,7 +385,7 @@ class ForceModel:
         if missing:
             raise KeyError(f"ForceModel.predict needs the inputs {missing}")
         x = self.representation.features_of(arrays, observation_seed=observation_seed)
-        s = state_vector(arrays) if self.uses_state else None
+        s = state_vector(self.representation.state_arrays(arrays)) if self.uses_state else None
         z = self.pre.inputs(x, s)
         return self.pre.target_scaler.inverse_transform(predict_regressor(self.regressor, z)) \
             * self.pre.stiffness(s, len(z))
@@ -391,7 +411,7 @@ class ForceModel:
         if ci is None:
             raise ValueError("this model has no calibrated interval (trained without train.interval)")
         f_local = self.predict_local(arrays, observation_seed)
-        s = state_vector(arrays) if self.uses_state else None
+        s = state_vector(self.representation.state_arrays(arrays)) if self.uses_state else None
         half = ci.half_widths(self.pre.stiffness(s, len(f_local)))
         R = local_rotations(arrays["frame_normal"], arrays["frame_t1"], arrays["frame_t2"])
         return {"force_n": force_to_source(f_local, R), "force_local_n": f_local, "half_width_local_n": half,
@@ -435,6 +455,7 @@ class ForceModel:
                     "stiffness_ref": self.pre.stiffness_ref,
                     "linear_force_weights": None if self.pre.linear_force_weights is None
                     else [float(v) for v in self.pre.linear_force_weights],
+                    "linear_force_tip": bool(self.pre.linear_force_tip),
                 },
                 "meta": self.meta,
             }
@@ -483,6 +504,7 @@ class ForceModel:
             Standardizer.from_dict(sc["target"]),
             sc.get("stiffness_ref"),
             None if sc.get("linear_force_weights") is None else np.asarray(sc["linear_force_weights"], np.float64),
+            bool(sc.get("linear_force_tip", False)),
         )
         rspec = RegressorSpec.from_dict(doc["regressor"])
         net = build_mlp(rspec)
@@ -525,7 +547,17 @@ def training_scale(prep: Prepared, rep: Representation) -> dict:
     x = np.abs(np.concatenate([prep.x_clean, *prep.x_obs], axis=0))
     feat_max = [float(x[:, c * g2:(c + 1) * g2].max()) for c in range(rep.channels)]
     fmag = np.linalg.norm(prep.force, axis=1)
-    return {
+    extra = {}
+    if rep.is_camera:  # the camera checks of serving (liverforce.serve.cloud.camera_checks)
+        xo = np.concatenate(list(prep.x_obs), axis=0)
+        seen = xo[:, g2:2 * g2] > 0.5
+        extra["camera"] = {
+            "valid_fraction": [float(seen.mean(axis=1).min()), float(seen.mean(axis=1).max())],
+            "height_abs_max_mm": float(np.abs(np.where(seen, xo[:, :g2], 0.0)).max()),
+            "tip_displacement_max_mm": float(np.linalg.norm(xo[:, -3:], axis=1).max()),
+        }
+        feat_max = feat_max[:1]  # the mask channel is not a length
+    return {**extra,
         "inertia_length_mm": [float(length.min()), float(length.max())],
         "centroid_distance_mm": [float(dist.min()), float(dist.max())],
         "material_params_mpa": [mat.min(axis=0).tolist(), mat.max(axis=0).tolist()],

@@ -13,7 +13,9 @@ imports torch).
 ENCODERS = ("pca", "ae", "dae")
 
 #: ROI features -> grid channels per point (liverforce.learn.representation.Representation)
-ROI_FEATURE_CHANNELS = {"displacement": 3, "deformed": 1, "both": 4}
+ROI_FEATURE_CHANNELS = {"displacement": 3, "deformed": 1, "both": 4, "cloud": 2}
+#: ROI features that need no node correspondence: a camera cloud and the tool tip (liverforce.learn.camera)
+CAMERA_FEATURES = ("cloud",)
 
 #: how the tool's occlusion hides ROI points (liverforce.learn.representation.Representation)
 OCCLUSION_MODES = ("remove", "noise")

@@ -29,6 +29,12 @@ Features (``features`` setting)
     node correspondence needed.
 ``both``
     The two concatenated (``4 g^2`` values).
+``cloud``
+    What a camera and the robot give, no node correspondence
+    (:mod:`liverforce.learn.camera`): the camera cloud's normal height change
+    over the pre-operative surface and its coverage mask on the grid, then the
+    tool tip's displacement (``2 g^2 + 3`` values). The camera settings
+    (``camera``) replace the occlusion and noise below, which do not apply.
 
 Channel-major order: feature ``c * g^2 + i * g + j`` is channel ``c`` at
 ``(u_j, v_i)``, ``u_j = -h + 2 h j / (g - 1)``.
@@ -74,11 +80,10 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 
 import numpy as np
-from scipy.interpolate import NearestNDInterpolator
-from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 
 from liverforce.learn import names
 from liverforce.learn.frames import local_rotations, points_to_local
+from liverforce.learn.grid import interpolate_to_grid
 from liverforce.seeds import derive
 
 FEATURE_KINDS = names.roi_features()
@@ -103,6 +108,10 @@ class Representation:
         ``remove`` or ``noise``.
     noise_mm : float
         Standard deviation of Gaussian point noise, mm.
+    camera : dict, optional
+        ``cloud`` features only: ``observation`` (ObservationConfig fields),
+        ``grid`` (CloudGridSpec fields) and ``tip_noise_mm``
+        (:mod:`liverforce.learn.camera`).
     """
 
     grid_size: int
@@ -111,6 +120,7 @@ class Representation:
     occlusion_radius_mm: float = 0.0
     occlusion_mode: str = "remove"
     noise_mm: float = 0.0
+    camera: dict | None = None
 
     def __post_init__(self) -> None:
         if int(self.grid_size) < 3:
@@ -123,6 +133,16 @@ class Representation:
             raise ValueError(f"unknown occlusion mode '{self.occlusion_mode}': use one of {names.OCCLUSION_MODES}")
         if self.occlusion_radius_mm < 0 or self.noise_mm < 0:
             raise ValueError("occlusion radius_mm and noise_mm must be >= 0 mm")
+        if self.is_camera:
+            if self.occlusion_radius_mm > 0 or self.noise_mm > 0:
+                raise ValueError("roi_features: cloud models observe the surface with the camera model "
+                                 "(model.camera: tool, noise, density); model.occlusion.radius_mm and "
+                                 "model.noise_mm must be 0 for them")
+            object.__setattr__(self, "camera", dict(self.camera or {}))
+        elif self.camera:
+            raise ValueError(f"camera settings apply to roi_features: cloud only (got '{self.features}')")
+        else:
+            object.__setattr__(self, "camera", None)
 
     # ------------------------------------------------------------------
     @property
@@ -131,23 +151,45 @@ class Representation:
         return names.ROI_FEATURE_CHANNELS[self.features]
 
     @property
+    def is_camera(self) -> bool:
+        """True for features a camera and the robot give (no node correspondence)."""
+        return self.features in names.CAMERA_FEATURES
+
+    @property
     def n_features(self) -> int:
-        """Length of the feature vector, ``channels * g^2``."""
+        """Length of the feature vector, ``channels * g^2`` (``+ 3``, the tool tip, for ``cloud``)."""
+        if self.is_camera:
+            from liverforce.learn import camera
+
+            return camera.n_features(self.grid_size)
         return self.channels * self.grid_size**2
 
     @property
     def stochastic(self) -> bool:
-        """True if an observation seed changes the features (noise of any kind)."""
-        return self.noise_mm > 0 or (self.occlusion_radius_mm > 0 and self.occlusion_mode == "noise")
+        """True if an observation seed changes the features (noise of any kind, a camera's pose)."""
+        return self.is_camera or self.noise_mm > 0 or (self.occlusion_radius_mm > 0 and self.occlusion_mode == "noise")
 
     @property
     def occludes(self) -> bool:
-        """True if the observation model differs from the clean ROI at all."""
-        return self.noise_mm > 0 or self.occlusion_radius_mm > 0
+        """True if the observation model differs from the clean ROI at all (camera models: no clean ROI)."""
+        return not self.is_camera and (self.noise_mm > 0 or self.occlusion_radius_mm > 0)
 
     def channel_groups(self) -> np.ndarray:
         """Channel index of every feature, ``(n_features,)`` int (for per-channel scaling)."""
+        if self.is_camera:
+            from liverforce.learn import camera
+
+            return camera.channel_groups(self.grid_size)
         return np.repeat(np.arange(self.channels), self.grid_size**2)
+
+    def state_arrays(self, arrays: dict) -> dict:
+        """The arrays the state vector is built from: a camera model has no deformed ROI centroid (it needs
+        node correspondence), so its column repeats the undeformed one and carries nothing."""
+        if not self.is_camera:
+            return arrays
+        out = dict(arrays)
+        out["roi_centroid_deformed_mm"] = arrays["roi_centroid_undeformed_mm"]
+        return out
 
     def grid(self) -> np.ndarray:
         """Tangent-plane grid points ``(g^2, 2)`` mm, row-major in ``v`` then ``u``."""
@@ -186,6 +228,11 @@ class Representation:
             Ignore the observation model entirely (no occlusion, no noise):
             the denoising autoencoder's target.
         """
+        if self.is_camera:
+            from liverforce.learn import camera
+
+            return camera.camera_features(arrays, self.camera, self.grid_size, self.half_width_mm,
+                                          None if clean else observation_seed)
         R = local_rotations(arrays["frame_normal"], arrays["frame_t1"], arrays["frame_t2"])
         P = np.asarray(arrays["exertion_point_mm"], dtype=np.float64)
         und, dfm = arrays["roi_undeformed_mm"], arrays["roi_deformed_mm"]
@@ -246,67 +293,6 @@ class Representation:
         return np.concatenate([p.T.ravel() for p in parts])
 
 
-def _barycentric(p: np.ndarray, A: np.ndarray, e1: np.ndarray, e2: np.ndarray, det: np.ndarray) -> np.ndarray:
-    """Barycentric coordinates ``(..., 3)`` of points ``p`` in triangles ``A + [e1, e2]`` (broadcasting)."""
-    d = p - A
-    l1 = (d[..., 0] * e2[..., 1] - d[..., 1] * e2[..., 0]) / det
-    l2 = (e1[..., 0] * d[..., 1] - e1[..., 1] * d[..., 0]) / det
-    return np.stack([1.0 - l1 - l2, l1, l2], axis=-1)
-
-
-def interpolate_to_grid(xy: np.ndarray, values: np.ndarray, grid: np.ndarray, label: str) -> np.ndarray:
-    """Linear interpolation on the Delaunay triangulation, nearest node outside the hull -> ``(g^2, m)``.
-
-    The same piecewise-linear interpolant as ``LinearNDInterpolator``. Point
-    location: each grid point is tested against the 12 triangles with the
-    nearest centroids; points left over are tested against all triangles if
-    they lie inside the convex hull (SciPy's ``Delaunay.transform`` /
-    ``find_simplex`` cost ~15 ms for 450 nodes, this ~3 ms).
-    """
-    if len(xy) == 0:
-        raise ValueError(f"case {label}: empty ROI point cloud")
-    vals = np.full((len(grid), values.shape[1]), np.nan)
-    try:
-        simplices = Delaunay(xy).simplices
-    except (QhullError, ValueError):  # collinear or too few points: nearest only
-        simplices = np.empty((0, 3), dtype=int)
-    if len(simplices):
-        A, B, C = xy[simplices[:, 0]], xy[simplices[:, 1]], xy[simplices[:, 2]]
-        e1, e2 = B - A, C - A
-        det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
-        ok = np.abs(det) > 1e-12 * max(1.0, float(np.ptp(xy, axis=0).max()) ** 2)
-        simplices, A, e1, e2, det = simplices[ok], A[ok], e1[ok], e2[ok], det[ok]
-        eps = 1e-10
-        tri_of = np.full(len(grid), -1)
-        lam = np.zeros((len(grid), 3))
-        k = min(12, len(simplices))
-        _, cand = cKDTree((A + (e1 + e2) / 3.0)).query(grid, k=k)
-        cand = cand.reshape(len(grid), k)
-        bc = _barycentric(grid[:, None, :], A[cand], e1[cand], e2[cand], det[cand])  # (g2, k, 3)
-        inside = (bc >= -eps).all(axis=2)
-        rows = np.flatnonzero(inside.any(axis=1))
-        j = inside[rows].argmax(axis=1)
-        tri_of[rows], lam[rows] = cand[rows, j], bc[rows, j]
-        rest = np.flatnonzero(tri_of < 0)
-        if rest.size:  # drop points outside the convex hull (they take the nearest node) ...
-            eq = ConvexHull(xy).equations  # (h, 3): n . p + c <= 0 inside
-            scale = max(1.0, float(np.abs(xy).max()))
-            rest = rest[(grid[rest] @ eq[:, :2].T + eq[:, 2] <= 1e-9 * scale).all(axis=1)]
-        if rest.size:  # ... and test the others against every triangle
-            bc = _barycentric(grid[rest, None, :], A[None], e1[None], e2[None], det[None])
-            inside = (bc >= -eps).all(axis=2)
-            hit = inside.any(axis=1)
-            rows = rest[hit]
-            j = inside[hit].argmax(axis=1)
-            tri_of[rows], lam[rows] = j, bc[hit, j]
-        found = tri_of >= 0
-        vals[found] = np.einsum("mk,mkc->mc", lam[found], values[simplices[tri_of[found]]])
-    outside = np.isnan(vals).any(axis=1)
-    if outside.any():
-        vals[outside] = NearestNDInterpolator(xy, values)(grid[outside])
-    return vals
-
-
 def roi_half_extent(arrays: dict) -> np.ndarray:
     """Per case, half-width (mm) of the largest centred square inside the ROI's tangent bounding box.
 
@@ -345,14 +331,28 @@ def representation_from_config(model_cfg: dict, train_arrays: dict) -> Represent
     h = float(model_cfg.get("grid_half_width_mm") or 0.0)
     if h <= 0:
         h = fit_half_width(train_arrays)
+    features = str(model_cfg.get("roi_features", "displacement"))
+    cam = None
+    if features in names.CAMERA_FEATURES:
+        cam = _plain(model_cfg.get("camera") or {})
     return Representation(
         grid_size=int(model_cfg["grid_size"]),
         half_width_mm=h,
-        features=str(model_cfg.get("roi_features", "displacement")),
+        features=features,
         occlusion_radius_mm=float(occ.get("radius_mm", 0.0)),
         occlusion_mode=str(occ.get("mode", "remove")),
         noise_mm=float(model_cfg.get("noise_mm", 0.0)),
+        camera=cam,
     )
+
+
+def _plain(d):
+    """A config slice as plain JSON types (lists for tuples), so the model bundle stores it as given."""
+    if isinstance(d, dict):
+        return {str(k): _plain(v) for k, v in d.items()}
+    if isinstance(d, (list, tuple)):
+        return [_plain(v) for v in d]
+    return d
 
 
 # --------------------------------------------------------------------------

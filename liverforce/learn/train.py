@@ -46,6 +46,7 @@ from liverforce.config import config_hash
 from liverforce.learn.interval import coverage_per_component, fit_conformal
 from liverforce.learn.metrics import force_metrics
 from liverforce.learn.model import (
+    PER_RUN_KEYS,
     ForceModel,
     eval_seed,
     force_scaling_of,
@@ -391,7 +392,8 @@ def repeated_splits(train_arrays, test_arrays, rep, model_cfg, train_cfg, scenar
     n_rep = int(train_cfg.get("repeats", 1))
     if n_rep <= 1:
         return []
-    all_arrays = {k: (list(train_arrays[k]) + list(test_arrays[k]) if isinstance(train_arrays[k], list)
+    all_arrays = {k: (train_arrays[k] if k in PER_RUN_KEYS
+                      else list(train_arrays[k]) + list(test_arrays[k]) if isinstance(train_arrays[k], list)
                       else np.concatenate([np.asarray(train_arrays[k]), np.asarray(test_arrays[k])]))
                   for k in train_arrays}
     order = np.argsort(np.asarray(all_arrays["case_id"]).astype(str), kind="stable")  # independent of the main split

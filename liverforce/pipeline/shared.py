@@ -31,13 +31,39 @@ def surface_graphs(mesh_paths) -> dict:
     return out
 
 
+def surface_meshes(mesh_paths) -> dict:
+    """Geometry id -> ``(vertices, triangles)`` of its mesh surface in the shards' surface-node order
+    (:func:`liverforce.learn.observation.surface_from_mesh`): what the camera observation model reads."""
+    from liverforce.learn.observation import surface_from_mesh
+    from liverforce.mesh.io import read_mesh
+
+    out = {}
+    for p in mesh_paths:
+        mesh = read_mesh(p)
+        out[gid_of(p)] = surface_from_mesh(mesh.points, mesh.facets)
+    return out
+
+
+def camera_arrays(manifest_path, mesh_paths, what: str) -> dict:
+    """Converged cases with their full-surface displacements and the geometries' surfaces, for a camera-cloud
+    model (:mod:`liverforce.learn.camera`); ``what`` names the user of the data in errors."""
+    if not mesh_paths:
+        raise ValueError(f"{what}: a camera-cloud model (roi_features: cloud) needs the meshes of its livers")
+    arrays = load_study_arrays(manifest_path, full_surface=True)
+    arrays["surface_meshes"] = surface_meshes(mesh_paths)
+    missing = sorted(set(np.asarray(arrays["geometry_id"]).astype(str)) - set(arrays["surface_meshes"]))
+    if missing:
+        raise ValueError(f"{what}: no mesh given for the geometries {missing}")
+    return arrays
+
+
 def load_study_arrays(manifest_path, full_surface: bool = False) -> dict:
     """Converged cases of one scenario (verified shards); with ``surface_displacement_mm`` if ``full_surface``."""
     arrays = dio.load_training_arrays(dio.verify_manifest(manifest_path), full_surface=full_surface)
     if full_surface and any(len(x) == 0 for x in arrays["surface_displacement_mm"]):
         raise RuntimeError(
             f"{manifest_path}: the shards hold no full-surface displacements (dataset.store_full_surface "
-            "was false when they were simulated); the ROI-fraction study needs them — set it to true and "
-            "re-run the sweep"
+            "was false when they were simulated); the ROI-fraction study and camera-cloud models need them — "
+            "set it to true and re-run the sweep"
         )
     return arrays

@@ -10,7 +10,7 @@ import numpy as np
 
 from liverforce.atomic import write_json_atomic
 from liverforce.dataset import io as dio
-from liverforce.pipeline.shared import load_study_arrays, surface_graphs
+from liverforce.pipeline.shared import camera_arrays, load_study_arrays, surface_graphs
 
 log = logging.getLogger("liverforce")
 
@@ -26,7 +26,9 @@ def train_model(manifest_path, scenario: str, variant: str, model_cfg: dict, tra
 
     Every shard is checked against the manifest's hash before it is read: a
     truncated or modified shard stops training with its name (delete it and
-    re-run to rebuild it). With ``model_cfg["roi_fraction"]`` set, the ROI is
+    re-run to rebuild it). A camera-cloud variant (``roi_features: cloud``) reads the
+    full-surface displacements and the scenario's meshes (``mesh_paths``) to observe
+    the cases with the camera model. With ``model_cfg["roi_fraction"]`` set, the ROI is
     re-grown at that area fraction from the stored full-surface displacements
     (``mesh_paths``: the scenario's meshes) and the model is trained and saved
     for that fraction.
@@ -51,6 +53,11 @@ def train_model(manifest_path, scenario: str, variant: str, model_cfg: dict, tra
         log.info("scenario %s / %s: ROI re-grown at %.3f of the surface (shards: %.3f; achieved mean %.3f)",
                  scenario, variant, float(wanted), roi_fraction, float(np.mean(arrays["roi_area_fraction"])))
         roi_fraction = float(wanted)
+    elif model_cfg.get("roi_features") == "cloud":
+        if wanted is not None:
+            raise ValueError(f"variant {variant}: model.roi_fraction does not apply to a camera-cloud model "
+                             "(the camera sees what model.camera says)")
+        arrays = camera_arrays(manifest_path, mesh_paths, f"variant {variant}")
     else:
         arrays = dio.load_training_arrays(shards)
     n = len(arrays["case_id"])

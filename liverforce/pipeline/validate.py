@@ -15,7 +15,12 @@ from liverforce.layout import model_of_metrics
 log = logging.getLogger("liverforce")
 
 
-def choose_variant(metrics_paths: list, how: str = "auto") -> tuple[int, str]:
+def is_camera_variant(metrics_doc: dict) -> bool:
+    """True for a camera-cloud model (``roi_features: cloud``: no node correspondence)."""
+    return (metrics_doc.get("model_cfg") or {}).get("roi_features") == "cloud"
+
+
+def choose_variant(metrics_paths: list, how: str = "auto", input: str = "any") -> tuple[int, str]:
     """Index of the scenario-IV model to validate, and why.
 
     ``main``: the first listed (the main variant). ``auto``: the lowest
@@ -24,9 +29,16 @@ def choose_variant(metrics_paths: list, how: str = "auto") -> tuple[int, str]:
     livers nor the unseen livers inform the choice; the Ax MSE of older
     metrics files, of scaled targets, when not every variant has it); the
     first listed when no variant was tuned. Else the variant of that name.
+    ``input="camera"`` restricts ``auto`` (and ``main``: the first camera
+    variant) to the camera-cloud variants when there is one.
     """
     docs = [json.loads(Path(p).read_text()) for p in metrics_paths]
     names = [d.get("variant") or model_of_metrics(p)[1] for d, p in zip(docs, metrics_paths)]
+    if input == "camera" and how in ("auto", "main"):
+        cams = [i for i, d in enumerate(docs) if is_camera_variant(d)]
+        if cams:
+            k, why = choose_variant([metrics_paths[i] for i in cams], how, "any")
+            return cams[k], f"validate.input=camera (the camera-cloud variants {[names[i] for i in cams]}); {why}"
     if how == "main":
         return 0, "validate.variant=main (the first of train.variants)"
     if how != "auto":
@@ -65,8 +77,56 @@ def interval_on_unseen(model_dir, arrays: dict) -> dict | None:
             "test_coverage": m.meta.get("interval_test_coverage")}
 
 
+def camera_sensitivity(model_dir, arrays: dict, grid: dict) -> dict | None:
+    """A camera-cloud model's error on the unseen livers as one camera setting at a time changes.
+
+    ``grid``: setting -> values, among ``n_points`` (a fixed number of cloud
+    points), ``noise_sd_mm``, ``cone_half_angle_deg`` (the view-angle cone
+    around the normal) and ``tip_noise_mm`` (robot kinematics). The other
+    settings stay the model's own; the evaluation observation seed as in
+    validation. Returns ``{setting: [{value, mae_vec (mean over livers),
+    mae_sd, accuracy_pct, accuracy_sd}]}``, None for a model that is not a
+    camera-cloud model.
+    """
+    import copy
+    import dataclasses
+
+    from liverforce.learn.metrics import metrics_by_group
+    from liverforce.learn.model import ForceModel
+
+    m = ForceModel.load(Path(model_dir))
+    rep = m.representation
+    if not rep.is_camera or not grid:
+        return None
+    seed = int(m.meta.get("eval_observation_seed", 0))
+    out: dict = {"model_settings": rep.camera}
+    for key, values in grid.items():
+        rows = []
+        for val in values:
+            cam = copy.deepcopy(rep.camera)
+            obs = cam.setdefault("observation", {})
+            if key == "tip_noise_mm":
+                cam["tip_noise_mm"] = float(val)
+            elif key == "n_points":
+                obs["n_points"] = [int(val), int(val)]
+            elif key in ("noise_sd_mm", "cone_half_angle_deg"):
+                obs[key] = float(val)
+            else:
+                raise ValueError(f"validate.camera_sensitivity: unknown setting '{key}' (n_points, noise_sd_mm, "
+                                 "cone_half_angle_deg, tip_noise_mm)")
+            probe = ForceModel(dataclasses.replace(rep, camera=cam), m.pre, m.regressor_spec, m.regressor, m.meta)
+            pred = probe.predict(arrays, observation_seed=seed)
+            g = metrics_by_group(arrays["force_n"], pred, arrays["geometry_id"])
+            rows.append({"value": val, "mae_vec": g["mean"]["mae_vec"], "mae_sd": g["sd"]["mae_vec"],
+                         "accuracy_pct": g["mean"]["accuracy_pct"], "accuracy_sd": g["sd"]["accuracy_pct"]})
+            log.info("camera sensitivity %s=%s: unseen MAE %.3f N", key, val, g["mean"]["mae_vec"])
+        out[key] = rows
+    return out
+
+
 def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_path, tracking_uri, out_path, *,
-                   experiment_name: str, variant: str) -> dict:
+                   experiment_name: str, variant: str, input: str = "any", mesh_paths=None,
+                   sensitivity: dict | None = None) -> dict:
     """Predict the unseen livers' cases with the chosen scenario-IV model.
 
     ``model_dir`` / ``model_metrics_path`` may be lists (every scenario-IV
@@ -80,7 +140,10 @@ def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_
     force), and the error against the distance of the exertion point from the
     nearest training exertion point (both livers centred on their centroids,
     since they are different shapes). Refuses to run when an unseen liver is
-    also a training liver of the model.
+    also a training liver of the model. ``input="camera"`` makes the choice
+    among the camera-cloud variants; ``sensitivity`` (``validate.camera_sensitivity``)
+    re-observes the unseen livers with other camera settings for the chosen
+    model if it is a camera-cloud model (:func:`camera_sensitivity`).
     """
     from liverforce.learn.metrics import error_by_force_bin, force_metrics, metrics_by_group
     from liverforce.learn.model import ForceModel
@@ -92,12 +155,19 @@ def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_
 
     choice = "the only model given"
     others = {}
-    arrays = dio.load_training_arrays(dio.verify_manifest(manifest_path))
+    docs = [json.loads(Path(p).read_text()) for p in
+            (model_metrics_path if isinstance(model_metrics_path, (list, tuple)) else [model_metrics_path])]
+    if any(is_camera_variant(d) for d in docs):  # camera models observe the unseen livers' full surfaces
+        from liverforce.pipeline.shared import camera_arrays
+
+        arrays = camera_arrays(manifest_path, mesh_paths, "validation")
+    else:
+        arrays = dio.load_training_arrays(dio.verify_manifest(manifest_path))
     n = len(arrays["case_id"])
     if n == 0:
         raise RuntimeError(f"{manifest_path}: no converged validation case to evaluate")
     if isinstance(model_metrics_path, (list, tuple)):
-        k, choice = choose_variant(list(model_metrics_path), variant)
+        k, choice = choose_variant(list(model_metrics_path), variant, input)
         preds = [predict(d) for d in model_dir]  # every candidate on the unseen liver, for the report
         for p, mp in zip(preds, model_metrics_path):
             grouped = metrics_by_group(arrays["force_n"], p, arrays["geometry_id"])
@@ -125,6 +195,7 @@ def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_
     by_liver = metrics_by_group(true, pred, arrays["geometry_id"])
     model_metrics = json.loads(Path(model_metrics_path).read_text())
     interval = interval_on_unseen(model_dir, arrays)
+    sens = camera_sensitivity(model_dir, arrays, sensitivity or {})
     result = {
         "n_cases": n,
         "metrics": metrics,
@@ -139,6 +210,7 @@ def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_
         "variant_choice": choice,
         "all_variants": others,
         "interval": interval,
+        "camera_sensitivity": sens,
         "predictions": {"case_id": [str(c) for c in arrays["case_id"]], "true_n": true.tolist(), "pred_n": pred.tolist()},
     }
     out_dir = Path(out_path).parent

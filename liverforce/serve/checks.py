@@ -223,8 +223,10 @@ def check_case(arrays: dict, i: int, model, scale: TrainingScale, limits: Limits
         many = len(arrays["exertion_point_mm"]) > 1
         label = f"case {ids[i]}: " if ids is not None else (f"row {i}: " if many else "")
     try:
+        camera = model.representation.is_camera  # a camera cloud, no deformed ROI nodes (serve.cloud checks it)
+        correspondence = correspondence and not camera
         U = _points("roi_undeformed_mm", arrays["roi_undeformed_mm"][i], min_points=limits.min_roi_points)
-        D = _points("roi_deformed_mm", arrays["roi_deformed_mm"][i], min_points=limits.min_roi_points)
+        D = U if camera else _points("roi_deformed_mm", arrays["roi_deformed_mm"][i], min_points=limits.min_roi_points)
         p = _vector("exertion_point_mm", arrays["exertion_point_mm"][i], 3)
         frame = [_vector(k, arrays[k][i], 3) for k in ("frame_normal", "frame_t1", "frame_t2")]
     except PredictionInputError as exc:
@@ -247,7 +249,7 @@ def check_case(arrays: dict, i: int, model, scale: TrainingScale, limits: Limits
             c = _vector("liver_centroid_mm", arrays["liver_centroid_mm"][i], 3)
             inertia = _vector("inertia_mm5", arrays["inertia_mm5"][i], 9)
             mat = _vector("material_params_mpa", arrays["material_params_mpa"][i])
-            for k in ("roi_centroid_undeformed_mm", "roi_centroid_deformed_mm"):
+            for k in ("roi_centroid_undeformed_mm",) + (() if camera else ("roi_centroid_deformed_mm",)):
                 _vector(k, arrays[k][i], 3)
         except KeyError as exc:
             raise PredictionInputError(

@@ -5,6 +5,8 @@ Examples
 liverforce predict -m results/exp/models/II-pca/model cloud.ply --context ctx.yaml
 liverforce predict -m runs:/<run_id>/model nodes.npy --mode nodes --context ctx.json --out force.json
 liverforce predict -m <run_id> cloud.csv --surface liver.stl --exertion-point 12 -40 88 --material 0.0016 0.0125
+liverforce predict -m results/default/models/IV-cloud_sv/model cloud.ply --surface liver.stl --mesh liver.vtu \
+    --exertion-point 12 -40 88 --material 0.0016 0.0125 --tool-tip 11.2 -41.0 84.5   # camera-cloud model
 liverforce predict -m my-registered-model --shards results/exp/shards/II --out preds.parquet
 liverforce predict -m results/exp/models/II-pca/model --describe
 
@@ -57,6 +59,8 @@ def register(subparsers, *, fetch: Callable[..., str | Path] | None = None) -> a
     p.add_argument("--mesh", help="the liver's tet mesh (mm, support regions tagged, e.g. results/<exp>/mesh/<id>.vtu):"
                                   " state-vector models compute the pre-operative stiffness probe from it")
     p.add_argument("--exertion-point", nargs=3, type=float, metavar=("X", "Y", "Z"), help="tool contact point, mm")
+    p.add_argument("--tool-tip", nargs=3, type=float, metavar=("X", "Y", "Z"),
+                   help="the tool tip's position now (robot kinematics; --units apply): camera-cloud models need it")
     p.add_argument("--material", nargs="+", type=float, metavar="MPA", help="material constants, MPa")
     p.add_argument("--units", choices=("mm", "cm", "m"), help="units of every point input (default mm)")
     p.add_argument("--shards", nargs="+", metavar="PATH", help="batch: shard files, folders or manifest.json")
@@ -88,7 +92,7 @@ def cmd_predict(args) -> int:
 
 def _run(args) -> int:
     from liverforce.atomic import write_text_atomic
-    from liverforce.serve.files import load_context, read_points
+    from liverforce.serve.files import load_context, read_points, unit_scale
     from liverforce.serve.predictor import Predictor
 
     fetch_model = getattr(args, "fetch_model", None)
@@ -118,7 +122,9 @@ def _run(args) -> int:
     pts = read_points(args.points, args.units)
     info: dict = {"mode": args.mode}
     if args.mode == "cloud":
-        force, extra = predictor.predict_cloud(pts, preop, approximate=args.approximate, return_info=True)
+        tip = None if args.tool_tip is None else np.asarray(args.tool_tip, dtype=np.float64) * unit_scale(args.units)
+        force, extra = predictor.predict_cloud(pts, preop, approximate=args.approximate, tool_tip_mm=tip,
+                                               return_info=True)
         info.update(extra)
     else:
         nodes = preop.roi_of_surface(pts) if args.mode == "surface" else pts

@@ -15,7 +15,16 @@ then depends on what it was trained on:
     same surface it differs by the interpolation error of the grid
     (quantified in ``tests/serve/test_cloud.py``).
 
-``roi_features: displacement`` / ``both``, or any model with the state vector — **approximate only**
+``roi_features: cloud`` (camera-cloud models, with or without the state vector) — **exact**.
+    They were trained on camera clouds (:mod:`liverforce.learn.camera`): the
+    cloud goes in as it is (any order, density, holes), with the tool tip's
+    position from the robot's kinematics (``tool_tip_mm``). Refused, naming the
+    reason, when the input leaves what training covered (:func:`camera_checks`):
+    too few points near the tool, too little of the grid seen, a height change
+    or tip displacement far beyond the training cases'; milder departures come
+    back as warnings in ``info["warnings"]``.
+
+``roi_features: displacement`` / ``both``, or any other model with the state vector — **approximate only**
     (``approximate=True``, refused otherwise). Node displacements and the
     deformed ROI centroid need correspondence; tangential sliding of a smooth
     surface does not change its shape (the aperture problem), so it cannot be
@@ -61,7 +70,43 @@ from liverforce.serve.preop import Preop, _points
 
 def cloud_support(model) -> str:
     """``"exact"`` if an unordered cloud determines the model's inputs, else ``"approximate"``."""
-    return "exact" if model.representation.features == "deformed" and not model.uses_state else "approximate"
+    rep = model.representation
+    return "exact" if rep.is_camera or (rep.features == "deformed" and not model.uses_state) else "approximate"
+
+
+def camera_checks(model, x: np.ndarray, limits: Limits) -> list[str]:
+    """Out-of-distribution checks of one camera-cloud feature row ``x``; raises or returns warnings.
+
+    Against ``meta["training_scale"]["camera"]`` (the training rows' ranges):
+    the share of grid cells the cloud covers (refused below half the smallest
+    training share, warned below it), the largest height change and the tool
+    tip's displacement (refused beyond ``limits.scale_factor`` x the training
+    maximum, warned beyond the maximum).
+    """
+    rec = ((model.meta or {}).get("training_scale") or {}).get("camera")
+    if not rec:
+        return []
+    g2 = model.representation.grid_size**2
+    seen = float(np.mean(x[g2:2 * g2]))
+    height = float(np.max(np.abs(x[:g2][x[g2:2 * g2] > 0.5]))) if seen > 0 else 0.0
+    tip = float(np.linalg.norm(x[-3:]))
+    out = []
+    lo = float(rec["valid_fraction"][0])
+    if seen < 0.5 * lo:
+        raise PredictionInputError(
+            f"cloud: the camera sees only {100 * seen:.0f} % of the model's grid around the tool (training: at least "
+            f"{100 * lo:.0f} %); too much is hidden (tool, view angle) or the cloud is not registered to the liver")
+    if seen < lo:
+        out.append(f"the cloud covers {100 * seen:.0f} % of the grid, less than any training case ({100 * lo:.0f} %)")
+    for name, val, top, unit in (("height change over the pre-operative surface", height, rec["height_abs_max_mm"], "mm"),
+                                 ("tool tip displacement", tip, rec["tip_displacement_max_mm"], "mm")):
+        if val > limits.scale_factor * top:
+            raise PredictionInputError(
+                f"cloud: the {name} is {val:.3g} {unit}, more than {limits.scale_factor:g} x the largest in training "
+                f"({top:.3g} {unit}): check the units (mm), the registration and the tool tip position")
+        if val > top:
+            out.append(f"the {name} ({val:.3g} {unit}) exceeds every training case's ({top:.3g} {unit})")
+    return out
 
 
 def crop_cloud(cloud_local: np.ndarray, U_loc: np.ndarray, scale: TrainingScale, limits: Limits) -> np.ndarray:
@@ -81,11 +126,14 @@ def crop_cloud(cloud_local: np.ndarray, U_loc: np.ndarray, scale: TrainingScale,
 
 
 def cloud_to_arrays(model, cloud_mm, preop: Preop, *, approximate: bool, scale: TrainingScale,
-                    limits: Limits) -> tuple[dict, dict]:
+                    limits: Limits, tool_tip_mm=None) -> tuple[dict, dict]:
     """One-row input-contract arrays from an unordered cloud; returns ``(arrays, info)``.
 
     ``info``: ``mode`` (exact/approximate), ``points_given``, ``points_used``.
+    ``tool_tip_mm``: the tool tip's position (camera-cloud models need it).
     """
+    if model.representation.is_camera:
+        return _camera_arrays(model, cloud_mm, preop, tool_tip_mm, limits)
     support = cloud_support(model)
     if support != "exact" and not approximate:
         why = []
@@ -138,3 +186,36 @@ def cloud_to_arrays(model, cloud_mm, preop: Preop, *, approximate: bool, scale: 
     else:
         out["roi_deformed_mm"] = [D_est]
     return out, {"mode": "approximate", "points_given": len(O), "points_used": n_used}
+
+
+def _camera_arrays(model, cloud_mm, preop: Preop, tool_tip_mm, limits: Limits) -> tuple[dict, dict]:
+    """Arrays of a camera-cloud model: the cloud as given, the tool tip, the pre-operative context."""
+    if tool_tip_mm is None:
+        raise PredictionInputError(
+            "this camera-cloud model needs the tool tip's position (from the robot's kinematics, mm in the liver "
+            "frame) with the cloud: --tool-tip X Y Z, or tool_tip_mm=")
+    tip = np.asarray(tool_tip_mm, dtype=np.float64).reshape(-1)
+    if tip.shape != (3,) or not np.isfinite(tip).all():
+        raise PredictionInputError(f"tool_tip_mm: need 3 finite coordinates (mm), got {tool_tip_mm!r}")
+    O = _points("cloud", cloud_mm, min_points=1)
+    rep = model.representation
+    p = preop.exertion_point_mm
+    R = local_rotations(preop.frame[2][None], preop.frame[0][None], preop.frame[1][None])[0]
+    O_loc = (O - p) @ R.T
+    reach = rep.half_width_mm * (1.0 + 2.0 / (rep.grid_size - 1))
+    n_used = int((np.abs(O_loc[:, :2]) <= reach).all(axis=1).sum())
+    if n_used < limits.min_cloud_points:
+        med = float(np.median(np.linalg.norm(O - p, axis=1)))
+        raise PredictionInputError(
+            f"cloud: only {n_used} of {len(O)} points lie over the model's {2 * rep.half_width_mm:.3g} mm grid around "
+            f"the exertion point (at least {limits.min_cloud_points} needed; the points are a median {med:.4g} mm "
+            "from it): is the cloud in mm, registered to the liver frame, and does it show the tool region?")
+    d_tip = float(np.linalg.norm(tip - p))
+    if d_tip > rep.half_width_mm:
+        raise PredictionInputError(
+            f"tool_tip_mm is {d_tip:.4g} mm from the exertion point, beyond the model's grid ({rep.half_width_mm:.3g} "
+            "mm): is it in mm and in the liver frame, and is the tool at this exertion point?")
+    out = preop.to_arrays(preop.roi_undeformed_mm)
+    out["camera_cloud_mm"] = [O]
+    out["tool_tip_mm"] = tip[None]
+    return out, {"mode": "exact", "points_given": len(O), "points_used": n_used}

@@ -34,7 +34,7 @@ import numpy as np
 
 from liverforce.learn.model import ForceModel, ModelFormatError
 from liverforce.serve.checks import Limits, TrainingScale, check_case
-from liverforce.serve.cloud import cloud_support, cloud_to_arrays
+from liverforce.serve.cloud import camera_checks, cloud_support, cloud_to_arrays
 from liverforce.serve.compiled import CompiledROI
 from liverforce.serve.errors import PredictionInputError
 from liverforce.serve.preop import DEFAULT_FRAME_RADIUS_MM, DEFAULT_ROI_FRACTION, Preop, _points
@@ -187,19 +187,26 @@ class Predictor:
             return None
         return interval_doc(self.model, self._checked_arrays(deformed_roi_mm, preop))
 
-    def predict_cloud(self, cloud_mm, preop: Preop, *, approximate: bool = False,
+    def predict_cloud(self, cloud_mm, preop: Preop, *, approximate: bool = False, tool_tip_mm=None,
                       return_info: bool = False) -> np.ndarray | tuple[np.ndarray, dict]:
         """(b) Force ``(3,)`` N from an unordered observed cloud ``(m, 3)`` mm (:mod:`liverforce.serve.cloud`).
 
-        Exact for models trained with ``roi_features: deformed`` and no state
-        vector; other models only with ``approximate=True`` (normal-only
-        displacement estimate), refused otherwise.
+        Exact for camera-cloud models (``roi_features: cloud``; they need the
+        tool tip's position ``tool_tip_mm`` from the robot) and for models
+        trained with ``roi_features: deformed`` and no state vector; other models
+        only with ``approximate=True`` (normal-only displacement estimate),
+        refused otherwise. Camera-cloud inputs outside what training covered are
+        refused, milder departures listed in ``info["warnings"]``.
         """
         self.check_preop(preop)
         arrays, info = cloud_to_arrays(self.model, cloud_mm, preop, approximate=approximate, scale=self.scale,
-                                       limits=self.limits)
+                                       limits=self.limits, tool_tip_mm=tool_tip_mm)
         if info["mode"] == "approximate" and self.model.representation.features != "deformed":
             check_case(arrays, 0, self.model, self.scale, self.limits, label="")
+        if self.model.representation.is_camera:
+            x = self.model.representation.features_of(arrays)
+            info["warnings"] = camera_checks(self.model, x[0], self.limits)
+            arrays["camera_features"] = x  # computed once: the model reads them instead of the cloud
         force = self.model.predict(arrays)[0]
         if return_info and self.model.interval is not None:
             info["interval"] = interval_doc(self.model, arrays)
@@ -243,6 +250,18 @@ class Predictor:
         for i in range(n):
             check_case(arrays, i, self.model, self.scale, self.limits)
         rep = self.model.representation
+        if rep.is_camera and "camera_cloud_mm" in arrays:  # observed clouds: features once, each row checked
+            from liverforce.learn.camera import FEATURES_KEY
+
+            x = rep.features_of(arrays)
+            for i in range(n):
+                try:
+                    camera_checks(self.model, x[i], self.limits)
+                except PredictionInputError as exc:
+                    ids = arrays.get("case_id")
+                    raise PredictionInputError(f"{'case ' + str(ids[i]) if ids is not None else f'row {i}'}: "
+                                               f"{exc}") from None
+            arrays = {**arrays, FEATURES_KEY: x}
         can_fast = fast and rep.features == "displacement" and not (observation_seed is not None and rep.stochastic)
         if not can_fast:
             return self.model.predict(arrays, observation_seed=observation_seed)

@@ -47,7 +47,7 @@ MODEL_NAME = "model"
 OUTPUT_COLUMNS = ("fx_n", "fy_n", "fz_n")
 #: further columns for a model with a calibrated interval: the local force (t1, t2, n) and its half-widths, N
 INTERVAL_COLUMNS = ("ft1_n", "ft2_n", "fn_n", "ft1_half_n", "ft2_half_n", "fn_half_n")
-_ROI_KEYS = ("roi_undeformed_mm", "roi_deformed_mm")
+_ROI_KEYS = ("roi_undeformed_mm", "roi_deformed_mm", "camera_cloud_mm")  # ragged (k, 3) point sets, flattened
 
 
 # --------------------------------------------------------------------------
@@ -178,6 +178,15 @@ def log_force_model(uri: str, run_id: str, model_dir: str | Path, example_arrays
     """
     model = ForceModel.load(model_dir)
     keys = list(model.required_inputs())
+    if model.representation.is_camera:  # a camera-cloud model is served from a cloud and the tool tip
+        keys += ["camera_cloud_mm", "tool_tip_mm"]
+        if "camera_cloud_mm" not in example_arrays:  # simulated cases: observe them as in evaluation
+            from liverforce.learn.camera import observe_cases
+
+            rep = model.representation
+            clouds, tips = observe_cases(example_arrays, rep.camera, rep.half_width_mm, rep.grid_size,
+                                         int(model.meta.get("eval_observation_seed", 0)))
+            example_arrays = {**example_arrays, "camera_cloud_mm": clouds, "tool_tip_mm": tips}
     if "case_id" in example_arrays:
         keys.insert(0, "case_id")
     example = arrays_to_frame(example_arrays, keys)

@@ -54,7 +54,7 @@ def test_shard_ids_cover_cases_and_variants_merge_model():
     plan = Plan(compose(["experiment=smoke", "sweep.cases_per_shard=5"]))
     assert plan.shard_ids("I") == ["0000", "0001", "0002"]  # 12 cases / 5 per shard
     v = plan.variants()
-    assert list(v) == ["pca_sv", "ae_sv"] and v["ae_sv"]["encoder"] == "ae"
+    assert list(v) == ["pca_sv", "ae_sv", "cloud_sv"] and v["ae_sv"]["encoder"] == "ae"
     assert v["ae_sv"]["grid_size"] == plan.cfg["model"]["grid_size"]
 
 

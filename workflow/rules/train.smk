@@ -4,9 +4,11 @@
 rule train:
     input:
         manifest=P.manifest(),
-        # the meshes only when the variant re-selects the ROI (model.roi_fraction): their surface graphs
+        # the meshes only when the variant re-selects the ROI (model.roi_fraction: their surface graphs) or
+        # observes the cases with a camera (roi_features: cloud: their surfaces)
         meshes=lambda wc: ([P.mesh(g) for g in PLAN.scenario_geometries(wc.scenario)]
-                           if PLAN.variants()[wc.variant].get("roi_fraction") is not None else []),
+                           if PLAN.variants()[wc.variant].get("roi_fraction") is not None
+                           or PLAN.variants()[wc.variant].get("roi_features") == "cloud" else []),
     output:
         metrics=P.model_metrics(),
         model=directory(P.model_dir()),

@@ -8,11 +8,16 @@ rule validate:
         metrics=[P.model_metrics("IV", v) for v in PLAN.variants()],
         manifest=P.manifest(plan.VALIDATION),
         train_manifest=P.manifest("IV"),
+        # camera-cloud variants observe the unseen livers' surfaces: their meshes
+        meshes=([P.mesh(g) for g in PLAN.scenario_geometries(plan.VALIDATION)]
+                if any(v.get("roi_features") == "cloud" for v in PLAN.variants().values()) else []),
     output:
         metrics=P.validation_metrics(),
     params:
         tracking_uri=TRACKING_URI,
         variant=config_slice("validate", "variant"),
+        input=config_slice("validate", "input"),
+        sensitivity=config_slice("validate", "camera_sensitivity"),
         experiment_name=PLAN.experiment_name("validation"),
     log:
         P.log("validate", "validate"),

@@ -1,0 +1,191 @@
+"""Camera features: what a model with ``roi_features: cloud`` reads, and nothing else.
+
+In surgery there are no FE node ids. What is known is the pre-operative
+surface near the exertion point (and its local frame), the tool tip's position
+from the robot's kinematics, and an unordered, partial, noisy cloud of the
+visible deformed surface. A ``cloud`` model's feature vector is built from
+exactly these (length ``2 g^2 + 3``)::
+
+    [ dz (g^2) | valid (g^2) | tip (3) ]
+
+- ``dz``: the cloud's signed normal height change over the pre-operative
+  surface on the ``g x g`` tangent-plane grid, invalid cells filled
+  (:func:`liverforce.learn.cloud_features.cloud_grid`; no correspondence);
+- ``valid``: 1 where the cloud covers the cell, 0 where it was filled (hidden
+  by the tool or the liver itself, out of view, too sparse);
+- ``tip``: the tool tip's displacement ``R (q - p)`` in the local frame (mm),
+  ``q`` the tip position the robot reports, ``p`` the pre-operative exertion
+  point. The tip touches the tissue, so this is the surface's displacement at
+  the exertion point, tangential part included: the one place where the
+  camera's aperture problem does not apply. With the stiffness probe's
+  compliance ``C`` it gives the linear force estimate ``f_lin = C^-1 tip``
+  (:mod:`liverforce.learn.model`).
+
+Where the inputs come from
+--------------------------
+- **Serving / user data**: ``arrays["camera_cloud_mm"]`` (one ``(k_i, 3)`` cloud
+  per case) and ``arrays["tool_tip_mm"]`` ``(n, 3)``, in the source frame.
+- **Training from the shards** (no new FE): the stored full-surface
+  displacements are observed by :func:`liverforce.learn.observation.observe_many`
+  (camera pose in a cone, visibility, tool shaft and tip, density, noise), seeded
+  per case by ``case_seed(observation_seed, case_id)``; the tip is the exertion
+  point moved with the surface plus Gaussian kinematics noise of
+  ``tip_noise_mm`` per coordinate (stage ``observation.tip``). Needs
+  ``arrays["surface_displacement_mm"]`` and ``arrays["surface_meshes"]``
+  (geometry id -> ``(vertices, triangles)`` of :func:`surface_from_mesh`; a
+  per-run entry, not a per-case column). The tool's shaft is along the outward
+  normal: taking it along ``-F`` would let the shadow's direction tell the model
+  the force direction, which a real tool axis only loosely does.
+
+Features of many cases are memoised per process (key: settings, seed, case
+id), so repeated splits and tuning folds observe each case once per seed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+
+import numpy as np
+
+from liverforce.learn.cloud_features import CloudGridSpec, ReferenceSurface, cloud_grid
+from liverforce.learn.frames import local_rotations
+from liverforce.seeds import derive
+
+#: per-run (not per-case) entry of a training arrays dict: geometry id -> (surface vertices, triangles)
+SURFACES_KEY = "surface_meshes"
+#: serving inputs of a cloud model
+CLOUD_KEY = "camera_cloud_mm"
+TIP_KEY = "tool_tip_mm"
+#: the feature rows of those clouds, when already computed (serving: computed once, checked, then predicted)
+FEATURES_KEY = "camera_features"
+
+#: grid settings of cloud_features a config may set (the grid size and half-width come from the representation)
+GRID_KEYS = ("kernel_radius_cells", "min_points", "fill", "max_abs_height_mm", "reference_oversample",
+             "estimator", "max_leverage")
+
+_CACHE: dict[tuple, np.ndarray] = {}
+_CACHE_MAX = 200_000
+
+
+def n_features(grid_size: int) -> int:
+    return 2 * grid_size**2 + 3
+
+
+def channel_groups(grid_size: int) -> np.ndarray:
+    """Scaling groups: the height channel, the mask, the tip displacement."""
+    g2 = grid_size**2
+    return np.concatenate([np.zeros(g2, int), np.ones(g2, int), np.full(3, 2)])
+
+
+def grid_spec(grid_size: int, half_width_mm: float, camera: dict) -> CloudGridSpec:
+    extra = {k: camera["grid"][k] for k in GRID_KEYS if k in (camera.get("grid") or {})}
+    return CloudGridSpec(grid_size=int(grid_size), half_width_mm=float(half_width_mm), **extra)
+
+
+def observation_config(camera: dict, half_width_mm: float, grid_size: int):
+    """The :class:`ObservationConfig` of these settings; ``roi_radius_mm: null`` -> the grid's reach."""
+    from liverforce.learn.observation import ObservationConfig
+
+    obs = dict(camera.get("observation") or {})
+    if obs.get("roi_radius_mm") is None:
+        spacing = 2.0 * half_width_mm / (grid_size - 1)
+        obs["roi_radius_mm"] = math.sqrt(2.0) * half_width_mm + 2.0 * spacing
+    return ObservationConfig.from_dict(obs)
+
+
+def observe_cases(arrays: dict, camera: dict, half_width_mm: float, grid_size: int, seed: int,
+                  rows: np.ndarray | None = None) -> tuple[list[np.ndarray], np.ndarray]:
+    """Camera clouds and noisy tool-tip positions of the cases ``rows`` (all by default), from the shards."""
+    from liverforce.learn.observation import observe_many, surface_point_displacement
+
+    if SURFACES_KEY not in arrays or "surface_displacement_mm" not in arrays:
+        raise KeyError(
+            "a camera-cloud model needs each case's camera cloud and tool tip ('camera_cloud_mm', "
+            "'tool_tip_mm') or, to observe simulated cases, the full-surface displacements "
+            "('surface_displacement_mm') and the geometries' surfaces ('surface_meshes')")
+    cfg = observation_config(camera, half_width_mm, grid_size)
+    tip_sd = float(camera.get("tip_noise_mm", 0.0))
+    n = len(arrays["exertion_point_mm"])
+    rows = np.arange(n) if rows is None else np.asarray(rows)
+    geo = np.asarray(arrays["geometry_id"]).astype(str)
+    ids = np.asarray(arrays["case_id"]).astype(str)
+    P = np.asarray(arrays["exertion_point_mm"], dtype=np.float64)
+    N = np.asarray(arrays["frame_normal"], dtype=np.float64)
+    clouds: list = [None] * len(rows)
+    tips = np.empty((len(rows), 3))
+    for g in sorted(set(geo[rows])):
+        if g not in arrays[SURFACES_KEY]:
+            raise KeyError(f"no surface for geometry '{g}' (needed to observe its cases with a camera)")
+        V, T = arrays[SURFACES_KEY][g]
+        pos = np.flatnonzero(geo[rows] == g)
+        sel = rows[pos]
+        disp = [arrays["surface_displacement_mm"][i] for i in sel]
+        cl, _ = observe_many(V, T, disp, P[sel], N[sel], cfg, seed=seed, case_keys=list(ids[sel]))
+        q = P[sel] + surface_point_displacement(V, T, P[sel], disp)
+        for k, i in enumerate(pos):
+            clouds[i] = cl[k]
+            if tip_sd > 0:
+                rng = np.random.default_rng(derive(seed, "observation.tip", ids[rows[i]]))
+                q[k] = q[k] + rng.normal(0.0, tip_sd, 3)
+            tips[i] = q[k]
+    return clouds, tips
+
+
+def features_from_clouds(clouds, tips, arrays: dict, spec: CloudGridSpec,
+                         rows: np.ndarray | None = None) -> np.ndarray:
+    """Feature rows ``(len(rows), 2 g^2 + 3)`` from clouds and tip positions (source frame) of cases ``rows``."""
+    n = len(arrays["exertion_point_mm"])
+    rows = np.arange(n) if rows is None else np.asarray(rows)
+    P = np.asarray(arrays["exertion_point_mm"], dtype=np.float64)
+    R = local_rotations(arrays["frame_normal"], arrays["frame_t1"], arrays["frame_t2"])
+    ids = arrays.get("case_id")
+    tips = np.asarray(tips, dtype=np.float64).reshape(-1, 3)
+    if len(clouds) != len(rows) or len(tips) != len(rows):
+        raise ValueError(f"need one cloud and one tool tip per case ({len(rows)}); got {len(clouds)} and {len(tips)}")
+    out = np.empty((len(rows), n_features(spec.grid_size)))
+    refs: dict = {}
+    for k, i in enumerate(rows):
+        key = tuple(np.round(P[i], 6)) + tuple(np.round(R[i].ravel(), 9)) + (len(arrays["roi_undeformed_mm"][i]),)
+        ref = refs.get(key)
+        if ref is None:
+            label = f"case {ids[i] if ids is not None else i}"
+            ref = refs[key] = ReferenceSurface.build(arrays["roi_undeformed_mm"][i], P[i], arrays["frame_normal"][i],
+                                                     arrays["frame_t1"][i], arrays["frame_t2"][i], spec, label=label)
+        cloud = np.asarray(clouds[k], dtype=np.float64).reshape(-1, 3)
+        out[k, :-3] = cloud_grid(cloud, ref, spec).features(include_mask=True)
+        out[k, -3:] = R[i] @ (tips[k] - P[i])
+    return out
+
+
+def camera_features(arrays: dict, camera: dict, grid_size: int, half_width_mm: float,
+                    observation_seed: int | None) -> np.ndarray:
+    """The feature matrix of a ``cloud`` representation (module docstring)."""
+    spec = grid_spec(grid_size, half_width_mm, camera)
+    if FEATURES_KEY in arrays:  # already computed from these arrays' clouds (serving checks them first)
+        return np.asarray(arrays[FEATURES_KEY], dtype=np.float64)
+    if CLOUD_KEY in arrays:
+        if TIP_KEY not in arrays:
+            raise KeyError("a camera-cloud model needs the tool tip position ('tool_tip_mm', from the robot's "
+                           "kinematics) with each cloud")
+        return features_from_clouds(arrays[CLOUD_KEY], arrays[TIP_KEY], arrays, spec)
+    if observation_seed is None:
+        raise ValueError("a camera-cloud model predicts from camera clouds ('camera_cloud_mm' and 'tool_tip_mm'); "
+                         "to observe simulated cases give an observation seed")
+    n = len(arrays["exertion_point_mm"])
+    ids = np.asarray(arrays["case_id"]).astype(str)
+    settings = json.dumps([camera, grid_size, half_width_mm], sort_keys=True, default=str)
+    disp = arrays.get("surface_displacement_mm")
+    keys = [(settings, int(observation_seed), cid,
+             None if disp is None else hashlib.blake2b(np.ascontiguousarray(disp[i]).tobytes(), digest_size=16).hexdigest())
+            for i, cid in enumerate(ids)]
+    todo = np.array([i for i in range(n) if keys[i] not in _CACHE], dtype=np.int64)
+    if todo.size:
+        clouds, tips = observe_cases(arrays, camera, half_width_mm, grid_size, int(observation_seed), todo)
+        rows = features_from_clouds(clouds, tips, arrays, spec, todo)
+        if len(_CACHE) + len(todo) > _CACHE_MAX:
+            _CACHE.clear()
+        for k, i in enumerate(todo):
+            _CACHE[keys[i]] = rows[k]
+    return np.stack([_CACHE[k] for k in keys]) if n else np.empty((0, n_features(grid_size)))

@@ -1,0 +1,150 @@
+"""Camera-cloud models (roi_features: cloud): trained on observed clouds, served from a cloud and the tool tip.
+
+No test here gives the model node ids: prediction arrays carry the pre-operative context, an
+unordered cloud and the tool tip only (``_camera_inputs``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from liverforce.learn import camera
+from liverforce.learn.frames import force_to_local, local_rotations
+from liverforce.learn.model import ForceModel, eval_seed, fit_force_model, prepare, subset, view_seeds
+from liverforce.learn.observation import ObservationConfig, observe
+from liverforce.learn.regressor import FitParams
+from liverforce.learn.representation import representation_from_config
+from liverforce.learn.synthetic import random_rotation, rigid_motion, synthetic_surface_arrays
+
+CAMERA = {"observation": {"n_points": [300, 3000], "noise_sd_mm": 0.3, "tool_radius_mm": 2.5},
+          "grid": {}, "tip_noise_mm": 0.1}
+MODEL = {"grid_size": 8, "roi_features": "cloud", "camera": CAMERA, "occlusion": {"radius_mm": 0.0},
+         "noise_mm": 0.0}
+PRE_OP = ("exertion_point_mm", "frame_normal", "frame_t1", "frame_t2", "roi_undeformed_mm",
+          "roi_centroid_undeformed_mm", "liver_centroid_mm", "inertia_mm5", "tool_thickness_mm",
+          "probe_compliance_mm_per_n", "material_params_mpa", "case_id")
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    arrays = synthetic_surface_arrays(260, n_geometries=2, seed=3, material_varies=True)
+    tr, te = np.arange(200), np.arange(200, 260)
+    a_tr, a_te = subset(arrays, tr), subset(arrays, te)
+    rep = representation_from_config(MODEL, a_tr)
+    prep = prepare(a_tr, rep, observation_seeds=view_seeds(5, 2))
+    model, _ = fit_force_model(prep, rep, encoder="pca", code_size=8, use_state=True, hidden=[64, 64], dropout=0.0,
+                               fit=FitParams(epochs=150, lr=2e-3, batch_size=32), seed=1, force_scaling="stiffness",
+                               linear_force_radius_mm=5.0)
+    path = model.save(tmp_path_factory.mktemp("cam") / "model")
+    return ForceModel.load(path), a_te
+
+
+def _camera_inputs(arrays: dict, clouds, tips) -> dict:
+    """What surgery has: pre-operative context, an unordered cloud, the tool tip. No node ids, no displacements."""
+    out = {k: arrays[k] for k in PRE_OP}
+    out["camera_cloud_mm"] = list(clouds)
+    out["tool_tip_mm"] = np.asarray(tips, dtype=np.float64)
+    return out
+
+
+def _new_clouds(arrays: dict, config: ObservationConfig, seed: int, tip_noise: float = 0.1):
+    """Each test case's deformed surface observed again: another camera, density and noise, points shuffled."""
+    rng = np.random.default_rng(seed)
+    clouds, tips = [], []
+    for i in range(len(arrays["case_id"])):
+        V, T = arrays["surface_meshes"][arrays["geometry_id"][i]]
+        u = np.asarray(arrays["surface_displacement_mm"][i], dtype=np.float64)
+        p = arrays["exertion_point_mm"][i]
+        k = int(np.argmin(np.linalg.norm(V - p, axis=1)))
+        tip = p + u[k]  # the exertion point is a surface vertex here
+        c, _ = observe(V + u, T, tip, arrays["frame_normal"][i], config, seed=[seed, i])
+        clouds.append(c[rng.permutation(len(c))])
+        tips.append(tip + rng.normal(0.0, tip_noise, 3))
+    return clouds, np.array(tips)
+
+
+def test_camera_model_learns_the_force_without_node_ids(trained):
+    model, a_te = trained
+    true = np.asarray(a_te["force_n"])
+    pred = model.predict(a_te, observation_seed=eval_seed(5))
+    mae = float(np.linalg.norm(pred - true, axis=1).mean())
+    mean_force = float(np.linalg.norm(true, axis=1).mean())
+    assert mae < 0.12 * mean_force, (mae, mean_force)
+    # the features hold no correspondence: a representation of this kind never reads roi_deformed_mm
+    no_nodes = {k: v for k, v in a_te.items() if k not in ("roi_deformed_mm", "roi_centroid_deformed_mm")}
+    assert np.allclose(model.predict(no_nodes, observation_seed=eval_seed(5)), pred)
+
+
+def test_a_cloud_from_another_camera_gives_the_same_force_within_the_models_error(trained):
+    model, a_te = trained
+    true = np.asarray(a_te["force_n"])
+    ref = model.predict(a_te, observation_seed=eval_seed(5))  # the training-time observation model
+    cfg = ObservationConfig(n_points=(8000, 8000), noise_sd_mm=0.5, cone_half_angle_deg=30.0, tool_radius_mm=2.5,
+                            roi_radius_mm=camera.observation_config(CAMERA, model.representation.half_width_mm,
+                                                                    model.representation.grid_size).roi_radius_mm)
+    clouds, tips = _new_clouds(a_te, cfg, seed=11)
+    got = model.predict(_camera_inputs(a_te, clouds, tips))
+    own_error = float(np.linalg.norm(ref - true, axis=1).mean())
+    shift = np.linalg.norm(got - ref, axis=1)
+    assert float(np.median(shift)) <= own_error, (np.median(shift), own_error)
+    assert float(np.linalg.norm(got - true, axis=1).mean()) < 1.5 * own_error
+
+
+def test_point_order_and_duplicates_do_not_change_the_force(trained):
+    model, a_te = trained
+    a = subset(a_te, np.arange(5))
+    cfg = camera.observation_config(CAMERA, model.representation.half_width_mm, model.representation.grid_size)
+    clouds, tips = _new_clouds(a, cfg, seed=2)
+    f1 = model.predict(_camera_inputs(a, clouds, tips))
+    rng = np.random.default_rng(0)
+    shuffled = [np.concatenate([c, c[:50]])[rng.permutation(len(c) + 50)] for c in clouds]
+    assert np.allclose(model.predict(_camera_inputs(a, shuffled, tips)), f1, atol=1e-9)
+
+
+def test_rigid_motion_of_cloud_surface_and_tip_leaves_the_local_force_unchanged(trained):
+    model, a_te = trained
+    a = subset(a_te, np.arange(8))
+    cfg = camera.observation_config(CAMERA, model.representation.half_width_mm, model.representation.grid_size)
+    clouds, tips = _new_clouds(a, cfg, seed=4)
+    Q, c = random_rotation(np.random.default_rng(9)), np.array([40.0, -25.0, 300.0])
+    moved = rigid_motion(a, Q, c)
+    f = model.predict(_camera_inputs(a, clouds, tips))
+    g = model.predict(_camera_inputs(moved, [x @ Q.T + c for x in clouds], tips @ Q.T + c))
+    R = local_rotations(a["frame_normal"], a["frame_t1"], a["frame_t2"])
+    Rm = local_rotations(moved["frame_normal"], moved["frame_t1"], moved["frame_t2"])
+    assert np.allclose(force_to_local(f, R), force_to_local(g, Rm), atol=1e-6)
+    assert np.allclose(g, f @ Q.T, atol=1e-6)
+
+
+def test_the_tool_tip_drives_the_linear_force_estimate(trained):
+    """f_lin = C^-1 (tip displacement): the tip is the one point a camera model knows in correspondence."""
+    model, a_te = trained
+    assert model.pre.linear_force_tip and model.pre.linear_force_weights is None
+    a = subset(a_te, np.arange(3))
+    x = model.representation.features_of(a, observation_seed=1)
+    from liverforce.learn.state import state_vector
+
+    s = state_vector(model.representation.state_arrays(a))
+    f_lin = model.pre.linear_force(x, s)
+    C = np.asarray(a["probe_compliance_mm_per_n"]).reshape(-1, 3, 3)
+    assert np.allclose(np.einsum("nij,nj->ni", C, f_lin), x[:, -3:])
+
+
+def test_a_camera_model_refuses_to_predict_without_a_cloud_or_a_seed(trained):
+    model, a_te = trained
+    a = {k: a_te[k] for k in PRE_OP}
+    with pytest.raises(ValueError, match="camera clouds"):
+        model.predict(a)
+    with pytest.raises(KeyError, match="tool_tip_mm"):
+        model.predict({**a, "camera_cloud_mm": [np.zeros((10, 3))] * len(a["case_id"])})
+
+
+def test_the_bundle_records_the_camera_settings(trained):
+    model, _ = trained
+    d = model.representation.to_dict()
+    assert d["features"] == "cloud" and d["camera"]["observation"]["n_points"] == [300, 3000]
+    assert d["camera"]["tip_noise_mm"] == 0.1
+    cam = model.meta["training_scale"]["camera"]
+    assert 0 < cam["valid_fraction"][0] <= cam["valid_fraction"][1] <= 1
+    assert cam["tip_displacement_max_mm"] > 0

@@ -1,0 +1,178 @@
+"""Serving a camera-cloud model: exact from a cloud and the tool tip (no approximate flag), with its interval,
+and every out-of-distribution input refused or flagged with the reason."""
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+import pytest
+
+from liverforce.cli import register_predict
+from liverforce.learn.model import ForceModel, subset
+from liverforce.learn.observation import observe
+from liverforce.learn.synthetic import synthetic_surface_arrays
+from liverforce.learn.train import train_scenario
+from liverforce.serve import Predictor, Preop
+from liverforce.serve.errors import PredictionInputError
+
+MODEL = {"encoder": "pca", "code_size": 6, "state_vector": True, "grid_size": 8, "hidden": [32, 32],
+         "dropout": 0.0, "occlusion": {"radius_mm": 0.0, "mode": "remove"}, "noise_mm": 0.0,
+         "roi_features": "cloud", "force_scaling": "stiffness", "probe_force_radius_mm": 5.0,
+         "camera": {"observation": {"n_points": [300, 3000], "noise_sd_mm": 0.3}, "grid": {}, "tip_noise_mm": 0.1}}
+TRAIN = {"test_fraction": 0.2, "epochs": 60, "batch_size": 32, "lr": 3e-3, "weight_decay": 0.0, "seed": 0,
+         "interval": {"coverage": 0.9, "calibration_fraction": 0.25}}
+NO_TUNE = {"enabled": False, "trials": 1, "folds": 2, "sobol_trials": 1, "epochs": 1}
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory):
+    arrays = synthetic_surface_arrays(200, n_geometries=4, seed=7, material_varies=True)
+    res = train_scenario(arrays, MODEL, TRAIN, NO_TUNE, "IV", "cloud", out_dir=tmp_path_factory.mktemp("cam"))
+    model = ForceModel.load(res["model_path"])
+    test = np.flatnonzero(np.isin(arrays["geometry_id"], res["split"]["test_geometries"]))
+    return res["model_path"], model, subset(arrays, test)
+
+
+def _case(arrays: dict, i: int, n_points: int = 3000, seed: int = 0):
+    """Pre-operative context, a new camera cloud and the tool tip of case ``i`` (no node ids)."""
+    V, T = arrays["surface_meshes"][arrays["geometry_id"][i]]
+    u = np.asarray(arrays["surface_displacement_mm"][i], dtype=np.float64)
+    p = arrays["exertion_point_mm"][i]
+    tip = p + u[int(np.argmin(np.linalg.norm(V - p, axis=1)))]
+    from liverforce.learn.observation import ObservationConfig
+
+    cfg = ObservationConfig(n_points=(n_points, n_points), noise_sd_mm=0.3, roi_radius_mm=40.0)
+    cloud, _ = observe(V + u, T, tip, arrays["frame_normal"][i], cfg, seed=seed)
+    ctx = Preop.from_arrays({k: v for k, v in arrays.items() if k != "roi_deformed_mm"}, i)
+    return ctx, cloud, tip
+
+
+def test_a_camera_model_predicts_exactly_from_a_cloud_with_its_interval(served):
+    path, model, a = served
+    pred = Predictor.from_dir(path)
+    assert pred.cloud_support == "exact"
+    ctx, cloud, tip = _case(a, 0)
+    force, info = pred.predict_cloud(cloud, ctx, tool_tip_mm=tip, return_info=True)
+    assert info["mode"] == "exact" and info["warnings"] == []
+    direct = model.predict({**{k: a[k][:1] if not isinstance(a[k], list) else a[k][:1] for k in
+                               ("exertion_point_mm", "frame_normal", "frame_t1", "frame_t2", "roi_undeformed_mm",
+                                "roi_centroid_undeformed_mm", "liver_centroid_mm", "inertia_mm5", "tool_thickness_mm",
+                                "probe_compliance_mm_per_n", "material_params_mpa")},
+                            "camera_cloud_mm": [cloud], "tool_tip_mm": tip[None]})[0]
+    assert np.allclose(force, direct, atol=1e-9)
+    iv = info["interval"]
+    assert np.allclose(iv["force_n"], force) and all(h is not None and h > 0 for h in iv["half_width_local_n"])
+
+
+def test_interval_coverage_on_held_out_livers(served):
+    """The 90 % interval on cases of livers the model never saw, each observed by a new camera."""
+    path, model, a = served
+    pred = Predictor.from_dir(path)
+    from liverforce.learn.frames import force_to_local
+
+    hits = []
+    for i in range(len(a["case_id"])):
+        ctx, cloud, tip = _case(a, i, seed=100 + i)
+        _, info = pred.predict_cloud(cloud, ctx, tool_tip_mm=tip, return_info=True)
+        iv = info["interval"]
+        true = force_to_local(a["force_n"][i][None], np.asarray(iv["frame"])[None])[0]
+        hits.append(np.abs(true - np.asarray(iv["force_local_n"])) <= np.asarray(iv["half_width_local_n"]))
+    cov = np.mean(hits, axis=0)
+    # 40 cases: the binomial sd of a 90 % coverage is 4.7 points; two sd either side
+    assert np.all(cov >= 0.80) and np.all(cov <= 1.0), cov
+
+
+def test_out_of_distribution_inputs_are_refused_naming_the_reason(served):
+    path, model, a = served
+    pred = Predictor.from_dir(path)
+    ctx, cloud, tip = _case(a, 1)
+    with pytest.raises(PredictionInputError, match="tool tip"):
+        pred.predict_cloud(cloud, ctx)  # no tool tip
+    with pytest.raises(PredictionInputError, match=r"only \d of 5 points"):
+        pred.predict_cloud(cloud[:5], ctx, tool_tip_mm=tip)  # too few points
+    with pytest.raises(PredictionInputError, match="is the cloud in mm"):
+        pred.predict_cloud(cloud / 1000.0, ctx, tool_tip_mm=tip)  # metres
+    R = ctx.frame
+    loc = (cloud - ctx.exertion_point_mm) @ R.T
+    corner = cloud[(loc[:, 0] > 0.6 * model.representation.half_width_mm)
+                   & (loc[:, 1] > 0.6 * model.representation.half_width_mm)]
+    with pytest.raises(PredictionInputError, match="sees only"):
+        pred.predict_cloud(corner, ctx, tool_tip_mm=tip)  # the camera sees a corner of the grid only
+    top = model.meta["training_scale"]["camera"]["tip_displacement_max_mm"]
+    far = ctx.exertion_point_mm - 0.9 * model.representation.half_width_mm * R[2]
+    if 0.9 * model.representation.half_width_mm > 4 * top:
+        with pytest.raises(PredictionInputError, match="tool tip displacement"):
+            pred.predict_cloud(cloud, ctx, tool_tip_mm=far)
+    with pytest.raises(PredictionInputError, match="beyond the model's grid"):
+        pred.predict_cloud(cloud, ctx, tool_tip_mm=ctx.exertion_point_mm + 3 * model.representation.half_width_mm)
+    # a mild departure is predicted, with a warning naming it
+    push = ctx.exertion_point_mm - 1.3 * top * R[2]
+    _, info = pred.predict_cloud(cloud, ctx, tool_tip_mm=push, return_info=True)
+    assert any("tool tip displacement" in w for w in info["warnings"])
+
+
+def test_surface_outside_the_training_range_is_refused(served):
+    path, model, a = served
+    pred = Predictor.from_dir(path)
+    ctx, cloud, tip = _case(a, 2)
+    import dataclasses
+
+    huge = dataclasses.replace(ctx, inertia_mm5=ctx.inertia_mm5 * 1e6)  # a liver far larger than any in training
+    with pytest.raises(PredictionInputError):
+        pred.predict_cloud(cloud, huge, tool_tip_mm=tip)
+
+
+def test_cli_predicts_a_camera_cloud_with_the_tool_tip(served, tmp_path, capsys):
+    path, model, a = served
+    ctx, cloud, tip = _case(a, 3)
+    np.save(tmp_path / "cloud.npy", cloud / 1000.0)  # in metres, as a camera pipeline may give it
+    np.save(tmp_path / "roi.npy", ctx.roi_undeformed_mm / 1000.0)
+    doc = {"units": "m", "exertion_point_mm": (ctx.exertion_point_mm / 1000).tolist(), "roi_undeformed": "roi.npy",
+           "frame": {"normal": ctx.frame[2].tolist(), "t1": ctx.frame[0].tolist(), "t2": ctx.frame[1].tolist()},
+           "material_params_mpa": ctx.material_params_mpa.tolist(),
+           "liver_centroid_mm": (ctx.liver_centroid_mm / 1000).tolist(),
+           "inertia_mm5": (ctx.inertia_mm5 / 1000**5).tolist(), "tool_thickness_mm": ctx.tool_thickness_mm / 1000,
+           "probe_compliance_mm_per_n": (ctx.probe_compliance_mm_per_n / 1000).tolist()}
+    (tmp_path / "ctx.json").write_text(json.dumps(doc))
+    parser = argparse.ArgumentParser(prog="liverforce")
+    register_predict(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(["predict", "-m", str(path), str(tmp_path / "cloud.npy"), "--context",
+                              str(tmp_path / "ctx.json"), "--units", "m", "--tool-tip", *map(str, tip / 1000)])
+    assert args.func(args) == 0
+    out = json.loads(capsys.readouterr().out)
+    want = Predictor.from_dir(path).predict_cloud(cloud, ctx, tool_tip_mm=tip)
+    assert np.allclose(out["force_n"], want, atol=1e-6)
+    assert out["mode"] == "exact" and "interval" in out and out["warnings"] == []
+    args = parser.parse_args(["predict", "-m", str(path), str(tmp_path / "cloud.npy"), "--context",
+                              str(tmp_path / "ctx.json"), "--units", "m"])
+    assert args.func(args) == 2
+    assert "tool tip" in capsys.readouterr().err
+
+
+def test_the_mlflow_pyfunc_serves_the_camera_model_from_clouds(served, tmp_path):
+    """Logged with an observed cloud as its input example; predicts from camera_cloud_mm + tool_tip_mm rows."""
+    from liverforce.tracking import Tracker, load_pyfunc, predict_pyfunc
+
+    path, model, a = served
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    tracker = Tracker(uri, "camera-serve")
+    run_id = tracker.start_run("cloud", params={}, tags={})
+    tracker.log_force_model(run_id, path, subset(a, [0]))  # simulated case: observed for the example
+    tracker.end_run(run_id)
+    pf = load_pyfunc(f"runs:/{run_id}/model", uri)
+    inputs = set(pf.metadata.get_input_schema().input_names())
+    assert {"camera_cloud_mm", "tool_tip_mm"} <= inputs and "roi_deformed_mm" not in inputs
+    rows = [_case(a, i, seed=50 + i) for i in range(3)]
+    cases = {k: [a[k][i] for i in range(3)] if isinstance(a[k], list) else np.asarray(a[k])[:3]
+             for k in ("case_id", "exertion_point_mm", "frame_normal", "frame_t1", "frame_t2", "roi_undeformed_mm",
+                       "roi_centroid_undeformed_mm", "liver_centroid_mm", "inertia_mm5", "tool_thickness_mm",
+                       "probe_compliance_mm_per_n", "material_params_mpa")}
+    cases["camera_cloud_mm"] = [r[1] for r in rows]
+    cases["tool_tip_mm"] = np.stack([r[2] for r in rows])
+    got = predict_pyfunc(pf, cases)
+    want = [Predictor.from_dir(path).predict_cloud(c, ctx, tool_tip_mm=t) for ctx, c, t in rows]
+    np.testing.assert_allclose(got, np.stack(want), atol=1e-9)
+    far = dict(cases, tool_tip_mm=cases["tool_tip_mm"] + 100.0 * np.asarray(cases["frame_normal"]))
+    with pytest.raises(PredictionInputError, match="tool tip displacement"):
+        predict_pyfunc(pf, far)
