@@ -189,6 +189,10 @@ class DiscreteSystem:
             self._contact_keep = cpos >= 0
             self._contact_pos = cpos[self._contact_keep]
         self.linear = LinearSolver(self.options.linear_solver)
+        #: lower bound (N) of the residual's reference force; 0 = none. A displacement-controlled
+        #: path (:func:`~liverforce.fem.indenter.indent`) sets it to the force scale of the path, so
+        #: that a state with no load at all (a retracted indenter) can still meet the tolerance.
+        self.ref_force_floor = 0.0
 
     # ------------------------------------------------------------------
     def tangent_matrix(self, data: np.ndarray, u: np.ndarray | None = None) -> sp.csr_matrix:
@@ -228,6 +232,7 @@ class DiscreteSystem:
             float(np.linalg.norm(f_load)),
             float(np.linalg.norm(R[self.fixed])) if self.fixed.size else 0.0,
             float(np.linalg.norm(fs)),
+            self.ref_force_floor,
             1e-12,
         )
         return ev, R, ref

@@ -1,0 +1,462 @@
+"""Rigid spherical indenter in frictionless contact (penalty, optionally augmented Lagrangian).
+
+The tool as a rigid sphere of radius ``R`` whose centre ``c`` is prescribed
+(displacement control) and moved along a path in load steps. At the facet
+quadrature points ``X_q`` of a candidate surface (7-point rule, as
+:class:`~liverforce.fem.boundary.UnilateralPenalty`), with the current position
+``x = X + u(X)``,
+
+.. math::
+
+    g(u) = R - |x - c| \\quad (> 0: \\text{penetration}), \\qquad
+    n = \\frac{x - c}{|x - c|},
+
+and the (augmented) penalty energy per unit *reference* area
+
+.. math::
+
+    \\Pi_c(u) = \\int_\\Gamma \\frac{1}{2k}\\big(\\langle \\lambda + k g\\rangle_+^2
+    - \\lambda^2\\big)\\, dA ,\\qquad p = \\langle \\lambda + k g \\rangle_+ ,
+
+which is the plain penalty ``0.5 k <g>_+^2`` for multipliers ``lambda = 0``.
+``p`` is the contact pressure (N/mm² per reference area). Gradient (the
+force the body exerts on the sphere, assembled) ``f_a = -int p N_a n dA`` and
+the consistent (semismooth) tangent
+
+.. math::
+
+    K_{ai,bk} = \\int_\\Gamma N_a N_b \\Big( k\\, H(p)\\, n_i n_k
+    - \\frac{p}{|x - c|} (\\delta_{ik} - n_i n_k) \\Big) dA
+
+(the second term is the curvature of the sphere distance; it is small,
+``p / (k R)`` relative to the first, and can be dropped with
+``geometric_tangent=False``: a Gauss-Newton tangent).
+
+Augmented Lagrangian (Uzawa): after a converged penalty solve the
+multipliers are updated ``lambda <- p`` and the step re-solved, until the
+largest penetration is below ``gap_tol``; the penetration then no longer
+scales with ``1/k``.
+
+Force bookkeeping: the Newton residual is ``f_int + f_c - f_ext``, so the
+contact force on the body is ``-sum f_c`` and the force on the sphere
+(:meth:`SphereContact.force_on_sphere`) is ``+sum f_c`` per component (the
+body pushes the sphere back out).
+
+Entry points: :class:`SphereContact` (the contact term, pluggable into
+:class:`~liverforce.fem.newton.DiscreteSystem` as its ``contact``),
+:func:`indent` (displacement-controlled path on a system) and
+:func:`indent_liver` (a :class:`~liverforce.fem.problem.LiverModel` with its
+supports and reactions).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from .boundary import _facet_quadrature, vertex_normals
+from .elements import TRI_Q7, TetDiscretization
+from .newton import DiscreteSystem, SolverOptions, _StepFailure
+
+
+class SphereContact:
+    """Frictionless rigid sphere (radius ``radius`` mm, centre ``centre``) on a candidate facet set.
+
+    Parameters
+    ----------
+    disc : discretisation (P1 or P2 facets).
+    points : (n, 3) reference vertices (mm).
+    facets : (k, 3) candidate contact facets (outward normals).
+    radius : sphere radius (mm).
+    kn : penalty stiffness (N/mm³: pressure per mm of penetration).
+    centre : (3,) initial centre (mm); move it with :meth:`set_centre`.
+    geometric_tangent : include the sphere-curvature term in the tangent (default: consistent).
+
+    Implements the ``contact`` protocol of :class:`~liverforce.fem.newton.DiscreteSystem`:
+    ``energy_force(u)``, ``tangent_values(u)`` on the static ``rows`` / ``cols``.
+    """
+
+    def __init__(self, disc: TetDiscretization, points, facets, radius: float, kn: float,
+                 centre=(0.0, 0.0, 0.0), geometric_tangent: bool = False):
+        points = np.asarray(points, float)
+        facets = np.asarray(facets, np.int64).reshape(-1, 3)
+        if not radius > 0 or not kn > 0:
+            raise ValueError(f"sphere radius and penalty must be positive, got R={radius}, k={kn}")
+        if len(facets) == 0:
+            raise ValueError("SphereContact needs at least one candidate facet")
+        self.radius, self.kn = float(radius), float(kn)
+        self.geometric_tangent = bool(geometric_tangent)
+        self.n_dofs = disc.n_dofs
+        fn, Xq, W, N, _, _ = _facet_quadrature(disc, points, facets)
+        self.facets = facets
+        self.fn, self.Xq, self.W, self.N = fn, Xq, W, N  # (k,nfn), (k,nq,3), (k,nq), (nq,nfn)
+        self.dofs = (3 * fn[:, :, None] + np.arange(3)).reshape(len(fn), -1)  # (k, 3 nfn)
+        nd = self.dofs.shape[1]
+        self.rows = np.repeat(self.dofs, nd, axis=1).ravel()
+        self.cols = np.tile(self.dofs, (1, nd)).ravel()
+        self.multipliers = np.zeros_like(W)
+        self.set_centre(centre)
+
+    # ------------------------------------------------------------------
+    def set_centre(self, centre) -> None:
+        self.centre = np.asarray(centre, float).reshape(3).copy()
+
+    def positions(self, u: np.ndarray) -> np.ndarray:
+        """Current positions ``x = X + u`` (k, nq, 3) of the quadrature points."""
+        uf = np.asarray(u, float).reshape(-1, 3)[self.fn]  # (k, nfn, 3)
+        return self.Xq + np.einsum("qa,kai->kqi", self.N, uf)
+
+    def _kinematics(self, u):
+        r = self.positions(u) - self.centre
+        rho = np.maximum(np.linalg.norm(r, axis=-1), 1e-300)
+        n = r / rho[..., None]
+        g = self.radius - rho
+        p = np.maximum(self.multipliers + self.kn * g, 0.0)
+        return g, p, n, rho
+
+    def gap(self, u: np.ndarray) -> np.ndarray:
+        """Penetration ``R - |x - c|`` (k, nq) in mm (> 0 inside the sphere)."""
+        return self._kinematics(u)[0]
+
+    def pressure(self, u: np.ndarray) -> np.ndarray:
+        """Contact pressure ``<lambda + k g>_+`` (k, nq), N/mm² per reference area."""
+        return self._kinematics(u)[1]
+
+    def energy_force(self, u: np.ndarray) -> tuple[float, np.ndarray]:
+        """Contact energy (N mm) and its gradient (n_dofs,)."""
+        g, p, n, _ = self._kinematics(u)
+        energy = float(np.sum(self.W * (p**2 - self.multipliers**2))) / (2.0 * self.kn)
+        # f_a = -int p N_a n dA
+        local = -np.einsum("kq,qa,kqi->kai", self.W * p, self.N, n).reshape(len(self.fn), -1)
+        f = np.bincount(self.dofs.ravel(), weights=local.ravel(), minlength=self.n_dofs)
+        return energy, f
+
+    def tangent_values(self, u: np.ndarray) -> np.ndarray:
+        """Values of the consistent tangent on (``rows``, ``cols``) at ``u``."""
+        g, p, n, rho = self._kinematics(u)
+        act = p > 0.0
+        nn = np.einsum("kqi,kqj->kqij", n, n)
+        S = (self.kn * act)[..., None, None] * nn
+        if self.geometric_tangent:
+            S = S - (p / rho)[..., None, None] * (np.eye(3) - nn)
+        blk = np.einsum("kq,qa,qb,kqij->kaibj", self.W, self.N, self.N, S)
+        return blk.ravel()
+
+    def tangent_matrix(self, u: np.ndarray) -> sp.csr_matrix:
+        n = self.n_dofs
+        return sp.coo_matrix((self.tangent_values(u), (self.rows, self.cols)), shape=(n, n)).tocsr()
+
+    # ------------------------------------------------------------------
+    def force_on_sphere(self, u: np.ndarray) -> np.ndarray:
+        """Total contact force (3,) the body exerts on the sphere (N); minus the force on the body."""
+        _, p, n, _ = self._kinematics(u)
+        return -np.einsum("kq,kqi->i", self.W * p, n)
+
+    def summary(self, u: np.ndarray) -> dict:
+        """Force on the sphere, active points, contact area (reference, mm²), peak pressure, max penetration."""
+        g, p, n, _ = self._kinematics(u)
+        act = p > 0.0
+        return {
+            "force_on_sphere": -np.einsum("kq,kqi->i", self.W * p, n),
+            "active_points": int(act.sum()),
+            "contact_area_mm2": float(self.W[act].sum()),
+            "peak_pressure_mpa": float(p.max()) if p.size else 0.0,
+            "max_penetration_mm": float(max(g.max(), 0.0)) if g.size else 0.0,
+            "active_on_rim": bool(np.any(act & self._rim_mask())),
+        }
+
+    def _rim_mask(self) -> np.ndarray:
+        """(k, nq) quadrature points on candidate facets that touch the candidate set's border."""
+        if not hasattr(self, "_rim"):
+            edges = np.sort(np.concatenate([self.facets[:, [0, 1]], self.facets[:, [1, 2]],
+                                            self.facets[:, [2, 0]]]), axis=1)
+            _, inv, cnt = np.unique(edges, axis=0, return_inverse=True, return_counts=True)
+            border = cnt[inv.ravel()] == 1
+            bnodes = np.unique(edges[border])
+            rim = np.isin(self.facets, bnodes).any(axis=1)
+            self._rim = np.broadcast_to(rim[:, None], self.W.shape)
+        return self._rim
+
+
+class ContactSum:
+    """Several contact terms (e.g. the unilateral rib and the sphere) as one ``contact`` of a system."""
+
+    def __init__(self, terms):
+        self.terms = [t for t in terms if t is not None]
+        self.rows = np.concatenate([t.rows for t in self.terms])
+        self.cols = np.concatenate([t.cols for t in self.terms])
+
+    def energy_force(self, u):
+        e, f = 0.0, 0.0
+        for t in self.terms:
+            et, ft = t.energy_force(u)
+            e, f = e + et, f + ft
+        return e, f
+
+    def tangent_values(self, u):
+        return np.concatenate([t.tangent_values(u) for t in self.terms])
+
+
+@dataclass
+class IndentResult:
+    """State at one prescribed sphere position (see :func:`indent`).
+
+    Attributes
+    ----------
+    u : full dof vector (mm); ``u_nodes`` the vertex displacements (n_vertices, 3).
+    centre : sphere centre (mm); ``depth`` the path parameter's depth (mm).
+    force_on_sphere : total contact force on the sphere (N, 3-vector); the force on the body is its negative.
+    active_points, contact_area_mm2 : quadrature points in contact and their reference area.
+    peak_pressure_mpa, max_penetration_mm : largest contact pressure and penetration.
+    active_on_rim : a point in contact lies on the candidate set's border (enlarge the candidate set).
+    reactions : support reactions (N) on the body; with :func:`indent_liver` per region (as
+        :meth:`LiverModel.reactions`) plus "indenter" (force of the sphere on the liver) and "imbalance".
+    augmentations : Uzawa updates used at this position.
+    """
+
+    u: np.ndarray
+    u_nodes: np.ndarray
+    centre: np.ndarray
+    depth: float
+    force_on_sphere: np.ndarray
+    active_points: int
+    contact_area_mm2: float
+    peak_pressure_mpa: float
+    max_penetration_mm: float
+    active_on_rim: bool
+    reactions: dict = field(default_factory=dict)
+    augmentations: int = 0
+    newton_iterations: int = 0
+
+
+@dataclass
+class IndentPath:
+    """Outcome of :func:`indent`: the results at the requested depths (in order) and solver facts."""
+
+    results: list
+    converged: bool
+    reason: str
+    load_steps: int
+    newton_iterations: int
+    wall_time_s: float
+    history: list = field(default_factory=list)
+
+
+def indent(system: DiscreteSystem, contact: SphereContact, material, start, direction, depths,
+           u0=None, f_ext=None, options: SolverOptions | None = None, max_increment: float | None = None,
+           augmented: int = 0, gap_tol: float = 0.0, reactions=None) -> IndentPath:
+    """Push the sphere from ``start`` along ``direction`` through the ``depths`` (mm), in load steps.
+
+    ``system.contact`` must include ``contact`` (alone or in a :class:`ContactSum`).
+    The centre is ``start + depth * direction/|direction|``; depths may go down as well as up
+    (retraction). Each depth is reached by increments of at most ``max_increment`` mm
+    (default: the largest gap between requested depths), cut back on failure (Newton as
+    :meth:`DiscreteSystem.solve`, with a secant predictor), and refined by up to ``augmented``
+    Uzawa updates of the multipliers while the max penetration exceeds ``gap_tol``.
+    ``f_ext`` : optional dead loads (held constant). ``reactions(u, f_int) -> dict`` : optional
+    support bookkeeping from the state and the internal forces.
+    Never raises on non-convergence: ``converged=False`` with a reason and the results reached.
+    """
+    floor = system.ref_force_floor
+    try:
+        return _indent(system, contact, material, start, direction, depths, u0, f_ext, options,
+                       max_increment, augmented, gap_tol, reactions)
+    finally:
+        system.ref_force_floor = floor
+
+
+def _indent(system, contact, material, start, direction, depths, u0, f_ext, options, max_increment,
+            augmented, gap_tol, reactions) -> IndentPath:
+    opt = options or system.options
+    t0 = time.perf_counter()
+    n = system.disc.n_dofs
+    f_load = np.zeros(n) if f_ext is None else np.asarray(f_ext, float)
+    start = np.asarray(start, float).reshape(3)
+    d = np.asarray(direction, float).reshape(3)
+    d = d / np.linalg.norm(d)
+    depths = [float(x) for x in np.atleast_1d(depths)]
+    stats = {"iters": 0, "steps": 0, "factorizations": 0, "history": [], "last_res": np.nan}
+    u = np.zeros(n) if u0 is None else np.asarray(u0, float).copy()
+    ub = u[system.fixed].copy()
+    cur = 0.0 if u0 is None else None
+    if cur is None:  # a warm start belongs to the contact's current centre
+        cur = float((contact.centre - start) @ d)
+    contact.set_centre(start + cur * d)
+    gaps = np.abs(np.diff([cur] + depths))
+    inc_max = float(max_increment) if max_increment else float(max(gaps.max(), 1e-12))
+    u_prev, s_prev = None, None
+    results = []
+
+    def fail(reason):
+        return IndentPath(results, False, reason, stats["steps"], stats["iters"], time.perf_counter() - t0,
+                          stats["history"])
+
+    for target in depths:
+        step = min(inc_max, abs(target - cur)) if target != cur else 0.0
+        its_here = 0
+        while True:
+            if time.perf_counter() - t0 > opt.time_limit_s:
+                return fail(f"time limit {opt.time_limit_s:g} s reached at depth {cur:.4g} mm")
+            if stats["steps"] >= opt.max_steps:
+                return fail(f"max_steps={opt.max_steps} reached at depth {cur:.4g} mm")
+            nxt = target if abs(target - cur) <= step * (1 + 1e-9) else cur + np.sign(target - cur) * step
+            contact.set_centre(start + nxt * d)
+            u_try = u.copy()
+            if u_prev is not None and s_prev is not None and cur != s_prev and np.sign(nxt - cur) == np.sign(cur - s_prev):
+                u_sec = u + (nxt - cur) / (cur - s_prev) * (u - u_prev)
+                u_sec[system.fixed] = ub
+                u_try = system._better_start(u_try, u_sec, material, f_load)
+            stats["steps"] += 1
+            try:
+                u_new, its, _ = system._newton(material, f_load, u_try, u, ub, opt, stats, t0, 1.0)
+            except _StepFailure as exc:
+                stats["history"].append((nxt, False, str(exc)))
+                if str(exc).startswith(("time limit", "max_total_iter")):
+                    contact.set_centre(start + cur * d)
+                    return fail(str(exc))
+                step *= opt.cutback
+                if step < opt.min_step * inc_max:
+                    contact.set_centre(start + cur * d)
+                    return fail(f"depth increment below min_step at depth {cur:.4g} mm: {exc}")
+                continue
+            stats["history"].append((nxt, True, its))
+            # the path's force scale: relative tolerances stay meaningful once the contact lets go
+            system.ref_force_floor = max(system.ref_force_floor,
+                                         float(np.linalg.norm(contact.energy_force(u_new)[1])))
+            its_here += its
+            u_prev, s_prev = u, cur
+            u, cur = u_new, nxt
+            if abs(cur - target) <= 1e-12 * max(1.0, abs(target)):
+                cur = target
+                break
+            if its <= opt.easy_iter:
+                step = min(step * opt.growth, inc_max)
+        # augmented Lagrangian (Uzawa) at this depth
+        n_aug = 0
+        while n_aug < augmented and contact.summary(u)["max_penetration_mm"] > gap_tol:
+            contact.multipliers = contact.pressure(u)
+            try:
+                u, its, _ = system._newton(material, f_load, u, u, ub, opt, stats, t0, 1.0)
+            except _StepFailure as exc:
+                return fail(f"augmented Lagrangian update failed at depth {cur:.4g} mm: {exc}")
+            its_here += its
+            n_aug += 1
+        if n_aug:
+            u_prev = None  # the multipliers changed the problem: no secant across
+        s = contact.summary(u)
+        reac = {}
+        if reactions is not None:
+            reac = reactions(u, system.assembler.evaluate(u, material, tangent=False).f_int)
+        results.append(IndentResult(u.copy(), u.reshape(-1, 3)[: system.disc.n_vertices].copy(),
+                                    contact.centre.copy(), cur, s["force_on_sphere"], s["active_points"],
+                                    s["contact_area_mm2"], s["peak_pressure_mpa"], s["max_penetration_mm"],
+                                    s["active_on_rim"], reac, n_aug, its_here))
+    return IndentPath(results, True, "converged", stats["steps"], stats["iters"], time.perf_counter() - t0,
+                      stats["history"])
+
+
+def support_reactions(system: DiscreteSystem, contact: SphereContact):
+    """Reaction bookkeeping for a bare :class:`DiscreteSystem` without dead loads: the force (N) on the
+    body from the constrained dofs ("supports": the residual force ``f_int + f_boundary`` there, as
+    :meth:`LiverModel.reactions`), the springs, the sphere ("indenter"), and their sum ("imbalance")."""
+
+    def reac(u, f_int):
+        fx = system.fixed
+        R = f_int + system.boundary_force(u)
+        out = {"supports": np.bincount(fx % 3, weights=R[fx], minlength=3) if fx.size else np.zeros(3)}
+        out["springs"] = -(system.spring @ u).reshape(-1, 3).sum(axis=0)
+        out["indenter"] = -contact.force_on_sphere(u)
+        out["imbalance"] = out["supports"] + out["springs"] + out["indenter"]
+        return out
+
+    return reac
+
+
+def candidate_facets(points, facets, point, radius: float, facet_mask=None) -> np.ndarray:
+    """Indices of facets with a vertex within ``radius`` mm of ``point`` (reference configuration)."""
+    points = np.asarray(points, float)
+    facets = np.asarray(facets, np.int64)
+    near = np.linalg.norm(points[facets] - np.asarray(point, float).reshape(3), axis=-1).min(axis=1) <= radius
+    if facet_mask is not None:
+        near &= np.asarray(facet_mask, bool)
+    return np.flatnonzero(near)
+
+
+def surface_normal(points, facets, point, radius: float = 2.0, facet_mask=None) -> np.ndarray:
+    """Unit outward normal of the surface at ``point``: area- and Gaussian-weighted facet normals nearby."""
+    from .elements import facet_geometry
+
+    points = np.asarray(points, float)
+    facets = np.asarray(facets, np.int64)
+    area, nrm = facet_geometry(points, facets)
+    dist = np.linalg.norm(points[facets].mean(axis=1) - np.asarray(point, float), axis=1)
+    if facet_mask is not None:
+        dist = np.where(np.asarray(facet_mask, bool), dist, np.inf)
+    w = area * np.exp(-0.5 * (dist / radius) ** 2)
+    if not w.sum() > 0:
+        w = (dist == dist.min()).astype(float)
+    v = (w[:, None] * nrm).sum(axis=0)
+    return v / np.linalg.norm(v)
+
+
+class LiverIndenter:
+    """A :class:`~liverforce.fem.problem.LiverModel` pushed by a rigid sphere at ``point_mm``.
+
+    The sphere (radius ``radius_mm``) starts touching the reference surface at ``point_mm``
+    (centre ``point + R n`` with ``n`` the outward normal there, or ``-direction`` if given)
+    and moves along ``direction`` (default the inward normal ``-n``). Candidate facets: those
+    of the load-carrying regions (not the IVC) within ``candidate_radius_mm`` (default
+    ``4 R + 10`` mm) of the point. The liver's supports (IVC, foundations, rib, unilateral
+    rib contact) are the model's.
+    """
+
+    def __init__(self, model, point_mm, radius_mm: float = 2.5, kn: float | None = None, direction=None,
+                 candidate_radius_mm: float | None = None, geometric_tangent: bool = False):
+        from .problem import IVC
+
+        self.model = model
+        self.point = np.asarray(point_mm, float).reshape(3)
+        self.radius = float(radius_mm)
+        mask = model.facet_region != IVC
+        self.normal = surface_normal(model.points, model.facets, self.point, max(self.radius, 2.0), mask)
+        self.direction = -self.normal if direction is None else np.asarray(direction, float) / np.linalg.norm(direction)
+        self.start = self.point - self.radius * self.direction
+        rc = candidate_radius_mm if candidate_radius_mm is not None else 4.0 * self.radius + 10.0
+        cand = candidate_facets(model.points, model.facets, self.point, rc, mask)
+        if kn is None:  # ~ 100 x the material's stiffness per local element size
+            kn = 100.0 * 3.0 * model.material.mu0 / max(self._local_size(cand), 1e-3)
+        self.contact = SphereContact(model.disc, model.points, model.facets[cand], self.radius, kn,
+                                     self.start, geometric_tangent)
+        terms = ContactSum([model.rib_contact, self.contact])
+        spring = sum(model.region_springs.values()) if model.region_springs else None
+        self.system = DiscreteSystem(model.points, None, model.system.fixed, spring, model.options,
+                                     disc=model.disc, contact=terms)
+
+    def _local_size(self, cand) -> float:
+        from .elements import facet_geometry
+
+        area, _ = facet_geometry(self.model.points, self.model.facets[cand])
+        d = np.linalg.norm(self.model.points[self.model.facets[cand]].mean(axis=1) - self.point, axis=1)
+        return float(np.sqrt(2.0 * area[np.argsort(d)[:10]].mean()))
+
+    def reactions(self, u, f_int):
+        """Forces (N) on the liver per support region (as :meth:`LiverModel.reactions`), the sphere's
+        ("indenter" = minus the force on the sphere) and their sum ("imbalance", ~0 at equilibrium)."""
+        out = self.model.reactions(u, f_int, np.zeros(self.model.n_dofs))
+        # the IVC reaction from the full residual, the sphere's force on shared nodes included
+        fx = self.model.system.fixed
+        R = f_int + self.system.boundary_force(u)
+        out["ivc"] = np.bincount(fx % 3, weights=R[fx], minlength=3) if fx.size else np.zeros(3)
+        out.pop("tool", None)
+        out["indenter"] = -self.contact.force_on_sphere(u)
+        out["imbalance"] = sum(out[k] for k in ("ivc", "ligament", "visceral", "rib", "gravity", "indenter"))
+        return out
+
+    def push(self, depths, material=None, u0=None, options=None, **kw) -> IndentPath:
+        """Push to each depth (mm along ``direction`` from first touch) in turn; see :func:`indent`."""
+        mat = material or self.model.material
+        return indent(self.system, self.contact, mat, self.start, self.direction, depths, u0=u0,
+                      options=options or self.model.options, reactions=self.reactions, **kw)
