@@ -189,6 +189,8 @@ class DatasetConfig:
 class IntervalConfig:
     coverage: float = MISSING  # nominal coverage of the per-component interval (split conformal)
     calibration_fraction: float = MISSING  # of the training split, held out to calibrate it
+    folds: int = MISSING  # > 1: cross-conformal over the training split (by liver in IV); 1: one held-out split
+    scale: str = MISSING  # none | stiffness: half-widths x the case's stiffness factor
 
 
 @dataclass
@@ -202,6 +204,7 @@ class CameraConfig:
     observation: dict[str, Any] = MISSING  # ObservationConfig fields (liverforce.learn.observation)
     grid: dict[str, Any] = MISSING  # CloudGridSpec fields other than grid_size and half_width_mm
     tip_noise_mm: float = MISSING  # Gaussian noise of the tool tip position (robot kinematics), per coordinate
+    views: int = MISSING  # observed views per training case (camera pose, density, noise drawn again)
 
 
 @dataclass
@@ -611,6 +614,9 @@ def _check_ranges(cfg: dict) -> None:
     if not 0.0 < t["interval"]["calibration_fraction"] < 1.0:
         _fail("train.interval.calibration_fraction",
               f"must be in (0, 1), got {t['interval']['calibration_fraction']}", "e.g. 0.2")
+    if t["interval"]["folds"] < 1:
+        _fail("train.interval.folds", f"must be >= 1 (got {t['interval']['folds']})", "e.g. 4 (1: one held-out split)")
+    _check_choice("train.interval.scale", t["interval"]["scale"], ("none", "stiffness"), "interval scale")
     if t["epochs"] < 1 or t["batch_size"] < 1 or t["lr"] <= 0:
         _fail("train.epochs", "epochs, batch_size must be >= 1 and lr > 0")
     tu = cfg["tune"]
@@ -655,6 +661,8 @@ def _check_model(mo: dict, key: str) -> None:
         _fail(f"{key}.dae_input_noise", "must be >= 0")
     _check_choice(f"{key}.force_scaling", mo["force_scaling"], ("stiffness", "none"))
     cam = mo["camera"]
+    if cam["views"] < 1:
+        _fail(f"{key}.camera.views", f"must be >= 1 (got {cam['views']})")
     if cam["tip_noise_mm"] < 0:
         _fail(f"{key}.camera.tip_noise_mm", f"must be >= 0 mm (got {cam['tip_noise_mm']})")
     from liverforce.learn.cloud_features import CloudGridSpec

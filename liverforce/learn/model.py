@@ -176,7 +176,10 @@ def eval_seed(seed: int) -> int:
 
 
 def n_views_for(rep: Representation) -> int:
-    """Observed views per training case: 2 when the observation model is stochastic, else 1."""
+    """Observed views per training case: 2 when the observation model is stochastic, else 1; a camera model's
+    ``camera.views`` (each view another camera pose, density, noise and tip noise)."""
+    if rep.is_camera:
+        return int(rep.camera.get("views", 2))
     return 2 if rep.stochastic else 1
 
 

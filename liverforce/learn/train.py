@@ -353,28 +353,42 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
 
 def calibrate_interval(train_arrays, model_cfg, interval_cfg, scenario, seed, encoder, use_state, code_size,
                        dae_noise, hidden, dropout, fit):
-    """Split-conformal interval (:mod:`liverforce.learn.interval`) from the training split alone.
+    """Conformal interval (:mod:`liverforce.learn.interval`) from the training split alone.
 
-    The training cases are split again (by liver in IV, as the test split) into a
-    fitting part and ``interval_cfg["calibration_fraction"]`` for calibration; a
-    model with the chosen settings is fitted on the first and scored on the second.
+    ``interval_cfg["folds"]`` > 1: cross-conformal, the training cases cut into
+    that many folds (by liver in IV, as the test split), each predicted by a model
+    with the chosen settings fitted on the other folds; 1: one split, with
+    ``calibration_fraction`` of the training cases (by liver in IV) held out. Every
+    fold uses the same observation seeds (a camera model observes each case once).
+    ``interval_cfg["scale"]``: ``none`` or ``stiffness`` (the module docstring).
     """
     geo = np.asarray(train_arrays["geometry_id"]).astype(str)
-    fit_idx, cal_idx = train_test_split(geo, scenario=scenario,
-                                        test_fraction=float(interval_cfg["calibration_fraction"]),
-                                        seed=derive(seed, "split.calibration"))
-    a_fit, a_cal = subset(train_arrays, fit_idx), subset(train_arrays, cal_idx)
+    n_folds = int(interval_cfg.get("folds", 1))
     cal_seed = derive(seed, "interval.fit")
-    rep_c = representation_from_config(model_cfg, a_fit)
-    prep_fit = prepare(a_fit, rep_c, observation_seeds=view_seeds(cal_seed, n_views_for(rep_c)))
-    model, _ = fit_force_model(prep_fit, rep_c, encoder=encoder, code_size=code_size, use_state=use_state,
-                               hidden=hidden, dropout=dropout, fit=fit, seed=cal_seed, dae_input_noise=dae_noise,
-                               force_scaling=force_scaling_of(model_cfg),
-                               linear_force_radius_mm=linear_force_radius_of(model_cfg))
-    prep_cal = prepare(a_cal, rep_c, observation_seeds=[eval_seed(cal_seed)])
-    f_cal = model.predict_local(a_cal, observation_seed=eval_seed(cal_seed))
-    k = model.pre.stiffness(prep_cal.state if use_state else None, len(f_cal))
-    return fit_conformal(prep_cal.y_local, f_cal, k, float(interval_cfg["coverage"]), group_key(scenario))
+    if n_folds > 1:
+        pairs = cv_folds(np.arange(len(geo)), geo, scenario=scenario, folds=n_folds,
+                         seed=derive(seed, "split.calibration")).pairs
+    else:
+        fit_idx, cal_idx = train_test_split(geo, scenario=scenario,
+                                            test_fraction=float(interval_cfg["calibration_fraction"]),
+                                            seed=derive(seed, "split.calibration"))
+        pairs = [(fit_idx, cal_idx)]
+    true, pred, stiff = [], [], []
+    for fit_idx, cal_idx in pairs:
+        a_fit, a_cal = subset(train_arrays, fit_idx), subset(train_arrays, cal_idx)
+        rep_c = representation_from_config(model_cfg, a_fit)
+        prep_fit = prepare(a_fit, rep_c, observation_seeds=view_seeds(cal_seed, n_views_for(rep_c)))
+        model, _ = fit_force_model(prep_fit, rep_c, encoder=encoder, code_size=code_size, use_state=use_state,
+                                   hidden=hidden, dropout=dropout, fit=fit, seed=cal_seed, dae_input_noise=dae_noise,
+                                   force_scaling=force_scaling_of(model_cfg),
+                                   linear_force_radius_mm=linear_force_radius_of(model_cfg))
+        prep_cal = prepare(a_cal, rep_c, observation_seeds=[eval_seed(cal_seed)])
+        f_cal = model.predict_local(a_cal, observation_seed=eval_seed(cal_seed))
+        true.append(prep_cal.y_local)
+        pred.append(f_cal)
+        stiff.append(model.pre.stiffness(prep_cal.state if use_state else None, len(f_cal)))
+    return fit_conformal(np.vstack(true), np.vstack(pred), np.vstack(stiff), float(interval_cfg["coverage"]),
+                         group_key(scenario), scale=str(interval_cfg.get("scale", "stiffness")), folds=len(pairs))
 
 
 def _geometries(arrays: dict) -> list[str]:

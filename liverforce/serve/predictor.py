@@ -217,6 +217,14 @@ class Predictor:
         """``exact`` or ``approximate``: what :meth:`predict_cloud` can do for this model."""
         return cloud_support(self.model)
 
+    def compile_cloud(self, preop: Preop):
+        """The camera-cloud fast path for ``preop`` (:class:`liverforce.serve.compiled_cloud.CompiledCloud`;
+        the context is checked once here)."""
+        from liverforce.serve.compiled_cloud import CompiledCloud
+
+        self.check_preop(preop)
+        return CompiledCloud(self.model, preop, limits=self.limits)
+
     def compile(self, preop: Preop) -> CompiledROI:
         """The fixed-topology fast path for ``preop`` (checked once here)."""
         self.check_preop(preop)

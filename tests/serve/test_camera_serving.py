@@ -176,3 +176,19 @@ def test_the_mlflow_pyfunc_serves_the_camera_model_from_clouds(served, tmp_path)
     far = dict(cases, tool_tip_mm=cases["tool_tip_mm"] + 100.0 * np.asarray(cases["frame_normal"]))
     with pytest.raises(PredictionInputError, match="tool tip displacement"):
         predict_pyfunc(pf, far)
+
+
+def test_the_compiled_cloud_path_equals_the_reference(served):
+    path, model, a = served
+    pred = Predictor.from_dir(path)
+    ctx, _, _ = _case(a, 4)
+    fast = pred.compile_cloud(ctx)
+    for seed in range(4):
+        _, cloud, tip = _case(a, 4, n_points=500 + 1500 * seed, seed=seed)
+        want, info = pred.predict_cloud(cloud, ctx, tool_tip_mm=tip, return_info=True)
+        got, half, warnings = fast.predict(cloud, tip)
+        np.testing.assert_allclose(got, want, atol=1e-6)
+        np.testing.assert_allclose(half, info["interval"]["half_width_local_n"], rtol=1e-12)
+        assert warnings == info["warnings"]
+    with pytest.raises(PredictionInputError, match="only"):
+        fast.predict(cloud[:4], tip)
