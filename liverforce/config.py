@@ -227,6 +227,12 @@ class ModelConfig:
 
 
 @dataclass
+class HeldoutPointsConfig:
+    scenarios: list[str] = MISSING  # scenarios split by case whose models are also scored on unseen exertion points
+    folds: int = MISSING  # groups of whole exertion points, each predicted by a model fitted on the others
+
+
+@dataclass
 class TrainConfig:
     scenarios: list[str] = MISSING
     variants: list[dict[str, Any]] = MISSING  # each: name + model overrides
@@ -238,6 +244,7 @@ class TrainConfig:
     seed: int = MISSING
     repeats: int = MISSING  # seeded train/test splits per model (the first is the saved model's): mean +- sd
     interval: IntervalConfig = field(default_factory=IntervalConfig)
+    heldout_points: HeldoutPointsConfig = field(default_factory=HeldoutPointsConfig)
 
 
 @dataclass
@@ -617,6 +624,10 @@ def _check_ranges(cfg: dict) -> None:
     if t["interval"]["folds"] < 1:
         _fail("train.interval.folds", f"must be >= 1 (got {t['interval']['folds']})", "e.g. 4 (1: one held-out split)")
     _check_choice("train.interval.scale", t["interval"]["scale"], ("none", "stiffness"), "interval scale")
+    if t["heldout_points"]["folds"] < 2:
+        _fail("train.heldout_points.folds", f"must be >= 2 (got {t['heldout_points']['folds']})")
+    for sc in t["heldout_points"]["scenarios"]:
+        _check_choice("train.heldout_points.scenarios", sc, ("I", "II", "III"), "scenario split by case")
     if t["epochs"] < 1 or t["batch_size"] < 1 or t["lr"] <= 0:
         _fail("train.epochs", "epochs, batch_size must be >= 1 and lr > 0")
     tu = cfg["tune"]

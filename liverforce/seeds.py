@@ -44,6 +44,8 @@ Stages used by the package (``stage`` strings; keys in brackets)::
     torch.batches              the mini-batch order of one fit (from the fit's seed)
     study.train_size           the learning curve's per-liver subsets (from the split seed)
     study.train_livers         the order of the training livers in their learning curve (from the split seed)
+    split.points               the exertion-point folds of the held-out-points evaluation (from the split seed)
+    points.fit                 those folds' fits and observation draws (from the split seed)
     observation [case]         a case's occlusion and noise draw (from an observation seed)
     observation.camera [case]  a case's camera observation draw (from an observation seed)
     observation.tip [case]     a case's tool-tip (robot kinematics) noise draw (from an observation seed)

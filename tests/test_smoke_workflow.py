@@ -35,6 +35,8 @@ def test_every_stage_produced_its_outputs(smoke_run):
         for variant in ("pca_sv", "ae_sv", "cloud_sv"):
             metrics = json.loads((root / "models" / scenario / variant / "metrics.json").read_text())
             assert metrics["run_id"]
+    hp = json.loads((root / "models" / "II" / "pca_sv" / "metrics.json").read_text())["heldout_points"]
+    assert hp["folds"] >= 2 and sum(f["n_test"] for f in hp["per_fold"]) == 12  # every II case, by point
     val = json.loads((root / "validate" / "metrics.json").read_text())
     # validate.input: camera -> the main camera-cloud variant is validated; the node models are the reference
     assert set(val["all_variants"]) == {"pca_sv", "ae_sv", "cloud_sv"} and val["model_variant"] == "cloud_sv"

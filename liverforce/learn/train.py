@@ -307,6 +307,11 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
     repeats += repeated_splits(train_arrays, test_arrays, rep, model_cfg, train_cfg, scenario, seed, encoder,
                                use_state, code_size, dae_noise, hidden, dropout, fit)
     summary = summarise_repeats([r["metrics"] for r in repeats])
+    points = None
+    hp = train_cfg.get("heldout_points") or {}
+    if scenario in (hp.get("scenarios") or []) and "exertion_id" in train_arrays:
+        points = heldout_points(train_arrays, test_arrays, model_cfg, int(hp.get("folds", 4)), seed, encoder,
+                                use_state, code_size, dae_noise, hidden, dropout, fit)
 
     if tracker is not None:
         tracker.log_history(run_id, history)
@@ -314,7 +319,9 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
                                      **({"cv_mae_n": cv_mae_n} if cv_mae_n is not None else {}),
                                      **{f"{k}_mean": v for k, v in summary["mean"].items()},
                                      **{f"{k}_sd": v for k, v in summary["sd"].items()},
-                                     "n_splits": summary["n"]})
+                                     "n_splits": summary["n"],
+                                     **({f"heldout_points_{k}_{m}": v for m in ("mean", "sd")
+                                         for k, v in points[f"metrics_{m}"].items()} if points else {})})
         tracker.log_params(run_id, {f"best.{k}": v for k, v in best.items()})
         for path in figures:
             tracker.log_artifact(run_id, path, "figures")
@@ -332,6 +339,7 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
         "cv_mse": best_cv,
         "cv_mae_n": cv_mae_n,
         "interval": interval,
+        "heldout_points": points,
         "best_params": best,
         "trials": trials,
         "n_train": int(len(tr)),
@@ -429,6 +437,49 @@ def repeated_splits(train_arrays, test_arrays, rep, model_cfg, train_cfg, scenar
         out.append({"split_seed": split_seed, "test_geometries": _geometries(a_te),
                     "metrics": force_metrics(np.asarray(a_te["force_n"], float), pred)})
     return out
+
+
+def heldout_points(train_arrays, test_arrays, model_cfg, folds, seed, encoder, use_state, code_size, dae_noise,
+                   hidden, dropout, fit) -> dict | None:
+    """Accuracy on exertion points no training case used (scenarios split by case: II, III).
+
+    The cases of both splits are cut into ``folds`` groups of whole exertion points
+    (``geometry_id``, ``exertion_id``); each group is predicted by a model with the
+    chosen settings fitted on the others. Returns the metrics per fold and their mean
+    and sd, or None with fewer than 2 exertion points.
+    """
+    all_arrays = {k: (train_arrays[k] if k in PER_RUN_KEYS
+                      else list(train_arrays[k]) + list(test_arrays[k]) if isinstance(train_arrays[k], list)
+                      else np.concatenate([np.asarray(train_arrays[k]), np.asarray(test_arrays[k])]))
+                  for k in train_arrays}
+    order = np.argsort(np.asarray(all_arrays["case_id"]).astype(str), kind="stable")
+    all_arrays = subset(all_arrays, order)
+    point = np.char.add(np.asarray(all_arrays["geometry_id"]).astype(str),
+                        np.char.add("#", np.asarray(all_arrays["exertion_id"]).astype(str)))
+    groups = np.unique(point)
+    if len(groups) < 2:
+        return None
+    k = min(int(folds), len(groups))
+    rng = np.random.default_rng(derive(seed, "split.points"))
+    parts = np.array_split(rng.permutation(groups), k)
+    fold_seed = derive(seed, "points.fit")
+    out = []
+    for part in parts:
+        te = np.flatnonzero(np.isin(point, part))
+        tr = np.flatnonzero(~np.isin(point, part))
+        a_tr, a_te = subset(all_arrays, tr), subset(all_arrays, te)
+        rep_p = representation_from_config(model_cfg, a_tr)
+        prep_tr = prepare(a_tr, rep_p, observation_seeds=view_seeds(fold_seed, n_views_for(rep_p)))
+        model, _ = fit_force_model(prep_tr, rep_p, encoder=encoder, code_size=code_size, use_state=use_state,
+                                   hidden=hidden, dropout=dropout, fit=fit, seed=fold_seed,
+                                   dae_input_noise=dae_noise, force_scaling=force_scaling_of(model_cfg),
+                                   linear_force_radius_mm=linear_force_radius_of(model_cfg))
+        pred = model.predict(a_te, observation_seed=eval_seed(fold_seed))
+        out.append({"points": sorted(str(p) for p in part), "n_test": int(len(te)),
+                    "metrics": force_metrics(np.asarray(a_te["force_n"], float), pred)})
+    summary = summarise_repeats([o["metrics"] for o in out])
+    return {"folds": k, "n_points": int(len(groups)), "metrics_mean": summary["mean"], "metrics_sd": summary["sd"],
+            "per_fold": out}
 
 
 def summarise_repeats(metrics: list[dict]) -> dict:

@@ -138,7 +138,7 @@ def collect(model_metrics: list[str | Path], manifests: list[str | Path], valida
             "seconds": m.get("seconds"), "path": str(p),
             "metrics_mean": m.get("metrics_mean") or {}, "metrics_sd": m.get("metrics_sd") or {},
             "n_splits": m.get("n_splits"), "repeats": m.get("repeats") or [],
-            "model_cfg": m.get("model_cfg") or {},
+            "model_cfg": m.get("model_cfg") or {}, "heldout_points": m.get("heldout_points"),
         })
     shards = []
     for p in manifests:
@@ -618,21 +618,27 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
     parts.append("<h2 id='models'>Accuracy per scenario and variant (every trained model)</h2>")
     parts.append("<p>Mean ± sd over the repeated seeded splits (<code>train.repeats</code>), then the saved "
                  "model's own split (the numbers of its MLflow run's <code>accuracy_pct</code>, <code>mae_vec</code>"
-                 ", …).</p>")
+                 ", …). Scenarios II and III split by case, so every test exertion point was also a training "
+                 "point; their models are also scored on whole exertion points no training case used "
+                 "(<code>train.heldout_points</code>: folds of points, each predicted by a model fitted on the "
+                 "others; mean ± sd over the folds).</p>")
     rows = []
     for m in sorted(data["models"], key=lambda m: (m["scenario"], m["variant"])):
         sv = "with" if m.get("state_vector") else "without"
         study = STUDY_ACCURACY.get(m["scenario"], {}).get(sv)
         mt, mean, sd = m["metrics"], m["metrics_mean"], m["metrics_sd"]
+        hp = m.get("heldout_points") or {}
         rows.append([m["scenario"], html.escape(m["variant"]), html.escape(str(m.get("encoder"))), sv,
                      _pm(mean.get("accuracy_pct"), sd.get("accuracy_pct"), 1), _pm(mean.get("mae_vec"), sd.get("mae_vec")),
+                     (_pm(hp["metrics_mean"].get("accuracy_pct"), hp["metrics_sd"].get("accuracy_pct"), 1)
+                      + f" <small>({hp['folds']} folds of {hp['n_points']} points)</small>") if hp else "–",
                      _fmt(m.get("n_splits"), 0), _fmt(mt.get("accuracy_pct"), 1), _fmt(study, 1),
                      _fmt(mt.get("mae_vec")), _fmt(mt.get("rmse_vec")),
                      " / ".join(_fmt(mt.get(f"mae_{a}")) for a in "xyz"),
                      _run(m.get("run_id")), f"{_fmt(m.get('n_train'), 0)} / {_fmt(m.get('n_test'), 0)}",
                      _fmt(m.get("seconds"), 0)])
     parts.append(_table(["scenario", "variant", "encoder", "state vector", "accuracy % mean ± sd", "MAE (N) mean ± sd",
-                         "splits", "accuracy % (saved split)", "study %", "MAE (N) (saved split)", "RMSE (N)",
+                         "held-out exertion points: accuracy %", "splits", "accuracy % (saved split)", "study %", "MAE (N) (saved split)", "RMSE (N)",
                          "MAE x / y / z (N)", "MLflow run", "train / test cases", "train time (s)"], rows,
                         cls="models", row_cls="model"))
 

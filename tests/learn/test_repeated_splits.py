@@ -41,3 +41,27 @@ def test_repeated_splits_hold_out_different_cases_and_give_a_spread(tmp_path, sc
     assert res["metrics_mean"]["mae_vec"] == pytest.approx(maes.mean())
     assert res["metrics_sd"]["mae_vec"] == pytest.approx(maes.std(ddof=1))
     assert res["metrics_sd"]["mae_vec"] > 0
+
+
+def test_heldout_exertion_points_never_train_on_a_test_point(tmp_path):
+    """II/III split by case; train.heldout_points scores folds of whole exertion points, each by a model
+    fitted on the other points only."""
+    from liverforce.learn.synthetic import synthetic_arrays
+    from liverforce.learn.train import train_scenario
+
+    data = synthetic_arrays(120, n_geometries=1, seed=4, nodes=(150, 200))
+    data["exertion_id"] = np.arange(120) % 6
+    model = {"encoder": "pca", "code_size": 4, "state_vector": True, "grid_size": 6, "hidden": [16], "dropout": 0.0,
+             "occlusion": {"radius_mm": 0.0, "mode": "remove"}, "noise_mm": 0.0}
+    train = {"test_fraction": 0.2, "epochs": 5, "batch_size": 32, "lr": 3e-3, "weight_decay": 0.0, "seed": 0,
+             "repeats": 1, "heldout_points": {"scenarios": ["II"], "folds": 3}}
+    no_tune = {"enabled": False, "trials": 1, "folds": 2, "sobol_trials": 1, "epochs": 1}
+    res = train_scenario(data, model, train, no_tune, "II", "v", out_dir=tmp_path)
+    hp = res["heldout_points"]
+    assert hp["folds"] == 3 and hp["n_points"] == 6 and sum(f["n_test"] for f in hp["per_fold"]) == 120
+    held = [set(f["points"]) for f in hp["per_fold"]]
+    assert all(len(h) == 2 for h in held) and set.union(*held) == {f"syn-0000#{i}" for i in range(6)}
+    assert all(not (a & b) for i, a in enumerate(held) for b in held[i + 1:])  # every point held out once
+    assert np.isfinite(hp["metrics_mean"]["mae_vec"]) and hp["metrics_sd"]["mae_vec"] >= 0
+    # scenario I is not listed: no held-out-points evaluation
+    assert train_scenario(data, model, train, no_tune, "I", "v", out_dir=tmp_path / "i")["heldout_points"] is None
