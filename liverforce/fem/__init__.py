@@ -8,12 +8,15 @@ Units: mm, N, MPa (N/mm²). Public entry points:
 * :func:`fit_material` — least-squares fit to stress–stretch data.
 * :class:`LiverModel` / :func:`solve_case` — static large-deformation solve of
   a tool pushing on a meshed liver.
+* :class:`LiverIndenter` / :class:`SphereContact` / :func:`indent` — the tool as a
+  rigid sphere in frictionless contact (penalty, augmented Lagrangian), displacement-controlled.
 """
 
 _LAZY = {
     "FitResult": "fitting", "fit_material": "fitting",
     "Material": "materials", "available_models": "materials", "bulk_from_poisson": "materials",
     "make_material": "materials",
+    "LiverIndenter": "indenter", "SphereContact": "indenter", "indent": "indenter",
     "DiscreteSystem": "newton", "NewtonResult": "newton", "SolverOptions": "newton",
     "BoundaryParams": "problem", "CaseResult": "problem", "LiverModel": "problem", "ToolLoad": "problem",
     "solve_case": "problem",
@@ -37,10 +40,12 @@ __all__ = [
     "CaseResult",
     "DiscreteSystem",
     "FitResult",
+    "LiverIndenter",
     "LiverModel",
     "Material",
     "NewtonResult",
     "SolverOptions",
+    "SphereContact",
     "StabilityReport",
     "ToolLoad",
     "UnstableMaterialError",
@@ -48,6 +53,7 @@ __all__ = [
     "bulk_from_poisson",
     "check_stability",
     "fit_material",
+    "indent",
     "make_material",
     "require_stable",
     "solve_case",
