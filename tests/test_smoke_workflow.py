@@ -42,7 +42,7 @@ def test_every_stage_produced_its_outputs(smoke_run):
     assert set(val["all_variants"]) == {"pca_sv", "ae_sv", "cloud_sv"} and val["model_variant"] == "cloud_sv"
     assert val["metrics"] == pytest.approx(val["all_variants"]["cloud_sv"]["metrics"])
     sens = val["camera_sensitivity"]
-    assert [r["value"] for r in sens["n_points"]] == [200, 1000, 5000, 20000]
+    assert [r["value"] for r in sens["n_points"]] == [200, 2000]  # the smoke experiment's
     assert all(np.isfinite(r["mae_vec"]) for k in ("n_points", "noise_sd_mm", "cone_half_angle_deg", "tip_noise_mm")
                for r in sens[k])
     assert sorted(val["per_liver"]) == ["val-1000", "val-1001"] and val["livers"]["n"] == 2
