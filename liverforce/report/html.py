@@ -630,16 +630,17 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
         hp = m.get("heldout_points") or {}
         rows.append([m["scenario"], html.escape(m["variant"]), html.escape(str(m.get("encoder"))), sv,
                      _pm(mean.get("accuracy_pct"), sd.get("accuracy_pct"), 1), _pm(mean.get("mae_vec"), sd.get("mae_vec")),
-                     (_pm(hp["metrics_mean"].get("accuracy_pct"), hp["metrics_sd"].get("accuracy_pct"), 1)
-                      + f" <small>({hp['folds']} folds of {hp['n_points']} points)</small>") if hp else "–",
                      _fmt(m.get("n_splits"), 0), _fmt(mt.get("accuracy_pct"), 1), _fmt(study, 1),
                      _fmt(mt.get("mae_vec")), _fmt(mt.get("rmse_vec")),
                      " / ".join(_fmt(mt.get(f"mae_{a}")) for a in "xyz"),
                      _run(m.get("run_id")), f"{_fmt(m.get('n_train'), 0)} / {_fmt(m.get('n_test'), 0)}",
-                     _fmt(m.get("seconds"), 0)])
+                     _fmt(m.get("seconds"), 0),
+                     (_pm(hp["metrics_mean"].get("accuracy_pct"), hp["metrics_sd"].get("accuracy_pct"), 1)
+                      + f" <small>({hp['folds']} folds of {hp['n_points']} points)</small>") if hp else "–"])
     parts.append(_table(["scenario", "variant", "encoder", "state vector", "accuracy % mean ± sd", "MAE (N) mean ± sd",
-                         "held-out exertion points: accuracy %", "splits", "accuracy % (saved split)", "study %", "MAE (N) (saved split)", "RMSE (N)",
-                         "MAE x / y / z (N)", "MLflow run", "train / test cases", "train time (s)"], rows,
+                         "splits", "accuracy % (saved split)", "study %", "MAE (N) (saved split)", "RMSE (N)",
+                         "MAE x / y / z (N)", "MLflow run", "train / test cases", "train time (s)",
+                         "held-out exertion points: accuracy % mean ± sd"], rows,
                         cls="models", row_cls="model"))
 
     # ------------------------------------------------------------ validation
