@@ -17,8 +17,14 @@ same point. Per point and force it prints
 
 then the medians over points and forces.
 
-Run: ``.venv/bin/python -m benchmarks.tool_model_study [--edge 2.0] [--points 2]``
-(an experiment, not a timed test: ~minutes on 2 cores).
+Run: ``.venv/bin/python -m benchmarks.tool_model_study [--edge 2.0] [--points 2] [--kn 1.0]``
+(an experiment, not a timed test). Slow: the semismooth Newton of the contact
+needs 20-40 iterations per 1.5 mm depth increment on the 29k-dof P2 liver
+(~2 s per iteration on a loaded 2-core machine); the first run (--kn 1, Nov
+2026) reached only point 0 at 1 N within 25 min:
+
+    pt  F(N)  depth    |u|@x0 s/t    max|u| s/t   ROI rms/max  near rms/max   p_peak s/t (kPa)   area    pen
+     0  0.98   6.50   6.32/  3.99   6.32/  4.29   0.42/  2.34   0.55/  2.34    130.4/    6.26   22.5  0.130
 """
 
 from __future__ import annotations
