@@ -14,13 +14,15 @@ import pytest
 
 from test_workflow import job_counts, snakemake
 
-pytestmark = pytest.mark.workflow
+# the whole smoke workflow (every stage, the camera model and the interval folds included) and its re-runs:
+# in the CI slow set, keeping the default set well under 15 minutes
+pytestmark = [pytest.mark.slow, pytest.mark.workflow]
 
 
 @pytest.fixture(scope="session")
 def smoke_run(tmp_path_factory):
     work = tmp_path_factory.mktemp("smoke")
-    snakemake("--cores", "2", "--directory", str(work), "--config", "experiment=smoke")
+    snakemake("--cores", "2", "--directory", str(work), "--config", "experiment=smoke", timeout=1500)
     return work
 
 

@@ -13,9 +13,9 @@ ROOT = Path(__file__).resolve().parent.parent
 SNAKEMAKE = str(Path(sys.executable).with_name("snakemake"))
 
 
-def snakemake(*args, cwd=None, check=True) -> subprocess.CompletedProcess:
+def snakemake(*args, cwd=None, check=True, timeout=600) -> subprocess.CompletedProcess:
     cmd = [SNAKEMAKE, "--snakefile", str(ROOT / "Snakefile"), *args]
-    proc = subprocess.run(cmd, cwd=cwd or ROOT, capture_output=True, text=True, timeout=600,
+    proc = subprocess.run(cmd, cwd=cwd or ROOT, capture_output=True, text=True, timeout=timeout,
                           env={**os.environ, "PYTHONUNBUFFERED": "1"})
     if check and proc.returncode != 0:
         raise AssertionError(f"{' '.join(cmd)} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
