@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import re
 
+import numpy as np
 import pytest
 
 from test_workflow import job_counts, snakemake
@@ -79,7 +80,7 @@ def test_report_numbers_match_the_mlflow_runs_they_cite(smoke_run):
     html = html[html.index("id='models'"):html.index("id='validation'")]
     client = mlflow.tracking.MlflowClient(tracking_uri=f"sqlite:///{smoke_run / 'results' / 'mlflow.db'}")
     rows = [_cells(r) for r in re.findall(r"<tr class='model'>(.*?)</tr>", html)]
-    assert len(rows) == 8
+    assert len(rows) == 12  # 4 scenarios x pca_sv, ae_sv, cloud_sv
     for c in rows:
         scenario, variant = c[0], c[1]
         acc_pm, mae_pm, n_splits, acc, mae = c[4], c[5], c[6], c[7], c[9]
