@@ -414,12 +414,7 @@ def repeated_splits(train_arrays, test_arrays, rep, model_cfg, train_cfg, scenar
     n_rep = int(train_cfg.get("repeats", 1))
     if n_rep <= 1:
         return []
-    all_arrays = {k: (train_arrays[k] if k in PER_RUN_KEYS
-                      else list(train_arrays[k]) + list(test_arrays[k]) if isinstance(train_arrays[k], list)
-                      else np.concatenate([np.asarray(train_arrays[k]), np.asarray(test_arrays[k])]))
-                  for k in train_arrays}
-    order = np.argsort(np.asarray(all_arrays["case_id"]).astype(str), kind="stable")  # independent of the main split
-    all_arrays = subset(all_arrays, order)
+    all_arrays = _all_cases(train_arrays, test_arrays)
     geo = np.asarray(all_arrays["geometry_id"]).astype(str)
     out = []
     for r in range(1, n_rep):
@@ -439,6 +434,15 @@ def repeated_splits(train_arrays, test_arrays, rep, model_cfg, train_cfg, scenar
     return out
 
 
+def _all_cases(train_arrays: dict, test_arrays: dict) -> dict:
+    """The main split's training and test cases together, ordered by case id (independent of that split)."""
+    both = {k: (train_arrays[k] if k in PER_RUN_KEYS
+                else list(train_arrays[k]) + list(test_arrays[k]) if isinstance(train_arrays[k], list)
+                else np.concatenate([np.asarray(train_arrays[k]), np.asarray(test_arrays[k])]))
+            for k in train_arrays}
+    return subset(both, np.argsort(np.asarray(both["case_id"]).astype(str), kind="stable"))
+
+
 def heldout_points(train_arrays, test_arrays, model_cfg, folds, seed, encoder, use_state, code_size, dae_noise,
                    hidden, dropout, fit) -> dict | None:
     """Accuracy on exertion points no training case used (scenarios split by case: II, III).
@@ -448,12 +452,7 @@ def heldout_points(train_arrays, test_arrays, model_cfg, folds, seed, encoder, u
     chosen settings fitted on the others. Returns the metrics per fold and their mean
     and sd, or None with fewer than 2 exertion points.
     """
-    all_arrays = {k: (train_arrays[k] if k in PER_RUN_KEYS
-                      else list(train_arrays[k]) + list(test_arrays[k]) if isinstance(train_arrays[k], list)
-                      else np.concatenate([np.asarray(train_arrays[k]), np.asarray(test_arrays[k])]))
-                  for k in train_arrays}
-    order = np.argsort(np.asarray(all_arrays["case_id"]).astype(str), kind="stable")
-    all_arrays = subset(all_arrays, order)
+    all_arrays = _all_cases(train_arrays, test_arrays)
     point = np.char.add(np.asarray(all_arrays["geometry_id"]).astype(str),
                         np.char.add("#", np.asarray(all_arrays["exertion_id"]).astype(str)))
     groups = np.unique(point)
