@@ -28,9 +28,11 @@ the consistent (semismooth) tangent
     K_{ai,bk} = \\int_\\Gamma N_a N_b \\Big( k\\, H(p)\\, n_i n_k
     - \\frac{p}{|x - c|} (\\delta_{ik} - n_i n_k) \\Big) dA
 
-(the second term is the curvature of the sphere distance; it is small,
-``p / (k R)`` relative to the first, and can be dropped with
-``geometric_tangent=False``: a Gauss-Newton tangent).
+(the second term is the curvature of the sphere distance: ``p / (k R)`` relative to the
+first, but it acts tangentially, where the soft body has little stiffness of its own; with
+``geometric_tangent=False`` (a Gauss-Newton tangent) Newton converges only linearly, and with
+it on from the first iteration the indefinite tangent cuts steps back; ``"auto"`` switches it on
+once the active set has settled).
 
 Augmented Lagrangian (Uzawa): after a converged penalty solve the
 multipliers are updated ``lambda <- p`` and the step re-solved, until the
@@ -73,14 +75,19 @@ class SphereContact:
     radius : sphere radius (mm).
     kn : penalty stiffness (N/mm³: pressure per mm of penetration).
     centre : (3,) initial centre (mm); move it with :meth:`set_centre`.
-    geometric_tangent : include the sphere-curvature term in the tangent (default: consistent).
+    geometric_tangent : include the sphere-curvature term in the tangent: True (consistent),
+        False (Gauss-Newton: linear convergence, contraction ~0.5 per iteration on a liver) or
+        "auto" (default): only once the active set is the one of the previous tangent, so the
+        first iterations of a step keep the robust positive Gauss-Newton tangent and the last ones
+        converge quadratically (on the 15.6k-dof liver at 2 and 4 mm: 21 iterations, against 45
+        for either fixed choice).
 
     Implements the ``contact`` protocol of :class:`~liverforce.fem.newton.DiscreteSystem`:
     ``energy_force(u)``, ``tangent_values(u)`` on the static ``rows`` / ``cols``.
     """
 
     def __init__(self, disc: TetDiscretization, points, facets, radius: float, kn: float,
-                 centre=(0.0, 0.0, 0.0), geometric_tangent: bool = False):
+                 centre=(0.0, 0.0, 0.0), geometric_tangent: bool | str = "auto"):
         points = np.asarray(points, float)
         facets = np.asarray(facets, np.int64).reshape(-1, 3)
         if not radius > 0 or not kn > 0:
@@ -88,7 +95,10 @@ class SphereContact:
         if len(facets) == 0:
             raise ValueError("SphereContact needs at least one candidate facet")
         self.radius, self.kn = float(radius), float(kn)
-        self.geometric_tangent = bool(geometric_tangent)
+        if geometric_tangent not in (True, False, "auto"):
+            raise ValueError(f"geometric_tangent must be True, False or 'auto', got {geometric_tangent!r}")
+        self.geometric_tangent = geometric_tangent
+        self._last_active = None
         self.n_dofs = disc.n_dofs
         fn, Xq, W, N, _, _ = _facet_quadrature(disc, points, facets)
         self.facets = facets
@@ -140,7 +150,9 @@ class SphereContact:
         act = p > 0.0
         nn = np.einsum("kqi,kqj->kqij", n, n)
         S = (self.kn * act)[..., None, None] * nn
-        if self.geometric_tangent:
+        settled = self._last_active is not None and np.array_equal(act, self._last_active)
+        self._last_active = act
+        if self.geometric_tangent is True or (self.geometric_tangent == "auto" and settled):
             S = S - (p / rho)[..., None, None] * (np.eye(3) - nn)
         blk = np.einsum("kq,qa,qb,kqij->kaibj", self.W, self.N, self.N, S)
         return blk.ravel()
@@ -414,7 +426,7 @@ class LiverIndenter:
     """
 
     def __init__(self, model, point_mm, radius_mm: float = 2.5, kn: float | None = None, direction=None,
-                 candidate_radius_mm: float | None = None, geometric_tangent: bool = False):
+                 candidate_radius_mm: float | None = None, geometric_tangent: bool | str = "auto"):
         from .problem import IVC
 
         self.model = model
