@@ -176,6 +176,12 @@ class SimulateConfig:
     warm_start: bool = MISSING
     modified_newton: bool = MISSING
     linear_solver: str = MISSING
+    tool_model: str = MISSING
+    tool_tip_radius_mm: float = MISSING
+    tool_penalty_n_per_mm3: float = MISSING
+    tool_force_rtol: float = MISSING
+    tool_force_atol_n: float = MISSING
+    tool_max_slide_mm: float = MISSING
 
 
 @dataclass
@@ -264,6 +270,18 @@ class TrackingConfig:
 
 
 @dataclass
+class PhysicsConfig:
+    enabled: bool = MISSING  # the physics study (liverforce.pipeline.physics): off -> no rule, no report section
+    liver: int = MISSING  # which unseen liver (index among validate.livers)
+    n_cases: int = MISSING  # its first cases, simulated again under each changed choice
+    foundation_scale: list[float] = MISSING  # both foundations' stiffness x each
+    tangential_ratio: list[float] = MISSING  # k_t / k_n values
+    rib_contact: list[str] = MISSING  # unilateral | bilateral | off
+    gravity: list[list[float]] = MISSING  # gravity directions (RAS), each a variant
+    tool: str = MISSING  # none | sphere: the tool as a rigid sphere (simulate.tool_model: sphere)
+
+
+@dataclass
 class ValidateConfig:
     seed: int = MISSING  # unseen liver i has the procedural seed seed + i
     livers: int = MISSING  # unseen livers
@@ -272,6 +290,7 @@ class ValidateConfig:
     variant: str = MISSING  # auto: lowest CV MAE (N) on the training livers | main: the first variant | a name
     input: str = MISSING  # camera: auto chooses among the camera-cloud variants (what surgery has) | any
     camera_sensitivity: dict[str, Any] = MISSING  # setting -> values re-observed for the camera-cloud model
+    physics: PhysicsConfig = field(default_factory=PhysicsConfig)
 
 
 @dataclass
@@ -437,6 +456,13 @@ def linear_solvers() -> tuple[str, ...]:
     return tuple(linsolve.METHODS)
 
 
+def tool_models() -> tuple[str, ...]:
+    """``simulate.tool_model``: :data:`liverforce.pipeline.simulate.TOOL_MODELS`."""
+    from liverforce.pipeline.simulate import TOOL_MODELS
+
+    return tuple(TOOL_MODELS)
+
+
 def sweep_designs() -> tuple[str, ...]:
     """``sweep.design``: the samplers of :data:`liverforce.sweep.design.DESIGNS`."""
     from liverforce.sweep.design import design_names
@@ -575,6 +601,20 @@ def _check_ranges(cfg: dict) -> None:
     if sim["time_limit_s"] <= 0:
         _fail("simulate.time_limit_s", "must be > 0 s")
     _check_choice("simulate.linear_solver", sim["linear_solver"], linear_solvers(), "linear solver")
+    _check_choice("simulate.tool_model", sim["tool_model"], tool_models(), "tool model")
+    if sim["tool_tip_radius_mm"] <= 0:
+        _fail("simulate.tool_tip_radius_mm", "must be > 0 mm")
+    if sim["tool_penalty_n_per_mm3"] < 0:
+        _fail("simulate.tool_penalty_n_per_mm3", "must be >= 0 N/mm^3 (0 = automatic)")
+    if not 0 < sim["tool_force_rtol"] < 1:
+        _fail("simulate.tool_force_rtol", "must be in (0, 1)")
+    if sim["tool_force_atol_n"] <= 0:
+        _fail("simulate.tool_force_atol_n", "must be > 0 N")
+    if sim["tool_max_slide_mm"] <= 0:
+        _fail("simulate.tool_max_slide_mm", "must be > 0 mm")
+    if sim["tool_model"] == "sphere" and cfg["boundary"]["gravity"]["enabled"]:
+        _fail("simulate.tool_model", "the sphere tool does not support gravity yet",
+              "set boundary.gravity.enabled=false or simulate.tool_model=traction")
 
     d = cfg["dataset"]
     if not 0 < d["roi_fraction"] <= 1:
@@ -638,6 +678,19 @@ def _check_ranges(cfg: dict) -> None:
         _fail("validate.n_cases", "must be >= 1")
     if v["livers"] < 1:
         _fail("validate.livers", "must be >= 1")
+    ph = v["physics"]
+    if not 0 <= ph["liver"] < v["livers"]:
+        _fail("validate.physics.liver", f"must index an unseen liver, 0 .. {v['livers'] - 1} (got {ph['liver']})")
+    if ph["n_cases"] < 1 or ph["n_cases"] > v["n_cases"]:
+        _fail("validate.physics.n_cases", f"must be 1 .. validate.n_cases ({v['n_cases']}) (got {ph['n_cases']})")
+    if any(not f > 0 for f in ph["foundation_scale"]) or any(r < 0 for r in ph["tangential_ratio"]):
+        _fail("validate.physics.foundation_scale", "foundation scales must be > 0 and tangential ratios >= 0")
+    for rib in ph["rib_contact"]:
+        _check_choice("validate.physics.rib_contact", rib, ("unilateral", "bilateral", "off"), "rib model")
+    for d in ph["gravity"]:
+        if len(d) != 3 or not sum(float(x) ** 2 for x in d) > 0:
+            _fail("validate.physics.gravity", f"each gravity direction is a non-zero 3-vector (got {d})")
+    _check_choice("validate.physics.tool", ph["tool"], ("none", "sphere"), "tool model")
     from liverforce.seeds import liver_seeds
 
     for key, value in (("seed", cfg["seed"]), ("sweep.seed", s["seed"]), ("train.seed", t["seed"]),

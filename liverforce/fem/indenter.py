@@ -62,6 +62,7 @@ import scipy.sparse as sp
 from .boundary import _facet_quadrature, vertex_normals
 from .elements import TRI_Q7, TetDiscretization
 from .newton import DiscreteSystem, SolverOptions, _StepFailure
+from .problem import CaseResult
 
 
 class SphereContact:
@@ -145,17 +146,38 @@ class SphereContact:
         return energy, f
 
     def tangent_values(self, u: np.ndarray) -> np.ndarray:
-        """Values of the consistent tangent on (``rows``, ``cols``) at ``u``."""
+        """Values of the tangent on (``rows``, ``cols``) at ``u`` (see ``geometric_tangent``)."""
+        act = self._kinematics(u)[1] > 0.0
+        settled = self._last_active is not None and np.array_equal(act, self._last_active)
+        self._last_active = act
+        geometric = self.geometric_tangent is True or (self.geometric_tangent == "auto" and settled)
+        return self._tangent_blocks(u, geometric).ravel()
+
+    def _tangent_blocks(self, u: np.ndarray, geometric: bool) -> np.ndarray:
+        """Element blocks (k, nfn, 3, nfn, 3) of the tangent; ``geometric``: with the curvature term."""
         g, p, n, rho = self._kinematics(u)
         act = p > 0.0
         nn = np.einsum("kqi,kqj->kqij", n, n)
         S = (self.kn * act)[..., None, None] * nn
-        settled = self._last_active is not None and np.array_equal(act, self._last_active)
-        self._last_active = act
-        if self.geometric_tangent is True or (self.geometric_tangent == "auto" and settled):
+        if geometric:
             S = S - (p / rho)[..., None, None] * (np.eye(3) - nn)
-        blk = np.einsum("kq,qa,qb,kqij->kaibj", self.W, self.N, self.N, S)
-        return blk.ravel()
+        return np.einsum("kq,qa,qb,kqij->kaibj", self.W, self.N, self.N, S)
+
+    def centre_coupling(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Derivatives with respect to the centre, from the consistent tangent ``K_c`` at ``u``.
+
+        The energy depends on ``x - c`` only and the shape functions sum to one, so moving the
+        centre by ``dc`` is moving every node by ``-dc``: ``d f_c / d c = -K_c T`` with ``T``
+        (n_dofs, 3) the rigid translations. Returns ``B = K_c T`` (n_dofs, 3) and
+        ``T^T K_c T`` (3, 3) (the contact's stiffness against a rigid translation of the body).
+        """
+        blk = self._tangent_blocks(u, True).sum(axis=3)  # (k, nfn, 3, 3): sum over the column nodes
+        B = np.zeros((self.n_dofs, 3))
+        rows = self.dofs.reshape(len(self.fn), -1)  # (k, 3 nfn) interleaved like blk's (a, i)
+        flat = blk.reshape(len(self.fn), -1, 3)
+        for k in range(3):
+            B[:, k] = np.bincount(rows.ravel(), weights=flat[:, :, k].ravel(), minlength=self.n_dofs)
+        return B, B.reshape(-1, 3, 3).sum(axis=0)
 
     def tangent_matrix(self, u: np.ndarray) -> sp.csr_matrix:
         n = self.n_dofs
@@ -472,3 +494,270 @@ class LiverIndenter:
         mat = material or self.model.material
         return indent(self.system, self.contact, mat, self.start, self.direction, depths, u0=u0,
                       options=options or self.model.options, reactions=self.reactions, **kw)
+
+    def centre_jacobian(self, u, material=None):
+        """``J = dF/dc`` (3 x 3, N/mm): how the force the sphere exerts on the liver changes with the centre,
+        at an equilibrium ``u``, and ``Z = du/dc`` (n_dofs, 3), the linearised response.
+
+        From the consistent tangent ``K`` (body, supports and contact with its curvature term) and the
+        centre coupling ``B = K_c T`` (:meth:`SphereContact.centre_coupling`):
+        ``Z_f = K_ff^-1 B_f`` and ``J = T^T K_c T - B_f^T Z_f``, the Schur complement of the system
+        with the centre as 3 extra unknowns (symmetric, positive semi-definite at a stable state). One
+        factorisation (kept by the system's linear solver for the next Newton) and three back-solves.
+        """
+        return _centre_jacobian(self, np.asarray(u, float), material or self.model.material)
+
+    def push_to_force(self, force_n, material=None, u0=None, options=None, rtol: float = 0.01,
+                      atol: float = 1e-3, max_outer: int = 30, max_move_mm: float | None = None,
+                      max_slide_mm: float | None = None, first_depth_mm: float | None = None) -> "SphereCaseResult":
+        """Force control: the sphere centre at which the force the sphere exerts on the liver is ``force_n``.
+
+        ``force_n`` (N, 3-vector, on the liver). Converged when ``|F - force_n| <= max(rtol |force_n|, atol)``
+        at an equilibrium (inner Newton to ``options.tol``). Never raises on failure: ``converged=False``
+        with the reason and the last equilibrium reached.
+
+        Method: an outer Newton on the centre ``c`` around displacement-controlled equilibria. At an
+        equilibrium ``u(c)`` the exact Jacobian ``dF/dc`` is the Schur complement of the monolithic
+        system (the centre as 3 extra unknowns of the potential ``Pi_body(u) + Pi_c(u, c) - F . c``;
+        :meth:`centre_jacobian`), and ``u + Z dc`` predicts the next state, so each centre update costs
+        one factorisation plus the few Newton iterations that correct the prediction; a failed
+        correction falls back to the stepped path of :func:`indent` (cut-backs). Compared with
+        solving the bordered (u, c) system directly this keeps the displacement-controlled solver's
+        line search, cut-backs and active-set handling unchanged, and the centre never moves into a
+        state the body cannot equilibrate. Far from the target magnitude (ratio outside 0.5-2) the
+        centre moves along ``force_n`` by a power law ``F ~ d^m`` (``m`` from the local slope), which
+        does not overshoot the stiffening force-depth curve as a Newton step would.
+
+        Start: rest (when ``|force_n| <= atol``: the sphere touching, no force), a converged
+        :class:`SphereCaseResult` ``u0`` at this point (its state and centre, re-equilibrated in this
+        material), else a push of ``first_depth_mm`` (default the radius, at most 2 mm) along ``force_n`` from
+        first touch.
+
+        A frictionless sphere transmits only pressure normal to its surface: a force inclined to the
+        surface normal is held only where the dent's wall (or the liver's curvature) leans the
+        contact that way. If holding it needs the centre more than ``max_slide_mm`` (default the
+        radius) off the normal line through the exertion point, the case fails with that reason
+        rather than move the load elsewhere. ``max_move_mm`` caps a centre update (default R).
+        """
+        return _push_to_force(self, force_n, material, u0, options, rtol, atol, max_outer, max_move_mm,
+                              max_slide_mm, first_depth_mm)
+
+
+# ----------------------------------------------------------------------
+# force control: the sphere position that exerts a prescribed force
+# ----------------------------------------------------------------------
+
+
+@dataclass
+class SphereCaseResult(CaseResult):
+    """A :class:`~liverforce.fem.problem.CaseResult` of a force-controlled sphere
+    (:meth:`LiverIndenter.push_to_force`); the common fields mean what they mean for the traction.
+
+    ``newton_iterations`` / ``load_steps`` / ``factorizations`` count every inner solve (and the
+    Jacobian factorisations); ``final_residual`` is the last inner Newton residual (relative);
+    ``load_fraction`` is the share of the target force reached along its direction.
+    ``reactions`` : per support region as :meth:`LiverIndenter.reactions`, plus "tool" (= "indenter").
+
+    Extra attributes
+    ----------------
+    centre : sphere centre (mm) at the returned state.
+    force_on_liver : force (N) the sphere exerts on the liver there (the label of a converged case).
+    target_force : the prescribed force (N).
+    force_error_n : ``|force_on_liver - target_force|`` (N).
+    outer_iterations : centre updates (Jacobian evaluations).
+    slide_mm : distance of the centre from the normal line through the exertion point (mm).
+    contact : :meth:`SphereContact.summary` at the returned state (without the force).
+    """
+
+    centre: np.ndarray | None = None
+    force_on_liver: np.ndarray | None = None
+    target_force: np.ndarray | None = None
+    force_error_n: float = float("nan")
+    outer_iterations: int = 0
+    slide_mm: float = float("nan")
+    contact: dict = field(default_factory=dict)
+
+
+def _push_to_force(ind: "LiverIndenter", force_n, material, u0, options, rtol, atol, max_outer, max_move_mm,
+                   max_slide_mm, first_depth_mm) -> SphereCaseResult:
+    from dataclasses import replace
+
+    from .kinematics import principal_stretch_range
+    from .problem import ToolLoad
+
+    mat = material or ind.model.material
+    opt = options or ind.model.options
+    system, contact = ind.system, ind.contact
+    t0 = time.perf_counter()
+    n = system.disc.n_dofs
+    R = ind.radius
+    F_t = np.asarray(force_n, float).reshape(3)
+    F_mag = float(np.linalg.norm(F_t))
+    tol_f = max(rtol * F_mag, atol)
+    max_move = float(max_move_mm) if max_move_mm else R
+    max_slide = float(max_slide_mm) if max_slide_mm is not None else R
+    nrm = ind.normal
+    stats = {"iters": 0, "steps": 0, "factorizations": 0, "history": [], "last_res": np.nan}
+    zero = np.zeros(n)
+    ub = np.zeros(system.fixed.size)
+    contact.multipliers = np.zeros_like(contact.W)
+    outer = 0
+
+    def remaining():
+        return replace(opt, time_limit_s=max(opt.time_limit_s - (time.perf_counter() - t0), 1e-3))
+
+    def slide_of(c):
+        r = np.asarray(c, float) - ind.point
+        return float(np.linalg.norm(r - (r @ nrm) * nrm))
+
+    def finish(u, ok, reason):
+        u = np.asarray(u, float)
+        F = -contact.force_on_sphere(u)
+        ev = system.assembler.evaluate(u, mat, tangent=False)
+        f_int = ev.f_int if ev.valid else np.full(n, np.nan)
+        reac = ind.reactions(u, f_int)
+        reac["tool"] = reac["indenter"]
+        lam_min, lam_max = principal_stretch_range(system.disc, u)
+        summ = contact.summary(u)
+        summ.pop("force_on_sphere")
+        frac = float(np.clip(F @ F_t / F_mag**2, 0.0, 1.0)) if F_mag > 0 else 1.0
+        return SphereCaseResult(
+            u_nodes=u.reshape(-1, 3)[: ind.model.n_vertices].copy(), converged=ok, reason=reason,
+            load_fraction=1.0 if ok else frac, load_steps=stats["steps"], newton_iterations=stats["iters"],
+            final_residual=float(stats["last_res"]) if np.isfinite(stats["last_res"]) else 0.0,
+            wall_time_s=time.perf_counter() - t0, linear_solver=system.linear.backend or "none", reactions=reac,
+            state=u.copy(), load=ToolLoad(ind.point, F_t, R), formulation=opt.formulation, n_dofs=n,
+            factorizations=stats["factorizations"], history=stats["history"], min_principal_stretch=lam_min,
+            max_principal_stretch=lam_max, centre=contact.centre.copy(), force_on_liver=F, target_force=F_t.copy(),
+            force_error_n=float(np.linalg.norm(F - F_t)), outer_iterations=outer, slide_mm=slide_of(contact.centre),
+            contact=summ)
+
+    def move(u, c_from, c_to, u_pred):
+        """Equilibrium with the centre at ``c_to`` from the equilibrium ``u`` at ``c_from``: Newton from the
+        linear prediction ``u_pred``, else a stepped path (cut-backs) from ``u``. Returns (u, None) or (None, why)."""
+        contact.set_centre(c_to)
+        stats["steps"] += 1
+        try:
+            u_new, its, _ = system._newton(mat, zero, u_pred, u, ub, remaining(), stats, t0, 1.0)
+            stats["history"].append(("centre", c_to.tolist(), True, its))
+            return u_new, None
+        except _StepFailure as exc:
+            stats["history"].append(("centre", c_to.tolist(), False, str(exc)))
+            if str(exc).startswith(("time limit", "max_total_iter")):
+                contact.set_centre(c_from)
+                return None, str(exc)
+            why = str(exc)
+        d = np.asarray(c_to, float) - c_from
+        L = float(np.linalg.norm(d))
+        contact.set_centre(c_from)
+        if L == 0.0:
+            return None, why
+        path = indent(system, contact, mat, c_from, d, [L], u0=u, options=remaining(), max_increment=min(L, 0.2 * R))
+        stats["iters"] += path.newton_iterations
+        stats["steps"] += path.load_steps
+        if not path.converged:
+            contact.set_centre(c_from)
+            return None, path.reason
+        return path.results[0].u, None
+
+    # ---- the start: rest (|F| within tolerance), a warm start, or a first push along F
+    contact.set_centre(ind.start)
+    if F_mag <= atol:
+        return finish(zero, True, "converged")
+    u, c = None, None
+    if isinstance(u0, SphereCaseResult) and u0.converged and u0.centre is not None and u0.state is not None:
+        u_w, c_w = np.asarray(u0.state, float), np.asarray(u0.centre, float)
+        u, why = move(u_w, c_w, c_w, u_w)  # the neighbour's state at its centre, in this material
+        c = c_w if u is not None else None
+    if u is None:
+        d0 = float(first_depth_mm) if first_depth_mm else min(R, 2.0)
+        path = indent(system, contact, mat, ind.start, F_t, [d0], options=remaining(), max_increment=0.2 * R)
+        stats["iters"] += path.newton_iterations
+        stats["steps"] += path.load_steps
+        if not path.converged:
+            contact.set_centre(ind.start)
+            return finish(zero, False, f"sphere: first push of {d0:g} mm failed: {path.reason}")
+        u, c = path.results[0].u, path.results[0].centre.copy()
+    contact.set_centre(c)
+
+    clipped = 0
+    while True:
+        F = -contact.force_on_sphere(u)
+        err = F_t - F
+        if np.linalg.norm(err) <= tol_f:
+            return finish(u, True, "converged")
+        if outer >= max_outer:
+            return finish(u, False, f"sphere: force not reached in {max_outer} centre updates "
+                                    f"(|F - F_target| = {np.linalg.norm(err):.3g} N > {tol_f:.3g} N)")
+        s = contact.summary(u)
+        if s["active_on_rim"]:
+            return finish(u, False, "sphere: the contact reached the border of the candidate surface around the "
+                                    "exertion point (the sphere slid or sank too far)")
+        outer += 1
+        if s["active_points"] == 0:  # out of contact: push along the force again
+            dc, Z = min(0.25 * R, 1.0) * F_t / F_mag, np.zeros((n, 3))
+        else:
+            try:
+                J, Z = ind.centre_jacobian(u, mat)
+            except (RuntimeError, ValueError) as exc:
+                return finish(u, False, f"sphere: centre Jacobian failed: {exc}")
+            stats["factorizations"] += 1
+            F_r = float(F @ F_t) / F_mag
+            depth = float((c - ind.start) @ F_t) / F_mag
+            k_r = float(F_t @ J @ F_t) / F_mag**2
+            if F_r > 0 and depth > 0 and k_r > 0 and not 0.5 < F_mag / F_r < 2.0:
+                # far from the target magnitude: a power law F ~ d^m along F (m from the local slope)
+                # does not overshoot the stiffening force-depth curve as a Newton step does
+                m = float(np.clip(k_r * depth / F_r, 1.0, 3.0))
+                dc = (depth * (F_mag / F_r) ** (1.0 / m) - depth) * F_t / F_mag
+            else:
+                try:
+                    dc = np.linalg.solve(J, err)
+                except np.linalg.LinAlgError:
+                    dc = np.linalg.lstsq(J, err, rcond=1e-8)[0]
+        L = float(np.linalg.norm(dc))
+        if L > max_move:
+            dc *= max_move / L
+        c_new = c + dc
+        r = c_new - ind.point
+        tang = r - (r @ nrm) * nrm
+        if np.linalg.norm(tang) > max_slide:  # keep the sphere within max_slide of the exertion point
+            c_new = c_new - tang * (1.0 - max_slide / np.linalg.norm(tang))
+            clipped += 1
+            if clipped >= 3:
+                ang = np.degrees(np.arccos(np.clip(-F_t @ nrm / F_mag, -1.0, 1.0)))
+                ang_r = np.degrees(np.arccos(np.clip(-F @ nrm / max(np.linalg.norm(F), 1e-300), -1.0, 1.0)))
+                return finish(u, False, (
+                    f"sphere: the frictionless sphere cannot hold this force: {F_mag:.3g} N at {ang:.1f} deg from "
+                    f"the inward normal needs the sphere to slide more than {max_slide:g} mm (tool_max_slide_mm) "
+                    f"from the exertion point; reached {np.linalg.norm(F):.3g} N at {ang_r:.1f} deg "
+                    f"(|F - F_target| = {np.linalg.norm(err):.3g} N)"))
+        else:
+            clipped = 0
+        dc = c_new - c
+        u_pred = u + Z @ dc
+        u_new, why = move(u, c, c_new, u_pred)
+        if u_new is None:
+            return finish(u, False, f"sphere: equilibrium at the next centre failed: {why}")
+        u, c = u_new, c_new
+
+
+def _centre_jacobian(ind: "LiverIndenter", u, material):
+    system, contact = ind.system, ind.contact
+    ev = system.assembler.evaluate(u, material, tangent=True)
+    if not ev.valid:
+        raise ValueError("inverted element at the state")
+    saved = (contact.geometric_tangent, contact._last_active)
+    contact.geometric_tangent = True
+    try:
+        K = system.tangent_matrix(ev.data, u)
+    finally:
+        contact.geometric_tangent, contact._last_active = saved
+    system.linear.factorize(K, shift=False)
+    B, Kt = contact.centre_coupling(u)
+    free = system.free
+    Z = np.zeros((system.disc.n_dofs, 3))
+    for k in range(3):
+        Z[free, k] = system.linear.solve(B[free, k])
+    J = Kt - B[free].T @ Z[free]
+    return 0.5 * (J + J.T), Z

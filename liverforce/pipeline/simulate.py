@@ -124,7 +124,11 @@ def simulate_cases(cases: list[dict], meshes: dict, sim: dict, boundary: dict, d
     from the nearest of the last 8 converged solutions of its geometry
     (``sim["warm_start"]``; rest when rest is nearer). When a geometry's model
     is built, the pre-operative stiffness probe runs at each of its exertion
-    points in ``cases`` (:func:`probe_compliances`). A case that fails (no
+    points in ``cases`` (:func:`probe_compliances`). ``sim["tool_model"]``: "traction" (the
+    Gaussian traction of width ``tool_radius_mm``, :meth:`LiverModel.solve`) or "sphere" (a rigid
+    frictionless sphere of radius ``tool_tip_radius_mm`` whose position is found so that it exerts
+    the case's force, :func:`_solve_sphere`; the row's ``force_n`` is then the force the sphere
+    actually exerts on the liver). A case that fails (no
     convergence, time limit, solver error) becomes a row with ``converged =
     False`` and its reason; it never stops the loop. This is the loop the
     simulate rule runs and ``benchmarks/bench_fem.py`` measures.
@@ -136,6 +140,12 @@ def simulate_cases(cases: list[dict], meshes: dict, sim: dict, boundary: dict, d
     from liverforce.mesh.features import compute_features
 
     options = solver_options(sim)
+    tool_model = sim.get("tool_model", "traction")  # a slice from before the key existed meant the traction
+    if tool_model not in TOOL_MODELS:
+        raise ValueError(f"simulate.tool_model: unknown '{tool_model}', choose one of {', '.join(TOOL_MODELS)}")
+    if tool_model == "sphere" and (boundary.get("gravity") or {}).get("enabled"):
+        raise ValueError("simulate.tool_model=sphere does not support boundary.gravity.enabled=true yet")
+    indenters: dict[tuple, object] = {}  # (geometry id, exertion point) -> LiverIndenter
     rows: list[dict] = []
     models: dict[str, tuple] = {}
     pools: dict[str, WarmStartPool] = {}  # recent converged solutions per geometry, for warm starts
@@ -161,7 +171,10 @@ def simulate_cases(cases: list[dict], meshes: dict, sim: dict, boundary: dict, d
         start = pools[gid].nearest(load, case["material_params_mpa"]) if sim["warm_start"] else None
         t0 = time.perf_counter()
         try:
-            res = fe.solve(load, material=material, u0=start)
+            if tool_model == "sphere":
+                res = _solve_sphere(indenters, gid, fe, case, material, start, sim)
+            else:
+                res = fe.solve(load, material=material, u0=start)
             error = None
         except Exception as exc:  # a solver crash is recorded as a failed case, never fatal to the shard
             res, error = None, f"{type(exc).__name__}: {exc}"
@@ -169,6 +182,10 @@ def simulate_cases(cases: list[dict], meshes: dict, sim: dict, boundary: dict, d
         wall = time.perf_counter() - t0
         rows.append(_case_row(case, res, error, wall, mesh, feats, surf, dataset, sim["tool_radius_mm"],
                               comp[tuple(case["exertion_point_mm"])]))
+        if tool_model == "sphere" and res is not None and res.force_on_liver is not None:
+            # the label is the force the sphere exerts on the liver (the target within tolerance if converged)
+            rows[-1]["force_n"] = np.asarray(res.force_on_liver, dtype=float)
+            rows[-1]["force_magnitude_n"] = float(np.linalg.norm(res.force_on_liver))
         if res is not None and res.converged:
             pools[gid].add(res, case["material_params_mpa"])
         lam_lo, lam_hi = rows[-1]["min_principal_stretch"], rows[-1]["max_principal_stretch"]
@@ -183,6 +200,40 @@ def simulate_cases(cases: list[dict], meshes: dict, sim: dict, boundary: dict, d
                  case["case_id"], n_done, len(cases), "ok" if rows[-1]["converged"] else f"FAILED ({rows[-1]['reason']})",
                  case["force_magnitude_n"], rows[-1]["max_displacement_mm"], rows[-1]["newton_iterations"], wall, rate)
     return rows
+
+
+#: ``simulate.tool_model``: how the tool acts on the liver
+TOOL_MODELS = ("traction", "sphere")
+
+
+def sphere_settings(sim: dict) -> dict:
+    """The force-controlled sphere's settings from the ``simulate`` slice (``tool_model: sphere``)."""
+    kn = float(sim["tool_penalty_n_per_mm3"])
+    return {"radius_mm": float(sim["tool_tip_radius_mm"]), "kn": kn if kn > 0 else None,
+            "rtol": float(sim["tool_force_rtol"]), "atol": float(sim["tool_force_atol_n"]),
+            "max_slide_mm": float(sim["tool_max_slide_mm"])}
+
+
+def _solve_sphere(indenters: dict, gid, fe, case, material, start, sim):
+    """One force-controlled sphere case (:meth:`liverforce.fem.indenter.LiverIndenter.push_to_force`).
+
+    One indenter per (geometry, exertion point), built on first use (candidate facets, contact
+    system). Warm start: the pool's nearest converged case, used only when it is a sphere case at
+    this exertion point (its state and sphere centre); otherwise the sphere starts from first touch.
+    """
+    from liverforce.fem.indenter import LiverIndenter, SphereCaseResult
+
+    st = sphere_settings(sim)
+    point = np.asarray(case["exertion_point_mm"], dtype=float)
+    key = (gid, tuple(point))
+    if key not in indenters:
+        # candidate facets: the indenter's default reach (4 R + 10 mm) plus the slide allowed
+        indenters[key] = LiverIndenter(fe, point, radius_mm=st["radius_mm"], kn=st["kn"],
+                                       candidate_radius_mm=4.0 * st["radius_mm"] + 10.0 + st["max_slide_mm"])
+    ind = indenters[key]
+    warm = start if (isinstance(start, SphereCaseResult) and np.allclose(start.load.point_mm, point)) else None
+    return ind.push_to_force(np.asarray(case["force_n"], dtype=float), material=material, u0=warm,
+                             options=fe.options, rtol=st["rtol"], atol=st["atol"], max_slide_mm=st["max_slide_mm"])
 
 
 def simulate_shard(cases_path, mesh_paths: list[str], shard: int, sim: dict, boundary: dict, dataset: dict,
@@ -218,7 +269,8 @@ def simulate_shard(cases_path, mesh_paths: list[str], shard: int, sim: dict, bou
     rows = simulate_cases(cases, meshes, sim, boundary, dataset, progress=progress, supports=supports, probe=probe,
                           stretch_range=material["stability_stretch"] if material is not None else None)
     entry = dio.write_shard(rows, shard_path, compression=dataset["compression"],
-                            extra_meta={"simulate": sim, "boundary": boundary, "dataset": dataset, "probe": probe})
+                            extra_meta={"simulate": sim, "boundary": boundary, "dataset": dataset, "probe": probe,
+                                        "tool_model": sim.get("tool_model", "traction")})
     if rows and entry["failed"] == len(rows):
         log.warning("shard %s: every case failed (see the 'reason' column)", shard_path)
     log.info("shard %s: %d rows, %d failed", shard_path, entry["rows"], entry["failed"])
