@@ -50,7 +50,7 @@ import math
 import numpy as np
 
 from liverforce.learn.cloud_features import CloudGridSpec, ReferenceSurface, cloud_grid
-from liverforce.learn.frames import local_rotations
+from liverforce.learn.frames import case_rotations
 from liverforce.seeds import derive
 
 #: per-run (not per-case) entry of a training arrays dict: geometry id -> (surface vertices, triangles)
@@ -134,12 +134,16 @@ def observe_cases(arrays: dict, camera: dict, half_width_mm: float, grid_size: i
 
 
 def features_from_clouds(clouds, tips, arrays: dict, spec: CloudGridSpec,
-                         rows: np.ndarray | None = None) -> np.ndarray:
-    """Feature rows ``(len(rows), 2 g^2 + 3)`` from clouds and tip positions (source frame) of cases ``rows``."""
+                         rows: np.ndarray | None = None, R: np.ndarray | None = None) -> np.ndarray:
+    """Feature rows ``(len(rows), 2 g^2 + 3)`` from clouds and tip positions (source frame) of cases ``rows``.
+
+    ``R``: the local rotations of all cases of ``arrays`` (:func:`liverforce.learn.frames.case_rotations`),
+    when already computed.
+    """
     n = len(arrays["exertion_point_mm"])
     rows = np.arange(n) if rows is None else np.asarray(rows)
     P = np.asarray(arrays["exertion_point_mm"], dtype=np.float64)
-    R = local_rotations(arrays["frame_normal"], arrays["frame_t1"], arrays["frame_t2"])
+    R = case_rotations(arrays) if R is None else R
     ids = arrays.get("case_id")
     tips = np.asarray(tips, dtype=np.float64).reshape(-1, 3)
     if len(clouds) != len(rows) or len(tips) != len(rows):
@@ -151,8 +155,8 @@ def features_from_clouds(clouds, tips, arrays: dict, spec: CloudGridSpec,
         ref = refs.get(key)
         if ref is None:
             label = f"case {ids[i] if ids is not None else i}"
-            ref = refs[key] = ReferenceSurface.build(arrays["roi_undeformed_mm"][i], P[i], arrays["frame_normal"][i],
-                                                     arrays["frame_t1"][i], arrays["frame_t2"][i], spec, label=label)
+            ref = refs[key] = ReferenceSurface.from_rotation(arrays["roi_undeformed_mm"][i], P[i], R[i], spec,
+                                                             label=label)
         cloud = np.asarray(clouds[k], dtype=np.float64).reshape(-1, 3)
         out[k, :-3] = cloud_grid(cloud, ref, spec).features(include_mask=True)
         out[k, -3:] = R[i] @ (tips[k] - P[i])
@@ -160,8 +164,11 @@ def features_from_clouds(clouds, tips, arrays: dict, spec: CloudGridSpec,
 
 
 def camera_features(arrays: dict, camera: dict, grid_size: int, half_width_mm: float,
-                    observation_seed: int | None) -> np.ndarray:
-    """The feature matrix of a ``cloud`` representation (module docstring)."""
+                    observation_seed: int | None, R: np.ndarray | None = None) -> np.ndarray:
+    """The feature matrix of a ``cloud`` representation (module docstring).
+
+    ``R``: the cases' local rotations (:func:`liverforce.learn.frames.case_rotations`), when already computed.
+    """
     spec = grid_spec(grid_size, half_width_mm, camera)
     if FEATURES_KEY in arrays:  # already computed from these arrays' clouds (serving checks them first)
         return np.asarray(arrays[FEATURES_KEY], dtype=np.float64)
@@ -169,7 +176,7 @@ def camera_features(arrays: dict, camera: dict, grid_size: int, half_width_mm: f
         if TIP_KEY not in arrays:
             raise KeyError("a camera-cloud model needs the tool tip position ('tool_tip_mm', from the robot's "
                            "kinematics) with each cloud")
-        return features_from_clouds(arrays[CLOUD_KEY], arrays[TIP_KEY], arrays, spec)
+        return features_from_clouds(arrays[CLOUD_KEY], arrays[TIP_KEY], arrays, spec, R=R)
     if observation_seed is None:
         raise ValueError("a camera-cloud model predicts from camera clouds ('camera_cloud_mm' and 'tool_tip_mm'); "
                          "to observe simulated cases give an observation seed")
@@ -183,7 +190,7 @@ def camera_features(arrays: dict, camera: dict, grid_size: int, half_width_mm: f
     todo = np.array([i for i in range(n) if keys[i] not in _CACHE], dtype=np.int64)
     if todo.size:
         clouds, tips = observe_cases(arrays, camera, half_width_mm, grid_size, int(observation_seed), todo)
-        rows = features_from_clouds(clouds, tips, arrays, spec, todo)
+        rows = features_from_clouds(clouds, tips, arrays, spec, todo, R=R)
         if len(_CACHE) + len(todo) > _CACHE_MAX:
             _CACHE.clear()
         for k, i in enumerate(todo):

@@ -79,7 +79,7 @@ from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 
-from liverforce.learn.frames import local_rotations
+from liverforce.learn.frames import case_rotations, local_rotations
 from liverforce.learn.grid import interpolate_to_grid
 
 FILL_RULES = ("laplace", "zero", "nearest")
@@ -224,8 +224,21 @@ class ReferenceSurface:
         exertion_point_mm, normal, t1, t2 : (3,) the local frame (``frame_normal``, ``frame_t1``, ``frame_t2``)
         spec : CloudGridSpec
         label : str  names the case in error messages
+
+        With the rotation already at hand use :meth:`from_rotation`.
         """
         R = local_rotations(np.asarray(normal)[None], np.asarray(t1)[None], np.asarray(t2)[None])[0]
+        return cls.from_rotation(undeformed_points_mm, exertion_point_mm, R, spec, label=label)
+
+    @classmethod
+    def from_rotation(cls, undeformed_points_mm, exertion_point_mm, R, spec: CloudGridSpec,
+                      label: str = "reference") -> "ReferenceSurface":
+        """As :meth:`build`, from the local rotation ``R`` (3 x 3, rows ``t1, t2, n``) instead of the frame vectors.
+
+        For callers that hold the case's rotation already
+        (:func:`liverforce.learn.frames.case_rotations`, ``Preop.rotation``).
+        """
+        R = np.asarray(R, dtype=np.float64).reshape(3, 3)
         p = np.asarray(exertion_point_mm, dtype=np.float64).reshape(3)
         U = (np.asarray(undeformed_points_mm, dtype=np.float64).reshape(-1, 3) - p) @ R.T
         if len(U) < 3 or not np.isfinite(U).all():
@@ -450,9 +463,9 @@ def references_from_arrays(arrays: dict, spec: CloudGridSpec) -> list[ReferenceS
     ``frame_normal``, ``frame_t1``, ``frame_t2``; ``case_id`` names cases in errors.
     """
     ids = arrays.get("case_id")
+    R = case_rotations(arrays)
     out = []
     for i, U in enumerate(arrays["roi_undeformed_mm"]):
-        out.append(ReferenceSurface.build(
-            U, arrays["exertion_point_mm"][i], arrays["frame_normal"][i], arrays["frame_t1"][i],
-            arrays["frame_t2"][i], spec, label=f"case {ids[i] if ids is not None else i}"))
+        out.append(ReferenceSurface.from_rotation(
+            U, arrays["exertion_point_mm"][i], R[i], spec, label=f"case {ids[i] if ids is not None else i}"))
     return out

@@ -15,6 +15,13 @@ A rigid motion ``x -> Q x + c`` of the whole liver (with its frame, forces and
 point clouds) leaves ``x_loc`` and ``F_loc`` unchanged, which is what makes
 features and targets comparable across exertion points and geometries.
 
+The rotations of a set of cases are computed once, by :func:`case_rotations`,
+and passed as an argument to every step that needs them (features, state
+vector, camera features, targets, the force back in the source frame):
+:mod:`liverforce.learn.model` does this once per ``prepare`` and per
+prediction, the serving context (:class:`liverforce.serve.preop.Preop`) once
+per exertion point (``Preop.rotation``).
+
 Example
 -------
 >>> import numpy as np
@@ -77,6 +84,17 @@ def local_rotations(normal: np.ndarray, t1: np.ndarray, t2: np.ndarray) -> np.nd
     aa /= np.linalg.norm(aa, axis=1, keepdims=True)
     bb = np.cross(nn, aa)
     return np.stack([aa, bb, nn], axis=1)
+
+
+def case_rotations(arrays: dict) -> np.ndarray:
+    """The local rotations ``(n, 3, 3)`` of the cases in an input-contract dict.
+
+    :func:`local_rotations` of ``frame_normal``, ``frame_t1``, ``frame_t2``: the
+    one place a set of cases gets its local frame. Compute it once and pass it
+    on (``R=`` of :meth:`~liverforce.learn.representation.Representation.features_of`,
+    :func:`~liverforce.learn.state.state_vector`, ...).
+    """
+    return local_rotations(arrays["frame_normal"], arrays["frame_t1"], arrays["frame_t2"])
 
 
 def points_to_local(points: np.ndarray, origin: np.ndarray, R: np.ndarray) -> np.ndarray:

@@ -2,9 +2,10 @@
 
 Prediction pipeline for a set of cases (``arrays`` in the input contract)::
 
-    x  = Representation.features_of(arrays)        ROI -> grid features (local frame)
+    R  = case_rotations(arrays)                    local frame, once per case
+    x  = Representation.features_of(arrays, R)     ROI -> grid features (local frame)
     xs = feature_scaler(x);  c = encoder(xs);  cs = code_scaler(c)
-    s  = state_scaler(state_vector(arrays))        (if the state vector is used)
+    s  = state_scaler(state_vector(arrays, R))     (if the state vector is used)
     f  = target_scaler^-1( MLP([cs, s]) )          local force (F.t1, F.t2, F.n), N
     F  = R^T f                                     source-frame force, N
 
@@ -63,7 +64,7 @@ import numpy as np
 import torch
 
 from liverforce.learn.encoders import AutoEncoder, Encoder, PCAEncoder
-from liverforce.learn.frames import force_to_local, force_to_source, local_rotations
+from liverforce.learn.frames import case_rotations, force_to_local, force_to_source
 from liverforce.learn.regressor import (
     FitParams,
     RegressorSpec,
@@ -187,13 +188,15 @@ def prepare(arrays: dict, rep: Representation, *, observation_seeds: list[int]) 
     """Features (one observed view per seed + clean), state vector and local targets of labelled cases.
 
     Use ``view_seeds(seed, n_views_for(rep))`` for training cases and
-    ``[eval_seed(seed)]`` for the test split.
+    ``[eval_seed(seed)]`` for the test split. The local frame is computed once
+    (:func:`~liverforce.learn.frames.case_rotations`) and used by every view,
+    the state vector and the targets.
     """
-    views = [rep.features_of(arrays, observation_seed=s) for s in observation_seeds]
-    x_clean = rep.features_of(arrays, clean=True) if rep.occludes else views[0]
-    R = local_rotations(arrays["frame_normal"], arrays["frame_t1"], arrays["frame_t2"])
+    R = case_rotations(arrays)
+    views = [rep.features_of(arrays, observation_seed=s, R=R) for s in observation_seeds]
+    x_clean = rep.features_of(arrays, clean=True, R=R) if rep.occludes else views[0]
     force = np.asarray(arrays["force_n"], dtype=np.float64)
-    return Prepared(np.stack(views), x_clean, state_vector(rep.state_arrays(arrays)), force_to_local(force, R),
+    return Prepared(np.stack(views), x_clean, state_vector(rep.state_arrays(arrays), R=R), force_to_local(force, R),
                     force, R)
 
 
@@ -352,6 +355,20 @@ def regressor_data(pre: Preprocessor, prep: Prepared, *, all_views: bool = True)
 # --------------------------------------------------------------------------
 
 
+@dataclass(frozen=True)
+class Forward:
+    """What :meth:`ForceModel.forward` computed for a set of cases."""
+
+    R: np.ndarray  # (n, 3, 3) local rotations, rows t1, t2, n
+    force_local: np.ndarray  # (n, 3) N, (F.t1, F.t2, F.n)
+    stiffness: np.ndarray  # (n, 1) force-scaling factor k (ones without force scaling)
+
+    @property
+    def force_source(self) -> np.ndarray:
+        """The force ``(n, 3)`` N in each case's source frame, ``F = R^T f``."""
+        return force_to_source(self.force_local, self.R)
+
+
 class ForceModel:
     """A fitted force estimator (see the module docstring for the pipeline and bundle format)."""
 
@@ -382,16 +399,46 @@ class ForceModel:
             keys = [k for k in keys if k not in ("roi_deformed_mm", "roi_centroid_deformed_mm")]
         return tuple(keys)
 
-    def predict_local(self, arrays: dict, observation_seed: int | None = None) -> np.ndarray:
-        """Force in the local frame ``(n, 3)`` N (``F.t1, F.t2, F.n``)."""
+    def forward(self, arrays: dict, observation_seed: int | None = None, *,
+                rotations: np.ndarray | None = None) -> "Forward":
+        """The one forward path of a set of cases: local frame, features, state, inputs, local force.
+
+        Every prediction (:meth:`predict`, :meth:`predict_local`,
+        :meth:`predict_interval`) goes through here, so the local frame of each
+        case is computed once per call and shared by the features, the state
+        vector and the force back in the source frame.
+
+        Parameters
+        ----------
+        arrays : dict
+            Input-contract arrays (``required_inputs()``).
+        observation_seed : int, optional
+            As in :meth:`predict`.
+        rotations : (n, 3, 3) array, optional
+            The cases' local rotations when the caller already holds them
+            (serving: ``Preop.rotation``; :func:`~liverforce.learn.frames.case_rotations`
+            of the same arrays); computed here otherwise.
+        """
         missing = [k for k in self.required_inputs() if k not in arrays]
         if missing:
             raise KeyError(f"ForceModel.predict needs the inputs {missing}")
-        x = self.representation.features_of(arrays, observation_seed=observation_seed)
-        s = state_vector(self.representation.state_arrays(arrays)) if self.uses_state else None
+        if rotations is None:
+            R = case_rotations(arrays)
+        else:
+            R = np.asarray(rotations, dtype=np.float64)
+            n = len(arrays["exertion_point_mm"])
+            if R.shape != (n, 3, 3):
+                raise ValueError(f"rotations: expected one 3 x 3 rotation per case, shape ({n}, 3, 3); got {R.shape}")
+        x = self.representation.features_of(arrays, observation_seed=observation_seed, R=R)
+        s = state_vector(self.representation.state_arrays(arrays), R=R) if self.uses_state else None
         z = self.pre.inputs(x, s)
-        return self.pre.target_scaler.inverse_transform(predict_regressor(self.regressor, z)) \
-            * self.pre.stiffness(s, len(z))
+        k = self.pre.stiffness(s, len(z))
+        f_local = self.pre.target_scaler.inverse_transform(predict_regressor(self.regressor, z)) * k
+        return Forward(R, f_local, k)
+
+    def predict_local(self, arrays: dict, observation_seed: int | None = None) -> np.ndarray:
+        """Force in the local frame ``(n, 3)`` N (``F.t1, F.t2, F.n``)."""
+        return self.forward(arrays, observation_seed).force_local
 
     @property
     def interval(self):
@@ -401,26 +448,26 @@ class ForceModel:
         d = self.meta.get("interval")
         return None if not d else ConformalInterval.from_dict(d)
 
-    def predict_interval(self, arrays: dict, observation_seed: int | None = None) -> dict:
+    def predict_interval(self, arrays: dict, observation_seed: int | None = None, *,
+                         rotations: np.ndarray | None = None) -> dict:
         """Force with its calibrated interval per local component.
 
         Returns ``force_n`` ``(n, 3)`` (source frame), ``force_local_n`` ``(n, 3)``
         (``F.t1, F.t2, F.n``), ``half_width_local_n`` ``(n, 3)`` (the interval is
         ``force_local_n +- half_width_local_n``), ``coverage`` (nominal) and
         ``frame`` ``(n, 3, 3)`` (rows t1, t2, n). A model without a calibrated
-        interval raises ``ValueError``.
+        interval raises ``ValueError``. ``rotations`` as in :meth:`forward`.
         """
         ci = self.interval
         if ci is None:
             raise ValueError("this model has no calibrated interval (trained without train.interval)")
-        f_local = self.predict_local(arrays, observation_seed)
-        s = state_vector(self.representation.state_arrays(arrays)) if self.uses_state else None
-        half = ci.half_widths(self.pre.stiffness(s, len(f_local)))
-        R = local_rotations(arrays["frame_normal"], arrays["frame_t1"], arrays["frame_t2"])
-        return {"force_n": force_to_source(f_local, R), "force_local_n": f_local, "half_width_local_n": half,
-                "coverage": ci.coverage, "frame": R}
+        fw = self.forward(arrays, observation_seed, rotations=rotations)
+        half = ci.half_widths(fw.stiffness)
+        return {"force_n": fw.force_source, "force_local_n": fw.force_local, "half_width_local_n": half,
+                "coverage": ci.coverage, "frame": fw.R}
 
-    def predict(self, arrays: dict, observation_seed: int | None = None) -> np.ndarray:
+    def predict(self, arrays: dict, observation_seed: int | None = None, *,
+                rotations: np.ndarray | None = None) -> np.ndarray:
         """Tool force ``(n, 3)`` in N, in each case's source frame.
 
         Parameters
@@ -432,9 +479,10 @@ class ForceModel:
             mode, point noise) with this seed, to evaluate on simulated data as
             the model was trained. ``None`` for real observations (already
             noisy); deterministic ``remove`` occlusion always applies.
+        rotations : (n, 3, 3) array, optional
+            The cases' local rotations, if the caller holds them already (:meth:`forward`).
         """
-        R = local_rotations(arrays["frame_normal"], arrays["frame_t1"], arrays["frame_t2"])
-        return force_to_source(self.predict_local(arrays, observation_seed), R)
+        return self.forward(arrays, observation_seed, rotations=rotations).force_source
 
     # ------------------------------------------------------------------
     def save(self, path: str | Path) -> Path:

@@ -82,7 +82,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from liverforce.learn import names
-from liverforce.learn.frames import local_rotations, points_to_local
+from liverforce.learn.frames import case_rotations, points_to_local
 from liverforce.learn.grid import interpolate_to_grid
 from liverforce.seeds import derive
 
@@ -211,6 +211,7 @@ class Representation:
         *,
         observation_seed: int | None = None,
         clean: bool = False,
+        R: np.ndarray | None = None,
     ) -> np.ndarray:
         """Feature matrix ``(n, n_features)`` float64 for the cases in ``arrays``.
 
@@ -227,13 +228,17 @@ class Representation:
         clean : bool
             Ignore the observation model entirely (no occlusion, no noise):
             the denoising autoencoder's target.
+        R : (n, 3, 3) array, optional
+            The cases' local rotations, when already computed
+            (:func:`liverforce.learn.frames.case_rotations` of the same
+            arrays); computed here otherwise.
         """
         if self.is_camera:
             from liverforce.learn import camera
 
             return camera.camera_features(arrays, self.camera, self.grid_size, self.half_width_mm,
-                                          None if clean else observation_seed)
-        R = local_rotations(arrays["frame_normal"], arrays["frame_t1"], arrays["frame_t2"])
+                                          None if clean else observation_seed, R=R)
+        R = case_rotations(arrays) if R is None else R
         P = np.asarray(arrays["exertion_point_mm"], dtype=np.float64)
         und, dfm = arrays["roi_undeformed_mm"], arrays["roi_deformed_mm"]
         n = len(P)
@@ -293,13 +298,14 @@ class Representation:
         return np.concatenate([p.T.ravel() for p in parts])
 
 
-def roi_half_extent(arrays: dict) -> np.ndarray:
+def roi_half_extent(arrays: dict, R: np.ndarray | None = None) -> np.ndarray:
     """Per case, half-width (mm) of the largest centred square inside the ROI's tangent bounding box.
 
     ``min(max u, -min u, max v, -min v)`` of the undeformed local tangent
-    coordinates; invariant to rigid motion and node order.
+    coordinates; invariant to rigid motion and node order. ``R``: the cases'
+    rotations if already computed (:func:`liverforce.learn.frames.case_rotations`).
     """
-    R = local_rotations(arrays["frame_normal"], arrays["frame_t1"], arrays["frame_t2"])
+    R = case_rotations(arrays) if R is None else R
     P = np.asarray(arrays["exertion_point_mm"], dtype=np.float64)
     out = np.empty(len(P))
     for i, pts in enumerate(arrays["roi_undeformed_mm"]):

@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from liverforce.learn.frames import local_rotations, offsets_to_local
+from liverforce.learn.frames import case_rotations, offsets_to_local
 
 STATE_INPUTS = (
     "exertion_point_mm",
@@ -73,13 +73,17 @@ def compliance_matrices(state: np.ndarray) -> np.ndarray:
     return out
 
 
-def state_vector(arrays: dict) -> np.ndarray:
+def state_vector(arrays: dict, R: np.ndarray | None = None) -> np.ndarray:
     """State vectors ``(n, 22 + p)`` float64 of the cases in ``arrays`` (module table).
 
     Parameters
     ----------
     arrays : dict
         The input-contract arrays; uses the keys in ``STATE_INPUTS``.
+    R : (n, 3, 3) array, optional
+        The cases' local rotations, when already computed
+        (:func:`liverforce.learn.frames.case_rotations` of the same arrays);
+        computed here otherwise.
 
     Returns
     -------
@@ -89,7 +93,7 @@ def state_vector(arrays: dict) -> np.ndarray:
     missing = [k for k in STATE_INPUTS if k not in arrays]
     if missing:
         raise KeyError(f"state vector needs the columns {missing}; they are missing from the input arrays")
-    R = local_rotations(arrays["frame_normal"], arrays["frame_t1"], arrays["frame_t2"])
+    R = case_rotations(arrays) if R is None else R
     p = np.asarray(arrays["exertion_point_mm"], dtype=np.float64)
     n = len(p)
     inertia = np.asarray(arrays["inertia_mm5"], dtype=np.float64).reshape(n, 3, 3)

@@ -216,8 +216,13 @@ def check_displacement(disp_max_mm: float, scale: TrainingScale, limits: Limits,
 
 
 def check_case(arrays: dict, i: int, model, scale: TrainingScale, limits: Limits, *, label: str | None = None,
-               correspondence: bool = True) -> None:
-    """Check row ``i`` of input-contract ``arrays`` (module table); raise :class:`PredictionInputError`."""
+               correspondence: bool = True, rotation: np.ndarray | None = None) -> np.ndarray:
+    """Check row ``i`` of input-contract ``arrays`` (module table); raise :class:`PredictionInputError`.
+
+    ``rotation``: the row's local rotation (3 x 3) when the caller holds it already
+    (``Preop.rotation``, which checked the frame); computed from the row's frame
+    otherwise. Returns the rotation, for the prediction that follows the check.
+    """
     if label is None:
         ids = arrays.get("case_id")
         many = len(arrays["exertion_point_mm"]) > 1
@@ -236,10 +241,13 @@ def check_case(arrays: dict, i: int, model, scale: TrainingScale, limits: Limits
             f"{label}roi_undeformed_mm has {len(U)} nodes but roi_deformed_mm has {len(D)}: in correspondence mode "
             "they list the same nodes in the same order (for an unordered camera cloud use Predictor.predict_cloud)"
         )
-    try:
-        R = local_rotations(*(f[None] for f in frame))[0]
-    except ValueError as exc:
-        raise PredictionInputError(f"{label}{exc}") from None
+    if rotation is not None:
+        R = np.asarray(rotation, dtype=np.float64).reshape(3, 3)
+    else:
+        try:
+            R = local_rotations(*(f[None] for f in frame))[0]
+        except ValueError as exc:
+            raise PredictionInputError(f"{label}{exc}") from None
     U_loc = (U - p) @ R.T
     check_roi(U_loc, scale, limits, label)
     if correspondence:
@@ -262,6 +270,7 @@ def check_case(arrays: dict, i: int, model, scale: TrainingScale, limits: Limits
         check_material(mat, scale, limits, label)
         check_thickness(arrays, i, scale, limits, label)
         check_compliance(arrays, i, scale, limits, label)
+    return R
 
 
 def check_compliance(arrays: dict, i: int, scale: TrainingScale, limits: Limits, label: str) -> None:

@@ -61,7 +61,6 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from liverforce.learn.frames import local_rotations
 from liverforce.learn.representation import interpolate_to_grid
 from liverforce.serve.checks import Limits, TrainingScale
 from liverforce.serve.errors import PredictionInputError
@@ -149,7 +148,7 @@ def cloud_to_arrays(model, cloud_mm, preop: Preop, *, approximate: bool, scale: 
         )
     O = _points("cloud", cloud_mm, min_points=1)
     p = preop.exertion_point_mm
-    R = local_rotations(preop.frame[2][None], preop.frame[0][None], preop.frame[1][None])[0]
+    R = preop.rotation
     U = preop.roi_undeformed_mm
     U_loc = (U - p) @ R.T
     O_loc = (O - p) @ R.T
@@ -200,7 +199,7 @@ def _camera_arrays(model, cloud_mm, preop: Preop, tool_tip_mm, limits: Limits) -
     O = _points("cloud", cloud_mm, min_points=1)
     rep = model.representation
     p = preop.exertion_point_mm
-    R = local_rotations(preop.frame[2][None], preop.frame[0][None], preop.frame[1][None])[0]
+    R = preop.rotation
     O_loc = (O - p) @ R.T
     reach = rep.half_width_mm * (1.0 + 2.0 / (rep.grid_size - 1))
     n_used = int((np.abs(O_loc[:, :2]) <= reach).all(axis=1).sum())

@@ -40,7 +40,6 @@ import numpy as np
 from torch import nn
 
 from liverforce.learn.encoders import PCAEncoder
-from liverforce.learn.frames import local_rotations
 from liverforce.learn.representation import interpolate_to_grid
 from liverforce.learn.state import MATERIAL_START, compliance_matrices, state_vector
 from liverforce.serve.checks import Limits, TrainingScale, check_displacement, check_material
@@ -111,7 +110,7 @@ class CompiledROI:
         self.scale = scale or TrainingScale.of(model)
         self.preop = preop
         p = preop.exertion_point_mm
-        R = local_rotations(preop.frame[2][None], preop.frame[0][None], preop.frame[1][None])[0]
+        R = preop.rotation
         self.R = R
         U = preop.roi_undeformed_mm
         k = len(U)
@@ -160,7 +159,7 @@ class CompiledROI:
         self.uses_state = model.uses_state
         if self.uses_state:
             ss = pre.state_scaler
-            s_state = state_vector(preop.to_arrays(U))  # deformed centroid = undeformed here; replaced below
+            s_state = state_vector(preop.to_arrays(U), R=R[None])  # deformed centroid = undeformed here; replaced below
             self._stiff = float(pre.stiffness(s_state, 1)[0, 0])  # force scaling by the material's stiffness
             s_ref = pre.state_features(s_state, np.zeros((1, 3 * g2)))[0]  # features at rest: no displacement
             self._s_mean, self._s_scale = ss.mean, ss.scale

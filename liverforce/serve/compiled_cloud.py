@@ -25,7 +25,6 @@ import numpy as np
 from liverforce.learn import camera
 from liverforce.learn.cloud_features import ReferenceSurface, cloud_grid
 from liverforce.learn.encoders import PCAEncoder
-from liverforce.learn.frames import local_rotations
 from liverforce.learn.state import compliance_matrices, state_vector
 from liverforce.serve.checks import Limits
 from liverforce.serve.cloud import camera_checks
@@ -48,10 +47,10 @@ class CompiledCloud:
                                        "the PCA encoder; use Predictor.predict_cloud")
         self.model, self.limits = model, limits or Limits()
         self.p = np.asarray(preop.exertion_point_mm, dtype=np.float64)
-        self.R = local_rotations(preop.frame[2][None], preop.frame[0][None], preop.frame[1][None])[0]
+        self.R = preop.rotation
         self.spec = camera.grid_spec(rep.grid_size, rep.half_width_mm, rep.camera)
-        self.ref = ReferenceSurface.build(preop.roi_undeformed_mm, self.p, preop.frame[2], preop.frame[0],
-                                          preop.frame[1], self.spec, label="compiled cloud")
+        self.ref = ReferenceSurface.from_rotation(preop.roi_undeformed_mm, self.p, self.R, self.spec,
+                                                  label="compiled cloud")
         self.reach = rep.half_width_mm * (1.0 + 2.0 / (rep.grid_size - 1))
         pre = model.pre
         fs, enc, cs = pre.feature_scaler, pre.encoder, pre.code_scaler
@@ -63,7 +62,7 @@ class CompiledCloud:
         self.k = 1.0
         if self.uses_state:
             arrays = rep.state_arrays(preop.to_arrays(preop.roi_undeformed_mm))
-            s = state_vector(arrays)
+            s = state_vector(arrays, R=self.R[None])
             self.k = float(pre.stiffness(s, 1)[0, 0])
             ss = pre.state_scaler
             base = pre.base_state_features(s)[0]

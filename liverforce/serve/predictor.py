@@ -141,7 +141,8 @@ class Predictor:
     def check_preop(self, preop: Preop) -> None:
         """Refuse a context the model cannot use (missing state inputs, units, point off the surface)."""
         self._check_state_inputs(preop)
-        check_case(preop.to_arrays(preop.roi_undeformed_mm), 0, self.model, self.scale, self.limits, label="")
+        check_case(preop.to_arrays(preop.roi_undeformed_mm), 0, self.model, self.scale, self.limits, label="",
+                   rotation=preop.rotation)
 
     def _check_state_inputs(self, preop: Preop) -> None:
         if self.model.uses_state:
@@ -167,12 +168,12 @@ class Predictor:
             )
         self._check_state_inputs(preop)
         arrays = preop.to_arrays(D)
-        check_case(arrays, 0, self.model, self.scale, self.limits, label="")
+        check_case(arrays, 0, self.model, self.scale, self.limits, label="", rotation=preop.rotation)
         return arrays
 
     def predict(self, deformed_roi_mm, preop: Preop) -> np.ndarray:
         """(a) Force ``(3,)`` N from the deformed ROI nodes ``(k, 3)`` mm (order of ``preop.roi_undeformed_mm``)."""
-        return self.model.predict(self._checked_arrays(deformed_roi_mm, preop))[0]
+        return self.model.predict(self._checked_arrays(deformed_roi_mm, preop), rotations=preop.rotation[None])[0]
 
     def interval(self, deformed_roi_mm, preop: Preop) -> dict | None:
         """The force of :meth:`predict` with its calibrated interval (None for a model without one).
@@ -185,7 +186,7 @@ class Predictor:
         """
         if self.model.interval is None:
             return None
-        return interval_doc(self.model, self._checked_arrays(deformed_roi_mm, preop))
+        return interval_doc(self.model, self._checked_arrays(deformed_roi_mm, preop), rotations=preop.rotation[None])
 
     def predict_cloud(self, cloud_mm, preop: Preop, *, approximate: bool = False, tool_tip_mm=None,
                       return_info: bool = False) -> np.ndarray | tuple[np.ndarray, dict]:
@@ -201,15 +202,16 @@ class Predictor:
         self.check_preop(preop)
         arrays, info = cloud_to_arrays(self.model, cloud_mm, preop, approximate=approximate, scale=self.scale,
                                        limits=self.limits, tool_tip_mm=tool_tip_mm)
+        R = preop.rotation[None]
         if info["mode"] == "approximate" and self.model.representation.features != "deformed":
-            check_case(arrays, 0, self.model, self.scale, self.limits, label="")
+            check_case(arrays, 0, self.model, self.scale, self.limits, label="", rotation=preop.rotation)
         if self.model.representation.is_camera:
-            x = self.model.representation.features_of(arrays)
+            x = self.model.representation.features_of(arrays, R=R)
             info["warnings"] = camera_checks(self.model, x[0], self.limits)
             arrays["camera_features"] = x  # computed once: the model reads them instead of the cloud
-        force = self.model.predict(arrays)[0]
+        force = self.model.predict(arrays, rotations=R)[0]
         if return_info and self.model.interval is not None:
-            info["interval"] = interval_doc(self.model, arrays)
+            info["interval"] = interval_doc(self.model, arrays, rotations=R)
         return (force, info) if return_info else force
 
     @property
@@ -255,13 +257,13 @@ class Predictor:
             raise PredictionInputError(f"inputs disagree on the number of cases ({n} exertion points): {bad}")
         if n == 0:
             return np.zeros((0, 3))
-        for i in range(n):
-            check_case(arrays, i, self.model, self.scale, self.limits)
+        # each row's frame is checked (and its rotation computed) once, here; the model reuses the rotations
+        R = np.stack([check_case(arrays, i, self.model, self.scale, self.limits) for i in range(n)])
         rep = self.model.representation
         if rep.is_camera and "camera_cloud_mm" in arrays:  # observed clouds: features once, each row checked
             from liverforce.learn.camera import FEATURES_KEY
 
-            x = rep.features_of(arrays)
+            x = rep.features_of(arrays, R=R)
             for i in range(n):
                 try:
                     camera_checks(self.model, x[i], self.limits)
@@ -272,7 +274,7 @@ class Predictor:
             arrays = {**arrays, FEATURES_KEY: x}
         can_fast = fast and rep.features == "displacement" and not (observation_seed is not None and rep.stochastic)
         if not can_fast:
-            return self.model.predict(arrays, observation_seed=observation_seed)
+            return self.model.predict(arrays, observation_seed=observation_seed, rotations=R)
         from liverforce.learn.model import subset
 
         groups: dict[bytes, list[int]] = {}
@@ -294,7 +296,7 @@ class Predictor:
             out[rows] = comp.predict_batch(D, **kw)
         if slow:
             slow = np.array(sorted(slow))
-            out[slow] = self.model.predict(subset(arrays, slow), observation_seed=observation_seed)
+            out[slow] = self.model.predict(subset(arrays, slow), observation_seed=observation_seed, rotations=R[slow])
         return out
 
     # ------------------------------------------------------------------ info
@@ -330,9 +332,10 @@ def _context_key(arrays: dict, i: int) -> bytes:
     return h.digest()
 
 
-def interval_doc(model, arrays: dict) -> dict:
-    """JSON-ready interval of the first row of ``arrays`` (:meth:`Predictor.interval`)."""
-    got = model.predict_interval(arrays)
+def interval_doc(model, arrays: dict, *, rotations: np.ndarray | None = None) -> dict:
+    """JSON-ready interval of the first row of ``arrays`` (:meth:`Predictor.interval`); ``rotations`` as in
+    :meth:`~liverforce.learn.model.ForceModel.forward`."""
+    got = model.predict_interval(arrays, rotations=rotations)
     f, h = got["force_local_n"][0], got["half_width_local_n"][0]
 
     def fl(v):

@@ -26,6 +26,12 @@ field                       shape      meaning
                                        from (``deformed_surface[roi_point_ids]``)
 ==========================  =========  =============================================
 
+:attr:`Preop.rotation` is the local rotation of ``frame``
+(:func:`liverforce.learn.frames.local_rotations`, re-orthonormalised), computed
+once per context and used by every serving step (input checks, cloud cropping,
+the compiled paths, the model's features and state vector), exactly as
+training computes it from the same frame.
+
 :meth:`Preop.from_surface` computes everything from the undeformed liver
 surface exactly as the data factory does (:mod:`liverforce.dataset.roi` and
 :mod:`liverforce.pipeline.simulate`): frame by :func:`~liverforce.dataset.roi.local_frame`
@@ -38,9 +44,11 @@ values when the surface is the tet mesh's boundary).
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 
 import numpy as np
 
+from liverforce.learn.frames import local_rotations
 from liverforce.serve.errors import PredictionInputError
 
 #: data-factory defaults (config ``dataset.roi_fraction``, ``simulate.tool_radius_mm``)
@@ -157,6 +165,21 @@ class Preop:
                     f"probe_compliance_mm_per_n: must be positive definite (mm/N), got eigenvalues "
                     f"{np.round(np.linalg.eigvalsh(C), 6).tolist()}")
             object.__setattr__(self, "probe_compliance_mm_per_n", C)
+
+    @cached_property
+    def rotation(self) -> np.ndarray:
+        """The local rotation ``R`` (3 x 3, rows ``t1, t2, n``) of ``frame``, computed once per context.
+
+        The same :func:`~liverforce.learn.frames.local_rotations` training applies to
+        ``frame_normal``, ``frame_t1``, ``frame_t2`` (bit for bit). Computed on
+        first use, so a context with a non-orthonormal frame can be built and is
+        refused (:class:`PredictionInputError`) when checked or used.
+        """
+        f = self.frame
+        try:
+            return local_rotations(f[2][None], f[0][None], f[1][None])[0]
+        except ValueError as exc:
+            raise PredictionInputError(str(exc)) from None
 
     # ------------------------------------------------------------------
     @classmethod
