@@ -14,6 +14,7 @@ include: "workflow/rules/sweep.smk"
 include: "workflow/rules/simulate.smk"
 include: "workflow/rules/train.smk"
 include: "workflow/rules/validate.smk"
+include: "workflow/rules/physics.smk"
 include: "workflow/rules/study.smk"
 include: "workflow/rules/report.smk"
 

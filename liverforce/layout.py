@@ -15,6 +15,7 @@ Files under ``<results_dir>/<experiment>/`` (the layout users see)::
     progress/<scenario>-<NNNN>.json             a running simulate job's progress
     models/<scenario>/<variant>/metrics.json, model/
     validate/metrics.json
+    validate/physics.json, physics/<NN>/shard-0000.parquet, manifest.json   the physics study's choices
     studies/<study>.json, <study>.png
     report/index.html
     cases/<case id>.png                         ``liverforce show-case``
@@ -39,6 +40,7 @@ from pathlib import Path
 __all__ = [
     "Layout", "experiment_name", "shard_id", "case_id", "scenario_of_case", "gid_of", "scenario_of_manifest",
     "model_of_metrics", "features_of_mesh", "surface_meta_of", "progress_of_shard", "study_picture_of",
+    "physics_variant_files",
 ]
 
 # file names and suffixes (one place)
@@ -126,6 +128,13 @@ class Layout:
     def validation_metrics(self) -> str:
         return self._p("validate", _METRICS)
 
+    def physics(self) -> str:
+        """The physics study (liverforce.pipeline.physics); its shards in ``physics_shards()``."""
+        return self._p("validate", "physics.json")
+
+    def physics_shards(self) -> str:
+        return self._p("validate", "physics")
+
     def study(self, study: str = "{study}") -> str:
         return self._p("studies", f"{study}.json")
 
@@ -178,6 +187,13 @@ def surface_meta_of(surface_path: str | Path) -> Path:
     """The metadata JSON written beside a geometry's surface (``geometry/<gid>.json``)."""
     p = Path(surface_path)
     return p.with_name(gid_of(p) + _SURFACE_META)
+
+
+def physics_variant_files(folder: str | Path, k: int) -> tuple[Path, Path]:
+    """The shard and manifest of the physics study's ``k``-th choice: ``validate/physics/<k>/shard-0000.parquet``
+    and its ``manifest.json`` (:meth:`Layout.physics_shards`)."""
+    d = Path(folder) / f"{int(k):02d}"
+    return d / f"{_SHARD_PREFIX}{shard_id(0)}{_SHARD_SUFFIX}", d / _MANIFEST
 
 
 def shards_in(folder: str | Path) -> list[Path]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 from pathlib import Path
 
@@ -93,7 +94,7 @@ def stretch_statistics(case_ids, min_stretch, max_stretch, stretch_range=None, n
 
 def make_report(model_metrics: list[str], manifests: list[str], validation: str, features: list[str],
                 pictures: list[str], experiment: str, out_html, studies: list[str] = (),
-                setup: dict | None = None, surfaces: list[str] = ()) -> Path:
+                setup: dict | None = None, surfaces: list[str] = (), physics: str | None = None) -> Path:
     """Write ``report/index.html`` (+ ``report/figures/``) from the stage outputs.
 
     ``studies``: the ``studies/<study>.json`` files (their PNGs beside them);
@@ -101,13 +102,15 @@ def make_report(model_metrics: list[str], manifests: list[str], validation: str,
     ``{"training": [ids], "unseen": [ids], "volume_range_l": [lo, hi]}``);
     ``surfaces``: the ``geometry/<id>.ply`` of every liver, drawn as the
     population picture ``report/figures/population.png`` (volumes from the
-    mesh features).
+    mesh features). ``physics``: ``validate/physics.json`` (:mod:`liverforce.pipeline.physics`), if run.
     """
     from liverforce.report.html import collect, write_report
 
     setup = setup or {}
     data = collect(model_metrics, manifests, validation, features, studies)
     data["validation_dir"] = str(Path(validation).parent)
+    if physics:
+        data["physics"] = json.loads(Path(physics).read_text())
     stats = solver_statistics(manifests, (setup.get("material") or {}).get("stability_stretch"))
     population_png = None
     if surfaces:

@@ -6,6 +6,7 @@ rule report:
         models=[P.model_metrics(s, v) for s in PLAN.train_scenarios() for v in PLAN.variants()],
         manifests=[P.manifest(s) for s in PLAN.all_scenarios()],
         validation=P.validation_metrics(),
+        physics=[P.physics()] if config_slice("validate", "physics", "enabled") else [],
         features=[P.features(g) for g in PLAN.all_geometries],
         pictures=[P.regions_picture(g) for g in PLAN.all_geometries],
         surfaces=[P.surface(g) for g in PLAN.all_geometries],

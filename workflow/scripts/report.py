@@ -6,4 +6,5 @@ sm = snakemake  # noqa: F821
 setup_job(sm.log[0], sm.threads)
 make_report(list(sm.input.models), list(sm.input.manifests), sm.input.validation, list(sm.input.features),
             list(sm.input.pictures), sm.params.experiment, sm.output.html, studies=list(sm.input.studies),
-            setup=dict(sm.params.setup), surfaces=list(sm.input.surfaces))
+            setup=dict(sm.params.setup), surfaces=list(sm.input.surfaces),
+            physics=(list(sm.input.physics) or [None])[0])
