@@ -229,6 +229,8 @@ class ModelConfig:
     roi_fraction: Optional[float] = MISSING  # None: the shards' dataset.roi_fraction
     force_scaling: str = MISSING  # stiffness | none (state-vector models: force / (C10 / C10_ref))
     probe_force_radius_mm: float = MISSING  # Gaussian radius of the linear force estimate C^-1 u_w (0 = off)
+    rigid_motion: str = MISSING  # keep | remove (the ROI's best rigid motion undone; displacement features)
+    rigid_motion_radius_mm: float = MISSING  # remove: fitted to the ROI nodes at least this far from the tool, mm
     camera: CameraConfig = field(default_factory=CameraConfig)  # roi_features: cloud (liverforce.learn.camera)
 
 
@@ -724,6 +726,12 @@ def _check_model(mo: dict, key: str) -> None:
     if mo["dae_input_noise"] < 0:
         _fail(f"{key}.dae_input_noise", "must be >= 0")
     _check_choice(f"{key}.force_scaling", mo["force_scaling"], ("stiffness", "none"))
+    _check_choice(f"{key}.rigid_motion", mo["rigid_motion"], ("keep", "remove"))
+    if mo["rigid_motion_radius_mm"] < 0:
+        _fail(f"{key}.rigid_motion_radius_mm", f"must be >= 0 mm (got {mo['rigid_motion_radius_mm']})")
+    if mo["rigid_motion"] == "remove" and mo["roi_features"] not in ("displacement", "both"):
+        _fail(f"{key}.rigid_motion", f"remove needs node displacements (roi_features: displacement or both), "
+              f"not '{mo['roi_features']}'", "set rigid_motion: keep for this model")
     cam = mo["camera"]
     if cam["views"] < 1:
         _fail(f"{key}.camera.views", f"must be >= 1 (got {cam['views']})")

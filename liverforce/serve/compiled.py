@@ -17,6 +17,11 @@ deformed positions ``D`` (``k x 3``, liver frame, mm) for models with
                                               linear force estimate C^-1 sum w x: affine;
                                               the rest of the state is constant
 
+With ``rigid_motion: remove`` each call first undoes the far ROI nodes' best
+rigid motion on ``D`` (:func:`liverforce.learn.representation.undo_rigid_motion`,
+the reference path's function; nonlinear, one 3x3 SVD per call); the rest is
+affine in the corrected ``D``, whose mean is the state's deformed centroid.
+
 so :class:`CompiledROI` precomputes ``z = A vec(D) + b`` once (``W`` is read
 off the reference interpolant itself, :func:`liverforce.learn.representation.interpolate_to_grid`
 applied to the identity, so the resampling is the reference one by
@@ -40,7 +45,7 @@ import numpy as np
 from torch import nn
 
 from liverforce.learn.encoders import PCAEncoder
-from liverforce.learn.representation import interpolate_to_grid
+from liverforce.learn.representation import interpolate_to_grid, rigid_fit_nodes, undo_rigid_motion
 from liverforce.learn.state import MATERIAL_START, compliance_matrices, state_vector
 from liverforce.serve.checks import Limits, TrainingScale, check_displacement, check_material
 from liverforce.serve.errors import PredictionInputError
@@ -125,6 +130,9 @@ class CompiledROI:
                     f"only {int(keep.sum())} ROI nodes remain outside the model's occlusion radius "
                     f"{rep.occlusion_radius_mm} mm; the ROI is too small"
                 )
+        # rigid_motion: remove -- the far nodes' best rigid motion is undone on every call's D first (the same
+        # function as the reference path); what follows is then affine in the corrected D
+        self._rigid_nodes = rigid_fit_nodes(U_loc, rep.rigid_motion_radius_mm) if rep.removes_rigid_motion else None
         kk = int(keep.sum())
         g2 = rep.grid_size**2
         W = np.zeros((g2, k))
@@ -248,6 +256,13 @@ class CompiledROI:
             h = _act(h @ W.T + b, s)
         return h.astype(np.float64) * self._tscale + self._tmean
 
+    def _rigid_free(self, D: np.ndarray) -> np.ndarray:
+        """``D`` ``(k, 3)`` with the far nodes' best rigid motion undone (``rigid_motion: remove``; else ``D``).
+        Non-finite input is passed on as it is (the output is then non-finite and reported)."""
+        if self._rigid_nodes is None or not np.isfinite(D).all():
+            return D
+        return undo_rigid_motion(self.preop.roi_undeformed_mm, D, self._rigid_nodes)
+
     def _fail(self, D: np.ndarray, label: str = "") -> None:
         _points(f"{label}roi_deformed_mm", D.reshape(-1, 3))  # names NaN/inf rows
         raise PredictionInputError(f"{label}roi_deformed_mm: the prediction is not finite")
@@ -265,11 +280,14 @@ class CompiledROI:
                 f"roi_deformed_mm: expected shape ({self.k}, 3) (the compiled ROI's nodes in order), got {D.shape}"
             )
         d = D.ravel() - self._U_flat
+        dmax = np.abs(d).max()  # the check reads the displacement as given
+        if self._rigid_nodes is not None:
+            d = self._rigid_free(D).ravel() - self._U_flat
         if self._all_dyn:
-            return self._A_dyn @ d + self.bU, np.abs(d).max()
+            return self._A_dyn @ d + self.bU, dmax
         z = self.bU.copy()
         z[self._dyn] += self._A_dyn @ d
-        return z, np.abs(d).max()
+        return z, dmax
 
     def finish(self, z: np.ndarray, dmax: float, D: np.ndarray) -> np.ndarray:
         """Network of one call: MLP (and AE encoder), target scaling, rotation to the liver frame, checks."""
@@ -301,6 +319,9 @@ class CompiledROI:
         n = len(D)
         X = D.reshape(n, 3 * self.k) - self._U_flat  # displacements
         dmax = np.maximum(X.max(axis=1), -X.min(axis=1))
+        if self._rigid_nodes is not None:  # the state's deformed centroid is then the corrected ROI's, not given
+            X = np.stack([self._rigid_free(Di) for Di in D]).reshape(n, 3 * self.k) - self._U_flat
+            roi_centroid_deformed_mm = None
         stiff = np.full((n, 1), self._stiff)
         if self.uses_state and (roi_centroid_deformed_mm is not None or material_params_mpa is not None):
             nc = self._n_code
