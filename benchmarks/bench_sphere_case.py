@@ -40,6 +40,7 @@ def main(argv=None):
     ap.add_argument("--time-limit", type=float, default=120.0)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--max-slide", type=float, default=None, help="simulate.tool_max_slide_mm (default: config)")
+    ap.add_argument("--controls", default="magnitude", help="sphere controls to run: magnitude,vector (simulate.tool_control)")
     args = ap.parse_args(argv)
     thread_env(args.threads)
 
@@ -71,8 +72,11 @@ def main(argv=None):
     cases = [r for r in cases if r["exertion_id"] == cases[0]["exertion_id"]][: args.cases]
     print(f"{len(cases)} cases at exertion point {cases[0]['exertion_id']}, |F| "
           + ", ".join(f"{c['force_magnitude_n']:.2f}" for c in cases) + " N")
-    for model in ("traction", "sphere"):
-        sim = dict(sim0, tool_model=model, time_limit_s=args.time_limit)
+    runs = [("traction", "traction", None)] + [(f"sphere ({c})", "sphere", c) for c in args.controls.split(",")]
+    for model, tool, control in runs:
+        sim = dict(sim0, tool_model=tool, time_limit_s=args.time_limit)
+        if control:
+            sim["tool_control"] = control
         if args.max_slide is not None:
             sim["tool_max_slide_mm"] = args.max_slide
         rows = simulate_cases(cases, {"g": mesh}, sim, cfg["boundary"], cfg["dataset"])
@@ -82,8 +86,11 @@ def main(argv=None):
         print(f"\n{model}: median {np.median(t):.2f} s, mean {t.mean():.2f} s per case (converged: median "
               f"{np.median(t[ok]) if ok.any() else float('nan'):.2f} s); Newton iterations median {np.median(its):.0f}; "
               f"converged {ok.sum()}/{len(rows)}")
-        for r in rows:
-            print(f"   {r['case_id']}: |F| {r['force_magnitude_n']:.3f} N, {r['wall_time_s']:.1f} s, "
+        for r, c in zip(rows, cases):
+            f, f0 = np.asarray(r["force_n"], float), np.asarray(c["force_n"], float)
+            ang = np.degrees(np.arccos(np.clip(f @ f0 / max(np.linalg.norm(f) * np.linalg.norm(f0), 1e-300), -1, 1)))
+            print(f"   {r['case_id']}: |F| {np.linalg.norm(f):.3f} N (case {np.linalg.norm(f0):.3f} N, "
+                  f"{ang:.1f} deg apart), {r['wall_time_s']:.1f} s, "
                   f"{r['newton_iterations']} it, {'ok' if r['converged'] else 'FAILED: ' + r['reason'][:150]}")
         for why, k in Counter(r["reason"].split(":")[1][:60] if ":" in r["reason"] else r["reason"]
                               for r in rows if not r["converged"]).items():

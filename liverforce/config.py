@@ -182,6 +182,7 @@ class SimulateConfig:
     tool_force_rtol: float = MISSING
     tool_force_atol_n: float = MISSING
     tool_max_slide_mm: float = MISSING
+    tool_control: str = MISSING  # magnitude | vector: what the sphere case prescribes (simulate.tool_model: sphere)
 
 
 @dataclass
@@ -281,6 +282,8 @@ class PhysicsConfig:
     rib_contact: list[str] = MISSING  # unilateral | bilateral | off
     gravity: list[list[float]] = MISSING  # gravity directions (RAS), each a variant
     tool: str = MISSING  # none | sphere: the tool as a rigid sphere (simulate.tool_model: sphere)
+    tool_cases: int = MISSING  # the sphere runs the first tool_cases cases (a contact case costs ~30 traction cases)
+    tool_max_force_n: float = MISSING  # ... of at most this force (a 5 mm tip sinks > 7 mm beyond ~1 N)
 
 
 @dataclass
@@ -612,6 +615,7 @@ def _check_ranges(cfg: dict) -> None:
         _fail("simulate.tool_force_rtol", "must be in (0, 1)")
     if sim["tool_force_atol_n"] <= 0:
         _fail("simulate.tool_force_atol_n", "must be > 0 N")
+    _check_choice("simulate.tool_control", sim["tool_control"], ("magnitude", "vector"), "sphere control")
     if sim["tool_max_slide_mm"] <= 0:
         _fail("simulate.tool_max_slide_mm", "must be > 0 mm")
     if sim["tool_model"] == "sphere" and cfg["boundary"]["gravity"]["enabled"]:
@@ -693,6 +697,10 @@ def _check_ranges(cfg: dict) -> None:
         if len(d) != 3 or not sum(float(x) ** 2 for x in d) > 0:
             _fail("validate.physics.gravity", f"each gravity direction is a non-zero 3-vector (got {d})")
     _check_choice("validate.physics.tool", ph["tool"], ("none", "sphere"), "tool model")
+    if not 1 <= ph["tool_cases"] <= ph["n_cases"]:
+        _fail("validate.physics.tool_cases", f"must be 1 .. validate.physics.n_cases ({ph['n_cases']})")
+    if not ph["tool_max_force_n"] > 0:
+        _fail("validate.physics.tool_max_force_n", "must be > 0 N")
     from liverforce.seeds import liver_seeds
 
     for key, value in (("seed", cfg["seed"]), ("sweep.seed", s["seed"]), ("train.seed", t["seed"]),

@@ -59,8 +59,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from .boundary import _facet_quadrature, vertex_normals
-from .elements import TRI_Q7, TetDiscretization
+from .boundary import _facet_quadrature
+from .elements import TetDiscretization
 from .newton import DiscreteSystem, SolverOptions, _StepFailure
 from .problem import CaseResult
 
@@ -457,6 +457,7 @@ class LiverIndenter:
         mask = model.facet_region != IVC
         self.normal = surface_normal(model.points, model.facets, self.point, max(self.radius, 2.0), mask)
         self.direction = -self.normal if direction is None else np.asarray(direction, float) / np.linalg.norm(direction)
+        self._magnitude_curve: list = []  # (depth, |F|) reached by push_to_magnitude: the next case's first guess
         self.start = self.point - self.radius * self.direction
         rc = candidate_radius_mm if candidate_radius_mm is not None else 4.0 * self.radius + 10.0
         cand = candidate_facets(model.points, model.facets, self.point, rc, mask)
@@ -506,6 +507,27 @@ class LiverIndenter:
         factorisation (kept by the system's linear solver for the next Newton) and three back-solves.
         """
         return _centre_jacobian(self, np.asarray(u, float), material or self.model.material)
+
+    def push_to_magnitude(self, force_n, material=None, options=None, rtol: float = 0.01, atol: float = 1e-3,
+                          max_pushes: int = 12, max_increment: float | None = None) -> "SphereCaseResult":
+        """Magnitude control: push the sphere along ``force_n``'s direction until the force it exerts on the
+        liver has the magnitude ``|force_n|`` (within ``max(rtol |force_n|, atol)``).
+
+        What a frictionless rigid tip can do: it transmits only pressure normal to its surface, so the
+        force it exerts lies close to the contact normal whatever the push direction (on the default
+        liver a push 30° off the normal gave a force about 3° off it), and the prescribed *vector*
+        of a traction case is generally out of its reach (:meth:`push_to_force` then needs the
+        sphere to slide far). The robot pushes along ``force_n``; the label is the force the sphere
+        exerts (``force_on_liver``), whose direction the contact decides.
+
+        From first touch at the exertion point (centre ``point + R n``), each push continues from the
+        deepest state below the target to the next depth: a power law ``F ~ d^m`` through the two
+        states nearest the target (earlier cases at this point included), then a secant inside the
+        bracket; increments of at most ``max_increment`` mm (default ``R / 5``: a coarse surface mesh
+        lets a longer step slip between contact points). Never raises: ``converged=False`` with the
+        reason and the last state below the target.
+        """
+        return _push_to_magnitude(self, force_n, material, options, rtol, atol, max_pushes, max_increment)
 
     def push_to_force(self, force_n, material=None, u0=None, options=None, rtol: float = 0.01,
                       atol: float = 1e-3, max_outer: int = 30, max_move_mm: float | None = None,
@@ -578,12 +600,112 @@ class SphereCaseResult(CaseResult):
     contact: dict = field(default_factory=dict)
 
 
+def _sphere_result(ind, u, mat, opt, stats, t0, F_t, ok, reason, outer, slide) -> "SphereCaseResult":
+    """A :class:`SphereCaseResult` at the state ``u`` (the contact at its current centre)."""
+    from .kinematics import principal_stretch_range
+    from .problem import ToolLoad
+
+    system, contact = ind.system, ind.contact
+    n = system.disc.n_dofs
+    u = np.asarray(u, float)
+    F = -contact.force_on_sphere(u)
+    F_mag = float(np.linalg.norm(F_t))
+    ev = system.assembler.evaluate(u, mat, tangent=False)
+    f_int = ev.f_int if ev.valid else np.full(n, np.nan)
+    reac = ind.reactions(u, f_int)
+    reac["tool"] = reac["indenter"]
+    lam_min, lam_max = principal_stretch_range(system.disc, u)
+    summ = contact.summary(u)
+    summ.pop("force_on_sphere")
+    frac = float(np.clip(F @ F_t / F_mag**2, 0.0, 1.0)) if F_mag > 0 else 1.0
+    return SphereCaseResult(
+        u_nodes=u.reshape(-1, 3)[: ind.model.n_vertices].copy(), converged=ok, reason=reason,
+        load_fraction=1.0 if ok else frac, load_steps=stats["steps"], newton_iterations=stats["iters"],
+        final_residual=float(stats["last_res"]) if np.isfinite(stats["last_res"]) else 0.0,
+        wall_time_s=time.perf_counter() - t0, linear_solver=system.linear.backend or "none", reactions=reac,
+        state=u.copy(), load=ToolLoad(ind.point, F_t, ind.radius), formulation=opt.formulation, n_dofs=n,
+        factorizations=stats["factorizations"], history=stats["history"], min_principal_stretch=lam_min,
+        max_principal_stretch=lam_max, centre=contact.centre.copy(), force_on_liver=F, target_force=F_t.copy(),
+        force_error_n=float(np.linalg.norm(F - F_t)), outer_iterations=outer, slide_mm=slide, contact=summ)
+
+
+def _push_to_magnitude(ind: "LiverIndenter", force_n, material, options, rtol, atol, max_pushes,
+                       max_increment) -> "SphereCaseResult":
+    """See :meth:`LiverIndenter.push_to_magnitude`."""
+    mat = material or ind.model.material
+    opt = options or ind.model.options
+    system, contact = ind.system, ind.contact
+    t0 = time.perf_counter()
+    R = ind.radius
+    F_t = np.asarray(force_n, float).reshape(3)
+    target = float(np.linalg.norm(F_t))
+    tol_f = max(rtol * target, atol)
+    stats = {"iters": 0, "steps": 0, "factorizations": 0, "history": [], "last_res": np.nan}
+    zero = np.zeros(system.disc.n_dofs)
+    contact.multipliers = np.zeros_like(contact.W)
+    start = ind.point + R * ind.normal  # touching the surface at the exertion point
+    d_hat = F_t / target if target > 0 else -ind.normal
+    inc = float(max_increment) if max_increment else 0.2 * R
+    contact.set_centre(start)
+    if target <= atol:
+        return _sphere_result(ind, zero, mat, opt, stats, t0, F_t, True, "converged", 0, 0.0)
+    lo, hi = (0.0, 0.0, zero), None  # (depth, |F|, state): the deepest state below the target, the shallowest above
+    curve = list(ind._magnitude_curve)  # (depth, |F|) of earlier cases at this point: the first guess
+    for push in range(1, max_pushes + 1):
+        if hi is not None:  # inside the bracket: secant on |F|(depth)
+            d = lo[0] + (target - lo[1]) * (hi[0] - lo[0]) / (hi[1] - lo[1])
+            d = float(np.clip(d, lo[0] + 0.05 * (hi[0] - lo[0]), hi[0] - 0.05 * (hi[0] - lo[0])))
+        else:
+            pts = [(a, b) for a, b in curve if a > 0 and b > 0]
+            if lo[1] > 0:
+                pts.append((lo[0], lo[1]))
+            if len(pts) >= 2:  # a power law F = a d^m through the two points nearest the target
+                (d1, f1), (d2, f2) = sorted(pts, key=lambda q: abs(np.log(q[1] / target)))[:2]
+                m = float(np.clip(np.log(f2 / f1) / np.log(d2 / d1), 1.0, 3.0)) if d1 != d2 and f1 != f2 else 1.5
+                d = d2 * (target / f2) ** (1.0 / m)
+            elif pts:
+                d = pts[0][0] * (target / pts[0][1]) ** (1.0 / 1.5)
+            else:
+                d = R
+            d = float(min(max(d, lo[0] + 0.1), lo[0] + 3.0))
+        contact.set_centre(start + lo[0] * d_hat)
+        path = indent(system, contact, mat, start, d_hat, [d], u0=lo[2], options=opt, max_increment=inc)
+        stats["iters"] += path.newton_iterations
+        stats["steps"] += path.load_steps
+        stats["history"].append(("depth", d, path.converged, path.newton_iterations))
+        if not path.converged:
+            contact.set_centre(start + lo[0] * d_hat)
+            return _sphere_result(ind, lo[2], mat, opt, stats, t0, F_t, False,
+                                  f"sphere: push to {d:.3g} mm failed: {path.reason}", push, 0.0)
+        r = path.results[0]
+        F = float(np.linalg.norm(r.force_on_sphere))
+        if F < lo[1] or r.active_points == 0:  # deeper but less force: the sphere slipped between contact points
+            contact.set_centre(start + lo[0] * d_hat)
+            return _sphere_result(ind, lo[2], mat, opt, stats, t0, F_t, False, (
+                f"sphere: at {d:.3g} mm the force fell to {F:.3g} N (from {lo[1]:.3g} N at {lo[0]:.3g} mm): the "
+                f"sphere slipped through the surface mesh, whose facets are too coarse for a {R:g} mm tip at this "
+                "depth; refine the mesh at the exertion points (mesh.refine_edge_mm) or take a larger "
+                "simulate.tool_tip_radius_mm"), push, 0.0)
+        ind._magnitude_curve.append((d, F))
+        state = (d, F, r.u)
+        if abs(F - target) <= tol_f:
+            ind._magnitude_curve = ind._magnitude_curve[-8:]
+            res = _sphere_result(ind, r.u, mat, opt, stats, t0, F_t, True, "converged", push, 0.0)
+            r_c = res.centre - ind.point
+            res.slide_mm = float(np.linalg.norm(r_c - (r_c @ ind.normal) * ind.normal))
+            return res
+        if F < target:
+            lo = state
+        else:
+            hi = state if hi is None or d < hi[0] else hi
+    contact.set_centre(start + lo[0] * d_hat)
+    return _sphere_result(ind, lo[2], mat, opt, stats, t0, F_t, False,
+                          f"sphere: |F| = {target:.3g} N not reached within {max_pushes} pushes", max_pushes, 0.0)
+
+
 def _push_to_force(ind: "LiverIndenter", force_n, material, u0, options, rtol, atol, max_outer, max_move_mm,
                    max_slide_mm, first_depth_mm) -> SphereCaseResult:
     from dataclasses import replace
-
-    from .kinematics import principal_stretch_range
-    from .problem import ToolLoad
 
     mat = material or ind.model.material
     opt = options or ind.model.options
@@ -611,26 +733,7 @@ def _push_to_force(ind: "LiverIndenter", force_n, material, u0, options, rtol, a
         return float(np.linalg.norm(r - (r @ nrm) * nrm))
 
     def finish(u, ok, reason):
-        u = np.asarray(u, float)
-        F = -contact.force_on_sphere(u)
-        ev = system.assembler.evaluate(u, mat, tangent=False)
-        f_int = ev.f_int if ev.valid else np.full(n, np.nan)
-        reac = ind.reactions(u, f_int)
-        reac["tool"] = reac["indenter"]
-        lam_min, lam_max = principal_stretch_range(system.disc, u)
-        summ = contact.summary(u)
-        summ.pop("force_on_sphere")
-        frac = float(np.clip(F @ F_t / F_mag**2, 0.0, 1.0)) if F_mag > 0 else 1.0
-        return SphereCaseResult(
-            u_nodes=u.reshape(-1, 3)[: ind.model.n_vertices].copy(), converged=ok, reason=reason,
-            load_fraction=1.0 if ok else frac, load_steps=stats["steps"], newton_iterations=stats["iters"],
-            final_residual=float(stats["last_res"]) if np.isfinite(stats["last_res"]) else 0.0,
-            wall_time_s=time.perf_counter() - t0, linear_solver=system.linear.backend or "none", reactions=reac,
-            state=u.copy(), load=ToolLoad(ind.point, F_t, R), formulation=opt.formulation, n_dofs=n,
-            factorizations=stats["factorizations"], history=stats["history"], min_principal_stretch=lam_min,
-            max_principal_stretch=lam_max, centre=contact.centre.copy(), force_on_liver=F, target_force=F_t.copy(),
-            force_error_n=float(np.linalg.norm(F - F_t)), outer_iterations=outer, slide_mm=slide_of(contact.centre),
-            contact=summ)
+        return _sphere_result(ind, u, mat, opt, stats, t0, F_t, ok, reason, outer, slide_of(contact.centre))
 
     def move(u, c_from, c_to, u_pred):
         """Equilibrium with the centre at ``c_to`` from the equilibrium ``u`` at ``c_from``: Newton from the

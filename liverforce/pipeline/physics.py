@@ -90,40 +90,18 @@ def tool_displacement_mm(arrays_or_rows) -> np.ndarray:
     return np.asarray(out)
 
 
-def _over_sag(rows: list[dict], mesh, boundary: dict, sim: dict) -> float:
-    """With gravity on: every row's displacements minus the gravity-only state of its constants (in place).
-
-    Returns the largest sag (mm) over the constants. The pre-operative image shows the sagged liver, so
-    the tool's increment over that state is what a camera sees.
-    """
-    from liverforce.dataset.roi import surface_graph
+def _sag_max(mesh, boundary: dict, sim: dict, case: dict) -> float:
+    """The largest displacement (mm) of the liver under gravity alone, with ``case``'s constants."""
     from liverforce.fem.materials import make_material
     from liverforce.fem.problem import LiverModel, ToolLoad
-    from liverforce.pipeline.simulate import boundary_params, solver_options
+    from liverforce.pipeline.simulate import _sag, boundary_params, solver_options
 
-    surf = surface_graph(mesh.points, mesh.facets)
-    sags: dict = {}
-    fe = None
-    for row in rows:
-        key = (row["material_model"], tuple(row["material_params_mpa"]), row["bulk_modulus_mpa"])
-        if key not in sags:
-            mat = make_material(key[0], dict(zip(row["material_param_names"], key[1])), bulk_mpa=key[2])
-            if fe is None:
-                fe = LiverModel(mesh.points, mesh.tets, mesh.facets, mesh.facet_region, mat,
-                                boundary_params(mesh, boundary), solver_options(sim))
-            res = fe.solve(ToolLoad(np.asarray(row["exertion_point_mm"], float), np.zeros(3), sim["tool_radius_mm"]),
-                           material=mat)
-            if not res.converged:
-                raise RuntimeError(f"the gravity-only state did not converge ({res.reason})")
-            sags[key] = res.u_nodes
-        u_g = sags[key]
-        ids = np.asarray(row["roi_node_ids"], int)
-        row["roi_deformed_mm"] = (np.asarray(row["roi_deformed_mm"], float) - u_g[ids]).astype(np.float32)
-        row["roi_centroid_deformed_mm"] = np.asarray(row["roi_deformed_mm"], float).mean(axis=0)
-        if len(row["surface_displacement_mm"]):
-            row["surface_displacement_mm"] = (np.asarray(row["surface_displacement_mm"], float)
-                                              - u_g[surf.node_ids]).astype(np.float32)
-    return float(max(np.linalg.norm(u, axis=1).max() for u in sags.values()))
+    mat = make_material(case["material_model"], dict(zip(case["material_param_names"], case["material_params_mpa"])),
+                        bulk_mpa=case["bulk_modulus_mpa"])
+    fe = LiverModel(mesh.points, mesh.tets, mesh.facets, mesh.facet_region, mat, boundary_params(mesh, boundary),
+                    solver_options(sim))
+    u = _sag(fe, ToolLoad(np.asarray(case["exertion_point_mm"], float), np.zeros(3), sim["tool_radius_mm"]), mat)
+    return float(np.linalg.norm(u, axis=1).max())
 
 
 def physics_study(cases_path, mesh_path, model_dirs, model_metrics, sim: dict, boundary: dict, dataset: dict,
@@ -132,12 +110,16 @@ def physics_study(cases_path, mesh_path, model_dirs, model_metrics, sim: dict, b
 
     ``model_dirs`` / ``model_metrics``: the scenario-IV models (all variants). Writes one shard per choice
     under ``shard_dir`` and the study as JSON to ``out_path``; returns it.
+
+    The sphere (``tool: sphere``) runs the first ``tool_cases`` cases of at most ``tool_max_force_n`` only (a
+    contact case costs tens of traction cases, and a 5 mm tip sinks deeper than the default mesh resolves
+    beyond about 1 N: Hertz gives ~7 mm at 1 N for R 2.5 mm in this tissue). A frictionless tip exerts a force close to the surface normal whatever the push
+    direction, so it is compared with the traction carrying the *same* force vectors (the sphere's own,
+    simulated as an extra choice "traction at the sphere's forces"), not with the baseline's inclined ones.
     """
-    from liverforce.learn.metrics import force_metrics
     from liverforce.learn.model import ForceModel
     from liverforce.mesh.io import read_mesh
-    from liverforce.pipeline.shared import camera_arrays
-    from liverforce.pipeline.simulate import make_manifest, probe_reference, simulate_cases
+    from liverforce.pipeline.simulate import probe_reference, simulate_cases
 
     gid = gid_of(mesh_path)
     table = dio.read_table(cases_path).to_pylist()
@@ -146,63 +128,103 @@ def physics_study(cases_path, mesh_path, model_dirs, model_metrics, sim: dict, b
         raise ValueError(f"{cases_path}: no case on the liver {gid}")
     mesh = read_mesh(mesh_path)
     probe = probe_reference(material)
-    models = {}
-    for d, mp in zip(model_dirs, model_metrics):
-        models[model_of_metrics(mp)[1]] = ForceModel.load(Path(d))
+    models = {model_of_metrics(mp)[1]: ForceModel.load(Path(d)) for d, mp in zip(model_dirs, model_metrics)}
     shard_dir = Path(shard_dir)
-    shard_dir.mkdir(parents=True, exist_ok=True)
     out = {"liver": gid, "n_cases": len(cases), "case_ids": [c["case_id"] for c in cases],
            "forces_n": [float(np.linalg.norm(c["force_n"])) for c in cases], "variants": []}
-    base_rows = base_u = base_field = None
-    for k, v in enumerate(physics_variants(boundary, sim, spec)):  # the baseline first
+    done: dict = {}  # name -> (rows, measured fields) of the choices simulated so far
+
+    def run(k, v, these, ref_name):
         t0 = time.perf_counter()
-        rows = simulate_cases(cases, {gid: mesh}, v["simulate"], v["boundary"], dataset, probe=probe)
-        sag = None
-        if v["boundary"].get("gravity", {}).get("enabled"):
-            sag = _over_sag(rows, mesh, v["boundary"], v["simulate"])
-        if base_rows is None:
-            base_rows = rows
-        else:  # a model in surgery assumes the configured supports: its stiffness probe is the baseline's
-            for r, b in zip(rows, base_rows):
-                r["probe_compliance_mm_per_n"] = b["probe_compliance_mm_per_n"]
-        shard, manifest = physics_variant_files(shard_dir, k)
-        shard.parent.mkdir(parents=True, exist_ok=True)
-        dio.write_shard(rows, shard, compression=dataset["compression"],
-                        extra_meta={"simulate": v["simulate"], "boundary": v["boundary"], "dataset": dataset,
-                                    "probe": probe, "physics_variant": v["name"]})
-        make_manifest([str(shard)], manifest)
-        ok = [r for r in rows if r["converged"]]
-        entry = {"name": v["name"], "what": v["what"], "converged": len(ok), "wall_time_s": 0.0,
-                 "sag_max_mm": sag, "models": {}}
-        if ok:
-            arrays = camera_arrays(manifest, [str(mesh_path)], "physics study")
-            u = tool_displacement_mm(arrays)
-            ids = [str(c) for c in arrays["case_id"]]
-            field = {c: np.asarray(d, float).reshape(-1, 3) - np.asarray(e, float).reshape(-1, 3)
-                     for c, d, e in zip(ids, arrays["roi_deformed_mm"], arrays["roi_undeformed_mm"])}
-            if base_u is None:
-                base_u, base_field = dict(zip(ids, u)), field
-            both = [c for c in ids if c in base_u and base_u[c] > 1e-6]
-            entry["u_tool_mm_median"] = float(np.median(u))
-            if both:
-                ratio = np.array([u[ids.index(c)] / base_u[c] for c in both])
-                change = np.array([np.linalg.norm(field[c] - base_field[c]) / np.linalg.norm(base_field[c])
-                                   for c in both])
-                entry["u_tool_ratio_median"] = float(np.median(ratio))
-                entry["u_tool_ratio_range"] = [float(ratio.min()), float(ratio.max())]
-                entry["roi_change_pct_mean"] = float(100.0 * change.mean())
-                entry["roi_change_pct_max"] = float(100.0 * change.max())
-            for name, m in models.items():
-                pred = m.predict(arrays, observation_seed=int(m.meta.get("eval_observation_seed", 0)))
-                fm = force_metrics(arrays["force_n"], pred)
-                entry["models"][name] = {"mae_vec": fm["mae_vec"], "accuracy_pct": fm["accuracy_pct"]}
+        rows = simulate_cases(these, {gid: mesh}, v["simulate"], v["boundary"], dataset, probe=probe)
+        sag = _sag_max(mesh, v["boundary"], v["simulate"], these[0]) if v["boundary"]["gravity"]["enabled"] else None
+        if done:  # a model in surgery assumes the configured supports: its stiffness probe is the baseline's
+            base = {r["case_id"]: r for r in done[BASELINE][0]}
+            for r in rows:
+                r["probe_compliance_mm_per_n"] = base[r["case_id"]]["probe_compliance_mm_per_n"]
+        entry = {"name": v["name"], "what": v["what"], "n_cases": len(rows),
+                 "converged": int(sum(r["converged"] for r in rows)), "sag_max_mm": sag, "compared_with": ref_name,
+                 **_score(k, v, rows, done.get(ref_name), models, mesh_path, dataset, probe, shard_dir)}
         entry["wall_time_s"] = time.perf_counter() - t0
+        done[v["name"]] = (rows, entry.pop("_fields"))
         out["variants"].append(entry)
-        log.info("physics %s: %d/%d converged, u under the tool x%.2f of the baseline, ROI field changed %.0f %% (mean), "
-                 "%s (%.0f s)", v["name"], len(ok), len(rows), entry.get("u_tool_ratio_median", float("nan")),
-                 entry.get("roi_change_pct_mean", float("nan")),
+        log.info("physics %s: %d/%d converged, u under the tool x%.2f of %s, ROI field changed %.0f %% (mean), "
+                 "%s (%.0f s)", v["name"], entry["converged"], len(rows), entry.get("u_tool_ratio_median", np.nan),
+                 ref_name, entry.get("roi_change_pct_mean", np.nan),
                  ", ".join(f"{n} MAE {e['mae_vec']:.3f} N" for n, e in entry["models"].items()), entry["wall_time_s"])
+        return rows
+
+    k = 0
+    for v in physics_variants(boundary, sim, spec):  # the baseline first
+        if v["simulate"].get("tool_model") == "sphere":
+            cap = float(spec.get("tool_max_force_n", np.inf))
+            these = [c for c in cases if c["force_magnitude_n"] <= cap][: int(spec.get("tool_cases", len(cases)))]
+            if not these:
+                log.warning("physics: no case of at most %g N for the sphere (validate.physics.tool_max_force_n)", cap)
+                continue
+            sphere = run(k, v, these, None)
+            k += 1
+            same = [{**c, "force_n": list(map(float, r["force_n"])),
+                     "force_magnitude_n": float(np.linalg.norm(r["force_n"]))} for c, r in zip(these, sphere)
+                    if r["converged"]]
+            trac = {**v, "name": "traction at the sphere's forces", "simulate": sim,
+                    "what": "the Gaussian traction carrying the force vectors the sphere exerted"}
+            if same:
+                run(k, trac, same, None)
+                k += 1
+                # the sphere against the traction of the same forces: rescore with that reference
+                sph = next(e for e in out["variants"] if e["name"] == v["name"])
+                sph.update(_compare(done[v["name"]][1], done[trac["name"]][1]), compared_with=trac["name"])
+            continue
+        run(k, v, cases, None if k == 0 else BASELINE)
+        k += 1
     write_json_atomic(out_path, out)
+    return out
+
+
+def _fields(arrays) -> dict:
+    """case id -> (|u| under the tool, ROI displacement field) of converged cases."""
+    u = tool_displacement_mm(arrays)
+    return {str(c): (u_i, np.asarray(d, float).reshape(-1, 3) - np.asarray(e, float).reshape(-1, 3))
+            for c, u_i, d, e in zip(arrays["case_id"], u, arrays["roi_deformed_mm"], arrays["roi_undeformed_mm"])}
+
+
+def _compare(fields: dict, ref: dict | None) -> dict:
+    """The displacement under the tool and the ROI field against a reference choice's, on their common cases."""
+    if ref is None:
+        return {}
+    both = [c for c in fields if c in ref and ref[c][0] > 1e-6]
+    if not both:
+        return {}
+    ratio = np.array([fields[c][0] / ref[c][0] for c in both])
+    change = np.array([np.linalg.norm(fields[c][1] - ref[c][1]) / np.linalg.norm(ref[c][1]) for c in both])
+    return {"u_tool_ratio_median": float(np.median(ratio)), "u_tool_ratio_range": [float(ratio.min()), float(ratio.max())],
+            "roi_change_pct_mean": float(100.0 * change.mean()), "roi_change_pct_max": float(100.0 * change.max())}
+
+
+def _score(k, v, rows, ref, models, mesh_path, dataset, probe, shard_dir) -> dict:
+    """Write the choice's shard, then measure it against ``ref`` (rows, fields) and score every model on it."""
+    from liverforce.learn.metrics import force_metrics
+    from liverforce.pipeline.shared import camera_arrays
+    from liverforce.pipeline.simulate import make_manifest
+
+    shard, manifest = physics_variant_files(shard_dir, k)
+    shard.parent.mkdir(parents=True, exist_ok=True)
+    dio.write_shard(rows, shard, compression=dataset["compression"],
+                    extra_meta={"simulate": v["simulate"], "boundary": v["boundary"], "dataset": dataset,
+                                "probe": probe, "physics_variant": v["name"]})
+    make_manifest([str(shard)], manifest)
+    out = {"models": {}, "_fields": {}}
+    if not any(r["converged"] for r in rows):
+        return out
+    arrays = camera_arrays(manifest, [str(mesh_path)], "physics study")
+    out["_fields"] = fields = _fields(arrays)
+    out["u_tool_mm_median"] = float(np.median([f[0] for f in fields.values()]))
+    out.update(_compare(fields, ref[1] if ref is not None else (fields if k == 0 else None)))
+    for name, m in models.items():
+        pred = m.predict(arrays, observation_seed=int(m.meta.get("eval_observation_seed", 0)))
+        fm = force_metrics(arrays["force_n"], pred)
+        out["models"][name] = {"mae_vec": fm["mae_vec"], "accuracy_pct": fm["accuracy_pct"]}
     return out
 
 

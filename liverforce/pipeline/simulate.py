@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -149,6 +150,8 @@ def simulate_cases(cases: list[dict], meshes: dict, sim: dict, boundary: dict, d
     rows: list[dict] = []
     models: dict[str, tuple] = {}
     pools: dict[str, WarmStartPool] = {}  # recent converged solutions per geometry, for warm starts
+    gravity = bool((boundary.get("gravity") or {}).get("enabled"))
+    sags: dict = {}  # (geometry, constants) -> the gravity-only displacement (n_vertices, 3)
     t_start = time.perf_counter()
     for n_done, case in enumerate(cases, start=1):
         gid = case["geometry_id"]
@@ -176,6 +179,13 @@ def simulate_cases(cases: list[dict], meshes: dict, sim: dict, boundary: dict, d
             else:
                 res = fe.solve(load, material=material, u0=start)
             error = None
+            if gravity and res.u_nodes is not None:
+                # the pre-operative image shows the sagged liver: the row holds the tool's increment over the
+                # gravity-only state of the same constants (stretches and reactions stay the total state's)
+                key = (gid, tuple(case["material_params_mpa"]), case["bulk_modulus_mpa"])
+                if key not in sags:
+                    sags[key] = _sag(fe, load, material)
+                res = replace(res, u_nodes=res.u_nodes - sags[key])
         except Exception as exc:  # a solver crash is recorded as a failed case, never fatal to the shard
             res, error = None, f"{type(exc).__name__}: {exc}"
             log.exception("case %s crashed", case["case_id"])
@@ -202,6 +212,17 @@ def simulate_cases(cases: list[dict], meshes: dict, sim: dict, boundary: dict, d
     return rows
 
 
+def _sag(fe, load, material) -> np.ndarray:
+    """The liver's displacement under gravity alone (its supports, these constants): the sagged state."""
+    from liverforce.fem.problem import ToolLoad
+
+    res = fe.solve(ToolLoad(point_mm=load.point_mm, force_N=np.zeros(3), radius_mm=load.radius_mm), material=material)
+    if not res.converged:
+        raise RuntimeError(f"the gravity-only state did not converge ({res.reason}): check boundary.gravity and "
+                           "the supports (a liver must be held against its weight)")
+    return res.u_nodes
+
+
 #: ``simulate.tool_model``: how the tool acts on the liver
 TOOL_MODELS = ("traction", "sphere")
 
@@ -211,7 +232,7 @@ def sphere_settings(sim: dict) -> dict:
     kn = float(sim["tool_penalty_n_per_mm3"])
     return {"radius_mm": float(sim["tool_tip_radius_mm"]), "kn": kn if kn > 0 else None,
             "rtol": float(sim["tool_force_rtol"]), "atol": float(sim["tool_force_atol_n"]),
-            "max_slide_mm": float(sim["tool_max_slide_mm"])}
+            "max_slide_mm": float(sim["tool_max_slide_mm"]), "control": str(sim.get("tool_control", "magnitude"))}
 
 
 def _solve_sphere(indenters: dict, gid, fe, case, material, start, sim):
@@ -231,6 +252,9 @@ def _solve_sphere(indenters: dict, gid, fe, case, material, start, sim):
         indenters[key] = LiverIndenter(fe, point, radius_mm=st["radius_mm"], kn=st["kn"],
                                        candidate_radius_mm=4.0 * st["radius_mm"] + 10.0 + st["max_slide_mm"])
     ind = indenters[key]
+    if st["control"] == "magnitude":
+        return ind.push_to_magnitude(np.asarray(case["force_n"], dtype=float), material=material, options=fe.options,
+                                     rtol=st["rtol"], atol=st["atol"])
     warm = start if (isinstance(start, SphereCaseResult) and np.allclose(start.load.point_mm, point)) else None
     return ind.push_to_force(np.asarray(case["force_n"], dtype=float), material=material, u0=warm,
                              options=fe.options, rtol=st["rtol"], atol=st["atol"], max_slide_mm=st["max_slide_mm"])

@@ -11,7 +11,7 @@ from liverforce.config import ConfigError, compose
 from liverforce.pipeline.physics import BASELINE, physics_study, physics_variants
 
 SPEC = {"enabled": True, "liver": 0, "n_cases": 6, "foundation_scale": [0.25, 4.0], "tangential_ratio": [0.1],
-        "rib_contact": ["unilateral", "off"], "gravity": [[0.0, -1.0, 0.0]], "tool": "none"}
+        "rib_contact": ["unilateral", "off"], "gravity": [[0.0, -1.0, 0.0]], "tool": "none", "tool_cases": 2, "tool_max_force_n": 5.0}
 
 
 def test_each_variant_changes_one_choice_and_the_baseline_comes_first():
@@ -43,6 +43,8 @@ def test_each_variant_changes_one_choice_and_the_baseline_comes_first():
     ("validate.physics.rib_contact=[glued]", "validate.physics.rib_contact"),
     ("validate.physics.tool=cylinder", "validate.physics.tool"),
     ("validate.physics.gravity=[[0,0,0]]", "validate.physics.gravity"),
+    ("validate.physics.tool_cases=13", "validate.physics.tool_cases"),
+    ("validate.physics.tool_max_force_n=0", "validate.physics.tool_max_force_n"),
 ])
 def test_a_wrong_physics_setting_names_its_key(override, key):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
@@ -121,6 +123,7 @@ def test_the_study_moves_the_tool_displacement_the_way_the_supports_do(study, se
     # a sliding foundation lets the ROI move more, not less
     assert by["kt/kn 0.1"]["u_tool_ratio_median"] >= 1.0
     assert by["gravity supine"]["sag_max_mm"] > 0.1 and by[BASELINE]["sag_max_mm"] is None
+    assert by[BASELINE]["compared_with"] is None and by["rib off"]["compared_with"] == BASELINE
     for v in study["variants"]:
         m = v["models"]["pca_sv"]
         assert np.isfinite(m["mae_vec"]) and 0 <= m["mae_vec"] < 10
@@ -144,12 +147,13 @@ def test_the_models_are_scored_on_the_changed_cases_with_the_baseline_probe(stud
     assert b"foundation x0.25" in b"".join(meta.values())
 
 
-def test_with_gravity_the_displacements_are_the_tools_increment_over_the_sag(setup):
-    """A zero-force case under gravity shows no displacement (the sag is the reference); with a force, the
-    increment is close to the no-gravity solution (small sag, mild nonlinearity) but not equal to it."""
+def test_with_gravity_the_rows_hold_the_tools_increment_over_the_sag(setup):
+    """simulate_cases with gravity: a zero-force case shows no displacement (the sagged state is the
+    reference, as in the pre-operative image); with a force, the increment is close to the no-gravity
+    solution (small sag, mild nonlinearity) but not equal to it."""
     from liverforce.dataset import io as dio
     from liverforce.mesh.io import read_mesh
-    from liverforce.pipeline.physics import _over_sag
+    from liverforce.pipeline.physics import _sag_max
     from liverforce.pipeline.simulate import probe_reference, simulate_cases
 
     cfg = setup["cfg"]
@@ -161,11 +165,10 @@ def test_with_gravity_the_displacements_are_the_tools_increment_over_the_sag(set
     args = ({"val-1000": mesh}, cfg["simulate"])
     rows = simulate_cases([zero, case], *args, grav, cfg["dataset"], probe=probe_reference(cfg["material"]))
     plain = simulate_cases([case], *args, cfg["boundary"], cfg["dataset"], probe=probe_reference(cfg["material"]))
-    raw0 = np.abs(rows[0]["roi_deformed_mm"] - rows[0]["roi_undeformed_mm"]).max()
-    sag = _over_sag(rows, mesh, grav, cfg["simulate"])
-    assert raw0 > 0.1 and sag == pytest.approx(raw0, rel=0.5)
+    assert all(r["converged"] for r in rows + plain)
+    assert _sag_max(mesh, grav, cfg["simulate"], case) > 0.1
     assert np.abs(rows[0]["roi_deformed_mm"] - rows[0]["roi_undeformed_mm"]).max() < 1e-4
-    assert np.abs(rows[0]["surface_displacement_mm"]).max() < 1e-4
+    assert np.abs(rows[0]["surface_displacement_mm"]).max() < 1e-4 and rows[0]["max_displacement_mm"] < 1e-4
     inc = rows[1]["roi_deformed_mm"] - rows[1]["roi_undeformed_mm"]
     ref = plain[0]["roi_deformed_mm"] - plain[0]["roi_undeformed_mm"]
     rel = np.linalg.norm(inc - ref) / np.linalg.norm(ref)
@@ -181,3 +184,31 @@ def test_the_report_shows_the_physics_table(study):
     d = study["variants"][1]["models"]["pca_sv"]["mae_vec"] - study["variants"][0]["models"]["pca_sv"]["mae_vec"]
     assert f"({d:+.3f})" in page
     assert physics_section(None, "pca_sv") == ""
+
+
+def test_the_sphere_is_compared_with_the_traction_of_its_own_forces(setup):
+    """The frictionless sphere exerts a force near the surface normal whatever the push direction; the study
+    compares it with the traction carrying the very force vectors it exerted, on the first tool_cases cases."""
+    from liverforce.dataset import io as dio
+
+    cfg = setup["cfg"]
+    sim = {**cfg["simulate"], "tool_tip_radius_mm": 10.0}  # the ellipsoid's facets are ~15 mm
+    spec = {**SPEC, "foundation_scale": [], "tangential_ratio": [], "rib_contact": [], "gravity": [], "tool": "sphere",
+            "tool_cases": 2, "tool_max_force_n": 2.0}
+    st = physics_study(setup["cases"], setup["mesh"], [setup["model"]], [setup["metrics"]], sim, cfg["boundary"],
+                       cfg["dataset"], cfg["material"], spec, setup["tmp"] / "tool.json", setup["tmp"] / "tool")
+    names = [v["name"] for v in st["variants"]]
+    assert names == [BASELINE, "tool: rigid sphere", "traction at the sphere's forces"]
+    sph, trac = st["variants"][1], st["variants"][2]
+    assert sph["n_cases"] == 2 and sph["converged"] == 2 and trac["converged"] == 2
+    assert sph["compared_with"] == "traction at the sphere's forces" and trac["compared_with"] is None
+    assert sph["u_tool_ratio_median"] > 0 and sph["roi_change_pct_max"] > 0
+    a = dio.load_training_arrays([setup["tmp"] / "tool" / "01" / "shard-0000.parquet"])
+    b = dio.load_training_arrays([setup["tmp"] / "tool" / "02" / "shard-0000.parquet"])
+    np.testing.assert_allclose(a["force_n"], b["force_n"], rtol=1e-6)
+    cases = {c["case_id"]: c for c in dio.read_table(setup["cases"]).to_pylist()}
+    light = [c for c in sorted(cases) if cases[c]["force_magnitude_n"] <= 2.0][:6][:2]  # the study's sphere cases
+    assert list(a["case_id"]) == light
+    for cid, f in zip(a["case_id"], a["force_n"]):  # the case's magnitude, within the sphere's tolerance
+        assert np.linalg.norm(f) == pytest.approx(cases[cid]["force_magnitude_n"], rel=0.011)
+    assert set(sph["models"]) == {"pca_sv"}

@@ -37,7 +37,7 @@ def test_sphere_rows_carry_the_force_the_sphere_exerts(liver):
     from liverforce.pipeline.simulate import simulate_cases
 
     cfg = compose(["experiment=smoke", "simulate.tool_model=sphere", "simulate.tool_tip_radius_mm=10",
-                   "simulate.tool_max_slide_mm=30"])
+                   "simulate.tool_max_slide_mm=30", "simulate.tool_control=vector"])
     sim = dict(cfg["simulate"])
     x0 = _case(liver, cfg, [0, 0, 0], 0)["exertion_point_mm"]
     n = surface_normal(liver.points, liver.facets, x0, 10.0, liver.facet_region != 1)
@@ -70,7 +70,7 @@ def test_a_force_the_sphere_cannot_hold_is_a_failed_row_with_its_reason(liver):
     from liverforce.pipeline.simulate import simulate_cases
 
     cfg = compose(["experiment=smoke", "simulate.tool_model=sphere", "simulate.tool_tip_radius_mm=10",
-                   "simulate.tool_max_slide_mm=0.5"])
+                   "simulate.tool_max_slide_mm=0.5", "simulate.tool_control=vector"])
     x0 = _case(liver, cfg, [0, 0, 0], 0)["exertion_point_mm"]
     n = surface_normal(liver.points, liver.facets, x0, 10.0, liver.facet_region != 1)
     t = np.cross(n, [0.0, 1.0, 0.0])
@@ -88,6 +88,35 @@ def test_a_force_the_sphere_cannot_hold_is_a_failed_row_with_its_reason(liver):
     assert np.linalg.norm(rows[0]["force_n"] - target) > 0.01 * np.linalg.norm(target)
 
 
+def test_magnitude_control_reaches_the_case_magnitude_with_the_contacts_own_direction(liver):
+    """The default sphere control pushes along the case's force and stops at its magnitude: the label is the
+    force the sphere exerts, of the case's magnitude, pointing where a frictionless contact lets it (closer to
+    the surface normal than the push), and the support reactions balance it."""
+    from liverforce.fem.indenter import surface_normal
+    from liverforce.pipeline.simulate import simulate_cases
+
+    cfg = compose(["experiment=smoke", "simulate.tool_model=sphere", "simulate.tool_tip_radius_mm=10"])
+    assert cfg["simulate"]["tool_control"] == "magnitude"
+    x0 = _case(liver, cfg, [0, 0, 0], 0)["exertion_point_mm"]
+    n = surface_normal(liver.points, liver.facets, x0, 10.0, liver.facet_region != 1)
+    t = np.cross(n, [0.0, 1.0, 0.0])
+    t /= np.linalg.norm(t)
+    a = np.radians(30.0)
+    cases = [_case(liver, cfg, m * (-np.cos(a) * n + np.sin(a) * t), i) for i, m in enumerate((0.3, 0.8))]
+    results = []
+    rows = simulate_cases(cases, {"g": liver}, dict(cfg["simulate"]), cfg["boundary"], cfg["dataset"],
+                          progress=lambda k, total, rows, res: results.append(res))
+    for case, row, res in zip(cases, rows, results):
+        assert row["converged"], row["reason"]
+        f = np.asarray(row["force_n"])
+        np.testing.assert_array_equal(f, res.force_on_liver)
+        assert np.linalg.norm(f) == pytest.approx(case["force_magnitude_n"], rel=cfg["simulate"]["tool_force_rtol"])
+        tilt = np.degrees(np.arccos(-f @ n / np.linalg.norm(f)))
+        assert tilt < 30.0  # the contact turns the force towards the normal
+        imbalance = np.linalg.norm(res.reactions["imbalance"])
+        assert imbalance < 1e-6 * max(1.0, np.linalg.norm(f))
+
+
 def test_the_tool_model_config_is_checked():
     assert compose([])["simulate"]["tool_model"] == "traction"
     with pytest.raises(ConfigError) as err:
@@ -95,6 +124,8 @@ def test_the_tool_model_config_is_checked():
     msg = str(err.value)
     assert msg.startswith("config key 'simulate.tool_model': ") and "'cone'" in msg
     assert "choose one of traction, sphere" in msg
+    with pytest.raises(ConfigError, match="simulate.tool_control"):
+        compose(["simulate.tool_control=position"])
     with pytest.raises(ConfigError, match="simulate.tool_tip_radius_mm"):
         compose(["simulate.tool_tip_radius_mm=0"])
     with pytest.raises(ConfigError, match="gravity"):
