@@ -384,27 +384,31 @@ def camera_section(data: dict, v: dict, main_variant: str | None) -> str:
 
 
 def physics_section(phys: dict | None, validated: str | None) -> str:
-    """What the modelling choices cost (``validate/physics.json``, :mod:`liverforce.pipeline.physics`); "" if absent."""
+    """What the modelling choices cost (``validate/physics.json``, :mod:`liverforce.pipeline.physics`); "" if absent.
+
+    Each choice is measured against its reference (``compared_with``: the baseline for the supports, the
+    traction carrying the same forces for the sphere), its MAE change too."""
     if not phys or not phys.get("variants"):
         return ""
+    by = {e["name"]: e for e in phys["variants"]}
     names = list(phys["variants"][0].get("models") or {})
     names.sort(key=lambda n: n != validated)  # the validated model first
-    base = phys["variants"][0]
     rows = []
     for e in phys["variants"]:
-        ratio = e.get("u_tool_ratio_median")
-        rng = e.get("u_tool_ratio_range")
-        cells = [html.escape(e["name"]), html.escape(e["what"]), f"{e['converged']}/{phys['n_cases']}",
-                 "–" if ratio is None else f"{ratio:.2f}" + (f" ({rng[0]:.2f}–{rng[1]:.2f})" if rng else ""),
-                 "–" if e.get("roi_change_pct_mean") is None else
+        ref = by.get(e.get("compared_with") or "")
+        ratio, rng = e.get("u_tool_ratio_median"), e.get("u_tool_ratio_range")
+        cells = [html.escape(e["name"]), html.escape(e["what"]), f"{e['converged']}/{e.get('n_cases', phys['n_cases'])}",
+                 "–" if ref is None else html.escape(ref["name"]),
+                 "–" if ratio is None or ref is None else f"{ratio:.2f}" + (f" ({rng[0]:.2f}–{rng[1]:.2f})" if rng else ""),
+                 "–" if e.get("roi_change_pct_mean") is None or ref is None else
                  f"{e['roi_change_pct_mean']:.0f} / {e['roi_change_pct_max']:.0f}",
                  "–" if e.get("sag_max_mm") is None else _fmt(e["sag_max_mm"], 1)]
         for n in names:
-            m, b = (e.get("models") or {}).get(n), (base.get("models") or {}).get(n)
+            m, b = (e.get("models") or {}).get(n), ((ref or {}).get("models") or {}).get(n)
             cells.append("–" if m is None else f"{_fmt(m['mae_vec'])}" + (
-                "" if e is base or b is None else f" <small>({m['mae_vec'] - b['mae_vec']:+.3f})</small>"))
+                "" if b is None else f" <small>({m['mae_vec'] - b['mae_vec']:+.3f})</small>"))
         rows.append(cells)
-    head = ["choice", "what changed", "converged", "|u| under the tool ÷ baseline: median (range)",
+    head = ["choice", "what changed", "converged", "compared with", "|u| under the tool ÷ reference: median (range)",
             "ROI displacement change %: mean / max", "sag (mm)"]
     head += [f"MAE (N) {n}" + (" (validated)" if n == validated else "") for n in names]
     fmin, fmax = min(phys["forces_n"]), max(phys["forces_n"])
@@ -413,11 +417,13 @@ def physics_section(phys: dict | None, validated: str | None) -> str:
             f"(|F| {fmin:.2f}–{fmax:.2f} N, the validation's constants) simulated again with one modelling choice "
             "changed at a time, and every scenario-IV model scored on them. The models were trained on the "
             "baseline and keep assuming it (their stiffness probe is the baseline supports'), as a model in "
-            "surgery assumes the configured supports and tool: the change in MAE (in brackets) is what getting "
-            "that choice wrong costs. The displacement under the tool at the same force shows what the physics "
-            "does (the force at a given indentation moves by about its inverse); the ROI change is "
-            "|u − u_baseline| / |u_baseline| over the ROI nodes, per case. With gravity, displacements are over "
-            "the sagged state (the pre-operative image shows the sagged liver).</p>"
+            "surgery assumes the configured supports and tool: the change in MAE against the reference (in "
+            "brackets) is what getting that choice wrong costs. The displacement under the tool at the same force "
+            "shows what the physics does (the force at a given indentation moves by about its inverse); the ROI "
+            "change is |u − u_reference| / |u_reference| over the ROI nodes, per case. With gravity, displacements "
+            "are over the sagged state (the pre-operative image shows the sagged liver). A frictionless sphere "
+            "exerts a force close to the surface normal whatever way it is pushed, so it runs the light cases "
+            "only and is compared with the traction carrying the very forces it exerted.</p>"
             + _table(head, rows, cls="physics", row_cls="physics"))
 
 

@@ -212,3 +212,7 @@ def test_the_sphere_is_compared_with_the_traction_of_its_own_forces(setup):
     for cid, f in zip(a["case_id"], a["force_n"]):  # the case's magnitude, within the sphere's tolerance
         assert np.linalg.norm(f) == pytest.approx(cases[cid]["force_magnitude_n"], rel=0.011)
     assert set(sph["models"]) == {"pca_sv"}
+    from liverforce.report.html import physics_section
+
+    page = physics_section(st, "pca_sv")  # the sphere's MAE change is against the traction of its own forces
+    assert f"({sph['models']['pca_sv']['mae_vec'] - trac['models']['pca_sv']['mae_vec']:+.3f})" in page
