@@ -697,8 +697,8 @@ def _check_ranges(cfg: dict) -> None:
         if len(d) != 3 or not sum(float(x) ** 2 for x in d) > 0:
             _fail("validate.physics.gravity", f"each gravity direction is a non-zero 3-vector (got {d})")
     _check_choice("validate.physics.tool", ph["tool"], ("none", "sphere"), "tool model")
-    if not 1 <= ph["tool_cases"] <= ph["n_cases"]:
-        _fail("validate.physics.tool_cases", f"must be 1 .. validate.physics.n_cases ({ph['n_cases']})")
+    if not 1 <= ph["tool_cases"] <= v["n_cases"]:
+        _fail("validate.physics.tool_cases", f"must be 1 .. validate.n_cases ({v['n_cases']})")
     if not ph["tool_max_force_n"] > 0:
         _fail("validate.physics.tool_max_force_n", "must be > 0 N")
     from liverforce.seeds import liver_seeds

@@ -111,7 +111,7 @@ def physics_study(cases_path, mesh_path, model_dirs, model_metrics, sim: dict, b
     ``model_dirs`` / ``model_metrics``: the scenario-IV models (all variants). Writes one shard per choice
     under ``shard_dir`` and the study as JSON to ``out_path``; returns it.
 
-    The sphere (``tool: sphere``) runs the first ``tool_cases`` cases of at most ``tool_max_force_n`` only (a
+    The sphere (``tool: sphere``) runs the liver's first ``tool_cases`` cases of at most ``tool_max_force_n`` (a
     contact case costs tens of traction cases, and a 5 mm tip sinks deeper than the default mesh resolves
     beyond about 1 N: Hertz gives ~7 mm at 1 N for R 2.5 mm in this tissue). A frictionless tip exerts a force close to the surface normal whatever the push
     direction, so it is compared with the traction carrying the *same* force vectors (the sphere's own,
@@ -123,7 +123,8 @@ def physics_study(cases_path, mesh_path, model_dirs, model_metrics, sim: dict, b
 
     gid = gid_of(mesh_path)
     table = dio.read_table(cases_path).to_pylist()
-    cases = sorted((c for c in table if c["geometry_id"] == gid), key=lambda c: c["case_id"])[: int(spec["n_cases"])]
+    liver_cases = sorted((c for c in table if c["geometry_id"] == gid), key=lambda c: c["case_id"])
+    cases = liver_cases[: int(spec["n_cases"])]
     if not cases:
         raise ValueError(f"{cases_path}: no case on the liver {gid}")
     mesh = read_mesh(mesh_path)
@@ -158,7 +159,7 @@ def physics_study(cases_path, mesh_path, model_dirs, model_metrics, sim: dict, b
     for v in physics_variants(boundary, sim, spec):  # the baseline first
         if v["simulate"].get("tool_model") == "sphere":
             cap = float(spec.get("tool_max_force_n", np.inf))
-            these = [c for c in cases if c["force_magnitude_n"] <= cap][: int(spec.get("tool_cases", len(cases)))]
+            these = [c for c in liver_cases if c["force_magnitude_n"] <= cap][: int(spec.get("tool_cases", len(cases)))]
             if not these:
                 log.warning("physics: no case of at most %g N for the sphere (validate.physics.tool_max_force_n)", cap)
                 continue
