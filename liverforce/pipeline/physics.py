@@ -140,9 +140,9 @@ def physics_study(cases_path, mesh_path, model_dirs, model_metrics, sim: dict, b
         rows = simulate_cases(these, {gid: mesh}, v["simulate"], v["boundary"], dataset, probe=probe)
         sag = _sag_max(mesh, v["boundary"], v["simulate"], these[0]) if v["boundary"]["gravity"]["enabled"] else None
         if done:  # a model in surgery assumes the configured supports: its stiffness probe is the baseline's
-            base = {r["case_id"]: r for r in done[BASELINE][0]}
-            for r in rows:
-                r["probe_compliance_mm_per_n"] = base[r["case_id"]]["probe_compliance_mm_per_n"]
+            base = {tuple(r["exertion_point_mm"]): r["probe_compliance_mm_per_n"] for r in done[BASELINE][0]}
+            for r in rows:  # (a point the baseline did not probe was probed here with the baseline's supports)
+                r["probe_compliance_mm_per_n"] = base.get(tuple(r["exertion_point_mm"]), r["probe_compliance_mm_per_n"])
         entry = {"name": v["name"], "what": v["what"], "n_cases": len(rows),
                  "converged": int(sum(r["converged"] for r in rows)), "sag_max_mm": sag, "compared_with": ref_name,
                  **_score(k, v, rows, done.get(ref_name), models, mesh_path, dataset, probe, shard_dir)}

@@ -193,8 +193,8 @@ def test_the_sphere_is_compared_with_the_traction_of_its_own_forces(setup):
 
     cfg = setup["cfg"]
     sim = {**cfg["simulate"], "tool_tip_radius_mm": 10.0}  # the ellipsoid's facets are ~15 mm
-    spec = {**SPEC, "foundation_scale": [], "tangential_ratio": [], "rib_contact": [], "gravity": [], "tool": "sphere",
-            "tool_cases": 2, "tool_max_force_n": 2.0}
+    spec = {**SPEC, "n_cases": 1, "foundation_scale": [], "tangential_ratio": [], "rib_contact": [], "gravity": [],
+            "tool": "sphere", "tool_cases": 2, "tool_max_force_n": 2.0}  # the sphere's cases beyond the baseline's
     st = physics_study(setup["cases"], setup["mesh"], [setup["model"]], [setup["metrics"]], sim, cfg["boundary"],
                        cfg["dataset"], cfg["material"], spec, setup["tmp"] / "tool.json", setup["tmp"] / "tool")
     names = [v["name"] for v in st["variants"]]
