@@ -225,17 +225,18 @@ class Representation:
 
     def state_arrays(self, arrays: dict) -> dict:
         """The arrays the state vector is built from: a camera model has no deformed ROI centroid (it needs
-        node correspondence), so its column repeats the undeformed one and carries nothing. With
-        ``rigid_motion: remove`` the deformed ROI centroid is that of the rigid-motion-free ROI."""
-        if self.removes_rigid_motion:
-            out = dict(arrays)
+        node correspondence), so its column repeats the undeformed one and carries nothing. Nor does it under
+        an observation model (occlusion or noise): the stored centroid is the mean of every clean ROI node,
+        information the occluded, noisy view does not have (the observed features carry the mean motion).
+        With ``rigid_motion: remove`` the deformed ROI centroid is that of the rigid-motion-free ROI."""
+        out = dict(arrays)
+        if self.is_camera or self.occludes:
+            out["roi_centroid_deformed_mm"] = arrays["roi_centroid_undeformed_mm"]
+        elif self.removes_rigid_motion:
             out["roi_centroid_deformed_mm"] = np.array(
                 [d.mean(axis=0) for d in self.rigid_free_deformed(arrays)]).reshape(-1, 3)
-            return out
-        if not self.is_camera:
+        else:
             return arrays
-        out = dict(arrays)
-        out["roi_centroid_deformed_mm"] = arrays["roi_centroid_undeformed_mm"]
         return out
 
     def rigid_free_deformed(self, arrays: dict, R: np.ndarray | None = None) -> list[np.ndarray]:

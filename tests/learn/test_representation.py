@@ -132,3 +132,16 @@ def test_bad_frame_is_refused(arrays):
 def test_occlusion_removing_everything_names_the_case(arrays):
     with pytest.raises(ValueError, match="S-000000.*radius_mm"):
         rep(occlusion_radius_mm=500.0).features_of(subset(arrays, [0]))
+
+
+@pytest.mark.parametrize("kw", [{"noise_mm": 0.5}, {"occlusion_radius_mm": 5.0, "occlusion_mode": "remove"},
+                                {"occlusion_radius_mm": 5.0, "occlusion_mode": "noise"}])
+def test_an_observed_model_never_reads_the_clean_deformed_centroid(arrays, kw):
+    """Under an observation model the state vector must not carry the mean of every clean ROI node (issue 18):
+    moving the stored deformed centroid changes nothing, while the clean model reads it."""
+    moved = dict(arrays)
+    moved["roi_centroid_deformed_mm"] = np.asarray(arrays["roi_centroid_deformed_mm"]) + 3.0
+    observed = rep(**kw)
+    np.testing.assert_array_equal(state_vector(observed.state_arrays(arrays)), state_vector(observed.state_arrays(moved)))
+    clean = rep()
+    assert np.abs(state_vector(clean.state_arrays(arrays)) - state_vector(clean.state_arrays(moved))).max() > 1.0
