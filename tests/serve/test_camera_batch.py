@@ -1,0 +1,144 @@
+"""The compiled camera-cloud path (liverforce.serve.compiled_cloud): its features equal the reference
+cloud_grid's to rounding, its forces the reference predict_cloud's, and predict_batch gives every cloud exactly
+what predict gives it, with refused clouds reported by reason while the rest of the batch is predicted."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from liverforce.learn.cloud_features import cloud_grid
+from liverforce.learn.model import ForceModel, subset
+from liverforce.learn.observation import ObservationConfig, observe
+from liverforce.learn.synthetic import synthetic_surface_arrays
+from liverforce.learn.train import train_scenario
+from liverforce.serve import Predictor, Preop
+from liverforce.serve.errors import PredictionInputError
+
+MODEL = {"encoder": "pca", "code_size": 6, "state_vector": True, "grid_size": 8, "hidden": [16, 16],
+         "dropout": 0.0, "occlusion": {"radius_mm": 0.0, "mode": "remove"}, "noise_mm": 0.0,
+         "roi_features": "cloud", "force_scaling": "stiffness", "probe_force_radius_mm": 5.0,
+         "camera": {"observation": {"n_points": [300, 3000], "noise_sd_mm": 0.3}, "grid": {}, "tip_noise_mm": 0.1}}
+TRAIN = {"test_fraction": 0.2, "epochs": 8, "batch_size": 32, "lr": 3e-3, "weight_decay": 0.0, "seed": 0,
+         "interval": {"coverage": 0.9, "calibration_fraction": 0.25}}
+NO_TUNE = {"enabled": False, "trials": 1, "folds": 2, "sobol_trials": 1, "epochs": 1}
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory):
+    arrays = synthetic_surface_arrays(80, n_geometries=3, seed=3, material_varies=True)
+    res = train_scenario(arrays, MODEL, TRAIN, NO_TUNE, "IV", "cloud", out_dir=tmp_path_factory.mktemp("cam-batch"))
+    pred = Predictor(ForceModel.load(res["model_path"]))
+    test = np.flatnonzero(np.isin(arrays["geometry_id"], res["split"]["test_geometries"]))
+    a = subset(arrays, test)
+    ctx = Preop.from_arrays({k: v for k, v in a.items() if k != "roi_deformed_mm"}, 0)
+    return pred, a, ctx, pred.compile_cloud(ctx)
+
+
+def _observe(a: dict, i: int, n_points: int, seed: int):
+    V, T = a["surface_meshes"][a["geometry_id"][i]]
+    u = np.asarray(a["surface_displacement_mm"][i], dtype=np.float64)
+    p = a["exertion_point_mm"][i]
+    tip = p + u[int(np.argmin(np.linalg.norm(V - p, axis=1)))]
+    cfg = ObservationConfig(n_points=(n_points, n_points), noise_sd_mm=0.3, roi_radius_mm=40.0)
+    return observe(V + u, T, tip, a["frame_normal"][i], cfg, seed=seed)[0], tip
+
+
+def _clouds(a: dict, k: int = 6):
+    """Clouds of case 0 (the compiled context): densities 300-5000, one with duplicated points, one with a hole."""
+    out = [_observe(a, 0, n, seed) for seed, n in enumerate(np.linspace(300, 5000, k).astype(int))]
+    c, tip = out[1]
+    dup = np.concatenate([c, c[::3]])[np.random.default_rng(0).permutation(len(c) + len(c[::3]))]
+    out.append((dup, tip))
+    c, tip = out[2]
+    far = np.linalg.norm(c - tip, axis=1) > 8.0  # a hole around the tool: cells filled by the Laplace rule
+    out.append((c[far], tip))
+    return out
+
+
+def test_compiled_features_equal_the_reference_cloud_grid(served):
+    pred, a, ctx, fast = served
+    filled = 0
+    for cloud, tip in _clouds(a):
+        ref = cloud_grid(cloud, fast.ref, fast.spec).features(include_mask=True)
+        x = fast.features(cloud, tip)
+        g2 = fast.g ** 2
+        np.testing.assert_array_equal(x[g2:2 * g2], ref[g2:])  # the same valid cells
+        np.testing.assert_allclose(x[:-3], ref, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(x[-3:], fast.R @ (tip - fast.p), rtol=0, atol=1e-12)
+        filled += int((ref[g2:] == 0).sum())
+    assert filled > 0  # the Laplace fill was exercised
+
+
+def test_compiled_predict_equals_the_reference_path(served):
+    pred, a, ctx, fast = served
+    for cloud, tip in _clouds(a):
+        want, info = pred.predict_cloud(cloud, ctx, tool_tip_mm=tip, return_info=True)
+        got, half, warnings = fast.predict(cloud, tip)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(half, info["interval"]["half_width_local_n"], rtol=1e-12)
+        assert warnings == info["warnings"]
+
+
+def test_batch_equals_per_cloud_predictions(served):
+    pred, a, ctx, fast = served
+    items = _clouds(a)
+    clouds = [c for c, _ in items]
+    tips = np.stack([t for _, t in items]) + np.random.default_rng(1).normal(0, 0.2, (len(items), 3))
+    single = np.stack([fast.predict(c, t)[0] for c, t in zip(clouds, tips)])
+    res = fast.predict_batch(clouds, tips)
+    assert res.force.shape == (len(clouds), 3) and res.ok.all() and res.refused == [None] * len(clouds)
+    np.testing.assert_allclose(res.force, single, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(res.half_width, fast.predict(clouds[0], tips[0])[1])
+    # one padded array with counts; float32 clouds (as parquet stores them) too
+    N = max(len(c) for c in clouds)
+    pad = np.full((len(clouds), N, 3), np.nan)
+    for k, c in enumerate(clouds):
+        pad[k, :len(c)] = c
+    res2 = fast.predict_batch(pad, tips, counts=[len(c) for c in clouds])
+    np.testing.assert_allclose(res2.force, single, rtol=0, atol=1e-9)
+    c32 = [c.astype(np.float32) for c in clouds]
+    np.testing.assert_allclose(fast.predict_batch(c32, tips).force,
+                               np.stack([fast.predict(c, t)[0] for c, t in zip(c32, tips)]), rtol=0, atol=1e-9)
+
+
+def test_a_refused_cloud_does_not_poison_the_batch(served):
+    pred, a, ctx, fast = served
+    (cloud, tip), (other, tip2) = _clouds(a, 2)[:2]
+    nan = cloud.copy()
+    nan[7, 1] = np.nan
+    R, h = ctx.frame, fast.half_width_mm
+    loc = (cloud - ctx.exertion_point_mm) @ R.T
+    corner = cloud[(loc[:, 0] > 0.6 * h) & (loc[:, 1] > 0.6 * h)]
+    bad = {1: (cloud[:5], tip), 2: (cloud / 1000.0, tip), 3: (nan, tip),
+           4: (cloud, ctx.exertion_point_mm + 3 * h), 6: (corner, tip), 7: (np.zeros((0, 3)), tip),
+           8: (np.ones((4, 2)), tip)}
+    items = [(cloud, tip), *[None] * 4, (other, tip2), *[None] * 3]
+    for k, v in bad.items():
+        items[k] = v
+    res = fast.predict_batch([c for c, _ in items], np.stack([t for _, t in items]))
+    assert list(np.flatnonzero(res.ok)) == [0, 5]
+    np.testing.assert_allclose(res.force[0], fast.predict(cloud, tip)[0], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(res.force[5], fast.predict(other, tip2)[0], rtol=0, atol=1e-9)
+    assert np.isnan(res.force[list(bad)]).all()
+    for k, (c, t) in bad.items():  # the reference path refuses each with the same reason
+        with pytest.raises(PredictionInputError) as exc:
+            pred.predict_cloud(c, ctx, tool_tip_mm=t)
+        assert res.refused[k] == str(exc.value), k
+        with pytest.raises(PredictionInputError):
+            fast.predict(c, t)
+    # a mild departure is predicted with the reference's warning
+    top = pred.model.meta["training_scale"]["camera"]["tip_displacement_max_mm"]
+    push = ctx.exertion_point_mm - 1.3 * top * R[2]
+    res = fast.predict_batch([cloud, cloud], np.stack([tip, push]))
+    _, info = pred.predict_cloud(cloud, ctx, tool_tip_mm=push, return_info=True)
+    assert res.ok.all() and res.warnings[0] == [] and res.warnings[1] == info["warnings"] != []
+
+
+def test_empty_batch(served):
+    pred, a, ctx, fast = served
+    res = fast.predict_batch([], np.zeros((0, 3)))
+    assert res.force.shape == (0, 3) and res.warnings == [] and res.refused == [] and res.ok.shape == (0,)
+    res = fast.predict_batch(np.zeros((0, 100, 3)), np.zeros((0, 3)))
+    assert res.force.shape == (0, 3) and res.refused == []
+    with pytest.raises(PredictionInputError, match="one"):
+        fast.predict_batch([np.zeros((30, 3))], np.zeros((2, 3)))
