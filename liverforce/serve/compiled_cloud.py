@@ -43,7 +43,10 @@ points, too few points over the grid, too little of the grid seen, heights or
 tip displacements far outside training).
 
 Measured with ``benchmarks/bench_camera.py`` (5,000-point clouds, 12 x 12
-grid, 1 core): see that script's docstring for the figures.
+grid, 1 thread, a loaded 2-core VM): one cloud p50 0.23 ms, p99 0.54 ms
+(reference ``predict_cloud`` 12.8 / 21.3 ms); ``predict_batch`` about 5,000
+clouds/s, the numba pass being ~90 % of it (moments ~30 us, local frame +
+height ~55 us per cloud).
 """
 
 from __future__ import annotations
