@@ -13,7 +13,7 @@ deformed positions ``D`` (``k x 3``, liver frame, mm) for models with
                                               weights over the fixed undeformed
                                               tangent coordinates
     c     = C (x - mu_f) / s_f - ...           PCA + scalers (AE/DAE: first Linear)
-    s     = (state(D) - mu_s) / s_s           deformed ROI centroid = mean D and the
+    s     = (state(D) - mu_s) / s_s           deformed ROI centroid = mean D (constant under an observation model) and the
                                               linear force estimate C^-1 sum w x: affine;
                                               the rest of the state is constant
 
@@ -177,13 +177,17 @@ class CompiledROI:
             Rs = R / ss.scale[sc][:, None]
             self._S_c = Rs  # (3, 3) acting on the centroid
             s0 = s0.copy()
-            s0[sc] = -(Rs @ p) - ss.mean[sc] / ss.scale[sc]
-            self._s0 = s0
-            mean_op = np.zeros((3, 3 * k))
-            for a in range(3):
-                mean_op[a, a::3] = 1.0 / k
             A_state = np.zeros((s0.size, 3 * k))
-            A_state[sc] = Rs @ mean_op
+            # under an observation model the state's deformed centroid is the undeformed one (s_ref's):
+            # Representation.state_arrays; otherwise the mean of D
+            self._centroid_from_d = not model.representation.occludes
+            if self._centroid_from_d:
+                s0[sc] = -(Rs @ p) - ss.mean[sc] / ss.scale[sc]
+                mean_op = np.zeros((3, 3 * k))
+                for a in range(3):
+                    mean_op[a, a::3] = 1.0 / k
+                A_state[sc] = Rs @ mean_op
+            self._s0 = s0
             self._lin_slice = None
             if pre.linear_force_weights is not None:
                 # f_lin = C^-1 u_w, u_w = sum_i w_i x_c,i (channels 0..2): affine in D like the grid features
@@ -321,6 +325,8 @@ class CompiledROI:
         dmax = np.maximum(X.max(axis=1), -X.min(axis=1))
         if self._rigid_nodes is not None:  # the state's deformed centroid is then the corrected ROI's, not given
             X = np.stack([self._rigid_free(Di) for Di in D]).reshape(n, 3 * self.k) - self._U_flat
+            roi_centroid_deformed_mm = None
+        if self.uses_state and not self._centroid_from_d:  # an observed model never reads a given centroid
             roi_centroid_deformed_mm = None
         stiff = np.full((n, 1), self._stiff)
         if self.uses_state and (roi_centroid_deformed_mm is not None or material_params_mpa is not None):
