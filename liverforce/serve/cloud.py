@@ -187,8 +187,8 @@ def cloud_to_arrays(model, cloud_mm, preop: Preop, *, approximate: bool, scale: 
     return out, {"mode": "approximate", "points_given": len(O), "points_used": n_used}
 
 
-def _camera_arrays(model, cloud_mm, preop: Preop, tool_tip_mm, limits: Limits) -> tuple[dict, dict]:
-    """Arrays of a camera-cloud model: the cloud as given, the tool tip, the pre-operative context."""
+def tool_tip_of(tool_tip_mm) -> np.ndarray:
+    """The tool tip (3,) mm, refused when missing or not 3 finite numbers (the camera models need it)."""
     if tool_tip_mm is None:
         raise PredictionInputError(
             "this camera-cloud model needs the tool tip's position (from the robot's kinematics, mm in the liver "
@@ -196,6 +196,12 @@ def _camera_arrays(model, cloud_mm, preop: Preop, tool_tip_mm, limits: Limits) -
     tip = np.asarray(tool_tip_mm, dtype=np.float64).reshape(-1)
     if tip.shape != (3,) or not np.isfinite(tip).all():
         raise PredictionInputError(f"tool_tip_mm: need 3 finite coordinates (mm), got {tool_tip_mm!r}")
+    return tip
+
+
+def _camera_arrays(model, cloud_mm, preop: Preop, tool_tip_mm, limits: Limits) -> tuple[dict, dict]:
+    """Arrays of a camera-cloud model: the cloud as given, the tool tip, the pre-operative context."""
+    tip = tool_tip_of(tool_tip_mm)
     O = _points("cloud", cloud_mm, min_points=1)
     rep = model.representation
     p = preop.exertion_point_mm

@@ -62,10 +62,10 @@ from liverforce.learn.cloud_features import ReferenceSurface, _fill
 from liverforce.learn.encoders import PCAEncoder
 from liverforce.learn.state import compliance_matrices, state_vector
 from liverforce.serve.checks import Limits
-from liverforce.serve.cloud import camera_checks
+from liverforce.serve.cloud import camera_checks, tool_tip_of
 from liverforce.serve.compiled import numpy_layers
 from liverforce.serve.errors import PredictionInputError
-from liverforce.serve.preop import Preop
+from liverforce.serve.preop import Preop, _points
 
 _FILL_CODES = {"zero": 0, "laplace": 1, "nearest": 2}
 _CHUNK = 64  # clouds per kernel call when a list is concatenated (bounds the copy, stays in cache)
@@ -587,24 +587,11 @@ class CompiledCloud:
 
     @staticmethod
     def _cloud(cloud_mm) -> np.ndarray:
-        try:
-            O = np.asarray(cloud_mm, dtype=np.float64)
-        except (TypeError, ValueError) as exc:
-            raise PredictionInputError(f"cloud: not a numeric array ({exc})") from exc
-        if O.ndim != 2 or O.shape[1] != 3:
-            raise PredictionInputError(f"cloud: expected an (n, 3) array of xyz points in mm, got shape {O.shape}")
-        return np.ascontiguousarray(O)
+        return np.ascontiguousarray(_points("cloud", cloud_mm, min_points=1))
 
     @staticmethod
     def _tip(tool_tip_mm) -> np.ndarray:
-        if tool_tip_mm is None:
-            raise PredictionInputError(
-                "this camera-cloud model needs the tool tip's position (from the robot's kinematics, mm in the liver "
-                "frame) with the cloud: --tool-tip X Y Z, or tool_tip_mm=")
-        tip = np.asarray(tool_tip_mm, dtype=np.float64).reshape(-1)
-        if tip.shape != (3,) or not np.isfinite(tip).all():
-            raise PredictionInputError(f"tool_tip_mm: need 3 finite coordinates (mm), got {tool_tip_mm!r}")
-        return tip
+        return tool_tip_of(tool_tip_mm)
 
     def features(self, cloud_mm, tool_tip_mm) -> np.ndarray:
         """The model's feature row of one cloud and tool tip (``cloud_grid(...).features(include_mask=True)``
