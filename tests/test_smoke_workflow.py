@@ -179,7 +179,7 @@ def test_changing_one_value_reruns_only_its_stage_and_descendants(smoke_run):
 
     assert rerun("tracking.experiment_prefix=liverforce") == {}  # nothing changed: nothing to do
     counts = rerun("model.dropout=0.3")
-    assert set(counts) == {"train", "study", "validate", "report", "all"}
+    assert set(counts) == {"train", "study", "validate", "physics", "report", "all"}  # physics scores the IV models
     counts = rerun("study.noise.values=[0.0,1.0]")  # one study's setting: that study and the report only
     assert counts == {"study": 1, "report": 1, "all": 1}
     counts = rerun("sweep.force.max_n=4.0")
@@ -211,14 +211,15 @@ def test_a_variant_can_train_on_another_roi_fraction_without_new_simulations(smo
 
 
 def test_adding_a_variant_reruns_only_that_variants_jobs(smoke_run):
-    """A third variant: only its four trainings and what reads them (validation, report) are out of date."""
+    """A third variant: only its four trainings and what reads them (validation, the physics study that scores
+    every IV variant, report) are out of date."""
     variants = ("train.variants=[{name:pca_sv,encoder:pca,state_vector:true},"
                 "{name:ae_sv,encoder:ae,state_vector:true},{name:dae_sv,encoder:dae,state_vector:true}]")
     out = snakemake("-n", "--directory", str(smoke_run), "--config", "experiment=smoke",
                     f"overrides={variants}").stdout
     counts = job_counts(out)
     assert counts.get("train") == 4, counts
-    assert set(counts) <= {"train", "models", "validate", "report", "all"}, counts
+    assert set(counts) <= {"train", "models", "validate", "physics", "report", "all"}, counts
     trained = re.findall(r"wildcards: scenario=(\w+), variant=(\w+)", out)
     assert sorted(trained) == [(s, "dae_sv") for s in ("I", "II", "III", "IV")]
 
