@@ -127,9 +127,11 @@ def simulate_cases(cases: list[dict], meshes: dict, sim: dict, boundary: dict, d
     is built, the pre-operative stiffness probe runs at each of its exertion
     points in ``cases`` (:func:`probe_compliances`). ``sim["tool_model"]``: "traction" (the
     Gaussian traction of width ``tool_radius_mm``, :meth:`LiverModel.solve`) or "sphere" (a rigid
-    frictionless sphere of radius ``tool_tip_radius_mm`` whose position is found so that it exerts
-    the case's force, :func:`_solve_sphere`; the row's ``force_n`` is then the force the sphere
-    actually exerts on the liver). A case that fails (no
+    frictionless sphere of radius ``tool_tip_radius_mm`` pushed to the case's force magnitude or,
+    with ``tool_control: vector``, positioned to exert its force vector, :func:`_solve_sphere`; the
+    row's ``force_n`` is then the force the sphere actually exerts on the liver). With
+    ``boundary["gravity"]["enabled"]`` the row's displacements are the tool's increment over the
+    gravity-only state of the same constants (:func:`_sag`). A case that fails (no
     convergence, time limit, solver error) becomes a row with ``converged =
     False`` and its reason; it never stops the loop. This is the loop the
     simulate rule runs and ``benchmarks/bench_fem.py`` measures.
@@ -236,11 +238,12 @@ def sphere_settings(sim: dict) -> dict:
 
 
 def _solve_sphere(indenters: dict, gid, fe, case, material, start, sim):
-    """One force-controlled sphere case (:meth:`liverforce.fem.indenter.LiverIndenter.push_to_force`).
+    """One sphere case: :meth:`~liverforce.fem.indenter.LiverIndenter.push_to_magnitude` (``tool_control:
+    magnitude``, from first touch) or :meth:`~liverforce.fem.indenter.LiverIndenter.push_to_force` (``vector``).
 
     One indenter per (geometry, exertion point), built on first use (candidate facets, contact
-    system). Warm start: the pool's nearest converged case, used only when it is a sphere case at
-    this exertion point (its state and sphere centre); otherwise the sphere starts from first touch.
+    system). Warm start (vector control): the pool's nearest converged case, used only when it is a sphere
+    case at this exertion point (its state and sphere centre); otherwise the sphere starts from first touch.
     """
     from liverforce.fem.indenter import LiverIndenter, SphereCaseResult
 
