@@ -600,7 +600,13 @@ class SphereCaseResult(CaseResult):
     contact: dict = field(default_factory=dict)
 
 
-def _sphere_result(ind, u, mat, opt, stats, t0, F_t, ok, reason, outer, slide) -> "SphereCaseResult":
+def _slide(ind, centre) -> float:
+    """Distance (mm) of a sphere centre from the normal line through the exertion point."""
+    r = np.asarray(centre, float) - ind.point
+    return float(np.linalg.norm(r - (r @ ind.normal) * ind.normal))
+
+
+def _sphere_result(ind, u, mat, opt, stats, t0, F_t, ok, reason, outer) -> "SphereCaseResult":
     """A :class:`SphereCaseResult` at the state ``u`` (the contact at its current centre)."""
     from .kinematics import principal_stretch_range
     from .problem import ToolLoad
@@ -626,7 +632,7 @@ def _sphere_result(ind, u, mat, opt, stats, t0, F_t, ok, reason, outer, slide) -
         state=u.copy(), load=ToolLoad(ind.point, F_t, ind.radius), formulation=opt.formulation, n_dofs=n,
         factorizations=stats["factorizations"], history=stats["history"], min_principal_stretch=lam_min,
         max_principal_stretch=lam_max, centre=contact.centre.copy(), force_on_liver=F, target_force=F_t.copy(),
-        force_error_n=float(np.linalg.norm(F - F_t)), outer_iterations=outer, slide_mm=slide, contact=summ)
+        force_error_n=float(np.linalg.norm(F - F_t)), outer_iterations=outer, slide_mm=_slide(ind, contact.centre), contact=summ)
 
 
 def _push_to_magnitude(ind: "LiverIndenter", force_n, material, options, rtol, atol, max_pushes,
@@ -648,7 +654,7 @@ def _push_to_magnitude(ind: "LiverIndenter", force_n, material, options, rtol, a
     inc = float(max_increment) if max_increment else 0.2 * R
     contact.set_centre(start)
     if target <= atol:
-        return _sphere_result(ind, zero, mat, opt, stats, t0, F_t, True, "converged", 0, 0.0)
+        return _sphere_result(ind, zero, mat, opt, stats, t0, F_t, True, "converged", 0)
     lo, hi = (0.0, 0.0, zero), None  # (depth, |F|, state): the deepest state below the target, the shallowest above
     curve = list(ind._magnitude_curve)  # (depth, |F|) of earlier cases at this point: the first guess
     for push in range(1, max_pushes + 1):
@@ -676,7 +682,7 @@ def _push_to_magnitude(ind: "LiverIndenter", force_n, material, options, rtol, a
         if not path.converged:
             contact.set_centre(start + lo[0] * d_hat)
             return _sphere_result(ind, lo[2], mat, opt, stats, t0, F_t, False,
-                                  f"sphere: push to {d:.3g} mm failed: {path.reason}", push, 0.0)
+                                  f"sphere: push to {d:.3g} mm failed: {path.reason}", push)
         r = path.results[0]
         F = float(np.linalg.norm(r.force_on_sphere))
         if F < lo[1] or r.active_points == 0:  # deeper but less force: the sphere slipped between contact points
@@ -685,22 +691,19 @@ def _push_to_magnitude(ind: "LiverIndenter", force_n, material, options, rtol, a
                 f"sphere: at {d:.3g} mm the force fell to {F:.3g} N (from {lo[1]:.3g} N at {lo[0]:.3g} mm): the "
                 f"sphere slipped through the surface mesh, whose facets are too coarse for a {R:g} mm tip at this "
                 "depth; refine the mesh at the exertion points (mesh.refine_edge_mm) or take a larger "
-                "simulate.tool_tip_radius_mm"), push, 0.0)
+                "simulate.tool_tip_radius_mm"), push)
         ind._magnitude_curve.append((d, F))
         state = (d, F, r.u)
         if abs(F - target) <= tol_f:
             ind._magnitude_curve = ind._magnitude_curve[-8:]
-            res = _sphere_result(ind, r.u, mat, opt, stats, t0, F_t, True, "converged", push, 0.0)
-            r_c = res.centre - ind.point
-            res.slide_mm = float(np.linalg.norm(r_c - (r_c @ ind.normal) * ind.normal))
-            return res
+            return _sphere_result(ind, r.u, mat, opt, stats, t0, F_t, True, "converged", push)
         if F < target:
             lo = state
         else:
             hi = state if hi is None or d < hi[0] else hi
     contact.set_centre(start + lo[0] * d_hat)
     return _sphere_result(ind, lo[2], mat, opt, stats, t0, F_t, False,
-                          f"sphere: |F| = {target:.3g} N not reached within {max_pushes} pushes", max_pushes, 0.0)
+                          f"sphere: |F| = {target:.3g} N not reached within {max_pushes} pushes", max_pushes)
 
 
 def _push_to_force(ind: "LiverIndenter", force_n, material, u0, options, rtol, atol, max_outer, max_move_mm,
@@ -728,12 +731,8 @@ def _push_to_force(ind: "LiverIndenter", force_n, material, u0, options, rtol, a
     def remaining():
         return replace(opt, time_limit_s=max(opt.time_limit_s - (time.perf_counter() - t0), 1e-3))
 
-    def slide_of(c):
-        r = np.asarray(c, float) - ind.point
-        return float(np.linalg.norm(r - (r @ nrm) * nrm))
-
     def finish(u, ok, reason):
-        return _sphere_result(ind, u, mat, opt, stats, t0, F_t, ok, reason, outer, slide_of(contact.centre))
+        return _sphere_result(ind, u, mat, opt, stats, t0, F_t, ok, reason, outer)
 
     def move(u, c_from, c_to, u_pred):
         """Equilibrium with the centre at ``c_to`` from the equilibrium ``u`` at ``c_from``: Newton from the

@@ -78,9 +78,8 @@ def physics_variants(boundary: dict, sim: dict, spec: dict) -> list[dict]:
     return out
 
 
-def tool_displacement_mm(arrays_or_rows) -> np.ndarray:
-    """|u| (mm) at the ROI node nearest each case's exertion point, from shard rows or arrays."""
-    rows = arrays_or_rows
+def tool_displacement_mm(rows) -> np.ndarray:
+    """|u| (mm) at the ROI node nearest each case's exertion point, from column arrays (``load_training_arrays``)."""
     out = []
     for und, dfm, x0 in zip(rows["roi_undeformed_mm"], rows["roi_deformed_mm"], rows["exertion_point_mm"]):
         und = np.asarray(und, float).reshape(-1, 3)
