@@ -145,7 +145,7 @@ def main() -> None:
     from liverforce.learn.metrics import force_metrics
     from liverforce.learn.model import (eval_seed, fit_force_model, force_scaling_of, linear_force_radius_of,
                                         n_views_for, prepare, subset, view_seeds)
-    from liverforce.learn.regressor import FitParams
+    from liverforce.learn.regressor import fit_params
     from liverforce.learn.representation import representation_from_config
     from liverforce.learn.splits import train_test_split
     from liverforce.learn.torchutil import configure_torch
@@ -157,9 +157,9 @@ def main() -> None:
     model_cfg = {**cfg["model"], **{k: val for k, val in v.items() if k != "name"}}
     train = cfg["train"]
     best = json.loads((results / "models/IV" / args.variant / "metrics.json").read_text())["best_params"]
-    hidden = [int(best["width"])] * int(best["n_layers"])
-    fit = FitParams(lr=float(best["lr"]), batch_size=int(best["batch_size"]), epochs=int(train["epochs"]),
-                    weight_decay=float(train.get("weight_decay", 0.0)))
+    hidden = [int(best["width"])] * int(best["n_layers"]) if "width" in best else []
+    fit = fit_params(model_cfg, lr=float(best.get("lr", train["lr"])), batch_size=int(best.get("batch_size", train["batch_size"])),
+                     epochs=int(train["epochs"]), weight_decay=float(train.get("weight_decay", 0.0)))
     camera = str(model_cfg.get("roi_features", "displacement")) == "cloud"
 
     def load(manifest):
@@ -225,7 +225,7 @@ def main() -> None:
             model, _ = fit_force_model(prep, rep, encoder=str(model_cfg["encoder"]),
                                        code_size=int(model_cfg["code_size"]),
                                        use_state=bool(model_cfg["state_vector"]), hidden=hidden,
-                                       dropout=float(best["dropout"]), fit=fit, seed=s,
+                                       dropout=float(best.get("dropout", 0.0)), fit=fit, seed=s,
                                        dae_input_noise=float(model_cfg.get("dae_input_noise", 0.1)),
                                        force_scaling=force_scaling_of(model_cfg),
                                        linear_force_radius_mm=linear_force_radius_of(model_cfg))

@@ -215,11 +215,19 @@ class CameraConfig:
 
 
 @dataclass
+class GPConfig:
+    max_points: int = MISSING  # training rows of the exact GP; above it a seeded subset of this size
+    iterations: int = MISSING  # L-BFGS iterations on the marginal likelihood
+
+
+@dataclass
 class ModelConfig:
     encoder: str = MISSING
     code_size: int = MISSING
     state_vector: bool = MISSING
     grid_size: int = MISSING
+    regressor: str = MISSING  # gp | mlp (liverforce.learn.regressor)
+    gp: GPConfig = field(default_factory=GPConfig)
     hidden: list[int] = MISSING
     dropout: float = MISSING
     occlusion: OcclusionConfig = field(default_factory=OcclusionConfig)
@@ -734,6 +742,10 @@ def _check_model(mo: dict, key: str) -> None:
     if mo["dae_input_noise"] < 0:
         _fail(f"{key}.dae_input_noise", "must be >= 0")
     _check_choice(f"{key}.force_scaling", mo["force_scaling"], ("stiffness", "none"))
+    _check_choice(f"{key}.regressor", mo["regressor"], ("gp", "mlp"))
+    if mo["gp"]["max_points"] < 2 or mo["gp"]["iterations"] < 1:
+        _fail(f"{key}.gp", f"max_points must be >= 2 and iterations >= 1 (got {mo['gp']['max_points']}, "
+              f"{mo['gp']['iterations']})")
     _check_choice(f"{key}.rigid_motion", mo["rigid_motion"], ("keep", "remove"))
     if mo["rigid_motion_radius_mm"] < 0:
         _fail(f"{key}.rigid_motion_radius_mm", f"must be >= 0 mm (got {mo['rigid_motion_radius_mm']})")

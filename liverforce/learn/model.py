@@ -68,8 +68,8 @@ from liverforce.learn.frames import case_rotations, force_to_local, force_to_sou
 from liverforce.learn.regressor import (
     FitParams,
     RegressorSpec,
-    build_mlp,
     fit_regressor,
+    load_regressor,
     predict_regressor,
 )
 from liverforce.learn.representation import Representation
@@ -558,8 +558,7 @@ class ForceModel:
             bool(sc.get("linear_force_tip", False)),
         )
         rspec = RegressorSpec.from_dict(doc["regressor"])
-        net = build_mlp(rspec)
-        net.load_state_dict(torch.load(path / "regressor.pt", weights_only=True))
+        net = load_regressor(rspec, torch.load(path / "regressor.pt", weights_only=True))
         return cls(Representation.from_dict(doc["representation"]), pre, rspec, net, doc.get("meta"))
 
 
@@ -653,12 +652,16 @@ def fit_force_model(
     zv = yv = None
     if monitor is not None:
         zv, yv = regressor_data(pre, monitor[0], all_views=False)
-    spec = RegressorSpec(pre.n_inputs, tuple(int(h) for h in hidden), float(dropout))
+    gp = fit.regressor == "gp"
+    spec = RegressorSpec(pre.n_inputs, () if gp else tuple(int(h) for h in hidden), 0.0 if gp else float(dropout),
+                         kind=fit.regressor)
     net, hist = fit_regressor(z, y, spec, fit, seed=seed, z_val=zv, y_val=yv, on_epoch=on_epoch)
     if monitor is not None:
         hist[f"{monitor[1]}_loss"] = hist.pop("val_loss")
     else:
         hist.pop("val_loss")
     meta = dict(meta or {})
+    if gp:
+        meta["gp"] = hist.pop("gp")
     meta.setdefault("training_scale", training_scale(prep, rep))
     return ForceModel(rep, pre, spec, net, meta), hist

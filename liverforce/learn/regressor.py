@@ -1,8 +1,10 @@
-"""The force regressor: an MLP from [code, state vector] to the local force.
+"""The force regressor: [code, state vector] -> the standardised local force ``(F.t1, F.t2, F.n)``.
 
-``n_layers`` hidden blocks ``Linear(width) -> ReLU -> Dropout(p)`` and a
-linear output of 3 (the standardised local force ``(F.t1, F.t2, F.n)``),
-trained with Adam on the MSE (:func:`liverforce.learn.torchutil.train_loop`).
+``kind: mlp``: ``n_layers`` hidden blocks ``Linear(width) -> ReLU -> Dropout(p)``
+and a linear output of 3, trained with Adam on the MSE
+(:func:`liverforce.learn.torchutil.train_loop`).
+``kind: gp``: an exact Gaussian process with a shared ARD kernel, fitted by its
+marginal likelihood (:mod:`liverforce.learn.gp`).
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ class RegressorSpec:
     hidden: tuple[int, ...]
     dropout: float
     n_outputs: int = 3
+    kind: str = "mlp"  # mlp | gp
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -32,7 +35,22 @@ class RegressorSpec:
 
     @classmethod
     def from_dict(cls, d: dict) -> "RegressorSpec":
-        return cls(int(d["n_inputs"]), tuple(int(h) for h in d["hidden"]), float(d["dropout"]), int(d["n_outputs"]))
+        return cls(int(d["n_inputs"]), tuple(int(h) for h in d["hidden"]), float(d["dropout"]), int(d["n_outputs"]),
+                   str(d.get("kind", "mlp")))
+
+
+REGRESSORS = ("mlp", "gp")
+
+
+def load_regressor(spec: RegressorSpec, state: dict) -> nn.Module:
+    """The fitted regressor of a bundle from its spec and saved ``state_dict``."""
+    if spec.kind == "gp":
+        from liverforce.learn.gp import GPRegressor
+
+        return GPRegressor.from_state_dict(state).eval()
+    net = build_mlp(spec)
+    net.load_state_dict(state)
+    return net.eval()
 
 
 def build_mlp(spec: RegressorSpec) -> nn.Sequential:
@@ -55,6 +73,19 @@ class FitParams:
     batch_size: int
     epochs: int
     weight_decay: float = 0.0
+    regressor: str = "mlp"  # mlp | gp (model.regressor); gp reads only the two below
+    gp_max_points: int = 2000  # model.gp.max_points
+    gp_iterations: int = 200  # model.gp.iterations
+
+
+def fit_params(model_cfg: dict, *, lr: float, batch_size: int, epochs: int, weight_decay: float = 0.0) -> FitParams:
+    """:class:`FitParams` with the regressor kind and GP settings of a model config slice."""
+    kind = str(model_cfg.get("regressor", "mlp"))
+    if kind not in REGRESSORS:
+        raise ValueError(f"model.regressor: unknown '{kind}', choose one of {', '.join(REGRESSORS)}")
+    gp = model_cfg.get("gp") or {}
+    return FitParams(float(lr), int(batch_size), int(epochs), float(weight_decay), kind,
+                     int(gp.get("max_points", 2000)), int(gp.get("iterations", 200)))
 
 
 def fit_regressor(
@@ -68,7 +99,23 @@ def fit_regressor(
     y_val: np.ndarray | None = None,
     on_epoch: EpochCallback | None = None,
 ) -> tuple[nn.Sequential, dict[str, list[float]]]:
-    """Train the MLP; returns ``(net, history)`` with per-epoch ``train_loss``/``val_loss``."""
+    """Train the regressor ``spec.kind``; returns ``(net, history)`` with ``train_loss``/``val_loss`` lists.
+
+    MLP: one entry per epoch. GP: one entry (the MSE at the fitted hyper-parameters);
+    ``history["gp"]`` holds :func:`liverforce.learn.gp.fit_gp`'s info.
+    """
+    if spec.kind == "gp":
+        from liverforce.learn.gp import fit_gp
+
+        gp, info = fit_gp(z, y, seed=seed, max_points=fit.gp_max_points, iterations=fit.gp_iterations)
+        hist = {"train_loss": [float(np.mean((forward_numpy(gp, z) - y) ** 2))], "val_loss": [], "gp": info}
+        if z_val is not None and y_val is not None:
+            hist["val_loss"] = [float(np.mean((forward_numpy(gp, z_val) - y_val) ** 2))]
+        if on_epoch is not None:
+            on_epoch(0, hist["train_loss"][0], hist["val_loss"][0] if hist["val_loss"] else None)
+        return gp, hist
+    if spec.kind != "mlp":
+        raise ValueError(f"unknown regressor kind '{spec.kind}': choose one of {', '.join(REGRESSORS)}")
     torch.manual_seed(int(seed))
     net = build_mlp(spec)
     hist = train_loop(

@@ -56,7 +56,7 @@ from liverforce.learn.model import (
     subset,
     view_seeds,
 )
-from liverforce.learn.regressor import FitParams
+from liverforce.learn.regressor import fit_params
 from liverforce.learn.representation import representation_from_config, with_roi_fraction
 from liverforce.learn.splits import train_test_split
 from liverforce.learn.torchutil import configure_torch
@@ -268,8 +268,8 @@ def run_point(
         train_arrays, test_arrays = subset(arrays, tr), subset(arrays, te)
         rep = representation_from_config(model_cfg, train_arrays)
         prep_train = prepare(train_arrays, rep, observation_seeds=view_seeds(seed, n_views_for(rep)))
-        fit = FitParams(lr=float(hp["lr"]), batch_size=int(hp["batch_size"]), epochs=int(epochs),
-                        weight_decay=float(hp.get("weight_decay", 0.0)))
+        fit = fit_params(model_cfg, lr=float(hp["lr"]), batch_size=int(hp["batch_size"]), epochs=int(epochs),
+                         weight_decay=float(hp.get("weight_decay", 0.0)))
         model, history = fit_force_model(
             prep_train, rep, encoder=str(model_cfg["encoder"]), code_size=int(model_cfg["code_size"]),
             use_state=bool(model_cfg["state_vector"]), hidden=list(hp["hidden"]), dropout=float(hp["dropout"]),

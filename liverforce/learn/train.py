@@ -8,10 +8,13 @@ Steps (every fitted quantity sees the training split only):
    the observation model (:mod:`.representation`). The grid extent (a median
    of ROI sizes, no labels) is shared by the CV folds; scalers and encoders
    are refitted per fold;
-3. if ``tune.enabled``: k-fold CV folds inside the training split; per fold the
-   scalers + encoder are fitted on the fold's training part once, then Ax
-   proposes regressor hyper-parameters scored by CV MSE (:mod:`.tune`); else
-   the configured hyper-parameters are used;
+3. if ``tune.enabled`` or ``model.regressor: gp``: k-fold CV folds inside the
+   training split; per fold the scalers + encoder are fitted on the fold's
+   training part once. For the MLP, Ax proposes regressor hyper-parameters
+   scored by CV MSE (:mod:`.tune`); the GP has none to search (its kernel's
+   are its marginal likelihood's, :mod:`.gp`). Either way the folds give the
+   CV MAE in newtons (``cv_mae_n``) that ``validate.variant: auto`` reads.
+   Without tuning an MLP uses the configured hyper-parameters;
 4. the best configuration is refitted on the whole training split
    (``train.epochs``) and evaluated on the test split in the source frame
    (:mod:`.metrics`), the stochastic observation model drawn with
@@ -60,7 +63,7 @@ from liverforce.learn.model import (
     view_seeds,
 )
 from liverforce.learn.plots import evaluation_figures
-from liverforce.learn.regressor import FitParams
+from liverforce.learn.regressor import fit_params
 from liverforce.learn.representation import representation_from_config
 from liverforce.learn.splits import cv_folds, group_key, train_test_split
 from liverforce.learn.torchutil import configure_torch
@@ -220,7 +223,8 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
     best_cv = None
     cv_mae_n = None
 
-    if tune_cfg.get("enabled", True):
+    gp = str(model_cfg.get("regressor", "mlp")) == "gp"
+    if tune_cfg.get("enabled", True) or gp:
         folds = cv_folds(np.arange(len(tr)), geo[tr], scenario=scenario, folds=int(tune_cfg["folds"]), seed=seed)
         notes += folds.notes
         cv_grouping = folds.grouping
@@ -241,31 +245,40 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
             to_newton.append(lambda out, ts=pre.target_scaler, k_=stiff: ts.inverse_transform(out) * k_)
             y_val_n.append(rows_va.y_local)
 
-        def evaluate(params: dict):
-            return cv_score(fold_data, params, epochs=tune_epochs, seed=seed, weight_decay=weight_decay)
+        if gp:  # no hyper-parameter search: the GP's are its marginal likelihood's (liverforce.learn.gp)
+            best = {"regressor": "gp", **{k: int(v) for k, v in (model_cfg.get("gp") or {}).items()}}
+            hidden, dropout = [], 0.0
+            lr, batch_size = float(train_cfg["lr"]), int(train_cfg["batch_size"])
+            # the CV error in newtons (validate.variant: auto) and of the scaled targets, from one fit per fold
+            cv_mae_n, best_cv = cv_force_mae(fold_data, to_newton, y_val_n, best, epochs=tune_epochs, seed=seed,
+                                             weight_decay=weight_decay, with_mse=True)
+        else:
+            def evaluate(params: dict):
+                return cv_score(fold_data, params, epochs=tune_epochs, seed=seed, weight_decay=weight_decay)
 
-        on_trial = None
-        if tracker is not None:
-            def on_trial(report):
-                tracker.log_trial(run_id, report)
+            on_trial = None
+            if tracker is not None:
+                def on_trial(report):
+                    tracker.log_trial(run_id, report)
 
-        res = tune(evaluate, trials=int(tune_cfg["trials"]), sobol_trials=int(tune_cfg["sobol_trials"]),
-                   seed=seed, space=tune_cfg.get("space"), on_trial=on_trial)
-        best = dict(res.best_params)
-        best_cv = res.best_cv_mse
-        # the best configuration's CV error in newtons: comparable between variants (validate.variant: auto)
-        cv_mae_n = cv_force_mae(fold_data, to_newton, y_val_n, best, epochs=tune_epochs, seed=seed,
-                                weight_decay=weight_decay)
-        trials = [{"index": r.index, "params": r.params, "cv_mse": r.cv_mse, "status": r.status,
-                   "seconds": round(r.seconds, 3)} for r in res.trials]
-        hidden = [int(best["width"])] * int(best["n_layers"])
-        dropout, lr, batch_size = float(best["dropout"]), float(best["lr"]), int(best["batch_size"])
+            res = tune(evaluate, trials=int(tune_cfg["trials"]), sobol_trials=int(tune_cfg["sobol_trials"]),
+                       seed=seed, space=tune_cfg.get("space"), on_trial=on_trial)
+            best = dict(res.best_params)
+            best_cv = res.best_cv_mse
+            trials = [{"index": r.index, "params": r.params, "cv_mse": r.cv_mse, "status": r.status,
+                       "seconds": round(r.seconds, 3)} for r in res.trials]
+            hidden = [int(best["width"])] * int(best["n_layers"])
+            dropout, lr, batch_size = float(best["dropout"]), float(best["lr"]), int(best["batch_size"])
+            # the best configuration's CV error in newtons: comparable between variants (validate.variant: auto)
+            cv_mae_n = cv_force_mae(fold_data, to_newton, y_val_n, best, epochs=tune_epochs, seed=seed,
+                                    weight_decay=weight_decay)
     else:
         hidden = [int(h) for h in model_cfg["hidden"]]
         dropout, lr, batch_size = float(model_cfg["dropout"]), float(train_cfg["lr"]), int(train_cfg["batch_size"])
         best = {"hidden": hidden, "dropout": dropout, "lr": lr, "batch_size": batch_size}
 
-    fit = FitParams(lr=lr, batch_size=batch_size, epochs=int(train_cfg["epochs"]), weight_decay=weight_decay)
+    fit = fit_params(model_cfg, lr=lr, batch_size=batch_size, epochs=int(train_cfg["epochs"]),
+                     weight_decay=weight_decay)
     meta = {
         "scenario": scenario, "variant": variant, "seed": seed, "eval_observation_seed": eval_seed(seed),
         "encoder": encoder, "state_vector": use_state, "hyper_parameters": best,

@@ -34,7 +34,7 @@ from typing import Callable
 
 import numpy as np
 
-from liverforce.learn.regressor import FitParams, RegressorSpec, fit_regressor, predict_regressor
+from liverforce.learn.regressor import FitParams, RegressorSpec, fit_params, fit_regressor, predict_regressor
 from liverforce.seeds import derive
 
 DEFAULT_SPACE: dict[str, dict] = {
@@ -81,8 +81,19 @@ class FoldData:
 
 
 def regressor_from_params(params: dict, n_inputs: int) -> RegressorSpec:
-    """``n_layers`` hidden layers of ``width`` units, dropout ``dropout``."""
+    """``n_layers`` hidden layers of ``width`` units, dropout ``dropout``; or the GP (``params["regressor"]: gp``)."""
+    if params.get("regressor") == "gp":
+        return RegressorSpec(n_inputs, (), 0.0, kind="gp")
     return RegressorSpec(n_inputs, tuple([int(params["width"])] * int(params["n_layers"])), float(params["dropout"]))
+
+
+def _fit_of(params: dict, epochs: int, weight_decay: float) -> FitParams:
+    """The fit settings of one parameterization: Ax's MLP values, or the GP's (``regressor: gp``)."""
+    if params.get("regressor") == "gp":
+        return fit_params({"regressor": "gp", "gp": {k: v for k, v in params.items() if k != "regressor"}},
+                          lr=0.0, batch_size=1, epochs=0)
+    return FitParams(lr=float(params["lr"]), batch_size=int(params["batch_size"]), epochs=int(epochs),
+                     weight_decay=weight_decay)
 
 
 def fold_seed(seed: int, k: int) -> int:
@@ -95,8 +106,7 @@ def cv_score(
 ) -> tuple[float, list[float], dict[str, list[float]]]:
     """Train the regressor on each fold; returns ``(mean val MSE, per-fold MSE, mean history)``."""
     fold_mse, hists = [], []
-    fit = FitParams(lr=float(params["lr"]), batch_size=int(params["batch_size"]), epochs=int(epochs),
-                    weight_decay=weight_decay)
+    fit = _fit_of(params, epochs, weight_decay)
     for k, f in enumerate(folds):
         spec = regressor_from_params(params, f.z_train.shape[1])
         _, hist = fit_regressor(f.z_train, f.y_train, spec, fit, seed=fold_seed(seed, k), z_val=f.z_val,
@@ -109,24 +119,26 @@ def cv_score(
 
 def cv_force_mae(
     folds: list[FoldData], to_newton: list[Callable[[np.ndarray], np.ndarray]], y_val_n: list[np.ndarray],
-    params: dict, *, epochs: int, seed: int, weight_decay: float = 0.0,
-) -> float:
+    params: dict, *, epochs: int, seed: int, weight_decay: float = 0.0, with_mse: bool = False,
+) -> float | tuple[float, float]:
     """Mean over the folds of the validation MAE of the force vector in N, for one parameterization.
 
     The same fits as :func:`cv_score` (same seeds), scored in newtons: ``to_newton[k]``
     maps fold ``k``'s scaled regressor outputs back to local forces (N), ``y_val_n[k]``
     are its true local forces. Unlike the CV MSE of the scaled targets, this is
     comparable between variants (other scalings, with or without the state vector).
+    ``with_mse``: also return the mean validation MSE of the scaled targets (what
+    :func:`cv_score` returns first), from the same fits.
     """
-    fit = FitParams(lr=float(params["lr"]), batch_size=int(params["batch_size"]), epochs=int(epochs),
-                    weight_decay=weight_decay)
-    maes = []
+    fit = _fit_of(params, epochs, weight_decay)
+    maes, mses = [], []
     for k, f in enumerate(folds):
         spec = regressor_from_params(params, f.z_train.shape[1])
         net, _ = fit_regressor(f.z_train, f.y_train, spec, fit, seed=fold_seed(seed, k))
-        pred = to_newton[k](predict_regressor(net, f.z_val))
-        maes.append(float(np.linalg.norm(pred - y_val_n[k], axis=1).mean()))
-    return float(np.mean(maes))
+        out = predict_regressor(net, f.z_val)
+        maes.append(float(np.linalg.norm(to_newton[k](out) - y_val_n[k], axis=1).mean()))
+        mses.append(float(np.mean((out - f.y_val) ** 2)))
+    return (float(np.mean(maes)), float(np.mean(mses))) if with_mse else float(np.mean(maes))
 
 
 def _parameter_configs(space: dict[str, dict]):

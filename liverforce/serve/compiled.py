@@ -82,6 +82,14 @@ def numpy_layers(seq: nn.Sequential) -> list[tuple[np.ndarray, np.ndarray, float
     return [(W, b, s) for W, b, s in out]
 
 
+def regressor_head(module: nn.Module):
+    """The GP regressor's NumPy posterior mean (:meth:`liverforce.learn.gp.GPRegressor.numpy_head`);
+    None for an MLP (served layer by layer from :func:`numpy_layers`)."""
+    from liverforce.learn.gp import GPRegressor
+
+    return module.numpy_head() if isinstance(module, GPRegressor) else None
+
+
 def _act(h: np.ndarray, slope: float | None) -> np.ndarray:
     if slope is None:
         return h
@@ -204,7 +212,8 @@ class CompiledROI:
         else:
             self._stiff = 1.0
         self._pre = pre
-        self._reg = numpy_layers(model.regressor)
+        self._gp = regressor_head(model.regressor)
+        self._reg = [] if self._gp is not None else numpy_layers(model.regressor)
         self._tmean, self._tscale = pre.target_scaler.mean, pre.target_scaler.scale
         self._rebuild()
 
@@ -256,6 +265,8 @@ class CompiledROI:
             code = (e.astype(np.float64) - self._cs[0]) / self._cs[1]
             h = np.concatenate([code, z[..., nc:]], axis=-1).astype(np.float32) if self.uses_state else \
                 code.astype(np.float32)
+        if self._gp is not None:
+            h = self._gp(h.reshape(-1, h.shape[-1])).reshape(*h.shape[:-1], -1)
         for W, b, s in self._reg32:
             h = _act(h @ W.T + b, s)
         return h.astype(np.float64) * self._tscale + self._tmean

@@ -63,7 +63,7 @@ from liverforce.learn.encoders import PCAEncoder
 from liverforce.learn.state import compliance_matrices, state_vector
 from liverforce.serve.checks import Limits
 from liverforce.serve.cloud import camera_checks, tool_tip_of
-from liverforce.serve.compiled import numpy_layers
+from liverforce.serve.compiled import numpy_layers, regressor_head
 from liverforce.serve.errors import PredictionInputError
 from liverforce.serve.preop import Preop, _points
 
@@ -467,7 +467,8 @@ class CompiledCloud:
                 self.Cinv = np.linalg.inv(compliance_matrices(s)[0])
                 self.lin_mean, self.lin_scale = ss.mean[n_base:], ss.scale[n_base:]
         self.layers = []
-        for W, b, sl in numpy_layers(model.regressor):
+        self.gp = regressor_head(model.regressor)
+        for W, b, sl in ([] if self.gp is not None else numpy_layers(model.regressor)):
             act, slope = (0, 0.0) if sl is None else ((1, 0.0) if sl == 0.0 else (2, float(sl)))
             self.layers.append((np.ascontiguousarray(W.astype(np.float32).T), b.astype(np.float32),
                                 np.float32(slope), act))
@@ -513,6 +514,8 @@ class CompiledCloud:
                 lin = (t[:, 0:1] * self.Cinv[:, 0] + t[:, 1:2] * self.Cinv[:, 1]) + t[:, 2:3] * self.Cinv[:, 2]
                 Z[:, nz + self.s_base.size:] = (lin - self.lin_mean) / self.lin_scale
         h = Z.astype(np.float32)
+        if self.gp is not None:
+            h = self.gp(h)
         for WT, b, slope, act in self.layers:
             h = _dense_rows(h, WT, b, slope, act)
         f = (h.astype(np.float64) * self.tscale + self.tmean) * self.k  # local frame

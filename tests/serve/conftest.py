@@ -34,13 +34,15 @@ def data():
 @pytest.fixture(scope="session")
 def trained(data, tmp_path_factory):
     """``trained(name)`` -> model directory; variants: ``disp`` (PCA + state, the default representation),
-    ``dae`` (denoising AE + state), ``deformed`` (deformed height, no state: exact from an unordered cloud)."""
+    ``dae`` (denoising AE + state), ``deformed`` (deformed height, no state: exact from an unordered cloud),
+    ``gp`` (``disp`` with the Gaussian-process regressor)."""
     cache: dict[str, str] = {}
     variants = {
         "disp": {},
         "dae": {"encoder": "dae", "hidden": [16]},
         "deformed": {"roi_features": "deformed", "state_vector": False,
                      "occlusion": {"radius_mm": 0.0, "mode": "remove"}},
+        "gp": {"regressor": "gp", "gp": {"max_points": 2000, "iterations": 100}},
     }
 
     def get(name: str) -> str:

@@ -23,10 +23,12 @@ TRAIN = {"test_fraction": 0.2, "epochs": 8, "batch_size": 32, "lr": 3e-3, "weigh
 NO_TUNE = {"enabled": False, "trials": 1, "folds": 2, "sobol_trials": 1, "epochs": 1}
 
 
-@pytest.fixture(scope="module")
-def served(tmp_path_factory):
+@pytest.fixture(scope="module", params=["mlp", "gp"])
+def served(request, tmp_path_factory):
+    """The compiled camera path of a small camera model, with each regressor (the MLP and the GP)."""
     arrays = synthetic_surface_arrays(80, n_geometries=3, seed=3, material_varies=True)
-    res = train_scenario(arrays, MODEL, TRAIN, NO_TUNE, "IV", "cloud", out_dir=tmp_path_factory.mktemp("cam-batch"))
+    res = train_scenario(arrays, {**MODEL, "regressor": request.param, "gp": {"max_points": 2000, "iterations": 100}},
+                         TRAIN, NO_TUNE, "IV", "cloud", out_dir=tmp_path_factory.mktemp("cam-batch"))
     pred = Predictor(ForceModel.load(res["model_path"]))
     test = np.flatnonzero(np.isin(arrays["geometry_id"], res["split"]["test_geometries"]))
     a = subset(arrays, test)

@@ -20,7 +20,7 @@ def frames_of(test_cases, i, n, seed=0):
     return np.stack(out)
 
 
-@pytest.mark.parametrize("variant", ["disp", "dae"])
+@pytest.mark.parametrize("variant", ["disp", "dae", "gp"])
 def test_compiled_equals_reference(trained, test_cases, variant):
     pred = Predictor.load(trained(variant))
     for i in range(0, len(test_cases["case_id"]), 4):

@@ -1,0 +1,165 @@
+"""The Gaussian-process force regressor (``model.regressor: gp``).
+
+An exact GP per force component with one kernel shared by the three
+components (the standardised local force ``(F.t1, F.t2, F.n)``)::
+
+    k(z, z') = s_f^2 exp(-|(z - z') / l|^2 / 2) + s_l^2 z . z'      (ARD length scales l, one per input)
+    f(z)     = k(z, Z) alpha,   alpha = (K + s_n^2 I)^-1 Y
+
+``l``, ``s_f``, ``s_l`` and ``s_n`` maximise the marginal likelihood of the
+training rows (summed over the components), by L-BFGS in torch (float64). The
+inputs are the regressor inputs of :mod:`liverforce.learn.model` (standardised
+code, state vector and linear force estimate), so one length scale per input
+learns which of them matter; the linear term carries the near-linear part of
+the force-displacement map, the squared-exponential term its smooth nonlinear
+correction. There is nothing to tune by hand (no Ax search): the hyper-
+parameters are the likelihood's.
+
+Why a GP and not only the MLP: the data are few hundred noise-free FE cases
+per scenario. ``benchmarks/experiment_regressor.py`` measures both on the same
+seeded splits (scenario-IV test livers and the unseen livers) and also
+BoTorch's ``SingleTaskGP`` on the same inputs as a peer.
+
+An exact GP costs ``O(n^3)`` per likelihood evaluation: above ``max_points``
+training rows a seeded subset of that size is used (recorded in the bundle).
+The fitted regressor is a :class:`torch.nn.Module` whose state is buffers only
+(training inputs, ``alpha``, hyper-parameters), saved and loaded with the
+model bundle like the MLP's weights.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import nn
+
+from liverforce.seeds import derive
+
+JITTER = 1e-6  # added to the noise variance: keeps K + s_n^2 I positive definite for noise-free FE targets
+
+
+class GPRegressor(nn.Module):
+    """Posterior mean of a fitted GP (module docstring); every state tensor is a float64 buffer."""
+
+    def __init__(self, X: torch.Tensor, alpha: torch.Tensor, inv_length: torch.Tensor,
+                 signal_var: torch.Tensor, linear_var: torch.Tensor, noise_var: torch.Tensor):
+        super().__init__()
+        self.register_buffer("X", X.double().contiguous())
+        self.register_buffer("alpha", alpha.double().contiguous())
+        self.register_buffer("inv_length", inv_length.double().contiguous())
+        self.register_buffer("signal_var", signal_var.double().reshape(()))
+        self.register_buffer("linear_var", linear_var.double().reshape(()))
+        self.register_buffer("noise_var", noise_var.double().reshape(()))
+
+    @classmethod
+    def from_state_dict(cls, state: dict) -> "GPRegressor":
+        return cls(*(state[k] for k in ("X", "alpha", "inv_length", "signal_var", "linear_var", "noise_var")))
+
+    @property
+    def n_train(self) -> int:
+        return int(self.X.shape[0])
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        z = z.double()
+        return _kernel(z, self.X, self.inv_length, self.signal_var, self.linear_var) @ self.alpha
+
+    def numpy_head(self):
+        """A float64 NumPy function ``Z (n, d) -> scaled outputs (n, 3)`` (the compiled serving paths)."""
+        Xs = (self.X * self.inv_length).numpy().copy()
+        X = self.X.numpy().copy()
+        xx = np.einsum("ij,ij->i", Xs, Xs)
+        inv_l = self.inv_length.numpy().copy()
+        alpha = self.alpha.numpy().copy()
+        sf2, sl2 = float(self.signal_var), float(self.linear_var)
+
+        def head(Z: np.ndarray) -> np.ndarray:
+            Z = np.asarray(Z, dtype=np.float64)
+            Zs = Z * inv_l
+            d2 = np.einsum("ij,ij->i", Zs, Zs)[:, None] + xx[None, :] - 2.0 * (Zs @ Xs.T)
+            K = sf2 * np.exp(-0.5 * np.maximum(d2, 0.0)) + sl2 * (Z @ X.T)
+            return K @ alpha
+
+        return head
+
+
+def _kernel(A, B, inv_length, signal_var, linear_var):
+    a, b = A * inv_length, B * inv_length
+    d2 = (a * a).sum(1)[:, None] + (b * b).sum(1)[None, :] - 2.0 * (a @ b.T)
+    return signal_var * torch.exp(-0.5 * d2.clamp_min(0.0)) + linear_var * (A @ B.T)
+
+
+def fit_gp(z: np.ndarray, y: np.ndarray, *, seed: int, max_points: int = 2000,
+           iterations: int = 200) -> tuple[GPRegressor, dict]:
+    """Fit the GP of the module docstring to ``z (n, d) -> y (n, k)`` (standardised); returns ``(gp, info)``.
+
+    ``info``: ``n_used`` (rows after the ``max_points`` cap, a subset drawn with ``seed``),
+    ``nll`` (negative log marginal likelihood per row and output at the optimum),
+    ``length_scales``, ``noise_var``, ``evaluations``.
+    """
+    z = np.asarray(z, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    if z.ndim != 2 or y.ndim != 2 or len(z) != len(y):
+        raise ValueError(f"fit_gp: expected z (n, d) and y (n, k) with the same n; got {z.shape} and {y.shape}")
+    if len(z) < 2:
+        raise ValueError(f"need at least 2 training samples, got {len(z)}")
+    if not (np.isfinite(z).all() and np.isfinite(y).all()):
+        raise ValueError("fit_gp: non-finite training inputs or targets")
+    if int(max_points) < 2:
+        raise ValueError(f"model.gp.max_points must be at least 2, got {max_points}")
+    rows = np.arange(len(z))
+    if len(z) > int(max_points):
+        rng = np.random.default_rng(derive(seed, "gp.subset"))
+        rows = np.sort(rng.choice(len(z), size=int(max_points), replace=False))
+    X = torch.from_numpy(z[rows])
+    Y = torch.from_numpy(y[rows])
+    n, d = X.shape
+    eye = torch.eye(n, dtype=torch.float64)
+    log_l = torch.full((d,), math.log(max(math.sqrt(d) / 2.0, 1.0)), dtype=torch.float64, requires_grad=True)
+    log_sf = torch.zeros((), dtype=torch.float64, requires_grad=True)
+    log_sl = torch.full((), math.log(0.1), dtype=torch.float64, requires_grad=True)
+    log_sn = torch.full((), math.log(0.1), dtype=torch.float64, requires_grad=True)
+    params = [log_l, log_sf, log_sl, log_sn]
+
+    def gram():
+        inv_l = torch.exp(-log_l)
+        K = _kernel(X, X, inv_l, torch.exp(2 * log_sf), torch.exp(2 * log_sl))
+        return K + (torch.exp(2 * log_sn) + JITTER) * eye
+
+    def nll():
+        L, info = torch.linalg.cholesky_ex(gram())
+        if int(info) != 0:
+            return None, None
+        a = torch.cholesky_solve(Y, L)
+        v = 0.5 * (Y * a).sum() + Y.shape[1] * torch.log(torch.diagonal(L)).sum()
+        return v / (n * Y.shape[1]) + 0.5 * math.log(2 * math.pi), a
+
+    opt = torch.optim.LBFGS(params, lr=1.0, max_iter=int(iterations), line_search_fn="strong_wolfe")
+    evaluations = [0]
+    best = {"v": math.inf, "state": [p.detach().clone() for p in params]}
+
+    def closure():
+        opt.zero_grad()
+        evaluations[0] += 1
+        v, _ = nll()
+        if v is None:  # not positive definite at this trial point: make the line search step back
+            return torch.tensor(1e10, dtype=torch.float64, requires_grad=True)
+        v.backward()
+        if float(v.detach()) < best["v"]:
+            best["v"], best["state"] = float(v.detach()), [p.detach().clone() for p in params]
+        return v
+
+    opt.step(closure)
+    with torch.no_grad():
+        for p, s in zip(params, best["state"]):
+            p.copy_(s)
+        v, alpha = nll()
+    if v is None:
+        raise RuntimeError("fit_gp: the kernel matrix is not positive definite even at the start; are there "
+                           "duplicated training rows with different targets?")
+    gp = GPRegressor(X, alpha, torch.exp(-log_l.detach()), torch.exp(2 * log_sf.detach()),
+                     torch.exp(2 * log_sl.detach()), torch.exp(2 * log_sn.detach()) + JITTER)
+    return gp.eval(), {"n_used": int(n), "nll": float(v), "evaluations": int(evaluations[0]),
+                       "length_scales": torch.exp(log_l.detach()).tolist(),
+                       "noise_var": float(gp.noise_var)}

@@ -1,0 +1,97 @@
+"""The Gaussian-process regressor (liverforce.learn.gp, model.regressor: gp): it learns a known smooth map
+from few noise-free samples, finds the inputs that matter, is reproducible, caps its training rows, and
+a trained model with it round-trips through its bundle exactly."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from liverforce.learn.gp import GPRegressor, fit_gp
+from liverforce.learn.model import ForceModel
+from liverforce.learn.regressor import fit_params
+from liverforce.learn.synthetic import synthetic_arrays
+from liverforce.learn.train import train_scenario
+
+torch.set_num_threads(1)
+
+
+def truth(X: np.ndarray) -> np.ndarray:
+    """Three outputs: a nonlinear one, a quadratic one and a linear one; input 4 is irrelevant."""
+    return np.stack([np.sin(X[:, 0]) + 0.5 * X[:, 1], 0.5 * X[:, 2] ** 2, 0.3 * X[:, 3] - 0.2 * X[:, 1]], axis=1)
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    rng = np.random.default_rng(0)
+    X = rng.uniform(-2, 2, (250, 5))
+    gp, info = fit_gp(X, truth(X), seed=0)
+    return X, gp, info
+
+
+def test_learns_a_smooth_map_from_noise_free_samples(fitted):
+    X, gp, _ = fitted
+    Xt = np.random.default_rng(1).uniform(-1.8, 1.8, (300, 5))
+    err = gp(torch.from_numpy(Xt)).numpy() - truth(Xt)
+    rmse = np.sqrt(np.mean(err**2, axis=0))
+    assert (rmse < 0.01 * truth(Xt).std(axis=0)).all(), rmse  # < 1 % of each output's spread
+    # noise-free targets are interpolated
+    np.testing.assert_allclose(gp(torch.from_numpy(X)).numpy(), truth(X), atol=1e-3)
+
+
+def test_ard_finds_the_irrelevant_input(fitted):
+    _, _, info = fitted
+    ls = np.asarray(info["length_scales"])
+    # input 4 enters no output: its length scale is far longer than those of the inputs 0 and 2 (nonlinear)
+    assert ls[4] > 100 * max(ls[0], ls[2])
+
+
+def test_numpy_head_equals_the_module(fitted):
+    X, gp, _ = fitted
+    Xt = np.random.default_rng(2).uniform(-2, 2, (64, 5))
+    np.testing.assert_allclose(gp.numpy_head()(Xt), gp(torch.from_numpy(Xt)).numpy(), rtol=0, atol=1e-6)
+
+
+def test_same_seed_same_fit_and_the_cap_draws_a_seeded_subset():
+    rng = np.random.default_rng(3)
+    X = rng.uniform(-2, 2, (120, 3))
+    y = truth(np.hstack([X, X[:, :2]]))
+    a, ia = fit_gp(X, y, seed=5, max_points=60, iterations=50)
+    b, ib = fit_gp(X, y, seed=5, max_points=60, iterations=50)
+    c, _ = fit_gp(X, y, seed=6, max_points=60, iterations=50)
+    assert ia["n_used"] == 60 and a.n_train == 60
+    assert torch.equal(a.X, b.X) and torch.equal(a.alpha, b.alpha)
+    assert not torch.equal(a.X, c.X)  # another seed, another subset
+
+
+def test_bad_training_data_is_refused_by_name():
+    X = np.zeros((10, 2))
+    with pytest.raises(ValueError, match="non-finite"):
+        fit_gp(np.where(np.eye(10, 2) > 0, np.nan, X), np.zeros((10, 3)), seed=0)
+    with pytest.raises(ValueError, match="same n"):
+        fit_gp(X, np.zeros((9, 3)), seed=0)
+    with pytest.raises(ValueError, match="model.regressor: unknown 'forest'"):
+        fit_params({"regressor": "forest"}, lr=1e-3, batch_size=8, epochs=1)
+
+
+def test_a_gp_force_model_round_trips_through_its_bundle(tmp_path):
+    arrays = synthetic_arrays(90, n_geometries=3, seed=2, material_varies=True)
+    model_cfg = {"encoder": "pca", "code_size": 4, "state_vector": True, "grid_size": 8, "hidden": [8],
+                 "dropout": 0.0, "occlusion": {"radius_mm": 0.0, "mode": "remove"}, "noise_mm": 0.0,
+                 "regressor": "gp", "gp": {"max_points": 500, "iterations": 100}}
+    train = {"test_fraction": 0.25, "epochs": 5, "batch_size": 16, "lr": 3e-3, "weight_decay": 0.0, "seed": 0}
+    tune = {"enabled": False, "trials": 1, "folds": 2, "sobol_trials": 1, "epochs": 1}
+    res = train_scenario(arrays, model_cfg, train, tune, "IV", "gp", out_dir=tmp_path)
+    assert res["best_params"]["regressor"] == "gp" and res["cv_mae_n"] > 0  # no Ax search; still cross-validated
+    model = ForceModel.load(res["model_path"])
+    assert isinstance(model.regressor, GPRegressor) and model.regressor_spec.kind == "gp"
+    assert model.meta["gp"]["n_used"] == res["n_train"]
+    test = [list(arrays["case_id"]).index(c) for c in model.meta["test_case_ids"]]
+    from liverforce.learn.model import subset
+
+    a = subset(arrays, test)
+    again = ForceModel.load(model.save(tmp_path / "copy")).predict(a)
+    np.testing.assert_array_equal(again, model.predict(a))
+    # and it learned the synthetic force map better than predicting the mean force
+    true = np.asarray(a["force_n"])
+    assert np.linalg.norm(model.predict(a) - true, axis=1).mean() < 0.5 * np.linalg.norm(true - true.mean(0), axis=1).mean()
