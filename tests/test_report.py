@@ -377,3 +377,18 @@ def test_report_shows_the_stretch_range_reached_against_the_drucker_range(stage_
     html = write_report(data, [], "x", out["root"] / "report" / "index.html", solver_stats=stats,
                         setup={"main_variant": "pca_sv"}).read_text()
     assert "Stretches reached" not in html
+
+
+def test_report_says_which_variants_use_the_gp_and_which_the_ax_tuned_mlp(stage_outputs):
+    from liverforce.report.html import collect, write_report
+
+    out = stage_outputs
+    data = collect(out["metrics"], [out["manifest"]], out["validation"], out["features"], out["studies"])
+    setup = {"main_variant": "pca_sv", "train": {"epochs": 100, "test_fraction": 0.2},
+             "tune": {"enabled": True, "trials": 6, "folds": 3},
+             "regressors": {"pca_sv": "gp", "cloud_sv": "gp", "ae_sv": "mlp"}}
+    html = write_report(data, [], "x", out["root"] / "report" / "index.html", setup=setup).read_text()
+    text = html[html.index("id='setup'"):html.index("id='simulations'")]
+    assert "Gaussian-process regressor (ARD kernel, hyper-parameters by marginal likelihood, no Ax search): " \
+           "cloud_sv, pca_sv." in text
+    assert "MLP regressor (100 epochs; Ax tuning on, 6 trials): ae_sv." in text

@@ -629,8 +629,16 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
         parts.append(_table(["scenario", "cases", "livers", "exertion point", "material"], rows))
     tr, tu = setup.get("train"), setup.get("tune")
     if tr and tu:
-        parts.append(f"<p>Training: {tr.get('epochs')} epochs; Ax tuning {'on' if tu.get('enabled') else 'off'} "
-                     f"({tu.get('trials')} trials × {tu.get('folds')}-fold CV); test fraction "
+        regs = setup.get("regressors") or {}
+        gp = sorted(k for k, v in regs.items() if v == "gp")
+        mlp = sorted(k for k, v in regs.items() if v != "gp")
+        which = "".join([
+            f"Gaussian-process regressor (ARD kernel, hyper-parameters by marginal likelihood, no Ax search): "
+            f"{html.escape(', '.join(gp))}. " if gp else "",
+            f"MLP regressor ({tr.get('epochs')} epochs; Ax tuning {'on' if tu.get('enabled') else 'off'}, "
+            f"{tu.get('trials')} trials): {html.escape(', '.join(mlp)) or 'every variant'}. " if mlp or not gp
+            else ""])
+        parts.append(f"<p>{which}Cross-validation: {tu.get('folds')} folds of the training split; test fraction "
                      f"{_fmt(tr.get('test_fraction'), 2)} (scenario IV: split by liver).</p>")
 
     # ------------------------------------------------------------ simulations
@@ -795,7 +803,7 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
     parts.append("<h2 id='studies'>Comparison studies</h2>")
     if data.get("studies"):
         parts.append("<p>Each study reuses the simulated shards (no new FE). Every point starts from the "
-                     "scenario's main model (its settings and Ax-tuned hyper-parameters), changes one setting, "
+                     "scenario's main model (its settings, and an MLP's Ax-tuned hyper-parameters), changes one setting, "
                      "is trained without Ax on the main model's training split minus a validation part (by liver "
                      "in IV) and scored on that validation part: no study reads the test split, so a setting "
                      "chosen from a study is not chosen on the test set. Study numbers are therefore not the "

@@ -25,6 +25,8 @@ rule report:
             "validate": config_slice("validate"),
             "train": {k: v for k, v in config_slice("train").items() if k != "variants"},
             "tune": {k: v for k, v in config_slice("tune").items() if k != "space"},
+            "regressors": {v["name"]: v.get("regressor", config_slice("model")["regressor"])
+                           for v in config_slice("train")["variants"]},
             "tracking": config_slice("tracking"),
             "tracking_uri": TRACKING_URI,
             "mlflow_experiments": {"models": PLAN.experiment_name("<scenario>"),
