@@ -85,7 +85,8 @@ def fit_params(model_cfg: dict, *, lr: float, batch_size: int, epochs: int, weig
         raise ValueError(f"model.regressor: unknown '{kind}', choose one of {', '.join(REGRESSORS)}")
     gp = model_cfg.get("gp") or {}
     return FitParams(float(lr), int(batch_size), int(epochs), float(weight_decay), kind,
-                     int(gp.get("max_points", 2000)), int(gp.get("iterations", 200)))
+                     int(gp.get("max_points", FitParams.gp_max_points)),
+                     int(gp.get("iterations", FitParams.gp_iterations)))
 
 
 def fit_regressor(
