@@ -77,28 +77,29 @@ _CHUNK = 64  # clouds per kernel call when a list is concatenated (bounds the co
 
 
 @njit(cache=True, fastmath={"reassoc", "nsz", "contract", "arcp"})
-def _cell_moments(GU, GV, Z, first, g, kr, pad, nc, M):
-    """Biweight moments of every grid point ``(I, J)`` from the points sorted by cell.
+def _cell_moments(GU, GV, Z, first, g, kr, pad, M):
+    """Biweight moments of every grid point ``(I, J)`` from the points sorted by half-cell.
 
-    ``GU, GV``: grid-index coordinates, ``Z``: height change; the points in cell ``(floor(gv), floor(gu))`` are
-    ``first[key]:first[key + 1]`` with ``key = (floor(gv) + pad) nc + floor(gu) + pad`` (row-major), so the points
-    within ``kr`` of a grid point are one run per cell row (two runs for ``kr = 1``). ``M[I * g + J]`` gets: sum of
-    w, of 1 (points within the support), of w z, w du, w dv, w du^2, w dv^2, w du dv, w du z, w dv z
-    (``w = (1 - q)^2``, ``q = (du^2 + dv^2) / kr^2 < 1``), the sums of ``cloud_features.cloud_grid``. Points outside
-    the support add exact zeros. The fast-math flags let LLVM vectorise the sums: their order depends only on the
-    points' order, never on the batch, so a cloud gives the same bits alone or in a batch (and the reference's
-    sums to rounding).
+    ``GU, GV``: grid-index coordinates, ``Z``: height change; the points in half-cell
+    ``(floor(2 gv), floor(2 gu))`` are ``first[key]:first[key + 1]`` with ``key = (floor(2 gv) + pad) *
+    (2 g + 2 pad) + floor(2 gu) + pad``, so the points within ``kr`` of a grid point are in a few runs.
+    ``M[I * g + J]`` gets: sum of w, of 1 (points within the support), of w z, w du, w dv, w du^2, w dv^2,
+    w du dv, w du z, w dv z (``w = (1 - q)^2``, ``q = (du^2 + dv^2) / kr^2 < 1``), the sums of
+    ``cloud_features.cloud_grid``. Points outside the support add exact zeros. The fast-math flags let LLVM
+    vectorise the sums: their order depends only on the points' order, never on the batch, so a cloud gives
+    the same bits alone or in a batch (and the reference's sums to rounding).
     """
+    gs = 2 * g + 2 * pad
     inv_kr2 = 1.0 / (kr * kr)
     for I in range(g):
-        i_lo = int(math.floor(I - kr)) + pad
-        i_hi = int(math.ceil(I + kr)) - 1 + pad  # the cell rows floor(gv) of the points with |gv - I| < kr
+        v_lo = int(math.floor(2.0 * (I - kr))) + pad
+        v_hi = int(math.ceil(2.0 * (I + kr))) - 1 + pad  # half-cells starting below I + kr
         for J in range(g):
-            j_lo = int(math.floor(J - kr)) + pad
-            j_hi = int(math.ceil(J + kr)) - 1 + pad
+            u_lo = int(math.floor(2.0 * (J - kr))) + pad
+            u_hi = int(math.ceil(2.0 * (J + kr))) - 1 + pad
             s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = s9 = 0.0
-            for i in range(i_lo, i_hi + 1):
-                for t in range(first[i * nc + j_lo], first[i * nc + j_hi + 1]):
+            for sv in range(v_lo, v_hi + 1):
+                for t in range(first[sv * gs + u_lo], first[sv * gs + u_hi + 1]):
                     du = GU[t] - J
                     dv = GV[t] - I
                     q = (du * du + dv * dv) * inv_kr2
@@ -129,225 +130,175 @@ def _cell_moments(GU, GV, Z, first, g, kr, pad, nc, M):
 
 
 @njit(cache=True)
-def _workspace(nmax, g, kr):
-    """Scratch arrays of :func:`_grid_one` for clouds of up to ``nmax`` points (allocated once per call)."""
-    gg = g * g
-    nc = g + 2 * (int(math.ceil(kr)) + 1)  # cell rows / columns, with those beyond the grid a kept point can lie in
-    nmax = max(nmax, 1)
-    tb = 16  # duplicate filter: a bit table of >= 16 bits per point
-    while (1 << tb) < 16 * nmax:
-        tb += 1
-    return (np.empty(nmax), np.empty(nmax), np.empty(nmax),  # U, V, W: local frame of the kept points
-            np.empty(nmax), np.empty(nmax), np.empty(nmax), np.empty(nmax, dtype=np.int64),  # GU, GV, Z, key
-            np.empty(nmax), np.empty(nmax), np.empty(nmax), np.empty(nmax, dtype=np.int64),  # sorted; origin
-            np.empty(nc * nc + 1, dtype=np.int64), np.empty(nc * nc, dtype=np.int64),  # first, fill_at
-            np.zeros(1 << (tb - 6), dtype=np.int64), np.empty(nmax, dtype=np.int64),  # bit table, candidates
-            np.zeros((gg, 10)), np.zeros(gg), np.zeros(gg, dtype=np.bool_),  # M, Hc, valid
-            np.empty(gg, dtype=np.int64), np.empty(gg, dtype=np.int64), np.zeros((gg, g + 1)),  # idx, unk, Lb
-            np.zeros(gg), np.zeros(gg))  # rhs, y
+def _grid_clouds(P, starts, counts, tips, origin, R, raster, lo, rstep, g, h, gstep, kr_cells, max_abs,
+                 min_points, max_leverage, linear, fill, reach_count, X, n_used, n_bad):
+    """Feature rows ``X[b] = [height (g^2), mask (g^2), R (tip - p) (3)]`` of the clouds ``P[starts[b]:+counts[b]]``.
 
-
-_H1 = 6364136223846793005  # odd multipliers of the duplicate filter's hash
-_H2 = 1442695040888963407
-
-
-@njit(cache=True)
-def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_abs, min_points, max_leverage,
-              linear, fill, reach_count, ws, x):
-    """Feature row ``x = [height (g^2), mask (g^2), R (tip - p) (3)]`` of the cloud ``P[s0:s0 + n]``.
-
-    Mirrors :func:`liverforce.learn.cloud_features.cloud_grid` (module docstring); ``ws``: :func:`_workspace`.
-    Returns the points over the grid (``|u|, |v| <= reach_count``) and the points whose local coordinates are
-    not finite (every point with a NaN or inf coordinate; :meth:`CompiledCloud._refusal` counts exactly).
+    Mirrors :func:`liverforce.learn.cloud_features.cloud_grid` (module docstring). Also returns per cloud the
+    points over the grid (``|u|, |v| <= reach_count``) and the points with a NaN or inf coordinate.
     """
-    U, V, Wl, GU, GV, Z, key, GUs, GVs, Zs, orig, first, fill_at, bits, cand, M, Hc, valid, idx, unk, Lb, rhs, y = ws
+    B = starts.shape[0]
     gg = g * g
-    rs = raster.shape[1]
-    RF = raster.ravel()
     r_last = raster.shape[0] - 1.000001
-    inv_rstep = 1.0 / rstep
-    inv_gstep = 1.0 / gstep
-    reach = h + kr * gstep
-    pad = int(math.ceil(kr)) + 1
-    nc = g + 2 * pad
+    reach = h + kr_cells * gstep
+    kr2 = kr_cells ** 2
+    pad = int(math.ceil(2.0 * kr_cells)) + 1  # half-cells beyond the grid a kept point can lie in
+    gp = 2 * g + 2 * pad
+    nmax = 1
+    for b in range(B):
+        nmax = max(nmax, counts[b])
+    U = np.empty(nmax)
+    V = np.empty(nmax)
+    Wl = np.empty(nmax)
+    GU = np.empty(nmax)
+    GV = np.empty(nmax)
+    Z = np.empty(nmax)
+    key = np.empty(nmax, dtype=np.int64)
+    GUs = np.empty(nmax)
+    GVs = np.empty(nmax)
+    Zs = np.empty(nmax)
+    nxt = np.empty(nmax, dtype=np.int64)
+    side_max = 1
+    while side_max * side_max < nmax:
+        side_max *= 2
+    head = np.empty(side_max * side_max, dtype=np.int64)
+    first = np.empty(gp * gp + 1, dtype=np.int64)
+    fill_at = np.empty(gp * gp, dtype=np.int64)
+    M = np.zeros((gg, 10))
+    Hc = np.zeros(gg)
+    valid = np.zeros(gg, dtype=np.bool_)
+    idx = np.empty(gg, dtype=np.int64)
+    unk = np.empty(gg, dtype=np.int64)
+    Lb = np.zeros((gg, g + 1))
+    rhs = np.zeros(gg)
+    y = np.zeros(gg)
+    kept = np.empty(nmax, dtype=np.int64)
     o0, o1, o2 = origin[0], origin[1], origin[2]
     r00, r01, r02, r10, r11, r12, r20, r21, r22 = R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2], R[2, 0], R[2, 1], R[2, 2]
-    # 1. every point: local frame; not finite (a NaN or inf coordinate makes u NaN or inf) and over the grid
-    #    (the refusal checks); the points within the kernel's reach compacted in their order (branch-free)
-    m = 0
-    nu = 0
-    nb = 0
-    for k in range(n):
-        d0 = P[s0 + k, 0] - o0
-        d1 = P[s0 + k, 1] - o1
-        d2 = P[s0 + k, 2] - o2
-        u = d0 * r00 + d1 * r01 + d2 * r02
-        v = d0 * r10 + d1 * r11 + d2 * r12
-        nb += (u - u) != 0.0
-        au = abs(u)
-        av = abs(v)
-        nu += (au <= reach_count) & (av <= reach_count)
-        U[m] = u
-        V[m] = v
-        Wl[m] = d0 * r20 + d1 * r21 + d2 * r22
-        m += (au < reach) & (av < reach)
-    # 2. the kept points: height change over the pre-operative raster (ReferenceSurface.height: bilinear,
-    #    clamped), grid-index coordinates, cell (key -1: |dz| beyond max_abs, dropped); no branches
-    for t in range(m):
-        u = U[t]
-        v = V[t]
-        fu = min(max((u - lo) * inv_rstep, 0.0), r_last)
-        fv = min(max((v - lo) * inv_rstep, 0.0), r_last)
-        j0 = int(fu)
-        i0 = int(fv)
-        a = fu - j0
-        c = fv - i0
-        q = i0 * rs + j0
-        zr = ((1 - a) * (1 - c) * RF[q] + a * (1 - c) * RF[q + 1]
-              + (1 - a) * c * RF[q + rs] + a * c * RF[q + rs + 1])
-        z = Wl[t] - zr
-        gu = (u + h) * inv_gstep
-        gv = (v + h) * inv_gstep
-        ci = min(max(int(math.floor(gv)) + pad, 0), nc - 1)
-        cj = min(max(int(math.floor(gu)) + pad, 0), nc - 1)
-        GU[t] = gu
-        GV[t] = gv
-        Z[t] = z
-        key[t] = ci * nc + cj if abs(z) <= max_abs else -1
-    # 3. counting sort by cell (stable); exact duplicates (equal local coordinates) are found with a bit table of
-    #    hashed (u, v): a point whose bit is already set is a candidate, checked against its cell's earlier points
-    tb = 16
-    while (1 << tb) < 16 * m:
-        tb += 1
-    nw = 1 << (tb - 6)
-    bits[:nw] = 0
-    shift = 64 - tb
-    mask = (1 << tb) - 1
-    Ub = U.view(np.int64)
-    Vb = V.view(np.int64)
-    first[:nc * nc + 1] = 0
-    n_cand = 0
-    for t in range(m):
-        kk = key[t]
-        if kk >= 0:
+    for b in range(B):
+        s0 = starts[b]
+        n = counts[b]
+        # local frame, every point (branch-free: vectorised)
+        for k in range(n):
+            d0 = P[s0 + k, 0] - o0
+            d1 = P[s0 + k, 1] - o1
+            d2 = P[s0 + k, 2] - o2
+            U[k] = d0 * r00 + d1 * r01 + d2 * r02
+            V[k] = d0 * r10 + d1 * r11 + d2 * r12
+            Wl[k] = d0 * r20 + d1 * r21 + d2 * r22
+        # points with a NaN or inf, points over the grid (the refusal checks), points within the kernel's reach
+        m = 0
+        nu = 0
+        nb = 0
+        for k in range(n):
+            x = P[s0 + k, 0] + P[s0 + k, 1] + P[s0 + k, 2]
+            nb += (x - x) != 0.0  # NaN or inf in a coordinate; such a point is never kept (its u, v are NaN or inf)
+            au = abs(U[k])
+            av = abs(V[k])
+            nu += (au <= reach_count) & (av <= reach_count)
+            kept[m] = k
+            m += (au < reach) & (av < reach)
+        side = 1
+        while side * side < m:
+            side *= 2
+        inv = side / (2.0 * reach)
+        head[:side * side] = -1
+        first[:] = 0
+        mk = m
+        m = 0
+        for t in range(mk):
+            k = kept[t]
+            u = U[k]
+            v = V[k]
+            # height change over the pre-operative raster (ReferenceSurface.height: bilinear, clamped)
+            fu = min(max((u - lo) / rstep, 0.0), r_last)
+            fv = min(max((v - lo) / rstep, 0.0), r_last)
+            j0 = int(fu)
+            i0 = int(fv)
+            a = fu - j0
+            bb = fv - i0
+            zr = ((1 - a) * (1 - bb) * raster[i0, j0] + a * (1 - bb) * raster[i0, j0 + 1]
+                  + (1 - a) * bb * raster[i0 + 1, j0] + a * bb * raster[i0 + 1, j0 + 1])
+            w = Wl[k]
+            z = w - zr
+            if not abs(z) <= max_abs:
+                continue
+            # exact duplicate points (equal local coordinates) count once: chained spatial hash on (u, v)
+            bu = min(max(int((u + reach) * inv), 0), side - 1)
+            bv = min(max(int((v + reach) * inv), 0), side - 1)
+            slot = bv * side + bu
+            q = head[slot]
+            dup = False
+            while q >= 0:
+                if U[q] == u and V[q] == v and Wl[q] == w:
+                    dup = True
+                    break
+                q = nxt[q]
+            if dup:
+                continue
+            nxt[k] = head[slot]
+            head[slot] = k
+            gu = (u + h) / gstep
+            gv = (v + h) / gstep
+            kk = (int(math.floor(2.0 * gv)) + pad) * gp + int(math.floor(2.0 * gu)) + pad
+            GU[m] = gu
+            GV[m] = gv
+            Z[m] = z
+            key[m] = kk
             first[kk + 1] += 1
-            hb = ((Ub[t] * _H1 + Vb[t] * _H2) >> shift) & mask
-            word = hb >> 6
-            bit = 1 << (hb & 63)
-            if bits[word] & bit:
-                cand[n_cand] = t
-                n_cand += 1
-            bits[word] |= bit
-    for kk in range(nc * nc):
-        first[kk + 1] += first[kk]
-        fill_at[kk] = first[kk]
-    for t in range(m):
-        kk = key[t]
-        if kk >= 0:
-            s = fill_at[kk]
-            GUs[s] = GU[t]
-            GVs[s] = GV[t]
-            Zs[s] = Z[t]
-            orig[s] = t
-            fill_at[kk] = s + 1
-    n_dup = 0
-    for r in range(n_cand):
-        t = cand[r]
-        kk = key[t]
-        s = first[kk]
-        while orig[s] != t:
-            s += 1
-        for s2 in range(first[kk], s):
-            o2 = orig[s2]
-            if o2 >= 0 and U[o2] == U[t] and V[o2] == V[t] and Wl[o2] == Wl[t]:
-                orig[s] = -1  # the first of equal points stays (the same values either way)
-                n_dup += 1
-                break
-    if n_dup:
-        w = 0
-        for kk in range(nc * nc):
-            a0 = first[kk]
-            e0 = first[kk + 1]
-            first[kk] = w
-            for t in range(a0, e0):
-                if orig[t] >= 0:
-                    GUs[w] = GUs[t]
-                    GVs[w] = GVs[t]
-                    Zs[w] = Zs[t]
-                    w += 1
-        first[nc * nc] = w
-    # 4. moments, per-cell weighted plane fit and validity test (cloud_grid's formulas)
-    _cell_moments(GUs, GVs, Zs, first, g, kr, pad, nc, M)
-    kr2 = kr * kr
-    n_valid = 0
-    for I in range(g):
-        for J in range(g):
-            cell = I * g + J
-            mom = M[cell]
-            W = mom[0]
-            Wp = W if W > 0 else 1.0
-            zbar = mom[2] / Wp
-            ub = mom[3] / Wp
-            vb = mom[4] / Wp
-            cuu = mom[5] / Wp - ub * ub
-            cvv = mom[6] / Wp - vb * vb
-            cuv = mom[7] / Wp - ub * vb
-            det = cuu * cvv - cuv * cuv
-            spread = det > 1e-6 * kr2 * kr2
-            dp = det if spread else 1.0
-            lev = (cvv * ub * ub - 2.0 * cuv * ub * vb + cuu * vb * vb) / dp if spread else np.inf
-            est = zbar
-            if linear and spread:
-                cuz = mom[8] / Wp - ub * zbar
-                cvz = mom[9] / Wp - vb * zbar
-                bs = (cvv * cuz - cuv * cvz) / dp
-                cs = (cuu * cvz - cuv * cuz) / dp
-                est = zbar - bs * ub - cs * vb
-            ok = mom[1] >= min_points and W > 0 and lev <= max_leverage
-            valid[cell] = ok
-            Hc[cell] = est if ok else 0.0
-            if ok:
-                n_valid += 1
-    # 5. fill of the cells the camera does not see
-    if fill == 1 and 0 < n_valid < gg:
-        _laplace_fill(Hc, valid, g, idx, unk, Lb, rhs, y)
-    for cell in range(gg):
-        x[cell] = Hc[cell]
-        x[gg + cell] = 1.0 if valid[cell] else 0.0
-    t0 = tip[0] - o0
-    t1 = tip[1] - o1
-    t2 = tip[2] - o2
-    for r in range(3):
-        x[2 * gg + r] = R[r, 0] * t0 + R[r, 1] * t1 + R[r, 2] * t2
-    return nu, nb
-
-
-@njit(cache=True)
-def _grid_clouds(P, starts, counts, tips, origin, R, raster, lo, rstep, g, h, gstep, kr, max_abs, min_points,
-                 max_leverage, linear, fill, reach_count, X, n_used, n_bad):
-    """Feature rows ``X[b]`` of the clouds ``P[starts[b]:starts[b] + counts[b]]`` (float64 or float32 points),
-    their points over the grid and their points with a NaN or inf coordinate (:func:`_grid_one`)."""
-    nmax = 1
-    for b in range(starts.shape[0]):
-        nmax = max(nmax, counts[b])
-    ws = _workspace(nmax, g, kr)
-    for b in range(starts.shape[0]):
-        n_used[b], n_bad[b] = _grid_one(P, starts[b], counts[b], tips[b], origin, R, raster, lo, rstep, g, h, gstep,
-                                        kr, max_abs, min_points, max_leverage, linear, fill, reach_count, ws, X[b])
-
-
-@njit(cache=True)
-def _grid_list(clouds, tips, origin, R, raster, lo, rstep, g, h, gstep, kr, max_abs, min_points, max_leverage,
-               linear, fill, reach_count, X, n_used, n_bad):
-    """:func:`_grid_clouds` of a typed list of (n_b, 3) float64 clouds, read in place (no concatenation)."""
-    nmax = 1
-    for b in range(len(clouds)):
-        nmax = max(nmax, clouds[b].shape[0])
-    ws = _workspace(nmax, g, kr)
-    for b in range(len(clouds)):
-        P = clouds[b]
-        n_used[b], n_bad[b] = _grid_one(P, 0, P.shape[0], tips[b], origin, R, raster, lo, rstep, g, h, gstep, kr,
-                                        max_abs, min_points, max_leverage, linear, fill, reach_count, ws, X[b])
+            m += 1
+        n_used[b] = nu
+        n_bad[b] = nb
+        # counting sort by half-cell (stable): the points near a grid point are then a few runs
+        for kk in range(gp * gp):
+            first[kk + 1] += first[kk]
+            fill_at[kk] = first[kk]
+        for k in range(m):
+            t = fill_at[key[k]]
+            GUs[t] = GU[k]
+            GVs[t] = GV[k]
+            Zs[t] = Z[k]
+            fill_at[key[k]] = t + 1
+        _cell_moments(GUs, GVs, Zs, first, g, kr_cells, pad, M)
+        n_valid = 0
+        for I in range(g):
+            for J in range(g):
+                cell = I * g + J
+                mom = M[cell]
+                W = mom[0]
+                Wp = W if W > 0 else 1.0
+                zbar = mom[2] / Wp
+                ub = mom[3] / Wp
+                vb = mom[4] / Wp
+                cuu = mom[5] / Wp - ub * ub
+                cvv = mom[6] / Wp - vb * vb
+                cuv = mom[7] / Wp - ub * vb
+                det = cuu * cvv - cuv * cuv
+                spread = det > 1e-6 * kr2 * kr2
+                dp = det if spread else 1.0
+                lev = (cvv * ub * ub - 2.0 * cuv * ub * vb + cuu * vb * vb) / dp if spread else np.inf
+                est = zbar
+                if linear and spread:
+                    cuz = mom[8] / Wp - ub * zbar
+                    cvz = mom[9] / Wp - vb * zbar
+                    bs = (cvv * cuz - cuv * cvz) / dp
+                    cs = (cuu * cvz - cuv * cuz) / dp
+                    est = zbar - bs * ub - cs * vb
+                ok = mom[1] >= min_points and W > 0 and lev <= max_leverage
+                valid[cell] = ok
+                Hc[cell] = est if ok else 0.0
+                if ok:
+                    n_valid += 1
+        if fill == 1 and 0 < n_valid < gg:
+            _laplace_fill(Hc, valid, g, idx, unk, Lb, rhs, y)
+        for cell in range(gg):
+            X[b, cell] = Hc[cell]
+            X[b, gg + cell] = 1.0 if valid[cell] else 0.0
+        t0 = tips[b, 0] - origin[0]
+        t1 = tips[b, 1] - origin[1]
+        t2 = tips[b, 2] - origin[2]
+        for r in range(3):
+            X[b, 2 * gg + r] = R[r, 0] * t0 + R[r, 1] * t1 + R[r, 2] * t2
 
 
 @njit(cache=True)
