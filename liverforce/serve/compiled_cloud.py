@@ -8,45 +8,59 @@ done once, when compiling (:class:`CompiledCloud`):
 - the state vector (scaled), the compliance's inverse ``C^-1`` (for ``f_lin``),
   the stiffness factor of the material (force scaling) and so the interval's
   half-widths;
-- the scalers and PCA folded into one affine map, the MLP as NumPy arrays
-  (float32, as the torch reference; :func:`liverforce.serve.compiled.numpy_layers`).
+- the scalers and PCA folded into one affine map; the MLP as NumPy arrays
+  (float32, as the torch reference; :func:`liverforce.serve.compiled.numpy_layers`)
+  or the Gaussian process's posterior mean (:class:`_GPHead`: the training
+  rows scaled, ``alpha`` and the linear term folded).
 
 A call (:meth:`CompiledCloud.predict`, one cloud) or a batch
-(:meth:`CompiledCloud.predict_batch`, many clouds) then runs, per cloud, one
-compiled (numba) pass that does what
-:func:`~liverforce.learn.cloud_features.cloud_grid` does, in one loop over
-the points instead of NumPy temporaries:
+(:meth:`CompiledCloud.predict_batch`, many clouds, one kernel call: a list is
+read in place, not concatenated) then runs, per cloud, one compiled (numba)
+pass that does what :func:`~liverforce.learn.cloud_features.cloud_grid` does,
+in a few loops over the points instead of NumPy temporaries:
 
-- rotate into the local frame, crop to the grid's reach, count the points
-  over the grid (the refusal check of the reference path);
-- merge exact duplicate points (a spatial hash instead of the reference's
-  sort: the reference's canonical order only fixes the rounding of its sums);
-- the height change over the pre-operative raster (same bilinear read), the
-  biweight-kernel moments of every point's stencil cells, the per-cell
-  weighted plane fit, the validity test (same formulas);
-- the Laplace fill of the invalid cells as a banded Cholesky solve (the
-  4-neighbour system of the unknowns has bandwidth ``<= g`` in flat cell
-  order), instead of the reference's dense LU; ``nearest`` fill goes back to
-  the reference's function.
+1. every point: rotate into the local frame, count the points over the grid
+   and the non-finite ones (the refusal checks of the reference path), keep
+   the points within the kernel's reach (compacted without branches);
+2. the kept points: grid-index coordinates, grid cell, the height change over
+   the pre-operative raster (same bilinear read);
+3. a stable counting sort by grid cell; exact duplicate points (equal local
+   coordinates) count once, as in the reference's canonical order: a bit
+   table of hashed coordinates flags the few candidates, each checked
+   exactly against the earlier points of its cell;
+4. the biweight-kernel moments of every grid point from one contiguous run
+   of points per cell row (two for the default one-cell kernel), the
+   per-cell weighted plane fit, the validity test (same formulas);
+5. the Laplace fill of the invalid cells as a banded Cholesky solve (the
+   4-neighbour system of the unknowns has bandwidth ``<= g`` in flat cell
+   order), instead of the reference's dense LU; ``nearest`` fill goes back to
+   the reference's function.
+
+Indices into the arrays are unsigned where numba cannot see they are >= 0
+(it would otherwise emit the negative-index wrap, which stops LLVM from
+loading runs contiguously: the moments took 2.4x longer), and the pass lets
+LLVM fuse multiply-adds (``R (x - p)`` then matches NumPy/BLAS's bits more
+often, 80 % of coordinates against 68 %).
 
 The features agree with ``cloud_grid`` to rounding (sums in another order:
-about 1e-15 mm; tests check 1e-9 mm and identical masks). The
+about 1e-14 mm; tests check 1e-9 mm and identical masks). The
 out-of-distribution checks are those of
 :func:`liverforce.serve.cloud.camera_checks` (called for every cloud near or
 past a limit; the others pass them by construction), then the affine map and
 the MLP run row by row in a fixed order (float64 affine, float32 MLP, as the
 reference), so a cloud gives bit-identical forces alone or inside a batch of
-any size. The reference path (:meth:`liverforce.serve.Predictor.predict_cloud`)
-stays the oracle: a test checks both agree to 1e-6 N, and that both refuse
-the same inputs with the same reasons (tool tip missing or off the grid, NaN
-points, too few points over the grid, too little of the grid seen, heights or
-tip displacements far outside training).
+any size; the GP head multiplies with BLAS as ``GPRegressor.numpy_head`` does
+(and equals it to ~1e-14), so there a cloud alone and in a batch agree to
+rounding (~1e-15 relative), not bit for bit. The reference path
+(:meth:`liverforce.serve.Predictor.predict_cloud`) stays the oracle: a test
+checks both agree to 1e-6 N, and that both refuse the same inputs with the
+same reasons (tool tip missing or off the grid, NaN points, too few points
+over the grid, too little of the grid seen, heights or tip displacements far
+outside training).
 
 Measured with ``benchmarks/bench_camera.py`` (5,000-point clouds, 12 x 12
-grid, 1 thread, a loaded 2-core VM): one cloud p50 0.23 ms, p99 0.54 ms
-(reference ``predict_cloud`` 12.8 / 21.3 ms); ``predict_batch`` about 5,000
-clouds/s, the numba pass being ~90 % of it (moments ~30 us, local frame +
-height ~55 us per cloud).
+grid, 1 thread, a loaded 2-core VM): see the commit that last changed this
+module.
 """
 
 from __future__ import annotations
@@ -55,7 +69,8 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
+from numba import njit, types
+from numba.typed import List
 
 from liverforce.learn import camera
 from liverforce.learn.cloud_features import ReferenceSurface, _fill
@@ -68,7 +83,10 @@ from liverforce.serve.errors import PredictionInputError
 from liverforce.serve.preop import Preop, _points
 
 _FILL_CODES = {"zero": 0, "laplace": 1, "nearest": 2}
-_CHUNK = 64  # clouds per kernel call when a list is concatenated (bounds the copy, stays in cache)
+_CHUNK = 64  # clouds per conversion of a padded array that is not float32 / float64 C-contiguous (bounds the copy)
+_HEAD_ROWS = 512  # feature rows per call of the head (bounds the GP's kernel matrix: rows x training rows)
+_CLOUD_TYPE = types.Array(types.float64, 2, "C", readonly=True)  # items of the typed list of clouds: one signature
+# for writable and read-only (e.g. Arrow-backed) clouds alike
 
 
 # --------------------------------------------------------------------------
@@ -77,29 +95,29 @@ _CHUNK = 64  # clouds per kernel call when a list is concatenated (bounds the co
 
 
 @njit(cache=True, fastmath={"reassoc", "nsz", "contract", "arcp"})
-def _cell_moments(GU, GV, Z, first, g, kr, pad, M):
-    """Biweight moments of every grid point ``(I, J)`` from the points sorted by half-cell.
+def _cell_moments(GU, GV, Z, first, g, kr, pad, nc, M):
+    """Biweight moments of every grid point ``(I, J)`` from the points sorted by cell.
 
-    ``GU, GV``: grid-index coordinates, ``Z``: height change; the points in half-cell
-    ``(floor(2 gv), floor(2 gu))`` are ``first[key]:first[key + 1]`` with ``key = (floor(2 gv) + pad) *
-    (2 g + 2 pad) + floor(2 gu) + pad``, so the points within ``kr`` of a grid point are in a few runs.
-    ``M[I * g + J]`` gets: sum of w, of 1 (points within the support), of w z, w du, w dv, w du^2, w dv^2,
-    w du dv, w du z, w dv z (``w = (1 - q)^2``, ``q = (du^2 + dv^2) / kr^2 < 1``), the sums of
-    ``cloud_features.cloud_grid``. Points outside the support add exact zeros. The fast-math flags let LLVM
-    vectorise the sums: their order depends only on the points' order, never on the batch, so a cloud gives
-    the same bits alone or in a batch (and the reference's sums to rounding).
+    ``GU, GV``: grid-index coordinates, ``Z``: height change; the points in cell ``(floor(gv), floor(gu))`` are
+    ``first[key]:first[key + 1]`` with ``key = (floor(gv) + pad) nc + floor(gu) + pad`` (row-major), so the points
+    within ``kr`` of a grid point are one run per cell row (two runs for ``kr = 1``). ``M[I * g + J]`` gets: sum of
+    w, of 1 (points within the support), of w z, w du, w dv, w du^2, w dv^2, w du dv, w du z, w dv z
+    (``w = (1 - q)^2``, ``q = (du^2 + dv^2) / kr^2 < 1``), the sums of ``cloud_features.cloud_grid``. Points outside
+    the support add exact zeros. The fast-math flags let LLVM vectorise the sums: their order depends only on the
+    points' order, never on the batch, so a cloud gives the same bits alone or in a batch (and the reference's
+    sums to rounding).
     """
-    gs = 2 * g + 2 * pad
     inv_kr2 = 1.0 / (kr * kr)
     for I in range(g):
-        v_lo = int(math.floor(2.0 * (I - kr))) + pad
-        v_hi = int(math.ceil(2.0 * (I + kr))) - 1 + pad  # half-cells starting below I + kr
+        i_lo = int(math.floor(I - kr)) + pad
+        i_hi = int(math.ceil(I + kr)) - 1 + pad  # the cell rows floor(gv) of the points with |gv - I| < kr
         for J in range(g):
-            u_lo = int(math.floor(2.0 * (J - kr))) + pad
-            u_hi = int(math.ceil(2.0 * (J + kr))) - 1 + pad
+            j_lo = int(math.floor(J - kr)) + pad
+            j_hi = int(math.ceil(J + kr)) - 1 + pad
             s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = s9 = 0.0
-            for sv in range(v_lo, v_hi + 1):
-                for t in range(first[sv * gs + u_lo], first[sv * gs + u_hi + 1]):
+            for i in range(i_lo, i_hi + 1):
+                # unsigned bounds: numba then knows t >= 0 (no negative-index wrap), and LLVM loads contiguously
+                for t in range(np.uint64(first[i * nc + j_lo]), np.uint64(first[i * nc + j_hi + 1])):
                     du = GU[t] - J
                     dv = GV[t] - I
                     q = (du * du + dv * dv) * inv_kr2
@@ -130,175 +148,233 @@ def _cell_moments(GU, GV, Z, first, g, kr, pad, M):
 
 
 @njit(cache=True)
-def _grid_clouds(P, starts, counts, tips, origin, R, raster, lo, rstep, g, h, gstep, kr_cells, max_abs,
-                 min_points, max_leverage, linear, fill, reach_count, X, n_used, n_bad):
-    """Feature rows ``X[b] = [height (g^2), mask (g^2), R (tip - p) (3)]`` of the clouds ``P[starts[b]:+counts[b]]``.
-
-    Mirrors :func:`liverforce.learn.cloud_features.cloud_grid` (module docstring). Also returns per cloud the
-    points over the grid (``|u|, |v| <= reach_count``) and the points with a NaN or inf coordinate.
-    """
-    B = starts.shape[0]
+def _workspace(nmax, g, kr):
+    """Scratch arrays of :func:`_grid_one` for clouds of up to ``nmax`` points (allocated once per call)."""
     gg = g * g
+    nc = g + 2 * (int(math.ceil(kr)) + 1)  # cell rows / columns, with those beyond the grid a kept point can lie in
+    nmax = max(nmax, 1)
+    tb = 16  # duplicate filter: a bit table of >= 16 bits per point
+    while (1 << tb) < 16 * nmax:
+        tb += 1
+    return (np.empty(nmax), np.empty(nmax), np.empty(nmax),  # U, V, W: local frame of the kept points
+            np.empty(nmax), np.empty(nmax), np.empty(nmax), np.empty(nmax, dtype=np.int64),  # GU, GV, Z, key
+            np.empty(nmax), np.empty(nmax), np.empty(nmax, dtype=np.uint64),  # raster cell offsets and index
+            np.empty(nmax, dtype=np.int64),  # duplicate filter's hash
+            np.empty(nmax), np.empty(nmax), np.empty(nmax), np.empty(nmax, dtype=np.int64),  # sorted; origin
+            np.empty(nc * nc + 1, dtype=np.int64), np.empty(nc * nc, dtype=np.int64),  # first, fill_at
+            np.zeros(1 << (tb - 5), dtype=np.int64), np.empty(nmax, dtype=np.int64),  # bit table, candidates
+            np.zeros((gg, 10)), np.zeros(gg), np.zeros(gg, dtype=np.bool_),  # M, Hc, valid
+            np.empty(gg, dtype=np.int64), np.empty(gg, dtype=np.int64), np.zeros((gg, g + 1)),  # idx, unk, Lb
+            np.zeros(gg), np.zeros(gg))  # rhs, y
+
+
+_H1 = 2654435761  # odd multipliers of the duplicate filter's hash (products stay far below 2^63)
+_H2 = 2246822519
+
+
+@njit(cache=True, fastmath={"contract"})  # FMAs: u, v, w as BLAS computes R (x - p) more often
+def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_abs, min_points, max_leverage,
+              linear, fill, reach_count, ws, x):
+    """Feature row ``x = [height (g^2), mask (g^2), R (tip - p) (3)]`` of the cloud ``P[s0:s0 + n]``.
+
+    Mirrors :func:`liverforce.learn.cloud_features.cloud_grid` (module docstring); ``ws``: :func:`_workspace`.
+    Returns the points over the grid (``|u|, |v| <= reach_count``) and the points whose local coordinates are
+    not finite (every point with a NaN or inf coordinate; :meth:`CompiledCloud._refusal` counts exactly).
+    """
+    U, V, Wl, GU, GV, Z, key, A, C, Q, HB, GUs, GVs, Zs, orig, first, fill_at, bits, cand = ws[:19]
+    M, Hc, valid, idx, unk, Lb, rhs, y = ws[19:]
+    gg = g * g
+    RF = raster.ravel()  # C-contiguous: a view
+    rs = np.uint64(raster.shape[1])
+    one = np.uint64(1)
     r_last = raster.shape[0] - 1.000001
-    reach = h + kr_cells * gstep
-    kr2 = kr_cells ** 2
-    pad = int(math.ceil(2.0 * kr_cells)) + 1  # half-cells beyond the grid a kept point can lie in
-    gp = 2 * g + 2 * pad
-    nmax = 1
-    for b in range(B):
-        nmax = max(nmax, counts[b])
-    U = np.empty(nmax)
-    V = np.empty(nmax)
-    Wl = np.empty(nmax)
-    GU = np.empty(nmax)
-    GV = np.empty(nmax)
-    Z = np.empty(nmax)
-    key = np.empty(nmax, dtype=np.int64)
-    GUs = np.empty(nmax)
-    GVs = np.empty(nmax)
-    Zs = np.empty(nmax)
-    nxt = np.empty(nmax, dtype=np.int64)
-    side_max = 1
-    while side_max * side_max < nmax:
-        side_max *= 2
-    head = np.empty(side_max * side_max, dtype=np.int64)
-    first = np.empty(gp * gp + 1, dtype=np.int64)
-    fill_at = np.empty(gp * gp, dtype=np.int64)
-    M = np.zeros((gg, 10))
-    Hc = np.zeros(gg)
-    valid = np.zeros(gg, dtype=np.bool_)
-    idx = np.empty(gg, dtype=np.int64)
-    unk = np.empty(gg, dtype=np.int64)
-    Lb = np.zeros((gg, g + 1))
-    rhs = np.zeros(gg)
-    y = np.zeros(gg)
-    kept = np.empty(nmax, dtype=np.int64)
+    inv_rstep = 1.0 / rstep
+    inv_gstep = 1.0 / gstep
+    reach = h + kr * gstep
+    pad = int(math.ceil(kr)) + 1
+    nc = g + 2 * pad
     o0, o1, o2 = origin[0], origin[1], origin[2]
     r00, r01, r02, r10, r11, r12, r20, r21, r22 = R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2], R[2, 0], R[2, 1], R[2, 2]
-    for b in range(B):
-        s0 = starts[b]
-        n = counts[b]
-        # local frame, every point (branch-free: vectorised)
-        for k in range(n):
-            d0 = P[s0 + k, 0] - o0
-            d1 = P[s0 + k, 1] - o1
-            d2 = P[s0 + k, 2] - o2
-            U[k] = d0 * r00 + d1 * r01 + d2 * r02
-            V[k] = d0 * r10 + d1 * r11 + d2 * r12
-            Wl[k] = d0 * r20 + d1 * r21 + d2 * r22
-        # points with a NaN or inf, points over the grid (the refusal checks), points within the kernel's reach
-        m = 0
-        nu = 0
-        nb = 0
-        for k in range(n):
-            x = P[s0 + k, 0] + P[s0 + k, 1] + P[s0 + k, 2]
-            nb += (x - x) != 0.0  # NaN or inf in a coordinate; such a point is never kept (its u, v are NaN or inf)
-            au = abs(U[k])
-            av = abs(V[k])
-            nu += (au <= reach_count) & (av <= reach_count)
-            kept[m] = k
-            m += (au < reach) & (av < reach)
-        side = 1
-        while side * side < m:
-            side *= 2
-        inv = side / (2.0 * reach)
-        head[:side * side] = -1
-        first[:] = 0
-        mk = m
-        m = 0
-        for t in range(mk):
-            k = kept[t]
-            u = U[k]
-            v = V[k]
-            # height change over the pre-operative raster (ReferenceSurface.height: bilinear, clamped)
-            fu = min(max((u - lo) / rstep, 0.0), r_last)
-            fv = min(max((v - lo) / rstep, 0.0), r_last)
-            j0 = int(fu)
-            i0 = int(fv)
-            a = fu - j0
-            bb = fv - i0
-            zr = ((1 - a) * (1 - bb) * raster[i0, j0] + a * (1 - bb) * raster[i0, j0 + 1]
-                  + (1 - a) * bb * raster[i0 + 1, j0] + a * bb * raster[i0 + 1, j0 + 1])
-            w = Wl[k]
-            z = w - zr
-            if not abs(z) <= max_abs:
-                continue
-            # exact duplicate points (equal local coordinates) count once: chained spatial hash on (u, v)
-            bu = min(max(int((u + reach) * inv), 0), side - 1)
-            bv = min(max(int((v + reach) * inv), 0), side - 1)
-            slot = bv * side + bu
-            q = head[slot]
-            dup = False
-            while q >= 0:
-                if U[q] == u and V[q] == v and Wl[q] == w:
-                    dup = True
-                    break
-                q = nxt[q]
-            if dup:
-                continue
-            nxt[k] = head[slot]
-            head[slot] = k
-            gu = (u + h) / gstep
-            gv = (v + h) / gstep
-            kk = (int(math.floor(2.0 * gv)) + pad) * gp + int(math.floor(2.0 * gu)) + pad
-            GU[m] = gu
-            GV[m] = gv
-            Z[m] = z
-            key[m] = kk
+    # 1. every point: local frame; not finite (a NaN or inf coordinate makes u NaN or inf) and over the grid
+    #    (the refusal checks); the points within the kernel's reach compacted in their order (branch-free).
+    #    Unsigned indices here and below: numba then skips the negative-index wrap and LLVM can vectorise.
+    m = np.uint64(0)
+    nu = 0
+    nb = 0
+    base = np.uint64(s0)
+    for k in range(n):
+        row = base + np.uint64(k)
+        d0 = P[row, 0] - o0
+        d1 = P[row, 1] - o1
+        d2 = P[row, 2] - o2
+        u = d0 * r00 + d1 * r01 + d2 * r02
+        v = d0 * r10 + d1 * r11 + d2 * r12
+        nb += (u - u) != 0.0
+        e = max(abs(u), abs(v))  # not finite (u and v both are) for a point with a NaN or inf: never counted
+        nu += e <= reach_count
+        U[m] = u
+        V[m] = v
+        Wl[m] = d0 * r20 + d1 * r21 + d2 * r22
+        m += np.uint64(e < reach)
+    tb = 16
+    while (1 << tb) < 16 * m:
+        tb += 1
+    mask = (1 << tb) - 1
+    # 2. the kept points: grid-index coordinates and cell; the height change over the pre-operative raster
+    #    (ReferenceSurface.height: bilinear, clamped), its cell and offsets first (no gathers: vectorised)
+    for t in range(m):
+        u = U[t]
+        v = V[t]
+        fu = min(max((u - lo) * inv_rstep, 0.0), r_last)
+        fv = min(max((v - lo) * inv_rstep, 0.0), r_last)
+        j0 = np.uint64(fu)
+        i0 = np.uint64(fv)
+        A[t] = fu - j0
+        C[t] = fv - i0
+        Q[t] = i0 * rs + j0
+        gu = (u + h) * inv_gstep
+        gv = (v + h) * inv_gstep
+        GU[t] = gu
+        GV[t] = gv
+        key[t] = min(max(int(math.floor(gv)) + pad, 0), nc - 1) * nc + min(max(int(math.floor(gu)) + pad, 0), nc - 1)
+        HB[t] = (int(gu * 4096.0) * _H1 + int(gv * 4096.0) * _H2) & mask  # duplicate filter: equal points, equal bits
+    for t in range(m):
+        q = Q[t]
+        a = A[t]
+        c = C[t]
+        Z[t] = Wl[t] - ((1 - a) * (1 - c) * RF[q] + a * (1 - c) * RF[q + one]
+                        + (1 - a) * c * RF[q + rs] + a * c * RF[q + rs + one])
+    # 3. counting sort by cell (stable); exact duplicates (equal local coordinates) are found with a bit table of
+    #    hashed (u, v): a point whose bit is already set is a candidate, checked against its cell's earlier points
+    nw = 1 << (tb - 5)
+    bits[:nw] = 0
+    first[:nc * nc + 1] = 0
+    n_cand = 0
+    for t in range(m):
+        if abs(Z[t]) <= max_abs:  # else dropped (key -1)
+            kk = key[t]
             first[kk + 1] += 1
-            m += 1
-        n_used[b] = nu
-        n_bad[b] = nb
-        # counting sort by half-cell (stable): the points near a grid point are then a few runs
-        for kk in range(gp * gp):
-            first[kk + 1] += first[kk]
-            fill_at[kk] = first[kk]
-        for k in range(m):
-            t = fill_at[key[k]]
-            GUs[t] = GU[k]
-            GVs[t] = GV[k]
-            Zs[t] = Z[k]
-            fill_at[key[k]] = t + 1
-        _cell_moments(GUs, GVs, Zs, first, g, kr_cells, pad, M)
-        n_valid = 0
-        for I in range(g):
-            for J in range(g):
-                cell = I * g + J
-                mom = M[cell]
-                W = mom[0]
-                Wp = W if W > 0 else 1.0
-                zbar = mom[2] / Wp
-                ub = mom[3] / Wp
-                vb = mom[4] / Wp
-                cuu = mom[5] / Wp - ub * ub
-                cvv = mom[6] / Wp - vb * vb
-                cuv = mom[7] / Wp - ub * vb
-                det = cuu * cvv - cuv * cuv
-                spread = det > 1e-6 * kr2 * kr2
-                dp = det if spread else 1.0
-                lev = (cvv * ub * ub - 2.0 * cuv * ub * vb + cuu * vb * vb) / dp if spread else np.inf
-                est = zbar
-                if linear and spread:
-                    cuz = mom[8] / Wp - ub * zbar
-                    cvz = mom[9] / Wp - vb * zbar
-                    bs = (cvv * cuz - cuv * cvz) / dp
-                    cs = (cuu * cvz - cuv * cuz) / dp
-                    est = zbar - bs * ub - cs * vb
-                ok = mom[1] >= min_points and W > 0 and lev <= max_leverage
-                valid[cell] = ok
-                Hc[cell] = est if ok else 0.0
-                if ok:
-                    n_valid += 1
-        if fill == 1 and 0 < n_valid < gg:
-            _laplace_fill(Hc, valid, g, idx, unk, Lb, rhs, y)
-        for cell in range(gg):
-            X[b, cell] = Hc[cell]
-            X[b, gg + cell] = 1.0 if valid[cell] else 0.0
-        t0 = tips[b, 0] - origin[0]
-        t1 = tips[b, 1] - origin[1]
-        t2 = tips[b, 2] - origin[2]
-        for r in range(3):
-            X[b, 2 * gg + r] = R[r, 0] * t0 + R[r, 1] * t1 + R[r, 2] * t2
+            hb = HB[t]
+            word = hb >> 5
+            bit = 1 << (hb & 31)
+            if bits[word] & bit:
+                cand[n_cand] = t
+                n_cand += 1
+            bits[word] |= bit
+        else:
+            key[t] = -1
+    for kk in range(nc * nc):
+        first[kk + 1] += first[kk]
+        fill_at[kk] = first[kk]
+    for t in range(m):  # the permutation only, then a sequential gather (faster than scattering every array)
+        kk = key[t]
+        if kk >= 0:
+            s = fill_at[kk]
+            orig[s] = t
+            fill_at[kk] = s + 1
+    for s in range(np.uint64(first[nc * nc])):
+        t = np.uint64(orig[s])
+        GUs[s] = GU[t]
+        GVs[s] = GV[t]
+        Zs[s] = Z[t]
+    n_dup = 0
+    for r in range(n_cand):
+        t = cand[r]
+        kk = key[t]
+        s = first[kk]
+        while orig[s] != t:
+            s += 1
+        for s2 in range(first[kk], s):
+            q2 = orig[s2]
+            if q2 >= 0 and U[q2] == U[t] and V[q2] == V[t] and Wl[q2] == Wl[t]:
+                orig[s] = -1  # the first of equal points stays (the same values either way)
+                n_dup += 1
+                break
+    if n_dup:
+        w = 0
+        for kk in range(nc * nc):
+            a0 = first[kk]
+            e0 = first[kk + 1]
+            first[kk] = w
+            for t in range(a0, e0):
+                if orig[t] >= 0:
+                    GUs[w] = GUs[t]
+                    GVs[w] = GVs[t]
+                    Zs[w] = Zs[t]
+                    w += 1
+        first[nc * nc] = w
+    # 4. moments, per-cell weighted plane fit and validity test (cloud_grid's formulas)
+    _cell_moments(GUs, GVs, Zs, first, g, kr, pad, nc, M)
+    kr2 = kr * kr
+    n_valid = 0
+    for I in range(g):
+        for J in range(g):
+            cell = I * g + J
+            mom = M[cell]
+            W = mom[0]
+            Wp = W if W > 0 else 1.0
+            zbar = mom[2] / Wp
+            ub = mom[3] / Wp
+            vb = mom[4] / Wp
+            cuu = mom[5] / Wp - ub * ub
+            cvv = mom[6] / Wp - vb * vb
+            cuv = mom[7] / Wp - ub * vb
+            det = cuu * cvv - cuv * cuv
+            spread = det > 1e-6 * kr2 * kr2
+            dp = det if spread else 1.0
+            lev = (cvv * ub * ub - 2.0 * cuv * ub * vb + cuu * vb * vb) / dp if spread else np.inf
+            est = zbar
+            if linear and spread:
+                cuz = mom[8] / Wp - ub * zbar
+                cvz = mom[9] / Wp - vb * zbar
+                bs = (cvv * cuz - cuv * cvz) / dp
+                cs = (cuu * cvz - cuv * cuz) / dp
+                est = zbar - bs * ub - cs * vb
+            ok = mom[1] >= min_points and W > 0 and lev <= max_leverage
+            valid[cell] = ok
+            Hc[cell] = est if ok else 0.0
+            if ok:
+                n_valid += 1
+    # 5. fill of the cells the camera does not see
+    if fill == 1 and 0 < n_valid < gg:
+        _laplace_fill(Hc, valid, g, idx, unk, Lb, rhs, y)
+    for cell in range(gg):
+        x[cell] = Hc[cell]
+        x[gg + cell] = 1.0 if valid[cell] else 0.0
+    t0 = tip[0] - o0
+    t1 = tip[1] - o1
+    t2 = tip[2] - o2
+    for r in range(3):
+        x[2 * gg + r] = R[r, 0] * t0 + R[r, 1] * t1 + R[r, 2] * t2
+    return nu, nb
+
+
+@njit(cache=True)
+def _grid_clouds(P, starts, counts, tips, origin, R, raster, lo, rstep, g, h, gstep, kr, max_abs, min_points,
+                 max_leverage, linear, fill, reach_count, X, n_used, n_bad):
+    """Feature rows ``X[b]`` of the clouds ``P[starts[b]:starts[b] + counts[b]]`` (float64 or float32 points),
+    their points over the grid and their points with a NaN or inf coordinate (:func:`_grid_one`)."""
+    nmax = 1
+    for b in range(starts.shape[0]):
+        nmax = max(nmax, counts[b])
+    ws = _workspace(nmax, g, kr)
+    for b in range(starts.shape[0]):
+        n_used[b], n_bad[b] = _grid_one(P, starts[b], counts[b], tips[b], origin, R, raster, lo, rstep, g, h, gstep,
+                                        kr, max_abs, min_points, max_leverage, linear, fill, reach_count, ws, X[b])
+
+
+@njit(cache=True)
+def _grid_list(clouds, tips, origin, R, raster, lo, rstep, g, h, gstep, kr, max_abs, min_points, max_leverage,
+               linear, fill, reach_count, X, n_used, n_bad):
+    """:func:`_grid_clouds` of a typed list of (n_b, 3) float64 clouds, read in place (no concatenation)."""
+    nmax = 1
+    for b in range(len(clouds)):
+        nmax = max(nmax, clouds[b].shape[0])
+    ws = _workspace(nmax, g, kr)
+    for b in range(len(clouds)):
+        P = clouds[b]
+        n_used[b], n_bad[b] = _grid_one(P, 0, P.shape[0], tips[b], origin, R, raster, lo, rstep, g, h, gstep, kr,
+                                        max_abs, min_points, max_leverage, linear, fill, reach_count, ws, X[b])
 
 
 @njit(cache=True)
@@ -395,6 +471,47 @@ def _dense_rows(Hin, WT, b, slope, act):
     return out
 
 
+@njit(cache=True)
+def _gp_exponent(E, hz, hx):
+    """``E[r, j] = min(E[r, j] - (hz[r] + hx[j]), 0)`` in place: ``-d2 / 2`` of :class:`_GPHead`, NaN kept."""
+    n, N = E.shape
+    for r in range(n):
+        a = hz[r]
+        for j in range(N):
+            e = E[r, j] - (a + hx[j])
+            E[r, j] = 0.0 if e > 0.0 else e
+
+
+class _GPHead:
+    """The GP regressor's posterior mean (:meth:`liverforce.learn.gp.GPRegressor.numpy_head`) in fewer passes.
+
+    ``numpy_head`` forms ``d2 = (|z_s|^2 + |x_s|^2) - 2 z_s . x_s`` (``_s``: scaled by the inverse length scales),
+    ``K = s_f^2 exp(-max(d2, 0) / 2) + s_l^2 z . x`` and ``K alpha``, about ten passes over the (rows x training
+    rows) matrices. Here the exponent ``min(z_s . x_s - (|z_s|^2 / 2 + |x_s|^2 / 2), 0)`` is ``-d2 / 2`` to the
+    bit (the same product matrix from the same BLAS call, the same sums; halving is exact), so are its
+    exponentials; ``s_f^2`` is folded into ``alpha`` and the linear term into one (d, 3) matrix
+    ``s_l^2 X^T alpha``: one BLAS product, one pass, ``exp`` and a (rows x 3) product. The result equals
+    ``numpy_head``'s up to the order of those sums (about 1e-13 relative; a test checks 1e-9 near the
+    training inputs too, where the distances cancel most).
+    """
+
+    def __init__(self, gp):
+        self.Xs = (gp.X * gp.inv_length).numpy().copy()  # as numpy_head
+        self.hx = 0.5 * np.einsum("ij,ij->i", self.Xs, self.Xs)
+        self.inv_l = gp.inv_length.numpy().copy()
+        alpha = gp.alpha.numpy()
+        self.alpha_s = float(gp.signal_var) * alpha
+        self.beta = float(gp.linear_var) * (gp.X.numpy().T @ alpha)
+
+    def __call__(self, Z: np.ndarray) -> np.ndarray:
+        Z = np.asarray(Z, dtype=np.float64)
+        Zs = Z * self.inv_l
+        E = Zs @ self.Xs.T
+        _gp_exponent(E, 0.5 * np.einsum("ij,ij->i", Zs, Zs), self.hx)
+        np.exp(E, out=E)
+        return E @ self.alpha_s + Z @ self.beta
+
+
 # --------------------------------------------------------------------------
 # the compiled model
 # --------------------------------------------------------------------------
@@ -467,7 +584,7 @@ class CompiledCloud:
                 self.Cinv = np.linalg.inv(compliance_matrices(s)[0])
                 self.lin_mean, self.lin_scale = ss.mean[n_base:], ss.scale[n_base:]
         self.layers = []
-        self.gp = regressor_head(model.regressor)
+        self.gp = _GPHead(model.regressor) if regressor_head(model.regressor) is not None else None
         for W, b, sl in ([] if self.gp is not None else numpy_layers(model.regressor)):
             act, slope = (0, 0.0) if sl is None else ((1, 0.0) if sl == 0.0 else (2, float(sl)))
             self.layers.append((np.ascontiguousarray(W.astype(np.float32).T), b.astype(np.float32),
@@ -478,23 +595,33 @@ class CompiledCloud:
         self._rec = ((model.meta or {}).get("training_scale") or {}).get("camera")
         self._raster = np.ascontiguousarray(self.ref.raster, dtype=np.float64)
         # load (or compile) the kernels now, not on the first cloud in the operating room
-        self._predict_rows(np.zeros((1, 3)), np.zeros(1, np.int64), np.ones(1, np.int64), self.p[None].copy())
+        for dtype in (np.float64, np.float32):  # a cloud, a padded batch of either precision
+            self._grid(np.zeros((1, 3), dtype), np.zeros(1, np.int64), np.ones(1, np.int64), self.p[None].copy())
+        self._grid([np.zeros((1, 3))], None, None, self.p[None].copy())  # a list of clouds
         self._head(np.zeros((1, self.A.shape[1])))
 
     # -- per-cloud pieces ------------------------------------------------------
 
-    def _grid(self, P: np.ndarray, starts: np.ndarray, counts: np.ndarray, tips: np.ndarray):
-        """Feature rows, points over the grid, non-finite points of clouds ``P[starts[b]:starts[b] + counts[b]]``."""
-        B = len(starts)
+    def _grid(self, P, starts, counts, tips: np.ndarray):
+        """Feature rows, points over the grid, non-finite points of the clouds ``P[starts[b]:starts[b] + counts[b]]``
+        (``P``: (n, 3) float64 or float32, C-contiguous), or of a list ``P`` of (n_b, 3) C-contiguous float64
+        clouds (``starts`` and ``counts`` None: read in place, no concatenation)."""
+        B = len(P) if starts is None else len(starts)
         sp = self.spec
         X = np.empty((B, 2 * self.g * self.g + 3))
         n_used = np.zeros(B, dtype=np.int64)
         n_bad = np.zeros(B, dtype=np.int64)
         if B:
-            _grid_clouds(P, starts, counts, tips, self.p, self.R, self._raster, self.ref.lo, self.ref.step, self.g,
-                         sp.half_width_mm, sp.spacing_mm, sp.kernel_radius_cells, sp.max_abs_height_mm,
-                         sp.min_points, sp.max_leverage, sp.estimator == "linear", _FILL_CODES[sp.fill],
-                         self.reach, X, n_used, n_bad)
+            args = (tips, self.p, self.R, self._raster, self.ref.lo, self.ref.step, self.g, sp.half_width_mm,
+                    sp.spacing_mm, sp.kernel_radius_cells, sp.max_abs_height_mm, sp.min_points, sp.max_leverage,
+                    sp.estimator == "linear", _FILL_CODES[sp.fill], self.reach, X, n_used, n_bad)
+            if starts is None:
+                clouds = List.empty_list(_CLOUD_TYPE)
+                for c in P:
+                    clouds.append(c)
+                _grid_list(clouds, *args)
+            else:
+                _grid_clouds(P, starts, counts, *args)
             if sp.fill == "nearest":
                 g, gg = self.g, self.g * self.g
                 for r in range(B):
@@ -502,7 +629,7 @@ class CompiledCloud:
         return X, n_used, n_bad
 
     def _head(self, X: np.ndarray) -> np.ndarray:
-        """Forces (n, 3) N in the liver frame of feature rows ``X`` (affine map, state, MLP, scaling)."""
+        """Forces (n, 3) N in the liver frame of feature rows ``X`` (affine map, state, MLP or GP, scaling)."""
         n = len(X)
         nz = self.A.shape[0]
         Z = np.empty((n, nz + self.s_base.size + (3 if self.lin else 0)))
@@ -522,18 +649,16 @@ class CompiledCloud:
         R = self.R
         return (f[:, 0:1] * R[0] + f[:, 1:2] * R[1]) + f[:, 2:3] * R[2]  # R^T f, row by row
 
-    def _reasons(self, P, starts, counts, tips, X, n_used, n_bad) -> tuple[list, list]:
-        """Per cloud: the refusal reason (None if predicted) and the warnings, in the reference path's order."""
-        B = len(starts)
+    def _reasons(self, cloud_of, counts, tips, X, n_used, n_bad) -> tuple[list, list]:
+        """Per cloud: the refusal reason (None if predicted) and the warnings, in the reference path's order.
+
+        ``cloud_of(r)``: the points of cloud ``r`` (only called for a cloud near or past a refusal)."""
+        B = len(counts)
         refused: list = [None] * B
         warnings: list = [[] for _ in range(B)]
-        tip_ok = np.isfinite(tips).all(axis=1)
-        d_tip = np.linalg.norm(np.where(tip_ok[:, None], tips - self.p, 0.0), axis=1)
         lim = self.limits
-        flagged = np.flatnonzero((counts == 0) | (n_bad > 0) | (n_used < lim.min_cloud_points) | ~tip_ok
-                                 | (d_tip > self.half_width_mm))
-        for r in flagged:
-            refused[r] = self._refusal(P[starts[r]:starts[r] + counts[r]], tips[r], int(n_used[r]), int(n_bad[r]))
+        for r in np.flatnonzero(self._flagged(counts, tips, n_used, n_bad)):
+            refused[r] = self._refusal(cloud_of(r), tips[r], int(n_used[r]))
         if self._rec:
             g2 = self.g * self.g
             mask = X[:, g2:2 * g2]
@@ -552,14 +677,29 @@ class CompiledCloud:
                         refused[r] = str(exc)
         return refused, warnings
 
-    def _refusal(self, O: np.ndarray, tip: np.ndarray, n_used: int, n_bad: int) -> str | None:
-        """The reference path's message (``liverforce.serve.cloud._camera_arrays``, ``preop._points``)."""
+    def _flagged(self, counts, tips, n_used, n_bad) -> np.ndarray:
+        """(B,) True for a cloud that may be refused before its features are read (:meth:`_refusal` decides;
+        the others pass its checks by construction)."""
+        tip_ok = np.isfinite(tips).all(axis=1)
+        d_tip = np.linalg.norm(np.where(tip_ok[:, None], tips - self.p, 0.0), axis=1)
+        return ((counts == 0) | (n_bad > 0) | (n_used < self.limits.min_cloud_points) | ~tip_ok
+                | (d_tip > self.half_width_mm))
+
+    @staticmethod
+    def _tip_refusal(tip: np.ndarray) -> str | None:
         if not np.isfinite(tip).all():
             return f"tool_tip_mm: need 3 finite coordinates (mm), got {tip!r}"
+        return None
+
+    def _refusal(self, O: np.ndarray, tip: np.ndarray, n_used: int) -> str | None:
+        """The reference path's message (``liverforce.serve.cloud._camera_arrays``, ``preop._points``)."""
+        why = self._tip_refusal(tip)
+        if why:
+            return why
         if len(O) == 0:
             return "cloud: 0 points; at least 1 are needed (the cloud is empty)"
-        if n_bad:
-            bad = ~np.isfinite(O).all(axis=1)
+        bad = ~np.isfinite(O).all(axis=1)
+        if bad.any():
             return (f"cloud: {int(bad.sum())} of {len(O)} points contain NaN or inf (first at row "
                     f"{int(np.argmax(bad))}); drop invalid points (e.g. missing depth) before predicting")
         if n_used < self.limits.min_cloud_points:
@@ -575,46 +715,60 @@ class CompiledCloud:
                     "exertion point?")
         return None
 
-    def _predict_rows(self, P, starts, counts, tips):
-        X, n_used, n_bad = self._grid(P, starts, counts, tips)
-        refused, warnings = self._reasons(P, starts, counts, tips, X, n_used, n_bad)
-        F = np.full((len(starts), 3), np.nan)
-        ok = np.array([r is None for r in refused], dtype=bool)
-        if ok.all():
-            F = self._head(X)
-        elif ok.any():
-            F[ok] = self._head(X[ok])
-        return X, F, refused, warnings
+    def _forces(self, X: np.ndarray, ok: np.ndarray) -> np.ndarray:
+        """Forces (B, 3) N of the feature rows ``X[ok]`` (NaN elsewhere), the head in blocks of ``_HEAD_ROWS``."""
+        F = np.full((len(X), 3), np.nan)
+        rows = np.flatnonzero(ok)
+        for a in range(0, len(rows), _HEAD_ROWS):
+            r = rows[a:a + _HEAD_ROWS]
+            F[r] = self._head(X[r])
+        return F
 
     # -- public ------------------------------------------------------------------
 
     @staticmethod
     def _cloud(cloud_mm) -> np.ndarray:
-        return np.ascontiguousarray(_points("cloud", cloud_mm, min_points=1))
+        """The cloud as a C-contiguous float64 (n, 3) array, refused here only when not one (the reference
+        path's message); an empty cloud or NaN / inf points are refused after the gridding pass counted them."""
+        try:
+            x = np.asarray(cloud_mm, dtype=np.float64)
+        except (TypeError, ValueError):
+            x = None
+        if x is None or x.ndim != 2 or x.shape[1] != 3:
+            return np.ascontiguousarray(_points("cloud", cloud_mm, min_points=1))  # raises the reference's message
+        return x if x.flags.c_contiguous else np.ascontiguousarray(x)
 
     @staticmethod
     def _tip(tool_tip_mm) -> np.ndarray:
         return tool_tip_of(tool_tip_mm)
 
+    def _one(self, cloud_mm, tool_tip_mm):
+        """Feature row, refusal reason and warnings of one cloud (the tip is checked first, as the reference does)."""
+        tip = self._tip(tool_tip_mm)
+        O = self._cloud(cloud_mm)
+        X, n_used, n_bad = self._grid(O, np.zeros(1, np.int64), np.array([len(O)], np.int64), tip[None])
+        refused, warnings = self._reasons(lambda r: O, np.array([len(O)]), tip[None], X, n_used, n_bad)
+        return X, refused[0], warnings[0]
+
     def features(self, cloud_mm, tool_tip_mm) -> np.ndarray:
         """The model's feature row of one cloud and tool tip (``cloud_grid(...).features(include_mask=True)``
         and the local tip displacement, to rounding); raises where :meth:`predict` refuses before the features."""
-        O, tip = self._cloud(cloud_mm), self._tip(tool_tip_mm)
-        starts, counts = np.zeros(1, np.int64), np.array([len(O)], np.int64)
-        X, n_used, n_bad = self._grid(O, starts, counts, tip[None])
-        why = self._refusal(O, tip, int(n_used[0]), int(n_bad[0]))
-        if why:
-            raise PredictionInputError(why)
+        tip = self._tip(tool_tip_mm)
+        O = self._cloud(cloud_mm)
+        counts = np.array([len(O)], np.int64)
+        X, n_used, n_bad = self._grid(O, np.zeros(1, np.int64), counts, tip[None])
+        if self._flagged(counts, tip[None], n_used, n_bad)[0]:
+            why = self._refusal(O, tip, int(n_used[0]))
+            if why:
+                raise PredictionInputError(why)
         return X[0]
 
     def predict(self, cloud_mm, tool_tip_mm) -> tuple[np.ndarray, np.ndarray | None, list[str]]:
         """Force (3,) N in the liver frame, the interval's half-widths (3,) N (local frame) or None, warnings."""
-        O, tip = self._cloud(cloud_mm), self._tip(tool_tip_mm)
-        _, F, refused, warnings = self._predict_rows(O, np.zeros(1, np.int64), np.array([len(O)], np.int64),
-                                                     tip[None])
-        if refused[0] is not None:
-            raise PredictionInputError(refused[0])
-        return F[0], self.half, warnings[0]
+        X, why, warnings = self._one(cloud_mm, tool_tip_mm)
+        if why is not None:
+            raise PredictionInputError(why)
+        return self._head(X)[0], self.half, warnings
 
     def predict_batch(self, clouds, tool_tips, counts=None) -> CloudBatch:
         """Forces of many clouds at this exertion point in one go (a :class:`CloudBatch`).
@@ -626,7 +780,9 @@ class CompiledCloud:
         counts : (B,) points of each padded cloud (rows ``[:counts[b]]``; default all N)
 
         Each cloud gives what :meth:`predict` gives it, bit for bit; a cloud :meth:`predict` would refuse
-        gets a NaN force and its reason in ``refused`` (the rest of the batch is predicted).
+        gets a NaN force and its reason in ``refused`` (the rest of the batch is predicted). One gridding
+        pass over the batch (a list is read in place; a float32 or float64 padded array too), then the
+        checks and the head over all rows at once.
         """
         tips = np.asarray(tool_tips, dtype=np.float64)
         B = len(clouds)
@@ -634,9 +790,7 @@ class CompiledCloud:
             tips = np.broadcast_to(tips, (B, 3))
         if tips.shape != (B, 3):
             raise PredictionInputError(f"tool_tips: need one (3,) tip per cloud ({B}), got shape {tips.shape}")
-        force = np.full((B, 3), np.nan)
-        refused: list = [None] * B
-        warnings: list = [[] for _ in range(B)]
+        tips = np.ascontiguousarray(tips)
         if isinstance(clouds, np.ndarray) and clouds.ndim == 3:
             if clouds.shape[2] != 3:
                 raise PredictionInputError(f"clouds: expected (B, N, 3) points, got shape {clouds.shape}")
@@ -644,28 +798,36 @@ class CompiledCloud:
             cnt = np.full(B, N, np.int64) if counts is None else np.asarray(counts, dtype=np.int64).reshape(-1)
             if cnt.shape != (B,) or (cnt < 0).any() or (cnt > N).any():
                 raise PredictionInputError(f"counts: need {B} counts in [0, {N}], got {counts!r}")
-            for a in range(0, B, _CHUNK):
-                e = min(a + _CHUNK, B)
-                P = np.ascontiguousarray(clouds[a:e], dtype=np.float64).reshape(-1, 3)
-                _, force[a:e], refused[a:e], warnings[a:e] = self._predict_rows(
-                    P, np.arange(e - a, dtype=np.int64) * N, cnt[a:e], np.ascontiguousarray(tips[a:e]))
-            return CloudBatch(force, self.half, warnings, refused)
+            X = np.empty((B, 2 * self.g * self.g + 3))
+            n_used = np.zeros(B, dtype=np.int64)
+            n_bad = np.zeros(B, dtype=np.int64)
+            direct = clouds.dtype in (np.float32, np.float64) and clouds.flags.c_contiguous
+            step = max(B, 1) if direct else _CHUNK  # a conversion is done a chunk at a time (bounds the copy)
+            for a in range(0, B, step):
+                e = min(a + step, B)
+                P = clouds[a:e] if direct else np.ascontiguousarray(clouds[a:e], dtype=np.float64)
+                X[a:e], n_used[a:e], n_bad[a:e] = self._grid(P.reshape(-1, 3), np.arange(e - a, dtype=np.int64) * N,
+                                                             cnt[a:e], tips[a:e])
+            refused, warnings = self._reasons(lambda r: clouds[r, :cnt[r]], cnt, tips, X, n_used, n_bad)
+            return CloudBatch(self._forces(X, np.array([r is None for r in refused], dtype=bool)), self.half,
+                              warnings, refused)
         if counts is not None:
             raise PredictionInputError("counts: only with one padded (B, N, 3) array of clouds")
+        refused: list = [None] * B
+        warnings: list = [None] * B
         arrays: list = [None] * B
         for i, c in enumerate(clouds):
             try:
                 arrays[i] = self._cloud(c)
-            except PredictionInputError as exc:
-                refused[i] = str(exc)
+            except PredictionInputError as exc:  # the tip first, as the reference path checks it
+                refused[i], warnings[i] = self._tip_refusal(tips[i]) or str(exc), []
         good = [i for i in range(B) if arrays[i] is not None]
-        for a in range(0, len(good), _CHUNK):
-            rows = good[a:a + _CHUNK]
-            cnt = np.array([len(arrays[i]) for i in rows], dtype=np.int64)
-            starts = np.concatenate([[0], np.cumsum(cnt)[:-1]]).astype(np.int64)
-            P = np.concatenate([arrays[i] for i in rows]) if rows else np.zeros((0, 3))
-            _, F, why, warn = self._predict_rows(P, starts, cnt, np.ascontiguousarray(tips[rows]))
-            force[rows] = F
-            for k, i in enumerate(rows):
+        force = np.full((B, 3), np.nan)
+        if good:
+            P = [arrays[i] for i in good]
+            X, n_used, n_bad = self._grid(P, None, None, tips[good])
+            why, warn = self._reasons(lambda r: P[r], np.array([len(c) for c in P]), tips[good], X, n_used, n_bad)
+            force[good] = self._forces(X, np.array([r is None for r in why], dtype=bool))
+            for k, i in enumerate(good):
                 refused[i], warnings[i] = why[k], warn[k]
         return CloudBatch(force, self.half, warnings, refused)

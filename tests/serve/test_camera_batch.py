@@ -3,6 +3,9 @@ cloud_grid's to rounding, its forces the reference predict_cloud's, and predict_
 what predict gives it, with refused clouds reported by reason while the rest of the batch is predicted."""
 from __future__ import annotations
 
+import copy
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -12,6 +15,7 @@ from liverforce.learn.observation import ObservationConfig, observe
 from liverforce.learn.synthetic import synthetic_surface_arrays
 from liverforce.learn.train import train_scenario
 from liverforce.serve import Predictor, Preop
+from liverforce.serve.compiled_cloud import _GPHead
 from liverforce.serve.errors import PredictionInputError
 
 MODEL = {"encoder": "pca", "code_size": 6, "state_vector": True, "grid_size": 8, "hidden": [16, 16],
@@ -71,6 +75,22 @@ def test_compiled_features_equal_the_reference_cloud_grid(served):
     assert filled > 0  # the Laplace fill was exercised
 
 
+@pytest.mark.parametrize("kr", [0.7, 1.6])
+def test_compiled_features_with_another_kernel_radius(served, kr):
+    """Kernel radii other than one cell (more or fewer cell rows per grid point), and points present three times."""
+    pred, a, ctx, fast = served
+    other = copy.copy(fast)
+    other.spec = dataclasses.replace(fast.spec, kernel_radius_cells=kr)
+    (c, tip), (c2, tip2) = _clouds(a, 2)[:2]
+    triple = np.concatenate([c2, c2[::4], c2[::4]])[np.random.default_rng(2).permutation(len(c2) + 2 * len(c2[::4]))]
+    g2 = fast.g ** 2
+    for cloud, t in ((c, tip), (triple, tip2)):
+        ref = cloud_grid(cloud, other.ref, other.spec).features(include_mask=True)
+        x = other.features(cloud, t)
+        np.testing.assert_array_equal(x[g2:2 * g2], ref[g2:])
+        np.testing.assert_allclose(x[:-3], ref, rtol=0, atol=1e-9)
+
+
 def test_compiled_predict_equals_the_reference_path(served):
     pred, a, ctx, fast = served
     for cloud, tip in _clouds(a):
@@ -99,8 +119,19 @@ def test_batch_equals_per_cloud_predictions(served):
     res2 = fast.predict_batch(pad, tips, counts=[len(c) for c in clouds])
     np.testing.assert_allclose(res2.force, single, rtol=0, atol=1e-9)
     c32 = [c.astype(np.float32) for c in clouds]
-    np.testing.assert_allclose(fast.predict_batch(c32, tips).force,
-                               np.stack([fast.predict(c, t)[0] for c, t in zip(c32, tips)]), rtol=0, atol=1e-9)
+    single32 = np.stack([fast.predict(c, t)[0] for c, t in zip(c32, tips)])
+    np.testing.assert_allclose(fast.predict_batch(c32, tips).force, single32, rtol=0, atol=1e-9)
+    # a padded float32 array is read as it is; one in another layout is converted a chunk at a time
+    n = [len(c) for c in clouds]
+    np.testing.assert_allclose(fast.predict_batch(pad.astype(np.float32), tips, counts=n).force, single32, rtol=0,
+                               atol=1e-9)
+    np.testing.assert_allclose(fast.predict_batch(np.asfortranarray(pad), tips, counts=n).force, single, rtol=0,
+                               atol=1e-9)
+    # read-only clouds (as Arrow buffers give them) beside writable ones
+    ro = [c.copy() for c in clouds]
+    for c in ro[::2]:
+        c.flags.writeable = False
+    np.testing.assert_allclose(fast.predict_batch(ro, tips).force, single, rtol=0, atol=1e-9)
 
 
 def test_a_refused_cloud_does_not_poison_the_batch(served):
@@ -113,8 +144,9 @@ def test_a_refused_cloud_does_not_poison_the_batch(served):
     corner = cloud[(loc[:, 0] > 0.6 * h) & (loc[:, 1] > 0.6 * h)]
     bad = {1: (cloud[:5], tip), 2: (cloud / 1000.0, tip), 3: (nan, tip),
            4: (cloud, ctx.exertion_point_mm + 3 * h), 6: (corner, tip), 7: (np.zeros((0, 3)), tip),
-           8: (np.ones((4, 2)), tip)}
-    items = [(cloud, tip), *[None] * 4, (other, tip2), *[None] * 3]
+           8: (np.ones((4, 2)), tip), 9: (np.ones((4, 2)), np.array([np.nan, 0.0, 0.0])),
+           10: (nan, np.array([np.nan, 0.0, 0.0]))}
+    items = [(cloud, tip), *[None] * 4, (other, tip2), *[None] * 5]
     for k, v in bad.items():
         items[k] = v
     res = fast.predict_batch([c for c, _ in items], np.stack([t for _, t in items]))
@@ -144,3 +176,19 @@ def test_empty_batch(served):
     assert res.force.shape == (0, 3) and res.refused == []
     with pytest.raises(PredictionInputError, match="one"):
         fast.predict_batch([np.zeros((30, 3))], np.zeros((2, 3)))
+
+
+def test_gp_head_equals_the_regressors_numpy_head(served):
+    """The compiled GP head (_GPHead) gives GPRegressor.numpy_head's outputs, also near the training inputs, where
+    the squared distances cancel most (it reuses numpy_head's distance arithmetic to the bit)."""
+    pred, a, ctx, fast = served
+    gp = pred.model.regressor
+    if fast.gp is None:
+        pytest.skip("MLP regressor")
+    X = gp.X.numpy()
+    rng = np.random.default_rng(4)
+    near = X[rng.integers(0, len(X), 40)] + rng.normal(0, 0.05, (40, X.shape[1]))
+    for Z in (near, X[:40], rng.normal(0, 1, (40, X.shape[1]))):
+        Z = Z.astype(np.float32)  # as the compiled path feeds it
+        want = gp.numpy_head()(Z)
+        np.testing.assert_allclose(_GPHead(gp)(Z), want, rtol=0, atol=1e-9 * np.abs(want).max())
