@@ -33,6 +33,7 @@ Stages used by the package (``stage`` strings; keys in brackets)::
     split.test                 the held-out test split (from the split seed)
     split.cv                   the CV folds inside the training split (from the split seed)
     tune.fold [k]              fold k's regressor fit in cross-validation (from the split seed)
+    gp.subset                  the training rows of a GP fit above model.gp.max_points (from the fit's seed)
     encoder.fold [k]           fold k's scalers and encoder in cross-validation (from the split seed)
     split.repeat [r]           the r-th repeated train/test split (r >= 1; from the split seed)
     split.calibration          the interval's calibration split inside the training split (from the split seed)
