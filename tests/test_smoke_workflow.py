@@ -215,7 +215,7 @@ def test_adding_a_variant_reruns_only_that_variants_jobs(smoke_run):
     """A third variant: only its four trainings and what reads them (validation, the physics study that scores
     every IV variant, report) are out of date."""
     variants = ("train.variants=[{name:pca_sv,encoder:pca,state_vector:true},"
-                "{name:ae_sv,encoder:ae,state_vector:true},{name:dae_sv,encoder:dae,state_vector:true}]")
+                "{name:ae_sv,encoder:ae,state_vector:true,regressor:mlp},{name:dae_sv,encoder:dae,state_vector:true}]")
     out = snakemake("-n", "--directory", str(smoke_run), "--config", "experiment=smoke",
                     f"overrides={variants}").stdout
     counts = job_counts(out)

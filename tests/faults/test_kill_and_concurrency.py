@@ -197,7 +197,8 @@ def test_two_trainings_share_the_sqlite_store_at_once(reference, fault_ledger):
         per_parent = {}
         for r in nested:
             per_parent[r[4]] = per_parent.get(r[4], 0) + 1
-        assert len(per_parent) == 2 and len(set(per_parent.values())) == 1 and min(per_parent.values()) >= 1
+        # nested runs are Ax trials: the smoke experiment tunes ae_sv's MLP; pca_sv's GP has no search
+        assert len(per_parent) == 1 and min(per_parent.values()) >= 1, per_parent
         assert all(r[1] == "FINISHED" for r in runs), runs
         assert "database is locked" not in text.lower()
         for v in VARIANTS:
