@@ -34,7 +34,7 @@ from typing import Callable
 
 import numpy as np
 
-from liverforce.learn.regressor import FitParams, RegressorSpec, fit_params, fit_regressor, predict_regressor
+from liverforce.learn.regressor import FitParams, RegressorSpec, fit_regressor, predict_regressor
 from liverforce.seeds import derive
 
 DEFAULT_SPACE: dict[str, dict] = {
@@ -89,9 +89,10 @@ def regressor_from_params(params: dict, n_inputs: int) -> RegressorSpec:
 
 def _fit_of(params: dict, epochs: int, weight_decay: float) -> FitParams:
     """The fit settings of one parameterization: Ax's MLP values, or the GP's (``regressor: gp``)."""
-    if params.get("regressor") == "gp":
-        return fit_params({"regressor": "gp", "gp": {k: v for k, v in params.items() if k != "regressor"}},
-                          lr=0.0, batch_size=1, epochs=0)
+    if params.get("regressor") == "gp":  # params: train.py's {"regressor": "gp", **model.gp}
+        return FitParams(0.0, 1, 0, regressor="gp",
+                         gp_max_points=int(params.get("max_points", FitParams.gp_max_points)),
+                         gp_iterations=int(params.get("iterations", FitParams.gp_iterations)))
     return FitParams(lr=float(params["lr"]), batch_size=int(params["batch_size"]), epochs=int(epochs),
                      weight_decay=weight_decay)
 

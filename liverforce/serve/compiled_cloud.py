@@ -10,8 +10,9 @@ done once, when compiling (:class:`CompiledCloud`):
   half-widths;
 - the scalers and PCA folded into one affine map; the MLP as NumPy arrays
   (float32, as the torch reference; :func:`liverforce.serve.compiled.numpy_layers`)
-  or the Gaussian process's posterior mean (:class:`_GPHead`: the training
-  rows scaled, ``alpha`` and the linear term folded).
+  or the Gaussian process's posterior mean
+  (:meth:`liverforce.learn.gp.GPRegressor.numpy_head`: the training rows scaled, ``alpha`` and the
+  linear term folded).
 
 A call (:meth:`CompiledCloud.predict`, one cloud) or a batch
 (:meth:`CompiledCloud.predict_batch`, many clouds, one kernel call: a list is
@@ -471,47 +472,6 @@ def _dense_rows(Hin, WT, b, slope, act):
     return out
 
 
-@njit(cache=True)
-def _gp_exponent(E, hz, hx):
-    """``E[r, j] = min(E[r, j] - (hz[r] + hx[j]), 0)`` in place: ``-d2 / 2`` of :class:`_GPHead`, NaN kept."""
-    n, N = E.shape
-    for r in range(n):
-        a = hz[r]
-        for j in range(N):
-            e = E[r, j] - (a + hx[j])
-            E[r, j] = 0.0 if e > 0.0 else e
-
-
-class _GPHead:
-    """The GP regressor's posterior mean (:meth:`liverforce.learn.gp.GPRegressor.numpy_head`) in fewer passes.
-
-    ``numpy_head`` forms ``d2 = (|z_s|^2 + |x_s|^2) - 2 z_s . x_s`` (``_s``: scaled by the inverse length scales),
-    ``K = s_f^2 exp(-max(d2, 0) / 2) + s_l^2 z . x`` and ``K alpha``, about ten passes over the (rows x training
-    rows) matrices. Here the exponent ``min(z_s . x_s - (|z_s|^2 / 2 + |x_s|^2 / 2), 0)`` is ``-d2 / 2`` to the
-    bit (the same product matrix from the same BLAS call, the same sums; halving is exact), so are its
-    exponentials; ``s_f^2`` is folded into ``alpha`` and the linear term into one (d, 3) matrix
-    ``s_l^2 X^T alpha``: one BLAS product, one pass, ``exp`` and a (rows x 3) product. The result equals
-    ``numpy_head``'s up to the order of those sums (about 1e-13 relative; a test checks 1e-9 near the
-    training inputs too, where the distances cancel most).
-    """
-
-    def __init__(self, gp):
-        self.Xs = (gp.X * gp.inv_length).numpy().copy()  # as numpy_head
-        self.hx = 0.5 * np.einsum("ij,ij->i", self.Xs, self.Xs)
-        self.inv_l = gp.inv_length.numpy().copy()
-        alpha = gp.alpha.numpy()
-        self.alpha_s = float(gp.signal_var) * alpha
-        self.beta = float(gp.linear_var) * (gp.X.numpy().T @ alpha)
-
-    def __call__(self, Z: np.ndarray) -> np.ndarray:
-        Z = np.asarray(Z, dtype=np.float64)
-        Zs = Z * self.inv_l
-        E = Zs @ self.Xs.T
-        _gp_exponent(E, 0.5 * np.einsum("ij,ij->i", Zs, Zs), self.hx)
-        np.exp(E, out=E)
-        return E @ self.alpha_s + Z @ self.beta
-
-
 # --------------------------------------------------------------------------
 # the compiled model
 # --------------------------------------------------------------------------
@@ -584,7 +544,7 @@ class CompiledCloud:
                 self.Cinv = np.linalg.inv(compliance_matrices(s)[0])
                 self.lin_mean, self.lin_scale = ss.mean[n_base:], ss.scale[n_base:]
         self.layers = []
-        self.gp = _GPHead(model.regressor) if regressor_head(model.regressor) is not None else None
+        self.gp = regressor_head(model.regressor)
         for W, b, sl in ([] if self.gp is not None else numpy_layers(model.regressor)):
             act, slope = (0, 0.0) if sl is None else ((1, 0.0) if sl == 0.0 else (2, float(sl)))
             self.layers.append((np.ascontiguousarray(W.astype(np.float32).T), b.astype(np.float32),

@@ -15,7 +15,6 @@ from liverforce.learn.observation import ObservationConfig, observe
 from liverforce.learn.synthetic import synthetic_surface_arrays
 from liverforce.learn.train import train_scenario
 from liverforce.serve import Predictor, Preop
-from liverforce.serve.compiled_cloud import _GPHead
 from liverforce.serve.errors import PredictionInputError
 
 MODEL = {"encoder": "pca", "code_size": 6, "state_vector": True, "grid_size": 8, "hidden": [16, 16],
@@ -179,9 +178,11 @@ def test_empty_batch(served):
 
 
 @pytest.mark.parametrize("served", ["gp"], indirect=True)
-def test_gp_head_equals_the_regressors_numpy_head(served):
-    """The compiled GP head (_GPHead) gives GPRegressor.numpy_head's outputs, also near the training inputs, where
-    the squared distances cancel most (it reuses numpy_head's distance arithmetic to the bit)."""
+def test_gp_head_equals_the_regressors_posterior_mean(served):
+    """The compiled path's GP head (GPRegressor.numpy_head, distances and linear term folded) gives the torch
+    module's posterior mean, also near the training inputs, where the squared distances cancel most."""
+    import torch
+
     pred, a, ctx, fast = served
     gp = pred.model.regressor
     assert fast.gp is not None
@@ -190,5 +191,6 @@ def test_gp_head_equals_the_regressors_numpy_head(served):
     near = X[rng.integers(0, len(X), 40)] + rng.normal(0, 0.05, (40, X.shape[1]))
     for Z in (near, X[:40], rng.normal(0, 1, (40, X.shape[1]))):
         Z = Z.astype(np.float32)  # as the compiled path feeds it
-        want = gp.numpy_head()(Z)
-        np.testing.assert_allclose(_GPHead(gp)(Z), want, rtol=0, atol=1e-9 * np.abs(want).max())
+        with torch.no_grad():
+            want = gp(torch.from_numpy(Z.astype(np.float64))).numpy()
+        np.testing.assert_allclose(fast.gp(Z), want, rtol=0, atol=1e-9 * np.abs(want).max())
