@@ -743,8 +743,9 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
             + (f"on the IV test livers in {', '.join(f'{100 * c:.1f}' for c in test)} %; " if test else "")
             + "mean half-widths "
             + ", ".join("unbounded" if h is None else f"{h:.3f}" for h in iv["half_width_mean_n"])
-            + " N. Coverage below nominal on the unseen livers means they differ from the training population "
-              "(their constants lie outside its range).</p>")
+            + " N (widened where a liver's stiffness lies outside the calibration livers' range, by how far "
+              "outside). Coverage below nominal on the unseen livers means they differ from the training "
+              "population by more than that.</p>")
     allv = v.get("all_variants") or {}
     if len(allv) > 1:
         parts.append("<h3>Every scenario-IV variant on the same unseen livers</h3>")

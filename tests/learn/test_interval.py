@@ -66,14 +66,22 @@ def test_coverage_must_be_a_probability(cov):
         fit_conformal(np.zeros((30, 3)), np.zeros((30, 3)), np.ones(30), cov, "case")
 
 
-def test_scale_none_gives_the_same_width_whatever_the_stiffness():
+def test_scale_none_gives_the_same_width_inside_the_stiffness_range_and_widens_outside():
     rng = np.random.default_rng(1)
     r = rng.normal(size=(40, 3))
     k = rng.uniform(0.5, 2.0, size=40)
     ci = fit_conformal(r, np.zeros_like(r), k, 0.9, "case", scale="none")
     np.testing.assert_allclose(ci.half_width_n, np.sort(np.abs(r), axis=0)[36])  # ceil(41 * 0.9) = 37th
-    np.testing.assert_allclose(ci.half_widths(np.array([0.5, 3.0])), np.tile(ci.half_width_n, (2, 1)))
+    assert ci.stiffness_range == (k.min(), k.max())
+    inside = np.array([k.min(), 1.0, k.max()])
+    np.testing.assert_allclose(ci.half_widths(inside), np.tile(ci.half_width_n, (3, 1)))
+    # outside the calibration's range the model extrapolates: widened by the distance out, both ways
+    np.testing.assert_allclose(ci.half_widths(np.array([1.5 * k.max(), k.min() / 2])),
+                               np.array([[1.5], [2.0]]) * np.asarray(ci.half_width_n))
     assert ConformalInterval.from_dict(ci.to_dict()) == ci
+    # a bundle written before the range was recorded keeps fixed widths everywhere
+    old = {key: v for key, v in ci.to_dict().items() if key != "stiffness_range"}
+    np.testing.assert_allclose(ConformalInterval.from_dict(old).half_widths(np.array([3.0])), [ci.half_width_n])
     with pytest.raises(ValueError, match="scale"):
         fit_conformal(r, np.zeros_like(r), k, 0.9, "case", scale="force")
 
