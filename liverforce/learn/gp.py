@@ -104,6 +104,48 @@ def _kernel(A, B, inv_length, signal_var, linear_var):
     return signal_var * torch.exp(-0.5 * d2.clamp_min(0.0)) + linear_var * (A @ B.T)
 
 
+def neg_log_likelihood(X: torch.Tensor, Y: torch.Tensor, log_l: torch.Tensor, log_sf: torch.Tensor,
+                       log_sl: torch.Tensor, log_sn: torch.Tensor, *, gradient: bool = True):
+    """Negative log marginal likelihood per row and output of ``Y (n, m)`` given ``X (n, d)``, its gradient
+    with respect to ``(log_l, log_sf, log_sl, log_sn)`` (raw parameters of :func:`fit_gp`: ``l = MIN_LENGTH +
+    exp(log_l)``, variances ``exp(2 log_s)``) and ``alpha = K^-1 Y``; None where ``K`` is not positive definite.
+
+    The gradient is the closed form (Rasmussen & Williams 2006, eq. 5.9) summed over the outputs::
+
+        dv/dt = tr(W dK/dt) / (2 n m),   W = m K^-1 - alpha alpha^T
+
+    with the squared-exponential part's length-scale derivative reduced to ``(d,)`` sums over ``M = W o E``:
+    ``sum_ij M_ij (x_id - x_jd)^2 = 2 (x_d^2 . M 1 - x_d . M x_d)``. One Cholesky factor and one inverse per
+    evaluation: about a third of the time autograd's backward pass through the factorisation takes.
+    """
+    n, m = Y.shape
+    ls = MIN_LENGTH + torch.exp(log_l)
+    sf2, sl2, sn2 = torch.exp(2 * log_sf), torch.exp(2 * log_sl), torch.exp(2 * log_sn)
+    a = X / ls
+    sq = (a * a).sum(1)
+    E = torch.exp(-0.5 * (sq[:, None] + sq[None, :] - 2.0 * (a @ a.T)).clamp_min(0.0))
+    XX = X @ X.T
+    K = sf2 * E + sl2 * XX
+    K.diagonal().add_(sn2 + JITTER)
+    L, info = torch.linalg.cholesky_ex(K)
+    if int(info) != 0:
+        return None
+    alpha = torch.cholesky_solve(Y, L)
+    v = float(0.5 * (Y * alpha).sum() + m * torch.log(torch.diagonal(L)).sum()) / (n * m) + 0.5 * math.log(2 * math.pi)
+    if not gradient:
+        return v, None, alpha
+    W = torch.cholesky_inverse(L)
+    W.mul_(m).sub_(alpha @ alpha.T)
+    M = W * E
+    c = 0.5 / (n * m)
+    g_sf = c * 2.0 * sf2 * M.sum()
+    g_sl = c * 2.0 * sl2 * (W * XX).sum()
+    g_sn = c * 2.0 * sn2 * torch.diagonal(W).sum()
+    sums = 2.0 * ((X * X).T @ M.sum(1) - (X * (M @ X)).sum(0))  # sum_ij M_ij (x_id - x_jd)^2, (d,)
+    g_l = c * sf2 * sums * (ls - MIN_LENGTH) / ls ** 3
+    return v, [g_l, g_sf.reshape(()), g_sl.reshape(()), g_sn.reshape(())], alpha
+
+
 def fit_gp(z: np.ndarray, y: np.ndarray, *, seed: int, max_points: int = 2000,
            iterations: int = 200) -> tuple[GPRegressor, dict]:
     """Fit the GP of the module docstring to ``z (n, d) -> y (n, k)`` (standardised); returns ``(gp, info)``.
@@ -129,56 +171,45 @@ def fit_gp(z: np.ndarray, y: np.ndarray, *, seed: int, max_points: int = 2000,
     X = torch.from_numpy(z[rows])
     Y = torch.from_numpy(y[rows])
     n, d = X.shape
-    eye = torch.eye(n, dtype=torch.float64)
     # length scale l = MIN_LENGTH + exp(raw): smooth, and never below MIN_LENGTH
     l0 = max(math.sqrt(d) / 2.0, 2.0 * MIN_LENGTH)
-    log_l = torch.full((d,), math.log(l0 - MIN_LENGTH), dtype=torch.float64, requires_grad=True)
-    log_sf = torch.zeros((), dtype=torch.float64, requires_grad=True)
-    log_sl = torch.full((), math.log(0.1), dtype=torch.float64, requires_grad=True)
-    log_sn = torch.full((), math.log(0.1), dtype=torch.float64, requires_grad=True)
+    log_l = torch.full((d,), math.log(l0 - MIN_LENGTH), dtype=torch.float64)
+    log_sf = torch.zeros((), dtype=torch.float64)
+    log_sl = torch.full((), math.log(0.1), dtype=torch.float64)
+    log_sn = torch.full((), math.log(0.1), dtype=torch.float64)
     params = [log_l, log_sf, log_sl, log_sn]
 
     def length():
         return MIN_LENGTH + torch.exp(log_l)
-
-    def gram():
-        inv_l = 1.0 / length()
-        K = _kernel(X, X, inv_l, torch.exp(2 * log_sf), torch.exp(2 * log_sl))
-        return K + (torch.exp(2 * log_sn) + JITTER) * eye
-
-    def nll():
-        L, info = torch.linalg.cholesky_ex(gram())
-        if int(info) != 0:
-            return None, None
-        a = torch.cholesky_solve(Y, L)
-        v = 0.5 * (Y * a).sum() + Y.shape[1] * torch.log(torch.diagonal(L)).sum()
-        return v / (n * Y.shape[1]) + 0.5 * math.log(2 * math.pi), a
 
     opt = torch.optim.LBFGS(params, lr=1.0, max_iter=int(iterations), line_search_fn="strong_wolfe")
     evaluations = [0]
     best = {"v": math.inf, "state": [p.detach().clone() for p in params]}
 
     def closure():
-        opt.zero_grad()
         evaluations[0] += 1
-        v, _ = nll()
-        if v is None:  # not positive definite at this trial point: make the line search step back
-            return torch.tensor(1e10, dtype=torch.float64, requires_grad=True)
-        v.backward()
-        if float(v.detach()) < best["v"]:
-            best["v"], best["state"] = float(v.detach()), [p.detach().clone() for p in params]
-        return v
+        got = neg_log_likelihood(X, Y, *params, gradient=True)
+        if got is None:  # not positive definite at this trial point: make the line search step back
+            for p in params:
+                p.grad = torch.zeros_like(p)
+            return torch.tensor(1e10, dtype=torch.float64)
+        v, grads, _ = got
+        for p, g in zip(params, grads):
+            p.grad = g
+        if v < best["v"]:
+            best["v"], best["state"] = v, [p.detach().clone() for p in params]
+        return torch.tensor(v, dtype=torch.float64)
 
     opt.step(closure)
-    with torch.no_grad():
-        for p, s in zip(params, best["state"]):
-            p.copy_(s)
-        v, alpha = nll()
-    if v is None:
+    for p, s in zip(params, best["state"]):
+        p.copy_(s)
+    got = neg_log_likelihood(X, Y, *params, gradient=False)
+    if got is None:
         raise RuntimeError("fit_gp: the kernel matrix is not positive definite even at the start; are there "
                            "duplicated training rows with different targets?")
-    gp = GPRegressor(X, alpha, 1.0 / length().detach(), torch.exp(2 * log_sf.detach()),
-                     torch.exp(2 * log_sl.detach()), torch.exp(2 * log_sn.detach()) + JITTER)
+    v, _, alpha = got
+    gp = GPRegressor(X, alpha, 1.0 / length(), torch.exp(2 * log_sf), torch.exp(2 * log_sl),
+                     torch.exp(2 * log_sn) + JITTER)
     return gp.eval(), {"n_used": int(n), "nll": float(v), "evaluations": int(evaluations[0]),
-                       "length_scales": length().detach().tolist(),
+                       "length_scales": length().tolist(),
                        "noise_var": float(gp.noise_var)}

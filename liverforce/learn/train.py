@@ -380,7 +380,9 @@ def calibrate_interval(train_arrays, model_cfg, interval_cfg, scenario, seed, en
     that many folds (by liver in IV, as the test split), each predicted by a model
     with the chosen settings fitted on the other folds; 1: one split, with
     ``calibration_fraction`` of the training cases (by liver in IV) held out. Every
-    fold uses the same observation seeds (a camera model observes each case once).
+    fold uses the main split's observation seeds (``seed``): each case is observed as it is in the main
+    model's training or test (the observed data are fixed, only the split differs), so a camera model's
+    features of a case are computed once per run and reused from the cache.
     ``interval_cfg["scale"]``: ``none`` or ``stiffness`` (the module docstring).
     """
     geo = np.asarray(train_arrays["geometry_id"]).astype(str)
@@ -398,13 +400,13 @@ def calibrate_interval(train_arrays, model_cfg, interval_cfg, scenario, seed, en
     for fit_idx, cal_idx in pairs:
         a_fit, a_cal = subset(train_arrays, fit_idx), subset(train_arrays, cal_idx)
         rep_c = representation_from_config(model_cfg, a_fit)
-        prep_fit = prepare(a_fit, rep_c, observation_seeds=view_seeds(cal_seed, n_views_for(rep_c)))
+        prep_fit = prepare(a_fit, rep_c, observation_seeds=view_seeds(seed, n_views_for(rep_c)))
         model, _ = fit_force_model(prep_fit, rep_c, encoder=encoder, code_size=code_size, use_state=use_state,
                                    hidden=hidden, dropout=dropout, fit=fit, seed=cal_seed, dae_input_noise=dae_noise,
                                    force_scaling=force_scaling_of(model_cfg),
                                    linear_force_radius_mm=linear_force_radius_of(model_cfg))
-        prep_cal = prepare(a_cal, rep_c, observation_seeds=[eval_seed(cal_seed)])
-        f_cal = model.predict_local(a_cal, observation_seed=eval_seed(cal_seed))
+        prep_cal = prepare(a_cal, rep_c, observation_seeds=[eval_seed(seed)])
+        f_cal = model.predict_local(a_cal, observation_seed=eval_seed(seed))
         true.append(prep_cal.y_local)
         pred.append(f_cal)
         stiff.append(model.pre.stiffness(prep_cal.state if use_state else None, len(f_cal)))
@@ -422,7 +424,9 @@ def repeated_splits(train_arrays, test_arrays, rep, model_cfg, train_cfg, scenar
 
     The cases are the union of the main split's training and test cases; split
     ``r`` uses seed ``seed + r`` (:func:`~liverforce.learn.splits.train_test_split`,
-    by geometry for IV), and its own observation seeds.
+    by geometry for IV). Every split observes each case as the main split does
+    (observation seeds from ``seed``): the observed data are fixed and only the
+    split differs, so a camera model's features are computed once per case.
     """
     n_rep = int(train_cfg.get("repeats", 1))
     if n_rep <= 1:
@@ -436,12 +440,12 @@ def repeated_splits(train_arrays, test_arrays, rep, model_cfg, train_cfg, scenar
                                   seed=split_seed)
         a_tr, a_te = subset(all_arrays, tr), subset(all_arrays, te)
         rep_r = representation_from_config(model_cfg, a_tr)
-        prep_tr = prepare(a_tr, rep_r, observation_seeds=view_seeds(split_seed, n_views_for(rep_r)))
+        prep_tr = prepare(a_tr, rep_r, observation_seeds=view_seeds(seed, n_views_for(rep_r)))
         model, _ = fit_force_model(prep_tr, rep_r, encoder=encoder, code_size=code_size, use_state=use_state,
                                    hidden=hidden, dropout=dropout, fit=fit, seed=split_seed,
                                    dae_input_noise=dae_noise, force_scaling=force_scaling_of(model_cfg),
                                    linear_force_radius_mm=linear_force_radius_of(model_cfg))
-        pred = model.predict(a_te, observation_seed=eval_seed(split_seed))
+        pred = model.predict(a_te, observation_seed=eval_seed(seed))
         out.append({"split_seed": split_seed, "test_geometries": _geometries(a_te),
                     "metrics": force_metrics(np.asarray(a_te["force_n"], float), pred)})
     return out
@@ -462,7 +466,8 @@ def heldout_points(train_arrays, test_arrays, model_cfg, folds, seed, encoder, u
 
     The cases of both splits are cut into ``folds`` groups of whole exertion points
     (``geometry_id``, ``exertion_id``); each group is predicted by a model with the
-    chosen settings fitted on the others. Returns the metrics per fold and their mean
+    chosen settings fitted on the others (the cases observed as in the main split). Returns the metrics per
+    fold and their mean
     and sd, or None with fewer than 2 exertion points.
     """
     all_arrays = _all_cases(train_arrays, test_arrays)
@@ -481,12 +486,12 @@ def heldout_points(train_arrays, test_arrays, model_cfg, folds, seed, encoder, u
         tr = np.flatnonzero(~np.isin(point, part))
         a_tr, a_te = subset(all_arrays, tr), subset(all_arrays, te)
         rep_p = representation_from_config(model_cfg, a_tr)
-        prep_tr = prepare(a_tr, rep_p, observation_seeds=view_seeds(fold_seed, n_views_for(rep_p)))
+        prep_tr = prepare(a_tr, rep_p, observation_seeds=view_seeds(seed, n_views_for(rep_p)))
         model, _ = fit_force_model(prep_tr, rep_p, encoder=encoder, code_size=code_size, use_state=use_state,
                                    hidden=hidden, dropout=dropout, fit=fit, seed=fold_seed,
                                    dae_input_noise=dae_noise, force_scaling=force_scaling_of(model_cfg),
                                    linear_force_radius_mm=linear_force_radius_of(model_cfg))
-        pred = model.predict(a_te, observation_seed=eval_seed(fold_seed))
+        pred = model.predict(a_te, observation_seed=eval_seed(seed))
         out.append({"points": sorted(str(p) for p in part), "n_test": int(len(te)),
                     "metrics": force_metrics(np.asarray(a_te["force_n"], float), pred)})
     summary = summarise_repeats([o["metrics"] for o in out])

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from liverforce.learn.gp import GPRegressor, fit_gp
+from liverforce.learn.gp import JITTER, MIN_LENGTH, GPRegressor, fit_gp, neg_log_likelihood
 from liverforce.learn.model import ForceModel
 from liverforce.learn.regressor import fit_params
 from liverforce.learn.synthetic import synthetic_arrays
@@ -19,6 +19,29 @@ torch.set_num_threads(1)
 def truth(X: np.ndarray) -> np.ndarray:
     """Three outputs: a nonlinear one, a quadratic one and a linear one; input 4 is irrelevant."""
     return np.stack([np.sin(X[:, 0]) + 0.5 * X[:, 1], 0.5 * X[:, 2] ** 2, 0.3 * X[:, 3] - 0.2 * X[:, 1]], axis=1)
+
+
+def test_the_closed_form_likelihood_gradient_is_the_exact_gaussian_likelihoods():
+    """Value and gradient against an independent likelihood: torch's MultivariateNormal log density of each
+    output column under the kernel, differentiated by autograd."""
+    rng = np.random.default_rng(3)
+    n, d = 120, 4
+    X = torch.from_numpy(rng.normal(size=(n, d)))
+    Y = torch.from_numpy(rng.normal(size=(n, 3)))
+    raw = [torch.from_numpy(rng.normal(0.0, 0.5, d)), torch.tensor(0.3, dtype=torch.float64),
+           torch.tensor(-0.7, dtype=torch.float64), torch.tensor(-1.2, dtype=torch.float64)]
+    v, grads, alpha = neg_log_likelihood(X, Y, *raw)
+    p = [r.clone().requires_grad_(True) for r in raw]
+    a = X / (MIN_LENGTH + torch.exp(p[0]))
+    K = (torch.exp(2 * p[1]) * torch.exp(-0.5 * torch.cdist(a, a) ** 2) + torch.exp(2 * p[2]) * X @ X.T
+         + (torch.exp(2 * p[3]) + JITTER) * torch.eye(n, dtype=torch.float64))
+    mvn = torch.distributions.MultivariateNormal(torch.zeros(n, dtype=torch.float64), covariance_matrix=K)
+    ref = -sum(mvn.log_prob(Y[:, j]) for j in range(3)) / (3 * n)
+    ref.backward()
+    assert v == pytest.approx(float(ref.detach()), rel=1e-12)
+    for g, q in zip(grads, p):
+        np.testing.assert_allclose(g.numpy(), q.grad.numpy(), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose((K.detach() @ alpha).numpy(), Y.numpy(), atol=1e-8)
 
 
 @pytest.fixture(scope="module")

@@ -37,8 +37,10 @@ def test_the_quantile_is_the_conformal_rank():
 
 
 def test_coverage_on_fresh_cases_is_the_nominal_one(tmp_path):
-    """Trained and calibrated on 400 cases, the 90 % interval covers 85-95 % of 600 fresh exchangeable cases,
-    per local component (binomial sd ~1.2 %), and the interval scales with the stiffness."""
+    """Trained and calibrated on 400 cases, the 90 % interval covers 90 % of 600 fresh exchangeable cases per
+    local component, within 2.5 sd of the two sources of spread: the calibration quantile's own (coverage given
+    n calibration cases is Beta-distributed, sd ~ sqrt(c (1 - c) / (n + 2)), ~3 % here) and the fresh cases'
+    binomial sd (~1.2 %); and the interval scales with the stiffness."""
     kw = dict(n_geometries=1, nodes=(150, 200), dent_width_mm=12.0, material_varies=True, dtype=np.float64)
     data = synthetic_arrays(1000, seed=11, **kw)
     first = synthetic_arrays(400, seed=11, **kw)
@@ -50,7 +52,9 @@ def test_coverage_on_fresh_cases_is_the_nominal_one(tmp_path):
     got = model.predict_interval(fresh, observation_seed=12345)
     R = local_rotations(fresh["frame_normal"], fresh["frame_t1"], fresh["frame_t2"])
     cov = coverage_per_component(force_to_local(fresh["force_n"], R), got["force_local_n"], got["half_width_local_n"])
-    assert all(0.85 <= c <= 0.95 for c in cov), cov
+    n_cal = res["interval"]["n_calibration"]
+    sd = np.sqrt(0.9 * 0.1 / (n_cal + 2) + 0.9 * 0.1 / len(fresh["force_n"]))
+    assert all(abs(c - 0.9) <= 2.5 * sd for c in cov), (cov, sd)
     np.testing.assert_allclose(got["force_n"], model.predict(fresh, observation_seed=12345))
     k = np.asarray(fresh["material_params_mpa"])[:, 0] / model.pre.stiffness_ref
     np.testing.assert_allclose(got["half_width_local_n"], k[:, None] * np.asarray(model.interval.half_width_n))
@@ -100,5 +104,7 @@ def test_cross_conformal_calibrates_on_every_training_case_and_covers_fresh_case
     got = model.predict_interval(fresh, observation_seed=777)
     R = local_rotations(fresh["frame_normal"], fresh["frame_t1"], fresh["frame_t2"])
     cov = coverage_per_component(force_to_local(fresh["force_n"], R), got["force_local_n"], got["half_width_local_n"])
-    assert all(0.85 <= c <= 0.95 for c in cov), cov
+    n_cal = res["interval"]["n_calibration"]
+    sd = np.sqrt(0.9 * 0.1 / (n_cal + 2) + 0.9 * 0.1 / len(fresh["force_n"]))
+    assert all(abs(c - 0.9) <= 2.5 * sd for c in cov), (cov, sd)
     np.testing.assert_allclose(got["half_width_local_n"], np.tile(model.interval.half_width_n, (600, 1)))
