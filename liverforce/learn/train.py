@@ -466,9 +466,9 @@ def heldout_points(train_arrays, test_arrays, model_cfg, folds, seed, encoder, u
 
     The cases of both splits are cut into ``folds`` groups of whole exertion points
     (``geometry_id``, ``exertion_id``); each group is predicted by a model with the
-    chosen settings fitted on the others (the cases observed as in the main split). Returns the metrics per
-    fold and their mean
-    and sd, or None with fewer than 2 exertion points.
+    chosen settings fitted on the others (the cases observed as in the main split).
+    Returns the metrics per fold and their mean and sd, or None with fewer than 2
+    exertion points.
     """
     all_arrays = _all_cases(train_arrays, test_arrays)
     point = np.char.add(np.asarray(all_arrays["geometry_id"]).astype(str),
