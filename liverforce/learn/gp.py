@@ -98,10 +98,14 @@ class GPRegressor(nn.Module):
         return head
 
 
-def _kernel(A, B, inv_length, signal_var, linear_var):
-    a, b = A * inv_length, B * inv_length
+def _sq_exp(a, b):
+    """``exp(-|a_i - b_j|^2 / 2)`` of inputs already divided by the length scales."""
     d2 = (a * a).sum(1)[:, None] + (b * b).sum(1)[None, :] - 2.0 * (a @ b.T)
-    return signal_var * torch.exp(-0.5 * d2.clamp_min(0.0)) + linear_var * (A @ B.T)
+    return torch.exp(-0.5 * d2.clamp_min(0.0))
+
+
+def _kernel(A, B, inv_length, signal_var, linear_var):
+    return signal_var * _sq_exp(A * inv_length, B * inv_length) + linear_var * (A @ B.T)
 
 
 def neg_log_likelihood(X: torch.Tensor, Y: torch.Tensor, log_l: torch.Tensor, log_sf: torch.Tensor,
@@ -122,8 +126,7 @@ def neg_log_likelihood(X: torch.Tensor, Y: torch.Tensor, log_l: torch.Tensor, lo
     ls = MIN_LENGTH + torch.exp(log_l)
     sf2, sl2, sn2 = torch.exp(2 * log_sf), torch.exp(2 * log_sl), torch.exp(2 * log_sn)
     a = X / ls
-    sq = (a * a).sum(1)
-    E = torch.exp(-0.5 * (sq[:, None] + sq[None, :] - 2.0 * (a @ a.T)).clamp_min(0.0))
+    E = _sq_exp(a, a)
     XX = X @ X.T
     K = sf2 * E + sl2 * XX
     K.diagonal().add_(sn2 + JITTER)
