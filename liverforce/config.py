@@ -236,7 +236,7 @@ class ModelConfig:
     grid_half_width_mm: float = MISSING
     dae_input_noise: float = MISSING
     roi_fraction: Optional[float] = MISSING  # None: the shards' dataset.roi_fraction
-    force_scaling: str = MISSING  # stiffness | none (state-vector models: force / (C10 / C10_ref))
+    force_scaling: str = MISSING  # linear | stiffness | none (state-vector models; liverforce.learn.model)
     probe_force_radius_mm: float = MISSING  # Gaussian radius of the linear force estimate C^-1 u_w (0 = off)
     rigid_motion: str = MISSING  # keep | remove (the ROI's best rigid motion undone; displacement features)
     rigid_motion_radius_mm: float = MISSING  # remove: fitted to the ROI nodes at least this far from the tool, mm
@@ -505,6 +505,11 @@ def roi_features() -> tuple[str, ...]:
     return tuple(_learn_names().ROI_FEATURE_CHANNELS)
 
 
+def force_scalings() -> tuple[str, ...]:
+    """``model.force_scaling``: :data:`liverforce.learn.names.FORCE_SCALINGS`."""
+    return tuple(_learn_names().FORCE_SCALINGS)
+
+
 def occlusion_modes() -> tuple[str, ...]:
     """``model.occlusion.mode`` and ``study.occlusion.modes``: :data:`liverforce.learn.names.OCCLUSION_MODES`."""
     return tuple(_learn_names().OCCLUSION_MODES)
@@ -741,7 +746,7 @@ def _check_model(mo: dict, key: str) -> None:
         _fail(f"{key}.grid_half_width_mm", "must be >= 0 mm (0 = fitted)")
     if mo["dae_input_noise"] < 0:
         _fail(f"{key}.dae_input_noise", "must be >= 0")
-    _check_choice(f"{key}.force_scaling", mo["force_scaling"], ("stiffness", "none"))
+    _check_choice(f"{key}.force_scaling", mo["force_scaling"], force_scalings())
     _check_choice(f"{key}.regressor", mo["regressor"], ("gp", "mlp"))
     if mo["gp"]["max_points"] < 2 or mo["gp"]["iterations"] < 1:
         _fail(f"{key}.gp", f"max_points must be >= 2 and iterations >= 1 (got {mo['gp']['max_points']}, "

@@ -17,7 +17,7 @@ once, so the quantile rests on all training livers rather than a few (its
 guarantee weakens to about ``1 - 2 (1 - c)`` in the worst case; in practice
 it stays near ``c``). The scores are the absolute residuals, optionally divided
 by the stiffness factor ``k`` of each case (``scale: stiffness``;
-:meth:`liverforce.learn.model.Preprocessor.stiffness`):
+:meth:`liverforce.learn.model.Preprocessor.material_factor`, ``C10 / C10_ref``):
 
     s_ij = |f_ij - f^_ij| / k_i,      q_j = s_(ceil((n + 1) c)) of component j,
     interval_ij = f^_ij +- k_i q_j                (k_i = 1 with scale: none)

@@ -409,7 +409,7 @@ def calibrate_interval(train_arrays, model_cfg, interval_cfg, scenario, seed, en
         f_cal = model.predict_local(a_cal, observation_seed=eval_seed(seed))
         true.append(prep_cal.y_local)
         pred.append(f_cal)
-        stiff.append(model.pre.stiffness(prep_cal.state if use_state else None, len(f_cal)))
+        stiff.append(model.pre.material_factor(prep_cal.state if use_state else None, len(f_cal)))
     return fit_conformal(np.vstack(true), np.vstack(pred), np.vstack(stiff), float(interval_cfg["coverage"]),
                          group_key(scenario), scale=str(interval_cfg.get("scale", "stiffness")), folds=len(pairs))
 

@@ -204,9 +204,10 @@ class CompiledROI:
                 Cinv = np.linalg.inv(compliance_matrices(s_state)[0])
                 Mw = np.stack([w @ M[c * g2:(c + 1) * g2] for c in range(3)])
                 xw0 = np.array([w @ x0[c * g2:(c + 1) * g2] for c in range(3)])
-                A_state[lc] = (Cinv @ Mw) / ss.scale[lc][:, None]
-                s0[lc] = (Cinv @ xw0 - ss.mean[lc]) / ss.scale[lc]
+                self._lin_parts = (Cinv @ Mw, Cinv @ xw0)  # f_lin at k = 1: affine in D
                 self._lin_slice = lc
+                self._k_lin = float(pre.linear_factor(s_state, 1)[0, 0])  # force_scaling: linear (else 1)
+                self._set_linear(A_state, s0)
             self.A_state = A_state
             self._mat_slice = slice(MATERIAL_START, MATERIAL_START + pre.n_material)
         else:
@@ -236,6 +237,12 @@ class CompiledROI:
         self._reg32 = [(W.astype(np.float32), b.astype(np.float32), s) for W, b, s in self._reg]
         self._enc32 = [(W.astype(np.float32), b.astype(np.float32), s) for W, b, s in self._enc_layers]
 
+    def _set_linear(self, A_state: np.ndarray, s0: np.ndarray) -> None:
+        """The linear force estimate's rows of the state map: ``k_lin C^-1 u_w``, scaled."""
+        lc, (A1, b1) = self._lin_slice, self._lin_parts
+        A_state[lc] = self._k_lin * A1 / self._s_scale[lc][:, None]
+        s0[lc] = (self._k_lin * b1 - self._s_mean[lc]) / self._s_scale[lc]
+
     def with_material(self, material_params_mpa) -> "CompiledROI":
         """Change the material constants (MPa) of the compiled context in place; returns self."""
         if not self.uses_state:
@@ -249,6 +256,9 @@ class CompiledROI:
         full[0, sl] = mat
         self._stiff = float(self._pre.stiffness(full, 1)[0, 0])
         self._s0[sl] = (self._pre.base_state_features(full)[0, sl] - self._s_mean[sl]) / self._s_scale[sl]
+        if self._lin_slice is not None:
+            self._k_lin = float(self._pre.linear_factor(full, 1)[0, 0])
+            self._set_linear(self.A_state, self._s0)
         self._rebuild()
         return self
 
@@ -367,6 +377,11 @@ class CompiledROI:
                 stiff = self._pre.stiffness(full, n)
                 z[:, nc + ms.start:nc + ms.stop] = (self._pre.base_state_features(full)[:, ms] - self._s_mean[ms]) \
                     / self._s_scale[ms]
+                if self._lin_slice is not None:  # f_lin of each row's own material (force_scaling: linear)
+                    lc = slice(nc + self._lin_slice.start, nc + self._lin_slice.stop)
+                    mean, scale = self._s_mean[self._lin_slice], self._s_scale[self._lin_slice]
+                    f1 = (z[:, lc] * scale + mean) / self._k_lin
+                    z[:, lc] = (f1 * self._pre.linear_factor(full, n) - mean) / scale
         else:
             z = np.empty((n, len(self.bU)))
             z[:] = self.bU

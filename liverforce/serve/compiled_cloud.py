@@ -529,19 +529,23 @@ class CompiledCloud:
         self.b = -(enc.components @ (fs.mean / fs.scale + enc.mean) + cs.mean) / cs.scale
         self.uses_state = model.uses_state
         self.k = 1.0
+        self.k_material = 1.0
+        self.k_lin = 1.0
         self.s_base = np.zeros(0)
         self.lin = False
         if self.uses_state:
             arrays = rep.state_arrays(preop.to_arrays(preop.roi_undeformed_mm))
             s = state_vector(arrays, R=self.R[None])
             self.k = float(pre.stiffness(s, 1)[0, 0])
+            self.k_material = float(pre.material_factor(s, 1)[0, 0])
+            self.k_lin = float(pre.linear_factor(s, 1)[0, 0])
             ss = pre.state_scaler
             base = pre.base_state_features(s)[0]
             n_base = base.size
             self.s_base = (base - ss.mean[:n_base]) / ss.scale[:n_base]
             self.lin = pre.n_linear_force == 3
-            if self.lin:
-                self.Cinv = np.linalg.inv(compliance_matrices(s)[0])
+            if self.lin:  # f_lin = k_lin C^-1 tip (k_lin: force_scaling linear, else 1)
+                self.Cinv = self.k_lin * np.linalg.inv(compliance_matrices(s)[0])
                 self.lin_mean, self.lin_scale = ss.mean[n_base:], ss.scale[n_base:]
         self.layers = []
         self.gp = regressor_head(model.regressor)
@@ -551,7 +555,7 @@ class CompiledCloud:
                                 np.float32(slope), act))
         self.tmean, self.tscale = pre.target_scaler.mean, pre.target_scaler.scale
         ci = model.interval
-        self.half = None if ci is None else ci.half_widths(np.array([[self.k]]))[0]
+        self.half = None if ci is None else ci.half_widths(np.array([[self.k_material]]))[0]
         self._rec = ((model.meta or {}).get("training_scale") or {}).get("camera")
         self._raster = np.ascontiguousarray(self.ref.raster, dtype=np.float64)
         # load (or compile) the kernels now, not on the first cloud in the operating room

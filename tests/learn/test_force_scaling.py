@@ -5,6 +5,11 @@ deformation by k; equivalently the same force on a k-times stiffer liver gives
 a k-times smaller displacement. The synthetic cases follow exactly that law
 (displacement = compliance x force / stiffness), so a model that respects it
 holds outside the training range of the constants (here +-30 %).
+
+``stiffness`` scales the predicted force by k (exactly, by construction);
+``linear`` (the default) scales the linear force estimate C^-1 u_w by k, so
+that input is the same for the same force on any stiffness, and leaves what
+does not scale (the supports' springs in FE) to the regressor.
 """
 
 import numpy as np
@@ -35,6 +40,11 @@ def models(data, tmp_path_factory):
         res = train_scenario(data, {**MODEL, "force_scaling": scaling}, TRAIN, NO_TUNE, "III", scaling,
                              out_dir=tmp_path_factory.mktemp(scaling))
         out[scaling] = ForceModel.load(res["model_path"])
+    for scaling in ("linear", "none"):  # with the linear force estimate C^-1 u_w (the tool's radius)
+        res = train_scenario(data, {**MODEL, "force_scaling": scaling, "probe_force_radius_mm": 5.0, "regressor": "gp",
+                                    "gp": {"max_points": 2000, "iterations": 200}}, TRAIN, NO_TUNE,
+                             "III", f"{scaling}_lin", out_dir=tmp_path_factory.mktemp(f"{scaling}_lin"))
+        out[f"{scaling}_lin"] = ForceModel.load(res["model_path"])
     return out
 
 
@@ -83,3 +93,57 @@ def test_compiled_fast_path_applies_the_same_scaling(models, data):
     ref2 = model.predict(dict(case, material_params_mpa=mat[None]))[0]
     np.testing.assert_allclose(ref2, 1.7 * ref, rtol=1e-9)
     np.testing.assert_allclose(comp.predict(D), ref2, atol=1e-5)
+
+
+@pytest.mark.parametrize("k", [0.5, 1.25, 2.0])
+def test_linear_scaling_scales_the_linear_force_estimate_by_k_and_keeps_the_constants(models, data, k):
+    """force_scaling: linear: constants x k multiply f_lin = C^-1 u_w by k exactly, enter the state as they are
+    (MPa, not ratios) and leave the target unscaled."""
+    pre = models["linear_lin"].pre
+    assert pre.stiffness_ref is None and pre.linear_force_ref is not None
+    rep = models["linear_lin"].representation
+    from liverforce.learn.model import prepare
+    from liverforce.learn.state import MATERIAL_START as M
+
+    prep = prepare(data, rep, observation_seeds=[0])
+    x, st = prep.x_obs[0], prep.state
+    st_k = st.copy()
+    st_k[:, M:] *= k  # the constants
+    base, scaled = pre.state_features(st, x), pre.state_features(st_k, x)
+    np.testing.assert_allclose(scaled[:, -3:], k * base[:, -3:], rtol=1e-12)
+    np.testing.assert_allclose(scaled[:, M:-3], k * base[:, M:-3], rtol=1e-12)  # raw constants, not ratios
+    np.testing.assert_allclose(pre.stiffness(st_k, len(st_k)), 1.0)
+    np.testing.assert_allclose(pre.material_factor(st_k, len(st_k)), k * pre.material_factor(st, len(st)), rtol=1e-12)
+
+
+@pytest.mark.parametrize("k", [0.5, 2.0])
+def test_linear_scaled_model_holds_outside_the_training_range(models, data, k):
+    """Constants x0.5 / x2 with the same forces: the f_lin input is unchanged (u / k times k), so the linear
+    model stays accurate where the same model without the scaling does not."""
+    shifted = stiffer(data, k)
+    true = np.asarray(data["force_n"], dtype=float)
+    acc = {s: force_metrics(true, models[s].predict(shifted))["accuracy_pct"] for s in ("linear_lin", "none_lin")}
+    assert acc["linear_lin"] > 90.0, acc
+    assert acc["none_lin"] < acc["linear_lin"] - 10.0, acc
+
+
+def test_compiled_fast_path_applies_the_linear_scaling(models, data):
+    """The compiled ROI path gives the reference prediction of a linear-scaled model, also after with_material
+    and with a material per row."""
+    from liverforce.serve.compiled import CompiledROI
+    from liverforce.serve.preop import Preop
+
+    model = models["linear_lin"]
+    i = 3
+    case = {key: v[i:i + 1] for key, v in data.items()}
+    comp = CompiledROI(model, Preop.from_arrays(data, i))
+    D = np.asarray(data["roi_deformed_mm"][i], dtype=float)
+    np.testing.assert_allclose(comp.predict(D), model.predict(case)[0], atol=1e-5)
+    mat = np.asarray(data["material_params_mpa"][i]) * 1.2
+    ref2 = model.predict(dict(case, material_params_mpa=mat[None]))[0]
+    assert not np.allclose(ref2, model.predict(case)[0], atol=1e-3)  # the material moves the prediction
+    np.testing.assert_allclose(comp.with_material(mat).predict(D), ref2, atol=1e-5)
+    mats = np.stack([mat, mat / 1.2 * 0.8])
+    rows = comp.predict_batch(np.stack([D, D]), material_params_mpa=mats)
+    for r, m in zip(rows, mats):
+        np.testing.assert_allclose(r, model.predict(dict(case, material_params_mpa=m[None]))[0], atol=1e-5)

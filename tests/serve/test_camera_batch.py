@@ -26,11 +26,14 @@ TRAIN = {"test_fraction": 0.2, "epochs": 8, "batch_size": 32, "lr": 3e-3, "weigh
 NO_TUNE = {"enabled": False, "trials": 1, "folds": 2, "sobol_trials": 1, "epochs": 1}
 
 
-@pytest.fixture(scope="module", params=["mlp", "gp"])
+@pytest.fixture(scope="module", params=[("mlp", "stiffness"), ("gp", "stiffness"), ("gp", "linear")])
 def served(request, tmp_path_factory):
-    """The compiled camera path of a small camera model, with each regressor (the MLP and the GP)."""
+    """The compiled camera path of a small camera model, with each regressor (the MLP and the GP) and force
+    scaling (the predicted force or the linear force estimate scaled by the stiffness)."""
     arrays = synthetic_surface_arrays(80, n_geometries=3, seed=3, material_varies=True)
-    res = train_scenario(arrays, {**MODEL, "regressor": request.param, "gp": {"max_points": 2000, "iterations": 100}},
+    regressor, scaling = request.param
+    res = train_scenario(arrays, {**MODEL, "regressor": regressor, "force_scaling": scaling,
+                                  "gp": {"max_points": 2000, "iterations": 100}},
                          TRAIN, NO_TUNE, "IV", "cloud", out_dir=tmp_path_factory.mktemp("cam-batch"))
     pred = Predictor(ForceModel.load(res["model_path"]))
     test = np.flatnonzero(np.isin(arrays["geometry_id"], res["split"]["test_geometries"]))
@@ -177,7 +180,7 @@ def test_empty_batch(served):
         fast.predict_batch([np.zeros((30, 3))], np.zeros((2, 3)))
 
 
-@pytest.mark.parametrize("served", ["gp"], indirect=True)
+@pytest.mark.parametrize("served", [("gp", "linear")], indirect=True)
 def test_gp_head_equals_the_regressors_posterior_mean(served):
     """The compiled path's GP head (GPRegressor.numpy_head, distances and linear term folded) gives the torch
     module's posterior mean, also near the training inputs, where the squared distances cancel most."""
