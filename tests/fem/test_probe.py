@@ -17,8 +17,12 @@ def liver_model():
     P = liver["points"]
     mat = make_material("yeoh", YEOH, nu=0.49)
     bp = BoundaryParams.from_totals(P, liver["facets"], liver["facet_region"])
+    # tol 1e-8: at 1 mN on this near-incompressible liver (nu = 0.49) a relative residual of 1e-9 lies at the
+    # float64 round-off floor, where the iteration count is round-off's (12 to 15 iterations in standalone runs on
+    # an AMD EPYC machine with 1 or 2 BLAS threads, past the 20-iteration limit in its pytest run; within it on
+    # another machine); 1e-8 converges in 3-5 and is still far finer than the 0.5 % compared below
     model = LiverModel(P, liver["tets"], liver["facets"], liver["facet_region"], mat, bp,
-                       SolverOptions(tol=1e-9))
+                       SolverOptions(tol=1e-8))
     x0 = P[np.argmax(P[:, 2] + 0.3 * P[:, 1])]
     return model, x0
 
