@@ -107,7 +107,12 @@ def stage_outputs(tmp_path):
                      "test_coverage": [0.9, 0.95, 0.85]},
         "all_variants": {
             "pca_sv": {"metrics": {"mae_vec": 0.34, "rmse_vec": 0.45, "accuracy_pct": 77.0}, "livers": livers,
-                       "model_run_id": "runIVpca_sv"},
+                       "model_run_id": "runIVpca_sv",
+                       "error_by_force_magnitude": [
+                           {"force_lo_n": 0.0, "force_hi_n": 1.0, "n": 3, "mean_force_n": 0.62, "mae_vec_n": 0.31,
+                            "relative_mae": 0.31 / 0.62},
+                           {"force_lo_n": 1.0, "force_hi_n": 2.0, "n": 4, "mean_force_n": 1.5, "mae_vec_n": 0.29,
+                            "relative_mae": 0.29 / 1.5}]},
             "pca_nosv": {"metrics": {"mae_vec": 0.50, "rmse_vec": 0.62, "accuracy_pct": 70.1},
                          "livers": {"mean": {"mae_vec": 0.52, "accuracy_pct": 69.0},
                                     "sd": {"mae_vec": 0.11, "accuracy_pct": 4.4}, "worst": "val-1002"},
@@ -272,6 +277,9 @@ def test_report_validates_on_every_unseen_liver_with_mean_sd_and_the_worst_named
         assert cells[1:4] == [f"{dl['mean']['mae_vec']:.3f} ± {dl['sd']['mae_vec']:.3f}",
                               f"{dl['mean']['accuracy_pct']:.1f} ± {dl['sd']['accuracy_pct']:.1f}",
                               f"<code>{dl['worst']}</code>"]
+    # the worst force bin of each variant, flagged at or above 20 % (pca_sv: 50 % in 0-1 N); none recorded: "–"
+    assert "50.0 % (0.00–1.00 N) ⚠" in variants[0][7] and "flag" in variants[0][7]
+    assert _text(variants[1][7]) == "–"
 
 
 def test_report_refuses_a_validation_without_per_liver_metrics(stage_outputs):

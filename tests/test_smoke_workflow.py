@@ -44,6 +44,9 @@ def test_every_stage_produced_its_outputs(smoke_run):
     # validate.input: camera -> the main camera-cloud variant is validated; the node models are the reference
     assert set(val["all_variants"]) == {"pca_sv", "ae_sv", "cloud_sv"} and val["model_variant"] == "cloud_sv"
     assert val["metrics"] == pytest.approx(val["all_variants"]["cloud_sv"]["metrics"])
+    # every variant's error per force bin; the validated one's is the headline's
+    assert (json.dumps(val["all_variants"]["cloud_sv"]["error_by_force_magnitude"])
+            == json.dumps(val["error_by_force_magnitude"]))
     sens = val["camera_sensitivity"]
     assert [r["value"] for r in sens["n_points"]] == [200, 2000]  # the smoke experiment's
     assert all(np.isfinite(r["mae_vec"]) for k in ("n_points", "noise_sd_mm", "cone_half_angle_deg", "tip_noise_mm")

@@ -174,6 +174,7 @@ def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_
             others[model_of_metrics(mp)[1]] = {"metrics": force_metrics(arrays["force_n"], p),
                                             "livers": {"mean": grouped["mean"], "sd": grouped["sd"],
                                                        "worst": grouped["worst"]},
+                                            "error_by_force_magnitude": error_by_force_bin(arrays["force_n"], p),
                                             "model_run_id": json.loads(Path(mp).read_text()).get("run_id")}
         model_dir, model_metrics_path, pred = list(model_dir)[k], list(model_metrics_path)[k], preds[k]
     else:

@@ -97,6 +97,16 @@ def _pm(mean, sd, nd=3) -> str:
     return f"{_fmt(float(mean), nd)} ± {_fmt(float(sd), nd)}"
 
 
+def _worst_bin(bins) -> str:
+    """The force bin with the largest relative MAE, as "x % (lo–hi N)", flagged at or above the target."""
+    scored = [(r, b) for b in (bins or []) if (r := _rel_mae(b)) is not None]
+    if not scored:
+        return "–"
+    r, b = max(scored, key=lambda t: t[0])
+    text = f"{100 * r:.1f} % ({b['force_lo_n']:.2f}–{b['force_hi_n']:.2f} N)"
+    return f"<b class='flag'>{text} ⚠</b>" if r >= REL_MAE_LIMIT else text
+
+
 def _rel_mae(b: dict) -> float | None:
     """Relative MAE of a force bin: ``relative_mae``, else MAE / mean force (None when neither is known)."""
     r = b.get("relative_mae")
@@ -758,10 +768,11 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
                          _pm(mean.get("accuracy_pct"), sd.get("accuracy_pct"), 1),
                          f"<code>{html.escape(str(dl.get('worst', '–')))}</code>", _fmt(d["metrics"]["mae_vec"]),
                          _fmt(d["metrics"]["rmse_vec"]), _fmt(d["metrics"]["accuracy_pct"], 1),
-                         _run(d.get("model_run_id"))])
+                         _worst_bin(d.get("error_by_force_magnitude")), _run(d.get("model_run_id"))])
         parts.append(_table(["variant", "MAE (N), mean ± sd over livers", "accuracy %, mean ± sd over livers",
-                             "worst liver", "MAE pooled (N)", "RMSE pooled (N)", "accuracy pooled %", "model run"],
-                            rows, cls="variants", row_cls="variant"))
+                             "worst liver", "MAE pooled (N)", "RMSE pooled (N)", "accuracy pooled %",
+                             f"largest relative MAE of a force bin (target &lt; {100 * REL_MAE_LIMIT:.0f} %)",
+                             "model run"], rows, cls="variants", row_cls="variant"))
     parts.append(camera_section(data, v, main_variant))
     parts.append(physics_section(data.get("physics"), chosen))
     parts.append("<h3>Error against force magnitude</h3>")
