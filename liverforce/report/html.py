@@ -771,7 +771,7 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
                          _worst_bin(d.get("error_by_force_magnitude")), _run(d.get("model_run_id"))])
         parts.append(_table(["variant", "MAE (N), mean ± sd over livers", "accuracy %, mean ± sd over livers",
                              "worst liver", "MAE pooled (N)", "RMSE pooled (N)", "accuracy pooled %",
-                             f"largest relative MAE of a force bin (target &lt; {100 * REL_MAE_LIMIT:.0f} %)",
+                             f"largest relative MAE of a force bin (target below {100 * REL_MAE_LIMIT:.0f} %)",
                              "model run"], rows, cls="variants", row_cls="variant"))
     parts.append(camera_section(data, v, main_variant))
     parts.append(physics_section(data.get("physics"), chosen))
