@@ -89,7 +89,6 @@ from liverforce.learn.regressor import (
     predict_regressor,
 )
 from liverforce.learn.representation import Representation
-
 from liverforce.learn.scaling import Standardizer
 from liverforce.learn.state import (
     COMPLIANCE_COLUMNS,

@@ -530,7 +530,6 @@ class CompiledCloud:
         self.uses_state = model.uses_state
         self.k = 1.0
         self.k_material = 1.0
-        self.k_lin = 1.0
         self.s_base = np.zeros(0)
         self.lin = False
         if self.uses_state:
@@ -538,14 +537,13 @@ class CompiledCloud:
             s = state_vector(arrays, R=self.R[None])
             self.k = float(pre.stiffness(s, 1)[0, 0])
             self.k_material = float(pre.material_factor(s, 1)[0, 0])
-            self.k_lin = float(pre.linear_factor(s, 1)[0, 0])
             ss = pre.state_scaler
             base = pre.base_state_features(s)[0]
             n_base = base.size
             self.s_base = (base - ss.mean[:n_base]) / ss.scale[:n_base]
             self.lin = pre.n_linear_force == 3
             if self.lin:  # f_lin = k_lin C^-1 tip (k_lin: force_scaling linear, else 1)
-                self.Cinv = self.k_lin * np.linalg.inv(compliance_matrices(s)[0])
+                self.Cinv = pre.linear_factor(s, 1)[0, 0] * np.linalg.inv(compliance_matrices(s)[0])
                 self.lin_mean, self.lin_scale = ss.mean[n_base:], ss.scale[n_base:]
         self.layers = []
         self.gp = regressor_head(model.regressor)
