@@ -150,12 +150,20 @@ def neg_log_likelihood(X: torch.Tensor, Y: torch.Tensor, log_l: torch.Tensor, lo
 
 
 def fit_gp(z: np.ndarray, y: np.ndarray, *, seed: int, max_points: int = 2000,
-           iterations: int = 200) -> tuple[GPRegressor, dict]:
+           iterations: int = 200, groups: np.ndarray | None = None) -> tuple[GPRegressor, dict]:
     """Fit the GP of the module docstring to ``z (n, d) -> y (n, k)`` (standardised); returns ``(gp, info)``.
 
+    ``groups`` (n,): rows with the same label are views of one case (a camera model sees each training
+    case through several seeded noisy observations, all with the case's force). The hyper-parameters
+    then maximise the marginal likelihood of one row per case (the first), and only the posterior
+    (``alpha``) uses every row. Fitted on all views, the likelihood rewards explaining each case's
+    twin views exactly: the noise variance falls to the jitter and the GP interpolates the input noise
+    (seen on scenario IV with a tool tip noisy along the normal only: test accuracy 72 % against
+    87 % with one row per case; ``tests/learn/test_gp.py`` reproduces it on synthetic data).
+
     ``info``: ``n_used`` (rows after the ``max_points`` cap, a subset drawn with ``seed``),
-    ``nll`` (negative log marginal likelihood per row and output at the optimum),
-    ``length_scales``, ``noise_var``, ``evaluations``.
+    ``n_likelihood`` (rows of the likelihood), ``nll`` (negative log marginal likelihood per row and
+    output at the optimum), ``length_scales``, ``noise_var``, ``evaluations``.
     """
     z = np.asarray(z, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64)
@@ -167,6 +175,10 @@ def fit_gp(z: np.ndarray, y: np.ndarray, *, seed: int, max_points: int = 2000,
         raise ValueError("fit_gp: non-finite training inputs or targets")
     if int(max_points) < 2:
         raise ValueError(f"model.gp.max_points must be at least 2, got {max_points}")
+    if groups is not None:
+        groups = np.asarray(groups)
+        if groups.shape != (len(z),):
+            raise ValueError(f"fit_gp: groups must label every row ({len(z)}); got shape {groups.shape}")
     rows = np.arange(len(z))
     if len(z) > int(max_points):
         rng = np.random.default_rng(derive(seed, "gp.subset"))
@@ -174,6 +186,11 @@ def fit_gp(z: np.ndarray, y: np.ndarray, *, seed: int, max_points: int = 2000,
     X = torch.from_numpy(z[rows])
     Y = torch.from_numpy(y[rows])
     n, d = X.shape
+    Xh, Yh = X, Y
+    if groups is not None:  # one row per case for the likelihood: the first of its views among the rows kept
+        first = np.sort(np.unique(groups[rows], return_index=True)[1])
+        if len(first) < n:
+            Xh, Yh = X[first], Y[first]
     # length scale l = MIN_LENGTH + exp(raw): smooth, and never below MIN_LENGTH
     l0 = max(math.sqrt(d) / 2.0, 2.0 * MIN_LENGTH)
     log_l = torch.full((d,), math.log(l0 - MIN_LENGTH), dtype=torch.float64)
@@ -191,7 +208,7 @@ def fit_gp(z: np.ndarray, y: np.ndarray, *, seed: int, max_points: int = 2000,
 
     def closure():
         evaluations[0] += 1
-        got = neg_log_likelihood(X, Y, *params, gradient=True)
+        got = neg_log_likelihood(Xh, Yh, *params, gradient=True)
         if got is None:  # not positive definite at this trial point: make the line search step back
             for p in params:
                 p.grad = torch.zeros_like(p)
@@ -206,13 +223,17 @@ def fit_gp(z: np.ndarray, y: np.ndarray, *, seed: int, max_points: int = 2000,
     opt.step(closure)
     for p, s in zip(params, best["state"]):
         p.copy_(s)
-    got = neg_log_likelihood(X, Y, *params, gradient=False)
+    got = neg_log_likelihood(Xh, Yh, *params, gradient=False)
+    if got is not None and len(Xh) < n:  # the posterior over every row, at those hyper-parameters
+        full = neg_log_likelihood(X, Y, *params, gradient=False)
+        got = None if full is None else (got[0], None, full[2])
     if got is None:
         raise RuntimeError("fit_gp: the kernel matrix is not positive definite even at the start; are there "
                            "duplicated training rows with different targets?")
     v, _, alpha = got
     gp = GPRegressor(X, alpha, 1.0 / length(), torch.exp(2 * log_sf), torch.exp(2 * log_sl),
                      torch.exp(2 * log_sn) + JITTER)
-    return gp.eval(), {"n_used": int(n), "nll": float(v), "evaluations": int(evaluations[0]),
+    return gp.eval(), {"n_used": int(n), "n_likelihood": int(len(Xh)), "nll": float(v),
+                       "evaluations": int(evaluations[0]),
                        "length_scales": length().tolist(),
                        "noise_var": float(gp.noise_var)}

@@ -693,7 +693,8 @@ def fit_force_model(
     gp = fit.regressor == "gp"
     spec = RegressorSpec(pre.n_inputs, () if gp else tuple(int(h) for h in hidden), 0.0 if gp else float(dropout),
                          kind=fit.regressor)
-    net, hist = fit_regressor(z, y, spec, fit, seed=seed, z_val=zv, y_val=yv, on_epoch=on_epoch)
+    groups = np.tile(np.arange(len(prep.y_local)), len(prep.x_obs))  # the rows of regressor_data: views stacked
+    net, hist = fit_regressor(z, y, spec, fit, seed=seed, z_val=zv, y_val=yv, on_epoch=on_epoch, groups=groups)
     if monitor is not None:
         hist[f"{monitor[1]}_loss"] = hist.pop("val_loss")
     else:

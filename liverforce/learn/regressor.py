@@ -99,16 +99,19 @@ def fit_regressor(
     z_val: np.ndarray | None = None,
     y_val: np.ndarray | None = None,
     on_epoch: EpochCallback | None = None,
+    groups: np.ndarray | None = None,
 ) -> tuple[nn.Sequential, dict[str, list[float]]]:
     """Train the regressor ``spec.kind``; returns ``(net, history)`` with ``train_loss``/``val_loss`` lists.
 
     MLP: one entry per epoch. GP: one entry (the MSE at the fitted hyper-parameters);
-    ``history["gp"]`` holds :func:`liverforce.learn.gp.fit_gp`'s info.
+    ``history["gp"]`` holds :func:`liverforce.learn.gp.fit_gp`'s info. ``groups`` labels rows that are
+    views of one case (GP: the hyper-parameters' likelihood uses one row per case; MLP: unused).
     """
     if spec.kind == "gp":
         from liverforce.learn.gp import fit_gp
 
-        gp, info = fit_gp(z, y, seed=seed, max_points=fit.gp_max_points, iterations=fit.gp_iterations)
+        gp, info = fit_gp(z, y, seed=seed, max_points=fit.gp_max_points, iterations=fit.gp_iterations,
+                          groups=groups)
         hist = {"train_loss": [float(np.mean((forward_numpy(gp, z) - y) ** 2))], "val_loss": [], "gp": info}
         if z_val is not None and y_val is not None:
             hist["val_loss"] = [float(np.mean((forward_numpy(gp, z_val) - y_val) ** 2))]

@@ -137,3 +137,44 @@ def test_noisy_targets_give_a_noise_variance_not_an_interpolating_kernel():
     truth_t = np.stack([np.sin(Xt[:, 0]), 0.5 * Xt[:, 1], np.cos(Xt[:, 2])], axis=1)
     mse = np.mean((gp.numpy_head()(Xt) - truth_t) ** 2)
     assert mse < 0.01  # a quarter of the noise variance: it averages the noise out instead of fitting it
+
+
+def _noisy_views(seed: int, n: int = 200, d: int = 12):
+    """Cases seen through two noisy views (as a camera model's training rows): the first 3 inputs carry the force
+    and are observed with noise per view; the other inputs are exact and identical in both views (as the state
+    vector is), so they name the case without telling much about its force."""
+    rng = np.random.default_rng(seed)
+
+    def f(X):
+        return np.stack([2 * X[:, 0] + 0.3 * np.sin(X[:, 3]), X[:, 1] + 0.2 * X[:, 4], 1.5 * X[:, 2]], axis=1)
+
+    sd = np.array([0.3, 0.3, 0.3] + [0.0] * (d - 3))
+    X = rng.normal(size=(n, d))
+    Z = np.vstack([X + rng.normal(size=X.shape) * sd for _ in range(2)])
+    Xt = rng.normal(size=(500, d))
+    return Z, np.vstack([f(X), f(X)]), np.tile(np.arange(n), 2), Xt + rng.normal(size=Xt.shape) * sd, f(Xt)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_views_of_one_case_do_not_teach_the_gp_to_interpolate_their_noise(seed):
+    """Fitted on every view, the likelihood rewards explaining a case's twin views exactly (they share the exact
+    inputs and the force): on seed 1 the noise variance falls to the jitter and the GP fits the training rows
+    exactly. With the views grouped, the hyper-parameters come from one row per case: the input noise shows up
+    as a noise variance (the targets' share of it: about 0.1-0.2 here) and the test error stays near that
+    floor, while the posterior still uses both views."""
+    Z, Y, groups, Zt, Yt = _noisy_views(seed)
+    gp, info = fit_gp(Z, Y, seed=0, groups=groups)
+    assert info["n_likelihood"] == len(Z) // 2 and info["n_used"] == len(Z)
+    assert info["noise_var"] > 0.05
+    assert np.mean((gp.numpy_head()(Zt) - Yt) ** 2) < 0.25
+    if seed == 1:
+        gp_all, info_all = fit_gp(Z, Y, seed=0)
+        assert info_all["noise_var"] < 10 * JITTER
+        assert np.mean((gp_all.numpy_head()(Z) - Y) ** 2) < 1e-4  # interpolates its training rows
+        assert np.mean((gp_all.numpy_head()(Zt) - Yt) ** 2) > 0.3
+
+
+def test_groups_must_label_every_row():
+    Z, Y, groups, _, _ = _noisy_views(0, n=20)
+    with pytest.raises(ValueError, match="groups must label every row"):
+        fit_gp(Z, Y, seed=0, groups=groups[:-1])
