@@ -7,7 +7,8 @@ components (the standardised local force ``(F.t1, F.t2, F.n)``)::
     f(z)     = k(z, Z) alpha,   alpha = (K + s_n^2 I)^-1 Y
 
 ``l``, ``s_f``, ``s_l`` and ``s_n`` maximise the marginal likelihood of the
-training rows (summed over the components), by L-BFGS in torch (float64). The
+training rows (summed over the components; one row per case when a case is seen
+through several noisy views, see :func:`fit_gp`), by L-BFGS in torch (float64). The
 inputs are the regressor inputs of :mod:`liverforce.learn.model` (standardised
 code, state vector and linear force estimate), so one length scale per input
 learns which of them matter; the linear term carries the near-linear part of
@@ -179,6 +180,8 @@ def fit_gp(z: np.ndarray, y: np.ndarray, *, seed: int, max_points: int = 2000,
         groups = np.asarray(groups)
         if groups.shape != (len(z),):
             raise ValueError(f"fit_gp: groups must label every row ({len(z)}); got shape {groups.shape}")
+        if len(np.unique(groups)) < 2:
+            raise ValueError("fit_gp: the groups name a single case; need at least 2 cases")
     rows = np.arange(len(z))
     if len(z) > int(max_points):
         rng = np.random.default_rng(derive(seed, "gp.subset"))
@@ -226,7 +229,11 @@ def fit_gp(z: np.ndarray, y: np.ndarray, *, seed: int, max_points: int = 2000,
     got = neg_log_likelihood(Xh, Yh, *params, gradient=False)
     if got is not None and len(Xh) < n:  # the posterior over every row, at those hyper-parameters
         full = neg_log_likelihood(X, Y, *params, gradient=False)
-        got = None if full is None else (got[0], None, full[2])
+        if full is None:
+            raise RuntimeError("fit_gp: the kernel matrix over all views is not positive definite at the "
+                               "hyper-parameters fitted on one view per case; are two views of different cases "
+                               "identical with different targets?")
+        got = (got[0], None, full[2])
     if got is None:
         raise RuntimeError("fit_gp: the kernel matrix is not positive definite even at the start; are there "
                            "duplicated training rows with different targets?")

@@ -377,6 +377,12 @@ def fit_preprocessor(
     return pre
 
 
+def view_groups(prep: Prepared) -> np.ndarray:
+    """The case index of each row of ``regressor_data(pre, prep)`` (all views stacked, view by view): rows with
+    the same index are views of one case (the GP fits its hyper-parameters on one of them, :func:`liverforce.learn.gp.fit_gp`)."""
+    return np.tile(np.arange(len(prep.y_local)), len(prep.x_obs))
+
+
 def regressor_data(pre: Preprocessor, prep: Prepared, *, all_views: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Scaled regressor inputs and targets; ``all_views`` stacks every observed view (augmentation)."""
     views = prep.x_obs if all_views else prep.x_obs[:1]
@@ -693,8 +699,8 @@ def fit_force_model(
     gp = fit.regressor == "gp"
     spec = RegressorSpec(pre.n_inputs, () if gp else tuple(int(h) for h in hidden), 0.0 if gp else float(dropout),
                          kind=fit.regressor)
-    groups = np.tile(np.arange(len(prep.y_local)), len(prep.x_obs))  # the rows of regressor_data: views stacked
-    net, hist = fit_regressor(z, y, spec, fit, seed=seed, z_val=zv, y_val=yv, on_epoch=on_epoch, groups=groups)
+    net, hist = fit_regressor(z, y, spec, fit, seed=seed, z_val=zv, y_val=yv, on_epoch=on_epoch,
+                              groups=view_groups(prep))
     if monitor is not None:
         hist[f"{monitor[1]}_loss"] = hist.pop("val_loss")
     else:

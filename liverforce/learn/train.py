@@ -60,6 +60,7 @@ from liverforce.learn.model import (
     prepare,
     regressor_data,
     subset,
+    view_groups,
     view_seeds,
 )
 from liverforce.learn.plots import evaluation_figures
@@ -240,7 +241,7 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
             )
             z_tr, y_tr = regressor_data(pre, rows_tr)
             z_va, y_va = regressor_data(pre, rows_va, all_views=False)
-            fold_data.append(FoldData(z_tr, y_tr, z_va, y_va))
+            fold_data.append(FoldData(z_tr, y_tr, z_va, y_va, view_groups(rows_tr)))
             stiff = pre.stiffness(rows_va.state, len(fva))
             to_newton.append(lambda out, ts=pre.target_scaler, k_=stiff: ts.inverse_transform(out) * k_)
             y_val_n.append(rows_va.y_local)

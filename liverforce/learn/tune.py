@@ -78,6 +78,7 @@ class FoldData:
     y_train: np.ndarray
     z_val: np.ndarray
     y_val: np.ndarray
+    groups_train: np.ndarray | None = None  # case index of each training row (views of one case share it)
 
 
 def regressor_from_params(params: dict, n_inputs: int) -> RegressorSpec:
@@ -111,7 +112,7 @@ def cv_score(
     for k, f in enumerate(folds):
         spec = regressor_from_params(params, f.z_train.shape[1])
         _, hist = fit_regressor(f.z_train, f.y_train, spec, fit, seed=fold_seed(seed, k), z_val=f.z_val,
-                                y_val=f.y_val)
+                                y_val=f.y_val, groups=f.groups_train)
         fold_mse.append(hist["val_loss"][-1])
         hists.append(hist)
     history = {key: np.mean([h[key] for h in hists], axis=0).tolist() for key in ("train_loss", "val_loss")}
@@ -135,7 +136,7 @@ def cv_force_mae(
     maes, mses = [], []
     for k, f in enumerate(folds):
         spec = regressor_from_params(params, f.z_train.shape[1])
-        net, _ = fit_regressor(f.z_train, f.y_train, spec, fit, seed=fold_seed(seed, k))
+        net, _ = fit_regressor(f.z_train, f.y_train, spec, fit, seed=fold_seed(seed, k), groups=f.groups_train)
         out = predict_regressor(net, f.z_val)
         maes.append(float(np.linalg.norm(to_newton[k](out) - y_val_n[k], axis=1).mean()))
         mses.append(float(np.mean((out - f.y_val) ** 2)))

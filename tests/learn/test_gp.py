@@ -12,6 +12,7 @@ from liverforce.learn.model import ForceModel
 from liverforce.learn.regressor import fit_params
 from liverforce.learn.synthetic import synthetic_arrays
 from liverforce.learn.train import train_scenario
+from liverforce.seeds import derive
 
 torch.set_num_threads(1)
 
@@ -165,6 +166,8 @@ def test_views_of_one_case_do_not_teach_the_gp_to_interpolate_their_noise(seed):
     Z, Y, groups, Zt, Yt = _noisy_views(seed)
     gp, info = fit_gp(Z, Y, seed=0, groups=groups)
     assert info["n_likelihood"] == len(Z) // 2 and info["n_used"] == len(Z)
+    assert gp.n_train == len(Z)  # the posterior keeps both views
+    np.testing.assert_allclose(gp.X.numpy(), Z)
     assert info["noise_var"] > 0.05
     assert np.mean((gp.numpy_head()(Zt) - Yt) ** 2) < 0.25
     if seed == 1:
@@ -174,7 +177,26 @@ def test_views_of_one_case_do_not_teach_the_gp_to_interpolate_their_noise(seed):
         assert np.mean((gp_all.numpy_head()(Zt) - Yt) ** 2) > 0.3
 
 
-def test_groups_must_label_every_row():
+def test_groups_must_label_every_row_and_name_two_cases():
     Z, Y, groups, _, _ = _noisy_views(0, n=20)
     with pytest.raises(ValueError, match="groups must label every row"):
         fit_gp(Z, Y, seed=0, groups=groups[:-1])
+    with pytest.raises(ValueError, match="single case"):
+        fit_gp(Z, Y, seed=0, groups=np.zeros(len(Z), int))
+
+
+def test_one_view_per_case_is_the_plain_fit_and_the_cap_keeps_one_row_per_case_for_the_likelihood():
+    """Groups that are all different change nothing; with the max_points cap the likelihood takes one kept row
+    per case and the posterior every kept row."""
+    Z, Y, groups, _, _ = _noisy_views(0, n=60)
+    plain, _ = fit_gp(Z[:60], Y[:60], seed=0, iterations=30)
+    same, info = fit_gp(Z[:60], Y[:60], seed=0, iterations=30, groups=np.arange(60))
+    assert info["n_likelihood"] == 60
+    for k, v in plain.state_dict().items():
+        assert torch.equal(v, same.state_dict()[k]), k
+    capped, info = fit_gp(Z, Y, seed=0, iterations=30, max_points=70, groups=groups)
+    assert info["n_used"] == 70 and capped.n_train == 70
+    rng = np.random.default_rng(derive(0, "gp.subset"))
+    kept = np.sort(rng.choice(len(Z), size=70, replace=False))
+    assert info["n_likelihood"] == len(np.unique(groups[kept]))
+
