@@ -129,7 +129,9 @@ def study_points(study: str, study_cfg: dict) -> list[StudyPoint]:
     pts: list[StudyPoint] = []
     for sc in s["scenarios"]:
         if study == "roi_fraction":
-            pts += [StudyPoint(study, sc, float(v), f"{float(v):.2f}", roi_fraction=float(v), series=sc)
+            # the grid spans each point's own ROI (half-width fitted on it), so the ROI size is what changes
+            pts += [StudyPoint(study, sc, float(v), f"{float(v):.2f}", {"grid_half_width_mm": 0.0},
+                               roi_fraction=float(v), series=sc)
                     for v in s["values"]]
         elif study == "encoder":
             pts += [StudyPoint(study, sc, str(v), str(v), {"encoder": str(v)}, series=sc) for v in s["values"]]
