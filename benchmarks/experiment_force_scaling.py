@@ -45,7 +45,7 @@ def main() -> None:
     args = ap.parse_args()
 
     from liverforce.config import compose
-    from liverforce.dataset import io as dio
+    from liverforce.pipeline.shared import run_arrays
     from liverforce.learn.metrics import metrics_by_group
     from liverforce.learn.model import ForceModel, eval_seed
     from liverforce.learn.torchutil import configure_torch
@@ -61,14 +61,7 @@ def main() -> None:
     def load(results: Path, scenario: str, camera: bool) -> dict:
         key = (str(results), scenario, camera)
         if key not in loaded:
-            manifest = results / f"shards/{scenario}/manifest.json"
-            if camera:
-                from liverforce.pipeline.shared import camera_arrays
-
-                meshes = sorted(str(p) for p in (results / "mesh").glob("*.vtu"))
-                loaded[key] = camera_arrays(manifest, meshes, "force-scaling experiment")
-            else:
-                loaded[key] = dio.load_training_arrays(dio.verify_manifest(manifest))
+            loaded[key] = run_arrays(results, scenario, camera, "force-scaling experiment")
         return loaded[key]
 
     results = Path(args.results)

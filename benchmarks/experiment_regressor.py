@@ -112,7 +112,7 @@ def main() -> None:
     results = Path(args.results)
 
     from liverforce.config import compose
-    from liverforce.dataset import io as dio
+    from liverforce.pipeline.shared import run_arrays
     from liverforce.learn.model import ForceModel
     from liverforce.learn.torchutil import configure_torch
     from liverforce.learn.train import train_scenario
@@ -121,19 +121,12 @@ def main() -> None:
     cfg = compose(list(args.overrides))
     train = {k: v for k, v in cfg["train"].items() if k != "variants"}
     variants = {x["name"]: x for x in cfg["train"]["variants"]}
-    meshes = sorted(str(p) for p in (results / "mesh").glob("*.vtu"))
     loaded: dict = {}
 
     def load(scenario: str, camera: bool) -> dict:
         key = (scenario, camera)
         if key not in loaded:
-            manifest = results / f"shards/{scenario}/manifest.json"
-            if camera:
-                from liverforce.pipeline.shared import camera_arrays
-
-                loaded[key] = camera_arrays(manifest, meshes, "regressor experiment")
-            else:
-                loaded[key] = dio.load_training_arrays(dio.verify_manifest(manifest))
+            loaded[key] = run_arrays(results, scenario, camera, "regressor experiment")
         return loaded[key]
 
     for name in args.variants:

@@ -141,7 +141,7 @@ def main() -> None:
 
     import liverforce.learn.camera as camera_mod
     from liverforce.config import compose
-    from liverforce.dataset import io as dio
+    from liverforce.pipeline.shared import run_arrays
     from liverforce.learn.metrics import force_metrics
     from liverforce.learn.model import (eval_seed, fit_force_model, force_scaling_of, linear_force_radius_of,
                                         n_views_for, prepare, subset, view_seeds)
@@ -162,23 +162,15 @@ def main() -> None:
                      epochs=int(train["epochs"]), weight_decay=float(train.get("weight_decay", 0.0)))
     camera = str(model_cfg.get("roi_features", "displacement")) == "cloud"
 
-    def load(manifest):
-        if camera:
-            from liverforce.pipeline.shared import camera_arrays
-
-            meshes = sorted(str(p) for p in (results / "mesh").glob("*.vtu"))
-            return camera_arrays(manifest, meshes, "rigid-motion experiment")
-        return dio.load_training_arrays(dio.verify_manifest(manifest))
-
-    arrays = load(results / "shards/IV/manifest.json")
+    arrays = run_arrays(results, "IV", camera, "rigid-motion experiment")
     arrays = subset(arrays, np.argsort(np.asarray(arrays["case_id"]).astype(str), kind="stable"))
-    unseen = load(results / "shards/V/manifest.json")
+    unseen = run_arrays(results, "V", camera, "rigid-motion experiment")
     physics = []
     if args.physics:
         for k in range(len(PHYSICS_NAMES)):
             m = Path(args.physics) / f"{k:02d}.manifest.json"
             if m.exists():
-                physics.append((PHYSICS_NAMES[k], load(m)))
+                physics.append((PHYSICS_NAMES[k], run_arrays(results, None, camera, "rigid-motion experiment", manifest=m)))
     geo = np.asarray(arrays["geometry_id"]).astype(str)
     seed = int(train.get("seed", 0))
     split_seeds = [seed] + [derive(seed, "split.repeat", r) for r in range(1, args.splits)]

@@ -255,3 +255,21 @@ def test_predict_from_the_liver_files_matches_the_data_factory(smoke_run, tmp_pa
     assert main(args + ["--mesh", str(mesh)]) == 0
     got = json.loads((tmp_path / "f.json").read_text())["force_n"]
     np.testing.assert_allclose(got, expect, atol=1e-5)
+
+
+def test_a_finished_runs_scenario_loads_for_the_experiments(smoke_run):
+    """run_arrays (what benchmarks/experiment_*.py load): a scenario's verified shards; for a camera model also
+    the full-surface displacements and every liver's surface from the run's meshes; a manifest of other shards of
+    the same livers by path; a missing scenario named in the error."""
+    from liverforce.pipeline.shared import run_arrays
+
+    root = smoke_run / "results" / "smoke"
+    nodes = run_arrays(root, "IV", False, "test")
+    cam = run_arrays(root, "IV", True, "test")
+    assert list(nodes["case_id"]) == list(cam["case_id"]) and "surface_meshes" not in nodes
+    assert set(np.asarray(cam["geometry_id"]).astype(str)) <= set(cam["surface_meshes"])
+    assert all(len(d) > 0 for d in cam["surface_displacement_mm"])
+    other = run_arrays(root, None, True, "test", manifest=root / "shards" / "V" / "manifest.json")
+    assert list(other["case_id"]) == list(run_arrays(root, "V", True, "test")["case_id"])
+    with pytest.raises(Exception, match="nosuch"):
+        run_arrays(root, "nosuch", False, "test")

@@ -227,17 +227,17 @@ def fit_gp(z: np.ndarray, y: np.ndarray, *, seed: int, max_points: int = 2000,
     for p, s in zip(params, best["state"]):
         p.copy_(s)
     got = neg_log_likelihood(Xh, Yh, *params, gradient=False)
-    if got is not None and len(Xh) < n:  # the posterior over every row, at those hyper-parameters
+    if got is None:
+        raise RuntimeError("fit_gp: the kernel matrix is not positive definite even at the start; are there "
+                           "duplicated training rows with different targets?")
+    v, _, alpha = got
+    if len(Xh) < n:  # the posterior over every row, at the hyper-parameters of one row per case
         full = neg_log_likelihood(X, Y, *params, gradient=False)
         if full is None:
             raise RuntimeError("fit_gp: the kernel matrix over all views is not positive definite at the "
                                "hyper-parameters fitted on one view per case; are two views of different cases "
                                "identical with different targets?")
-        got = (got[0], None, full[2])
-    if got is None:
-        raise RuntimeError("fit_gp: the kernel matrix is not positive definite even at the start; are there "
-                           "duplicated training rows with different targets?")
-    v, _, alpha = got
+        alpha = full[2]
     gp = GPRegressor(X, alpha, 1.0 / length(), torch.exp(2 * log_sf), torch.exp(2 * log_sl),
                      torch.exp(2 * log_sn) + JITTER)
     return gp.eval(), {"n_used": int(n), "n_likelihood": int(len(Xh)), "nll": float(v),

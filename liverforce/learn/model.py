@@ -379,7 +379,8 @@ def fit_preprocessor(
 
 def view_groups(prep: Prepared) -> np.ndarray:
     """The case index of each row of ``regressor_data(pre, prep)`` (all views stacked, view by view): rows with
-    the same index are views of one case (the GP fits its hyper-parameters on one of them, :func:`liverforce.learn.gp.fit_gp`)."""
+    the same index are views of one case (the GP fits its hyper-parameters on one of them,
+    :func:`liverforce.learn.gp.fit_gp`)."""
     return np.tile(np.arange(len(prep.y_local)), len(prep.x_obs))
 
 

@@ -57,6 +57,18 @@ def camera_arrays(manifest_path, mesh_paths, what: str) -> dict:
     return arrays
 
 
+def run_arrays(results_dir, scenario: str | None, camera: bool, what: str, manifest=None) -> dict:
+    """One scenario of a finished run (``results_dir``, e.g. ``results/default``): its verified shards as training
+    arrays, with the livers' surfaces from ``results_dir/mesh`` for a camera-cloud model (:func:`camera_arrays`).
+    ``manifest``: another manifest of the same livers instead of ``shards/<scenario>`` (a physics study's).
+    What the benchmark experiments load; ``what`` names them in errors."""
+    results_dir = Path(results_dir)
+    manifest = manifest or results_dir / "shards" / str(scenario) / "manifest.json"
+    if camera:
+        return camera_arrays(manifest, sorted(str(p) for p in (results_dir / "mesh").glob("*.vtu")), what)
+    return dio.load_training_arrays(dio.verify_manifest(manifest))
+
+
 def load_study_arrays(manifest_path, full_surface: bool = False) -> dict:
     """Converged cases of one scenario (verified shards); with ``surface_displacement_mm`` if ``full_surface``."""
     arrays = dio.load_training_arrays(dio.verify_manifest(manifest_path), full_surface=full_surface)
