@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import glob
 from pathlib import Path
 
 import numpy as np
 
 from liverforce.dataset import io as dio
-from liverforce.layout import gid_of
+from liverforce.layout import Layout, gid_of
 
 
 def load_surface_file(path: str | Path):
@@ -62,10 +63,10 @@ def run_arrays(results_dir, scenario: str | None, camera: bool, what: str, manif
     arrays, with the livers' surfaces from ``results_dir/mesh`` for a camera-cloud model (:func:`camera_arrays`).
     ``manifest``: another manifest of the same livers instead of ``shards/<scenario>`` (a physics study's).
     What the benchmark experiments load; ``what`` names them in errors."""
-    results_dir = Path(results_dir)
-    manifest = manifest or results_dir / "shards" / str(scenario) / "manifest.json"
+    run = Layout(results_dir)
+    manifest = manifest or run.manifest(str(scenario))
     if camera:
-        return camera_arrays(manifest, sorted(str(p) for p in (results_dir / "mesh").glob("*.vtu")), what)
+        return camera_arrays(manifest, sorted(glob.glob(run.mesh("*"))), what)
     return dio.load_training_arrays(dio.verify_manifest(manifest))
 
 
