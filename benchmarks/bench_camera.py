@@ -113,6 +113,10 @@ def rate(fn, n: int, repeats: int) -> float:
 def describe(model) -> str:
     reg = model.regressor
     if model.regressor_spec.kind == "gp":
+        members = getattr(reg, "members", None)
+        if members is not None:
+            return (f"mean of {len(members)} GPs on {reg.n_train} training rows of "
+                    f"{', '.join(str(m.X.shape[1]) for m in members)} inputs")
         return f"GP on {reg.n_train} training rows of {reg.X.shape[1]} inputs"
     return f"MLP {model.regressor_spec.hidden}"
 

@@ -51,6 +51,8 @@ def test_thesis_is_the_study_scale():
         ("sweep.cases_per_shard=abc", "sweep.cases_per_shard"),
         ("mesh.mesher=magic", "mesh.mesher"),
         ("model.encoder=vae", "model.encoder"),
+        ("model.gp.code_members=[8,8]", "model.gp.code_members"),
+        ("model.gp.code_members=[0,16]", "model.gp.code_members"),
         ("validate.seed=1", "validate.seed"),
         ("geometry.procedural.shape.lobe_ratio=9", "geometry.procedural.shape"),
     ],

@@ -244,3 +244,88 @@ def fit_gp(z: np.ndarray, y: np.ndarray, *, seed: int, max_points: int = 2000,
                        "evaluations": int(evaluations[0]),
                        "length_scales": length().tolist(),
                        "noise_var": float(gp.noise_var)}
+
+
+class GPEnsemble(nn.Module):
+    """The mean of several GPs, each on its own columns of the regressor inputs (``model.gp.code_members``).
+
+    Member ``k`` sees ``columns_k`` (the leading ``k`` PCA code components and every state-vector
+    column, :func:`liverforce.learn.model.fit_force_model`) and has its own hyper-parameters, fitted
+    by its own marginal likelihood (:func:`fit_gp`). The prediction is the members' plain mean. PCA
+    codes are nested, so the members are the same model at several code sizes: their mean averages
+    over how much of the dent's shape the GP is told, instead of betting on one size (on scenario
+    IV's training livers it beat every single size; see ``config/model/default.yaml``).
+    """
+
+    def __init__(self, members: list[GPRegressor], columns: list):
+        super().__init__()
+        if not members or len(members) != len(columns):
+            raise ValueError("GPEnsemble: need one column set per member, and at least one member")
+        self.members = nn.ModuleList(members)
+        for i, cols in enumerate(columns):
+            cols = torch.as_tensor(np.asarray(cols), dtype=torch.int64)
+            if cols.ndim != 1 or cols.numel() != members[i].X.shape[1]:
+                raise ValueError(f"GPEnsemble: member {i} has {members[i].X.shape[1]} inputs but "
+                                 f"{cols.numel()} columns")
+            self.register_buffer(f"columns_{i}", cols)
+
+    def columns(self, i: int) -> torch.Tensor:
+        return getattr(self, f"columns_{i}")
+
+    @staticmethod
+    def is_state_dict(state: dict) -> bool:
+        return any(str(k).startswith("members.") for k in state)
+
+    @classmethod
+    def from_state_dict(cls, state: dict) -> "GPEnsemble":
+        n = 1 + max(int(str(k).split(".")[1]) for k in state if str(k).startswith("members."))
+        members = [GPRegressor.from_state_dict({k.split(".", 2)[2]: v for k, v in state.items()
+                                                if k.startswith(f"members.{i}.")}) for i in range(n)]
+        return cls(members, [state[f"columns_{i}"] for i in range(n)])
+
+    @property
+    def n_train(self) -> int:
+        return self.members[0].n_train
+
+    @property
+    def n_inputs(self) -> int:
+        return 1 + max(int(self.columns(i).max()) for i in range(len(self.members)))
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        z = z.double()
+        return torch.stack([m(z[:, self.columns(i)]) for i, m in enumerate(self.members)]).mean(0)
+
+    def numpy_head(self):
+        """The members' :meth:`GPRegressor.numpy_head` on their columns, averaged (the compiled paths)."""
+        heads = [(m.numpy_head(), self.columns(i).numpy().copy()) for i, m in enumerate(self.members)]
+        w = 1.0 / len(heads)
+
+        def head(Z: np.ndarray) -> np.ndarray:
+            Z = np.asarray(Z, dtype=np.float64)
+            out = heads[0][0](Z[:, heads[0][1]])
+            for h, cols in heads[1:]:
+                out += h(Z[:, cols])
+            out *= w
+            return out
+
+        return head
+
+
+def fit_gp_ensemble(z: np.ndarray, y: np.ndarray, columns: list, *, seed: int, max_points: int = 2000,
+                    iterations: int = 200, groups: np.ndarray | None = None) -> tuple[GPEnsemble, dict]:
+    """One :func:`fit_gp` per column set of ``z``, their mean as a :class:`GPEnsemble`; returns ``(gp, info)``.
+
+    ``info``: the members' :func:`fit_gp` infos under ``members`` and each one's input count under
+    ``member_inputs``; ``n_used`` and ``n_likelihood`` as the members' (they share the rows).
+    """
+    z = np.asarray(z, dtype=np.float64)
+    cols = [np.asarray(c, dtype=np.int64) for c in columns]
+    for c in cols:
+        if c.ndim != 1 or c.size == 0 or c.min() < 0 or c.max() >= z.shape[1]:
+            raise ValueError(f"fit_gp_ensemble: a member's columns must index the {z.shape[1]} inputs; got {c}")
+    fitted = [fit_gp(z[:, c], y, seed=seed, max_points=max_points, iterations=iterations, groups=groups)
+              for c in cols]
+    infos = [info for _, info in fitted]
+    return GPEnsemble([gp for gp, _ in fitted], cols).eval(), {
+        "n_used": infos[0]["n_used"], "n_likelihood": infos[0]["n_likelihood"],
+        "member_inputs": [int(c.size) for c in cols], "members": infos}

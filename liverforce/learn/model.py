@@ -85,6 +85,7 @@ from liverforce.learn.regressor import (
     FitParams,
     RegressorSpec,
     fit_regressor,
+    gp_code_members,
     load_regressor,
     predict_regressor,
 )
@@ -138,6 +139,32 @@ def linear_force_weights(rep: Representation, radius_mm: float) -> np.ndarray:
     xy = rep.grid()
     w = np.exp(-0.5 * (xy[:, 0] ** 2 + xy[:, 1] ** 2) / float(radius_mm) ** 2)
     return w / w.sum()
+
+
+def encoder_code_size(model_cfg: dict) -> int:
+    """The encoder's code size: ``model.code_size``, or the largest GP ensemble member's (:func:`gp_code_members`)."""
+    members = gp_code_members(model_cfg)
+    return max(members) if members else int(model_cfg["code_size"])
+
+
+def fit_code_size(code_size: int, fit: FitParams) -> int:
+    """The encoder's code size of a fit: the largest GP ensemble member's, else ``code_size``."""
+    return max(fit.gp_code_members) if fit.regressor == "gp" and fit.gp_code_members else int(code_size)
+
+
+def member_columns(pre: "Preprocessor", members) -> list[np.ndarray] | None:
+    """The regressor-input columns of each GP ensemble member: the leading ``k`` code components and
+    every state column (:meth:`Preprocessor.inputs` puts the code first); None for no members."""
+    if not members:
+        return None
+    code = pre.encoder.code_size
+    if not isinstance(pre.encoder, PCAEncoder):
+        raise ValueError("model.gp.code_members: a GP ensemble over code sizes needs the PCA encoder")
+    if max(members) > code:
+        raise ValueError(f"model.gp.code_members: member {max(members)} exceeds the PCA code size {code} "
+                         "(fit the encoder with encoder_code_size)")
+    rest = np.arange(code, pre.n_inputs)
+    return [np.concatenate([np.arange(int(k)), rest]) for k in members]
 
 
 def force_scaling_of(model_cfg: dict) -> str:
@@ -689,7 +716,7 @@ def fit_force_model(
     selected on it).
     """
     pre = fit_preprocessor(
-        prep, rep, encoder=encoder, code_size=code_size, use_state=use_state, seed=seed,
+        prep, rep, encoder=encoder, code_size=fit_code_size(code_size, fit), use_state=use_state, seed=seed,
         epochs=encoder_epochs or fit.epochs, lr=fit.lr, batch_size=fit.batch_size, dae_input_noise=dae_input_noise,
         force_scaling=force_scaling, linear_force_radius_mm=linear_force_radius_mm,
     )
@@ -701,7 +728,8 @@ def fit_force_model(
     spec = RegressorSpec(pre.n_inputs, () if gp else tuple(int(h) for h in hidden), 0.0 if gp else float(dropout),
                          kind=fit.regressor)
     net, hist = fit_regressor(z, y, spec, fit, seed=seed, z_val=zv, y_val=yv, on_epoch=on_epoch,
-                              groups=view_groups(prep))
+                              groups=view_groups(prep),
+                              columns=member_columns(pre, fit.gp_code_members) if gp else None)
     if monitor is not None:
         hist[f"{monitor[1]}_loss"] = hist.pop("val_loss")
     else:

@@ -4,7 +4,8 @@
 and a linear output of 3, trained with Adam on the MSE
 (:func:`liverforce.learn.torchutil.train_loop`).
 ``kind: gp``: an exact Gaussian process with a shared ARD kernel, fitted by its
-marginal likelihood (:mod:`liverforce.learn.gp`).
+marginal likelihood (:mod:`liverforce.learn.gp`); with ``columns`` (``model.gp.code_members``)
+the mean of one such GP per column set (:class:`liverforce.learn.gp.GPEnsemble`).
 """
 
 from __future__ import annotations
@@ -45,8 +46,10 @@ REGRESSORS = ("mlp", "gp")
 def load_regressor(spec: RegressorSpec, state: dict) -> nn.Module:
     """The fitted regressor of a bundle from its spec and saved ``state_dict``."""
     if spec.kind == "gp":
-        from liverforce.learn.gp import GPRegressor
+        from liverforce.learn.gp import GPEnsemble, GPRegressor
 
+        if GPEnsemble.is_state_dict(state):
+            return GPEnsemble.from_state_dict(state).eval()
         return GPRegressor.from_state_dict(state).eval()
     net = build_mlp(spec)
     net.load_state_dict(state)
@@ -76,6 +79,19 @@ class FitParams:
     regressor: str = "mlp"  # mlp | gp (model.regressor); gp reads only the two below
     gp_max_points: int = 2000  # model.gp.max_points
     gp_iterations: int = 200  # model.gp.iterations
+    gp_code_members: tuple[int, ...] = ()  # model.gp.code_members (PCA code sizes of a GP ensemble; () = one GP)
+
+
+def gp_code_members(model_cfg: dict) -> tuple[int, ...]:
+    """The PCA code sizes of the GP ensemble a model config asks for (``model.gp.code_members``), sorted;
+    ``()`` for one GP: no members listed, another regressor than the GP, or another encoder than PCA
+    (only PCA codes are nested, so only they give the same model at several code sizes)."""
+    if str(model_cfg.get("regressor", "mlp")) != "gp" or str(model_cfg.get("encoder", "pca")) != "pca":
+        return ()
+    members = tuple(int(k) for k in ((model_cfg.get("gp") or {}).get("code_members") or ()))
+    if any(k < 1 for k in members) or len(set(members)) != len(members):
+        raise ValueError(f"model.gp.code_members: PCA code sizes, each at least 1 and listed once; got {list(members)}")
+    return tuple(sorted(members))
 
 
 def fit_params(model_cfg: dict, *, lr: float, batch_size: int, epochs: int, weight_decay: float = 0.0) -> FitParams:
@@ -86,7 +102,7 @@ def fit_params(model_cfg: dict, *, lr: float, batch_size: int, epochs: int, weig
     gp = model_cfg.get("gp") or {}
     return FitParams(float(lr), int(batch_size), int(epochs), float(weight_decay), kind,
                      int(gp.get("max_points", FitParams.gp_max_points)),
-                     int(gp.get("iterations", FitParams.gp_iterations)))
+                     int(gp.get("iterations", FitParams.gp_iterations)), gp_code_members(model_cfg))
 
 
 def fit_regressor(
@@ -100,18 +116,25 @@ def fit_regressor(
     y_val: np.ndarray | None = None,
     on_epoch: EpochCallback | None = None,
     groups: np.ndarray | None = None,
+    columns: list | None = None,
 ) -> tuple[nn.Sequential, dict[str, list[float]]]:
     """Train the regressor ``spec.kind``; returns ``(net, history)`` with ``train_loss``/``val_loss`` lists.
 
     MLP: one entry per epoch. GP: one entry (the MSE at the fitted hyper-parameters);
     ``history["gp"]`` holds :func:`liverforce.learn.gp.fit_gp`'s info. ``groups`` labels rows that are
     views of one case (GP: the hyper-parameters' likelihood uses one row per case; MLP: unused).
+    ``columns`` (GP only): one index array of ``z``'s columns per member of a GP ensemble
+    (:func:`liverforce.learn.gp.fit_gp_ensemble`); None: one GP on every column.
     """
     if spec.kind == "gp":
-        from liverforce.learn.gp import fit_gp
+        from liverforce.learn.gp import fit_gp, fit_gp_ensemble
 
-        gp, info = fit_gp(z, y, seed=seed, max_points=fit.gp_max_points, iterations=fit.gp_iterations,
-                          groups=groups)
+        if columns:
+            gp, info = fit_gp_ensemble(z, y, columns, seed=seed, max_points=fit.gp_max_points,
+                                       iterations=fit.gp_iterations, groups=groups)
+        else:
+            gp, info = fit_gp(z, y, seed=seed, max_points=fit.gp_max_points, iterations=fit.gp_iterations,
+                              groups=groups)
         hist = {"train_loss": [float(np.mean((forward_numpy(gp, z) - y) ** 2))], "val_loss": [], "gp": info}
         if z_val is not None and y_val is not None:
             hist["val_loss"] = [float(np.mean((forward_numpy(gp, z_val) - y_val) ** 2))]

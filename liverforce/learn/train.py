@@ -51,11 +51,13 @@ from liverforce.learn.metrics import force_metrics
 from liverforce.learn.model import (
     PER_RUN_KEYS,
     ForceModel,
+    encoder_code_size,
     eval_seed,
     force_scaling_of,
     linear_force_radius_of,
     fit_force_model,
     fit_preprocessor,
+    member_columns,
     n_views_for,
     prepare,
     regressor_data,
@@ -64,7 +66,7 @@ from liverforce.learn.model import (
     view_seeds,
 )
 from liverforce.learn.plots import evaluation_figures
-from liverforce.learn.regressor import fit_params
+from liverforce.learn.regressor import fit_params, gp_code_members
 from liverforce.learn.representation import representation_from_config
 from liverforce.learn.splits import cv_folds, group_key, train_test_split
 from liverforce.learn.torchutil import configure_torch
@@ -180,7 +182,7 @@ def train_scenario(
     rep = representation_from_config(model_cfg, train_arrays)
     encoder = str(model_cfg["encoder"])
     use_state = bool(model_cfg["state_vector"])
-    code_size = int(model_cfg["code_size"])
+    code_size = encoder_code_size(model_cfg)
     dae_noise = float(model_cfg.get("dae_input_noise", 0.1))
     weight_decay = float(train_cfg.get("weight_decay", 0.0))
 
@@ -241,13 +243,15 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
             )
             z_tr, y_tr = regressor_data(pre, rows_tr)
             z_va, y_va = regressor_data(pre, rows_va, all_views=False)
-            fold_data.append(FoldData(z_tr, y_tr, z_va, y_va, view_groups(rows_tr)))
+            fold_data.append(FoldData(z_tr, y_tr, z_va, y_va, view_groups(rows_tr),
+                                      member_columns(pre, gp_code_members(model_cfg)) if gp else None))
             stiff = pre.stiffness(rows_va.state, len(fva))
             to_newton.append(lambda out, ts=pre.target_scaler, k_=stiff: ts.inverse_transform(out) * k_)
             y_val_n.append(rows_va.y_local)
 
         if gp:  # no hyper-parameter search: the GP's are its marginal likelihood's (liverforce.learn.gp)
-            best = {"regressor": "gp", **{k: int(v) for k, v in (model_cfg.get("gp") or {}).items()}}
+            best = {"regressor": "gp", **{k: int(v) for k, v in (model_cfg.get("gp") or {}).items()
+                                          if k != "code_members"}, "code_members": list(gp_code_members(model_cfg))}
             hidden, dropout = [], 0.0
             lr, batch_size = float(train_cfg["lr"]), int(train_cfg["batch_size"])
             # the CV error in newtons (validate.variant: auto) and of the scaled targets, from one fit per fold

@@ -79,6 +79,7 @@ class FoldData:
     z_val: np.ndarray
     y_val: np.ndarray
     groups_train: np.ndarray | None = None  # case index of each training row (views of one case share it)
+    columns: list | None = None  # GP ensemble: each member's input columns (liverforce.learn.model.member_columns)
 
 
 def regressor_from_params(params: dict, n_inputs: int) -> RegressorSpec:
@@ -112,7 +113,7 @@ def cv_score(
     for k, f in enumerate(folds):
         spec = regressor_from_params(params, f.z_train.shape[1])
         _, hist = fit_regressor(f.z_train, f.y_train, spec, fit, seed=fold_seed(seed, k), z_val=f.z_val,
-                                y_val=f.y_val, groups=f.groups_train)
+                                y_val=f.y_val, groups=f.groups_train, columns=f.columns)
         fold_mse.append(hist["val_loss"][-1])
         hists.append(hist)
     history = {key: np.mean([h[key] for h in hists], axis=0).tolist() for key in ("train_loss", "val_loss")}
@@ -136,7 +137,8 @@ def cv_force_mae(
     maes, mses = [], []
     for k, f in enumerate(folds):
         spec = regressor_from_params(params, f.z_train.shape[1])
-        net, _ = fit_regressor(f.z_train, f.y_train, spec, fit, seed=fold_seed(seed, k), groups=f.groups_train)
+        net, _ = fit_regressor(f.z_train, f.y_train, spec, fit, seed=fold_seed(seed, k), groups=f.groups_train,
+                               columns=f.columns)
         out = predict_regressor(net, f.z_val)
         maes.append(float(np.linalg.norm(to_newton[k](out) - y_val_n[k], axis=1).mean()))
         mses.append(float(np.mean((out - f.y_val) ** 2)))

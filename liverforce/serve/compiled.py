@@ -83,11 +83,12 @@ def numpy_layers(seq: nn.Sequential) -> list[tuple[np.ndarray, np.ndarray, float
 
 
 def regressor_head(module: nn.Module):
-    """The GP regressor's NumPy posterior mean (:meth:`liverforce.learn.gp.GPRegressor.numpy_head`);
-    None for an MLP (served layer by layer from :func:`numpy_layers`)."""
-    from liverforce.learn.gp import GPRegressor
+    """The GP regressor's NumPy posterior mean (:meth:`liverforce.learn.gp.GPRegressor.numpy_head`, or
+    :meth:`liverforce.learn.gp.GPEnsemble.numpy_head`); None for an MLP (served layer by layer from
+    :func:`numpy_layers`)."""
+    from liverforce.learn.gp import GPEnsemble, GPRegressor
 
-    return module.numpy_head() if isinstance(module, GPRegressor) else None
+    return module.numpy_head() if isinstance(module, (GPRegressor, GPEnsemble)) else None
 
 
 def _act(h: np.ndarray, slope: float | None) -> np.ndarray:

@@ -200,3 +200,84 @@ def test_one_view_per_case_is_the_plain_fit_and_the_cap_keeps_one_row_per_case_f
     kept = np.sort(rng.choice(len(Z), size=70, replace=False))
     assert info["n_likelihood"] == len(np.unique(groups[kept]))
 
+
+
+# --------------------------------------------------------------------------
+# the GP ensemble over nested PCA code sizes (model.gp.code_members)
+# --------------------------------------------------------------------------
+
+
+def test_an_ensemble_is_the_mean_of_its_members_each_fitted_alone_on_its_columns(fitted):
+    """Each member is exactly fit_gp on its own columns (own hyper-parameters); the ensemble predicts
+    their plain mean, through the module, the NumPy head and a saved-and-loaded state."""
+    from liverforce.learn.gp import GPEnsemble, fit_gp_ensemble
+    from liverforce.learn.regressor import RegressorSpec, load_regressor
+
+    X, _, _ = fitted
+    cols = [np.array([0, 3, 4]), np.array([0, 1, 2, 3, 4])]
+    ens, info = fit_gp_ensemble(X, truth(X), cols, seed=0)
+    alone = [fit_gp(X[:, c], truth(X), seed=0)[0] for c in cols]
+    Xt = torch.from_numpy(np.random.default_rng(5).uniform(-1.8, 1.8, (200, 5)))
+    want = 0.5 * (alone[0](Xt[:, cols[0]]) + alone[1](Xt[:, cols[1]])).numpy()
+    np.testing.assert_allclose(ens(Xt).numpy(), want, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(ens.numpy_head()(Xt.numpy()), want, rtol=0, atol=1e-6)  # as a single GP's head
+    assert info["member_inputs"] == [3, 5] and len(info["members"]) == 2 and ens.n_train == len(X)
+    state = {k: v.clone() for k, v in ens.state_dict().items()}
+    again = load_regressor(RegressorSpec(5, (), 0.0, kind="gp"), state)
+    assert isinstance(again, GPEnsemble)
+    np.testing.assert_array_equal(again(Xt).numpy(), ens(Xt).numpy())
+    # the member on columns 0, 3, 4 cannot see inputs 1 and 2: it misses the map's dependence on them
+    err = [np.abs(m(Xt[:, c]).numpy() - truth(Xt.numpy())).mean() for m, c in zip(alone, cols)]
+    assert err[0] > 2 * err[1]
+
+
+def test_ensemble_columns_out_of_range_are_refused():
+    from liverforce.learn.gp import fit_gp_ensemble
+
+    X = np.random.default_rng(0).normal(size=(20, 3))
+    with pytest.raises(ValueError, match="columns must index the 3 inputs"):
+        fit_gp_ensemble(X, truth(np.c_[X, X[:, :2]]), [np.array([0, 3])], seed=0)
+
+
+def test_a_code_member_ensemble_model_fits_pca_at_the_largest_size_and_round_trips(tmp_path):
+    """``model.gp.code_members``: the PCA encoder keeps the largest member's components, member k sees the
+    leading k code components and every state column, the bundle reloads to the same predictions and the
+    compiled (NumPy) head of the served path gives them too."""
+    from liverforce.learn.gp import GPEnsemble
+    from liverforce.learn.model import subset
+    from liverforce.serve.compiled import regressor_head
+
+    arrays = synthetic_arrays(90, n_geometries=3, seed=2, material_varies=True)
+    model_cfg = {"encoder": "pca", "code_size": 4, "state_vector": True, "grid_size": 8, "hidden": [8],
+                 "dropout": 0.0, "occlusion": {"radius_mm": 0.0, "mode": "remove"}, "noise_mm": 0.0,
+                 "regressor": "gp", "gp": {"max_points": 500, "iterations": 100, "code_members": [6, 2, 4]}}
+    train = {"test_fraction": 0.25, "epochs": 5, "batch_size": 16, "lr": 3e-3, "weight_decay": 0.0, "seed": 0}
+    tune = {"enabled": False, "trials": 1, "folds": 2, "sobol_trials": 1, "epochs": 1}
+    res = train_scenario(arrays, model_cfg, train, tune, "IV", "gp", out_dir=tmp_path)
+    assert res["best_params"]["code_members"] == [2, 4, 6] and res["cv_mae_n"] > 0
+    model = ForceModel.load(res["model_path"])
+    reg = model.regressor
+    assert isinstance(reg, GPEnsemble) and model.pre.encoder.code_size == 6
+    n_state = model.pre.n_inputs - 6
+    for i, k in enumerate((2, 4, 6)):
+        np.testing.assert_array_equal(reg.columns(i).numpy(), np.r_[np.arange(k), np.arange(6, 6 + n_state)])
+    assert model.meta["gp"]["member_inputs"] == [2 + n_state, 4 + n_state, 6 + n_state]
+    a = subset(arrays, [list(arrays["case_id"]).index(c) for c in model.meta["test_case_ids"]])
+    np.testing.assert_array_equal(ForceModel.load(model.save(tmp_path / "copy")).predict(a), model.predict(a))
+    z = np.random.default_rng(0).normal(size=(7, model.pre.n_inputs))
+    np.testing.assert_allclose(regressor_head(reg)(z), reg(torch.from_numpy(z)).numpy(), rtol=0, atol=1e-6)
+
+
+def test_code_members_apply_to_pca_gps_only_and_bad_lists_are_refused():
+    from liverforce.learn.model import encoder_code_size
+    from liverforce.learn.regressor import gp_code_members
+
+    cfg = {"encoder": "pca", "code_size": 16, "regressor": "gp", "gp": {"code_members": [32, 8, 16]}}
+    assert gp_code_members(cfg) == (8, 16, 32) and encoder_code_size(cfg) == 32
+    assert fit_params(cfg, lr=1e-3, batch_size=8, epochs=1).gp_code_members == (8, 16, 32)
+    for other in ({"encoder": "ae"}, {"regressor": "mlp"}, {"gp": {"code_members": None}}):
+        c = {**cfg, **other}
+        assert gp_code_members(c) == () and encoder_code_size(c) == 16
+    for bad in ([8, 8], [0, 4]):
+        with pytest.raises(ValueError, match="code_members"):
+            gp_code_members({**cfg, "gp": {"code_members": bad}})
