@@ -18,8 +18,9 @@ Gaussian process, and ``mlp``), prints, on one core (1 BLAS / torch / numba thre
 
 The models are trained here on synthetic cases with whole surfaces
 (``liverforce.learn.synthetic.synthetic_surface_arrays``, ``--cases``; accuracy is irrelevant): the sizes are the
-shipped config's (12 x 12 grid, PCA 16, state vector; the GP on every training row, about 640 of 43 inputs with
-the default 480 cases, the shipped runs have 500-1000; the MLP 2 x 128, 3 epochs). Clouds are observed from a case's
+shipped config's (12 x 12 grid, state vector; the GP is the mean of five GPs on PCA codes of 8, 12, 16, 24 and 32
+components, ``model.gp.code_members``, each on every training row, about 640 with the default 480 cases, the
+shipped runs have 500-1000; the MLP 2 x 128, 3 epochs). Clouds are observed from a case's
 deformed surface with ``--points`` points (default 5,000) and 0.5 mm noise: 20 observations, and
 ``--distinct`` (default 256) jittered copies of them for the batches, so a batch reads clouds from memory, not
 from a few cached ones.
@@ -71,7 +72,8 @@ REF_BATCH = ARGS.ref_batch or (200 if ARGS.quick else 1000)
 CASES = ARGS.cases or (120 if ARGS.quick else 480)
 MODEL = {"encoder": "pca", "code_size": 16, "state_vector": True, "grid_size": 12, "hidden": [128, 128],
          "dropout": 0.1, "occlusion": {"radius_mm": 0.0, "mode": "remove"}, "noise_mm": 0.0, "roi_features": "cloud",
-         "force_scaling": "stiffness", "probe_force_radius_mm": 5.0, "gp": {"max_points": 2000, "iterations": 200},
+         "force_scaling": "stiffness", "probe_force_radius_mm": 5.0,
+         "gp": {"max_points": 2000, "iterations": 50, "code_members": [8, 12, 16, 24, 32]},
          "camera": {"observation": {"n_points": [200, 20000]}, "grid": {}, "tip_noise_mm": 0.5}}
 TRAIN = {"test_fraction": 0.2, "epochs": 3, "batch_size": 64, "lr": 3e-3, "weight_decay": 0.0, "seed": 0,
          "interval": {"coverage": 0.9, "calibration_fraction": 0.25}}
