@@ -62,8 +62,8 @@ Bundle format (a directory, no pickle of arbitrary code)::
     regressor.pt    torch state_dict (loaded with ``weights_only=True``)
     encoder.pt      AE/DAE state_dict      | pca.npz  PCA mean + components
 
-A bundle whose ``format_version`` differs from :data:`FORMAT_VERSION` is
-refused with :class:`ModelFormatError`.
+A bundle whose ``format_version`` is not in :data:`READ_VERSIONS` is
+refused with :class:`ModelFormatError` (bundles are written at :data:`FORMAT_VERSION`).
 """
 
 from __future__ import annotations
@@ -103,7 +103,9 @@ from liverforce.learn.torchutil import EpochCallback
 from liverforce.seeds import derive
 
 FORMAT = "liverforce.force_model"
-FORMAT_VERSION = 3  # 3: probe compliance in the state vector (material from column 22), linear force estimate
+FORMAT_VERSION = 4  # 3: probe compliance in the state vector (material from column 22), linear force estimate;
+#                     4: the GP regressor may be a GPEnsemble (model.gp.code_members), which a reader of 3 cannot load
+READ_VERSIONS = (3, 4)  # a version-3 bundle is a version-4 bundle with a single GP (or an MLP)
 
 ROI_INPUTS = (
     "exertion_point_mm",
@@ -152,19 +154,26 @@ def fit_code_size(code_size: int, fit: FitParams) -> int:
     return max(fit.gp_code_members) if fit.regressor == "gp" and fit.gp_code_members else int(code_size)
 
 
-def member_columns(pre: "Preprocessor", members) -> list[np.ndarray] | None:
-    """The regressor-input columns of each GP ensemble member: the leading ``k`` code components and
-    every state column (:meth:`Preprocessor.inputs` puts the code first); None for no members."""
+def member_sizes(pre: "Preprocessor", members) -> list[int]:
+    """The code sizes of the GP ensemble's members as fitted: each of ``members`` capped at the PCA code
+    the encoder really has (PCA keeps at most as many components as training rows or features, so a
+    small data set has fewer than the largest member), duplicates dropped; ``[]`` for no members."""
     if not members:
-        return None
-    code = pre.encoder.code_size
+        return []
     if not isinstance(pre.encoder, PCAEncoder):
         raise ValueError("model.gp.code_members: a GP ensemble over code sizes needs the PCA encoder")
-    if max(members) > code:
-        raise ValueError(f"model.gp.code_members: member {max(members)} exceeds the PCA code size {code} "
-                         "(fit the encoder with encoder_code_size)")
-    rest = np.arange(code, pre.n_inputs)
-    return [np.concatenate([np.arange(int(k)), rest]) for k in members]
+    return sorted({min(int(k), pre.encoder.code_size) for k in members})
+
+
+def member_columns(pre: "Preprocessor", members) -> list[np.ndarray] | None:
+    """The regressor-input columns of each GP ensemble member (:func:`member_sizes`): the leading ``k``
+    code components and every state column (:meth:`Preprocessor.inputs` puts the code first); None for
+    no members."""
+    sizes = member_sizes(pre, members)
+    if not sizes:
+        return None
+    rest = np.arange(pre.encoder.code_size, pre.n_inputs)
+    return [np.concatenate([np.arange(k), rest]) for k in sizes]
 
 
 def force_scaling_of(model_cfg: dict) -> str:
@@ -605,11 +614,11 @@ class ForceModel:
         doc = json.loads(meta_file.read_text())
         if doc.get("format") != FORMAT:
             raise ModelFormatError(f"{meta_file}: format '{doc.get('format')}' is not '{FORMAT}'")
-        if doc.get("format_version") != FORMAT_VERSION:
+        if doc.get("format_version") not in READ_VERSIONS:
             raise ModelFormatError(
                 f"{meta_file}: model format version {doc.get('format_version')} is not supported by this "
-                f"liverforce (expects {FORMAT_VERSION}); retrain the model or use the liverforce version "
-                "that wrote it"
+                f"liverforce (reads {', '.join(map(str, READ_VERSIONS))}); retrain the model or use the "
+                "liverforce version that wrote it"
             )
         espec = doc["encoder"]
         if espec["kind"] == "pca":
@@ -737,5 +746,7 @@ def fit_force_model(
     meta = dict(meta or {})
     if gp:
         meta["gp"] = hist.pop("gp")
+        if fit.gp_code_members:
+            meta["gp"]["code_members"] = member_sizes(pre, fit.gp_code_members)
     meta.setdefault("training_scale", training_scale(prep, rep))
     return ForceModel(rep, pre, spec, net, meta), hist

@@ -196,6 +196,7 @@ def train_scenario(
             "scenario": scenario, "variant": variant, "seed": seed, "threads": threads,
             "n_cases": n, "n_train": len(tr), "n_test": len(te), "split_by": group_key(scenario),
             "grid_half_width_mm": rep.half_width_mm, "roi_features": rep.features,
+            "encoder_code_size": code_size,  # the PCA GP ensemble's largest member, else model.code_size
         }
         run_id = tracker.start_run(f"{scenario}-{variant}", params=params, tags=run_tags)
     try:

@@ -552,7 +552,9 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
             rows.append(row)
         parts.append(f"<h3>PCA vs autoencoder vs denoising autoencoder</h3><p>Same data, split and regressor "
                      f"settings, only the encoder changes (trained without Ax, {enc['epochs']} epochs, scored on the "
-                     f"training-side validation split; details in the studies section).</p>")
+                     f"training-side validation split; details in the studies section). With the GP and "
+                     f"<code>model.gp.code_members</code>, a PCA code is read by the mean of one GP per code size; "
+                     f"AE and DAE codes are not nested, so they are read by one GP.</p>")
         parts.append(_table(["scenario", *[e.upper() for e in encs]], rows))
     lv = v["livers"]
     worst = lv["worst"]

@@ -226,9 +226,10 @@ def test_an_ensemble_is_the_mean_of_its_members_each_fitted_alone_on_its_columns
     again = load_regressor(RegressorSpec(5, (), 0.0, kind="gp"), state)
     assert isinstance(again, GPEnsemble)
     np.testing.assert_array_equal(again(Xt).numpy(), ens(Xt).numpy())
-    # the member on columns 0, 3, 4 cannot see inputs 1 and 2: it misses the map's dependence on them
+    # the member on columns 0, 3, 4 cannot see inputs 1 and 2: the ensemble's error lies between its members'
     err = [np.abs(m(Xt[:, c]).numpy() - truth(Xt.numpy())).mean() for m, c in zip(alone, cols)]
-    assert err[0] > 2 * err[1]
+    err_ens = np.abs(ens(Xt).numpy() - truth(Xt.numpy())).mean()
+    assert err[0] > 2 * err[1] and err[1] < err_ens < err[0]
 
 
 def test_ensemble_columns_out_of_range_are_refused():
@@ -281,3 +282,23 @@ def test_code_members_apply_to_pca_gps_only_and_bad_lists_are_refused():
     for bad in ([8, 8], [0, 4]):
         with pytest.raises(ValueError, match="code_members"):
             gp_code_members({**cfg, "gp": {"code_members": bad}})
+
+
+def test_members_larger_than_the_pca_code_are_capped_at_it():
+    """PCA keeps at most as many components as training rows: on 6 training cases the members [2, 4, 32]
+    become [2, 4, 6] (the largest capped at the 6 components PCA keeps), and the model trains and predicts."""
+    from liverforce.learn.gp import GPEnsemble
+    from liverforce.learn.model import fit_force_model, prepare, view_seeds
+    from liverforce.learn.regressor import FitParams
+    from liverforce.learn.representation import representation_from_config
+
+    arrays = synthetic_arrays(6, n_geometries=1, seed=4, material_varies=True)
+    cfg = {"grid_size": 6, "occlusion": {"radius_mm": 0.0, "mode": "remove"}, "noise_mm": 0.0}
+    rep = representation_from_config(cfg, arrays)
+    prep = prepare(arrays, rep, observation_seeds=view_seeds(0, 1))
+    fit = FitParams(0.0, 1, 0, regressor="gp", gp_iterations=20, gp_code_members=(2, 4, 32))
+    model, _ = fit_force_model(prep, rep, encoder="pca", code_size=16, use_state=True, hidden=[], dropout=0.0,
+                               fit=fit, seed=0)
+    assert isinstance(model.regressor, GPEnsemble) and model.pre.encoder.code_size == 6
+    assert model.meta["gp"]["code_members"] == [2, 4, 6]
+    assert np.isfinite(model.predict(arrays)).all()

@@ -97,6 +97,19 @@ def test_format_version_mismatch_is_refused(fitted, tmp_path):
         ForceModel.load(tmp_path / "nothing")
 
 
+def test_a_version_3_bundle_still_loads(fitted, tmp_path):
+    """Version 4 only added the GP ensemble; a bundle written at version 3 (one GP or an MLP) loads as before."""
+    from liverforce.learn.model import FORMAT_VERSION
+
+    model = ForceModel.load(fitted("pca")["model_path"])
+    path = model.save(tmp_path / "m")
+    doc = json.loads((path / "model.json").read_text())
+    assert doc["format_version"] == FORMAT_VERSION == 4
+    doc["format_version"] = 3
+    (path / "model.json").write_text(json.dumps(doc))
+    assert ForceModel.load(path).regressor_spec == model.regressor_spec
+
+
 def test_same_seed_gives_same_metrics(tmp_path):
     arrays = synthetic_arrays(60, n_geometries=3, seed=4, nodes=(120, 200))
     model = {**MODEL, "encoder": "dae", "grid_size": 6, "hidden": [16], "dropout": 0.1, "noise_mm": 0.05,
