@@ -752,10 +752,10 @@ def _check_model(mo: dict, key: str) -> None:
     if mo["gp"]["max_points"] < 2 or mo["gp"]["iterations"] < 1:
         _fail(f"{key}.gp", f"max_points must be >= 2 and iterations >= 1 (got {mo['gp']['max_points']}, "
               f"{mo['gp']['iterations']})")
-    members = mo["gp"].get("code_members") or []
-    if any(int(k) < 1 for k in members) or len(set(members)) != len(members):
-        _fail(f"{key}.gp.code_members", f"PCA code sizes, each >= 1 and listed once (got {list(members)})",
-              "for example [8, 12, 16, 24, 32], or null for one GP")
+    try:
+        _learn_names().gp_code_members(mo["gp"].get("code_members"))
+    except ValueError as exc:
+        _fail(f"{key}.gp.code_members", str(exc), "for example [8, 12, 16, 24, 32], or null for one GP")
     _check_choice(f"{key}.rigid_motion", mo["rigid_motion"], ("keep", "remove"))
     if mo["rigid_motion_radius_mm"] < 0:
         _fail(f"{key}.rigid_motion_radius_mm", f"must be >= 0 mm (got {mo['rigid_motion_radius_mm']})")

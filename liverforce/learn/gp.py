@@ -287,10 +287,6 @@ class GPEnsemble(nn.Module):
     def n_train(self) -> int:
         return self.members[0].n_train
 
-    @property
-    def n_inputs(self) -> int:
-        return 1 + max(int(self.columns(i).max()) for i in range(len(self.members)))
-
     def forward(self, z: torch.Tensor) -> torch.Tensor:
         z = z.double()
         return torch.stack([m(z[:, self.columns(i)]) for i, m in enumerate(self.members)]).mean(0)

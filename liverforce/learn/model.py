@@ -85,7 +85,6 @@ from liverforce.learn.regressor import (
     FitParams,
     RegressorSpec,
     fit_regressor,
-    gp_code_members,
     load_regressor,
     predict_regressor,
 )
@@ -143,15 +142,11 @@ def linear_force_weights(rep: Representation, radius_mm: float) -> np.ndarray:
     return w / w.sum()
 
 
-def encoder_code_size(model_cfg: dict) -> int:
-    """The encoder's code size: ``model.code_size``, or the largest GP ensemble member's (:func:`gp_code_members`)."""
-    members = gp_code_members(model_cfg)
-    return max(members) if members else int(model_cfg["code_size"])
-
-
-def fit_code_size(code_size: int, fit: FitParams) -> int:
-    """The encoder's code size of a fit: the largest GP ensemble member's, else ``code_size``."""
-    return max(fit.gp_code_members) if fit.regressor == "gp" and fit.gp_code_members else int(code_size)
+def encoder_code_size(code_size: int, members) -> int:
+    """The encoder's code size: the largest GP ensemble member's (``members``,
+    :func:`liverforce.learn.regressor.gp_code_members`), else
+    ``code_size`` (``model.code_size``)."""
+    return max(members) if members else int(code_size)
 
 
 def member_sizes(pre: "Preprocessor", members) -> list[int]:
@@ -724,8 +719,9 @@ def fit_force_model(
     per epoch under ``history["<name>_loss"]`` (monitoring only; nothing is
     selected on it).
     """
+    members = fit.gp_code_members if fit.regressor == "gp" else ()
     pre = fit_preprocessor(
-        prep, rep, encoder=encoder, code_size=fit_code_size(code_size, fit), use_state=use_state, seed=seed,
+        prep, rep, encoder=encoder, code_size=encoder_code_size(code_size, members), use_state=use_state, seed=seed,
         epochs=encoder_epochs or fit.epochs, lr=fit.lr, batch_size=fit.batch_size, dae_input_noise=dae_input_noise,
         force_scaling=force_scaling, linear_force_radius_mm=linear_force_radius_mm,
     )
@@ -738,7 +734,7 @@ def fit_force_model(
                          kind=fit.regressor)
     net, hist = fit_regressor(z, y, spec, fit, seed=seed, z_val=zv, y_val=yv, on_epoch=on_epoch,
                               groups=view_groups(prep),
-                              columns=member_columns(pre, fit.gp_code_members) if gp else None)
+                              columns=member_columns(pre, members))
     if monitor is not None:
         hist[f"{monitor[1]}_loss"] = hist.pop("val_loss")
     else:
@@ -746,7 +742,7 @@ def fit_force_model(
     meta = dict(meta or {})
     if gp:
         meta["gp"] = hist.pop("gp")
-        if fit.gp_code_members:
-            meta["gp"]["code_members"] = member_sizes(pre, fit.gp_code_members)
+        if members:
+            meta["gp"]["code_members"] = member_sizes(pre, members)
     meta.setdefault("training_scale", training_scale(prep, rep))
     return ForceModel(rep, pre, spec, net, meta), hist

@@ -27,3 +27,12 @@ FORCE_SCALINGS = ("linear", "stiffness", "none")
 def roi_features() -> tuple[str, ...]:
     """Names accepted as ``model.roi_features``."""
     return tuple(ROI_FEATURE_CHANNELS)
+
+
+def gp_code_members(members) -> tuple[int, ...]:
+    """``model.gp.code_members`` checked and sorted: PCA code sizes, each at least 1 and listed once (``()`` for
+    none); a ValueError names what is wrong. The config validates with it and the learning stage reads with it."""
+    members = tuple(int(k) for k in (members or ()))
+    if any(k < 1 for k in members) or len(set(members)) != len(members):
+        raise ValueError(f"PCA code sizes, each at least 1 and listed once; got {list(members)}")
+    return tuple(sorted(members))

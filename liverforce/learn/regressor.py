@@ -16,6 +16,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from liverforce.learn import names
 from liverforce.learn.torchutil import EpochCallback, forward_numpy, train_loop
 
 
@@ -88,10 +89,10 @@ def gp_code_members(model_cfg: dict) -> tuple[int, ...]:
     (only PCA codes are nested, so only they give the same model at several code sizes)."""
     if str(model_cfg.get("regressor", "mlp")) != "gp" or str(model_cfg.get("encoder", "pca")) != "pca":
         return ()
-    members = tuple(int(k) for k in ((model_cfg.get("gp") or {}).get("code_members") or ()))
-    if any(k < 1 for k in members) or len(set(members)) != len(members):
-        raise ValueError(f"model.gp.code_members: PCA code sizes, each at least 1 and listed once; got {list(members)}")
-    return tuple(sorted(members))
+    try:
+        return names.gp_code_members((model_cfg.get("gp") or {}).get("code_members"))
+    except ValueError as exc:
+        raise ValueError(f"model.gp.code_members: {exc}") from None
 
 
 def fit_params(model_cfg: dict, *, lr: float, batch_size: int, epochs: int, weight_decay: float = 0.0) -> FitParams:

@@ -182,7 +182,7 @@ def train_scenario(
     rep = representation_from_config(model_cfg, train_arrays)
     encoder = str(model_cfg["encoder"])
     use_state = bool(model_cfg["state_vector"])
-    code_size = encoder_code_size(model_cfg)
+    code_size = encoder_code_size(model_cfg["code_size"], gp_code_members(model_cfg))
     dae_noise = float(model_cfg.get("dae_input_noise", 0.1))
     weight_decay = float(train_cfg.get("weight_decay", 0.0))
 
@@ -245,7 +245,7 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
             z_tr, y_tr = regressor_data(pre, rows_tr)
             z_va, y_va = regressor_data(pre, rows_va, all_views=False)
             fold_data.append(FoldData(z_tr, y_tr, z_va, y_va, view_groups(rows_tr),
-                                      member_columns(pre, gp_code_members(model_cfg)) if gp else None))
+                                      member_columns(pre, gp_code_members(model_cfg))))
             stiff = pre.stiffness(rows_va.state, len(fva))
             to_newton.append(lambda out, ts=pre.target_scaler, k_=stiff: ts.inverse_transform(out) * k_)
             y_val_n.append(rows_va.y_local)

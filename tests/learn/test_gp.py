@@ -274,11 +274,11 @@ def test_code_members_apply_to_pca_gps_only_and_bad_lists_are_refused():
     from liverforce.learn.regressor import gp_code_members
 
     cfg = {"encoder": "pca", "code_size": 16, "regressor": "gp", "gp": {"code_members": [32, 8, 16]}}
-    assert gp_code_members(cfg) == (8, 16, 32) and encoder_code_size(cfg) == 32
+    assert gp_code_members(cfg) == (8, 16, 32) and encoder_code_size(16, gp_code_members(cfg)) == 32
     assert fit_params(cfg, lr=1e-3, batch_size=8, epochs=1).gp_code_members == (8, 16, 32)
     for other in ({"encoder": "ae"}, {"regressor": "mlp"}, {"gp": {"code_members": None}}):
         c = {**cfg, **other}
-        assert gp_code_members(c) == () and encoder_code_size(c) == 16
+        assert gp_code_members(c) == () and encoder_code_size(16, gp_code_members(c)) == 16
     for bad in ([8, 8], [0, 4]):
         with pytest.raises(ValueError, match="code_members"):
             gp_code_members({**cfg, "gp": {"code_members": bad}})
