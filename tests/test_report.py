@@ -105,6 +105,9 @@ def stage_outputs(tmp_path):
         "interval": {"nominal": 0.9, "bounded": True, "n_calibration": 64, "coverage": [0.875, 0.9, 0.8125],
                      "coverage_per_liver": {}, "half_width_mean_n": [0.41, 0.38, 0.52],
                      "test_coverage": [0.9, 0.95, 0.85]},
+        "outside_training": {"n_cases": 11, "n_outside": 3, "mae_outside_n": 0.71, "mae_inside_n": 0.2,
+                             "by_input": {"tool_thickness_mm": 1, "probe_compliance_mm_per_n": 0, "liver_size_mm": 0,
+                                          "centroid_distance_mm": 2}, "per_liver": {"val-1000": 3}},
         "all_variants": {
             "pca_sv": {"metrics": {"mae_vec": 0.34, "rmse_vec": 0.45, "accuracy_pct": 77.0}, "livers": livers,
                        "model_run_id": "runIVpca_sv",
@@ -269,6 +272,10 @@ def test_report_validates_on_every_unseen_liver_with_mean_sd_and_the_worst_named
     iv = _section(sec, "<h3>Calibrated interval</h3>", "</p>")
     assert "64 cases, nominal 90 %" in iv and "87.5, 90.0, 81.2 % of the cases (" in iv and "outside" in iv
     assert "IV test livers in 90.0, 95.0, 85.0 %" in iv and "0.410, 0.380, 0.520 N" in iv
+    # the unseen cases outside the training range, named by input, and their error against the others'
+    ext = _section(sec, "<h3>Outside the training range</h3>", "</p>")
+    assert "3 of 11 unseen cases" in ext and "tissue thickness under the tool 1, distance from the liver centroid 2" in ext
+    assert "probe compliance" not in ext and "<b>0.710 N</b>, against 0.200 N for the other 8" in ext
     # every variant: mean ± sd over the livers and its worst liver
     variants = _rows(sec, "variant")
     assert [_text(c[0]).split()[0] for c in variants] == list(val["all_variants"])

@@ -55,6 +55,12 @@ def test_every_stage_produced_its_outputs(smoke_run):
     # the calibrated interval, measured on the unseen livers (smoke: too few calibration cases -> unbounded)
     iv = val["interval"]
     assert iv["nominal"] == 0.9 and len(iv["coverage"]) == 3 and sorted(iv["coverage_per_liver"]) == ["val-1000", "val-1001"]
+    # the unseen cases serving would warn about (state outside the training range), counted per input and liver
+    ext = val["outside_training"]
+    assert ext["n_cases"] == val["n_cases"] and sum(ext["per_liver"].values()) == ext["n_outside"]
+    assert set(ext["by_input"]) == {"tool_thickness_mm", "probe_compliance_mm_per_n", "liver_size_mm",
+                                    "centroid_distance_mm"} and max(ext["by_input"].values()) <= ext["n_outside"]
+    assert (ext["mae_outside_n"] is None) == (ext["n_outside"] == 0)
     for study in ("roi_fraction", "encoder", "state_vector", "occlusion", "noise", "train_size", "train_livers"):
         doc = json.loads((root / "studies" / f"{study}.json").read_text())
         assert len(doc["points"]) == 2 and (root / "studies" / f"{study}.png").stat().st_size > 5000

@@ -77,6 +77,32 @@ def interval_on_unseen(model_dir, arrays: dict) -> dict | None:
             "test_coverage": m.meta.get("interval_test_coverage")}
 
 
+def extrapolation_on_unseen(model_dir, arrays: dict, err: np.ndarray) -> dict | None:
+    """Unseen cases whose geometric state lies outside the model's training range, and their error.
+
+    What serving warns about (:func:`liverforce.serve.checks.outside_training`),
+    measured: how many unseen cases it flags, per input, and the mean vector
+    error (N) of the flagged cases against the others. None for a model
+    without the state vector.
+    """
+    from liverforce.learn.model import ForceModel
+    from liverforce.serve.checks import TrainingScale, outside_training
+
+    m = ForceModel.load(Path(model_dir))
+    if not m.uses_state:
+        return None
+    masks, _ = outside_training(arrays, TrainingScale.of(m))
+    out = np.zeros(len(err), dtype=bool)
+    for v in masks.values():
+        out |= v
+    geo = np.asarray(arrays["geometry_id"]).astype(str)
+    return {"n_cases": int(len(err)), "n_outside": int(out.sum()),
+            "by_input": {k: int(v.sum()) for k, v in masks.items()},
+            "mae_outside_n": float(err[out].mean()) if out.any() else None,
+            "mae_inside_n": float(err[~out].mean()) if (~out).any() else None,
+            "per_liver": {g: int(out[geo == g].sum()) for g in sorted(set(geo.tolist()))}}
+
+
 def camera_sensitivity(model_dir, arrays: dict, grid: dict) -> dict | None:
     """A camera-cloud model's error on the unseen livers as one camera setting at a time changes.
 
@@ -197,6 +223,7 @@ def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_
     model_metrics = json.loads(Path(model_metrics_path).read_text())
     interval = interval_on_unseen(model_dir, arrays)
     sens = camera_sensitivity(model_dir, arrays, sensitivity or {})
+    extrapolation = extrapolation_on_unseen(model_dir, arrays, err)
     result = {
         "n_cases": n,
         "metrics": metrics,
@@ -212,6 +239,7 @@ def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_
         "all_variants": others,
         "interval": interval,
         "camera_sensitivity": sens,
+        "outside_training": extrapolation,
         "predictions": {"case_id": [str(c) for c in arrays["case_id"]], "true_n": true.tolist(), "pred_n": pred.tolist()},
     }
     out_dir = Path(out_path).parent
@@ -227,7 +255,8 @@ def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_
     cov = {} if not interval else {f"interval_coverage_{ax}": v for ax, v in zip(("t1", "t2", "n"), interval["coverage"])}
     tracker.log_metrics(run_id, {**metrics, **cov, **{f"{k}_livers_mean": v for k, v in by_liver["mean"].items()},
                                  **{f"{k}_livers_sd": v for k, v in by_liver["sd"].items()},
-                                 "n_livers": by_liver["n_groups"]})
+                                 "n_livers": by_liver["n_groups"],
+                                 **({} if not extrapolation else {"n_outside_training": extrapolation["n_outside"]})})
     for f in figures:
         tracker.log_artifact(run_id, f)
     tracker.end_run(run_id)

@@ -331,6 +331,29 @@ def validation_figures(val: dict, out_dir: Path) -> dict[str, Path]:
 # --------------------------------------------------------------------------
 
 
+#: what each input of ``validate/metrics.json`` ``outside_training.by_input`` is, in the report's words
+_STATE_INPUT_WORDS = {"tool_thickness_mm": "tissue thickness under the tool",
+                      "probe_compliance_mm_per_n": "probe compliance",
+                      "liver_size_mm": "liver size",
+                      "centroid_distance_mm": "distance from the liver centroid"}
+
+
+def _extrapolation_paragraph(ext: dict | None) -> str:
+    """The unseen cases served with an extrapolation warning, and their error against the others'."""
+    if not ext:
+        return ""
+    n, k = ext["n_cases"], ext["n_outside"]
+    by = ", ".join(f"{_STATE_INPUT_WORDS.get(name, name)} {c}" for name, c in ext["by_input"].items() if c)
+    if not k:
+        return ("<h3>Outside the training range</h3><p>No unseen case lies outside the training cases' range of the "
+                "geometric state (thickness under the tool, probe compliance, liver size, distance from the "
+                "centroid); serving would have warned about none.</p>")
+    return (f"<h3>Outside the training range</h3><p>{k} of {n} unseen cases lie outside the training cases' range "
+            f"of the geometric state ({html.escape(by)}); serving predicts them with a warning naming the input "
+            f"(<code>info[\"warnings\"]</code>). Their MAE is <b>{_fmt(ext['mae_outside_n'])} N</b>, against "
+            f"{_fmt(ext['mae_inside_n'])} N for the other {n - k}.</p>")
+
+
 def camera_section(data: dict, v: dict, main_variant: str | None) -> str:
     """Camera cloud against node correspondence per scenario and on the unseen livers, and the camera model's
     error as one camera setting changes (``validation["camera_sensitivity"]``). Empty without a camera model."""
@@ -758,6 +781,7 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
             + " N (widened where a liver's stiffness lies outside the calibration livers' range, by how far "
               "outside). Coverage below nominal on the unseen livers means they differ from the training "
               "population by more than that.</p>")
+    parts.append(_extrapolation_paragraph(v.get("outside_training")))
     allv = v.get("all_variants") or {}
     if len(allv) > 1:
         parts.append("<h3>Every scenario-IV variant on the same unseen livers</h3>")

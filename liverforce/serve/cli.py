@@ -132,6 +132,7 @@ def _run(args) -> int:
         force = predictor.predict(nodes, preop) if iv is None else np.asarray(iv.pop("force_n"))
         if iv is not None:
             info["interval"] = iv
+        info["warnings"] = predictor.context_warnings(preop)
     doc = {"force_n": [float(v) for v in force], "magnitude_n": float(np.linalg.norm(force)),
            "frame": "liver (source) frame of the inputs", "model": predictor.source, **info}
     if args.out and args.out.lower().endswith(".csv"):

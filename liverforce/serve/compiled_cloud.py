@@ -77,7 +77,7 @@ from liverforce.learn import camera
 from liverforce.learn.cloud_features import ReferenceSurface, _fill
 from liverforce.learn.encoders import PCAEncoder
 from liverforce.learn.state import compliance_matrices, state_vector
-from liverforce.serve.checks import Limits
+from liverforce.serve.checks import Limits, TrainingScale, outside_training
 from liverforce.serve.cloud import camera_checks, tool_tip_of
 from liverforce.serve.compiled import numpy_layers, regressor_head
 from liverforce.serve.errors import PredictionInputError
@@ -545,6 +545,10 @@ class CompiledCloud:
             if self.lin:  # f_lin = k_lin C^-1 tip (k_lin: force_scaling linear, else 1)
                 self.Cinv = pre.linear_factor(s, 1)[0, 0] * np.linalg.inv(compliance_matrices(s)[0])
                 self.lin_mean, self.lin_scale = ss.mean[n_base:], ss.scale[n_base:]
+        self.context_warnings = []  # the context's state outside the training range (Predictor.context_warnings)
+        if self.uses_state:
+            self.context_warnings = outside_training(preop.to_arrays(preop.roi_undeformed_mm),
+                                                     TrainingScale.of(model))[1][0]
         self.layers = []
         self.gp = regressor_head(model.regressor)
         for W, b, sl in ([] if self.gp is not None else numpy_layers(model.regressor)):
@@ -637,6 +641,8 @@ class CompiledCloud:
                         warnings[r] = camera_checks(self.model, X[r], lim)
                     except PredictionInputError as exc:
                         refused[r] = str(exc)
+        if self.context_warnings:
+            warnings = [w if why is not None else self.context_warnings + w for w, why in zip(warnings, refused)]
         return refused, warnings
 
     def _flagged(self, counts, tips, n_used, n_bad) -> np.ndarray:

@@ -33,7 +33,7 @@ from typing import Callable
 import numpy as np
 
 from liverforce.learn.model import ForceModel, ModelFormatError
-from liverforce.serve.checks import Limits, TrainingScale, check_case
+from liverforce.serve.checks import Limits, TrainingScale, check_case, outside_training
 from liverforce.serve.cloud import camera_checks, cloud_support, cloud_to_arrays
 from liverforce.serve.compiled import CompiledROI
 from liverforce.serve.errors import PredictionInputError
@@ -144,6 +144,16 @@ class Predictor:
         check_case(preop.to_arrays(preop.roi_undeformed_mm), 0, self.model, self.scale, self.limits, label="",
                    rotation=preop.rotation)
 
+    def context_warnings(self, preop: Preop) -> list[str]:
+        """Why the model extrapolates in this context: its geometric state outside the training range.
+
+        Empty for a model without the state vector, or a context inside the
+        range (:func:`liverforce.serve.checks.outside_training`).
+        """
+        if not self.model.uses_state:
+            return []
+        return outside_training(preop.to_arrays(preop.roi_undeformed_mm), self.scale)[1][0]
+
     def _check_state_inputs(self, preop: Preop) -> None:
         if self.model.uses_state:
             missing = [k for k in ("liver_centroid_mm", "inertia_mm5", "material_params_mpa", "tool_thickness_mm",
@@ -197,7 +207,8 @@ class Predictor:
         trained with ``roi_features: deformed`` and no state vector; other models
         only with ``approximate=True`` (normal-only displacement estimate),
         refused otherwise. Camera-cloud inputs outside what training covered are
-        refused, milder departures listed in ``info["warnings"]``.
+        refused, milder departures listed in ``info["warnings"]``, with the
+        context's (:meth:`context_warnings`) for every model.
         """
         self.check_preop(preop)
         arrays, info = cloud_to_arrays(self.model, cloud_mm, preop, approximate=approximate, scale=self.scale,
@@ -207,8 +218,10 @@ class Predictor:
             check_case(arrays, 0, self.model, self.scale, self.limits, label="", rotation=preop.rotation)
         if self.model.representation.is_camera:
             x = self.model.representation.features_of(arrays, R=R)
-            info["warnings"] = camera_checks(self.model, x[0], self.limits)
+            info["warnings"] = self.context_warnings(preop) + camera_checks(self.model, x[0], self.limits)
             arrays["camera_features"] = x  # computed once: the model reads them instead of the cloud
+        else:
+            info["warnings"] = self.context_warnings(preop)
         force = self.model.predict(arrays, rotations=R)[0]
         if return_info and self.model.interval is not None:
             info["interval"] = interval_doc(self.model, arrays, rotations=R)

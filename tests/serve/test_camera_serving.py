@@ -54,7 +54,8 @@ def test_a_camera_model_predicts_exactly_from_a_cloud_with_its_interval(served):
     assert pred.cloud_support == "exact"
     ctx, cloud, tip = _case(a, 0)
     force, info = pred.predict_cloud(cloud, ctx, tool_tip_mm=tip, return_info=True)
-    assert info["mode"] == "exact" and info["warnings"] == []
+    # the cloud itself is like the training clouds; only the context (a liver of another size) may be outside
+    assert info["mode"] == "exact" and info["warnings"] == pred.context_warnings(ctx)
     direct = model.predict({**{k: a[k][:1] if not isinstance(a[k], list) else a[k][:1] for k in
                                ("exertion_point_mm", "frame_normal", "frame_t1", "frame_t2", "roi_undeformed_mm",
                                 "roi_centroid_undeformed_mm", "liver_centroid_mm", "inertia_mm5", "tool_thickness_mm",
@@ -143,7 +144,7 @@ def test_cli_predicts_a_camera_cloud_with_the_tool_tip(served, tmp_path, capsys)
     out = json.loads(capsys.readouterr().out)
     want = Predictor.from_dir(path).predict_cloud(cloud, ctx, tool_tip_mm=tip)
     assert np.allclose(out["force_n"], want, atol=1e-6)
-    assert out["mode"] == "exact" and "interval" in out and out["warnings"] == []
+    assert out["mode"] == "exact" and "interval" in out and out["warnings"] == Predictor.from_dir(path).context_warnings(ctx)
     args = parser.parse_args(["predict", "-m", str(path), str(tmp_path / "cloud.npy"), "--context",
                               str(tmp_path / "ctx.json"), "--units", "m"])
     assert args.func(args) == 2
@@ -192,3 +193,26 @@ def test_the_compiled_cloud_path_equals_the_reference(served):
         assert warnings == info["warnings"]
     with pytest.raises(PredictionInputError, match="only"):
         fast.predict(cloud[:4], tip)
+
+
+def test_a_context_outside_the_training_range_comes_with_its_warning_on_every_path(served):
+    """Tissue thinner and a liver softer than every training case (not so far as to be refused): the reference
+    and the compiled cloud paths predict, each with the same warnings naming both inputs."""
+    from dataclasses import replace
+
+    path, model, a = served
+    pred = Predictor.from_dir(path)
+    ctx, cloud, tip = _case(a, 5)
+    rec = model.meta["training_scale"]
+    C = ctx.probe_compliance_mm_per_n.reshape(3, 3)
+    soft = C * (1.3 * rec["probe_compliance_mm_per_n"][1] / np.trace(C))
+    odd = replace(ctx, tool_thickness_mm=0.7 * rec["tool_thickness_mm"][0], probe_compliance_mm_per_n=soft)
+    force, info = pred.predict_cloud(cloud, odd, tool_tip_mm=tip, return_info=True)
+    assert np.isfinite(force).all()
+    named = [w for w in info["warnings"] if "thinner than in every training case" in w or "softer than" in w]
+    assert len(named) == 2
+    got, _, warnings = pred.compile_cloud(odd).predict(cloud, tip)
+    np.testing.assert_allclose(got, force, atol=1e-6)
+    assert warnings == info["warnings"]
+    batch = pred.compile_cloud(odd).predict_batch([cloud, cloud[:3]], np.stack([tip, tip]))
+    assert batch.warnings[0] == info["warnings"] and batch.refused[1] is not None and batch.warnings[1] == []

@@ -200,3 +200,53 @@ def test_tissue_thickness_in_the_wrong_units_or_missing_is_refused(pred, case):
     with pytest.raises(PredictionInputError, match="tool_thickness_mm"):
         pred.predict(D, replace(ctx, tool_thickness_mm=None))
     np.testing.assert_array_equal(pred.predict(D, ctx), pred.predict(D, replace(ctx)))  # the good one passes
+
+
+def test_a_state_outside_the_training_range_is_named_row_by_row():
+    """outside_training flags each geometric input below or above its training range (bounds inclusive), with
+    the value, the range and the direction in words; rows inside every range get no warning."""
+    from liverforce.serve.checks import TrainingScale, outside_training
+
+    scale = TrainingScale(half_width_mm=20.0, inertia_length_mm=(80.0, 100.0), centroid_distance_mm=(40.0, 140.0),
+                          material_lo=None, material_hi=None, feature_abs_max=None, n_material=None, source="test",
+                          thickness_mm=(13.0, 170.0), compliance_trace=(11.0, 27.0))
+
+    def rows(thick, trace, length, dist):
+        n = len(thick)
+        inertia = np.zeros((n, 9))
+        inertia[:, [0, 4, 8]] = (2.0 * np.asarray(length) ** 5 / 3.0)[:, None]  # (tr I / 2)^(1/5) = length
+        comp = np.zeros((n, 9))
+        comp[:, [0, 4, 8]] = (np.asarray(trace) / 3.0)[:, None]
+        p = np.zeros((n, 3))
+        return {"exertion_point_mm": p, "tool_thickness_mm": np.asarray(thick, float), "probe_compliance_mm_per_n": comp,
+                "inertia_mm5": inertia, "liver_centroid_mm": p + np.asarray(dist, float)[:, None] * [0.0, 0.6, 0.8]}
+
+    a = rows([13.0, 10.4, 170.0, 50.0, 60.0], [11.0, 20.0, 30.0, 20.0, 20.0], [80.0, 90.0, 90.0, 101.0, 90.0],
+             [140.0, 60.0, 60.0, 60.0, 30.0])
+    masks, warn = outside_training(a, scale)
+    assert masks["tool_thickness_mm"].tolist() == [False, True, False, False, False]
+    assert masks["probe_compliance_mm_per_n"].tolist() == [False, False, True, False, False]
+    assert masks["liver_size_mm"].tolist() == [False, False, False, True, False]
+    assert masks["centroid_distance_mm"].tolist() == [False, False, False, False, True]
+    assert warn[0] == []  # every value on a bound of its range
+    assert len(warn[1]) == 1 and "10.4 mm, thinner than in every training case (13..170 mm)" in warn[1][0]
+    assert len(warn[2]) == 1 and "30 mm/N, softer" in warn[2][0]
+    assert len(warn[3]) == 1 and "liver's size" in warn[3][0] and "larger" in warn[3][0]
+    assert len(warn[4]) == 1 and "30 mm, nearer" in warn[4][0]
+    # an unknown range (an old bundle) is not checked
+    masks, warn = outside_training(a, replace(scale, thickness_mm=None))
+    assert "tool_thickness_mm" not in masks and warn[1] == []
+
+
+def test_the_context_warns_when_the_tissue_is_thinner_than_in_training(pred, case):
+    """Thinner than every training case but within the refusal factor: predicted, with the warning (the
+    correspondence model's context, as `liverforce predict` prints it)."""
+    ctx, D = case
+    lo, hi = pred.scale.thickness_mm
+    inside = [w for w in pred.context_warnings(replace(ctx, tool_thickness_mm=0.5 * (lo + hi)))
+              if "tissue under the tool" in w]
+    assert inside == []
+    thin = replace(ctx, tool_thickness_mm=0.8 * lo)
+    warn = [w for w in pred.context_warnings(thin) if "tissue under the tool" in w]
+    assert len(warn) == 1 and "thinner than in every training case" in warn[0]
+    assert np.isfinite(pred.predict(D, thin)).all()  # a warning, not a refusal
