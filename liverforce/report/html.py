@@ -348,10 +348,12 @@ def _extrapolation_paragraph(ext: dict | None) -> str:
         return ("<h3>Outside the training range</h3><p>No unseen case lies outside the training cases' range of the "
                 "geometric state (thickness under the tool, probe compliance, liver size, distance from the "
                 "centroid); serving would have warned about none.</p>")
+    err = (f"Their MAE is <b>{_fmt(ext['mae_outside_n'])} N</b>, against {_fmt(ext['mae_inside_n'])} N for the "
+           f"other {n - k}." if k < n else f"Their MAE is <b>{_fmt(ext['mae_outside_n'])} N</b>.")
     return (f"<h3>Outside the training range</h3><p>{k} of {n} unseen cases lie outside the training cases' range "
             f"of the geometric state ({html.escape(by)}); serving predicts them with a warning naming the input "
-            f"(<code>info[\"warnings\"]</code>). Their MAE is <b>{_fmt(ext['mae_outside_n'])} N</b>, against "
-            f"{_fmt(ext['mae_inside_n'])} N for the other {n - k}.</p>")
+            f"(<code>warnings</code> of <code>liverforce predict</code>, the pyfunc model and "
+            f"<code>Predictor.context_warnings</code>). {err}</p>")
 
 
 def camera_section(data: dict, v: dict, main_variant: str | None) -> str:

@@ -6,7 +6,8 @@ by :mod:`liverforce.dataset.io` (schema version checked); failed simulation
 cases are skipped (their ROI carries no deformation) and counted.
 
 Output columns: ``case_id, geometry_id, scenario, fx_n, fy_n, fz_n`` (the
-predicted force, liver frame, N) and, when the shards carry labels,
+predicted force, liver frame, N), ``warnings`` (the case's geometric state
+outside the training range, ``"; "``-joined, empty when none) and, when the shards carry labels,
 ``fx_true_n, fy_true_n, fz_true_n, error_n`` (``|F̂ − F|``); the returned
 summary adds the metrics of :func:`liverforce.learn.metrics.force_metrics`.
 """
@@ -97,6 +98,8 @@ def predict_shards(predictor, inputs: Sequence[str | Path], out_path: str | Path
         "geometry_id": [str(c) for c in arrays["geometry_id"]],
         "scenario": [str(c) for c in arrays.get("scenario", [""] * n)],
         "fx_n": force[:, 0], "fy_n": force[:, 1], "fz_n": force[:, 2],
+        # the context outside the training range (Predictor.context_warnings), "; "-joined; "" when none
+        "warnings": ["; ".join(w) for w in predictor.arrays_warnings(arrays)],
     }
     summary: dict = {"rows": n, "skipped_failed": int(skipped), "shards": [str(p) for p in paths],
                      "seconds": seconds, "predictions_per_s": n / seconds if seconds > 0 else None}

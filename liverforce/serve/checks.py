@@ -56,6 +56,9 @@ class Limits:
     min_cloud_points: int = 20
 
 
+_RECORDED = "bundle meta training_scale"  #: TrainingScale.source of ranges recorded at training
+
+
 @dataclass(frozen=True)
 class TrainingScale:
     """Ranges of the training inputs of one model (``None``: not known, not checked)."""
@@ -71,6 +74,11 @@ class TrainingScale:
     thickness_mm: tuple[float, float] | None = None
     compliance_trace: tuple[float, float] | None = None
 
+    @property
+    def recorded(self) -> bool:
+        """The ranges are the training rows' own (``meta["training_scale"]``), not rough ones from the scalers."""
+        return self.source == _RECORDED
+
     @classmethod
     def of(cls, model) -> "TrainingScale":
         """From the bundle's ``meta["training_scale"]``, else approximately from the scalers."""
@@ -84,7 +92,7 @@ class TrainingScale:
             ctr = rec.get("probe_compliance_mm_per_n")
             return cls(rep.half_width_mm, tuple(rec["inertia_length_mm"]), tuple(rec["centroid_distance_mm"]),
                        lo, hi, tuple(rec["feature_abs_max"]), n_mat if n_mat is not None else int(lo.size),
-                       "bundle meta training_scale", None if thick is None else tuple(thick),
+                       _RECORDED, None if thick is None else tuple(thick),
                        None if ctr is None else tuple(ctr))
         fs = model.pre.feature_scaler
         g2 = rep.grid_size**2
@@ -294,6 +302,7 @@ def check_compliance(arrays: dict, i: int, scale: TrainingScale, limits: Limits,
             "and supports (liverforce.serve.probe computes it with the model's settings)?")
 
 
+_BOUND_TOL = 1e-9  #: relative margin of a training bound in :func:`outside_training`
 #: state inputs that :func:`outside_training` compares with the training range: name -> (what, unit, phrase below, above)
 _STATE_RANGES = {
     "tool_thickness_mm": ("the tissue under the tool", "mm", "thinner", "thicker"),
@@ -332,19 +341,23 @@ def outside_training(arrays: dict, scale: TrainingScale) -> tuple[dict[str, np.n
     and the exertion point's distance from the liver centroid. The material
     constants are not: the model scales force by the material's stiffness
     (``model.force_scaling``), so constants outside the training range are
-    extrapolated by construction.
+    extrapolated by construction. Only ranges recorded in the bundle count
+    (a bundle without ``training_scale`` has only the scalers' rough ranges:
+    nothing is flagged), and a value within ``1e-9`` (relative) of a bound is
+    inside it (the liver-frame and local-frame values differ by rounding).
     """
-    ranges = {"tool_thickness_mm": scale.thickness_mm, "probe_compliance_mm_per_n": scale.compliance_trace,
-              "liver_size_mm": scale.inertia_length_mm, "centroid_distance_mm": scale.centroid_distance_mm}
-    values = state_values(arrays)
     n = len(arrays["exertion_point_mm"])
     masks, warnings = {}, [[] for _ in range(n)]
-    for key, v in values.items():
+    if not scale.recorded:
+        return masks, warnings
+    ranges = {"tool_thickness_mm": scale.thickness_mm, "probe_compliance_mm_per_n": scale.compliance_trace,
+              "liver_size_mm": scale.inertia_length_mm, "centroid_distance_mm": scale.centroid_distance_mm}
+    for key, v in state_values(arrays).items():
         rng = ranges[key]
         if rng is None:
             continue
         lo, hi = rng
-        low, high = v < lo, v > hi
+        low, high = v < lo - _BOUND_TOL * abs(lo), v > hi + _BOUND_TOL * abs(hi)
         masks[key] = low | high
         what, unit, below, above = _STATE_RANGES[key]
         for i in np.flatnonzero(masks[key]):

@@ -152,7 +152,15 @@ class Predictor:
         """
         if not self.model.uses_state:
             return []
-        return outside_training(preop.to_arrays(preop.roi_undeformed_mm), self.scale)[1][0]
+        self._check_state_inputs(preop)
+        return self.arrays_warnings(preop.to_arrays(preop.roi_undeformed_mm))[0]
+
+    def arrays_warnings(self, arrays: dict) -> list[list[str]]:
+        """:meth:`context_warnings` of every row of input-contract ``arrays`` (what :meth:`predict_arrays`,
+        ``liverforce predict --shards`` and the MLflow pyfunc return beside the forces)."""
+        if not self.model.uses_state:
+            return [[] for _ in range(len(arrays["exertion_point_mm"]))]
+        return outside_training(arrays, self.scale)[1]
 
     def _check_state_inputs(self, preop: Preop) -> None:
         if self.model.uses_state:

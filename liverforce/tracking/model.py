@@ -47,6 +47,9 @@ MODEL_NAME = "model"
 OUTPUT_COLUMNS = ("fx_n", "fy_n", "fz_n")
 #: further columns for a model with a calibrated interval: the local force (t1, t2, n) and its half-widths, N
 INTERVAL_COLUMNS = ("ft1_n", "ft2_n", "fn_n", "ft1_half_n", "ft2_half_n", "fn_half_n")
+#: the last column: the case's geometric state outside the training range (Predictor.context_warnings),
+#: "; "-joined, "" when none
+WARNINGS_COLUMN = "warnings"
 _ROI_KEYS = ("roi_undeformed_mm", "roi_deformed_mm", "camera_cloud_mm")  # ragged (k, 3) point sets, flattened
 
 
@@ -96,7 +99,8 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
     writes them. Output: a DataFrame ``fx_n, fy_n, fz_n`` (source frame, N),
     and for a model with a calibrated interval also the local force
     ``ft1_n, ft2_n, fn_n`` and its interval half-widths ``ft1_half_n, ft2_half_n,
-    fn_half_n`` (nominal coverage in the bundle's ``meta["interval"]``). Param ``observation_seed`` (int, -1 = none) draws the stochastic
+    fn_half_n`` (nominal coverage in the bundle's ``meta["interval"]``), and ``warnings``
+    (the case's geometric state outside the training range, ``"; "``-joined, ``""`` when none). Param ``observation_seed`` (int, -1 = none) draws the stochastic
     observation model as in evaluation.
     """
 
@@ -116,7 +120,8 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
 
 
 def _output_frame(model: ForceModel, arrays: dict, force: np.ndarray, seed: int | None) -> pd.DataFrame:
-    """The output columns: ``force`` (already computed), and the interval columns when the model has one."""
+    """The output columns: ``force`` (already computed), the interval columns when the model has one,
+    and ``warnings``."""
     out = pd.DataFrame(force, columns=list(OUTPUT_COLUMNS))
     if model.interval is not None:
         got = model.predict_interval(arrays, observation_seed=seed)
@@ -124,6 +129,7 @@ def _output_frame(model: ForceModel, arrays: dict, force: np.ndarray, seed: int 
             out[c] = got["force_local_n"][:, j]
         for j, c in enumerate(INTERVAL_COLUMNS[3:]):
             out[c] = got["half_width_local_n"][:, j]
+    out[WARNINGS_COLUMN] = ["; ".join(w) for w in Predictor(model).arrays_warnings(arrays)]
     return out
 
 

@@ -1,6 +1,8 @@
 """Small trained models (session-scoped; synthetic cases, a few seconds each) and helpers for the serving tests."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -157,3 +159,24 @@ def make_shard_rows():
 def configs():
     """The training config slices of the session's models: ``(model, train, tune)``."""
     return BASE, TRAIN, NO_TUNE
+
+
+def mid_range(ctx, rec: dict):
+    """``ctx`` with its thickness, compliance trace, liver size and centroid distance in the middle of the
+    training ranges ``rec`` (``meta["training_scale"]``)."""
+    mid = {k: 0.5 * (rec[k][0] + rec[k][1]) for k in ("tool_thickness_mm", "probe_compliance_mm_per_n",
+                                                       "inertia_length_mm", "centroid_distance_mm")}
+    C = ctx.probe_compliance_mm_per_n.reshape(3, 3)
+    length = (np.trace(ctx.inertia_mm5.reshape(3, 3)) / 2.0) ** 0.2
+    off = ctx.liver_centroid_mm - ctx.exertion_point_mm
+    return dataclasses.replace(
+        ctx, tool_thickness_mm=mid["tool_thickness_mm"],
+        probe_compliance_mm_per_n=C * (mid["probe_compliance_mm_per_n"] / np.trace(C)),
+        inertia_mm5=ctx.inertia_mm5 * (mid["inertia_length_mm"] / length) ** 5,
+        liver_centroid_mm=ctx.exertion_point_mm + off * (mid["centroid_distance_mm"] / np.linalg.norm(off)))
+
+
+@pytest.fixture(scope="session", name="mid_range")
+def mid_range_fixture():
+    """``mid_range(ctx, meta["training_scale"])`` -> the context with its geometric state mid-range."""
+    return mid_range

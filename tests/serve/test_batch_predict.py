@@ -48,6 +48,21 @@ def test_predict_a_dataset_to_parquet_or_csv(trained, shards, tmp_path, fmt):
     np.testing.assert_allclose(ref_summary["frame"][["fx_n", "fy_n", "fz_n"]].to_numpy(), ref, atol=1e-12)
 
 
+def test_cases_outside_the_training_range_carry_their_warning(trained, test_cases, tmp_path, make_shard_rows):
+    """A shard whose tissue under the tool is thinner than in every training case: each row's warnings name it;
+    with the thickness in the middle of the training range, none mentions it."""
+    pred = Predictor.load(trained("disp"))
+    n = len(test_cases["case_id"])
+    thin = {**test_cases, "tool_thickness_mm": np.full(n, 0.7 * pred.scale.thickness_mm[0])}
+    dio.write_shard(make_shard_rows(thin, range(n)), tmp_path / "thin.parquet")
+    df = predict_shards(pred, [tmp_path / "thin.parquet"])["frame"]
+    assert len(df) == n and all("thinner than in every training case" in w for w in df["warnings"])
+    mid = {**test_cases, "tool_thickness_mm": np.full(n, np.mean(pred.scale.thickness_mm))}
+    dio.write_shard(make_shard_rows(mid, range(n)), tmp_path / "mid.parquet")
+    df = predict_shards(pred, [tmp_path / "mid.parquet"])["frame"]
+    assert not any("tissue under the tool" in w for w in df["warnings"])
+
+
 def test_bad_shards_are_refused(trained, shards, tmp_path):
     pred = Predictor.load(trained("disp"))
     with pytest.raises(PredictionInputError, match="no such shard"):

@@ -195,15 +195,19 @@ def test_the_compiled_cloud_path_equals_the_reference(served):
         fast.predict(cloud[:4], tip)
 
 
-def test_a_context_outside_the_training_range_comes_with_its_warning_on_every_path(served):
+def test_a_context_outside_the_training_range_comes_with_its_warning_on_every_path(served, mid_range):
     """Tissue thinner and a liver softer than every training case (not so far as to be refused): the reference
-    and the compiled cloud paths predict, each with the same warnings naming both inputs."""
+    and the compiled cloud paths predict, each with the same warnings naming both inputs. In the middle of
+    every range: no warning."""
     from dataclasses import replace
 
     path, model, a = served
     pred = Predictor.from_dir(path)
     ctx, cloud, tip = _case(a, 5)
     rec = model.meta["training_scale"]
+    ctx = mid_range(ctx, rec)
+    _, info = pred.predict_cloud(cloud, ctx, tool_tip_mm=tip, return_info=True)
+    assert info["warnings"] == [] and pred.compile_cloud(ctx).predict(cloud, tip)[2] == []
     C = ctx.probe_compliance_mm_per_n.reshape(3, 3)
     soft = C * (1.3 * rec["probe_compliance_mm_per_n"][1] / np.trace(C))
     odd = replace(ctx, tool_thickness_mm=0.7 * rec["tool_thickness_mm"][0], probe_compliance_mm_per_n=soft)

@@ -191,6 +191,9 @@ def test_bundles_without_a_training_scale_fall_back_to_the_scalers(trained, case
         pred.predict(D, ctx.with_material(ctx.material_params_mpa * 1e3))
     with pytest.raises(PredictionInputError, match=r"in mm \(mm\^5\)"):
         pred.predict(D, replace(ctx, inertia_mm5=ctx.inertia_mm5 * 1e5))
+    # the scalers' rough ranges refuse units, but do not claim what "every training case" was: no warnings
+    assert pred.context_warnings(replace(ctx, tool_thickness_mm=0.1 * ctx.tool_thickness_mm)) == []
+    assert pred.context_warnings(replace(ctx, inertia_mm5=ctx.inertia_mm5 * 2.0)) == []
 
 
 def test_tissue_thickness_in_the_wrong_units_or_missing_is_refused(pred, case):
@@ -208,7 +211,8 @@ def test_a_state_outside_the_training_range_is_named_row_by_row():
     from liverforce.serve.checks import TrainingScale, outside_training
 
     scale = TrainingScale(half_width_mm=20.0, inertia_length_mm=(80.0, 100.0), centroid_distance_mm=(40.0, 140.0),
-                          material_lo=None, material_hi=None, feature_abs_max=None, n_material=None, source="test",
+                          material_lo=None, material_hi=None, feature_abs_max=None, n_material=None,
+                          source="bundle meta training_scale",
                           thickness_mm=(13.0, 170.0), compliance_trace=(11.0, 27.0))
 
     def rows(thick, trace, length, dist):
@@ -236,6 +240,19 @@ def test_a_state_outside_the_training_range_is_named_row_by_row():
     # an unknown range (an old bundle) is not checked
     masks, warn = outside_training(a, replace(scale, thickness_mm=None))
     assert "tool_thickness_mm" not in masks and warn[1] == []
+    # rough ranges from the fitted scalers (a bundle without training_scale) flag nothing
+    assert outside_training(a, replace(scale, source="approximate: fitted scalers")) == ({}, [[]] * 5)
+
+
+def test_a_context_inside_every_training_range_gets_no_warning(pred, test_cases, mid_range):
+    """Every held-out case moved into the middle of every training range is served without a context warning
+    (no false alarm); moved onto a bound (bounds inclusive) too."""
+    rec = pred.model.meta["training_scale"]
+    for i in range(len(test_cases["case_id"])):
+        assert pred.context_warnings(mid_range(Preop.from_arrays(test_cases, i), rec)) == []
+    ctx = mid_range(Preop.from_arrays(test_cases, 0), rec)
+    for t in rec["tool_thickness_mm"]:
+        assert pred.context_warnings(replace(ctx, tool_thickness_mm=t)) == []
 
 
 def test_the_context_warns_when_the_tissue_is_thinner_than_in_training(pred, case):

@@ -42,7 +42,8 @@ def test_the_logged_model_has_a_signature_an_example_and_no_pickle(logged, tmp_p
     inputs = {c["name"] for c in json.loads(mlmodel["signature"]["inputs"])}
     assert {"roi_undeformed_mm", "roi_deformed_mm", "exertion_point_mm", "material_params_mpa"} <= inputs
     assert [c["name"] for c in json.loads(mlmodel["signature"]["outputs"])] == [
-        "fx_n", "fy_n", "fz_n", "ft1_n", "ft2_n", "fn_n", "ft1_half_n", "ft2_half_n", "fn_half_n"]  # + the interval
+        "fx_n", "fy_n", "fz_n", "ft1_n", "ft2_n", "fn_n", "ft1_half_n", "ft2_half_n", "fn_half_n",  # + the interval
+        "warnings"]  # the context outside the training range
     assert (model_dir / "serving_input_example.json").is_file()
     assert not list(model_dir.rglob("*.pkl"))  # models from code: nothing to unpickle
     assert (bundle / "model.json").is_file()
@@ -122,7 +123,7 @@ def test_mlflow_models_serve_answers_over_http(logged, data, tmp_path):
         status, body = _post(f"{base}/invocations", example)
         assert status == 200, body
         assert set(body["predictions"][0]) == {"fx_n", "fy_n", "fz_n", "ft1_n", "ft2_n", "fn_n", "ft1_half_n",
-                                               "ft2_half_n", "fn_half_n"}
+                                               "ft2_half_n", "fn_half_n", "warnings"}
         # a request built from new cases equals the local predictor
         from liverforce.tracking import arrays_to_frame
 
@@ -133,6 +134,12 @@ def test_mlflow_models_serve_answers_over_http(logged, data, tmp_path):
         assert status == 200, body
         got = np.array([[p["fx_n"], p["fy_n"], p["fz_n"]] for p in body["predictions"]])
         np.testing.assert_allclose(got, pred.predict_arrays(cases), atol=1e-9)
+        # tissue thinner than in every training case: the force comes back with the warning naming it
+        thin = {**cases, "tool_thickness_mm": np.full(3, 0.7 * pred.scale.thickness_mm[0])}
+        frame = arrays_to_frame(thin, list(pred.model.required_inputs()))
+        status, body_thin = _post(f"{base}/invocations", {"dataframe_split": frame.to_dict(orient="split")})
+        assert status == 200, body_thin
+        assert all("thinner than in every training case" in p["warnings"] for p in body_thin["predictions"])
         iv = pred.model.predict_interval(cases)  # the served interval is the model's
         got = np.array([[p["ft1_half_n"], p["ft2_half_n"], p["fn_half_n"]] for p in body["predictions"]])
         np.testing.assert_allclose(got, iv["half_width_local_n"], rtol=1e-9)
