@@ -88,7 +88,14 @@ def stage_outputs(tmp_path):
                 "scenario": sc, "variant": variant, "encoder": "pca", "state_vector": sv, "metrics": split,
                 "metrics_mean": mean, "metrics_sd": sd, "n_splits": 3,
                 "repeats": [{"split_seed": 7 + i, "test_geometries": ["g"], "metrics": r} for i, r in enumerate(reps)],
-                "run_id": f"run{sc}{variant}", "n_train": 9, "n_test": 3}))
+                "run_id": f"run{sc}{variant}", "n_train": 9, "n_test": 3,
+                **({"outside_training": {
+                    "n_splits": 3, "n_cases": 30, "n_outside": 7,
+                    "inside_accuracy_pct": {"mean": 95.1, "sd": 0.4, "n_splits": 3},
+                    "inside_mae_vec": {"mean": 0.101, "sd": 0.01, "n_splits": 3},
+                    "outside_accuracy_pct": {"mean": 88.2, "sd": 2.5, "n_splits": 2},
+                    "outside_mae_vec": {"mean": 0.35, "sd": 0.05, "n_splits": 2}}}
+                   if (sc, variant) == ("IV", "pca_sv") else {})}))
     manifest = _write(root / "shards" / "IV" / "manifest.json",
                       {"rows": 10, "failed": 1, "shards": [{}], "data_version": "abc"})
     per_liver = {"val-1000": {"mae_vec": 0.21, "rmse_vec": 0.30, "accuracy_pct": 84.0, "n": 4},
@@ -195,6 +202,11 @@ def test_report_lays_out_table_59_encoders_and_studies_with_their_run_ids(stage_
             assert f"saved model's split: <span class='split'>{doc['metrics']['accuracy_pct']:.1f} %" in cell
     caption = html[html.index("id='headline'"):html.index("class='t59'")]
     assert "mean ± sd over 3 repeated seeded" in caption
+    # IV: the test cases outside the training range, and the accuracy on them and on the others
+    iv = _section(html, "id='iv-outside'", "</p>")
+    assert "(<code>pca_sv</code>, every split): 7 of 30 test cases over 3 splits" in iv
+    assert "<b>95.1 ± 0.4 %</b>, on those <b>88.2 ± 2.5 %</b>" in iv and "over the 2 splits" in iv
+    assert "0.101 ± 0.010 against 0.350 ± 0.050 N" in iv
     # every model: mean ± sd and the number of splits beside the saved split
     models = _section(html, "id='models'", "id='validation'")
     for cells in _rows(models, "model"):

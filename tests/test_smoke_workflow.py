@@ -38,6 +38,11 @@ def test_every_stage_produced_its_outputs(smoke_run):
         for variant in ("pca_sv", "ae_sv", "cloud_sv"):
             metrics = json.loads((root / "models" / scenario / variant / "metrics.json").read_text())
             assert metrics["run_id"]
+    iv = json.loads((root / "models" / "IV" / "pca_sv" / "metrics.json").read_text())
+    ot = iv["outside_training"]  # IV test cases outside the training livers' range, over every split
+    assert ot["n_splits"] == iv["n_splits"] and ot["n_cases"] == sum(r["outside_training"]["n_cases"] for r in iv["repeats"])
+    cam = json.loads((root / "models" / "IV" / "cloud_sv" / "metrics.json").read_text())["outside_training"]
+    assert cam["n_cases"] == ot["n_cases"]  # the camera model has the same test livers and the state vector
     hp = json.loads((root / "models" / "II" / "pca_sv" / "metrics.json").read_text())["heldout_points"]
     assert hp["folds"] >= 2 and sum(f["n_test"] for f in hp["per_fold"]) == 12  # every II case, by point
     val = json.loads((root / "validate" / "metrics.json").read_text())

@@ -125,3 +125,72 @@ def state_names(n_material: int) -> list[str]:
     names += [f"probe_compliance_{('t1', 't2', 'n')[a]}{('t1', 't2', 'n')[b]}_mm_per_n" for a, b in _TRIU]
     names += [f"material_{j}_mpa" for j in range(n_material)]
     return names
+
+
+# --------------------------------------------------------------------------
+# the geometric state against the training range (serving warnings, IV test breakdown)
+# --------------------------------------------------------------------------
+
+_BOUND_TOL = 1e-9  #: relative margin of a training bound in :func:`outside_ranges` (liver vs local frame rounding)
+#: geometric state inputs compared with the training range: name -> (what, unit, word below, word above)
+STATE_RANGES = {
+    "tool_thickness_mm": ("the tissue under the tool", "mm", "thinner", "thicker"),
+    "probe_compliance_mm_per_n": ("the probe compliance (trace)", "mm/N", "stiffer", "softer"),
+    "liver_size_mm": ("the liver's size (tr(I)/2)^(1/5)", "mm", "smaller", "larger"),
+    "centroid_distance_mm": ("the exertion point's distance from the liver centroid", "mm", "nearer", "farther"),
+}
+
+
+def state_range_values(arrays: dict) -> dict[str, np.ndarray]:
+    """Per row, the inputs of :data:`STATE_RANGES` from input-contract ``arrays`` (absent inputs left out).
+
+    The same quantities as ``liverforce.learn.model.training_scale`` records
+    (traces and distances do not depend on the frame)."""
+    out = {}
+    if "tool_thickness_mm" in arrays:
+        out["tool_thickness_mm"] = np.asarray(arrays["tool_thickness_mm"], dtype=np.float64).reshape(-1)
+    if "probe_compliance_mm_per_n" in arrays:
+        C = np.asarray(arrays["probe_compliance_mm_per_n"], dtype=np.float64).reshape(-1, 9)
+        out["probe_compliance_mm_per_n"] = C[:, [0, 4, 8]].sum(axis=1)
+    if "inertia_mm5" in arrays:
+        inertia = np.asarray(arrays["inertia_mm5"], dtype=np.float64).reshape(-1, 9)
+        out["liver_size_mm"] = np.power(np.maximum(inertia[:, [0, 4, 8]].sum(axis=1), 0.0) / 2.0, 0.2)
+    if "liver_centroid_mm" in arrays:
+        c = np.asarray(arrays["liver_centroid_mm"], dtype=np.float64).reshape(-1, 3)
+        out["centroid_distance_mm"] = np.linalg.norm(
+            c - np.asarray(arrays["exertion_point_mm"], dtype=np.float64).reshape(-1, 3), axis=1)
+    return out
+
+
+def recorded_ranges(training_scale: dict) -> dict:
+    """The ``[min, max]`` of each :data:`STATE_RANGES` input from a bundle's ``meta["training_scale"]``."""
+    keys = {"tool_thickness_mm": "tool_thickness_mm", "probe_compliance_mm_per_n": "probe_compliance_mm_per_n",
+            "liver_size_mm": "inertia_length_mm", "centroid_distance_mm": "centroid_distance_mm"}
+    return {k: (None if training_scale.get(r) is None else tuple(training_scale[r])) for k, r in keys.items()}
+
+
+def outside_ranges(arrays: dict, ranges: dict) -> tuple[dict[str, np.ndarray], list[list[str]]]:
+    """Rows whose geometric state lies outside ``ranges``: ``(masks by input, warnings per row)``.
+
+    ``ranges``: ``[min, max]`` (or None: not checked) per :data:`STATE_RANGES`
+    input, the training cases' (:func:`recorded_ranges`). Outside them the
+    model extrapolates, and the warning says so with the value, the range and
+    the direction. Material constants are not checked: the models scale force
+    by the material's stiffness (``model.force_scaling``), so they extrapolate
+    there by construction. A value within ``1e-9`` (relative) of a bound is inside.
+    """
+    n = len(arrays["exertion_point_mm"])
+    masks, warnings = {}, [[] for _ in range(n)]
+    for key, v in state_range_values(arrays).items():
+        rng = ranges.get(key)
+        if rng is None:
+            continue
+        lo, hi = rng
+        low, high = v < lo - _BOUND_TOL * abs(lo), v > hi + _BOUND_TOL * abs(hi)
+        masks[key] = low | high
+        what, unit, below, above = STATE_RANGES[key]
+        span = f"{lo:.4g}" if np.isclose(lo, hi) else f"{lo:.4g}..{hi:.4g}"
+        for i in np.flatnonzero(masks[key]):
+            warnings[i].append(f"{what} is {v[i]:.4g} {unit}, {below if low[i] else above} than in every training "
+                               f"case ({span} {unit}): the model extrapolates, expect a larger error")
+    return masks, warnings

@@ -69,6 +69,7 @@ from liverforce.learn.plots import evaluation_figures
 from liverforce.learn.regressor import fit_params, gp_code_members
 from liverforce.learn.representation import representation_from_config
 from liverforce.learn.splits import cv_folds, group_key, train_test_split
+from liverforce.learn.state import outside_ranges, recorded_ranges
 from liverforce.learn.torchutil import configure_torch
 from liverforce.learn.tune import FoldData, cv_force_mae, cv_score, tune
 from liverforce.seeds import derive
@@ -322,10 +323,12 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
     figures = evaluation_figures(prep_test.force, pred, out_dir / "figures", title=f"{scenario} {variant}")
     _write_predictions(out_dir / "test_predictions.csv", test_arrays["case_id"], prep_test.force, pred)
 
-    repeats = [{"split_seed": seed, "test_geometries": _geometries(test_arrays), "metrics": metrics}]
+    repeats = [{"split_seed": seed, "test_geometries": _geometries(test_arrays), "metrics": metrics,
+                "outside_training": outside_training_split(model, test_arrays, pred)}]
     repeats += repeated_splits(train_arrays, test_arrays, rep, model_cfg, train_cfg, scenario, seed, encoder,
                                use_state, code_size, dae_noise, hidden, dropout, fit)
     summary = summarise_repeats([r["metrics"] for r in repeats])
+    outside = summarise_outside([r["outside_training"] for r in repeats])
     points = None
     hp = train_cfg.get("heldout_points") or {}
     if scenario in (hp.get("scenarios") or []) and "exertion_id" in train_arrays:
@@ -339,6 +342,11 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
                                      **{f"{k}_mean": v for k, v in summary["mean"].items()},
                                      **{f"{k}_sd": v for k, v in summary["sd"].items()},
                                      "n_splits": summary["n"],
+                                     **({"n_outside_training": outside["n_outside"],
+                                         **{f"{side}_training_range_accuracy_pct_mean": outside[f"{side}_accuracy_pct"]["mean"]
+                                            for side in ("inside", "outside")
+                                            if outside[f"{side}_accuracy_pct"]["mean"] is not None}}
+                                        if outside else {}),
                                      **({f"heldout_points_{k}_{m}": v for m in ("mean", "sd")
                                          for k, v in points[f"metrics_{m}"].items()} if points else {})})
         tracker.log_params(run_id, {f"best.{k}": v for k, v in best.items()})
@@ -359,6 +367,7 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
         "cv_mae_n": cv_mae_n,
         "interval": interval,
         "heldout_points": points,
+        "outside_training": outside,
         "best_params": best,
         "trials": trials,
         "n_train": int(len(tr)),
@@ -453,7 +462,45 @@ def repeated_splits(train_arrays, test_arrays, rep, model_cfg, train_cfg, scenar
                                    linear_force_radius_mm=linear_force_radius_of(model_cfg))
         pred = model.predict(a_te, observation_seed=eval_seed(seed))
         out.append({"split_seed": split_seed, "test_geometries": _geometries(a_te),
-                    "metrics": force_metrics(np.asarray(a_te["force_n"], float), pred)})
+                    "metrics": force_metrics(np.asarray(a_te["force_n"], float), pred),
+                    "outside_training": outside_training_split(model, a_te, pred)})
+    return out
+
+
+def outside_training_split(model, test_arrays: dict, pred: np.ndarray) -> dict | None:
+    """The test cases whose geometric state lies outside the model's training range, and the metrics of
+    those and of the others (:func:`liverforce.learn.state.outside_ranges`, what serving warns about).
+
+    None for a model without the state vector (nothing recorded to compare with).
+    """
+    rec = (model.meta or {}).get("training_scale")
+    if not model.uses_state or not rec:
+        return None
+    masks, _ = outside_ranges(test_arrays, recorded_ranges(rec))
+    out = np.zeros(len(pred), dtype=bool)
+    for v in masks.values():
+        out |= v
+    true = np.asarray(test_arrays["force_n"], dtype=np.float64)
+    return {"n_cases": int(len(pred)), "n_outside": int(out.sum()),
+            "by_input": {k: int(v.sum()) for k, v in masks.items()},
+            "inside": force_metrics(true[~out], pred[~out]) if (~out).any() else None,
+            "outside": force_metrics(true[out], pred[out]) if out.any() else None}
+
+
+def summarise_outside(per_split: list) -> dict | None:
+    """Over the splits: the test cases outside the training range (counts summed) and the mean and sample
+    sd over the splits of the accuracy and MAE inside and outside it (splits with no such case left out)."""
+    if not per_split or any(p is None for p in per_split):
+        return None
+    out = {"n_splits": len(per_split), "n_cases": sum(p["n_cases"] for p in per_split),
+           "n_outside": sum(p["n_outside"] for p in per_split)}
+    for side in ("inside", "outside"):
+        got = [p[side] for p in per_split if p[side] is not None]
+        for k in ("accuracy_pct", "mae_vec"):
+            v = np.array([g[k] for g in got], dtype=np.float64)
+            out[f"{side}_{k}"] = {"mean": float(v.mean()) if v.size else None,
+                                  "sd": float(v.std(ddof=1)) if v.size > 1 else (0.0 if v.size else None),
+                                  "n_splits": int(v.size)}
     return out
 
 

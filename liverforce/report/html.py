@@ -149,6 +149,7 @@ def collect(model_metrics: list[str | Path], manifests: list[str | Path], valida
             "metrics_mean": m.get("metrics_mean") or {}, "metrics_sd": m.get("metrics_sd") or {},
             "n_splits": m.get("n_splits"), "repeats": m.get("repeats") or [],
             "model_cfg": m.get("model_cfg") or {}, "heldout_points": m.get("heldout_points"),
+            "outside_training": m.get("outside_training"),
         })
     shards = []
     for p in manifests:
@@ -336,6 +337,25 @@ _STATE_INPUT_WORDS = {"tool_thickness_mm": "tissue thickness under the tool",
                       "probe_compliance_mm_per_n": "probe compliance",
                       "liver_size_mm": "liver size",
                       "centroid_distance_mm": "distance from the liver centroid"}
+
+
+def _outside_iv_paragraph(data: dict, main_variant: str | None) -> str:
+    """Scenario IV's test accuracy inside and outside the training livers' range of the geometric state."""
+    ms = [m for m in data["models"] if m["scenario"] == "IV" and m.get("outside_training")]
+    m = next((m for m in ms if m["variant"] == main_variant), ms[0] if ms else None)
+    if m is None:
+        return ""
+    o = m["outside_training"]
+    ins, out = o["inside_accuracy_pct"], o["outside_accuracy_pct"]
+    return (f"<p id='iv-outside'><b>Scenario IV, where the accuracy goes</b> (<code>{html.escape(m['variant'])}"
+            f"</code>, every split): {o['n_outside']} of {o['n_cases']} test cases over {o['n_splits']} splits lie "
+            f"outside the training livers' range of the geometric state (tissue thickness under the tool, probe "
+            f"compliance, liver size, distance from the centroid: what serving warns about). Accuracy on the others "
+            f"<b>{_pm(ins['mean'], ins['sd'], 1)} %</b>, on those <b>{_pm(out['mean'], out['sd'], 1)} %</b> (MAE "
+            f"{_pm(o['inside_mae_vec']['mean'], o['inside_mae_vec']['sd'])} against "
+            f"{_pm(o['outside_mae_vec']['mean'], o['outside_mae_vec']['sd'])} N; mean ± sd over the "
+            f"{out['n_splits']} splits that have such cases). A test liver at the edge of the population is "
+            f"extrapolation for a model trained on the others.</p>")
 
 
 def _extrapolation_paragraph(ext: dict | None) -> str:
@@ -560,6 +580,7 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
                  f"spread.</p>")
     parts.append(_table(["scenario", "what varies", "ours: deformation only", "study: deformation only",
                          "ours: with state vector", "study: with state vector"], rows, cls="t59"))
+    parts.append(_outside_iv_paragraph(data, main_variant))
 
     enc = next((d for d in data.get("studies", []) if d["study"] == "encoder"), None)
     if enc:

@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from liverforce.learn.frames import local_rotations
-from liverforce.learn.state import MATERIAL_START
+from liverforce.learn.state import MATERIAL_START, outside_ranges
 from liverforce.serve.errors import PredictionInputError
 from liverforce.serve.preop import _points, _vector
 
@@ -302,69 +302,23 @@ def check_compliance(arrays: dict, i: int, scale: TrainingScale, limits: Limits,
             "and supports (liverforce.serve.probe computes it with the model's settings)?")
 
 
-_BOUND_TOL = 1e-9  #: relative margin of a training bound in :func:`outside_training`
-#: state inputs that :func:`outside_training` compares with the training range: name -> (what, unit, phrase below, above)
-_STATE_RANGES = {
-    "tool_thickness_mm": ("the tissue under the tool", "mm", "thinner", "thicker"),
-    "probe_compliance_mm_per_n": ("the probe compliance (trace)", "mm/N", "stiffer", "softer"),
-    "liver_size_mm": ("the liver's size (tr(I)/2)^(1/5)", "mm", "smaller", "larger"),
-    "centroid_distance_mm": ("the exertion point's distance from the liver centroid", "mm", "nearer", "farther"),
-}
-
-
-def state_values(arrays: dict) -> dict[str, np.ndarray]:
-    """Per row, the geometric state inputs of :data:`_STATE_RANGES` (absent inputs are left out)."""
-    out = {}
-    if "tool_thickness_mm" in arrays:
-        out["tool_thickness_mm"] = np.asarray(arrays["tool_thickness_mm"], dtype=np.float64).reshape(-1)
-    if "probe_compliance_mm_per_n" in arrays:
-        C = np.asarray(arrays["probe_compliance_mm_per_n"], dtype=np.float64).reshape(-1, 9)
-        out["probe_compliance_mm_per_n"] = C[:, [0, 4, 8]].sum(axis=1)
-    if "inertia_mm5" in arrays:
-        inertia = np.asarray(arrays["inertia_mm5"], dtype=np.float64).reshape(-1, 9)
-        out["liver_size_mm"] = np.power(np.maximum(inertia[:, [0, 4, 8]].sum(axis=1), 0.0) / 2.0, 0.2)
-    if "liver_centroid_mm" in arrays:
-        c = np.asarray(arrays["liver_centroid_mm"], dtype=np.float64).reshape(-1, 3)
-        out["centroid_distance_mm"] = np.linalg.norm(
-            c - np.asarray(arrays["exertion_point_mm"], dtype=np.float64).reshape(-1, 3), axis=1)
-    return out
-
-
 def outside_training(arrays: dict, scale: TrainingScale) -> tuple[dict[str, np.ndarray], list[list[str]]]:
     """Rows whose geometric state lies outside the training range: ``(masks by input, warnings per row)``.
 
     Inside ``scale_factor`` x the range (else :func:`check_case` refuses) but
-    outside the range itself, the model extrapolates: the estimate is less
-    reliable than its validation error says (measured on the unseen livers,
-    ``validate/metrics.json`` ``outside_training``). Checked: the tissue
-    thickness under the tool, the probe compliance's trace, the liver's size
-    and the exertion point's distance from the liver centroid. The material
-    constants are not: the model scales force by the material's stiffness
-    (``model.force_scaling``), so constants outside the training range are
-    extrapolated by construction. Only ranges recorded in the bundle count
-    (a bundle without ``training_scale`` has only the scalers' rough ranges:
-    nothing is flagged), and a value within ``1e-9`` (relative) of a bound is
-    inside it (the liver-frame and local-frame values differ by rounding).
+    outside the range itself, the model extrapolates
+    (:func:`liverforce.learn.state.outside_ranges`: the tissue thickness
+    under the tool, the probe compliance's trace, the liver's size and the
+    exertion point's distance from the liver centroid). Only ranges recorded
+    in the bundle count: a bundle without ``training_scale`` has only the
+    scalers' rough ranges, and nothing is flagged.
     """
-    n = len(arrays["exertion_point_mm"])
-    masks, warnings = {}, [[] for _ in range(n)]
     if not scale.recorded:
-        return masks, warnings
-    ranges = {"tool_thickness_mm": scale.thickness_mm, "probe_compliance_mm_per_n": scale.compliance_trace,
-              "liver_size_mm": scale.inertia_length_mm, "centroid_distance_mm": scale.centroid_distance_mm}
-    for key, v in state_values(arrays).items():
-        rng = ranges[key]
-        if rng is None:
-            continue
-        lo, hi = rng
-        low, high = v < lo - _BOUND_TOL * abs(lo), v > hi + _BOUND_TOL * abs(hi)
-        masks[key] = low | high
-        what, unit, below, above = _STATE_RANGES[key]
-        for i in np.flatnonzero(masks[key]):
-            word = below if low[i] else above
-            warnings[i].append(f"{what} is {v[i]:.4g} {unit}, {word} than in every training case "
-                               f"({_fmt_range(lo, hi)} {unit}): the model extrapolates, expect a larger error")
-    return masks, warnings
+        return {}, [[] for _ in range(len(arrays["exertion_point_mm"]))]
+    return outside_ranges(arrays, {"tool_thickness_mm": scale.thickness_mm,
+                                   "probe_compliance_mm_per_n": scale.compliance_trace,
+                                   "liver_size_mm": scale.inertia_length_mm,
+                                   "centroid_distance_mm": scale.centroid_distance_mm})
 
 
 def check_thickness(arrays: dict, i: int, scale: TrainingScale, limits: Limits, label: str) -> None:

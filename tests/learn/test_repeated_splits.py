@@ -41,6 +41,32 @@ def test_repeated_splits_hold_out_different_cases_and_give_a_spread(tmp_path, sc
     assert res["metrics_mean"]["mae_vec"] == pytest.approx(maes.mean())
     assert res["metrics_sd"]["mae_vec"] == pytest.approx(maes.std(ddof=1))
     assert res["metrics_sd"]["mae_vec"] > 0
+    # every split counts its test cases outside its model's training range and scores both sides
+    from liverforce.learn.model import ForceModel
+    from liverforce.learn.state import outside_ranges, recorded_ranges
+
+    from liverforce.learn.metrics import force_metrics
+    from liverforce.learn.model import subset
+
+    per = [r["outside_training"] for r in reps]
+    model = ForceModel.load(res["model_path"])  # the main split, recomputed from the saved model
+    ids = list(data["case_id"])
+    test = subset(data, [ids.index(c) for c in model.meta["test_case_ids"]])
+    masks, _ = outside_ranges(test, recorded_ranges(model.meta["training_scale"]))
+    out = np.any(np.stack(list(masks.values())), axis=0)
+    assert per[0]["n_cases"] == res["n_test"] == len(out) and per[0]["n_outside"] == int(out.sum())
+    if (~out).any():
+        pred = model.predict(test)
+        assert per[0]["inside"]["mae_vec"] == pytest.approx(force_metrics(test["force_n"][~out], pred[~out])["mae_vec"])
+    ot = res["outside_training"]
+    assert ot["n_splits"] == 4 and ot["n_cases"] == sum(p["n_cases"] for p in per)
+    assert ot["n_outside"] == sum(p["n_outside"] for p in per)
+    for p in per:
+        assert (p["inside"] is None) == (p["n_outside"] == p["n_cases"])
+        assert (p["outside"] is None) == (p["n_outside"] == 0)
+    got = [p["inside"]["accuracy_pct"] for p in per if p["inside"] is not None]
+    assert ot["inside_accuracy_pct"]["mean"] == pytest.approx(np.mean(got))
+    assert ot["inside_accuracy_pct"]["n_splits"] == len(got)
 
 
 def test_heldout_exertion_points_never_train_on_a_test_point(tmp_path):
