@@ -94,7 +94,8 @@ def stage_outputs(tmp_path):
                     "inside_accuracy_pct": {"mean": 95.1, "sd": 0.4, "n_splits": 3},
                     "inside_mae_vec": {"mean": 0.101, "sd": 0.01, "n_splits": 3},
                     "outside_accuracy_pct": {"mean": 88.2, "sd": 2.5, "n_splits": 2},
-                    "outside_mae_vec": {"mean": 0.35, "sd": 0.05, "n_splits": 2}}}
+                    "outside_mae_vec": {"mean": 0.35, "sd": 0.05, "n_splits": 2},
+                    "inside_accuracy_pooled_pct": 95.3, "outside_accuracy_pooled_pct": 87.6}}
                    if (sc, variant) == ("IV", "pca_sv") else {})}))
     manifest = _write(root / "shards" / "IV" / "manifest.json",
                       {"rows": 10, "failed": 1, "shards": [{}], "data_version": "abc"})
@@ -205,8 +206,9 @@ def test_report_lays_out_table_59_encoders_and_studies_with_their_run_ids(stage_
     # IV: the test cases outside the training range, and the accuracy on them and on the others
     iv = _section(html, "id='iv-outside'", "</p>")
     assert "(<code>pca_sv</code>, every split): 7 of 30 test cases over 3 splits" in iv
-    assert "<b>95.1 ± 0.4 %</b>, on those <b>88.2 ± 2.5 %</b>" in iv and "over the 2 splits" in iv
-    assert "0.101 ± 0.010 against 0.350 ± 0.050 N" in iv
+    assert ("Accuracy on those <b>88.2 ± 2.5 %</b> (MAE 0.350 ± 0.050 N; mean ± sd over 2 splits; all its cases "
+            "pooled 87.6 %), on the others <b>95.1 ± 0.4 %</b> (MAE 0.101 ± 0.010 N; mean ± sd over 3 splits; all its "
+            "cases pooled 95.3 %)") in iv
     # every model: mean ± sd and the number of splits beside the saved split
     models = _section(html, "id='models'", "id='validation'")
     for cells in _rows(models, "model"):
@@ -419,3 +421,23 @@ def test_report_says_which_variants_use_the_gp_and_which_the_ax_tuned_mlp(stage_
     assert "Gaussian-process regressor (ARD kernel, hyper-parameters by marginal likelihood, no Ax search): " \
            "cloud_sv, pca_sv." in text
     assert "MLP regressor (100 epochs; Ax tuning on, 6 trials): ae_sv." in text
+
+
+def test_the_iv_outside_paragraph_says_when_nothing_or_one_split_is_outside():
+    from liverforce.report.html import _outside_iv_paragraph
+
+    def doc(n_outside, n_out_splits):
+        side = lambda m, k: {"mean": m if k else None, "sd": 0.5 if k > 1 else None, "n_splits": k}  # noqa: E731
+        return {"models": [{"scenario": "IV", "variant": "pca_sv", "outside_training": {
+            "n_splits": 5, "n_cases": 50, "n_outside": n_outside,
+            "inside_accuracy_pct": side(95.0, 5), "inside_mae_vec": side(0.1, 5),
+            "outside_accuracy_pct": side(80.0, n_out_splits), "outside_mae_vec": side(0.4, n_out_splits),
+            "inside_accuracy_pooled_pct": 95.2, "outside_accuracy_pooled_pct": 80.0 if n_out_splits else None}}]}
+
+    none = _outside_iv_paragraph(doc(0, 0), "pca_sv")
+    assert "0 of 50 test cases" in none and "Every test case lies inside it." in none and "–" not in none
+    one = _outside_iv_paragraph(doc(3, 1), "pca_sv")
+    assert "Accuracy on those <b>80.0 %</b> (MAE 0.400 N; 1 split;" in one and "± 0.0" not in one
+    assert _outside_iv_paragraph({"models": [{"scenario": "IV", "variant": "pca_nosv", "outside_training": None}]},
+                                 "pca_nosv") == ""
+

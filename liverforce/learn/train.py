@@ -471,7 +471,9 @@ def outside_training_split(model, test_arrays: dict, pred: np.ndarray) -> dict |
     """The test cases whose geometric state lies outside the model's training range, and the metrics of
     those and of the others (:func:`liverforce.learn.state.outside_ranges`, what serving warns about).
 
-    None for a model without the state vector (nothing recorded to compare with).
+    None for a model without the state vector: it does not read the state, and serving does not warn
+    about it (``Predictor.context_warnings``). ``error_sum_n`` / ``force_sum_n`` per side let the
+    splits be pooled (:func:`summarise_outside`).
     """
     rec = (model.meta or {}).get("training_scale")
     if not model.uses_state or not rec:
@@ -481,15 +483,21 @@ def outside_training_split(model, test_arrays: dict, pred: np.ndarray) -> dict |
     for v in masks.values():
         out |= v
     true = np.asarray(test_arrays["force_n"], dtype=np.float64)
+    err = np.linalg.norm(pred - true, axis=1)
+    mag = np.linalg.norm(true, axis=1)
     return {"n_cases": int(len(pred)), "n_outside": int(out.sum()),
             "by_input": {k: int(v.sum()) for k, v in masks.items()},
             "inside": force_metrics(true[~out], pred[~out]) if (~out).any() else None,
-            "outside": force_metrics(true[out], pred[out]) if out.any() else None}
+            "outside": force_metrics(true[out], pred[out]) if out.any() else None,
+            "error_sum_n": {"inside": float(err[~out].sum()), "outside": float(err[out].sum())},
+            "force_sum_n": {"inside": float(mag[~out].sum()), "outside": float(mag[out].sum())}}
 
 
 def summarise_outside(per_split: list) -> dict | None:
-    """Over the splits: the test cases outside the training range (counts summed) and the mean and sample
-    sd over the splits of the accuracy and MAE inside and outside it (splits with no such case left out)."""
+    """Over the splits: the test cases outside the training range (counts summed); per side (inside,
+    outside) the mean and sample sd over the splits that have such cases of the accuracy and MAE (sd None
+    with fewer than 2 such splits), and the accuracy of all the side's cases pooled
+    (``100 (1 - sum |e| / sum |F|)``, each case weighing the same)."""
     if not per_split or any(p is None for p in per_split):
         return None
     out = {"n_splits": len(per_split), "n_cases": sum(p["n_cases"] for p in per_split),
@@ -499,8 +507,11 @@ def summarise_outside(per_split: list) -> dict | None:
         for k in ("accuracy_pct", "mae_vec"):
             v = np.array([g[k] for g in got], dtype=np.float64)
             out[f"{side}_{k}"] = {"mean": float(v.mean()) if v.size else None,
-                                  "sd": float(v.std(ddof=1)) if v.size > 1 else (0.0 if v.size else None),
+                                  "sd": float(v.std(ddof=1)) if v.size > 1 else None,
                                   "n_splits": int(v.size)}
+        e = sum(p["error_sum_n"][side] for p in per_split)
+        f = sum(p["force_sum_n"][side] for p in per_split)
+        out[f"{side}_accuracy_pooled_pct"] = float(100.0 * (1.0 - e / f)) if f > 0 else None
     return out
 
 

@@ -346,16 +346,21 @@ def _outside_iv_paragraph(data: dict, main_variant: str | None) -> str:
     if m is None:
         return ""
     o = m["outside_training"]
-    ins, out = o["inside_accuracy_pct"], o["outside_accuracy_pct"]
-    return (f"<p id='iv-outside'><b>Scenario IV, where the accuracy goes</b> (<code>{html.escape(m['variant'])}"
+    head = (f"<p id='iv-outside'><b>Scenario IV, where the accuracy goes</b> (<code>{html.escape(m['variant'])}"
             f"</code>, every split): {o['n_outside']} of {o['n_cases']} test cases over {o['n_splits']} splits lie "
             f"outside the training livers' range of the geometric state (tissue thickness under the tool, probe "
-            f"compliance, liver size, distance from the centroid: what serving warns about). Accuracy on the others "
-            f"<b>{_pm(ins['mean'], ins['sd'], 1)} %</b>, on those <b>{_pm(out['mean'], out['sd'], 1)} %</b> (MAE "
-            f"{_pm(o['inside_mae_vec']['mean'], o['inside_mae_vec']['sd'])} against "
-            f"{_pm(o['outside_mae_vec']['mean'], o['outside_mae_vec']['sd'])} N; mean ± sd over the "
-            f"{out['n_splits']} splits that have such cases). A test liver at the edge of the population is "
-            f"extrapolation for a model trained on the others.</p>")
+            f"compliance, liver size, distance from the centroid: what serving warns about).")
+    if not o["n_outside"]:
+        return head + " Every test case lies inside it.</p>"
+
+    def side(name: str) -> str:
+        a, e = o[f"{name}_accuracy_pct"], o[f"{name}_mae_vec"]
+        spread = f"mean ± sd over {a['n_splits']} splits" if a["sd"] is not None else f"{a['n_splits']} split"
+        return (f"<b>{_pm(a['mean'], a['sd'], 1)} %</b> (MAE {_pm(e['mean'], e['sd'])} N; {spread}; all its "
+                f"cases pooled {_fmt(o.get(f'{name}_accuracy_pooled_pct'), 1)} %)")
+
+    return (head + f" Accuracy on those {side('outside')}, on the others {side('inside')}. A test liver at the "
+            "edge of the population is extrapolation for a model trained on the others.</p>")
 
 
 def _extrapolation_paragraph(ext: dict | None) -> str:

@@ -43,7 +43,7 @@ def test_repeated_splits_hold_out_different_cases_and_give_a_spread(tmp_path, sc
     assert res["metrics_sd"]["mae_vec"] > 0
     # every split counts its test cases outside its model's training range and scores both sides
     from liverforce.learn.model import ForceModel
-    from liverforce.learn.state import outside_ranges, recorded_ranges
+    from liverforce.learn.state import outside_ranges, recorded_ranges, state_range_values
 
     from liverforce.learn.metrics import force_metrics
     from liverforce.learn.model import subset
@@ -58,7 +58,19 @@ def test_repeated_splits_hold_out_different_cases_and_give_a_spread(tmp_path, sc
     if (~out).any():
         pred = model.predict(test)
         assert per[0]["inside"]["mae_vec"] == pytest.approx(force_metrics(test["force_n"][~out], pred[~out])["mae_vec"])
+    # the recorded ranges are the training rows' own (min, max), computed here from the raw arrays
+    train = subset(data, [i for i, c in enumerate(ids) if c not in set(model.meta["test_case_ids"])])
+    for key, rng in recorded_ranges(model.meta["training_scale"]).items():
+        v = state_range_values(train)[key]
+        assert rng == pytest.approx((v.min(), v.max()), rel=1e-9), key
     ot = res["outside_training"]
+    if scenario == "IV":  # 2 of 8 livers held out: some test cases lie outside the other livers' range
+        assert ot["n_outside"] > 0
+        outs = [p["outside"]["accuracy_pct"] for p in per if p["outside"] is not None]
+        assert ot["outside_accuracy_pct"]["mean"] == pytest.approx(np.mean(outs))
+        err = sum(p["error_sum_n"]["outside"] for p in per)
+        assert ot["outside_accuracy_pooled_pct"] == pytest.approx(100 * (1 - err / sum(p["force_sum_n"]["outside"]
+                                                                                     for p in per)))
     assert ot["n_splits"] == 4 and ot["n_cases"] == sum(p["n_cases"] for p in per)
     assert ot["n_outside"] == sum(p["n_outside"] for p in per)
     for p in per:
