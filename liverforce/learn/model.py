@@ -96,6 +96,8 @@ from liverforce.learn.state import (
     STATE_INPUTS,
     THICKNESS_COLUMN,
     compliance_matrices,
+    outside_ranges,
+    recorded_ranges,
     state_vector,
 )
 from liverforce.learn.torchutil import EpochCallback
@@ -636,6 +638,22 @@ class ForceModel:
         rspec = RegressorSpec.from_dict(doc["regressor"])
         net = load_regressor(rspec, torch.load(path / "regressor.pt", weights_only=True))
         return cls(Representation.from_dict(doc["representation"]), pre, rspec, net, doc.get("meta"))
+
+
+def outside_training_range(model: "ForceModel", arrays: dict) -> tuple[np.ndarray, dict[str, np.ndarray]] | None:
+    """Which rows of ``arrays`` lie outside the model's training range of the geometric state:
+    ``(any input outside (n,) bool, masks by input)`` (:func:`liverforce.learn.state.outside_ranges` against
+    ``meta["training_scale"]``). None for a model without the state vector or without recorded ranges:
+    nothing to compare with (serving does not warn about it either). The IV test breakdown of training
+    and the unseen-liver validation both count with it."""
+    rec = (model.meta or {}).get("training_scale")
+    if not model.uses_state or not rec:
+        return None
+    masks, _ = outside_ranges(arrays, recorded_ranges(rec))
+    out = np.zeros(len(arrays["exertion_point_mm"]), dtype=bool)
+    for v in masks.values():
+        out |= v
+    return out, masks
 
 
 def training_scale(prep: Prepared, rep: Representation) -> dict:

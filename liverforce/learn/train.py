@@ -59,6 +59,7 @@ from liverforce.learn.model import (
     fit_preprocessor,
     member_columns,
     n_views_for,
+    outside_training_range,
     prepare,
     regressor_data,
     subset,
@@ -69,7 +70,6 @@ from liverforce.learn.plots import evaluation_figures
 from liverforce.learn.regressor import fit_params, gp_code_members
 from liverforce.learn.representation import representation_from_config
 from liverforce.learn.splits import cv_folds, group_key, train_test_split
-from liverforce.learn.state import outside_ranges, recorded_ranges
 from liverforce.learn.torchutil import configure_torch
 from liverforce.learn.tune import FoldData, cv_force_mae, cv_score, tune
 from liverforce.seeds import derive
@@ -475,13 +475,10 @@ def outside_training_split(model, test_arrays: dict, pred: np.ndarray) -> dict |
     about it (``Predictor.context_warnings``). ``error_sum_n`` / ``force_sum_n`` per side let the
     splits be pooled (:func:`summarise_outside`).
     """
-    rec = (model.meta or {}).get("training_scale")
-    if not model.uses_state or not rec:
+    got = outside_training_range(model, test_arrays)
+    if got is None:
         return None
-    masks, _ = outside_ranges(test_arrays, recorded_ranges(rec))
-    out = np.zeros(len(pred), dtype=bool)
-    for v in masks.values():
-        out |= v
+    out, masks = got
     true = np.asarray(test_arrays["force_n"], dtype=np.float64)
     err = np.linalg.norm(pred - true, axis=1)
     mag = np.linalg.norm(true, axis=1)

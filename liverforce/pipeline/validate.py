@@ -80,21 +80,17 @@ def interval_on_unseen(model_dir, arrays: dict) -> dict | None:
 def extrapolation_on_unseen(model_dir, arrays: dict, err: np.ndarray) -> dict | None:
     """Unseen cases whose geometric state lies outside the model's training range, and their error.
 
-    What serving warns about (:func:`liverforce.serve.checks.outside_training`),
+    What serving warns about (:func:`liverforce.learn.model.outside_training_range`),
     measured: how many unseen cases it flags, per input, and the mean vector
     error (N) of the flagged cases against the others. None for a model
     without the state vector.
     """
-    from liverforce.learn.model import ForceModel
-    from liverforce.serve.checks import TrainingScale, outside_training
+    from liverforce.learn.model import ForceModel, outside_training_range
 
-    m = ForceModel.load(Path(model_dir))
-    if not m.uses_state:
+    got = outside_training_range(ForceModel.load(Path(model_dir)), arrays)
+    if got is None:
         return None
-    masks, _ = outside_training(arrays, TrainingScale.of(m))
-    out = np.zeros(len(err), dtype=bool)
-    for v in masks.values():
-        out |= v
+    out, masks = got
     geo = np.asarray(arrays["geometry_id"]).astype(str)
     return {"n_cases": int(len(err)), "n_outside": int(out.sum()),
             "by_input": {k: int(v.sum()) for k, v in masks.items()},

@@ -112,16 +112,18 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
         arrays = frame_to_arrays(pd.DataFrame(model_input))
         # the serving checks (shape, NaN/inf, units against the training scale, exertion point on the
         # surface) refuse bad rows with a PredictionInputError naming the row; then the reference path
+        predictor = Predictor(self.model)
         try:
-            force = Predictor(self.model).predict_arrays(arrays, observation_seed=None if seed < 0 else seed)
+            force = predictor.predict_arrays(arrays, observation_seed=None if seed < 0 else seed)
         except PredictionInputError as exc:
             raise PyfuncInputError(str(exc)) from exc
-        return _output_frame(self.model, arrays, force, None if seed < 0 else seed)
+        return _output_frame(self.model, arrays, force, None if seed < 0 else seed, predictor)
 
 
-def _output_frame(model: ForceModel, arrays: dict, force: np.ndarray, seed: int | None) -> pd.DataFrame:
+def _output_frame(model: ForceModel, arrays: dict, force: np.ndarray, seed: int | None,
+                  predictor: Predictor | None = None) -> pd.DataFrame:
     """The output columns: ``force`` (already computed), the interval columns when the model has one,
-    and ``warnings``."""
+    and ``warnings`` (from ``predictor``'s training scale, else a new one's)."""
     out = pd.DataFrame(force, columns=list(OUTPUT_COLUMNS))
     if model.interval is not None:
         got = model.predict_interval(arrays, observation_seed=seed)
@@ -129,7 +131,7 @@ def _output_frame(model: ForceModel, arrays: dict, force: np.ndarray, seed: int 
             out[c] = got["force_local_n"][:, j]
         for j, c in enumerate(INTERVAL_COLUMNS[3:]):
             out[c] = got["half_width_local_n"][:, j]
-    out[WARNINGS_COLUMN] = ["; ".join(w) for w in Predictor(model).arrays_warnings(arrays)]
+    out[WARNINGS_COLUMN] = ["; ".join(w) for w in (predictor or Predictor(model)).arrays_warnings(arrays)]
     return out
 
 
