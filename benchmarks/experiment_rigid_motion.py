@@ -143,7 +143,7 @@ def main() -> None:
     from liverforce.config import compose
     from liverforce.pipeline.shared import run_arrays
     from liverforce.learn.metrics import force_metrics
-    from liverforce.learn.model import (eval_seed, fit_force_model, force_scaling_of, linear_force_radius_of,
+    from liverforce.learn.model import (eval_seed, fit_force_model, state_options,
                                         n_views_for, prepare, subset, view_seeds)
     from liverforce.learn.regressor import fit_params
     from liverforce.learn.representation import representation_from_config
@@ -219,8 +219,7 @@ def main() -> None:
                                        use_state=bool(model_cfg["state_vector"]), hidden=hidden,
                                        dropout=float(best.get("dropout", 0.0)), fit=fit, seed=s,
                                        dae_input_noise=float(model_cfg.get("dae_input_noise", 0.1)),
-                                       force_scaling=force_scaling_of(model_cfg),
-                                       linear_force_radius_mm=linear_force_radius_of(model_cfg))
+                                       **state_options(model_cfg))
             es = eval_seed(s)
             test_m.append(force_metrics(np.asarray(a_te["force_n"], float), model.predict(a_te, observation_seed=es)))
             pu = model.predict(d_unseen, observation_seed=es)

@@ -239,6 +239,7 @@ class ModelConfig:
     roi_fraction: Optional[float] = MISSING  # None: the shards' dataset.roi_fraction
     force_scaling: str = MISSING  # linear | stiffness | none (state-vector models; liverforce.learn.model)
     probe_force_radius_mm: float = MISSING  # Gaussian radius of the linear force estimate C^-1 u_w (0 = off)
+    indentation_strain: bool = MISSING  # with the linear force estimate: also u_w,n / h (tissue thickness h)
     rigid_motion: str = MISSING  # keep | remove (the ROI's best rigid motion undone; displacement features)
     rigid_motion_radius_mm: float = MISSING  # remove: fitted to the ROI nodes at least this far from the tool, mm
     camera: CameraConfig = field(default_factory=CameraConfig)  # roi_features: cloud (liverforce.learn.camera)

@@ -49,10 +49,9 @@ from liverforce.learn.metrics import force_metrics
 from liverforce.learn.model import (
     eval_seed,
     fit_force_model,
-    force_scaling_of,
-    linear_force_radius_of,
     n_views_for,
     prepare,
+    state_options,
     subset,
     view_seeds,
 )
@@ -276,8 +275,7 @@ def run_point(
             prep_train, rep, encoder=str(model_cfg["encoder"]), code_size=int(model_cfg["code_size"]),
             use_state=bool(model_cfg["state_vector"]), hidden=list(hp["hidden"]), dropout=float(hp["dropout"]),
             fit=fit, seed=int(seed), dae_input_noise=float(model_cfg.get("dae_input_noise", 0.1)),
-            force_scaling=force_scaling_of(model_cfg),
-            linear_force_radius_mm=linear_force_radius_of(model_cfg),
+            **state_options(model_cfg),
         )
         pred = model.predict(test_arrays, observation_seed=eval_seed(seed))
     metrics = force_metrics(np.asarray(test_arrays["force_n"], dtype=np.float64), pred)

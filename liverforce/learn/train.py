@@ -49,12 +49,10 @@ from liverforce.config import config_hash
 from liverforce.learn.interval import coverage_per_component, fit_conformal
 from liverforce.learn.metrics import force_metrics
 from liverforce.learn.model import (
-    PER_RUN_KEYS,
     ForceModel,
+    PER_RUN_KEYS,
     encoder_code_size,
     eval_seed,
-    force_scaling_of,
-    linear_force_radius_of,
     fit_force_model,
     fit_preprocessor,
     member_columns,
@@ -62,6 +60,7 @@ from liverforce.learn.model import (
     outside_training_range,
     prepare,
     regressor_data,
+    state_options,
     subset,
     view_groups,
     view_seeds,
@@ -240,8 +239,7 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
             pre = fit_preprocessor(
                 rows_tr, rep, encoder=encoder, code_size=code_size, use_state=use_state, seed=derive(seed, "encoder.fold", k),
                 epochs=tune_epochs, lr=float(train_cfg["lr"]), batch_size=int(train_cfg["batch_size"]),
-                dae_input_noise=dae_noise, force_scaling=force_scaling_of(model_cfg),
-                linear_force_radius_mm=linear_force_radius_of(model_cfg),
+                dae_input_noise=dae_noise, **state_options(model_cfg),
             )
             z_tr, y_tr = regressor_data(pre, rows_tr)
             z_va, y_va = regressor_data(pre, rows_va, all_views=False)
@@ -295,8 +293,7 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
     model, history = fit_force_model(
         prep_train, rep, encoder=encoder, code_size=code_size, use_state=use_state, hidden=hidden,
         dropout=dropout, fit=fit, seed=seed, dae_input_noise=dae_noise, monitor=(prep_test, "test"), meta=meta,
-        force_scaling=force_scaling_of(model_cfg),
-        linear_force_radius_mm=linear_force_radius_of(model_cfg),
+        **state_options(model_cfg),
     )
     pred = model.predict(test_arrays, observation_seed=eval_seed(seed))
     metrics = force_metrics(prep_test.force, pred)
@@ -418,8 +415,7 @@ def calibrate_interval(train_arrays, model_cfg, interval_cfg, scenario, seed, en
         prep_fit = prepare(a_fit, rep_c, observation_seeds=view_seeds(seed, n_views_for(rep_c)))
         model, _ = fit_force_model(prep_fit, rep_c, encoder=encoder, code_size=code_size, use_state=use_state,
                                    hidden=hidden, dropout=dropout, fit=fit, seed=cal_seed, dae_input_noise=dae_noise,
-                                   force_scaling=force_scaling_of(model_cfg),
-                                   linear_force_radius_mm=linear_force_radius_of(model_cfg))
+                                   **state_options(model_cfg))
         prep_cal = prepare(a_cal, rep_c, observation_seeds=[eval_seed(seed)])
         f_cal = model.predict_local(a_cal, observation_seed=eval_seed(seed))
         true.append(prep_cal.y_local)
@@ -458,8 +454,7 @@ def repeated_splits(train_arrays, test_arrays, rep, model_cfg, train_cfg, scenar
         prep_tr = prepare(a_tr, rep_r, observation_seeds=view_seeds(seed, n_views_for(rep_r)))
         model, _ = fit_force_model(prep_tr, rep_r, encoder=encoder, code_size=code_size, use_state=use_state,
                                    hidden=hidden, dropout=dropout, fit=fit, seed=split_seed,
-                                   dae_input_noise=dae_noise, force_scaling=force_scaling_of(model_cfg),
-                                   linear_force_radius_mm=linear_force_radius_of(model_cfg))
+                                   dae_input_noise=dae_noise, **state_options(model_cfg))
         pred = model.predict(a_te, observation_seed=eval_seed(seed))
         out.append({"split_seed": split_seed, "test_geometries": _geometries(a_te),
                     "metrics": force_metrics(np.asarray(a_te["force_n"], float), pred),
@@ -550,8 +545,7 @@ def heldout_points(train_arrays, test_arrays, model_cfg, folds, seed, encoder, u
         prep_tr = prepare(a_tr, rep_p, observation_seeds=view_seeds(seed, n_views_for(rep_p)))
         model, _ = fit_force_model(prep_tr, rep_p, encoder=encoder, code_size=code_size, use_state=use_state,
                                    hidden=hidden, dropout=dropout, fit=fit, seed=fold_seed,
-                                   dae_input_noise=dae_noise, force_scaling=force_scaling_of(model_cfg),
-                                   linear_force_radius_mm=linear_force_radius_of(model_cfg))
+                                   dae_input_noise=dae_noise, **state_options(model_cfg))
         pred = model.predict(a_te, observation_seed=eval_seed(seed))
         out.append({"points": sorted(str(p) for p in part), "n_test": int(len(te)),
                     "metrics": force_metrics(np.asarray(a_te["force_n"], float), pred)})

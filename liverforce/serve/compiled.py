@@ -46,7 +46,7 @@ from torch import nn
 
 from liverforce.learn.encoders import PCAEncoder
 from liverforce.learn.representation import interpolate_to_grid, rigid_fit_nodes, undo_rigid_motion
-from liverforce.learn.state import MATERIAL_START, compliance_matrices, state_vector
+from liverforce.learn.state import MATERIAL_START, THICKNESS_COLUMN, compliance_matrices, state_vector
 from liverforce.serve.checks import Limits, TrainingScale, check_displacement, check_material
 from liverforce.serve.errors import PredictionInputError
 from liverforce.serve.preop import Preop, _points, _vector
@@ -197,7 +197,7 @@ class CompiledROI:
                     mean_op[a, a::3] = 1.0 / k
                 A_state[sc] = Rs @ mean_op
             self._s0 = s0
-            self._lin_slice = None
+            self._lin_slice = self._disp_slice = None
             if pre.linear_force_weights is not None:
                 # f_lin = C^-1 u_w, u_w = sum_i w_i x_c,i (channels 0..2): affine in D like the grid features
                 lc = slice(s_state.shape[1], s_state.shape[1] + 3)
@@ -209,6 +209,12 @@ class CompiledROI:
                 self._lin_slice = lc
                 self._k_lin = float(pre.linear_factor(s_state, 1)[0, 0])  # force_scaling: linear (else 1)
                 self._set_linear(A_state, s0)
+                self._disp_slice = slice(lc.start, lc.start + pre.n_displacement_features)
+                if pre.indentation_strain:  # u_w,n / h: affine in D too, and the same for every material
+                    ec = lc.stop
+                    h = float(s_state[0, THICKNESS_COLUMN])
+                    A_state[ec] = Mw[2] / h / ss.scale[ec]
+                    s0[ec] = (xw0[2] / h - ss.mean[ec]) / ss.scale[ec]
             self.A_state = A_state
             self._mat_slice = slice(MATERIAL_START, MATERIAL_START + pre.n_material)
         else:
@@ -362,8 +368,8 @@ class CompiledROI:
             else:
                 c = np.asarray(roi_centroid_deformed_mm, dtype=np.float64).reshape(n, 3)
                 z[:, sc] = c @ self._S_c.T + self.b[sc]
-            if self._lin_slice is not None:  # the linear force estimate: affine in D
-                lc = slice(nc + self._lin_slice.start, nc + self._lin_slice.stop)
+            if self._disp_slice is not None:  # the linear force estimate and the indentation strain: affine in D
+                lc = slice(nc + self._disp_slice.start, nc + self._disp_slice.stop)
                 z[:, lc] = X @ self.A[lc].T + self.bU[lc]
             if material_params_mpa is not None:
                 ms = self._mat_slice

@@ -76,7 +76,7 @@ from numba.typed import List
 from liverforce.learn import camera
 from liverforce.learn.cloud_features import ReferenceSurface, _fill
 from liverforce.learn.encoders import PCAEncoder
-from liverforce.learn.state import compliance_matrices, state_vector
+from liverforce.learn.state import THICKNESS_COLUMN, compliance_matrices, state_vector
 from liverforce.serve.checks import Limits, TrainingScale, outside_training
 from liverforce.serve.cloud import camera_checks, tool_tip_of
 from liverforce.serve.compiled import numpy_layers, regressor_head
@@ -532,6 +532,7 @@ class CompiledCloud:
         self.k_material = 1.0
         self.s_base = np.zeros(0)
         self.lin = False
+        self.n_disp = 0
         if self.uses_state:
             arrays = rep.state_arrays(preop.to_arrays(preop.roi_undeformed_mm))
             s = state_vector(arrays, R=self.R[None])
@@ -542,9 +543,11 @@ class CompiledCloud:
             n_base = base.size
             self.s_base = (base - ss.mean[:n_base]) / ss.scale[:n_base]
             self.lin = pre.n_linear_force == 3
-            if self.lin:  # f_lin = k_lin C^-1 tip (k_lin: force_scaling linear, else 1)
+            if self.lin:  # f_lin = k_lin C^-1 tip (k_lin: force_scaling linear, else 1), then tip_n / h if used
                 self.Cinv = pre.linear_factor(s, 1)[0, 0] * np.linalg.inv(compliance_matrices(s)[0])
                 self.lin_mean, self.lin_scale = ss.mean[n_base:], ss.scale[n_base:]
+                self.n_disp = pre.n_displacement_features
+                self.inv_h = 1.0 / float(s[0, THICKNESS_COLUMN])
         self.context_warnings = []  # the context's state outside the training range (Predictor.context_warnings)
         if self.uses_state:
             self.context_warnings = outside_training(preop.to_arrays(preop.roi_undeformed_mm),
@@ -598,13 +601,15 @@ class CompiledCloud:
         """Forces (n, 3) N in the liver frame of feature rows ``X`` (affine map, state, MLP or GP, scaling)."""
         n = len(X)
         nz = self.A.shape[0]
-        Z = np.empty((n, nz + self.s_base.size + (3 if self.lin else 0)))
+        Z = np.empty((n, nz + self.s_base.size + (self.n_disp if self.lin else 0)))
         _affine_rows(X, self.AT, self.b, Z)
         if self.uses_state:
             Z[:, nz:nz + self.s_base.size] = self.s_base
             if self.lin:
                 t = X[:, -3:]
                 lin = (t[:, 0:1] * self.Cinv[:, 0] + t[:, 1:2] * self.Cinv[:, 1]) + t[:, 2:3] * self.Cinv[:, 2]
+                if self.n_disp > 3:  # the indentation strain tip_n / h
+                    lin = np.hstack([lin, t[:, 2:3] * self.inv_h])
                 Z[:, nz + self.s_base.size:] = (lin - self.lin_mean) / self.lin_scale
         h = Z.astype(np.float32)
         if self.gp is not None:

@@ -45,6 +45,10 @@ def models(data, tmp_path_factory):
                                     "gp": {"max_points": 2000, "iterations": 200}}, TRAIN, NO_TUNE,
                              "III", f"{scaling}_lin", out_dir=tmp_path_factory.mktemp(f"{scaling}_lin"))
         out[f"{scaling}_lin"] = ForceModel.load(res["model_path"])
+    res = train_scenario(data, {**MODEL, "force_scaling": "linear", "probe_force_radius_mm": 5.0, "regressor": "gp",
+                                "indentation_strain": True, "gp": {"max_points": 2000, "iterations": 100}},
+                         TRAIN, NO_TUNE, "III", "strain", out_dir=tmp_path_factory.mktemp("strain"))
+    out["linear_strain"] = ForceModel.load(res["model_path"])
     return out
 
 
@@ -147,3 +151,62 @@ def test_compiled_fast_path_applies_the_linear_scaling(models, data):
     rows = comp.predict_batch(np.stack([D, D]), material_params_mpa=mats)
     for r, m in zip(rows, mats):
         np.testing.assert_allclose(r, model.predict(dict(case, material_params_mpa=m[None]))[0], atol=1e-5)
+
+
+def test_the_indentation_strain_is_the_normal_displacement_under_the_tool_over_the_thickness(models, data, tmp_path):
+    """model.indentation_strain: the state features end with u_w,n / h (after f_lin), the same for every material,
+    and the flag survives save/load (a bundle of format 5)."""
+    import json
+
+    from liverforce.learn.model import prepare
+    from liverforce.learn.state import MATERIAL_START as M
+    from liverforce.learn.state import THICKNESS_COLUMN
+
+    model = models["linear_strain"]
+    pre = model.pre
+    assert pre.indentation_strain and pre.n_displacement_features == 4
+    assert pre.n_material == np.asarray(data["material_params_mpa"]).shape[1]
+    prep = prepare(data, model.representation, observation_seeds=[0])
+    x, st = prep.x_obs[0], prep.state
+    feats = pre.state_features(st, x)
+    w = pre.linear_force_weights
+    g2 = w.size
+    u_n = x[:, 2 * g2:3 * g2] @ w  # the normal channel under the tool, by hand
+    np.testing.assert_allclose(feats[:, -1], u_n / st[:, THICKNESS_COLUMN], rtol=1e-12)
+    assert np.all(feats[:, -1] < 0)  # the tool pushes into the liver
+    np.testing.assert_allclose(feats[:, -4:-1], pre.linear_force(x, st), rtol=1e-12)
+    st_k = st.copy()
+    st_k[:, M:] *= 1.7
+    np.testing.assert_allclose(pre.state_features(st_k, x)[:, -1], feats[:, -1], rtol=1e-12)
+    thin = st.copy()
+    thin[:, THICKNESS_COLUMN] /= 2
+    np.testing.assert_allclose(pre.state_features(thin, x)[:, -1], 2 * feats[:, -1], rtol=1e-12)
+    saved = model.save(tmp_path / "m")
+    assert json.loads((saved / "model.json").read_text())["format_version"] == 5
+    again = ForceModel.load(saved)
+    assert again.pre.indentation_strain
+    np.testing.assert_array_equal(again.predict(data), model.predict(data))
+
+
+def test_compiled_fast_path_reads_the_indentation_strain(models, data):
+    """The compiled ROI path gives the reference prediction of a model with the indentation strain, also with a
+    material per row (the strain does not move with it, f_lin does)."""
+    from liverforce.serve.compiled import CompiledROI
+    from liverforce.serve.preop import Preop
+
+    model = models["linear_strain"]
+    for i in (1, 4):
+        case = {key: v[i:i + 1] for key, v in data.items()}
+        comp = CompiledROI(model, Preop.from_arrays(data, i))
+        U = np.asarray(data["roi_undeformed_mm"][i], dtype=float)
+        D = np.asarray(data["roi_deformed_mm"][i], dtype=float)
+        deeper = U + 1.5 * (D - U)
+        for Di in (D, deeper):
+            np.testing.assert_allclose(comp.predict(Di), model.predict(dict(case, roi_deformed_mm=[Di],
+                                                                            roi_centroid_deformed_mm=Di.mean(0)[None]))[0],
+                                       atol=1e-5)
+        mat = np.asarray(data["material_params_mpa"][i])
+        mats = np.stack([mat * 1.2, mat * 0.8])
+        rows = comp.predict_batch(np.stack([D, D]), material_params_mpa=mats)
+        for r, m in zip(rows, mats):
+            np.testing.assert_allclose(r, model.predict(dict(case, material_params_mpa=m[None]))[0], atol=1e-5)

@@ -97,17 +97,23 @@ def test_format_version_mismatch_is_refused(fitted, tmp_path):
         ForceModel.load(tmp_path / "nothing")
 
 
-def test_a_version_3_bundle_still_loads(fitted, tmp_path):
-    """Version 4 only added the GP ensemble; a bundle written at version 3 (one GP or an MLP) loads as before."""
+@pytest.mark.parametrize("old_version", [3, 4])
+def test_an_older_bundle_still_loads(fitted, tmp_path, old_version):
+    """Version 4 only added the GP ensemble and 5 the indentation strain: a bundle written at version 3 (one GP
+    or an MLP) or 4 (no indentation strain: the key is absent) loads and predicts as before."""
     from liverforce.learn.model import FORMAT_VERSION
 
     model = ForceModel.load(fitted("pca")["model_path"])
     path = model.save(tmp_path / "m")
     doc = json.loads((path / "model.json").read_text())
-    assert doc["format_version"] == FORMAT_VERSION == 4
-    doc["format_version"] = 3
+    assert doc["format_version"] == FORMAT_VERSION == 5
+    assert doc["scalers"].pop("indentation_strain") is False
+    doc["format_version"] = old_version
     (path / "model.json").write_text(json.dumps(doc))
-    assert ForceModel.load(path).regressor_spec == model.regressor_spec
+    old = ForceModel.load(path)
+    assert old.regressor_spec == model.regressor_spec and not old.pre.indentation_strain
+    cases = synthetic_arrays(6, n_geometries=1, seed=9, nodes=(120, 200))
+    np.testing.assert_array_equal(old.predict(cases), model.predict(cases))
 
 
 def test_same_seed_gives_same_metrics(tmp_path):

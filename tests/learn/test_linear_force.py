@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from liverforce.learn.frames import force_to_local, local_rotations
-from liverforce.learn.model import Preprocessor, linear_force_radius_of, linear_force_weights
+from liverforce.learn.model import Preprocessor, indentation_strain_of, linear_force_radius_of, linear_force_weights
 from liverforce.learn.representation import Representation
 from liverforce.learn.state import state_vector
 from liverforce.learn.synthetic import synthetic_arrays
@@ -58,6 +58,11 @@ def test_which_models_carry_it():
     assert linear_force_radius_of({"state_vector": False, "probe_force_radius_mm": 5.0}) == 0.0
     assert linear_force_radius_of({"state_vector": True, "roi_features": "deformed", "probe_force_radius_mm": 5.0}) == 0
     assert linear_force_radius_of({"state_vector": True, "probe_force_radius_mm": 0.0}) == 0.0
+    # the indentation strain reads the same u_w: only with the linear force estimate
+    assert indentation_strain_of({"state_vector": True, "probe_force_radius_mm": 5.0, "indentation_strain": True})
+    assert not indentation_strain_of({"state_vector": True, "probe_force_radius_mm": 5.0, "indentation_strain": False})
+    assert not indentation_strain_of({"state_vector": False, "probe_force_radius_mm": 5.0, "indentation_strain": True})
+    assert not indentation_strain_of({"state_vector": True, "probe_force_radius_mm": 0.0, "indentation_strain": True})
 
 
 def test_fit_refuses_it_without_displacement_features():
@@ -69,3 +74,14 @@ def test_fit_refuses_it_without_displacement_features():
     with pytest.raises(ValueError, match="displacement features"):
         fit_preprocessor(prep, rep, encoder="pca", code_size=3, use_state=True, seed=0, epochs=1, lr=1e-3,
                          batch_size=8, linear_force_radius_mm=5.0)
+
+
+def test_fit_refuses_the_indentation_strain_without_the_linear_force_estimate():
+    from liverforce.learn.model import fit_preprocessor, prepare
+
+    a = synthetic_arrays(30, seed=6, dtype=np.float64)
+    rep = Representation(grid_size=6, half_width_mm=15.0)
+    prep = prepare(a, rep, observation_seeds=[0])
+    with pytest.raises(ValueError, match="indentation strain .*probe_force_radius_mm"):
+        fit_preprocessor(prep, rep, encoder="pca", code_size=3, use_state=True, seed=0, epochs=1, lr=1e-3,
+                         batch_size=8, indentation_strain=True)

@@ -19,6 +19,7 @@ from liverforce.serve.errors import PredictionInputError
 MODEL = {"encoder": "pca", "code_size": 6, "state_vector": True, "grid_size": 8, "hidden": [32, 32],
          "dropout": 0.0, "occlusion": {"radius_mm": 0.0, "mode": "remove"}, "noise_mm": 0.0,
          "roi_features": "cloud", "force_scaling": "stiffness", "probe_force_radius_mm": 5.0,
+         "indentation_strain": True,  # as the shipped camera model: the compiled path reads tip_n / h too
          "camera": {"observation": {"n_points": [300, 3000], "noise_sd_mm": 0.3}, "grid": {}, "tip_noise_mm": 0.1}}
 TRAIN = {"test_fraction": 0.2, "epochs": 60, "batch_size": 32, "lr": 3e-3, "weight_decay": 0.0, "seed": 0,
          "interval": {"coverage": 0.9, "calibration_fraction": 0.25}}
@@ -30,6 +31,7 @@ def served(tmp_path_factory):
     arrays = synthetic_surface_arrays(200, n_geometries=4, seed=7, material_varies=True)
     res = train_scenario(arrays, MODEL, TRAIN, NO_TUNE, "IV", "cloud", out_dir=tmp_path_factory.mktemp("cam"))
     model = ForceModel.load(res["model_path"])
+    assert model.pre.indentation_strain
     test = np.flatnonzero(np.isin(arrays["geometry_id"], res["split"]["test_geometries"]))
     return res["model_path"], model, subset(arrays, test)
 
