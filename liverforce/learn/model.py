@@ -61,12 +61,13 @@ under the tool over the tissue thickness there (``tool_thickness_mm`` of the
 state vector). The linear estimate is exact only at small strain; how much a
 hyperelastic layer stiffens (or a thin lobe bends away) depends on the depth
 *relative to* the thickness, which the GP would otherwise have to build from
-two inputs that it extrapolates separately. Measured on the c8e0ce3 run's
-shards (5 seeded splits, the pipeline's own seeds): IV test accuracy pca_sv
-94.35 +- 1.65 -> 94.70 +- 1.56 % (better on every split), ae_sv 93.34 ->
-93.83 %, cloud_sv 85.20 -> 85.47 %; II and III unchanged (99.81 / 98.78 ->
-99.81 / 98.76 %); unseen-liver MAE pca_sv 0.130 -> 0.127 N, ae_sv 0.149 ->
-0.136 N, cloud_sv 0.437 -> 0.437 N.
+two inputs that it extrapolates separately. Measured on the default run's
+shards (5 seeded splits, the pipeline's own seeds;
+``benchmarks/experiment_indentation_strain.py``): IV test accuracy pca_sv
+94.35 +- 1.65 -> 94.70 +- 1.56 % (better on every split), ae_sv 93.31 ->
+93.85 %, cloud_sv 85.20 -> 85.47 %; II and III unchanged (99.81 / 98.78 ->
+99.81 / 98.76 %); unseen-liver MAE pca_sv 0.130 -> 0.127 N, ae_sv 0.150 ->
+0.137 N, cloud_sv 0.437 -> 0.437 N.
 
 Bundle format (a directory, no pickle of arbitrary code)::
 

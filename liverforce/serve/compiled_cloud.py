@@ -608,9 +608,10 @@ class CompiledCloud:
             if self.lin:
                 t = X[:, -3:]
                 lin = (t[:, 0:1] * self.Cinv[:, 0] + t[:, 1:2] * self.Cinv[:, 1]) + t[:, 2:3] * self.Cinv[:, 2]
+                o = nz + self.s_base.size
+                Z[:, o:o + 3] = (lin - self.lin_mean[:3]) / self.lin_scale[:3]
                 if self.n_disp > 3:  # the indentation strain tip_n / h
-                    lin = np.hstack([lin, t[:, 2:3] * self.inv_h])
-                Z[:, nz + self.s_base.size:] = (lin - self.lin_mean) / self.lin_scale
+                    Z[:, o + 3] = (t[:, 2] * self.inv_h - self.lin_mean[3]) / self.lin_scale[3]
         h = Z.astype(np.float32)
         if self.gp is not None:
             h = self.gp(h)
