@@ -286,9 +286,10 @@ def indentation_strain(u_w: np.ndarray, state: np.ndarray) -> np.ndarray:
     """``u_w,n / h`` ``(n, 1)``: the normal displacement under the tool (mm, local frame, negative into the liver)
     over the tissue thickness there (the state vector's ``tool_thickness_mm``)."""
     h = np.asarray(state, dtype=np.float64)[:, THICKNESS_COLUMN]
-    if not np.all(h > 0):
-        raise ValueError(f"the indentation strain needs a positive tissue thickness under the tool; got "
-                         f"{float(h.min()):.4g} mm")
+    bad = np.flatnonzero(~(h > 0))
+    if bad.size:
+        raise ValueError(f"the indentation strain needs a positive, finite tissue thickness under the tool "
+                         f"(tool_thickness_mm); rows {bad[:5].tolist()} have {h[bad[:5]].tolist()} mm")
     return (np.asarray(u_w, dtype=np.float64)[:, 2] / h).reshape(-1, 1)
 
 

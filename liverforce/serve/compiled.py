@@ -13,9 +13,10 @@ deformed positions ``D`` (``k x 3``, liver frame, mm) for models with
                                               weights over the fixed undeformed
                                               tangent coordinates
     c     = C (x - mu_f) / s_f - ...           PCA + scalers (AE/DAE: first Linear)
-    s     = (state(D) - mu_s) / s_s           deformed ROI centroid = mean D (constant under an observation model) and the
-                                              linear force estimate C^-1 sum w x: affine;
-                                              the rest of the state is constant
+    s     = (state(D) - mu_s) / s_s           deformed ROI centroid = mean D (constant under an observation model), the
+                                              linear force estimate C^-1 sum w x and the indentation
+                                              strain (sum w x_n) / h: affine; the rest of the state is
+                                              constant
 
 With ``rigid_motion: remove`` each call first undoes the far ROI nodes' best
 rigid motion on ``D`` (:func:`liverforce.learn.representation.undo_rigid_motion`,

@@ -547,7 +547,8 @@ class CompiledCloud:
                 self.Cinv = pre.linear_factor(s, 1)[0, 0] * np.linalg.inv(compliance_matrices(s)[0])
                 self.lin_mean, self.lin_scale = ss.mean[n_base:], ss.scale[n_base:]
                 self.n_disp = pre.n_displacement_features
-                self.inv_h = 1.0 / float(s[0, THICKNESS_COLUMN])
+                if self.n_disp > 3:  # the indentation strain tip_n / h (Preop refuses a thickness <= 0)
+                    self.inv_h = 1.0 / float(s[0, THICKNESS_COLUMN])
         self.context_warnings = []  # the context's state outside the training range (Predictor.context_warnings)
         if self.uses_state:
             self.context_warnings = outside_training(preop.to_arrays(preop.roi_undeformed_mm),

@@ -210,3 +210,22 @@ def test_compiled_fast_path_reads_the_indentation_strain(models, data):
         rows = comp.predict_batch(np.stack([D, D]), material_params_mpa=mats)
         for r, m in zip(rows, mats):
             np.testing.assert_allclose(r, model.predict(dict(case, material_params_mpa=m[None]))[0], atol=1e-5)
+        np.testing.assert_allclose(comp.with_material(mats[0]).predict(D), rows[0], atol=1e-5)
+
+
+def test_a_version_4_bundle_with_the_linear_force_estimate_still_loads(models, data, tmp_path):
+    """A bundle written before the indentation strain (format 4: no such key, the state features end with f_lin)
+    loads with the same number of material constants and predicts exactly as before."""
+    import json
+
+    model = models["linear_lin"]
+    assert not model.pre.indentation_strain and model.pre.n_linear_force == 3
+    path = model.save(tmp_path / "m")
+    doc = json.loads((path / "model.json").read_text())
+    del doc["scalers"]["indentation_strain"]
+    doc["format_version"] = 4
+    (path / "model.json").write_text(json.dumps(doc))
+    old = ForceModel.load(path)
+    assert not old.pre.indentation_strain and old.pre.n_displacement_features == 3
+    assert old.pre.n_material == model.pre.n_material == np.asarray(data["material_params_mpa"]).shape[1]
+    np.testing.assert_array_equal(old.predict(data), model.predict(data))

@@ -89,3 +89,23 @@ def test_fast_path_refuses_bad_input(trained, test_cases):
     # the refusals left the compiled context as it was: it still gives the reference force
     np.testing.assert_allclose(comp.predict(D), pred.model.predict(
         {k: v[:1] for k, v in test_cases.items()})[0], atol=TOL)
+
+
+def test_the_fast_path_does_not_share_a_context_between_rows_that_differ_in_the_state(trained, test_cases):
+    """Rows with the same ROI, point and liver but another tissue thickness or probe compliance are other
+    contexts: each group of the fast path compiles its own, so it equals the reference."""
+    pred = Predictor.load(trained("disp"))
+    i = 1
+    changes = [{}, {"tool_thickness_mm": 1.3}, {"probe_compliance_mm_per_n": 1.2}]
+    rows = {k: [] for k in test_cases}
+    for change in changes:
+        for _ in range(3):  # 3 rows each: enough for a compiled group
+            for k, v in test_cases.items():
+                val = v[i]
+                if k in change:
+                    val = np.asarray(val) * change[k]
+                rows[k].append(val)
+    arrays = {k: (v if k.startswith("roi_") and k.endswith("formed_mm") else np.asarray(v)) for k, v in rows.items()}
+    ref = pred.model.predict(arrays)
+    assert all(np.abs(ref[3 * j] - ref[0]).max() > 1e-4 for j in (1, 2))  # each change moves the prediction
+    np.testing.assert_allclose(pred.predict_arrays(arrays, fast=True, min_group=2), ref, rtol=0, atol=TOL)
