@@ -339,7 +339,9 @@ class Preprocessor:
 
     def linear_force(self, x: np.ndarray, state: np.ndarray) -> np.ndarray:
         """``f_lin = C^-1 u_w`` ``(n, 3)`` N, local frame (module docstring), from features ``x`` and the state."""
-        u_w = self.tool_displacement(x)
+        return self._linear_force(self.tool_displacement(x), state)
+
+    def _linear_force(self, u_w: np.ndarray, state: np.ndarray) -> np.ndarray:
         f_ref = np.linalg.solve(compliance_matrices(state), u_w[:, :, None])[:, :, 0]
         return f_ref * self.linear_factor(state, len(u_w))
 
@@ -351,9 +353,10 @@ class Preprocessor:
             return out
         if x is None:
             raise ValueError("this model's state features include the linear force estimate: pass the features x")
-        parts = [out, self.linear_force(x, state)]
+        u_w = self.tool_displacement(x)  # once: f_lin and the strain read the same u_w
+        parts = [out, self._linear_force(u_w, state)]
         if self.indentation_strain:
-            parts.append(indentation_strain(self.tool_displacement(x), state))
+            parts.append(indentation_strain(u_w, state))
         return np.hstack(parts)
 
     @property

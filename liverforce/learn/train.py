@@ -49,8 +49,8 @@ from liverforce.config import config_hash
 from liverforce.learn.interval import coverage_per_component, fit_conformal
 from liverforce.learn.metrics import force_metrics
 from liverforce.learn.model import (
-    ForceModel,
     PER_RUN_KEYS,
+    ForceModel,
     encoder_code_size,
     eval_seed,
     fit_force_model,

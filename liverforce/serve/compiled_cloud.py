@@ -602,7 +602,7 @@ class CompiledCloud:
         """Forces (n, 3) N in the liver frame of feature rows ``X`` (affine map, state, MLP or GP, scaling)."""
         n = len(X)
         nz = self.A.shape[0]
-        Z = np.empty((n, nz + self.s_base.size + (self.n_disp if self.lin else 0)))
+        Z = np.empty((n, nz + self.s_base.size + self.n_disp))  # n_disp: 0 without f_lin
         _affine_rows(X, self.AT, self.b, Z)
         if self.uses_state:
             Z[:, nz:nz + self.s_base.size] = self.s_base
