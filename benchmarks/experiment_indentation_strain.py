@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import time
-from pathlib import Path
 
 
 def main() -> None:
@@ -31,38 +30,20 @@ def main() -> None:
     ap.add_argument("--out", default="/tmp/liverforce-experiment-indentation-strain")
     args = ap.parse_args()
 
-    from liverforce.config import compose
-    from liverforce.learn.metrics import metrics_by_group
-    from liverforce.learn.model import ForceModel, eval_seed
-    from liverforce.learn.torchutil import configure_torch
     from liverforce.learn.train import train_scenario
-    from liverforce.pipeline.plan import Plan
-    from liverforce.pipeline.shared import run_arrays
 
-    configure_torch(1)
-    cfg = compose([])
-    plan = Plan(cfg)
-    seed = plan.train_seed()
-    train = {k: v for k, v in cfg["train"].items() if k != "variants"}
-    train.update(interval=None, heldout_points=None)
-    variants = plan.variants()
-    results = Path(args.results)
-    loaded: dict = {}
+    from benchmarks.experiment import PipelineTraining
 
-    def load(scenario: str, camera: bool) -> dict:
-        if (scenario, camera) not in loaded:
-            loaded[(scenario, camera)] = run_arrays(results, scenario, camera, "indentation-strain experiment")
-        return loaded[(scenario, camera)]
-
+    run = PipelineTraining(args.results, "indentation-strain experiment")
     for name in args.variants:
-        v = dict(variants[name])
+        v = dict(run.variants[name])
         camera = v.get("roi_features") == "cloud"
         for scenario in args.scenarios:
-            arrays = load(scenario, camera)
+            arrays = run.arrays(scenario, camera)
             for strain in (False, True):
                 model_cfg = {**v, "indentation_strain": strain}
                 t = time.perf_counter()
-                res = train_scenario(arrays, model_cfg, train, cfg["tune"], scenario, name, seed=seed,
+                res = train_scenario(arrays, model_cfg, run.train, run.cfg["tune"], scenario, name, seed=run.seed,
                                      out_dir=f"{args.out}/{name}-{scenario}-{int(strain)}")
                 m, s = res["metrics_mean"], res["metrics_sd"]
                 per_split = [r["metrics"]["accuracy_pct"] for r in res["repeats"]]  # the main split first
@@ -70,10 +51,7 @@ def main() -> None:
                         f"{s['accuracy_pct']:.2f} % (splits {' '.join(f'{a:.1f}' for a in per_split)}), "
                         f"MAE {m['mae_vec']:.4f} +- {s['mae_vec']:.4f} N")
                 if scenario == "IV":
-                    model = ForceModel.load(res["model_path"])
-                    u = load("V", camera)
-                    pred = model.predict(u, observation_seed=eval_seed(int(res["seed"])))
-                    g = metrics_by_group(u["force_n"], pred, u["geometry_id"])
+                    g = run.unseen(res, camera)
                     line += f" | unseen MAE {g['mean']['mae_vec']:.4f} +- {g['sd']['mae_vec']:.4f} N"
                 print(f"{line} | {time.perf_counter() - t:.0f} s", flush=True)
 

@@ -219,6 +219,8 @@ class GPConfig:
     max_points: int = MISSING  # training rows of the exact GP; above it a seeded subset of this size
     iterations: int = MISSING  # L-BFGS iterations on the marginal likelihood
     code_members: Optional[list[int]] = MISSING  # PCA code sizes of a GP ensemble (mean of one GP per size); null: one GP
+    kernel: str = MISSING  # rational_quadratic | squared_exponential (liverforce.learn.gp)
+    shape: Optional[float] = MISSING  # the rational quadratic's a; null: fitted by the marginal likelihood
 
 
 @dataclass
@@ -377,6 +379,18 @@ class RootConfig:
 # --------------------------------------------------------------------------
 # compose
 # --------------------------------------------------------------------------
+
+
+def variant_model(model: dict, variant: dict) -> dict:
+    """The model config of one ``train.variants`` entry: the ``model`` group with the variant's overrides (its keys
+    but ``name``). A group the variant overrides with a mapping (``gp: {kernel: squared_exponential}``) is updated
+    key by key, so the variant names only what differs; any other value replaces the model's."""
+    out = dict(model)
+    for k, val in variant.items():
+        if k == "name":
+            continue
+        out[k] = {**model[k], **val} if isinstance(model.get(k), dict) and isinstance(val, dict) else val
+    return out
 
 
 def compose(overrides: list[str] | tuple[str, ...] | None = None) -> dict:
@@ -668,11 +682,12 @@ def _check_ranges(cfg: dict) -> None:
     for v in t["variants"]:
         vname = v["name"]
         over = {k: val for k, val in v.items() if k != "name"}
-        merged = {**mo, **over}
-        unknown = set(over) - set(mo)
+        unknown = sorted(set(over) - set(mo)) + sorted(
+            f"{k}.{kk}" for k, val in over.items() if isinstance(mo.get(k), dict) and isinstance(val, dict)
+            for kk in set(val) - set(mo[k]))
         if unknown:
-            _fail(f"train.variants.{vname}", f"unknown model keys {sorted(unknown)}")
-        _check_model(merged, f"train.variants.{vname}")
+            _fail(f"train.variants.{vname}", f"unknown model keys {unknown}")
+        _check_model(variant_model(mo, v), f"train.variants.{vname}")
     if not 0 < t["test_fraction"] < 1:
         _fail("train.test_fraction", "must be in (0, 1)")
     if t["repeats"] < 1:
@@ -757,6 +772,10 @@ def _check_model(mo: dict, key: str) -> None:
         _learn_names().gp_code_members(mo["gp"].get("code_members"))
     except ValueError as exc:
         _fail(f"{key}.gp.code_members", str(exc), "for example [8, 12, 16, 24, 32], or null for one GP")
+    _check_choice(f"{key}.gp.kernel", mo["gp"]["kernel"], tuple(_learn_names().GP_KERNELS), "GP kernel")
+    if mo["gp"]["shape"] is not None and not mo["gp"]["shape"] > 0:
+        _fail(f"{key}.gp.shape", f"the rational quadratic's shape must be > 0 (got {mo['gp']['shape']})",
+              "or null to fit it by the marginal likelihood")
     _check_choice(f"{key}.rigid_motion", mo["rigid_motion"], ("keep", "remove"))
     if mo["rigid_motion_radius_mm"] < 0:
         _fail(f"{key}.rigid_motion_radius_mm", f"must be >= 0 mm (got {mo['rigid_motion_radius_mm']})")

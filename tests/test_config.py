@@ -53,6 +53,8 @@ def test_thesis_is_the_study_scale():
         ("model.encoder=vae", "model.encoder"),
         ("model.gp.code_members=[8,8]", "model.gp.code_members"),
         ("model.gp.code_members=[0,16]", "model.gp.code_members"),
+        ("model.gp.kernel=cauchy", "model.gp.kernel"),
+        ("model.gp.shape=0", "model.gp.shape"),
         ("validate.seed=1", "validate.seed"),
         ("geometry.procedural.shape.lobe_ratio=9", "geometry.procedural.shape"),
     ],
@@ -61,6 +63,26 @@ def test_bad_values_name_their_key(override, key):
     with pytest.raises(ConfigError) as err:
         compose([override])
     assert f"'{key}'" in str(err.value)
+
+
+def test_a_variant_changes_only_the_keys_of_a_group_it_names():
+    """``gp: {kernel: ...}`` in a variant updates ``model.gp`` key by key (the other GP settings stay the model's);
+    a key the group does not have is refused by its dotted name, as an unknown top-level key is."""
+    from liverforce.config import variant_model
+    from liverforce.pipeline.plan import Plan
+
+    cfg = compose([])
+    cloud = Plan(cfg).variants()["cloud_sv"]
+    assert cloud["gp"] == {**cfg["model"]["gp"], "kernel": "squared_exponential"}
+    assert cloud["gp"]["code_members"] == cfg["model"]["gp"]["code_members"]
+    assert Plan(cfg).variants()["pca_sv"]["gp"] == cfg["model"]["gp"]
+    got = variant_model({"gp": {"kernel": "a", "shape": None}, "encoder": "pca"},
+                        {"name": "v", "gp": {"shape": 2.0}, "encoder": "ae"})
+    assert got == {"gp": {"kernel": "a", "shape": 2.0}, "encoder": "ae"}
+    with pytest.raises(ConfigError, match=r"train.variants.v.*gp.kernal"):
+        compose(["train.variants=[{name: v, gp: {kernal: squared_exponential}}]", "validate.variant=main"])
+    with pytest.raises(ConfigError, match=r"train.variants.v.*gp.kernel"):
+        compose(["train.variants=[{name: v, gp: {kernel: cauchy}}]", "validate.variant=main"])
 
 
 def test_unknown_key_is_refused():

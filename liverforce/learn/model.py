@@ -118,11 +118,13 @@ from liverforce.learn.torchutil import EpochCallback
 from liverforce.seeds import derive
 
 FORMAT = "liverforce.force_model"
-FORMAT_VERSION = 5  # 3: probe compliance in the state vector (material from column 22), linear force estimate;
+FORMAT_VERSION = 6  # 3: probe compliance in the state vector (material from column 22), linear force estimate;
 #                     4: the GP regressor may be a GPEnsemble (model.gp.code_members), which a reader of 3 cannot load;
-#                     5: the state features may end with the indentation strain, which a reader of 4 would misread
-READ_VERSIONS = (3, 4, 5)  # a version-3 bundle is a version-4 bundle with a single GP (or an MLP); 4 is 5 without
-#                            the indentation strain
+#                     5: the state features may end with the indentation strain, which a reader of 4 would misread;
+#                     6: a GP's kernel may be the rational quadratic (a ``shape`` buffer), which a reader of 5 would
+#                        ignore and evaluate as the squared exponential
+READ_VERSIONS = (3, 4, 5, 6)  # a version-3 bundle is a version-4 bundle with a single GP (or an MLP); 4 is 5 without
+#                               the indentation strain; 5 is 6 with squared-exponential GPs (no shape buffer)
 
 ROI_INPUTS = (
     "exertion_point_mm",

@@ -1,7 +1,7 @@
 """Names of the learning stage's choices, in a module without imports (no torch).
 
 :mod:`liverforce.config` validates ``model.encoder``, ``model.roi_features``,
-``model.occlusion.mode``, ``model.force_scaling`` and the ``study`` lists against these, and the
+``model.occlusion.mode``, ``model.force_scaling``, ``model.gp.kernel`` and the ``study`` lists against these, and the
 implementations dispatch on them (:mod:`liverforce.learn.encoders`,
 :mod:`liverforce.learn.representation`), so a name added here is valid in
 the config and must be implemented there. Keep this module import-free: the
@@ -22,6 +22,9 @@ OCCLUSION_MODES = ("remove", "noise")
 
 #: how a state-vector model brings in the material (liverforce.learn.model.fit_preprocessor)
 FORCE_SCALINGS = ("linear", "stiffness", "none")
+
+#: the GP regressor's stationary kernel, model.gp.kernel (liverforce.learn.gp)
+GP_KERNELS = ("rational_quadratic", "squared_exponential")
 
 
 def roi_features() -> tuple[str, ...]:

@@ -77,10 +77,12 @@ class FitParams:
     batch_size: int
     epochs: int
     weight_decay: float = 0.0
-    regressor: str = "mlp"  # mlp | gp (model.regressor); gp reads only the two below
+    regressor: str = "mlp"  # mlp | gp (model.regressor); gp reads only the gp_ fields below
     gp_max_points: int = 2000  # model.gp.max_points
     gp_iterations: int = 200  # model.gp.iterations
     gp_code_members: tuple[int, ...] = ()  # model.gp.code_members (PCA code sizes of a GP ensemble; () = one GP)
+    gp_kernel: str = "rational_quadratic"  # model.gp.kernel (liverforce.learn.gp)
+    gp_shape: float | None = None  # model.gp.shape: the rational quadratic's a, None = fitted
 
 
 def gp_code_members(model_cfg: dict) -> tuple[int, ...]:
@@ -103,7 +105,13 @@ def fit_params(model_cfg: dict, *, lr: float, batch_size: int, epochs: int, weig
     gp = model_cfg.get("gp") or {}
     return FitParams(float(lr), int(batch_size), int(epochs), float(weight_decay), kind,
                      int(gp.get("max_points", FitParams.gp_max_points)),
-                     int(gp.get("iterations", FitParams.gp_iterations)), gp_code_members(model_cfg))
+                     int(gp.get("iterations", FitParams.gp_iterations)), gp_code_members(model_cfg),
+                     str(gp.get("kernel", FitParams.gp_kernel)), _shape(gp.get("shape", FitParams.gp_shape)))
+
+
+def _shape(value) -> float | None:
+    """``model.gp.shape``: None (fitted) or a number."""
+    return None if value is None else float(value)
 
 
 def fit_regressor(
@@ -132,10 +140,11 @@ def fit_regressor(
 
         if columns:
             gp, info = fit_gp_ensemble(z, y, columns, seed=seed, max_points=fit.gp_max_points,
-                                       iterations=fit.gp_iterations, groups=groups)
+                                       iterations=fit.gp_iterations, groups=groups, kernel=fit.gp_kernel,
+                                       shape=fit.gp_shape)
         else:
             gp, info = fit_gp(z, y, seed=seed, max_points=fit.gp_max_points, iterations=fit.gp_iterations,
-                              groups=groups)
+                              groups=groups, kernel=fit.gp_kernel, shape=fit.gp_shape)
         hist = {"train_loss": [float(np.mean((forward_numpy(gp, z) - y) ** 2))], "val_loss": [], "gp": info}
         if z_val is not None and y_val is not None:
             hist["val_loss"] = [float(np.mean((forward_numpy(gp, z_val) - y_val) ** 2))]

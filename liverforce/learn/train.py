@@ -250,8 +250,9 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
             y_val_n.append(rows_va.y_local)
 
         if gp:  # no hyper-parameter search: the GP's are its marginal likelihood's (liverforce.learn.gp)
-            best = {"regressor": "gp", **{k: int(v) for k, v in (model_cfg.get("gp") or {}).items()
-                                          if k != "code_members"}, "code_members": list(gp_code_members(model_cfg))}
+            fp = fit_params(model_cfg, lr=0.0, batch_size=1, epochs=0)
+            best = {"regressor": "gp", "max_points": fp.gp_max_points, "iterations": fp.gp_iterations,
+                    "kernel": fp.gp_kernel, "shape": fp.gp_shape, "code_members": list(fp.gp_code_members)}
             hidden, dropout = [], 0.0
             lr, batch_size = float(train_cfg["lr"]), int(train_cfg["batch_size"])
             # the CV error in newtons (validate.variant: auto) and of the scaled targets, from one fit per fold

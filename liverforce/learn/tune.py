@@ -94,7 +94,9 @@ def _fit_of(params: dict, epochs: int, weight_decay: float) -> FitParams:
     if params.get("regressor") == "gp":  # params: train.py's {"regressor": "gp", **model.gp}
         return FitParams(0.0, 1, 0, regressor="gp",
                          gp_max_points=int(params.get("max_points", FitParams.gp_max_points)),
-                         gp_iterations=int(params.get("iterations", FitParams.gp_iterations)))
+                         gp_iterations=int(params.get("iterations", FitParams.gp_iterations)),
+                         gp_kernel=str(params.get("kernel", FitParams.gp_kernel)),
+                         gp_shape=None if params.get("shape") is None else float(params["shape"]))
     return FitParams(lr=float(params["lr"]), batch_size=int(params["batch_size"]), epochs=int(epochs),
                      weight_decay=weight_decay)
 

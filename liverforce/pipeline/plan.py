@@ -27,7 +27,7 @@ import re
 from pathlib import Path
 
 from liverforce import layout
-from liverforce.config import SCENARIOS, ConfigError, results_root
+from liverforce.config import SCENARIOS, ConfigError, results_root, variant_model
 from liverforce.seeds import derive, liver_seeds
 from liverforce.sweep.design import n_shards
 
@@ -151,11 +151,11 @@ class Plan:
 
     # ------------------------------------------------------------------- train
     def variants(self) -> dict[str, dict]:
-        """Model config per variant (model group merged with the variant's overrides)."""
+        """Model config per variant (model group merged with the variant's overrides, :func:`variant_model`)."""
         base = self.cfg["model"]
         out = {}
         for v in self.cfg["train"]["variants"]:
-            out[v["name"]] = {**base, **{k: val for k, val in v.items() if k != "name"}}
+            out[v["name"]] = variant_model(base, v)
         if not out:
             out["default"] = dict(base)
         return out

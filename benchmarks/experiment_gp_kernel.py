@@ -1,0 +1,86 @@
+"""Experiment: the GP regressor's kernel (``model.gp.kernel``, ``model.gp.shape``), chosen on training livers only.
+
+For each kernel setting and variant, on a finished run's shards (``--results``):
+
+- **training-side CV MAE**: the 4-fold CV by liver inside the training livers
+  (``cv_mae_n``, what ``validate.variant: auto`` reads), on ``--cv-splits``
+  seeded splits (the pipeline's split seeds: the main split, then those of
+  ``train.repeats``), each split trained as its own run. This is what the
+  default was chosen on: no test liver enters it.
+- **test accuracy** over the pipeline's ``train.repeats`` seeded splits
+  (:func:`liverforce.learn.train.train_scenario` with the pipeline's seed, so
+  the default's row repeats the run's own figures), per split, and for IV
+- **the unseen livers' MAE** (mean +- sd over livers; the main split's model).
+
+::
+
+    PYTHONPATH=. OMP_NUM_THREADS=1 .venv/bin/python benchmarks/experiment_gp_kernel.py --results results/default \\
+        --variants pca_sv --kernels squared_exponential rational_quadratic:fit rational_quadratic:1 rational_quadratic:2
+
+A kernel is ``squared_exponential`` or ``rational_quadratic:A`` (``A`` the fixed shape ``a``, or ``fit``: fitted
+by the marginal likelihood).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+
+def parse_kernel(text: str) -> dict:
+    name, _, shape = text.partition(":")
+    if name == "squared_exponential":
+        return {"kernel": name, "shape": None}
+    if name != "rational_quadratic":
+        raise SystemExit(f"--kernels: unknown '{text}' (squared_exponential or rational_quadratic:A|fit)")
+    return {"kernel": name, "shape": None if shape in ("", "fit") else float(shape)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--results", default="results/default")
+    ap.add_argument("--variants", nargs="*", default=["pca_sv"])
+    ap.add_argument("--scenario", default="IV")
+    ap.add_argument("--kernels", nargs="*", default=["squared_exponential", "rational_quadratic:2"])
+    ap.add_argument("--cv-splits", type=int, default=5, help="seeded splits the training-side CV MAE is averaged over")
+    ap.add_argument("--out", default="/tmp/liverforce-experiment-gp-kernel")
+    args = ap.parse_args()
+
+    from liverforce.learn.train import train_scenario
+    from liverforce.seeds import derive
+
+    from benchmarks.experiment import PipelineTraining
+
+    run = PipelineTraining(args.results, "GP kernel experiment")
+    for name in args.variants:
+        v = dict(run.variants[name])
+        if v.get("regressor") != "gp":
+            raise SystemExit(f"variant {name} does not use the GP regressor")
+        camera = v.get("roi_features") == "cloud"
+        arrays = run.arrays(args.scenario, camera)
+        for text in args.kernels:
+            model_cfg = {**v, "gp": {**v["gp"], **parse_kernel(text)}}
+            out = f"{args.out}/{name}-{args.scenario}-{text.replace(':', '-')}"
+            t = time.perf_counter()
+            res = train_scenario(arrays, model_cfg, run.train, run.cfg["tune"], args.scenario, name, seed=run.seed,
+                                 out_dir=out)
+            cv = [res["cv_mae_n"]]
+            for r in range(1, args.cv_splits):  # the repeats' split seeds, each split trained as its own run
+                got = train_scenario(arrays, model_cfg, {**run.train, "repeats": 1}, run.cfg["tune"], args.scenario,
+                                     name, seed=derive(run.seed, "split.repeat", r), out_dir=f"{out}-cv{r}")
+                cv.append(got["cv_mae_n"])
+            m, s = res["metrics_mean"], res["metrics_sd"]
+            per_split = [x["metrics"]["accuracy_pct"] for x in res["repeats"]]  # the main split first
+            line = (f"{name:8s} {args.scenario:3s} {text:24s} CV MAE {np.mean(cv):.4f} N ({len(cv)} splits: "
+                    f"{' '.join(f'{c:.4f}' for c in cv)}) | test {m['accuracy_pct']:6.2f} +- {s['accuracy_pct']:.2f} % "
+                    f"(splits {' '.join(f'{a:.1f}' for a in per_split)}), MAE {m['mae_vec']:.4f} N")
+            if args.scenario == "IV":
+                g = run.unseen(res, camera)
+                line += f" | unseen MAE {g['mean']['mae_vec']:.4f} +- {g['sd']['mae_vec']:.4f} N"
+            print(f"{line} | {time.perf_counter() - t:.0f} s", flush=True)
+
+
+if __name__ == "__main__":
+    main()
