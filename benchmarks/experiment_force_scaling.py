@@ -44,7 +44,7 @@ def main() -> None:
     ap.add_argument("--out", default="/tmp/liverforce-experiment-force-scaling")
     args = ap.parse_args()
 
-    from liverforce.config import compose
+    from liverforce.config import compose, variant_model
     from liverforce.pipeline.shared import run_arrays
     from liverforce.learn.metrics import metrics_by_group
     from liverforce.learn.model import ForceModel, eval_seed
@@ -73,8 +73,7 @@ def main() -> None:
             arrays = load(results, scenario, camera)
             c1_train = float(np.mean(np.asarray(arrays["material_params_mpa"])[:, 0]))
             for scaling in args.scalings:
-                model_cfg = {**cfg["model"], **{k: val for k, val in v.items() if k != "name"},
-                             "force_scaling": scaling}
+                model_cfg = {**variant_model(cfg["model"], v), "force_scaling": scaling}
                 t = time.perf_counter()
                 res = train_scenario(arrays, model_cfg, train, cfg["tune"], scenario, name,
                                      out_dir=f"{args.out}/{name}-{scenario}-{scaling}")

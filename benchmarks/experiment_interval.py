@@ -27,14 +27,14 @@ def main() -> None:
     args = ap.parse_args()
     results = Path(args.results)
 
-    from liverforce.config import compose
+    from liverforce.config import compose, variant_model
     from liverforce.dataset import io as dio
     from liverforce.learn.train import train_scenario
     from liverforce.pipeline.validate import interval_on_unseen
 
     cfg = compose([])
     v = {x["name"]: x for x in cfg["train"]["variants"]}[args.variant]
-    model = {**cfg["model"], **{k: val for k, val in v.items() if k != "name"}}
+    model = variant_model(cfg["model"], v)
     train = {k: val for k, val in cfg["train"].items() if k != "variants"}
     arrays = dio.load_training_arrays(dio.verify_manifest(results / "shards/IV/manifest.json"))
     unseen = dio.load_training_arrays(dio.verify_manifest(results / "shards/V/manifest.json"))

@@ -80,7 +80,8 @@ def peer(results: Path, arrays: dict, unseen: dict, cfg: dict) -> None:
         return float(np.linalg.norm(ts.inverse_transform(p) * k - y, axis=1).mean())
 
     t = time.perf_counter()
-    gp, _ = fit_gp(z_tr, target, seed=seed)
+    hp = model.meta.get("hyper_parameters") or {}  # the model's own GP settings (its kernel and shape)
+    gp, _ = fit_gp(z_tr, target, seed=seed, kernel=hp.get("kernel", "rational_quadratic"), shape=hp.get("shape", 2.0))
     ours = time.perf_counter() - t
     head = gp.numpy_head()
     print(f"  liverforce.learn.gp  fit {ours:6.1f} s   IV test MAE {mae(head(z_te), y_te, k_te):.3f} N   "
@@ -111,7 +112,7 @@ def main() -> None:
     args = ap.parse_args()
     results = Path(args.results)
 
-    from liverforce.config import compose
+    from liverforce.config import compose, variant_model
     from liverforce.pipeline.shared import run_arrays
     from liverforce.learn.model import ForceModel
     from liverforce.learn.torchutil import configure_torch
@@ -134,7 +135,7 @@ def main() -> None:
         camera = str(v.get("roi_features", cfg["model"].get("roi_features"))) == "cloud"
         arrays, unseen = load("IV", camera), load("V", camera)
         for reg in args.regressors:
-            model_cfg = {**cfg["model"], **{k: val for k, val in v.items() if k != "name"}, "regressor": reg}
+            model_cfg = {**variant_model(cfg["model"], v), "regressor": reg}
             t = time.perf_counter()
             res = train_scenario(arrays, model_cfg, train, cfg["tune"], "IV", name,
                                  out_dir=f"{args.out}/{name}-{reg}")

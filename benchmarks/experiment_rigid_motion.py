@@ -140,7 +140,7 @@ def main() -> None:
     results = Path(args.results)
 
     import liverforce.learn.camera as camera_mod
-    from liverforce.config import compose
+    from liverforce.config import compose, variant_model
     from liverforce.pipeline.shared import run_arrays
     from liverforce.learn.metrics import force_metrics
     from liverforce.learn.model import (eval_seed, fit_force_model, state_options,
@@ -154,7 +154,7 @@ def main() -> None:
     configure_torch(1)
     cfg = compose(list(args.overrides))
     v = {x["name"]: x for x in cfg["train"]["variants"]}[args.variant]
-    model_cfg = {**cfg["model"], **{k: val for k, val in v.items() if k != "name"}}
+    model_cfg = variant_model(cfg["model"], v)
     train = cfg["train"]
     best = json.loads((results / "models/IV" / args.variant / "metrics.json").read_text())["best_params"]
     hidden = [int(best["width"])] * int(best["n_layers"]) if "width" in best else []

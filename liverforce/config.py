@@ -19,6 +19,7 @@ from __future__ import annotations
 import hashlib
 import importlib
 import json
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -383,14 +384,28 @@ class RootConfig:
 
 def variant_model(model: dict, variant: dict) -> dict:
     """The model config of one ``train.variants`` entry: the ``model`` group with the variant's overrides (its keys
-    but ``name``). A group the variant overrides with a mapping (``gp: {kernel: squared_exponential}``) is updated
-    key by key, so the variant names only what differs; any other value replaces the model's."""
-    out = dict(model)
-    for k, val in variant.items():
-        if k == "name":
-            continue
-        out[k] = {**model[k], **val} if isinstance(model.get(k), dict) and isinstance(val, dict) else val
+    but ``name``). A group the variant overrides with a mapping (``gp: {kernel: squared_exponential}``,
+    ``camera: {observation: {noise_sd_mm: 1.0}}``) is updated key by key at every depth, so the variant names only
+    what differs; any other value replaces the model's."""
+    return _merge_mapping(model, {k: v for k, v in variant.items() if k != "name"})
+
+
+def _merge_mapping(base: dict, over: dict) -> dict:
+    out = dict(base)
+    for k, val in over.items():
+        out[k] = _merge_mapping(base[k], val) if isinstance(base.get(k), dict) and isinstance(val, dict) else val
     return out
+
+
+def _unknown_keys(base: dict, over: dict, prefix: str = "") -> list[str]:
+    """Dotted names of the keys of ``over`` that ``base`` does not have, at every depth of the mappings both have."""
+    out = []
+    for k, val in over.items():
+        if k not in base:
+            out.append(prefix + k)
+        elif isinstance(base[k], dict) and isinstance(val, dict):
+            out += _unknown_keys(base[k], val, f"{prefix}{k}.")
+    return sorted(out)
 
 
 def compose(overrides: list[str] | tuple[str, ...] | None = None) -> dict:
@@ -682,9 +697,7 @@ def _check_ranges(cfg: dict) -> None:
     for v in t["variants"]:
         vname = v["name"]
         over = {k: val for k, val in v.items() if k != "name"}
-        unknown = sorted(set(over) - set(mo)) + sorted(
-            f"{k}.{kk}" for k, val in over.items() if isinstance(mo.get(k), dict) and isinstance(val, dict)
-            for kk in set(val) - set(mo[k]))
+        unknown = _unknown_keys(mo, over)
         if unknown:
             _fail(f"train.variants.{vname}", f"unknown model keys {unknown}")
         _check_model(variant_model(mo, v), f"train.variants.{vname}")
@@ -773,8 +786,9 @@ def _check_model(mo: dict, key: str) -> None:
     except ValueError as exc:
         _fail(f"{key}.gp.code_members", str(exc), "for example [8, 12, 16, 24, 32], or null for one GP")
     _check_choice(f"{key}.gp.kernel", mo["gp"]["kernel"], tuple(_learn_names().GP_KERNELS), "GP kernel")
-    if mo["gp"]["shape"] is not None and not mo["gp"]["shape"] > 0:
-        _fail(f"{key}.gp.shape", f"the rational quadratic's shape must be > 0 (got {mo['gp']['shape']})",
+    if mo["gp"]["shape"] is not None and not (math.isfinite(mo["gp"]["shape"]) and mo["gp"]["shape"] > 0):
+        _fail(f"{key}.gp.shape",
+              f"the rational quadratic's shape must be a finite number > 0 (got {mo['gp']['shape']})",
               "or null to fit it by the marginal likelihood")
     _check_choice(f"{key}.rigid_motion", mo["rigid_motion"], ("keep", "remove"))
     if mo["rigid_motion_radius_mm"] < 0:

@@ -55,6 +55,7 @@ def test_thesis_is_the_study_scale():
         ("model.gp.code_members=[0,16]", "model.gp.code_members"),
         ("model.gp.kernel=cauchy", "model.gp.kernel"),
         ("model.gp.shape=0", "model.gp.shape"),
+        ("model.gp.shape=inf", "model.gp.shape"),
         ("validate.seed=1", "validate.seed"),
         ("geometry.procedural.shape.lobe_ratio=9", "geometry.procedural.shape"),
     ],
@@ -76,11 +77,16 @@ def test_a_variant_changes_only_the_keys_of_a_group_it_names():
     assert cloud["gp"] == {**cfg["model"]["gp"], "kernel": "squared_exponential"}
     assert cloud["gp"]["code_members"] == cfg["model"]["gp"]["code_members"]
     assert Plan(cfg).variants()["pca_sv"]["gp"] == cfg["model"]["gp"]
-    got = variant_model({"gp": {"kernel": "a", "shape": None}, "encoder": "pca"},
-                        {"name": "v", "gp": {"shape": 2.0}, "encoder": "ae"})
-    assert got == {"gp": {"kernel": "a", "shape": 2.0}, "encoder": "ae"}
+    got = variant_model({"gp": {"kernel": "a", "shape": None}, "encoder": "pca", "camera": {"o": {"x": 1, "y": 2}}},
+                        {"name": "v", "gp": {"shape": 2.0}, "encoder": "ae", "camera": {"o": {"y": 3}}})
+    assert got == {"gp": {"kernel": "a", "shape": 2.0}, "encoder": "ae", "camera": {"o": {"x": 1, "y": 3}}}
+    deep = Plan(compose(["train.variants=[{name: v, camera: {observation: {noise_sd_mm: 1.0}}}]",
+                         "validate.variant=main"])).variants()["v"]["camera"]["observation"]
+    assert deep == {**cfg["model"]["camera"]["observation"], "noise_sd_mm": 1.0}
     with pytest.raises(ConfigError, match=r"train.variants.v.*gp.kernal"):
         compose(["train.variants=[{name: v, gp: {kernal: squared_exponential}}]", "validate.variant=main"])
+    with pytest.raises(ConfigError, match=r"train.variants.v.*camera.observation.noise_sd"):
+        compose(["train.variants=[{name: v, camera: {observation: {noise_sd: 1.0}}}]", "validate.variant=main"])
     with pytest.raises(ConfigError, match=r"train.variants.v.*gp.kernel"):
         compose(["train.variants=[{name: v, gp: {kernel: cauchy}}]", "validate.variant=main"])
 

@@ -82,7 +82,7 @@ class FitParams:
     gp_iterations: int = 200  # model.gp.iterations
     gp_code_members: tuple[int, ...] = ()  # model.gp.code_members (PCA code sizes of a GP ensemble; () = one GP)
     gp_kernel: str = "rational_quadratic"  # model.gp.kernel (liverforce.learn.gp)
-    gp_shape: float | None = None  # model.gp.shape: the rational quadratic's a, None = fitted
+    gp_shape: float | None = 2.0  # model.gp.shape: the rational quadratic's a, None = fitted (unused by the SE)
 
 
 def gp_code_members(model_cfg: dict) -> tuple[int, ...]:
@@ -106,12 +106,15 @@ def fit_params(model_cfg: dict, *, lr: float, batch_size: int, epochs: int, weig
     return FitParams(float(lr), int(batch_size), int(epochs), float(weight_decay), kind,
                      int(gp.get("max_points", FitParams.gp_max_points)),
                      int(gp.get("iterations", FitParams.gp_iterations)), gp_code_members(model_cfg),
-                     str(gp.get("kernel", FitParams.gp_kernel)), _shape(gp.get("shape", FitParams.gp_shape)))
+                     *_kernel(gp))
 
 
-def _shape(value) -> float | None:
-    """``model.gp.shape``: None (fitted) or a number."""
-    return None if value is None else float(value)
+def _kernel(gp: dict) -> tuple[str, float | None]:
+    """``model.gp.kernel`` and ``model.gp.shape`` (None: fitted; None also for the squared exponential, which
+    has no shape, so a model records none)."""
+    kernel = str(gp.get("kernel", FitParams.gp_kernel))
+    shape = gp.get("shape", FitParams.gp_shape)
+    return kernel, None if shape is None or kernel == "squared_exponential" else float(shape)
 
 
 def fit_regressor(

@@ -91,7 +91,7 @@ def regressor_from_params(params: dict, n_inputs: int) -> RegressorSpec:
 
 def _fit_of(params: dict, epochs: int, weight_decay: float) -> FitParams:
     """The fit settings of one parameterization: Ax's MLP values, or the GP's (``regressor: gp``)."""
-    if params.get("regressor") == "gp":  # params: train.py's {"regressor": "gp", **model.gp}
+    if params.get("regressor") == "gp":  # params: train.py's GP settings (liverforce.learn.regressor.fit_params)
         return FitParams(0.0, 1, 0, regressor="gp",
                          gp_max_points=int(params.get("max_points", FitParams.gp_max_points)),
                          gp_iterations=int(params.get("iterations", FitParams.gp_iterations)),

@@ -74,6 +74,24 @@ def test_the_rational_quadratic_likelihood_gradient_is_the_exact_gaussian_likeli
         _check_against_the_gaussian_density(X, Y, p, rq, v, grads, alpha, rtol=1e-8)
 
 
+def test_the_shape_gradient_holds_where_the_kernel_is_nearly_the_squared_exponential():
+    """At a large shape (a = 3e6, B = 1 + d2 / (2a) within 1e-6 of 1) the shape derivative's ``1 - 1/B - log B``
+    loses its digits if ``1 - 1/B`` is formed first (this test fails that way), and autograd through the kernel
+    cancels the same way: check it against a central difference of the likelihood's value, which log1p keeps
+    exact."""
+    rng = np.random.default_rng(6)
+    X = torch.from_numpy(rng.normal(size=(80, 3)))
+    Y = torch.from_numpy(rng.normal(size=(80, 2)))
+    raw = [torch.from_numpy(rng.normal(0.0, 0.3, 3)), torch.tensor(0.1, dtype=torch.float64),
+           torch.tensor(-0.8, dtype=torch.float64), torch.tensor(-1.1, dtype=torch.float64)]
+    for log_a in (15.0, 2.0):
+        _, grads, _ = neg_log_likelihood(X, Y, *raw, torch.tensor(log_a, dtype=torch.float64))
+        h = 1e-3
+        up = neg_log_likelihood(X, Y, *raw, torch.tensor(log_a + h, dtype=torch.float64), gradient=False)[0]
+        down = neg_log_likelihood(X, Y, *raw, torch.tensor(log_a - h, dtype=torch.float64), gradient=False)[0]
+        assert float(grads[4]) == pytest.approx((up - down) / (2 * h), rel=1e-4)
+
+
 def test_the_rational_quadratic_tends_to_the_squared_exponential_and_has_heavier_tails():
     """``(1 + r^2 / (2 a))^-a -> exp(-r^2 / 2)`` as ``a`` grows (a scale mixture of squared exponentials); at any
     finite ``a`` it is above the squared exponential away from ``r = 0``, farther out the smaller ``a``."""
@@ -194,7 +212,7 @@ def test_a_gp_force_model_round_trips_through_its_bundle(tmp_path):
     assert res["best_params"]["regressor"] == "gp" and res["cv_mae_n"] > 0  # no Ax search; still cross-validated
     model = ForceModel.load(res["model_path"])
     assert isinstance(model.regressor, GPRegressor) and model.regressor_spec.kind == "gp"
-    assert model.regressor.kernel == "rational_quadratic" and model.meta["gp"]["shape"] > 0  # fit_gp's default
+    assert model.regressor.kernel == "rational_quadratic" and model.meta["gp"]["shape"] == 2.0  # the config's default
     assert model.meta["gp"]["n_used"] == res["n_train"]
     test = [list(arrays["case_id"]).index(c) for c in model.meta["test_case_ids"]]
     from liverforce.learn.model import subset
