@@ -72,6 +72,10 @@ def test_the_rational_quadratic_likelihood_gradient_is_the_exact_gaussian_likeli
         shape = torch.exp(p[4])
         rq = (1.0 + torch.cdist(a, a) ** 2 / (2.0 * shape)) ** (-shape)
         _check_against_the_gaussian_density(X, Y, p, rq, v, grads, alpha, rtol=1e-8)
+        fixed = neg_log_likelihood(X, Y, *raw, shape_gradient=False)  # a fixed shape: the other four, the same
+        assert fixed[0] == v and len(fixed[1]) == 4
+        for g, h in zip(fixed[1], grads):
+            np.testing.assert_array_equal(g.numpy(), h.numpy())
 
 
 def test_the_shape_gradient_holds_where_the_kernel_is_nearly_the_squared_exponential():
