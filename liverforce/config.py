@@ -387,13 +387,15 @@ def variant_model(model: dict, variant: dict) -> dict:
     but ``name``). A group the variant overrides with a mapping (``gp: {kernel: squared_exponential}``,
     ``camera: {observation: {noise_sd_mm: 1.0}}``) is updated key by key at every depth, so the variant names only
     what differs; any other value replaces the model's."""
-    return _merge_mapping(model, {k: v for k, v in variant.items() if k != "name"})
+    return merge_mapping(model, {k: v for k, v in variant.items() if k != "name"})
 
 
-def _merge_mapping(base: dict, over: dict) -> dict:
+def merge_mapping(base: dict, over: dict) -> dict:
+    """``base`` with ``over``'s values: a mapping over a mapping is merged key by key at every depth, any other value
+    replaces (the variants here, the studies' model overrides in :mod:`liverforce.learn.study`)."""
     out = dict(base)
     for k, val in over.items():
-        out[k] = _merge_mapping(base[k], val) if isinstance(base.get(k), dict) and isinstance(val, dict) else val
+        out[k] = merge_mapping(base[k], val) if isinstance(base.get(k), dict) and isinstance(val, dict) else val
     return out
 
 

@@ -106,10 +106,10 @@ def fit_params(model_cfg: dict, *, lr: float, batch_size: int, epochs: int, weig
     return FitParams(float(lr), int(batch_size), int(epochs), float(weight_decay), kind,
                      int(gp.get("max_points", FitParams.gp_max_points)),
                      int(gp.get("iterations", FitParams.gp_iterations)), gp_code_members(model_cfg),
-                     *_kernel(gp))
+                     *_kernel_settings(gp))
 
 
-def _kernel(gp: dict) -> tuple[str, float | None]:
+def _kernel_settings(gp: dict) -> tuple[str, float | None]:
     """``model.gp.kernel`` and ``model.gp.shape`` (None: fitted; None also for the squared exponential, which
     has no shape, so a model records none)."""
     kernel = str(gp.get("kernel", FitParams.gp_kernel))

@@ -45,6 +45,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from liverforce.atomic import atomic_path
+from liverforce.config import merge_mapping
 from liverforce.learn.metrics import force_metrics
 from liverforce.learn.model import (
     eval_seed,
@@ -181,13 +182,6 @@ def hyper_parameters(main_metrics: dict | None, model_cfg: dict, train_cfg: dict
                 hp[k] = cast(b[k])
         hp["source"] = f"main model run {main_metrics.get('run_id')}"
     return hp
-
-
-def _merge(base: dict, over: dict) -> dict:
-    out = dict(base)
-    for k, v in over.items():
-        out[k] = _merge(out.get(k) or {}, v) if isinstance(v, dict) else v
-    return out
 
 
 # --------------------------------------------------------------------------
@@ -375,11 +369,11 @@ def run_study(
     points_out = []
     done: dict[str, dict] = {}  # identical settings (e.g. radius 0 in both occlusion modes) are trained once
     for pt in study_points(study, study_cfg):
-        mcfg = _merge(model_cfg, pt.model_overrides)
+        mcfg = merge_mapping(model_cfg, pt.model_overrides)
         hp = hyper_parameters(main_metrics.get(pt.scenario), model_cfg, train_cfg,
                               str(study_cfg.get("hyper_parameters", "main")))
         if mcfg["occlusion"]["radius_mm"] == 0:
-            mcfg = _merge(mcfg, {"occlusion": {"mode": "remove"}})  # no occlusion: the mode does not matter
+            mcfg = merge_mapping(mcfg, {"occlusion": {"mode": "remove"}})  # no occlusion: the mode does not matter
         key = json.dumps([pt.scenario, mcfg, pt.roi_fraction, pt.train_fraction, pt.train_livers, hp],
                          sort_keys=True, default=str)
         doc: dict[str, Any] = {"study": study, "scenario": pt.scenario, "value": pt.value, "label": pt.label,
