@@ -10,7 +10,8 @@ Prints, on one core, the median over ``--repeats`` runs (each with a new seed, s
    60-120 mm in a 40 deg cone, tool 2.5 mm, 256^2 depth buffer, 0.5 mm noise); plus ``make_view``
    (camera, depth buffer and tool of one pose, 90 mm along the normal) alone;
 2. ``cloud_grid`` (12 x 12 grid) of camera clouds of 200 / 5,000 / 20,000 points, and the one-off
-   pre-operative ``ReferenceSurface.build`` per exertion point.
+   pre-operative reference per exertion point: ``ReferenceSurface.from_patch`` (the z-buffer of the ROI
+   patch's triangles, the default) beside ``ReferenceSurface.build`` (the ROI points' interpolant).
 
 Usage: ``python benchmarks/bench_observation.py [--quick] [--repeats N]``
 (``--quick``: the 15k-triangle surface only, fewer repeats).
@@ -32,7 +33,7 @@ thread_env(1)
 import numpy as np  # noqa: E402
 
 from benchmarks.harness import Bench  # noqa: E402
-from liverforce.dataset.roi import local_frame, surface_graph  # noqa: E402
+from liverforce.dataset.roi import local_frame, roi_triangles, surface_graph  # noqa: E402
 from liverforce.geometry.procedural import LiverShapeParams, procedural_liver  # noqa: E402
 from liverforce.learn.cloud_features import CloudGridSpec, ReferenceSurface, cloud_grid  # noqa: E402
 from liverforce.learn.observation import ObservationConfig, SurfaceTopology, make_view, observe  # noqa: E402
@@ -72,11 +73,16 @@ def main() -> None:
         b.time(f"make_view (depth buffer 256^2), {tag}", lambda: make_view(Vd, topo, tip, C, cfg, normal=frame[2]))
         for n_pts in (200, 5000, 20000):
             clouds[n_pts] = observe(Vd, topo, tip, frame[2], ObservationConfig(n_points=(n_pts, n_pts)), 1)[0]
-        roi = V[np.linalg.norm(V - p, axis=1) < 60.0]
+        inside = np.linalg.norm(V - p, axis=1) < 60.0
+        roi = V[inside]
+        roi_tri = roi_triangles(T, np.flatnonzero(inside))
     spec = CloudGridSpec(grid_size=12, half_width_mm=40.0)
-    b.time(f"ReferenceSurface.build ({len(roi)} pre-op points)",
+    R = np.asarray(frame)  # rows t1, t2, n
+    b.time(f"ReferenceSurface.from_patch ({len(roi)} pre-op points, {len(roi_tri)} triangles; the default)",
+           lambda: ReferenceSurface.from_patch(roi, roi_tri, p, R, spec))
+    b.time(f"ReferenceSurface.build ({len(roi)} pre-op points; reference: points)",
            lambda: ReferenceSurface.build(roi, p, frame[2], frame[0], frame[1], spec))
-    ref = ReferenceSurface.build(roi, p, frame[2], frame[0], frame[1], spec)
+    ref = ReferenceSurface.from_patch(roi, roi_tri, p, R, spec)
     for n_pts, c in clouds.items():
         b.time(f"cloud_grid 12x12, {n_pts} points", lambda c=c: cloud_grid(c, ref, spec))
     b.print()

@@ -33,6 +33,7 @@ class SurfaceGraph:
     areas : (s,)            node areas, mm^2
     normals : (s, 3)        area-weighted outward unit normals
     graph : (s, s) sparse   edge lengths, mm
+    triangles : (m, 3) int64 the surface triangles as indices into ``node_ids``
     """
 
     node_ids: np.ndarray
@@ -40,6 +41,7 @@ class SurfaceGraph:
     areas: np.ndarray
     normals: np.ndarray
     graph: sp.csr_matrix
+    triangles: np.ndarray
 
     @property
     def total_area(self) -> float:
@@ -68,7 +70,7 @@ def surface_graph(points: np.ndarray, facets: np.ndarray) -> SurfaceGraph:
     w = np.linalg.norm(p[i] - p[j], axis=1)
     g = sp.coo_matrix((w, (i, j)), shape=(node_ids.size,) * 2).tocsr()
     g = g.maximum(g.T).tocsr()
-    return SurfaceGraph(node_ids=node_ids, points=p, areas=areas, normals=normals, graph=g)
+    return SurfaceGraph(node_ids=node_ids, points=p, areas=areas, normals=normals, graph=g, triangles=tri)
 
 
 def nearest_surface_node(surf: SurfaceGraph, point: np.ndarray) -> int:
@@ -108,6 +110,23 @@ def extract_roi(surf: SurfaceGraph, point: np.ndarray, fraction: float) -> tuple
         n -= 1
     ids = order[:n]
     return ids, float(cum[n - 1] / surf.total_area)
+
+
+def roi_triangles(facets: np.ndarray, roi_point_ids: np.ndarray) -> np.ndarray:
+    """The ROI patch's own triangles: the surface ``facets`` (mesh point ids) whose three nodes are all ROI
+    nodes, as ``(m, 3)`` indices into ``roi_point_ids`` (the order of ``roi_undeformed_mm``).
+
+    A camera model reads the pre-operative height from them
+    (:meth:`liverforce.learn.cloud_features.ReferenceSurface.from_patch`).
+    """
+    F = np.asarray(facets, dtype=np.int64).reshape(-1, 3)
+    ids = np.asarray(roi_point_ids, dtype=np.int64).ravel()
+    if ids.size == 0 or F.size == 0:
+        return np.empty((0, 3), dtype=np.int64)
+    pos = np.full(max(int(F.max()), int(ids.max())) + 1, -1, dtype=np.int64)
+    pos[ids] = np.arange(ids.size)
+    T = pos[F]
+    return T[(T >= 0).all(axis=1)]
 
 
 def local_frame(surf: SurfaceGraph, point: np.ndarray, radius_mm: float = 5.0) -> np.ndarray:

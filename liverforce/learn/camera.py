@@ -24,14 +24,18 @@ exactly these (length ``2 g^2 + 3``)::
 Where the inputs come from
 --------------------------
 - **Serving / user data**: ``arrays["camera_cloud_mm"]`` (one ``(k_i, 3)`` cloud
-  per case) and ``arrays["tool_tip_mm"]`` ``(n, 3)``, in the source frame.
+  per case) and ``arrays["tool_tip_mm"]`` ``(n, 3)``, in the source frame, and
+  the pre-operative ROI patch: ``roi_undeformed_mm`` with its own triangles
+  ``roi_triangles`` (``(m_i, 3)`` indices into it; ``Preop.from_surface`` computes
+  them), the top sheet of which is the height reference
+  (:meth:`~liverforce.learn.cloud_features.ReferenceSurface.from_patch`).
 - **Training from the shards** (no new FE): the stored full-surface
   displacements are observed by :func:`liverforce.learn.observation.observe_many`
   (camera pose in a cone, visibility, tool shaft and tip, density, noise), seeded
   per case by ``case_seed(observation_seed, case_id)``; the tip is the exertion
   point moved with the surface plus Gaussian kinematics noise of
   ``tip_noise_mm`` per coordinate (stage ``observation.tip``). Needs
-  ``arrays["surface_displacement_mm"]`` and ``arrays["surface_meshes"]``
+  ``arrays["surface_displacement_mm"]``, ``arrays["roi_triangles"]`` and ``arrays["surface_meshes"]``
   (geometry id -> ``(vertices, triangles)`` of :func:`surface_from_mesh`; a
   per-run entry, not a per-case column). The tool's shaft is along the outward
   normal: taking it along ``-F`` would let the shadow's direction tell the model
@@ -49,7 +53,7 @@ import math
 
 import numpy as np
 
-from liverforce.learn.cloud_features import CloudGridSpec, ReferenceSurface, cloud_grid
+from liverforce.learn.cloud_features import ROI_TRIANGLES_KEY, CloudGridSpec, ReferenceSurface, cloud_grid
 from liverforce.learn.frames import case_rotations
 from liverforce.seeds import derive
 
@@ -63,7 +67,7 @@ FEATURES_KEY = "camera_features"
 
 #: grid settings of cloud_features a config may set (the grid size and half-width come from the representation)
 GRID_KEYS = ("kernel_radius_cells", "min_points", "fill", "max_abs_height_mm", "reference_oversample",
-             "estimator", "max_leverage")
+             "estimator", "max_leverage", "reference")
 
 _CACHE: dict[tuple, np.ndarray] = {}
 _CACHE_MAX = 200_000
@@ -145,6 +149,7 @@ def features_from_clouds(clouds, tips, arrays: dict, spec: CloudGridSpec,
     P = np.asarray(arrays["exertion_point_mm"], dtype=np.float64)
     R = case_rotations(arrays) if R is None else R
     ids = arrays.get("case_id")
+    tris = arrays.get(ROI_TRIANGLES_KEY)
     tips = np.asarray(tips, dtype=np.float64).reshape(-1, 3)
     if len(clouds) != len(rows) or len(tips) != len(rows):
         raise ValueError(f"need one cloud and one tool tip per case ({len(rows)}); got {len(clouds)} and {len(tips)}")
@@ -155,8 +160,9 @@ def features_from_clouds(clouds, tips, arrays: dict, spec: CloudGridSpec,
         ref = refs.get(key)
         if ref is None:
             label = f"case {ids[i] if ids is not None else i}"
-            ref = refs[key] = ReferenceSurface.from_rotation(arrays["roi_undeformed_mm"][i], P[i], R[i], spec,
-                                                             label=label)
+            ref = refs[key] = ReferenceSurface.for_case(arrays["roi_undeformed_mm"][i],
+                                                        None if tris is None else tris[i], P[i], R[i], spec,
+                                                        label=label)
         cloud = np.asarray(clouds[k], dtype=np.float64).reshape(-1, 3)
         out[k, :-3] = cloud_grid(cloud, ref, spec).features(include_mask=True)
         out[k, -3:] = R[i] @ (tips[k] - P[i])
@@ -184,8 +190,19 @@ def camera_features(arrays: dict, camera: dict, grid_size: int, half_width_mm: f
     ids = np.asarray(arrays["case_id"]).astype(str)
     settings = json.dumps([camera, grid_size, half_width_mm], sort_keys=True, default=str)
     disp = arrays.get("surface_displacement_mm")
+    tris = arrays.get(ROI_TRIANGLES_KEY)
+
+    def digest(*parts) -> str:
+        h = hashlib.blake2b(digest_size=16)
+        for a in parts:
+            if a is not None:
+                h.update(np.ascontiguousarray(a).tobytes())
+        return h.hexdigest()
+
+    # the key holds what the row's features are made of: the surface's motion and the pre-operative patch
     keys = [(settings, int(observation_seed), cid,
-             None if disp is None else hashlib.blake2b(np.ascontiguousarray(disp[i]).tobytes(), digest_size=16).hexdigest())
+             digest(None if disp is None else disp[i], arrays["roi_undeformed_mm"][i],
+                    None if tris is None else np.asarray(tris[i], dtype=np.int64)))
             for i, cid in enumerate(ids)]
     todo = np.array([i for i in range(n) if keys[i] not in _CACHE], dtype=np.int64)
     if todo.size:

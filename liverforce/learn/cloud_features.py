@@ -12,12 +12,20 @@ there, and the cloud.
 Per case
 --------
 1. **Reference** (pre-operative, once per exertion point;
-   :meth:`ReferenceSurface.build`): the undeformed surface points near the
-   exertion point are moved into the local frame ``x_loc = R (x - p)`` (rows
-   of ``R``: ``t1, t2, n``; :mod:`liverforce.learn.frames`) and their normal
-   height ``z_ref(u, v)`` is rasterised on a fine grid (the piecewise-linear
-   Delaunay interpolant of ``representation``, nearest node outside the
-   hull), later read bilinearly.
+   :meth:`ReferenceSurface.for_case`): the undeformed surface near the
+   exertion point is moved into the local frame ``x_loc = R (x - p)`` (rows
+   of ``R``: ``t1, t2, n``; :mod:`liverforce.learn.frames`) and its normal
+   height ``z_ref(u, v)`` is rasterised on a fine grid, later read
+   bilinearly. By default (``reference: surface``) the raster is a z-buffer
+   of the ROI patch's triangles (:meth:`ReferenceSurface.from_patch`): the
+   highest sheet at each ``(u, v)``, the one a camera above the exertion
+   point sees. The ROI reaches tens of mm and can wrap round a thin edge
+   of the liver, so another sheet of the surface can lie under the grid;
+   the older ``reference: points`` (:meth:`ReferenceSurface.from_rotation`,
+   the piecewise-linear Delaunay interpolant of the ROI *points*, which has
+   no way to tell the sheets apart) then mixes them, and the cloud's height
+   change there is off by the lobe's thickness (10-30 mm on the default
+   livers).
 2. **Cloud**: points in the local frame; exact duplicate points are merged
    and the rest put in a canonical (sorted) order, so the result depends on
    neither the point order nor repeated points (bit for bit). Each point gets
@@ -84,6 +92,11 @@ from liverforce.learn.grid import interpolate_to_grid
 
 FILL_RULES = ("laplace", "zero", "nearest")
 ESTIMATORS = ("linear", "mean")
+#: how the pre-operative height is built: a z-buffer of the ROI patch's triangles | the ROI points' Delaunay
+#: interpolant (models written before format 7)
+REFERENCES = ("surface", "points")
+#: input-contract key of the ROI patch's triangles: (m, 3) indices into ``roi_undeformed_mm`` per case
+ROI_TRIANGLES_KEY = "roi_triangles"
 
 
 @dataclass(frozen=True)
@@ -120,6 +133,14 @@ class CloudGridSpec:
         weighted standard deviations (Mahalanobis distance) of its points'
         weighted centroid (default 4: two), so a plane is never extrapolated far
         from a thin sliver of points.
+    reference : str
+        ``surface`` (default): the pre-operative height is the top sheet of the
+        ROI patch's triangles (a z-buffer seen along the normal), so a sheet
+        of the liver under the grid (round a thin edge) is ignored, as the
+        camera does; needs the patch's triangles (``roi_triangles``).
+        ``points``: the Delaunay interpolant of the ROI points in the
+        tangent plane, which mixes such sheets (camera models written before
+        bundle format 7).
     """
 
     grid_size: int
@@ -131,6 +152,7 @@ class CloudGridSpec:
     reference_oversample: int = 4
     estimator: str = "linear"
     max_leverage: float = 4.0
+    reference: str = "surface"
 
     def __post_init__(self) -> None:
         for k, f in (("grid_size", int), ("min_points", int), ("reference_oversample", int),
@@ -147,6 +169,7 @@ class CloudGridSpec:
             "reference_oversample": 1 <= self.reference_oversample <= 32,
             "estimator": self.estimator in ESTIMATORS,
             "max_leverage": self.max_leverage > 0,
+            "reference": self.reference in REFERENCES,
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
@@ -154,7 +177,7 @@ class CloudGridSpec:
                 "CloudGridSpec: invalid " + ", ".join(f"{k}={getattr(self, k)!r}" for k in bad)
                 + f" (grid_size >= 3, half_width_mm > 0, kernel_radius_cells in [0.25, 5], min_points >= 1, "
                 f"fill one of {FILL_RULES}, max_abs_height_mm > 0, reference_oversample in [1, 32], "
-                f"estimator one of {ESTIMATORS}, max_leverage > 0)"
+                f"estimator one of {ESTIMATORS}, max_leverage > 0, reference one of {REFERENCES})"
             )
 
     @property
@@ -216,7 +239,9 @@ class ReferenceSurface:
     @classmethod
     def build(cls, undeformed_points_mm, exertion_point_mm, normal, t1, t2, spec: CloudGridSpec,
               label: str = "reference") -> "ReferenceSurface":
-        """From the pre-operative surface points near the exertion point (e.g. ``roi_undeformed_mm``).
+        """From the pre-operative surface points near the exertion point (e.g. ``roi_undeformed_mm``): their
+        Delaunay interpolant in the tangent plane (``reference: points``; a patch that wraps round an edge of
+        the liver needs :meth:`from_patch`).
 
         Parameters
         ----------
@@ -238,20 +263,55 @@ class ReferenceSurface:
         For callers that hold the case's rotation already
         (:func:`liverforce.learn.frames.case_rotations`, ``Preop.rotation``).
         """
-        R = np.asarray(R, dtype=np.float64).reshape(3, 3)
-        p = np.asarray(exertion_point_mm, dtype=np.float64).reshape(3)
-        U = (np.asarray(undeformed_points_mm, dtype=np.float64).reshape(-1, 3) - p) @ R.T
-        if len(U) < 3 or not np.isfinite(U).all():
-            raise ValueError(f"{label}: the pre-operative surface needs at least 3 finite points (got {len(U)}, "
-                             f"{int((~np.isfinite(U)).any(axis=1).sum())} not finite)")
-        step = spec.spacing_mm / spec.reference_oversample
-        reach = spec.half_width_mm + spec.kernel_radius_mm
-        n_half = int(math.ceil(reach / step)) + 1
-        lo = -n_half * step
-        axis = lo + step * np.arange(2 * n_half + 1)
+        R, p, U = _local_points(undeformed_points_mm, exertion_point_mm, R, label)
+        lo, step, axis = _raster_axis(spec)
         uu, vv = np.meshgrid(axis, axis)
         raster = interpolate_to_grid(U[:, :2], U[:, 2:3], np.column_stack([uu.ravel(), vv.ravel()]), label)[:, 0]
-        raster = raster.reshape(uu.shape)
+        return cls._with_raster(p, R, lo, step, raster.reshape(uu.shape), spec)
+
+    @classmethod
+    def from_patch(cls, undeformed_points_mm, triangles, exertion_point_mm, R, spec: CloudGridSpec,
+                   label: str = "reference") -> "ReferenceSurface":
+        """The top sheet of a triangulated pre-operative patch (``reference: surface``).
+
+        ``triangles`` ``(m, 3)`` index ``undeformed_points_mm`` (the ROI patch's
+        own triangles: ``Preop.roi_triangles``, shard loading). Each raster
+        node takes the highest ``z`` of the triangles over it (a z-buffer
+        along the normal: what a camera above the exertion point sees); a
+        node no triangle covers (past the patch's edge) takes the value of
+        the nearest covered one.
+        """
+        R, p, U = _local_points(undeformed_points_mm, exertion_point_mm, R, label)
+        T = check_triangles(triangles, len(U), f"{label}: the pre-operative patch's triangles")
+        lo, step, axis = _raster_axis(spec)
+        raster = _zbuffer(U, T, lo, step, len(axis))
+        covered = np.isfinite(raster)
+        if not covered.any():
+            raise ValueError(f"{label}: the pre-operative patch covers no point of the +-{axis[-1]:.3g} mm grid "
+                             "around the exertion point (is the patch the one round this exertion point?)")
+        if not covered.all():
+            from scipy.ndimage import distance_transform_edt
+
+            _, (ii, jj) = distance_transform_edt(~covered, return_indices=True)
+            raster = raster[ii, jj]
+        return cls._with_raster(p, R, lo, step, raster, spec)
+
+    @classmethod
+    def for_case(cls, undeformed_points_mm, triangles, exertion_point_mm, R, spec: CloudGridSpec,
+                 label: str = "reference") -> "ReferenceSurface":
+        """The reference ``spec.reference`` asks for: :meth:`from_patch` (``surface``; ``triangles`` needed)
+        or :meth:`from_rotation` (``points``; ``triangles`` unused)."""
+        if spec.reference == "points":
+            return cls.from_rotation(undeformed_points_mm, exertion_point_mm, R, spec, label=label)
+        if triangles is None:
+            raise ValueError(
+                f"{label}: this camera model reads the pre-operative height from the ROI patch's triangles "
+                "(reference: surface) and none were given: pass 'roi_triangles' (indices into "
+                "'roi_undeformed_mm'; Preop.from_surface computes them from the liver's surface)")
+        return cls.from_patch(undeformed_points_mm, triangles, exertion_point_mm, R, spec, label=label)
+
+    @classmethod
+    def _with_raster(cls, p, R, lo: float, step: float, raster, spec: CloudGridSpec) -> "ReferenceSurface":
         ref = cls(p, R, float(lo), float(step), raster, np.empty(0))
         g = spec.grid()
         object.__setattr__(ref, "grid_height", ref.height(g[:, 0], g[:, 1]).reshape(spec.grid_size, spec.grid_size))
@@ -271,6 +331,70 @@ class ReferenceSurface:
         Z = self.raster
         return ((1 - a) * (1 - b) * Z[i, j] + a * (1 - b) * Z[i, j + 1]
                 + (1 - a) * b * Z[i + 1, j] + a * b * Z[i + 1, j + 1])
+
+
+def _local_points(points_mm, exertion_point_mm, R, label: str):
+    R = np.asarray(R, dtype=np.float64).reshape(3, 3)
+    p = np.asarray(exertion_point_mm, dtype=np.float64).reshape(3)
+    U = (np.asarray(points_mm, dtype=np.float64).reshape(-1, 3) - p) @ R.T
+    if len(U) < 3 or not np.isfinite(U).all():
+        raise ValueError(f"{label}: the pre-operative surface needs at least 3 finite points (got {len(U)}, "
+                         f"{int((~np.isfinite(U)).any(axis=1).sum())} not finite)")
+    return R, p, U
+
+
+def check_triangles(triangles, n_points: int, label: str) -> np.ndarray:
+    """``triangles`` as an ``(m, 3)`` int64 array indexing ``n_points`` points; ValueError naming ``label`` if not."""
+    T = np.asarray(triangles)
+    if T.size == 0 or T.ndim != 2 or T.shape[1] != 3 or not np.issubdtype(T.dtype, np.integer) and not (
+            np.issubdtype(T.dtype, np.floating) and np.isfinite(T).all() and (T == np.round(T)).all()):
+        raise ValueError(f"{label} must be a non-empty (m, 3) array of whole numbers indexing the points "
+                         f"(got shape {T.shape}, dtype {T.dtype})")
+    T = T.astype(np.int64)
+    if T.min() < 0 or T.max() >= n_points:
+        raise ValueError(f"{label} index points {T.min()}..{T.max()}, but there are {n_points} "
+                         "(indices into roi_undeformed_mm, from 0)")
+    return T
+
+
+def _raster_axis(spec: CloudGridSpec) -> tuple[float, float, np.ndarray]:
+    """``(lo, step, axis)``: the reference raster's first node, spacing and node coordinates (mm), the same in
+    ``u`` and ``v`` (``lo`` and ``step`` exactly as bundles before format 7 computed them)."""
+    step = spec.spacing_mm / spec.reference_oversample
+    reach = spec.half_width_mm + spec.kernel_radius_mm
+    n_half = int(math.ceil(reach / step)) + 1
+    lo = -n_half * step
+    return lo, step, lo + step * np.arange(2 * n_half + 1)
+
+
+def _zbuffer(U: np.ndarray, T: np.ndarray, lo: float, step: float, r: int) -> np.ndarray:
+    """Highest ``z`` of the triangles ``U[T]`` (local frame) at the ``r x r`` raster nodes ``lo + step k``
+    (row = ``v``); -inf where none lies over a node; triangles seen edge-on (no area in the tangent plane) are
+    skipped: their neighbours cover their edges."""
+    axis = lo + step * np.arange(r)
+    Z = np.full((r, r), -np.inf)
+    tri = U[T]
+    x0, x1 = tri[:, :, 0].min(axis=1), tri[:, :, 0].max(axis=1)
+    y0, y1 = tri[:, :, 1].min(axis=1), tri[:, :, 1].max(axis=1)
+    j0 = np.maximum(np.ceil((x0 - lo) / step - 1e-9), 0).astype(np.int64)
+    j1 = np.minimum(np.floor((x1 - lo) / step + 1e-9), r - 1).astype(np.int64)
+    i0 = np.maximum(np.ceil((y0 - lo) / step - 1e-9), 0).astype(np.int64)
+    i1 = np.minimum(np.floor((y1 - lo) / step + 1e-9), r - 1).astype(np.int64)
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    det = (b[:, 1] - c[:, 1]) * (a[:, 0] - c[:, 0]) + (c[:, 0] - b[:, 0]) * (a[:, 1] - c[:, 1])
+    area2 = np.abs(det)
+    for k in np.flatnonzero((j1 >= j0) & (i1 >= i0) & (area2 > 1e-12 * (1.0 + (x1 - x0 + y1 - y0) ** 2))):
+        uu, vv = np.meshgrid(axis[j0[k]:j1[k] + 1], axis[i0[k]:i1[k] + 1])
+        ak, bk, ck = a[k], b[k], c[k]
+        l1 = ((bk[1] - ck[1]) * (uu - ck[0]) + (ck[0] - bk[0]) * (vv - ck[1])) / det[k]
+        l2 = ((ck[1] - ak[1]) * (uu - ck[0]) + (ak[0] - ck[0]) * (vv - ck[1])) / det[k]
+        l3 = 1.0 - l1 - l2
+        inside = (l1 >= -1e-9) & (l2 >= -1e-9) & (l3 >= -1e-9)
+        if inside.any():
+            z = l1 * ak[2] + l2 * bk[2] + l3 * ck[2]
+            sub = Z[i0[k]:i1[k] + 1, j0[k]:j1[k] + 1]
+            np.maximum(sub, np.where(inside, z, -np.inf), out=sub)
+    return Z
 
 
 # --------------------------------------------------------------------------
@@ -458,14 +582,17 @@ def cloud_feature_matrix(clouds, references, spec: CloudGridSpec, include_mask: 
 def references_from_arrays(arrays: dict, spec: CloudGridSpec) -> list[ReferenceSurface]:
     """One :class:`ReferenceSurface` per case from input-contract arrays.
 
-    Uses ``roi_undeformed_mm`` (the pre-operative ROI points: known before
-    surgery, no correspondence is used), ``exertion_point_mm``,
+    Uses ``roi_undeformed_mm`` and ``roi_triangles`` (the pre-operative ROI
+    patch: known before surgery, no correspondence is used; the triangles
+    only with ``spec.reference == "surface"``), ``exertion_point_mm``,
     ``frame_normal``, ``frame_t1``, ``frame_t2``; ``case_id`` names cases in errors.
     """
     ids = arrays.get("case_id")
+    tris = arrays.get(ROI_TRIANGLES_KEY)
     R = case_rotations(arrays)
     out = []
     for i, U in enumerate(arrays["roi_undeformed_mm"]):
-        out.append(ReferenceSurface.from_rotation(
-            U, arrays["exertion_point_mm"][i], R[i], spec, label=f"case {ids[i] if ids is not None else i}"))
+        out.append(ReferenceSurface.for_case(
+            U, None if tris is None else tris[i], arrays["exertion_point_mm"][i], R[i], spec,
+            label=f"case {ids[i] if ids is not None else i}"))
     return out

@@ -92,6 +92,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from liverforce.learn.cloud_features import ROI_TRIANGLES_KEY
 from liverforce.learn.encoders import AutoEncoder, Encoder, PCAEncoder
 from liverforce.learn.frames import case_rotations, force_to_local, force_to_source
 from liverforce.learn.names import FORCE_SCALINGS
@@ -118,13 +119,16 @@ from liverforce.learn.torchutil import EpochCallback
 from liverforce.seeds import derive
 
 FORMAT = "liverforce.force_model"
-FORMAT_VERSION = 6  # 3: probe compliance in the state vector (material from column 22), linear force estimate;
+FORMAT_VERSION = 7  # 3: probe compliance in the state vector (material from column 22), linear force estimate;
 #                     4: the GP regressor may be a GPEnsemble (model.gp.code_members), which a reader of 3 cannot load;
 #                     5: the state features may end with the indentation strain, which a reader of 4 would misread;
 #                     6: a GP's kernel may be the rational quadratic (a ``shape`` buffer), which a reader of 5 would
-#                        ignore and evaluate as the squared exponential
-READ_VERSIONS = (3, 4, 5, 6)  # a version-3 bundle is a version-4 bundle with a single GP (or an MLP); 4 is 5 without
-#                               the indentation strain; 5 is 6 with squared-exponential GPs (no shape buffer)
+#                        ignore and evaluate as the squared exponential;
+#                     7: a camera model's pre-operative height is the top sheet of the ROI patch's triangles
+#                        (camera.grid.reference: surface), which a reader of 6 would build from the ROI points
+READ_VERSIONS = (3, 4, 5, 6, 7)  # a version-3 bundle is a version-4 bundle with a single GP (or an MLP); 4 is 5
+#                                  without the indentation strain; 5 is 6 with squared-exponential GPs (no shape
+#                                  buffer); 6 is 7 with camera models on the ROI points' reference (reference: points)
 
 ROI_INPUTS = (
     "exertion_point_mm",
@@ -538,6 +542,8 @@ class ForceModel:
             keys += [k for k in STATE_INPUTS if k not in keys]
         if self.representation.is_camera:  # the camera cloud and tool tip are checked by liverforce.learn.camera
             keys = [k for k in keys if k not in ("roi_deformed_mm", "roi_centroid_deformed_mm")]
+            if self.representation.camera_reference == "surface":
+                keys.append(ROI_TRIANGLES_KEY)
         return tuple(keys)
 
     def forward(self, arrays: dict, observation_seed: int | None = None, *,
@@ -704,7 +710,13 @@ class ForceModel:
         )
         rspec = RegressorSpec.from_dict(doc["regressor"])
         net = load_regressor(rspec, torch.load(path / "regressor.pt", weights_only=True))
-        return cls(Representation.from_dict(doc["representation"]), pre, rspec, net, doc.get("meta"))
+        rdoc = doc["representation"]
+        if doc["format_version"] < 7 and rdoc.get("camera") is not None:
+            # written before the patch reference: its camera features were read over the ROI points' interpolant
+            cam = dict(rdoc["camera"])
+            cam["grid"] = {"reference": "points", **(cam.get("grid") or {})}
+            rdoc = {**rdoc, "camera": cam}
+        return cls(Representation.from_dict(rdoc), pre, rspec, net, doc.get("meta"))
 
 
 def outside_training_range(model: "ForceModel", arrays: dict) -> tuple[np.ndarray, dict[str, np.ndarray]] | None:

@@ -202,6 +202,17 @@ class Representation:
         return self.features in names.CAMERA_FEATURES
 
     @property
+    def camera_reference(self) -> str | None:
+        """A camera model's pre-operative height reference (``surface``: the ROI patch's triangles, needs
+        ``roi_triangles``; ``points``: the ROI points), None for other features
+        (:class:`liverforce.learn.cloud_features.CloudGridSpec`)."""
+        if not self.is_camera:
+            return None
+        from liverforce.learn.cloud_features import CloudGridSpec
+
+        return str((self.camera.get("grid") or {}).get("reference", CloudGridSpec.reference))
+
+    @property
     def n_features(self) -> int:
         """Length of the feature vector, ``channels * g^2`` (``+ 3``, the tool tip, for ``cloud``)."""
         if self.is_camera:
@@ -445,6 +456,10 @@ def representation_from_config(model_cfg: dict, train_arrays: dict) -> Represent
     cam = None
     if features in names.CAMERA_FEATURES:
         cam = _plain(model_cfg.get("camera") or {})
+        # the bundle records the height reference even where the config leaves it to the default
+        from liverforce.learn.cloud_features import CloudGridSpec
+
+        cam["grid"] = {"reference": CloudGridSpec.reference, **(cam.get("grid") or {})}
     return Representation(
         rigid_motion=str(model_cfg.get("rigid_motion", "keep")),
         rigid_motion_radius_mm=float(model_cfg.get("rigid_motion_radius_mm", 15.0)),
@@ -499,10 +514,11 @@ def with_roi_fraction(arrays: dict, fraction: float, surfaces: dict) -> dict:
         A shallow copy of ``arrays`` with ``roi_undeformed_mm``,
         ``roi_deformed_mm``, ``roi_node_ids`` (mesh point ids),
         ``roi_centroid_undeformed_mm`` and ``roi_centroid_deformed_mm``
-        replaced, and ``roi_area_fraction`` (achieved) added. Frames,
-        exertion points and forces are unchanged.
+        replaced, and ``roi_area_fraction`` (achieved) added; ``roi_triangles`` (the patch's own
+        triangles, which camera models read) too, where ``arrays`` had them. Frames, exertion points and
+        forces are unchanged.
     """
-    from liverforce.dataset.roi import extract_roi
+    from liverforce.dataset.roi import extract_roi, roi_triangles
 
     if not 0.0 < float(fraction) <= 1.0:
         raise ValueError(f"ROI fraction must be in (0, 1], got {fraction}")
@@ -510,7 +526,7 @@ def with_roi_fraction(arrays: dict, fraction: float, surfaces: dict) -> dict:
         raise KeyError("re-selecting the ROI needs 'surface_displacement_mm' (the full-surface displacements)")
     P = np.asarray(arrays["exertion_point_mm"], dtype=np.float64)
     geo = np.asarray(arrays["geometry_id"]).astype(str)
-    und, dfm, ids, achieved = [], [], [], []
+    und, dfm, ids, achieved, tris = [], [], [], [], []
     cache: dict[tuple, tuple[np.ndarray, float]] = {}
     for i in range(len(P)):
         gid = geo[i]
@@ -534,6 +550,8 @@ def with_roi_fraction(arrays: dict, fraction: float, surfaces: dict) -> dict:
         dfm.append(x1.astype(np.float32))
         ids.append(surf.node_ids[local].astype(np.int64))
         achieved.append(frac)
+        if "roi_triangles" in arrays:
+            tris.append(roi_triangles(surf.triangles, local))
     out = dict(arrays)
     out["roi_undeformed_mm"] = und
     out["roi_deformed_mm"] = dfm
@@ -541,4 +559,6 @@ def with_roi_fraction(arrays: dict, fraction: float, surfaces: dict) -> dict:
     out["roi_centroid_undeformed_mm"] = np.array([x.astype(np.float64).mean(axis=0) for x in und]).reshape(-1, 3)
     out["roi_centroid_deformed_mm"] = np.array([x.astype(np.float64).mean(axis=0) for x in dfm]).reshape(-1, 3)
     out["roi_area_fraction"] = np.asarray(achieved, dtype=np.float64)
+    if "roi_triangles" in arrays:
+        out["roi_triangles"] = tris
     return out

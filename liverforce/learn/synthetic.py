@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from liverforce.dataset.roi import roi_triangles
+
 
 def random_rotation(rng: np.random.Generator) -> np.ndarray:
     """A uniformly random proper rotation (QR of a Gaussian matrix)."""
@@ -181,7 +183,8 @@ def synthetic_surface_arrays(
     force), but each geometry is a triangulated ellipsoid (:func:`ellipsoid_surface`,
     in its own random source frame), every surface vertex moves (the dent is a Gaussian
     of the Euclidean distance from the exertion point, a surface vertex on the upper
-    half), the ROI is the vertices within ``roi_radius_mm``, and the arrays carry the
+    half), the ROI is the vertices within ``roi_radius_mm`` (with its own triangles,
+    ``roi_triangles``), and the arrays carry the
     shards' ``surface_displacement_mm`` (per case, every vertex) plus the per-run entry
     ``surface_meshes`` (geometry id -> ``(V, T)``).
     """
@@ -204,7 +207,7 @@ def synthetic_surface_arrays(
         "case_id", "geometry_id", "force_n", "exertion_point_mm", "frame_normal", "frame_t1", "frame_t2",
         "liver_centroid_mm", "inertia_mm5", "tool_thickness_mm", "probe_compliance_mm_per_n", "material_params_mpa",
         "roi_undeformed_mm", "roi_deformed_mm", "roi_centroid_undeformed_mm", "roi_centroid_deformed_mm",
-        "surface_displacement_mm")}
+        "surface_displacement_mm", "roi_triangles")}
     for i in range(n_cases):
         g = i % n_geometries
         axes, Q, c, inertia, V, Vs, T, cand = geoms[g]
@@ -243,11 +246,12 @@ def synthetic_surface_arrays(
         out["roi_centroid_undeformed_mm"].append(und.mean(axis=0))
         out["roi_centroid_deformed_mm"].append(dfm.mean(axis=0))
         out["surface_displacement_mm"].append(disp.astype(np.float32))
+        out["roi_triangles"].append(roi_triangles(T, np.flatnonzero(roi)))
     arrays: dict = {}
     for key, vals in out.items():
         if key in ("case_id", "geometry_id"):
             arrays[key] = np.array(vals, dtype=object)
-        elif key in ("roi_undeformed_mm", "roi_deformed_mm", "surface_displacement_mm"):
+        elif key in ("roi_undeformed_mm", "roi_deformed_mm", "surface_displacement_mm", "roi_triangles"):
             arrays[key] = vals
         else:
             arrays[key] = np.asarray(vals, dtype=np.float64)

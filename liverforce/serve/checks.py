@@ -17,6 +17,10 @@ exertion point on surface    the undeformed ROI's height at the exertion
                              point (a quadratic fit of the nearest nodes in the
                              local frame) is more than ``surface_tol_mm`` off,
                              or the point lies outside its ROI
+ROI patch (camera models)    ``roi_triangles`` missing, not ``(m, 3)`` whole
+                             numbers indexing ``roi_undeformed_mm``, covering
+                             none of the grid, or their top sheet more than
+                             ``surface_tol_mm`` from the exertion point
 displacement (units)         largest ROI displacement above ``scale_factor`` x
                              the largest grid feature seen in training
 liver size (units)           ``(tr I / 2)^(1/5)`` outside the training range
@@ -258,6 +262,8 @@ def check_case(arrays: dict, i: int, model, scale: TrainingScale, limits: Limits
             raise PredictionInputError(f"{label}{exc}") from None
     U_loc = (U - p) @ R.T
     check_roi(U_loc, scale, limits, label)
+    if camera and model.representation.camera_reference == "surface":
+        check_patch(arrays, i, U_loc, model, limits, label)
     if correspondence:
         check_displacement(float(np.abs(D - U).max()), scale, limits, label)
     if model.uses_state:
@@ -279,6 +285,35 @@ def check_case(arrays: dict, i: int, model, scale: TrainingScale, limits: Limits
         check_thickness(arrays, i, scale, limits, label)
         check_compliance(arrays, i, scale, limits, label)
     return R
+
+
+def check_patch(arrays: dict, i: int, U_loc: np.ndarray, model, limits: Limits, label: str) -> None:
+    """A camera model's pre-operative patch (its height reference): ``roi_triangles`` present, an ``(m, 3)``
+    array of whole numbers indexing ``roi_undeformed_mm`` (``U_loc``: in the local frame), covering the grid,
+    with its top sheet through the exertion point (within ``surface_tol_mm``: triangles saved against another
+    point order would not be)."""
+    from liverforce.learn import camera
+    from liverforce.learn.cloud_features import ReferenceSurface
+
+    tris = arrays.get("roi_triangles")
+    if tris is None:
+        raise PredictionInputError(
+            f"{label}this camera model reads the pre-operative height from the ROI patch's triangles: give "
+            "roi_triangles, (m, 3) indices into roi_undeformed_mm (Preop.from_surface and `liverforce predict "
+            "--surface` compute them from the liver's surface)")
+    rep = model.representation
+    try:
+        ref = ReferenceSurface.from_patch(U_loc, tris[i], np.zeros(3), np.eye(3),
+                                          camera.grid_spec(rep.grid_size, rep.half_width_mm, rep.camera),
+                                          label="roi_triangles")
+    except ValueError as exc:
+        raise PredictionInputError(f"{label}{exc}") from None
+    z0 = float(ref.height(np.zeros(1), np.zeros(1))[0])
+    if abs(z0) > limits.surface_tol_mm:
+        raise PredictionInputError(
+            f"{label}roi_triangles: the patch's top sheet passes {z0:.3g} mm from the exertion point along the "
+            f"normal (at most {limits.surface_tol_mm:g} mm): do the triangles index roi_undeformed_mm in its own "
+            "point order, and is the exertion point on the patch?")
 
 
 def check_compliance(arrays: dict, i: int, scale: TrainingScale, limits: Limits, label: str) -> None:

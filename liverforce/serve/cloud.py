@@ -171,6 +171,7 @@ def cloud_to_arrays(model, cloud_mm, preop: Preop, *, approximate: bool, scale: 
         )
     O_src = O[keep]
     out = preop.to_arrays(U)
+    out.pop("roi_triangles", None)  # node models do not read them, and in exact mode the ROI becomes the cloud
     if support == "exact":
         out["roi_undeformed_mm"] = [O_src]
         out["roi_deformed_mm"] = [O_src]

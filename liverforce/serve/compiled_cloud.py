@@ -515,8 +515,11 @@ class CompiledCloud:
         self.p = np.asarray(preop.exertion_point_mm, dtype=np.float64)
         self.R = np.ascontiguousarray(preop.rotation, dtype=np.float64)
         self.spec = camera.grid_spec(rep.grid_size, rep.half_width_mm, rep.camera)
-        self.ref = ReferenceSurface.from_rotation(preop.roi_undeformed_mm, self.p, self.R, self.spec,
-                                                  label="compiled cloud")
+        try:
+            self.ref = ReferenceSurface.for_case(preop.roi_undeformed_mm, preop.roi_triangles, self.p, self.R,
+                                                 self.spec, label="pre-operative context")
+        except ValueError as exc:
+            raise PredictionInputError(str(exc)) from None
         self.half_width_mm = float(rep.half_width_mm)
         self.reach = rep.half_width_mm * (1.0 + 2.0 / (rep.grid_size - 1))
         self.g = int(self.spec.grid_size)

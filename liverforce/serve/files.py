@@ -21,6 +21,8 @@ Context files (``load_context``): JSON or YAML with
     surface: liver_preop.stl              # undeformed surface (path relative to this file), or
     roi_undeformed: roi.npy               #   the undeformed ROI nodes plus
     frame: {normal: [..], t1: [..], t2: [..]}
+    roi_triangles: roi_tri.npy            #   camera-cloud models: the ROI patch's triangles, (m, 3) indices
+                                          #   into roi_undeformed from 0 (.npy, .csv or an inline list)
     liver_centroid_mm: [..]               #   and, for state-vector models, the liver features
     inertia_mm5: [[..], [..], [..]]
     tool_thickness_mm: 60.0               # tissue thickness under the tool along the inward normal
@@ -264,9 +266,21 @@ def _read_doc(path: Path) -> dict:
     return doc
 
 
+def _read_triangles(path: Path) -> np.ndarray:
+    """``(m, 3)`` vertex indices from ``.npy`` or a comma/space-separated text file (``.csv``, ``.txt``)."""
+    if not path.is_file():
+        raise PredictionInputError(f"{path}: no such triangles file")
+    try:
+        if path.suffix.lower() == ".npy":
+            return np.load(path, allow_pickle=False)
+        return np.loadtxt(path, delimiter="," if path.suffix.lower() == ".csv" else None, ndmin=2)
+    except (OSError, ValueError) as exc:
+        raise PredictionInputError(f"{path}: cannot read the triangles ({exc})") from None
+
+
 CONTEXT_KEYS = {"exertion_point_mm", "material_params_mpa", "surface", "roi_undeformed", "frame", "liver_centroid_mm",
                 "inertia_mm5", "tool_thickness_mm", "units", "roi_fraction", "frame_radius_mm", "mesh",
-                "probe_compliance_mm_per_n"}
+                "probe_compliance_mm_per_n", "roi_triangles"}
 
 
 def load_context(source: str | Path | dict, predictor, *, overrides: dict | None = None) -> Preop:
@@ -304,9 +318,9 @@ def load_context(source: str | Path | dict, predictor, *, overrides: dict | None
         preop = Preop.from_surface(pts, tri, point, material,
                                 roi_fraction=float(doc.get("roi_fraction", predictor.roi_fraction)),
                                 frame_radius_mm=float(doc.get("frame_radius_mm", predictor.frame_radius_mm)))
-        if "liver_centroid_mm" in doc or "inertia_mm5" in doc or "tool_thickness_mm" in doc:
+        if "liver_centroid_mm" in doc or "inertia_mm5" in doc or "tool_thickness_mm" in doc or "roi_triangles" in doc:
             raise PredictionInputError("context: give either a surface or liver_centroid_mm/inertia_mm5/"
-                                       "tool_thickness_mm, not both")
+                                       "tool_thickness_mm/roi_triangles, not both")
     elif "roi_undeformed" in doc:
         if "frame" not in doc:
             raise PredictionInputError("context: with roi_undeformed, give the local frame {normal, t1, t2} too")
@@ -317,12 +331,16 @@ def load_context(source: str | Path | dict, predictor, *, overrides: dict | None
             raise PredictionInputError(f"context: frame must be {{normal: [3], t1: [3], t2: [3]}} ({exc})") from exc
         roi = doc["roi_undeformed"]
         roi = read_points(rel(roi), doc.get("units")) if isinstance(roi, (str, Path)) else np.asarray(roi, float) * s
+        tris = doc.get("roi_triangles")
+        if isinstance(tris, (str, Path)):
+            tris = _read_triangles(rel(tris))
         preop = Preop(
             exertion_point_mm=point, frame=frame, roi_undeformed_mm=roi, material_params_mpa=material,
             liver_centroid_mm=(None if "liver_centroid_mm" not in doc
                                else np.asarray(doc["liver_centroid_mm"], float) * s),
             inertia_mm5=None if "inertia_mm5" not in doc else np.asarray(doc["inertia_mm5"], float) * s**5,
             tool_thickness_mm=None if "tool_thickness_mm" not in doc else float(doc["tool_thickness_mm"]) * s,
+            roi_triangles=tris,
         )
     else:
         raise PredictionInputError("context: give the undeformed 'surface' file, or 'roi_undeformed' with 'frame'")

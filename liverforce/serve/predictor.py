@@ -271,6 +271,11 @@ class Predictor:
             :class:`CompiledROI` (equal to the reference to ~1e-6 N); needs
             ``roi_features: displacement`` and no stochastic observation.
         """
+        if self.model.representation.is_camera and "camera_cloud_mm" not in arrays:
+            raise PredictionInputError(
+                "this camera-cloud model predicts from camera clouds with the tool tip ('camera_cloud_mm', "
+                "'tool_tip_mm'); shards and ROI nodes are not what it reads (Predictor.predict_cloud, "
+                "`liverforce predict CLOUD --tool-tip X Y Z`)")
         missing = [k for k in self.model.required_inputs() if k not in arrays]
         if missing:
             raise PredictionInputError(f"the model needs the inputs {missing}; they are missing")

@@ -24,6 +24,9 @@ field                       shape      meaning
                                        computes it from the tet mesh)
 ``roi_point_ids``           (k,)       optional: rows of the surface the ROI came
                                        from (``deformed_surface[roi_point_ids]``)
+``roi_triangles``           (m, 3)     the ROI patch's own triangles, indices into
+                                       ``roi_undeformed_mm`` (camera-cloud models
+                                       read the pre-operative height from them)
 ==========================  =========  =============================================
 
 :attr:`Preop.rotation` is the local rotation of ``frame``
@@ -138,6 +141,7 @@ class Preop:
     roi_point_ids: np.ndarray | None = field(default=None, compare=False)
     tool_thickness_mm: float | None = None
     probe_compliance_mm_per_n: np.ndarray | None = None
+    roi_triangles: np.ndarray | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "exertion_point_mm", _vector("exertion_point_mm", self.exertion_point_mm, 3))
@@ -165,6 +169,16 @@ class Preop:
                     f"probe_compliance_mm_per_n: must be positive definite (mm/N), got eigenvalues "
                     f"{np.round(np.linalg.eigvalsh(C), 6).tolist()}")
             object.__setattr__(self, "probe_compliance_mm_per_n", C)
+        if self.roi_triangles is not None:
+            from liverforce.learn.cloud_features import check_triangles
+
+            try:
+                T = np.asarray(self.roi_triangles)
+                T = check_triangles(T.reshape(-1, 3) if T.ndim == 1 and T.size % 3 == 0 else T,
+                                    len(self.roi_undeformed_mm), "roi_triangles")
+            except (TypeError, ValueError) as exc:
+                raise PredictionInputError(str(exc)) from None
+            object.__setattr__(self, "roi_triangles", T)
 
     @cached_property
     def rotation(self) -> np.ndarray:
@@ -215,7 +229,7 @@ class Preop:
         Liver centroid and inertia need a closed surface; an open one leaves
         them ``None`` (a state-vector model then refuses the context).
         """
-        from liverforce.dataset.roi import extract_roi, local_frame, surface_graph, thickness_along_normal
+        from liverforce.dataset.roi import extract_roi, local_frame, roi_triangles, surface_graph, thickness_along_normal
 
         pts = _points("surface points", points, min_points=4)
         try:
@@ -241,6 +255,7 @@ class Preop:
         ids, _ = extract_roi(surf, p, float(roi_fraction))
         point_ids = surf.node_ids[ids]
         thickness = thickness_along_normal(pts, tri, p, frame[2]) if closed else float("nan")
+        patch = roi_triangles(tri, point_ids)
         return cls(
             exertion_point_mm=p,
             frame=frame,
@@ -250,6 +265,7 @@ class Preop:
             inertia_mm5=inertia if closed and volume > 0 else None,
             roi_point_ids=point_ids,
             tool_thickness_mm=thickness if np.isfinite(thickness) else None,
+            roi_triangles=patch if len(patch) else None,  # a patch without a whole facet: none (camera models refuse)
         )
 
     @classmethod
@@ -260,6 +276,7 @@ class Preop:
 
         frame = np.stack([get("frame_t1"), get("frame_t2"), get("frame_normal")])
         ids = arrays.get("roi_node_ids")
+        tris = arrays.get("roi_triangles")
         return cls(
             exertion_point_mm=get("exertion_point_mm"),
             frame=frame,
@@ -270,6 +287,7 @@ class Preop:
             roi_point_ids=None if ids is None else ids[i],
             tool_thickness_mm=get("tool_thickness_mm"),
             probe_compliance_mm_per_n=get("probe_compliance_mm_per_n"),
+            roi_triangles=None if tris is None else tris[i],
         )
 
     def with_material(self, material_params_mpa) -> "Preop":
@@ -316,6 +334,8 @@ class Preop:
             out["tool_thickness_mm"] = np.array([self.tool_thickness_mm])
         if self.probe_compliance_mm_per_n is not None:
             out["probe_compliance_mm_per_n"] = self.probe_compliance_mm_per_n.reshape(1, 9)
+        if self.roi_triangles is not None:
+            out["roi_triangles"] = [self.roi_triangles]
         return out
 
     def to_dict(self) -> dict:
@@ -326,7 +346,7 @@ class Preop:
             "roi_undeformed_mm": self.roi_undeformed_mm.tolist(),
         }
         for k in ("material_params_mpa", "liver_centroid_mm", "inertia_mm5", "roi_point_ids",
-                  "probe_compliance_mm_per_n"):
+                  "probe_compliance_mm_per_n", "roi_triangles"):
             v = getattr(self, k)
             if v is not None:
                 d[k] = v.tolist()
@@ -338,4 +358,5 @@ class Preop:
     def from_dict(cls, d: dict) -> "Preop":
         return cls(**{k: d[k] for k in (
             "exertion_point_mm", "frame", "roi_undeformed_mm", "material_params_mpa", "liver_centroid_mm",
-            "inertia_mm5", "roi_point_ids", "tool_thickness_mm", "probe_compliance_mm_per_n") if k in d})
+            "inertia_mm5", "roi_point_ids", "tool_thickness_mm", "probe_compliance_mm_per_n", "roi_triangles")
+            if k in d})

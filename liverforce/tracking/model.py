@@ -50,7 +50,8 @@ INTERVAL_COLUMNS = ("ft1_n", "ft2_n", "fn_n", "ft1_half_n", "ft2_half_n", "fn_ha
 #: the last column: the case's geometric state outside the training range (Predictor.context_warnings),
 #: "; "-joined, "" when none
 WARNINGS_COLUMN = "warnings"
-_ROI_KEYS = ("roi_undeformed_mm", "roi_deformed_mm", "camera_cloud_mm")  # ragged (k, 3) point sets, flattened
+_ROI_KEYS = ("roi_undeformed_mm", "roi_deformed_mm", "camera_cloud_mm", "roi_triangles")  # ragged (k, 3) point
+#                                                               sets and triangles (vertex indices), flattened
 
 
 # --------------------------------------------------------------------------
@@ -59,7 +60,8 @@ _ROI_KEYS = ("roi_undeformed_mm", "roi_deformed_mm", "camera_cloud_mm")  # ragge
 
 
 def arrays_to_frame(arrays: dict, keys: tuple[str, ...] | list[str]) -> pd.DataFrame:
-    """One row per case: vectors as lists of floats, ROI clouds flattened to ``3 k`` floats, ids as str."""
+    """One row per case: vectors as lists of floats, ROI clouds and the ROI patch's triangles flattened to
+    ``3 k`` floats, ids as str."""
     cols = {}
     for k in keys:
         v = arrays[k]

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from liverforce.dataset.roi import extract_roi, local_frame, surface_graph
+from liverforce.dataset.roi import extract_roi, local_frame, roi_triangles, surface_graph
 
 
 @pytest.fixture(scope="module")
@@ -80,3 +80,28 @@ def test_thickness_along_the_inward_normal_is_the_chord():
         assert t == pytest.approx(80.0, rel=2e-3)  # the polyhedron's chord is a hair shorter than 2 R
     top = s.faces[s.vertices[s.faces].mean(axis=1)[:, 2] > -20.0]  # a bowl: open at the bottom
     assert np.isnan(thickness_along_normal(s.vertices, top, [0, 0, 40.0], [0, 0, 1.0]))
+
+
+def test_roi_triangles_are_the_facets_inside_the_roi_and_a_wrapped_roi_keeps_the_camera_side_on_top():
+    """Round a thin plate's edge the ROI holds both faces. Its triangles are the facets with three ROI nodes
+    (indices into the ROI's own order); the z-buffer of them along the top face's normal is the top face."""
+    from liverforce.learn.cloud_features import CloudGridSpec, ReferenceSurface
+
+    plate = trimesh.creation.box(extents=[100, 100, 2])
+    for _ in range(4):
+        plate = plate.subdivide()
+    pts, faces = np.asarray(plate.vertices), np.asarray(plate.faces)
+    g = surface_graph(pts, faces)
+    p = np.array([45.0, 0.0, 1.0])  # 5 mm from the edge x = 50 on the top face
+    ids, _ = extract_roi(g, p, 0.08)
+    point_ids = g.node_ids[ids]
+    assert (pts[point_ids, 2] < 0).any()  # wrapped round the edge onto the bottom face
+    T = roi_triangles(faces, point_ids)
+    inside = np.isin(faces, point_ids).all(axis=1)
+    assert len(T) == inside.sum() and T.min() >= 0 and T.max() < len(point_ids)
+    assert {tuple(t) for t in point_ids[T].tolist()} == {tuple(t) for t in faces[inside].tolist()}
+    # the same triangles from the surface graph's own (local) indices, as ROI re-growing computes them
+    assert np.array_equal(roi_triangles(g.triangles, ids), T)
+    spec = CloudGridSpec(grid_size=9, half_width_mm=8.0)
+    ref = ReferenceSurface.from_patch(pts[point_ids], T, p, np.eye(3), spec)
+    assert np.abs(ref.grid_height).max() < 1e-9  # the top face, although the bottom face lies 2 mm under it

@@ -23,7 +23,7 @@ MODEL = {"grid_size": 8, "roi_features": "cloud", "camera": CAMERA, "occlusion":
          "noise_mm": 0.0}
 PRE_OP = ("exertion_point_mm", "frame_normal", "frame_t1", "frame_t2", "roi_undeformed_mm",
           "roi_centroid_undeformed_mm", "liver_centroid_mm", "inertia_mm5", "tool_thickness_mm",
-          "probe_compliance_mm_per_n", "material_params_mpa", "case_id")
+          "probe_compliance_mm_per_n", "material_params_mpa", "case_id", "roi_triangles")
 
 
 @pytest.fixture(scope="module")
@@ -148,3 +148,45 @@ def test_the_bundle_records_the_camera_settings(trained):
     cam = model.meta["training_scale"]["camera"]
     assert 0 < cam["valid_fraction"][0] <= cam["valid_fraction"][1] <= 1
     assert cam["tip_displacement_max_mm"] > 0
+
+
+def test_a_camera_bundle_of_format_6_keeps_the_reference_it_was_trained_with(trained, tmp_path):
+    """Bundles written before the patch reference read the pre-operative height over the ROI points; loading
+    one must not switch it to the triangles (a reader would need inputs it never had and give other forces)."""
+    import json
+    import shutil
+
+    model, a_te = trained
+    assert model.representation.camera_reference == "surface" and "roi_triangles" in model.required_inputs()
+    src = tmp_path / "new"
+    model.save(src)
+    old = tmp_path / "old"
+    shutil.copytree(src, old)
+    doc = json.loads((old / "model.json").read_text())
+    doc["format_version"] = 6
+    doc["representation"]["camera"]["grid"].pop("reference", None)
+    (old / "model.json").write_text(json.dumps(doc))
+    legacy = ForceModel.load(old)
+    assert legacy.representation.camera_reference == "points"
+    assert "roi_triangles" not in legacy.required_inputs()
+    a = subset(a_te, np.arange(4))
+    clouds, tips = camera.observe_cases(a, CAMERA, model.representation.half_width_mm,
+                                        model.representation.grid_size, 9)
+    inputs = _camera_inputs(a, clouds, tips)
+    without = {k: v for k, v in inputs.items() if k != "roi_triangles"}
+    f_old = legacy.predict(without)
+    assert np.isfinite(f_old).all()
+    # the points' reference of the same features, computed by hand: what the old reader computed
+    from liverforce.learn.cloud_features import ReferenceSurface, cloud_grid
+    from liverforce.learn.frames import case_rotations
+
+    spec = camera.grid_spec(model.representation.grid_size, model.representation.half_width_mm,
+                            legacy.representation.camera)
+    assert spec.reference == "points"
+    R = case_rotations(a)
+    ref = ReferenceSurface.from_rotation(a["roi_undeformed_mm"][0], a["exertion_point_mm"][0], R[0], spec)
+    x = legacy.representation.features_of(without, observation_seed=None)[0]
+    assert np.array_equal(x[:-3], cloud_grid(clouds[0], ref, spec).features(include_mask=True))
+    # the new model refuses the inputs without the triangles, naming them
+    with pytest.raises(KeyError, match="roi_triangles"):
+        model.predict(without)

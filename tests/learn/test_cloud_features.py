@@ -187,7 +187,7 @@ def test_camera_cloud_of_a_dented_plate_gives_the_dent_outside_the_tool():
     cfg = ObservationConfig(n_points=(20000, 20000), noise_sd_mm=0.3, tool_radius_mm=2.5, roi_radius_mm=50.0)
     ref = ReferenceSurface.build(V0, *FRAME, SPEC)
     truth = truth_grid().reshape(12, 12)
-    arrays = {"roi_undeformed_mm": [V0, V0], "exertion_point_mm": np.zeros((2, 3)),
+    arrays = {"roi_undeformed_mm": [V0, V0], "roi_triangles": [T, T], "exertion_point_mm": np.zeros((2, 3)),
               "frame_normal": np.tile(FRAME[1], (2, 1)), "frame_t1": np.tile(FRAME[2], (2, 1)),
               "frame_t2": np.tile(FRAME[3], (2, 1))}
     refs = references_from_arrays(arrays, SPEC)
@@ -202,3 +202,86 @@ def test_camera_cloud_of_a_dented_plate_gives_the_dent_outside_the_tool():
         assert np.abs(G.height[G.valid] - truth[G.valid]).max() < 0.35
     M = cloud_feature_matrix(clouds, refs, SPEC)
     assert M.shape == (2, 144) and np.array_equal(M[0], cloud_features(clouds[0], ref, SPEC))
+
+
+def folded_patch(gap=12.0, half=40.0, n=41):
+    """A patch that wraps round a thin edge: the top sheet z = 0 over the whole square and, under its half
+    v < 0, the other face of the lobe at z = -gap (the ROI of a point near the liver's edge)."""
+    s = np.linspace(-half, half, n)
+    X, Y = np.meshgrid(s, s)
+    top = np.column_stack([X.ravel(), Y.ravel(), np.zeros(X.size)])
+    a = (np.arange(n - 1)[:, None] * n + np.arange(n - 1)[None, :]).ravel()
+    T = np.concatenate([np.column_stack([a, a + n, a + n + 1]), np.column_stack([a, a + n + 1, a + 1])])
+    k = n // 2 + 1  # rows with v <= 0
+    low = top[: k * n] + [0.0, 0.0, -gap]
+    b = (np.arange(k - 1)[:, None] * n + np.arange(n - 1)[None, :]).ravel() + len(top)
+    Tl = np.concatenate([np.column_stack([b, b + n, b + n + 1]), np.column_stack([b, b + n + 1, b + 1])])
+    return np.vstack([top, low]), np.vstack([T, Tl])
+
+
+def test_the_patch_reference_is_the_top_sheet_where_the_roi_wraps_round_an_edge():
+    """The ROI of a point near a thin edge holds both faces of the lobe. The camera sees the top one; the
+    patch's z-buffer reads it, and a cloud of the top sheet pushed 1 mm in reads -1 mm everywhere. The ROI
+    points' interpolant cannot tell the faces apart and is off by up to the lobe's thickness."""
+    V, T = folded_patch(gap=12.0)
+    spec = CloudGridSpec(grid_size=12, half_width_mm=30.0)
+    R = np.eye(3)
+    patch = ReferenceSurface.from_patch(V, T, np.zeros(3), R, spec)
+    assert np.abs(patch.raster).max() < 1e-12 and np.abs(patch.grid_height).max() < 1e-12
+    points = ReferenceSurface.from_rotation(V, np.zeros(3), R, spec)
+    assert points.grid_height.min() < -3.0  # the lower face leaks into the points' interpolant
+    rng = np.random.default_rng(0)
+    u, v = rng.uniform(-36, 36, 20000), rng.uniform(-36, 36, 20000)
+    cloud = np.column_stack([u, v, np.full(u.size, -1.0)])
+    G = cloud_grid(cloud, patch, spec)
+    assert G.valid.all() and np.allclose(G.height, -1.0, atol=1e-9)
+    assert np.abs(cloud_grid(cloud, points, spec).height + 1.0).max() > 3.0
+    # both rasters on the nodes bundles before format 7 used (their features must stay bit for bit)
+    for r in (patch, points):
+        assert r.step == spec.spacing_mm / spec.reference_oversample and r.lo == -r.step * (r.raster.shape[0] // 2)
+    # for_case dispatches on spec.reference
+    assert np.array_equal(ReferenceSurface.for_case(V, T, np.zeros(3), R, spec).raster, patch.raster)
+    pts = CloudGridSpec(grid_size=12, half_width_mm=30.0, reference="points")
+    assert np.array_equal(ReferenceSurface.for_case(V, None, np.zeros(3), R, pts).raster, points.raster)
+
+
+def test_the_patch_reference_of_a_tilted_plane_is_exact_and_fills_past_the_patch_edge():
+    """A plane z = 0.3 u - 0.2 v, triangulated, in a rotated and shifted source frame: the z-buffer is the
+    plane (piecewise-linear interpolation of a linear function is exact). Where the patch ends (u > 10 here),
+    each raster node takes the nearest covered node's height."""
+    s = np.linspace(-40, 10, 51)
+    t = np.linspace(-40, 40, 81)
+    X, Y = np.meshgrid(s, t)
+    U = np.column_stack([X.ravel(), Y.ravel(), 0.3 * X.ravel() - 0.2 * Y.ravel()])
+    n = len(s)
+    a = (np.arange(len(t) - 1)[:, None] * n + np.arange(n - 1)[None, :]).ravel()
+    T = np.concatenate([np.column_stack([a, a + n, a + n + 1]), np.column_stack([a, a + n + 1, a + 1])])
+    Q = random_rotation(np.random.default_rng(4))
+    c = np.array([5.0, -7.0, 30.0])
+    spec = CloudGridSpec(grid_size=12, half_width_mm=30.0)
+    ref = ReferenceSurface.from_patch(U @ Q.T + c, T, c, Q.T, spec)  # x = Q u + c, so R (x - c) = u for R = Q^T
+    g = spec.grid()
+    inside = g[:, 0] <= 10.0 - 1e-9
+    want = 0.3 * g[:, 0] - 0.2 * g[:, 1]
+    assert np.allclose(ref.grid_height.ravel()[inside], want[inside], atol=1e-9)
+    axis = ref.lo + ref.step * np.arange(ref.raster.shape[0])
+    jlast = np.flatnonzero(axis <= 10.0 + 1e-9)[-1]
+    assert np.array_equal(ref.raster[:, jlast + 1:], np.repeat(ref.raster[:, jlast:jlast + 1],
+                                                                ref.raster.shape[1] - jlast - 1, axis=1))
+
+
+def test_the_patch_reference_refuses_what_it_cannot_use():
+    V, T = folded_patch()
+    spec = CloudGridSpec(grid_size=12, half_width_mm=30.0)
+    with pytest.raises(ValueError, match="roi_triangles"):
+        ReferenceSurface.for_case(V, None, np.zeros(3), np.eye(3), spec, label="case X")
+    with pytest.raises(ValueError, match="index points"):
+        ReferenceSurface.from_patch(V, T + len(V), np.zeros(3), np.eye(3), spec)
+    with pytest.raises(ValueError, match="whole numbers"):
+        ReferenceSurface.from_patch(V, T[:, :2], np.zeros(3), np.eye(3), spec)
+    with pytest.raises(ValueError, match="whole numbers"):
+        ReferenceSurface.from_patch(V, T + 0.5, np.zeros(3), np.eye(3), spec)
+    with pytest.raises(ValueError, match="covers no point"):
+        ReferenceSurface.from_patch(V + [500.0, 0.0, 0.0], T, np.zeros(3), np.eye(3), spec)
+    with pytest.raises(ValueError, match="reference"):
+        CloudGridSpec(grid_size=12, half_width_mm=30.0, reference="mesh")

@@ -61,7 +61,7 @@ def test_a_camera_model_predicts_exactly_from_a_cloud_with_its_interval(served):
     direct = model.predict({**{k: a[k][:1] if not isinstance(a[k], list) else a[k][:1] for k in
                                ("exertion_point_mm", "frame_normal", "frame_t1", "frame_t2", "roi_undeformed_mm",
                                 "roi_centroid_undeformed_mm", "liver_centroid_mm", "inertia_mm5", "tool_thickness_mm",
-                                "probe_compliance_mm_per_n", "material_params_mpa")},
+                                "probe_compliance_mm_per_n", "material_params_mpa", "roi_triangles")},
                             "camera_cloud_mm": [cloud], "tool_tip_mm": tip[None]})[0]
     assert np.allclose(force, direct, atol=1e-9)
     iv = info["interval"]
@@ -131,7 +131,9 @@ def test_cli_predicts_a_camera_cloud_with_the_tool_tip(served, tmp_path, capsys)
     ctx, cloud, tip = _case(a, 3)
     np.save(tmp_path / "cloud.npy", cloud / 1000.0)  # in metres, as a camera pipeline may give it
     np.save(tmp_path / "roi.npy", ctx.roi_undeformed_mm / 1000.0)
+    np.save(tmp_path / "roi_tri.npy", ctx.roi_triangles)
     doc = {"units": "m", "exertion_point_mm": (ctx.exertion_point_mm / 1000).tolist(), "roi_undeformed": "roi.npy",
+           "roi_triangles": "roi_tri.npy",
            "frame": {"normal": ctx.frame[2].tolist(), "t1": ctx.frame[0].tolist(), "t2": ctx.frame[1].tolist()},
            "material_params_mpa": ctx.material_params_mpa.tolist(),
            "liver_centroid_mm": (ctx.liver_centroid_mm / 1000).tolist(),
@@ -151,6 +153,12 @@ def test_cli_predicts_a_camera_cloud_with_the_tool_tip(served, tmp_path, capsys)
                               str(tmp_path / "ctx.json"), "--units", "m"])
     assert args.func(args) == 2
     assert "tool tip" in capsys.readouterr().err
+    # the patch's triangles are what the pre-operative height is read from: without them, a named refusal
+    (tmp_path / "ctx_nt.json").write_text(json.dumps({k: v for k, v in doc.items() if k != "roi_triangles"}))
+    args = parser.parse_args(["predict", "-m", str(path), str(tmp_path / "cloud.npy"), "--context",
+                              str(tmp_path / "ctx_nt.json"), "--units", "m", "--tool-tip", *map(str, tip / 1000)])
+    assert args.func(args) == 2
+    assert "roi_triangles" in capsys.readouterr().err
 
 
 def test_the_mlflow_pyfunc_serves_the_camera_model_from_clouds(served, tmp_path):
@@ -170,9 +178,11 @@ def test_the_mlflow_pyfunc_serves_the_camera_model_from_clouds(served, tmp_path)
     cases = {k: [a[k][i] for i in range(3)] if isinstance(a[k], list) else np.asarray(a[k])[:3]
              for k in ("case_id", "exertion_point_mm", "frame_normal", "frame_t1", "frame_t2", "roi_undeformed_mm",
                        "roi_centroid_undeformed_mm", "liver_centroid_mm", "inertia_mm5", "tool_thickness_mm",
-                       "probe_compliance_mm_per_n", "material_params_mpa")}
+                       "probe_compliance_mm_per_n", "material_params_mpa", "roi_triangles")}
     cases["camera_cloud_mm"] = [r[1] for r in rows]
     cases["tool_tip_mm"] = np.stack([r[2] for r in rows])
+    # the centroid as the context computes it (from the float32 ROI points; the synthetic row's is from float64)
+    cases["roi_centroid_undeformed_mm"] = np.stack([r[0].roi_undeformed_mm.mean(axis=0) for r in rows])
     got = predict_pyfunc(pf, cases)
     want = [Predictor.from_dir(path).predict_cloud(c, ctx, tool_tip_mm=t) for ctx, c, t in rows]
     np.testing.assert_allclose(got, np.stack(want), atol=1e-9)
@@ -222,3 +232,4 @@ def test_a_context_outside_the_training_range_comes_with_its_warning_on_every_pa
     assert warnings == info["warnings"]
     batch = pred.compile_cloud(odd).predict_batch([cloud, cloud[:3]], np.stack([tip, tip]))
     assert batch.warnings[0] == info["warnings"] and batch.refused[1] is not None and batch.warnings[1] == []
+

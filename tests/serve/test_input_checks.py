@@ -267,3 +267,32 @@ def test_the_context_warns_when_the_tissue_is_thinner_than_in_training(pred, cas
     warn = [w for w in pred.context_warnings(thin) if "tissue under the tool" in w]
     assert len(warn) == 1 and "thinner than in every training case" in warn[0]
     assert np.isfinite(pred.predict(D, thin)).all()  # a warning, not a refusal
+
+
+def test_a_camera_models_roi_patch_is_checked_before_its_height_is_read():
+    """A camera model reads the pre-operative height from the ROI patch's triangles. Missing triangles, triangles
+    that cover none of the grid, and triangles whose top sheet does not pass through the exertion point (saved
+    against another point order: here they index a lid 10 mm above the patch) are refused, named."""
+    from types import SimpleNamespace
+
+    from liverforce.learn.representation import Representation
+    from liverforce.serve.checks import Limits, check_patch
+
+    model = SimpleNamespace(representation=Representation(8, 20.0, features="cloud", camera={"grid": {}}))
+    s = np.linspace(-40, 40, 21)
+    X, Y = np.meshgrid(s, s)
+    plate = np.column_stack([X.ravel(), Y.ravel(), np.zeros(X.size)])
+    a = (np.arange(20)[:, None] * 21 + np.arange(20)[None, :]).ravel()
+    T = np.concatenate([np.column_stack([a, a + 21, a + 22]), np.column_stack([a, a + 22, a + 1])])
+    lid = plate + [0.0, 0.0, 10.0]
+    U = np.vstack([plate, lid])
+    check_patch({"roi_triangles": [T]}, 0, U, model, Limits(), "case A: ")  # the plate: through the point
+    with pytest.raises(PredictionInputError, match=r"case A: roi_triangles: the patch's top sheet passes 10 mm"):
+        check_patch({"roi_triangles": [T + len(plate)]}, 0, U, model, Limits(), "case A: ")
+    with pytest.raises(PredictionInputError, match="give roi_triangles"):
+        check_patch({}, 0, U, model, Limits(), "")
+    far = np.vstack([plate, plate + [500.0, 0.0, 0.0]])
+    with pytest.raises(PredictionInputError, match="covers no point"):
+        check_patch({"roi_triangles": [T + len(plate)]}, 0, far, model, Limits(), "")
+    with pytest.raises(PredictionInputError, match="index points"):
+        check_patch({"roi_triangles": [T + 2 * len(plate)]}, 0, U, model, Limits(), "")

@@ -1,6 +1,8 @@
 """Predictor, correspondence mode (a): same force as the training model, contexts from arrays or a surface."""
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from scipy.spatial import Delaunay
@@ -83,6 +85,12 @@ def test_context_from_surface_is_the_data_factorys(trained, ellipsoid):
     ids, _ = extract_roi(surf, p, 0.05)
     np.testing.assert_array_equal(ctx.roi_point_ids, surf.node_ids[ids])
     np.testing.assert_array_equal(ctx.roi_undeformed_mm, pts[surf.node_ids[ids]])
+    # the patch's own triangles (camera models read the pre-operative height from them): exactly the facets
+    # whose three vertices are ROI vertices, indexing roi_undeformed_mm
+    in_roi = np.isin(tri, ctx.roi_point_ids).all(axis=1)
+    assert len(ctx.roi_triangles) == in_roi.sum() > 0
+    got = {tuple(sorted(t)) for t in ctx.roi_point_ids[ctx.roi_triangles].tolist()}
+    assert got == {tuple(sorted(t)) for t in tri[in_roi].tolist()}
     assert np.dot(ctx.frame[2], p) > 0  # outward normal although the facets were given inward
     np.testing.assert_allclose(ctx.liver_centroid_mm, 0.0, atol=1e-3)  # Fibonacci points: nearly symmetric
     # a deformed copy of the whole surface -> its ROI rows -> a finite force, through the checks
@@ -108,6 +116,24 @@ def test_preop_round_trips_through_a_dict(test_cases):
     for k in ("exertion_point_mm", "frame", "roi_undeformed_mm", "material_params_mpa", "liver_centroid_mm",
               "inertia_mm5", "tool_thickness_mm", "probe_compliance_mm_per_n"):
         np.testing.assert_array_equal(getattr(back, k), getattr(ctx, k))
+
+
+def test_preop_keeps_and_checks_the_roi_patchs_triangles(ellipsoid):
+    from liverforce.serve import PredictionInputError
+
+    pts, tri = ellipsoid()
+    ctx = Preop.from_surface(pts, tri, pts[123], [0.0016, 0.0125], roi_fraction=0.05)
+    back = Preop.from_dict(json.loads(json.dumps(ctx.to_dict())))
+    np.testing.assert_array_equal(back.roi_triangles, ctx.roi_triangles)
+    assert back.roi_triangles.dtype == np.int64
+    np.testing.assert_array_equal(ctx.to_arrays(ctx.roi_undeformed_mm)["roi_triangles"][0], ctx.roi_triangles)
+    import dataclasses
+
+    k = len(ctx.roi_undeformed_mm)
+    for bad, why in ((ctx.roi_triangles + k, "index points"), (ctx.roi_triangles + 0.5, "whole numbers"),
+                     (ctx.roi_triangles[:, :2], "whole numbers")):
+        with pytest.raises(PredictionInputError, match=why):
+            dataclasses.replace(ctx, roi_triangles=bad)
 
 
 def test_load_refuses_a_file_and_names_missing_dirs(tmp_path, trained):
