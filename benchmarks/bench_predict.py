@@ -6,8 +6,8 @@ Prints, on one core (1 BLAS / torch thread):
    the haptic loop: tracked ROI nodes -> force) over ``--calls`` calls: p50 and
    p99, with the split preprocessing (affine first stage incl. checks) vs
    network (MLP in NumPy); PCA and DAE encoders;
-2. the same for the reference path (``Predictor.predict``: checks + Delaunay
-   resampling + scalers + torch) and its split (``Representation.features_of``
+2. the same for the reference path (``Predictor.predict``: checks + top-sheet
+   resampling of the ROI patch + scalers + torch) and its split (``Representation.features_of``
    vs the rest), and the one-off compile cost per exertion point;
 3. batch throughput of the fast path (``predict_batch``, ``--batch`` rows per
    call) with the split, and of the reference path on a shard-like batch;
@@ -17,7 +17,8 @@ Usage: ``python benchmarks/bench_predict.py [--quick] [--calls N] [--batch N] [-
 
 The models are trained here on synthetic cases (liverforce.learn.synthetic) for
 a few epochs: accuracy is irrelevant, sizes are realistic (``--nodes`` ROI
-nodes; the shipped model config: 12 x 12 grid, PCA 16 (or DAE), state vector, MLP 2 x 128).
+nodes; the shipped model config: 12 x 12 grid, PCA 16 (or DAE), state vector, MLP 2 x 128, the grid on the
+ROI patch's top sheet).
 """
 
 from __future__ import annotations
@@ -51,7 +52,8 @@ torch.set_num_threads(1)
 CALLS = ARGS.calls or (2000 if ARGS.quick else 20000)
 BATCH = ARGS.batch or (5000 if ARGS.quick else 20000)
 MODEL = {"encoder": "pca", "code_size": 16, "state_vector": True, "grid_size": 12, "hidden": [128, 128],
-         "dropout": 0.1, "occlusion": {"radius_mm": 3.0, "mode": "remove"}, "noise_mm": 0.0}
+         "dropout": 0.1, "occlusion": {"radius_mm": 3.0, "mode": "remove"}, "noise_mm": 0.0,
+         "interpolation": "surface"}
 TRAIN = {"test_fraction": 0.2, "epochs": 5, "batch_size": 64, "lr": 3e-3, "weight_decay": 0.0, "seed": 0}
 NO_TUNE = {"enabled": False, "trials": 1, "folds": 2, "sobol_trials": 1, "epochs": 1}
 
@@ -134,7 +136,7 @@ def main() -> None:
     with torch.no_grad():
         t_rest = per_call(rest, list(range(n_ref)), warmup=10)
     bench.record("pca: reference single (Predictor.predict)", list(t_ref), peer=None, **pct(t_ref))
-    bench.record("pca:   preprocessing (features_of: Delaunay grid)", list(t_feat), **pct(t_feat))
+    bench.record("pca:   preprocessing (features_of: top-sheet grid)", list(t_feat), **pct(t_feat))
     bench.record("pca:   network (scalers + PCA + torch MLP)", list(t_rest), **pct(t_rest))
     bench.results["pca: fast single (CompiledROI.predict)"].peer = "pca: reference single (Predictor.predict)"
 

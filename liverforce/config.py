@@ -245,6 +245,8 @@ class ModelConfig:
     indentation_strain: bool = MISSING  # with the linear force estimate: also u_w,n / h (tissue thickness h)
     rigid_motion: str = MISSING  # keep | remove (the ROI's best rigid motion undone; displacement features)
     rigid_motion_radius_mm: float = MISSING  # remove: fitted to the ROI nodes at least this far from the tool, mm
+    interpolation: str = MISSING  # surface | points: node displacements on the ROI patch's top sheet or the points'
+    #                               Delaunay interpolant (liverforce.learn.representation)
     camera: CameraConfig = field(default_factory=CameraConfig)  # roi_features: cloud (liverforce.learn.camera)
 
 
@@ -678,6 +680,18 @@ def _check_ranges(cfg: dict) -> None:
     for k in cfg["validate"]["camera_sensitivity"]:
         _check_choice("validate.camera_sensitivity", k, ["n_points", "noise_sd_mm", "cone_half_angle_deg",
                                                         "tip_noise_mm"], "camera setting")
+    obs = cfg["model"]["camera"]["observation"]
+    if obs.get("cone_axis") is None and float(obs.get("tool_radius_mm") or 0) > 0:
+        # the shaft runs along the normal, the cone's axis: a camera within the tool's radius plus the clearance of
+        # it would sit inside the instrument, so no pose of a narrower cone is ever valid
+        reach = float(obs["tool_radius_mm"]) + float(obs.get("camera_tool_clearance_mm") or 0)
+        far = float(max(obs["camera_distance_mm"]))
+        for a in cfg["validate"]["camera_sensitivity"].get("cone_half_angle_deg") or []:
+            if far * math.sin(math.radians(float(a))) <= reach:
+                _fail("validate.camera_sensitivity.cone_half_angle_deg",
+                      f"{a} deg puts every camera within {reach:g} mm of the tool's shaft (it runs along the "
+                      f"normal; the camera is at most {far:g} mm away): no valid view exists",
+                      f"use angles above {math.degrees(math.asin(min(1.0, reach / far))):.2g} deg")
     mf = cfg["model"]["roi_fraction"]
     if mf is not None:
         if not 0 < mf <= 1:
@@ -793,6 +807,7 @@ def _check_model(mo: dict, key: str) -> None:
               f"the rational quadratic's shape must be a finite number > 0 (got {mo['gp']['shape']})",
               "or null to fit it by the marginal likelihood")
     _check_choice(f"{key}.rigid_motion", mo["rigid_motion"], ("keep", "remove"))
+    _check_choice(f"{key}.interpolation", mo["interpolation"], ("surface", "points"))
     if mo["rigid_motion_radius_mm"] < 0:
         _fail(f"{key}.rigid_motion_radius_mm", f"must be >= 0 mm (got {mo['rigid_motion_radius_mm']})")
     if mo["rigid_motion"] == "remove" and mo["roi_features"] not in ("displacement", "both"):

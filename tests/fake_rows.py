@@ -18,6 +18,7 @@ def fake_row(i: int, rng, converged: bool = True, k: int | None = None) -> dict:
         "liver_centroid_mm": [0, 0, 0.0], "inertia_mm5": list(np.eye(3).ravel()),
         "tool_thickness_mm": 40.0, "probe_compliance_mm_per_n": list(np.diag([1.0, 1.0, 2.0]).ravel()),
         "roi_fraction": 0.18, "roi_area_fraction": 0.181, "roi_node_ids": np.arange(k, dtype=np.int32),
+        "roi_triangles": np.array([[0, j, j + 1] for j in range(1, k - 1)], dtype=np.int32).reshape(-1, 3),
         "roi_undeformed_mm": und, "roi_deformed_mm": de,
         "roi_centroid_undeformed_mm": und.mean(0), "roi_centroid_deformed_mm": de.mean(0),
         "surface_displacement_mm": np.full((7, 3), 0.1, np.float32), "max_displacement_mm": 0.17,

@@ -225,7 +225,9 @@ def read_table(path: str | Path, columns: list[str] | None = None) -> pa.Table:
         raise ShardError(f"{path}: not a readable Parquet file ({exc}); delete it and re-run `snakemake`") from exc
     version = meta.get(b"liverforce.schema_version", b"?").decode()
     if version != SCHEMA_VERSION:
-        raise ShardError(f"{path}: schema version {version}, this liverforce reads {SCHEMA_VERSION}")
+        raise ShardError(f"{path}: schema version {version}, this liverforce reads {SCHEMA_VERSION} (1.4 added the "
+                         "ROI patch's triangles); re-run the sweep (`snakemake` re-simulates) or use the liverforce "
+                         "that wrote the shards")
     return table
 
 
@@ -251,7 +253,8 @@ def open_dataset(paths: Sequence[str | Path]) -> pads.Dataset:
 
 
 def points_column(table: pa.Table, name: str) -> list[np.ndarray]:
-    """A ``list<fixed_size_list<float32,3>>`` column as a list of (k_i, 3) arrays (no copy of values)."""
+    """A ``list<fixed_size_list<float32,3>>`` (or ``int32``) column as a list of (k_i, 3) arrays (no copy of
+    values)."""
     col = table.column(name).combine_chunks()
     offsets = col.offsets.to_numpy()
     flat = col.values.values.to_numpy(zero_copy_only=False).reshape(-1, 3)
@@ -290,6 +293,7 @@ def load_training_arrays(paths: Sequence[str | Path], converged_only: bool = Tru
         "roi_undeformed_mm": points_column(table, "roi_undeformed_mm"),
         "roi_deformed_mm": points_column(table, "roi_deformed_mm"),
         "roi_node_ids": [np.asarray(x, dtype=np.int64) for x in table.column("roi_node_ids").to_pylist()],
+        "roi_triangles": [t.astype(np.int64) for t in points_column(table, "roi_triangles")],
     }
     for name in (
         "force_n",

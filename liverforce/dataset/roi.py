@@ -116,8 +116,9 @@ def roi_triangles(facets: np.ndarray, roi_point_ids: np.ndarray) -> np.ndarray:
     """The ROI patch's own triangles: the surface ``facets`` (mesh point ids) whose three nodes are all ROI
     nodes, as ``(m, 3)`` indices into ``roi_point_ids`` (the order of ``roi_undeformed_mm``).
 
-    A camera model reads the pre-operative height from them
-    (:meth:`liverforce.learn.cloud_features.ReferenceSurface.from_patch`).
+    The models read the patch's top sheet through them: a camera model's pre-operative height
+    (:meth:`liverforce.learn.cloud_features.ReferenceSurface.from_patch`) and a node model's grid
+    (:func:`liverforce.learn.grid.interpolate_top_sheet`).
     """
     F = np.asarray(facets, dtype=np.int64).reshape(-1, 3)
     ids = np.asarray(roi_point_ids, dtype=np.int64).ravel()

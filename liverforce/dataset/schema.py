@@ -38,6 +38,9 @@ probe_compliance_mm_per_n : fixed_size_list<float64,9>   the pre-operative linea
 roi_fraction : float64   target ROI area fraction
 roi_area_fraction : float64   achieved ROI area fraction
 roi_node_ids : list<int32>    mesh point ids of the ROI surface nodes
+roi_triangles : list<fixed_size_list<int32,3>>   the ROI patch's own triangles (the surface facets whose three
+    nodes are ROI nodes), as indices into the row's ROI node order; models read node displacements and camera
+    heights on the patch's top sheet through them (:func:`liverforce.dataset.roi.roi_triangles`)
 roi_undeformed_mm : list<fixed_size_list<float32,3>>
 roi_deformed_mm : list<fixed_size_list<float32,3>>
 roi_centroid_undeformed_mm, roi_centroid_deformed_mm : fixed_size_list<float64,3>
@@ -62,7 +65,7 @@ from __future__ import annotations
 
 import pyarrow as pa
 
-SCHEMA_VERSION = "1.3"  # 1.2: probe_compliance_mm_per_n; 1.3: max/min_principal_stretch
+SCHEMA_VERSION = "1.4"  # 1.2: probe_compliance_mm_per_n; 1.3: max/min_principal_stretch; 1.4: roi_triangles
 
 #: columns excluded from the deterministic payload hash (vary run to run)
 NONDETERMINISTIC_COLUMNS = ("wall_time_s",)
@@ -95,6 +98,7 @@ SHARD_SCHEMA = pa.schema(
         ("roi_fraction", pa.float64()),
         ("roi_area_fraction", pa.float64()),
         ("roi_node_ids", pa.list_(pa.int32())),
+        ("roi_triangles", pa.list_(pa.list_(pa.int32(), 3))),
         ("roi_undeformed_mm", pa.list_(_P3)),
         ("roi_deformed_mm", pa.list_(_P3)),
         ("roi_centroid_undeformed_mm", _V3),

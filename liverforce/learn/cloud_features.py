@@ -88,7 +88,7 @@ from dataclasses import asdict, dataclass, fields
 import numpy as np
 
 from liverforce.learn.frames import case_rotations, local_rotations
-from liverforce.learn.grid import interpolate_to_grid
+from liverforce.learn.grid import check_triangles, interpolate_to_grid
 
 FILL_RULES = ("laplace", "zero", "nearest")
 ESTIMATORS = ("linear", "mean")
@@ -341,20 +341,6 @@ def _local_points(points_mm, exertion_point_mm, R, label: str):
         raise ValueError(f"{label}: the pre-operative surface needs at least 3 finite points (got {len(U)}, "
                          f"{int((~np.isfinite(U)).any(axis=1).sum())} not finite)")
     return R, p, U
-
-
-def check_triangles(triangles, n_points: int, label: str) -> np.ndarray:
-    """``triangles`` as an ``(m, 3)`` int64 array indexing ``n_points`` points; ValueError naming ``label`` if not."""
-    T = np.asarray(triangles)
-    if T.size == 0 or T.ndim != 2 or T.shape[1] != 3 or not np.issubdtype(T.dtype, np.integer) and not (
-            np.issubdtype(T.dtype, np.floating) and np.isfinite(T).all() and (T == np.round(T)).all()):
-        raise ValueError(f"{label} must be a non-empty (m, 3) array of whole numbers indexing the points "
-                         f"(got shape {T.shape}, dtype {T.dtype})")
-    T = T.astype(np.int64)
-    if T.min() < 0 or T.max() >= n_points:
-        raise ValueError(f"{label} index points {T.min()}..{T.max()}, but there are {n_points} "
-                         "(indices into roi_undeformed_mm, from 0)")
-    return T
 
 
 def _raster_axis(spec: CloudGridSpec) -> tuple[float, float, np.ndarray]:

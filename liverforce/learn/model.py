@@ -119,16 +119,20 @@ from liverforce.learn.torchutil import EpochCallback
 from liverforce.seeds import derive
 
 FORMAT = "liverforce.force_model"
-FORMAT_VERSION = 7  # 3: probe compliance in the state vector (material from column 22), linear force estimate;
+FORMAT_VERSION = 8  # 3: probe compliance in the state vector (material from column 22), linear force estimate;
 #                     4: the GP regressor may be a GPEnsemble (model.gp.code_members), which a reader of 3 cannot load;
 #                     5: the state features may end with the indentation strain, which a reader of 4 would misread;
 #                     6: a GP's kernel may be the rational quadratic (a ``shape`` buffer), which a reader of 5 would
 #                        ignore and evaluate as the squared exponential;
 #                     7: a camera model's pre-operative height is the top sheet of the ROI patch's triangles
-#                        (camera.grid.reference: surface), which a reader of 6 would build from the ROI points
-READ_VERSIONS = (3, 4, 5, 6, 7)  # a version-3 bundle is a version-4 bundle with a single GP (or an MLP); 4 is 5
-#                                  without the indentation strain; 5 is 6 with squared-exponential GPs (no shape
-#                                  buffer); 6 is 7 with camera models on the ROI points' reference (reference: points)
+#                        (camera.grid.reference: surface), which a reader of 6 would build from the ROI points;
+#                     8: a node model's grid may be the patch's top sheet (representation interpolation: surface),
+#                        a key a reader of 7 does not know
+READ_VERSIONS = (3, 4, 5, 6, 7, 8)  # a version-3 bundle is a version-4 bundle with a single GP (or an MLP); 4 is 5
+#                                     without the indentation strain; 5 is 6 with squared-exponential GPs (no shape
+#                                     buffer); 6 is 7 with camera models on the ROI points' reference (reference:
+#                                     points); 7 is 8 with node models on the points' interpolant (no interpolation
+#                                     key: the Representation default, points)
 
 ROI_INPUTS = (
     "exertion_point_mm",
@@ -542,8 +546,8 @@ class ForceModel:
             keys += [k for k in STATE_INPUTS if k not in keys]
         if self.representation.is_camera:  # the camera cloud and tool tip are checked by liverforce.learn.camera
             keys = [k for k in keys if k not in ("roi_deformed_mm", "roi_centroid_deformed_mm")]
-            if self.representation.camera_reference == "surface":
-                keys.append(ROI_TRIANGLES_KEY)
+        if self.representation.uses_triangles:
+            keys.append(ROI_TRIANGLES_KEY)
         return tuple(keys)
 
     def forward(self, arrays: dict, observation_seed: int | None = None, *,

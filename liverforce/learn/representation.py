@@ -12,10 +12,15 @@ geometries it is
    see below);
 3. resampled onto a canonical ``g x g`` grid on the square
    ``[-h, h]^2`` of the tangent plane (``g = grid_size``, ``h =
-   half_width_mm``) by piecewise-linear interpolation on the Delaunay
-   triangulation of the nodes' tangent coordinates
-   (the interpolant of ``scipy.interpolate.LinearNDInterpolator``), with nearest-node values
-   outside the convex hull.
+   half_width_mm``) by piecewise-linear interpolation: with
+   ``interpolation: surface`` (the shipped config) on the top sheet of the
+   ROI patch's own triangles (``roi_triangles``;
+   :func:`liverforce.learn.grid.interpolate_top_sheet`: a patch that wraps
+   round a thin edge of the liver has the lobe's other face under the grid,
+   whose nodes are left out); with ``points`` (bundles before format 8) on
+   the Delaunay triangulation of the nodes' tangent coordinates (the
+   interpolant of ``scipy.interpolate.LinearNDInterpolator``); nearest-node
+   values outside the convex hull either way.
 
 Features (``features`` setting)
 -------------------------------
@@ -95,10 +100,12 @@ local frame a rigid motion of the input leaves the features unchanged.
 
 Notes
 -----
-Projection onto the tangent plane assumes the ROI is a height field over
-that plane (no fold-over); a very large ROI on a strongly curved surface
-would violate this. Delaunay triangulations are unique for points in general
-position, so permuting the node order gives the same features (to rounding).
+With ``interpolation: points`` the projection onto the tangent plane
+assumes the ROI is a height field over that plane (no fold-over); the 18 %
+ROIs of the default livers often are not (they wrap round thin edges), which
+``surface`` handles. Delaunay triangulations are unique for points in general
+position, and the top sheet follows the triangles, so permuting the node
+order gives the same features (to rounding).
 """
 
 from __future__ import annotations
@@ -109,11 +116,12 @@ import numpy as np
 
 from liverforce.learn import names
 from liverforce.learn.frames import case_rotations, points_to_local
-from liverforce.learn.grid import interpolate_to_grid
+from liverforce.learn.grid import check_triangles, interpolate_to_grid, interpolate_top_sheet, top_sheet_nodes
 from liverforce.seeds import derive
 
 FEATURE_KINDS = names.roi_features()
 OCCLUSION_MODES = names.OCCLUSION_MODES
+INTERPOLATIONS = ("surface", "points")
 
 
 @dataclass(frozen=True)
@@ -144,6 +152,15 @@ class Representation:
     rigid_motion_radius_mm : float
         ``remove``: the rigid motion is fitted to the ROI nodes at least this
         far (tangent distance, mm) from the exertion point.
+    interpolation : str
+        How node displacements reach the grid (``displacement`` and ``both``
+        features): ``surface``, the top sheet of the ROI patch's own triangles
+        (``roi_triangles``; :func:`liverforce.learn.grid.interpolate_top_sheet`),
+        so an ROI that wraps round a thin edge of the liver does not mix the
+        lobe's two faces; ``points`` (the default here, and what bundles before
+        format 7 did), the Delaunay interpolant of the nodes in the tangent
+        plane. The ``deformed`` height channel is the points' interpolant
+        either way (a cloud can stand in for its nodes).
     """
 
     grid_size: int
@@ -155,6 +172,7 @@ class Representation:
     camera: dict | None = None
     rigid_motion: str = "keep"
     rigid_motion_radius_mm: float = 15.0
+    interpolation: str = "points"
 
     def __post_init__(self) -> None:
         if int(self.grid_size) < 3:
@@ -174,6 +192,8 @@ class Representation:
                              f"not '{self.features}'")
         if not float(self.rigid_motion_radius_mm) >= 0:
             raise ValueError(f"rigid_motion_radius_mm must be >= 0 mm (got {self.rigid_motion_radius_mm})")
+        if self.interpolation not in INTERPOLATIONS:
+            raise ValueError(f"unknown interpolation '{self.interpolation}': use one of {INTERPOLATIONS}")
         if self.is_camera:
             if self.occlusion_radius_mm > 0 or self.noise_mm > 0:
                 raise ValueError("roi_features: cloud models observe the surface with the camera model "
@@ -190,6 +210,14 @@ class Representation:
     def channels(self) -> int:
         """Number of grid channels (3, 1 or 4)."""
         return names.ROI_FEATURE_CHANNELS[self.features]
+
+    @property
+    def uses_triangles(self) -> bool:
+        """True if the features read the ROI patch's triangles (``roi_triangles``): node displacements on the
+        patch's top sheet, or a camera model's patch reference."""
+        if self.is_camera:
+            return self.camera_reference == "surface"
+        return self.interpolation == "surface" and self.features in ("displacement", "both")
 
     @property
     def removes_rigid_motion(self) -> bool:
@@ -324,6 +352,14 @@ class Representation:
                 f"roi_undeformed_mm ({len(und)}) and roi_deformed_mm ({len(dfm)}) need one point cloud per case ({n})"
             )
         ids = arrays.get("case_id")
+        tris = None
+        if self.uses_triangles:
+            tris = arrays.get("roi_triangles")
+            if tris is None or len(tris) != n:
+                raise KeyError(
+                    "roi_triangles: this model resamples node displacements on the top sheet of the ROI patch's "
+                    "triangles (model.interpolation: surface) and needs them per case (shards of schema 1.4, "
+                    "Preop.from_surface, a context's roi_triangles)")
         out = np.empty((n, self.n_features))
         grid = self.grid()
         for i in range(n):
@@ -339,23 +375,30 @@ class Representation:
                     "they must list the same nodes in the same order"
                 )
             label = str(ids[i]) if ids is not None else f"row {i}"
+            patch = None
+            if tris is not None:  # the top sheet's nodes are chosen on the whole patch, before any occlusion
+                T = check_triangles(tris[i], len(U), f"case {label}: roi_triangles")
+                patch = (T, top_sheet_nodes(U, T))
             if not clean:
                 rng = None
                 if observation_seed is not None and self.stochastic:
                     key = ids[i] if ids is not None else i
                     rng = np.random.default_rng(derive(observation_seed, "observation", key))
-                U, D = self._observe(U, D, rng, label)
-            out[i] = self._resample(U, D, grid, label)
+                U, D, patch = self._observe(U, D, rng, label, patch)
+            out[i] = self._resample(U, D, grid, label, patch)
         return out
 
     # ------------------------------------------------------------------
-    def _observe(self, U: np.ndarray, D: np.ndarray, rng, label: str) -> tuple[np.ndarray, np.ndarray]:
-        """Apply occlusion and point noise (local frame)."""
+    def _observe(self, U: np.ndarray, D: np.ndarray, rng, label: str, patch=None):
+        """Apply occlusion and point noise (local frame) -> ``(U, D, patch)``; ``patch``: ``(triangles, top-sheet
+        node mask)``, re-indexed (the triangles of removed nodes dropped) when occlusion removes nodes."""
         r = self.occlusion_radius_mm
         if r > 0:
             hidden = np.hypot(U[:, 0], U[:, 1]) < r
             if self.occlusion_mode == "remove":
                 U, D = U[~hidden], D[~hidden]
+                if patch is not None:
+                    patch = (keep_triangles(patch[0], ~hidden), patch[1][~hidden])
                 if len(U) < 3:
                     raise ValueError(
                         f"case {label}: only {len(U)} ROI nodes remain outside the occlusion radius "
@@ -368,15 +411,29 @@ class Representation:
                 D[hidden] = U[hidden] + rng.normal(0.0, s, size=(int(hidden.sum()), 3))
         if self.noise_mm > 0 and rng is not None:
             D = D + rng.normal(0.0, self.noise_mm, size=D.shape)
-        return U, D
+        return U, D, patch
 
-    def _resample(self, U: np.ndarray, D: np.ndarray, grid: np.ndarray, label: str) -> np.ndarray:
+    def _resample(self, U: np.ndarray, D: np.ndarray, grid: np.ndarray, label: str, patch=None) -> np.ndarray:
         parts = []
         if self.features in ("displacement", "both"):
-            parts.append(interpolate_to_grid(U[:, :2], D - U, grid, label))
+            if self.uses_triangles:  # the top sheet's nodes only, so no fallback bridges to another face
+                T, top = patch
+                parts.append(interpolate_top_sheet(U[top], keep_triangles(T, top), (D - U)[top], grid, label))
+            else:
+                parts.append(interpolate_to_grid(U[:, :2], D - U, grid, label))
         if self.features in ("deformed", "both"):
             parts.append(interpolate_to_grid(D[:, :2], D[:, 2:3], grid, label))
         return np.concatenate([p.T.ravel() for p in parts])
+
+
+def keep_triangles(T: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """The triangles ``T`` (indices into nodes) whose three nodes are all kept (boolean ``keep``), re-indexed
+    into the kept nodes."""
+    keep = np.asarray(keep, dtype=bool)
+    pos = np.full(len(keep), -1, dtype=np.int64)
+    pos[keep] = np.arange(int(keep.sum()))
+    Tk = pos[np.asarray(T, dtype=np.int64).reshape(-1, 3)]
+    return Tk[(Tk >= 0).all(axis=1)]
 
 
 RIGID_MOTION_MODES = ("keep", "remove")
@@ -463,6 +520,7 @@ def representation_from_config(model_cfg: dict, train_arrays: dict) -> Represent
     return Representation(
         rigid_motion=str(model_cfg.get("rigid_motion", "keep")),
         rigid_motion_radius_mm=float(model_cfg.get("rigid_motion_radius_mm", 15.0)),
+        interpolation=str(model_cfg.get("interpolation", "points")),
         grid_size=int(model_cfg["grid_size"]),
         half_width_mm=h,
         features=features,

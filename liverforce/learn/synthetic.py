@@ -19,6 +19,7 @@ base value when ``material_varies``). The force has magnitude in
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import Delaunay
 
 from liverforce.dataset.roi import roi_triangles
 
@@ -61,7 +62,7 @@ def synthetic_arrays(
         "case_id", "geometry_id", "force_n", "exertion_point_mm", "frame_normal", "frame_t1", "frame_t2",
         "liver_centroid_mm", "inertia_mm5", "tool_thickness_mm", "probe_compliance_mm_per_n", "material_params_mpa",
         "roi_undeformed_mm",
-        "roi_deformed_mm", "roi_centroid_undeformed_mm", "roi_centroid_deformed_mm")}
+        "roi_deformed_mm", "roi_centroid_undeformed_mm", "roi_centroid_deformed_mm", "roi_triangles")}
     ct, cn = compliance_mm_per_n
     for i in range(n_cases):
         g = i % n_geometries
@@ -111,11 +112,12 @@ def synthetic_arrays(
         out["roi_deformed_mm"].append(dfm.astype(dtype))
         out["roi_centroid_undeformed_mm"].append(und.mean(axis=0))
         out["roi_centroid_deformed_mm"].append(dfm.mean(axis=0))
+        out["roi_triangles"].append(Delaunay(np.column_stack([u, v])).simplices.astype(np.int64))  # a height field
     arrays: dict = {}
     for key, vals in out.items():
         if key in ("case_id", "geometry_id"):
             arrays[key] = np.array(vals, dtype=object)
-        elif key.startswith("roi_") and key.endswith("_mm") and not key.startswith("roi_centroid"):
+        elif key.startswith("roi_") and key.endswith("_mm") and not key.startswith("roi_centroid") or key == "roi_triangles":
             arrays[key] = vals
         else:
             arrays[key] = np.asarray(vals, dtype=np.float64)

@@ -8,9 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from liverforce.dataset import io as dio
-from liverforce.dataset.roi import roi_triangles
 from liverforce.layout import Layout, gid_of
-from liverforce.learn.cloud_features import ROI_TRIANGLES_KEY
 
 
 def load_surface_file(path: str | Path):
@@ -34,20 +32,17 @@ def surface_graphs(mesh_paths) -> dict:
     return out
 
 
-def surface_meshes(mesh_paths, with_facets: bool = False):
+def surface_meshes(mesh_paths) -> dict:
     """Geometry id -> ``(vertices, triangles)`` of its mesh surface in the shards' surface-node order
-    (:func:`liverforce.learn.observation.surface_from_mesh`): what the camera observation model reads.
-    ``with_facets``: also geometry id -> the mesh's boundary triangles in mesh point ids (the ROI patches'
-    triangles come from them), as a second dict."""
+    (:func:`liverforce.learn.observation.surface_from_mesh`): what the camera observation model reads."""
     from liverforce.learn.observation import surface_from_mesh
     from liverforce.mesh.io import read_mesh
 
-    out, facets = {}, {}
+    out = {}
     for p in mesh_paths:
         mesh = read_mesh(p)
         out[gid_of(p)] = surface_from_mesh(mesh.points, mesh.facets)
-        facets[gid_of(p)] = np.asarray(mesh.facets, dtype=np.int64)
-    return (out, facets) if with_facets else out
+    return out
 
 
 def camera_arrays(manifest_path, mesh_paths, what: str) -> dict:
@@ -56,12 +51,10 @@ def camera_arrays(manifest_path, mesh_paths, what: str) -> dict:
     if not mesh_paths:
         raise ValueError(f"{what}: a camera-cloud model (roi_features: cloud) needs the meshes of its livers")
     arrays = load_study_arrays(manifest_path, full_surface=True)
-    arrays["surface_meshes"], facets = surface_meshes(mesh_paths, with_facets=True)
+    arrays["surface_meshes"] = surface_meshes(mesh_paths)
     missing = sorted(set(np.asarray(arrays["geometry_id"]).astype(str)) - set(arrays["surface_meshes"]))
     if missing:
         raise ValueError(f"{what}: no mesh given for the geometries {missing}")
-    geo = np.asarray(arrays["geometry_id"]).astype(str)
-    arrays[ROI_TRIANGLES_KEY] = [roi_triangles(facets[g], ids) for g, ids in zip(geo, arrays["roi_node_ids"])]
     return arrays
 
 

@@ -305,7 +305,7 @@ def simulate_shard(cases_path, mesh_paths: list[str], shard: int, sim: dict, bou
 
 
 def _case_row(case, res, error, wall, mesh, feats, surf, dataset, tool_radius_mm, compliance) -> dict:
-    from liverforce.dataset.roi import extract_roi, local_frame, thickness_along_normal
+    from liverforce.dataset.roi import extract_roi, local_frame, roi_triangles, thickness_along_normal
 
     point = np.asarray(case["exertion_point_mm"])
     frame = local_frame(surf, point, tool_radius_mm)
@@ -329,7 +329,8 @@ def _case_row(case, res, error, wall, mesh, feats, surf, dataset, tool_radius_mm
         tool_thickness_mm=thickness_along_normal(mesh.points, mesh.facets, point, frame[2]),
         probe_compliance_mm_per_n=np.asarray(compliance, dtype=float).reshape(9),
         roi_fraction=float(dataset["roi_fraction"]), roi_area_fraction=achieved,
-        roi_node_ids=node_ids.astype(np.int32), roi_undeformed_mm=und.astype(np.float32),
+        roi_node_ids=node_ids.astype(np.int32), roi_triangles=roi_triangles(mesh.facets, node_ids).astype(np.int32),
+        roi_undeformed_mm=und.astype(np.float32),
         roi_deformed_mm=de.astype(np.float32),
         roi_centroid_undeformed_mm=und.mean(axis=0), roi_centroid_deformed_mm=de.mean(axis=0),
         surface_displacement_mm=surf_u.astype(np.float32),

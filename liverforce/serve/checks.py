@@ -17,7 +17,7 @@ exertion point on surface    the undeformed ROI's height at the exertion
                              point (a quadratic fit of the nearest nodes in the
                              local frame) is more than ``surface_tol_mm`` off,
                              or the point lies outside its ROI
-ROI patch (camera models)    ``roi_triangles`` missing, not ``(m, 3)`` whole
+ROI patch                    (models that read it) ``roi_triangles`` missing, not ``(m, 3)`` whole
                              numbers indexing ``roi_undeformed_mm``, covering
                              none of the grid, or their top sheet more than
                              ``surface_tol_mm`` from the exertion point
@@ -262,7 +262,7 @@ def check_case(arrays: dict, i: int, model, scale: TrainingScale, limits: Limits
             raise PredictionInputError(f"{label}{exc}") from None
     U_loc = (U - p) @ R.T
     check_roi(U_loc, scale, limits, label)
-    if camera and model.representation.camera_reference == "surface":
+    if model.representation.uses_triangles:
         check_patch(arrays, i, U_loc, model, limits, label)
     if correspondence:
         check_displacement(float(np.abs(D - U).max()), scale, limits, label)
@@ -288,30 +288,32 @@ def check_case(arrays: dict, i: int, model, scale: TrainingScale, limits: Limits
 
 
 def check_patch(arrays: dict, i: int, U_loc: np.ndarray, model, limits: Limits, label: str) -> None:
-    """A camera model's pre-operative patch (its height reference): ``roi_triangles`` present, an ``(m, 3)``
-    array of whole numbers indexing ``roi_undeformed_mm`` (``U_loc``: in the local frame), covering the grid,
-    with its top sheet through the exertion point (within ``surface_tol_mm``: triangles saved against another
-    point order would not be)."""
-    from liverforce.learn import camera
-    from liverforce.learn.cloud_features import ReferenceSurface
+    """The ROI patch a model reads its grid from (a camera model's height reference, a node model's top
+    sheet): ``roi_triangles`` present, an ``(m, 3)`` array of whole numbers indexing ``roi_undeformed_mm``
+    (``U_loc``: in the local frame), covering some of the grid, with its top sheet through the exertion point
+    (within ``surface_tol_mm``: triangles saved against another point order would not be). Cheap: the top
+    sheet at the grid points only."""
+    from liverforce.learn.grid import check_triangles, top_sheet_height
 
     tris = arrays.get("roi_triangles")
     if tris is None:
         raise PredictionInputError(
-            f"{label}this camera model reads the pre-operative height from the ROI patch's triangles: give "
-            "roi_triangles, (m, 3) indices into roi_undeformed_mm (Preop.from_surface and `liverforce predict "
-            "--surface` compute them from the liver's surface)")
-    rep = model.representation
+            f"{label}this model reads the ROI patch's top sheet from its triangles: give roi_triangles, (m, 3) "
+            "indices into roi_undeformed_mm (Preop.from_surface and `liverforce predict --surface` compute them "
+            "from the liver's surface; shards of schema 1.4 hold them)")
     try:
-        ref = ReferenceSurface.from_patch(U_loc, tris[i], np.zeros(3), np.eye(3),
-                                          camera.grid_spec(rep.grid_size, rep.half_width_mm, rep.camera),
-                                          label="roi_triangles")
+        T = check_triangles(tris[i], len(U_loc), "roi_triangles")
     except ValueError as exc:
         raise PredictionInputError(f"{label}{exc}") from None
-    z0 = float(ref.height(np.zeros(1), np.zeros(1))[0])
-    if abs(z0) > limits.surface_tol_mm:
+    grid = model.representation.grid()
+    covered, z = top_sheet_height(U_loc, T, np.vstack([np.zeros((1, 2)), grid]))
+    if not covered[1:].any():
         raise PredictionInputError(
-            f"{label}roi_triangles: the patch's top sheet passes {z0:.3g} mm from the exertion point along the "
+            f"{label}roi_triangles: the patch covers no point of the model's +-{model.representation.half_width_mm:.3g}"
+            " mm grid around the exertion point (is the patch the one round this exertion point?)")
+    if covered[0] and abs(z[0]) > limits.surface_tol_mm:
+        raise PredictionInputError(
+            f"{label}roi_triangles: the patch's top sheet passes {z[0]:.3g} mm from the exertion point along the "
             f"normal (at most {limits.surface_tol_mm:g} mm): do the triangles index roi_undeformed_mm in its own "
             "point order, and is the exertion point on the patch?")
 

@@ -55,7 +55,7 @@ def register(subparsers, *, fetch: Callable[..., str | Path] | None = None) -> a
     p.add_argument("--approximate", action="store_true",
                    help="cloud mode for models that need correspondence: normal-only displacement estimate")
     p.add_argument("--context", help="JSON/YAML context: exertion point, material, surface or ROI + frame (+ the ROI "
-                                     "patch's roi_triangles for camera-cloud models)")
+                                     "patch's roi_triangles)")
     p.add_argument("--surface", help="undeformed liver surface file (overrides the context's)")
     p.add_argument("--mesh", help="the liver's tet mesh (mm, support regions tagged, e.g. results/<exp>/mesh/<id>.vtu):"
                                   " state-vector models compute the pre-operative stiffness probe from it")

@@ -171,8 +171,8 @@ def cloud_to_arrays(model, cloud_mm, preop: Preop, *, approximate: bool, scale: 
         )
     O_src = O[keep]
     out = preop.to_arrays(U)
-    out.pop("roi_triangles", None)  # node models do not read them, and in exact mode the ROI becomes the cloud
     if support == "exact":
+        out.pop("roi_triangles", None)  # the ROI becomes the cloud (a deformed-height model reads no triangles)
         out["roi_undeformed_mm"] = [O_src]
         out["roi_deformed_mm"] = [O_src]
         return out, {"mode": "exact", "points_given": len(O), "points_used": n_used}
@@ -181,6 +181,7 @@ def cloud_to_arrays(model, cloud_mm, preop: Preop, *, approximate: bool, scale: 
     D_est = p + D_loc @ R
     out["roi_centroid_deformed_mm"] = D_est.mean(axis=0)[None]
     if model.representation.features == "deformed":
+        out.pop("roi_triangles", None)  # they index the ROI nodes, which the cloud replaces
         out["roi_undeformed_mm"] = [O_src]
         out["roi_deformed_mm"] = [O_src]
     else:

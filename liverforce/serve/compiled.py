@@ -9,9 +9,9 @@ deformed positions ``D`` (``k x 3``, liver frame, mm) for models with
     D_loc = (D - p) R^T                       local frame
     d     = D_loc - U_loc                     node displacement
     x     = W d  (channel-major)              grid resampling: W (g² x k) are the
-                                              piecewise-linear (Delaunay) / nearest
-                                              weights over the fixed undeformed
-                                              tangent coordinates
+                                              piecewise-linear weights over the fixed
+                                              undeformed patch (its top sheet, or the
+                                              nodes' Delaunay) / nearest
     c     = C (x - mu_f) / s_f - ...           PCA + scalers (AE/DAE: first Linear)
     s     = (state(D) - mu_s) / s_s           deformed ROI centroid = mean D (constant under an observation model), the
                                               linear force estimate C^-1 sum w x and the indentation
@@ -24,9 +24,9 @@ the reference path's function; nonlinear, one 3x3 SVD per call); the rest is
 affine in the corrected ``D``, whose mean is the state's deformed centroid.
 
 so :class:`CompiledROI` precomputes ``z = A vec(D) + b`` once (``W`` is read
-off the reference interpolant itself, :func:`liverforce.learn.representation.interpolate_to_grid`
-applied to the identity, so the resampling is the reference one by
-construction). A call is then one matrix-vector product plus the small MLP
+off the reference interpolant itself, :func:`liverforce.learn.grid.interpolate_top_sheet` or
+:func:`liverforce.learn.representation.interpolate_to_grid` applied to the identity, so the
+resampling is the reference one by construction). A call is then one matrix-vector product plus the small MLP
 in NumPy (float32 like the torch reference; batch norm folded into the
 preceding linear layer, dropout dropped, the target scaling and the rotation
 back to the liver frame applied at the end).
@@ -46,7 +46,8 @@ import numpy as np
 from torch import nn
 
 from liverforce.learn.encoders import PCAEncoder
-from liverforce.learn.representation import interpolate_to_grid, rigid_fit_nodes, undo_rigid_motion
+from liverforce.learn.grid import interpolate_top_sheet, top_sheet_nodes
+from liverforce.learn.representation import interpolate_to_grid, keep_triangles, rigid_fit_nodes, undo_rigid_motion
 from liverforce.learn.state import MATERIAL_START, THICKNESS_COLUMN, compliance_matrices, state_vector
 from liverforce.serve.checks import Limits, TrainingScale, check_displacement, check_material
 from liverforce.serve.errors import PredictionInputError
@@ -146,7 +147,18 @@ class CompiledROI:
         kk = int(keep.sum())
         g2 = rep.grid_size**2
         W = np.zeros((g2, k))
-        W[:, keep] = interpolate_to_grid(U_loc[keep, :2], np.eye(kk), rep.grid(), "compiled ROI")
+        if rep.uses_triangles:  # the top sheet of the patch's triangles (of the kept nodes), as the reference path
+            if preop.roi_triangles is None:
+                raise PredictionInputError(
+                    "this model resamples node displacements on the top sheet of the ROI patch's triangles: give "
+                    "the context's roi_triangles (Preop.from_surface computes them; a context file's roi_triangles)")
+            # the top sheet's nodes chosen on the whole patch, then the occlusion (as the reference path)
+            keep = keep & top_sheet_nodes(U_loc, preop.roi_triangles)
+            kk = int(keep.sum())
+            W[:, keep] = interpolate_top_sheet(U_loc[keep], keep_triangles(preop.roi_triangles, keep), np.eye(kk),
+                                               rep.grid(), "compiled ROI")
+        else:
+            W[:, keep] = interpolate_to_grid(U_loc[keep, :2], np.eye(kk), rep.grid(), "compiled ROI")
         # x[c g2 + i] = sum_j W[i, j] (R (D_j - p) - U_loc_j)[c]
         M = np.einsum("ij,ca->cija", W, R).reshape(3 * g2, 3 * k)
         off = p @ R.T + U_loc  # (k, 3)

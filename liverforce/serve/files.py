@@ -21,7 +21,7 @@ Context files (``load_context``): JSON or YAML with
     surface: liver_preop.stl              # undeformed surface (path relative to this file), or
     roi_undeformed: roi.npy               #   the undeformed ROI nodes plus
     frame: {normal: [..], t1: [..], t2: [..]}
-    roi_triangles: roi_tri.npy            #   camera-cloud models: the ROI patch's triangles, (m, 3) indices
+    roi_triangles: roi_tri.npy            #   the ROI patch's triangles (the shipped models read them), (m, 3) indices
                                           #   into roi_undeformed from 0 (.npy, .csv or an inline list)
     liver_centroid_mm: [..]               #   and, for state-vector models, the liver features
     inertia_mm5: [[..], [..], [..]]

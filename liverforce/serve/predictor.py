@@ -43,7 +43,7 @@ from liverforce.serve.preop import DEFAULT_FRAME_RADIUS_MM, DEFAULT_ROI_FRACTION
 #: material): rows that agree on all of them share one compiled context (predict_arrays' fast path), so every
 #: input a CompiledROI freezes must be here (the undeformed ROI centroid is the mean of roi_undeformed_mm)
 CONTEXT_KEYS = ("exertion_point_mm", "frame_normal", "frame_t1", "frame_t2", "roi_undeformed_mm",
-                "liver_centroid_mm", "inertia_mm5", "tool_thickness_mm", "probe_compliance_mm_per_n")
+                "liver_centroid_mm", "inertia_mm5", "tool_thickness_mm", "probe_compliance_mm_per_n", "roi_triangles")
 
 #: turns a model reference that is not a directory (run id, ``runs:/``/``models:/`` URI, registered name)
 #: into a local bundle directory, or raises :class:`PredictionInputError` saying why it cannot

@@ -25,8 +25,8 @@ field                       shape      meaning
 ``roi_point_ids``           (k,)       optional: rows of the surface the ROI came
                                        from (``deformed_surface[roi_point_ids]``)
 ``roi_triangles``           (m, 3)     the ROI patch's own triangles, indices into
-                                       ``roi_undeformed_mm`` (camera-cloud models
-                                       read the pre-operative height from them)
+                                       ``roi_undeformed_mm`` (models read the
+                                       patch's top sheet through them)
 ==========================  =========  =============================================
 
 :attr:`Preop.rotation` is the local rotation of ``frame``
@@ -265,7 +265,7 @@ class Preop:
             inertia_mm5=inertia if closed and volume > 0 else None,
             roi_point_ids=point_ids,
             tool_thickness_mm=thickness if np.isfinite(thickness) else None,
-            roi_triangles=patch if len(patch) else None,  # a patch without a whole facet: none (camera models refuse)
+            roi_triangles=patch if len(patch) else None,  # no whole facet: none (models that read them refuse)
         )
 
     @classmethod

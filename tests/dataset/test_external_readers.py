@@ -37,6 +37,7 @@ def shard_row(shard: int, i: int, rng) -> dict:
         "liver_centroid_mm": [1.0, 2.0, 3.0], "inertia_mm5": rng.normal(size=9), "tool_thickness_mm": 45.0,
         "probe_compliance_mm_per_n": np.diag([1.0, 1.0, 2.0]).ravel(),
         "roi_fraction": 0.18, "roi_area_fraction": 0.1801, "roi_node_ids": rng.permutation(500)[:k].astype(np.int32),
+        "roi_triangles": np.array([[0, j, j + 1] for j in range(1, k - 1)], dtype=np.int32).reshape(-1, 3),
         "roi_undeformed_mm": und, "roi_deformed_mm": de,
         "roi_centroid_undeformed_mm": und.mean(0), "roi_centroid_deformed_mm": de.mean(0),
         "surface_displacement_mm": rng.normal(size=(40, 3)).astype(np.float32), "max_displacement_mm": 3.2,

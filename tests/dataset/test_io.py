@@ -36,6 +36,11 @@ def test_round_trip_keeps_schema_values_and_metadata(tmp_path, rows):
     assert t.num_rows == 4  # ... but stays in the shard with its reason
     assert t.column("reason").to_pylist()[2] == "diverged"
     np.testing.assert_allclose(arrays["force_n"][1], rows[1]["force_n"])
+    # the ROI patch's triangles come back as (m, 3) int64 per case, in the row's node order
+    by_id = {r["case_id"]: r for r in rows}
+    for cid, T in zip(arrays["case_id"], arrays["roi_triangles"]):
+        assert T.dtype == np.int64 and T.shape[1] == 3
+        np.testing.assert_array_equal(T, by_id[cid]["roi_triangles"])
 
 
 def test_payload_hash_ignores_wall_time_only(tmp_path, rows):

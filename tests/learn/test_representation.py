@@ -145,3 +145,100 @@ def test_an_observed_model_never_reads_the_clean_deformed_centroid(arrays, kw):
     np.testing.assert_array_equal(state_vector(observed.state_arrays(arrays)), state_vector(observed.state_arrays(moved)))
     clean = rep()
     assert np.abs(state_vector(clean.state_arrays(arrays)) - state_vector(clean.state_arrays(moved))).max() > 1.0
+
+
+def test_top_sheet_interpolation_is_the_delaunay_one_on_a_height_field(arrays):
+    """The synthetic ROI is a height field and its triangles are its tangent-plane Delaunay triangulation: the
+    top sheet of the patch is then the points' interpolant itself."""
+    top = rep(interpolation="surface")
+    assert top.uses_triangles and not rep().uses_triangles and top.to_dict()["interpolation"] == "surface"
+    np.testing.assert_allclose(top.features_of(arrays), rep().features_of(arrays), rtol=0, atol=1e-9)
+    # the node order does not matter (the triangles follow their nodes)
+    rng = np.random.default_rng(0)
+    perm = dict(arrays, roi_undeformed_mm=[], roi_deformed_mm=[], roi_triangles=[])
+    for u, d, t in zip(arrays["roi_undeformed_mm"], arrays["roi_deformed_mm"], arrays["roi_triangles"]):
+        p = rng.permutation(len(u))
+        inv = np.argsort(p)
+        perm["roi_undeformed_mm"].append(u[p])
+        perm["roi_deformed_mm"].append(d[p])
+        perm["roi_triangles"].append(inv[t])
+    np.testing.assert_allclose(top.features_of(perm), top.features_of(arrays), rtol=0, atol=1e-9)
+    with pytest.raises(KeyError, match="roi_triangles"):
+        top.features_of({k: v for k, v in arrays.items() if k != "roi_triangles"})
+    # bundles written before the setting existed resample on the points
+    d = top.to_dict()
+    d.pop("interpolation")
+    assert Representation.from_dict(d).interpolation == "points"
+
+
+def flat_patch(half=30.0, n=31):
+    """A flat, triangulated square patch (z = 0) of ``n x n`` nodes: ``(nodes, triangles)``."""
+    s = np.linspace(-half, half, n)
+    X, Y = np.meshgrid(s, s)
+    a = (np.arange(n - 1)[:, None] * n + np.arange(n - 1)[None, :]).ravel()
+    T = np.concatenate([np.column_stack([a, a + n, a + n + 1]), np.column_stack([a, a + n + 1, a + 1])])
+    return np.column_stack([X.ravel(), Y.ravel(), np.zeros(X.size)]), T
+
+
+def test_top_sheet_interpolation_ignores_the_lobes_other_face():
+    """An ROI that wraps round a thin edge: the lobe's lower face lies 8 mm under the upper one over half the
+    grid and moves the other way. The top sheet reads the upper face's displacement only; the points'
+    interpolant mixes the two."""
+    up, T_up = flat_patch()
+    s, n = np.linspace(-30, 30, 31), 31
+    low = up[up[:, 1] <= 0] + [0.0, 0.0, -8.0]
+    k = int((s <= 0).sum())
+    b = (np.arange(k - 1)[:, None] * n + np.arange(n - 1)[None, :]).ravel() + len(up)
+    T_low = np.concatenate([np.column_stack([b, b + n, b + n + 1]), np.column_stack([b, b + n + 1, b + 1])])
+    U = np.vstack([up, low])
+    disp_up = np.column_stack([0.1 * up[:, 0], -0.05 * up[:, 1], -np.exp(-(up[:, 0] ** 2 + up[:, 1] ** 2) / 200)])
+    D = U + np.vstack([disp_up, np.tile([0.0, 0.0, 2.0], (len(low), 1))])  # the lower face moves up
+    case = {"exertion_point_mm": np.zeros((1, 3)), "frame_normal": np.array([[0.0, 0.0, 1.0]]),
+            "frame_t1": np.array([[1.0, 0.0, 0.0]]), "frame_t2": np.array([[0.0, 1.0, 0.0]]),
+            "roi_undeformed_mm": [U], "roi_deformed_mm": [D], "roi_triangles": [np.vstack([T_up, T_low])]}
+    r = rep(grid_size=7, half_width_mm=12.0, interpolation="surface")
+    g = r.grid()
+    want = np.column_stack([0.1 * g[:, 0], -0.05 * g[:, 1], -np.exp(-(g[:, 0] ** 2 + g[:, 1] ** 2) / 200)])
+    got = r.features_of(case).reshape(3, -1).T
+    # the linear parts exactly; the Gaussian to the 2 mm mesh's interpolation error
+    np.testing.assert_allclose(got[:, :2], want[:, :2], atol=1e-12)
+    assert np.abs(got[:, 2] - want[:, 2]).max() < 0.02
+    mixed = rep(grid_size=7, half_width_mm=12.0).features_of(case).reshape(3, -1).T
+    assert np.abs(mixed - want).max() > 0.5
+
+
+def test_top_sheet_with_the_tool_hole_still_reads_one_face_only():
+    """The tool's occlusion (remove) cuts a hole in the patch where the dent is; the hole's grid points are
+    bridged from the top face's nodes alone. The lower face (shifted, so its nodes are not under the upper
+    ones) must not leak in: the features equal those of the upper face by itself."""
+    up, T_up = flat_patch()
+    low = up + [0.7, 0.6, -8.0]
+    U = np.vstack([up, low])
+    T = np.vstack([T_up, T_up + len(up)])
+    dent = -3.0 * np.exp(-(up[:, 0] ** 2 + up[:, 1] ** 2) / 60.0)
+    D = U + np.vstack([np.column_stack([np.zeros((len(up), 2)), dent]), np.tile([0.0, 0.0, 2.0], (len(low), 1))])
+
+    def case(U, D, T):
+        return {"exertion_point_mm": np.zeros((1, 3)), "frame_normal": np.array([[0.0, 0.0, 1.0]]),
+                "frame_t1": np.array([[1.0, 0.0, 0.0]]), "frame_t2": np.array([[0.0, 1.0, 0.0]]),
+                "roi_undeformed_mm": [U], "roi_deformed_mm": [D], "roi_triangles": [T]}
+
+    for radius in (0.0, 5.0, 7.0):
+        r = rep(grid_size=9, half_width_mm=12.0, interpolation="surface", occlusion_radius_mm=radius)
+        both = r.features_of(case(U, D, T))
+        alone = r.features_of(case(up, D[: len(up)], T_up))
+        np.testing.assert_allclose(both, alone, rtol=0, atol=1e-12)
+    # the top-sheet nodes are chosen before the hole is cut: with the upper face's hole, the lower face's
+    # nodes under it are still under the (removed) upper triangles
+    from liverforce.learn.grid import top_sheet_nodes
+
+    top = top_sheet_nodes(U, T)
+    assert top[: len(up)].all() and not top[len(up):][np.abs(low[:, :2]).max(axis=1) < 29].any()
+
+
+def test_a_camera_view_cone_inside_the_tool_is_refused():
+    from liverforce.config import ConfigError, compose
+
+    with pytest.raises(ConfigError, match="cone_half_angle_deg"):
+        compose(["validate.camera_sensitivity.cone_half_angle_deg=[0.0,40.0]"])
+    compose(["validate.camera_sensitivity.cone_half_angle_deg=[10.0,40.0]"])

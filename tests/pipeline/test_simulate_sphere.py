@@ -61,6 +61,14 @@ def test_sphere_rows_carry_the_force_the_sphere_exerts(liver):
         assert row["final_residual"] == res.final_residual and row["linear_solver"] == res.linear_solver
         assert row["max_principal_stretch"] == res.max_principal_stretch
     assert rows[0]["newton_iterations"] > 0 and rows[0]["max_displacement_mm"] > 0
+    # the ROI patch's own triangles: exactly the liver's surface facets whose three nodes are ROI nodes,
+    # as indices into the row's ROI node order (what the models' top-sheet resampling reads)
+    for row in rows:
+        ids = np.asarray(row["roi_node_ids"])
+        inside = np.isin(liver.facets, ids).all(axis=1)
+        T = np.asarray(row["roi_triangles"])
+        assert T.dtype == np.int32 and len(T) == inside.sum() > 0
+        assert {tuple(t) for t in ids[T].tolist()} == {tuple(t) for t in liver.facets[inside].tolist()}
     # the zero-force case is the liver at rest
     assert rows[2]["max_displacement_mm"] == 0.0 and rows[2]["force_magnitude_n"] == 0.0
 

@@ -35,9 +35,10 @@ def data():
 
 @pytest.fixture(scope="session")
 def trained(data, tmp_path_factory):
-    """``trained(name)`` -> model directory; variants: ``disp`` (PCA + state, the default representation),
+    """``trained(name)`` -> model directory; variants: ``disp`` (PCA + state, the points' interpolant),
     ``dae`` (denoising AE + state), ``deformed`` (deformed height, no state: exact from an unordered cloud),
-    ``gp`` (``disp`` with the Gaussian-process regressor)."""
+    ``gp`` (``disp`` with the Gaussian-process regressor), ``top`` (``disp`` on the top sheet of the ROI
+    patch's triangles, ``interpolation: surface``; with the tool's 3 mm occlusion removing nodes)."""
     cache: dict[str, str] = {}
     variants = {
         "disp": {},
@@ -45,6 +46,7 @@ def trained(data, tmp_path_factory):
         "deformed": {"roi_features": "deformed", "state_vector": False,
                      "occlusion": {"radius_mm": 0.0, "mode": "remove"}},
         "gp": {"regressor": "gp", "gp": {"max_points": 2000, "iterations": 100}},
+        "top": {"interpolation": "surface"},
     }
 
     def get(name: str) -> str:
@@ -132,7 +134,8 @@ def shard_rows(arrays: dict, idx, scenario="III", converged=True, scale=1.0, suf
             "inertia_mm5": arrays["inertia_mm5"][i], "tool_thickness_mm": float(arrays["tool_thickness_mm"][i]),
             "probe_compliance_mm_per_n": np.asarray(arrays["probe_compliance_mm_per_n"][i]).ravel(),
             "roi_fraction": 0.18, "roi_area_fraction": 0.18,
-            "roi_node_ids": np.arange(len(und), dtype=np.int32), "roi_undeformed_mm": und.astype(np.float32),
+            "roi_node_ids": np.arange(len(und), dtype=np.int32), "roi_triangles": np.asarray(arrays["roi_triangles"][i], np.int32),
+            "roi_undeformed_mm": und.astype(np.float32),
             "roi_deformed_mm": de.astype(np.float32), "roi_centroid_undeformed_mm": und.mean(0),
             "roi_centroid_deformed_mm": de.mean(0), "surface_displacement_mm": np.zeros((0, 3), np.float32),
             "max_displacement_mm": 1.0, "max_principal_stretch": 1.1, "min_principal_stretch": 0.9,

@@ -20,7 +20,7 @@ def frames_of(test_cases, i, n, seed=0):
     return np.stack(out)
 
 
-@pytest.mark.parametrize("variant", ["disp", "dae", "gp"])
+@pytest.mark.parametrize("variant", ["disp", "dae", "gp", "top"])
 def test_compiled_equals_reference(trained, test_cases, variant):
     pred = Predictor.load(trained(variant))
     for i in range(0, len(test_cases["case_id"]), 4):
@@ -60,7 +60,8 @@ def test_predict_arrays_fast_groups_shared_contexts(trained, test_cases):
     for i in (5, 6):
         for k, v in test_cases.items():
             rows[k].append(v[i])
-    arrays = {k: (v if k.startswith("roi_") and k.endswith("formed_mm") else np.asarray(v)) for k, v in rows.items()}
+    arrays = {k: (v if k.startswith("roi_") and k.endswith("formed_mm") or k == "roi_triangles" else np.asarray(v))
+              for k, v in rows.items()}
     ref = pred.model.predict(arrays)
     np.testing.assert_allclose(pred.predict_arrays(arrays, fast=True), ref, atol=TOL)
 
@@ -105,7 +106,8 @@ def test_the_fast_path_does_not_share_a_context_between_rows_that_differ_in_the_
                 if k in change:
                     val = np.asarray(val) * change[k]
                 rows[k].append(val)
-    arrays = {k: (v if k.startswith("roi_") and k.endswith("formed_mm") else np.asarray(v)) for k, v in rows.items()}
+    arrays = {k: (v if k.startswith("roi_") and k.endswith("formed_mm") or k == "roi_triangles" else np.asarray(v))
+              for k, v in rows.items()}
     ref = pred.model.predict(arrays)
     assert all(np.abs(ref[3 * j] - ref[0]).max() > 1e-4 for j in (1, 2))  # each change moves the prediction
     np.testing.assert_allclose(pred.predict_arrays(arrays, fast=True, min_group=2), ref, rtol=0, atol=TOL)

@@ -68,13 +68,13 @@ def test_empty_cloud(pred, case):
 
 def test_too_few_points_in_the_roi(pred, case):
     ctx, D = case
-    small = replace(ctx, roi_undeformed_mm=ctx.roi_undeformed_mm[:6])
+    small = replace(ctx, roi_undeformed_mm=ctx.roi_undeformed_mm[:6], roi_triangles=None)  # (this model reads none)
     with pytest.raises(PredictionInputError, match="roi_undeformed_mm: 6 points; at least 10 are needed"):
         pred.predict(D[:6], small)
     # enough nodes, but all within 2 mm of the tool: far smaller than the model's grid
     r = np.linalg.norm(ctx.roi_undeformed_mm - ctx.exertion_point_mm, axis=1)
     near = np.argsort(r)[:12]
-    tiny = replace(ctx, roi_undeformed_mm=ctx.roi_undeformed_mm[near])
+    tiny = replace(ctx, roi_undeformed_mm=ctx.roi_undeformed_mm[near], roi_triangles=None)
     with pytest.raises(PredictionInputError, match="reaches only .* smaller than the model's grid"):
         pred.predict(D[near], tiny)
     # an unordered cloud with only a handful of points on the ROI
