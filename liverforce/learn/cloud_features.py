@@ -88,7 +88,7 @@ from dataclasses import asdict, dataclass, fields
 import numpy as np
 
 from liverforce.learn.frames import case_rotations, local_rotations
-from liverforce.learn.grid import check_triangles, interpolate_to_grid
+from liverforce.learn.grid import check_triangles, interpolate_to_grid, top_sheet_height
 
 FILL_RULES = ("laplace", "zero", "nearest")
 ESTIMATORS = ("linear", "mean")
@@ -355,32 +355,22 @@ def _raster_axis(spec: CloudGridSpec) -> tuple[float, float, np.ndarray]:
 
 def _zbuffer(U: np.ndarray, T: np.ndarray, lo: float, step: float, r: int) -> np.ndarray:
     """Highest ``z`` of the triangles ``U[T]`` (local frame) at the ``r x r`` raster nodes ``lo + step k``
-    (row = ``v``); -inf where none lies over a node; triangles seen edge-on (no area in the tangent plane) are
-    skipped: their neighbours cover their edges."""
+    (row = ``v``); -inf where none lies over a node: :func:`liverforce.learn.grid.top_sheet_height` on the
+    raster, a band of ``_ZBUFFER_ROWS`` rows at a time against the triangles that reach into the band."""
     axis = lo + step * np.arange(r)
-    Z = np.full((r, r), -np.inf)
     tri = U[T]
     x0, x1 = tri[:, :, 0].min(axis=1), tri[:, :, 0].max(axis=1)
     y0, y1 = tri[:, :, 1].min(axis=1), tri[:, :, 1].max(axis=1)
-    j0 = np.maximum(np.ceil((x0 - lo) / step - 1e-9), 0).astype(np.int64)
-    j1 = np.minimum(np.floor((x1 - lo) / step + 1e-9), r - 1).astype(np.int64)
-    i0 = np.maximum(np.ceil((y0 - lo) / step - 1e-9), 0).astype(np.int64)
-    i1 = np.minimum(np.floor((y1 - lo) / step + 1e-9), r - 1).astype(np.int64)
-    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-    det = (b[:, 1] - c[:, 1]) * (a[:, 0] - c[:, 0]) + (c[:, 0] - b[:, 0]) * (a[:, 1] - c[:, 1])
-    area2 = np.abs(det)
-    for k in np.flatnonzero((j1 >= j0) & (i1 >= i0) & (area2 > 1e-12 * (1.0 + (x1 - x0 + y1 - y0) ** 2))):
-        uu, vv = np.meshgrid(axis[j0[k]:j1[k] + 1], axis[i0[k]:i1[k] + 1])
-        ak, bk, ck = a[k], b[k], c[k]
-        l1 = ((bk[1] - ck[1]) * (uu - ck[0]) + (ck[0] - bk[0]) * (vv - ck[1])) / det[k]
-        l2 = ((ck[1] - ak[1]) * (uu - ck[0]) + (ak[0] - ck[0]) * (vv - ck[1])) / det[k]
-        l3 = 1.0 - l1 - l2
-        inside = (l1 >= -1e-9) & (l2 >= -1e-9) & (l3 >= -1e-9)
-        if inside.any():
-            z = l1 * ak[2] + l2 * bk[2] + l3 * ck[2]
-            sub = Z[i0[k]:i1[k] + 1, j0[k]:j1[k] + 1]
-            np.maximum(sub, np.where(inside, z, -np.inf), out=sub)
+    Z = np.empty((r, r))
+    for i in range(0, r, _ZBUFFER_ROWS):
+        v = axis[i:i + _ZBUFFER_ROWS]
+        near = (x1 >= axis[0]) & (x0 <= axis[-1]) & (y1 >= v[0]) & (y0 <= v[-1])
+        uu, vv = np.meshgrid(axis, v)
+        Z[i:i + len(v)] = top_sheet_height(U, T[near], np.column_stack([uu.ravel(), vv.ravel()]))[1].reshape(len(v), r)
     return Z
+
+
+_ZBUFFER_ROWS = 4  # raster rows per band of the z-buffer (fewer triangles per band, small temporaries)
 
 
 # --------------------------------------------------------------------------

@@ -170,7 +170,7 @@ class Preop:
                     f"{np.round(np.linalg.eigvalsh(C), 6).tolist()}")
             object.__setattr__(self, "probe_compliance_mm_per_n", C)
         if self.roi_triangles is not None:
-            from liverforce.learn.cloud_features import check_triangles
+            from liverforce.learn.grid import check_triangles
 
             try:
                 T = np.asarray(self.roi_triangles)
