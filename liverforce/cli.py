@@ -180,14 +180,15 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def fetch_from_mlflow(ref: str, *, tracking_uri: str | None = None) -> Path:
-    """The bundle directory of a logged model (run id, ``runs:/``/``models:/`` URI, registered name).
+def fetch_from_mlflow(ref: str, dst_dir: Path, *, tracking_uri: str | None = None) -> Path:
+    """Download a logged model (run id, ``runs:/``/``models:/`` URI, registered name) into ``dst_dir``; its bundle
+    directory.
 
     Imports MLflow only when ``liverforce predict -m`` names such a reference.
     """
     from liverforce.tracking.model import fetch_force_model
 
-    return fetch_force_model(ref, tracking_uri=tracking_uri)
+    return fetch_force_model(ref, tracking_uri=tracking_uri, dst_dir=dst_dir)
 
 
 def register_predict(subparsers):

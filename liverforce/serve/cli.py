@@ -16,7 +16,8 @@ the deformed positions of every vertex of the context's surface file. Exit
 codes: 0 done, 2 input refused (the message says why).
 
 Wire into the main parser with ``liverforce.serve.cli.register(sub, fetch=...)``:
-``fetch(ref, tracking_uri=...)`` downloads a model given by reference (the main
+``fetch(ref, dst_dir, tracking_uri=...)`` downloads a model given by reference into
+``dst_dir``, a temporary folder removed once the model is read (the main
 CLI, :mod:`liverforce.cli`, passes the MLflow one of :mod:`liverforce.tracking`;
 serving never imports tracking). Without it ``-m`` takes directories only.
 """
@@ -38,9 +39,10 @@ from liverforce.serve.errors import PredictionInputError
 def register(subparsers, *, fetch: Callable[..., str | Path] | None = None) -> argparse.ArgumentParser:
     """Add the ``predict`` subcommand to an ``argparse`` subparsers object; returns the subparser.
 
-    ``fetch(ref, tracking_uri=...)`` returns the bundle directory of a model
-    reference that is not a directory (run id, ``runs:/``/``models:/`` URI,
-    registered name) or raises :class:`PredictionInputError`.
+    ``fetch(ref, dst_dir, tracking_uri=...)`` downloads a model reference that is
+    not a directory (run id, ``runs:/``/``models:/`` URI, registered name) into the
+    folder ``dst_dir`` and returns its bundle directory, or raises
+    :class:`PredictionInputError` (see :meth:`Predictor.load`).
     """
     p = subparsers.add_parser(
         "predict", help="predict the tool force from a point cloud (or whole shards) with a trained model",

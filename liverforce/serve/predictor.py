@@ -15,8 +15,9 @@ the input-contract arrays, checks them against the model's training scale
 
 Loading: :meth:`Predictor.load` takes a bundle directory; any other reference
 (an MLflow run id, ``runs:/<id>/model``, ``models:/<name>/<version>`` or a
-registered name) goes through a ``fetch`` callable that returns the downloaded
-bundle directory. Serving never imports :mod:`liverforce.tracking` (tracking
+registered name) goes through a ``fetch`` callable that downloads the bundle into
+a temporary folder, removed once the bundle is read (it is read whole, so no
+download is left behind). Serving never imports :mod:`liverforce.tracking` (tracking
 builds on serving): :class:`liverforce.tracking.MlflowPredictor` and
 ``liverforce predict`` pass the MLflow fetcher. The bundle is read by
 :meth:`ForceModel.load` (JSON + ``torch.load(weights_only=True)`` +
@@ -27,6 +28,7 @@ from __future__ import annotations
 
 import hashlib
 import pickle
+import tempfile
 from pathlib import Path
 from typing import Callable
 
@@ -45,10 +47,10 @@ from liverforce.serve.preop import DEFAULT_FRAME_RADIUS_MM, DEFAULT_ROI_FRACTION
 CONTEXT_KEYS = ("exertion_point_mm", "frame_normal", "frame_t1", "frame_t2", "roi_undeformed_mm",
                 "liver_centroid_mm", "inertia_mm5", "tool_thickness_mm", "probe_compliance_mm_per_n", "roi_triangles")
 
-#: turns a model reference that is not a directory (run id, ``runs:/``/``models:/`` URI, registered name)
-#: into a local bundle directory, or raises :class:`PredictionInputError` saying why it cannot
-#: (e.g. :func:`liverforce.tracking.fetch_force_model`)
-ModelFetcher = Callable[[str], "str | Path"]
+#: ``fetch(ref, dst_dir)``: downloads a model reference that is not a directory (run id, ``runs:/``/``models:/``
+#: URI, registered name) into the folder ``dst_dir`` and returns the bundle directory inside it, or raises
+#: :class:`PredictionInputError` saying why it cannot (e.g. :func:`liverforce.tracking.fetch_force_model`)
+ModelFetcher = Callable[[str, Path], "str | Path"]
 
 
 class Predictor:
@@ -84,7 +86,7 @@ class Predictor:
 
     @classmethod
     def load(cls, ref: str | Path, *, fetch: ModelFetcher | None = None, **kw) -> "Predictor":
-        """A bundle directory if ``ref`` is one, else whatever ``fetch(ref)`` downloads (the source stays ``ref``).
+        """A bundle directory if ``ref`` is one, else what ``fetch`` downloads (the source stays ``ref``).
 
         Parameters
         ----------
@@ -92,8 +94,9 @@ class Predictor:
             A bundle directory, or a reference ``fetch`` understands (for the
             MLflow fetcher: a run id, ``runs:/`` or ``models:/`` URI, or a registered name).
         fetch : callable, optional
-            ``fetch(ref) -> bundle directory``, raising :class:`PredictionInputError`
-            when it cannot; without it only directories load
+            ``fetch(ref, dst_dir) -> bundle directory``, raising :class:`PredictionInputError`
+            when it cannot; ``dst_dir`` is a temporary folder, removed once the
+            bundle is read. Without it only directories load
             (:class:`liverforce.tracking.MlflowPredictor` passes the MLflow one).
         """
         if Path(ref).is_dir():
@@ -105,7 +108,9 @@ class Predictor:
                 f"model {ref}: no such model directory; to load an MLflow run id, runs:/ or models:/ URI or "
                 "registered name use liverforce.tracking.MlflowPredictor.load (or `liverforce predict -m`)"
             )
-        pred = cls.from_dir(fetch(str(ref)), **kw)
+        # the bundle is read whole (ForceModel.load), so its download need not outlive this call
+        with tempfile.TemporaryDirectory(prefix="liverforce-model-") as tmp:
+            pred = cls.from_dir(fetch(str(ref), Path(tmp)), **kw)
         pred.source = str(ref)
         return pred
 

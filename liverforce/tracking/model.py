@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import re
 import tempfile
-from functools import partial
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Callable
@@ -267,7 +266,8 @@ def download_force_model(model_ref: str, dst_dir: str | Path | None = None, trac
         ``runs:/<run_id>/model``, a bare run id, ``models:/<name>/<version>``,
         ``models:/<name>@<alias>`` or a registered model name (latest version).
     dst_dir : path, optional
-        Where to download (default: a new temporary folder).
+        Where to download (default: a new temporary folder, which the caller
+        removes; :meth:`MlflowPredictor.load` removes its own).
     tracking_uri : str, optional
         Tracking (and registry) store; default: MLflow's current one.
 
@@ -313,8 +313,11 @@ class MlflowPredictor(Predictor):
     def load(cls, ref: str | Path, *, tracking_uri: str | None = None, dst_dir: str | Path | None = None,
              **kw) -> "MlflowPredictor":
         """A bundle directory if ``ref`` is one, else an MLflow run id, ``runs:/`` or ``models:/`` URI or
-        registered name, downloaded (to ``dst_dir``, default a temporary folder) from ``tracking_uri``."""
-        fetch = partial(fetch_force_model, tracking_uri=tracking_uri, dst_dir=dst_dir)
+        registered name, downloaded from ``tracking_uri`` into ``dst_dir`` (kept) or, by default, into a
+        temporary folder that is removed once the bundle is read."""
+        def fetch(model_ref: str, tmp: Path) -> Path:
+            return fetch_force_model(model_ref, tracking_uri=tracking_uri, dst_dir=tmp if dst_dir is None else dst_dir)
+
         return super().load(ref, fetch=fetch, **kw)
 
 

@@ -66,6 +66,31 @@ def test_load_by_run_id_uri_and_registered_name(logged, data):
         Predictor.load("0123456789abcdef0123456789abcdef", tracking_uri=uri)
 
 
+def test_loading_by_reference_leaves_no_download_behind(logged, tmp_path, monkeypatch, capsys):
+    """A model fetched by reference is read whole, then its download folder is removed (Python and CLI); a
+    ``dst_dir`` the user names is kept."""
+    import argparse
+    import tempfile
+
+    from liverforce.cli import register_predict
+
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))  # where TemporaryDirectory and mkdtemp create folders
+    ref = f"runs:/{logged['run_id']}/model"
+    pred = Predictor.load(ref, tracking_uri=logged["uri"])
+    assert pred.model.meta and list(scratch.iterdir()) == []
+    parser = argparse.ArgumentParser()
+    register_predict(parser.add_subparsers(dest="cmd"))
+    args = parser.parse_args(["predict", "-m", ref, "--describe", "--tracking-uri", logged["uri"]])
+    assert args.func(args) == 0
+    assert json.loads(capsys.readouterr().out)["source"] == ref
+    assert list(scratch.iterdir()) == []
+    kept = tmp_path / "kept"
+    Predictor.load(ref, tracking_uri=logged["uri"], dst_dir=kept)
+    assert list(kept.rglob("model.json")) and list(scratch.iterdir()) == []
+
+
 def test_pyfunc_predicts_like_the_predictor_and_refuses_bad_rows(logged, data):
     pf = load_pyfunc(f"runs:/{logged['run_id']}/model", logged["uri"])
     cases = subset(data, np.arange(60, 66))
