@@ -1,0 +1,109 @@
+"""Experiment: any model settings of one variant, chosen on training livers only.
+
+For each setting (comma-separated ``dotted.key=value`` model overrides, values
+read as YAML; ``default`` is the variant as configured) on a finished run's
+shards (``--results``), through the pipeline's own
+:func:`liverforce.learn.train.train_scenario` with the pipeline's seeds:
+
+- **training-side CV MAE**: the 4-fold CV by liver inside the training livers
+  (``cv_mae_n``) on ``--cv-splits`` seeded splits (the main split, then those of
+  ``train.repeats``), each split trained as its own run. A default is chosen on
+  this alone: no test or unseen liver enters it.
+- **test accuracy** over the pipeline's ``train.repeats`` seeded splits, per split;
+- for IV, **the unseen livers' MAE** (mean +- sd over livers; the main split's model,
+  the one the validation scores).
+
+::
+
+    PYTHONPATH=. OMP_NUM_THREADS=1 .venv/bin/python benchmarks/experiment_settings.py --results results/default \\
+        --variant cloud_sv --settings default force_scaling=linear "force_scaling=linear,gp.kernel=rational_quadratic"
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import yaml
+
+
+def parse_setting(text: str, variant: dict) -> dict:
+    """``a.b=1,c=x`` -> ``{"a": {"b": 1}, "c": "x"}``; every key must exist in the variant's model config."""
+    over: dict = {}
+    if text == "default":
+        return over
+    for item in _split_top(text):
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise SystemExit(f"--settings: '{item}' is not key=value")
+        parts = key.strip().split(".")
+        node, ref = over, variant
+        for p in parts[:-1]:
+            if not isinstance(ref.get(p), dict):
+                raise SystemExit(f"--settings: model.{key} is not a model setting")
+            node, ref = node.setdefault(p, {}), ref[p]
+        if parts[-1] not in ref:
+            raise SystemExit(f"--settings: model.{key} is not a model setting")
+        node[parts[-1]] = yaml.safe_load(value)
+    return over
+
+
+def _split_top(text: str) -> list[str]:
+    """``text`` split at the commas outside brackets (a value may be a YAML list: ``n_points=[500, 900]``)."""
+    items, depth, cur = [], 0, ""
+    for ch in text:
+        depth += (ch in "[{") - (ch in "]}")
+        if ch == "," and depth == 0:
+            items.append(cur)
+            cur = ""
+        else:
+            cur += ch
+    return items + [cur]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--results", default="results/default")
+    ap.add_argument("--variant", default="pca_sv")
+    ap.add_argument("--scenario", default="IV")
+    ap.add_argument("--settings", nargs="+", default=["default"])
+    ap.add_argument("--cv-splits", type=int, default=5, help="seeded splits the training-side CV MAE is averaged over")
+    ap.add_argument("--out", default="/tmp/liverforce-experiment-settings")
+    args = ap.parse_args()
+
+    from liverforce.config import merge_mapping
+    from liverforce.learn.train import train_scenario
+    from liverforce.seeds import derive
+
+    from benchmarks.experiment import PipelineTraining
+
+    run = PipelineTraining(args.results, "settings experiment")
+    v = dict(run.variants[args.variant])
+    overs = [(text, parse_setting(text, v)) for text in args.settings]  # all refused before any training
+    camera = v.get("roi_features") == "cloud"
+    arrays = run.arrays(args.scenario, camera)
+    for k, (text, over) in enumerate(overs):
+        model_cfg = merge_mapping(v, over)
+        out = f"{args.out}/{args.variant}-{args.scenario}-{k}"
+        t = time.perf_counter()
+        res = train_scenario(arrays, model_cfg, run.train, run.cfg["tune"], args.scenario, args.variant,
+                             seed=run.seed, out_dir=out)
+        cv = [res["cv_mae_n"]]
+        for r in range(1, args.cv_splits):  # the repeats' split seeds, each split trained as its own run
+            got = train_scenario(arrays, model_cfg, {**run.train, "repeats": 1}, run.cfg["tune"], args.scenario,
+                                 args.variant, seed=derive(run.seed, "split.repeat", r), out_dir=f"{out}-cv{r}")
+            cv.append(got["cv_mae_n"])
+        m, s = res["metrics_mean"], res["metrics_sd"]
+        per_split = [x["metrics"]["accuracy_pct"] for x in res["repeats"]]  # the main split first
+        line = (f"{args.variant} {args.scenario} {text:40s} CV MAE {np.mean(cv):.4f} N ({len(cv)} splits: "
+                f"{' '.join(f'{c:.4f}' for c in cv)}) | test {m['accuracy_pct']:6.2f} +- {s['accuracy_pct']:.2f} % "
+                f"(splits {' '.join(f'{a:.1f}' for a in per_split)}), MAE {m['mae_vec']:.4f} N")
+        if args.scenario == "IV":
+            g = run.unseen(res, camera)
+            line += f" | unseen MAE {g['mean']['mae_vec']:.4f} +- {g['sd']['mae_vec']:.4f} N"
+        print(f"{line} | {time.perf_counter() - t:.0f} s", flush=True)
+
+
+if __name__ == "__main__":
+    main()
