@@ -29,7 +29,10 @@ import yaml
 
 
 def parse_setting(text: str, variant: dict) -> dict:
-    """``a.b=1,c=x`` -> ``{"a": {"b": 1}, "c": "x"}``; every key must exist in the variant's model config."""
+    """``a.b=1,c=x`` -> ``{"a": {"b": 1}, "c": "x"}``, refused (SystemExit) unless every key is a model setting
+    and the variant with these overrides passes the config's model checks."""
+    from liverforce.config import ConfigError, _check_model, _unknown_keys, merge_mapping
+
     over: dict = {}
     if text == "default":
         return over
@@ -38,15 +41,31 @@ def parse_setting(text: str, variant: dict) -> dict:
         if not sep:
             raise SystemExit(f"--settings: '{item}' is not key=value")
         parts = key.strip().split(".")
-        node, ref = over, variant
+        node = over
         for p in parts[:-1]:
-            if not isinstance(ref.get(p), dict):
-                raise SystemExit(f"--settings: model.{key} is not a model setting")
-            node, ref = node.setdefault(p, {}), ref[p]
-        if parts[-1] not in ref:
-            raise SystemExit(f"--settings: model.{key} is not a model setting")
+            node = node.setdefault(p, {})
+            if not isinstance(node, dict):
+                raise SystemExit(f"--settings: '{key}' sets a key inside a value")
         node[parts[-1]] = yaml.safe_load(value)
+    unknown = _unknown_keys(variant, over)
+    if unknown:
+        raise SystemExit(f"--settings '{text}': not model settings: {unknown}")
+    _same_shape(variant, over, text, "model.")
+    try:
+        _check_model(merge_mapping(variant, over), f"--settings {text}")
+    except ConfigError as exc:
+        raise SystemExit(str(exc)) from exc
     return over
+
+
+def _same_shape(base: dict, over: dict, text: str, prefix: str) -> None:
+    """Refuse a value where the config has a group (``camera=1``) or a group where it has a value."""
+    for k, val in over.items():
+        if isinstance(base[k], dict) != isinstance(val, dict):
+            kind = "a group of settings" if isinstance(base[k], dict) else "a single value"
+            raise SystemExit(f"--settings '{text}': {prefix}{k} is {kind}")
+        if isinstance(val, dict):
+            _same_shape(base[k], val, text, f"{prefix}{k}.")
 
 
 def _split_top(text: str) -> list[str]:
@@ -80,11 +99,11 @@ def main() -> None:
 
     run = PipelineTraining(args.results, "settings experiment")
     v = dict(run.variants[args.variant])
-    overs = [(text, parse_setting(text, v)) for text in args.settings]  # all refused before any training
-    camera = v.get("roi_features") == "cloud"
-    arrays = run.arrays(args.scenario, camera)
+    overs = [(text, parse_setting(text, v)) for text in args.settings]  # all checked before any training
     for k, (text, over) in enumerate(overs):
         model_cfg = merge_mapping(v, over)
+        camera = model_cfg.get("roi_features") == "cloud"
+        arrays = run.arrays(args.scenario, camera)
         out = f"{args.out}/{args.variant}-{args.scenario}-{k}"
         t = time.perf_counter()
         res = train_scenario(arrays, model_cfg, run.train, run.cfg["tune"], args.scenario, args.variant,

@@ -23,7 +23,9 @@ def test_nested_keys_and_yaml_values():
     assert parse_setting("default", v) == {}
 
 
-@pytest.mark.parametrize("text", ["force_scalin=none", "camera.grid.radius=2", "force_scaling.x=1", "encoder"])
+@pytest.mark.parametrize("text", ["force_scalin=none", "camera.grid.radius=2", "force_scaling.x=1", "encoder",
+                                  "camera.grid={radius: 2}", "camera=1", "camera.grid=1", "camera.grid.kernel_radius_cells=8",
+                                  "force_scaling=nonee"])
 def test_unknown_or_malformed_settings_are_refused(text):
     with pytest.raises(SystemExit, match="--settings"):
         parse_setting(text, cloud_variant())

@@ -119,7 +119,7 @@ from liverforce.learn.torchutil import EpochCallback
 from liverforce.seeds import derive
 
 FORMAT = "liverforce.force_model"
-FORMAT_VERSION = 8  # 3: probe compliance in the state vector (material from column 22), linear force estimate;
+FORMAT_VERSION = 9  # 3: probe compliance in the state vector (material from column 22), linear force estimate;
 #                     4: the GP regressor may be a GPEnsemble (model.gp.code_members), which a reader of 3 cannot load;
 #                     5: the state features may end with the indentation strain, which a reader of 4 would misread;
 #                     6: a GP's kernel may be the rational quadratic (a ``shape`` buffer), which a reader of 5 would
@@ -127,12 +127,16 @@ FORMAT_VERSION = 8  # 3: probe compliance in the state vector (material from col
 #                     7: a camera model's pre-operative height is the top sheet of the ROI patch's triangles
 #                        (camera.grid.reference: surface), which a reader of 6 would build from the ROI points;
 #                     8: a node model's grid may be the patch's top sheet (representation interpolation: surface),
-#                        a key a reader of 7 does not know
-READ_VERSIONS = (3, 4, 5, 6, 7, 8)  # a version-3 bundle is a version-4 bundle with a single GP (or an MLP); 4 is 5
+#                        a key a reader of 7 does not know;
+#                     9: a state-vector model records C10's training mean (material_ref) whatever its force
+#                        scaling: with force_scaling none a reader of 8 would never widen the interval outside the
+#                        calibration's stiffness range
+READ_VERSIONS = (3, 4, 5, 6, 7, 8, 9)  # a version-3 bundle is a version-4 bundle with a single GP (or an MLP); 4 is 5
 #                                     without the indentation strain; 5 is 6 with squared-exponential GPs (no shape
 #                                     buffer); 6 is 7 with camera models on the ROI points' reference (reference:
 #                                     points); 7 is 8 with node models on the points' interpolant (no interpolation
-#                                     key: the Representation default, points)
+#                                     key: the Representation default, points); 8 is 9 without material_ref (the
+#                                     force scaling's reference, if any, stands in)
 
 ROI_INPUTS = (
     "exertion_point_mm",
@@ -323,6 +327,8 @@ class Preprocessor:
     linear_force_tip: bool = False  # camera models: f_lin = C^-1 (tool tip displacement, the features' last 3)
     linear_force_ref: float | None = None  # force_scaling: linear: f_lin x C10 / linear_force_ref (MPa)
     indentation_strain: bool = False  # the state features end with u_w,n / h (after f_lin; module docstring)
+    material_ref: float | None = None  # state-vector models, any force scaling: C10's training mean (MPa), the
+    #                                    reference of material_factor (bundles before format 9: None)
 
     def inputs(self, x: np.ndarray, state: np.ndarray | None) -> np.ndarray:
         code = self.code_scaler.transform(self.encoder.encode(self.feature_scaler.transform(x)))
@@ -397,9 +403,14 @@ class Preprocessor:
         return _c1_ratio(state, n, self.linear_force_ref)
 
     def material_factor(self, state: np.ndarray | None, n: int) -> np.ndarray:
-        """The case's stiffness relative to training, ``k = c_1 / c_1,ref``, whichever force scaling set
-        ``c_1,ref`` (ones with none): what the interval widens by outside its calibration range."""
-        return _c1_ratio(state, n, self.stiffness_ref if self.stiffness_ref is not None else self.linear_force_ref)
+        """The case's stiffness relative to training, ``k = c_1 / c_1,ref`` (``c_1,ref`` the training mean of
+        the first constant, whatever the force scaling; ones without the state vector): what the interval
+        widens by outside its calibration range. A bundle before format 9 has ``c_1,ref`` only when its force
+        scaling set one (ones with none)."""
+        ref = self.material_ref
+        if ref is None:
+            ref = self.stiffness_ref if self.stiffness_ref is not None else self.linear_force_ref
+        return _c1_ratio(state, n, ref)
 
     @property
     def n_inputs(self) -> int:
@@ -462,8 +473,12 @@ def fit_preprocessor(
             raise ValueError(f"force_scaling: {force_scaling} needs a positive first material constant (C10); the "
                              f"training cases have {float(c1.min()):.4g} MPa")
         ref = float(c1.mean())
+    material_ref = ref
+    if use_state and ref is None:  # the interval's stiffness factor needs the reference whatever the scaling
+        c1 = prep.state[:, MATERIAL_START]
+        material_ref = float(c1.mean()) if np.all(c1 > 0) else None
     pre = Preprocessor(fs, enc, cs, None, Standardizer.fit(prep.y_local), ref if force_scaling == "stiffness" else None,
-                       linear_force_ref=ref if force_scaling == "linear" else None)
+                       linear_force_ref=ref if force_scaling == "linear" else None, material_ref=material_ref)
     if linear_force_radius_mm > 0:
         if not use_state or rep.features == "deformed":
             raise ValueError("the linear force estimate needs the state vector (the probe compliance) and "
@@ -660,6 +675,7 @@ class ForceModel:
                     "linear_force_tip": bool(self.pre.linear_force_tip),
                     "linear_force_ref": self.pre.linear_force_ref,
                     "indentation_strain": bool(self.pre.indentation_strain),
+                    "material_ref": self.pre.material_ref,
                 },
                 "meta": self.meta,
             }
@@ -711,6 +727,7 @@ class ForceModel:
             bool(sc.get("linear_force_tip", False)),
             sc.get("linear_force_ref"),
             bool(sc.get("indentation_strain", False)),
+            sc.get("material_ref"),
         )
         rspec = RegressorSpec.from_dict(doc["regressor"])
         net = load_regressor(rspec, torch.load(path / "regressor.pt", weights_only=True))

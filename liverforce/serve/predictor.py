@@ -110,7 +110,10 @@ class Predictor:
             )
         # the bundle is read whole (ForceModel.load), so its download need not outlive this call
         with tempfile.TemporaryDirectory(prefix="liverforce-model-") as tmp:
-            pred = cls.from_dir(fetch(str(ref), Path(tmp)), **kw)
+            try:
+                pred = cls.from_dir(fetch(str(ref), Path(tmp)), **kw)
+            except PredictionInputError as exc:  # name what the user gave, not the removed download folder
+                raise PredictionInputError(f"model {ref} (downloaded): {exc}") from exc
         pred.source = str(ref)
         return pred
 

@@ -182,7 +182,7 @@ def test_the_indentation_strain_is_the_normal_displacement_under_the_tool_over_t
     thin[:, THICKNESS_COLUMN] /= 2
     np.testing.assert_allclose(pre.state_features(thin, x)[:, -1], 2 * feats[:, -1], rtol=1e-12)
     saved = model.save(tmp_path / "m")
-    assert json.loads((saved / "model.json").read_text())["format_version"] == 8
+    assert json.loads((saved / "model.json").read_text())["format_version"] == 9
     again = ForceModel.load(saved)
     assert again.pre.indentation_strain
     np.testing.assert_array_equal(again.predict(data), model.predict(data))
@@ -229,3 +229,29 @@ def test_a_version_4_bundle_with_the_linear_force_estimate_still_loads(models, d
     assert not old.pre.indentation_strain and old.pre.n_displacement_features == 3
     assert old.pre.n_material == model.pre.n_material == np.asarray(data["material_params_mpa"]).shape[1]
     np.testing.assert_array_equal(old.predict(data), model.predict(data))
+
+
+def test_the_stiffness_factor_of_the_interval_does_not_depend_on_the_force_scaling(models, data, tmp_path):
+    """The interval widens outside its calibration's stiffness range by k = C10 / C10_ref: a model with
+    force_scaling none has that k too (format 9; the camera variant uses none), equal to the scaled models' k, and
+    it survives the bundle. A format-8 bundle of such a model had no reference: it keeps k = 1, as it was written."""
+    import json
+
+    from liverforce.learn.model import prepare
+    from liverforce.learn.state import MATERIAL_START as M
+
+    none, lin = models["none_lin"], models["linear_lin"]
+    assert none.pre.stiffness_ref is None and none.pre.linear_force_ref is None
+    assert none.pre.material_ref == pytest.approx(lin.pre.linear_force_ref, rel=1e-12)
+    st = prepare(data, none.representation, observation_seeds=[0]).state
+    k = none.pre.material_factor(st, len(st))
+    np.testing.assert_allclose(k, lin.pre.material_factor(st, len(st)), rtol=1e-12)
+    np.testing.assert_allclose(k[:, 0] * none.pre.material_ref, st[:, M], rtol=1e-12)  # C10 / its training mean
+    assert k.min() < 0.9 and k.max() > 1.1  # the constants vary, so does k
+    path = none.save(tmp_path / "none")
+    np.testing.assert_array_equal(ForceModel.load(path).pre.material_factor(st, len(st)), k)
+    doc = json.loads((path / "model.json").read_text())
+    doc["format_version"] = 8
+    del doc["scalers"]["material_ref"]
+    (path / "model.json").write_text(json.dumps(doc))
+    np.testing.assert_array_equal(ForceModel.load(path).pre.material_factor(st, len(st)), np.ones((len(st), 1)))

@@ -27,16 +27,18 @@ TRAIN = {"test_fraction": 0.2, "epochs": 8, "batch_size": 32, "lr": 3e-3, "weigh
 NO_TUNE = {"enabled": False, "trials": 1, "folds": 2, "sobol_trials": 1, "epochs": 1}
 
 
-@pytest.fixture(scope="module", params=[("mlp", "stiffness"), ("gp_ensemble", "stiffness"), ("gp", "linear")])
+@pytest.fixture(scope="module", params=[("mlp", "stiffness"), ("gp_ensemble", "none"), ("gp", "linear")])
 def served(request, tmp_path_factory):
     """The compiled camera path of a small camera model, with each regressor (the MLP, the GP ensemble over
-    PCA code sizes as shipped for the camera model, and one GP) and force scaling (the predicted force or the
-    linear force estimate scaled by the stiffness)."""
+    PCA code sizes, and one GP) and force scaling (the predicted force or the linear force estimate scaled by
+    the stiffness, or neither). The GP ensemble has the shipped camera model's settings: no force scaling and
+    a grid kernel of 1.5 cells."""
     arrays = synthetic_surface_arrays(80, n_geometries=3, seed=3, material_varies=True)
     regressor, scaling = request.param
     members = [2, 4, 6] if regressor == "gp_ensemble" else None
+    camera = MODEL["camera"] if members is None else {**MODEL["camera"], "grid": {"kernel_radius_cells": 1.5}}
     res = train_scenario(arrays, {**MODEL, "regressor": "mlp" if regressor == "mlp" else "gp",
-                                  "force_scaling": scaling,
+                                  "force_scaling": scaling, "camera": camera,
                                   "gp": {"max_points": 2000, "iterations": 100, "code_members": members}},
                          TRAIN, NO_TUNE, "IV", "cloud", out_dir=tmp_path_factory.mktemp("cam-batch"))
     pred = Predictor(ForceModel.load(res["model_path"]))

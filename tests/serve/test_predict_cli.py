@@ -101,7 +101,7 @@ def test_nodes_mode_yaml_context_and_outputs(trained, test_cases, tmp_path, caps
     iv, m = doc["interval"], Predictor.load(model).model
     np.testing.assert_allclose(iv["frame"], ctx.frame, atol=1e-12)
     np.testing.assert_allclose(iv["force_local_n"], ctx.frame @ expect, atol=1e-9)
-    k = 1.0 if m.pre.stiffness_ref is None else ctx.material_params_mpa[0] / m.pre.stiffness_ref
+    k = 1.0 if m.pre.material_ref is None else ctx.material_params_mpa[0] / m.pre.material_ref
     np.testing.assert_allclose(iv["half_width_local_n"], k * np.asarray(m.interval.half_width_n), rtol=1e-12)
     np.testing.assert_allclose(np.asarray(iv["upper_local_n"]) - iv["lower_local_n"],
                                2 * np.asarray(iv["half_width_local_n"]), rtol=1e-12)
