@@ -72,10 +72,11 @@ REF_BATCH = ARGS.ref_batch or (200 if ARGS.quick else 1000)
 CASES = ARGS.cases or (120 if ARGS.quick else 480)
 MODEL = {"encoder": "pca", "code_size": 16, "state_vector": True, "grid_size": 12, "hidden": [128, 128],
          "dropout": 0.1, "occlusion": {"radius_mm": 0.0, "mode": "remove"}, "noise_mm": 0.0, "roi_features": "cloud",
-         "force_scaling": "stiffness", "probe_force_radius_mm": 5.0, "indentation_strain": True,
+         "force_scaling": "none", "probe_force_radius_mm": 5.0, "indentation_strain": True,
          "gp": {"max_points": 2000, "iterations": 50, "code_members": [8, 12, 16, 24, 32],
                 "kernel": "squared_exponential"},  # as the shipped camera variant (config/train/default.yaml)
-         "camera": {"observation": {"n_points": [200, 20000]}, "grid": {}, "tip_noise_mm": 0.5}}
+         "camera": {"observation": {"n_points": [200, 20000]}, "grid": {"kernel_radius_cells": 1.5},
+                    "tip_noise_mm": 0.5}}
 TRAIN = {"test_fraction": 0.2, "epochs": 3, "batch_size": 64, "lr": 3e-3, "weight_decay": 0.0, "seed": 0,
          "interval": {"coverage": 0.9, "calibration_fraction": 0.25}}
 NO_TUNE = {"enabled": False, "trials": 1, "folds": 2, "sobol_trials": 1, "epochs": 1}

@@ -212,6 +212,7 @@ class CameraConfig:
     observation: dict[str, Any] = MISSING  # ObservationConfig fields (liverforce.learn.observation)
     grid: dict[str, Any] = MISSING  # CloudGridSpec fields other than grid_size and half_width_mm
     tip_noise_mm: float = MISSING  # Gaussian noise of the tool tip position (robot kinematics), per coordinate
+    tip_noise_normal_mm: Optional[float] = MISSING  # null: isotropic; else the sd along the normal (tip_noise_mm: tangential)
     views: int = MISSING  # observed views per training case (camera pose, density, noise drawn again)
 
 
@@ -818,6 +819,9 @@ def _check_model(mo: dict, key: str) -> None:
         _fail(f"{key}.camera.views", f"must be >= 1 (got {cam['views']})")
     if cam["tip_noise_mm"] < 0:
         _fail(f"{key}.camera.tip_noise_mm", f"must be >= 0 mm (got {cam['tip_noise_mm']})")
+    tn = cam.get("tip_noise_normal_mm")
+    if tn is not None and not (isinstance(tn, (int, float)) and math.isfinite(tn) and tn >= 0):
+        _fail(f"{key}.camera.tip_noise_normal_mm", f"must be null (isotropic) or >= 0 mm (got {tn})")
     from liverforce.learn.cloud_features import CloudGridSpec
     from liverforce.learn.observation import ObservationConfig
 

@@ -56,6 +56,7 @@ def test_thesis_is_the_study_scale():
         ("model.gp.kernel=cauchy", "model.gp.kernel"),
         ("model.gp.shape=0", "model.gp.shape"),
         ("model.gp.shape=inf", "model.gp.shape"),
+        ("model.camera.tip_noise_normal_mm=-0.5", "model.camera.tip_noise_normal_mm"),
         ("validate.seed=1", "validate.seed"),
         ("geometry.procedural.shape.lobe_ratio=9", "geometry.procedural.shape"),
     ],

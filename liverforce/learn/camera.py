@@ -34,7 +34,9 @@ Where the inputs come from
   (camera pose in a cone, visibility, tool shaft and tip, density, noise), seeded
   per case by ``case_seed(observation_seed, case_id)``; the tip is the exertion
   point moved with the surface plus Gaussian kinematics noise of
-  ``tip_noise_mm`` per coordinate (stage ``observation.tip``). Needs
+  ``tip_noise_mm`` per coordinate (stage ``observation.tip``); with
+  ``tip_noise_normal_mm`` set, ``tip_noise_mm`` is the sd along the surface
+  (tangential) and ``tip_noise_normal_mm`` the sd along the normal. Needs
   ``arrays["surface_displacement_mm"]``, ``arrays["roi_triangles"]`` and ``arrays["surface_meshes"]``
   (geometry id -> ``(vertices, triangles)`` of :func:`surface_from_mesh`; a
   per-run entry, not a per-case column). The tool's shaft is along the outward
@@ -111,6 +113,7 @@ def observe_cases(arrays: dict, camera: dict, half_width_mm: float, grid_size: i
             "('surface_displacement_mm') and the geometries' surfaces ('surface_meshes')")
     cfg = observation_config(camera, half_width_mm, grid_size)
     tip_sd = float(camera.get("tip_noise_mm", 0.0))
+    tip_sd_n = camera.get("tip_noise_normal_mm")  # None: isotropic; else tip_sd is the tangential sd
     n = len(arrays["exertion_point_mm"])
     rows = np.arange(n) if rows is None else np.asarray(rows)
     geo = np.asarray(arrays["geometry_id"]).astype(str)
@@ -130,7 +133,13 @@ def observe_cases(arrays: dict, camera: dict, half_width_mm: float, grid_size: i
         q = P[sel] + surface_point_displacement(V, T, P[sel], disp)
         for k, i in enumerate(pos):
             clouds[i] = cl[k]
-            if tip_sd > 0:
+            if tip_sd_n is not None:  # the same draw, its normal and tangential parts scaled apart
+                rng = np.random.default_rng(derive(seed, "observation.tip", ids[rows[i]]))
+                e = rng.normal(0.0, 1.0, 3)
+                nrm = N[rows[i]] / np.linalg.norm(N[rows[i]])
+                e_n = float(e @ nrm)
+                q[k] = q[k] + tip_sd * (e - e_n * nrm) + float(tip_sd_n) * e_n * nrm
+            elif tip_sd > 0:
                 rng = np.random.default_rng(derive(seed, "observation.tip", ids[rows[i]]))
                 q[k] = q[k] + rng.normal(0.0, tip_sd, 3)
             tips[i] = q[k]

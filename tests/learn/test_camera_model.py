@@ -190,3 +190,31 @@ def test_a_camera_bundle_of_format_6_keeps_the_reference_it_was_trained_with(tra
     # the new model refuses the inputs without the triangles, naming them
     with pytest.raises(KeyError, match="roi_triangles"):
         model.predict(without)
+
+
+def test_tip_noise_along_the_normal_and_along_the_surface_apart(trained):
+    """camera.tip_noise_normal_mm: the tool tip's error splits into its normal and tangential parts, each with its
+    own sd, from the same seeded draw; null keeps the isotropic noise bit for bit."""
+    model, a_te = trained
+    a = subset(a_te, np.arange(40))
+    hw, g = model.representation.half_width_mm, model.representation.grid_size
+    exact = camera.observe_cases(a, {**CAMERA, "tip_noise_mm": 0.0}, hw, g, 9)[1]
+    iso = camera.observe_cases(a, {**CAMERA, "tip_noise_mm": 0.5}, hw, g, 9)[1]
+    same = camera.observe_cases(a, {**CAMERA, "tip_noise_mm": 0.5, "tip_noise_normal_mm": None}, hw, g, 9)[1]
+    assert np.array_equal(iso, same)
+    n = np.asarray(a["frame_normal"], float)
+    n = n / np.linalg.norm(n, axis=1, keepdims=True)
+
+    def parts(tips):
+        e = tips - exact
+        e_n = np.einsum("ij,ij->i", e, n)
+        return e_n, np.linalg.norm(e - e_n[:, None] * n, axis=1)
+
+    e_n, e_t = parts(camera.observe_cases(a, {**CAMERA, "tip_noise_mm": 0.0, "tip_noise_normal_mm": 0.5}, hw, g, 9)[1])
+    assert np.all(e_t < 1e-9) and 0.3 < np.std(e_n) < 0.7  # only along the normal
+    e_n2, e_t2 = parts(camera.observe_cases(a, {**CAMERA, "tip_noise_mm": 0.5, "tip_noise_normal_mm": 0.0}, hw, g, 9)[1])
+    assert np.all(np.abs(e_n2) < 1e-9) and 0.3 < np.sqrt(np.mean(e_t2**2) / 2) < 0.7  # only along the surface
+    # the same draw: the isotropic error is the sum of the two parts
+    iso_n, iso_t = parts(iso)
+    np.testing.assert_allclose(iso_n, e_n, atol=1e-12)
+    np.testing.assert_allclose(iso_t, e_t2, atol=1e-12)
