@@ -46,3 +46,37 @@ class PipelineTraining:
         u = self.arrays("V", camera)
         pred = model.predict(u, observation_seed=eval_seed(int(res["seed"])))
         return metrics_by_group(u["force_n"], pred, u["geometry_id"])
+
+    def score(self, model_cfg: dict, scenario: str, name: str, label: str, out: str, cv_splits: int) -> str:
+        """Train ``model_cfg`` as the pipeline does and return one line: the training-side CV MAE (4 folds by
+        liver, ``cv_mae_n``) on ``cv_splits`` seeded splits (the main split, then the repeats' split seeds, each
+        trained as its own run; what a default is chosen on; 0: not reported), the test accuracy per split over
+        ``train.repeats``, and for IV the unseen livers' MAE (the main split's model)."""
+        import time
+
+        import numpy as np
+
+        from liverforce.learn.train import train_scenario
+        from liverforce.seeds import derive
+
+        camera = model_cfg.get("roi_features") == "cloud"
+        arrays = self.arrays(scenario, camera)
+        t = time.perf_counter()
+        res = train_scenario(arrays, model_cfg, self.train, self.cfg["tune"], scenario, name, seed=self.seed,
+                             out_dir=out)
+        line = f"{name:8s} {scenario:3s} {label:24s}"
+        if cv_splits > 0:
+            cv = [res["cv_mae_n"]]
+            for r in range(1, cv_splits):
+                got = train_scenario(arrays, model_cfg, {**self.train, "repeats": 1}, self.cfg["tune"], scenario,
+                                     name, seed=derive(self.seed, "split.repeat", r), out_dir=f"{out}-cv{r}")
+                cv.append(got["cv_mae_n"])
+            line += f" CV MAE {np.mean(cv):.4f} N ({len(cv)} splits: {' '.join(f'{c:.4f}' for c in cv)}) |"
+        m, s = res["metrics_mean"], res["metrics_sd"]
+        per_split = [x["metrics"]["accuracy_pct"] for x in res["repeats"]]  # the main split first
+        line += (f" test {m['accuracy_pct']:6.2f} +- {s['accuracy_pct']:.2f} % (splits "
+                 f"{' '.join(f'{a:.1f}' for a in per_split)}), MAE {m['mae_vec']:.4f} +- {s['mae_vec']:.4f} N")
+        if scenario == "IV":
+            g = self.unseen(res, camera)
+            line += f" | unseen MAE {g['mean']['mae_vec']:.4f} +- {g['sd']['mae_vec']:.4f} N"
+        return f"{line} | {time.perf_counter() - t:.0f} s"

@@ -24,9 +24,6 @@ by the marginal likelihood).
 from __future__ import annotations
 
 import argparse
-import time
-
-import numpy as np
 
 
 def parse_kernel(text: str) -> dict:
@@ -48,9 +45,6 @@ def main() -> None:
     ap.add_argument("--out", default="/tmp/liverforce-experiment-gp-kernel")
     args = ap.parse_args()
 
-    from liverforce.learn.train import train_scenario
-    from liverforce.seeds import derive
-
     from benchmarks.experiment import PipelineTraining
 
     run = PipelineTraining(args.results, "GP kernel experiment")
@@ -58,28 +52,10 @@ def main() -> None:
         v = dict(run.variants[name])
         if v.get("regressor") != "gp":
             raise SystemExit(f"variant {name} does not use the GP regressor")
-        camera = v.get("roi_features") == "cloud"
-        arrays = run.arrays(args.scenario, camera)
         for text in args.kernels:
             model_cfg = {**v, "gp": {**v["gp"], **parse_kernel(text)}}
             out = f"{args.out}/{name}-{args.scenario}-{text.replace(':', '-')}"
-            t = time.perf_counter()
-            res = train_scenario(arrays, model_cfg, run.train, run.cfg["tune"], args.scenario, name, seed=run.seed,
-                                 out_dir=out)
-            cv = [res["cv_mae_n"]]
-            for r in range(1, args.cv_splits):  # the repeats' split seeds, each split trained as its own run
-                got = train_scenario(arrays, model_cfg, {**run.train, "repeats": 1}, run.cfg["tune"], args.scenario,
-                                     name, seed=derive(run.seed, "split.repeat", r), out_dir=f"{out}-cv{r}")
-                cv.append(got["cv_mae_n"])
-            m, s = res["metrics_mean"], res["metrics_sd"]
-            per_split = [x["metrics"]["accuracy_pct"] for x in res["repeats"]]  # the main split first
-            line = (f"{name:8s} {args.scenario:3s} {text:24s} CV MAE {np.mean(cv):.4f} N ({len(cv)} splits: "
-                    f"{' '.join(f'{c:.4f}' for c in cv)}) | test {m['accuracy_pct']:6.2f} +- {s['accuracy_pct']:.2f} % "
-                    f"(splits {' '.join(f'{a:.1f}' for a in per_split)}), MAE {m['mae_vec']:.4f} N")
-            if args.scenario == "IV":
-                g = run.unseen(res, camera)
-                line += f" | unseen MAE {g['mean']['mae_vec']:.4f} +- {g['sd']['mae_vec']:.4f} N"
-            print(f"{line} | {time.perf_counter() - t:.0f} s", flush=True)
+            print(run.score(model_cfg, args.scenario, name, text, out, args.cv_splits), flush=True)
 
 
 if __name__ == "__main__":

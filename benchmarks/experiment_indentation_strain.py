@@ -19,7 +19,6 @@ camera model), so a variant without it (no state vector) is the same either way.
 from __future__ import annotations
 
 import argparse
-import time
 
 
 def main() -> None:
@@ -30,31 +29,16 @@ def main() -> None:
     ap.add_argument("--out", default="/tmp/liverforce-experiment-indentation-strain")
     args = ap.parse_args()
 
-    from liverforce.learn.train import train_scenario
-
     from benchmarks.experiment import PipelineTraining
 
     run = PipelineTraining(args.results, "indentation-strain experiment")
     for name in args.variants:
         v = dict(run.variants[name])
-        camera = v.get("roi_features") == "cloud"
         for scenario in args.scenarios:
-            arrays = run.arrays(scenario, camera)
             for strain in (False, True):
-                model_cfg = {**v, "indentation_strain": strain}
-                t = time.perf_counter()
-                res = train_scenario(arrays, model_cfg, run.train, run.cfg["tune"], scenario, name, seed=run.seed,
-                                     out_dir=f"{args.out}/{name}-{scenario}-{int(strain)}")
-                m, s = res["metrics_mean"], res["metrics_sd"]
-                per_split = [r["metrics"]["accuracy_pct"] for r in res["repeats"]]  # the main split first
-                line = (f"{name:8s} {scenario:3s} strain {'on ' if strain else 'off'} test {m['accuracy_pct']:6.2f} +- "
-                        f"{s['accuracy_pct']:.2f} % (splits {' '.join(f'{a:.1f}' for a in per_split)}), "
-                        f"MAE {m['mae_vec']:.4f} +- {s['mae_vec']:.4f} N")
-                if scenario == "IV":
-                    g = run.unseen(res, camera)
-                    line += f" | unseen MAE {g['mean']['mae_vec']:.4f} +- {g['sd']['mae_vec']:.4f} N"
-                print(f"{line} | {time.perf_counter() - t:.0f} s", flush=True)
-
+                print(run.score({**v, "indentation_strain": strain}, scenario, name,
+                                f"strain {'on' if strain else 'off'}", f"{args.out}/{name}-{scenario}-{int(strain)}", 0),
+                      flush=True)
 
 if __name__ == "__main__":
     main()

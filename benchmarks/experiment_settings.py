@@ -22,9 +22,7 @@ shards (``--results``), through the pipeline's own
 from __future__ import annotations
 
 import argparse
-import time
 
-import numpy as np
 import yaml
 
 
@@ -92,8 +90,6 @@ def main() -> None:
     args = ap.parse_args()
 
     from liverforce.config import merge_mapping
-    from liverforce.learn.train import train_scenario
-    from liverforce.seeds import derive
 
     from benchmarks.experiment import PipelineTraining
 
@@ -101,28 +97,8 @@ def main() -> None:
     v = dict(run.variants[args.variant])
     overs = [(text, parse_setting(text, v)) for text in args.settings]  # all checked before any training
     for k, (text, over) in enumerate(overs):
-        model_cfg = merge_mapping(v, over)
-        camera = model_cfg.get("roi_features") == "cloud"
-        arrays = run.arrays(args.scenario, camera)
-        out = f"{args.out}/{args.variant}-{args.scenario}-{k}"
-        t = time.perf_counter()
-        res = train_scenario(arrays, model_cfg, run.train, run.cfg["tune"], args.scenario, args.variant,
-                             seed=run.seed, out_dir=out)
-        cv = [res["cv_mae_n"]]
-        for r in range(1, args.cv_splits):  # the repeats' split seeds, each split trained as its own run
-            got = train_scenario(arrays, model_cfg, {**run.train, "repeats": 1}, run.cfg["tune"], args.scenario,
-                                 args.variant, seed=derive(run.seed, "split.repeat", r), out_dir=f"{out}-cv{r}")
-            cv.append(got["cv_mae_n"])
-        m, s = res["metrics_mean"], res["metrics_sd"]
-        per_split = [x["metrics"]["accuracy_pct"] for x in res["repeats"]]  # the main split first
-        line = (f"{args.variant} {args.scenario} {text:40s} CV MAE {np.mean(cv):.4f} N ({len(cv)} splits: "
-                f"{' '.join(f'{c:.4f}' for c in cv)}) | test {m['accuracy_pct']:6.2f} +- {s['accuracy_pct']:.2f} % "
-                f"(splits {' '.join(f'{a:.1f}' for a in per_split)}), MAE {m['mae_vec']:.4f} N")
-        if args.scenario == "IV":
-            g = run.unseen(res, camera)
-            line += f" | unseen MAE {g['mean']['mae_vec']:.4f} +- {g['sd']['mae_vec']:.4f} N"
-        print(f"{line} | {time.perf_counter() - t:.0f} s", flush=True)
-
+        print(run.score(merge_mapping(v, over), args.scenario, args.variant, text,
+                        f"{args.out}/{args.variant}-{args.scenario}-{k}", args.cv_splits), flush=True)
 
 if __name__ == "__main__":
     main()
