@@ -40,5 +40,6 @@ def main() -> None:
                                 f"strain {'on' if strain else 'off'}", f"{args.out}/{name}-{scenario}-{int(strain)}", 0),
                       flush=True)
 
+
 if __name__ == "__main__":
     main()

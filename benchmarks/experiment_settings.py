@@ -100,5 +100,6 @@ def main() -> None:
         print(run.score(merge_mapping(v, over), args.scenario, args.variant, text,
                         f"{args.out}/{args.variant}-{args.scenario}-{k}", args.cv_splits), flush=True)
 
+
 if __name__ == "__main__":
     main()

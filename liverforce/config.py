@@ -820,7 +820,8 @@ def _check_model(mo: dict, key: str) -> None:
     if cam["tip_noise_mm"] < 0:
         _fail(f"{key}.camera.tip_noise_mm", f"must be >= 0 mm (got {cam['tip_noise_mm']})")
     tn = cam.get("tip_noise_normal_mm")
-    if tn is not None and not (isinstance(tn, (int, float)) and math.isfinite(tn) and tn >= 0):
+    if tn is not None and not (isinstance(tn, (int, float)) and not isinstance(tn, bool) and math.isfinite(tn)
+                               and tn >= 0):
         _fail(f"{key}.camera.tip_noise_normal_mm", f"must be null (isotropic) or >= 0 mm (got {tn})")
     from liverforce.learn.cloud_features import CloudGridSpec
     from liverforce.learn.observation import ObservationConfig

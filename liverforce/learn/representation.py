@@ -144,8 +144,8 @@ class Representation:
         Standard deviation of Gaussian point noise, mm.
     camera : dict, optional
         ``cloud`` features only: ``observation`` (ObservationConfig fields),
-        ``grid`` (CloudGridSpec fields) and ``tip_noise_mm``
-        (:mod:`liverforce.learn.camera`).
+        ``grid`` (CloudGridSpec fields), ``tip_noise_mm`` and
+        ``tip_noise_normal_mm`` (:mod:`liverforce.learn.camera`).
     rigid_motion : str
         ``keep`` or ``remove`` (module docstring; ``displacement`` and
         ``both`` features only).

@@ -104,7 +104,8 @@ def camera_sensitivity(model_dir, arrays: dict, grid: dict) -> dict | None:
 
     ``grid``: setting -> values, among ``n_points`` (a fixed number of cloud
     points), ``noise_sd_mm``, ``cone_half_angle_deg`` (the view-angle cone
-    around the normal) and ``tip_noise_mm`` (robot kinematics). The other
+    around the normal) and ``tip_noise_mm`` (robot kinematics, the same sd in
+    every direction whatever the model's ``tip_noise_normal_mm``). The other
     settings stay the model's own; the evaluation observation seed as in
     validation. Returns ``{setting: [{value, mae_vec (mean over livers),
     mae_sd, accuracy_pct, accuracy_sd}]}``, None for a model that is not a
@@ -127,8 +128,9 @@ def camera_sensitivity(model_dir, arrays: dict, grid: dict) -> dict | None:
         for val in values:
             cam = copy.deepcopy(rep.camera)
             obs = cam.setdefault("observation", {})
-            if key == "tip_noise_mm":
+            if key == "tip_noise_mm":  # the same noise in every direction, whatever the model was trained with
                 cam["tip_noise_mm"] = float(val)
+                cam["tip_noise_normal_mm"] = None
             elif key == "n_points":
                 obs["n_points"] = [int(val), int(val)]
             elif key in ("noise_sd_mm", "cone_half_angle_deg"):

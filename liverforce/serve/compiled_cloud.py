@@ -6,8 +6,9 @@ done once, when compiling (:class:`CompiledCloud`):
 
 - the pre-operative height raster of :class:`~liverforce.learn.cloud_features.ReferenceSurface`;
 - the state vector (scaled), the compliance's inverse ``C^-1`` (for ``f_lin``),
-  the stiffness factor of the material (force scaling) and so the interval's
-  half-widths;
+  the stiffness factor of the material (``C10 / C10_ref``: the force scaling's, and
+  the interval's widening outside its calibration's stiffness range) and so the
+  interval's half-widths;
 - the scalers and PCA folded into one affine map; the MLP as NumPy arrays
   (float32, as the torch reference; :func:`liverforce.serve.compiled.numpy_layers`)
   or the Gaussian process's posterior mean

@@ -218,3 +218,23 @@ def test_tip_noise_along_the_normal_and_along_the_surface_apart(trained):
     iso_n, iso_t = parts(iso)
     np.testing.assert_allclose(iso_n, e_n, atol=1e-12)
     np.testing.assert_allclose(iso_t, e_t2, atol=1e-12)
+
+
+def test_the_tip_noise_sensitivity_is_isotropic_whatever_the_model_was_trained_with(trained, tmp_path):
+    """validate's camera sensitivity sweeps tip_noise_mm as the same sd in every direction: a model trained with
+    tip_noise_normal_mm gives the same rows as one without it (at 0 mm: an exact tip, not its normal noise)."""
+    import json
+
+    from liverforce.pipeline.validate import camera_sensitivity
+
+    model, a_te = trained
+    a = subset(a_te, np.arange(12))
+    plain = model.save(tmp_path / "plain")
+    aniso = model.save(tmp_path / "aniso")
+    doc = json.loads((aniso / "model.json").read_text())
+    doc["representation"]["camera"]["tip_noise_normal_mm"] = 0.7
+    (aniso / "model.json").write_text(json.dumps(doc))
+    grid = {"tip_noise_mm": [0.0, 0.5]}
+    got, want = camera_sensitivity(aniso, a, grid), camera_sensitivity(plain, a, grid)
+    assert got["model_settings"]["tip_noise_normal_mm"] == 0.7
+    assert got["tip_noise_mm"] == want["tip_noise_mm"]
