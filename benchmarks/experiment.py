@@ -64,7 +64,7 @@ class PipelineTraining:
         t = time.perf_counter()
         res = train_scenario(arrays, model_cfg, self.train, self.cfg["tune"], scenario, name, seed=self.seed,
                              out_dir=out)
-        line = f"{name:8s} {scenario:3s} {label:24s}" if len(label) <= 24 else f"{name} {scenario} {label} |"
+        line = f"{name:8s} {scenario:3s} {label:24s}"
         if cv_splits > 0:
             cv = [res["cv_mae_n"]]
             for r in range(1, cv_splits):

@@ -133,15 +133,15 @@ def observe_cases(arrays: dict, camera: dict, half_width_mm: float, grid_size: i
         q = P[sel] + surface_point_displacement(V, T, P[sel], disp)
         for k, i in enumerate(pos):
             clouds[i] = cl[k]
-            if tip_sd_n is not None:  # the same draw, its normal and tangential parts scaled apart
+            if tip_sd > 0 or tip_sd_n:
                 rng = np.random.default_rng(derive(seed, "observation.tip", ids[rows[i]]))
-                e = rng.normal(0.0, 1.0, 3)
-                nrm = N[rows[i]] / np.linalg.norm(N[rows[i]])
-                e_n = float(e @ nrm)
-                q[k] = q[k] + tip_sd * (e - e_n * nrm) + float(tip_sd_n) * e_n * nrm
-            elif tip_sd > 0:
-                rng = np.random.default_rng(derive(seed, "observation.tip", ids[rows[i]]))
-                q[k] = q[k] + rng.normal(0.0, tip_sd, 3)
+                if tip_sd_n is None:
+                    q[k] = q[k] + rng.normal(0.0, tip_sd, 3)
+                else:  # the same draw, its normal and tangential parts scaled apart
+                    e = rng.normal(0.0, 1.0, 3)
+                    nrm = N[rows[i]] / np.linalg.norm(N[rows[i]])
+                    e_n = float(e @ nrm)
+                    q[k] = q[k] + tip_sd * (e - e_n * nrm) + float(tip_sd_n) * e_n * nrm
             tips[i] = q[k]
     return clouds, tips
 

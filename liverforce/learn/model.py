@@ -464,21 +464,18 @@ def fit_preprocessor(
     cs = Standardizer.fit(enc.encode(xs))
     if force_scaling not in FORCE_SCALINGS:
         raise ValueError(f"unknown force_scaling '{force_scaling}': use one of {FORCE_SCALINGS}")
-    ref = None
+    ref = None  # C10's training mean: the force scaling's reference and, whatever the scaling, the interval's
+    if use_state:
+        c1 = prep.state[:, MATERIAL_START]
+        ref = float(c1.mean()) if np.all(c1 > 0) else None
     if force_scaling != "none":
         if not use_state:
             raise ValueError(f"force_scaling: {force_scaling} needs the state vector (the material constants)")
-        c1 = prep.state[:, MATERIAL_START]
-        if not np.all(c1 > 0):
+        if ref is None:
             raise ValueError(f"force_scaling: {force_scaling} needs a positive first material constant (C10); the "
                              f"training cases have {float(c1.min()):.4g} MPa")
-        ref = float(c1.mean())
-    material_ref = ref
-    if use_state and ref is None:  # the interval's stiffness factor needs the reference whatever the scaling
-        c1 = prep.state[:, MATERIAL_START]
-        material_ref = float(c1.mean()) if np.all(c1 > 0) else None
     pre = Preprocessor(fs, enc, cs, None, Standardizer.fit(prep.y_local), ref if force_scaling == "stiffness" else None,
-                       linear_force_ref=ref if force_scaling == "linear" else None, material_ref=material_ref)
+                       linear_force_ref=ref if force_scaling == "linear" else None, material_ref=ref)
     if linear_force_radius_mm > 0:
         if not use_state or rep.features == "deformed":
             raise ValueError("the linear force estimate needs the state vector (the probe compliance) and "
