@@ -78,7 +78,7 @@ MODEL = {"encoder": "pca", "code_size": 16, "state_vector": True, "grid_size": 1
          "camera": {"observation": {"n_points": [200, 20000]}, "grid": {"kernel_radius_cells": 1.5},
                     "tip_noise_mm": 0.5}}
 TRAIN = {"test_fraction": 0.2, "epochs": 3, "batch_size": 64, "lr": 3e-3, "weight_decay": 0.0, "seed": 0,
-         "interval": {"coverage": 0.9, "calibration_fraction": 0.25}}
+         "interval": {"coverage": 0.9, "calibration_fraction": 0.25, "scale": "force"}}  # the shipped interval scale
 NO_TUNE = {"enabled": False, "trials": 1, "folds": 2, "sobol_trials": 1, "epochs": 1}
 
 

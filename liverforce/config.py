@@ -198,7 +198,7 @@ class IntervalConfig:
     coverage: float = MISSING  # nominal coverage of the per-component interval (split conformal)
     calibration_fraction: float = MISSING  # of the training split, held out to calibrate it
     folds: int = MISSING  # > 1: cross-conformal over the training split (by liver in IV); 1: one held-out split
-    scale: str = MISSING  # none | stiffness: half-widths x the case's stiffness factor
+    scale: str = MISSING  # none | stiffness (x the case's stiffness factor) | force (x a + b |predicted force|)
 
 
 @dataclass
@@ -512,6 +512,13 @@ def tool_models() -> tuple[str, ...]:
     return tuple(TOOL_MODELS)
 
 
+def interval_scales() -> tuple[str, ...]:
+    """``train.interval.scale``: :data:`liverforce.learn.interval.SCALES`."""
+    from liverforce.learn.interval import SCALES
+
+    return tuple(SCALES)
+
+
 def sweep_designs() -> tuple[str, ...]:
     """``sweep.design``: the samplers of :data:`liverforce.sweep.design.DESIGNS`."""
     from liverforce.sweep.design import design_names
@@ -729,7 +736,7 @@ def _check_ranges(cfg: dict) -> None:
               f"must be in (0, 1), got {t['interval']['calibration_fraction']}", "e.g. 0.2")
     if t["interval"]["folds"] < 1:
         _fail("train.interval.folds", f"must be >= 1 (got {t['interval']['folds']})", "e.g. 4 (1: one held-out split)")
-    _check_choice("train.interval.scale", t["interval"]["scale"], ("none", "stiffness"), "interval scale")
+    _check_choice("train.interval.scale", t["interval"]["scale"], interval_scales(), "interval scale")
     if t["heldout_points"]["folds"] < 2:
         _fail("train.heldout_points.folds", f"must be >= 2 (got {t['heldout_points']['folds']})")
     for sc in t["heldout_points"]["scenarios"]:

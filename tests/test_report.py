@@ -111,7 +111,12 @@ def stage_outputs(tmp_path):
         "model_run_id": "runIVpca_sv", "model_variant": "pca_sv", "variant_choice": "validate.variant=main",
         "figures": [], "per_liver": per_liver, "livers": livers,
         "interval": {"nominal": 0.9, "bounded": True, "n_calibration": 64, "coverage": [0.875, 0.9, 0.8125],
-                     "coverage_per_liver": {}, "half_width_mean_n": [0.41, 0.38, 0.52],
+                     "coverage_per_liver": {}, "half_width_mean_n": [0.41, 0.38, 0.52], "scale": "force",
+                     "coverage_by_force": [
+                         {"lo_n": 0.1, "hi_n": 1.5, "n": 6, "coverage": [1.0, 5 / 6, 1.0],
+                          "half_width_mean_n": [0.2, 0.21, 0.3]},
+                         {"lo_n": 1.5, "hi_n": 4.9, "n": 5, "coverage": [0.8, 1.0, 0.6],
+                          "half_width_mean_n": [0.6, 0.58, None]}],
                      "test_coverage": [0.9, 0.95, 0.85]},
         "outside_training": {"n_cases": 11, "n_outside": 3, "mae_outside_n": 0.71, "mae_inside_n": 0.2,
                              "by_input": {"tool_thickness_mm": 1, "probe_compliance_mm_per_n": 0, "liver_size_mm": 0,
@@ -286,6 +291,10 @@ def test_report_validates_on_every_unseen_liver_with_mean_sd_and_the_worst_named
     iv = _section(sec, "<h3>Calibrated interval</h3>", "</p>")
     assert "64 cases, nominal 90 %" in iv and "87.5, 90.0, 81.2 % of the cases (" in iv and "outside" in iv
     assert "IV test livers in 90.0, 95.0, 85.0 %" in iv and "0.410, 0.380, 0.520 N" in iv
+    assert "scaled per case by the predicted force" in iv
+    bins = _section(sec, "<table class='interval-bins'>", "</table>")
+    assert "<td>1.50–4.90</td><td>5</td><td>80.0</td><td>100.0</td><td>60.0</td><td>0.600, 0.580, unbounded</td>" in bins
+    assert "<td>0.10–1.50</td><td>6</td><td>100.0</td><td>83.3</td><td>100.0</td>" in bins
     # the unseen cases outside the training range, named by input, and their error against the others'
     ext = _section(sec, "<h3>Outside the training range</h3>", "</p>")
     assert "3 of 11 unseen cases" in ext and "tissue thickness under the tool 1, distance from the liver centroid 2" in ext

@@ -119,7 +119,7 @@ from liverforce.learn.torchutil import EpochCallback
 from liverforce.seeds import derive
 
 FORMAT = "liverforce.force_model"
-FORMAT_VERSION = 9  # 3: probe compliance in the state vector (material from column 22), linear force estimate;
+FORMAT_VERSION = 10  # 3: probe compliance in the state vector (material from column 22), linear force estimate;
 #                     4: the GP regressor may be a GPEnsemble (model.gp.code_members), which a reader of 3 cannot load;
 #                     5: the state features may end with the indentation strain, which a reader of 4 would misread;
 #                     6: a GP's kernel may be the rational quadratic (a ``shape`` buffer), which a reader of 5 would
@@ -131,7 +131,9 @@ FORMAT_VERSION = 9  # 3: probe compliance in the state vector (material from col
 #                     9: a state-vector model records C10's training mean (material_ref) whatever its force
 #                        scaling: with force_scaling none a reader of 8 would never widen the interval outside the
 #                        calibration's stiffness range
-READ_VERSIONS = (3, 4, 5, 6, 7, 8, 9)  # a version-3 bundle is a version-4 bundle with a single GP (or an MLP); 4 is 5
+#                     10: the interval may scale with the predicted force (train.interval.scale: force), which a
+#                        reader of 9 would read as scaled by the stiffness
+READ_VERSIONS = (3, 4, 5, 6, 7, 8, 9, 10)  # a version-3 bundle is a version-4 bundle with a single GP (or an MLP); 4 is 5
 #                                     without the indentation strain; 5 is 6 with squared-exponential GPs (no shape
 #                                     buffer); 6 is 7 with camera models on the ROI points' reference (reference:
 #                                     points); 7 is 8 with node models on the points' interpolant (no interpolation
@@ -625,7 +627,7 @@ class ForceModel:
         if ci is None:
             raise ValueError("this model has no calibrated interval (trained without train.interval)")
         fw = self.forward(arrays, observation_seed, rotations=rotations)
-        half = ci.half_widths(fw.stiffness)
+        half = ci.half_widths(fw.stiffness, fw.force_local)
         return {"force_n": fw.force_source, "force_local_n": fw.force_local, "half_width_local_n": half,
                 "coverage": ci.coverage, "frame": fw.R}
 

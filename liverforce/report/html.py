@@ -806,9 +806,21 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
             + (f"on the IV test livers in {', '.join(f'{100 * c:.1f}' for c in test)} %; " if test else "")
             + "mean half-widths "
             + ", ".join("unbounded" if h is None else f"{h:.3f}" for h in iv["half_width_mean_n"])
-            + " N (widened where a liver's stiffness lies outside the calibration livers' range, by how far "
+            + " N (" + ("scaled per case by the predicted force's magnitude, fitted on the calibration residuals; "
+                        if iv.get("scale") == "force" else "")
+            + "widened where a liver's stiffness lies outside the calibration livers' range, by how far "
               "outside). Coverage below nominal on the unseen livers means they differ from the training "
               "population by more than that.</p>")
+        bins = iv.get("coverage_by_force") or []
+        if bins:
+            rows = [[f"{b['lo_n']:.2f}–{b['hi_n']:.2f}", str(b["n"])]
+                    + [_fmt(100 * c, 1) for c in b["coverage"]]
+                    + [", ".join("unbounded" if h is None else f"{h:.3f}" for h in b["half_width_mean_n"])]
+                    for b in bins]
+            parts.append("<p>Coverage per quintile of the true force magnitude on the unseen livers: a fixed "
+                         "width would over-cover the small forces and under-cover the large ones.</p>"
+                         + _table(["|F| (N)", "cases", "t1 %", "t2 %", "n %", "mean half-widths t1, t2, n (N)"],
+                                  rows, cls="interval-bins"))
     parts.append(_extrapolation_paragraph(v.get("outside_training")))
     allv = v.get("all_variants") or {}
     if len(allv) > 1:

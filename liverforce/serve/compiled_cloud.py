@@ -8,7 +8,8 @@ done once, when compiling (:class:`CompiledCloud`):
 - the state vector (scaled), the compliance's inverse ``C^-1`` (for ``f_lin``),
   the stiffness factor of the material (``C10 / C10_ref``: the force scaling's, and
   the interval's widening outside its calibration's stiffness range) and so the
-  interval's half-widths;
+  interval's half-widths (with ``train.interval.scale: force`` those before the
+  force's scale ``a + b |F|``, a few multiplications per cloud);
 - the scalers and PCA folded into one affine map; the MLP as NumPy arrays
   (float32, as the torch reference; :func:`liverforce.serve.compiled.numpy_layers`)
   or the Gaussian process's posterior mean
@@ -482,7 +483,7 @@ class CloudBatch(NamedTuple):
     """What :meth:`CompiledCloud.predict_batch` returns (one entry per cloud).
 
     force : (B, 3) N, liver frame; NaN for a refused cloud
-    half_width : (3,) N in the local frame (the interval depends on the context only) or None
+    half_width : (B, 3) N in the local frame (the interval of each force; NaN for a refused cloud) or None
     warnings : list of lists of str (milder departures from training, as ``info["warnings"]``)
     refused : list of str or None: the reason a cloud was refused (the reference path's error message)
     """
@@ -564,8 +565,10 @@ class CompiledCloud:
             self.layers.append((np.ascontiguousarray(W.astype(np.float32).T), b.astype(np.float32),
                                 np.float32(slope), act))
         self.tmean, self.tscale = pre.target_scaler.mean, pre.target_scaler.scale
-        ci = model.interval
-        self.half = None if ci is None else ci.half_widths(np.array([[self.k_material]]))[0]
+        self.interval = model.interval  # its half-widths: the context's stiffness factor, and per cloud its force
+        if self.interval is not None:
+            self._q = self.interval.stiffness_half_widths(np.array([[self.k_material]]))[0]
+            self._ab = None if self.interval.force_scale is None else np.asarray(self.interval.force_scale)
         self._rec = ((model.meta or {}).get("training_scale") or {}).get("camera")
         self._raster = np.ascontiguousarray(self.ref.raster, dtype=np.float64)
         # load (or compile) the kernels now, not on the first cloud in the operating room
@@ -703,6 +706,18 @@ class CompiledCloud:
             F[r] = self._head(X[r])
         return F
 
+    def _half(self, F: np.ndarray) -> np.ndarray | None:
+        """Half-widths ``(B, 3)`` (local frame) of forces ``(B, 3)`` (any frame: the scale reads ``|F|``), as
+        :meth:`ConformalInterval.half_widths` gives them (NaN where the force is); None without an interval."""
+        if self.interval is None:
+            return None
+        if self._ab is None:
+            half = np.tile(self._q, (len(F), 1))
+        else:  # sigma_j(|F|) = a_j + b_j |F| (ConformalInterval.sigma)
+            half = self._q * (self._ab[:, 0] + self._ab[:, 1] * np.sqrt((F * F).sum(axis=1))[:, None])
+        half[~np.isfinite(F).all(axis=1)] = np.nan  # a refused cloud: no force, no interval
+        return half
+
     # -- public ------------------------------------------------------------------
 
     @staticmethod
@@ -747,7 +762,9 @@ class CompiledCloud:
         X, why, warnings = self._one(cloud_mm, tool_tip_mm)
         if why is not None:
             raise PredictionInputError(why)
-        return self._head(X)[0], self.half, warnings
+        F = self._head(X)
+        half = self._half(F)
+        return F[0], None if half is None else half[0], warnings
 
     def predict_batch(self, clouds, tool_tips, counts=None) -> CloudBatch:
         """Forces of many clouds at this exertion point in one go (a :class:`CloudBatch`).
@@ -788,8 +805,8 @@ class CompiledCloud:
                 X[a:e], n_used[a:e], n_bad[a:e] = self._grid(P.reshape(-1, 3), np.arange(e - a, dtype=np.int64) * N,
                                                              cnt[a:e], tips[a:e])
             refused, warnings = self._reasons(lambda r: clouds[r, :cnt[r]], cnt, tips, X, n_used, n_bad)
-            return CloudBatch(self._forces(X, np.array([r is None for r in refused], dtype=bool)), self.half,
-                              warnings, refused)
+            F = self._forces(X, np.array([r is None for r in refused], dtype=bool))
+            return CloudBatch(F, self._half(F), warnings, refused)
         if counts is not None:
             raise PredictionInputError("counts: only with one padded (B, N, 3) array of clouds")
         refused: list = [None] * B
@@ -809,4 +826,4 @@ class CompiledCloud:
             force[good] = self._forces(X, np.array([r is None for r in why], dtype=bool))
             for k, i in enumerate(good):
                 refused[i], warnings[i] = why[k], warn[k]
-        return CloudBatch(force, self.half, warnings, refused)
+        return CloudBatch(force, self._half(force), warnings, refused)

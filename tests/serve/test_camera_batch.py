@@ -31,16 +31,18 @@ NO_TUNE = {"enabled": False, "trials": 1, "folds": 2, "sobol_trials": 1, "epochs
 def served(request, tmp_path_factory):
     """The compiled camera path of a small camera model, with each regressor (the MLP, the GP ensemble over
     PCA code sizes, and one GP) and force scaling (the predicted force or the linear force estimate scaled by
-    the stiffness, or neither). The GP ensemble has the shipped camera model's settings: no force scaling and
-    a grid kernel of 1.5 cells."""
+    the stiffness, or neither). The GP ensemble has the shipped camera model's settings: no force scaling,
+    a grid kernel of 1.5 cells, and an interval scaled by the predicted force (a half-width per cloud)."""
     arrays = synthetic_surface_arrays(80, n_geometries=3, seed=3, material_varies=True)
     regressor, scaling = request.param
     members = [2, 4, 6] if regressor == "gp_ensemble" else None
     camera = MODEL["camera"] if members is None else {**MODEL["camera"], "grid": {"kernel_radius_cells": 1.5}}
+    # the shipped interval (scaled by the predicted force) with the shipped camera settings
+    train = TRAIN if members is None else {**TRAIN, "interval": {**TRAIN["interval"], "scale": "force"}}
     res = train_scenario(arrays, {**MODEL, "regressor": "mlp" if regressor == "mlp" else "gp",
                                   "force_scaling": scaling, "camera": camera,
                                   "gp": {"max_points": 2000, "iterations": 100, "code_members": members}},
-                         TRAIN, NO_TUNE, "IV", "cloud", out_dir=tmp_path_factory.mktemp("cam-batch"))
+                         train, NO_TUNE, "IV", "cloud", out_dir=tmp_path_factory.mktemp("cam-batch"))
     pred = Predictor(ForceModel.load(res["model_path"]))
     assert pred.model.pre.indentation_strain
     assert (type(pred.model.regressor).__name__ == "GPEnsemble") == (members is not None)
@@ -120,7 +122,25 @@ def test_batch_equals_per_cloud_predictions(served):
     res = fast.predict_batch(clouds, tips)
     assert res.force.shape == (len(clouds), 3) and res.ok.all() and res.refused == [None] * len(clouds)
     np.testing.assert_allclose(res.force, single, rtol=0, atol=1e-9)
-    np.testing.assert_allclose(res.half_width, fast.predict(clouds[0], tips[0])[1])
+    half = np.stack([fast.predict(c, t)[1] for c, t in zip(clouds, tips)])
+    np.testing.assert_allclose(res.half_width, half, rtol=1e-12)
+    def compiled_with(interval: dict | None):
+        model = copy.copy(pred.model)
+        model.meta = {**model.meta, "interval": interval}
+        return Predictor(model).compile_cloud(ctx)
+
+    if fast.interval.scale == "force":  # each cloud's own width: with a positive slope, wider for a larger force
+        sloped = compiled_with({**fast.interval.to_dict(), "force_scale": [[0.1, 0.05]] * 3})
+        h2 = sloped.predict_batch(clouds, tips).half_width
+        m = np.linalg.norm(res.force, axis=1)
+        assert np.ptp(m) > 0 and (h2[np.argmax(m)] > h2[np.argmin(m)]).all()
+        np.testing.assert_allclose(h2, sloped.interval.half_widths(np.full((len(m), 1), fast.k_material), res.force),
+                                   rtol=1e-12)
+    # a model without an interval: the force alone, and None for the widths
+    bare = compiled_with(None)
+    f0, h0, _ = bare.predict(clouds[0], tips[0])
+    np.testing.assert_array_equal(f0, single[0])
+    assert h0 is None and bare.predict_batch(clouds, tips).half_width is None
     # one padded array with counts; float32 clouds (as parquet stores them) too
     N = max(len(c) for c in clouds)
     pad = np.full((len(clouds), N, 3), np.nan)
@@ -163,7 +183,8 @@ def test_a_refused_cloud_does_not_poison_the_batch(served):
     assert list(np.flatnonzero(res.ok)) == [0, 5]
     np.testing.assert_allclose(res.force[0], fast.predict(cloud, tip)[0], rtol=0, atol=1e-9)
     np.testing.assert_allclose(res.force[5], fast.predict(other, tip2)[0], rtol=0, atol=1e-9)
-    assert np.isnan(res.force[list(bad)]).all()
+    assert np.isnan(res.force[list(bad)]).all() and np.isnan(res.half_width[list(bad)]).all()
+    np.testing.assert_allclose(res.half_width[0], fast.predict(cloud, tip)[1], rtol=1e-12)
     for k, (c, t) in bad.items():  # the reference path refuses each with the same reason
         with pytest.raises(PredictionInputError) as exc:
             pred.predict_cloud(c, ctx, tool_tip_mm=t)
