@@ -291,7 +291,8 @@ def test_report_validates_on_every_unseen_liver_with_mean_sd_and_the_worst_named
     iv = _section(sec, "<h3>Calibrated interval</h3>", "</p>")
     assert "64 cases, nominal 90 %" in iv and "87.5, 90.0, 81.2 % of the cases (" in iv and "outside" in iv
     assert "IV test livers in 90.0, 95.0, 85.0 %" in iv and "0.410, 0.380, 0.520 N" in iv
-    assert "scaled per case by the predicted force" in iv
+    assert "scaled per case by the predicted force" in iv and "fixed per component" not in iv
+    assert "the half-widths grow with the predicted force" in sec
     bins = _section(sec, "<table class='interval-bins'>", "</table>")
     assert "<td>1.50–4.90</td><td>5</td><td>80.0</td><td>100.0</td><td>60.0</td><td>0.600, 0.580, unbounded</td>" in bins
     assert "<td>0.10–1.50</td><td>6</td><td>100.0</td><td>83.3</td><td>100.0</td>" in bins
@@ -310,6 +311,20 @@ def test_report_validates_on_every_unseen_liver_with_mean_sd_and_the_worst_named
     # the worst force bin of each variant, flagged at or above 20 % (pca_sv: 50 % in 0-1 N); none recorded: "–"
     assert "50.0 % (0.00–1.00 N) ⚠" in variants[0][7] and "flag" in variants[0][7]
     assert _text(variants[1][7]) == "–"
+
+
+@pytest.mark.parametrize("scale, says", [("none", "fixed per component, widened where"),
+                                         ("stiffness", "scaled by each case's stiffness factor"),
+                                         (None, "fixed per component, widened where")])  # before the key
+def test_report_says_how_the_interval_width_was_set(stage_outputs, scale, says):
+    path = stage_outputs["validation"]
+    doc = json.loads(path.read_text())
+    doc["interval"]["scale"] = scale
+    path.write_text(json.dumps(doc))
+    html = _report(stage_outputs)
+    iv = _section(html, "<h3>Calibrated interval</h3>", "</p>")
+    assert says in iv and "predicted force" not in iv
+    assert "with widths that do not follow the force, the small forces tend to be over-covered" in html
 
 
 def test_report_refuses_a_validation_without_per_liver_metrics(stage_outputs):

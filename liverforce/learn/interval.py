@@ -96,7 +96,8 @@ SCALES = ("none", "stiffness", "force")  # what the half-widths are multiplied b
 
 @dataclass(frozen=True)
 class ConformalInterval:
-    """Half-widths ``q`` (3,) N per local component (before the stiffness factor) at nominal ``coverage``."""
+    """Half-widths ``q`` (3,) per local component (before the stiffness factor) at nominal ``coverage``: N, or
+    with ``scale: force`` a multiple of ``sigma_j(|f^|)`` (no unit; ``force_scale`` holds ``sigma``'s N)."""
 
     coverage: float
     half_width_n: tuple[float, float, float]

@@ -396,7 +396,8 @@ def calibrate_interval(train_arrays, model_cfg, interval_cfg, scenario, seed, en
     fold uses the main split's observation seeds (``seed``): each case is observed as it is in the main
     model's training or test (the observed data are fixed, only the split differs), so a camera model's
     features of a case are computed once per run and reused from the cache.
-    ``interval_cfg["scale"]``: ``none``, ``stiffness`` or ``force`` (the module docstring).
+    ``interval_cfg["scale"]``: ``none``, ``stiffness`` or ``force`` (the module docstring; the config sets it,
+    ``force`` by default; a dict without the key gets ``stiffness``, what it meant before the key existed).
     """
     geo = np.asarray(train_arrays["geometry_id"]).astype(str)
     n_folds = int(interval_cfg.get("folds", 1))

@@ -798,18 +798,23 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
         cov = iv["coverage"]
         band = "within" if all(0.88 <= c <= 0.92 for c in cov) else "<b class='flag'>outside</b>"
         test = iv.get("test_coverage")
+        scale = iv.get("scale")
+        how = {"force": "scaled per case by the predicted force's magnitude, a + b |F| fitted on the calibration "
+                        "residuals, and widened where a liver's stiffness lies outside the calibration livers' "
+                        "range, by how far outside",
+               "stiffness": "scaled by each case's stiffness factor C10 / C10_ref"}.get(
+            scale, "fixed per component, widened where a liver's stiffness lies outside the calibration livers' "
+                   "range, by how far outside")
         parts.append(
             "<h3>Calibrated interval</h3><p>Every prediction comes with an interval per local force component "
-            f"(split conformal on a training-side calibration split of {iv['n_calibration']} cases, nominal "
+            f"(conformal, calibrated on the training livers' predictions by models that did not see them: "
+            f"{iv['n_calibration']} cases, nominal "
             f"{100 * iv['nominal']:.0f} %). On the unseen livers it covers the true tangential (t1, t2) and normal "
             f"(n) force in {', '.join(f'{100 * c:.1f}' for c in cov)} % of the cases ({band} the 88–92 % band); "
             + (f"on the IV test livers in {', '.join(f'{100 * c:.1f}' for c in test)} %; " if test else "")
             + "mean half-widths "
             + ", ".join("unbounded" if h is None else f"{h:.3f}" for h in iv["half_width_mean_n"])
-            + " N (" + ("scaled per case by the predicted force's magnitude, fitted on the calibration residuals; "
-                        if iv.get("scale") == "force" else "")
-            + "widened where a liver's stiffness lies outside the calibration livers' range, by how far "
-              "outside). Coverage below nominal on the unseen livers means they differ from the training "
+            + f" N ({how}). Coverage below nominal on the unseen livers means they differ from the training "
               "population by more than that.</p>")
         bins = iv.get("coverage_by_force") or []
         if bins:
@@ -817,8 +822,10 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
                     + [_fmt(100 * c, 1) for c in b["coverage"]]
                     + [", ".join("unbounded" if h is None else f"{h:.3f}" for h in b["half_width_mean_n"])]
                     for b in bins]
-            parts.append("<p>Coverage per quintile of the true force magnitude on the unseen livers: a fixed "
-                         "width would over-cover the small forces and under-cover the large ones.</p>"
+            why = ("the half-widths grow with the predicted force, so that the large forces are bounded as the "
+                   "small ones are" if scale == "force" else "with widths that do not follow the force, the small "
+                   "forces tend to be over-covered and the large ones under-covered")
+            parts.append(f"<p>Coverage per quintile of the true force magnitude on the unseen livers: {why}.</p>"
                          + _table(["|F| (N)", "cases", "t1 %", "t2 %", "n %", "mean half-widths t1, t2, n (N)"],
                                   rows, cls="interval-bins"))
     parts.append(_extrapolation_paragraph(v.get("outside_training")))

@@ -708,7 +708,8 @@ class CompiledCloud:
 
     def _half(self, F: np.ndarray) -> np.ndarray | None:
         """Half-widths ``(B, 3)`` (local frame) of forces ``(B, 3)`` (any frame: the scale reads ``|F|``), as
-        :meth:`ConformalInterval.half_widths` gives them (NaN where the force is); None without an interval."""
+        :meth:`ConformalInterval.half_widths` gives them; NaN for a refused cloud whatever the scale; None
+        without an interval."""
         if self.interval is None:
             return None
         if self._ab is None:
