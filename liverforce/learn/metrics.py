@@ -103,13 +103,19 @@ def error_by_force_bin(force_true: np.ndarray, force_pred: np.ndarray, n_bins: i
     p = np.asarray(force_pred, dtype=np.float64).reshape(-1, 3)
     err = np.linalg.norm(p - t, axis=1)
     mag = np.linalg.norm(t, axis=1)
-    edges = np.linspace(0.0, max(float(mag.max()), 1e-9), n_bins + 1)
     out = []
-    for i, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
-        sel = (mag >= lo) & ((mag < hi) if i < n_bins - 1 else (mag <= hi))
-        if sel.any():
-            mean_f = float(mag[sel].mean())
-            out.append({"force_lo_n": float(lo), "force_hi_n": float(hi), "n": int(sel.sum()),
-                        "mean_force_n": mean_f, "mae_vec_n": float(err[sel].mean()),
-                        "relative_mae": float(err[sel].mean() / mean_f) if mean_f > 0 else float("nan")})
+    for lo, hi, sel in force_bins(mag, np.linspace(0.0, max(float(mag.max()), 1e-9), n_bins + 1)):
+        mean_f = float(mag[sel].mean())
+        out.append({"force_lo_n": float(lo), "force_hi_n": float(hi), "n": int(sel.sum()),
+                    "mean_force_n": mean_f, "mae_vec_n": float(err[sel].mean()),
+                    "relative_mae": float(err[sel].mean() / mean_f) if mean_f > 0 else float("nan")})
     return out
+
+
+def force_bins(magnitude: np.ndarray, edges: np.ndarray):
+    """``(lo, hi, mask)`` of each non-empty bin ``[lo, hi)`` of ``magnitude`` (the last bin closed)."""
+    n = len(edges) - 1
+    for i, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
+        sel = (magnitude >= lo) & ((magnitude < hi) if i < n - 1 else (magnitude <= hi))
+        if sel.any():
+            yield lo, hi, sel

@@ -58,6 +58,7 @@ def interval_on_unseen(model_dir, arrays: dict) -> dict | None:
     """Coverage of the model's calibrated interval per local component on the unseen livers (None without one)."""
     from liverforce.learn.frames import force_to_local
     from liverforce.learn.interval import coverage_per_component
+    from liverforce.learn.metrics import force_bins
     from liverforce.learn.model import ForceModel
 
     m = ForceModel.load(Path(model_dir))
@@ -70,15 +71,11 @@ def interval_on_unseen(model_dir, arrays: dict) -> dict | None:
     geo = np.asarray(arrays["geometry_id"]).astype(str)
     per = {g: coverage_per_component(true_local[geo == g], got["force_local_n"][geo == g], half[geo == g])
            for g in sorted(set(geo))}
-    mag = np.linalg.norm(true_local, axis=1)
-    edges = np.quantile(mag, np.linspace(0.0, 1.0, 6))
-    bins = []
-    for b in range(5):  # quintiles of the true |F|: does the interval hold for the large forces too?
-        sel = (mag >= edges[b]) & ((mag < edges[b + 1]) if b < 4 else (mag <= edges[b + 1]))
-        if sel.any():
-            bins.append({"lo_n": float(edges[b]), "hi_n": float(edges[b + 1]), "n": int(sel.sum()),
-                         "coverage": coverage_per_component(true_local[sel], got["force_local_n"][sel], half[sel]),
-                         "half_width_mean_n": [float(v) if np.isfinite(v) else None for v in half[sel].mean(axis=0)]})
+    mag = np.linalg.norm(true_local, axis=1)  # quintiles of the true |F|: does it hold for the large forces too?
+    bins = [{"lo_n": float(lo), "hi_n": float(hi), "n": int(sel.sum()),
+             "coverage": coverage_per_component(true_local[sel], got["force_local_n"][sel], half[sel]),
+             "half_width_mean_n": [float(v) if np.isfinite(v) else None for v in half[sel].mean(axis=0)]}
+            for lo, hi, sel in force_bins(mag, np.quantile(mag, np.linspace(0.0, 1.0, 6)))]
     return {"nominal": ci.coverage, "bounded": ci.bounded, "n_calibration": ci.n_calibration, "scale": ci.scale,
             "coverage": coverage_per_component(true_local, got["force_local_n"], half),
             "coverage_by_force": bins,

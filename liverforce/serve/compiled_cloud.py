@@ -566,9 +566,8 @@ class CompiledCloud:
                                 np.float32(slope), act))
         self.tmean, self.tscale = pre.target_scaler.mean, pre.target_scaler.scale
         self.interval = model.interval  # its half-widths: the context's stiffness factor, and per cloud its force
-        if self.interval is not None:
+        if self.interval is not None:  # q_j x the context's stiffness factor, once; sigma_j(|F|) per cloud
             self._q = self.interval.stiffness_half_widths(np.array([[self.k_material]]))[0]
-            self._ab = None if self.interval.force_scale is None else np.asarray(self.interval.force_scale)
         self._rec = ((model.meta or {}).get("training_scale") or {}).get("camera")
         self._raster = np.ascontiguousarray(self.ref.raster, dtype=np.float64)
         # load (or compile) the kernels now, not on the first cloud in the operating room
@@ -712,10 +711,7 @@ class CompiledCloud:
         without an interval."""
         if self.interval is None:
             return None
-        if self._ab is None:
-            half = np.tile(self._q, (len(F), 1))
-        else:  # sigma_j(|F|) = a_j + b_j |F| (ConformalInterval.sigma)
-            half = self._q * (self._ab[:, 0] + self._ab[:, 1] * np.sqrt((F * F).sum(axis=1))[:, None])
+        half = self._q * self.interval.sigma(F)  # ones for a scale other than force
         half[~np.isfinite(F).all(axis=1)] = np.nan  # a refused cloud: no force, no interval
         return half
 
