@@ -242,10 +242,18 @@ def _requirements() -> list[str]:
 
 
 def load_pyfunc(model_uri: str, tracking_uri: str | None = None):
-    """``mlflow.pyfunc.load_model`` (e.g. ``runs:/<run_id>/model``)."""
+    """``mlflow.pyfunc.load_model`` (e.g. ``runs:/<run_id>/model``), leaving no download behind.
+
+    Without ``dst_path`` MLflow downloads the model into a new temporary folder
+    that it never removes (one per load). Here the download goes to a
+    temporary folder that is removed once the model is loaded: loading reads
+    the bundle into memory (:meth:`ForceModel.load` reads every file eagerly)
+    and the pyfunc reads nothing from disk afterwards.
+    """
     if tracking_uri:
         mlflow.set_tracking_uri(tracking_uri)
-    return mlflow.pyfunc.load_model(model_uri)
+    with tempfile.TemporaryDirectory(prefix="liverforce-pyfunc-load-") as dst:
+        return mlflow.pyfunc.load_model(model_uri, dst_path=dst)
 
 
 def resolve_model_uri(ref: str) -> str:

@@ -91,8 +91,16 @@ def test_loading_by_reference_leaves_no_download_behind(logged, tmp_path, monkey
     assert list(kept.rglob("model.json")) and list(scratch.iterdir()) == []
 
 
-def test_pyfunc_predicts_like_the_predictor_and_refuses_bad_rows(logged, data):
+def test_pyfunc_predicts_like_the_predictor_and_refuses_bad_rows(logged, data, tmp_path, monkeypatch):
+    """The pyfunc is loaded whole: its download folder is gone before it predicts (MLflow alone would leave
+    one folder per load in the temporary directory)."""
+    import tempfile
+
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
     pf = load_pyfunc(f"runs:/{logged['run_id']}/model", logged["uri"])
+    assert list(scratch.iterdir()) == []
     cases = subset(data, np.arange(60, 66))
     local = Predictor.from_dir(logged["model_path"])
     np.testing.assert_array_equal(predict_pyfunc(pf, cases), local.predict_arrays(cases))
