@@ -465,3 +465,46 @@ def test_the_iv_outside_paragraph_says_when_nothing_or_one_split_is_outside():
     assert _outside_iv_paragraph({"models": [{"scenario": "IV", "variant": "pca_nosv", "outside_training": None}]},
                                  "pca_nosv") == ""
 
+
+
+@pytest.mark.parametrize("validated", ["cloud_sv", "pca_sv"])
+def test_the_camera_table_shows_the_exact_tip_accuracy_per_scenario_and_on_the_unseen_livers(stage_outputs,
+                                                                                              validated):
+    """Each scenario's exact-tip figures come from the camera model's metrics.json (``–`` for one written before
+    them); the unseen livers' from the validated camera model's sensitivity row at tip noise 0, only when the
+    validated model is that camera model."""
+    root = stage_outputs["root"]
+    for sc, acc in (("I", 92.0), ("IV", 75.0)):
+        m = {"accuracy_pct": acc, "mae_vec": 0.3, "rmse_vec": 0.4}
+        stage_outputs["metrics"].append(_write(root / "models" / sc / "cloud_sv" / "metrics.json", {
+            "scenario": sc, "variant": "cloud_sv", "encoder": "pca", "state_vector": True, "metrics": m,
+            "metrics_mean": m, "metrics_sd": {"accuracy_pct": 1.2, "mae_vec": 0.02, "rmse_vec": 0.03}, "n_splits": 3,
+            "repeats": [{"split_seed": 7 + i, "test_geometries": ["g"], "metrics": m} for i in range(3)],
+            "run_id": f"run{sc}cloud_sv", "n_train": 9, "n_test": 3, "model_cfg": {"roi_features": "cloud"},
+            **({"exact_tip": {"metrics_mean": {"accuracy_pct": 79.3, "mae_vec": 0.125},
+                              "metrics_sd": {"accuracy_pct": 0.5, "mae_vec": 0.01}, "n_splits": 3}}
+               if sc == "IV" else {})}))
+    path = stage_outputs["validation"]
+    doc = json.loads(path.read_text())
+    livers = doc["all_variants"]["pca_sv"]["livers"]
+    doc["all_variants"]["cloud_sv"] = {**doc["all_variants"]["pca_nosv"], "livers": livers,
+                                       "model_run_id": "runIVcloud_sv"}
+    doc["model_variant"] = validated
+    doc["model_run_id"] = f"runIV{validated}"
+    if validated == "cloud_sv":
+        doc["camera_sensitivity"] = {"model_settings": {"tip_noise_mm": 0.5, "observation": {}}, "tip_noise_mm": [
+            {"value": 0.5, "mae_vec": 0.33, "mae_sd": 0.06, "accuracy_pct": 85.0, "accuracy_sd": 2.5},
+            {"value": 0.0, "mae_vec": 0.211, "mae_sd": 0.05, "accuracy_pct": 90.5, "accuracy_sd": 2.0}]}
+    path.write_text(json.dumps(doc))
+    html = _report(stage_outputs)
+    cam = _section(html, "id='camera'", "</table>")
+    head = re.findall(r"<th>(.*?)</th>", cam)
+    assert head[4] == "camera, exact tip %" and head[7] == "camera, exact tip MAE (N)"
+    rows = {_text(r[0]): [_text(c) for c in r] for r in _rows(cam, "cam")}
+    assert sorted(rows) == ["I", "IV", "unseen livers"] and all(len(r) == len(head) for r in rows.values())
+    assert rows["IV"][4] == "79.3 ± 0.5" and rows["IV"][7] == "0.125 ± 0.010"
+    assert rows["I"][4] == rows["I"][7] == "–"  # a metrics.json from before the exact-tip figures
+    if validated == "cloud_sv":
+        assert rows["unseen livers"][4] == "90.5 ± 2.0" and rows["unseen livers"][7] == "0.211 ± 0.050"
+    else:  # no sensitivity of this camera model: nothing to show
+        assert rows["unseen livers"][4] == rows["unseen livers"][7] == "–"

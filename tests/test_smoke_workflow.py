@@ -41,8 +41,14 @@ def test_every_stage_produced_its_outputs(smoke_run):
     iv = json.loads((root / "models" / "IV" / "pca_sv" / "metrics.json").read_text())
     ot = iv["outside_training"]  # IV test cases outside the training livers' range, over every split
     assert ot["n_splits"] == iv["n_splits"] and ot["n_cases"] == sum(r["outside_training"]["n_cases"] for r in iv["repeats"])
-    cam = json.loads((root / "models" / "IV" / "cloud_sv" / "metrics.json").read_text())["outside_training"]
+    cam_doc = json.loads((root / "models" / "IV" / "cloud_sv" / "metrics.json").read_text())
+    cam = cam_doc["outside_training"]
     assert cam["n_cases"] == ot["n_cases"]  # the camera model has the same test livers and the state vector
+    # the camera model is also scored on every split with an exact tool tip; a node model has no tip to make exact
+    assert cam_doc["exact_tip"]["n_splits"] == cam_doc["n_splits"] == len(cam_doc["repeats"])
+    assert cam_doc["exact_tip"]["metrics_mean"]["mae_vec"] == pytest.approx(
+        np.mean([r["exact_tip"]["mae_vec"] for r in cam_doc["repeats"]]))
+    assert iv["exact_tip"] is None and all("exact_tip" not in r for r in iv["repeats"])
     hp = json.loads((root / "models" / "II" / "pca_sv" / "metrics.json").read_text())["heldout_points"]
     assert hp["folds"] >= 2 and sum(f["n_test"] for f in hp["per_fold"]) == 12  # every II case, by point
     val = json.loads((root / "validate" / "metrics.json").read_text())
@@ -76,6 +82,14 @@ def test_every_stage_produced_its_outputs(smoke_run):
     assert (root / "report" / "index.html").stat().st_size > 1000
     page = (root / "report" / "index.html").read_text()
     assert "id='camera'" in page and "class='camera-sens'" in page  # camera vs correspondence, sensitivity
+    # the camera table's exact-tip columns: each scenario's from its metrics.json, the unseen livers' from the
+    # validated camera model's sensitivity row at tip noise 0
+    cam_rows = {_text(c[0]): c for c in (_cells(r) for r in re.findall(r"<tr class='cam'>.*?</tr>", page))}
+    ex = cam_doc["exact_tip"]
+    assert _text(cam_rows["IV"][4]) == f"{ex['metrics_mean']['accuracy_pct']:.1f} ± {ex['metrics_sd']['accuracy_pct']:.1f}"
+    assert _text(cam_rows["IV"][7]) == f"{ex['metrics_mean']['mae_vec']:.3f} ± {ex['metrics_sd']['mae_vec']:.3f}"
+    t0 = next(r for r in sens["tip_noise_mm"] if r["value"] == 0.0)
+    assert _text(cam_rows["unseen livers"][7]) == f"{t0['mae_vec']:.3f} ± {t0['mae_sd']:.3f}"
     assert (root / "report" / "figures" / "population.png").stat().st_size > 20000
     # no half-written file anywhere
     assert not list(root.rglob(".*.tmp*"))
@@ -111,6 +125,11 @@ def test_report_numbers_match_the_mlflow_runs_they_cite(smoke_run):
         # mean ± sd over the repeated splits: in metrics.json and in the run, and the splits really differ
         assert int(n_splits) == doc["n_splits"] == len(doc["repeats"]) == 2 == run.data.metrics["n_splits"]
         assert len({json.dumps(r["metrics"], sort_keys=True) for r in doc["repeats"]}) == 2
+        if variant == "cloud_sv":  # the exact-tip figures of the camera table are the run's too
+            assert run.data.metrics["exact_tip_accuracy_pct_mean"] == pytest.approx(
+                doc["exact_tip"]["metrics_mean"]["accuracy_pct"])
+        else:
+            assert "exact_tip_accuracy_pct_mean" not in run.data.metrics
         for shown, key, nd in ((acc_pm, "accuracy_pct", 1), (mae_pm, "mae_vec", 3)):
             assert shown == f"{doc['metrics_mean'][key]:.{nd}f} ± {doc['metrics_sd'][key]:.{nd}f}"
             m, sd = (float(x) for x in shown.split(" ± "))

@@ -85,6 +85,12 @@ def channel_groups(grid_size: int) -> np.ndarray:
     return np.concatenate([np.zeros(g2, int), np.ones(g2, int), np.full(3, 2)])
 
 
+def exact_tip(camera: dict) -> dict:
+    """These camera settings with an exact tool tip (no kinematics noise in any direction); the cloud is
+    observed as before (the tip's noise has its own seed stream, ``observation.tip``)."""
+    return {**camera, "tip_noise_mm": 0.0, "tip_noise_normal_mm": None}
+
+
 def grid_spec(grid_size: int, half_width_mm: float, camera: dict) -> CloudGridSpec:
     extra = {k: camera["grid"][k] for k in GRID_KEYS if k in (camera.get("grid") or {})}
     return CloudGridSpec(grid_size=int(grid_size), half_width_mm=float(half_width_mm), **extra)

@@ -82,6 +82,7 @@ refused with :class:`ModelFormatError` (bundles are written at :data:`FORMAT_VER
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
@@ -552,6 +553,15 @@ class ForceModel:
     @property
     def uses_state(self) -> bool:
         return self.pre.state_scaler is not None
+
+    def observed_with(self, camera: dict) -> "ForceModel":
+        """This fitted model observing simulated cases with other camera settings (``Representation.camera``;
+        a camera-cloud model only): what it gives under another camera or tool tracker, nothing refitted
+        (the validation's camera sensitivity; the scenarios' accuracy with an exact tool tip)."""
+        if not self.representation.is_camera:
+            raise ValueError("observed_with: not a camera-cloud model (roi_features: cloud)")
+        rep = dataclasses.replace(self.representation, camera=camera)
+        return ForceModel(rep, self.pre, self.regressor_spec, self.regressor, self.meta)
 
     def required_inputs(self) -> tuple[str, ...]:
         """Input-contract keys that :meth:`predict` reads."""

@@ -27,7 +27,10 @@ Steps (every fitted quantity sees the training split only):
    ``metrics_mean`` / ``metrics_sd`` summarise the ``R`` splits (the first is
    the main model's). The hyper-parameters tuned on the first split's training
    side are reused: the repeats measure the spread due to the split, not a
-   fresh tuning;
+   fresh tuning. A camera-cloud model is also scored on each split's test set
+   with an exact tool tip (the same model and clouds, no kinematics noise:
+   ``exact_tip``), which separates what the tracker's error costs from what
+   the cloud does;
 6. outputs: ``out_dir/model/`` (bundle), ``out_dir/figures/*.png``,
    ``out_dir/test_predictions.csv`` (atomic) and the result dict, which the
    caller writes to ``metrics.json`` (:mod:`liverforce.pipeline.train`, its only writer);
@@ -46,6 +49,7 @@ from threadpoolctl import threadpool_limits
 
 from liverforce.atomic import write_text_atomic
 from liverforce.config import config_hash
+from liverforce.learn.camera import exact_tip
 from liverforce.learn.interval import coverage_per_component, fit_conformal
 from liverforce.learn.metrics import force_metrics
 from liverforce.learn.model import (
@@ -322,10 +326,15 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
     _write_predictions(out_dir / "test_predictions.csv", test_arrays["case_id"], prep_test.force, pred)
 
     repeats = [{"split_seed": seed, "test_geometries": _geometries(test_arrays), "metrics": metrics,
-                "outside_training": outside_training_split(model, test_arrays, pred)}]
+                "outside_training": outside_training_split(model, test_arrays, pred),
+                **exact_tip_metrics(model, test_arrays, seed)}]
     repeats += repeated_splits(train_arrays, test_arrays, rep, model_cfg, train_cfg, scenario, seed, encoder,
                                use_state, code_size, dae_noise, hidden, dropout, fit)
     summary = summarise_repeats([r["metrics"] for r in repeats])
+    exact = None
+    if all("exact_tip" in r for r in repeats):
+        e = summarise_repeats([r["exact_tip"] for r in repeats])
+        exact = {"metrics_mean": e["mean"], "metrics_sd": e["sd"], "n_splits": e["n"]}
     outside = summarise_outside([r["outside_training"] for r in repeats])
     points = None
     hp = train_cfg.get("heldout_points") or {}
@@ -346,7 +355,9 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
                                             if outside[f"{side}_accuracy_pct"]["mean"] is not None}}
                                         if outside else {}),
                                      **({f"heldout_points_{k}_{m}": v for m in ("mean", "sd")
-                                         for k, v in points[f"metrics_{m}"].items()} if points else {})})
+                                         for k, v in points[f"metrics_{m}"].items()} if points else {}),
+                                     **({f"exact_tip_{k}_{m}": v for m in ("mean", "sd")
+                                         for k, v in exact[f"metrics_{m}"].items()} if exact else {})})
         tracker.log_params(run_id, {f"best.{k}": v for k, v in best.items()})
         for path in figures:
             tracker.log_artifact(run_id, path, "figures")
@@ -364,6 +375,7 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
         "cv_mse": best_cv,
         "cv_mae_n": cv_mae_n,
         "interval": interval,
+        "exact_tip": exact,
         "heldout_points": points,
         "outside_training": outside,
         "best_params": best,
@@ -460,8 +472,20 @@ def repeated_splits(train_arrays, test_arrays, rep, model_cfg, train_cfg, scenar
         pred = model.predict(a_te, observation_seed=eval_seed(seed))
         out.append({"split_seed": split_seed, "test_geometries": _geometries(a_te),
                     "metrics": force_metrics(np.asarray(a_te["force_n"], float), pred),
-                    "outside_training": outside_training_split(model, a_te, pred)})
+                    "outside_training": outside_training_split(model, a_te, pred),
+                    **exact_tip_metrics(model, a_te, seed)})
     return out
+
+
+def exact_tip_metrics(model, test_arrays: dict, seed: int) -> dict:
+    """``{"exact_tip": metrics}`` of a camera-cloud model on ``test_arrays`` with an exact tool tip: the same
+    fitted model and the same clouds (evaluation observation seed of ``seed``), no kinematics noise on the
+    tip; ``{}`` for any other model."""
+    if not model.representation.is_camera:
+        return {}
+    probe = model.observed_with(exact_tip(model.representation.camera))
+    pred = probe.predict(test_arrays, observation_seed=eval_seed(seed))
+    return {"exact_tip": force_metrics(np.asarray(test_arrays["force_n"], float), pred)}
 
 
 def outside_training_split(model, test_arrays: dict, pred: np.ndarray) -> dict | None:

@@ -119,7 +119,6 @@ def camera_sensitivity(model_dir, arrays: dict, grid: dict) -> dict | None:
     camera-cloud model.
     """
     import copy
-    import dataclasses
 
     from liverforce.learn.metrics import metrics_by_group
     from liverforce.learn.model import ForceModel
@@ -145,8 +144,7 @@ def camera_sensitivity(model_dir, arrays: dict, grid: dict) -> dict | None:
             else:
                 raise ValueError(f"validate.camera_sensitivity: unknown setting '{key}' (n_points, noise_sd_mm, "
                                  "cone_half_angle_deg, tip_noise_mm)")
-            probe = ForceModel(dataclasses.replace(rep, camera=cam), m.pre, m.regressor_spec, m.regressor, m.meta)
-            pred = probe.predict(arrays, observation_seed=seed)
+            pred = m.observed_with(cam).predict(arrays, observation_seed=seed)
             g = metrics_by_group(arrays["force_n"], pred, arrays["geometry_id"])
             rows.append({"value": val, "mae_vec": g["mean"]["mae_vec"], "mae_sd": g["sd"]["mae_vec"],
                          "accuracy_pct": g["mean"]["accuracy_pct"], "accuracy_sd": g["sd"]["accuracy_pct"]})

@@ -6,6 +6,8 @@ unordered cloud and the tool tip only (``_camera_inputs``).
 
 from __future__ import annotations
 
+from dataclasses import replace as dataclasses_replace
+
 import numpy as np
 import pytest
 
@@ -238,3 +240,40 @@ def test_the_tip_noise_sensitivity_is_isotropic_whatever_the_model_was_trained_w
     got, want = camera_sensitivity(aniso, a, grid), camera_sensitivity(plain, a, grid)
     assert got["model_settings"]["tip_noise_normal_mm"] == 0.7
     assert got["tip_noise_mm"] == want["tip_noise_mm"]
+
+
+def test_exact_tip_scores_the_same_clouds_with_the_true_tool_tip(trained):
+    """train's exact-tip accuracy: the fitted model and the clouds unchanged, the tool tip without its kinematics
+    noise in any direction (exact_tip also drops a split of the noise along the normal)."""
+    from liverforce.learn.metrics import force_metrics
+    from liverforce.learn.train import exact_tip_metrics
+
+    model, a_te = trained
+    a = subset(a_te, np.arange(30))
+    hw, g = model.representation.half_width_mm, model.representation.grid_size
+    seed = eval_seed(5)
+    noisy = {**CAMERA, "tip_noise_mm": 0.5, "tip_noise_normal_mm": 0.2}
+    exact = camera.exact_tip(noisy)
+    assert exact["tip_noise_mm"] == 0.0 and exact["tip_noise_normal_mm"] is None
+    assert exact["observation"] == noisy["observation"] and noisy["tip_noise_mm"] == 0.5  # a copy
+    c_noisy, t_noisy = camera.observe_cases(a, noisy, hw, g, seed)
+    c_exact, t_exact = camera.observe_cases(a, exact, hw, g, seed)
+    assert all(np.array_equal(x, y) for x, y in zip(c_noisy, c_exact))  # the same clouds
+    assert np.abs(t_noisy - t_exact).max() > 0.1
+    # the true tip: the exertion point moved with the surface (a surface vertex in these cases)
+    for i in range(len(t_exact)):
+        V = a["surface_meshes"][a["geometry_id"][i]][0]
+        k = int(np.argmin(np.linalg.norm(V - a["exertion_point_mm"][i], axis=1)))
+        np.testing.assert_allclose(t_exact[i], a["exertion_point_mm"][i] + a["surface_displacement_mm"][i][k],
+                                   atol=1e-9)
+    # exact_tip_metrics = the model's metrics from those clouds and the true tips, given as camera inputs
+    got = exact_tip_metrics(model, a, 5)["exact_tip"]
+    want = force_metrics(np.asarray(a["force_n"], float),
+                         model.predict(_camera_inputs(a, *camera.observe_cases(a, camera.exact_tip(CAMERA), hw, g,
+                                                                               seed))))
+    assert got == pytest.approx(want, rel=1e-9)
+    assert got["mae_vec"] != pytest.approx(force_metrics(np.asarray(a["force_n"], float),
+                                                         model.predict(a, observation_seed=seed))["mae_vec"])
+    with pytest.raises(ValueError, match="not a camera-cloud model"):
+        ForceModel(dataclasses_replace(model.representation, features="displacement", camera=None), model.pre,
+                   model.regressor_spec, model.regressor).observed_with(CAMERA)
