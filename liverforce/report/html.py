@@ -432,8 +432,10 @@ def camera_section(data: dict, v: dict, main_variant: str | None) -> str:
            f"gives). Accuracy % and MAE are mean ± sd over the repeated splits (scenarios) or over the unseen livers. "
            f"Target: the camera within {CAMERA_GAP_LIMIT:.0f} points of the reference. "
            "<i>Exact tip</i>: the same camera model and the same clouds, the tool tip without the kinematics "
-           "noise it was trained with: how much of the gap is the tool tracker's error rather than the "
-           "cloud (with the default settings the reference's node displacements carry no noise at all).</p>",
+           "noise it was trained with: what this model gives with a perfect tool tracker. A model trained for a "
+           "more precise tracker (<code>model.camera.tip_noise_mm</code>) gains more, as it can lean on the tip "
+           "(README, \"What a camera sees\"). With the default settings the reference's node displacements carry "
+           "no noise at all.</p>",
            _table(["scenario", f"correspondence {html.escape(str(ref_name))} %", f"camera {html.escape(cam_name)} %",
                    "gap (points)", "camera, exact tip %", "correspondence MAE (N)", "camera MAE (N)",
                    "camera, exact tip MAE (N)"], rows, cls="camera", row_cls="cam")]
