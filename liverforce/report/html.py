@@ -431,11 +431,11 @@ def camera_section(data: dict, v: dict, main_variant: str | None) -> str:
            f"<code>{html.escape(str(ref_name))}</code> reads the FE nodes' displacements (a reference no camera "
            f"gives). Accuracy % and MAE are mean ± sd over the repeated splits (scenarios) or over the unseen livers. "
            f"Target: the camera within {CAMERA_GAP_LIMIT:.0f} points of the reference. "
-           "<i>Exact tip</i>: the same camera model and the same clouds, the tool tip without the kinematics "
-           "noise it was trained with: what this model gives with a perfect tool tracker. A model trained for a "
-           "more precise tracker (<code>model.camera.tip_noise_mm</code>) gains more, as it can lean on the tip "
-           "(README, \"What a camera sees\"). With the default settings the reference's node displacements carry "
-           "no noise at all.</p>",
+           "<i>Exact tip</i>: the same camera model and the same clouds, the tool tip given exactly, without the "
+           "kinematics noise the model was trained with: what this model gives with a perfect tool tracker. A "
+           "model retrained for a more precise tracker (<code>model.camera.tip_noise_mm</code>) gains more than "
+           "this column shows, as it learns to lean on the tip (README, \"What a camera sees\"). The reference, "
+           "by contrast, reads node displacements without noise (default settings).</p>",
            _table(["scenario", f"correspondence {html.escape(str(ref_name))} %", f"camera {html.escape(cam_name)} %",
                    "gap (points)", "camera, exact tip %", "correspondence MAE (N)", "camera MAE (N)",
                    "camera, exact tip MAE (N)"], rows, cls="camera", row_cls="cam")]
