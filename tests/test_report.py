@@ -466,7 +466,6 @@ def test_the_iv_outside_paragraph_says_when_nothing_or_one_split_is_outside():
                                  "pca_nosv") == ""
 
 
-
 @pytest.mark.parametrize("validated", ["cloud_sv", "pca_sv"])
 def test_the_camera_table_shows_the_exact_tip_accuracy_per_scenario_and_on_the_unseen_livers(stage_outputs,
                                                                                               validated):

@@ -85,10 +85,16 @@ def channel_groups(grid_size: int) -> np.ndarray:
     return np.concatenate([np.zeros(g2, int), np.ones(g2, int), np.full(3, 2)])
 
 
+def isotropic_tip(camera: dict, sd_mm: float) -> dict:
+    """These camera settings with the tool tip's kinematics noise ``sd_mm`` in every direction (a split along
+    the normal dropped); the cloud is observed as before (the tip's noise has its own seed stream,
+    ``observation.tip``)."""
+    return {**camera, "tip_noise_mm": float(sd_mm), "tip_noise_normal_mm": None}
+
+
 def exact_tip(camera: dict) -> dict:
-    """These camera settings with an exact tool tip (no kinematics noise in any direction); the cloud is
-    observed as before (the tip's noise has its own seed stream, ``observation.tip``)."""
-    return {**camera, "tip_noise_mm": 0.0, "tip_noise_normal_mm": None}
+    """These camera settings with an exact tool tip (:func:`isotropic_tip` at 0 mm)."""
+    return isotropic_tip(camera, 0.0)
 
 
 def grid_spec(grid_size: int, half_width_mm: float, camera: dict) -> CloudGridSpec:

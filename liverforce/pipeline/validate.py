@@ -120,6 +120,7 @@ def camera_sensitivity(model_dir, arrays: dict, grid: dict) -> dict | None:
     """
     import copy
 
+    from liverforce.learn.camera import isotropic_tip
     from liverforce.learn.metrics import metrics_by_group
     from liverforce.learn.model import ForceModel
 
@@ -135,8 +136,7 @@ def camera_sensitivity(model_dir, arrays: dict, grid: dict) -> dict | None:
             cam = copy.deepcopy(rep.camera)
             obs = cam.setdefault("observation", {})
             if key == "tip_noise_mm":  # the same noise in every direction, whatever the model was trained with
-                cam["tip_noise_mm"] = float(val)
-                cam["tip_noise_normal_mm"] = None
+                cam = isotropic_tip(cam, val)
             elif key == "n_points":
                 obs["n_points"] = [int(val), int(val)]
             elif key in ("noise_sd_mm", "cone_half_angle_deg"):
