@@ -99,12 +99,17 @@ class GPRegressor(nn.Module):
 
         The same posterior mean as :meth:`forward` in fewer passes over the (rows x training rows)
         matrix: ``-d2 / 2 = min(z_s . x_s - (|z_s|^2 + |x_s|^2) / 2, 0)`` (``_s``: scaled by the inverse
-        length scales), ``s_f^2`` folded into ``alpha`` and the linear term into one (d, 3) matrix
-        ``s_l^2 X^T alpha``: one BLAS product, ``exp`` and a (rows x 3) product. The rational
-        quadratic is ``exp(-a log1p(d2 / (2 a)))``: one ``log1p`` more.
+        length scales) as one BLAS product of ``[z_s, -|z_s|^2 / 2, 1]`` and ``[x_s, 1, -|x_s|^2 / 2]``,
+        ``s_f^2`` folded into ``alpha`` and the linear term into one (d, 3) matrix ``s_l^2 X^T alpha``: one
+        BLAS product, ``exp`` and two products with 3 columns. The rational quadratic is
+        ``exp(-a log1p(d2 / (2 a)))``: one ``log1p`` more.
         """
-        Xs = (self.X * self.inv_length).numpy().copy()
-        hx = 0.5 * np.einsum("ij,ij->i", Xs, Xs)
+        Xs = (self.X * self.inv_length).numpy()
+        d = Xs.shape[1]
+        XaT = np.empty((d + 2, Xs.shape[0]))  # [x_s, 1, -|x_s|^2 / 2]^T
+        XaT[:d] = Xs.T
+        XaT[d] = 1.0
+        XaT[d + 1] = -0.5 * np.einsum("ij,ij->i", Xs, Xs)
         inv_l = self.inv_length.numpy().copy()
         alpha = self.alpha.numpy()
         alpha_s = float(self.signal_var) * alpha
@@ -114,10 +119,14 @@ class GPRegressor(nn.Module):
 
         def head(Z: np.ndarray) -> np.ndarray:
             Z = np.asarray(Z, dtype=np.float64)
-            Zs = Z * inv_l
-            E = Zs @ Xs.T
-            E -= 0.5 * np.einsum("ij,ij->i", Zs, Zs)[:, None]
-            E -= hx
+            if Z.ndim != 2 or Z.shape[1] != d:
+                raise ValueError(f"the GP head takes rows of {d} inputs, got an array of shape {Z.shape}")
+            Za = np.empty((len(Z), d + 2))  # [z_s, -|z_s|^2 / 2, 1]
+            Zs = Za[:, :d]
+            np.multiply(Z, inv_l, out=Zs)
+            Za[:, d] = -0.5 * np.einsum("ij,ij->i", Zs, Zs)
+            Za[:, d + 1] = 1.0
+            E = Za @ XaT
             np.minimum(E, 0.0, out=E)  # -d2 / 2
             if rq:  # (1 + d2 / (2 a))^-a = exp(-a log1p(-E / a))
                 E *= -1.0 / a

@@ -25,15 +25,17 @@ in a few loops over the points instead of NumPy temporaries:
 1. every point: rotate into the local frame, count the points over the grid
    and the non-finite ones (the refusal checks of the reference path), keep
    the points within the kernel's reach (compacted without branches);
-2. the kept points: grid-index coordinates, grid cell, the height change over
-   the pre-operative raster (same bilinear read);
-3. a stable counting sort by grid cell; exact duplicate points (equal local
+2. the kept points: grid-index coordinates, sort bin (half a grid step wide
+   for the shipped 1.5-step kernel, so that a grid point's bins hold no point
+   beyond the kernel along u or v), the height change over the
+   pre-operative raster (same bilinear read);
+3. a stable counting sort by bin; exact duplicate points (equal local
    coordinates) count once, as in the reference's canonical order: a bit
    table of hashed coordinates flags the few candidates, each checked
-   exactly against the earlier points of its cell;
+   exactly against the earlier points of its bin;
 4. the biweight-kernel moments of every grid point from one contiguous run
-   of points per cell row (two for the default one-cell kernel), the
-   per-cell weighted plane fit, the validity test (same formulas);
+   of points per bin row (two for a one-step kernel, six for the shipped
+   1.5), the per-cell weighted plane fit, the validity test (same formulas);
 5. the Laplace fill of the invalid cells as a banded Cholesky solve (the
    4-neighbour system of the unknowns has bandwidth ``<= g`` in flat cell
    order), instead of the reference's dense LU; ``nearest`` fill goes back to
@@ -87,6 +89,7 @@ from liverforce.serve.preop import Preop, _points
 
 _FILL_CODES = {"zero": 0, "laplace": 1, "nearest": 2}
 _CHUNK = 64  # clouds per conversion of a padded array that is not float32 / float64 C-contiguous (bounds the copy)
+_RUN = 8  # _cell_moments reads a run on to a multiple of this many points (fewer scalar loop remainders)
 _HEAD_ROWS = 512  # feature rows per call of the head (bounds the GP's kernel matrix: rows x training rows)
 _CLOUD_TYPE = types.Array(types.float64, 2, "C", readonly=True)  # items of the typed list of clouds: one signature
 # for writable and read-only (e.g. Arrow-backed) clouds alike
@@ -98,33 +101,42 @@ _CLOUD_TYPE = types.Array(types.float64, 2, "C", readonly=True)  # items of the 
 
 
 @njit(cache=True, fastmath={"reassoc", "nsz", "contract", "arcp"})
-def _cell_moments(GU, GV, Z, first, g, kr, pad, nc, M):
-    """Biweight moments of every grid point ``(I, J)`` from the points sorted by cell.
+def _cell_moments(GU, GV, Z, first, g, kr, sb, pad, nc, exact, M):
+    """Biweight moments of every grid point ``(I, J)`` from the points sorted by bin (:func:`_bins`).
 
-    ``GU, GV``: grid-index coordinates, ``Z``: height change; the points in cell ``(floor(gv), floor(gu))`` are
-    ``first[key]:first[key + 1]`` with ``key = (floor(gv) + pad) nc + floor(gu) + pad`` (row-major), so the points
-    within ``kr`` of a grid point are one run per cell row (two runs for ``kr = 1``). ``M[I * g + J]`` gets: sum of
-    w, of 1 (points within the support), of w z, w du, w dv, w du^2, w dv^2, w du dv, w du z, w dv z
-    (``w = (1 - q)^2``, ``q = (du^2 + dv^2) / kr^2 < 1``), the sums of ``cloud_features.cloud_grid``. Points outside
-    the support add exact zeros. The fast-math flags let LLVM vectorise the sums: their order depends only on the
-    points' order, never on the batch, so a cloud gives the same bits alone or in a batch (and the reference's
-    sums to rounding).
+    ``GU, GV``: grid-index coordinates, ``Z``: height change; the points in bin ``(floor(gv sb), floor(gu sb))``
+    are ``first[key]:first[key + 1]`` with ``key`` from :func:`_bin_key` (row-major), so the points within ``kr``
+    of a grid point are one run per bin row (six runs of six half-step bins for the shipped ``kr = 1.5``,
+    ``sb = 2``; with ``exact`` false one bin more on each side). ``M[I * g + J]`` gets: sum of w, of 1 (points
+    within the support), of w z, w du, w dv, w du^2, w dv^2, w du dv, w du z, w dv z (``w = (1 - q)^2``,
+    ``q = d2 / kr^2``, ``d2 = du^2 + dv^2 < kr^2``: the reference's test ``d2 / kr^2 < 1``), the sums of
+    ``cloud_features.cloud_grid``. Points outside the support add exact zeros, and the points after a run's last
+    bin in its bin row lie ``>= kr`` to the right (``d2 >= kr^2`` in floating point too: with ``exact`` the bin
+    edges are the support's edges exactly), so a run is read on to a multiple of ``_RUN`` points within its bin
+    row: LLVM's vector loop then less often ends in its scalar remainder. The fast-math flags let LLVM vectorise
+    the sums: their order depends only on the points' order, never on the batch, so a cloud gives the same bits
+    alone or in a batch (and the reference's sums to rounding).
     """
-    inv_kr2 = 1.0 / (kr * kr)
+    kr2 = kr * kr
+    inv_kr2 = 1.0 / kr2
+    m = 0 if exact else 1  # inexact edges: a whole bin of margin on each side
     for I in range(g):
-        i_lo = int(math.floor(I - kr)) + pad
-        i_hi = int(math.ceil(I + kr)) - 1 + pad  # the cell rows floor(gv) of the points with |gv - I| < kr
+        i_lo = int(math.floor((I - kr) * sb)) - m + pad
+        i_hi = int(math.ceil((I + kr) * sb)) - 1 + m + pad  # bin rows floor(gv sb) of the points with |gv - I| < kr
         for J in range(g):
-            j_lo = int(math.floor(J - kr)) + pad
-            j_hi = int(math.ceil(J + kr)) - 1 + pad
+            j_lo = int(math.floor((J - kr) * sb)) - m + pad
+            j_hi = int(math.ceil((J + kr) * sb)) - 1 + m + pad
             s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = s9 = 0.0
             for i in range(i_lo, i_hi + 1):
+                a0 = first[i * nc + j_lo]
+                e0 = min(a0 + (first[i * nc + j_hi + 1] - a0 + _RUN - 1) // _RUN * _RUN, first[i * nc + nc])
                 # unsigned bounds: numba then knows t >= 0 (no negative-index wrap), and LLVM loads contiguously
-                for t in range(np.uint64(first[i * nc + j_lo]), np.uint64(first[i * nc + j_hi + 1])):
+                for t in range(np.uint64(a0), np.uint64(e0)):
                     du = GU[t] - J
                     dv = GV[t] - I
-                    q = (du * du + dv * dv) * inv_kr2
-                    inside = q < 1.0
+                    d2 = du * du + dv * dv
+                    q = d2 * inv_kr2
+                    inside = d2 < kr2
                     wt = (1.0 - q) * (1.0 - q) if inside else 0.0
                     z = Z[t]
                     s0 += wt
@@ -151,10 +163,36 @@ def _cell_moments(GU, GV, Z, first, g, kr, pad, nc, M):
 
 
 @njit(cache=True)
+def _bins(g, kr):
+    """Sort bins of :func:`_grid_one`: bins per grid step ``sb``, padding ``pad``, bins per row ``nc``, ``exact``.
+
+    ``exact``: ``sb`` (1, 2 or 4, at most 64 bins over the grid, ``kr sb <= 8``) makes ``kr sb`` whole, so the
+    bin edges ``(I +- kr) sb`` are the kernel support's edges exactly (``I +- kr`` and the products are exact in
+    floating point; 1 for ``kr = 1``, 2 for the shipped 1.5). Else half-step bins (whole steps for ``kr > 2`` or
+    a grid over 32 points) and :func:`_cell_moments` reads one bin more on each side. ``pad`` bins beyond the
+    grid on each side hold the kept points off it (``|gu|, |gv|`` within ``kr`` of the grid) and that margin.
+    """
+    for c in (1, 2, 4):
+        if kr * c == math.floor(kr * c) and g * c <= 64 and kr * c <= 8.0:
+            pad = int(kr * c) + 1
+            return c, pad, g * c + 2 * pad, True
+    sb = 1 if kr > 2.0 or g > 32 else 2
+    pad = int(math.ceil(kr * sb)) + 2
+    return sb, pad, g * sb + 2 * pad, False
+
+
+@njit(cache=True)
+def _bin_key(gu, gv, sb, pad, nc):
+    """Bin (row-major) of grid-index coordinates ``(gu, gv)`` (clamped to the bins; a kept point never is)."""
+    return (min(max(int(math.floor(gv * sb)) + pad, 0), nc - 1) * nc
+            + min(max(int(math.floor(gu * sb)) + pad, 0), nc - 1))
+
+
+@njit(cache=True)
 def _workspace(nmax, g, kr):
     """Scratch arrays of :func:`_grid_one` for clouds of up to ``nmax`` points (allocated once per call)."""
     gg = g * g
-    nc = g + 2 * (int(math.ceil(kr)) + 1)  # cell rows / columns, with those beyond the grid a kept point can lie in
+    nc = _bins(g, kr)[2]  # bin rows / columns, with those beyond the grid a kept point can lie in
     nmax = max(nmax, 1)
     tb = 16  # duplicate filter: a bit table of >= 16 bits per point
     while (1 << tb) < 16 * nmax:
@@ -194,8 +232,7 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
     inv_rstep = 1.0 / rstep
     inv_gstep = 1.0 / gstep
     reach = h + kr * gstep
-    pad = int(math.ceil(kr)) + 1
-    nc = g + 2 * pad
+    sb, pad, nc, exact = _bins(g, kr)
     o0, o1, o2 = origin[0], origin[1], origin[2]
     r00, r01, r02, r10, r11, r12, r20, r21, r22 = R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2], R[2, 0], R[2, 1], R[2, 2]
     # 1. every point: local frame; not finite (a NaN or inf coordinate makes u NaN or inf) and over the grid
@@ -223,7 +260,7 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
     while (1 << tb) < 16 * m:
         tb += 1
     mask = (1 << tb) - 1
-    # 2. the kept points: grid-index coordinates and cell; the height change over the pre-operative raster
+    # 2. the kept points: grid-index coordinates and sort bin; the height change over the pre-operative raster
     #    (ReferenceSurface.height: bilinear, clamped), its cell and offsets first (no gathers: vectorised)
     for t in range(m):
         u = U[t]
@@ -239,7 +276,7 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
         gv = (v + h) * inv_gstep
         GU[t] = gu
         GV[t] = gv
-        key[t] = min(max(int(math.floor(gv)) + pad, 0), nc - 1) * nc + min(max(int(math.floor(gu)) + pad, 0), nc - 1)
+        key[t] = _bin_key(gu, gv, sb, pad, nc)
         HB[t] = (int(gu * 4096.0) * _H1 + int(gv * 4096.0) * _H2) & mask  # duplicate filter: equal points, equal bits
     for t in range(m):
         q = Q[t]
@@ -247,8 +284,8 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
         c = C[t]
         Z[t] = Wl[t] - ((1 - a) * (1 - c) * RF[q] + a * (1 - c) * RF[q + one]
                         + (1 - a) * c * RF[q + rs] + a * c * RF[q + rs + one])
-    # 3. counting sort by cell (stable); exact duplicates (equal local coordinates) are found with a bit table of
-    #    hashed (u, v): a point whose bit is already set is a candidate, checked against its cell's earlier points
+    # 3. counting sort by bin (stable); exact duplicates (equal local coordinates) are found with a bit table of
+    #    hashed (u, v): a point whose bit is already set is a candidate, checked against its bin's earlier points
     nw = 1 << (tb - 5)
     bits[:nw] = 0
     first[:nc * nc + 1] = 0
@@ -307,7 +344,7 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
                     w += 1
         first[nc * nc] = w
     # 4. moments, per-cell weighted plane fit and validity test (cloud_grid's formulas)
-    _cell_moments(GUs, GVs, Zs, first, g, kr, pad, nc, M)
+    _cell_moments(GUs, GVs, Zs, first, g, kr, sb, pad, nc, exact, M)
     kr2 = kr * kr
     n_valid = 0
     for I in range(g):

@@ -137,7 +137,13 @@ def test_ard_finds_the_irrelevant_input(fitted):
 def test_numpy_head_equals_the_module(fitted):
     X, gp, _ = fitted
     Xt = np.random.default_rng(2).uniform(-2, 2, (64, 5))
-    np.testing.assert_allclose(gp.numpy_head()(Xt), gp(torch.from_numpy(Xt)).numpy(), rtol=0, atol=1e-6)
+    head = gp.numpy_head()
+    np.testing.assert_allclose(head(Xt), gp(torch.from_numpy(Xt)).numpy(), rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(head(np.asfortranarray(Xt[::2])), head(Xt[::2]))  # any memory layout
+    assert head(Xt[:0]).shape == (0, 3)
+    for bad in (Xt[0], Xt[:, :4]):  # one row without its row axis, or too few inputs: an error, not a guess
+        with pytest.raises(ValueError, match="rows of 5 inputs"):
+            head(bad)
 
 
 @pytest.mark.parametrize("kernel, shape", [("squared_exponential", None), ("rational_quadratic", 2.0),

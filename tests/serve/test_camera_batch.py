@@ -87,9 +87,10 @@ def test_compiled_features_equal_the_reference_cloud_grid(served):
     assert filled > 0  # the Laplace fill was exercised
 
 
-@pytest.mark.parametrize("kr", [0.7, 1.6])
+@pytest.mark.parametrize("kr", [0.7, 1.25, 1.5, 1.6])
 def test_compiled_features_with_another_kernel_radius(served, kr):
-    """Kernel radii other than one cell (more or fewer cell rows per grid point), and points present three times."""
+    """Kernel radii other than one cell (more or fewer bin rows per grid point; sort bins a quarter (1.25) or half
+    (0.7, 1.5, 1.6) grid step wide), and points present three times."""
     pred, a, ctx, fast = served
     other = copy.copy(fast)
     other.spec = dataclasses.replace(fast.spec, kernel_radius_cells=kr)
@@ -101,6 +102,63 @@ def test_compiled_features_with_another_kernel_radius(served, kr):
         x = other.features(cloud, t)
         np.testing.assert_array_equal(x[g2:2 * g2], ref[g2:])
         np.testing.assert_allclose(x[:-3], ref, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("g", [8, 40])
+@pytest.mark.parametrize("kr", [1.0, 1.25, 1.5, 1.75, 2.5, 0.7, 4 / 3, 1.5000000000000002])
+def test_sort_bins_and_padded_runs_change_no_sum(g, kr):
+    """The counting sort's bins and the runs read on past a grid point's last bin (compiled_cloud._bins,
+    _bin_key, _cell_moments) change no grid point's sums: on a lattice with points on bin edges and exactly on
+    the kernel's edge (|du| = kr, du^2 + dv^2 = kr^2 for kr = 1.25, the float just inside), for whole-step,
+    half-step and quarter-step bins with exact edges and for radii without exact edges (0.7, 4/3, 1.5 + 1 ulp),
+    each grid point counts exactly the points with the reference's test du^2 + dv^2 < kr^2 (cloud_features:
+    d2 / kr^2 < 1), and its weighted sums agree with a sum over every point to rounding."""
+    from liverforce.serve import compiled_cloud as cc
+
+    sb, pad, nc, exact = cc._bins(g, kr)
+    assert exact == (kr in ((1.0, 1.25, 1.5, 1.75, 2.5) if g == 8 else (1.0,)))  # at most 64 bins over the grid
+    inner = np.nextafter(kr, 0.0)
+    offs = np.concatenate([np.arange(-24, 25) / 8.0, [kr, -kr, inner, -inner]])
+    anchors = np.unique([0, 1, g // 2, g - 2, g - 1])
+    ou, ov = np.meshgrid(offs, offs)
+    GU = (anchors[:, None, None] + ou.ravel()[None, None, :] + 0 * anchors[None, :, None]).ravel()
+    GV = (0 * anchors[:, None, None] + anchors[None, :, None] + ov.ravel()[None, None, :]).ravel()
+    rng = np.random.default_rng(0)
+    GU = np.concatenate([GU, rng.uniform(-kr, g - 1 + kr, 3000)])
+    GV = np.concatenate([GV, rng.uniform(-kr, g - 1 + kr, 3000)])
+    kept = (GU > -kr) & (GU < g - 1 + kr) & (GV > -kr) & (GV < g - 1 + kr)  # _grid_one keeps no other point
+    GU, GV = GU[kept], GV[kept]
+    Z = rng.normal(0.0, 2.0, len(GU))
+    key = np.array([cc._bin_key(u, v, sb, pad, nc) for u, v in zip(GU, GV)])
+    fl_u, fl_v = np.floor(GU * sb).astype(int) + pad, np.floor(GV * sb).astype(int) + pad
+    assert (fl_u >= 0).all() and (fl_u < nc).all() and (fl_v >= 0).all() and (fl_v < nc).all()
+    np.testing.assert_array_equal(key, fl_v * nc + fl_u)  # no kept point is clamped
+    order = np.argsort(key, kind="stable")
+    first = np.zeros(nc * nc + 1, dtype=np.int64)
+    first[1:] = np.cumsum(np.bincount(key, minlength=nc * nc))
+    M = np.zeros((g * g, 10))
+    cc._cell_moments(GU[order], GV[order], Z[order], first, g, kr, sb, pad, nc, exact, M)
+    # every (point, grid point within ceil(kr) + 1 of its nearest) pair, as cloud_features.cloud_grid pairs them
+    c = int(np.ceil(kr)) + 1
+    o = np.arange(-c, c + 1)
+    I = np.rint(GV).astype(int)[None, :] + np.repeat(o, o.size)[:, None]
+    J = np.rint(GU).astype(int)[None, :] + np.tile(o, o.size)[:, None]
+    du, dv = GU[None, :] - J, GV[None, :] - I
+    d2 = du * du + dv * dv
+    on_grid = (I >= 0) & (I < g) & (J >= 0) & (J < g)
+    on_edge = int((on_grid & (d2 == kr * kr)).sum())  # points exactly on a grid point's kernel edge: not counted
+    inside = (d2 < kr * kr) & on_grid
+    cell = (I * g + J)[inside]
+    w = (1.0 - d2[inside] / (kr * kr)) ** 2
+    z = np.broadcast_to(Z, d2.shape)[inside]
+    du, dv = du[inside], dv[inside]
+    want = np.column_stack([np.bincount(cell, weights=x, minlength=g * g) for x in
+                            (w, np.ones_like(w), w * z, w * du, w * dv, w * du * du, w * dv * dv, w * du * dv,
+                             w * du * z, w * dv * z)])
+    np.testing.assert_array_equal(M[:, 1], want[:, 1])  # the same points, exactly
+    np.testing.assert_allclose(M, want, rtol=1e-12, atol=1e-9)
+    assert (want[:, 1] > 0).sum() > 0.5 * g * g
+    assert on_edge > 0 or kr not in (1.0, 1.25, 1.5, 1.75, 2.5)  # the edge was exercised
 
 
 def test_compiled_predict_equals_the_reference_path(served):
