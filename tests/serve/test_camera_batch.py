@@ -121,8 +121,9 @@ def test_sort_bins_and_padded_runs_change_no_sum(g, kr):
     offs = np.concatenate([np.arange(-24, 25) / 8.0, [kr, -kr, inner, -inner]])
     anchors = np.unique([0, 1, g // 2, g - 2, g - 1])
     ou, ov = np.meshgrid(offs, offs)
-    GU = (anchors[:, None, None] + ou.ravel()[None, None, :] + 0 * anchors[None, :, None]).ravel()
-    GV = (0 * anchors[:, None, None] + anchors[None, :, None] + ov.ravel()[None, None, :]).ravel()
+    au, av = np.meshgrid(anchors, anchors)  # every offset around every pair of anchor grid points
+    GU = np.add.outer(au.ravel(), ou.ravel()).ravel()
+    GV = np.add.outer(av.ravel(), ov.ravel()).ravel()
     rng = np.random.default_rng(0)
     GU = np.concatenate([GU, rng.uniform(-kr, g - 1 + kr, 3000)])
     GV = np.concatenate([GV, rng.uniform(-kr, g - 1 + kr, 3000)])
