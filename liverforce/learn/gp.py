@@ -94,26 +94,43 @@ class GPRegressor(nn.Module):
         z = z.double()
         return _kernel(z, self.X, self.inv_length, self.signal_var, self.linear_var, float(self.shape)) @ self.alpha
 
-    def numpy_head(self):
+    def numpy_head(self, fixed: dict | None = None):
         """A float64 NumPy function ``Z (n, d) -> scaled outputs (n, 3)`` (the compiled serving paths).
 
         The same posterior mean as :meth:`forward` in fewer passes over the (rows x training rows)
-        matrix: ``-d2 / 2 = min(z_s . x_s - (|z_s|^2 + |x_s|^2) / 2, 0)`` (``_s``: scaled by the inverse
-        length scales) as one BLAS product of ``[z_s, -|z_s|^2 / 2, 1]`` and ``[x_s, 1, -|x_s|^2 / 2]``,
+        matrix: ``-d2 / 2 = z_s . x_s - (|z_s|^2 + |x_s|^2) / 2`` (``_s``: scaled by the inverse length
+        scales; not clamped at 0 as the module clamps ``d2``: where it rounds above 0, by ~1e-13 near a
+        training input, the kernel is 1 + 1e-13) as one BLAS product of ``[z_s, -|z_s|^2 / 2, 1]`` and
+        ``[x_s, 1, -|x_s|^2 / 2]``,
         ``s_f^2`` folded into ``alpha`` and the linear term into one (d, 3) matrix ``s_l^2 X^T alpha``: one
         BLAS product, ``exp`` and two products with 3 columns. The rational quadratic is
         ``exp(-a log1p(d2 / (2 a)))``: one ``log1p`` more.
+
+        ``fixed``: ``{input column: value}`` for inputs that are the same in every row (a compiled
+        context's state vector). The head then takes only the other columns, in their order; the fixed
+        inputs' part of each training row's distance (``|v_s - x_s|^2``, computed directly) and of the
+        linear term is computed here, once.
         """
         Xs = (self.X * self.inv_length).numpy()
-        d = Xs.shape[1]
-        XaT = np.empty((d + 2, Xs.shape[0]))  # [x_s, 1, -|x_s|^2 / 2]^T
-        XaT[:d] = Xs.T
+        d_all = Xs.shape[1]
+        fixed = _fixed_inputs(fixed, d_all)
+        fc = np.array(sorted(fixed), dtype=np.int64)
+        fr = np.array([c for c in range(d_all) if c not in fixed], dtype=np.int64)
+        d = fr.size
+        inv_l_all = self.inv_length.numpy()
+        XaT = np.empty((d + 2, Xs.shape[0]))  # [x_s, 1, -(|x_s|^2 + |x_s - v_s|^2 over the fixed inputs) / 2]^T
+        XaT[:d] = Xs[:, fr].T
         XaT[d] = 1.0
-        XaT[d + 1] = -0.5 * np.einsum("ij,ij->i", Xs, Xs)
-        inv_l = self.inv_length.numpy().copy()
+        XaT[d + 1] = -0.5 * np.einsum("ij,ij->i", XaT[:d].T, XaT[:d].T)
+        if fc.size:
+            gap = Xs[:, fc] - np.array([fixed[c] for c in fc]) * inv_l_all[fc]
+            XaT[d + 1] -= 0.5 * np.einsum("ij,ij->i", gap, gap)
+        inv_l = inv_l_all[fr].copy()
         alpha = self.alpha.numpy()
         alpha_s = float(self.signal_var) * alpha
-        beta = float(self.linear_var) * (self.X.numpy().T @ alpha)
+        beta_all = float(self.linear_var) * (self.X.numpy().T @ alpha)
+        beta = np.ascontiguousarray(beta_all[fr])
+        b0 = np.array([fixed[c] for c in fc]) @ beta_all[fc] if fc.size else None  # the fixed inputs' linear term
         a = float(self.shape)
         rq = not math.isinf(a)
 
@@ -126,19 +143,33 @@ class GPRegressor(nn.Module):
             np.multiply(Z, inv_l, out=Zs)
             Za[:, d] = -0.5 * np.einsum("ij,ij->i", Zs, Zs)
             Za[:, d + 1] = 1.0
-            E = Za @ XaT
-            np.minimum(E, 0.0, out=E)  # -d2 / 2
+            E = Za @ XaT  # -d2 / 2, not clamped at 0: where it rounds above 0 (~1e-13) the kernel is 1 + 1e-13
             if rq:  # (1 + d2 / (2 a))^-a = exp(-a log1p(-E / a))
                 E *= -1.0 / a
                 np.log1p(E, out=E)
                 E *= -a
             np.exp(E, out=E)
-            return E @ alpha_s + Z @ beta
+            out = E @ alpha_s + Z @ beta
+            if b0 is not None:
+                out += b0
+            return out
 
         return head
 
 
 KERNELS = names.GP_KERNELS
+
+
+def _fixed_inputs(fixed: dict | None, n_in: int) -> dict:
+    """``numpy_head``'s ``fixed`` checked: whole input columns in ``[0, n_in)``, finite values."""
+    out = {}
+    for c, v in (fixed or {}).items():
+        if isinstance(c, bool) or not float(c).is_integer() or not 0 <= int(c) < n_in:
+            raise ValueError(f"numpy_head: fixed columns must index the {n_in} inputs; got {c!r}")
+        if not math.isfinite(float(v)):
+            raise ValueError(f"numpy_head: the fixed input {int(c)} must be finite; got {v!r}")
+        out[int(c)] = float(v)
+    return out
 
 
 def _sq_dist(a, b):
@@ -379,16 +410,27 @@ class GPEnsemble(nn.Module):
         z = z.double()
         return torch.stack([m(z[:, self.columns(i)]) for i, m in enumerate(self.members)]).mean(0)
 
-    def numpy_head(self):
-        """The members' :meth:`GPRegressor.numpy_head` on their columns, averaged (the compiled paths)."""
-        heads = [(m.numpy_head(), self.columns(i).numpy().copy()) for i, m in enumerate(self.members)]
+    def numpy_head(self, fixed: dict | None = None):
+        """The members' :meth:`GPRegressor.numpy_head` on their columns, averaged (the compiled paths).
+
+        ``fixed``: ``{input column: value}`` as for :meth:`GPRegressor.numpy_head`; the head then takes the
+        other input columns, in their order, and each member gets its share of the fixed inputs."""
+        cols = [self.columns(i).numpy() for i in range(len(self.members))]
+        n_in = 1 + max(int(c.max()) for c in cols)  # the inputs: every column up to the last a member reads
+        fixed = _fixed_inputs(fixed, n_in)
+        free = {c: k for k, c in enumerate(c for c in range(n_in) if c not in fixed)}  # input -> head column
+        heads = [(m.numpy_head({p: fixed[c] for p, c in enumerate(cols[i]) if c in fixed} or None),
+                  np.array([free[c] for c in cols[i] if c not in fixed], dtype=np.int64))
+                 for i, m in enumerate(self.members)]
         w = 1.0 / len(heads)
 
         def head(Z: np.ndarray) -> np.ndarray:
             Z = np.asarray(Z, dtype=np.float64)
+            if fixed and (Z.ndim != 2 or Z.shape[1] != len(free)):  # (else each member checks its columns)
+                raise ValueError(f"the GP head takes rows of {len(free)} inputs, got an array of shape {Z.shape}")
             out = heads[0][0](Z[:, heads[0][1]])
-            for h, cols in heads[1:]:
-                out += h(Z[:, cols])
+            for h, c in heads[1:]:
+                out += h(Z[:, c])
             out *= w
             return out
 

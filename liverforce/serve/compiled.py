@@ -84,13 +84,14 @@ def numpy_layers(seq: nn.Sequential) -> list[tuple[np.ndarray, np.ndarray, float
     return [(W, b, s) for W, b, s in out]
 
 
-def regressor_head(module: nn.Module):
+def regressor_head(module: nn.Module, fixed: dict | None = None):
     """The GP regressor's NumPy posterior mean (:meth:`liverforce.learn.gp.GPRegressor.numpy_head`, or
-    :meth:`liverforce.learn.gp.GPEnsemble.numpy_head`); None for an MLP (served layer by layer from
-    :func:`numpy_layers`)."""
+    :meth:`liverforce.learn.gp.GPEnsemble.numpy_head`; ``fixed``: ``{input column: value}`` of inputs the same
+    in every row, folded in once: the head then takes the other columns); None for an MLP (served layer by
+    layer from :func:`numpy_layers`)."""
     from liverforce.learn.gp import GPEnsemble, GPRegressor
 
-    return module.numpy_head() if isinstance(module, (GPRegressor, GPEnsemble)) else None
+    return module.numpy_head(fixed) if isinstance(module, (GPRegressor, GPEnsemble)) else None
 
 
 def _act(h: np.ndarray, slope: float | None) -> np.ndarray:

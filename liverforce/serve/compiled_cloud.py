@@ -27,15 +27,17 @@ in a few loops over the points instead of NumPy temporaries:
    the points within the kernel's reach (compacted without branches);
 2. the kept points: grid-index coordinates, sort bin (half a grid step wide
    for the shipped 1.5-step kernel, so that a grid point's bins hold no point
-   beyond the kernel along u or v), the height change over the
+   beyond the kernel along u or v; ordered by groups of bin rows one grid step
+   tall, column by column within a group), the height change over the
    pre-operative raster (same bilinear read);
 3. a stable counting sort by bin; exact duplicate points (equal local
    coordinates) count once, as in the reference's canonical order: a bit
    table of hashed coordinates flags the few candidates, each checked
    exactly against the earlier points of its bin;
 4. the biweight-kernel moments of every grid point from one contiguous run
-   of points per bin row (two for a one-step kernel, six for the shipped
-   1.5), the per-cell weighted plane fit, the validity test (same formulas);
+   of points per group of bin rows (two for a one-step kernel, three for the
+   shipped 1.5), the per-cell weighted plane fit, the validity test (same
+   formulas);
 5. the Laplace fill of the invalid cells as a banded Cholesky solve (the
    4-neighbour system of the unknowns has bandwidth ``<= g`` in flat cell
    order), instead of the reference's dense LU; ``nearest`` fill goes back to
@@ -51,12 +53,15 @@ The features agree with ``cloud_grid`` to rounding (sums in another order:
 about 1e-14 mm; tests check 1e-9 mm and identical masks). The
 out-of-distribution checks are those of
 :func:`liverforce.serve.cloud.camera_checks` (called for every cloud near or
-past a limit; the others pass them by construction), then the affine map and
-the MLP run row by row in a fixed order (float64 affine, float32 MLP, as the
-reference), so a cloud gives bit-identical forces alone or inside a batch of
-any size; the GP head multiplies with BLAS as ``GPRegressor.numpy_head`` does
-(and equals it to ~1e-14), so there a cloud alone and in a batch agree to
-rounding (~1e-15 relative), not bit for bit. The reference path
+past a limit; the others pass them by construction). For an MLP the affine
+map and the MLP run row by row in a fixed order (float64 affine, float32 MLP,
+as the reference), so a cloud gives bit-identical forces alone or inside a
+batch of any size. For a GP the affine map and the head
+(``GPRegressor.numpy_head`` with the context's state held in it; equal to the
+module to ~1e-14) multiply with BLAS, so there a cloud alone and in a batch
+agree to rounding, not bit for bit: ~1e-15 relative, and where a code's
+float32 rounding (the inputs the reference feeds the GP) falls the other way,
+rarely, one float32 step of that code. The reference path
 (:meth:`liverforce.serve.Predictor.predict_cloud`) stays the oracle: a test
 checks both agree to 1e-6 N, and that both refuse the same inputs with the
 same reasons (tool tip missing or off the grid, NaN points, too few points
@@ -90,7 +95,8 @@ from liverforce.serve.preop import Preop, _points
 _FILL_CODES = {"zero": 0, "laplace": 1, "nearest": 2}
 _CHUNK = 64  # clouds per conversion of a padded array that is not float32 / float64 C-contiguous (bounds the copy)
 _RUN = 8  # _cell_moments reads a run on to a multiple of this many points (fewer scalar loop remainders)
-_HEAD_ROWS = 512  # feature rows per call of the head (bounds the GP's kernel matrix: rows x training rows)
+_MAX_POINTS = 2**31 - 1  # points per cloud: the kernel's sort keys and indices are 32-bit
+_HEAD_ROWS = 256  # feature rows per call of the head: the GP's kernel matrix (rows x ~640 training rows) stays in L2
 _CLOUD_TYPE = types.Array(types.float64, 2, "C", readonly=True)  # items of the typed list of clouds: one signature
 # for writable and read-only (e.g. Arrow-backed) clouds alike
 
@@ -105,20 +111,25 @@ def _cell_moments(GU, GV, Z, first, g, kr, sb, pad, nc, exact, M):
     """Biweight moments of every grid point ``(I, J)`` from the points sorted by bin (:func:`_bins`).
 
     ``GU, GV``: grid-index coordinates, ``Z``: height change; the points in bin ``(floor(gv sb), floor(gu sb))``
-    are ``first[key]:first[key + 1]`` with ``key`` from :func:`_bin_key` (row-major), so the points within ``kr``
-    of a grid point are one run per bin row (six runs of six half-step bins for the shipped ``kr = 1.5``,
-    ``sb = 2``; with ``exact`` false one bin more on each side). ``M[I * g + J]`` gets: sum of w, of 1 (points
+    are ``first[key]:first[key + 1]`` with ``key`` from :func:`_bin_key`: groups of ``sb`` bin rows (one grid
+    step), column by column within a group, so the points within ``kr`` of a grid point are one run per group
+    (three runs, each of six half-step bin columns of two bin rows, for the shipped ``kr = 1.5``, ``sb = 2``:
+    a grid point's first bin row starts a group; with ``exact`` false one bin more on each side, and whole
+    groups). Each run ends in a horizontal sum of the vector accumulators, so fewer, longer runs cost less
+    (about 4.5 us per 5,000-point cloud less than one run per bin row). ``M[I * g + J]`` gets: sum of w, of 1 (points
     within the support), of w z, w du, w dv, w du^2, w dv^2, w du dv, w du z, w dv z (``w = (1 - q)^2``,
     ``q = d2 / kr^2``, ``d2 = du^2 + dv^2 < kr^2``: the reference's test ``d2 / kr^2 < 1``), the sums of
-    ``cloud_features.cloud_grid``. Points outside the support add exact zeros, and the points after a run's last
-    bin in its bin row lie ``>= kr`` to the right (``d2 >= kr^2`` in floating point too: with ``exact`` the bin
-    edges are the support's edges exactly), so a run is read on to a multiple of ``_RUN`` points within its bin
-    row: LLVM's vector loop then less often ends in its scalar remainder. The fast-math flags let LLVM vectorise
+    ``cloud_features.cloud_grid``. Points outside the support add exact zeros (so do those of a group's rows
+    beyond it), and the points after a run's last bin column in its group lie ``>= kr`` to the right
+    (``d2 >= kr^2`` in floating point too: with ``exact`` the bin edges are the support's edges exactly), so a
+    run is read on to a multiple of ``_RUN`` points within its group: LLVM's vector loop then less often ends
+    in its scalar remainder. The fast-math flags let LLVM vectorise
     the sums: their order depends only on the points' order, never on the batch, so a cloud gives the same bits
     alone or in a batch (and the reference's sums to rounding).
     """
     kr2 = kr * kr
     inv_kr2 = 1.0 / kr2
+    row = nc * sb  # keys per group of sb bin rows
     m = 0 if exact else 1  # inexact edges: a whole bin of margin on each side
     for I in range(g):
         i_lo = int(math.floor((I - kr) * sb)) - m + pad
@@ -127,9 +138,10 @@ def _cell_moments(GU, GV, Z, first, g, kr, sb, pad, nc, exact, M):
             j_lo = int(math.floor((J - kr) * sb)) - m + pad
             j_hi = int(math.ceil((J + kr) * sb)) - 1 + m + pad
             s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = s9 = 0.0
-            for i in range(i_lo, i_hi + 1):
-                a0 = first[i * nc + j_lo]
-                e0 = min(a0 + (first[i * nc + j_hi + 1] - a0 + _RUN - 1) // _RUN * _RUN, first[i * nc + nc])
+            for p in range(i_lo // sb, i_hi // sb + 1):  # groups of sb bin rows
+                base = p * row
+                a0 = first[base + j_lo * sb]
+                e0 = min(a0 + (first[base + (j_hi + 1) * sb] - a0 + _RUN - 1) // _RUN * _RUN, first[base + row])
                 # unsigned bounds: numba then knows t >= 0 (no negative-index wrap), and LLVM loads contiguously
                 for t in range(np.uint64(a0), np.uint64(e0)):
                     du = GU[t] - J
@@ -170,12 +182,14 @@ def _bins(g, kr):
     bin edges ``(I +- kr) sb`` are the kernel support's edges exactly (``I +- kr`` and the products are exact in
     floating point; 1 for ``kr = 1``, 2 for the shipped 1.5). Else half-step bins (whole steps for ``kr > 2`` or
     a grid over 32 points) and :func:`_cell_moments` reads one bin more on each side. ``pad`` bins beyond the
-    grid on each side hold the kept points off it (``|gu|, |gv|`` within ``kr`` of the grid) and that margin.
+    grid on each side hold the kept points off it (``|gu|, |gv|`` within ``kr`` of the grid) and that margin;
+    with ``exact``, ``pad = kr sb + sb``, so that a grid point's first bin row ``(I - kr) sb + pad`` starts a
+    group of ``sb`` rows (:func:`_bin_key`). ``nc``: bins per row and rows, a multiple of ``sb``.
     """
     for c in (1, 2, 4):
         if kr * c == math.floor(kr * c) and g * c <= 64 and kr * c <= 8.0:
-            pad = int(kr * c) + 1
-            return c, pad, g * c + 2 * pad, True
+            pad = int(kr * c) + c  # > kr c, and = kr c mod c: a grid point's first bin row starts a group
+            return c, pad, (g * c + 2 * pad + c - 1) // c * c, True
     sb = 1 if kr > 2.0 or g > 32 else 2
     pad = int(math.ceil(kr * sb)) + 2
     return sb, pad, g * sb + 2 * pad, False
@@ -183,9 +197,11 @@ def _bins(g, kr):
 
 @njit(cache=True)
 def _bin_key(gu, gv, sb, pad, nc):
-    """Bin (row-major) of grid-index coordinates ``(gu, gv)`` (clamped to the bins; a kept point never is)."""
-    return (min(max(int(math.floor(gv * sb)) + pad, 0), nc - 1) * nc
-            + min(max(int(math.floor(gu * sb)) + pad, 0), nc - 1))
+    """Bin of grid-index coordinates ``(gu, gv)`` (clamped to the bins; a kept point never is): bin row ``r``,
+    column ``c``; key ``(r // sb, c, r % sb)`` row-major (groups of ``sb`` rows, column by column within one)."""
+    r = min(max(int(math.floor(gv * sb)) + pad, 0), nc - 1)
+    c = min(max(int(math.floor(gu * sb)) + pad, 0), nc - 1)
+    return (r >> (sb >> 1)) * (nc * sb) + c * sb + (r & (sb - 1))  # sb is 1, 2 or 4: shifts, not divisions
 
 
 @njit(cache=True)
@@ -198,12 +214,12 @@ def _workspace(nmax, g, kr):
     while (1 << tb) < 16 * nmax:
         tb += 1
     return (np.empty(nmax), np.empty(nmax), np.empty(nmax),  # U, V, W: local frame of the kept points
-            np.empty(nmax), np.empty(nmax), np.empty(nmax), np.empty(nmax, dtype=np.int64),  # GU, GV, Z, key
+            np.empty(nmax), np.empty(nmax), np.empty(nmax), np.empty(nmax, dtype=np.int32),  # GU, GV, Z, key
             np.empty(nmax), np.empty(nmax), np.empty(nmax, dtype=np.uint64),  # raster cell offsets and index
             np.empty(nmax, dtype=np.int64),  # duplicate filter's hash
-            np.empty(nmax), np.empty(nmax), np.empty(nmax), np.empty(nmax, dtype=np.int64),  # sorted; origin
-            np.empty(nc * nc + 1, dtype=np.int64), np.empty(nc * nc, dtype=np.int64),  # first, fill_at
-            np.zeros(1 << (tb - 5), dtype=np.int64), np.empty(nmax, dtype=np.int64),  # bit table, candidates
+            np.empty(nmax), np.empty(nmax), np.empty(nmax), np.empty(nmax, dtype=np.int32),  # sorted; origin
+            np.empty(nc * nc + 1, dtype=np.int32), np.empty(nc * nc, dtype=np.int32),  # first, fill_at
+            np.zeros(1 << (tb - 5), dtype=np.int64), np.empty(nmax, dtype=np.int32),  # bit table, candidates
             np.zeros((gg, 10)), np.zeros(gg), np.zeros(gg, dtype=np.bool_),  # M, Hc, valid
             np.empty(gg, dtype=np.int64), np.empty(gg, dtype=np.int64), np.zeros((gg, g + 1)),  # idx, unk, Lb
             np.zeros(gg), np.zeros(gg))  # rhs, y
@@ -596,7 +612,12 @@ class CompiledCloud:
             self.context_warnings = outside_training(preop.to_arrays(preop.roi_undeformed_mm),
                                                      TrainingScale.of(model))[1][0]
         self.layers = []
-        self.gp = regressor_head(model.regressor)
+        nz = self.A.shape[0]
+        # the GP takes the (float32-rounded, as the reference feeds it) state once: its share of every training
+        # row's distance and of the linear term is computed here, and the head reads the code and f_lin only
+        self.gp = regressor_head(model.regressor, {nz + k: float(v) for k, v in
+                                                   enumerate(self.s_base.astype(np.float32))} or None)
+        self._state_cols = self.s_base.size if self.gp is None else 0  # state columns _head writes into Z
         for W, b, sl in ([] if self.gp is not None else numpy_layers(model.regressor)):
             act, slope = (0, 0.0) if sl is None else ((1, 0.0) if sl == 0.0 else (2, float(sl)))
             self.layers.append((np.ascontiguousarray(W.astype(np.float32).T), b.astype(np.float32),
@@ -645,14 +666,20 @@ class CompiledCloud:
         """Forces (n, 3) N in the liver frame of feature rows ``X`` (affine map, state, MLP or GP, scaling)."""
         n = len(X)
         nz = self.A.shape[0]
-        Z = np.empty((n, nz + self.s_base.size + self.n_disp))  # n_disp: 0 without f_lin
-        _affine_rows(X, self.AT, self.b, Z)
+        ns = self._state_cols  # 0 for the GP: its head holds the state (__init__)
+        Z = np.empty((n, nz + ns + self.n_disp))  # n_disp: 0 without f_lin
+        if self.gp is None:  # row by row: the MLP gives a cloud the same bits alone and in a batch
+            _affine_rows(X, self.AT, self.b, Z)
+        else:  # BLAS: the GP head's products agree alone and in a batch to rounding only anyway
+            np.matmul(X, self.AT, out=Z[:, :nz])
+            Z[:, :nz] += self.b
         if self.uses_state:
-            Z[:, nz:nz + self.s_base.size] = self.s_base
+            if ns:
+                Z[:, nz:nz + ns] = self.s_base
             if self.lin:
                 t = X[:, -3:]
                 lin = (t[:, 0:1] * self.Cinv[:, 0] + t[:, 1:2] * self.Cinv[:, 1]) + t[:, 2:3] * self.Cinv[:, 2]
-                o = nz + self.s_base.size
+                o = nz + ns
                 Z[:, o:o + 3] = (lin - self.lin_mean[:3]) / self.lin_scale[:3]
                 if self.n_disp > 3:  # the indentation strain tip_n / h
                     Z[:, o + 3] = (t[:, 2] * self.inv_h - self.lin_mean[3]) / self.lin_scale[3]
@@ -737,8 +764,9 @@ class CompiledCloud:
         """Forces (B, 3) N of the feature rows ``X[ok]`` (NaN elsewhere), the head in blocks of ``_HEAD_ROWS``."""
         F = np.full((len(X), 3), np.nan)
         rows = np.flatnonzero(ok)
+        every = len(rows) == len(X)  # then blocks of rows are views, not copies
         for a in range(0, len(rows), _HEAD_ROWS):
-            r = rows[a:a + _HEAD_ROWS]
+            r = slice(a, a + _HEAD_ROWS) if every else rows[a:a + _HEAD_ROWS]
             F[r] = self._head(X[r])
         return F
 
@@ -764,6 +792,9 @@ class CompiledCloud:
             x = None
         if x is None or x.ndim != 2 or x.shape[1] != 3:
             return np.ascontiguousarray(_points("cloud", cloud_mm, min_points=1))  # raises the reference's message
+        if len(x) > _MAX_POINTS:
+            raise PredictionInputError(f"cloud: {len(x)} points; the compiled path takes at most {_MAX_POINTS} "
+                                       "(subsample it, or use Predictor.predict_cloud)")
         return x if x.flags.c_contiguous else np.ascontiguousarray(x)
 
     @staticmethod
@@ -809,7 +840,8 @@ class CompiledCloud:
         tool_tips : (B, 3) mm, liver frame (one per cloud; a single (3,) tip is used for every cloud)
         counts : (B,) points of each padded cloud (rows ``[:counts[b]]``; default all N)
 
-        Each cloud gives what :meth:`predict` gives it, bit for bit; a cloud :meth:`predict` would refuse
+        Each cloud gives what :meth:`predict` gives it (bit for bit with an MLP, to rounding with a GP: module
+        docstring); a cloud :meth:`predict` would refuse
         gets a NaN force and its reason in ``refused`` (the rest of the batch is predicted). One gridding
         pass over the batch (a list is read in place; a float32 or float64 padded array too), then the
         checks and the head over all rows at once.
@@ -825,6 +857,9 @@ class CompiledCloud:
             if clouds.shape[2] != 3:
                 raise PredictionInputError(f"clouds: expected (B, N, 3) points, got shape {clouds.shape}")
             N = clouds.shape[1]
+            if N > _MAX_POINTS:
+                raise PredictionInputError(f"clouds: {N} points per cloud; the compiled path takes at most "
+                                           f"{_MAX_POINTS} (subsample them, or use Predictor.predict_cloud)")
             cnt = np.full(B, N, np.int64) if counts is None else np.asarray(counts, dtype=np.int64).reshape(-1)
             if cnt.shape != (B,) or (cnt < 0).any() or (cnt > N).any():
                 raise PredictionInputError(f"counts: need {B} counts in [0, {N}], got {counts!r}")

@@ -146,6 +146,29 @@ def test_numpy_head_equals_the_module(fitted):
             head(bad)
 
 
+def test_numpy_head_with_fixed_inputs_equals_the_module_on_rows_with_those_inputs(fitted):
+    """``numpy_head(fixed)`` (a compiled context's state held in the head) takes the other columns and gives
+    the module's posterior mean of the full rows, also at and next to training inputs (distances cancel; the
+    module's own rounding there is ~1e-7 with this fit's large weights, hence the siblings' 1e-6)."""
+    X, gp, _ = fitted
+    rng = np.random.default_rng(3)
+    k = 7
+    fixed = {1: float(X[k, 1]), 3: float(X[k, 3])}
+    free = [0, 2, 4]
+    head = gp.numpy_head(fixed)
+    for Z in (np.repeat(X[k:k + 1], 8, 0) + rng.normal(0, 1e-3, (8, 5)), X[k:k + 1], rng.uniform(-2, 2, (64, 5))):
+        Z = Z.copy()
+        Z[:, 1], Z[:, 3] = fixed[1], fixed[3]
+        np.testing.assert_allclose(head(Z[:, free]), gp(torch.from_numpy(Z)).numpy(), rtol=0, atol=1e-6)
+    with pytest.raises(ValueError, match="rows of 3 inputs"):
+        head(Z)
+    for bad in ({5: 0.0}, {1.5: 0.0}, {-1: 0.0}):
+        with pytest.raises(ValueError, match="fixed columns must index the 5 inputs"):
+            gp.numpy_head(bad)
+    with pytest.raises(ValueError, match="the fixed input 1 must be finite"):
+        gp.numpy_head({1: float("nan")})
+
+
 @pytest.mark.parametrize("kernel, shape", [("squared_exponential", None), ("rational_quadratic", 2.0),
                                            ("rational_quadratic", None)])
 def test_each_kernel_learns_the_map_and_its_numpy_head_equals_the_module(kernel, shape):
@@ -408,6 +431,13 @@ def test_a_code_member_ensemble_model_fits_pca_at_the_largest_size_and_round_tri
     np.testing.assert_array_equal(ForceModel.load(model.save(tmp_path / "copy")).predict(a), model.predict(a))
     z = np.random.default_rng(0).normal(size=(7, model.pre.n_inputs))
     np.testing.assert_allclose(regressor_head(reg)(z), reg(torch.from_numpy(z)).numpy(), rtol=0, atol=1e-6)
+    # the state held in the head (a compiled context): each member gets its share, the head reads the codes
+    fixed = {6 + j: float(z[0, 6 + j]) for j in range(n_state)}
+    z[:, 6:] = z[0, 6:]
+    np.testing.assert_allclose(regressor_head(reg, fixed)(z[:, :6]), reg(torch.from_numpy(z)).numpy(), rtol=0,
+                               atol=1e-6)
+    with pytest.raises(ValueError, match="fixed columns must index"):
+        regressor_head(reg, {6 + n_state: 0.0})
 
 
 def test_code_members_apply_to_pca_gps_only_and_bad_lists_are_refused():

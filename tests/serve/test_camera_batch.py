@@ -107,9 +107,10 @@ def test_compiled_features_with_another_kernel_radius(served, kr):
 @pytest.mark.parametrize("g", [8, 40])
 @pytest.mark.parametrize("kr", [1.0, 1.25, 1.5, 1.75, 2.5, 0.7, 4 / 3, 1.5000000000000002])
 def test_sort_bins_and_padded_runs_change_no_sum(g, kr):
-    """The counting sort's bins and the runs read on past a grid point's last bin (compiled_cloud._bins,
-    _bin_key, _cell_moments) change no grid point's sums: on a lattice with points on bin edges and exactly on
-    the kernel's edge (|du| = kr, du^2 + dv^2 = kr^2 for kr = 1.25, the float just inside), for whole-step,
+    """The counting sort's bins, their groups of rows and the runs read on past a grid point's last bin
+    (compiled_cloud._bins, _bin_key, _cell_moments) change no grid point's sums: on a lattice with points on
+    bin edges and exactly on the kernel's edge (|du| = kr, du^2 + dv^2 = kr^2 for kr = 1.25, the float just
+    inside), and on a sparse strip of it along the grid's left edge, for whole-step,
     half-step and quarter-step bins with exact edges and for radii without exact edges (0.7, 4/3, 1.5 + 1 ulp),
     each grid point counts exactly the points with the reference's test du^2 + dv^2 < kr^2 (cloud_features:
     d2 / kr^2 < 1), and its weighted sums agree with a sum over every point to rounding."""
@@ -129,13 +130,31 @@ def test_sort_bins_and_padded_runs_change_no_sum(g, kr):
     GV = np.concatenate([GV, rng.uniform(-kr, g - 1 + kr, 3000)])
     kept = (GU > -kr) & (GU < g - 1 + kr) & (GV > -kr) & (GV < g - 1 + kr)  # _grid_one keeps no other point
     GU, GV = GU[kept], GV[kept]
-    Z = rng.normal(0.0, 2.0, len(GU))
+    count, on_edge = _check_moments(GU, GV, rng.normal(0.0, 2.0, len(GU)), g, kr, sb, pad, nc, exact)
+    assert (count > 0).sum() > 0.5 * g * g
+    assert on_edge > 0 or kr not in (1.0, 1.25, 1.5, 1.75, 2.5)  # the edge was exercised
+    # a sparse cloud, points only near the grid's left edge: a run read on to a multiple of 8 points reaches
+    # the end of its group of bin rows, where it must stop (the next group's points are within the kernel)
+    strip = (GU < 0.5) & (rng.random(len(GU)) < 0.3)
+    count, _ = _check_moments(GU[strip], GV[strip], rng.normal(0.0, 2.0, int(strip.sum())), g, kr, sb, pad, nc,
+                              exact)
+    assert count[:g].sum() > 0  # grid points along the strip saw points
+
+
+def _check_moments(GU, GV, Z, g, kr, sb, pad, nc, exact):
+    """compiled_cloud._cell_moments of the points sorted as _grid_one sorts them (int32 keys and starts)
+    against a sum over every (point, grid point) pair: counts exactly, sums to rounding. Returns each grid
+    point's count and the pairs exactly on a kernel's edge."""
+    from liverforce.serve import compiled_cloud as cc
+
     key = np.array([cc._bin_key(u, v, sb, pad, nc) for u, v in zip(GU, GV)])
     fl_u, fl_v = np.floor(GU * sb).astype(int) + pad, np.floor(GV * sb).astype(int) + pad
     assert (fl_u >= 0).all() and (fl_u < nc).all() and (fl_v >= 0).all() and (fl_v < nc).all()
-    np.testing.assert_array_equal(key, fl_v * nc + fl_u)  # no kept point is clamped
+    assert nc % sb == 0 and (not exact or (pad - kr * sb) % sb == 0)  # whole groups; a window starts a group
+    # no kept point is clamped; groups of sb bin rows, column by column within a group
+    np.testing.assert_array_equal(key, (fl_v // sb) * nc * sb + fl_u * sb + fl_v % sb)
     order = np.argsort(key, kind="stable")
-    first = np.zeros(nc * nc + 1, dtype=np.int64)
+    first = np.zeros(nc * nc + 1, dtype=np.int32)  # as the kernel's workspace
     first[1:] = np.cumsum(np.bincount(key, minlength=nc * nc))
     M = np.zeros((g * g, 10))
     cc._cell_moments(GU[order], GV[order], Z[order], first, g, kr, sb, pad, nc, exact, M)
@@ -158,8 +177,7 @@ def test_sort_bins_and_padded_runs_change_no_sum(g, kr):
                              w * du * z, w * dv * z)])
     np.testing.assert_array_equal(M[:, 1], want[:, 1])  # the same points, exactly
     np.testing.assert_allclose(M, want, rtol=1e-12, atol=1e-9)
-    assert (want[:, 1] > 0).sum() > 0.5 * g * g
-    assert on_edge > 0 or kr not in (1.0, 1.25, 1.5, 1.75, 2.5)  # the edge was exercised
+    return want[:, 1], on_edge
 
 
 def test_compiled_predict_equals_the_reference_path(served):
@@ -269,20 +287,42 @@ def test_empty_batch(served):
         fast.predict_batch([np.zeros((30, 3))], np.zeros((2, 3)))
 
 
+def test_a_cloud_beyond_the_32_bit_indices_is_refused_by_name(served, monkeypatch):
+    """The kernel's sort keys and indices are 32-bit: a larger cloud is refused, never wrapped around (the
+    limit, 2^31 - 1 points, is lowered here to try it)."""
+    from liverforce.serve import compiled_cloud as cc
+
+    pred, a, ctx, fast = served
+    cloud, tip = _clouds(a, 3)[2]
+    monkeypatch.setattr(cc, "_MAX_POINTS", len(cloud) - 1)
+    with pytest.raises(PredictionInputError, match=f"cloud: {len(cloud)} points; the compiled path takes at most"):
+        fast.predict(cloud, tip)
+    res = fast.predict_batch([cloud[:-1], cloud], np.stack([tip, tip]))
+    assert list(res.ok) == [True, False] and "the compiled path takes at most" in res.refused[1]
+    with pytest.raises(PredictionInputError, match="points per cloud; the compiled path takes at most"):
+        fast.predict_batch(cloud[None], tip[None])
+
+
 @pytest.mark.parametrize("served", [("gp", "linear")], indirect=True)
 def test_gp_head_equals_the_regressors_posterior_mean(served):
-    """The compiled path's GP head (GPRegressor.numpy_head, distances and linear term folded) gives the torch
-    module's posterior mean, also near the training inputs, where the squared distances cancel most."""
+    """The compiled path's GP head (GPRegressor.numpy_head, distances and linear term folded, the context's
+    state held in it) gives the torch module's posterior mean on rows with that state, also near the training
+    inputs, where the squared distances cancel most."""
     import torch
 
     pred, a, ctx, fast = served
     gp = pred.model.regressor
-    assert fast.gp is not None
+    assert fast.gp is not None and fast.uses_state
     X = gp.X.numpy()
+    nz, ns = fast.A.shape[0], fast.s_base.size
+    free = np.r_[0:nz, nz + ns:X.shape[1]]  # the code and f_lin columns: what the head reads per cloud
     rng = np.random.default_rng(4)
     near = X[rng.integers(0, len(X), 40)] + rng.normal(0, 0.05, (40, X.shape[1]))
     for Z in (near, X[:40], rng.normal(0, 1, (40, X.shape[1]))):
         Z = Z.astype(np.float32)  # as the compiled path feeds it
+        Z[:, nz:nz + ns] = fast.s_base.astype(np.float32)  # the context's state
         with torch.no_grad():
             want = gp(torch.from_numpy(Z.astype(np.float64))).numpy()
-        np.testing.assert_allclose(fast.gp(Z), want, rtol=0, atol=1e-9 * np.abs(want).max())
+        np.testing.assert_allclose(fast.gp(Z[:, free]), want, rtol=0, atol=1e-9 * np.abs(want).max())
+    with pytest.raises(ValueError, match=f"rows of {free.size} inputs"):  # the full row is not what it takes
+        fast.gp(Z)
