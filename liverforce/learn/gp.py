@@ -115,6 +115,7 @@ class GPRegressor(nn.Module):
         d_all = Xs.shape[1]
         fixed = _fixed_inputs(fixed, d_all)
         fc = np.array(sorted(fixed), dtype=np.int64)
+        fv = np.array([fixed[c] for c in fc])  # their values
         fr = np.array([c for c in range(d_all) if c not in fixed], dtype=np.int64)
         d = fr.size
         inv_l_all = self.inv_length.numpy()
@@ -123,14 +124,14 @@ class GPRegressor(nn.Module):
         XaT[d] = 1.0
         XaT[d + 1] = -0.5 * np.einsum("ij,ij->i", XaT[:d].T, XaT[:d].T)
         if fc.size:
-            gap = Xs[:, fc] - np.array([fixed[c] for c in fc]) * inv_l_all[fc]
+            gap = Xs[:, fc] - fv * inv_l_all[fc]
             XaT[d + 1] -= 0.5 * np.einsum("ij,ij->i", gap, gap)
         inv_l = inv_l_all[fr].copy()
         alpha = self.alpha.numpy()
         alpha_s = float(self.signal_var) * alpha
         beta_all = float(self.linear_var) * (self.X.numpy().T @ alpha)
         beta = np.ascontiguousarray(beta_all[fr])
-        b0 = np.array([fixed[c] for c in fc]) @ beta_all[fc] if fc.size else None  # the fixed inputs' linear term
+        b0 = fv @ beta_all[fc] if fc.size else None  # the fixed inputs' linear term
         a = float(self.shape)
         rq = not math.isinf(a)
 

@@ -532,6 +532,14 @@ def _dense_rows(Hin, WT, b, slope, act):
 # --------------------------------------------------------------------------
 
 
+def _check_size(n: int, what: str) -> None:
+    """Refuse ``n`` points per cloud beyond the kernel's 32-bit sort keys and indices (``_MAX_POINTS``);
+    ``what`` leads the message (e.g. ``"cloud: 12 points"``)."""
+    if n > _MAX_POINTS:
+        raise PredictionInputError(f"{what}; the compiled path takes at most {_MAX_POINTS} (subsample, or use "
+                                   "Predictor.predict_cloud)")
+
+
 class CloudBatch(NamedTuple):
     """What :meth:`CompiledCloud.predict_batch` returns (one entry per cloud).
 
@@ -792,9 +800,7 @@ class CompiledCloud:
             x = None
         if x is None or x.ndim != 2 or x.shape[1] != 3:
             return np.ascontiguousarray(_points("cloud", cloud_mm, min_points=1))  # raises the reference's message
-        if len(x) > _MAX_POINTS:
-            raise PredictionInputError(f"cloud: {len(x)} points; the compiled path takes at most {_MAX_POINTS} "
-                                       "(subsample it, or use Predictor.predict_cloud)")
+        _check_size(len(x), f"cloud: {len(x)} points")
         return x if x.flags.c_contiguous else np.ascontiguousarray(x)
 
     @staticmethod
@@ -857,9 +863,7 @@ class CompiledCloud:
             if clouds.shape[2] != 3:
                 raise PredictionInputError(f"clouds: expected (B, N, 3) points, got shape {clouds.shape}")
             N = clouds.shape[1]
-            if N > _MAX_POINTS:
-                raise PredictionInputError(f"clouds: {N} points per cloud; the compiled path takes at most "
-                                           f"{_MAX_POINTS} (subsample them, or use Predictor.predict_cloud)")
+            _check_size(N, f"clouds: {N} points per cloud")
             cnt = np.full(B, N, np.int64) if counts is None else np.asarray(counts, dtype=np.int64).reshape(-1)
             if cnt.shape != (B,) or (cnt < 0).any() or (cnt > N).any():
                 raise PredictionInputError(f"counts: need {B} counts in [0, {N}], got {counts!r}")
