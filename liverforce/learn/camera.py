@@ -114,8 +114,10 @@ def observation_config(camera: dict, half_width_mm: float, grid_size: int):
 
 
 def observe_cases(arrays: dict, camera: dict, half_width_mm: float, grid_size: int, seed: int,
-                  rows: np.ndarray | None = None) -> tuple[list[np.ndarray], np.ndarray]:
-    """Camera clouds and noisy tool-tip positions of the cases ``rows`` (all by default), from the shards."""
+                  rows: np.ndarray | None = None, *, records: bool = False) -> tuple:
+    """Camera clouds and noisy tool-tip positions ``(clouds, tips)`` of the cases ``rows`` (all by default), from
+    the shards. ``records``: also each cloud's :class:`~liverforce.learn.observation.ObservationRecord` (camera
+    position, the tool tip it was observed with, counts), as a third item."""
     from liverforce.learn.observation import observe_many, surface_point_displacement
 
     if SURFACES_KEY not in arrays or "surface_displacement_mm" not in arrays:
@@ -133,6 +135,7 @@ def observe_cases(arrays: dict, camera: dict, half_width_mm: float, grid_size: i
     P = np.asarray(arrays["exertion_point_mm"], dtype=np.float64)
     N = np.asarray(arrays["frame_normal"], dtype=np.float64)
     clouds: list = [None] * len(rows)
+    recs: list = [None] * len(rows)
     tips = np.empty((len(rows), 3))
     for g in sorted(set(geo[rows])):
         if g not in arrays[SURFACES_KEY]:
@@ -141,10 +144,11 @@ def observe_cases(arrays: dict, camera: dict, half_width_mm: float, grid_size: i
         pos = np.flatnonzero(geo[rows] == g)
         sel = rows[pos]
         disp = [arrays["surface_displacement_mm"][i] for i in sel]
-        cl, _ = observe_many(V, T, disp, P[sel], N[sel], cfg, seed=seed, case_keys=list(ids[sel]))
+        cl, rec = observe_many(V, T, disp, P[sel], N[sel], cfg, seed=seed, case_keys=list(ids[sel]))
         q = P[sel] + surface_point_displacement(V, T, P[sel], disp)
         for k, i in enumerate(pos):
             clouds[i] = cl[k]
+            recs[i] = rec[k]
             if tip_sd > 0 or tip_sd_n:
                 rng = np.random.default_rng(derive(seed, "observation.tip", ids[rows[i]]))
                 if tip_sd_n is None:
@@ -155,7 +159,7 @@ def observe_cases(arrays: dict, camera: dict, half_width_mm: float, grid_size: i
                     e_n = float(e @ nrm)
                     q[k] = q[k] + tip_sd * (e - e_n * nrm) + float(tip_sd_n) * e_n * nrm
             tips[i] = q[k]
-    return clouds, tips
+    return (clouds, tips, recs) if records else (clouds, tips)
 
 
 def features_from_clouds(clouds, tips, arrays: dict, spec: CloudGridSpec,
