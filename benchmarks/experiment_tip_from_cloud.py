@@ -181,7 +181,6 @@ def main() -> None:
     from liverforce.learn.cloud_features import ReferenceSurface
     from liverforce.learn.frames import case_rotations
     from liverforce.learn.model import view_seeds
-    from liverforce.learn.observation import surface_point_displacement
 
     from benchmarks.experiment import PipelineTraining
 
@@ -203,22 +202,16 @@ def main() -> None:
     X = C.features_from_clouds(clouds, tips, a, spec, rows, R)
     P = np.asarray(a["exertion_point_mm"], dtype=np.float64)
     geo = np.asarray(a["geometry_id"]).astype(str)
-    true = np.empty((len(rows), 3))
-    for name in sorted(set(geo[rows])):
-        Vs, T = a[C.SURFACES_KEY][name]
-        pos = np.flatnonzero(geo[rows] == name)
-        disp = [a["surface_displacement_mm"][i] for i in rows[pos]]
-        true[pos] = surface_point_displacement(Vs, T, P[rows[pos]], disp)
-    local = np.einsum("nij,nj->ni", R[rows], true)
-    target = local[:, :2]
+    fe_tip = np.array([r.tool_tip_mm for r in recs])  # the FE tip each cloud was observed with
+    target = np.einsum("nij,nj->ni", R[rows], fe_tip - P[rows])[:, :2]
     kin = X[:, -3:]
     axis = np.linspace(-hw, hw, g)
-    U, V = np.meshgrid(axis, axis, indexing="xy")
     moments, par = [], []
     for k, i in enumerate(rows):
-        ref = ReferenceSurface.for_case(a["roi_undeformed_mm"][i], a["roi_triangles"][i], P[i], R[i], spec)
-        H = ref.height(U.ravel(), V.ravel()).reshape(g, g)
-        h_, p_ = ring_features(X[k, :g * g].reshape(g, g), X[k, g * g:2 * g * g].reshape(g, g), H, axis)
+        ref = ReferenceSurface.for_case(a["roi_undeformed_mm"][i], a.get("roi_triangles", [None] * n)[i], P[i],
+                                        R[i], spec)
+        h_, p_ = ring_features(X[k, :g * g].reshape(g, g), X[k, g * g:2 * g * g].reshape(g, g), ref.grid_height,
+                               axis)
         moments.append(h_)
         par.append(p_)
     moments, par = np.array(moments), np.array(par)
@@ -260,7 +253,8 @@ def main() -> None:
             cam_l = R[i] @ (recs[k].camera_position_mm - P[i])
             est[k] = shadow_estimate(pts, cam_l, kin[k], tool_radius_mm=obs.tool_radius_mm,
                                      shaft_mm=obs.tool_shaft_length_mm, tip_sd_mm=sd_t,
-                                     noise_sd_mm=max(obs.noise_sd_mm, 0.05), window_mm=args.window)
+                                     noise_sd_mm=max(obs.noise_sd_mm, 0.05),  # > 0: a noise-free cloud's
+                                     window_mm=args.window)  # edge as a near-hard limit
         print(line("kinematic (shadow cases)", kin[:ns, :2], slice(0, ns)), flush=True)
         print(line("shadow, camera pose known", est, slice(0, ns)), flush=True)
 
