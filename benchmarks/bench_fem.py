@@ -182,7 +182,7 @@ def bench_shard(label, target_vertices, scenario, n_cases=25):
         print(f"\n== shard ({label}): needs liverforce.mesh; skipped")
         return
     cfg = compose([])
-    sim = dict(cfg["simulate"], time_limit_s=600.0)  # measure every case to its end, as on a cluster
+    sim = dict(cfg["simulate"], time_limit_s=600.0, max_total_iter=100_000)  # every case to its end
     ex = exertion_set(m, 8, 15.0, 0, sim["tool_radius_mm"], candidates=m.meta["exertion_candidates_mm"])
     spec = {"n_cases": 8 * n_cases, "exertion": "varies", "material": "varies" if scenario == "III" else "fixed"}
     material = dict(cfg["material"], on_unstable="clip")

@@ -7,7 +7,8 @@ first exertion point, run through the product loop
 (``liverforce.pipeline.simulate.simulate_cases``) twice: ``simulate.tool_model=traction`` and
 ``=sphere`` (``tool_tip_radius_mm`` 2.5 mm, automatic penalty). Prints per tool model the median and
 mean wall time per case, Newton iterations, converged count and the failure reasons, with one thread
-(``--threads``). The time limit per case is raised (``--time-limit``) so every case is measured to its end.
+(``--threads``). The time limit per case is raised (``--time-limit``) and the iteration budget lifted
+(``simulate.max_total_iter``) so every case is measured to its end.
 
 Run: ``.venv/bin/python benchmarks/bench_sphere_case.py [--cases 6] [--time-limit 120]``
 
@@ -74,7 +75,7 @@ def main(argv=None):
           + ", ".join(f"{c['force_magnitude_n']:.2f}" for c in cases) + " N")
     runs = [("traction", "traction", None)] + [(f"sphere ({c})", "sphere", c) for c in args.controls.split(",")]
     for model, tool, control in runs:
-        sim = dict(sim0, tool_model=tool, time_limit_s=args.time_limit)
+        sim = dict(sim0, tool_model=tool, time_limit_s=args.time_limit, max_total_iter=100_000)
         if control:
             sim["tool_control"] = control
         if args.max_slide is not None:

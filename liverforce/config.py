@@ -170,6 +170,7 @@ class SimulateConfig:
     tool_radius_mm: float = MISSING
     tol: float = MISSING
     max_iter: int = MISSING
+    max_total_iter: int = MISSING  # Newton iterations per case: the deterministic budget (time_limit_s: a safety net)
     initial_step: float = MISSING
     min_step: float = MISSING
     max_steps: int = MISSING
@@ -657,6 +658,9 @@ def _check_ranges(cfg: dict) -> None:
         _fail("simulate.tol", "must be in (0, 1)")
     if sim["max_iter"] < 1 or sim["max_steps"] < 1:
         _fail("simulate.max_iter", "max_iter and max_steps must be >= 1")
+    if sim["max_total_iter"] < sim["max_iter"]:
+        _fail("simulate.max_total_iter", f"must be >= simulate.max_iter ({sim['max_iter']}): it is the case's "
+              "budget of Newton iterations over all its load steps")
     if not 0 < sim["min_step"] <= sim["initial_step"] <= 1:
         _fail("simulate.initial_step", "need 0 < min_step <= initial_step <= 1")
     if sim["time_limit_s"] <= 0:

@@ -54,14 +54,14 @@ supports and reactions).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.sparse as sp
 
 from .boundary import _facet_quadrature
 from .elements import TetDiscretization
-from .newton import DiscreteSystem, SolverOptions, _StepFailure
+from .newton import _SAFETY_NET, DiscreteSystem, SolverOptions, _StepFailure
 from .problem import CaseResult
 
 
@@ -279,6 +279,14 @@ class IndentPath:
     history: list = field(default_factory=list)
 
 
+def _left_of(opt: SolverOptions, stats: dict, t0: float) -> SolverOptions:
+    """``opt`` with what is left of a case's budget: Newton iterations (``stats["iters"]`` spent) and wall time
+    (since ``t0``). For a sub-path that counts from zero (:func:`indent`), so the case's budget holds over all its
+    sub-paths; a direct ``_newton`` call on the case's own ``stats`` and ``t0`` takes ``opt`` as it is."""
+    return replace(opt, max_total_iter=max(opt.max_total_iter - stats["iters"], 0),
+                   time_limit_s=max(opt.time_limit_s - (time.perf_counter() - t0), 1e-3))
+
+
 def indent(system: DiscreteSystem, contact: SphereContact, material, start, direction, depths,
            u0=None, f_ext=None, options: SolverOptions | None = None, max_increment: float | None = None,
            augmented: int = 0, gap_tol: float = 0.0, reactions=None) -> IndentPath:
@@ -333,7 +341,7 @@ def _indent(system, contact, material, start, direction, depths, u0, f_ext, opti
         its_here = 0
         while True:
             if time.perf_counter() - t0 > opt.time_limit_s:
-                return fail(f"time limit {opt.time_limit_s:g} s reached at depth {cur:.4g} mm")
+                return fail(f"time limit reached at depth {cur:.4g} mm{_SAFETY_NET}")
             if stats["steps"] >= opt.max_steps:
                 return fail(f"max_steps={opt.max_steps} reached at depth {cur:.4g} mm")
             nxt = target if abs(target - cur) <= step * (1 + 1e-9) else cur + np.sign(target - cur) * step
@@ -675,7 +683,8 @@ def _push_to_magnitude(ind: "LiverIndenter", force_n, material, options, rtol, a
                 d = R
             d = float(min(max(d, lo[0] + 0.1), lo[0] + 3.0))
         contact.set_centre(start + lo[0] * d_hat)
-        path = indent(system, contact, mat, start, d_hat, [d], u0=lo[2], options=opt, max_increment=inc)
+        path = indent(system, contact, mat, start, d_hat, [d], u0=lo[2], options=_left_of(opt, stats, t0),
+                      max_increment=inc)
         stats["iters"] += path.newton_iterations
         stats["steps"] += path.load_steps
         stats["history"].append(("depth", d, path.converged, path.newton_iterations))
@@ -708,8 +717,6 @@ def _push_to_magnitude(ind: "LiverIndenter", force_n, material, options, rtol, a
 
 def _push_to_force(ind: "LiverIndenter", force_n, material, u0, options, rtol, atol, max_outer, max_move_mm,
                    max_slide_mm, first_depth_mm) -> SphereCaseResult:
-    from dataclasses import replace
-
     mat = material or ind.model.material
     opt = options or ind.model.options
     system, contact = ind.system, ind.contact
@@ -729,7 +736,7 @@ def _push_to_force(ind: "LiverIndenter", force_n, material, u0, options, rtol, a
     outer = 0
 
     def remaining():
-        return replace(opt, time_limit_s=max(opt.time_limit_s - (time.perf_counter() - t0), 1e-3))
+        return _left_of(opt, stats, t0)
 
     def finish(u, ok, reason):
         return _sphere_result(ind, u, mat, opt, stats, t0, F_t, ok, reason, outer)
@@ -740,7 +747,7 @@ def _push_to_force(ind: "LiverIndenter", force_n, material, u0, options, rtol, a
         contact.set_centre(c_to)
         stats["steps"] += 1
         try:
-            u_new, its, _ = system._newton(mat, zero, u_pred, u, ub, remaining(), stats, t0, 1.0)
+            u_new, its, _ = system._newton(mat, zero, u_pred, u, ub, opt, stats, t0, 1.0)  # the case's own stats
             stats["history"].append(("centre", c_to.tolist(), True, its))
             return u_new, None
         except _StepFailure as exc:

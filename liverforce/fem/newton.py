@@ -50,6 +50,12 @@ from .elements import TetDiscretization, build_discretization
 from .linsolve import LinearSolver
 
 
+# appended to a wall-time stop: unlike the iteration budget, its outcome depends on the machine's speed and load
+_SAFETY_NET = (": the wall-time safety net (simulate.time_limit_s). The machine was slow or overloaded, or the case "
+               "needs longer than the limit, so this outcome depends on the machine; the deterministic budget is "
+               "simulate.max_total_iter")
+
+
 @dataclass
 class SolverOptions:
     """Options of the nonlinear solver.
@@ -63,7 +69,8 @@ class SolverOptions:
         ``modified_newton``, iterations on a kept factorisation cost about
         ``1 / refactor_cost`` of a factorised one and the cap is
         ``max_iter + ceil(refactor_cost)``.
-    max_total_iter : Newton iterations per case.
+    max_total_iter : Newton iterations per case: the deterministic budget (the pipeline's
+        ``simulate.max_total_iter``).
     initial_step : first load fraction of a cold start.
     min_step : smallest load-fraction increment before giving up.
     max_step : largest load-fraction increment.
@@ -71,7 +78,8 @@ class SolverOptions:
     growth : step growth factor after an easy step (<= ``easy_iter`` iterations).
     easy_iter : see ``growth``.
     cutback : step reduction factor after a failed step.
-    time_limit_s : wall-time limit per case (s).
+    time_limit_s : wall-time limit per case (s): a safety net; a case stopped by it depends
+        on the machine's load, one stopped by ``max_total_iter`` does not.
     modified_newton : keep the factorisation (also across cases) while the
         residual contracts fast enough; see ``refactor_cost``.
     refactor_cost : cost of a factorisation in cheap iterations (residual +
@@ -296,7 +304,7 @@ class DiscreteSystem:
             f_int = None
             while True:
                 if time.perf_counter() - t_start > opt.time_limit_s:
-                    return finish(u, False, f"time limit {opt.time_limit_s:g} s reached", lam)
+                    return finish(u, False, f"time limit {opt.time_limit_s:g} s reached{_SAFETY_NET}", lam)
                 if stats["steps"] >= opt.max_steps:
                     return finish(u, False, f"max_steps={opt.max_steps} load steps reached", lam)
                 target = min(1.0, lam + step)
@@ -407,9 +415,10 @@ class DiscreteSystem:
             if it == limit:
                 break
             if stats["iters"] >= opt.max_total_iter:
-                raise _StepFailure(f"max_total_iter={opt.max_total_iter} Newton iterations reached")
+                raise _StepFailure("max_total_iter: the case's budget of Newton iterations (simulate.max_total_iter) "
+                                   "is spent")
             if time.perf_counter() - t_start > opt.time_limit_s:
-                raise _StepFailure(f"time limit {opt.time_limit_s:g} s reached")
+                raise _StepFailure(f"time limit {opt.time_limit_s:g} s reached{_SAFETY_NET}")
             if norm > 1e8 * max(norm0, 1e-12 * ref):
                 raise _StepFailure(f"diverged at load fraction {lam:.4g} (residual grew {norm / norm0:.2g}x)")
             if refactor:

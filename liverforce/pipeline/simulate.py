@@ -44,10 +44,17 @@ def boundary_params(mesh, cfg: dict):
 
 
 def solver_options(sim: dict):
+    """The FE solver's options from the ``simulate`` config slice.
+
+    A case's deterministic budget is ``max_total_iter`` Newton iterations; ``time_limit_s`` is a
+    wall-time safety net far above it. Settings written before ``max_total_iter`` was a config key
+    (older shards' and bundles' metadata) get the solver's default, which they ran with.
+    """
     from liverforce.fem.problem import SolverOptions
 
     return SolverOptions(
         formulation=sim["formulation"], tol=sim["tol"], max_iter=sim["max_iter"],
+        max_total_iter=sim.get("max_total_iter", SolverOptions.max_total_iter),
         initial_step=sim["initial_step"], min_step=sim["min_step"], max_steps=sim["max_steps"],
         time_limit_s=sim["time_limit_s"], modified_newton=sim["modified_newton"],
         linear_solver=sim["linear_solver"],

@@ -110,12 +110,12 @@ def test_dry_run_through_the_profile_gives_every_job_its_resources(tmp_path):
             continue
         assert job["threads"] == d["threads"], job
         expect = dict(d)
-        if job["rule"] == "simulate":  # the shard's worst case: cases x time limit (+5 min), first attempt
+        if job["rule"] == "simulate":  # cases at 15 s + one at the wall-time safety net (+5 min), first attempt
             from liverforce.config import compose
 
             c = compose(["experiment=default"])
             expect["mem_mb"] = 4000
-            expect["runtime"] = 5 + math.ceil(c["sweep"]["cases_per_shard"] * c["simulate"]["time_limit_s"] / 60)
+            expect["runtime"] = 5 + math.ceil((c["sweep"]["cases_per_shard"] * 15 + c["simulate"]["time_limit_s"]) / 60)
         assert int(res["mem_mb"]) == expect["mem_mb"] and int(res["runtime"]) == expect["runtime"], (job, expect)
         assert 1 <= job["threads"] <= 64 and 256 <= int(res["mem_mb"]) <= 256_000
         assert 1 <= int(res["runtime"]) <= 7 * 24 * 60
