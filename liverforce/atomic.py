@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
@@ -49,6 +50,26 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def remove_stale_temps(path: str | Path) -> list[Path]:
+    """Delete the temporary files that killed writers of ``path`` left beside it; returns them.
+
+    Only for ``path``'s owner, before it writes: a job that alone writes ``path`` (a Snakemake job
+    and its outputs), since a live writer's temporary file would go too. Matches exactly the names
+    :func:`atomic_path` makes for ``path`` (``.<stem>.<8 random>.tmp<suffix>``), not those of another
+    file whose stem starts alike (``a.json`` leaves ``a.b.json``'s alone).
+    """
+    path = Path(path)
+    pattern = re.compile(rf"\.{re.escape(path.stem)}\.[a-z0-9_]{{8}}\.tmp{re.escape(path.suffix)}")
+    if not path.parent.is_dir():
+        return []
+    gone = []
+    for p in path.parent.iterdir():
+        if pattern.fullmatch(p.name) and p.is_file():
+            p.unlink(missing_ok=True)
+            gone.append(p)
+    return gone
 
 
 def write_bytes_atomic(path: str | Path, data: bytes, *, fsync: bool = False) -> Path:

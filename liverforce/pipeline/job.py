@@ -1,4 +1,4 @@
-"""Per-job set-up for workflow scripts: thread limits and logging."""
+"""Per-job set-up for workflow scripts: thread limits, logging, and killed runs' stray temporary files."""
 
 from __future__ import annotations
 
@@ -6,6 +6,8 @@ import logging
 import os
 import sys
 from pathlib import Path
+
+from liverforce.atomic import remove_stale_temps  # standard library only, like this module
 
 #: the environment variables that size every thread pool of a process (the one list; stdlib-only module,
 #: so scripts can import it before numpy)
@@ -42,8 +44,13 @@ def limit_threads(n: int) -> None:
         torch.set_num_threads(n)
 
 
-def setup_job(log_path: str | Path | None, threads: int = 1) -> logging.Logger:
-    """Log to the job's log file and to stderr; limit threads. Returns the logger."""
+def setup_job(log_path: str | Path | None, threads: int = 1, outputs=()) -> logging.Logger:
+    """Log to the job's log file and to stderr; limit threads; remove killed runs' temporary files beside outputs.
+
+    ``outputs``: the job's output paths. A killed earlier run of the job may have left the temporary
+    file of an atomic write beside one (:func:`liverforce.atomic.remove_stale_temps`); the job owns its
+    outputs, so those are removed, and logged. Returns the logger.
+    """
     limit_threads(threads)
     logger = logging.getLogger("liverforce")
     logger.setLevel(logging.INFO)
@@ -65,4 +72,7 @@ def setup_job(log_path: str | Path | None, threads: int = 1) -> logging.Logger:
             h.flush()
 
     sys.excepthook = _log_uncaught
+    for out in outputs:
+        for p in remove_stale_temps(out):
+            logger.info("removed %s, left by a killed earlier run of this job", p)
     return logger

@@ -148,9 +148,8 @@ def physics_study(cases_path, mesh_path, model_dirs, model_metrics, sim: dict, b
         entry["wall_time_s"] = time.perf_counter() - t0
         done[v["name"]] = (rows, entry.pop("_fields"))
         out["variants"].append(entry)
-        log.info("physics %s: %d/%d converged, u under the tool x%.2f of %s, ROI field changed %.0f %% (mean), "
-                 "%s (%.0f s)", v["name"], entry["converged"], len(rows), entry.get("u_tool_ratio_median", np.nan),
-                 ref_name, entry.get("roi_change_pct_mean", np.nan),
+        against = _comparison(entry, ref_name) if ref_name else ""  # the baseline: none; the sphere: after its pair
+        log.info("physics %s: %d/%d converged%s, %s (%.0f s)", v["name"], entry["converged"], len(rows), against,
                  ", ".join(f"{n} MAE {e['mae_vec']:.3f} N" for n, e in entry["models"].items()), entry["wall_time_s"])
         return rows
 
@@ -175,11 +174,21 @@ def physics_study(cases_path, mesh_path, model_dirs, model_metrics, sim: dict, b
                 # the sphere against the traction of the same forces: rescore with that reference
                 sph = next(e for e in out["variants"] if e["name"] == v["name"])
                 sph.update(_compare(done[v["name"]][1], done[trac["name"]][1]), compared_with=trac["name"])
+                log.info("physics %s%s", v["name"], _comparison(sph, f"the {trac['name']}")
+                         or f": no comparison with the {trac['name']} (no case converged in both)")
             continue
         run(k, v, cases, None if k == 0 else BASELINE)
         k += 1
     write_json_atomic(out_path, out)
     return out
+
+
+def _comparison(entry: dict, ref: str) -> str:
+    """", u under the tool xR of <ref>, ROI field changed C % (mean)" for the log; its parts that are measured."""
+    ratio, change = entry.get("u_tool_ratio_median", np.nan), entry.get("roi_change_pct_mean", np.nan)
+    parts = ([f"u under the tool x{ratio:.2f} of {ref}"] if np.isfinite(ratio) else []) + (
+        [f"ROI field changed {change:.0f} % (mean)"] if np.isfinite(change) else [])
+    return "".join(", " + p for p in parts)
 
 
 def _fields(arrays) -> dict:

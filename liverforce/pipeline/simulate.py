@@ -9,7 +9,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from liverforce.atomic import write_json_atomic
+from liverforce.atomic import remove_stale_temps, write_json_atomic
 from liverforce.dataset import io as dio
 from liverforce.layout import features_of_mesh, gid_of, progress_of_shard
 
@@ -293,6 +293,8 @@ def simulate_shard(cases_path, mesh_paths: list[str], shard: int, sim: dict, bou
         if feats.exists():
             supports[gid] = json.loads(feats.read_text()).get("support_boundary") or {}
     t_start = time.perf_counter()
+    for p in remove_stale_temps(progress_of_shard(shard_path)):  # not a declared output: setup_job leaves it
+        log.info("removed %s, left by a killed earlier run of this job", p)
 
     def progress(n_done, total, rows, _result):
         write_json_atomic(progress_of_shard(shard_path), {

@@ -27,6 +27,7 @@ import shutil
 import signal
 import sqlite3
 import subprocess
+import tempfile
 import time
 from pathlib import Path
 
@@ -228,6 +229,21 @@ def test_sigkill_mid_sweep_then_resume_equals_uninterrupted(reference, tmp_path,
 
     killed_with = run_and_kill(work, tmp_path / "killed.out", ready)
     ref_ids = case_ids(reference)
+    # what a kill in the middle of writing leaves, made sure of whatever the moment of this kill was: the
+    # temporary files of a shard the resume must redo (not on disk, or marked incomplete; decided now that every
+    # job is dead) and of its progress file, under atomic_path's own names for them
+    incomplete = incomplete_markers(work)
+    names = [f"shard-{i:04d}.parquet" for i in range(N_SHARDS)]
+    redo = next(n for n in names if not (shard_dir(work) / n).exists() or n in incomplete)
+    unfinished = redo.removesuffix(".parquet")
+    planted = []
+    for target in (shard_dir(work) / f"{unfinished}.parquet",
+                   work / RESULTS / "progress" / f"I-{unfinished.removeprefix('shard-')}.json"):
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd, name = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=f".tmp{target.suffix}", dir=target.parent)
+        os.write(fd, b"half of it")
+        os.close(fd)
+        planted.append(Path(name))
     with fault_ledger.check("SIGKILL of the workflow mid-sweep", rows_expected=len(ref_ids),
                             shards_finished_at_kill=len(killed_with)) as seen:
         assert not (shard_dir(work) / "manifest.json").exists()
@@ -241,6 +257,7 @@ def test_sigkill_mid_sweep_then_resume_equals_uninterrupted(reference, tmp_path,
         assert ids == ref_ids
         assert payloads(work) == reference_payloads(reference)
         assert model_metrics(work) == model_metrics(reference)
+        assert not any(p.exists() for p in planted)
         assert not list((work / RESULTS).rglob(".*.tmp*"))
 
 

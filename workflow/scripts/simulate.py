@@ -3,6 +3,6 @@ from liverforce.pipeline.job import setup_job
 from liverforce.pipeline.simulate import simulate_shard
 
 sm = snakemake  # noqa: F821
-setup_job(sm.log[0], sm.threads)
+setup_job(sm.log[0], sm.threads, outputs=sm.output)
 simulate_shard(sm.input.cases, list(sm.input.meshes), int(sm.wildcards.shard), sm.params.simulate,
                sm.params.boundary, sm.params.dataset, sm.output.shard, material=sm.params.material)

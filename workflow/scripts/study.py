@@ -3,7 +3,7 @@ from liverforce.pipeline.job import setup_job
 from liverforce.pipeline.study import run_study_stage
 
 sm = snakemake  # noqa: F821
-setup_job(sm.log[0], sm.threads)
+setup_job(sm.log[0], sm.threads, outputs=sm.output)
 scenarios = list(sm.params.scenarios)
 run_study_stage(
     study=sm.wildcards.study,

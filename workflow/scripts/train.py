@@ -3,7 +3,7 @@ from liverforce.pipeline.job import setup_job
 from liverforce.pipeline.train import train_model
 
 sm = snakemake  # noqa: F821
-setup_job(sm.log[0], sm.threads)
+setup_job(sm.log[0], sm.threads, outputs=sm.output)
 train_model(
     manifest_path=sm.input.manifest,
     scenario=sm.wildcards.scenario,
