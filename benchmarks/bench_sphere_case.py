@@ -10,7 +10,7 @@ mean wall time per case, Newton iterations, converged count and the failure reas
 (``--threads``). The time limit per case is raised (``--time-limit``) and the iteration budget lifted
 (``simulate.max_total_iter``) so every case is measured to its end.
 
-Run: ``.venv/bin/python benchmarks/bench_sphere_case.py [--cases 6] [--time-limit 120]``
+Run: ``.venv/bin/python benchmarks/bench_sphere_case.py [--cases 6] [--time-limit 3600]``
 
 First run (commit after 9c31e2c, 1 thread, loaded 2-core machine, 5 cases 0.57-3.93 N, 14.5k dofs):
 traction median 1.07 s per case (10-23 Newton iterations, 5/5 converged); sphere 0/5 converged:
@@ -38,7 +38,7 @@ from liverforce.pipeline.job import thread_env
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", type=int, default=6)
-    ap.add_argument("--time-limit", type=float, default=120.0)
+    ap.add_argument("--time-limit", type=float, default=3600.0)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--max-slide", type=float, default=None, help="simulate.tool_max_slide_mm (default: config)")
     ap.add_argument("--controls", default="magnitude", help="sphere controls to run: magnitude,vector (simulate.tool_control)")

@@ -2,7 +2,7 @@
 
 Every file is written atomically: to a dot-prefixed temporary name in the same
 folder, flushed and fsynced, then renamed over the final name, so a reader never
-sees half a file (a killed job leaves at most a stray ``.<stem>.<random>.tmp.parquet`` behind, which the
+sees half a file (a killed job leaves at most a stray ``.<stem>.<random>.tmp<suffix>`` behind, which the
 job's next run removes: :func:`liverforce.atomic.remove_stale_temps`).
 """
 

@@ -9,7 +9,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from liverforce.atomic import remove_stale_temps, write_json_atomic
+from liverforce.atomic import write_json_atomic
 from liverforce.dataset import io as dio
 from liverforce.layout import features_of_mesh, gid_of, progress_of_shard
 
@@ -139,7 +139,7 @@ def simulate_cases(cases: list[dict], meshes: dict, sim: dict, boundary: dict, d
     row's ``force_n`` is then the force the sphere actually exerts on the liver). With
     ``boundary["gravity"]["enabled"]`` the row's displacements are the tool's increment over the
     gravity-only state of the same constants (:func:`_sag`). A case that fails (no
-    convergence, time limit, solver error) becomes a row with ``converged =
+    convergence, its budget of Newton iterations, the wall-time safety net, solver error) becomes a row with ``converged =
     False`` and its reason; it never stops the loop. This is the loop the
     simulate rule runs and ``benchmarks/bench_fem.py`` measures.
     """
@@ -293,8 +293,6 @@ def simulate_shard(cases_path, mesh_paths: list[str], shard: int, sim: dict, bou
         if feats.exists():
             supports[gid] = json.loads(feats.read_text()).get("support_boundary") or {}
     t_start = time.perf_counter()
-    for p in remove_stale_temps(progress_of_shard(shard_path)):  # not a declared output: setup_job leaves it
-        log.info("removed %s, left by a killed earlier run of this job", p)
 
     def progress(n_done, total, rows, _result):
         write_json_atomic(progress_of_shard(shard_path), {
