@@ -31,6 +31,11 @@ def _umask() -> int:
     return mask
 
 
+def _temp_affixes(path: Path) -> tuple[str, str]:
+    """The prefix and suffix of the temporary names :func:`atomic_path` makes for ``path`` (one place for both)."""
+    return f".{path.stem}.", f".tmp{path.suffix}"
+
+
 @contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """A temporary path to write ``path`` through; renamed onto ``path`` if the block ends without error.
@@ -40,7 +45,8 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    prefix, suffix = _temp_affixes(path)
+    fd, name = tempfile.mkstemp(prefix=prefix, suffix=suffix, dir=path.parent)
     os.close(fd)
     tmp = Path(name)
     os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600: give the file the permissions open() would
@@ -61,7 +67,8 @@ def remove_stale_temps(path: str | Path) -> list[Path]:
     file whose stem starts alike (``a.json`` leaves ``a.b.json``'s alone).
     """
     path = Path(path)
-    pattern = re.compile(rf"\.{re.escape(path.stem)}\.[a-z0-9_]{{8}}\.tmp{re.escape(path.suffix)}")
+    prefix, suffix = _temp_affixes(path)  # between them mkstemp's 8 random characters
+    pattern = re.compile(rf"{re.escape(prefix)}[a-z0-9_]{{8}}{re.escape(suffix)}")
     if not path.parent.is_dir():
         return []
     gone = []

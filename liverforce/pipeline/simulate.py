@@ -139,8 +139,8 @@ def simulate_cases(cases: list[dict], meshes: dict, sim: dict, boundary: dict, d
     row's ``force_n`` is then the force the sphere actually exerts on the liver). With
     ``boundary["gravity"]["enabled"]`` the row's displacements are the tool's increment over the
     gravity-only state of the same constants (:func:`_sag`). A case that fails (no
-    convergence, its budget of Newton iterations, the wall-time safety net, solver error) becomes a row with ``converged =
-    False`` and its reason; it never stops the loop. This is the loop the
+    convergence, its budget of Newton iterations, the wall-time safety net, solver error)
+    becomes a row with ``converged = False`` and its reason; it never stops the loop. This is the loop the
     simulate rule runs and ``benchmarks/bench_fem.py`` measures.
     """
     from liverforce.dataset.roi import surface_graph
