@@ -288,6 +288,31 @@ def test_predict_from_the_liver_files_matches_the_data_factory(smoke_run, tmp_pa
     assert main(args + ["--mesh", str(mesh)]) == 0
     got = json.loads((tmp_path / "f.json").read_text())["force_n"]
     np.testing.assert_allclose(got, expect, atol=1e-5)
+    # the same files in a lab's frame (a scanner's rotation with a reflection, and a shift) and in metres; the
+    # mesh stays the mesh stage's copy (RAS mm): with --frame and --units, the same force, given back rotated
+    from liverforce.serve.files import read_surface
+
+    q, _ = np.linalg.qr(np.random.default_rng(0).normal(size=(3, 3)))
+    M = np.eye(4)
+    M[:3, :3] = q * np.sign(np.linalg.det(q)) @ np.diag([1.0, 1.0, -1.0])
+    M[:3, 3] = [150.0, -80.0, 600.0]
+    np.save(tmp_path / "M.npy", M)
+
+    def lab(x):  # RAS mm -> the lab's frame, metres
+        return (np.asarray(x, float) - M[:3, 3]) @ M[:3, :3] / 1000.0
+
+    V, T = read_surface(mesh)
+    np.savez(tmp_path / "lab_surface.npz", points=lab(V), facets=T[:, ::-1])  # outward in the reflected frame
+    np.save(tmp_path / "lab_nodes.npy", lab(a["roi_deformed_mm"][i]))
+    lab_args = ["predict", "-m", str(model_dir), str(tmp_path / "lab_nodes.npy"), "--mode", "nodes", "--surface",
+                str(tmp_path / "lab_surface.npz"), "--exertion-point", *map(str, lab(a["exertion_point_mm"][i])),
+                "--material", *map(str, a["material_params_mpa"][i]), "--mesh", str(mesh), "--units", "m",
+                "--out", str(tmp_path / "lab.json")]
+    assert main(lab_args) == 2  # without the frame the exertion point is off the mesh (in RAS mm): refused
+    assert main(lab_args + ["--frame", str(tmp_path / "M.npy")]) == 0
+    out = json.loads((tmp_path / "lab.json").read_text())
+    np.testing.assert_allclose(out["force_n_model"], expect, atol=1e-5)
+    np.testing.assert_allclose(out["force_n"], np.asarray(expect) @ M[:3, :3], atol=1e-5)
 
 
 def test_a_finished_runs_scenario_loads_for_the_experiments(smoke_run):

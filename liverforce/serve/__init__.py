@@ -14,16 +14,19 @@ Public API
   path (haptic rates).
 - :func:`~liverforce.serve.batch.predict_shards` — whole shards/datasets to
   Parquet or CSV.
+- :class:`~liverforce.serve.input_frame.InputFrame` — inputs in a lab's own frame and units (LPS, a 4x4,
+  metres, or the liver's import record) to the model's RAS mm, and the force back.
 - :class:`~liverforce.serve.errors.PredictionInputError` — every refused input.
 - :func:`~liverforce.serve.cli.register` — the ``liverforce predict`` subcommand.
 """
 
 from liverforce.serve.errors import PredictionInputError
 
-__all__ = ["CompiledROI", "Limits", "PredictionInputError", "Predictor", "Preop", "TrainingScale"]
+__all__ = ["CompiledROI", "InputFrame", "Limits", "PredictionInputError", "Predictor", "Preop", "TrainingScale"]
 
 _LAZY = {
     "CompiledROI": "liverforce.serve.compiled",
+    "InputFrame": "liverforce.serve.input_frame",
     "Limits": "liverforce.serve.checks",
     "TrainingScale": "liverforce.serve.checks",
     "Predictor": "liverforce.serve.predictor",

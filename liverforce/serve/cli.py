@@ -9,11 +9,20 @@ liverforce predict -m results/default/models/IV-cloud_sv/model cloud.ply --surfa
     --exertion-point 12 -40 88 --material 0.0016 0.0125 --tool-tip 11.2 -41.0 84.5   # camera-cloud model
 liverforce predict -m my-registered-model --shards results/exp/shards/II --out preds.parquet
 liverforce predict -m results/exp/models/II-pca/model --describe
+liverforce predict -m results/lab/models/IV/cloud_sv/model cloud_lps_m.ply --frame results/lab/geometry/imp-lab01.json \
+    --surface lab01_lps_m.stl --mesh results/lab/mesh/imp-lab01.vtu --exertion-point -0.031 0.024 0.029 \
+    --material 0.0025 --tool-tip -0.0305 0.0236 0.0262   # a lab's liver imported from LPS metres: inputs as it was
 
 Modes for the point-cloud file: ``cloud`` (default) an unordered observed
 cloud; ``nodes`` the deformed ROI nodes in the context's ROI order; ``surface``
 the deformed positions of every vertex of the context's surface file. Exit
 codes: 0 done, 2 input refused (the message says why).
+
+Point inputs are in the model's frame (RAS mm) unless ``--units`` and
+``--frame`` say otherwise (:mod:`liverforce.serve.input_frame`): then they are
+converted to it, the output's ``input_frame`` says how, and ``force_n`` and the
+interval's ``frame`` rows are given back in the inputs' frame (``force_n_model``:
+the force in RAS).
 
 Wire into the main parser with ``liverforce.serve.cli.register(sub, fetch=...)``:
 ``fetch(ref, dst_dir, tracking_uri=...)`` downloads a model given by reference into
@@ -66,6 +75,11 @@ def register(subparsers, *, fetch: Callable[..., str | Path] | None = None) -> a
                    help="the tool tip's position now (robot kinematics; --units apply): camera-cloud models need it")
     p.add_argument("--material", nargs="+", type=float, metavar="MPA", help="material constants, MPa")
     p.add_argument("--units", choices=("mm", "cm", "m"), help="units of every point input (default mm)")
+    p.add_argument("--frame", metavar="FRAME",
+                   help="frame of every point input (cloud, surface, exertion point, tool tip, context): RAS "
+                        "(default), LPS, a 4x4 file (.npy/.json/.yaml, file mm to RAS mm), or the liver's import "
+                        "record results/<exp>/geometry/imp-<name>.json (its units and frame, as the geometry stage "
+                        "converted them); the force comes back in this frame. --mesh stays the mesh stage's copy")
     p.add_argument("--shards", nargs="+", metavar="PATH", help="batch: shard files, folders or manifest.json")
     p.add_argument("--observation-seed", type=int, help="batch: draw the evaluation's observation model")
     p.add_argument("--reference", action="store_true", help="batch: skip the compiled fast path")
@@ -95,7 +109,7 @@ def cmd_predict(args) -> int:
 
 def _run(args) -> int:
     from liverforce.atomic import write_text_atomic
-    from liverforce.serve.files import load_context, read_points, unit_scale
+    from liverforce.serve.files import read_context, read_points
     from liverforce.serve.predictor import Predictor
 
     fetch_model = getattr(args, "fetch_model", None)
@@ -109,6 +123,9 @@ def _run(args) -> int:
 
         if args.points:
             return _error("give either a point-cloud file or --shards, not both")
+        if args.frame or args.units:
+            return _error("--frame and --units apply to point inputs; shards are in the model's frame (RAS mm) "
+                          "already")
         summary = predict_shards(predictor, args.shards, args.out, observation_seed=args.observation_seed,
                                  fast=not args.reference)
         summary.pop("frame")
@@ -116,16 +133,17 @@ def _run(args) -> int:
         return 0
     if not args.points:
         return _error("give a point-cloud file (or --shards for batch prediction)")
-    overrides = {"exertion_point_mm": args.exertion_point, "material_params_mpa": args.material, "units": args.units}
+    overrides = {"exertion_point_mm": args.exertion_point, "material_params_mpa": args.material, "units": args.units,
+                 "input_frame": args.frame}
     if args.surface:
         overrides["surface"] = args.surface
     if args.mesh:
         overrides["mesh"] = args.mesh
-    preop = load_context(args.context, predictor, overrides=overrides)
-    pts = read_points(args.points, args.units)
+    preop, frame = read_context(args.context, predictor, overrides=overrides)
+    pts = frame.points(read_points(args.points))
     info: dict = {"mode": args.mode}
     if args.mode == "cloud":
-        tip = None if args.tool_tip is None else np.asarray(args.tool_tip, dtype=np.float64) * unit_scale(args.units)
+        tip = None if args.tool_tip is None else frame.points(args.tool_tip)
         force, extra = predictor.predict_cloud(pts, preop, approximate=args.approximate, tool_tip_mm=tip,
                                                return_info=True)
         info.update(extra)
@@ -136,10 +154,21 @@ def _run(args) -> int:
         if iv is not None:
             info["interval"] = iv
         info["warnings"] = predictor.context_warnings(preop)
-    doc = {"force_n": [float(v) for v in force], "magnitude_n": float(np.linalg.norm(force)),
-           "frame": "liver (source) frame of the inputs", "model": predictor.source, **info}
+    force_in = frame.vectors_out(force)
+    doc = {"force_n": [float(v) for v in force_in], "magnitude_n": float(np.linalg.norm(force)),
+           "frame": ("liver (source) frame of the inputs" if frame.same_axes
+                     else f"the inputs' frame ({frame.label}; the model's is RAS)"),
+           "input_frame": frame.describe(), "model": predictor.source}
+    if not frame.same_axes:
+        doc["force_n_model"] = [float(v) for v in force]  # RAS, the frame the liver was meshed in
+        if "interval" in info:  # local components are frame-free; their axes go back to the inputs' frame
+            iv = info["interval"]
+            iv["frame"] = frame.vectors_out(iv["frame"]).tolist()
+            if "force_n" in iv:
+                iv["force_n"] = frame.vectors_out(iv["force_n"]).tolist()
+    doc.update(info)
     if args.out and args.out.lower().endswith(".csv"):
-        write_text_atomic(args.out, "fx_n,fy_n,fz_n\n" + ",".join(repr(float(v)) for v in force) + "\n")
+        write_text_atomic(args.out, "fx_n,fy_n,fz_n\n" + ",".join(repr(float(v)) for v in force_in) + "\n")
     elif args.out:
         write_text_atomic(args.out, json.dumps(doc, indent=2) + "\n")
     print(json.dumps(doc))

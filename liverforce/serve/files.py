@@ -30,6 +30,9 @@ Context files (``load_context``): JSON or YAML with
                                           #   for the pre-operative stiffness probe, or
     probe_compliance_mm_per_n: [[..], [..], [..]]   # the probe's compliance itself (local frame)
     units: mm                             # mm (default), cm or m: scales every point and the inertia
+    input_frame: RAS                      # the frame of every point here: RAS (default), LPS, a 4x4 (file mm to
+                                          #   RAS mm), or the liver's import record geometry/imp-<name>.json
+                                          #   (its units and frame; liverforce.serve.input_frame)
 """
 
 from __future__ import annotations
@@ -42,24 +45,14 @@ import numpy as np
 
 from liverforce.atomic import atomic_path
 from liverforce.serve.errors import PredictionInputError
+from liverforce.serve.input_frame import InputFrame, unit_scale
 from liverforce.serve.preop import Preop
-
-#: length of one unit in mm
-UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
 
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2", "ushort": "u2",
     "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4", "float": "f4", "float32": "f4",
     "double": "f8", "float64": "f8",
 }
-
-
-def unit_scale(units: str | None) -> float:
-    """Millimetres per unit (``mm``, ``cm``, ``m``)."""
-    u = (units or "mm").strip().lower()
-    if u not in UNITS_MM:
-        raise PredictionInputError(f"units '{units}': use one of {sorted(UNITS_MM)} (the model works in mm)")
-    return UNITS_MM[u]
 
 
 # --------------------------------------------------------------------------- PLY
@@ -280,7 +273,7 @@ def _read_triangles(path: Path) -> np.ndarray:
 
 CONTEXT_KEYS = {"exertion_point_mm", "material_params_mpa", "surface", "roi_undeformed", "frame", "liver_centroid_mm",
                 "inertia_mm5", "tool_thickness_mm", "units", "roi_fraction", "frame_radius_mm", "mesh",
-                "probe_compliance_mm_per_n", "roi_triangles"}
+                "probe_compliance_mm_per_n", "roi_triangles", "input_frame"}
 
 
 def load_context(source: str | Path | dict, predictor, *, overrides: dict | None = None) -> Preop:
@@ -288,7 +281,18 @@ def load_context(source: str | Path | dict, predictor, *, overrides: dict | None
 
     Relative file paths in a file are taken relative to it. ``roi_fraction``
     and ``frame_radius_mm`` default to the model's (bundle meta or shipped
-    defaults).
+    defaults). :func:`read_context` also returns the inputs' frame.
+    """
+    return read_context(source, predictor, overrides=overrides)[0]
+
+
+def read_context(source: str | Path | dict, predictor, *, overrides: dict | None = None) -> tuple[Preop, InputFrame]:
+    """:func:`load_context`, and the :class:`~liverforce.serve.input_frame.InputFrame` of its points.
+
+    Every point of the context (and of the file it is read from) is in ``units`` and in ``input_frame`` (RAS,
+    LPS, a 4x4, a file of one, or the liver's import record ``results/<exp>/geometry/imp-<name>.json``; default
+    RAS); the :class:`Preop` is in the model's frame, RAS mm. The tet ``mesh`` is the mesh stage's copy,
+    already in RAS mm.
     """
     if isinstance(source, dict):
         doc, base = dict(source), Path.cwd()
@@ -305,8 +309,8 @@ def load_context(source: str | Path | dict, predictor, *, overrides: dict | None
         raise PredictionInputError(f"context: unknown keys {sorted(unknown)}; known: {sorted(CONTEXT_KEYS)}")
     if "exertion_point_mm" not in doc:
         raise PredictionInputError("context: exertion_point_mm is required (the tool contact point, mm)")
-    s = unit_scale(doc.get("units"))
-    point = np.asarray(doc["exertion_point_mm"], dtype=np.float64) * s
+    fr = InputFrame.resolve(doc.get("input_frame"), doc.get("units"), base=base)
+    point = fr.points(doc["exertion_point_mm"])
     material = doc.get("material_params_mpa")
 
     def rel(p):
@@ -314,32 +318,35 @@ def load_context(source: str | Path | dict, predictor, *, overrides: dict | None
         return p if p.is_absolute() else base / p
 
     if "surface" in doc:
-        pts, tri = read_surface(rel(doc["surface"]), doc.get("units"))
+        pts, tri = fr.surface(*read_surface(rel(doc["surface"])))
         preop = Preop.from_surface(pts, tri, point, material,
-                                roi_fraction=float(doc.get("roi_fraction", predictor.roi_fraction)),
-                                frame_radius_mm=float(doc.get("frame_radius_mm", predictor.frame_radius_mm)))
+                                   roi_fraction=float(doc.get("roi_fraction", predictor.roi_fraction)),
+                                   frame_radius_mm=float(doc.get("frame_radius_mm", predictor.frame_radius_mm)))
         if "liver_centroid_mm" in doc or "inertia_mm5" in doc or "tool_thickness_mm" in doc or "roi_triangles" in doc:
             raise PredictionInputError("context: give either a surface or liver_centroid_mm/inertia_mm5/"
                                        "tool_thickness_mm/roi_triangles, not both")
     elif "roi_undeformed" in doc:
         if "frame" not in doc:
             raise PredictionInputError("context: with roi_undeformed, give the local frame {normal, t1, t2} too")
-        fr = doc["frame"]
+        if fr.reflects:
+            raise PredictionInputError("context: the input frame reflects, which would turn the given local frame "
+                                       "{normal, t1, t2} left-handed; give the undeformed 'surface' instead (the "
+                                       "frame is then computed in the model's frame)")
+        fr_doc = doc["frame"]
         try:
-            frame = np.array([fr["t1"], fr["t2"], fr["normal"]], dtype=np.float64)
+            frame = fr.directions(np.array([fr_doc["t1"], fr_doc["t2"], fr_doc["normal"]], dtype=np.float64))
         except (KeyError, TypeError, ValueError) as exc:
             raise PredictionInputError(f"context: frame must be {{normal: [3], t1: [3], t2: [3]}} ({exc})") from exc
         roi = doc["roi_undeformed"]
-        roi = read_points(rel(roi), doc.get("units")) if isinstance(roi, (str, Path)) else np.asarray(roi, float) * s
+        roi = fr.points(read_points(rel(roi)) if isinstance(roi, (str, Path)) else roi)
         tris = doc.get("roi_triangles")
         if isinstance(tris, (str, Path)):
             tris = _read_triangles(rel(tris))
         preop = Preop(
             exertion_point_mm=point, frame=frame, roi_undeformed_mm=roi, material_params_mpa=material,
-            liver_centroid_mm=(None if "liver_centroid_mm" not in doc
-                               else np.asarray(doc["liver_centroid_mm"], float) * s),
-            inertia_mm5=None if "inertia_mm5" not in doc else np.asarray(doc["inertia_mm5"], float) * s**5,
-            tool_thickness_mm=None if "tool_thickness_mm" not in doc else float(doc["tool_thickness_mm"]) * s,
+            liver_centroid_mm=None if "liver_centroid_mm" not in doc else fr.points(doc["liver_centroid_mm"]),
+            inertia_mm5=None if "inertia_mm5" not in doc else fr.inertia(doc["inertia_mm5"]),
+            tool_thickness_mm=None if "tool_thickness_mm" not in doc else fr.length(doc["tool_thickness_mm"]),
             roi_triangles=tris,
         )
     else:
@@ -347,14 +354,18 @@ def load_context(source: str | Path | dict, predictor, *, overrides: dict | None
     if "probe_compliance_mm_per_n" in doc:
         if "mesh" in doc:
             raise PredictionInputError("context: give either the tet 'mesh' or probe_compliance_mm_per_n, not both")
-        C = np.asarray(doc["probe_compliance_mm_per_n"], dtype=np.float64) * s  # m/N -> mm/N with units: m
+        if fr.reflects:
+            raise PredictionInputError("context: probe_compliance_mm_per_n is in a local frame that a reflecting "
+                                       "input frame turns left-handed; give the liver's tet 'mesh' (--mesh) instead")
+        # local frame (t1, t2, n): a rigid change of the inputs' frame leaves it as is; m/N -> mm/N with units: m
+        C = np.asarray(doc["probe_compliance_mm_per_n"], dtype=np.float64) * fr.scale
         preop = preop.with_compliance(C)
     elif "mesh" in doc and predictor.model.uses_state:
         from liverforce.serve.probe import with_probe
 
         preop = with_probe(preop, rel(doc["mesh"]), predictor.model.meta)
     predictor.check_preop(preop)
-    return preop
+    return preop, fr
 
 
 # --------------------------------------------------------------------------- atomic writes

@@ -98,5 +98,7 @@ def with_probe(preop: Preop, mesh, meta: dict, supports: dict | None = None) -> 
     d = float(np.linalg.norm(probe.surf.points - preop.exertion_point_mm, axis=1).min())
     if d > 5.0:
         raise PredictionInputError(f"the exertion point is {d:.1f} mm from the mesh's surface: the mesh and the "
-                                   "context must be the same liver, in the same frame and in mm")
+                                   "context must be the same liver, in the same frame and in mm (the mesh stage's "
+                                   "copy is in RAS mm; inputs in the liver file's own frame or units need --frame "
+                                   "results/<exp>/geometry/imp-<name>.json, or --frame LPS and --units)")
     return preop.with_compliance(probe.compliance(preop.exertion_point_mm, preop.frame))

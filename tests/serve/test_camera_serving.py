@@ -235,3 +235,50 @@ def test_a_context_outside_the_training_range_comes_with_its_warning_on_every_pa
     batch = pred.compile_cloud(odd).predict_batch([cloud, cloud[:3]], np.stack([tip, tip]))
     assert batch.warnings[0] == info["warnings"] and batch.refused[1] is not None and batch.warnings[1] == []
 
+
+
+def test_cli_takes_a_labs_cloud_in_lps_metres_through_the_livers_import_record(served, tmp_path, capsys):
+    """A lab's liver imported from LPS metres: its surface, camera cloud, exertion point and tool tip come in
+    that frame and unit. With the geometry stage's record (``--frame .../imp-<name>.json``) they give the force
+    of the same inputs in RAS mm, returned in LPS (x and y negated), the interval's axes too."""
+    path, model, a = served
+    ctx, cloud, tip = _case(a, 4)
+    V, T = a["surface_meshes"][a["geometry_id"][4]]
+    lps = np.array([-1.0, -1.0, 1.0])
+    rec = {"frame": "LPS", "conversion": {"units": "m", "scale_to_mm": 1000.0, "frame": "LPS",
+                                          "frame_matrix": np.diag([-1.0, -1.0, 1.0, 1.0]).tolist()}}
+    (tmp_path / "imp-lab.json").write_text(json.dumps(rec))
+    probe = {"probe_compliance_mm_per_n": ctx.probe_compliance_mm_per_n.tolist(),
+             "material_params_mpa": ctx.material_params_mpa.tolist()}
+    (tmp_path / "ras.json").write_text(json.dumps({**probe, "surface": "ras.npz"}))
+    np.savez(tmp_path / "ras.npz", points=V, facets=T)
+    np.save(tmp_path / "ras_cloud.npy", cloud)
+    (tmp_path / "lps.json").write_text(json.dumps({**probe, "surface": "lps.npz", "probe_compliance_mm_per_n": (
+        ctx.probe_compliance_mm_per_n / 1000).tolist()}))  # local frame: only the units change (m/N)
+    np.savez(tmp_path / "lps.npz", points=V * lps / 1000, facets=T)
+    np.save(tmp_path / "lps_cloud.npy", cloud * lps / 1000)
+    parser = argparse.ArgumentParser(prog="liverforce")
+    register_predict(parser.add_subparsers(dest="command", required=True))
+
+    def run(*argv):
+        args = parser.parse_args(["predict", "-m", str(path), *map(str, argv)])
+        rc = args.func(args)
+        out, err = capsys.readouterr()
+        assert rc == 0, err
+        return json.loads(out)
+
+    ras = run(tmp_path / "ras_cloud.npy", "--context", tmp_path / "ras.json", "--exertion-point",
+              *ctx.exertion_point_mm, "--tool-tip", *tip)
+    got = run(tmp_path / "lps_cloud.npy", "--context", tmp_path / "lps.json", "--exertion-point",
+              *(ctx.exertion_point_mm * lps / 1000), "--tool-tip", *(tip * lps / 1000),
+              "--frame", tmp_path / "imp-lab.json")
+    want = Predictor.from_dir(path).predict_cloud(
+        cloud, Preop.from_surface(V, T, ctx.exertion_point_mm, ctx.material_params_mpa).with_compliance(
+            ctx.probe_compliance_mm_per_n), tool_tip_mm=tip)
+    np.testing.assert_allclose(ras["force_n"], want, atol=1e-9)
+    np.testing.assert_allclose(got["force_n_model"], want, atol=1e-6)
+    np.testing.assert_allclose(got["force_n"], want * lps, atol=1e-6)
+    np.testing.assert_allclose(got["interval"]["frame"], np.asarray(ras["interval"]["frame"]) * lps, atol=1e-9)
+    np.testing.assert_allclose(got["interval"]["half_width_local_n"], ras["interval"]["half_width_local_n"], rtol=1e-6)
+    assert got["mode"] == "exact" and got["points_used"] == ras["points_used"]
+    assert "frame LPS" in got["input_frame"] and "imp-lab.json" in got["input_frame"]

@@ -1,0 +1,224 @@
+"""The frame and units of a user's point inputs, and the force given back in that frame.
+
+A lab's own liver comes in its own frame and units: 3D Slicer and DICOM give LPS,
+a registration gives a 4x4, a tracker gives metres. The geometry stage converts
+the liver to the model's frame, RAS millimetres (``geometry.imported[].frame`` and
+``units``), and records what it did under ``conversion`` in
+``results/<exp>/geometry/imp-<name>.json``. The lab's camera clouds, tool tips and
+exertion points then come in the liver file's frame, not in RAS mm.
+:class:`InputFrame` maps every point input of a prediction to the model's frame,
+and gives the force back in the inputs' frame::
+
+    x_model = A (s x) + t        F_inputs = A^T F_model
+
+``s`` is mm per input unit, ``A`` the 3x3 part and ``t`` the translation (mm) of
+the frame's 4x4 (:func:`liverforce.geometry.frames.frame_matrix`, the geometry
+stage's convention: file mm to RAS mm). ``A`` must be orthogonal (a rotation,
+possibly with a reflection): a force has no meaning in a frame that scales or
+shears the liver, so such a map is refused. A reflection reverses a surface's
+triangle winding back, as the geometry stage does.
+
+A frame is one of: ``RAS`` (the default: nothing changed), ``LPS`` (x and y
+negated), a 4x4 matrix (a list of 4 rows, or a ``.npy``/``.json``/``.yaml`` file
+holding one), or the liver's import record ``results/<exp>/geometry/imp-<name>.json``,
+which applies that liver's own units and frame exactly as the geometry stage
+did (its units then need not be given again; other units are refused).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from liverforce.serve.errors import PredictionInputError
+
+_NAMED = {"RAS": np.eye(3), "LPS": np.diag([-1.0, -1.0, 1.0])}  # as liverforce.geometry.frames.NAMED_FRAMES
+_HINT = ("use RAS, LPS, a 4x4 matrix (file mm to RAS mm; .npy, .json or .yaml) or the liver's import record "
+         "results/<exp>/geometry/imp-<name>.json")
+
+
+#: length of one unit in mm
+UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
+
+
+def unit_scale(units: str | None) -> float:
+    """Millimetres per unit (``mm``, ``cm``, ``m``)."""
+    u = (units or "mm").strip().lower()
+    if u not in UNITS_MM:
+        raise PredictionInputError(f"units '{units}': use one of {sorted(UNITS_MM)} (the model works in mm)")
+    return UNITS_MM[u]
+
+
+@dataclass(frozen=True)
+class InputFrame:
+    """How point inputs map to the model's frame (RAS mm): ``x_model = A (scale x) + t`` (module docstring).
+
+    Build with :meth:`resolve`; ``matrix`` is the 4x4 ``[[A, t], [0, 1]]``.
+    """
+
+    scale: float = 1.0
+    units: str = "mm"
+    label: str = "RAS"
+    matrix: np.ndarray = field(default_factory=lambda: np.eye(4))
+    source: str | None = None
+
+    @classmethod
+    def resolve(cls, frame=None, units: str | None = None, *, base: Path | None = None) -> "InputFrame":
+        """The input frame of ``frame`` (a name, a 4x4, a file of one, an import record, None: RAS) and ``units``.
+
+        ``base``: the folder a relative file path is taken from (default: the working directory). Raises
+        :class:`PredictionInputError` on an unknown name, a malformed, singular or non-rigid matrix, or units that
+        contradict an import record's.
+        """
+        if isinstance(frame, InputFrame):
+            if units is not None and unit_scale(units) != frame.scale:
+                raise PredictionInputError(f"units '{units}' contradict the input frame's ({frame.units})")
+            return frame
+        source = None
+        scale_units = None
+        if isinstance(frame, (str, Path)) and str(frame).strip().upper() not in ("RAS", "LPS"):
+            path = Path(frame)
+            if not path.is_absolute() and base is not None:
+                path = base / path
+            source = str(path)
+            frame, rec_units, rec_scale = _read_frame_file(path)
+            if rec_units is not None:
+                if units is not None and unit_scale(units) != rec_scale:
+                    raise PredictionInputError(
+                        f"{path}: this liver was imported in {rec_units} (x{rec_scale:g} to mm), but the inputs are "
+                        f"said to be in {units}: drop the units (the record sets them) or convert the inputs to "
+                        f"{rec_units}")
+                scale_units = (rec_scale, rec_units)
+        if frame is None or (isinstance(frame, str) and frame.strip().upper() in _NAMED):
+            label = "RAS" if frame is None else frame.strip().upper()
+            m = np.eye(4)
+            m[:3, :3] = _NAMED[label]
+        else:
+            from liverforce.geometry.errors import GeometryError
+            from liverforce.geometry.frames import frame_matrix
+
+            try:
+                m, label = frame_matrix(frame, source)
+            except GeometryError as exc:
+                raise PredictionInputError(f"input frame: {exc}") from None
+        A = m[:3, :3]
+        sv = np.linalg.svd(A, compute_uv=False)
+        if not np.allclose(sv, 1.0, atol=1e-6):
+            raise PredictionInputError(
+                f"input frame{'' if source is None else ' ' + source}: the 3x3 part scales or shears (singular values "
+                f"{np.round(sv, 6).tolist()}), so the force has no frame to be given back in; give the rigid part "
+                "(a rotation, possibly with a reflection) and state the inputs' units with --units (mm, cm, m)")
+        if scale_units is None:
+            u = (units or "mm").strip().lower()
+            scale_units = (unit_scale(u), u)
+        return cls(scale=scale_units[0], units=scale_units[1], label=label, matrix=m, source=source)
+
+    # -- properties ----------------------------------------------------------
+
+    @property
+    def A(self) -> np.ndarray:
+        return self.matrix[:3, :3]
+
+    @property
+    def t(self) -> np.ndarray:
+        return self.matrix[:3, 3]
+
+    @property
+    def identity(self) -> bool:
+        """True when nothing is converted (mm, RAS, no translation)."""
+        return self.scale == 1.0 and bool(np.array_equal(self.matrix, np.eye(4)))
+
+    @property
+    def same_axes(self) -> bool:
+        """True when the inputs' axes are the model's (RAS; units and a translation may differ)."""
+        return bool(np.array_equal(self.A, np.eye(3)))
+
+    @property
+    def reflects(self) -> bool:
+        return float(np.linalg.det(self.A)) < 0
+
+    # -- inputs to the model's frame -------------------------------------------
+
+    def points(self, xyz) -> np.ndarray:
+        """Points ``(n, 3)`` or one ``(3,)`` in the inputs' units and frame -> model frame, mm."""
+        x = np.asarray(xyz, dtype=np.float64) * self.scale
+        return x if self.label == "RAS" and not self.t.any() else x @ self.A.T + self.t
+
+    def surface(self, points, triangles) -> tuple[np.ndarray, np.ndarray]:
+        """A surface in the inputs' units and frame -> model frame, its triangles kept outward."""
+        tri = np.asarray(triangles, dtype=np.int64)
+        return self.points(points), (tri[:, ::-1].copy() if self.reflects else tri)
+
+    def directions(self, v) -> np.ndarray:
+        """Unit vectors (rows) in the inputs' frame -> model frame (no units, no translation)."""
+        return np.asarray(v, dtype=np.float64) @ self.A.T
+
+    def length(self, value: float) -> float:
+        return float(value) * self.scale
+
+    def inertia(self, J) -> np.ndarray:
+        """A second moment of volume (mm^5 once scaled) -> model frame: ``s^5 A J A^T``."""
+        return self.A @ (np.asarray(J, dtype=np.float64) * self.scale**5) @ self.A.T
+
+    # -- results back to the inputs' frame ------------------------------------------
+
+    def vectors_out(self, v) -> np.ndarray:
+        """Vectors (a force in N, or direction rows) in the model frame -> the inputs' frame: ``A^T v``."""
+        return np.asarray(v, dtype=np.float64) @ self.A
+
+    def describe(self) -> str:
+        """What is converted, in one line (also the output's ``input_frame``)."""
+        if self.identity:
+            return "inputs in mm, RAS (the model's frame): nothing converted"
+        from liverforce.geometry.frames import describe_frame
+
+        fr = describe_frame(self.label, self.matrix, {"determinant": float(np.linalg.det(self.A)),
+                                                      "winding_reversed": self.reflects, "rigid": True,
+                                                      "singular_values": [1.0, 1.0, 1.0]})
+        fr = fr.replace("file mm", "input mm").replace("; winding kept", "")
+        src = "" if self.source is None else f" (from {self.source})"
+        units = self.units if self.scale == 1.0 else f"{self.units} (x{self.scale:g} to mm)"
+        back = "" if self.same_axes else "; the force and the interval's axes are given back in the inputs' frame"
+        return f"inputs in {units}, {fr}{src}{back}"
+
+
+def _read_frame_file(path: Path) -> tuple[object, str | None, float | None]:
+    """The frame (name or 4x4), units and mm per unit (None, None if not stated) of a 4x4 file or an import
+    record."""
+    if not path.is_file():
+        raise PredictionInputError(f"input frame {path}: no such file; {_HINT}")
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".npy":
+            return np.load(path, allow_pickle=False), None, None
+        text = path.read_text()
+        if suffix in (".yaml", ".yml"):
+            import yaml
+
+            doc = yaml.safe_load(text)
+        else:
+            doc = json.loads(text)
+    except Exception as exc:  # noqa: BLE001 - numpy, JSON and YAML errors, re-raised with the file named
+        raise PredictionInputError(f"input frame {path}: cannot read it ({type(exc).__name__}: {exc}); "
+                                   f"{_HINT}") from None
+    if isinstance(doc, dict) and "conversion" in doc:  # an import record of the geometry stage
+        conv = doc["conversion"] or {}
+        if not {"frame_matrix", "units", "scale_to_mm"} <= set(conv):
+            raise PredictionInputError(f"input frame {path}: the record's conversion lacks frame_matrix, units or "
+                                       "scale_to_mm; run the geometry stage again to rewrite it")
+        m, name = conv["frame_matrix"], str(conv.get("frame", "")).upper()
+        if name in _NAMED and np.array_equal(np.asarray(m, dtype=np.float64), np.block(
+                [[_NAMED[name], np.zeros((3, 1))], [np.zeros((1, 3)), np.ones((1, 1))]])):
+            m = name  # stated by name: said by name
+        return m, str(conv["units"]), float(conv["scale_to_mm"])
+    if isinstance(doc, dict) and "frame" in doc and "spec" in doc:  # a procedural liver's record: RAS mm
+        return "RAS", "mm", 1.0
+    if isinstance(doc, dict) and "matrix" in doc:
+        u = doc.get("units")
+        return doc["matrix"], u, (None if u is None else unit_scale(u))
+    if isinstance(doc, (list, str)):
+        return doc, None, None
+    raise PredictionInputError(f"input frame {path}: neither a 4x4 matrix nor an import record; {_HINT}")

@@ -1,0 +1,197 @@
+"""Point inputs in a lab's own frame and units (LPS, a registration's 4x4, metres): converted to the model's frame
+(RAS mm) on the way in, the force given back in the inputs' frame (``liverforce.serve.input_frame``)."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from liverforce.serve import Predictor, Preop
+from liverforce.serve.errors import PredictionInputError
+from liverforce.serve.files import read_context
+from liverforce.serve.input_frame import InputFrame
+
+from tests.serve.test_predict_cli import context_doc, run, write_ply
+
+
+def rigid(reflect: bool, seed: int = 3) -> np.ndarray:
+    """A 4x4 input mm -> RAS mm: a random rotation (times a reflection), a translation in mm."""
+    q, _ = np.linalg.qr(np.random.default_rng(seed).normal(size=(3, 3)))
+    q *= np.sign(np.linalg.det(q))
+    M = np.eye(4)
+    M[:3, :3] = q @ np.diag([1.0, 1.0, -1.0 if reflect else 1.0])
+    M[:3, 3] = [120.0, -35.0, 410.0]  # a scanner's origin far from the liver
+    return M
+
+
+def to_inputs(M: np.ndarray, scale: float, x_mm: np.ndarray) -> np.ndarray:
+    """RAS mm -> the inputs' frame and units (the inverse of the map the model applies)."""
+    return (np.asarray(x_mm) - M[:3, 3]) @ M[:3, :3] / scale
+
+
+@pytest.mark.parametrize("reflect", [False, True])
+def test_points_round_trip_and_forces_come_back_rotated(reflect):
+    M = rigid(reflect)
+    fr = InputFrame.resolve(M.tolist(), "m")
+    x = np.random.default_rng(0).normal(size=(50, 3)) * 80
+    np.testing.assert_allclose(fr.points(to_inputs(M, 1000.0, x)), x, atol=1e-9)
+    F = np.array([0.3, -1.2, 2.5])
+    F_in = fr.vectors_out(F)
+    np.testing.assert_allclose(np.linalg.norm(F_in), np.linalg.norm(F), rtol=1e-12)  # a force keeps its length
+    np.testing.assert_allclose(F_in @ M[:3, :3].T, F, atol=1e-12)  # and maps back by the frame's own rotation
+    assert fr.reflects == reflect and not fr.identity
+    # the second moment of volume transforms as a tensor: that of the converted points is the converted one
+    J_in = np.einsum("ni,nj->ij", to_inputs(M, 1000.0, x) - to_inputs(M, 1000.0, x).mean(0),
+                     to_inputs(M, 1000.0, x) - to_inputs(M, 1000.0, x).mean(0))
+    J = np.einsum("ni,nj->ij", x - x.mean(0), x - x.mean(0))
+    np.testing.assert_allclose(fr.inertia(J_in) / 1000.0**3, J, rtol=1e-9)  # points weigh mm^2, not mm^5
+    # a triangle outward (+z) in RAS is outward in the inputs' frame with its winding reversed if the frame
+    # reflects (as a file in that frame holds it): converted, it is outward (+z) again
+    tri = np.array([[0, 1, 2]])
+    V = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]) * 10
+    Vm, tm = fr.surface(to_inputs(M, 1000.0, V), tri[:, ::-1] if reflect else tri)
+    n = np.cross(Vm[tm[0, 1]] - Vm[tm[0, 0]], Vm[tm[0, 2]] - Vm[tm[0, 0]])
+    np.testing.assert_allclose(n / np.linalg.norm(n), [0, 0, 1], atol=1e-9)
+
+
+def test_named_frames_records_and_refusals(tmp_path):
+    lps = InputFrame.resolve("lps", "cm")
+    np.testing.assert_allclose(lps.points([1.0, 2.0, 3.0]), [-10.0, -20.0, 30.0])
+    np.testing.assert_allclose(lps.vectors_out([1.0, 2.0, 3.0]), [-1.0, -2.0, 3.0])
+    assert "LPS" in lps.describe() and "x10 to mm" in lps.describe()
+    assert InputFrame.resolve(None).identity and "nothing converted" in InputFrame.resolve("RAS").describe()
+    # the geometry stage's record of an imported liver: its units and frame, stated once
+    rec = {"frame": "LPS", "conversion": {"units": "m", "scale_to_mm": 1000.0, "frame": "LPS",
+                                          "frame_matrix": np.diag([-1.0, -1.0, 1.0, 1.0]).tolist()}}
+    (tmp_path / "imp-lab.json").write_text(json.dumps(rec))
+    fr = InputFrame.resolve("imp-lab.json", base=tmp_path)
+    assert (fr.label, fr.units, fr.scale) == ("LPS", "m", 1000.0) and "imp-lab.json" in fr.describe()
+    assert InputFrame.resolve(tmp_path / "imp-lab.json", "m").scale == 1000.0
+    with pytest.raises(PredictionInputError, match="imported in m .* said to be in mm"):
+        InputFrame.resolve(tmp_path / "imp-lab.json", "mm")
+    np.save(tmp_path / "shear.npy", np.diag([1.0, 1.0, 2.0, 1.0]))
+    with pytest.raises(PredictionInputError, match="scales or shears"):
+        InputFrame.resolve(tmp_path / "shear.npy")
+    np.save(tmp_path / "flat.npy", np.diag([1.0, 1.0, 0.0, 1.0]))
+    with pytest.raises(PredictionInputError, match="singular"):
+        InputFrame.resolve(tmp_path / "flat.npy")
+    with pytest.raises(PredictionInputError, match="no such file.*RAS, LPS"):
+        InputFrame.resolve("RSA")
+    (tmp_path / "other.json").write_text(json.dumps({"something": 1}))
+    with pytest.raises(PredictionInputError, match="neither a 4x4"):
+        InputFrame.resolve(tmp_path / "other.json")
+    (tmp_path / "old.json").write_text(json.dumps({"conversion": {"units": "m"}}))
+    with pytest.raises(PredictionInputError, match="geometry stage again"):
+        InputFrame.resolve(tmp_path / "old.json")
+    (tmp_path / "m.yaml").write_text(f"matrix: {rigid(False).tolist()}\nunits: m\n")
+    assert InputFrame.resolve(tmp_path / "m.yaml").scale == 1000.0
+
+
+def _rotated_context(ctx: Preop, M: np.ndarray, s: float, roi_file: str) -> dict:
+    """``context_doc`` of ``ctx`` with every point, direction and tensor in the inputs' frame and units."""
+    A = M[:3, :3]
+    doc = context_doc(ctx, roi_file)
+    doc["exertion_point_mm"] = to_inputs(M, s, ctx.exertion_point_mm).tolist()
+    doc["frame"] = {"t1": (ctx.frame[0] @ A).tolist(), "t2": (ctx.frame[1] @ A).tolist(),
+                    "normal": (ctx.frame[2] @ A).tolist()}
+    doc["liver_centroid_mm"] = to_inputs(M, s, ctx.liver_centroid_mm).tolist()
+    doc["inertia_mm5"] = (A.T @ ctx.inertia_mm5 @ A / s**5).tolist()
+    doc["tool_thickness_mm"] = ctx.tool_thickness_mm / s
+    doc["probe_compliance_mm_per_n"] = (ctx.probe_compliance_mm_per_n / s).tolist()  # local frame: units only
+    return doc
+
+
+def test_nodes_and_context_in_a_registration_frame(trained, test_cases, tmp_path, capsys):
+    """ROI nodes, the local frame, the liver features and the exertion point in a rotated, shifted frame in
+    metres: the same force as in RAS mm, given back rotated; the interval's local components unchanged."""
+    model = trained("disp")
+    ctx = Preop.from_arrays(test_cases, 2)
+    D = np.asarray(test_cases["roi_deformed_mm"][2])
+    pred = Predictor.load(model)
+    iv = pred.interval(D, ctx)
+    M = rigid(False)
+    np.save(tmp_path / "M.npy", M)
+    np.save(tmp_path / "roi.npy", to_inputs(M, 1000.0, ctx.roi_undeformed_mm))
+    np.save(tmp_path / "nodes.npy", to_inputs(M, 1000.0, D))
+    (tmp_path / "ctx.json").write_text(json.dumps({**_rotated_context(ctx, M, 1000.0, "roi.npy"),
+                                                   "input_frame": "M.npy", "units": "m"}))
+    rc, out, err = run(["-m", model, tmp_path / "nodes.npy", "--mode", "nodes", "--context", tmp_path / "ctx.json"],
+                       capsys)
+    assert rc == 0, err
+    doc = json.loads(out)
+    np.testing.assert_allclose(doc["force_n_model"], iv["force_n"], atol=1e-6)
+    np.testing.assert_allclose(doc["force_n"], np.asarray(iv["force_n"]) @ M[:3, :3], atol=1e-6)
+    np.testing.assert_allclose(doc["interval"]["force_local_n"], iv["force_local_n"], atol=1e-6)
+    np.testing.assert_allclose(doc["interval"]["frame"], ctx.frame @ M[:3, :3], atol=1e-9)  # axes, inputs' frame
+    assert "frame matrix" in doc["input_frame"] and "inputs in m" in doc["input_frame"]
+    # without the frame, the same files give the same force in their frame: the model reads the liver in its
+    # local frame, so a rigid motion of every input leaves it unchanged (the frame matters for the mesh stage's
+    # tet mesh, which is in RAS mm, and for a reflection: the smoke workflow's test and the test below)
+    (tmp_path / "ctx_nf.json").write_text(json.dumps({**_rotated_context(ctx, M, 1000.0, "roi.npy"), "units": "m"}))
+    rc, out, err = run(["-m", model, tmp_path / "nodes.npy", "--mode", "nodes", "--context", tmp_path / "ctx_nf.json"],
+                       capsys)
+    assert rc == 0 and "force_n_model" not in json.loads(out)
+    np.testing.assert_allclose(json.loads(out)["force_n"], doc["force_n"], atol=1e-6)
+    # a reflecting frame would make the given local frame left-handed: refused, saying what to give instead
+    np.save(tmp_path / "R.npy", rigid(True))
+    rc, out, err = run(["-m", model, tmp_path / "nodes.npy", "--mode", "nodes", "--context", tmp_path / "ctx.json",
+                        "--frame", tmp_path / "R.npy"], capsys)
+    assert rc == 2 and "left-handed" in err and "surface" in err
+    rc, out, err = run(["-m", model, "--shards", tmp_path, "--frame", "LPS"], capsys)
+    assert rc == 2 and "model's frame" in err
+
+
+def test_a_surface_in_a_reflected_frame_in_metres(trained, tmp_path, capsys, ellipsoid):
+    """The undeformed surface and the deformed one through a reflecting 4x4 in metres: the triangles are turned
+    back outward, so the ROI, its normal and the force are those of the RAS mm inputs."""
+    model = trained("deformed")
+    pts, tri = ellipsoid()
+    p = pts[123]
+    pred = Predictor.load(model)
+    ctx = Preop.from_surface(pts, tri, p, None, roi_fraction=pred.roi_fraction)
+    dent = pts.copy()
+    dent[ctx.roi_point_ids] -= 2.0 * ctx.frame[2] * np.exp(-np.sum((pts[ctx.roi_point_ids] - p) ** 2, 1) / 200)[:, None]
+    expect = pred.predict(ctx.roi_of_surface(dent), ctx)
+    M = rigid(True, seed=5)
+    write_ply(tmp_path / "liver.ply", to_inputs(M, 1000.0, pts), tri[:, ::-1])  # outward in the reflected frame
+    np.save(tmp_path / "dent.npy", to_inputs(M, 1000.0, dent))
+    np.save(tmp_path / "M.npy", M)
+    flags = ["-m", model, tmp_path / "dent.npy", "--mode", "surface", "--surface", tmp_path / "liver.ply",
+             "--exertion-point", *to_inputs(M, 1000.0, p), "--units", "m", "--frame", tmp_path / "M.npy"]
+    rc, out, err = run(flags, capsys)
+    assert rc == 0, err
+    doc = json.loads(out)
+    np.testing.assert_allclose(doc["force_n_model"], expect, atol=1e-6)
+    np.testing.assert_allclose(doc["force_n"], expect @ M[:3, :3], atol=1e-6)
+    assert "reflection" in doc["input_frame"]
+    preop, fr = read_context({"surface": str(tmp_path / "liver.ply"), "exertion_point_mm": to_inputs(M, 1000.0, p),
+                              "units": "m", "input_frame": str(tmp_path / "M.npy")}, pred)
+    np.testing.assert_allclose(preop.frame[2], ctx.frame[2], atol=1e-9)  # the outward normal, as in RAS
+    assert fr.reflects
+
+
+@pytest.mark.parametrize("frame", ["LPS", "matrix"])
+def test_the_geometry_stages_record_maps_the_files_points_onto_the_meshed_liver(tmp_path, frame):
+    """The record the geometry stage writes for an imported liver (units m; LPS or a rotated, shifted 4x4):
+    InputFrame maps the file's own vertices onto the stage's RAS mm surface; a procedural liver's record is RAS mm."""
+    import meshio
+
+    from liverforce.geometry.procedural import procedural_liver
+    from liverforce.pipeline.geometry import make_geometry
+
+    liver = procedural_liver(0)
+    M = np.diag([-1.0, -1.0, 1.0, 1.0]) if frame == "LPS" else rigid(False, seed=11)
+    file_m = to_inputs(M, 1000.0, liver.vertices)
+    path = tmp_path / "lab.ply"
+    meshio.write(path, meshio.Mesh(file_m, [("triangle", liver.faces)]), binary=True)
+    spec = {"kind": "imported", "name": "lab", "path": str(path), "units": "m", "label": None,
+            "frame": "LPS" if frame == "LPS" else M.tolist()}
+    make_geometry(spec, tmp_path / "out" / "imp-lab.ply", tmp_path / "out" / "imp-lab.json")
+    fr = InputFrame.resolve(tmp_path / "out" / "imp-lab.json")
+    assert (fr.units, fr.scale, fr.label) == ("m", 1000.0, frame)
+    ras = meshio.read(tmp_path / "out" / "imp-lab.ply").points
+    np.testing.assert_allclose(fr.points(file_m), ras, atol=1e-6)
+    make_geometry({"kind": "procedural", "seed": 0}, tmp_path / "out" / "proc-0000.ply",
+                  tmp_path / "out" / "proc-0000.json")
+    assert InputFrame.resolve(tmp_path / "out" / "proc-0000.json").identity
