@@ -189,6 +189,12 @@ def surface_meta_of(surface_path: str | Path) -> Path:
     return p.with_name(gid_of(p) + _SURFACE_META)
 
 
+def surface_meta_of_mesh(mesh_path: str | Path) -> Path:
+    """The geometry stage's record of a mesh's liver (``<root>/geometry/<gid>.json`` for ``<root>/mesh/<gid>.vtu``)."""
+    p = Path(mesh_path)
+    return Path(Layout(p.parent.parent).surface_meta(gid_of(p)))
+
+
 def physics_variant_files(folder: str | Path, k: int) -> tuple[Path, Path]:
     """The shard and manifest of the physics study's ``k``-th choice: ``validate/physics/<k>/shard-0000.parquet``
     and its ``manifest.json`` (:meth:`Layout.physics_shards`)."""

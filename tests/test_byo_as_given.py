@@ -278,3 +278,54 @@ def test_the_stiffness_probe_column_and_serving_agree_on_the_users_liver(scene):
     preop = Preop(exertion_point_mm=p, frame=frame, roi_undeformed_mm=np.asarray(rows[0]["roi_undeformed_mm"]))
     served = with_probe(preop, scene["tmp"] / "imp-lab.vtu", meta).probe_compliance_mm_per_n
     np.testing.assert_allclose(served, C, rtol=1e-9, atol=1e-12 * np.abs(C).max())
+
+
+def test_serving_takes_the_labs_points_in_the_files_frame_through_the_livers_record(scene, tmp_path):
+    """The lab's own file (LPS, metres) as the pre-operative surface, an exertion point in that frame mid-edge on
+    this coarse mesh (farther than 5 mm from every vertex), and the mesh stage's copy of the mesh (RAS mm) in a
+    results folder beside its geometry record: with the record as the input frame, the context is the RAS one and
+    the probe runs; without a stated frame it is refused, naming the record (LPS points near a roughly symmetric
+    liver could pass the mesh's checks and give another force)."""
+    import shutil
+    from types import SimpleNamespace
+
+    from liverforce.dataset.roi import local_frame, surface_graph
+    from liverforce.mesh.io import read_mesh
+    from liverforce.pipeline.simulate import probe_reference
+    from liverforce.serve.errors import PredictionInputError
+    from liverforce.serve.files import read_context
+    from liverforce.serve.preop import Preop
+    from liverforce.serve.probe import with_probe
+
+    root = tmp_path / "results" / "lab"
+    (root / "mesh").mkdir(parents=True)
+    (root / "geometry").mkdir()
+    for name in ("imp-lab.vtu", "imp-lab.features.json"):
+        shutil.copy(scene["tmp"] / name, root / "mesh" / name)
+    shutil.copy(scene["tmp"] / "imp-lab.json", root / "geometry" / "imp-lab.json")
+    mesh = read_mesh(root / "mesh" / "imp-lab.vtu")
+    vis = mesh.facets[np.asarray(mesh.facet_visible, bool)]
+    edges = np.concatenate([vis[:, [0, 1]], vis[:, [1, 2]], vis[:, [2, 0]]])
+    lengths = np.linalg.norm(mesh.points[edges[:, 0]] - mesh.points[edges[:, 1]], axis=1)
+    a, b = edges[np.argmax(lengths)]
+    p = 0.5 * (mesh.points[a] + mesh.points[b])  # on the surface, mid-edge
+    assert np.linalg.norm(mesh.points - p, axis=1).min() > 5.0  # the old vertex-distance check refused it
+    cfg = scene["cfg"]
+    sim = dict(cfg["simulate"])
+    meta = {"probe": {"reference": probe_reference(cfg["material"]), "boundary": cfg["boundary"], "simulate": sim,
+                      "tool_radius_mm": sim["tool_radius_mm"]}}
+    frame = local_frame(surface_graph(mesh.points, mesh.facets), p, sim["tool_radius_mm"])
+    C = with_probe(Preop(exertion_point_mm=p, frame=frame, roi_undeformed_mm=mesh.points[:10]), root / "mesh" /
+                   "imp-lab.vtu", meta).probe_compliance_mm_per_n
+    assert np.linalg.eigvalsh(C)[0] > 0
+    pred = SimpleNamespace(roi_fraction=0.18, frame_radius_mm=sim["tool_radius_mm"], check_preop=lambda preop: None,
+                           model=SimpleNamespace(uses_state=True, meta=meta))
+    doc = {"surface": str(scene["tmp"] / "liver.msh"), "exertion_point_mm": (p * LPS / 1000.0).tolist(),
+           "mesh": str(root / "mesh" / "imp-lab.vtu"), "material_params_mpa": [0.0025]}
+    with pytest.raises(PredictionInputError, match=r"imported in another frame .*frame LPS.*--frame .*imp-lab\.json"):
+        read_context({**doc, "units": "m"}, pred)
+    preop, fr = read_context({**doc, "input_frame": str(root / "geometry" / "imp-lab.json")}, pred)
+    assert (fr.label, fr.units) == ("LPS", "m")
+    np.testing.assert_allclose(preop.exertion_point_mm, p, atol=1e-9)
+    np.testing.assert_allclose(preop.frame, frame, atol=1e-9)  # the local frame of the RAS liver (not turned)
+    np.testing.assert_allclose(preop.probe_compliance_mm_per_n, C, rtol=1e-9)

@@ -261,7 +261,7 @@ def test_adding_a_variant_reruns_only_that_variants_jobs(smoke_run):
     assert sorted(trained) == [(s, "dae_sv") for s in ("I", "II", "III", "IV")]
 
 
-def test_predict_from_the_liver_files_matches_the_data_factory(smoke_run, tmp_path):
+def test_predict_from_the_liver_files_matches_the_data_factory(smoke_run, tmp_path, capsys):
     """`liverforce predict` with only files a lab has (the liver's tet mesh for the surface and the stiffness
     probe, the deformed ROI nodes, the exertion point, the material) gives the model's prediction on the
     shard row: the context (frame, ROI, liver features, thickness, probe compliance) is rebuilt exactly."""
@@ -308,7 +308,10 @@ def test_predict_from_the_liver_files_matches_the_data_factory(smoke_run, tmp_pa
                 str(tmp_path / "lab_surface.npz"), "--exertion-point", *map(str, lab(a["exertion_point_mm"][i])),
                 "--material", *map(str, a["material_params_mpa"][i]), "--mesh", str(mesh), "--units", "m",
                 "--out", str(tmp_path / "lab.json")]
+    capsys.readouterr()
     assert main(lab_args) == 2  # without the frame the exertion point is off the mesh (in RAS mm): refused
+    err = capsys.readouterr().err
+    assert "from the mesh's surface" in err and "--frame" in err, err
     assert main(lab_args + ["--frame", str(tmp_path / "M.npy")]) == 0
     out = json.loads((tmp_path / "lab.json").read_text())
     np.testing.assert_allclose(out["force_n_model"], expect, atol=1e-5)

@@ -60,7 +60,7 @@ def register(subparsers, *, fetch: Callable[..., str | Path] | None = None) -> a
     p.add_argument("-m", "--model", required=True,
                    help="model directory, MLflow run id, runs:/<id>/model, models:/<name>/<version> "
                         "or a registered name")
-    p.add_argument("points", nargs="?", help="point-cloud file (.ply, .csv, .npy), mm in the liver frame")
+    p.add_argument("points", nargs="?", help="point-cloud file (.ply, .csv, .npy), in --units and --frame")
     p.add_argument("--mode", choices=("cloud", "nodes", "surface"), default="cloud",
                    help="what the point file holds (default: an unordered observed cloud)")
     p.add_argument("--approximate", action="store_true",
@@ -70,16 +70,19 @@ def register(subparsers, *, fetch: Callable[..., str | Path] | None = None) -> a
     p.add_argument("--surface", help="undeformed liver surface file (overrides the context's)")
     p.add_argument("--mesh", help="the liver's tet mesh (mm, support regions tagged, e.g. results/<exp>/mesh/<id>.vtu):"
                                   " state-vector models compute the pre-operative stiffness probe from it")
-    p.add_argument("--exertion-point", nargs=3, type=float, metavar=("X", "Y", "Z"), help="tool contact point, mm")
+    p.add_argument("--exertion-point", nargs=3, type=float, metavar=("X", "Y", "Z"),
+                   help="tool contact point (--units and --frame apply)")
     p.add_argument("--tool-tip", nargs=3, type=float, metavar=("X", "Y", "Z"),
                    help="the tool tip's position now (robot kinematics; --units apply): camera-cloud models need it")
     p.add_argument("--material", nargs="+", type=float, metavar="MPA", help="material constants, MPa")
-    p.add_argument("--units", choices=("mm", "cm", "m"), help="units of every point input (default mm)")
+    p.add_argument("--units", choices=("mm", "cm", "m"),
+                   help="units of every point input, the context's too (default: the context's units, else mm)")
     p.add_argument("--frame", metavar="FRAME",
                    help="frame of every point input (cloud, surface, exertion point, tool tip, context): RAS "
                         "(default), LPS, a 4x4 file (.npy/.json/.yaml, file mm to RAS mm), or the liver's import "
                         "record results/<exp>/geometry/imp-<name>.json (its units and frame, as the geometry stage "
-                        "converted them); the force comes back in this frame. --mesh stays the mesh stage's copy")
+                        "converted them); the force comes back in this frame. Default: the context's input_frame, "
+                        "else RAS. --mesh stays the mesh stage's copy (RAS mm)")
     p.add_argument("--shards", nargs="+", metavar="PATH", help="batch: shard files, folders or manifest.json")
     p.add_argument("--observation-seed", type=int, help="batch: draw the evaluation's observation model")
     p.add_argument("--reference", action="store_true", help="batch: skip the compiled fast path")
@@ -133,12 +136,15 @@ def _run(args) -> int:
         return 0
     if not args.points:
         return _error("give a point-cloud file (or --shards for batch prediction)")
-    overrides = {"exertion_point_mm": args.exertion_point, "material_params_mpa": args.material, "units": args.units,
-                 "input_frame": args.frame}
+    overrides = {"exertion_point_mm": args.exertion_point, "material_params_mpa": args.material, "units": args.units}
+    # file paths given here are relative to the working directory (a context file's own are relative to it)
+    if args.frame:
+        named = args.frame.strip().upper() in ("RAS", "LPS")
+        overrides["input_frame"] = args.frame if named else str(Path(args.frame).absolute())
     if args.surface:
-        overrides["surface"] = args.surface
+        overrides["surface"] = str(Path(args.surface).absolute())
     if args.mesh:
-        overrides["mesh"] = args.mesh
+        overrides["mesh"] = str(Path(args.mesh).absolute())
     preop, frame = read_context(args.context, predictor, overrides=overrides)
     pts = frame.points(read_points(args.points))
     info: dict = {"mode": args.mode}

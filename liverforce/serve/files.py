@@ -10,7 +10,8 @@ Point clouds (``read_points``), one point per row, mm unless ``units`` says othe
 
 Surfaces (``read_surface``): ``.ply`` with faces, ``.npz`` with ``points`` and
 ``facets``, or anything meshio reads (STL, OBJ, OFF, VTU, VTK, ...); a
-tetrahedral mesh gives its boundary triangles.
+tetrahedral mesh gives its boundary triangles (its triangle cells, often only
+tagged parts of the boundary, are then ignored).
 
 Context files (``load_context``): JSON or YAML with
 
@@ -28,11 +29,15 @@ Context files (``load_context``): JSON or YAML with
     tool_thickness_mm: 60.0               # tissue thickness under the tool along the inward normal
     mesh: liver.vtu                       # state-vector models: the liver's tet mesh (mm, supports tagged),
                                           #   for the pre-operative stiffness probe, or
-    probe_compliance_mm_per_n: [[..], [..], [..]]   # the probe's compliance itself (local frame)
+    probe_compliance_mm_per_n: [[..], [..], [..]]   # the probe's compliance itself, in the local frame (t1, t2, n)
+                                          #   the model computes in RAS mm (the given frame, converted)
     units: mm                             # mm (default), cm or m: scales every point and the inertia
     input_frame: RAS                      # the frame of every point here: RAS (default), LPS, a 4x4 (file mm to
                                           #   RAS mm), or the liver's import record geometry/imp-<name>.json
                                           #   (its units and frame; liverforce.serve.input_frame)
+
+``liverforce predict`` reads its point file and ``--tool-tip`` in the same
+``units`` and ``input_frame`` (its ``--units`` and ``--frame`` override both).
 """
 
 from __future__ import annotations
@@ -215,13 +220,14 @@ def read_surface(path: str | Path, units: str | None = "mm") -> tuple[np.ndarray
         raise PredictionInputError(f"{path}: meshio cannot read this file (exit {exc.code})") from None
     except Exception as exc:  # noqa: BLE001 - meshio raises many types; re-raised with the file named
         raise PredictionInputError(f"{path}: meshio cannot read this file ({type(exc).__name__}: {exc})") from exc
+    tets = [c.data for c in mesh.cells if c.type == "tetra"]
+    if tets:  # a volume mesh's surface is its tets' boundary: triangle cells beside them (Gmsh physical groups,
+        # tagged supports) may cover only part of it
+        pts = np.asarray(mesh.points, dtype=np.float64)[:, :3]
+        return pts * scale, tet_boundary(np.vstack(tets), pts)
     tris = [c.data for c in mesh.cells if c.type == "triangle"]
     if tris:
         return np.asarray(mesh.points, dtype=np.float64)[:, :3] * scale, np.vstack(tris).astype(np.int64)
-    tets = [c.data for c in mesh.cells if c.type == "tetra"]
-    if tets:
-        pts = np.asarray(mesh.points, dtype=np.float64)[:, :3]
-        return pts * scale, tet_boundary(np.vstack(tets), pts)
     raise PredictionInputError(f"{path}: no triangles or tetrahedra in this mesh")
 
 
@@ -354,18 +360,43 @@ def read_context(source: str | Path | dict, predictor, *, overrides: dict | None
     if "probe_compliance_mm_per_n" in doc:
         if "mesh" in doc:
             raise PredictionInputError("context: give either the tet 'mesh' or probe_compliance_mm_per_n, not both")
-        if fr.reflects:
-            raise PredictionInputError("context: probe_compliance_mm_per_n is in a local frame that a reflecting "
-                                       "input frame turns left-handed; give the liver's tet 'mesh' (--mesh) instead")
-        # local frame (t1, t2, n): a rigid change of the inputs' frame leaves it as is; m/N -> mm/N with units: m
+        # in the model's local frame (t1, t2, n) at the point: the one computed from the surface in RAS mm, or the
+        # given frame converted; only its units change (m/N -> mm/N with units: m)
         C = np.asarray(doc["probe_compliance_mm_per_n"], dtype=np.float64) * fr.scale
         preop = preop.with_compliance(C)
     elif "mesh" in doc and predictor.model.uses_state:
         from liverforce.serve.probe import with_probe
 
+        if doc.get("input_frame") is None:
+            _frame_must_be_said(rel(doc["mesh"]))
         preop = with_probe(preop, rel(doc["mesh"]), predictor.model.meta)
     predictor.check_preop(preop)
     return preop, fr
+
+
+def _frame_must_be_said(mesh: Path) -> None:
+    """Refuse inputs of unstated frame beside the mesh of a liver the geometry stage turned into RAS.
+
+    Such inputs may be in the liver file's own frame or already in RAS: near a surface that is roughly symmetric,
+    either can pass the mesh's checks and give a different force, so the frame has to be said."""
+    from liverforce.layout import surface_meta_of_mesh
+
+    try:
+        record = surface_meta_of_mesh(mesh)
+    except ValueError:  # not a file of the results layout: nothing recorded
+        return
+    if not record.is_file():
+        return
+    try:
+        conv = json.loads(record.read_text()).get("conversion") or {}
+        moved = not np.array_equal(np.asarray(conv.get("frame_matrix", np.eye(4)), dtype=np.float64), np.eye(4))
+    except (OSError, ValueError, TypeError, AttributeError):
+        return  # an unreadable record says nothing; the probe's own checks still apply
+    if moved:
+        raise PredictionInputError(
+            f"the mesh {mesh} is of a liver imported in another frame ({conv.get('summary', conv.get('frame'))}; "
+            f"{record}): say which frame these inputs are in, --frame {record} for the liver file's own frame and "
+            "units (input_frame: in a context file), or --frame RAS for inputs already in the mesh's RAS mm")
 
 
 # --------------------------------------------------------------------------- atomic writes

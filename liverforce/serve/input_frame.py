@@ -46,6 +46,8 @@ UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
 
 def unit_scale(units: str | None) -> float:
     """Millimetres per unit (``mm``, ``cm``, ``m``)."""
+    if units is not None and not isinstance(units, str):
+        raise PredictionInputError(f"units {units!r}: use one of {sorted(UNITS_MM)} (the model works in mm)")
     u = (units or "mm").strip().lower()
     if u not in UNITS_MM:
         raise PredictionInputError(f"units '{units}': use one of {sorted(UNITS_MM)} (the model works in mm)")
@@ -109,11 +111,12 @@ class InputFrame:
         if not np.allclose(sv, 1.0, atol=1e-6):
             raise PredictionInputError(
                 f"input frame{'' if source is None else ' ' + source}: the 3x3 part scales or shears (singular values "
-                f"{np.round(sv, 6).tolist()}), so the force has no frame to be given back in; give the rigid part "
-                "(a rotation, possibly with a reflection) and state the inputs' units with --units (mm, cm, m)")
+                f"{np.round(sv, 6).tolist()}), so the force has no frame to be given back in; give a rigid map (a "
+                "rotation, possibly with a reflection, and a shift) with the inputs' units (mm, cm, m) stated apart, "
+                "or convert the inputs to RAS mm yourself")
         if scale_units is None:
-            u = (units or "mm").strip().lower()
-            scale_units = (unit_scale(u), u)
+            scale = unit_scale(units)  # refuses anything but mm, cm, m
+            scale_units = (scale, (units or "mm").strip().lower())
         return cls(scale=scale_units[0], units=scale_units[1], label=label, matrix=m, source=source)
 
     # -- properties ----------------------------------------------------------
@@ -144,7 +147,12 @@ class InputFrame:
 
     def points(self, xyz) -> np.ndarray:
         """Points ``(n, 3)`` or one ``(3,)`` in the inputs' units and frame -> model frame, mm."""
-        x = np.asarray(xyz, dtype=np.float64) * self.scale
+        try:
+            x = np.asarray(xyz, dtype=np.float64) * self.scale
+        except (TypeError, ValueError) as exc:
+            raise PredictionInputError(f"points: expected numbers x, y, z ({exc})") from None
+        if x.ndim not in (1, 2) or x.shape[-1] != 3:
+            raise PredictionInputError(f"points: expected one (3,) point or (n, 3) points, got shape {x.shape}")
         return x if self.label == "RAS" and not self.t.any() else x @ self.A.T + self.t
 
     def surface(self, points, triangles) -> tuple[np.ndarray, np.ndarray]:
@@ -160,8 +168,12 @@ class InputFrame:
         return float(value) * self.scale
 
     def inertia(self, J) -> np.ndarray:
-        """A second moment of volume (mm^5 once scaled) -> model frame: ``s^5 A J A^T``."""
-        return self.A @ (np.asarray(J, dtype=np.float64) * self.scale**5) @ self.A.T
+        """A second moment of volume (3 x 3 or 9 numbers; mm^5 once scaled) -> model frame: ``s^5 A J A^T``."""
+        try:
+            J = np.asarray(J, dtype=np.float64).reshape(3, 3)
+        except (TypeError, ValueError) as exc:
+            raise PredictionInputError(f"inertia_mm5: expected a 3 x 3 matrix (or 9 numbers) ({exc})") from None
+        return self.A @ (J * self.scale**5) @ self.A.T
 
     # -- results back to the inputs' frame ------------------------------------------
 
@@ -180,7 +192,8 @@ class InputFrame:
                                                       "singular_values": [1.0, 1.0, 1.0]})
         fr = fr.replace("file mm", "input mm").replace("; winding kept", "")
         src = "" if self.source is None else f" (from {self.source})"
-        units = self.units if self.scale == 1.0 else f"{self.units} (x{self.scale:g} to mm)"
+        name = "file units" if self.units.startswith("x") else self.units  # a record's mm per file unit: "x40"
+        units = name if self.scale == 1.0 else f"{name} (x{self.scale:g} to mm)"
         back = "" if self.same_axes else "; the force and the interval's axes are given back in the inputs' frame"
         return f"inputs in {units}, {fr}{src}{back}"
 
@@ -205,20 +218,39 @@ def _read_frame_file(path: Path) -> tuple[object, str | None, float | None]:
         raise PredictionInputError(f"input frame {path}: cannot read it ({type(exc).__name__}: {exc}); "
                                    f"{_HINT}") from None
     if isinstance(doc, dict) and "conversion" in doc:  # an import record of the geometry stage
-        conv = doc["conversion"] or {}
-        if not {"frame_matrix", "units", "scale_to_mm"} <= set(conv):
-            raise PredictionInputError(f"input frame {path}: the record's conversion lacks frame_matrix, units or "
-                                       "scale_to_mm; run the geometry stage again to rewrite it")
-        m, name = conv["frame_matrix"], str(conv.get("frame", "")).upper()
-        if name in _NAMED and np.array_equal(np.asarray(m, dtype=np.float64), np.block(
-                [[_NAMED[name], np.zeros((3, 1))], [np.zeros((1, 3)), np.ones((1, 1))]])):
-            m = name  # stated by name: said by name
-        return m, str(conv["units"]), float(conv["scale_to_mm"])
+        return _record_frame(doc, path)
     if isinstance(doc, dict) and "frame" in doc and "spec" in doc:  # a procedural liver's record: RAS mm
         return "RAS", "mm", 1.0
     if isinstance(doc, dict) and "matrix" in doc:
         u = doc.get("units")
-        return doc["matrix"], u, (None if u is None else unit_scale(u))
+        return doc["matrix"], (None if u is None else str(u)), (None if u is None else unit_scale(u))
     if isinstance(doc, (list, str)):
         return doc, None, None
     raise PredictionInputError(f"input frame {path}: neither a 4x4 matrix nor an import record; {_HINT}")
+
+
+def _record_frame(doc: dict, path: Path) -> tuple[object, str, float]:
+    """Frame, units and mm per unit of the geometry stage's record ``geometry/imp-<name>.json``."""
+    conv = doc["conversion"]
+    redo = "run the geometry stage again to rewrite it, or give --frame RAS/LPS or a 4x4 with --units"
+    if not isinstance(conv, dict) or not {"frame_matrix", "units", "scale_to_mm"} <= set(conv):
+        raise PredictionInputError(f"input frame {path}: the record's conversion lacks frame_matrix, units or "
+                                   f"scale_to_mm; {redo}")
+    if "label volume" in str(conv.get("summary", "")):
+        raise PredictionInputError(
+            f"input frame {path}: this liver came from a label volume, whose image header set its frame on reading "
+            "(NRRD and DICOM world coordinates are LPS, NIfTI's RAS); the record cannot say which your points are "
+            "in: give --frame LPS or --frame RAS (and --units) for them")
+    try:
+        m = np.asarray(conv["frame_matrix"], dtype=np.float64)
+        scale = float(conv["scale_to_mm"])
+    except (TypeError, ValueError) as exc:
+        raise PredictionInputError(f"input frame {path}: the record's conversion is malformed ({exc}); "
+                                   f"{redo}") from None
+    if m.shape != (4, 4) or not np.isfinite(scale) or scale <= 0:
+        raise PredictionInputError(f"input frame {path}: the record's frame_matrix has shape {m.shape} and its "
+                                   f"scale_to_mm is {scale!r}; {redo}")
+    name = str(conv.get("frame", "")).upper()
+    if name in _NAMED and np.array_equal(m[:3, :3], _NAMED[name]) and not m[:3, 3].any():
+        return name, str(conv["units"]), scale  # stated by name: said by name
+    return m.tolist(), str(conv["units"]), scale

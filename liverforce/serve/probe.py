@@ -94,8 +94,13 @@ def with_probe(preop: Preop, mesh, meta: dict, supports: dict | None = None) -> 
     The mesh must be in the same frame and units (mm) as the context: the
     exertion point must lie on its surface.
     """
+    from liverforce.mesh.supports import closest_on_triangles
+
     probe = LiverProbe(mesh, probe_settings(meta), supports)
-    d = float(np.linalg.norm(probe.surf.points - preop.exertion_point_mm, axis=1).min())
+    # to the surface's triangles, not its vertices: on a coarse mesh an exertion point (a P2 node, or a point the
+    # user gave) lies far from every vertex while on the surface
+    _, dist, _ = closest_on_triangles(probe.surf.points[probe.surf.triangles], preop.exertion_point_mm[None])
+    d = float(dist[0])
     if d > 5.0:
         raise PredictionInputError(f"the exertion point is {d:.1f} mm from the mesh's surface: the mesh and the "
                                    "context must be the same liver, in the same frame and in mm (the mesh stage's "

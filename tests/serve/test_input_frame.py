@@ -195,3 +195,49 @@ def test_the_geometry_stages_record_maps_the_files_points_onto_the_meshed_liver(
     make_geometry({"kind": "procedural", "seed": 0}, tmp_path / "out" / "proc-0000.ply",
                   tmp_path / "out" / "proc-0000.json")
     assert InputFrame.resolve(tmp_path / "out" / "proc-0000.json").identity
+
+
+def test_bad_frames_and_context_values_are_refused_by_name_not_by_traceback(trained, test_cases, tmp_path, capsys,
+                                                                         monkeypatch):
+    model = trained("disp")
+    pred = Predictor.load(model)
+    ctx = Preop.from_arrays(test_cases, 2)
+    good = {"conversion": {"units": "m", "scale_to_mm": 1000.0, "frame": "LPS",
+                           "frame_matrix": np.diag([-1.0, -1.0, 1.0, 1.0]).tolist()}}
+    bad_records = {
+        "null_scale": {"conversion": {**good["conversion"], "scale_to_mm": None}},
+        "not_a_dict": {"conversion": 5},
+        "ragged": {"conversion": {**good["conversion"], "frame": "matrix", "frame_matrix": [[1, 0], [0, 1, 0, 0]]}},
+        "label_volume": {"conversion": {**good["conversion"], "summary": (
+            "units mm (x1 to mm); frame RAS: ...; label volume: header frame converted to RAS first")}},
+    }
+    for name, rec in bad_records.items():
+        (tmp_path / f"{name}.json").write_text(json.dumps(rec))
+        with pytest.raises(PredictionInputError, match="label volume.*--frame LPS" if name == "label_volume"
+                           else "geometry stage again"):
+            InputFrame.resolve(tmp_path / f"{name}.json")
+    (tmp_path / "num.yaml").write_text(f"matrix: {np.eye(4).tolist()}\nunits: 1000\n")
+    with pytest.raises(PredictionInputError, match="units 1000"):
+        InputFrame.resolve(tmp_path / "num.yaml")
+    doc = context_doc(ctx, "roi.npy")
+    np.save(tmp_path / "roi.npy", ctx.roi_undeformed_mm)
+    flat = {**doc, "inertia_mm5": np.ravel(doc["inertia_mm5"]).tolist()}  # 9 numbers, as Preop takes them
+    np.testing.assert_allclose(read_context(flat | {"roi_undeformed": ctx.roi_undeformed_mm.tolist()}, pred)[0]
+                               .inertia_mm5, ctx.inertia_mm5)
+    for key, value in [("exertion_point_mm", [1.0, 2.0]), ("inertia_mm5", [1.0, 2.0, 3.0]), ("units", 40)]:
+        with pytest.raises(PredictionInputError, match=key.split("_")[0] if key != "exertion_point_mm" else "point"):
+            read_context({**doc, "roi_undeformed": ctx.roi_undeformed_mm.tolist(), "input_frame": "LPS",
+                          key: value}, pred)
+    # a relative --frame is taken from the working directory, a context file's own paths from its folder
+    (tmp_path / "lab").mkdir()
+    (tmp_path / "lab" / "ctx.json").write_text(json.dumps({**doc, "roi_undeformed": "../roi.npy"}))
+    np.save(tmp_path / "nodes.npy", np.asarray(test_cases["roi_deformed_mm"][2]))
+    (tmp_path / "rec.json").write_text(json.dumps({"conversion": {**good["conversion"], "units": "mm",
+                                                                  "scale_to_mm": 1.0, "frame": "RAS",
+                                                                  "frame_matrix": np.eye(4).tolist()}}))
+    monkeypatch.chdir(tmp_path)
+    rc, out, err = run(["-m", model, "nodes.npy", "--mode", "nodes", "--context", "lab/ctx.json", "--frame",
+                        "rec.json"], capsys)
+    assert rc == 0, err
+    np.testing.assert_allclose(json.loads(out)["force_n"], pred.predict(test_cases["roi_deformed_mm"][2], ctx),
+                               atol=1e-9)
