@@ -39,7 +39,8 @@ from pathlib import Path
 
 __all__ = [
     "Layout", "experiment_name", "shard_id", "case_id", "scenario_of_case", "gid_of", "scenario_of_manifest",
-    "model_of_metrics", "features_of_mesh", "surface_meta_of", "progress_of_shard", "study_picture_of",
+    "model_of_metrics", "features_of_mesh", "surface_meta_of", "surface_meta_of_mesh", "progress_of_shard",
+    "study_picture_of",
     "physics_variant_files",
 ]
 
@@ -190,8 +191,11 @@ def surface_meta_of(surface_path: str | Path) -> Path:
 
 
 def surface_meta_of_mesh(mesh_path: str | Path) -> Path:
-    """The geometry stage's record of a mesh's liver (``<root>/geometry/<gid>.json`` for ``<root>/mesh/<gid>.vtu``)."""
-    p = Path(mesh_path)
+    """The geometry stage's record of a mesh's liver (``<root>/geometry/<gid>.json`` for ``<root>/mesh/<gid>.vtu``);
+    ``ValueError`` for a file outside a results layout's ``mesh/`` folder."""
+    p = Path(mesh_path).resolve()
+    if p.parent.name != "mesh":
+        raise ValueError(f"{mesh_path}: not in a results layout's mesh/ folder")
     return Path(Layout(p.parent.parent).surface_meta(gid_of(p)))
 
 

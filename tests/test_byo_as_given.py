@@ -286,6 +286,7 @@ def test_serving_takes_the_labs_points_in_the_files_frame_through_the_livers_rec
     results folder beside its geometry record: with the record as the input frame, the context is the RAS one and
     the probe runs; without a stated frame it is refused, naming the record (LPS points near a roughly symmetric
     liver could pass the mesh's checks and give another force)."""
+    import json
     import shutil
     from types import SimpleNamespace
 
@@ -329,3 +330,18 @@ def test_serving_takes_the_labs_points_in_the_files_frame_through_the_livers_rec
     np.testing.assert_allclose(preop.exertion_point_mm, p, atol=1e-9)
     np.testing.assert_allclose(preop.frame, frame, atol=1e-9)  # the local frame of the RAS liver (not turned)
     np.testing.assert_allclose(preop.probe_compliance_mm_per_n, C, rtol=1e-9)
+    # inputs already in the mesh's RAS mm pass once said so, and give the same context
+    ras = {**doc, "surface": str(root / "mesh" / "imp-lab.vtu"), "exertion_point_mm": p.tolist()}
+    with pytest.raises(PredictionInputError, match="--frame RAS for inputs already in the mesh's RAS mm"):
+        read_context(ras, pred)
+    preop_ras, _ = read_context({**ras, "input_frame": "RAS"}, pred)
+    np.testing.assert_allclose(preop_ras.probe_compliance_mm_per_n, C, rtol=1e-9)
+    # a liver segmented from a label volume: its record's frame is the header's, so the inputs' must be said
+    record = json.loads((root / "geometry" / "imp-lab.json").read_text())
+    (root / "geometry" / "imp-lab.json").write_text(json.dumps({**record, "label": 1, "conversion": {
+        **record["conversion"], "frame": "RAS", "frame_matrix": np.eye(4).tolist()}}))
+    with pytest.raises(PredictionInputError, match="label volume.*--frame LPS"):
+        read_context(ras, pred)
+    with pytest.raises(PredictionInputError, match="label volume.*--frame LPS"):
+        read_context({**ras, "input_frame": str(root / "geometry" / "imp-lab.json")}, pred)
+    assert read_context({**ras, "input_frame": "RAS"}, pred)[1].identity

@@ -32,7 +32,8 @@ Context files (``load_context``): JSON or YAML with
     probe_compliance_mm_per_n: [[..], [..], [..]]   # the probe's compliance itself, in the local frame (t1, t2, n)
                                           #   the model computes in RAS mm (the given frame, converted)
     units: mm                             # mm (default), cm or m: scales every point and the inertia
-    input_frame: RAS                      # the frame of every point here: RAS (default), LPS, a 4x4 (file mm to
+    input_frame: RAS                      # the frame of every point here: RAS (default; to be said beside the mesh
+                                          #   of a liver imported in another frame), LPS, a 4x4 (file mm to
                                           #   RAS mm), or the liver's import record geometry/imp-<name>.json
                                           #   (its units and frame; liverforce.serve.input_frame)
 
@@ -298,7 +299,8 @@ def read_context(source: str | Path | dict, predictor, *, overrides: dict | None
     Every point of the context (and of the file it is read from) is in ``units`` and in ``input_frame`` (RAS,
     LPS, a 4x4, a file of one, or the liver's import record ``results/<exp>/geometry/imp-<name>.json``; default
     RAS); the :class:`Preop` is in the model's frame, RAS mm. The tet ``mesh`` is the mesh stage's copy,
-    already in RAS mm.
+    already in RAS mm; beside the mesh of a liver imported in another frame or segmented from a label volume,
+    ``input_frame`` must be given (``RAS`` for inputs already in RAS mm): the record beside the mesh says so.
     """
     if isinstance(source, dict):
         doc, base = dict(source), Path.cwd()
@@ -315,6 +317,8 @@ def read_context(source: str | Path | dict, predictor, *, overrides: dict | None
         raise PredictionInputError(f"context: unknown keys {sorted(unknown)}; known: {sorted(CONTEXT_KEYS)}")
     if "exertion_point_mm" not in doc:
         raise PredictionInputError("context: exertion_point_mm is required (the tool contact point, mm)")
+    if "mesh" in doc and doc.get("input_frame") is None:
+        _frame_must_be_said(base / doc["mesh"] if not Path(doc["mesh"]).is_absolute() else Path(doc["mesh"]))
     fr = InputFrame.resolve(doc.get("input_frame"), doc.get("units"), base=base)
     point = fr.points(doc["exertion_point_mm"])
     material = doc.get("material_params_mpa")
@@ -367,8 +371,6 @@ def read_context(source: str | Path | dict, predictor, *, overrides: dict | None
     elif "mesh" in doc and predictor.model.uses_state:
         from liverforce.serve.probe import with_probe
 
-        if doc.get("input_frame") is None:
-            _frame_must_be_said(rel(doc["mesh"]))
         preop = with_probe(preop, rel(doc["mesh"]), predictor.model.meta)
     predictor.check_preop(preop)
     return preop, fr
@@ -388,10 +390,16 @@ def _frame_must_be_said(mesh: Path) -> None:
     if not record.is_file():
         return
     try:
-        conv = json.loads(record.read_text()).get("conversion") or {}
+        meta = json.loads(record.read_text())
+        conv = meta.get("conversion") or {}
         moved = not np.array_equal(np.asarray(conv.get("frame_matrix", np.eye(4)), dtype=np.float64), np.eye(4))
     except (OSError, ValueError, TypeError, AttributeError):
         return  # an unreadable record says nothing; the probe's own checks still apply
+    if meta.get("label") is not None:  # from a label volume: its header set the frame when it was read
+        raise PredictionInputError(
+            f"the mesh {mesh} is of a liver segmented from a label volume ({record}), whose image header set its "
+            "frame: say which frame these inputs are in, --frame LPS (NRRD and DICOM world coordinates) or --frame "
+            "RAS (NIfTI, or inputs already in the mesh's RAS mm), with --units")
     if moved:
         raise PredictionInputError(
             f"the mesh {mesh} is of a liver imported in another frame ({conv.get('summary', conv.get('frame'))}; "

@@ -236,7 +236,7 @@ def _record_frame(doc: dict, path: Path) -> tuple[object, str, float]:
     if not isinstance(conv, dict) or not {"frame_matrix", "units", "scale_to_mm"} <= set(conv):
         raise PredictionInputError(f"input frame {path}: the record's conversion lacks frame_matrix, units or "
                                    f"scale_to_mm; {redo}")
-    if "label volume" in str(conv.get("summary", "")):
+    if doc.get("label") is not None:  # the label of a label volume the surface was extracted from
         raise PredictionInputError(
             f"input frame {path}: this liver came from a label volume, whose image header set its frame on reading "
             "(NRRD and DICOM world coordinates are LPS, NIfTI's RAS); the record cannot say which your points are "

@@ -208,7 +208,7 @@ def test_bad_frames_and_context_values_are_refused_by_name_not_by_traceback(trai
         "null_scale": {"conversion": {**good["conversion"], "scale_to_mm": None}},
         "not_a_dict": {"conversion": 5},
         "ragged": {"conversion": {**good["conversion"], "frame": "matrix", "frame_matrix": [[1, 0], [0, 1, 0, 0]]}},
-        "label_volume": {"conversion": {**good["conversion"], "summary": (
+        "label_volume": {"label": 1, "conversion": {**good["conversion"], "summary": (
             "units mm (x1 to mm); frame RAS: ...; label volume: header frame converted to RAS first")}},
     }
     for name, rec in bad_records.items():
