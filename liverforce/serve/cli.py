@@ -2,16 +2,16 @@
 
 Examples
 --------
-liverforce predict -m results/exp/models/II-pca/model cloud.ply --context ctx.yaml
+liverforce predict -m results/exp/models/II/pca_sv/model cloud.ply --context ctx.yaml
 liverforce predict -m runs:/<run_id>/model nodes.npy --mode nodes --context ctx.json --out force.json
 liverforce predict -m <run_id> cloud.csv --surface liver.stl --exertion-point 12 -40 88 --material 0.0016 0.0125
-liverforce predict -m results/default/models/IV-cloud_sv/model cloud.ply --surface liver.stl --mesh liver.vtu \
+liverforce predict -m results/default/models/IV/cloud_sv/model cloud.ply --surface liver.stl --mesh liver.vtu \
     --exertion-point 12 -40 88 --material 0.0016 0.0125 --tool-tip 11.2 -41.0 84.5   # camera-cloud model
 liverforce predict -m my-registered-model --shards results/exp/shards/II --out preds.parquet
-liverforce predict -m results/exp/models/II-pca/model --describe
+liverforce predict -m results/exp/models/II/pca_sv/model --describe
 liverforce predict -m results/lab/models/IV/cloud_sv/model cloud_lps_m.ply --frame results/lab/geometry/imp-lab01.json \
     --surface lab01_lps_m.stl --mesh results/lab/mesh/imp-lab01.vtu --exertion-point -0.031 0.024 0.029 \
-    --material 0.0025 --tool-tip -0.0305 0.0236 0.0262   # a lab's liver imported from LPS metres: inputs as it was
+    --material 0.0016 0.0125 0.0053 --tool-tip -0.0305 0.0236 0.0262   # a liver imported from LPS metres
 
 Modes for the point-cloud file: ``cloud`` (default) an unordered observed
 cloud; ``nodes`` the deformed ROI nodes in the context's ROI order; ``surface``
@@ -19,10 +19,10 @@ the deformed positions of every vertex of the context's surface file. Exit
 codes: 0 done, 2 input refused (the message says why).
 
 Point inputs are in the model's frame (RAS mm) unless ``--units`` and
-``--frame`` say otherwise (:mod:`liverforce.serve.input_frame`): then they are
-converted to it, the output's ``input_frame`` says how, and ``force_n`` and the
-interval's ``frame`` rows are given back in the inputs' frame (``force_n_model``:
-the force in RAS).
+``--frame`` (or the context's ``units`` and ``input_frame``) say otherwise
+(:mod:`liverforce.serve.input_frame`): then they are converted to it, the
+output's ``input_frame`` says how, and ``force_n`` and the interval's ``frame``
+rows are given back in the inputs' frame (``force_n_model``: the force in RAS).
 
 Wire into the main parser with ``liverforce.serve.cli.register(sub, fetch=...)``:
 ``fetch(ref, dst_dir, tracking_uri=...)`` downloads a model given by reference into
@@ -73,10 +73,12 @@ def register(subparsers, *, fetch: Callable[..., str | Path] | None = None) -> a
     p.add_argument("--exertion-point", nargs=3, type=float, metavar=("X", "Y", "Z"),
                    help="tool contact point (--units and --frame apply)")
     p.add_argument("--tool-tip", nargs=3, type=float, metavar=("X", "Y", "Z"),
-                   help="the tool tip's position now (robot kinematics; --units apply): camera-cloud models need it")
+                   help="the tool tip's position now (robot kinematics; --units and --frame apply): camera-cloud "
+                        "models need it")
     p.add_argument("--material", nargs="+", type=float, metavar="MPA", help="material constants, MPa")
     p.add_argument("--units", choices=("mm", "cm", "m"),
-                   help="units of every point input, the context's too (default: the context's units, else mm)")
+                   help="units of every point input, the context's too (default: the context's units or the "
+                        "--frame record's, else mm)")
     p.add_argument("--frame", metavar="FRAME",
                    help="frame of every point input (cloud, surface, exertion point, tool tip, context): RAS "
                         "(default), LPS, a 4x4 file (.npy/.json/.yaml, file mm to RAS mm), or the liver's import "
@@ -162,8 +164,8 @@ def _run(args) -> int:
         info["warnings"] = predictor.context_warnings(preop)
     force_in = frame.vectors_out(force)
     doc = {"force_n": [float(v) for v in force_in], "magnitude_n": float(np.linalg.norm(force)),
-           "frame": ("liver (source) frame of the inputs" if frame.same_axes
-                     else f"the inputs' frame ({frame.label}; the model's is RAS)"),
+           "frame": ("liver (source) frame of the inputs" if frame.identity
+                     else f"the inputs' frame ({'a 4x4 matrix' if frame.label == 'matrix' else frame.label})"),
            "input_frame": frame.describe(), "model": predictor.source}
     if not frame.same_axes:
         doc["force_n_model"] = [float(v) for v in force]  # RAS, the frame the liver was meshed in

@@ -13,7 +13,7 @@ Surfaces (``read_surface``): ``.ply`` with faces, ``.npz`` with ``points`` and
 tetrahedral mesh gives its boundary triangles (its triangle cells, often only
 tagged parts of the boundary, are then ignored).
 
-Context files (``load_context``): JSON or YAML with
+Context files (``read_context`` / ``load_context``): JSON or YAML with
 
 .. code-block:: yaml
 
@@ -288,7 +288,8 @@ def load_context(source: str | Path | dict, predictor, *, overrides: dict | None
 
     Relative file paths in a file are taken relative to it. ``roi_fraction``
     and ``frame_radius_mm`` default to the model's (bundle meta or shipped
-    defaults). :func:`read_context` also returns the inputs' frame.
+    defaults). The context comes in the model's frame (RAS mm) whatever ``input_frame`` says; forces predicted
+    from it are in RAS: :func:`read_context` also returns the inputs' frame to give them back in.
     """
     return read_context(source, predictor, overrides=overrides)[0]
 

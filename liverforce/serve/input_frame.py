@@ -20,7 +20,7 @@ triangle winding back, as the geometry stage does.
 
 A frame is one of: ``RAS`` (the default: nothing changed), ``LPS`` (x and y
 negated), a 4x4 matrix (a list of 4 rows, or a ``.npy``/``.json``/``.yaml`` file
-holding one), or the liver's import record ``results/<exp>/geometry/imp-<name>.json``,
+holding one, or ``{matrix: [...], units: m}``), or the liver's import record ``results/<exp>/geometry/imp-<name>.json``,
 which applies that liver's own units and frame exactly as the geometry stage
 did (its units then need not be given again; other units are refused).
 """

@@ -236,7 +236,6 @@ def test_a_context_outside_the_training_range_comes_with_its_warning_on_every_pa
     assert batch.warnings[0] == info["warnings"] and batch.refused[1] is not None and batch.warnings[1] == []
 
 
-
 def test_cli_takes_a_labs_cloud_in_lps_metres_through_the_livers_import_record(served, tmp_path, capsys):
     """A lab's liver imported from LPS metres: its surface, camera cloud, exertion point and tool tip come in
     that frame and unit. With the geometry stage's record (``--frame .../imp-<name>.json``) they give the force
@@ -271,7 +270,7 @@ def test_cli_takes_a_labs_cloud_in_lps_metres_through_the_livers_import_record(s
               *ctx.exertion_point_mm, "--tool-tip", *tip)
     got = run(tmp_path / "lps_cloud.npy", "--context", tmp_path / "lps.json", "--exertion-point",
               *(ctx.exertion_point_mm * lps / 1000), "--tool-tip", *(tip * lps / 1000),
-              "--frame", tmp_path / "imp-lab.json")
+              "--frame", tmp_path / "imp-lab.json", "--out", tmp_path / "f.csv")
     want = Predictor.from_dir(path).predict_cloud(
         cloud, Preop.from_surface(V, T, ctx.exertion_point_mm, ctx.material_params_mpa).with_compliance(
             ctx.probe_compliance_mm_per_n), tool_tip_mm=tip)
@@ -279,6 +278,8 @@ def test_cli_takes_a_labs_cloud_in_lps_metres_through_the_livers_import_record(s
     np.testing.assert_allclose(got["force_n_model"], want, atol=1e-6)
     np.testing.assert_allclose(got["force_n"], want * lps, atol=1e-6)
     np.testing.assert_allclose(got["interval"]["frame"], np.asarray(ras["interval"]["frame"]) * lps, atol=1e-9)
+    np.testing.assert_allclose(got["interval"]["force_n"], want * lps, atol=1e-6)
+    np.testing.assert_allclose(np.loadtxt(tmp_path / "f.csv", delimiter=",", skiprows=1), want * lps, atol=1e-6)
     np.testing.assert_allclose(got["interval"]["half_width_local_n"], ras["interval"]["half_width_local_n"], rtol=1e-6)
     assert got["mode"] == "exact" and got["points_used"] == ras["points_used"]
     assert "frame LPS" in got["input_frame"] and "imp-lab.json" in got["input_frame"]
