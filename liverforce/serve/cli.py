@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 from functools import partial
 from pathlib import Path
@@ -92,6 +93,8 @@ def register(subparsers, *, fetch: Callable[..., str | Path] | None = None) -> a
     p.add_argument("--tracking-uri", help="MLflow tracking URI (default: MLFLOW_TRACKING_URI / MLflow's default)")
     p.add_argument("--describe", action="store_true", help="print what the model needs and how it was trained")
     p.set_defaults(func=cmd_predict, fetch_model=fetch)
+    # coordinates in metres are small: argparse (3.11) takes "-5e-05" for an option unless it knows the form
+    p._negative_number_matcher = re.compile(r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$")
     return p
 
 

@@ -213,3 +213,15 @@ def test_surface_files(tmp_path, ext, ellipsoid):
     np.testing.assert_allclose(i2, inertia, rtol=1e-6, atol=1e-6 * np.abs(inertia).max())
     p3, _ = read_surface(path, units="cm")
     np.testing.assert_allclose(p3, p2 * 10)
+
+
+def test_coordinates_in_scientific_notation_parse_as_numbers():
+    """Metres give small coordinates; a script prints them as -5e-05: they are numbers, not options."""
+    parser = argparse.ArgumentParser(prog="liverforce")
+    register(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(["predict", "-m", "model", "cloud.npy", "--exertion-point", "-5e-05", "0.02", "-1.5E-3",
+                              "--tool-tip", "-.5", "-2", "-3.", "--material", "-1e-3"])
+    assert args.exertion_point == [-5e-05, 0.02, -1.5e-3] and args.tool_tip == [-0.5, -2.0, -3.0]
+    assert args.material == [-1e-3]
+    with pytest.raises(SystemExit):  # a real unknown option is still refused
+        parser.parse_args(["predict", "-m", "model", "--exertion-pt", "1", "2", "3"])
