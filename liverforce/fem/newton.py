@@ -417,8 +417,8 @@ class DiscreteSystem:
             if stats["iters"] >= opt.max_total_iter:
                 raise _StepFailure("max_total_iter: the case's budget of Newton iterations (simulate.max_total_iter) "
                                    "is spent")
-            if time.perf_counter() - t_start > opt.time_limit_s:
-                raise _StepFailure(f"time limit reached at load fraction {lam:.4g}{_SAFETY_NET}")  # no number: opt may hold what is left
+            if time.perf_counter() - t_start > opt.time_limit_s:  # no number: opt may hold only what is left
+                raise _StepFailure(f"time limit reached at load fraction {lam:.4g}{_SAFETY_NET}")
             if norm > 1e8 * max(norm0, 1e-12 * ref):
                 raise _StepFailure(f"diverged at load fraction {lam:.4g} (residual grew {norm / norm0:.2g}x)")
             if refactor:

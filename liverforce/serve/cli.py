@@ -118,6 +118,7 @@ def cmd_predict(args) -> int:
 def _run(args) -> int:
     from liverforce.atomic import write_text_atomic
     from liverforce.serve.files import read_context, read_points
+    from liverforce.serve.input_frame import is_named
     from liverforce.serve.predictor import Predictor
 
     fetch_model = getattr(args, "fetch_model", None)
@@ -144,8 +145,7 @@ def _run(args) -> int:
     overrides = {"exertion_point_mm": args.exertion_point, "material_params_mpa": args.material, "units": args.units}
     # file paths given here are relative to the working directory (a context file's own are relative to it)
     if args.frame:
-        named = args.frame.strip().upper() in ("RAS", "LPS")
-        overrides["input_frame"] = args.frame if named else str(Path(args.frame).absolute())
+        overrides["input_frame"] = args.frame if is_named(args.frame) else str(Path(args.frame).absolute())
     if args.surface:
         overrides["surface"] = str(Path(args.surface).absolute())
     if args.mesh:

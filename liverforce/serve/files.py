@@ -390,22 +390,15 @@ def _frame_must_be_said(mesh: Path) -> None:
         return
     if not record.is_file():
         return
-    try:
-        meta = json.loads(record.read_text())
-        conv = meta.get("conversion") or {}
-        moved = not np.array_equal(np.asarray(conv.get("frame_matrix", np.eye(4)), dtype=np.float64), np.eye(4))
-    except (OSError, ValueError, TypeError, AttributeError):
-        return  # an unreadable record says nothing; the probe's own checks still apply
-    if meta.get("label") is not None:  # from a label volume: its header set the frame when it was read
+    try:  # the record read as an input frame: a label volume's is refused there (its header set the frame)
+        recorded = InputFrame.resolve(record)
+    except PredictionInputError as exc:
+        raise PredictionInputError(f"the mesh {mesh}: {exc}") from None
+    if not np.array_equal(recorded.matrix, np.eye(4)):
         raise PredictionInputError(
-            f"the mesh {mesh} is of a liver segmented from a label volume ({record}), whose image header set its "
-            "frame: say which frame these inputs are in, --frame LPS (NRRD and DICOM world coordinates) or --frame "
-            "RAS (NIfTI, or inputs already in the mesh's RAS mm), with --units")
-    if moved:
-        raise PredictionInputError(
-            f"the mesh {mesh} is of a liver imported in another frame ({conv.get('summary', conv.get('frame'))}; "
-            f"{record}): say which frame these inputs are in, --frame {record} for the liver file's own frame and "
-            "units (input_frame: in a context file), or --frame RAS for inputs already in the mesh's RAS mm")
+            f"the mesh {mesh} is of a liver imported in another frame ({recorded.describe()}): say which frame "
+            f"these inputs are in, --frame {record} for the liver file's own frame and units (input_frame: in a "
+            "context file), or --frame RAS for inputs already in the mesh's RAS mm")
 
 
 # --------------------------------------------------------------------------- atomic writes

@@ -35,7 +35,6 @@ import numpy as np
 
 from liverforce.serve.errors import PredictionInputError
 
-_NAMED = {"RAS": np.eye(3), "LPS": np.diag([-1.0, -1.0, 1.0])}  # as liverforce.geometry.frames.NAMED_FRAMES
 _HINT = ("use RAS, LPS, a 4x4 matrix (file mm to RAS mm; .npy, .json or .yaml) or the liver's import record "
          "results/<exp>/geometry/imp-<name>.json")
 
@@ -52,6 +51,11 @@ def unit_scale(units: str | None) -> float:
     if u not in UNITS_MM:
         raise PredictionInputError(f"units '{units}': use one of {sorted(UNITS_MM)} (the model works in mm)")
     return UNITS_MM[u]
+
+
+def is_named(frame) -> bool:
+    """True for a frame given by name (``RAS``, ``LPS``, any case), not by a matrix or a file."""
+    return isinstance(frame, (str, Path)) and str(frame).strip().upper() in ("RAS", "LPS")
 
 
 @dataclass(frozen=True)
@@ -81,7 +85,7 @@ class InputFrame:
             return frame
         source = None
         scale_units = None
-        if isinstance(frame, (str, Path)) and str(frame).strip().upper() not in ("RAS", "LPS"):
+        if isinstance(frame, (str, Path)) and not is_named(frame):
             path = Path(frame)
             if not path.is_absolute() and base is not None:
                 path = base / path
@@ -94,18 +98,13 @@ class InputFrame:
                         f"said to be in {units}: drop the units (the record sets them) or convert the inputs to "
                         f"{rec_units}")
                 scale_units = (rec_scale, rec_units)
-        if frame is None or (isinstance(frame, str) and frame.strip().upper() in _NAMED):
-            label = "RAS" if frame is None else frame.strip().upper()
-            m = np.eye(4)
-            m[:3, :3] = _NAMED[label]
-        else:
-            from liverforce.geometry.errors import GeometryError
-            from liverforce.geometry.frames import frame_matrix
+        from liverforce.geometry.errors import GeometryError
+        from liverforce.geometry.frames import frame_matrix
 
-            try:
-                m, label = frame_matrix(frame, source)
-            except GeometryError as exc:
-                raise PredictionInputError(f"input frame: {exc}") from None
+        try:
+            m, label = frame_matrix(frame, source)  # the geometry stage's own reading of a frame
+        except GeometryError as exc:
+            raise PredictionInputError(f"input frame: {exc}") from None
         A = m[:3, :3]
         sv = np.linalg.svd(A, compute_uv=False)
         if not np.allclose(sv, 1.0, atol=1e-6):
@@ -250,7 +249,10 @@ def _record_frame(doc: dict, path: Path) -> tuple[object, str, float]:
     if m.shape != (4, 4) or not np.isfinite(scale) or scale <= 0:
         raise PredictionInputError(f"input frame {path}: the record's frame_matrix has shape {m.shape} and its "
                                    f"scale_to_mm is {scale!r}; {redo}")
-    name = str(conv.get("frame", "")).upper()
-    if name in _NAMED and np.array_equal(m[:3, :3], _NAMED[name]) and not m[:3, 3].any():
-        return name, str(conv["units"]), scale  # stated by name: said by name
+    name = str(conv.get("frame", ""))
+    if is_named(name):
+        from liverforce.geometry.frames import frame_matrix
+
+        if np.array_equal(m, frame_matrix(name)[0]):
+            return name.upper(), str(conv["units"]), scale  # stated by name: said by name
     return m.tolist(), str(conv["units"]), scale
