@@ -69,6 +69,7 @@ def test_bad_override_stops_before_any_job(tmp_path):
     assert not (tmp_path / "results").exists()
 
 
+@pytest.mark.slow  # meshes a real liver through snakemake (~18 s); tests/test_byo_as_given.py covers the import
 def test_imported_liver_runs_through_geometry_and_mesh_rules(tmp_path, shared_livers):
     src = shared_livers / "liver-smooth.obj"
     override = f"overrides=geometry.imported=[{{name:sofa,path:{src},units:'40'}}]"

@@ -90,6 +90,7 @@ def test_every_rule_that_runs_declares_threads_memory_and_runtime():
 
 
 @pytest.mark.workflow
+@pytest.mark.slow  # a dry run of the whole default DAG through the profile (~35 s under CI load)
 def test_dry_run_through_the_profile_gives_every_job_its_resources(tmp_path):
     out = snakemake("-n", "--profile", str(PROFILE), "--directory", str(tmp_path),
                     "--config", "experiment=default")

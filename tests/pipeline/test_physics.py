@@ -109,6 +109,7 @@ def study(setup):
                          setup["tmp"] / "physics")
 
 
+@pytest.mark.slow  # the study's FE setup (~20 s): CI runs it with -m slow
 def test_the_study_moves_the_tool_displacement_the_way_the_supports_do(study, setup):
     by = {v["name"]: v for v in study["variants"]}
     assert list(by) == [BASELINE, "foundation x0.25", "foundation x4", "kt/kn 0.1", "rib unilateral", "rib off",
@@ -130,6 +131,7 @@ def test_the_study_moves_the_tool_displacement_the_way_the_supports_do(study, se
     assert json.loads((setup["tmp"] / "physics.json").read_text()) == json.loads(json.dumps(study))
 
 
+@pytest.mark.slow  # the study's FE setup (~20 s): CI runs it with -m slow
 def test_the_models_are_scored_on_the_changed_cases_with_the_baseline_probe(study, setup):
     """Every shard holds the same cases; a changed choice keeps the baseline's stiffness probe (the model's
     assumption) while its displacements differ."""
@@ -147,6 +149,7 @@ def test_the_models_are_scored_on_the_changed_cases_with_the_baseline_probe(stud
     assert b"foundation x0.25" in b"".join(meta.values())
 
 
+@pytest.mark.slow  # the study's FE setup (~20 s): CI runs it with -m slow
 def test_with_gravity_the_rows_hold_the_tools_increment_over_the_sag(setup):
     """simulate_cases with gravity: a zero-force case shows no displacement (the sagged state is the
     reference, as in the pre-operative image); with a force, the increment is close to the no-gravity
@@ -175,6 +178,7 @@ def test_with_gravity_the_rows_hold_the_tools_increment_over_the_sag(setup):
     assert 1e-4 < rel < 0.3
 
 
+@pytest.mark.slow  # the study's FE setup (~20 s): CI runs it with -m slow
 def test_the_report_shows_the_physics_table(study):
     from liverforce.report.html import physics_section
 
@@ -186,6 +190,7 @@ def test_the_report_shows_the_physics_table(study):
     assert physics_section(None, "pca_sv") == ""
 
 
+@pytest.mark.slow  # the study's FE setup (~20 s): CI runs it with -m slow
 def test_the_sphere_is_compared_with_the_traction_of_its_own_forces(setup):
     """The frictionless sphere exerts a force near the surface normal whatever the push direction; the study
     compares it with the traction carrying the very force vectors it exerted, on the first tool_cases cases."""

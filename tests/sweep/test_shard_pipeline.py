@@ -39,7 +39,8 @@ from liverforce.dataset import io as dio
 from liverforce.dataset.schema import NONDETERMINISTIC_COLUMNS, SCHEMA_VERSION, SHARD_SCHEMA
 from test_workflow import SNAKEMAKE, ROOT, job_counts, snakemake
 
-pytestmark = pytest.mark.workflow
+# every test here reads a real smoke sweep (run_a, ~25 s) and several run snakemake again: CI runs them with -m slow
+pytestmark = [pytest.mark.workflow, pytest.mark.slow]
 
 EXPERIMENT = "smoke"
 N_CASES, PER_SHARD = 6, 2
@@ -174,7 +175,6 @@ def test_round_trip_config_to_shards_to_dataset(run_a):
 # ------------------------------------------------------------- 2. determinism
 
 
-@pytest.mark.slow  # a second full sweep
 def test_same_config_gives_identical_payloads(run_a, run_b, tmp_path):
     assert payloads(run_a) == payloads(run_b)
     assert manifest(run_a)["data_version"] == manifest(run_b)["data_version"]
@@ -221,7 +221,6 @@ def _group_alive(pgid: int) -> bool:
     return True
 
 
-@pytest.mark.slow  # several killed and resumed sweeps (tests/faults has the whole-workflow kills, also slow)
 def test_kill_and_resume_redoes_only_missing_shards(run_a, tmp_path):
     work = copy_run(run_a, tmp_path / "killed")
     # keep geometry, mesh and case table; drop every shard (and their progress files)
