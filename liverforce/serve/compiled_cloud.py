@@ -90,6 +90,7 @@ from liverforce.serve.checks import Limits, TrainingScale, outside_training
 from liverforce.serve.cloud import camera_checks, tool_tip_of
 from liverforce.serve.compiled import numpy_layers, regressor_head
 from liverforce.serve.errors import PredictionInputError
+from liverforce.serve.input_frame import InputFrame
 from liverforce.serve.preop import Preop, _points
 
 _FILL_CODES = {"zero": 0, "laplace": 1, "nearest": 2}
@@ -543,7 +544,7 @@ def _check_size(n: int, what: str) -> None:
 class CloudBatch(NamedTuple):
     """What :meth:`CompiledCloud.predict_batch` returns (one entry per cloud).
 
-    force : (B, 3) N, liver frame; NaN for a refused cloud
+    force : (B, 3) N, liver frame (the inputs' frame when compiled with one); NaN for a refused cloud
     half_width : (B, 3) N in the local frame (the interval of each force; NaN for a refused cloud) or None
     warnings : list of lists of str (milder departures from training, as ``info["warnings"]``)
     refused : list of str or None: the reason a cloud was refused (the reference path's error message)
@@ -567,10 +568,18 @@ class CompiledCloud:
     warnings)`` and raises :class:`PredictionInputError` where the reference path refuses;
     ``predict_batch(clouds, tool_tips)`` returns a :class:`CloudBatch`. Build it with
     :meth:`liverforce.serve.Predictor.compile_cloud` (the context is checked there).
+
+    ``frame`` (an :class:`~liverforce.serve.input_frame.InputFrame`; default: RAS mm): the frame and units of the
+    clouds and tips of a lab's own liver. They are converted to the model's frame (RAS mm) on the way in, as
+    ``liverforce predict --frame`` converts them, and the forces are given back in the inputs' frame (the
+    half-widths are local: they have no global axes). The ``preop`` is in the model's frame
+    (:func:`~liverforce.serve.files.read_context` returns both).
     """
 
-    def __init__(self, model, preop: Preop, *, limits: Limits | None = None):
+    def __init__(self, model, preop: Preop, *, limits: Limits | None = None, frame: InputFrame | None = None):
         rep = model.representation
+        # clouds and tips in another frame or unit (a lab's own liver): converted on the way in, forces back out
+        self.frame = None if frame is None or frame.identity else frame
         if not rep.is_camera or not isinstance(model.pre.encoder, PCAEncoder):
             raise PredictionInputError("the compiled cloud path needs a camera-cloud model (roi_features: cloud) with "
                                        "the PCA encoder; use Predictor.predict_cloud")
@@ -790,8 +799,12 @@ class CompiledCloud:
 
     # -- public ------------------------------------------------------------------
 
+    def _cloud(self, cloud_mm) -> np.ndarray:
+        x = self._cloud_mm(cloud_mm)
+        return x if self.frame is None else np.ascontiguousarray(self.frame.points(x))
+
     @staticmethod
-    def _cloud(cloud_mm) -> np.ndarray:
+    def _cloud_mm(cloud_mm) -> np.ndarray:
         """The cloud as a C-contiguous float64 (n, 3) array, refused here only when not one (the reference
         path's message); an empty cloud or NaN / inf points are refused after the gridding pass counted them."""
         try:
@@ -803,9 +816,13 @@ class CompiledCloud:
         _check_size(len(x), f"cloud: {len(x)} points")
         return x if x.flags.c_contiguous else np.ascontiguousarray(x)
 
-    @staticmethod
-    def _tip(tool_tip_mm) -> np.ndarray:
-        return tool_tip_of(tool_tip_mm)
+    def _tip(self, tool_tip_mm) -> np.ndarray:
+        tip = tool_tip_of(tool_tip_mm)
+        return tip if self.frame is None else self.frame.points(tip)
+
+    def _out(self, F: np.ndarray) -> np.ndarray:
+        """Forces (model frame) -> the inputs' frame."""
+        return F if self.frame is None or self.frame.same_axes else self.frame.vectors_out(F)
 
     def _one(self, cloud_mm, tool_tip_mm):
         """Feature row, refusal reason and warnings of one cloud (the tip is checked first, as the reference does)."""
@@ -829,13 +846,14 @@ class CompiledCloud:
         return X[0]
 
     def predict(self, cloud_mm, tool_tip_mm) -> tuple[np.ndarray, np.ndarray | None, list[str]]:
-        """Force (3,) N in the liver frame, the interval's half-widths (3,) N (local frame) or None, warnings."""
+        """Force (3,) N in the liver frame (the inputs' frame when compiled with one), the interval's half-widths
+        (3,) N (local frame) or None, warnings."""
         X, why, warnings = self._one(cloud_mm, tool_tip_mm)
         if why is not None:
             raise PredictionInputError(why)
         F = self._head(X)
         half = self._half(F)
-        return F[0], None if half is None else half[0], warnings
+        return self._out(F[0]), None if half is None else half[0], warnings
 
     def predict_batch(self, clouds, tool_tips, counts=None) -> CloudBatch:
         """Forces of many clouds at this exertion point in one go (a :class:`CloudBatch`).
@@ -858,7 +876,32 @@ class CompiledCloud:
             tips = np.broadcast_to(tips, (B, 3))
         if tips.shape != (B, 3):
             raise PredictionInputError(f"tool_tips: need one (3,) tip per cloud ({B}), got shape {tips.shape}")
-        tips = np.ascontiguousarray(tips)
+        if self.frame is not None:  # a converted copy of every cloud (a list, read in place) and tip; forces back
+            if isinstance(clouds, np.ndarray) and clouds.ndim == 3:
+                if clouds.shape[2] != 3:
+                    raise PredictionInputError(f"clouds: expected (B, N, 3) points, got shape {clouds.shape}")
+                N = clouds.shape[1]
+                cnt = np.full(B, N, np.int64) if counts is None else np.asarray(counts, dtype=np.int64).reshape(-1)
+                if cnt.shape != (B,) or (cnt < 0).any() or (cnt > N).any():
+                    raise PredictionInputError(f"counts: need {B} counts in [0, {N}], got {counts!r}")
+                clouds = [clouds[b, :cnt[b]] for b in range(B)]
+            elif counts is not None:
+                raise PredictionInputError("counts: only with one padded (B, N, 3) array of clouds")
+            got = self._batch([self._converted(c) for c in clouds], np.ascontiguousarray(self.frame.points(tips)), None)
+            return got._replace(force=self._out(got.force))
+        return self._batch(clouds, np.ascontiguousarray(tips), counts)
+
+    def _converted(self, cloud):
+        """A cloud in the model's frame, or the cloud as given when it is not one (refused with its reason)."""
+        try:
+            x = self._cloud_mm(cloud)
+        except PredictionInputError:
+            return cloud
+        return np.ascontiguousarray(self.frame.points(x))
+
+    def _batch(self, clouds, tips: np.ndarray, counts) -> CloudBatch:
+        """:meth:`predict_batch` in the model's frame."""
+        B = len(clouds)
         if isinstance(clouds, np.ndarray) and clouds.ndim == 3:
             if clouds.shape[2] != 3:
                 raise PredictionInputError(f"clouds: expected (B, N, 3) points, got shape {clouds.shape}")
@@ -887,7 +930,7 @@ class CompiledCloud:
         arrays: list = [None] * B
         for i, c in enumerate(clouds):
             try:
-                arrays[i] = self._cloud(c)
+                arrays[i] = self._cloud_mm(c)  # (with an input frame, predict_batch converted them)
             except PredictionInputError as exc:  # the tip first, as the reference path checks it
                 refused[i], warnings[i] = self._tip_refusal(tips[i]) or str(exc), []
         good = [i for i in range(B) if arrays[i] is not None]

@@ -39,6 +39,17 @@ _HINT = ("use RAS, LPS, a 4x4 matrix (file mm to RAS mm; .npy, .json or .yaml) o
          "results/<exp>/geometry/imp-<name>.json")
 
 
+#: input-contract columns (:meth:`InputFrame.arrays`) that are points: one (3,) per case, or (ragged) a set per case
+POINT_KEYS = ("exertion_point_mm", "liver_centroid_mm", "roi_centroid_undeformed_mm", "roi_centroid_deformed_mm",
+              "tool_tip_mm", "roi_undeformed_mm", "roi_deformed_mm", "camera_cloud_mm")
+RAGGED_POINT_KEYS = ("roi_undeformed_mm", "roi_deformed_mm", "camera_cloud_mm")
+#: the local frame's axes (unit vectors, no translation)
+DIRECTION_KEYS = ("frame_normal", "frame_t1", "frame_t2")
+#: lengths (mm) and the probe's compliance (mm/N in the local frame, which moves with the liver): scaled only
+LENGTH_KEYS = ("tool_thickness_mm", "probe_compliance_mm_per_n")
+#: columns with no length or direction in them
+PASS_KEYS = ("material_params_mpa", "case_id", "geometry_id")
+
 #: length of one unit in mm
 UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
 
@@ -173,6 +184,48 @@ class InputFrame:
         except (TypeError, ValueError) as exc:
             raise PredictionInputError(f"inertia_mm5: expected a 3 x 3 matrix (or 9 numbers) ({exc})") from None
         return self.A @ (J * self.scale**5) @ self.A.T
+
+    def arrays(self, arrays: dict) -> dict:
+        """Input-contract arrays (one row per case, as the MLflow pyfunc and ``Predictor.predict_arrays`` take them)
+        in the inputs' units and frame -> model frame, mm.
+
+        Points (:data:`POINT_KEYS`) are mapped, the local frame's axes (:data:`DIRECTION_KEYS`) rotated, the inertia
+        turned and scaled (``s^5 A J A^T``), lengths and the probe's compliance (mm/N, in the local frame) scaled, the
+        ROI triangles' winding reversed under a reflection; the material and the ids pass as they are. A column this
+        does not know is refused (it cannot say how to convert it), and so is a given local frame under a
+        reflection (the axes would turn left-handed). Nothing is copied when nothing is converted.
+        """
+        if self.identity:
+            return arrays
+        unknown = sorted(set(arrays) - set(POINT_KEYS) - set(DIRECTION_KEYS) - set(LENGTH_KEYS) - set(PASS_KEYS)
+                         - {"inertia_mm5", "roi_triangles"})
+        if unknown:
+            raise PredictionInputError(f"input frame: cannot say how to convert {', '.join(unknown)} to the model's "
+                                       f"frame; {self.describe()}: give these columns in RAS mm, or leave them out")
+        if self.reflects and set(DIRECTION_KEYS) & set(arrays):
+            raise PredictionInputError(
+                "input frame: it reflects, which would turn the given local frame (frame_normal, frame_t1, frame_t2) "
+                "left-handed; give the inputs in RAS mm, or a frame without a reflection")
+        out = {}
+        for k, v in arrays.items():
+            if k in POINT_KEYS:
+                if k in RAGGED_POINT_KEYS:  # one (k_i, 3) point set per case
+                    out[k] = [self.points(np.asarray(a, dtype=np.float64).reshape(-1, 3)) for a in v]
+                else:
+                    out[k] = self.points(np.asarray(v, dtype=np.float64).reshape(-1, 3))
+            elif k in DIRECTION_KEYS:
+                out[k] = self.directions(np.asarray(v, dtype=np.float64).reshape(-1, 3))
+            elif k in LENGTH_KEYS:
+                out[k] = np.asarray(v, dtype=np.float64) * self.scale
+            elif k == "inertia_mm5":
+                J = np.asarray(v, dtype=np.float64)
+                out[k] = np.stack([self.inertia(j) for j in J.reshape(len(J), -1)]).reshape(J.shape)
+            elif k == "roi_triangles":
+                out[k] = [np.asarray(t, dtype=np.int64).reshape(-1, 3)[:, ::-1].copy() if self.reflects else t
+                          for t in v]
+            else:
+                out[k] = v
+        return out
 
     # -- results back to the inputs' frame ------------------------------------------
 

@@ -250,13 +250,17 @@ class Predictor:
         """``exact`` or ``approximate``: what :meth:`predict_cloud` can do for this model."""
         return cloud_support(self.model)
 
-    def compile_cloud(self, preop: Preop):
+    def compile_cloud(self, preop: Preop, frame=None):
         """The camera-cloud fast path for ``preop`` (:class:`liverforce.serve.compiled_cloud.CompiledCloud`;
-        the context is checked once here)."""
+        the context is checked once here). ``frame``: the clouds' and tips' frame and units (an
+        :class:`~liverforce.serve.input_frame.InputFrame`, or what :meth:`InputFrame.resolve` takes: ``"LPS"``, a
+        4x4, an import record); their forces come back in it. Default: RAS mm."""
         from liverforce.serve.compiled_cloud import CompiledCloud
+        from liverforce.serve.input_frame import InputFrame
 
         self.check_preop(preop)
-        return CompiledCloud(self.model, preop, limits=self.limits)
+        fr = None if frame is None else InputFrame.resolve(frame)
+        return CompiledCloud(self.model, preop, limits=self.limits, frame=fr)
 
     def compile(self, preop: Preop) -> CompiledROI:
         """The fixed-topology fast path for ``preop`` (checked once here)."""

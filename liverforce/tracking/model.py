@@ -20,6 +20,7 @@ tracking and receives the MLflow download as a ``fetch`` callable.
 
 from __future__ import annotations
 
+import json
 import re
 import tempfile
 from importlib.metadata import PackageNotFoundError, version
@@ -38,6 +39,7 @@ from mlflow.types import ColSpec, Schema
 
 from liverforce.learn.model import ForceModel
 from liverforce.serve.errors import PredictionInputError
+from liverforce.serve.input_frame import InputFrame, unit_scale
 from liverforce.serve.predictor import Predictor
 from liverforce.tracking.store import with_retry
 
@@ -101,24 +103,63 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
     and for a model with a calibrated interval also the local force
     ``ft1_n, ft2_n, fn_n`` and its interval half-widths ``ft1_half_n, ft2_half_n,
     fn_half_n`` (nominal coverage in the bundle's ``meta["interval"]``), and ``warnings``
-    (the case's geometric state outside the training range, ``"; "``-joined, ``""`` when none). Param ``observation_seed`` (int, -1 = none) draws the stochastic
-    observation model as in evaluation.
+    (the case's geometric state outside the training range, ``"; "``-joined, ``""`` when none).
+
+    Param ``observation_seed`` (int, -1 = none) draws the stochastic observation model as in evaluation.
+    Params ``input_frame`` and ``units`` (:func:`pyfunc_input_frame`; default ``""``: RAS, and mm unless the
+    frame's record or JSON says) give the inputs' frame and units: every column is converted to the model's
+    (RAS mm) as :meth:`~liverforce.serve.input_frame.InputFrame.arrays` does, and ``fx_n, fy_n, fz_n`` come back
+    in the inputs' frame (the local columns have no global axes). Models logged before these params existed
+    ignore them (MLflow drops params outside the signature with a warning): give such a model RAS mm.
     """
 
     def load_context(self, context) -> None:
         self.model = ForceModel.load(context.artifacts["force_model"])
 
     def predict(self, context, model_input: pd.DataFrame, params: dict | None = None) -> pd.DataFrame:
-        seed = int((params or {}).get("observation_seed", -1))
-        arrays = frame_to_arrays(pd.DataFrame(model_input))
+        params = params or {}
+        seed = int(params.get("observation_seed", -1))
         # the serving checks (shape, NaN/inf, units against the training scale, exertion point on the
         # surface) refuse bad rows with a PredictionInputError naming the row; then the reference path
         predictor = Predictor(self.model)
         try:
+            frame = pyfunc_input_frame(params.get("input_frame"), params.get("units"))
+            arrays = frame.arrays(frame_to_arrays(pd.DataFrame(model_input)))
             force = predictor.predict_arrays(arrays, observation_seed=None if seed < 0 else seed)
         except PredictionInputError as exc:
             raise PyfuncInputError(str(exc)) from exc
-        return _output_frame(self.model, arrays, force, None if seed < 0 else seed, predictor)
+        out = _output_frame(self.model, arrays, force, None if seed < 0 else seed, predictor)
+        if not frame.same_axes:  # the force back in the inputs' frame; the local columns have no global axes
+            out[list(OUTPUT_COLUMNS)] = frame.vectors_out(out[list(OUTPUT_COLUMNS)].to_numpy(dtype=np.float64))
+        return out
+
+
+def pyfunc_input_frame(input_frame: str | None, units: str | None) -> InputFrame:
+    """The :class:`~liverforce.serve.input_frame.InputFrame` of the pyfunc's params ``input_frame`` and ``units``.
+
+    ``input_frame``: ``""``/``RAS`` (the model's frame), ``LPS``, a 4x4 matrix as JSON (``[[...], ...]``, file mm
+    to RAS mm, or ``{"matrix": [...], "units": "m"}``), or the path of a geometry import record
+    ``results/<exp>/geometry/imp-<name>.json`` on the serving machine. ``units``: ``""``/``mm``, ``cm``, ``m``.
+    """
+    frame = (input_frame or "").strip() or None
+    units = (units or "").strip() or None
+    if frame is not None and frame[0] in "[{":
+        try:
+            doc = json.loads(frame)
+        except ValueError as exc:
+            raise PredictionInputError(f"input_frame: not valid JSON ({exc}); give RAS, LPS, a 4x4 matrix as JSON "
+                                       "or the path of an import record") from None
+        if isinstance(doc, dict):
+            if "matrix" not in doc:
+                raise PredictionInputError("input_frame: a JSON object needs 'matrix' (4x4, file mm to RAS mm) and "
+                                           "may give 'units'")
+            if doc.get("units") is not None:
+                if units is not None and unit_scale(units) != unit_scale(doc["units"]):
+                    raise PredictionInputError(f"input_frame says units {doc['units']!r}, the units param {units!r}")
+                units = str(doc["units"])
+            doc = doc["matrix"]
+        frame = doc
+    return InputFrame.resolve(frame, units)
 
 
 def _output_frame(model: ForceModel, arrays: dict, force: np.ndarray, seed: int | None,
@@ -201,7 +242,7 @@ def log_force_model(uri: str, run_id: str, model_dir: str | Path, example_arrays
     example = arrays_to_frame(example_arrays, keys)
     ex = frame_to_arrays(example)
     output = _output_frame(model, ex, model.predict(ex), None)
-    signature = infer_signature(example, output, params={"observation_seed": -1})
+    signature = infer_signature(example, output, params={"observation_seed": -1, "input_frame": "", "units": ""})
     # case_id only seeds the per-case observation noise: optional
     signature.inputs = Schema([
         ColSpec(c.type, c.name, required=c.name != "case_id") for c in signature.inputs.inputs
@@ -329,11 +370,14 @@ class MlflowPredictor(Predictor):
         return super().load(ref, fetch=fetch, **kw)
 
 
-def predict_pyfunc(pyfunc_model, arrays: dict, observation_seed: int | None = None) -> np.ndarray:
-    """Run a loaded pyfunc model on input-contract ``arrays``; returns ``(n, 3)`` N."""
+def predict_pyfunc(pyfunc_model, arrays: dict, observation_seed: int | None = None, *,
+                   input_frame: str = "", units: str = "") -> np.ndarray:
+    """Run a loaded pyfunc model on input-contract ``arrays`` (in ``units`` and ``input_frame``: the pyfunc's
+    params, :func:`pyfunc_input_frame`); returns ``(n, 3)`` N in the inputs' frame."""
     keys = [k for k in arrays if k in _pyfunc_inputs(pyfunc_model)]
     df = arrays_to_frame(arrays, keys)
-    out = pyfunc_model.predict(df, params={"observation_seed": -1 if observation_seed is None else observation_seed})
+    out = pyfunc_model.predict(df, params={"observation_seed": -1 if observation_seed is None else observation_seed,
+                                           "input_frame": input_frame, "units": units})
     return np.asarray(pd.DataFrame(out)[list(OUTPUT_COLUMNS)], dtype=np.float64)
 
 

@@ -16,6 +16,8 @@ from liverforce.learn.train import train_scenario
 from liverforce.serve import Predictor, Preop
 from liverforce.serve.errors import PredictionInputError
 
+from tests.serve.test_input_frame import rigid, to_input_arrays, to_inputs
+
 MODEL = {"encoder": "pca", "code_size": 6, "state_vector": True, "grid_size": 8, "hidden": [32, 32],
          "dropout": 0.0, "occlusion": {"radius_mm": 0.0, "mode": "remove"}, "noise_mm": 0.0,
          "roi_features": "cloud", "force_scaling": "stiffness", "probe_force_radius_mm": 5.0,
@@ -191,6 +193,19 @@ def test_the_mlflow_pyfunc_serves_the_camera_model_from_clouds(served, tmp_path)
     far = dict(cases, tool_tip_mm=cases["tool_tip_mm"] + 100.0 * np.asarray(cases["frame_normal"]))
     with pytest.raises(PredictionInputError, match="tool tip displacement"):
         predict_pyfunc(pf, far)
+    # a lab's columns in metres and a registration's frame (params input_frame, units): the force of the same
+    # inputs in RAS mm, given back in the inputs' frame; the interval's local columns unchanged
+    assert {"input_frame", "units"} <= {p.name for p in pf.metadata.get_params_schema().params}
+    M = rigid(False)
+    lab = to_input_arrays(M, 1000.0, cases)
+    got_lab = predict_pyfunc(pf, lab, input_frame=json.dumps(M.tolist()), units="m")
+    np.testing.assert_allclose(got_lab, got @ M[:3, :3], rtol=1e-5, atol=1e-7)
+    same = predict_pyfunc(pf, lab, input_frame=json.dumps({"matrix": M.tolist(), "units": "m"}))
+    np.testing.assert_allclose(same, got_lab, atol=1e-12)
+    for frame, units, why in [("[[1, 0]]", "m", "4x4"), ("{not json", "m", "not valid JSON"),
+                              (json.dumps(M.tolist()), "furlong", "units"), ("LPS", "mm", "only")]:
+        with pytest.raises(PredictionInputError, match=why):  # LPS mm: the clouds land off the liver
+            predict_pyfunc(pf, lab, input_frame=frame, units=units)
 
 
 def test_the_compiled_cloud_path_equals_the_reference(served):
@@ -207,6 +222,42 @@ def test_the_compiled_cloud_path_equals_the_reference(served):
         assert warnings == info["warnings"]
     with pytest.raises(PredictionInputError, match="only"):
         fast.predict(cloud[:4], tip)
+
+
+@pytest.mark.parametrize("reflect", [False, True])
+def test_the_compiled_cloud_path_takes_clouds_in_a_labs_frame_and_units(served, reflect):
+    """Compiled with an input frame (a registration's rotation and shift, in metres; with a reflection too):
+    clouds and tips in that frame give the force of the same clouds in RAS mm, turned into the inputs' frame, one
+    by one and in a batch (a list or a padded float32 array); a cloud off the grid is still refused with its
+    reason."""
+    from liverforce.serve.input_frame import InputFrame
+
+    path, model, a = served
+    pred = Predictor.from_dir(path)
+    ctx, _, _ = _case(a, 4)
+    M = rigid(reflect)
+    fast, lab = pred.compile_cloud(ctx), pred.compile_cloud(ctx, frame=InputFrame.resolve(M.tolist(), "m"))
+    clouds, tips = zip(*[_case(a, 4, n_points=800 + 700 * s, seed=s)[1:] for s in range(3)])
+    cl_in = [to_inputs(M, 1000.0, c) for c in clouds]
+    tip_in = to_inputs(M, 1000.0, np.stack(tips))
+    for c, t, ci, ti in zip(clouds, tips, cl_in, tip_in):
+        want, want_half, want_warn = fast.predict(c, t)
+        got, half, warnings = lab.predict(ci, ti)
+        np.testing.assert_allclose(got, want @ M[:3, :3], atol=1e-6)
+        np.testing.assert_allclose(half, want_half, rtol=1e-9)
+        assert warnings == want_warn
+    want = fast.predict_batch(list(clouds), np.stack(tips))
+    full = lab.predict_batch(cl_in + [cl_in[0][:3]], np.vstack([tip_in, tip_in[:1]]))
+    np.testing.assert_allclose(full.force[:3], want.force @ M[:3, :3], atol=1e-6)
+    np.testing.assert_allclose(full.half_width[:3], want.half_width, rtol=1e-9)
+    assert full.refused[:3] == [None] * 3 and "only" in full.refused[3] and np.isnan(full.force[3]).all()
+    padded = np.zeros((3, 2200, 3))  # one (B, N, 3) array, each cloud's rows [:counts[b]]
+    for b, c in enumerate(cl_in):
+        padded[b, :len(c)] = c
+    got = lab.predict_batch(padded, tip_in, counts=np.array([len(c) for c in cl_in]))
+    np.testing.assert_allclose(got.force, full.force[:3], atol=1e-9)
+    with pytest.raises(PredictionInputError, match="only"):
+        lab.predict(cl_in[0] * 1000.0, tip_in[0])  # given in mm, said to be in m: off the grid, refused
 
 
 def test_a_context_outside_the_training_range_comes_with_its_warning_on_every_path(served, mid_range):

@@ -241,3 +241,84 @@ def test_bad_frames_and_context_values_are_refused_by_name_not_by_traceback(trai
     assert rc == 0, err
     np.testing.assert_allclose(json.loads(out)["force_n"], pred.predict(test_cases["roi_deformed_mm"][2], ctx),
                                atol=1e-9)
+
+
+def to_input_arrays(M: np.ndarray, scale: float, arrays: dict) -> dict:
+    """Input-contract arrays in RAS mm -> the inputs' frame and units, key by key (the inverse map, written out
+    here apart from :meth:`InputFrame.arrays`)."""
+    A = M[:3, :3]
+    out = {}
+    for k, v in arrays.items():
+        if k in ("roi_undeformed_mm", "roi_deformed_mm", "camera_cloud_mm"):
+            out[k] = [to_inputs(M, scale, c) for c in v]
+        elif k.endswith("_mm") and k not in ("tool_thickness_mm",):
+            out[k] = to_inputs(M, scale, v)
+        elif k.startswith("frame_"):
+            out[k] = np.asarray(v) @ A
+        elif k == "inertia_mm5":
+            J = np.asarray(v).reshape(-1, 3, 3)
+            out[k] = (A.T @ J @ A).reshape(-1, 9) / scale**5
+        elif k in ("tool_thickness_mm", "probe_compliance_mm_per_n"):
+            out[k] = np.asarray(v) / scale
+        elif k == "roi_triangles":
+            out[k] = [t[:, ::-1] if np.linalg.det(A) < 0 else t for t in v]
+        else:
+            out[k] = v
+    return out
+
+
+@pytest.mark.parametrize("reflect", [False, True])
+def test_input_contract_arrays_in_a_registration_frame_come_back_to_ras_mm(reflect):
+    """What the MLflow pyfunc's ``input_frame``/``units`` params do to its columns: every point, axis, length,
+    inertia and compliance back to RAS mm; the material and ids untouched; a column it cannot convert, and a
+    given local frame under a reflection, refused by name."""
+    rng = np.random.default_rng(1)
+    n = 4
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    J = np.einsum("nij,nkj->nik", rng.normal(size=(n, 3, 3)), rng.normal(size=(n, 3, 3)))
+    tri = [np.array([[0, 1, 2], [1, 2, 3]])] * n
+    ras = {"case_id": np.array(["a", "b", "c", "d"], dtype=object), "exertion_point_mm": rng.normal(size=(n, 3)) * 50,
+           "frame_normal": q[None, 2].repeat(n, 0), "frame_t1": q[None, 0].repeat(n, 0),
+           "frame_t2": q[None, 1].repeat(n, 0), "roi_undeformed_mm": [rng.normal(size=(7, 3)) * 20] * n,
+           "camera_cloud_mm": [rng.normal(size=(k, 3)) * 20 for k in (5, 9, 11, 3)],
+           "tool_tip_mm": rng.normal(size=(n, 3)), "liver_centroid_mm": rng.normal(size=(n, 3)),
+           "roi_centroid_undeformed_mm": rng.normal(size=(n, 3)),
+           "inertia_mm5": (J + J.transpose(0, 2, 1)).reshape(n, 9),
+           "tool_thickness_mm": rng.uniform(20, 60, size=n), "probe_compliance_mm_per_n": rng.normal(size=(n, 9)),
+           "material_params_mpa": rng.uniform(size=(n, 2)), "roi_triangles": tri}
+    M = rigid(reflect)
+    fr = InputFrame.resolve(M.tolist(), "m")
+    given = to_input_arrays(M, 1000.0, ras)
+    if reflect:  # the given axes would turn left-handed
+        with pytest.raises(PredictionInputError, match="left-handed"):
+            fr.arrays(given)
+        ras = {k: v for k, v in ras.items() if not k.startswith("frame_")}
+        given = {k: v for k, v in given.items() if not k.startswith("frame_")}
+    got = fr.arrays(given)
+    assert set(got) == set(ras)
+    for k, v in ras.items():
+        if k == "case_id":
+            assert list(got[k]) == list(v)
+        elif isinstance(v, list):
+            for g, w in zip(got[k], v):
+                np.testing.assert_allclose(g, w, atol=1e-9, err_msg=k)
+        else:
+            np.testing.assert_allclose(got[k], v, rtol=1e-9, atol=1e-9, err_msg=k)
+    assert InputFrame.resolve("RAS").arrays(given) is given  # nothing converted, nothing copied
+    with pytest.raises(PredictionInputError, match="roi_deformed_mm_extra"):
+        fr.arrays({**given, "roi_deformed_mm_extra": given["tool_tip_mm"]})
+
+
+def test_every_input_contract_column_has_a_conversion():
+    """A column added to the input contract must be given a conversion, or the pyfunc refuses it in any frame
+    but RAS mm (instead of passing it on unconverted)."""
+    from liverforce.learn.camera import CLOUD_KEY, TIP_KEY
+    from liverforce.learn.cloud_features import ROI_TRIANGLES_KEY
+    from liverforce.learn.model import ROI_INPUTS
+    from liverforce.learn.state import STATE_INPUTS
+    from liverforce.serve import input_frame as f
+
+    known = set(f.POINT_KEYS) | set(f.DIRECTION_KEYS) | set(f.LENGTH_KEYS) | set(f.PASS_KEYS) | {"inertia_mm5",
+                                                                                                  "roi_triangles"}
+    assert set(ROI_INPUTS) | set(STATE_INPUTS) | {CLOUD_KEY, TIP_KEY, ROI_TRIANGLES_KEY} <= known
+    assert set(f.RAGGED_POINT_KEYS) <= set(f.POINT_KEYS)

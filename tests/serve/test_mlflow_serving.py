@@ -23,6 +23,8 @@ from liverforce.serve import PredictionInputError
 from liverforce.tracking import MlflowPredictor as Predictor
 from liverforce.tracking import Tracker, download_force_model, load_pyfunc, predict_pyfunc
 
+from tests.serve.test_input_frame import to_input_arrays
+
 
 @pytest.fixture(scope="module")
 def logged(data, tmp_path_factory, configs):
@@ -176,6 +178,17 @@ def test_mlflow_models_serve_answers_over_http(logged, data, tmp_path):
         iv = pred.model.predict_interval(cases)  # the served interval is the model's
         got = np.array([[p["ft1_half_n"], p["ft2_half_n"], p["fn_half_n"]] for p in body["predictions"]])
         np.testing.assert_allclose(got, iv["half_width_local_n"], rtol=1e-9)
+        # a lab's columns in LPS metres, said in the request's params: the force in LPS, the local columns as in RAS
+        lps = to_input_arrays(np.diag([-1.0, -1.0, 1.0, 1.0]), 1000.0, cases)
+        frame = arrays_to_frame(lps, list(pred.model.required_inputs()))
+        status, body_lps = _post(f"{base}/invocations", {"dataframe_split": frame.to_dict(orient="split"),
+                                                         "params": {"input_frame": "LPS", "units": "m"}})
+        assert status == 200, body_lps
+        got = np.array([[p["fx_n"], p["fy_n"], p["fz_n"]] for p in body_lps["predictions"]])
+        np.testing.assert_allclose(got, pred.predict_arrays(cases) * [-1.0, -1.0, 1.0], atol=1e-6)
+        local = [[p[c] for c in ("ft1_n", "ft2_n", "fn_n", "ft1_half_n")] for p in body_lps["predictions"]]
+        np.testing.assert_allclose(local, [[p[c] for c in ("ft1_n", "ft2_n", "fn_n", "ft1_half_n")]
+                                           for p in body["predictions"]], atol=1e-6)
         # bad input: a clear refusal, not a force
         cases["roi_deformed_mm"] = [d * 0.1 for d in cases["roi_deformed_mm"]]
         frame = arrays_to_frame(cases, list(pred.model.required_inputs()))
