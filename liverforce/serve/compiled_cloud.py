@@ -860,14 +860,16 @@ class CompiledCloud:
 
         Parameters
         ----------
-        clouds : list of (n_i, 3) arrays (mm, liver frame), or one padded array (B, N, 3) with ``counts``
-        tool_tips : (B, 3) mm, liver frame (one per cloud; a single (3,) tip is used for every cloud)
+        clouds : list of (n_i, 3) arrays (mm, liver frame; else the input frame's units and frame), or one padded
+            array (B, N, 3) with ``counts``
+        tool_tips : (B, 3), as the clouds (one per cloud; a single (3,) tip is used for every cloud)
         counts : (B,) points of each padded cloud (rows ``[:counts[b]]``; default all N)
 
         Each cloud gives what :meth:`predict` gives it (bit for bit with an MLP, to rounding with a GP: module
         docstring); a cloud :meth:`predict` would refuse
         gets a NaN force and its reason in ``refused`` (the rest of the batch is predicted). One gridding
-        pass over the batch (a list is read in place; a float32 or float64 padded array too), then the
+        pass over the batch (a list is read in place; a float32 or float64 padded array too; with an input frame,
+        a converted float64 copy of either), then the
         checks and the head over all rows at once.
         """
         tips = np.asarray(tool_tips, dtype=np.float64)
@@ -876,18 +878,18 @@ class CompiledCloud:
             tips = np.broadcast_to(tips, (B, 3))
         if tips.shape != (B, 3):
             raise PredictionInputError(f"tool_tips: need one (3,) tip per cloud ({B}), got shape {tips.shape}")
-        if self.frame is not None:  # a converted copy of every cloud (a list, read in place) and tip; forces back
+        if self.frame is not None:  # a converted copy of the clouds and tips, the forces back in the inputs' frame
+            tips = np.ascontiguousarray(self.frame.points(tips))
             if isinstance(clouds, np.ndarray) and clouds.ndim == 3:
                 if clouds.shape[2] != 3:
-                    raise PredictionInputError(f"clouds: expected (B, N, 3) points, got shape {clouds.shape}")
-                N = clouds.shape[1]
-                cnt = np.full(B, N, np.int64) if counts is None else np.asarray(counts, dtype=np.int64).reshape(-1)
-                if cnt.shape != (B,) or (cnt < 0).any() or (cnt > N).any():
-                    raise PredictionInputError(f"counts: need {B} counts in [0, {N}], got {counts!r}")
-                clouds = [clouds[b, :cnt[b]] for b in range(B)]
-            elif counts is not None:
-                raise PredictionInputError("counts: only with one padded (B, N, 3) array of clouds")
-            got = self._batch([self._converted(c) for c in clouds], np.ascontiguousarray(self.frame.points(tips)), None)
+                    return self._batch(clouds, tips, counts)  # refuses the shape, as without a frame
+                P = np.empty(clouds.shape)  # padded: converted a chunk at a time into one float64 array
+                for a in range(0, B, _CHUNK):
+                    chunk = np.asarray(clouds[a:a + _CHUNK], dtype=np.float64)
+                    P[a:a + _CHUNK] = self.frame.points(chunk.reshape(-1, 3)).reshape(chunk.shape)
+                got = self._batch(P, tips, counts)
+            else:
+                got = self._batch([self._converted(c) for c in clouds], tips, counts)
             return got._replace(force=self._out(got.force))
         return self._batch(clouds, np.ascontiguousarray(tips), counts)
 

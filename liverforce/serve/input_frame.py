@@ -84,7 +84,8 @@ class InputFrame:
 
     @classmethod
     def resolve(cls, frame=None, units: str | None = None, *, base: Path | None = None) -> "InputFrame":
-        """The input frame of ``frame`` (a name, a 4x4, a file of one, an import record, None: RAS) and ``units``.
+        """The input frame of ``frame`` (a name, a 4x4, a file of one, an import record or one already read as a
+        dict, None: RAS) and ``units``.
 
         ``base``: the folder a relative file path is taken from (default: the working directory). Raises
         :class:`PredictionInputError` on an unknown name, a malformed, singular or non-rigid matrix, or units that
@@ -96,12 +97,16 @@ class InputFrame:
             return frame
         source = None
         scale_units = None
-        if isinstance(frame, (str, Path)) and not is_named(frame):
-            path = Path(frame)
-            if not path.is_absolute() and base is not None:
-                path = base / path
-            source = str(path)
-            frame, rec_units, rec_scale = _read_frame_file(path)
+        if isinstance(frame, dict) or (isinstance(frame, (str, Path)) and not is_named(frame)):
+            if isinstance(frame, dict):  # a record or {matrix, units} already read (the MLflow pyfunc's JSON param)
+                path = "(given inline)"
+                frame, rec_units, rec_scale = _frame_of_doc(frame, path)
+            else:
+                path = Path(frame)
+                if not path.is_absolute() and base is not None:
+                    path = base / path
+                source = str(path)
+                frame, rec_units, rec_scale = _read_frame_file(path)
             if rec_units is not None:
                 if units is not None and unit_scale(units) != rec_scale:
                     raise PredictionInputError(
@@ -208,18 +213,21 @@ class InputFrame:
                 "left-handed; give the inputs in RAS mm, or a frame without a reflection")
         out = {}
         for k, v in arrays.items():
-            if k in POINT_KEYS:
-                if k in RAGGED_POINT_KEYS:  # one (k_i, 3) point set per case
-                    out[k] = [self.points(np.asarray(a, dtype=np.float64).reshape(-1, 3)) for a in v]
-                else:
-                    out[k] = self.points(np.asarray(v, dtype=np.float64).reshape(-1, 3))
+            if k in RAGGED_POINT_KEYS:  # one (k_i, 3) point set per case
+                out[k] = [self.points(_numbers(k, a, 2, 3)) for a in v]
+            elif k in POINT_KEYS:
+                out[k] = self.points(_numbers(k, v, 2, 3))
             elif k in DIRECTION_KEYS:
-                out[k] = self.directions(np.asarray(v, dtype=np.float64).reshape(-1, 3))
+                out[k] = self.directions(_numbers(k, v, 2, 3))
             elif k in LENGTH_KEYS:
-                out[k] = np.asarray(v, dtype=np.float64) * self.scale
+                out[k] = _numbers(k, v) * self.scale
             elif k == "inertia_mm5":
-                J = np.asarray(v, dtype=np.float64)
-                out[k] = np.stack([self.inertia(j) for j in J.reshape(len(J), -1)]).reshape(J.shape)
+                J = _numbers(k, v)
+                if J.ndim < 1 or J.size != 9 * len(J):
+                    raise PredictionInputError(f"inertia_mm5: expected a 3 x 3 matrix (9 numbers) per case, got shape "
+                                               f"{J.shape}")
+                out[k] = (np.einsum("ij,njk,lk->nil", self.A, J.reshape(-1, 3, 3), self.A)
+                          * self.scale**5).reshape(J.shape)
             elif k == "roi_triangles":
                 out[k] = [np.asarray(t, dtype=np.int64).reshape(-1, 3)[:, ::-1].copy() if self.reflects else t
                           for t in v]
@@ -250,6 +258,19 @@ class InputFrame:
         return f"inputs in {units}, {fr}{src}{back}"
 
 
+def _numbers(key: str, v, ndim: int | None = None, cols: int | None = None) -> np.ndarray:
+    """Column ``key`` as float64, refused by name when it is not numbers of ``ndim`` dimensions, ``cols`` wide."""
+    try:
+        a = np.asarray(v, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise PredictionInputError(f"{key}: expected numbers ({exc})") from None
+    if a.size == 0 and cols is not None:  # an empty point set: the checks downstream refuse it by their rules
+        a = a.reshape(0, cols)
+    if (ndim is not None and a.ndim != ndim) or (cols is not None and a.shape[-1:] != (cols,)):
+        raise PredictionInputError(f"{key}: expected rows of {cols} numbers, got shape {a.shape}")
+    return a
+
+
 def _read_frame_file(path: Path) -> tuple[object, str | None, float | None]:
     """The frame (name or 4x4), units and mm per unit (None, None if not stated) of a 4x4 file or an import
     record."""
@@ -269,6 +290,12 @@ def _read_frame_file(path: Path) -> tuple[object, str | None, float | None]:
     except Exception as exc:  # noqa: BLE001 - numpy, JSON and YAML errors, re-raised with the file named
         raise PredictionInputError(f"input frame {path}: cannot read it ({type(exc).__name__}: {exc}); "
                                    f"{_HINT}") from None
+    return _frame_of_doc(doc, path)
+
+
+def _frame_of_doc(doc, path) -> tuple[object, str | None, float | None]:
+    """Frame, units and mm per unit (None, None if not stated) of a read document: an import record, a procedural
+    liver's record, ``{matrix, units}``, a 4x4 list or a name (``path``: where it came from, for messages)."""
     if isinstance(doc, dict) and "conversion" in doc:  # an import record of the geometry stage
         return _record_frame(doc, path)
     if isinstance(doc, dict) and "frame" in doc and "spec" in doc:  # a procedural liver's record: RAS mm

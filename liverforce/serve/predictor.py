@@ -250,16 +250,16 @@ class Predictor:
         """``exact`` or ``approximate``: what :meth:`predict_cloud` can do for this model."""
         return cloud_support(self.model)
 
-    def compile_cloud(self, preop: Preop, frame=None):
+    def compile_cloud(self, preop: Preop, frame=None, units: str | None = None):
         """The camera-cloud fast path for ``preop`` (:class:`liverforce.serve.compiled_cloud.CompiledCloud`;
-        the context is checked once here). ``frame``: the clouds' and tips' frame and units (an
+        the context is checked once here). ``frame`` and ``units``: the clouds' and tips' frame and units (an
         :class:`~liverforce.serve.input_frame.InputFrame`, or what :meth:`InputFrame.resolve` takes: ``"LPS"``, a
-        4x4, an import record); their forces come back in it. Default: RAS mm."""
+        4x4, an import record; ``"m"``); their forces come back in that frame. Default: RAS mm."""
         from liverforce.serve.compiled_cloud import CompiledCloud
         from liverforce.serve.input_frame import InputFrame
 
         self.check_preop(preop)
-        fr = None if frame is None else InputFrame.resolve(frame)
+        fr = None if frame is None and units is None else InputFrame.resolve(frame, units)
         return CompiledCloud(self.model, preop, limits=self.limits, frame=fr)
 
     def compile(self, preop: Preop) -> CompiledROI:

@@ -39,7 +39,7 @@ from mlflow.types import ColSpec, Schema
 
 from liverforce.learn.model import ForceModel
 from liverforce.serve.errors import PredictionInputError
-from liverforce.serve.input_frame import InputFrame, unit_scale
+from liverforce.serve.input_frame import InputFrame, is_named
 from liverforce.serve.predictor import Predictor
 from liverforce.tracking.store import with_retry
 
@@ -124,7 +124,11 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
         predictor = Predictor(self.model)
         try:
             frame = pyfunc_input_frame(params.get("input_frame"), params.get("units"))
-            arrays = frame.arrays(frame_to_arrays(pd.DataFrame(model_input)))
+            try:
+                arrays = frame_to_arrays(pd.DataFrame(model_input))
+            except (TypeError, ValueError) as exc:  # a flattened point set not 3 k long, a non-number
+                raise PredictionInputError(f"input columns: {exc}") from None
+            arrays = frame.arrays(arrays)
             force = predictor.predict_arrays(arrays, observation_seed=None if seed < 0 else seed)
         except PredictionInputError as exc:
             raise PyfuncInputError(str(exc)) from exc
@@ -137,29 +141,26 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
 def pyfunc_input_frame(input_frame: str | None, units: str | None) -> InputFrame:
     """The :class:`~liverforce.serve.input_frame.InputFrame` of the pyfunc's params ``input_frame`` and ``units``.
 
-    ``input_frame``: ``""``/``RAS`` (the model's frame), ``LPS``, a 4x4 matrix as JSON (``[[...], ...]``, file mm
-    to RAS mm, or ``{"matrix": [...], "units": "m"}``), or the path of a geometry import record
-    ``results/<exp>/geometry/imp-<name>.json`` on the serving machine. ``units``: ``""``/``mm``, ``cm``, ``m``.
+    ``input_frame``: ``""``/``RAS`` (the model's frame), ``LPS``, or JSON: a 4x4 matrix (``[[...], ...]``, file mm
+    to RAS mm), ``{"matrix": [...], "units": "m"}``, or the text of a geometry import record
+    ``results/<exp>/geometry/imp-<name>.json`` (its units and frame). A file path is refused: the served model
+    reads no file a request names. ``units``: ``""``/``mm``, ``cm``, ``m``.
     """
     frame = (input_frame or "").strip() or None
     units = (units or "").strip() or None
-    if frame is not None and frame[0] in "[{":
-        try:
-            doc = json.loads(frame)
-        except ValueError as exc:
-            raise PredictionInputError(f"input_frame: not valid JSON ({exc}); give RAS, LPS, a 4x4 matrix as JSON "
-                                       "or the path of an import record") from None
-        if isinstance(doc, dict):
-            if "matrix" not in doc:
-                raise PredictionInputError("input_frame: a JSON object needs 'matrix' (4x4, file mm to RAS mm) and "
-                                           "may give 'units'")
-            if doc.get("units") is not None:
-                if units is not None and unit_scale(units) != unit_scale(doc["units"]):
-                    raise PredictionInputError(f"input_frame says units {doc['units']!r}, the units param {units!r}")
-                units = str(doc["units"])
-            doc = doc["matrix"]
-        frame = doc
-    return InputFrame.resolve(frame, units)
+    if frame is None or is_named(frame):
+        return InputFrame.resolve(frame, units)
+    if frame[0] not in "[{":
+        raise PredictionInputError(
+            f"input_frame {frame[:80]!r}: give RAS, LPS, or as JSON a 4x4 matrix (file mm to RAS mm), "
+            '{"matrix": ..., "units": ...} or the text of the import record results/<exp>/geometry/imp-<name>.json; '
+            "the served model reads no file a request names")
+    try:
+        doc = json.loads(frame)
+    except ValueError as exc:
+        raise PredictionInputError(f"input_frame: not valid JSON ({exc}); give RAS, LPS or a 4x4 matrix, "
+                                   "{matrix, units} or an import record as JSON") from None
+    return InputFrame.resolve(doc, units)
 
 
 def _output_frame(model: ForceModel, arrays: dict, force: np.ndarray, seed: int | None,
@@ -376,8 +377,17 @@ def predict_pyfunc(pyfunc_model, arrays: dict, observation_seed: int | None = No
     params, :func:`pyfunc_input_frame`); returns ``(n, 3)`` N in the inputs' frame."""
     keys = [k for k in arrays if k in _pyfunc_inputs(pyfunc_model)]
     df = arrays_to_frame(arrays, keys)
-    out = pyfunc_model.predict(df, params={"observation_seed": -1 if observation_seed is None else observation_seed,
-                                           "input_frame": input_frame, "units": units})
+    params = {"observation_seed": -1 if observation_seed is None else observation_seed}
+    said = {k: v for k, v in (("input_frame", input_frame), ("units", units)) if v}
+    if said:
+        schema = pyfunc_model.metadata.get_params_schema()
+        missing = sorted(set(said) - ({p.name for p in schema.params} if schema is not None else set()))
+        if missing:  # MLflow would drop them with a warning and the model would read the inputs as RAS mm
+            raise PredictionInputError(
+                f"this model was logged before it took {' and '.join(missing)}: convert the inputs to RAS mm "
+                "(liverforce.serve.input_frame.InputFrame.arrays) or log the model again")
+        params.update(said)
+    out = pyfunc_model.predict(df, params=params)
     return np.asarray(pd.DataFrame(out)[list(OUTPUT_COLUMNS)], dtype=np.float64)
 
 

@@ -202,10 +202,41 @@ def test_the_mlflow_pyfunc_serves_the_camera_model_from_clouds(served, tmp_path)
     np.testing.assert_allclose(got_lab, got @ M[:3, :3], rtol=1e-5, atol=1e-7)
     same = predict_pyfunc(pf, lab, input_frame=json.dumps({"matrix": M.tolist(), "units": "m"}))
     np.testing.assert_allclose(same, got_lab, atol=1e-12)
+    record = {"conversion": {"units": "m", "scale_to_mm": 1000.0, "frame": "matrix", "frame_matrix": M.tolist()}}
+    np.testing.assert_allclose(predict_pyfunc(pf, lab, input_frame=json.dumps(record)), got_lab, atol=1e-12)
+    (tmp_path / "imp-lab.json").write_text(json.dumps(record))
     for frame, units, why in [("[[1, 0]]", "m", "4x4"), ("{not json", "m", "not valid JSON"),
-                              (json.dumps(M.tolist()), "furlong", "units"), ("LPS", "mm", "only")]:
+                              (json.dumps(M.tolist()), "furlong", "units"), ("LPS", "mm", "only"),
+                              (json.dumps(record), "mm", "imported in m"),
+                              (str(tmp_path / "imp-lab.json"), "", "reads no file")]:
         with pytest.raises(PredictionInputError, match=why):  # LPS mm: the clouds land off the liver
             predict_pyfunc(pf, lab, input_frame=frame, units=units)
+    bad = dict(lab, exertion_point_mm=np.asarray(lab["exertion_point_mm"])[:, :2])
+    with pytest.raises(PredictionInputError, match="exertion_point_mm"):
+        predict_pyfunc(pf, bad, input_frame=json.dumps(M.tolist()), units="m")
+
+
+def test_predict_pyfunc_will_not_send_a_frame_to_a_model_that_would_drop_it():
+    """A model logged before the pyfunc took input_frame and units: MLflow would drop them with a warning and read
+    the inputs as RAS mm, so predict_pyfunc refuses to send them (and sends none when none is said)."""
+    from types import SimpleNamespace
+
+    from liverforce.tracking import predict_pyfunc
+
+    seen = []
+
+    class Old:
+        metadata = SimpleNamespace(get_input_schema=lambda: None,
+                                   get_params_schema=lambda: SimpleNamespace(params=[SimpleNamespace(
+                                       name="observation_seed")]))
+
+        def predict(self, df, params):
+            seen.append(params)
+            return {"fx_n": [], "fy_n": [], "fz_n": []}
+
+    with pytest.raises(PredictionInputError, match="logged before it took input_frame and units"):
+        predict_pyfunc(Old(), {}, input_frame="LPS", units="m")
+    assert predict_pyfunc(Old(), {}).shape == (0, 3) and seen == [{"observation_seed": -1}]
 
 
 def test_the_compiled_cloud_path_equals_the_reference(served):
@@ -256,6 +287,12 @@ def test_the_compiled_cloud_path_takes_clouds_in_a_labs_frame_and_units(served, 
         padded[b, :len(c)] = c
     got = lab.predict_batch(padded, tip_in, counts=np.array([len(c) for c in cl_in]))
     np.testing.assert_allclose(got.force, full.force[:3], atol=1e-9)
+    # float32 (metres in float32: ~0.03 um) and one tip for every cloud, the frame and units given apart
+    lab_m = pred.compile_cloud(ctx, frame=M.tolist(), units="m")
+    one = lab_m.predict_batch(padded.astype(np.float32), tip_in[0], counts=np.array([len(c) for c in cl_in]))
+    ref = lab.predict_batch([c.astype(np.float32).astype(np.float64) for c in cl_in], tip_in[0])
+    np.testing.assert_allclose(one.force, ref.force, atol=1e-9)
+    assert np.isfinite(one.force).all() and len(lab.predict_batch([], np.zeros((0, 3))).force) == 0
     with pytest.raises(PredictionInputError, match="only"):
         lab.predict(cl_in[0] * 1000.0, tip_in[0])  # given in mm, said to be in m: off the grid, refused
 

@@ -307,6 +307,12 @@ def test_input_contract_arrays_in_a_registration_frame_come_back_to_ras_mm(refle
     assert InputFrame.resolve("RAS").arrays(given) is given  # nothing converted, nothing copied
     with pytest.raises(PredictionInputError, match="roi_deformed_mm_extra"):
         fr.arrays({**given, "roi_deformed_mm_extra": given["tool_tip_mm"]})
+    for key, value in [("exertion_point_mm", given["exertion_point_mm"][:, :2]), ("tool_tip_mm", [["a", 1, 2]]),
+                       ("inertia_mm5", np.zeros((n, 8))), ("camera_cloud_mm", [np.zeros((4, 2))] * n)]:
+        with pytest.raises(PredictionInputError, match=key):  # refused by name, never reshaped into other rows
+            fr.arrays({**given, key: value})
+    none = fr.arrays({k: (v[:0] if isinstance(v, np.ndarray) else v[:0]) for k, v in given.items()})
+    assert none["inertia_mm5"].shape == (0, 9) and none["exertion_point_mm"].shape == (0, 3)
 
 
 def test_every_input_contract_column_has_a_conversion():
