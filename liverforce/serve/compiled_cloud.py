@@ -564,16 +564,16 @@ class CloudBatch(NamedTuple):
 class CompiledCloud:
     """A camera-cloud model (PCA encoder) specialised to one :class:`Preop` (module docstring).
 
-    ``predict(cloud, tool_tip)`` returns ``(force (3,) N liver frame, half-widths (3,) N local or None,
-    warnings)`` and raises :class:`PredictionInputError` where the reference path refuses;
+    ``predict(cloud, tool_tip)`` returns ``(force (3,) N liver frame (or the input frame), half-widths (3,) N
+    local or None, warnings)`` and raises :class:`PredictionInputError` where the reference path refuses;
     ``predict_batch(clouds, tool_tips)`` returns a :class:`CloudBatch`. Build it with
     :meth:`liverforce.serve.Predictor.compile_cloud` (the context is checked there).
 
     ``frame`` (an :class:`~liverforce.serve.input_frame.InputFrame`; default: RAS mm): the frame and units of the
-    clouds and tips of a lab's own liver. They are converted to the model's frame (RAS mm) on the way in, as
-    ``liverforce predict --frame`` converts them, and the forces are given back in the inputs' frame (the
-    half-widths are local: they have no global axes). The ``preop`` is in the model's frame
-    (:func:`~liverforce.serve.files.read_context` returns both).
+    clouds and tips of a lab's own liver. They are read in the model's frame (RAS mm) as ``liverforce predict
+    --frame`` converts them, the map folded into the kernel's rotation (no copy of a cloud), and the forces are
+    given back in the inputs' frame (the half-widths are local: they have no global axes). The ``preop`` is in
+    the model's frame (:func:`~liverforce.serve.files.read_context` returns both).
     """
 
     def __init__(self, model, preop: Preop, *, limits: Limits | None = None, frame: InputFrame | None = None):
@@ -645,10 +645,18 @@ class CompiledCloud:
             self._q = self.interval.stiffness_half_widths(np.array([[self.k_material]]))[0]
         self._rec = ((model.meta or {}).get("training_scale") or {}).get("camera")
         self._raster = np.ascontiguousarray(self.ref.raster, dtype=np.float64)
+        # the kernel reads clouds and tips as given: R (A s x + t - p) = (s R A) (x - A^T (p - t) / s), so an input
+        # frame costs nothing per point (the checks and messages below convert the few points they read)
+        if self.frame is None:
+            self._kp, self._kR = self.p, self.R
+        else:
+            fr = self.frame
+            self._kp = np.ascontiguousarray(fr.A.T @ (self.p - fr.t) / fr.scale)
+            self._kR = np.ascontiguousarray(fr.scale * self.R @ fr.A)
         # load (or compile) the kernels now, not on the first cloud in the operating room
         for dtype in (np.float64, np.float32):  # a cloud, a padded batch of either precision
-            self._grid(np.zeros((1, 3), dtype), np.zeros(1, np.int64), np.ones(1, np.int64), self.p[None].copy())
-        self._grid([np.zeros((1, 3))], None, None, self.p[None].copy())  # a list of clouds
+            self._grid(np.zeros((1, 3), dtype), np.zeros(1, np.int64), np.ones(1, np.int64), self._kp[None].copy())
+        self._grid([np.zeros((1, 3))], None, None, self._kp[None].copy())  # a list of clouds
         self._head(np.zeros((1, self.A.shape[1])))
 
     # -- per-cloud pieces ------------------------------------------------------
@@ -656,14 +664,15 @@ class CompiledCloud:
     def _grid(self, P, starts, counts, tips: np.ndarray):
         """Feature rows, points over the grid, non-finite points of the clouds ``P[starts[b]:starts[b] + counts[b]]``
         (``P``: (n, 3) float64 or float32, C-contiguous), or of a list ``P`` of (n_b, 3) C-contiguous float64
-        clouds (``starts`` and ``counts`` None: read in place, no concatenation)."""
+        clouds (``starts`` and ``counts`` None: read in place, no concatenation). Clouds and ``tips`` as given (in
+        the input frame, if any)."""
         B = len(P) if starts is None else len(starts)
         sp = self.spec
         X = np.empty((B, 2 * self.g * self.g + 3))
         n_used = np.zeros(B, dtype=np.int64)
         n_bad = np.zeros(B, dtype=np.int64)
         if B:
-            args = (tips, self.p, self.R, self._raster, self.ref.lo, self.ref.step, self.g, sp.half_width_mm,
+            args = (tips, self._kp, self._kR, self._raster, self.ref.lo, self.ref.step, self.g, sp.half_width_mm,
                     sp.spacing_mm, sp.kernel_radius_cells, sp.max_abs_height_mm, sp.min_points, sp.max_leverage,
                     sp.estimator == "linear", _FILL_CODES[sp.fill], self.reach, X, n_used, n_bad)
             if starts is None:
@@ -739,9 +748,14 @@ class CompiledCloud:
             warnings = [w if why is not None else self.context_warnings + w for w, why in zip(warnings, refused)]
         return refused, warnings
 
+    def _model(self, x: np.ndarray) -> np.ndarray:
+        """Points as given -> the model's frame (RAS mm)."""
+        return x if self.frame is None else self.frame.points(x)
+
     def _flagged(self, counts, tips, n_used, n_bad) -> np.ndarray:
         """(B,) True for a cloud that may be refused before its features are read (:meth:`_refusal` decides;
-        the others pass its checks by construction)."""
+        the others pass its checks by construction). ``tips`` as given."""
+        tips = self._model(tips)
         tip_ok = np.isfinite(tips).all(axis=1)
         d_tip = np.linalg.norm(np.where(tip_ok[:, None], tips - self.p, 0.0), axis=1)
         return ((counts == 0) | (n_bad > 0) | (n_used < self.limits.min_cloud_points) | ~tip_ok
@@ -754,10 +768,12 @@ class CompiledCloud:
         return None
 
     def _refusal(self, O: np.ndarray, tip: np.ndarray, n_used: int) -> str | None:
-        """The reference path's message (``liverforce.serve.cloud._camera_arrays``, ``preop._points``)."""
+        """The reference path's message (``liverforce.serve.cloud._camera_arrays``, ``preop._points``); the cloud
+        ``O`` and ``tip`` as given, distances in the model's frame (mm)."""
         why = self._tip_refusal(tip)
         if why:
             return why
+        O, tip = self._model(O), self._model(tip)
         if len(O) == 0:
             return "cloud: 0 points; at least 1 are needed (the cloud is empty)"
         bad = ~np.isfinite(O).all(axis=1)
@@ -799,12 +815,8 @@ class CompiledCloud:
 
     # -- public ------------------------------------------------------------------
 
-    def _cloud(self, cloud_mm) -> np.ndarray:
-        x = self._cloud_mm(cloud_mm)
-        return x if self.frame is None else np.ascontiguousarray(self.frame.points(x))
-
     @staticmethod
-    def _cloud_mm(cloud_mm) -> np.ndarray:
+    def _cloud(cloud_mm) -> np.ndarray:
         """The cloud as a C-contiguous float64 (n, 3) array, refused here only when not one (the reference
         path's message); an empty cloud or NaN / inf points are refused after the gridding pass counted them."""
         try:
@@ -816,9 +828,9 @@ class CompiledCloud:
         _check_size(len(x), f"cloud: {len(x)} points")
         return x if x.flags.c_contiguous else np.ascontiguousarray(x)
 
-    def _tip(self, tool_tip_mm) -> np.ndarray:
-        tip = tool_tip_of(tool_tip_mm)
-        return tip if self.frame is None else self.frame.points(tip)
+    @staticmethod
+    def _tip(tool_tip_mm) -> np.ndarray:
+        return tool_tip_of(tool_tip_mm)
 
     def _out(self, F: np.ndarray) -> np.ndarray:
         """Forces (model frame) -> the inputs' frame."""
@@ -868,9 +880,9 @@ class CompiledCloud:
         Each cloud gives what :meth:`predict` gives it (bit for bit with an MLP, to rounding with a GP: module
         docstring); a cloud :meth:`predict` would refuse
         gets a NaN force and its reason in ``refused`` (the rest of the batch is predicted). One gridding
-        pass over the batch (a list is read in place; a float32 or float64 padded array too; with an input frame,
-        a converted float64 copy of either), then the
-        checks and the head over all rows at once.
+        pass over the batch (a list is read in place; a float32 or float64 padded array too; an input frame is
+        folded into the kernel's rotation, so nothing is converted), then the checks and the head over all rows
+        at once.
         """
         tips = np.asarray(tool_tips, dtype=np.float64)
         B = len(clouds)
@@ -878,31 +890,11 @@ class CompiledCloud:
             tips = np.broadcast_to(tips, (B, 3))
         if tips.shape != (B, 3):
             raise PredictionInputError(f"tool_tips: need one (3,) tip per cloud ({B}), got shape {tips.shape}")
-        if self.frame is not None:  # a converted copy of the clouds and tips, the forces back in the inputs' frame
-            tips = np.ascontiguousarray(self.frame.points(tips))
-            if isinstance(clouds, np.ndarray) and clouds.ndim == 3:
-                if clouds.shape[2] != 3:
-                    return self._batch(clouds, tips, counts)  # refuses the shape, as without a frame
-                P = np.empty(clouds.shape)  # padded: converted a chunk at a time into one float64 array
-                for a in range(0, B, _CHUNK):
-                    chunk = np.asarray(clouds[a:a + _CHUNK], dtype=np.float64)
-                    P[a:a + _CHUNK] = self.frame.points(chunk.reshape(-1, 3)).reshape(chunk.shape)
-                got = self._batch(P, tips, counts)
-            else:
-                got = self._batch([self._converted(c) for c in clouds], tips, counts)
-            return got._replace(force=self._out(got.force))
-        return self._batch(clouds, np.ascontiguousarray(tips), counts)
-
-    def _converted(self, cloud):
-        """A cloud in the model's frame, or the cloud as given when it is not one (refused with its reason)."""
-        try:
-            x = self._cloud_mm(cloud)
-        except PredictionInputError:
-            return cloud
-        return np.ascontiguousarray(self.frame.points(x))
+        got = self._batch(clouds, np.ascontiguousarray(tips), counts)
+        return got if self.frame is None else got._replace(force=self._out(got.force))
 
     def _batch(self, clouds, tips: np.ndarray, counts) -> CloudBatch:
-        """:meth:`predict_batch` in the model's frame."""
+        """:meth:`predict_batch` with the forces in the model's frame."""
         B = len(clouds)
         if isinstance(clouds, np.ndarray) and clouds.ndim == 3:
             if clouds.shape[2] != 3:
@@ -932,7 +924,7 @@ class CompiledCloud:
         arrays: list = [None] * B
         for i, c in enumerate(clouds):
             try:
-                arrays[i] = self._cloud_mm(c)  # (with an input frame, predict_batch converted them)
+                arrays[i] = self._cloud(c)
             except PredictionInputError as exc:  # the tip first, as the reference path checks it
                 refused[i], warnings[i] = self._tip_refusal(tips[i]) or str(exc), []
         good = [i for i in range(B) if arrays[i] is not None]

@@ -1,5 +1,9 @@
 """The frame and units of a user's point inputs, and the force given back in that frame.
 
+Used by ``liverforce predict --frame``, ``Predictor.compile_cloud(frame=...)``, the MLflow pyfunc's
+``input_frame``/``units`` params and, on input-contract arrays, :meth:`InputFrame.arrays` (points, the local
+frame's axes, the inertia, lengths and the compliance).
+
 A lab's own liver comes in its own frame and units: 3D Slicer and DICOM give LPS,
 a registration gives a 4x4, a tracker gives metres. The geometry stage converts
 the liver to the model's frame, RAS millimetres (``geometry.imported[].frame`` and
@@ -22,7 +26,8 @@ A frame is one of: ``RAS`` (the default: nothing changed), ``LPS`` (x and y
 negated), a 4x4 matrix (a list of 4 rows, or a ``.npy``/``.json``/``.yaml`` file
 holding one, or ``{matrix: [...], units: m}``), or the liver's import record ``results/<exp>/geometry/imp-<name>.json``,
 which applies that liver's own units and frame exactly as the geometry stage
-did (its units then need not be given again; other units are refused).
+did (its units then need not be given again; other units are refused). A record or ``{matrix, units}``
+already read (a dict, as the pyfunc's JSON param gives it) is taken too.
 """
 
 from __future__ import annotations
@@ -108,6 +113,9 @@ class InputFrame:
                 source = str(path)
                 frame, rec_units, rec_scale = _read_frame_file(path)
             if rec_units is not None:
+                if units is not None and unit_scale(units) != rec_scale and path == "(given inline)":
+                    raise PredictionInputError(f"input frame (given inline): its units ({rec_units}) contradict "
+                                               f"the units said apart ({units}); give them once")
                 if units is not None and unit_scale(units) != rec_scale:
                     raise PredictionInputError(
                         f"{path}: this liver was imported in {rec_units} (x{rec_scale:g} to mm), but the inputs are "
@@ -206,7 +214,8 @@ class InputFrame:
                          - {"inertia_mm5", "roi_triangles"})
         if unknown:
             raise PredictionInputError(f"input frame: cannot say how to convert {', '.join(unknown)} to the model's "
-                                       f"frame; {self.describe()}: give these columns in RAS mm, or leave them out")
+                                       f"frame (RAS mm) from the inputs' ({self.label}, {self.units}): give these "
+                                       "columns in RAS mm, or leave them out")
         if self.reflects and set(DIRECTION_KEYS) & set(arrays):
             raise PredictionInputError(
                 "input frame: it reflects, which would turn the given local frame (frame_normal, frame_t1, frame_t2) "
@@ -214,7 +223,7 @@ class InputFrame:
         out = {}
         for k, v in arrays.items():
             if k in RAGGED_POINT_KEYS:  # one (k_i, 3) point set per case
-                out[k] = [self.points(_numbers(k, a, 2, 3)) for a in v]
+                out[k] = [self.points(_numbers(f"{k}[{i}]", a, 2, 3)) for i, a in enumerate(_cases(k, v))]
             elif k in POINT_KEYS:
                 out[k] = self.points(_numbers(k, v, 2, 3))
             elif k in DIRECTION_KEYS:
@@ -229,8 +238,8 @@ class InputFrame:
                 out[k] = (np.einsum("ij,njk,lk->nil", self.A, J.reshape(-1, 3, 3), self.A)
                           * self.scale**5).reshape(J.shape)
             elif k == "roi_triangles":
-                out[k] = [np.asarray(t, dtype=np.int64).reshape(-1, 3)[:, ::-1].copy() if self.reflects else t
-                          for t in v]
+                out[k] = [_triangles(f"{k}[{i}]", t)[:, ::-1].copy() if self.reflects else t
+                          for i, t in enumerate(_cases(k, v))]
             else:
                 out[k] = v
         return out
@@ -264,11 +273,26 @@ def _numbers(key: str, v, ndim: int | None = None, cols: int | None = None) -> n
         a = np.asarray(v, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         raise PredictionInputError(f"{key}: expected numbers ({exc})") from None
-    if a.size == 0 and cols is not None:  # an empty point set: the checks downstream refuse it by their rules
+    if a.shape == (0,) and cols is not None:  # an empty point set: the checks downstream refuse it by their rules
         a = a.reshape(0, cols)
     if (ndim is not None and a.ndim != ndim) or (cols is not None and a.shape[-1:] != (cols,)):
         raise PredictionInputError(f"{key}: expected rows of {cols} numbers, got shape {a.shape}")
     return a
+
+
+def _cases(key: str, v) -> list:
+    """A ragged column: one entry per case."""
+    if isinstance(v, (str, bytes)) or not hasattr(v, "__len__"):
+        raise PredictionInputError(f"{key}: expected one entry per case, got {type(v).__name__}")
+    return list(v)
+
+
+def _triangles(key: str, t) -> np.ndarray:
+    """Triangles as int64 (k, 3) vertex indices, refused by name unless whole numbers."""
+    a = _numbers(key, t)
+    if a.size % 3 or not np.isfinite(a).all() or (a != np.round(a)).any():
+        raise PredictionInputError(f"{key}: expected whole vertex indices, three per triangle (got shape {a.shape})")
+    return a.astype(np.int64).reshape(-1, 3)
 
 
 def _read_frame_file(path: Path) -> tuple[object, str | None, float | None]:
@@ -301,6 +325,8 @@ def _frame_of_doc(doc, path) -> tuple[object, str | None, float | None]:
     if isinstance(doc, dict) and "frame" in doc and "spec" in doc:  # a procedural liver's record: RAS mm
         return "RAS", "mm", 1.0
     if isinstance(doc, dict) and "matrix" in doc:
+        if doc["matrix"] is None:
+            raise PredictionInputError(f"input frame {path}: 'matrix' is empty; give a 4x4 (file mm to RAS mm)")
         u = doc.get("units")
         return doc["matrix"], (None if u is None else str(u)), (None if u is None else unit_scale(u))
     if isinstance(doc, (list, str)):

@@ -99,7 +99,7 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
     """MLflow pyfunc around a :class:`liverforce.learn.model.ForceModel` bundle (artifact ``force_model``).
 
     Input: a DataFrame, one row per case, columns as :func:`arrays_to_frame`
-    writes them. Output: a DataFrame ``fx_n, fy_n, fz_n`` (source frame, N),
+    writes them. Output: a DataFrame ``fx_n, fy_n, fz_n`` (N; the liver's frame, or the inputs' frame below),
     and for a model with a calibrated interval also the local force
     ``ft1_n, ft2_n, fn_n`` and its interval half-widths ``ft1_half_n, ft2_half_n,
     fn_half_n`` (nominal coverage in the bundle's ``meta["interval"]``), and ``warnings``
@@ -146,8 +146,8 @@ def pyfunc_input_frame(input_frame: str | None, units: str | None) -> InputFrame
     ``results/<exp>/geometry/imp-<name>.json`` (its units and frame). A file path is refused: the served model
     reads no file a request names. ``units``: ``""``/``mm``, ``cm``, ``m``.
     """
-    frame = (input_frame or "").strip() or None
-    units = (units or "").strip() or None
+    frame = str(input_frame or "").strip() or None
+    units = str(units or "").strip() or None
     if frame is None or is_named(frame):
         return InputFrame.resolve(frame, units)
     if frame[0] not in "[{":
@@ -157,7 +157,7 @@ def pyfunc_input_frame(input_frame: str | None, units: str | None) -> InputFrame
             "the served model reads no file a request names")
     try:
         doc = json.loads(frame)
-    except ValueError as exc:
+    except (ValueError, RecursionError) as exc:
         raise PredictionInputError(f"input_frame: not valid JSON ({exc}); give RAS, LPS or a 4x4 matrix, "
                                    "{matrix, units} or an import record as JSON") from None
     return InputFrame.resolve(doc, units)
@@ -374,10 +374,14 @@ class MlflowPredictor(Predictor):
 def predict_pyfunc(pyfunc_model, arrays: dict, observation_seed: int | None = None, *,
                    input_frame: str = "", units: str = "") -> np.ndarray:
     """Run a loaded pyfunc model on input-contract ``arrays`` (in ``units`` and ``input_frame``: the pyfunc's
-    params, :func:`pyfunc_input_frame`); returns ``(n, 3)`` N in the inputs' frame."""
+    params, :func:`pyfunc_input_frame`; a 4x4 or a record may be given as a list, array or dict); returns
+    ``(n, 3)`` N in the inputs' frame."""
     keys = [k for k in arrays if k in _pyfunc_inputs(pyfunc_model)]
     df = arrays_to_frame(arrays, keys)
     params = {"observation_seed": -1 if observation_seed is None else observation_seed}
+    if input_frame is not None and not isinstance(input_frame, str):  # a 4x4 or a record: the param is JSON text
+        input_frame = json.dumps(np.asarray(input_frame).tolist() if isinstance(input_frame, np.ndarray)
+                                 else input_frame)
     said = {k: v for k, v in (("input_frame", input_frame), ("units", units)) if v}
     if said:
         schema = pyfunc_model.metadata.get_params_schema()

@@ -125,3 +125,28 @@ def test_dataset_reads_all_shards(tmp_path, rows):
     ds = dio.open_dataset(paths)
     assert ds.count_rows() == 12
     assert ds.to_table(columns=["force_magnitude_n"]).num_rows == 12
+
+
+def test_the_train_and_validate_steps_verify_every_shard_before_reading_any(tmp_path, rows):
+    """A shard modified after its manifest was written stops the train step (node and camera variants) and the
+    validation's camera arrays with the shard named, before any model is fitted (the slow shard-pipeline tests
+    run the same through snakemake)."""
+    from liverforce.pipeline.shared import camera_arrays, load_study_arrays
+    from liverforce.pipeline.train import train_model
+
+    paths = [tmp_path / f"shard-{i:04d}.parquet" for i in range(2)]
+    for p in paths:
+        dio.write_shard(rows, p)
+    manifest = tmp_path / "manifest.json"
+    dio.write_manifest(paths, manifest)
+    assert len(load_study_arrays(manifest)["case_id"]) == 6
+    data = bytearray(paths[1].read_bytes())
+    data[len(data) // 2] ^= 0x01
+    paths[1].write_bytes(bytes(data))
+    for cfg in ({}, {"roi_features": "cloud"}):
+        with pytest.raises(dio.ShardError, match="shard-0001.*does not match"):
+            train_model(manifest, "I", "v", cfg, {}, {}, f"sqlite:///{tmp_path / 'mlflow.db'}", "e", "e", 0, 1,
+                        tmp_path / "metrics.json", tmp_path / "model")
+    with pytest.raises(dio.ShardError, match="shard-0001.*does not match"):
+        camera_arrays(manifest, [str(tmp_path / "liver.vtu")], "validation")  # not read: the shards first
+    assert not (tmp_path / "metrics.json").exists() and not (tmp_path / "model").exists()

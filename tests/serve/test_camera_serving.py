@@ -207,7 +207,7 @@ def test_the_mlflow_pyfunc_serves_the_camera_model_from_clouds(served, tmp_path)
     (tmp_path / "imp-lab.json").write_text(json.dumps(record))
     for frame, units, why in [("[[1, 0]]", "m", "4x4"), ("{not json", "m", "not valid JSON"),
                               (json.dumps(M.tolist()), "furlong", "units"), ("LPS", "mm", "only"),
-                              (json.dumps(record), "mm", "imported in m"),
+                              (json.dumps(record), "mm", "contradict the units said apart"),
                               (str(tmp_path / "imp-lab.json"), "", "reads no file")]:
         with pytest.raises(PredictionInputError, match=why):  # LPS mm: the clouds land off the liver
             predict_pyfunc(pf, lab, input_frame=frame, units=units)
@@ -293,6 +293,16 @@ def test_the_compiled_cloud_path_takes_clouds_in_a_labs_frame_and_units(served, 
     ref = lab.predict_batch([c.astype(np.float32).astype(np.float64) for c in cl_in], tip_in[0])
     np.testing.assert_allclose(one.force, ref.force, atol=1e-9)
     assert np.isfinite(one.force).all() and len(lab.predict_batch([], np.zeros((0, 3))).force) == 0
+    # refusals name the inputs as given: a NaN tip as it came, alone and in a batch
+    with pytest.raises(PredictionInputError, match="tool_tip_mm: need 3 finite") as exc:
+        lab.predict(cl_in[0], [0.1, np.nan, 0.2])
+    assert "0.1" in str(exc.value)
+    why = lab.predict_batch([cl_in[0]], [[0.1, np.nan, 0.2]]).refused[0]
+    assert why.startswith("tool_tip_mm: need 3 finite") and "0.1, nan, 0.2" in why
+    padded[1, 5] = np.nan  # a NaN point in one padded cloud: that cloud refused, the others predicted
+    got = lab.predict_batch(padded, tip_in, counts=np.array([len(c) for c in cl_in]))
+    assert "NaN" in got.refused[1] and got.refused[0] is None and np.isnan(got.force[1]).all()
+    np.testing.assert_allclose(got.force[[0, 2]], full.force[[0, 2]], atol=1e-9)
     with pytest.raises(PredictionInputError, match="only"):
         lab.predict(cl_in[0] * 1000.0, tip_in[0])  # given in mm, said to be in m: off the grid, refused
 

@@ -311,8 +311,31 @@ def test_input_contract_arrays_in_a_registration_frame_come_back_to_ras_mm(refle
                        ("inertia_mm5", np.zeros((n, 8))), ("camera_cloud_mm", [np.zeros((4, 2))] * n)]:
         with pytest.raises(PredictionInputError, match=key):  # refused by name, never reshaped into other rows
             fr.arrays({**given, key: value})
+    with pytest.raises(PredictionInputError, match="exertion_point_mm"):  # (n, 0): not read as zero cases
+        fr.arrays({**given, "exertion_point_mm": np.zeros((n, 0))})
+    with pytest.raises(PredictionInputError, match="camera_cloud_mm: expected one entry per case"):
+        fr.arrays({**given, "camera_cloud_mm": 5})
+    if reflect:  # the triangles are rewound: whole vertex indices only
+        with pytest.raises(PredictionInputError, match=r"roi_triangles\[0\]: expected whole vertex indices"):
+            fr.arrays({**given, "roi_triangles": [np.array([[0, 1, 2.5]])] * n})
     none = fr.arrays({k: (v[:0] if isinstance(v, np.ndarray) else v[:0]) for k, v in given.items()})
     assert none["inertia_mm5"].shape == (0, 9) and none["exertion_point_mm"].shape == (0, 3)
+
+
+def test_a_frame_given_inline_as_the_pyfunc_reads_its_json():
+    """A record or {matrix, units} already read (a dict): the same frame as from a file; an empty matrix and
+    units said twice differently are refused, naming what is wrong."""
+    M = rigid(False)
+    fr = InputFrame.resolve({"matrix": M.tolist(), "units": "m"})
+    assert fr.scale == 1000.0 and np.array_equal(fr.matrix, M) and fr.source is None
+    rec = {"conversion": {"units": "m", "scale_to_mm": 1000.0, "frame": "LPS",
+                          "frame_matrix": np.diag([-1.0, -1.0, 1.0, 1.0]).tolist()}}
+    lps = InputFrame.resolve(rec)
+    assert lps.label == "LPS" and lps.scale == 1000.0
+    with pytest.raises(PredictionInputError, match="'matrix' is empty"):
+        InputFrame.resolve({"matrix": None, "units": "m"})
+    with pytest.raises(PredictionInputError, match=r"its units \(m\) contradict the units said apart \(cm\)"):
+        InputFrame.resolve({"matrix": M.tolist(), "units": "m"}, "cm")
 
 
 def test_every_input_contract_column_has_a_conversion():
