@@ -13,7 +13,8 @@ Gaussian process, and ``mlp``), prints, on one core (1 BLAS / torch / numba thre
    context checks, features, torch, interval), with the ratio;
 2. batch throughput (clouds/s): ``CompiledCloud.predict_batch`` on lists of ``--batches`` clouds
    (default 256 and 4096), against the per-cloud compiled loop and the reference
-   ``ForceModel.predict`` on a list of clouds (on ``--ref-batch`` clouds);
+   ``ForceModel.predict`` on a list of clouds (on ``--ref-batch`` clouds), and the largest batch again in a
+   lab's frame (LPS metres, ``compile_cloud(ctx, frame="LPS", units="m")``) against the same clouds in RAS mm;
 3. whether the targets are met on this machine, and a summary table of both regressors.
 
 The models are trained here on synthetic cases with whole surfaces
@@ -158,6 +159,15 @@ def measure(kind: str, model, arrays: dict, ctx, tip, clouds, batch_pool) -> dic
         batch = [batch_pool[k % len(batch_pool)] for k in range(nb)]
         tips = np.tile(tip, (nb, 1))
         rates[nb] = rate(lambda: fast.predict_batch(batch, tips), nb, REPEATS)
+    # a lab's clouds in LPS metres: the compiled path folds the map into its rotation (no conversion per point)
+    lab = pred.compile_cloud(ctx, frame="LPS", units="m")
+    lps = np.array([-1.0, -1.0, 1.0])
+    pool_lab = [c * lps / 1000.0 for c in batch_pool]  # made once, outside the timing
+    nb = max(BATCHES)
+    batch_lab = [pool_lab[k % len(pool_lab)] for k in range(nb)]
+    r_lab = rate(lambda: lab.predict_batch(batch_lab, np.tile(tip * lps / 1000.0, (nb, 1))), nb, REPEATS)
+    d_lab = max(float(np.abs(lab.predict(c * lps / 1000.0, tip * lps / 1000.0)[0] * lps
+                             - fast.predict(c, tip)[0]).max()) for c in clouds[:5])
     arr = subset({k: v for k, v in arrays.items() if k not in ("surface_displacement_mm",)}, np.zeros(REF_BATCH, int))
     arr["camera_cloud_mm"] = [batch_pool[k % len(batch_pool)] for k in range(REF_BATCH)]
     arr["tool_tip_mm"] = np.tile(tip, (REF_BATCH, 1))
@@ -166,6 +176,8 @@ def measure(kind: str, model, arrays: dict, ctx, tip, clouds, batch_pool) -> dic
     for nb, r in rates.items():
         print(f"predict_batch, {nb} clouds: {r:,.0f} clouds/s ({r / r_loop:.1f}x the loop, {r / r_ref:.0f}x the "
               f"reference)")
+    print(f"predict_batch, {nb} clouds in LPS metres (compile_cloud(ctx, frame='LPS', units='m')): {r_lab:,.0f} "
+          f"clouds/s ({r_lab / rates[nb]:.2f}x the same clouds in RAS mm); max |dF| against RAS mm {d_lab:.1e} N")
     print(f"reference ForceModel.predict, list of {REF_BATCH} clouds (peer): {r_ref:,.0f} clouds/s")
     best = max(rates.values())
     print(f"targets on this machine: p99 {1e3 * t_fast[1]:.3f} ms <= 2 ms: "
