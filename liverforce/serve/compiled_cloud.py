@@ -47,7 +47,8 @@ Indices into the arrays are unsigned where numba cannot see they are >= 0
 (it would otherwise emit the negative-index wrap, which stops LLVM from
 loading runs contiguously: the moments took 2.4x longer), and the pass lets
 LLVM fuse multiply-adds (``R (x - p)`` then matches NumPy/BLAS's bits more
-often, 80 % of coordinates against 68 %).
+often, 80 % of coordinates against 68 %; with an input frame folded into ``R`` and
+``p``, the local coordinates agree with the converted cloud's to rounding only).
 
 The features agree with ``cloud_grid`` to rounding (sums in another order:
 about 1e-14 mm; tests check 1e-9 mm and identical masks). The
@@ -645,13 +646,15 @@ class CompiledCloud:
             self._q = self.interval.stiffness_half_widths(np.array([[self.k_material]]))[0]
         self._rec = ((model.meta or {}).get("training_scale") or {}).get("camera")
         self._raster = np.ascontiguousarray(self.ref.raster, dtype=np.float64)
-        # the kernel reads clouds and tips as given: R (A s x + t - p) = (s R A) (x - A^T (p - t) / s), so an input
+        # the kernel reads clouds and tips as given: R (A s x + t - p) = (s R A) (x - A^-1 (p - t) / s), so an input
         # frame costs nothing per point (the checks and messages below convert the few points they read)
         if self.frame is None:
             self._kp, self._kR = self.p, self.R
         else:
             fr = self.frame
-            self._kp = np.ascontiguousarray(fr.A.T @ (self.p - fr.t) / fr.scale)
+            # A^-1, not A^T: a registration's matrix printed to 6 decimals is orthogonal only to ~1e-6, and with a
+            # shift of hundreds of mm A^T would move every local point by ~1e-3 mm
+            self._kp = np.ascontiguousarray(np.linalg.solve(fr.A, self.p - fr.t) / fr.scale)
             self._kR = np.ascontiguousarray(fr.scale * self.R @ fr.A)
         # load (or compile) the kernels now, not on the first cloud in the operating room
         for dtype in (np.float64, np.float32):  # a cloud, a padded batch of either precision

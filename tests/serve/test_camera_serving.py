@@ -293,6 +293,15 @@ def test_the_compiled_cloud_path_takes_clouds_in_a_labs_frame_and_units(served, 
     ref = lab.predict_batch([c.astype(np.float32).astype(np.float64) for c in cl_in], tip_in[0])
     np.testing.assert_allclose(one.force, ref.force, atol=1e-9)
     assert np.isfinite(one.force).all() and len(lab.predict_batch([], np.zeros((0, 3))).force) == 0
+    # a registration printed to 6 decimals (orthogonal to ~1e-6) with a scanner's shift: the features of the
+    # clouds read in place equal those of the clouds converted first (the fold inverts A, it does not transpose it)
+    M6 = np.round(M, 6)
+    fr6 = InputFrame.resolve(M6.tolist(), "m")
+    lab6 = pred.compile_cloud(ctx, frame=fr6)
+    for c, t in zip(clouds, tips):
+        c6 = np.linalg.solve(M6[:3, :3], (c - M6[:3, 3]).T).T / 1000.0
+        t6 = np.linalg.solve(M6[:3, :3], t - M6[:3, 3]) / 1000.0
+        np.testing.assert_allclose(lab6.features(c6, t6), fast.features(fr6.points(c6), fr6.points(t6)), atol=1e-9)
     # refusals name the inputs as given: a NaN tip as it came, alone and in a batch
     with pytest.raises(PredictionInputError, match="tool_tip_mm: need 3 finite") as exc:
         lab.predict(cl_in[0], [0.1, np.nan, 0.2])
