@@ -579,7 +579,8 @@ class CompiledCloud:
 
     def __init__(self, model, preop: Preop, *, limits: Limits | None = None, frame: InputFrame | None = None):
         rep = model.representation
-        # clouds and tips in another frame or unit (a lab's own liver): converted on the way in, forces back out
+        # clouds and tips in another frame or unit (a lab's own liver): read as given (the map is folded into the
+        # kernel's rotation below), forces given back in that frame
         self.frame = None if frame is None or frame.identity else frame
         if not rep.is_camera or not isinstance(model.pre.encoder, PCAEncoder):
             raise PredictionInputError("the compiled cloud path needs a camera-cloud model (roi_features: cloud) with "
@@ -893,12 +894,7 @@ class CompiledCloud:
             tips = np.broadcast_to(tips, (B, 3))
         if tips.shape != (B, 3):
             raise PredictionInputError(f"tool_tips: need one (3,) tip per cloud ({B}), got shape {tips.shape}")
-        got = self._batch(clouds, np.ascontiguousarray(tips), counts)
-        return got if self.frame is None else got._replace(force=self._out(got.force))
-
-    def _batch(self, clouds, tips: np.ndarray, counts) -> CloudBatch:
-        """:meth:`predict_batch` with the forces in the model's frame."""
-        B = len(clouds)
+        tips = np.ascontiguousarray(tips)
         if isinstance(clouds, np.ndarray) and clouds.ndim == 3:
             if clouds.shape[2] != 3:
                 raise PredictionInputError(f"clouds: expected (B, N, 3) points, got shape {clouds.shape}")
@@ -919,7 +915,7 @@ class CompiledCloud:
                                                              cnt[a:e], tips[a:e])
             refused, warnings = self._reasons(lambda r: clouds[r, :cnt[r]], cnt, tips, X, n_used, n_bad)
             F = self._forces(X, np.array([r is None for r in refused], dtype=bool))
-            return CloudBatch(F, self._half(F), warnings, refused)
+            return CloudBatch(self._out(F), self._half(F), warnings, refused)
         if counts is not None:
             raise PredictionInputError("counts: only with one padded (B, N, 3) array of clouds")
         refused: list = [None] * B
@@ -939,4 +935,4 @@ class CompiledCloud:
             force[good] = self._forces(X, np.array([r is None for r in why], dtype=bool))
             for k, i in enumerate(good):
                 refused[i], warnings[i] = why[k], warn[k]
-        return CloudBatch(force, self._half(force), warnings, refused)
+        return CloudBatch(self._out(force), self._half(force), warnings, refused)

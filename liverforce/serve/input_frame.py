@@ -113,7 +113,7 @@ class InputFrame:
                 source = str(path)
                 frame, rec_units, rec_scale = _read_frame_file(path)
             if rec_units is not None:
-                if units is not None and unit_scale(units) != rec_scale and path == "(given inline)":
+                if units is not None and unit_scale(units) != rec_scale and source is None:  # given inline
                     raise PredictionInputError(f"input frame (given inline): its units ({rec_units}) contradict "
                                                f"the units said apart ({units}); give them once")
                 if units is not None and unit_scale(units) != rec_scale:
@@ -196,7 +196,11 @@ class InputFrame:
             J = np.asarray(J, dtype=np.float64).reshape(3, 3)
         except (TypeError, ValueError) as exc:
             raise PredictionInputError(f"inertia_mm5: expected a 3 x 3 matrix (or 9 numbers) ({exc})") from None
-        return self.A @ (J * self.scale**5) @ self.A.T
+        return self._turn_inertia(J[None])[0]
+
+    def _turn_inertia(self, J: np.ndarray) -> np.ndarray:
+        """Second moments ``(n, 3, 3)`` in the inputs' units and frame -> model frame: ``s^5 A J A^T`` each."""
+        return np.einsum("ij,njk,lk->nil", self.A, J, self.A) * self.scale**5
 
     def arrays(self, arrays: dict) -> dict:
         """Input-contract arrays (one row per case, as the MLflow pyfunc and ``Predictor.predict_arrays`` take them)
@@ -235,8 +239,7 @@ class InputFrame:
                 if J.ndim < 1 or J.size != 9 * len(J):
                     raise PredictionInputError(f"inertia_mm5: expected a 3 x 3 matrix (9 numbers) per case, got shape "
                                                f"{J.shape}")
-                out[k] = (np.einsum("ij,njk,lk->nil", self.A, J.reshape(-1, 3, 3), self.A)
-                          * self.scale**5).reshape(J.shape)
+                out[k] = self._turn_inertia(J.reshape(-1, 3, 3)).reshape(J.shape)
             elif k == "roi_triangles":
                 out[k] = [_triangles(f"{k}[{i}]", t)[:, ::-1].copy() if self.reflects else t
                           for i, t in enumerate(_cases(k, v))]

@@ -380,8 +380,7 @@ def predict_pyfunc(pyfunc_model, arrays: dict, observation_seed: int | None = No
     df = arrays_to_frame(arrays, keys)
     params = {"observation_seed": -1 if observation_seed is None else observation_seed}
     if input_frame is not None and not isinstance(input_frame, str):  # a 4x4 or a record: the param is JSON text
-        input_frame = json.dumps(np.asarray(input_frame).tolist() if isinstance(input_frame, np.ndarray)
-                                 else input_frame)
+        input_frame = json.dumps(input_frame, default=lambda a: np.asarray(a).tolist())
     said = {k: v for k, v in (("input_frame", input_frame), ("units", units)) if v}
     if said:
         schema = pyfunc_model.metadata.get_params_schema()
