@@ -691,7 +691,7 @@ def _check_ranges(cfg: dict) -> None:
     _check_choice("validate.input", cfg["validate"]["input"], ["camera", "any"], "validation input")
     for k in cfg["validate"]["camera_sensitivity"]:
         _check_choice("validate.camera_sensitivity", k, ["n_points", "noise_sd_mm", "cone_half_angle_deg",
-                                                        "tip_noise_mm"], "camera setting")
+                                                        "tip_noise_mm", "instrument_in_cloud"], "camera setting")
     obs = cfg["model"]["camera"]["observation"]
     if obs.get("cone_axis") is None and float(obs.get("tool_radius_mm") or 0) > 0:
         # the shaft runs along the normal, the cone's axis: a camera within the tool's radius plus the clearance of
@@ -845,6 +845,12 @@ def _check_model(mo: dict, key: str) -> None:
         CloudGridSpec(grid_size=3, half_width_mm=1.0, **cam["grid"])
     except (TypeError, ValueError) as exc:
         _fail(f"{key}.camera.grid", str(exc))
+    r_fit = float(cam["grid"].get("instrument_radius_mm") or 0.0)
+    r_obs = cam["observation"].get("tool_radius_mm")
+    if r_fit > 0 and r_obs is not None and float(r_obs) != r_fit:
+        _fail(f"{key}.camera.grid.instrument_radius_mm",
+              f"the instrument fit's radius ({r_fit} mm) is not the observed tool's "
+              f"(camera.observation.tool_radius_mm: {r_obs} mm)", "give both the instrument's radius")
     if mo["roi_features"] == "cloud" and (mo["occlusion"]["radius_mm"] > 0 or mo["noise_mm"] > 0):
         _fail(f"{key}.roi_features", "a camera-cloud model (cloud) observes the surface with model.camera; "
               "model.occlusion.radius_mm and model.noise_mm apply to node features only", "set them to 0")

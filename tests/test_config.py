@@ -57,6 +57,8 @@ def test_thesis_is_the_study_scale():
         ("model.gp.shape=0", "model.gp.shape"),
         ("model.gp.shape=inf", "model.gp.shape"),
         ("model.camera.tip_noise_normal_mm=-0.5", "model.camera.tip_noise_normal_mm"),
+        ("model.camera.grid.instrument_radius_mm=-1", "model.camera.grid"),
+        ("model.camera.grid.instrument_radius_mm=3.0", "model.camera.grid.instrument_radius_mm"),
         ("validate.seed=1", "validate.seed"),
         ("geometry.procedural.shape.lobe_ratio=9", "geometry.procedural.shape"),
     ],

@@ -19,7 +19,12 @@ exactly these (length ``2 g^2 + 3``)::
   the exertion point, tangential part included: the one place where the
   camera's aperture problem does not apply. With the stiffness probe's
   compliance ``C`` it gives the linear force estimate ``f_lin = C^-1 tip``
-  (:mod:`liverforce.learn.model`).
+  (:mod:`liverforce.learn.model`). With ``camera.grid.instrument_radius_mm``
+  the cloud may hold the instrument's own points (a camera sees the tool;
+  ``camera.observation.instrument_in_cloud`` trains on such clouds): the
+  shaft's axis fitted to them replaces the tip's tangential part, which the
+  kinematics give to ``tip_noise_mm`` only, and they are dropped from the
+  grid (:func:`liverforce.learn.cloud_features.fit_instrument`).
 
 Where the inputs come from
 --------------------------
@@ -69,7 +74,8 @@ FEATURES_KEY = "camera_features"
 
 #: grid settings of cloud_features a config may set (the grid size and half-width come from the representation)
 GRID_KEYS = ("kernel_radius_cells", "min_points", "fill", "max_abs_height_mm", "reference_oversample",
-             "estimator", "max_leverage", "reference")
+             "estimator", "max_leverage", "reference", "instrument_radius_mm", "instrument_rise_mm",
+             "instrument_clearance_mm", "instrument_min_points")
 
 _CACHE: dict[tuple, np.ndarray] = {}
 _CACHE_MAX = 200_000
@@ -98,7 +104,12 @@ def exact_tip(camera: dict) -> dict:
 
 
 def grid_spec(grid_size: int, half_width_mm: float, camera: dict) -> CloudGridSpec:
+    """The cloud-grid settings of these camera settings; with an instrument fit, the sds it weighs by are the
+    observation's point noise and the kinematic tip's tangential noise."""
     extra = {k: camera["grid"][k] for k in GRID_KEYS if k in (camera.get("grid") or {})}
+    if float(extra.get("instrument_radius_mm") or 0.0) > 0:
+        extra["instrument_point_sd_mm"] = observation_config(camera, half_width_mm, grid_size).noise_sd_mm
+        extra["instrument_tip_sd_mm"] = float(camera.get("tip_noise_mm", 0.0))
     return CloudGridSpec(grid_size=int(grid_size), half_width_mm=float(half_width_mm), **extra)
 
 
@@ -189,8 +200,13 @@ def features_from_clouds(clouds, tips, arrays: dict, spec: CloudGridSpec,
                                                         None if tris is None else tris[i], P[i], R[i], spec,
                                                         label=label)
         cloud = np.asarray(clouds[k], dtype=np.float64).reshape(-1, 3)
-        out[k, :-3] = cloud_grid(cloud, ref, spec).features(include_mask=True)
-        out[k, -3:] = R[i] @ (tips[k] - P[i])
+        if spec.instrument_radius_mm > 0:  # the instrument's points dropped, its axis the tip's tangential part
+            grid = cloud_grid(cloud, ref, spec, tips[k])
+            out[k, :-3] = grid.features(include_mask=True)
+            out[k, -3:] = grid.tip_local
+        else:
+            out[k, :-3] = cloud_grid(cloud, ref, spec).features(include_mask=True)
+            out[k, -3:] = R[i] @ (tips[k] - P[i])
     return out
 
 

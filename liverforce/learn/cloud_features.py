@@ -141,6 +141,26 @@ class CloudGridSpec:
         ``points``: the Delaunay interpolant of the ROI points in the
         tangent plane, which mixes such sheets (camera models written before
         bundle format 7).
+    instrument_radius_mm : float
+        The tool's radius (mm; 0, the default: the cloud holds no tool points
+        and the tip is the kinematic one). Else the cloud may hold the
+        instrument's points, as a camera sees them: its axis is fitted to them
+        and they are dropped (:func:`fit_instrument`); needs the tool tip.
+    instrument_rise_mm : float
+        A point within the search radius of the kinematic tip's axis counts as
+        the instrument's when it stands this far above the pre-operative
+        surface (default 2 mm).
+    instrument_clearance_mm : float
+        Points within ``instrument_radius_mm`` + this of the fitted axis are
+        dropped at any height (default 1 mm): the tool's lower part, in the
+        dent.
+    instrument_min_points : int
+        Fewest instrument points to fit the axis to (default 8); below it the
+        kinematic tip is kept.
+    instrument_point_sd_mm, instrument_tip_sd_mm : float
+        The clouds' point noise and the kinematic tip's tangential noise (sd,
+        mm) the fit weighs its points and its prior by (the model's observation
+        settings; :func:`liverforce.learn.camera.grid_spec` sets them).
     """
 
     grid_size: int
@@ -153,11 +173,19 @@ class CloudGridSpec:
     estimator: str = "linear"
     max_leverage: float = 4.0
     reference: str = "surface"
+    instrument_radius_mm: float = 0.0
+    instrument_rise_mm: float = 2.0
+    instrument_clearance_mm: float = 1.0
+    instrument_min_points: int = 8
+    instrument_point_sd_mm: float = 0.5
+    instrument_tip_sd_mm: float = 0.5
 
     def __post_init__(self) -> None:
         for k, f in (("grid_size", int), ("min_points", int), ("reference_oversample", int),
                      ("half_width_mm", float), ("kernel_radius_cells", float), ("max_abs_height_mm", float),
-                     ("max_leverage", float)):
+                     ("max_leverage", float), ("instrument_radius_mm", float), ("instrument_rise_mm", float),
+                     ("instrument_clearance_mm", float), ("instrument_min_points", int),
+                     ("instrument_point_sd_mm", float), ("instrument_tip_sd_mm", float)):
             object.__setattr__(self, k, f(getattr(self, k)))
         checks = {
             "grid_size": self.grid_size >= 3,
@@ -170,6 +198,12 @@ class CloudGridSpec:
             "estimator": self.estimator in ESTIMATORS,
             "max_leverage": self.max_leverage > 0,
             "reference": self.reference in REFERENCES,
+            "instrument_radius_mm": 0.0 <= self.instrument_radius_mm < math.inf,
+            "instrument_rise_mm": self.instrument_rise_mm > 0,
+            "instrument_clearance_mm": self.instrument_clearance_mm >= 0,
+            "instrument_min_points": self.instrument_min_points >= 3,
+            "instrument_point_sd_mm": self.instrument_point_sd_mm >= 0,
+            "instrument_tip_sd_mm": self.instrument_tip_sd_mm >= 0,
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
@@ -177,7 +211,9 @@ class CloudGridSpec:
                 "CloudGridSpec: invalid " + ", ".join(f"{k}={getattr(self, k)!r}" for k in bad)
                 + f" (grid_size >= 3, half_width_mm > 0, kernel_radius_cells in [0.25, 5], min_points >= 1, "
                 f"fill one of {FILL_RULES}, max_abs_height_mm > 0, reference_oversample in [1, 32], "
-                f"estimator one of {ESTIMATORS}, max_leverage > 0, reference one of {REFERENCES})"
+                f"estimator one of {ESTIMATORS}, max_leverage > 0, reference one of {REFERENCES}, "
+                "instrument_radius_mm >= 0 (finite), instrument_rise_mm > 0, instrument_clearance_mm >= 0, "
+                "instrument_min_points >= 3, instrument sds >= 0)"
             )
 
     @property
@@ -389,7 +425,11 @@ class CloudGrid:
     count : distinct points within the kernel support
     weight : sum of kernel weights
     reference : pre-operative height ``z_ref`` at the grid points (local frame, mm)
-    n_points : distinct points used (after cropping)
+    n_points : distinct points used (after cropping; the instrument's dropped)
+    tip_local : the tool tip in the local frame (mm): the kinematic one, its tangential part from the fitted
+        instrument axis when ``spec.instrument_radius_mm > 0`` and enough instrument points were seen; None
+        when no tip was given
+    n_instrument : the instrument points the axis was fitted to (0: the kinematic tip kept)
     """
 
     height: np.ndarray
@@ -398,6 +438,8 @@ class CloudGrid:
     weight: np.ndarray
     reference: np.ndarray
     n_points: int
+    tip_local: np.ndarray | None = None
+    n_instrument: int = 0
 
     def features(self, include_mask: bool = False) -> np.ndarray:
         """Flat feature vector: ``height`` (``g^2``), then the validity mask as 0/1 if ``include_mask``."""
@@ -420,7 +462,73 @@ def _canonical(P: np.ndarray) -> np.ndarray:
     return Q
 
 
-def cloud_grid(cloud_mm, reference: ReferenceSurface, spec: CloudGridSpec) -> CloudGrid:
+def instrument_search_radius(spec: CloudGridSpec) -> float:
+    """Distance (mm) from the kinematic tip's axis within which points may be the instrument's: its radius plus
+    three sds of the tip's tangential error, two of the points' noise and half a millimetre."""
+    return spec.instrument_radius_mm + 3.0 * spec.instrument_tip_sd_mm + 2.0 * spec.instrument_point_sd_mm + 0.5
+
+
+_MIN_POINT_SD = 0.05  # mm: floors of the fit's sds (an exact cloud or tracker still weighs its points and prior)
+_MIN_TIP_SD = 1e-3
+_FIT_ITERATIONS = 25
+
+
+def _fit_axis(Q: np.ndarray, c: np.ndarray, c0: np.ndarray, r: float, wp: float, wk: float) -> np.ndarray:
+    """Gauss-Newton steps from ``c`` on ``wp sum (|q_i - c| - r)^2 + wk |c - c0|^2`` (:func:`fit_instrument`)."""
+    c = c.copy()
+    for _ in range(_FIT_ITERATIONS):
+        D = Q - c
+        n = np.maximum(np.hypot(D[:, 0], D[:, 1]), 1e-9)
+        res = n - r
+        J = -D / n[:, None]  # d res / d c
+        H = wp * (J.T @ J) + wk * np.eye(2)
+        step = np.linalg.solve(H, wp * (J.T @ res) + wk * (c - c0))
+        c = c - step
+        if float(step @ step) < 1e-16:
+            break
+    return c
+
+
+def fit_instrument(uv: np.ndarray, dz: np.ndarray, tip_uv, spec: CloudGridSpec) -> tuple[np.ndarray, np.ndarray, int]:
+    """The instrument's axis from a cloud in the local frame; returns ``(axis_uv, keep, n_fitted)``.
+
+    The tool's shaft runs along the normal (the local ``w`` axis), as in the observation model. Its points are
+    those within :func:`instrument_search_radius` of the kinematic tip's axis ``tip_uv`` that stand
+    ``instrument_rise_mm`` above the pre-operative surface (``dz``: the points' height change); the axis is the
+    centre ``c`` that best fits them with the tool's radius ``r``, a Gauss-Newton MAP estimate of
+    ``sum (|p_i - c| - r)^2 / sd_p^2 + |c - tip_uv|^2 / sd_k^2`` (the kinematic tip as the prior), once more
+    without the points off by more than ``3 sd_p + 0.3 mm``. With fewer than ``instrument_min_points`` such
+    points ``c`` stays ``tip_uv``. ``keep``: the points that are not the instrument's: not among those fitted,
+    beyond ``r + instrument_clearance_mm`` of ``c``, and beyond another ``2 sd_p`` where they stand above the
+    pre-operative surface (the shaft's lowest points, pushed out by their noise). The points' order does not matter
+    beyond rounding (the sums), so give them in a canonical order for bit-equal results.
+    """
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    c0 = np.asarray(tip_uv, dtype=np.float64).reshape(2)
+    r = spec.instrument_radius_mm
+    d0 = np.hypot(uv[:, 0] - c0[0], uv[:, 1] - c0[1])
+    cand = (d0 < instrument_search_radius(spec)) & (dz > spec.instrument_rise_mm)
+    c = c0.copy()
+    n_fit = int(cand.sum())
+    if n_fit >= spec.instrument_min_points:
+        Q = uv[cand]
+        wp = 1.0 / max(spec.instrument_point_sd_mm, _MIN_POINT_SD) ** 2
+        wk = 1.0 / max(spec.instrument_tip_sd_mm, _MIN_TIP_SD) ** 2
+        c = _fit_axis(Q, c, c0, r, wp, wk)
+        use = np.abs(np.hypot(Q[:, 0] - c[0], Q[:, 1] - c[1]) - r) <= 3.0 * spec.instrument_point_sd_mm + 0.3
+        if spec.instrument_min_points <= use.sum() < len(Q):  # once more without the outliers, from there
+            c = _fit_axis(Q[use], c, c0, r, wp, wk)
+            n_fit = int(use.sum())
+    else:
+        n_fit = 0
+    d = np.hypot(uv[:, 0] - c[0], uv[:, 1] - c[1])
+    near = d < r + spec.instrument_clearance_mm
+    # the shaft's lowest points, at the surface's height, whose noise put them beyond the clearance
+    near |= (d < r + spec.instrument_clearance_mm + 2.0 * spec.instrument_point_sd_mm) & (dz > 0)
+    return c, ~(near | cand), n_fit
+
+
+def cloud_grid(cloud_mm, reference: ReferenceSurface, spec: CloudGridSpec, tip_mm=None) -> CloudGrid:
     """Grid the cloud of one case (module docstring).
 
     Parameters
@@ -430,6 +538,9 @@ def cloud_grid(cloud_mm, reference: ReferenceSurface, spec: CloudGridSpec) -> Cl
     reference : ReferenceSurface
         The pre-operative reference of the same case (same frame and ``spec``).
     spec : CloudGridSpec
+    tip_mm : (3,), optional
+        The tool tip from the robot's kinematics (source frame, mm); needed when ``spec.instrument_radius_mm > 0``
+        (the instrument's points are found around it and dropped, and its axis refines the tip: ``tip_local``).
     """
     g, h = spec.grid_size, spec.half_width_mm
     step = spec.spacing_mm
@@ -443,6 +554,15 @@ def cloud_grid(cloud_mm, reference: ReferenceSurface, spec: CloudGridSpec) -> Cl
     dz = L[:, 2] - reference.height(u, v)
     ok = np.abs(dz) <= spec.max_abs_height_mm
     u, v, dz = u[ok], v[ok], dz[ok]
+    tip_local, n_inst = None, 0
+    if tip_mm is not None:
+        tip_local = reference.to_local(np.asarray(tip_mm, dtype=np.float64).reshape(1, 3))[0]
+    if spec.instrument_radius_mm > 0:
+        if tip_local is None:
+            raise ValueError("this cloud model finds the instrument's points around the tool tip: give the tip")
+        axis, keep, n_inst = fit_instrument(np.column_stack([u, v]), dz, tip_local[:2], spec)
+        tip_local = np.array([axis[0], axis[1], tip_local[2]])
+        u, v, dz = u[keep], v[keep], dz[keep]
     W = np.zeros(g * g)
     S = np.zeros(g * g)
     N = np.zeros(g * g, dtype=np.int64)
@@ -489,7 +609,8 @@ def cloud_grid(cloud_mm, reference: ReferenceSurface, spec: CloudGridSpec) -> Cl
     height[valid] = S[valid]
     height = _fill(height.reshape(g, g), valid.reshape(g, g), spec.fill)
     return CloudGrid(height=height, valid=valid.reshape(g, g), count=N.reshape(g, g).astype(np.int64),
-                     weight=W.reshape(g, g), reference=reference.grid_height.copy(), n_points=int(len(u)))
+                     weight=W.reshape(g, g), reference=reference.grid_height.copy(), n_points=int(len(u)),
+                     tip_local=tip_local, n_instrument=n_inst)
 
 
 def _fill(H: np.ndarray, valid: np.ndarray, rule: str) -> np.ndarray:

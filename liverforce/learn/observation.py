@@ -44,7 +44,17 @@ without new FE. This module does that, seeded, with numpy only:
    are visible (the first ``k`` visible ones in draw order, so the cloud is
    uniform by area over the visible part of the ROI), or until
    ``max_candidates`` were drawn (then fewer points, see the record).
-5. **Noise.** Gaussian, standard deviation ``noise_sd_mm``: ``isotropic``
+5. **The instrument** (``instrument_in_cloud``, default off): a camera sees
+   the tool too, and a stereo reconstruction that is not told to mask it
+   out returns its points with the liver's. Points uniform by area on the
+   tool's capsule within the ROI ball, at the liver part's density (the
+   cloud's points over the visible ROI area, estimated from the candidates),
+   kept where they face the camera (the capsule is convex, so that is its own
+   occlusion), lie in view and are not behind the liver (depth buffer, as
+   ``self_occluded``); drawn from a stream of their own, so the liver's points
+   are those of the same seed without the instrument, and appended after
+   them (the cloud is unordered: no model reads the order).
+6. **Noise.** Gaussian, standard deviation ``noise_sd_mm``: ``isotropic``
    (every coordinate) or ``ray`` (along the line of sight, as stereo depth
    error).
 
@@ -74,8 +84,8 @@ Randomness
 ----------
 ``seed`` (an int or a sequence of ints, e.g. ``case_seed(observation_seed,
 case_id)``) seeds a :class:`numpy.random.SeedSequence` that is split
-into three independent streams: camera pose, sampling (count and points) and
-noise. The same seed and inputs give the same cloud, bit for bit; the noisy
+into four independent streams: camera pose, sampling (count and points),
+noise and the instrument's points. The same seed and inputs give the same cloud, bit for bit; the noisy
 cloud equals the noise-free cloud of the same seed plus the noise.
 
 Frames and units
@@ -101,8 +111,8 @@ Notes
 -----
 The depth buffer drops triangles that reach behind the camera's near plane
 (1 mm): a surface touching the camera lens is not modelled. Specular
-highlights, texture-less regions, outliers and the tool's own points are not
-modelled; the cloud holds liver surface points only.
+highlights, texture-less regions and outliers are not modelled; the cloud holds
+liver surface points only unless ``instrument_in_cloud`` adds the tool's.
 """
 
 from __future__ import annotations
@@ -181,6 +191,9 @@ class ObservationConfig:
     depth_tolerance_mm : float
         Depth margin of the self-occlusion test on top of the slope-scaled
         bias (default 0.25 mm).
+    instrument_in_cloud : bool
+        Add the visible part of the tool's surface to the cloud at the liver
+        points' density (default False: the instrument is masked out).
     """
 
     camera_distance_mm: tuple[float, float] = (60.0, 120.0)
@@ -200,6 +213,7 @@ class ObservationConfig:
     min_view_cos: float = 0.0
     zbuffer_pixels: int = 256
     depth_tolerance_mm: float = 0.25
+    instrument_in_cloud: bool = False
 
     def __post_init__(self) -> None:
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
@@ -216,6 +230,7 @@ class ObservationConfig:
         for k in ("max_camera_draws", "max_candidates", "zbuffer_pixels"):
             set_(k, int(getattr(self, k)))
         set_("require_tool_visible", bool(self.require_tool_visible))
+        set_("instrument_in_cloud", bool(self.instrument_in_cloud))
         d0, d1 = self.camera_distance_mm
         n0, n1 = self.n_points
         checks = {
@@ -283,11 +298,13 @@ class ObservationRecord:
     camera_ok : False if no pose met the placement rules within ``max_camera_draws``
     tool_tip_mm, tool_axis : the tool tip point and axis used
     n_target : number of points drawn from ``n_points``
-    n_points : number of points in the cloud (``< n_target`` only when too little is visible)
+    n_points : number of points in the cloud: the liver's (``< n_target`` only when too little is visible) and
+        ``n_instrument_points``
     candidates : candidate points drawn in all
     dropped : candidates dropped per reason (``DROP_REASONS``); with ``candidates`` they
         estimate the area fractions of the ROI hidden by each mechanism
     visible_fraction : visible candidates / candidates within the ROI radius
+    n_instrument_points : points of the instrument in the cloud (``instrument_in_cloud``; the last rows)
     """
 
     camera_position_mm: np.ndarray
@@ -302,6 +319,7 @@ class ObservationRecord:
     candidates: int = 0
     dropped: dict = field(default_factory=lambda: {r: 0 for r in DROP_REASONS})
     visible_fraction: float = 0.0
+    n_instrument_points: int = 0
 
     def to_dict(self) -> dict:
         out = {}
@@ -790,12 +808,54 @@ def _half_window(config: ObservationConfig, d: float) -> float:
 # --------------------------------------------------------------------------
 
 
-def _streams(seed) -> tuple[np.random.Generator, np.random.Generator, np.random.Generator]:
+def _streams(seed) -> tuple[np.random.Generator, ...]:
+    """Camera pose, sampling, noise and instrument streams (the first three as before the fourth existed:
+    ``SeedSequence.spawn`` keys a child by its index)."""
     try:
-        cam, smp, noi = spawn_rngs(seed, 3)
+        return tuple(spawn_rngs(seed, 4))
     except ValueError:
         raise ValueError(f"observation seeds must be non-negative integers (got {seed!r})") from None
-    return cam, smp, noi
+
+
+def instrument_points(camera: Camera, zbuf: DepthBuffer, tool: Tool, tip, density_per_mm2: float,
+                      rng: np.random.Generator, config: ObservationConfig) -> np.ndarray:
+    """The tool's visible surface points ``(k, 3)`` (world frame, noise-free) within the ROI ball.
+
+    Candidates uniform by area over the capsule's tip hemisphere and its shaft up to the ROI radius, their number
+    ``density x area`` (rounded); kept when within ``roi_radius_mm`` of ``tip``, in view, facing the camera (the
+    capsule is convex: a front-facing point of it is not hidden by the tool itself; ``min_view_cos`` as for the
+    liver) and no deeper than the liver's depth buffer plus ``depth_tolerance_mm``.
+    """
+    r = tool.radius
+    if r <= 0 or density_per_mm2 <= 0:
+        return np.empty((0, 3))
+    tip = np.asarray(tip, dtype=np.float64).reshape(3)
+    a = tool.axis
+    e1, e2 = _basis(a)
+    L = min(tool.length, config.roi_radius_mm + r)
+    a_cyl, a_hem = 2.0 * math.pi * r * L, 2.0 * math.pi * r * r
+    m = int(round(density_per_mm2 * (a_cyl + a_hem)))
+    if m == 0:
+        return np.empty((0, 3))
+    phi = 2.0 * math.pi * rng.random(m)
+    on_cyl = rng.random(m) < a_cyl / (a_cyl + a_hem)
+    t = np.where(on_cyl, rng.random(m) * L, 0.0)
+    ct = np.where(on_cyl, 0.0, -rng.random(m))  # hemisphere below the centre: cos(polar angle from -a) uniform
+    st = np.sqrt(1.0 - ct * ct)
+    nrm = (st * np.cos(phi))[:, None] * e1 + (st * np.sin(phi))[:, None] * e2 + ct[:, None] * a
+    X = tool.centre + t[:, None] * a + r * nrm
+    keep = np.einsum("ij,ij->i", X - tip, X - tip) <= config.roi_radius_mm ** 2
+    Xc = camera.to_camera(X)
+    z = Xc[:, 2]
+    zs = np.where(z > _NEAR_MM, z, 1.0)
+    sx, sy = Xc[:, 0] / zs, Xc[:, 1] / zs
+    W = camera.half_window
+    keep &= (z > _NEAR_MM) & (np.abs(sx) < W) & (np.abs(sy) < W)
+    to_cam = camera.position - X
+    cosv = np.einsum("ij,ij->i", nrm, to_cam) / np.maximum(np.linalg.norm(to_cam, axis=1), 1e-12)
+    keep &= cosv > config.min_view_cos
+    keep &= z <= zbuf.lookup(sx, sy) + config.depth_tolerance_mm
+    return X[keep]
 
 
 def draw_count(rng: np.random.Generator, config: ObservationConfig) -> int:
@@ -862,7 +922,7 @@ def observe(
     a_tool = n_out if tool_axis is None else _unit(tool_axis, "tool_axis")
     cone = n_out if cfg.cone_axis is None else _unit(cfg.cone_axis, "cone_axis")
     tool = Tool.at_tip(tip, a_tool, cfg.tool_radius_mm, cfg.tool_shaft_length_mm)
-    rng_cam, rng_smp, rng_noise = _streams(seed)
+    rng_cam, rng_smp, rng_noise, rng_inst = _streams(seed)
     t0, t1, t2 = topo.columns
 
     # ---- camera pose
@@ -946,11 +1006,17 @@ def observe(
             break
         f_est = max(counts[VISIBLE] / max(counts.sum(), 1), 1e-3)
     cloud = camera.to_world(np.concatenate(kept)) if kept else np.empty((0, 3))
-    rec.n_points = int(len(cloud))
     rec.candidates = int(counts.sum())
     rec.dropped = {r: int(counts[1 + i]) for i, r in enumerate(DROP_REASONS)}
     in_roi = int(counts.sum() - counts[1])
     rec.visible_fraction = float(counts[VISIBLE] / in_roi) if in_roi else 0.0
+    if cfg.instrument_in_cloud and len(cloud):
+        # the liver part's density: its points over the visible area (candidate area x visible share)
+        visible_area = 0.5 * total * counts[VISIBLE] / counts.sum()
+        inst = instrument_points(camera, zbuf, tool, tip, len(cloud) / visible_area, rng_inst, cfg)
+        rec.n_instrument_points = int(len(inst))
+        cloud = np.concatenate([cloud, inst])
+    rec.n_points = int(len(cloud))
 
     # ---- noise
     if cfg.noise_sd_mm > 0 and len(cloud):

@@ -441,17 +441,20 @@ def camera_section(data: dict, v: dict, main_variant: str | None) -> str:
                    "camera, exact tip MAE (N)"], rows, cls="camera", row_cls="cam")]
     if sens:
         what = {"n_points": ("cloud points (fixed)", ""), "noise_sd_mm": ("point noise", " mm"),
-                "cone_half_angle_deg": ("view cone half-angle", "°"), "tip_noise_mm": ("tool tip noise", " mm")}
+                "cone_half_angle_deg": ("view cone half-angle", "°"), "tip_noise_mm": ("tool tip noise", " mm"),
+                "instrument_in_cloud": ("instrument's points in the cloud", "")}
         srows = []
         for key, (label, unit) in what.items():
             for r in sens.get(key) or []:
-                srows.append([label, f"{r['value']:g}{unit}", _pm(r["mae_vec"], r["mae_sd"]),
+                val = ("yes" if r["value"] else "no") if isinstance(r["value"], bool) else f"{r['value']:g}{unit}"
+                srows.append([label, val, _pm(r["mae_vec"], r["mae_sd"]),
                               _pm(r["accuracy_pct"], r["accuracy_sd"], 1)])
         ms = sens.get("model_settings") or {}
         obs = ms.get("observation") or {}
         out.append("<p>The validated camera model on the unseen livers with one camera setting changed at a time "
                    f"(trained with {obs.get('n_points')} points, noise {obs.get('noise_sd_mm')} mm, view cone "
-                   f"{obs.get('cone_half_angle_deg')}°, tip noise {ms.get('tip_noise_mm')} mm); mean ± sd over "
+                   f"{obs.get('cone_half_angle_deg')}°, tip noise {ms.get('tip_noise_mm')} mm, the instrument's "
+                   f"points {'in the cloud' if obs.get('instrument_in_cloud') else 'masked out'}); mean ± sd over "
                    "the livers.</p>")
         out.append(_table(["setting", "value", "unseen MAE (N)", "unseen accuracy %"], srows, cls="camera-sens",
                           row_cls="sens"))

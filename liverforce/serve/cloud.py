@@ -61,6 +61,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from liverforce.learn import camera
 from liverforce.learn.representation import interpolate_to_grid
 from liverforce.serve.checks import Limits, TrainingScale
 from liverforce.serve.errors import PredictionInputError
@@ -222,7 +223,59 @@ def _camera_arrays(model, cloud_mm, preop: Preop, tool_tip_mm, limits: Limits) -
         raise PredictionInputError(
             f"tool_tip_mm is {d_tip:.4g} mm from the exertion point, beyond the model's grid ({rep.half_width_mm:.3g} "
             "mm): is it in mm and in the liver frame, and is the tool at this exertion point?")
+    info = {"mode": "exact", "points_given": len(O), "points_used": n_used}
+    r_tool = camera.observation_config(rep.camera, rep.half_width_mm, rep.grid_size).tool_radius_mm  # as trained
+    if r_tool > 0:
+        spec = camera.grid_spec(rep.grid_size, rep.half_width_mm, rep.camera)
+        n_shaft = shaft_points(O_loc, (tip - p) @ R.T, r_tool, preop, spec)
+        if n_shaft >= SHAFT_POINTS and spec.instrument_radius_mm == 0:
+            raise PredictionInputError(instrument_refusal(n_shaft, r_tool))
+        info["instrument_points"] = n_shaft
+        if spec.instrument_radius_mm > 0 and n_shaft < SHAFT_POINTS:
+            info["warnings"] = [MASKED_INSTRUMENT]
     out = preop.to_arrays(preop.roi_undeformed_mm)
     out["camera_cloud_mm"] = [O]
     out["tool_tip_mm"] = tip[None]
-    return out, {"mode": "exact", "points_given": len(O), "points_used": n_used}
+    return out, info
+
+
+#: the serving check for the instrument's points in a cloud (:func:`shaft_points`): points within the tool's
+#: radius plus SHAFT_MARGIN_MM of the kinematic tip's axis (the normal) standing SHAFT_RISE_MM above the
+#: pre-operative surface (the liver round a tool pushing into it lies below or near that surface); SHAFT_POINTS
+#: of them are an instrument
+SHAFT_MARGIN_MM = 2.5
+SHAFT_RISE_MM = 4.0
+SHAFT_POINTS = 8
+#: the warning of a model that fits the instrument's axis when the cloud shows too little of it
+MASKED_INSTRUMENT = (f"fewer than {SHAFT_POINTS} points on the tool's shaft (the instrument masked out of the cloud, "
+                     "or a sparse cloud): the tip along the surface is the kinematic one, less precise than the "
+                     "instrument's axis")
+
+
+def instrument_refusal(n_shaft: int, tool_radius_mm: float) -> str:
+    """Why a model trained on clouds without the instrument refuses one with ``n_shaft`` points on its shaft."""
+    return (f"cloud: {n_shaft} points stand {SHAFT_RISE_MM:g} mm or more above the pre-operative surface within "
+            f"{tool_radius_mm + SHAFT_MARGIN_MM:g} mm of the tool's axis: the instrument is in the cloud, and this "
+            "model was trained on clouds without it. Mask the instrument out of the reconstruction, or use a model "
+            "that fits it (camera.observation.instrument_in_cloud and camera.grid.instrument_radius_mm)")
+
+
+def shaft_points(cloud_local: np.ndarray, tip_local: np.ndarray, tool_radius_mm: float, preop: Preop,
+                 spec) -> int:
+    """Points of a cloud (local frame of the exertion point) on the tool's shaft: within ``tool_radius_mm +
+    SHAFT_MARGIN_MM`` of the axis through the (kinematic) tip along the normal, ``SHAFT_RISE_MM`` or more above the
+    pre-operative surface (its top sheet, as the features read it: ``spec``); 0 when fewer than ``SHAFT_POINTS``
+    points lie that near the axis at all."""
+    from liverforce.learn.cloud_features import ReferenceSurface
+
+    d = np.hypot(cloud_local[:, 0] - tip_local[0], cloud_local[:, 1] - tip_local[1])
+    near = np.flatnonzero(d < tool_radius_mm + SHAFT_MARGIN_MM)
+    if near.size < SHAFT_POINTS:
+        return 0
+    try:
+        ref = ReferenceSurface.for_case(preop.roi_undeformed_mm, preop.roi_triangles, preop.exertion_point_mm,
+                                        preop.rotation, spec, label="pre-operative context")
+    except ValueError as exc:
+        raise PredictionInputError(str(exc)) from None
+    L = cloud_local[near]
+    return int((L[:, 2] - ref.height(L[:, 0], L[:, 1]) >= SHAFT_RISE_MM).sum())

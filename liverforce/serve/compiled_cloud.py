@@ -84,11 +84,13 @@ from numba import njit, types
 from numba.typed import List
 
 from liverforce.learn import camera
-from liverforce.learn.cloud_features import ReferenceSurface, _fill
+from liverforce.learn.cloud_features import (_FIT_ITERATIONS, _MIN_POINT_SD, _MIN_TIP_SD, ReferenceSurface, _fill,
+                                             instrument_search_radius)
 from liverforce.learn.encoders import PCAEncoder
 from liverforce.learn.state import THICKNESS_COLUMN, compliance_matrices, state_vector
 from liverforce.serve.checks import Limits, TrainingScale, outside_training
-from liverforce.serve.cloud import camera_checks, tool_tip_of
+from liverforce.serve.cloud import (MASKED_INSTRUMENT, SHAFT_MARGIN_MM, SHAFT_POINTS, SHAFT_RISE_MM, camera_checks,
+                                    instrument_refusal, tool_tip_of)
 from liverforce.serve.compiled import numpy_layers, regressor_head
 from liverforce.serve.errors import PredictionInputError
 from liverforce.serve.input_frame import InputFrame
@@ -227,18 +229,110 @@ def _workspace(nmax, g, kr):
             np.zeros(gg), np.zeros(gg))  # rhs, y
 
 
+@njit(cache=True)
+def _axis_steps(U, V, orig, idx, k, cu, cv, c0u, c0v, r, wp, wk):
+    """Gauss-Newton steps of the instrument's axis on the points ``orig[idx[:k]]`` (local ``U, V``), from
+    ``(cu, cv)``, the kinematic tip ``(c0u, c0v)`` the prior: ``cloud_features._fit_axis``."""
+    for _ in range(_FIT_ITERATIONS):
+        hxx = hxy = hyy = gx = gy = 0.0
+        for j in range(k):
+            t = orig[idx[j]]
+            dx = U[t] - cu
+            dy = V[t] - cv
+            n = max(math.sqrt(dx * dx + dy * dy), 1e-9)
+            res = n - r
+            jx = -dx / n
+            jy = -dy / n
+            hxx += jx * jx
+            hxy += jx * jy
+            hyy += jy * jy
+            gx += jx * res
+            gy += jy * res
+        a = wp * hxx + wk
+        b = wp * hxy
+        d = wp * hyy + wk
+        ex = wp * gx + wk * (cu - c0u)
+        ey = wp * gy + wk * (cv - c0v)
+        det = a * d - b * b
+        sx = (d * ex - b * ey) / det
+        sy = (a * ey - b * ex) / det
+        cu -= sx
+        cv -= sy
+        if sx * sx + sy * sy < 1e-16:
+            break
+    return cu, cv
+
+
+@njit(cache=True)
+def _fit_instrument(U, V, Zs, orig, n_sorted, c0u, c0v, inst, idx):
+    """The instrument's axis from the sorted, distinct points (``orig[s] >= 0``; local ``U[orig[s]], V[orig[s]]``,
+    height change ``Zs[s]``), as :func:`liverforce.learn.cloud_features.fit_instrument`; its points and those
+    within the clearance marked ``orig[s] = -1``. ``inst``: radius, search radius, rise, clearance, point sd, tip
+    sd, fewest points (:meth:`CompiledCloud._instrument`). Returns the axis ``(cu, cv)``, the points fitted and
+    the points dropped."""
+    r, search, rise, clear, sdp, sdk, n_min = inst[0], inst[1], inst[2], inst[3], inst[4], inst[5], inst[6]
+    wp = 1.0 / max(sdp, _MIN_POINT_SD) ** 2
+    wk = 1.0 / max(sdk, _MIN_TIP_SD) ** 2
+    s2 = search * search
+    k = 0
+    for s in range(n_sorted):
+        t = orig[s]
+        if t >= 0 and Zs[s] > rise:
+            dx = U[t] - c0u
+            dy = V[t] - c0v
+            if dx * dx + dy * dy < s2:
+                idx[k] = s
+                k += 1
+    cu, cv = c0u, c0v
+    n_fit = 0
+    if k >= n_min:
+        cu, cv = _axis_steps(U, V, orig, idx, k, cu, cv, c0u, c0v, r, wp, wk)
+        thr = 3.0 * sdp + 0.3
+        k2 = 0
+        for j in range(k):  # the outliers out, in place (stable)
+            t = orig[idx[j]]
+            dx = U[t] - cu
+            dy = V[t] - cv
+            if abs(math.sqrt(dx * dx + dy * dy) - r) <= thr:
+                idx[k2] = idx[j]
+                k2 += 1
+        n_fit = k
+        if n_min <= k2 < k:
+            cu, cv = _axis_steps(U, V, orig, idx, k2, cu, cv, c0u, c0v, r, wp, wk)
+            n_fit = k2
+    n_drop = 0
+    near2 = (r + clear) ** 2
+    hi2 = (r + clear + 2.0 * sdp) ** 2
+    for s in range(n_sorted):
+        t = orig[s]
+        if t >= 0:
+            z = Zs[s]
+            dx = U[t] - cu
+            dy = V[t] - cv
+            d2 = dx * dx + dy * dy
+            ex = U[t] - c0u
+            ey = V[t] - c0v
+            if d2 < near2 or (d2 < hi2 and z > 0.0) or (z > rise and ex * ex + ey * ey < s2):
+                orig[s] = -1
+                n_drop += 1
+    return cu, cv, n_fit, n_drop
+
+
 _H1 = 2654435761  # odd multipliers of the duplicate filter's hash (products stay far below 2^63)
 _H2 = 2246822519
 
 
 @njit(cache=True, fastmath={"contract"})  # FMAs: u, v, w as BLAS computes R (x - p) more often
 def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_abs, min_points, max_leverage,
-              linear, fill, reach_count, ws, x):
+              linear, fill, reach_count, shaft_r2, shaft_rise, inst, ws, x):
     """Feature row ``x = [height (g^2), mask (g^2), R (tip - p) (3)]`` of the cloud ``P[s0:s0 + n]``.
 
     Mirrors :func:`liverforce.learn.cloud_features.cloud_grid` (module docstring); ``ws``: :func:`_workspace`.
-    Returns the points over the grid (``|u|, |v| <= reach_count``) and the points whose local coordinates are
-    not finite (every point with a NaN or inf coordinate; :meth:`CompiledCloud._refusal` counts exactly).
+    Returns the points over the grid (``|u|, |v| <= reach_count``), the points whose local coordinates are
+    not finite (every point with a NaN or inf coordinate; :meth:`CompiledCloud._refusal` counts exactly) and the
+    points on the tool's shaft (within ``sqrt(shaft_r2)`` of the tip's axis, ``shaft_rise`` or more above the
+    pre-operative surface: :func:`liverforce.serve.cloud.shaft_points`). With ``inst[0] > 0`` the instrument's
+    axis is fitted to its points, which are dropped, and gives the tip's tangential part (:func:`_fit_instrument`).
     """
     U, V, Wl, GU, GV, Z, key, A, C, Q, HB, GUs, GVs, Zs, orig, first, fill_at, bits, cand = ws[:19]
     M, Hc, valid, idx, unk, Lb, rhs, y = ws[19:]
@@ -253,6 +347,9 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
     sb, pad, nc, exact = _bins(g, kr)
     o0, o1, o2 = origin[0], origin[1], origin[2]
     r00, r01, r02, r10, r11, r12, r20, r21, r22 = R[0, 0], R[0, 1], R[0, 2], R[1, 0], R[1, 1], R[1, 2], R[2, 0], R[2, 1], R[2, 2]
+    tp0, tp1, tp2 = tip[0] - o0, tip[1] - o1, tip[2] - o2
+    tu = tp0 * r00 + tp1 * r01 + tp2 * r02  # the tip's tangential position: the axis of the shaft check
+    tv = tp0 * r10 + tp1 * r11 + tp2 * r12
     # 1. every point: local frame; not finite (a NaN or inf coordinate makes u NaN or inf) and over the grid
     #    (the refusal checks); the points within the kernel's reach compacted in their order (branch-free).
     #    Unsigned indices here and below: numba then skips the negative-index wrap and LLVM can vectorise.
@@ -296,12 +393,17 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
         GV[t] = gv
         key[t] = _bin_key(gu, gv, sb, pad, nc)
         HB[t] = (int(gu * 4096.0) * _H1 + int(gv * 4096.0) * _H2) & mask  # duplicate filter: equal points, equal bits
+    ns = 0
     for t in range(m):
         q = Q[t]
         a = A[t]
         c = C[t]
-        Z[t] = Wl[t] - ((1 - a) * (1 - c) * RF[q] + a * (1 - c) * RF[q + one]
-                        + (1 - a) * c * RF[q + rs] + a * c * RF[q + rs + one])
+        z = Wl[t] - ((1 - a) * (1 - c) * RF[q] + a * (1 - c) * RF[q + one]
+                     + (1 - a) * c * RF[q + rs] + a * c * RF[q + rs + one])
+        Z[t] = z
+        du = U[t] - tu
+        dv = V[t] - tv
+        ns += 1 if (du * du + dv * dv < shaft_r2) and (z >= shaft_rise) else 0
     # 3. counting sort by bin (stable); exact duplicates (equal local coordinates) are found with a bit table of
     #    hashed (u, v): a point whose bit is already set is a candidate, checked against its bin's earlier points
     nw = 1 << (tb - 5)
@@ -348,6 +450,10 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
                 orig[s] = -1  # the first of equal points stays (the same values either way)
                 n_dup += 1
                 break
+    if inst[0] > 0.0:  # the instrument's points: fitted (the tip's tangential part), then dropped
+        cu, cv, _, n_drop = _fit_instrument(U, V, Zs, orig, first[nc * nc], tu, tv, inst, cand)
+        tu, tv = cu, cv
+        n_dup += n_drop
     if n_dup:
         w = 0
         for kk in range(nc * nc):
@@ -399,31 +505,31 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
     for cell in range(gg):
         x[cell] = Hc[cell]
         x[gg + cell] = 1.0 if valid[cell] else 0.0
-    t0 = tip[0] - o0
-    t1 = tip[1] - o1
-    t2 = tip[2] - o2
-    for r in range(3):
-        x[2 * gg + r] = R[r, 0] * t0 + R[r, 1] * t1 + R[r, 2] * t2
-    return nu, nb
+    x[2 * gg] = tu
+    x[2 * gg + 1] = tv
+    x[2 * gg + 2] = R[2, 0] * tp0 + R[2, 1] * tp1 + R[2, 2] * tp2
+    return nu, nb, ns
 
 
 @njit(cache=True)
 def _grid_clouds(P, starts, counts, tips, origin, R, raster, lo, rstep, g, h, gstep, kr, max_abs, min_points,
-                 max_leverage, linear, fill, reach_count, X, n_used, n_bad):
+                 max_leverage, linear, fill, reach_count, shaft_r2, shaft_rise, inst, X, n_used, n_bad, n_shaft):
     """Feature rows ``X[b]`` of the clouds ``P[starts[b]:starts[b] + counts[b]]`` (float64 or float32 points),
-    their points over the grid and their points with a NaN or inf coordinate (:func:`_grid_one`)."""
+    their points over the grid, their points with a NaN or inf coordinate and on the tool's shaft
+    (:func:`_grid_one`)."""
     nmax = 1
     for b in range(starts.shape[0]):
         nmax = max(nmax, counts[b])
     ws = _workspace(nmax, g, kr)
     for b in range(starts.shape[0]):
-        n_used[b], n_bad[b] = _grid_one(P, starts[b], counts[b], tips[b], origin, R, raster, lo, rstep, g, h, gstep,
-                                        kr, max_abs, min_points, max_leverage, linear, fill, reach_count, ws, X[b])
+        n_used[b], n_bad[b], n_shaft[b] = _grid_one(P, starts[b], counts[b], tips[b], origin, R, raster, lo, rstep,
+                                                    g, h, gstep, kr, max_abs, min_points, max_leverage, linear, fill,
+                                                    reach_count, shaft_r2, shaft_rise, inst, ws, X[b])
 
 
 @njit(cache=True)
 def _grid_list(clouds, tips, origin, R, raster, lo, rstep, g, h, gstep, kr, max_abs, min_points, max_leverage,
-               linear, fill, reach_count, X, n_used, n_bad):
+               linear, fill, reach_count, shaft_r2, shaft_rise, inst, X, n_used, n_bad, n_shaft):
     """:func:`_grid_clouds` of a typed list of (n_b, 3) float64 clouds, read in place (no concatenation)."""
     nmax = 1
     for b in range(len(clouds)):
@@ -431,8 +537,9 @@ def _grid_list(clouds, tips, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
     ws = _workspace(nmax, g, kr)
     for b in range(len(clouds)):
         P = clouds[b]
-        n_used[b], n_bad[b] = _grid_one(P, 0, P.shape[0], tips[b], origin, R, raster, lo, rstep, g, h, gstep, kr,
-                                        max_abs, min_points, max_leverage, linear, fill, reach_count, ws, X[b])
+        n_used[b], n_bad[b], n_shaft[b] = _grid_one(P, 0, P.shape[0], tips[b], origin, R, raster, lo, rstep, g, h,
+                                                    gstep, kr, max_abs, min_points, max_leverage, linear, fill,
+                                                    reach_count, shaft_r2, shaft_rise, inst, ws, X[b])
 
 
 @njit(cache=True)
@@ -647,6 +754,14 @@ class CompiledCloud:
             self._q = self.interval.stiffness_half_widths(np.array([[self.k_material]]))[0]
         self._rec = ((model.meta or {}).get("training_scale") or {}).get("camera")
         self._raster = np.ascontiguousarray(self.ref.raster, dtype=np.float64)
+        # the instrument's points in a cloud (a model trained without them refuses it: serve.cloud.shaft_points)
+        self.tool_radius_mm = camera.observation_config(rep.camera, rep.half_width_mm, rep.grid_size).tool_radius_mm
+        self._shaft_r2 = (self.tool_radius_mm + SHAFT_MARGIN_MM) ** 2 if self.tool_radius_mm > 0 else 0.0
+        sp = self.spec  # the instrument's axis fitted to its points in the cloud (cloud_features.fit_instrument)
+        self.fits_instrument = sp.instrument_radius_mm > 0
+        self._inst = np.array([sp.instrument_radius_mm, instrument_search_radius(sp), sp.instrument_rise_mm,
+                               sp.instrument_clearance_mm, sp.instrument_point_sd_mm, sp.instrument_tip_sd_mm,
+                               sp.instrument_min_points], dtype=np.float64)
         # the kernel reads clouds and tips as given: R (A s x + t - p) = (s R A) (x - A^-1 (p - t) / s), so an input
         # frame costs nothing per point (the checks and messages below convert the few points they read)
         if self.frame is None:
@@ -675,10 +790,12 @@ class CompiledCloud:
         X = np.empty((B, 2 * self.g * self.g + 3))
         n_used = np.zeros(B, dtype=np.int64)
         n_bad = np.zeros(B, dtype=np.int64)
+        n_shaft = np.zeros(B, dtype=np.int64)
         if B:
             args = (tips, self._kp, self._kR, self._raster, self.ref.lo, self.ref.step, self.g, sp.half_width_mm,
                     sp.spacing_mm, sp.kernel_radius_cells, sp.max_abs_height_mm, sp.min_points, sp.max_leverage,
-                    sp.estimator == "linear", _FILL_CODES[sp.fill], self.reach, X, n_used, n_bad)
+                    sp.estimator == "linear", _FILL_CODES[sp.fill], self.reach, self._shaft_r2, SHAFT_RISE_MM,
+                    self._inst, X, n_used, n_bad, n_shaft)
             if starts is None:
                 clouds = List.empty_list(_CLOUD_TYPE)
                 for c in P:
@@ -690,7 +807,7 @@ class CompiledCloud:
                 g, gg = self.g, self.g * self.g
                 for r in range(B):
                     X[r, :gg] = _fill(X[r, :gg].reshape(g, g), X[r, gg:2 * gg].reshape(g, g) > 0.5, "nearest").ravel()
-        return X, n_used, n_bad
+        return X, n_used, n_bad, n_shaft
 
     def _head(self, X: np.ndarray) -> np.ndarray:
         """Forces (n, 3) N in the liver frame of feature rows ``X`` (affine map, state, MLP or GP, scaling)."""
@@ -722,7 +839,7 @@ class CompiledCloud:
         R = self.R
         return (f[:, 0:1] * R[0] + f[:, 1:2] * R[1]) + f[:, 2:3] * R[2]  # R^T f, row by row
 
-    def _reasons(self, cloud_of, counts, tips, X, n_used, n_bad) -> tuple[list, list]:
+    def _reasons(self, cloud_of, counts, tips, X, n_used, n_bad, n_shaft) -> tuple[list, list]:
         """Per cloud: the refusal reason (None if predicted) and the warnings, in the reference path's order.
 
         ``cloud_of(r)``: the points of cloud ``r`` (only called for a cloud near or past a refusal)."""
@@ -730,8 +847,8 @@ class CompiledCloud:
         refused: list = [None] * B
         warnings: list = [[] for _ in range(B)]
         lim = self.limits
-        for r in np.flatnonzero(self._flagged(counts, tips, n_used, n_bad)):
-            refused[r] = self._refusal(cloud_of(r), tips[r], int(n_used[r]))
+        for r in np.flatnonzero(self._flagged(counts, tips, n_used, n_bad, n_shaft)):
+            refused[r] = self._refusal(cloud_of(r), tips[r], int(n_used[r]), int(n_shaft[r]))
         if self._rec:
             g2 = self.g * self.g
             mask = X[:, g2:2 * g2]
@@ -748,6 +865,10 @@ class CompiledCloud:
                         warnings[r] = camera_checks(self.model, X[r], lim)
                     except PredictionInputError as exc:
                         refused[r] = str(exc)
+        if self.fits_instrument:  # too little of the instrument seen: the kinematic tip (as serve.cloud warns)
+            for r in np.flatnonzero(n_shaft < SHAFT_POINTS):
+                if refused[r] is None:
+                    warnings[r] = [MASKED_INSTRUMENT] + warnings[r]
         if self.context_warnings:
             warnings = [w if why is not None else self.context_warnings + w for w, why in zip(warnings, refused)]
         return refused, warnings
@@ -756,14 +877,14 @@ class CompiledCloud:
         """Points as given -> the model's frame (RAS mm)."""
         return x if self.frame is None else self.frame.points(x)
 
-    def _flagged(self, counts, tips, n_used, n_bad) -> np.ndarray:
+    def _flagged(self, counts, tips, n_used, n_bad, n_shaft) -> np.ndarray:
         """(B,) True for a cloud that may be refused before its features are read (:meth:`_refusal` decides;
         the others pass its checks by construction). ``tips`` as given."""
         tips = self._model(tips)
         tip_ok = np.isfinite(tips).all(axis=1)
         d_tip = np.linalg.norm(np.where(tip_ok[:, None], tips - self.p, 0.0), axis=1)
         return ((counts == 0) | (n_bad > 0) | (n_used < self.limits.min_cloud_points) | ~tip_ok
-                | (d_tip > self.half_width_mm))
+                | (d_tip > self.half_width_mm) | ((n_shaft >= SHAFT_POINTS) & (not self.fits_instrument)))
 
     @staticmethod
     def _tip_refusal(tip: np.ndarray) -> str | None:
@@ -771,7 +892,7 @@ class CompiledCloud:
             return f"tool_tip_mm: need 3 finite coordinates (mm), got {tip!r}"
         return None
 
-    def _refusal(self, O: np.ndarray, tip: np.ndarray, n_used: int) -> str | None:
+    def _refusal(self, O: np.ndarray, tip: np.ndarray, n_used: int, n_shaft: int) -> str | None:
         """The reference path's message (``liverforce.serve.cloud._camera_arrays``, ``preop._points``); the cloud
         ``O`` and ``tip`` as given, distances in the model's frame (mm)."""
         why = self._tip_refusal(tip)
@@ -795,6 +916,8 @@ class CompiledCloud:
             return (f"tool_tip_mm is {d_tip:.4g} mm from the exertion point, beyond the model's grid "
                     f"({self.half_width_mm:.3g} mm): is it in mm and in the liver frame, and is the tool at this "
                     "exertion point?")
+        if n_shaft >= SHAFT_POINTS and not self.fits_instrument:
+            return instrument_refusal(n_shaft, self.tool_radius_mm)
         return None
 
     def _forces(self, X: np.ndarray, ok: np.ndarray) -> np.ndarray:
@@ -844,8 +967,8 @@ class CompiledCloud:
         """Feature row, refusal reason and warnings of one cloud (the tip is checked first, as the reference does)."""
         tip = self._tip(tool_tip_mm)
         O = self._cloud(cloud_mm)
-        X, n_used, n_bad = self._grid(O, np.zeros(1, np.int64), np.array([len(O)], np.int64), tip[None])
-        refused, warnings = self._reasons(lambda r: O, np.array([len(O)]), tip[None], X, n_used, n_bad)
+        X, n_used, n_bad, n_shaft = self._grid(O, np.zeros(1, np.int64), np.array([len(O)], np.int64), tip[None])
+        refused, warnings = self._reasons(lambda r: O, np.array([len(O)]), tip[None], X, n_used, n_bad, n_shaft)
         return X, refused[0], warnings[0]
 
     def features(self, cloud_mm, tool_tip_mm) -> np.ndarray:
@@ -854,9 +977,9 @@ class CompiledCloud:
         tip = self._tip(tool_tip_mm)
         O = self._cloud(cloud_mm)
         counts = np.array([len(O)], np.int64)
-        X, n_used, n_bad = self._grid(O, np.zeros(1, np.int64), counts, tip[None])
-        if self._flagged(counts, tip[None], n_used, n_bad)[0]:
-            why = self._refusal(O, tip, int(n_used[0]))
+        X, n_used, n_bad, n_shaft = self._grid(O, np.zeros(1, np.int64), counts, tip[None])
+        if self._flagged(counts, tip[None], n_used, n_bad, n_shaft)[0]:
+            why = self._refusal(O, tip, int(n_used[0]), int(n_shaft[0]))
             if why:
                 raise PredictionInputError(why)
         return X[0]
@@ -906,14 +1029,15 @@ class CompiledCloud:
             X = np.empty((B, 2 * self.g * self.g + 3))
             n_used = np.zeros(B, dtype=np.int64)
             n_bad = np.zeros(B, dtype=np.int64)
+            n_shaft = np.zeros(B, dtype=np.int64)
             direct = clouds.dtype in (np.float32, np.float64) and clouds.flags.c_contiguous
             step = max(B, 1) if direct else _CHUNK  # a conversion is done a chunk at a time (bounds the copy)
             for a in range(0, B, step):
                 e = min(a + step, B)
                 P = clouds[a:e] if direct else np.ascontiguousarray(clouds[a:e], dtype=np.float64)
-                X[a:e], n_used[a:e], n_bad[a:e] = self._grid(P.reshape(-1, 3), np.arange(e - a, dtype=np.int64) * N,
-                                                             cnt[a:e], tips[a:e])
-            refused, warnings = self._reasons(lambda r: clouds[r, :cnt[r]], cnt, tips, X, n_used, n_bad)
+                X[a:e], n_used[a:e], n_bad[a:e], n_shaft[a:e] = self._grid(
+                    P.reshape(-1, 3), np.arange(e - a, dtype=np.int64) * N, cnt[a:e], tips[a:e])
+            refused, warnings = self._reasons(lambda r: clouds[r, :cnt[r]], cnt, tips, X, n_used, n_bad, n_shaft)
             F = self._forces(X, np.array([r is None for r in refused], dtype=bool))
             return CloudBatch(self._out(F), self._half(F), warnings, refused)
         if counts is not None:
@@ -930,8 +1054,9 @@ class CompiledCloud:
         force = np.full((B, 3), np.nan)
         if good:
             P = [arrays[i] for i in good]
-            X, n_used, n_bad = self._grid(P, None, None, tips[good])
-            why, warn = self._reasons(lambda r: P[r], np.array([len(c) for c in P]), tips[good], X, n_used, n_bad)
+            X, n_used, n_bad, n_shaft = self._grid(P, None, None, tips[good])
+            why, warn = self._reasons(lambda r: P[r], np.array([len(c) for c in P]), tips[good], X, n_used, n_bad,
+                                      n_shaft)
             force[good] = self._forces(X, np.array([r is None for r in why], dtype=bool))
             for k, i in enumerate(good):
                 refused[i], warnings[i] = why[k], warn[k]

@@ -236,7 +236,8 @@ class Predictor:
             check_case(arrays, 0, self.model, self.scale, self.limits, label="", rotation=preop.rotation)
         if self.model.representation.is_camera:
             x = self.model.representation.features_of(arrays, R=R)
-            info["warnings"] = self.context_warnings(preop) + camera_checks(self.model, x[0], self.limits)
+            info["warnings"] = (self.context_warnings(preop) + info.get("warnings", [])
+                                + camera_checks(self.model, x[0], self.limits))
             arrays["camera_features"] = x  # computed once: the model reads them instead of the cloud
         else:
             info["warnings"] = self.context_warnings(preop)

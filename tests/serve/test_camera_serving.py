@@ -390,3 +390,50 @@ def test_cli_takes_a_labs_cloud_in_lps_metres_through_the_livers_import_record(s
     np.testing.assert_allclose(got["interval"]["half_width_local_n"], ras["interval"]["half_width_local_n"], rtol=1e-6)
     assert got["mode"] == "exact" and got["points_used"] == ras["points_used"]
     assert "frame LPS" in got["input_frame"] and "imp-lab.json" in got["input_frame"]
+
+
+def test_a_cloud_with_the_instrument_in_it_is_refused_by_a_model_trained_without(served):
+    """The tool's own points in the cloud (a reconstruction that did not mask it out) would raise the cells round
+    the tool by millimetres: a model trained on clouds without them refuses, naming the remedy; the same cloud
+    with the instrument masked out is predicted."""
+    from liverforce.learn.observation import ObservationConfig
+
+    path, model, a = served
+    pred = Predictor.from_dir(path)
+    V, T = a["surface_meshes"][a["geometry_id"][2]]
+    u = np.asarray(a["surface_displacement_mm"][2], dtype=np.float64)
+    p = a["exertion_point_mm"][2]
+    tip = p + u[int(np.argmin(np.linalg.norm(V - p, axis=1)))]
+    ctx = Preop.from_arrays({k: v for k, v in a.items() if k != "roi_deformed_mm"}, 2)
+    cfg = ObservationConfig(n_points=(3000, 3000), noise_sd_mm=0.3, roi_radius_mm=40.0, instrument_in_cloud=True)
+    cloud, rec = observe(V + u, T, tip, a["frame_normal"][2], cfg, seed=4)
+    assert rec.n_instrument_points > 50
+    with pytest.raises(PredictionInputError, match="instrument is in the cloud.*Mask the instrument out"):
+        pred.predict_cloud(cloud, ctx, tool_tip_mm=tip)
+    force, info = pred.predict_cloud(cloud[: len(cloud) - rec.n_instrument_points], ctx, tool_tip_mm=tip,
+                                     return_info=True)
+    assert np.isfinite(force).all() and info["instrument_points"] < 8
+
+
+def test_the_compiled_path_refuses_the_instrument_in_the_cloud_as_the_reference_does(served):
+    from liverforce.learn.observation import ObservationConfig
+
+    path, model, a = served
+    pred = Predictor.from_dir(path)
+    ctx, _, _ = _case(a, 3)
+    fast = pred.compile_cloud(ctx)
+    V, T = a["surface_meshes"][a["geometry_id"][3]]
+    u = np.asarray(a["surface_displacement_mm"][3], dtype=np.float64)
+    p = a["exertion_point_mm"][3]
+    tip = p + u[int(np.argmin(np.linalg.norm(V - p, axis=1)))]
+    cfg = ObservationConfig(n_points=(3000, 3000), noise_sd_mm=0.3, roi_radius_mm=40.0, instrument_in_cloud=True)
+    cloud, rec = observe(V + u, T, tip, a["frame_normal"][3], cfg, seed=9)
+    clean = cloud[: len(cloud) - rec.n_instrument_points]
+    with pytest.raises(PredictionInputError) as ref:
+        pred.predict_cloud(cloud, ctx, tool_tip_mm=tip)
+    with pytest.raises(PredictionInputError) as got:
+        fast.predict(cloud, tip)
+    assert str(got.value) == str(ref.value) and "instrument is in the cloud" in str(got.value)
+    batch = fast.predict_batch([clean, cloud, clean], np.stack([tip] * 3))
+    assert batch.refused[1] == str(ref.value) and batch.refused[0] is None and batch.refused[2] is None
+    np.testing.assert_allclose(batch.force[0], pred.predict_cloud(clean, ctx, tool_tip_mm=tip), atol=1e-6)
