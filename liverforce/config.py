@@ -846,11 +846,19 @@ def _check_model(mo: dict, key: str) -> None:
     except (TypeError, ValueError) as exc:
         _fail(f"{key}.camera.grid", str(exc))
     r_fit = float(cam["grid"].get("instrument_radius_mm") or 0.0)
-    r_obs = cam["observation"].get("tool_radius_mm")
-    if r_fit > 0 and r_obs is not None and float(r_obs) != r_fit:
+    obs_cfg = ObservationConfig.from_dict({k: v for k, v in cam["observation"].items() if v is not None})
+    if obs_cfg.instrument_in_cloud and obs_cfg.tool_radius_mm <= 0:
+        _fail(f"{key}.camera.observation.instrument_in_cloud", "there is no instrument to see: tool_radius_mm is 0",
+              "give the tool's radius, or set instrument_in_cloud: false")
+    if r_fit > 0 and r_fit != obs_cfg.tool_radius_mm:
         _fail(f"{key}.camera.grid.instrument_radius_mm",
               f"the instrument fit's radius ({r_fit} mm) is not the observed tool's "
-              f"(camera.observation.tool_radius_mm: {r_obs} mm)", "give both the instrument's radius")
+              f"(camera.observation.tool_radius_mm: {obs_cfg.tool_radius_mm} mm)", "give both the instrument's radius")
+    if r_fit > 0 and not obs_cfg.instrument_in_cloud:
+        _fail(f"{key}.camera.grid.instrument_radius_mm",
+              "a model that fits the instrument must be trained on clouds that show it (its tip would otherwise be "
+              "the kinematic one in training and the instrument's axis in surgery)",
+              "set camera.observation.instrument_in_cloud: true, or instrument_radius_mm: 0")
     if mo["roi_features"] == "cloud" and (mo["occlusion"]["radius_mm"] > 0 or mo["noise_mm"] > 0):
         _fail(f"{key}.roi_features", "a camera-cloud model (cloud) observes the surface with model.camera; "
               "model.occlusion.radius_mm and model.noise_mm apply to node features only", "set them to 0")

@@ -58,7 +58,7 @@ def test_thesis_is_the_study_scale():
         ("model.gp.shape=inf", "model.gp.shape"),
         ("model.camera.tip_noise_normal_mm=-0.5", "model.camera.tip_noise_normal_mm"),
         ("model.camera.grid.instrument_radius_mm=-1", "model.camera.grid"),
-        ("model.camera.grid.instrument_radius_mm=3.0", "model.camera.grid.instrument_radius_mm"),
+        ("model.camera.grid.instrument_radius_mm=2.5", "model.camera.grid.instrument_radius_mm"),
         ("validate.seed=1", "validate.seed"),
         ("geometry.procedural.shape.lobe_ratio=9", "geometry.procedural.shape"),
     ],
@@ -67,6 +67,25 @@ def test_bad_values_name_their_key(override, key):
     with pytest.raises(ConfigError) as err:
         compose([override])
     assert f"'{key}'" in str(err.value)
+
+
+@pytest.mark.parametrize(
+    "overrides, key, why",
+    [
+        (["model.camera.observation.instrument_in_cloud=true", "model.camera.observation.tool_radius_mm=0"],
+         "model.camera.observation.instrument_in_cloud", "no instrument to see"),
+        (["model.camera.observation.instrument_in_cloud=true", "model.camera.grid.instrument_radius_mm=3.0"],
+         "model.camera.grid.instrument_radius_mm", "not the observed tool's"),
+        (["model.camera.grid.instrument_radius_mm=2.5"], "model.camera.grid.instrument_radius_mm",
+         "trained on clouds that show it"),
+    ],
+)
+def test_the_instrument_settings_must_agree(overrides, key, why):
+    with pytest.raises(ConfigError) as err:
+        compose(overrides)
+    assert f"'{key}'" in str(err.value) and why in str(err.value)
+    ok = compose(["model.camera.observation.instrument_in_cloud=true", "model.camera.grid.instrument_radius_mm=2.5"])
+    assert ok["model"]["camera"]["grid"]["instrument_radius_mm"] == 2.5
 
 
 def test_a_variant_changes_only_the_keys_of_a_group_it_names():

@@ -493,7 +493,10 @@ def test_the_camera_table_shows_the_exact_tip_accuracy_per_scenario_and_on_the_u
     if validated == "cloud_sv":
         doc["camera_sensitivity"] = {"model_settings": {"tip_noise_mm": 0.5, "observation": {}}, "tip_noise_mm": [
             {"value": 0.5, "mae_vec": 0.33, "mae_sd": 0.06, "accuracy_pct": 85.0, "accuracy_sd": 2.5},
-            {"value": 0.0, "mae_vec": 0.211, "mae_sd": 0.05, "accuracy_pct": 90.5, "accuracy_sd": 2.0}]}
+            {"value": 0.0, "mae_vec": 0.211, "mae_sd": 0.05, "accuracy_pct": 90.5, "accuracy_sd": 2.0}],
+            "instrument_in_cloud": [
+            {"value": False, "mae_vec": 0.33, "mae_sd": 0.06, "accuracy_pct": 85.0, "accuracy_sd": 2.5},
+            {"value": True, "mae_vec": 0.41, "mae_sd": 0.07, "accuracy_pct": 81.0, "accuracy_sd": 3.0}]}
     path.write_text(json.dumps(doc))
     html = _report(stage_outputs)
     cam = _section(html, "id='camera'", "</table>")
@@ -505,5 +508,8 @@ def test_the_camera_table_shows_the_exact_tip_accuracy_per_scenario_and_on_the_u
     assert rows["I"][4] == rows["I"][7] == "–"  # a metrics.json from before the exact-tip figures
     if validated == "cloud_sv":
         assert rows["unseen livers"][4] == "90.5 ± 2.0" and rows["unseen livers"][7] == "0.211 ± 0.050"
+        sens = [[_text(c) for c in r] for r in _rows(_section(html, "class='camera-sens'", "</table>"), "sens")]
+        assert ["instrument's points in the cloud", "yes", "0.410 ± 0.070", "81.0 ± 3.0"] in sens
+        assert ["instrument's points in the cloud", "no", "0.330 ± 0.060", "85.0 ± 2.5"] in sens
     else:  # no sensitivity of this camera model: nothing to show
         assert rows["unseen livers"][4] == rows["unseen livers"][7] == "–"

@@ -75,7 +75,7 @@ FEATURES_KEY = "camera_features"
 #: grid settings of cloud_features a config may set (the grid size and half-width come from the representation)
 GRID_KEYS = ("kernel_radius_cells", "min_points", "fill", "max_abs_height_mm", "reference_oversample",
              "estimator", "max_leverage", "reference", "instrument_radius_mm", "instrument_rise_mm",
-             "instrument_clearance_mm", "instrument_min_points")
+             "instrument_clearance_mm", "instrument_min_points", "instrument_point_sd_mm", "instrument_tip_sd_mm")
 
 _CACHE: dict[tuple, np.ndarray] = {}
 _CACHE_MAX = 200_000
@@ -103,13 +103,19 @@ def exact_tip(camera: dict) -> dict:
     return isotropic_tip(camera, 0.0)
 
 
+def instrument_sds(camera: dict, half_width_mm: float, grid_size: int) -> dict:
+    """The sds an instrument fit weighs its points and its prior by, from these camera settings: the
+    observation's point noise and the kinematic tip's tangential noise (``tip_noise_mm``)."""
+    return {"instrument_point_sd_mm": observation_config(camera, half_width_mm, grid_size).noise_sd_mm,
+            "instrument_tip_sd_mm": float(camera.get("tip_noise_mm", 0.0))}
+
+
 def grid_spec(grid_size: int, half_width_mm: float, camera: dict) -> CloudGridSpec:
-    """The cloud-grid settings of these camera settings; with an instrument fit, the sds it weighs by are the
-    observation's point noise and the kinematic tip's tangential noise."""
+    """The cloud-grid settings of these camera settings. An instrument fit's sds are the grid's own where it
+    records them (a trained model's: ``representation_from_config``), else :func:`instrument_sds`."""
     extra = {k: camera["grid"][k] for k in GRID_KEYS if k in (camera.get("grid") or {})}
     if float(extra.get("instrument_radius_mm") or 0.0) > 0:
-        extra["instrument_point_sd_mm"] = observation_config(camera, half_width_mm, grid_size).noise_sd_mm
-        extra["instrument_tip_sd_mm"] = float(camera.get("tip_noise_mm", 0.0))
+        extra = {**instrument_sds(camera, half_width_mm, grid_size), **extra}
     return CloudGridSpec(grid_size=int(grid_size), half_width_mm=float(half_width_mm), **extra)
 
 
@@ -174,11 +180,13 @@ def observe_cases(arrays: dict, camera: dict, half_width_mm: float, grid_size: i
 
 
 def features_from_clouds(clouds, tips, arrays: dict, spec: CloudGridSpec,
-                         rows: np.ndarray | None = None, R: np.ndarray | None = None) -> np.ndarray:
+                         rows: np.ndarray | None = None, R: np.ndarray | None = None,
+                         fitted: list | None = None) -> np.ndarray:
     """Feature rows ``(len(rows), 2 g^2 + 3)`` from clouds and tip positions (source frame) of cases ``rows``.
 
     ``R``: the local rotations of all cases of ``arrays`` (:func:`liverforce.learn.frames.case_rotations`),
-    when already computed.
+    when already computed. ``fitted``: a list that gets, per row, the instrument points its axis was fitted to
+    (0: the kinematic tip; with ``spec.instrument_radius_mm > 0``).
     """
     n = len(arrays["exertion_point_mm"])
     rows = np.arange(n) if rows is None else np.asarray(rows)
@@ -204,6 +212,8 @@ def features_from_clouds(clouds, tips, arrays: dict, spec: CloudGridSpec,
             grid = cloud_grid(cloud, ref, spec, tips[k])
             out[k, :-3] = grid.features(include_mask=True)
             out[k, -3:] = grid.tip_local
+            if fitted is not None:
+                fitted.append(grid.n_instrument)
         else:
             out[k, :-3] = cloud_grid(cloud, ref, spec).features(include_mask=True)
             out[k, -3:] = R[i] @ (tips[k] - P[i])

@@ -517,6 +517,12 @@ def representation_from_config(model_cfg: dict, train_arrays: dict) -> Represent
         from liverforce.learn.cloud_features import CloudGridSpec
 
         cam["grid"] = {"reference": CloudGridSpec.reference, **(cam.get("grid") or {})}
+        if float(cam["grid"].get("instrument_radius_mm") or 0.0) > 0:
+            # the instrument fit's weights as trained (the observation's point noise, the kinematic tip's
+            # tangential noise), so re-observing with other settings (validation) does not refit them
+            from liverforce.learn.camera import instrument_sds
+
+            cam["grid"] = {**instrument_sds(cam, h, int(model_cfg["grid_size"])), **cam["grid"]}
     return Representation(
         rigid_motion=str(model_cfg.get("rigid_motion", "keep")),
         rigid_motion_radius_mm=float(model_cfg.get("rigid_motion_radius_mm", 15.0)),

@@ -143,7 +143,10 @@ def camera_sensitivity(model_dir, arrays: dict, grid: dict) -> dict | None:
             elif key in ("noise_sd_mm", "cone_half_angle_deg"):
                 obs[key] = float(val)
             elif key == "instrument_in_cloud":
-                obs[key] = bool(val)
+                if not isinstance(val, bool):
+                    raise ValueError(f"validate.camera_sensitivity.instrument_in_cloud: values are true / false "
+                                     f"(got {val!r})")
+                obs[key] = val
             else:
                 raise ValueError(f"validate.camera_sensitivity: unknown setting '{key}' (n_points, noise_sd_mm, "
                                  "cone_half_angle_deg, tip_noise_mm, instrument_in_cloud)")

@@ -224,15 +224,14 @@ def _camera_arrays(model, cloud_mm, preop: Preop, tool_tip_mm, limits: Limits) -
             f"tool_tip_mm is {d_tip:.4g} mm from the exertion point, beyond the model's grid ({rep.half_width_mm:.3g} "
             "mm): is it in mm and in the liver frame, and is the tool at this exertion point?")
     info = {"mode": "exact", "points_given": len(O), "points_used": n_used}
-    r_tool = camera.observation_config(rep.camera, rep.half_width_mm, rep.grid_size).tool_radius_mm  # as trained
+    spec = camera.grid_spec(rep.grid_size, rep.half_width_mm, rep.camera)
+    r_tool = instrument_check_radius(rep, spec)
     if r_tool > 0:
-        spec = camera.grid_spec(rep.grid_size, rep.half_width_mm, rep.camera)
-        n_shaft = shaft_points(O_loc, (tip - p) @ R.T, r_tool, preop, spec)
-        if n_shaft >= SHAFT_POINTS and spec.instrument_radius_mm == 0:
-            raise PredictionInputError(instrument_refusal(n_shaft, r_tool))
+        n_shaft = shaft_points(O_loc, (tip - p) @ R.T, r_tool, spec, preop.roi_undeformed_mm, preop.roi_triangles,
+                               p, R)
         info["instrument_points"] = n_shaft
-        if spec.instrument_radius_mm > 0 and n_shaft < SHAFT_POINTS:
-            info["warnings"] = [MASKED_INSTRUMENT]
+        if n_shaft >= SHAFT_POINTS:
+            raise PredictionInputError(instrument_refusal(n_shaft, r_tool))
     out = preop.to_arrays(preop.roi_undeformed_mm)
     out["camera_cloud_mm"] = [O]
     out["tool_tip_mm"] = tip[None]
@@ -240,42 +239,63 @@ def _camera_arrays(model, cloud_mm, preop: Preop, tool_tip_mm, limits: Limits) -
 
 
 #: the serving check for the instrument's points in a cloud (:func:`shaft_points`): points within the tool's
-#: radius plus SHAFT_MARGIN_MM of the kinematic tip's axis (the normal) standing SHAFT_RISE_MM above the
-#: pre-operative surface (the liver round a tool pushing into it lies below or near that surface); SHAFT_POINTS
-#: of them are an instrument
+#: radius plus SHAFT_MARGIN_MM of the kinematic tip's axis (the normal) standing SHAFT_RISE_MM above the mean
+#: height change of the ring SHAFT_RING_MM wide round them (the liver round a tool pushing into it lies no higher
+#: than that ring, and a cloud shifted along the normal shifts the ring too); SHAFT_POINTS of them are an
+#: instrument
 SHAFT_MARGIN_MM = 2.5
-SHAFT_RISE_MM = 4.0
+SHAFT_RING_MM = 4.0
+SHAFT_RISE_MM = 6.0
 SHAFT_POINTS = 8
-#: the warning of a model that fits the instrument's axis when the cloud shows too little of it
-MASKED_INSTRUMENT = (f"fewer than {SHAFT_POINTS} points on the tool's shaft (the instrument masked out of the cloud, "
-                     "or a sparse cloud): the tip along the surface is the kinematic one, less precise than the "
+#: the warning of a model that fits the instrument's axis when the cloud shows too little of it to fit
+MASKED_INSTRUMENT = ("too few points of the tool's shaft to fit its axis (the instrument masked out of the cloud, or "
+                     "a sparse cloud): the tip along the surface is the kinematic one, less precise than the "
                      "instrument's axis")
+
+
+def instrument_check_radius(rep, spec) -> float:
+    """The tool radius the serving check for the instrument's points uses, 0 for none: models trained on
+    clouds without the instrument (those trained with it see it as in training), whose height reference is the
+    patch's top sheet (``reference: points`` mixes in another sheet of a thin lobe, 10-30 mm off)."""
+    cfg = camera.observation_config(rep.camera, rep.half_width_mm, rep.grid_size)
+    if cfg.instrument_in_cloud or spec.reference != "surface":
+        return 0.0
+    return cfg.tool_radius_mm
 
 
 def instrument_refusal(n_shaft: int, tool_radius_mm: float) -> str:
     """Why a model trained on clouds without the instrument refuses one with ``n_shaft`` points on its shaft."""
-    return (f"cloud: {n_shaft} points stand {SHAFT_RISE_MM:g} mm or more above the pre-operative surface within "
-            f"{tool_radius_mm + SHAFT_MARGIN_MM:g} mm of the tool's axis: the instrument is in the cloud, and this "
+    return (f"cloud: {n_shaft} points within {tool_radius_mm + SHAFT_MARGIN_MM:g} mm of the tool's axis stand "
+            f"{SHAFT_RISE_MM:g} mm or more above the surface round them: the instrument is in the cloud, and this "
             "model was trained on clouds without it. Mask the instrument out of the reconstruction, or use a model "
-            "that fits it (camera.observation.instrument_in_cloud and camera.grid.instrument_radius_mm)")
+            "trained with it (camera.observation.instrument_in_cloud, and camera.grid.instrument_radius_mm to fit "
+            "its axis)")
 
 
-def shaft_points(cloud_local: np.ndarray, tip_local: np.ndarray, tool_radius_mm: float, preop: Preop,
-                 spec) -> int:
-    """Points of a cloud (local frame of the exertion point) on the tool's shaft: within ``tool_radius_mm +
-    SHAFT_MARGIN_MM`` of the axis through the (kinematic) tip along the normal, ``SHAFT_RISE_MM`` or more above the
-    pre-operative surface (its top sheet, as the features read it: ``spec``); 0 when fewer than ``SHAFT_POINTS``
-    points lie that near the axis at all."""
+def shaft_points(cloud_local: np.ndarray, tip_local: np.ndarray, tool_radius_mm: float, spec, roi_undeformed_mm,
+                 roi_triangles, exertion_point_mm, rotation) -> int:
+    """Points of a cloud (local frame of the exertion point) on the tool's shaft: over the grid's reach (as the
+    features read them), within ``tool_radius_mm + SHAFT_MARGIN_MM`` of the axis through the (kinematic) tip
+    along the normal, ``SHAFT_RISE_MM`` or more above the mean height change over the pre-operative surface
+    (``spec``'s reference of the pre-operative ROI patch, at the exertion point with the local ``rotation``) of
+    the points in the ring ``SHAFT_RING_MM`` wide round them (0 if the ring is empty); 0 when fewer than
+    ``SHAFT_POINTS`` points lie that near the axis at all."""
     from liverforce.learn.cloud_features import ReferenceSurface
 
+    reach = spec.half_width_mm + spec.kernel_radius_mm
     d = np.hypot(cloud_local[:, 0] - tip_local[0], cloud_local[:, 1] - tip_local[1])
-    near = np.flatnonzero(d < tool_radius_mm + SHAFT_MARGIN_MM)
-    if near.size < SHAFT_POINTS:
+    inner = tool_radius_mm + SHAFT_MARGIN_MM
+    near = np.flatnonzero((d < inner + SHAFT_RING_MM) & (np.abs(cloud_local[:, 0]) < reach)
+                          & (np.abs(cloud_local[:, 1]) < reach))
+    if np.count_nonzero(d[near] < inner) < SHAFT_POINTS:
         return 0
     try:
-        ref = ReferenceSurface.for_case(preop.roi_undeformed_mm, preop.roi_triangles, preop.exertion_point_mm,
-                                        preop.rotation, spec, label="pre-operative context")
+        ref = ReferenceSurface.for_case(roi_undeformed_mm, roi_triangles, exertion_point_mm, rotation, spec,
+                                        label="pre-operative context")
     except ValueError as exc:
         raise PredictionInputError(str(exc)) from None
     L = cloud_local[near]
-    return int((L[:, 2] - ref.height(L[:, 0], L[:, 1]) >= SHAFT_RISE_MM).sum())
+    dz = L[:, 2] - ref.height(L[:, 0], L[:, 1])
+    ring = (d[near] >= inner) & (np.abs(dz) <= spec.max_abs_height_mm)
+    base = float(np.sum(dz[ring]) / np.count_nonzero(ring)) if ring.any() else 0.0
+    return int(np.count_nonzero((d[near] < inner) & (dz >= base + SHAFT_RISE_MM)))

@@ -89,8 +89,8 @@ from liverforce.learn.cloud_features import (_FIT_ITERATIONS, _MIN_POINT_SD, _MI
 from liverforce.learn.encoders import PCAEncoder
 from liverforce.learn.state import THICKNESS_COLUMN, compliance_matrices, state_vector
 from liverforce.serve.checks import Limits, TrainingScale, outside_training
-from liverforce.serve.cloud import (MASKED_INSTRUMENT, SHAFT_MARGIN_MM, SHAFT_POINTS, SHAFT_RISE_MM, camera_checks,
-                                    instrument_refusal, tool_tip_of)
+from liverforce.serve.cloud import (MASKED_INSTRUMENT, SHAFT_MARGIN_MM, SHAFT_POINTS, SHAFT_RING_MM, SHAFT_RISE_MM,
+                                    camera_checks, instrument_check_radius, instrument_refusal, tool_tip_of)
 from liverforce.serve.compiled import numpy_layers, regressor_head
 from liverforce.serve.errors import PredictionInputError
 from liverforce.serve.input_frame import InputFrame
@@ -324,15 +324,16 @@ _H2 = 2246822519
 
 @njit(cache=True, fastmath={"contract"})  # FMAs: u, v, w as BLAS computes R (x - p) more often
 def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_abs, min_points, max_leverage,
-              linear, fill, reach_count, shaft_r2, shaft_rise, inst, ws, x):
+              linear, fill, reach_count, shaft, inst, ws, x):
     """Feature row ``x = [height (g^2), mask (g^2), R (tip - p) (3)]`` of the cloud ``P[s0:s0 + n]``.
 
     Mirrors :func:`liverforce.learn.cloud_features.cloud_grid` (module docstring); ``ws``: :func:`_workspace`.
     Returns the points over the grid (``|u|, |v| <= reach_count``), the points whose local coordinates are
     not finite (every point with a NaN or inf coordinate; :meth:`CompiledCloud._refusal` counts exactly) and the
-    points on the tool's shaft (within ``sqrt(shaft_r2)`` of the tip's axis, ``shaft_rise`` or more above the
-    pre-operative surface: :func:`liverforce.serve.cloud.shaft_points`). With ``inst[0] > 0`` the instrument's
-    axis is fitted to its points, which are dropped, and gives the tip's tangential part (:func:`_fit_instrument`).
+    points on the tool's shaft (``shaft``: squared inner and outer radius of the ring, rise, fewest points;
+    :func:`liverforce.serve.cloud.shaft_points`; an inner radius 0: not counted) and the instrument points its
+    axis was fitted to: with ``inst[0] > 0`` the instrument's axis is fitted to its points, which are dropped,
+    and gives the tip's tangential part (:func:`_fit_instrument`).
     """
     U, V, Wl, GU, GV, Z, key, A, C, Q, HB, GUs, GVs, Zs, orig, first, fill_at, bits, cand = ws[:19]
     M, Hc, valid, idx, unk, Lb, rhs, y = ws[19:]
@@ -393,7 +394,10 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
         GV[t] = gv
         key[t] = _bin_key(gu, gv, sb, pad, nc)
         HB[t] = (int(gu * 4096.0) * _H1 + int(gv * 4096.0) * _H2) & mask  # duplicate filter: equal points, equal bits
-    ns = 0
+    shaft_r2, ring_r2, shaft_rise, shaft_min = shaft[0], shaft[1], shaft[2], shaft[3]
+    n_near = 0
+    n_ring = 0
+    ring_sum = 0.0
     for t in range(m):
         q = Q[t]
         a = A[t]
@@ -403,7 +407,21 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
         Z[t] = z
         du = U[t] - tu
         dv = V[t] - tv
-        ns += 1 if (du * du + dv * dv < shaft_r2) and (z >= shaft_rise) else 0
+        d2t = du * du + dv * dv
+        if d2t < ring_r2:
+            if d2t < shaft_r2:
+                n_near += 1
+            elif abs(z) <= max_abs:
+                ring_sum += z
+                n_ring += 1
+    ns = 0
+    if n_near >= shaft_min:  # the points on the shaft: shaft_rise above the ring's mean height change
+        top = (ring_sum / n_ring if n_ring else 0.0) + shaft_rise
+        for t in range(m):
+            du = U[t] - tu
+            dv = V[t] - tv
+            if du * du + dv * dv < shaft_r2 and Z[t] >= top:
+                ns += 1
     # 3. counting sort by bin (stable); exact duplicates (equal local coordinates) are found with a bit table of
     #    hashed (u, v): a point whose bit is already set is a candidate, checked against its bin's earlier points
     nw = 1 << (tb - 5)
@@ -450,8 +468,9 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
                 orig[s] = -1  # the first of equal points stays (the same values either way)
                 n_dup += 1
                 break
+    nf = 0
     if inst[0] > 0.0:  # the instrument's points: fitted (the tip's tangential part), then dropped
-        cu, cv, _, n_drop = _fit_instrument(U, V, Zs, orig, first[nc * nc], tu, tv, inst, cand)
+        cu, cv, nf, n_drop = _fit_instrument(U, V, Zs, orig, first[nc * nc], tu, tv, inst, cand)
         tu, tv = cu, cv
         n_dup += n_drop
     if n_dup:
@@ -508,12 +527,12 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
     x[2 * gg] = tu
     x[2 * gg + 1] = tv
     x[2 * gg + 2] = R[2, 0] * tp0 + R[2, 1] * tp1 + R[2, 2] * tp2
-    return nu, nb, ns
+    return nu, nb, ns, nf
 
 
 @njit(cache=True)
 def _grid_clouds(P, starts, counts, tips, origin, R, raster, lo, rstep, g, h, gstep, kr, max_abs, min_points,
-                 max_leverage, linear, fill, reach_count, shaft_r2, shaft_rise, inst, X, n_used, n_bad, n_shaft):
+                 max_leverage, linear, fill, reach_count, shaft, inst, X, n_used, n_bad, n_tool):
     """Feature rows ``X[b]`` of the clouds ``P[starts[b]:starts[b] + counts[b]]`` (float64 or float32 points),
     their points over the grid, their points with a NaN or inf coordinate and on the tool's shaft
     (:func:`_grid_one`)."""
@@ -522,14 +541,14 @@ def _grid_clouds(P, starts, counts, tips, origin, R, raster, lo, rstep, g, h, gs
         nmax = max(nmax, counts[b])
     ws = _workspace(nmax, g, kr)
     for b in range(starts.shape[0]):
-        n_used[b], n_bad[b], n_shaft[b] = _grid_one(P, starts[b], counts[b], tips[b], origin, R, raster, lo, rstep,
-                                                    g, h, gstep, kr, max_abs, min_points, max_leverage, linear, fill,
-                                                    reach_count, shaft_r2, shaft_rise, inst, ws, X[b])
+        n_used[b], n_bad[b], n_tool[b, 0], n_tool[b, 1] = _grid_one(
+            P, starts[b], counts[b], tips[b], origin, R, raster, lo, rstep, g, h, gstep, kr, max_abs, min_points,
+            max_leverage, linear, fill, reach_count, shaft, inst, ws, X[b])
 
 
 @njit(cache=True)
 def _grid_list(clouds, tips, origin, R, raster, lo, rstep, g, h, gstep, kr, max_abs, min_points, max_leverage,
-               linear, fill, reach_count, shaft_r2, shaft_rise, inst, X, n_used, n_bad, n_shaft):
+               linear, fill, reach_count, shaft, inst, X, n_used, n_bad, n_tool):
     """:func:`_grid_clouds` of a typed list of (n_b, 3) float64 clouds, read in place (no concatenation)."""
     nmax = 1
     for b in range(len(clouds)):
@@ -537,9 +556,9 @@ def _grid_list(clouds, tips, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
     ws = _workspace(nmax, g, kr)
     for b in range(len(clouds)):
         P = clouds[b]
-        n_used[b], n_bad[b], n_shaft[b] = _grid_one(P, 0, P.shape[0], tips[b], origin, R, raster, lo, rstep, g, h,
-                                                    gstep, kr, max_abs, min_points, max_leverage, linear, fill,
-                                                    reach_count, shaft_r2, shaft_rise, inst, ws, X[b])
+        n_used[b], n_bad[b], n_tool[b, 0], n_tool[b, 1] = _grid_one(
+            P, 0, P.shape[0], tips[b], origin, R, raster, lo, rstep, g, h, gstep, kr, max_abs, min_points,
+            max_leverage, linear, fill, reach_count, shaft, inst, ws, X[b])
 
 
 @njit(cache=True)
@@ -755,8 +774,10 @@ class CompiledCloud:
         self._rec = ((model.meta or {}).get("training_scale") or {}).get("camera")
         self._raster = np.ascontiguousarray(self.ref.raster, dtype=np.float64)
         # the instrument's points in a cloud (a model trained without them refuses it: serve.cloud.shaft_points)
-        self.tool_radius_mm = camera.observation_config(rep.camera, rep.half_width_mm, rep.grid_size).tool_radius_mm
-        self._shaft_r2 = (self.tool_radius_mm + SHAFT_MARGIN_MM) ** 2 if self.tool_radius_mm > 0 else 0.0
+        self._shaft_tool_mm = instrument_check_radius(rep, self.spec)  # 0: no check (serve.cloud.shaft_points)
+        inner = self._shaft_tool_mm + SHAFT_MARGIN_MM if self._shaft_tool_mm > 0 else 0.0
+        self._shaft = np.array([inner**2, (inner + SHAFT_RING_MM) ** 2 if inner > 0 else 0.0, SHAFT_RISE_MM,
+                                SHAFT_POINTS], dtype=np.float64)
         sp = self.spec  # the instrument's axis fitted to its points in the cloud (cloud_features.fit_instrument)
         self.fits_instrument = sp.instrument_radius_mm > 0
         self._inst = np.array([sp.instrument_radius_mm, instrument_search_radius(sp), sp.instrument_rise_mm,
@@ -790,12 +811,12 @@ class CompiledCloud:
         X = np.empty((B, 2 * self.g * self.g + 3))
         n_used = np.zeros(B, dtype=np.int64)
         n_bad = np.zeros(B, dtype=np.int64)
-        n_shaft = np.zeros(B, dtype=np.int64)
+        n_tool = np.zeros((B, 2), dtype=np.int64)  # points on the shaft, instrument points fitted
         if B:
             args = (tips, self._kp, self._kR, self._raster, self.ref.lo, self.ref.step, self.g, sp.half_width_mm,
                     sp.spacing_mm, sp.kernel_radius_cells, sp.max_abs_height_mm, sp.min_points, sp.max_leverage,
-                    sp.estimator == "linear", _FILL_CODES[sp.fill], self.reach, self._shaft_r2, SHAFT_RISE_MM,
-                    self._inst, X, n_used, n_bad, n_shaft)
+                    sp.estimator == "linear", _FILL_CODES[sp.fill], self.reach, self._shaft, self._inst, X, n_used,
+                    n_bad, n_tool)
             if starts is None:
                 clouds = List.empty_list(_CLOUD_TYPE)
                 for c in P:
@@ -807,7 +828,7 @@ class CompiledCloud:
                 g, gg = self.g, self.g * self.g
                 for r in range(B):
                     X[r, :gg] = _fill(X[r, :gg].reshape(g, g), X[r, gg:2 * gg].reshape(g, g) > 0.5, "nearest").ravel()
-        return X, n_used, n_bad, n_shaft
+        return X, n_used, n_bad, n_tool
 
     def _head(self, X: np.ndarray) -> np.ndarray:
         """Forces (n, 3) N in the liver frame of feature rows ``X`` (affine map, state, MLP or GP, scaling)."""
@@ -839,7 +860,7 @@ class CompiledCloud:
         R = self.R
         return (f[:, 0:1] * R[0] + f[:, 1:2] * R[1]) + f[:, 2:3] * R[2]  # R^T f, row by row
 
-    def _reasons(self, cloud_of, counts, tips, X, n_used, n_bad, n_shaft) -> tuple[list, list]:
+    def _reasons(self, cloud_of, counts, tips, X, n_used, n_bad, n_tool) -> tuple[list, list]:
         """Per cloud: the refusal reason (None if predicted) and the warnings, in the reference path's order.
 
         ``cloud_of(r)``: the points of cloud ``r`` (only called for a cloud near or past a refusal)."""
@@ -847,8 +868,8 @@ class CompiledCloud:
         refused: list = [None] * B
         warnings: list = [[] for _ in range(B)]
         lim = self.limits
-        for r in np.flatnonzero(self._flagged(counts, tips, n_used, n_bad, n_shaft)):
-            refused[r] = self._refusal(cloud_of(r), tips[r], int(n_used[r]), int(n_shaft[r]))
+        for r in np.flatnonzero(self._flagged(counts, tips, n_used, n_bad, n_tool)):
+            refused[r] = self._refusal(cloud_of(r), tips[r], int(n_used[r]), int(n_tool[r, 0]))
         if self._rec:
             g2 = self.g * self.g
             mask = X[:, g2:2 * g2]
@@ -865,8 +886,8 @@ class CompiledCloud:
                         warnings[r] = camera_checks(self.model, X[r], lim)
                     except PredictionInputError as exc:
                         refused[r] = str(exc)
-        if self.fits_instrument:  # too little of the instrument seen: the kinematic tip (as serve.cloud warns)
-            for r in np.flatnonzero(n_shaft < SHAFT_POINTS):
+        if self.fits_instrument:  # too little of the instrument to fit: the kinematic tip (as predict_cloud warns)
+            for r in np.flatnonzero(n_tool[:, 1] == 0):
                 if refused[r] is None:
                     warnings[r] = [MASKED_INSTRUMENT] + warnings[r]
         if self.context_warnings:
@@ -877,14 +898,14 @@ class CompiledCloud:
         """Points as given -> the model's frame (RAS mm)."""
         return x if self.frame is None else self.frame.points(x)
 
-    def _flagged(self, counts, tips, n_used, n_bad, n_shaft) -> np.ndarray:
+    def _flagged(self, counts, tips, n_used, n_bad, n_tool) -> np.ndarray:
         """(B,) True for a cloud that may be refused before its features are read (:meth:`_refusal` decides;
         the others pass its checks by construction). ``tips`` as given."""
         tips = self._model(tips)
         tip_ok = np.isfinite(tips).all(axis=1)
         d_tip = np.linalg.norm(np.where(tip_ok[:, None], tips - self.p, 0.0), axis=1)
         return ((counts == 0) | (n_bad > 0) | (n_used < self.limits.min_cloud_points) | ~tip_ok
-                | (d_tip > self.half_width_mm) | ((n_shaft >= SHAFT_POINTS) & (not self.fits_instrument)))
+                | (d_tip > self.half_width_mm) | (n_tool[:, 0] >= SHAFT_POINTS))
 
     @staticmethod
     def _tip_refusal(tip: np.ndarray) -> str | None:
@@ -916,8 +937,8 @@ class CompiledCloud:
             return (f"tool_tip_mm is {d_tip:.4g} mm from the exertion point, beyond the model's grid "
                     f"({self.half_width_mm:.3g} mm): is it in mm and in the liver frame, and is the tool at this "
                     "exertion point?")
-        if n_shaft >= SHAFT_POINTS and not self.fits_instrument:
-            return instrument_refusal(n_shaft, self.tool_radius_mm)
+        if n_shaft >= SHAFT_POINTS:  # (counted for models trained without the instrument only)
+            return instrument_refusal(n_shaft, self._shaft_tool_mm)
         return None
 
     def _forces(self, X: np.ndarray, ok: np.ndarray) -> np.ndarray:
@@ -967,8 +988,8 @@ class CompiledCloud:
         """Feature row, refusal reason and warnings of one cloud (the tip is checked first, as the reference does)."""
         tip = self._tip(tool_tip_mm)
         O = self._cloud(cloud_mm)
-        X, n_used, n_bad, n_shaft = self._grid(O, np.zeros(1, np.int64), np.array([len(O)], np.int64), tip[None])
-        refused, warnings = self._reasons(lambda r: O, np.array([len(O)]), tip[None], X, n_used, n_bad, n_shaft)
+        X, n_used, n_bad, n_tool = self._grid(O, np.zeros(1, np.int64), np.array([len(O)], np.int64), tip[None])
+        refused, warnings = self._reasons(lambda r: O, np.array([len(O)]), tip[None], X, n_used, n_bad, n_tool)
         return X, refused[0], warnings[0]
 
     def features(self, cloud_mm, tool_tip_mm) -> np.ndarray:
@@ -977,9 +998,9 @@ class CompiledCloud:
         tip = self._tip(tool_tip_mm)
         O = self._cloud(cloud_mm)
         counts = np.array([len(O)], np.int64)
-        X, n_used, n_bad, n_shaft = self._grid(O, np.zeros(1, np.int64), counts, tip[None])
-        if self._flagged(counts, tip[None], n_used, n_bad, n_shaft)[0]:
-            why = self._refusal(O, tip, int(n_used[0]), int(n_shaft[0]))
+        X, n_used, n_bad, n_tool = self._grid(O, np.zeros(1, np.int64), counts, tip[None])
+        if self._flagged(counts, tip[None], n_used, n_bad, n_tool)[0]:
+            why = self._refusal(O, tip, int(n_used[0]), int(n_tool[0, 0]))
             if why:
                 raise PredictionInputError(why)
         return X[0]
@@ -1029,15 +1050,15 @@ class CompiledCloud:
             X = np.empty((B, 2 * self.g * self.g + 3))
             n_used = np.zeros(B, dtype=np.int64)
             n_bad = np.zeros(B, dtype=np.int64)
-            n_shaft = np.zeros(B, dtype=np.int64)
+            n_tool = np.zeros((B, 2), dtype=np.int64)
             direct = clouds.dtype in (np.float32, np.float64) and clouds.flags.c_contiguous
             step = max(B, 1) if direct else _CHUNK  # a conversion is done a chunk at a time (bounds the copy)
             for a in range(0, B, step):
                 e = min(a + step, B)
                 P = clouds[a:e] if direct else np.ascontiguousarray(clouds[a:e], dtype=np.float64)
-                X[a:e], n_used[a:e], n_bad[a:e], n_shaft[a:e] = self._grid(
+                X[a:e], n_used[a:e], n_bad[a:e], n_tool[a:e] = self._grid(
                     P.reshape(-1, 3), np.arange(e - a, dtype=np.int64) * N, cnt[a:e], tips[a:e])
-            refused, warnings = self._reasons(lambda r: clouds[r, :cnt[r]], cnt, tips, X, n_used, n_bad, n_shaft)
+            refused, warnings = self._reasons(lambda r: clouds[r, :cnt[r]], cnt, tips, X, n_used, n_bad, n_tool)
             F = self._forces(X, np.array([r is None for r in refused], dtype=bool))
             return CloudBatch(self._out(F), self._half(F), warnings, refused)
         if counts is not None:
@@ -1054,9 +1075,9 @@ class CompiledCloud:
         force = np.full((B, 3), np.nan)
         if good:
             P = [arrays[i] for i in good]
-            X, n_used, n_bad, n_shaft = self._grid(P, None, None, tips[good])
+            X, n_used, n_bad, n_tool = self._grid(P, None, None, tips[good])
             why, warn = self._reasons(lambda r: P[r], np.array([len(c) for c in P]), tips[good], X, n_used, n_bad,
-                                      n_shaft)
+                                      n_tool)
             force[good] = self._forces(X, np.array([r is None for r in why], dtype=bool))
             for k, i in enumerate(good):
                 refused[i], warnings[i] = why[k], warn[k]

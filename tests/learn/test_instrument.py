@@ -254,3 +254,57 @@ def test_a_model_trained_with_the_instrument_in_view_predicts_from_such_clouds(s
         np.testing.assert_allclose(f, want, atol=1e-6)
         np.testing.assert_allclose(h, info["interval"]["half_width_local_n"], rtol=1e-9)
         assert w == info["warnings"]
+
+
+def test_the_compiled_fit_is_the_reference_fit():
+    """The numba kernel's fit (serve.compiled_cloud._fit_instrument, on the sorted distinct points) against
+    fit_instrument: the same axis to rounding, the same points fitted and dropped, in any point order."""
+    from liverforce.learn.cloud_features import instrument_search_radius
+    from liverforce.serve.compiled_cloud import _fit_instrument
+
+    rng = np.random.default_rng(3)
+    sp = spec(instrument_point_sd_mm=0.4, instrument_tip_sd_mm=0.6)
+    inst = np.array([sp.instrument_radius_mm, instrument_search_radius(sp), sp.instrument_rise_mm,
+                     sp.instrument_clearance_mm, sp.instrument_point_sd_mm, sp.instrument_tip_sd_mm,
+                     sp.instrument_min_points])
+    fitted = 0
+    for trial in range(60):
+        true = rng.normal(0.0, 0.6, 2)
+        n_shaft = int(rng.integers(0, 40))  # none, too few or enough of the shaft
+        uv, dz = _shaft(true, n_shaft, rng, sd=0.4, facing=rng.uniform(0, 2 * np.pi))
+        surf = rng.uniform(-10, 10, (300, 2))
+        P = np.concatenate([uv, surf, [[true[0] + 9.0, true[1]]]])  # and one point far out, well above
+        Z = np.concatenate([dz, rng.normal(-0.5, 0.6, len(surf)), [5.0]])
+        c, keep, n = fit_instrument(P, Z, [0.0, 0.0], sp)
+        order = rng.permutation(len(P))
+        orig = order.astype(np.int32)  # the kernel reads the points through orig (sorted -> original index)
+        cu, cv, nf, n_drop = _fit_instrument(P[:, 0].copy(), P[:, 1].copy(), Z[order].copy(), orig, len(P), 0.0, 0.0,
+                                             inst, np.empty(len(P), np.int32))
+        np.testing.assert_allclose([cu, cv], c, atol=1e-12)
+        assert nf == n and n_drop == int((~keep).sum())
+        dropped = np.flatnonzero(orig < 0)  # the kernel marks a dropped point's slot (sorted order) with -1
+        np.testing.assert_array_equal(np.sort(order[dropped]), np.flatnonzero(~keep))
+        fitted += n > 0
+    assert 10 < fitted < 60  # both outcomes were exercised
+
+
+def test_only_models_trained_without_the_instrument_check_for_it():
+    """The serving check refuses the instrument for a model whose training clouds never showed it; a model
+    trained on clouds with it (fitting its axis or not) sees it as in training, and a model whose height
+    reference is the old points interpolant (another sheet of a thin lobe under the grid) is not checked."""
+    from types import SimpleNamespace
+
+    from liverforce.serve.cloud import instrument_check_radius
+
+    def radius(observation: dict, grid: dict) -> float:
+        cam = {"observation": {"tool_radius_mm": 2.5, **observation}, "grid": grid, "tip_noise_mm": 0.5}
+        rep = SimpleNamespace(camera=cam, half_width_mm=20.0, grid_size=12)
+        from liverforce.learn.camera import grid_spec
+
+        return instrument_check_radius(rep, grid_spec(12, 20.0, cam))
+
+    assert radius({}, {}) == 2.5
+    assert radius({"instrument_in_cloud": True}, {}) == 0.0
+    assert radius({"instrument_in_cloud": True}, {"instrument_radius_mm": 2.5}) == 0.0
+    assert radius({}, {"reference": "points"}) == 0.0
+    assert radius({"tool_radius_mm": 0.0}, {}) == 0.0
