@@ -29,7 +29,7 @@ observations, and
 from a few cached ones.
 
 Usage: ``python benchmarks/bench_camera.py [--quick] [--regressors gp mlp] [--calls N] [--repeats N]
-[--batches 256 4096] [--points K] [--cases N]``
+[--batches 256 4096] [--points K] [--cases N] [--no-instrument]``
 
 Measured (2-core VM shared with other jobs, 1 thread; figures vary by tens of % with the load),
 ``python benchmarks/bench_camera.py``: see the commit that last changed this file.
@@ -54,6 +54,8 @@ _ap.add_argument("--ref-batch", type=int, default=None, help="clouds through the
 _ap.add_argument("--points", type=int, default=5000, help="points per cloud")
 _ap.add_argument("--cases", type=int, default=None, help="synthetic training cases (default 480; quick 120)")
 _ap.add_argument("--distinct", type=int, default=256, help="distinct clouds (jittered copies) cycled in a batch")
+_ap.add_argument("--no-instrument", action="store_true", help="models trained on clouds without the instrument, "
+                 "served such clouds (the camera model before it fitted the instrument's axis)")
 ARGS = _ap.parse_args()
 thread_env(1)
 
@@ -80,6 +82,9 @@ MODEL = {"encoder": "pca", "code_size": 16, "state_vector": True, "grid_size": 1
                 "kernel": "squared_exponential"},  # as the shipped camera variant (config/train/default.yaml)
          "camera": {"observation": {"n_points": [200, 20000], "instrument_in_cloud": True},
                     "grid": {"kernel_radius_cells": 1.5, "instrument_radius_mm": 2.5}, "tip_noise_mm": 0.5}}
+if ARGS.no_instrument:
+    MODEL["camera"] = {**MODEL["camera"], "observation": {"n_points": [200, 20000]},
+                       "grid": {"kernel_radius_cells": 1.5}}
 TRAIN = {"test_fraction": 0.2, "epochs": 3, "batch_size": 64, "lr": 3e-3, "weight_decay": 0.0, "seed": 0,
          "interval": {"coverage": 0.9, "calibration_fraction": 0.25, "scale": "force"}}  # the shipped interval scale
 NO_TUNE = {"enabled": False, "trials": 1, "folds": 2, "sobol_trials": 1, "epochs": 1}
@@ -204,14 +209,15 @@ def main() -> None:
     p = arrays["exertion_point_mm"][i]
     tip = p + u[int(np.argmin(np.linalg.norm(V - p, axis=1)))]
     cfg = ObservationConfig(n_points=(ARGS.points, ARGS.points), noise_sd_mm=0.5, roi_radius_mm=40.0,
-                            instrument_in_cloud=True)  # as the shipped model sees them: the instrument's points too
+                            instrument_in_cloud=not ARGS.no_instrument)  # as the shipped model sees them
     clouds = [observe(V + u, T, tip, arrays["frame_normal"][i], cfg, seed=s)[0] for s in range(20)]
     rng = np.random.default_rng(0)
     pool = [clouds[k % len(clouds)] + rng.normal(0.0, 0.01, clouds[k % len(clouds)].shape)
             for k in range(ARGS.distinct)]
     ctx = Preop.from_arrays({k: v for k, v in arrays.items() if k != "roi_deformed_mm"}, i)
     out = {kind: measure(kind, model, arrays, ctx, tip, clouds, pool) for kind, model in models.items()}
-    print(f"\nsummary (1 thread, medians of {REPEATS} runs; {ARGS.points}-point clouds; reference = "
+    inst = "" if ARGS.no_instrument else f" of the liver, {len(clouds[0]) - ARGS.points} of the instrument"
+    print(f"\nsummary (1 thread, medians of {REPEATS} runs; {ARGS.points}-point clouds{inst}; reference = "
           f"ForceModel.predict on a list / predict_cloud per cloud):")
     head = "regressor | " + " | ".join(f"batch {nb} clouds/s (x ref)" for nb in BATCHES) + \
         " | p50 / p99 ms (x ref p50) | max |dF| N"
