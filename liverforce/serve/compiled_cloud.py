@@ -264,60 +264,94 @@ def _axis_steps(U, V, orig, idx, k, cu, cv, c0u, c0v, r, wp, wk):
 
 
 @njit(cache=True)
-def _fit_instrument(U, V, Zs, orig, n_sorted, c0u, c0v, inst, idx):
-    """The instrument's axis from the sorted, distinct points (``orig[s] >= 0``; local ``U[orig[s]], V[orig[s]]``,
-    height change ``Zs[s]``), as :func:`liverforce.learn.cloud_features.fit_instrument`; its points and those
-    within the clearance marked ``orig[s] = -1``. ``inst``: radius, search radius, rise, clearance, point sd, tip
-    sd, fewest points (:meth:`CompiledCloud._instrument`). Returns the axis ``(cu, cv)``, the points fitted and
-    the points dropped."""
-    r, search, rise, clear, sdp, sdk, n_min = inst[0], inst[1], inst[2], inst[3], inst[4], inst[5], inst[6]
+def _fit_axis_points(U, V, orig, idx, k, c0u, c0v, inst):
+    """The instrument's axis fitted to the candidate points ``orig[idx[:k]]`` (local ``U, V``; the sorted indices
+    ``idx`` are reordered), the kinematic tip ``(c0u, c0v)`` the prior, as
+    :func:`liverforce.learn.cloud_features.fit_instrument`: Gauss-Newton, then once more without the outliers.
+    ``inst``: radius, search radius, rise, clearance, point sd, tip sd, fewest points. Returns ``(cu, cv,
+    n_fitted)`` (the prior and 0 with fewer than the fewest points)."""
+    r, sdp, sdk, n_min = inst[0], inst[4], inst[5], inst[6]
+    if k < n_min:
+        return c0u, c0v, 0
     wp = 1.0 / max(sdp, _MIN_POINT_SD) ** 2
     wk = 1.0 / max(sdk, _MIN_TIP_SD) ** 2
+    cu, cv = _axis_steps(U, V, orig, idx, k, c0u, c0v, c0u, c0v, r, wp, wk)
+    thr = 3.0 * sdp + 0.3
+    k2 = 0
+    for j in range(k):  # the outliers out, in place (stable)
+        t = orig[idx[j]]
+        dx = U[t] - cu
+        dy = V[t] - cv
+        if abs(math.sqrt(dx * dx + dy * dy) - r) <= thr:
+            idx[k2] = idx[j]
+            k2 += 1
+    if n_min <= k2 < k:
+        cu, cv = _axis_steps(U, V, orig, idx, k2, cu, cv, c0u, c0v, r, wp, wk)
+        return cu, cv, k2
+    return cu, cv, k
+
+
+@njit(cache=True)
+def _instrument_point(u, v, z, cu, cv, c0u, c0v, inst):
+    """Is the point ``(u, v)`` (local, mm; height change ``z``) the instrument's, to be dropped: a candidate
+    (within the search radius of the kinematic tip ``(c0u, c0v)``, ``rise`` above the surface), within the
+    clearance of the fitted axis ``(cu, cv)``, or within another 2 point sds of it above the surface
+    (``fit_instrument``'s ``keep``, negated)."""
+    r, search, rise, clear, sdp = inst[0], inst[1], inst[2], inst[3], inst[4]
+    dx = u - cu
+    dy = v - cv
+    d2 = dx * dx + dy * dy
+    ex = u - c0u
+    ey = v - c0v
+    return (d2 < (r + clear) ** 2 or (d2 < (r + clear + 2.0 * sdp) ** 2 and z > 0.0)
+            or (z > rise and ex * ex + ey * ey < search * search))
+
+
+@njit(cache=True)
+def _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, inst, idx):
+    """The instrument's axis from the sorted, distinct points (``orig[s] >= 0``; local ``U[orig[s]], V[orig[s]]``,
+    height change ``Zs[s]``; bins as :func:`_grid_one` sorts them), as
+    :func:`liverforce.learn.cloud_features.fit_instrument`. Only the bins within reach of the kinematic tip
+    ``(c0u, c0v)`` are read (the search radius, plus the clearance round an axis within it); the instrument's
+    points are moved far off the grid (``GUs, GVs``), so they add exact zeros to every cell's moments. Returns
+    the axis ``(cu, cv)``, the points fitted and the points dropped."""
+    r, search, clear, sdp = inst[0], inst[1], inst[3], inst[4]
+    reach = (search + r + clear + 2.0 * sdp) / gstep + 1.0 / sb  # grid units, a bin of margin for rounding
+    gu0 = (c0u + h) / gstep
+    gv0 = (c0v + h) / gstep
+    r_lo = min(max(int(math.floor((gv0 - reach) * sb)) + pad, 0), nc - 1)
+    r_hi = min(max(int(math.floor((gv0 + reach) * sb)) + pad, 0), nc - 1)
+    c_lo = min(max(int(math.floor((gu0 - reach) * sb)) + pad, 0), nc - 1)
+    c_hi = min(max(int(math.floor((gu0 + reach) * sb)) + pad, 0), nc - 1)
     s2 = search * search
+    rise = inst[2]
     k = 0
-    for s in range(n_sorted):
-        t = orig[s]
-        if t >= 0 and Zs[s] > rise:
-            dx = U[t] - c0u
-            dy = V[t] - c0v
-            if dx * dx + dy * dy < s2:
-                idx[k] = s
-                k += 1
-    cu, cv = c0u, c0v
-    n_fit = 0
-    if k >= n_min:
-        cu, cv = _axis_steps(U, V, orig, idx, k, cu, cv, c0u, c0v, r, wp, wk)
-        thr = 3.0 * sdp + 0.3
-        k2 = 0
-        for j in range(k):  # the outliers out, in place (stable)
-            t = orig[idx[j]]
-            dx = U[t] - cu
-            dy = V[t] - cv
-            if abs(math.sqrt(dx * dx + dy * dy) - r) <= thr:
-                idx[k2] = idx[j]
-                k2 += 1
-        n_fit = k
-        if n_min <= k2 < k:
-            cu, cv = _axis_steps(U, V, orig, idx, k2, cu, cv, c0u, c0v, r, wp, wk)
-            n_fit = k2
+    for rr in range(r_lo, r_hi + 1):
+        for cc in range(c_lo, c_hi + 1):
+            kk = (rr >> (sb >> 1)) * (nc * sb) + cc * sb + (rr & (sb - 1))
+            for s in range(first[kk], first[kk + 1]):
+                t = orig[s]
+                if t >= 0 and Zs[s] > rise:
+                    dx = U[t] - c0u
+                    dy = V[t] - c0v
+                    if dx * dx + dy * dy < s2:
+                        idx[k] = s
+                        k += 1
+    cu, cv, n_fit = _fit_axis_points(U, V, orig, idx, k, c0u, c0v, inst)
     n_drop = 0
-    near2 = (r + clear) ** 2
-    hi2 = (r + clear + 2.0 * sdp) ** 2
-    for s in range(n_sorted):
-        t = orig[s]
-        if t >= 0:
-            z = Zs[s]
-            dx = U[t] - cu
-            dy = V[t] - cv
-            d2 = dx * dx + dy * dy
-            ex = U[t] - c0u
-            ey = V[t] - c0v
-            if d2 < near2 or (d2 < hi2 and z > 0.0) or (z > rise and ex * ex + ey * ey < s2):
-                orig[s] = -1
-                n_drop += 1
+    for rr in range(r_lo, r_hi + 1):
+        for cc in range(c_lo, c_hi + 1):
+            kk = (rr >> (sb >> 1)) * (nc * sb) + cc * sb + (rr & (sb - 1))
+            for s in range(first[kk], first[kk + 1]):
+                t = orig[s]
+                if t >= 0 and _instrument_point(U[t], V[t], Zs[s], cu, cv, c0u, c0v, inst):
+                    GUs[s] = _FAR
+                    GVs[s] = _FAR
+                    n_drop += 1
     return cu, cv, n_fit, n_drop
 
 
+_FAR = 1e9  # grid-index coordinate of a dropped point: beyond every kernel support (weight and count exact zeros)
 _H1 = 2654435761  # odd multipliers of the duplicate filter's hash (products stay far below 2^63)
 _H2 = 2246822519
 
@@ -469,10 +503,8 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
                 n_dup += 1
                 break
     nf = 0
-    if inst[0] > 0.0:  # the instrument's points: fitted (the tip's tangential part), then dropped
-        cu, cv, nf, n_drop = _fit_instrument(U, V, Zs, orig, first[nc * nc], tu, tv, inst, cand)
-        tu, tv = cu, cv
-        n_dup += n_drop
+    if inst[0] > 0.0:  # the instrument's points: fitted (the tip's tangential part), then moved off the grid
+        tu, tv, nf, _ = _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, tu, tv, inst, cand)
     if n_dup:
         w = 0
         for kk in range(nc * nc):

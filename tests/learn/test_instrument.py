@@ -257,10 +257,11 @@ def test_a_model_trained_with_the_instrument_in_view_predicts_from_such_clouds(s
 
 
 def test_the_compiled_fit_is_the_reference_fit():
-    """The numba kernel's fit (serve.compiled_cloud._fit_instrument, on the sorted distinct points) against
-    fit_instrument: the same axis to rounding, the same points fitted and dropped, in any point order."""
+    """The numba kernel's fit (serve.compiled_cloud: _fit_axis_points on the candidates, _instrument_point for
+    the points dropped) against fit_instrument: the same axis to rounding, the same points fitted and dropped,
+    in any point order."""
     from liverforce.learn.cloud_features import instrument_search_radius
-    from liverforce.serve.compiled_cloud import _fit_instrument
+    from liverforce.serve.compiled_cloud import _fit_axis_points, _instrument_point
 
     rng = np.random.default_rng(3)
     sp = spec(instrument_point_sd_mm=0.4, instrument_tip_sd_mm=0.6)
@@ -276,14 +277,14 @@ def test_the_compiled_fit_is_the_reference_fit():
         P = np.concatenate([uv, surf, [[true[0] + 9.0, true[1]]]])  # and one point far out, well above
         Z = np.concatenate([dz, rng.normal(-0.5, 0.6, len(surf)), [5.0]])
         c, keep, n = fit_instrument(P, Z, [0.0, 0.0], sp)
-        order = rng.permutation(len(P))
-        orig = order.astype(np.int32)  # the kernel reads the points through orig (sorted -> original index)
-        cu, cv, nf, n_drop = _fit_instrument(P[:, 0].copy(), P[:, 1].copy(), Z[order].copy(), orig, len(P), 0.0, 0.0,
-                                             inst, np.empty(len(P), np.int32))
+        order = rng.permutation(len(P))  # the kernel's points in another order (sorted by bin)
+        cand = order[(Z[order] > inst[2]) & (np.hypot(*P[order].T) < inst[1])]
+        cu, cv, nf = _fit_axis_points(P[:, 0].copy(), P[:, 1].copy(), np.arange(len(P), dtype=np.int32),
+                                      cand.astype(np.int32), len(cand), 0.0, 0.0, inst)
         np.testing.assert_allclose([cu, cv], c, atol=1e-12)
-        assert nf == n and n_drop == int((~keep).sum())
-        dropped = np.flatnonzero(orig < 0)  # the kernel marks a dropped point's slot (sorted order) with -1
-        np.testing.assert_array_equal(np.sort(order[dropped]), np.flatnonzero(~keep))
+        assert nf == n
+        drop = np.array([_instrument_point(P[i, 0], P[i, 1], Z[i], cu, cv, 0.0, 0.0, inst) for i in range(len(P))])
+        np.testing.assert_array_equal(drop, ~keep)
         fitted += n > 0
     assert 10 < fitted < 60  # both outcomes were exercised
 
