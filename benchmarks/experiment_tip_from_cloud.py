@@ -6,7 +6,9 @@ tip's tangential displacement (local t1, t2; mm) against the FE tip (the exertio
 on a finished run's cases, observed as the pipeline observes a training view (the camera variant's camera,
 visibility, tool, density, noise and tip noise; the seed of its first view):
 
-- ``kinematic``: the noisy tip a camera model reads (``model.camera.tip_noise_mm``);
+- ``kinematic``: the noisy tip the robot reports (``model.camera.tip_noise_mm``);
+- ``instrument's axis``: for a variant that fits it (``model.camera.grid.instrument_radius_mm``, the default since
+  ea1a819), the tip the model reads: the shaft's axis fitted to the instrument's points in the cloud;
 - ridge regressions, 5 folds by liver, from the kinematic tip plus
   - ``grid``: the camera model's grid (height change and coverage, ``2 g^2`` values); ``coverage mask``: the
     coverage alone (the observation cuts the ROI around the FE tip: does the mask's edge give it away?);
@@ -204,7 +206,8 @@ def main() -> None:
     geo = np.asarray(a["geometry_id"]).astype(str)
     fe_tip = np.array([r.tool_tip_mm for r in recs])  # the FE tip each cloud was observed with
     target = np.einsum("nij,nj->ni", R[rows], fe_tip - P[rows])[:, :2]
-    kin = X[:, -3:]
+    kin = np.einsum("nij,nj->ni", R[rows], tips - P[rows])  # the kinematic tip (local), as the robot reports it
+    fitted = X[:, -3:] if spec.instrument_radius_mm > 0 else None  # the instrument's axis, where the model fits it
     axis = np.linspace(-hw, hw, g)
     moments, par = [], []
     for k, i in enumerate(rows):
@@ -237,6 +240,8 @@ def main() -> None:
                     ("ridge: + rings", np.column_stack([kin, moments])),
                     ("ridge: + rings + parallax", np.column_stack([kin, moments, par]))]
     print(line("kinematic", kin[:, :2]), flush=True)
+    if fitted is not None:
+        print(line("instrument's axis (the model's)", fitted[:, :2]), flush=True)
     for label, F in ridge_inputs:  # the kinematic tip's 3 columns unpenalised
         print(line(label, ridge_cv(F, target, groups, free=3)), flush=True)
     print(line("parallax alone (no tip)", ridge_cv(par, target, groups)), flush=True)

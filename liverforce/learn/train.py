@@ -480,7 +480,9 @@ def repeated_splits(train_arrays, test_arrays, rep, model_cfg, train_cfg, scenar
 def exact_tip_metrics(model, test_arrays: dict, seed: int) -> dict:
     """``{"exact_tip": metrics}`` of a camera-cloud model on ``test_arrays`` with an exact tool tip: the same
     fitted model and the same clouds (evaluation observation seed of ``seed``), no kinematics noise on the
-    tip; ``{}`` for any other model."""
+    tip; ``{}`` for any other model. A model that fits the instrument's axis still fits it, with the weights it
+    was trained with (the kinematic tip, now exact, is the fit's prior): what the shipped model gives with a
+    perfect tracker, not what an exact tip would."""
     if not model.representation.is_camera:
         return {}
     probe = model.observed_with(exact_tip(model.representation.camera))

@@ -308,21 +308,29 @@ def _instrument_point(u, v, z, cu, cv, c0u, c0v, inst):
 
 
 @njit(cache=True)
+def _bin_box(u, v, reach, h, gstep, sb, pad, nc):
+    """Sort-bin rows and columns ``(r_lo, r_hi, c_lo, c_hi)`` (clamped) holding every point within ``reach`` grid
+    units of the local point ``(u, v)`` mm (:func:`_bin_key`'s rows ``floor(gv sb) + pad``)."""
+    gu = (u + h) / gstep
+    gv = (v + h) / gstep
+    r_lo = min(max(int(math.floor((gv - reach) * sb)) + pad, 0), nc - 1)
+    r_hi = min(max(int(math.floor((gv + reach) * sb)) + pad, 0), nc - 1)
+    c_lo = min(max(int(math.floor((gu - reach) * sb)) + pad, 0), nc - 1)
+    c_hi = min(max(int(math.floor((gu + reach) * sb)) + pad, 0), nc - 1)
+    return r_lo, r_hi, c_lo, c_hi
+
+
+@njit(cache=True)
 def _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, inst, idx):
     """The instrument's axis from the sorted, distinct points (``orig[s] >= 0``; local ``U[orig[s]], V[orig[s]]``,
     height change ``Zs[s]``; bins as :func:`_grid_one` sorts them), as
-    :func:`liverforce.learn.cloud_features.fit_instrument`. Only the bins within reach of the kinematic tip
-    ``(c0u, c0v)`` are read (the search radius, plus the clearance round an axis within it); the instrument's
+    :func:`liverforce.learn.cloud_features.fit_instrument`. Only the bins that can hold its points are read (the
+    search radius round the kinematic tip ``(c0u, c0v)``, the clearance round the fitted axis); the instrument's
     points are moved far off the grid (``GUs, GVs``), so they add exact zeros to every cell's moments. Returns
     the axis ``(cu, cv)``, the points fitted and the points dropped."""
     r, search, clear, sdp = inst[0], inst[1], inst[3], inst[4]
-    reach = (search + r + clear + 2.0 * sdp) / gstep + 1.0 / sb  # grid units, a bin of margin for rounding
-    gu0 = (c0u + h) / gstep
-    gv0 = (c0v + h) / gstep
-    r_lo = min(max(int(math.floor((gv0 - reach) * sb)) + pad, 0), nc - 1)
-    r_hi = min(max(int(math.floor((gv0 + reach) * sb)) + pad, 0), nc - 1)
-    c_lo = min(max(int(math.floor((gu0 - reach) * sb)) + pad, 0), nc - 1)
-    c_hi = min(max(int(math.floor((gu0 + reach) * sb)) + pad, 0), nc - 1)
+    margin = 1.0 / sb  # grid units: a bin of margin for rounding
+    r_lo, r_hi, c_lo, c_hi = _bin_box(c0u, c0v, search / gstep + margin, h, gstep, sb, pad, nc)
     s2 = search * search
     rise = inst[2]
     k = 0
@@ -338,6 +346,9 @@ def _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u,
                         idx[k] = s
                         k += 1
     cu, cv, n_fit = _fit_axis_points(U, V, orig, idx, k, c0u, c0v, inst)
+    # dropped: the candidates (within the search radius of the kinematic tip) and the points near the fitted axis
+    a_lo, a_hi, b_lo, b_hi = _bin_box(cu, cv, (r + clear + 2.0 * sdp) / gstep + margin, h, gstep, sb, pad, nc)
+    r_lo, r_hi, c_lo, c_hi = min(r_lo, a_lo), max(r_hi, a_hi), min(c_lo, b_lo), max(c_hi, b_hi)
     n_drop = 0
     for rr in range(r_lo, r_hi + 1):
         for cc in range(c_lo, c_hi + 1):

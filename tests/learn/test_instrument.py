@@ -309,3 +309,39 @@ def test_only_models_trained_without_the_instrument_check_for_it():
     assert radius({"instrument_in_cloud": True}, {"instrument_radius_mm": 2.5}) == 0.0
     assert radius({}, {"reference": "points"}) == 0.0
     assert radius({"tool_radius_mm": 0.0}, {}) == 0.0
+
+
+@pytest.mark.parametrize("centre", [(0.0, 0.0), (-15.0, 6.0)])  # the tool mid-grid, and 15 mm off, near its edge
+def test_the_compiled_kernel_grids_a_cloud_with_the_instrument_as_the_reference(centre):
+    """The numba gridding pass with the instrument (its bin scan, the points moved off the grid) against
+    cloud_grid, on clouds of the dent with the tool in view, a kinematic tip up to 1.5 mm off, points shuffled."""
+    from liverforce.learn.cloud_features import instrument_search_radius
+    from liverforce.serve.compiled_cloud import _FILL_CODES, _grid_clouds
+
+    V, U0, T = dent_surface()
+    sp = spec()
+    p = np.array([-centre[0], -centre[1], 0.0])  # the exertion point's frame: the dent lies at -p from it
+    ref = ReferenceSurface.for_case(U0, T, p, np.eye(3), sp)
+    inst = np.array([sp.instrument_radius_mm, instrument_search_radius(sp), sp.instrument_rise_mm,
+                     sp.instrument_clearance_mm, sp.instrument_point_sd_mm, sp.instrument_tip_sd_mm,
+                     sp.instrument_min_points])
+    rng = np.random.default_rng(7)
+    true_tip = np.array([0.0, 0.0, -3.0])
+    for seed in range(6):
+        cloud, rec = observe(V, T, true_tip, [0, 0, 1], obs(noise_sd_mm=0.5, n_points=(400 + 1500 * seed,) * 2),
+                             seed=seed)
+        cloud = np.ascontiguousarray(cloud[rng.permutation(len(cloud))])
+        kin = true_tip + rng.uniform(-1.5, 1.5, 3)
+        want = cloud_grid(cloud, ref, sp, kin)
+        g, gg = sp.grid_size, sp.grid_size**2
+        X = np.empty((1, 2 * gg + 3))
+        n_used, n_bad, n_tool = np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros((1, 2), np.int64)
+        _grid_clouds(cloud, np.zeros(1, np.int64), np.array([len(cloud)]), kin[None], ref.origin, ref.R,
+                     np.ascontiguousarray(ref.raster), ref.lo, ref.step, g, sp.half_width_mm, sp.spacing_mm,
+                     sp.kernel_radius_cells, sp.max_abs_height_mm, sp.min_points, sp.max_leverage, True,
+                     _FILL_CODES["laplace"], sp.half_width_mm * (1 + 2 / (g - 1)), np.zeros(4), inst, X, n_used,
+                     n_bad, n_tool)
+        assert rec.n_instrument_points > 0 and want.n_instrument > 0
+        assert n_tool[0, 1] == want.n_instrument
+        np.testing.assert_allclose(X[0, :-3], want.features(include_mask=True), atol=1e-9)
+        np.testing.assert_allclose(X[0, -3:], want.tip_local, atol=1e-9)

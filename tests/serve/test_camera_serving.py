@@ -448,6 +448,7 @@ def test_clean_clouds_are_not_taken_for_the_instrument(served):
     path, model, a = served
     pred = Predictor.from_dir(path)
     rng = np.random.default_rng(0)
+    checked = 0
     for i in range(0, len(a["case_id"]), 2):
         V, T = a["surface_meshes"][a["geometry_id"][i]]
         u = np.asarray(a["surface_displacement_mm"][i], dtype=np.float64)
@@ -457,11 +458,15 @@ def test_clean_clouds_are_not_taken_for_the_instrument(served):
         cfg = ObservationConfig(n_points=(8000, 8000), noise_sd_mm=1.0, roi_radius_mm=40.0)
         cloud, _ = observe(V + u, T, tip, a["frame_normal"][i], cfg, seed=i)
         kin = tip + rng.normal(0.0, 0.5, 3)
+        fast = pred.compile_cloud(ctx)
         for shift in (0.0, 8.0):
-            moved = cloud + shift * ctx.rotation[2]
+            moved, k_moved = cloud + shift * ctx.rotation[2], kin + shift * ctx.rotation[2]
+            batch = fast.predict_batch([moved], k_moved[None])  # the compiled path's check: the same decision
             try:
-                _, info = pred.predict_cloud(moved, ctx, tool_tip_mm=kin + shift * ctx.rotation[2],
-                                             return_info=True)
-                assert info["instrument_points"] < 8
+                _, info = pred.predict_cloud(moved, ctx, tool_tip_mm=k_moved, return_info=True)
+                checked += "instrument_points" in info  # the check ran and let it through
+                assert batch.refused[0] is None
             except PredictionInputError as exc:
                 assert "instrument" not in str(exc), (i, shift, str(exc))
+                assert batch.refused[0] == str(exc)
+    assert checked >= 20
