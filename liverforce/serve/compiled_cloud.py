@@ -205,6 +205,12 @@ def _bin_key(gu, gv, sb, pad, nc):
     column ``c``; key ``(r // sb, c, r % sb)`` row-major (groups of ``sb`` rows, column by column within one)."""
     r = min(max(int(math.floor(gv * sb)) + pad, 0), nc - 1)
     c = min(max(int(math.floor(gu * sb)) + pad, 0), nc - 1)
+    return _key(r, c, sb, nc)
+
+
+@njit(cache=True)
+def _key(r, c, sb, nc):
+    """Sort key of bin row ``r``, column ``c`` (:func:`_bin_key`)."""
     return (r >> (sb >> 1)) * (nc * sb) + c * sb + (r & (sb - 1))  # sb is 1, 2 or 4: shifts, not divisions
 
 
@@ -336,7 +342,7 @@ def _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u,
     k = 0
     for rr in range(r_lo, r_hi + 1):
         for cc in range(c_lo, c_hi + 1):
-            kk = (rr >> (sb >> 1)) * (nc * sb) + cc * sb + (rr & (sb - 1))
+            kk = _key(rr, cc, sb, nc)
             for s in range(first[kk], first[kk + 1]):
                 t = orig[s]
                 if t >= 0 and Zs[s] > rise:
@@ -352,7 +358,7 @@ def _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u,
     n_drop = 0
     for rr in range(r_lo, r_hi + 1):
         for cc in range(c_lo, c_hi + 1):
-            kk = (rr >> (sb >> 1)) * (nc * sb) + cc * sb + (rr & (sb - 1))
+            kk = _key(rr, cc, sb, nc)
             for s in range(first[kk], first[kk + 1]):
                 t = orig[s]
                 if t >= 0 and _instrument_point(U[t], V[t], Zs[s], cu, cv, c0u, c0v, inst):
