@@ -479,7 +479,9 @@ def test_the_camera_table_shows_the_exact_tip_accuracy_per_scenario_and_on_the_u
             "scenario": sc, "variant": "cloud_sv", "encoder": "pca", "state_vector": True, "metrics": m,
             "metrics_mean": m, "metrics_sd": {"accuracy_pct": 1.2, "mae_vec": 0.02, "rmse_vec": 0.03}, "n_splits": 3,
             "repeats": [{"split_seed": 7 + i, "test_geometries": ["g"], "metrics": m} for i in range(3)],
-            "run_id": f"run{sc}cloud_sv", "n_train": 9, "n_test": 3, "model_cfg": {"roi_features": "cloud"},
+            "run_id": f"run{sc}cloud_sv", "n_train": 9, "n_test": 3,
+            "model_cfg": {"roi_features": "cloud",  # one of the two cases: a model that fits the instrument
+                          **({"camera": {"grid": {"instrument_radius_mm": 2.5}}} if validated == "cloud_sv" else {})},
             **({"exact_tip": {"metrics_mean": {"accuracy_pct": 79.3, "mae_vec": 0.125},
                               "metrics_sd": {"accuracy_pct": 0.5, "mae_vec": 0.01}, "n_splits": 3}}
                if sc == "IV" else {})}))
@@ -500,6 +502,7 @@ def test_the_camera_table_shows_the_exact_tip_accuracy_per_scenario_and_on_the_u
     path.write_text(json.dumps(doc))
     html = _report(stage_outputs)
     cam = _section(html, "id='camera'", "</table>")
+    assert ("fits its shaft's axis" in cam) == (validated == "cloud_sv")
     head = re.findall(r"<th>(.*?)</th>", cam)
     assert head[4] == "camera, exact tip %" and head[7] == "camera, exact tip MAE (N)"
     rows = {_text(r[0]): [_text(c) for c in r] for r in _rows(cam, "cam")}

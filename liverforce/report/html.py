@@ -423,11 +423,16 @@ def camera_section(data: dict, v: dict, main_variant: str | None) -> str:
                      _pm(u[0]["mean"]["mae_vec"], u[0]["sd"]["mae_vec"]),
                      _pm(u[1]["mean"]["mae_vec"], u[1]["sd"]["mae_vec"]),
                      _pm(ut["mae_vec"], ut["mae_sd"]) if exact_ok else "–"])
+    cam_cfg = (cams[0].get("model_cfg") or {}).get("camera") or {}
+    fits = float((cam_cfg.get("grid") or {}).get("instrument_radius_mm") or 0.0) > 0
+    instrument = ("The cloud shows the instrument too, and the model fits its shaft's axis to its points for the "
+                  "tip's position along the surface (the robot's tip is the fit's prior, and the tip along the "
+                  "normal). " if fits else "")
     out = ["<h3 id='camera'>What the camera costs: camera cloud against node correspondence</h3>",
            f"<p><code>{html.escape(cam_name)}</code> reads what surgery has: an unordered, partial, noisy camera "
            "cloud of the deformed surface (observed from the stored full surface: camera pose in a cone above the "
            "tool, back-facing and self-occluded points and the tool's shadow dropped, random density, noise) and "
-           "the tool tip's position from the robot, with noise; no FE node ids. "
+           "the tool tip's position from the robot, with noise; no FE node ids. " + instrument +
            f"<code>{html.escape(str(ref_name))}</code> reads the FE nodes' displacements (a reference no camera "
            f"gives). Accuracy % and MAE are mean ± sd over the repeated splits (scenarios) or over the unseen livers. "
            f"Target: the camera within {CAMERA_GAP_LIMIT:.0f} points of the reference. "
