@@ -224,14 +224,9 @@ def _camera_arrays(model, cloud_mm, preop: Preop, tool_tip_mm, limits: Limits) -
             f"tool_tip_mm is {d_tip:.4g} mm from the exertion point, beyond the model's grid ({rep.half_width_mm:.3g} "
             "mm): is it in mm and in the liver frame, and is the tool at this exertion point?")
     info = {"mode": "exact", "points_given": len(O), "points_used": n_used}
-    spec = camera.grid_spec(rep.grid_size, rep.half_width_mm, rep.camera)
-    r_tool = instrument_check_radius(rep, spec)
-    if r_tool > 0:
-        n_shaft = shaft_points(O_loc, (tip - p) @ R.T, r_tool, spec, preop.roi_undeformed_mm, preop.roi_triangles,
-                               p, R)
+    n_shaft = check_instrument(rep, O, tip, preop.roi_undeformed_mm, preop.roi_triangles, p, R)
+    if n_shaft is not None:
         info["instrument_points"] = n_shaft
-        if n_shaft >= SHAFT_POINTS:
-            raise PredictionInputError(instrument_refusal(n_shaft, r_tool))
     out = preop.to_arrays(preop.roi_undeformed_mm)
     out["camera_cloud_mm"] = [O]
     out["tool_tip_mm"] = tip[None]
@@ -261,6 +256,24 @@ def instrument_check_radius(rep, spec) -> float:
     if cfg.instrument_in_cloud or spec.reference != "surface":
         return 0.0
     return cfg.tool_radius_mm
+
+
+def check_instrument(rep, cloud_mm, tip_mm, roi_undeformed_mm, roi_triangles, exertion_point_mm,
+                     rotation) -> int | None:
+    """The serving check for the instrument in one cloud (model frame, mm) of a camera model ``rep``: None for a
+    model that does not check (:func:`instrument_check_radius`), else the points on the shaft
+    (:func:`shaft_points`); refused (:func:`instrument_refusal`) from ``SHAFT_POINTS`` on."""
+    spec = camera.grid_spec(rep.grid_size, rep.half_width_mm, rep.camera)
+    r_tool = instrument_check_radius(rep, spec)
+    if r_tool <= 0:
+        return None
+    p = np.asarray(exertion_point_mm, dtype=np.float64)
+    n_shaft = shaft_points((np.asarray(cloud_mm, dtype=np.float64).reshape(-1, 3) - p) @ rotation.T,
+                           (np.asarray(tip_mm, dtype=np.float64) - p) @ rotation.T, r_tool, spec, roi_undeformed_mm,
+                           roi_triangles, p, rotation)
+    if n_shaft >= SHAFT_POINTS:
+        raise PredictionInputError(instrument_refusal(n_shaft, r_tool))
+    return n_shaft
 
 
 def instrument_refusal(n_shaft: int, tool_radius_mm: float) -> str:

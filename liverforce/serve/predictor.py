@@ -37,8 +37,8 @@ import numpy as np
 from liverforce.learn import camera
 from liverforce.learn.model import ForceModel, ModelFormatError
 from liverforce.serve.checks import Limits, TrainingScale, check_case, outside_training
-from liverforce.serve.cloud import (MASKED_INSTRUMENT, SHAFT_POINTS, camera_checks, cloud_support, cloud_to_arrays,
-                                   instrument_check_radius, instrument_refusal, shaft_points)
+from liverforce.serve.cloud import (MASKED_INSTRUMENT, camera_checks, check_instrument, cloud_support,
+                                   cloud_to_arrays)
 from liverforce.serve.compiled import CompiledROI
 from liverforce.serve.errors import PredictionInputError
 from liverforce.serve.preop import DEFAULT_FRAME_RADIUS_MM, DEFAULT_ROI_FRACTION, Preop, _points
@@ -309,20 +309,13 @@ class Predictor:
         if rep.is_camera and "camera_cloud_mm" in arrays:  # observed clouds: features once, each row checked
             from liverforce.learn.camera import FEATURES_KEY
 
-            spec = camera.grid_spec(rep.grid_size, rep.half_width_mm, rep.camera)
-            r_tool = instrument_check_radius(rep, spec)
             x = rep.features_of(arrays, R=R)
+            tris = arrays.get("roi_triangles")
             for i in range(n):
-                try:
-                    if r_tool > 0:  # the instrument in a cloud for a model trained without it
-                        p_i = np.asarray(arrays["exertion_point_mm"][i], dtype=np.float64)
-                        O = np.asarray(arrays["camera_cloud_mm"][i], dtype=np.float64).reshape(-1, 3)
-                        tris = arrays.get("roi_triangles")
-                        n_shaft = shaft_points((O - p_i) @ R[i].T, (np.asarray(arrays["tool_tip_mm"][i]) - p_i)
-                                               @ R[i].T, r_tool, spec, arrays["roi_undeformed_mm"][i],
-                                               None if tris is None else tris[i], p_i, R[i])
-                        if n_shaft >= SHAFT_POINTS:
-                            raise PredictionInputError(instrument_refusal(n_shaft, r_tool))
+                try:  # the instrument in a cloud for a model trained without it, then the features' ranges
+                    check_instrument(rep, arrays["camera_cloud_mm"][i], arrays["tool_tip_mm"][i],
+                                     arrays["roi_undeformed_mm"][i], None if tris is None else tris[i],
+                                     arrays["exertion_point_mm"][i], R[i])
                     camera_checks(self.model, x[i], self.limits)
                 except PredictionInputError as exc:
                     ids = arrays.get("case_id")

@@ -413,6 +413,12 @@ def test_a_cloud_with_the_instrument_in_it_is_refused_by_a_model_trained_without
     force, info = pred.predict_cloud(cloud[: len(cloud) - rec.n_instrument_points], ctx, tool_tip_mm=tip,
                                      return_info=True)
     assert np.isfinite(force).all() and info["instrument_points"] < 8
+    # arrays of clouds (the pyfunc's path): the same check, the case named
+    rows = {**ctx.to_arrays(ctx.roi_undeformed_mm), "case_id": np.array(["c2"]), "tool_tip_mm": tip[None]}
+    with pytest.raises(PredictionInputError, match="case c2: .*instrument is in the cloud"):
+        pred.predict_arrays({**rows, "camera_cloud_mm": [cloud]})
+    masked = cloud[: len(cloud) - rec.n_instrument_points]
+    np.testing.assert_allclose(pred.predict_arrays({**rows, "camera_cloud_mm": [masked]})[0], force, atol=1e-9)
 
 
 def test_the_compiled_path_refuses_the_instrument_in_the_cloud_as_the_reference_does(served):
