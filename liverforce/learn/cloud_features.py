@@ -160,7 +160,10 @@ class CloudGridSpec:
     instrument_point_sd_mm, instrument_tip_sd_mm : float
         The clouds' point noise and the kinematic tip's tangential noise (sd,
         mm) the fit weighs its points and its prior by (the model's observation
-        settings; :func:`liverforce.learn.camera.grid_spec` sets them).
+        settings; :func:`liverforce.learn.camera.grid_spec` sets them). A
+        cloud clearly noisier than ``instrument_point_sd_mm`` is fitted with
+        its own noise, estimated from its instrument points
+        (:func:`fit_instrument`).
     """
 
     grid_size: int
@@ -462,15 +465,21 @@ def _canonical(P: np.ndarray) -> np.ndarray:
     return Q
 
 
-def instrument_search_radius(spec: CloudGridSpec) -> float:
+def instrument_search_radius(spec: CloudGridSpec, point_sd_mm: float | None = None) -> float:
     """Distance (mm) from the kinematic tip's axis within which points may be the instrument's: its radius plus
-    three sds of the tip's tangential error, two of the points' noise and half a millimetre."""
-    return spec.instrument_radius_mm + 3.0 * spec.instrument_tip_sd_mm + 2.0 * spec.instrument_point_sd_mm + 0.5
+    three sds of the tip's tangential error, two of the points' noise (``point_sd_mm``, by default the spec's)
+    and half a millimetre."""
+    sdp = spec.instrument_point_sd_mm if point_sd_mm is None else point_sd_mm
+    return spec.instrument_radius_mm + 3.0 * spec.instrument_tip_sd_mm + 2.0 * sdp + 0.5
 
 
 _MIN_POINT_SD = 0.05  # mm: floors of the fit's sds (an exact cloud or tracker still weighs its points and prior)
 _MIN_TIP_SD = 1e-3
 _FIT_ITERATIONS = 25
+#: a cloud whose shaft points scatter this many times the model's point sd about the fitted axis is fitted
+#: again with its own (:func:`fit_instrument`)
+NOISE_REFIT_RATIO = 1.25
+_MAD_SD = 1.4826  # sd of a normal variable per median absolute deviation
 
 
 def _fit_axis(Q: np.ndarray, c: np.ndarray, c0: np.ndarray, r: float, wp: float, wk: float) -> np.ndarray:
@@ -502,30 +511,55 @@ def fit_instrument(uv: np.ndarray, dz: np.ndarray, tip_uv, spec: CloudGridSpec) 
     beyond ``r + instrument_clearance_mm`` of ``c``, and beyond another ``2 sd_p`` where they stand above the
     pre-operative surface (the shaft's lowest points, pushed out by their noise). The points' order does not matter
     beyond rounding (the sums), so give them in a canonical order for bit-equal results.
+
+    ``sd_p`` is the model's point sd (``instrument_point_sd_mm``) unless the cloud is noisier: the candidates'
+    distances from the fitted cylinder, ``|p_i - c| - r``, estimate the cloud's own point noise (``1.4826`` times
+    their median absolute value), and when that exceeds :data:`NOISE_REFIT_RATIO` times the model's sd, the
+    search, the fit, its trim and the drop are done again with it (a camera noisier than the training clouds'
+    would otherwise leave the shaft's outer points on the grid, standing up to ``max_abs_height_mm`` over it).
     """
     uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    dz = np.asarray(dz, dtype=np.float64).reshape(-1)
     c0 = np.asarray(tip_uv, dtype=np.float64).reshape(2)
     r = spec.instrument_radius_mm
     d0 = np.hypot(uv[:, 0] - c0[0], uv[:, 1] - c0[1])
+    sdp = spec.instrument_point_sd_mm
     cand = (d0 < instrument_search_radius(spec)) & (dz > spec.instrument_rise_mm)
-    c = c0.copy()
-    n_fit = int(cand.sum())
-    if n_fit >= spec.instrument_min_points:
-        Q = uv[cand]
-        wp = 1.0 / max(spec.instrument_point_sd_mm, _MIN_POINT_SD) ** 2
-        wk = 1.0 / max(spec.instrument_tip_sd_mm, _MIN_TIP_SD) ** 2
-        c = _fit_axis(Q, c, c0, r, wp, wk)
-        use = np.abs(np.hypot(Q[:, 0] - c[0], Q[:, 1] - c[1]) - r) <= 3.0 * spec.instrument_point_sd_mm + 0.3
-        if spec.instrument_min_points <= use.sum() < len(Q):  # once more without the outliers, from there
-            c = _fit_axis(Q[use], c, c0, r, wp, wk)
-            n_fit = int(use.sum())
-    else:
-        n_fit = 0
+    c, n_fit = _fit_candidates(uv[cand], c0, spec, sdp)
+    if n_fit:
+        sd = instrument_point_sd(uv[cand], c, r)
+        if sd > NOISE_REFIT_RATIO * max(sdp, _MIN_POINT_SD):
+            sdp = sd
+            cand = (d0 < instrument_search_radius(spec, sdp)) & (dz > spec.instrument_rise_mm)
+            c, n_fit = _fit_candidates(uv[cand], c0, spec, sdp)
     d = np.hypot(uv[:, 0] - c[0], uv[:, 1] - c[1])
     near = d < r + spec.instrument_clearance_mm
     # the shaft's lowest points, at the surface's height, whose noise put them beyond the clearance
-    near |= (d < r + spec.instrument_clearance_mm + 2.0 * spec.instrument_point_sd_mm) & (dz > 0)
+    near |= (d < r + spec.instrument_clearance_mm + 2.0 * sdp) & (dz > 0)
     return c, ~(near | cand), n_fit
+
+
+def instrument_point_sd(Q: np.ndarray, c, r: float) -> float:
+    """The point noise (sd, mm) of a cloud from its instrument points ``Q`` (``(k, 2)``, local ``u, v``) about the
+    fitted axis ``c`` of a shaft of radius ``r``: ``1.4826 median ||q_i - c| - r|`` (robust to the few liver points
+    among them; the radial part of isotropic noise has the points' sd)."""
+    Q = np.asarray(Q, dtype=np.float64).reshape(-1, 2)
+    return _MAD_SD * float(np.median(np.abs(np.hypot(Q[:, 0] - c[0], Q[:, 1] - c[1]) - r)))
+
+
+def _fit_candidates(Q: np.ndarray, c0: np.ndarray, spec: CloudGridSpec, sdp: float) -> tuple[np.ndarray, int]:
+    """The axis fitted to the candidate points ``Q`` with point sd ``sdp`` (:func:`fit_instrument`), from the
+    kinematic tip ``c0``, and the points it rests on (0, and ``c0``, with fewer than ``instrument_min_points``)."""
+    if len(Q) < spec.instrument_min_points:
+        return c0.copy(), 0
+    r = spec.instrument_radius_mm
+    wp = 1.0 / max(sdp, _MIN_POINT_SD) ** 2
+    wk = 1.0 / max(spec.instrument_tip_sd_mm, _MIN_TIP_SD) ** 2
+    c = _fit_axis(Q, c0, c0, r, wp, wk)
+    use = np.abs(np.hypot(Q[:, 0] - c[0], Q[:, 1] - c[1]) - r) <= 3.0 * sdp + 0.3
+    if spec.instrument_min_points <= use.sum() < len(Q):  # once more without the outliers, from there
+        return _fit_axis(Q[use], c, c0, r, wp, wk), int(use.sum())
+    return c, len(Q)
 
 
 def cloud_grid(cloud_mm, reference: ReferenceSurface, spec: CloudGridSpec, tip_mm=None) -> CloudGrid:

@@ -84,8 +84,8 @@ from numba import njit, types
 from numba.typed import List
 
 from liverforce.learn import camera
-from liverforce.learn.cloud_features import (_FIT_ITERATIONS, _MIN_POINT_SD, _MIN_TIP_SD, ReferenceSurface, _fill,
-                                             instrument_search_radius)
+from liverforce.learn.cloud_features import (_FIT_ITERATIONS, _MAD_SD, _MIN_POINT_SD, _MIN_TIP_SD, NOISE_REFIT_RATIO,
+                                             ReferenceSurface, _fill, instrument_search_radius)
 from liverforce.learn.encoders import PCAEncoder
 from liverforce.learn.state import THICKNESS_COLUMN, compliance_matrices, state_vector
 from liverforce.serve.checks import Limits, TrainingScale, outside_training
@@ -272,7 +272,7 @@ def _axis_steps(U, V, orig, idx, k, cu, cv, c0u, c0v, r, wp, wk):
 @njit(cache=True)
 def _fit_axis_points(U, V, orig, idx, k, c0u, c0v, inst):
     """The instrument's axis fitted to the candidate points ``orig[idx[:k]]`` (local ``U, V``; the sorted indices
-    ``idx`` are reordered), the kinematic tip ``(c0u, c0v)`` the prior, as
+    ``idx[:k]`` are reordered, the outliers behind the others), the kinematic tip ``(c0u, c0v)`` the prior, as
     :func:`liverforce.learn.cloud_features.fit_instrument`: Gauss-Newton, then once more without the outliers.
     ``inst``: radius, search radius, rise, clearance, point sd, tip sd, fewest points. Returns ``(cu, cv,
     n_fitted)`` (the prior and 0 with fewer than the fewest points)."""
@@ -284,12 +284,14 @@ def _fit_axis_points(U, V, orig, idx, k, c0u, c0v, inst):
     cu, cv = _axis_steps(U, V, orig, idx, k, c0u, c0v, c0u, c0v, r, wp, wk)
     thr = 3.0 * sdp + 0.3
     k2 = 0
-    for j in range(k):  # the outliers out, in place (stable)
+    for j in range(k):  # the outliers to the end, in place (the others in their order; idx[:k] keeps every one)
         t = orig[idx[j]]
         dx = U[t] - cu
         dy = V[t] - cv
         if abs(math.sqrt(dx * dx + dy * dy) - r) <= thr:
-            idx[k2] = idx[j]
+            keep = idx[j]
+            idx[j] = idx[k2]
+            idx[k2] = keep
             k2 += 1
     if n_min <= k2 < k:
         cu, cv = _axis_steps(U, V, orig, idx, k2, cu, cv, c0u, c0v, r, wp, wk)
@@ -327,18 +329,12 @@ def _bin_box(u, v, reach, h, gstep, sb, pad, nc):
 
 
 @njit(cache=True)
-def _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, inst, idx):
-    """The instrument's axis from the sorted, distinct points (``orig[s] >= 0``; local ``U[orig[s]], V[orig[s]]``,
-    height change ``Zs[s]``; bins as :func:`_grid_one` sorts them), as
-    :func:`liverforce.learn.cloud_features.fit_instrument`. Only the bins that can hold its points are read (the
-    search radius round the kinematic tip ``(c0u, c0v)``, the clearance round the fitted axis); the instrument's
-    points are moved far off the grid (``GUs, GVs``), so they add exact zeros to every cell's moments. Returns
-    the axis ``(cu, cv)``, the points fitted and the points dropped."""
-    r, search, clear, sdp = inst[0], inst[1], inst[3], inst[4]
+def _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, search, rise, idx):
+    """The sorted indices of the instrument's candidates (within ``search`` mm of the kinematic tip ``(c0u, c0v)``,
+    ``rise`` above the surface) into ``idx``, in the bins' order; returns how many."""
     margin = 1.0 / sb  # grid units: a bin of margin for rounding
     r_lo, r_hi, c_lo, c_hi = _bin_box(c0u, c0v, search / gstep + margin, h, gstep, sb, pad, nc)
     s2 = search * search
-    rise = inst[2]
     k = 0
     for rr in range(r_lo, r_hi + 1):
         for cc in range(c_lo, c_hi + 1):
@@ -351,8 +347,46 @@ def _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u,
                     if dx * dx + dy * dy < s2:
                         idx[k] = s
                         k += 1
+    return k
+
+
+@njit(cache=True)
+def _point_sd(U, V, orig, idx, k, cu, cv, r):
+    """``cloud_features.instrument_point_sd`` of the candidates ``orig[idx[:k]]`` about the axis ``(cu, cv)``."""
+    a = np.empty(k)
+    for j in range(k):
+        t = orig[idx[j]]
+        dx = U[t] - cu
+        dy = V[t] - cv
+        a[j] = abs(math.sqrt(dx * dx + dy * dy) - r)
+    return _MAD_SD * np.median(a)
+
+
+@njit(cache=True)
+def _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, inst, idx):
+    """The instrument's axis from the sorted, distinct points (``orig[s] >= 0``; local ``U[orig[s]], V[orig[s]]``,
+    height change ``Zs[s]``; bins as :func:`_grid_one` sorts them), as
+    :func:`liverforce.learn.cloud_features.fit_instrument`, a cloud clearly noisier than the model's point sd
+    fitted again with its own. Only the bins that can hold its points are read (the search radius round the
+    kinematic tip ``(c0u, c0v)``, the clearance round the fitted axis); the instrument's points are moved far off
+    the grid (``GUs, GVs``), so they add exact zeros to every cell's moments. Returns the axis ``(cu, cv)``, the
+    points fitted and the points dropped."""
+    r, search, rise, clear, sdp = inst[0], inst[1], inst[2], inst[3], inst[4]
+    k = _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, search, rise, idx)
     cu, cv, n_fit = _fit_axis_points(U, V, orig, idx, k, c0u, c0v, inst)
+    if n_fit > 0:
+        sd = _point_sd(U, V, orig, idx, k, cu, cv, r)
+        if sd > NOISE_REFIT_RATIO * max(sdp, _MIN_POINT_SD):  # the cloud's own noise: search and fit again
+            inst = inst.copy()
+            inst[4] = sd
+            search = r + 3.0 * inst[5] + 2.0 * sd + 0.5  # cloud_features.instrument_search_radius
+            inst[1] = search
+            sdp = sd
+            k = _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, search, rise, idx)
+            cu, cv, n_fit = _fit_axis_points(U, V, orig, idx, k, c0u, c0v, inst)
     # dropped: the candidates (within the search radius of the kinematic tip) and the points near the fitted axis
+    margin = 1.0 / sb
+    r_lo, r_hi, c_lo, c_hi = _bin_box(c0u, c0v, search / gstep + margin, h, gstep, sb, pad, nc)
     a_lo, a_hi, b_lo, b_hi = _bin_box(cu, cv, (r + clear + 2.0 * sdp) / gstep + margin, h, gstep, sb, pad, nc)
     r_lo, r_hi, c_lo, c_hi = min(r_lo, a_lo), max(r_hi, a_hi), min(c_lo, b_lo), max(c_hi, b_hi)
     n_drop = 0

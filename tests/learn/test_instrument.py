@@ -256,13 +256,16 @@ def test_a_model_trained_with_the_instrument_in_view_predicts_from_such_clouds(s
         assert w == info["warnings"]
 
 
-def test_the_compiled_fit_is_the_reference_fit():
-    """The numba kernel's fit (serve.compiled_cloud: _fit_axis_points on the candidates, _instrument_point for
-    the points dropped) against fit_instrument: the same axis to rounding, the same points fitted and dropped,
-    in any point order."""
-    from liverforce.learn.cloud_features import instrument_search_radius
-    from liverforce.serve.compiled_cloud import _fit_axis_points, _instrument_point
+def test_the_compiled_fit_is_the_reference_fit(monkeypatch):
+    """The numba kernel's pieces of the fit (serve.compiled_cloud: _fit_axis_points on the candidates, _point_sd,
+    _instrument_point for the points dropped) against fit_instrument's: the same axis to rounding, the same
+    noise estimate, the same points fitted and dropped, in any point order. The refit with the cloud's own noise
+    is switched off here (it is the same pieces again with another sd; the gridding test below covers it)."""
+    from liverforce.learn import cloud_features
+    from liverforce.learn.cloud_features import instrument_point_sd, instrument_search_radius
+    from liverforce.serve.compiled_cloud import _fit_axis_points, _instrument_point, _point_sd
 
+    monkeypatch.setattr(cloud_features, "NOISE_REFIT_RATIO", np.inf)
     rng = np.random.default_rng(3)
     sp = spec(instrument_point_sd_mm=0.4, instrument_tip_sd_mm=0.6)
     inst = np.array([sp.instrument_radius_mm, instrument_search_radius(sp), sp.instrument_rise_mm,
@@ -278,15 +281,65 @@ def test_the_compiled_fit_is_the_reference_fit():
         Z = np.concatenate([dz, rng.normal(-0.5, 0.6, len(surf)), [5.0]])
         c, keep, n = fit_instrument(P, Z, [0.0, 0.0], sp)
         order = rng.permutation(len(P))  # the kernel's points in another order (sorted by bin)
-        cand = order[(Z[order] > inst[2]) & (np.hypot(*P[order].T) < inst[1])]
-        cu, cv, nf = _fit_axis_points(P[:, 0].copy(), P[:, 1].copy(), np.arange(len(P), dtype=np.int32),
-                                      cand.astype(np.int32), len(cand), 0.0, 0.0, inst)
+        cand = order[(Z[order] > inst[2]) & (np.hypot(*P[order].T) < inst[1])].astype(np.int32)
+        U, V, orig = P[:, 0].copy(), P[:, 1].copy(), np.arange(len(P), dtype=np.int32)
+        if len(cand):
+            assert _point_sd(U, V, orig, cand, len(cand), c[0], c[1], R_TOOL) == pytest.approx(
+                instrument_point_sd(P[cand], c, R_TOOL), rel=1e-12)
+        cu, cv, nf = _fit_axis_points(U, V, orig, cand, len(cand), 0.0, 0.0, inst)
         np.testing.assert_allclose([cu, cv], c, atol=1e-12)
         assert nf == n
         drop = np.array([_instrument_point(P[i, 0], P[i, 1], Z[i], cu, cv, 0.0, 0.0, inst) for i in range(len(P))])
         np.testing.assert_array_equal(drop, ~keep)
         fitted += n > 0
     assert 10 < fitted < 60  # both outcomes were exercised
+
+
+def test_a_cloud_noisier_than_the_models_is_fitted_with_its_own_noise(monkeypatch):
+    """A camera with 1.5 mm of point noise where the model was trained at 0.5 mm: the candidates' scatter about
+    the fitted cylinder estimates the noise (within 25 %), and the fit done again with it leaves fewer of the
+    shaft's points on the grid and finds the axis at least as well as the fit with the model's sd."""
+    from liverforce.learn import cloud_features
+    from liverforce.learn.cloud_features import instrument_point_sd
+
+    def run(refit: bool):
+        monkeypatch.setattr(cloud_features, "NOISE_REFIT_RATIO", 1.25 if refit else np.inf)
+        rng = np.random.default_rng(11)
+        err, left, sds = [], 0, []
+        for trial in range(30):
+            true = rng.normal(0.0, 0.5, 2)
+            uv, dz = _shaft(true, 80, rng, sd=1.5, facing=rng.uniform(0, 2 * np.pi))
+            surf = rng.uniform(-15, 15, (1500, 2))
+            surf = surf[np.hypot(*(surf - true).T) > R_TOOL + 1.0]
+            P = np.concatenate([uv, surf])
+            Z = np.concatenate([dz, rng.normal(-0.3, 1.5, len(surf))])
+            c, keep, n = fit_instrument(P, Z, [0.0, 0.0], spec())
+            assert n >= 8
+            err.append(np.hypot(*(c - true)))
+            left += int(keep[: len(uv)].sum())  # the shaft's points left on the grid
+            sds.append(instrument_point_sd(uv, true, R_TOOL))
+        return np.sqrt(np.mean(np.square(err))), left, np.median(sds)
+
+    rms_own, left_own, sd_est = run(True)
+    rms_model, left_model, _ = run(False)
+    assert 1.5 / 1.25 < sd_est < 1.5 * 1.25
+    assert left_own < 0.5 * left_model
+    assert rms_own <= 1.05 * rms_model
+
+
+def test_a_cloud_as_noisy_as_the_models_is_rarely_fitted_again(monkeypatch):
+    """At the model's own noise the estimate stays below the refit's threshold but for a few sparse shafts (the
+    median's spread): at most 3 of 40 shafts of 30-90 points are fitted a second time."""
+    from liverforce.learn import cloud_features
+
+    calls = []
+    real = cloud_features._fit_candidates
+    monkeypatch.setattr(cloud_features, "_fit_candidates", lambda *a: calls.append(1) or real(*a))
+    rng = np.random.default_rng(5)
+    for trial in range(40):
+        uv, dz = _shaft(np.zeros(2), int(rng.integers(30, 90)), rng, sd=0.5, facing=rng.uniform(0, 2 * np.pi))
+        fit_instrument(uv, dz, [0.0, 0.0], spec())
+    assert 40 <= len(calls) <= 43
 
 
 def test_only_models_trained_without_the_instrument_check_for_it():
@@ -311,12 +364,20 @@ def test_only_models_trained_without_the_instrument_check_for_it():
     assert radius({"tool_radius_mm": 0.0}, {}) == 0.0
 
 
-@pytest.mark.parametrize("centre", [(0.0, 0.0), (-15.0, 6.0)])  # the tool mid-grid, and 15 mm off, near its edge
-def test_the_compiled_kernel_grids_a_cloud_with_the_instrument_as_the_reference(centre):
+@pytest.mark.parametrize("centre,noise", [((0.0, 0.0), 0.5), ((-15.0, 6.0), 0.5), ((0.0, 0.0), 1.5)])
+def test_the_compiled_kernel_grids_a_cloud_with_the_instrument_as_the_reference(centre, noise, monkeypatch):
     """The numba gridding pass with the instrument (its bin scan, the points moved off the grid) against
-    cloud_grid, on clouds of the dent with the tool in view, a kinematic tip up to 1.5 mm off, points shuffled."""
-    from liverforce.learn.cloud_features import instrument_search_radius
+    cloud_grid, on clouds of the dent with the tool in view, a kinematic tip up to 1.5 mm off, points shuffled:
+    the tool mid-grid and 15 mm off (near the grid's edge) at the model's noise, and mid-grid at three times it
+    (the fit done again with the cloud's own noise, in both)."""
+    from liverforce.learn import cloud_features
+    from liverforce.learn.cloud_features import NOISE_REFIT_RATIO, instrument_search_radius
     from liverforce.serve.compiled_cloud import _FILL_CODES, _grid_clouds
+
+    estimates = []
+    real_sd = cloud_features.instrument_point_sd
+    monkeypatch.setattr(cloud_features, "instrument_point_sd", lambda *a: estimates.append(real_sd(*a)) or
+                        estimates[-1])
 
     V, U0, T = dent_surface()
     sp = spec()
@@ -328,7 +389,7 @@ def test_the_compiled_kernel_grids_a_cloud_with_the_instrument_as_the_reference(
     rng = np.random.default_rng(7)
     true_tip = np.array([0.0, 0.0, -3.0])
     for seed in range(6):
-        cloud, rec = observe(V, T, true_tip, [0, 0, 1], obs(noise_sd_mm=0.5, n_points=(400 + 1500 * seed,) * 2),
+        cloud, rec = observe(V, T, true_tip, [0, 0, 1], obs(noise_sd_mm=noise, n_points=(400 + 1500 * seed,) * 2),
                              seed=seed)
         cloud = np.ascontiguousarray(cloud[rng.permutation(len(cloud))])
         kin = true_tip + rng.uniform(-1.5, 1.5, 3)
@@ -345,3 +406,5 @@ def test_the_compiled_kernel_grids_a_cloud_with_the_instrument_as_the_reference(
         assert n_tool[0, 1] == want.n_instrument
         np.testing.assert_allclose(X[0, :-3], want.features(include_mask=True), atol=1e-9)
         np.testing.assert_allclose(X[0, -3:], want.tip_local, atol=1e-9)
+    refit = np.array(estimates) > NOISE_REFIT_RATIO * sp.instrument_point_sd_mm
+    assert refit.all() if noise > 1.0 else not refit.any()  # the refit, and only at the higher noise
