@@ -181,12 +181,14 @@ def observe_cases(arrays: dict, camera: dict, half_width_mm: float, grid_size: i
 
 def features_from_clouds(clouds, tips, arrays: dict, spec: CloudGridSpec,
                          rows: np.ndarray | None = None, R: np.ndarray | None = None,
-                         fitted: list | None = None) -> np.ndarray:
+                         fitted: list | None = None, point_sd: list | None = None) -> np.ndarray:
     """Feature rows ``(len(rows), 2 g^2 + 3)`` from clouds and tip positions (source frame) of cases ``rows``.
 
     ``R``: the local rotations of all cases of ``arrays`` (:func:`liverforce.learn.frames.case_rotations`),
     when already computed. ``fitted``: a list that gets, per row, the instrument points its axis was fitted to
-    (0: the kinematic tip; with ``spec.instrument_radius_mm > 0``).
+    (0: the kinematic tip; with ``spec.instrument_radius_mm > 0``); ``point_sd``: one that gets the cloud's
+    point noise estimated from them (mm, NaN when nothing was fitted;
+    :func:`liverforce.learn.cloud_features.instrument_point_sd`).
     """
     n = len(arrays["exertion_point_mm"])
     rows = np.arange(n) if rows is None else np.asarray(rows)
@@ -214,6 +216,8 @@ def features_from_clouds(clouds, tips, arrays: dict, spec: CloudGridSpec,
             out[k, -3:] = grid.tip_local
             if fitted is not None:
                 fitted.append(grid.n_instrument)
+            if point_sd is not None:
+                point_sd.append(grid.instrument_sd_mm)
         else:
             out[k, :-3] = cloud_grid(cloud, ref, spec).features(include_mask=True)
             out[k, -3:] = R[i] @ (tips[k] - P[i])

@@ -433,6 +433,8 @@ class CloudGrid:
         instrument axis when ``spec.instrument_radius_mm > 0`` and enough instrument points were seen; None
         when no tip was given
     n_instrument : the instrument points the axis was fitted to (0: the kinematic tip kept)
+    instrument_sd_mm : the cloud's point noise estimated from the instrument's points (sd, mm;
+        :func:`instrument_point_sd`), NaN when no axis was fitted
     """
 
     height: np.ndarray
@@ -443,6 +445,7 @@ class CloudGrid:
     n_points: int
     tip_local: np.ndarray | None = None
     n_instrument: int = 0
+    instrument_sd_mm: float = math.nan
 
     def features(self, include_mask: bool = False) -> np.ndarray:
         """Flat feature vector: ``height`` (``g^2``), then the validity mask as 0/1 if ``include_mask``."""
@@ -498,8 +501,9 @@ def _fit_axis(Q: np.ndarray, c: np.ndarray, c0: np.ndarray, r: float, wp: float,
     return c
 
 
-def fit_instrument(uv: np.ndarray, dz: np.ndarray, tip_uv, spec: CloudGridSpec) -> tuple[np.ndarray, np.ndarray, int]:
-    """The instrument's axis from a cloud in the local frame; returns ``(axis_uv, keep, n_fitted)``.
+def fit_instrument(uv: np.ndarray, dz: np.ndarray, tip_uv,
+                   spec: CloudGridSpec) -> tuple[np.ndarray, np.ndarray, int, float]:
+    """The instrument's axis from a cloud in the local frame; returns ``(axis_uv, keep, n_fitted, point_sd)``.
 
     The tool's shaft runs along the normal (the local ``w`` axis), as in the observation model. Its points are
     those within :func:`instrument_search_radius` of the kinematic tip's axis ``tip_uv`` that stand
@@ -517,6 +521,7 @@ def fit_instrument(uv: np.ndarray, dz: np.ndarray, tip_uv, spec: CloudGridSpec) 
     their median absolute value), and when that exceeds :data:`NOISE_REFIT_RATIO` times the model's sd, the
     search, the fit, its trim and the drop are done again with it (a camera noisier than the training clouds'
     would otherwise leave the shaft's outer points on the grid, standing up to ``max_abs_height_mm`` over it).
+    ``point_sd``: the estimate of the last pass (NaN when nothing was fitted).
     """
     uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
     dz = np.asarray(dz, dtype=np.float64).reshape(-1)
@@ -526,17 +531,19 @@ def fit_instrument(uv: np.ndarray, dz: np.ndarray, tip_uv, spec: CloudGridSpec) 
     sdp = spec.instrument_point_sd_mm
     cand = (d0 < instrument_search_radius(spec)) & (dz > spec.instrument_rise_mm)
     c, n_fit = _fit_candidates(uv[cand], c0, spec, sdp)
+    sd = math.nan
     if n_fit:
         sd = instrument_point_sd(uv[cand], c, r)
         if sd > NOISE_REFIT_RATIO * max(sdp, _MIN_POINT_SD):
             sdp = sd
             cand = (d0 < instrument_search_radius(spec, sdp)) & (dz > spec.instrument_rise_mm)
             c, n_fit = _fit_candidates(uv[cand], c0, spec, sdp)
+            sd = instrument_point_sd(uv[cand], c, r)  # from the wider search: less cut off
     d = np.hypot(uv[:, 0] - c[0], uv[:, 1] - c[1])
     near = d < r + spec.instrument_clearance_mm
     # the shaft's lowest points, at the surface's height, whose noise put them beyond the clearance
     near |= (d < r + spec.instrument_clearance_mm + 2.0 * sdp) & (dz > 0)
-    return c, ~(near | cand), n_fit
+    return c, ~(near | cand), n_fit, sd
 
 
 def instrument_point_sd(Q: np.ndarray, c, r: float) -> float:
@@ -588,13 +595,13 @@ def cloud_grid(cloud_mm, reference: ReferenceSurface, spec: CloudGridSpec, tip_m
     dz = L[:, 2] - reference.height(u, v)
     ok = np.abs(dz) <= spec.max_abs_height_mm
     u, v, dz = u[ok], v[ok], dz[ok]
-    tip_local, n_inst = None, 0
+    tip_local, n_inst, inst_sd = None, 0, math.nan
     if tip_mm is not None:
         tip_local = reference.to_local(np.asarray(tip_mm, dtype=np.float64).reshape(1, 3))[0]
     if spec.instrument_radius_mm > 0:
         if tip_local is None:
             raise ValueError("this cloud model finds the instrument's points around the tool tip: give the tip")
-        axis, keep, n_inst = fit_instrument(np.column_stack([u, v]), dz, tip_local[:2], spec)
+        axis, keep, n_inst, inst_sd = fit_instrument(np.column_stack([u, v]), dz, tip_local[:2], spec)
         tip_local = np.array([axis[0], axis[1], tip_local[2]])
         u, v, dz = u[keep], v[keep], dz[keep]
     W = np.zeros(g * g)
@@ -644,7 +651,7 @@ def cloud_grid(cloud_mm, reference: ReferenceSurface, spec: CloudGridSpec, tip_m
     height = _fill(height.reshape(g, g), valid.reshape(g, g), spec.fill)
     return CloudGrid(height=height, valid=valid.reshape(g, g), count=N.reshape(g, g).astype(np.int64),
                      weight=W.reshape(g, g), reference=reference.grid_height.copy(), n_points=int(len(u)),
-                     tip_local=tip_local, n_instrument=n_inst)
+                     tip_local=tip_local, n_instrument=n_inst, instrument_sd_mm=inst_sd)
 
 
 def _fill(H: np.ndarray, valid: np.ndarray, rule: str) -> np.ndarray:

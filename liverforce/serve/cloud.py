@@ -248,6 +248,28 @@ MASKED_INSTRUMENT = ("too few points of the tool's shaft to fit its axis (the in
                      "instrument's axis")
 
 
+#: a cloud whose instrument points scatter this many times the training clouds' point noise about the fitted
+#: shaft is warned about (:func:`noisy_cloud`). On clouds of the synthetic livers (tests/learn/test_instrument.py's
+#: observation, 2,500 points, 100 clouds per level) the estimate was at most 1.33x the noise at the training
+#: noise (1.53x the most seen in other draws); 5 / 76-84 / 97-100 % of the clouds at 1.5 / 2 / 3x it pass 1.75x
+NOISY_CLOUD_RATIO = 1.75
+
+
+def noisy_cloud(point_sd_mm: float, spec) -> str | None:
+    """The warning for a cloud noisier than the model's training clouds, or None: its point noise estimated from
+    the instrument's points (:func:`liverforce.learn.cloud_features.instrument_point_sd`; NaN when nothing was
+    fitted: None) above :data:`NOISY_CLOUD_RATIO` times the training clouds' (``spec.instrument_point_sd_mm``).
+    The fit has used the cloud's own noise (:func:`~liverforce.learn.cloud_features.fit_instrument`); the
+    regressor has not seen such clouds."""
+    trained = max(float(spec.instrument_point_sd_mm), 0.05)
+    sd = float(point_sd_mm)
+    if not sd > NOISY_CLOUD_RATIO * trained:
+        return None
+    return (f"the cloud's points scatter {sd:.2g} mm (sd) about the tool's shaft, {sd / trained:.1f} times the "
+            f"{trained:g} mm noise of the model's training clouds: a noisier camera than the model was trained for; "
+            "its error grows with the point noise (the report's camera sensitivity)")
+
+
 def instrument_check_radius(rep, spec) -> float:
     """The tool radius the serving check for the instrument's points uses, 0 for none: models trained on
     clouds without the instrument (those trained with it see it as in training), whose height reference is the

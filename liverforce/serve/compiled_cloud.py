@@ -89,8 +89,9 @@ from liverforce.learn.cloud_features import (_FIT_ITERATIONS, _MAD_SD, _MIN_POIN
 from liverforce.learn.encoders import PCAEncoder
 from liverforce.learn.state import THICKNESS_COLUMN, compliance_matrices, state_vector
 from liverforce.serve.checks import Limits, TrainingScale, outside_training
-from liverforce.serve.cloud import (MASKED_INSTRUMENT, SHAFT_MARGIN_MM, SHAFT_POINTS, SHAFT_RING_MM, SHAFT_RISE_MM,
-                                    camera_checks, instrument_check_radius, instrument_refusal, tool_tip_of)
+from liverforce.serve.cloud import (MASKED_INSTRUMENT, NOISY_CLOUD_RATIO, SHAFT_MARGIN_MM, SHAFT_POINTS, SHAFT_RING_MM,
+                                    SHAFT_RISE_MM, camera_checks, instrument_check_radius, instrument_refusal,
+                                    noisy_cloud, tool_tip_of)
 from liverforce.serve.compiled import numpy_layers, regressor_head
 from liverforce.serve.errors import PredictionInputError
 from liverforce.serve.input_frame import InputFrame
@@ -370,10 +371,12 @@ def _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u,
     fitted again with its own. Only the bins that can hold its points are read (the search radius round the
     kinematic tip ``(c0u, c0v)``, the clearance round the fitted axis); the instrument's points are moved far off
     the grid (``GUs, GVs``), so they add exact zeros to every cell's moments. Returns the axis ``(cu, cv)``, the
-    points fitted and the points dropped."""
+    points fitted, the points dropped and the cloud's point noise estimated from the fitted shaft (NaN when
+    nothing was fitted)."""
     r, search, rise, clear, sdp = inst[0], inst[1], inst[2], inst[3], inst[4]
     k = _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, search, rise, idx)
     cu, cv, n_fit = _fit_axis_points(U, V, orig, idx, k, c0u, c0v, inst)
+    sd = np.nan
     if n_fit > 0:
         sd = _point_sd(U, V, orig, idx, k, cu, cv, r)
         if sd > NOISE_REFIT_RATIO * max(sdp, _MIN_POINT_SD):  # the cloud's own noise: search and fit again
@@ -384,6 +387,7 @@ def _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u,
             sdp = sd
             k = _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, search, rise, idx)
             cu, cv, n_fit = _fit_axis_points(U, V, orig, idx, k, c0u, c0v, inst)
+            sd = _point_sd(U, V, orig, idx, k, cu, cv, r)  # from the wider search: less cut off
     # dropped: the candidates (within the search radius of the kinematic tip) and the points near the fitted axis
     margin = 1.0 / sb
     r_lo, r_hi, c_lo, c_hi = _bin_box(c0u, c0v, search / gstep + margin, h, gstep, sb, pad, nc)
@@ -399,7 +403,7 @@ def _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u,
                     GUs[s] = _FAR
                     GVs[s] = _FAR
                     n_drop += 1
-    return cu, cv, n_fit, n_drop
+    return cu, cv, n_fit, n_drop, sd
 
 
 _FAR = 1e9  # grid-index coordinate of a dropped point: beyond every kernel support (weight and count exact zeros)
@@ -417,8 +421,9 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
     not finite (every point with a NaN or inf coordinate; :meth:`CompiledCloud._refusal` counts exactly) and the
     points on the tool's shaft (``shaft``: squared inner and outer radius of the ring, rise, fewest points;
     :func:`liverforce.serve.cloud.shaft_points`; an inner radius 0: not counted) and the instrument points its
-    axis was fitted to: with ``inst[0] > 0`` the instrument's axis is fitted to its points, which are dropped,
-    and gives the tip's tangential part (:func:`_fit_instrument`).
+    axis was fitted to, and the point noise estimated from them (NaN when none were fitted): with ``inst[0] > 0``
+    the instrument's axis is fitted to its points, which are dropped, and gives the tip's tangential part
+    (:func:`_fit_instrument`).
     """
     U, V, Wl, GU, GV, Z, key, A, C, Q, HB, GUs, GVs, Zs, orig, first, fill_at, bits, cand = ws[:19]
     M, Hc, valid, idx, unk, Lb, rhs, y = ws[19:]
@@ -554,8 +559,9 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
                 n_dup += 1
                 break
     nf = 0
+    sd = np.nan
     if inst[0] > 0.0:  # the instrument's points: fitted (the tip's tangential part), then moved off the grid
-        tu, tv, nf, _ = _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, tu, tv, inst, cand)
+        tu, tv, nf, _, sd = _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, tu, tv, inst, cand)
     if n_dup:
         w = 0
         for kk in range(nc * nc):
@@ -610,7 +616,7 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
     x[2 * gg] = tu
     x[2 * gg + 1] = tv
     x[2 * gg + 2] = R[2, 0] * tp0 + R[2, 1] * tp1 + R[2, 2] * tp2
-    return nu, nb, ns, nf
+    return nu, nb, ns, nf, sd
 
 
 @njit(cache=True)
@@ -624,7 +630,7 @@ def _grid_clouds(P, starts, counts, tips, origin, R, raster, lo, rstep, g, h, gs
         nmax = max(nmax, counts[b])
     ws = _workspace(nmax, g, kr)
     for b in range(starts.shape[0]):
-        n_used[b], n_bad[b], n_tool[b, 0], n_tool[b, 1] = _grid_one(
+        n_used[b], n_bad[b], n_tool[b, 0], n_tool[b, 1], n_tool[b, 2] = _grid_one(
             P, starts[b], counts[b], tips[b], origin, R, raster, lo, rstep, g, h, gstep, kr, max_abs, min_points,
             max_leverage, linear, fill, reach_count, shaft, inst, ws, X[b])
 
@@ -639,7 +645,7 @@ def _grid_list(clouds, tips, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
     ws = _workspace(nmax, g, kr)
     for b in range(len(clouds)):
         P = clouds[b]
-        n_used[b], n_bad[b], n_tool[b, 0], n_tool[b, 1] = _grid_one(
+        n_used[b], n_bad[b], n_tool[b, 0], n_tool[b, 1], n_tool[b, 2] = _grid_one(
             P, 0, P.shape[0], tips[b], origin, R, raster, lo, rstep, g, h, gstep, kr, max_abs, min_points,
             max_leverage, linear, fill, reach_count, shaft, inst, ws, X[b])
 
@@ -894,7 +900,7 @@ class CompiledCloud:
         X = np.empty((B, 2 * self.g * self.g + 3))
         n_used = np.zeros(B, dtype=np.int64)
         n_bad = np.zeros(B, dtype=np.int64)
-        n_tool = np.zeros((B, 2), dtype=np.int64)  # points on the shaft, instrument points fitted
+        n_tool = np.zeros((B, 3))  # points on the shaft, instrument points fitted, the point noise from them (mm)
         if B:
             args = (tips, self._kp, self._kR, self._raster, self.ref.lo, self.ref.step, self.g, sp.half_width_mm,
                     sp.spacing_mm, sp.kernel_radius_cells, sp.max_abs_height_mm, sp.min_points, sp.max_leverage,
@@ -973,6 +979,10 @@ class CompiledCloud:
             for r in np.flatnonzero(n_tool[:, 1] == 0):
                 if refused[r] is None:
                     warnings[r] = [MASKED_INSTRUMENT] + warnings[r]
+            for r in np.flatnonzero(n_tool[:, 2] > NOISY_CLOUD_RATIO * max(self.spec.instrument_point_sd_mm, 0.05)):
+                if refused[r] is None:  # noisier than the training clouds (noisy_cloud decides, as predict_cloud)
+                    noisy = noisy_cloud(n_tool[r, 2], self.spec)
+                    warnings[r] = [noisy] + warnings[r] if noisy else warnings[r]
         if self.context_warnings:
             warnings = [w if why is not None else self.context_warnings + w for w, why in zip(warnings, refused)]
         return refused, warnings
@@ -1133,7 +1143,7 @@ class CompiledCloud:
             X = np.empty((B, 2 * self.g * self.g + 3))
             n_used = np.zeros(B, dtype=np.int64)
             n_bad = np.zeros(B, dtype=np.int64)
-            n_tool = np.zeros((B, 2), dtype=np.int64)
+            n_tool = np.zeros((B, 3))  # as _grid's
             direct = clouds.dtype in (np.float32, np.float64) and clouds.flags.c_contiguous
             step = max(B, 1) if direct else _CHUNK  # a conversion is done a chunk at a time (bounds the copy)
             for a in range(0, B, step):

@@ -37,7 +37,7 @@ import numpy as np
 from liverforce.learn import camera
 from liverforce.learn.model import ForceModel, ModelFormatError
 from liverforce.serve.checks import Limits, TrainingScale, check_case, outside_training
-from liverforce.serve.cloud import (MASKED_INSTRUMENT, camera_checks, check_instrument, cloud_support,
+from liverforce.serve.cloud import (MASKED_INSTRUMENT, camera_checks, check_instrument, cloud_support, noisy_cloud,
                                    cloud_to_arrays)
 from liverforce.serve.compiled import CompiledROI
 from liverforce.serve.errors import PredictionInputError
@@ -238,11 +238,13 @@ class Predictor:
             check_case(arrays, 0, self.model, self.scale, self.limits, label="", rotation=preop.rotation)
         rep = self.model.representation
         if rep.is_camera:
-            spec, fitted = camera.grid_spec(rep.grid_size, rep.half_width_mm, rep.camera), []
+            spec, fitted, point_sd = camera.grid_spec(rep.grid_size, rep.half_width_mm, rep.camera), [], []
             x = camera.features_from_clouds(arrays[camera.CLOUD_KEY], arrays[camera.TIP_KEY], arrays, spec, R=R,
-                                            fitted=fitted)
+                                            fitted=fitted, point_sd=point_sd)
             masked = [MASKED_INSTRUMENT] if fitted == [0] else []  # the instrument fit kept the kinematic tip
-            info["warnings"] = self.context_warnings(preop) + masked + camera_checks(self.model, x[0], self.limits)
+            noisy = [w for w in [noisy_cloud(point_sd[0], spec)] if w] if point_sd else []
+            info["warnings"] = (self.context_warnings(preop) + masked + noisy
+                                + camera_checks(self.model, x[0], self.limits))
             arrays["camera_features"] = x  # computed once: the model reads them instead of the cloud
         else:
             info["warnings"] = self.context_warnings(preop)

@@ -93,15 +93,16 @@ def _shaft(centre, n, rng, sd=0.3, facing=0.0):
 def test_the_fit_finds_the_tools_axis_from_its_points_and_drops_them():
     rng = np.random.default_rng(0)
     true = np.array([0.7, -0.4])
-    errs = []
+    errs, sds = [], []
     for trial in range(20):
         uv, dz = _shaft(true, 60, rng, facing=rng.uniform(0, 2 * np.pi))
         surf = rng.uniform(-15, 15, (400, 2))
         surf = surf[np.hypot(*(surf - true).T) > R_TOOL]
         P = np.concatenate([uv, surf])
         Z = np.concatenate([dz, rng.normal(-0.5, 0.3, len(surf))])
-        c, keep, n = fit_instrument(P, Z, [0.0, 0.0], spec(instrument_point_sd_mm=0.3))
+        c, keep, n, sd = fit_instrument(P, Z, [0.0, 0.0], spec(instrument_point_sd_mm=0.3))
         errs.append(c - true)
+        sds.append(sd)
         assert n >= 55  # the shaft's points (a few may be trimmed)
         assert not keep[: len(uv)].any()  # every shaft point dropped
         d = np.hypot(*(surf - c).T)
@@ -109,16 +110,17 @@ def test_the_fit_finds_the_tools_axis_from_its_points_and_drops_them():
         np.testing.assert_array_equal(keep[len(uv):], far)  # the surface's kept beyond the clearance
     rms = np.sqrt(np.mean(np.square(errs), axis=0))
     assert (rms < 0.12).all(), rms  # the kinematic prior alone is 0.81 mm off here
+    assert 0.3 / 1.25 < np.median(sds) < 0.3 * 1.25  # the cloud's noise from the shaft's points
     # an exact tracker: the prior wins; too few points: the kinematic tip
     uv, dz = _shaft(true, 60, rng)
-    c, _, _ = fit_instrument(uv, dz, [0.0, 0.0], spec(instrument_tip_sd_mm=0.0))
+    c, _, _, _ = fit_instrument(uv, dz, [0.0, 0.0], spec(instrument_tip_sd_mm=0.0))
     np.testing.assert_allclose(c, 0.0, atol=1e-3)
-    c, keep, n = fit_instrument(uv[:5], dz[:5], [0.0, 0.0], spec())
-    assert n == 0 and (c == 0.0).all()
+    c, keep, n, sd = fit_instrument(uv[:5], dz[:5], [0.0, 0.0], spec())
+    assert n == 0 and (c == 0.0).all() and np.isnan(sd)
     # points low on the surface are not the instrument's, however near the axis: dropped within the clearance
     # (2.5 + 1 mm), and within another 2 sd of the noise (1 mm) where they stand above the pre-operative surface
     P = np.array([[3.2, 0.0], [4.0, 0.0], [4.0, 0.0], [4.6, 0.0]])
-    c, keep, n = fit_instrument(P, np.array([-0.5, -0.5, 0.5, 0.5]), [0.0, 0.0], spec())
+    c, keep, n, _ = fit_instrument(P, np.array([-0.5, -0.5, 0.5, 0.5]), [0.0, 0.0], spec())
     assert n == 0 and keep.tolist() == [False, True, False, True]
 
 
@@ -189,16 +191,18 @@ def served(tmp_path_factory):
     return res, ForceModel.load(res["model_path"]), subset(arrays, test)
 
 
-def _instrument_case(arrays: dict, i: int, seed: int, tip_sd: float = 0.5, shuffle: bool = True):
-    """Pre-operative context, a new cloud with the instrument in it (another camera, points shuffled), the true
-    and the kinematic tool tip of case ``i`` (``shuffle`` false: the instrument's points last)."""
+def _instrument_case(arrays: dict, i: int, seed: int, tip_sd: float = 0.5, shuffle: bool = True,
+                     noise: float = 0.3):
+    """Pre-operative context, a new cloud with the instrument in it (another camera, points shuffled, ``noise``
+    mm of point noise: the training clouds'), the true and the kinematic tool tip of case ``i`` (``shuffle``
+    false: the instrument's points last)."""
     from liverforce.serve import Preop
 
     V, T = arrays["surface_meshes"][arrays["geometry_id"][i]]
     u = np.asarray(arrays["surface_displacement_mm"][i], dtype=np.float64)
     p = arrays["exertion_point_mm"][i]
     tip = p + u[int(np.argmin(np.linalg.norm(V - p, axis=1)))]
-    cfg = obs(n_points=(2500, 2500), noise_sd_mm=0.3, roi_radius_mm=40.0)
+    cfg = obs(n_points=(2500, 2500), noise_sd_mm=noise, roi_radius_mm=40.0)
     cloud, rec = observe(V + u, T, tip, arrays["frame_normal"][i], cfg, seed=[seed, i])
     rng = np.random.default_rng([seed, i])
     ctx = Preop.from_arrays({k: v for k, v in arrays.items() if k != "roi_deformed_mm"}, i)
@@ -210,7 +214,8 @@ def _instrument_case(arrays: dict, i: int, seed: int, tip_sd: float = 0.5, shuff
 def test_a_model_trained_with_the_instrument_in_view_predicts_from_such_clouds(served):
     """New clouds with the instrument, of livers the model never saw: the force within the model's own test
     error, the tip along the surface from the instrument's axis (nearer the truth than the kinematic tip), a
-    warning when the instrument was masked out, and the compiled path equal to the reference."""
+    warning when the instrument was masked out, one when the camera is three times noisier than the training
+    clouds, and the compiled path equal to the reference."""
     from liverforce.serve import Predictor
 
     res, model, a = served
@@ -237,9 +242,15 @@ def test_a_model_trained_with_the_instrument_in_view_predicts_from_such_clouds(s
     masked = cloud[: len(cloud) - rec.n_instrument_points]
     _, info = pred.predict_cloud(masked, ctx, tool_tip_mm=kin, return_info=True)
     assert any("tool's shaft" in w and "kinematic" in w for w in info["warnings"])
+    # a camera three times noisier than the training clouds': fitted with its own noise, and said so
+    ctx, noisy, _, kin_noisy, _ = _instrument_case(a, 0, seed=52, noise=0.9)
+    _, info = pred.predict_cloud(noisy, ctx, tool_tip_mm=kin_noisy, return_info=True)
+    said = [w for w in info["warnings"] if "noisier camera" in w]
+    assert len(said) == 1 and "0.3 mm noise of the model's training clouds" in said[0], info["warnings"]
+    assert 0.9 / 1.3 < float(said[0].split("scatter ")[1].split(" mm")[0]) < 0.9 * 1.3  # the estimate
     # the compiled path fits the instrument too: the reference's features, forces, intervals and warnings
     fast = pred.compile_cloud(ctx)
-    clouds, tips = [cloud, masked], [kin, kin]
+    clouds, tips = [cloud, masked, noisy], [kin, kin, kin_noisy]
     for seed in range(3):
         _, c, _, k, _ = _instrument_case(a, 0, seed=60 + seed)
         clouds.append(c[: 300 + 2000 * seed])  # sparser clouds, fewer of the instrument's points
@@ -279,7 +290,7 @@ def test_the_compiled_fit_is_the_reference_fit(monkeypatch):
         surf = rng.uniform(-10, 10, (300, 2))
         P = np.concatenate([uv, surf, [[true[0] + 9.0, true[1]]]])  # and one point far out, well above
         Z = np.concatenate([dz, rng.normal(-0.5, 0.6, len(surf)), [5.0]])
-        c, keep, n = fit_instrument(P, Z, [0.0, 0.0], sp)
+        c, keep, n, _ = fit_instrument(P, Z, [0.0, 0.0], sp)
         order = rng.permutation(len(P))  # the kernel's points in another order (sorted by bin)
         cand = order[(Z[order] > inst[2]) & (np.hypot(*P[order].T) < inst[1])].astype(np.int32)
         U, V, orig = P[:, 0].copy(), P[:, 1].copy(), np.arange(len(P), dtype=np.int32)
@@ -300,7 +311,6 @@ def test_a_cloud_noisier_than_the_models_is_fitted_with_its_own_noise(monkeypatc
     the fitted cylinder estimates the noise (within 25 %), and the fit done again with it leaves fewer of the
     shaft's points on the grid and finds the axis at least as well as the fit with the model's sd."""
     from liverforce.learn import cloud_features
-    from liverforce.learn.cloud_features import instrument_point_sd
 
     def run(refit: bool):
         monkeypatch.setattr(cloud_features, "NOISE_REFIT_RATIO", 1.25 if refit else np.inf)
@@ -313,11 +323,11 @@ def test_a_cloud_noisier_than_the_models_is_fitted_with_its_own_noise(monkeypatc
             surf = surf[np.hypot(*(surf - true).T) > R_TOOL + 1.0]
             P = np.concatenate([uv, surf])
             Z = np.concatenate([dz, rng.normal(-0.3, 1.5, len(surf))])
-            c, keep, n = fit_instrument(P, Z, [0.0, 0.0], spec())
+            c, keep, n, sd = fit_instrument(P, Z, [0.0, 0.0], spec())
             assert n >= 8
             err.append(np.hypot(*(c - true)))
             left += int(keep[: len(uv)].sum())  # the shaft's points left on the grid
-            sds.append(instrument_point_sd(uv, true, R_TOOL))
+            sds.append(sd)  # the fit's estimate, from its candidates (the liver's points among them too)
         return np.sqrt(np.mean(np.square(err))), left, np.median(sds)
 
     rms_own, left_own, sd_est = run(True)
@@ -396,7 +406,7 @@ def test_the_compiled_kernel_grids_a_cloud_with_the_instrument_as_the_reference(
         want = cloud_grid(cloud, ref, sp, kin)
         g, gg = sp.grid_size, sp.grid_size**2
         X = np.empty((1, 2 * gg + 3))
-        n_used, n_bad, n_tool = np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros((1, 2), np.int64)
+        n_used, n_bad, n_tool = np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros((1, 3))
         _grid_clouds(cloud, np.zeros(1, np.int64), np.array([len(cloud)]), kin[None], ref.origin, ref.R,
                      np.ascontiguousarray(ref.raster), ref.lo, ref.step, g, sp.half_width_mm, sp.spacing_mm,
                      sp.kernel_radius_cells, sp.max_abs_height_mm, sp.min_points, sp.max_leverage, True,
@@ -404,7 +414,20 @@ def test_the_compiled_kernel_grids_a_cloud_with_the_instrument_as_the_reference(
                      n_bad, n_tool)
         assert rec.n_instrument_points > 0 and want.n_instrument > 0
         assert n_tool[0, 1] == want.n_instrument
+        assert n_tool[0, 2] == pytest.approx(want.instrument_sd_mm, rel=1e-9)  # the noise estimate
         np.testing.assert_allclose(X[0, :-3], want.features(include_mask=True), atol=1e-9)
         np.testing.assert_allclose(X[0, -3:], want.tip_local, atol=1e-9)
     refit = np.array(estimates) > NOISE_REFIT_RATIO * sp.instrument_point_sd_mm
     assert refit.all() if noise > 1.0 else not refit.any()  # the refit, and only at the higher noise
+
+
+def test_the_noisy_cloud_warning_names_the_estimate_and_the_training_noise():
+    """serve.cloud.noisy_cloud: nothing at or below 1.75 x the training clouds' noise or when nothing was fitted
+    (NaN); above it, a warning with both figures."""
+    from liverforce.serve.cloud import NOISY_CLOUD_RATIO, noisy_cloud
+
+    sp = spec(instrument_point_sd_mm=0.5)
+    assert noisy_cloud(np.nan, sp) is None
+    assert noisy_cloud(0.5, sp) is None and noisy_cloud(NOISY_CLOUD_RATIO * 0.5, sp) is None
+    said = noisy_cloud(1.1, sp)
+    assert "scatter 1.1 mm" in said and "2.2 times the 0.5 mm noise" in said
