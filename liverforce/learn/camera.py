@@ -187,8 +187,8 @@ def features_from_clouds(clouds, tips, arrays: dict, spec: CloudGridSpec,
     ``R``: the local rotations of all cases of ``arrays`` (:func:`liverforce.learn.frames.case_rotations`),
     when already computed. ``fitted``: a list that gets, per row, the instrument points its axis was fitted to
     (0: the kinematic tip; with ``spec.instrument_radius_mm > 0``); ``point_sd``: one that gets the cloud's
-    point noise estimated from them (mm, NaN when nothing was fitted;
-    :func:`liverforce.learn.cloud_features.instrument_point_sd`).
+    point noise estimated from the fit's candidates (mm, NaN when nothing was fitted;
+    :func:`liverforce.learn.cloud_features.fit_instrument`).
     """
     n = len(arrays["exertion_point_mm"])
     rows = np.arange(n) if rows is None else np.asarray(rows)

@@ -521,7 +521,10 @@ def fit_instrument(uv: np.ndarray, dz: np.ndarray, tip_uv,
     their median absolute value), and when that exceeds :data:`NOISE_REFIT_RATIO` times the model's sd, the
     search, the fit, its trim and the drop are done again with it (a camera noisier than the training clouds'
     would otherwise leave the shaft's outer points on the grid, standing up to ``max_abs_height_mm`` over it).
-    ``point_sd``: the estimate of the last pass (NaN when nothing was fitted).
+    ``point_sd``: the estimate of the last pass (NaN when nothing was fitted). It assumes what the fit does, a
+    shaft along the normal and isotropic noise: the points of a tilted shaft scatter more about a vertical
+    cylinder (a tilted tool reads as a noisier cloud), and noise along the line of sight (``noise_mode: ray``)
+    shows less in the radial residual.
     """
     uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
     dz = np.asarray(dz, dtype=np.float64).reshape(-1)

@@ -370,16 +370,18 @@ def _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u,
     :func:`liverforce.learn.cloud_features.fit_instrument`, a cloud clearly noisier than the model's point sd
     fitted again with its own. Only the bins that can hold its points are read (the search radius round the
     kinematic tip ``(c0u, c0v)``, the clearance round the fitted axis); the instrument's points are moved far off
-    the grid (``GUs, GVs``), so they add exact zeros to every cell's moments. Returns the axis ``(cu, cv)``, the
-    points fitted, the points dropped and the cloud's point noise estimated from the fitted shaft (NaN when
-    nothing was fitted)."""
+    the grid (``GUs, GVs``), so they add exact zeros to every cell's moments. ``inst``: radius, search radius,
+    rise, clearance, point sd, tip sd, fewest points, refit ratio (``NOISE_REFIT_RATIO``, passed in: a module
+    constant would be frozen into the cached kernel). Returns the axis ``(cu, cv)``, the points fitted, the points
+    dropped and the cloud's point noise estimated from every candidate of the last pass (NaN when nothing was
+    fitted)."""
     r, search, rise, clear, sdp = inst[0], inst[1], inst[2], inst[3], inst[4]
     k = _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, search, rise, idx)
     cu, cv, n_fit = _fit_axis_points(U, V, orig, idx, k, c0u, c0v, inst)
     sd = np.nan
     if n_fit > 0:
         sd = _point_sd(U, V, orig, idx, k, cu, cv, r)
-        if sd > NOISE_REFIT_RATIO * max(sdp, _MIN_POINT_SD):  # the cloud's own noise: search and fit again
+        if sd > inst[7] * max(sdp, _MIN_POINT_SD):  # the cloud's own noise: search and fit again
             inst = inst.copy()
             inst[4] = sd
             search = r + 3.0 * inst[5] + 2.0 * sd + 0.5  # cloud_features.instrument_search_radius
@@ -421,7 +423,7 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
     not finite (every point with a NaN or inf coordinate; :meth:`CompiledCloud._refusal` counts exactly) and the
     points on the tool's shaft (``shaft``: squared inner and outer radius of the ring, rise, fewest points;
     :func:`liverforce.serve.cloud.shaft_points`; an inner radius 0: not counted) and the instrument points its
-    axis was fitted to, and the point noise estimated from them (NaN when none were fitted): with ``inst[0] > 0``
+    axis was fitted to, and the point noise estimated from the candidates (NaN when none were fitted): with ``inst[0] > 0``
     the instrument's axis is fitted to its points, which are dropped, and gives the tip's tangential part
     (:func:`_fit_instrument`).
     """
@@ -871,7 +873,7 @@ class CompiledCloud:
         self.fits_instrument = sp.instrument_radius_mm > 0
         self._inst = np.array([sp.instrument_radius_mm, instrument_search_radius(sp), sp.instrument_rise_mm,
                                sp.instrument_clearance_mm, sp.instrument_point_sd_mm, sp.instrument_tip_sd_mm,
-                               sp.instrument_min_points], dtype=np.float64)
+                               sp.instrument_min_points, NOISE_REFIT_RATIO], dtype=np.float64)
         # the kernel reads clouds and tips as given: R (A s x + t - p) = (s R A) (x - A^-1 (p - t) / s), so an input
         # frame costs nothing per point (the checks and messages below convert the few points they read)
         if self.frame is None:
@@ -975,14 +977,15 @@ class CompiledCloud:
                         warnings[r] = camera_checks(self.model, X[r], lim)
                     except PredictionInputError as exc:
                         refused[r] = str(exc)
-        if self.fits_instrument:  # too little of the instrument to fit: the kinematic tip (as predict_cloud warns)
+        if self.fits_instrument:  # predict_cloud's order: too little of the instrument to fit (the kinematic tip),
+            # noisier than the training clouds (noisy_cloud decides), then the feature checks
+            for r in np.flatnonzero(n_tool[:, 2] > NOISY_CLOUD_RATIO * max(self.spec.instrument_point_sd_mm, 0.05)):
+                if refused[r] is None:
+                    noisy = noisy_cloud(n_tool[r, 2], self.spec)
+                    warnings[r] = [noisy] + warnings[r] if noisy else warnings[r]
             for r in np.flatnonzero(n_tool[:, 1] == 0):
                 if refused[r] is None:
                     warnings[r] = [MASKED_INSTRUMENT] + warnings[r]
-            for r in np.flatnonzero(n_tool[:, 2] > NOISY_CLOUD_RATIO * max(self.spec.instrument_point_sd_mm, 0.05)):
-                if refused[r] is None:  # noisier than the training clouds (noisy_cloud decides, as predict_cloud)
-                    noisy = noisy_cloud(n_tool[r, 2], self.spec)
-                    warnings[r] = [noisy] + warnings[r] if noisy else warnings[r]
         if self.context_warnings:
             warnings = [w if why is not None else self.context_warnings + w for w, why in zip(warnings, refused)]
         return refused, warnings

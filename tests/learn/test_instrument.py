@@ -281,7 +281,7 @@ def test_the_compiled_fit_is_the_reference_fit(monkeypatch):
     sp = spec(instrument_point_sd_mm=0.4, instrument_tip_sd_mm=0.6)
     inst = np.array([sp.instrument_radius_mm, instrument_search_radius(sp), sp.instrument_rise_mm,
                      sp.instrument_clearance_mm, sp.instrument_point_sd_mm, sp.instrument_tip_sd_mm,
-                     sp.instrument_min_points])
+                     sp.instrument_min_points, cloud_features.NOISE_REFIT_RATIO])
     fitted = 0
     for trial in range(60):
         true = rng.normal(0.0, 0.6, 2)
@@ -395,7 +395,7 @@ def test_the_compiled_kernel_grids_a_cloud_with_the_instrument_as_the_reference(
     ref = ReferenceSurface.for_case(U0, T, p, np.eye(3), sp)
     inst = np.array([sp.instrument_radius_mm, instrument_search_radius(sp), sp.instrument_rise_mm,
                      sp.instrument_clearance_mm, sp.instrument_point_sd_mm, sp.instrument_tip_sd_mm,
-                     sp.instrument_min_points])
+                     sp.instrument_min_points, cloud_features.NOISE_REFIT_RATIO])
     rng = np.random.default_rng(7)
     true_tip = np.array([0.0, 0.0, -3.0])
     for seed in range(6):
