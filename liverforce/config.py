@@ -691,7 +691,8 @@ def _check_ranges(cfg: dict) -> None:
     _check_choice("validate.input", cfg["validate"]["input"], ["camera", "any"], "validation input")
     for k in cfg["validate"]["camera_sensitivity"]:
         _check_choice("validate.camera_sensitivity", k, ["n_points", "noise_sd_mm", "cone_half_angle_deg",
-                                                        "tip_noise_mm", "instrument_in_cloud"], "camera setting")
+                                                        "tip_noise_mm", "instrument_in_cloud", "tool_tilt_deg"],
+                      "camera setting")
     obs = cfg["model"]["camera"]["observation"]
     if obs.get("cone_axis") is None and float(obs.get("tool_radius_mm") or 0) > 0:
         # the shaft runs along the normal, the cone's axis: a camera within the tool's radius plus the clearance of

@@ -58,6 +58,8 @@ def test_thesis_is_the_study_scale():
         ("model.gp.shape=inf", "model.gp.shape"),
         ("model.camera.tip_noise_normal_mm=-0.5", "model.camera.tip_noise_normal_mm"),
         ("model.camera.grid.instrument_radius_mm=-1", "model.camera.grid"),
+        ("model.camera.observation.tool_tilt_deg=90", "model.camera.observation"),
+        ("+validate.camera_sensitivity.tool_tilt=[10]", "validate.camera_sensitivity"),
         ("model.camera.grid.instrument_radius_mm=2.5", "model.camera.grid.instrument_radius_mm"),
         ("validate.seed=1", "validate.seed"),
         ("geometry.procedural.shape.lobe_ratio=9", "geometry.procedural.shape"),

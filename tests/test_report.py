@@ -498,7 +498,9 @@ def test_the_camera_table_shows_the_exact_tip_accuracy_per_scenario_and_on_the_u
             {"value": 0.0, "mae_vec": 0.211, "mae_sd": 0.05, "accuracy_pct": 90.5, "accuracy_sd": 2.0}],
             "instrument_in_cloud": [
             {"value": False, "mae_vec": 0.33, "mae_sd": 0.06, "accuracy_pct": 85.0, "accuracy_sd": 2.5},
-            {"value": True, "mae_vec": 0.41, "mae_sd": 0.07, "accuracy_pct": 81.0, "accuracy_sd": 3.0}]}
+            {"value": True, "mae_vec": 0.41, "mae_sd": 0.07, "accuracy_pct": 81.0, "accuracy_sd": 3.0}],
+            "tool_tilt_deg": [
+            {"value": 20.0, "mae_vec": 0.52, "mae_sd": 0.08, "accuracy_pct": 77.0, "accuracy_sd": 3.5}]}
     path.write_text(json.dumps(doc))
     html = _report(stage_outputs)
     cam = _section(html, "id='camera'", "</table>")
@@ -514,5 +516,6 @@ def test_the_camera_table_shows_the_exact_tip_accuracy_per_scenario_and_on_the_u
         sens = [[_text(c) for c in r] for r in _rows(_section(html, "class='camera-sens'", "</table>"), "sens")]
         assert ["instrument's points in the cloud", "yes", "0.410 ± 0.070", "81.0 ± 3.0"] in sens
         assert ["instrument's points in the cloud", "no", "0.330 ± 0.060", "85.0 ± 2.5"] in sens
+        assert ["tool axis tilted from the normal", "20°", "0.520 ± 0.080", "77.0 ± 3.5"] in sens
     else:  # no sensitivity of this camera model: nothing to show
         assert rows["unseen livers"][4] == rows["unseen livers"][7] == "–"

@@ -194,6 +194,12 @@ class ObservationConfig:
     instrument_in_cloud : bool
         Add the visible part of the tool's surface to the cloud at the liver
         points' density (default False: the instrument is masked out).
+    tool_tilt_deg : float
+        The tool's axis tilted this far from the outward normal, towards a
+        random azimuth drawn per observation (its own stream: every other draw
+        is unchanged), when no tool axis is given (default 0: along the
+        normal). A laparoscopic instrument comes in through its trocar, rarely
+        square to the surface.
     """
 
     camera_distance_mm: tuple[float, float] = (60.0, 120.0)
@@ -214,6 +220,7 @@ class ObservationConfig:
     zbuffer_pixels: int = 256
     depth_tolerance_mm: float = 0.25
     instrument_in_cloud: bool = False
+    tool_tilt_deg: float = 0.0
 
     def __post_init__(self) -> None:
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
@@ -225,7 +232,7 @@ class ObservationConfig:
                 raise ValueError(f"observation cone_axis must be a nonzero 3-vector or null (got {self.cone_axis!r})")
             set_("cone_axis", tuple(float(v) for v in ax))
         for k in ("cone_half_angle_deg", "half_fov_deg", "roi_radius_mm", "tool_radius_mm", "tool_shaft_length_mm",
-                  "camera_tool_clearance_mm", "noise_sd_mm", "min_view_cos", "depth_tolerance_mm"):
+                  "camera_tool_clearance_mm", "noise_sd_mm", "min_view_cos", "depth_tolerance_mm", "tool_tilt_deg"):
             set_(k, float(getattr(self, k)))
         for k in ("max_camera_draws", "max_candidates", "zbuffer_pixels"):
             set_(k, int(getattr(self, k)))
@@ -249,6 +256,7 @@ class ObservationConfig:
             "min_view_cos": -1.0 <= self.min_view_cos < 1.0,
             "zbuffer_pixels": 16 <= self.zbuffer_pixels <= 4096,
             "depth_tolerance_mm": self.depth_tolerance_mm >= 0,
+            "tool_tilt_deg": 0.0 <= self.tool_tilt_deg < 90.0,
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
@@ -809,10 +817,10 @@ def _half_window(config: ObservationConfig, d: float) -> float:
 
 
 def _streams(seed) -> tuple[np.random.Generator, ...]:
-    """Camera pose, sampling, noise and instrument streams (the first three as before the fourth existed:
+    """Camera pose, sampling, noise, instrument and tool-tilt streams (each as before the later ones existed:
     ``SeedSequence.spawn`` keys a child by its index)."""
     try:
-        return tuple(spawn_rngs(seed, 4))
+        return tuple(spawn_rngs(seed, 5))
     except ValueError:
         raise ValueError(f"observation seeds must be non-negative integers (got {seed!r})") from None
 
@@ -897,7 +905,7 @@ def observe(
     seed : int or sequence of int
         Seed (module docstring); e.g. ``case_seed(observation_seed, case_id)``.
     tool_axis : (3,), optional
-        Direction the tool comes from (``-F/|F|``); default ``normal``.
+        Direction the tool comes from (``-F/|F|``); default ``normal``, tilted by ``config.tool_tilt_deg``.
     camera_position_mm : (3,), optional
         A fixed camera centre (looking at the tip) instead of a random pose.
 
@@ -919,10 +927,15 @@ def observe(
         _check_outward(V, topo.triangles)
     tip = np.asarray(exertion_point_mm, dtype=np.float64).reshape(3)
     n_out = _unit(normal, "normal")
+    rng_cam, rng_smp, rng_noise, rng_inst, rng_tilt = _streams(seed)
     a_tool = n_out if tool_axis is None else _unit(tool_axis, "tool_axis")
+    if tool_axis is None and cfg.tool_tilt_deg > 0:  # tilted by exactly that angle, towards a random azimuth
+        a, b = _basis(n_out)
+        phi = 2.0 * math.pi * rng_tilt.random()
+        th = math.radians(cfg.tool_tilt_deg)
+        a_tool = math.cos(th) * n_out + math.sin(th) * (math.cos(phi) * a + math.sin(phi) * b)
     cone = n_out if cfg.cone_axis is None else _unit(cfg.cone_axis, "cone_axis")
     tool = Tool.at_tip(tip, a_tool, cfg.tool_radius_mm, cfg.tool_shaft_length_mm)
-    rng_cam, rng_smp, rng_noise, rng_inst = _streams(seed)
     t0, t1, t2 = topo.columns
 
     # ---- camera pose

@@ -447,7 +447,8 @@ def camera_section(data: dict, v: dict, main_variant: str | None) -> str:
     if sens:
         what = {"n_points": ("cloud points (fixed)", ""), "noise_sd_mm": ("point noise", " mm"),
                 "cone_half_angle_deg": ("view cone half-angle", "°"), "tip_noise_mm": ("tool tip noise", " mm"),
-                "instrument_in_cloud": ("instrument's points in the cloud", "")}
+                "instrument_in_cloud": ("instrument's points in the cloud", ""),
+                "tool_tilt_deg": ("tool axis tilted from the normal", "°")}
         srows = []
         for key, (label, unit) in what.items():
             for r in sens.get(key) or []:
@@ -459,7 +460,8 @@ def camera_section(data: dict, v: dict, main_variant: str | None) -> str:
         out.append("<p>The validated camera model on the unseen livers with one camera setting changed at a time "
                    f"(trained with {obs.get('n_points')} points, noise {obs.get('noise_sd_mm')} mm, view cone "
                    f"{obs.get('cone_half_angle_deg')}°, tip noise {ms.get('tip_noise_mm')} mm, the instrument's "
-                   f"points {'in the cloud' if obs.get('instrument_in_cloud') else 'masked out'}); mean ± sd over "
+                   f"points {'in the cloud' if obs.get('instrument_in_cloud') else 'masked out'}, the tool's axis "
+                   f"{format(obs.get('tool_tilt_deg') or 0, 'g')}° from the normal); mean ± sd over "
                    "the livers.</p>")
         out.append(_table(["setting", "value", "unseen MAE (N)", "unseen accuracy %"], srows, cls="camera-sens",
                           row_cls="sens"))

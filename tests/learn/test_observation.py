@@ -114,7 +114,8 @@ def test_config_round_trip_and_validation():
     with pytest.raises(ValueError, match="unknown observation setting"):
         ObservationConfig.from_dict({"noise": 1.0})
     for bad in ({"n_points": (500, 100)}, {"noise_mode": "gauss"}, {"cone_half_angle_deg": 95},
-                {"camera_distance_mm": (0.5, 10)}, {"tool_radius_mm": -1}, {"cone_axis": (0, 0, 0)}):
+                {"camera_distance_mm": (0.5, 10)}, {"tool_radius_mm": -1}, {"cone_axis": (0, 0, 0)},
+                {"tool_tilt_deg": -1.0}, {"tool_tilt_deg": 90.0}):
         with pytest.raises(ValueError):
             ObservationConfig(**bad)
 
@@ -236,6 +237,26 @@ def test_tilted_shaft_casts_a_strip():
     cloud, rec = observe(V, T, TIP, UP, c, seed=2, tool_axis=axis)
     strip = (cloud[:, 0] > 3) & (cloud[:, 0] < 35) & (np.abs(cloud[:, 1]) < 1.5)
     assert not strip.any() and rec.dropped["tool_shadow"] > 0
+
+
+def test_a_tilted_tool_is_tilted_by_the_angle_at_a_random_azimuth_and_nothing_else_changes():
+    """tool_tilt_deg: the tool's axis that far from the normal, towards an azimuth drawn from its own stream
+    (different per seed); with the tilt 0 the cloud is bit-identical to the tool along the normal given
+    explicitly; a tilted tool's shadow moves with it (it hides other points)."""
+    V, T = grid_plate(np.linspace(-40, 40, 41), np.linspace(-40, 40, 41))
+    base = dict(tool_radius_mm=2.5, n_points=(2000, 2000), noise_sd_mm=0.3, require_tool_visible=False)
+    az = []
+    for s in range(8):
+        straight, rec0 = observe(V, T, TIP, UP, ObservationConfig(**base), seed=s)
+        given, _ = observe(V, T, TIP, UP, ObservationConfig(**base), seed=s, tool_axis=UP)
+        np.testing.assert_array_equal(straight, given)
+        tilted, rec = observe(V, T, TIP, UP, ObservationConfig(**base, tool_tilt_deg=25.0), seed=s)
+        a = rec.tool_axis
+        assert math.degrees(math.acos(float(a @ UP))) == pytest.approx(25.0, abs=1e-9)
+        np.testing.assert_array_equal(rec.camera_position_mm, rec0.camera_position_mm)  # same camera pose draw
+        az.append(math.atan2(a[1], a[0]))
+        assert not np.array_equal(tilted, straight)
+    assert np.ptp(np.cos(az)) > 1.0  # azimuths spread round the normal
 
 
 def test_camera_is_never_placed_inside_the_tool():
