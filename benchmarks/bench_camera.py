@@ -81,7 +81,8 @@ MODEL = {"encoder": "pca", "code_size": 16, "state_vector": True, "grid_size": 1
          "gp": {"max_points": 2000, "iterations": 50, "code_members": [8, 12, 16, 24, 32],
                 "kernel": "squared_exponential"},  # as the shipped camera variant (config/train/default.yaml)
          "camera": {"observation": {"n_points": [200, 20000], "instrument_in_cloud": True},
-                    "grid": {"kernel_radius_cells": 1.5, "instrument_radius_mm": 2.5}, "tip_noise_mm": 0.5}}
+                    "grid": {"kernel_radius_cells": 1.5, "instrument_radius_mm": 2.5, "instrument_max_tilt_deg": 30.0},
+                    "tip_noise_mm": 0.5}}
 if ARGS.no_instrument:
     MODEL["camera"] = {**MODEL["camera"], "observation": {"n_points": [200, 20000]},
                        "grid": {"kernel_radius_cells": 1.5}}

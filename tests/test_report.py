@@ -517,5 +517,8 @@ def test_the_camera_table_shows_the_exact_tip_accuracy_per_scenario_and_on_the_u
         assert ["instrument's points in the cloud", "yes", "0.410 ± 0.070", "81.0 ± 3.0"] in sens
         assert ["instrument's points in the cloud", "no", "0.330 ± 0.060", "85.0 ± 2.5"] in sens
         assert ["tool axis tilted from the normal", "20°", "0.520 ± 0.080", "77.0 ± 3.5"] in sens
+        assert "the tool's axis 0° from the normal" in html  # the model's own observation (none recorded: 0)
+        from liverforce.report.html import _tilt_text
+        assert _tilt_text([0.0, 30.0]) == "0-30°" and _tilt_text([12.0, 12.0]) == "12°" and _tilt_text(5) == "5°"
     else:  # no sensitivity of this camera model: nothing to show
         assert rows["unseen livers"][4] == rows["unseen livers"][7] == "–"

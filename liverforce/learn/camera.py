@@ -75,7 +75,8 @@ FEATURES_KEY = "camera_features"
 #: grid settings of cloud_features a config may set (the grid size and half-width come from the representation)
 GRID_KEYS = ("kernel_radius_cells", "min_points", "fill", "max_abs_height_mm", "reference_oversample",
              "estimator", "max_leverage", "reference", "instrument_radius_mm", "instrument_rise_mm",
-             "instrument_clearance_mm", "instrument_min_points", "instrument_point_sd_mm", "instrument_tip_sd_mm")
+             "instrument_clearance_mm", "instrument_min_points", "instrument_point_sd_mm", "instrument_tip_sd_mm",
+             "instrument_max_tilt_deg")
 
 _CACHE: dict[tuple, np.ndarray] = {}
 _CACHE_MAX = 200_000

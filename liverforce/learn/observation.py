@@ -194,12 +194,13 @@ class ObservationConfig:
     instrument_in_cloud : bool
         Add the visible part of the tool's surface to the cloud at the liver
         points' density (default False: the instrument is masked out).
-    tool_tilt_deg : float
-        The tool's axis tilted this far from the outward normal, towards a
-        random azimuth drawn per observation (its own stream: every other draw
-        is unchanged), when no tool axis is given (default 0: along the
-        normal). A laparoscopic instrument comes in through its trocar, rarely
-        square to the surface.
+    tool_tilt_deg : float or (float, float)
+        The tool's axis tilted this far from the outward normal (a pair: an
+        angle drawn uniformly between the two per observation), towards a
+        random azimuth, from its own stream (every other draw is unchanged),
+        when no tool axis is given (default 0: along the normal). A
+        laparoscopic instrument comes in through its trocar, rarely square to
+        the surface.
     """
 
     camera_distance_mm: tuple[float, float] = (60.0, 120.0)
@@ -220,19 +221,20 @@ class ObservationConfig:
     zbuffer_pixels: int = 256
     depth_tolerance_mm: float = 0.25
     instrument_in_cloud: bool = False
-    tool_tilt_deg: float = 0.0
+    tool_tilt_deg: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
         set_("camera_distance_mm", tuple(float(v) for v in _pair(self.camera_distance_mm, "camera_distance_mm")))
         set_("n_points", tuple(int(v) for v in _pair(self.n_points, "n_points")))
+        set_("tool_tilt_deg", tuple(float(v) for v in _pair(self.tool_tilt_deg, "tool_tilt_deg")))
         if self.cone_axis is not None:
             ax = np.asarray(self.cone_axis, dtype=np.float64).ravel()
             if ax.shape != (3,) or not np.isfinite(ax).all() or np.linalg.norm(ax) == 0:
                 raise ValueError(f"observation cone_axis must be a nonzero 3-vector or null (got {self.cone_axis!r})")
             set_("cone_axis", tuple(float(v) for v in ax))
         for k in ("cone_half_angle_deg", "half_fov_deg", "roi_radius_mm", "tool_radius_mm", "tool_shaft_length_mm",
-                  "camera_tool_clearance_mm", "noise_sd_mm", "min_view_cos", "depth_tolerance_mm", "tool_tilt_deg"):
+                  "camera_tool_clearance_mm", "noise_sd_mm", "min_view_cos", "depth_tolerance_mm"):
             set_(k, float(getattr(self, k)))
         for k in ("max_camera_draws", "max_candidates", "zbuffer_pixels"):
             set_(k, int(getattr(self, k)))
@@ -256,7 +258,7 @@ class ObservationConfig:
             "min_view_cos": -1.0 <= self.min_view_cos < 1.0,
             "zbuffer_pixels": 16 <= self.zbuffer_pixels <= 4096,
             "depth_tolerance_mm": self.depth_tolerance_mm >= 0,
-            "tool_tilt_deg": 0.0 <= self.tool_tilt_deg < 90.0,
+            "tool_tilt_deg": 0.0 <= self.tool_tilt_deg[0] <= self.tool_tilt_deg[1] < 90.0,
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
@@ -929,10 +931,11 @@ def observe(
     n_out = _unit(normal, "normal")
     rng_cam, rng_smp, rng_noise, rng_inst, rng_tilt = _streams(seed)
     a_tool = n_out if tool_axis is None else _unit(tool_axis, "tool_axis")
-    if tool_axis is None and cfg.tool_tilt_deg > 0:  # tilted by exactly that angle, towards a random azimuth
+    if tool_axis is None and cfg.tool_tilt_deg[1] > 0:  # tilted by that angle, towards a random azimuth
         a, b = _basis(n_out)
         phi = 2.0 * math.pi * rng_tilt.random()
-        th = math.radians(cfg.tool_tilt_deg)
+        lo, hi = cfg.tool_tilt_deg
+        th = math.radians(lo + (hi - lo) * rng_tilt.random() if hi > lo else lo)
         a_tool = math.cos(th) * n_out + math.sin(th) * (math.cos(phi) * a + math.sin(phi) * b)
     cone = n_out if cfg.cone_axis is None else _unit(cfg.cone_axis, "cone_axis")
     tool = Tool.at_tip(tip, a_tool, cfg.tool_radius_mm, cfg.tool_shaft_length_mm)

@@ -461,11 +461,18 @@ def camera_section(data: dict, v: dict, main_variant: str | None) -> str:
                    f"(trained with {obs.get('n_points')} points, noise {obs.get('noise_sd_mm')} mm, view cone "
                    f"{obs.get('cone_half_angle_deg')}°, tip noise {ms.get('tip_noise_mm')} mm, the instrument's "
                    f"points {'in the cloud' if obs.get('instrument_in_cloud') else 'masked out'}, the tool's axis "
-                   f"{format(obs.get('tool_tilt_deg') or 0, 'g')}° from the normal); mean ± sd over "
+                   f"{_tilt_text(obs.get('tool_tilt_deg'))} from the normal); mean ± sd over "
                    "the livers.</p>")
         out.append(_table(["setting", "value", "unseen MAE (N)", "unseen accuracy %"], srows, cls="camera-sens",
                           row_cls="sens"))
     return "".join(out)
+
+
+def _tilt_text(tilt) -> str:
+    """The tool's tilt of a model's observation settings: ``12°``, or ``0-30°`` for a range (0 when absent)."""
+    lo, hi = (tilt, tilt) if tilt is None or isinstance(tilt, (int, float)) else tuple(tilt)
+    lo, hi = float(lo or 0.0), float(hi or 0.0)
+    return f"{lo:g}°" if lo == hi else f"{lo:g}-{hi:g}°"
 
 
 def physics_section(phys: dict | None, validated: str | None) -> str:

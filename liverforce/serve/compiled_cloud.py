@@ -85,7 +85,7 @@ from numba.typed import List
 
 from liverforce.learn import camera
 from liverforce.learn.cloud_features import (_FIT_ITERATIONS, _MAD_SD, _MIN_POINT_SD, _MIN_TIP_SD, NOISE_REFIT_RATIO,
-                                             ReferenceSurface, _fill, instrument_search_radius)
+                                             TILT_WALD, ReferenceSurface, _fill, instrument_search_radius)
 from liverforce.learn.encoders import PCAEncoder
 from liverforce.learn.state import THICKNESS_COLUMN, compliance_matrices, state_vector
 from liverforce.serve.checks import Limits, TrainingScale, outside_training
@@ -408,6 +408,217 @@ def _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u,
     return cu, cv, n_fit, n_drop, sd
 
 
+@njit(cache=True)
+def _tilt_terms(u, v, hh, x, r):
+    """``cloud_features._tilt_residuals`` of one point: its distance minus ``r`` from the axis ``x`` and the
+    Jacobian's row."""
+    su = x[2]
+    sv = x[3]
+    du = u - x[0] - hh * su
+    dv = v - x[1] - hh * sv
+    kap = 1.0 / (1.0 + (su * su + sv * sv))
+    p = du * su + dv * sv
+    d = math.sqrt(max((du * du + dv * dv) - kap * p * p, 1e-18))
+    gx = du - kap * p * su
+    gy = dv - kap * p * sv
+    kp = kap * kap * p * p
+    return (d - r, -gx / d, -gy / d, (-hh * gx - kap * p * du + kp * su) / d,
+            (-hh * gy - kap * p * dv + kp * sv) / d)
+
+
+@njit(cache=True)
+def _tilt_steps(U, V, Hs, idx, k, x, prior, r, wp, W):
+    """``cloud_features._fit_tilted`` on the points ``idx[:k]`` (local ``U, V``, heights ``Hs``), from ``x``."""
+    A = np.empty((4, 4))
+    b = np.empty(4)
+    row = np.empty(4)
+    for _ in range(_FIT_ITERATIONS):
+        A[:] = 0.0
+        b[:] = 0.0
+        for j in range(k):
+            t = idx[j]
+            res, row[0], row[1], row[2], row[3] = _tilt_terms(U[t], V[t], Hs[t], x, r)
+            for a in range(4):
+                b[a] += row[a] * res
+                for c in range(4):
+                    A[a, c] += row[a] * row[c]
+        for a in range(4):
+            b[a] = wp * b[a] + W[a] * (x[a] - prior[a])
+            for c in range(4):
+                A[a, c] *= wp
+            A[a, a] += W[a]
+        step = np.linalg.solve(A, b)
+        x = x - step
+        if step[0] * step[0] + step[1] * step[1] + step[2] * step[2] + step[3] * step[3] < 1e-16:
+            break
+    return x
+
+
+@njit(cache=True)
+def _tilted_pass(U, V, Hs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, h_hi, S, sdp, inst, idx):
+    """``cloud_features._tilted_pass``: the candidates within ``S + tan(max tilt) x height`` of the kinematic tip's
+    axis standing ``rise`` above the surface (a box of bins up to the highest point ``h_hi``), the slope's start,
+    the fit and its two trims with point sd ``sdp``. Returns the axis ``(cu, cv, su, sv)`` and the points fitted."""
+    r, rise, t_max = inst[0], inst[2], inst[8]
+    margin = 1.0 / sb
+    reach = (S + t_max * h_hi) / gstep + margin
+    r_lo, r_hi, c_lo, c_hi = _bin_box(c0u, c0v, reach, h, gstep, sb, pad, nc)
+    k = 0
+    for rr in range(r_lo, r_hi + 1):
+        for cc in range(c_lo, c_hi + 1):
+            kk = _key(rr, cc, sb, nc)
+            for s in range(first[kk], first[kk + 1]):
+                t = orig[s]
+                if t >= 0 and Zs[s] > rise:
+                    dx = U[t] - c0u
+                    dy = V[t] - c0v
+                    if math.sqrt(dx * dx + dy * dy) < S + t_max * max(Hs[t], 0.0):
+                        idx[k] = t
+                        k += 1
+    x = np.array([c0u, c0v, 0.0, 0.0])
+    if k < inst[6]:
+        return x, 0, 0.0
+    prior = x.copy()
+    wp = 1.0 / max(sdp, _MIN_POINT_SD) ** 2
+    wk = 1.0 / max(inst[5], _MIN_TIP_SD) ** 2
+    ws = 1.0 / max(t_max, 1e-3) ** 2
+    W = np.array([wk, wk, ws, ws])
+    lo = np.inf
+    hi = -np.inf
+    sh = shh = su = sv = shu = shv = 0.0
+    for j in range(k):
+        t = idx[j]
+        hh = Hs[t]
+        lo = min(lo, hh)
+        hi = max(hi, hh)
+        sh += hh
+        shh += hh * hh
+        su += U[t]
+        sv += V[t]
+        shu += hh * U[t]
+        shv += hh * V[t]
+    if hi - lo > 1.0:  # the slope first (least squares of u, v on the height)
+        den = k * shh - sh * sh
+        slu = (k * shu - sh * su) / den
+        slv = (k * shv - sh * sv) / den
+        if math.sqrt(slu * slu + slv * slv) <= 1.5 * t_max + 0.05:
+            x[2] = slu
+            x[3] = slv
+    thr = 3.0 * sdp + 0.3
+    for _ in range(2):
+        x = _tilt_steps(U, V, Hs, idx, k, x, prior, r, wp, W)
+        k2 = 0
+        for j in range(k):
+            t = idx[j]
+            if abs(_tilt_terms(U[t], V[t], Hs[t], x, r)[0]) <= thr:
+                idx[k2] = t
+                k2 += 1
+        if k2 < inst[6]:
+            break
+        k = k2
+    x = _tilt_steps(U, V, Hs, idx, k, x, prior, r, wp, W)
+    # the slope's Wald statistic (cloud_features._slope_wald)
+    A = np.zeros((4, 4))
+    row = np.empty(4)
+    for j in range(k):
+        t = idx[j]
+        _, row[0], row[1], row[2], row[3] = _tilt_terms(U[t], V[t], Hs[t], x, r)
+        for a in range(4):
+            for c in range(4):
+                A[a, c] += row[a] * row[c]
+    for a in range(4):
+        for c in range(4):
+            A[a, c] *= wp
+        A[a, a] += W[a]
+    cov = np.linalg.inv(A)[2:, 2:].copy()
+    sl = x[2:].copy()
+    return x, k, float(sl @ np.linalg.solve(cov, sl))
+
+
+@njit(cache=True)
+def _axis_box(x, h_lo, h_hi, reach, h, gstep, sb, pad, nc):
+    """Sort-bin rows and columns holding every point within ``reach`` grid units of the axis ``x`` at heights
+    ``h_lo`` to ``h_hi`` (the box of the segment's two ends)."""
+    a_lo, a_hi, b_lo, b_hi = _bin_box(x[0] + x[2] * h_lo, x[1] + x[3] * h_lo, reach, h, gstep, sb, pad, nc)
+    e_lo, e_hi, f_lo, f_hi = _bin_box(x[0] + x[2] * h_hi, x[1] + x[3] * h_hi, reach, h, gstep, sb, pad, nc)
+    return min(a_lo, e_lo), max(a_hi, e_hi), min(b_lo, f_lo), max(b_hi, f_hi)
+
+
+@njit(cache=True)
+def _tilted_sd(U, V, Hs, Zs, orig, first, sb, pad, nc, h, gstep, x, h_lo, h_hi, S, r, rise, n_all):
+    """``cloud_features._tilted_point_sd``: ``1.4826`` times the median ``|d - r|`` of the points standing ``rise``
+    above the surface within ``S`` of the axis ``x`` (NaN without one)."""
+    r_lo, r_hi, c_lo, c_hi = _axis_box(x, h_lo, h_hi, S / gstep + 1.0 / sb, h, gstep, sb, pad, nc)
+    a = np.empty(n_all)
+    k = 0
+    for rr in range(r_lo, r_hi + 1):
+        for cc in range(c_lo, c_hi + 1):
+            kk = _key(rr, cc, sb, nc)
+            for s in range(first[kk], first[kk + 1]):
+                t = orig[s]
+                if t >= 0 and Zs[s] > rise:
+                    d = _tilt_terms(U[t], V[t], Hs[t], x, 0.0)[0]
+                    if d < S:
+                        a[k] = abs(d - r)
+                        k += 1
+    return _MAD_SD * np.median(a[:k]) if k else np.nan
+
+
+@njit(cache=True)
+def _fit_instrument_tilted(U, V, Wl, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, tw, inst, idx,
+                           Hs):
+    """:func:`liverforce.learn.cloud_features.fit_instrument_tilted` on the sorted, distinct points (as
+    :func:`_fit_instrument`): the shaft's axis with its slope (``inst[8]``: the tangent of the largest tilt), a
+    cloud clearly noisier than the model's point sd fitted again with its own, the instrument's points moved off
+    the grid. ``tw``: the kinematic tip's height; ``Hs``: scratch, the points' heights above it. Returns the tip
+    ``(tu, tv)``, its height change along the normal, the points fitted and the noise estimate."""
+    r, rise, clear, sdp, sdk = inst[0], inst[2], inst[3], inst[4], inst[5]
+    n_all = first[nc * nc]
+    h_lo = 0.0
+    h_hi = 0.0
+    for s in range(n_all):
+        t = orig[s]
+        if t >= 0:
+            hh = Wl[t] - tw
+            Hs[t] = hh
+            h_lo = min(h_lo, hh)
+            h_hi = max(h_hi, hh)
+    S = inst[1]
+    x, n_fit, wald = _tilted_pass(U, V, Hs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, h_hi, S, sdp, inst,
+                                  idx)
+    sd = np.nan
+    if n_fit > 0:
+        sd = _tilted_sd(U, V, Hs, Zs, orig, first, sb, pad, nc, h, gstep, x, h_lo, h_hi, S, r, rise, n_all)
+        if sd > inst[7] * max(sdp, _MIN_POINT_SD):  # the cloud's own noise: search and fit again
+            sdp = sd
+            S = r + 3.0 * sdk + 2.0 * sd + 0.5  # cloud_features.instrument_search_radius
+            x, n_fit, wald = _tilted_pass(U, V, Hs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, h_hi, S, sdp,
+                                          inst, idx)
+            sd = _tilted_sd(U, V, Hs, Zs, orig, first, sb, pad, nc, h, gstep, x, h_lo, h_hi, S, r, rise, n_all)
+    if wald < inst[9]:  # no tilt the points can tell from the normal: the fit along it (TILT_WALD)
+        cu, cv, n_fit, _, sd = _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v,
+                                               inst, idx)
+        return cu, cv, 0.0, n_fit, sd
+    # dropped: the points near the fitted axis at their height
+    far = max(S, r + clear + 2.0 * sdp) / gstep + 1.0 / sb
+    r_lo, r_hi, c_lo, c_hi = _axis_box(x, h_lo, h_hi, far, h, gstep, sb, pad, nc)
+    for rr in range(r_lo, r_hi + 1):
+        for cc in range(c_lo, c_hi + 1):
+            kk = _key(rr, cc, sb, nc)
+            for s in range(first[kk], first[kk + 1]):
+                t = orig[s]
+                if t >= 0:
+                    d = _tilt_terms(U[t], V[t], Hs[t], x, 0.0)[0]
+                    z = Zs[s]
+                    if (d < r + clear or (d < r + clear + 2.0 * sdp and z > 0.0)) or (z > rise and d < S):
+                        GUs[s] = _FAR
+                        GVs[s] = _FAR
+    su = x[2]
+    sv = x[3]
+    tt = ((c0u - x[0]) * su + (c0v - x[1]) * sv) / (1.0 + (su * su + sv * sv))
+    return x[0] + tt * su, x[1] + tt * sv, tt, n_fit, sd
+
+
 _FAR = 1e9  # grid-index coordinate of a dropped point: beyond every kernel support (weight and count exact zeros)
 _H1 = 2654435761  # odd multipliers of the duplicate filter's hash (products stay far below 2^63)
 _H2 = 2246822519
@@ -423,9 +634,9 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
     not finite (every point with a NaN or inf coordinate; :meth:`CompiledCloud._refusal` counts exactly) and the
     points on the tool's shaft (``shaft``: squared inner and outer radius of the ring, rise, fewest points;
     :func:`liverforce.serve.cloud.shaft_points`; an inner radius 0: not counted) and the instrument points its
-    axis was fitted to, and the point noise estimated from the candidates (NaN when none were fitted): with ``inst[0] > 0``
-    the instrument's axis is fitted to its points, which are dropped, and gives the tip's tangential part
-    (:func:`_fit_instrument`).
+    axis was fitted to, and the point noise estimated from the candidates (NaN when none were fitted): with
+    ``inst[0] > 0`` the instrument's axis is fitted to its points, which are dropped, and gives the tip's
+    tangential part (:func:`_fit_instrument`).
     """
     U, V, Wl, GU, GV, Z, key, A, C, Q, HB, GUs, GVs, Zs, orig, first, fill_at, bits, cand = ws[:19]
     M, Hc, valid, idx, unk, Lb, rhs, y = ws[19:]
@@ -562,7 +773,12 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
                 break
     nf = 0
     sd = np.nan
-    if inst[0] > 0.0:  # the instrument's points: fitted (the tip's tangential part), then moved off the grid
+    dw = 0.0
+    if inst[0] > 0.0 and inst[8] > 0.0:  # the instrument, its shaft perhaps tilted: the tip from its axis
+        tw = R[2, 0] * tp0 + R[2, 1] * tp1 + R[2, 2] * tp2
+        tu, tv, dw, nf, sd = _fit_instrument_tilted(U, V, Wl, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, tu,
+                                                    tv, tw, inst, cand, GU)
+    elif inst[0] > 0.0:  # the instrument's points: fitted (the tip's tangential part), then moved off the grid
         tu, tv, nf, _, sd = _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, tu, tv, inst, cand)
     if n_dup:
         w = 0
@@ -617,7 +833,7 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
         x[gg + cell] = 1.0 if valid[cell] else 0.0
     x[2 * gg] = tu
     x[2 * gg + 1] = tv
-    x[2 * gg + 2] = R[2, 0] * tp0 + R[2, 1] * tp1 + R[2, 2] * tp2
+    x[2 * gg + 2] = R[2, 0] * tp0 + R[2, 1] * tp1 + R[2, 2] * tp2 + dw
     return nu, nb, ns, nf, sd
 
 
@@ -873,7 +1089,8 @@ class CompiledCloud:
         self.fits_instrument = sp.instrument_radius_mm > 0
         self._inst = np.array([sp.instrument_radius_mm, instrument_search_radius(sp), sp.instrument_rise_mm,
                                sp.instrument_clearance_mm, sp.instrument_point_sd_mm, sp.instrument_tip_sd_mm,
-                               sp.instrument_min_points, NOISE_REFIT_RATIO], dtype=np.float64)
+                               sp.instrument_min_points, NOISE_REFIT_RATIO,
+                               math.tan(math.radians(sp.instrument_max_tilt_deg)), TILT_WALD], dtype=np.float64)
         # the kernel reads clouds and tips as given: R (A s x + t - p) = (s R A) (x - A^-1 (p - t) / s), so an input
         # frame costs nothing per point (the checks and messages below convert the few points they read)
         if self.frame is None:

@@ -124,6 +124,78 @@ def test_the_fit_finds_the_tools_axis_from_its_points_and_drops_them():
     assert n == 0 and keep.tolist() == [False, True, False, True]
 
 
+def _tilted_shaft(centre, slope, n, rng, sd=0.3):
+    """Points (u, v, w) on the visible half of a shaft of radius R_TOOL whose axis passes through ``centre`` at
+    height 0 with slope ``slope`` (direction (s_u, s_v, 1)), 3-20 mm up its axis, with noise."""
+    a = np.array([slope[0], slope[1], 1.0])
+    a /= np.linalg.norm(a)
+    e1 = np.cross(a, [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(a, e1)
+    phi = rng.uniform(0, 2 * np.pi) + rng.uniform(-np.pi / 2, np.pi / 2, n)
+    t = rng.uniform(3.0, 20.0, n) / a[2]
+    P = (np.array([centre[0], centre[1], 0.0]) + t[:, None] * a
+         + R_TOOL * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2))
+    return P + rng.normal(0.0, sd, P.shape)
+
+
+def test_a_tilted_shaft_is_fitted_with_its_slope_and_dropped():
+    """instrument_max_tilt_deg: a shaft tilted 0-25 deg from the normal gives its axis (the tip: where the
+    kinematic tip projects onto it) and the points' noise, and every one of its points is dropped; on a 20 deg
+    shaft the fit that assumes the normal is off by a millimetre or more and leaves some of its points."""
+    from liverforce.learn.cloud_features import fit_instrument_tilted
+
+    rng = np.random.default_rng(4)
+    sp = spec(instrument_point_sd_mm=0.3, instrument_max_tilt_deg=30.0)
+    errs = []
+    for trial in range(24):
+        tilt = np.radians(rng.uniform(0.0, 25.0))
+        az = rng.uniform(0, 2 * np.pi)
+        slope = np.tan(tilt) * np.array([np.cos(az), np.sin(az)])
+        true = rng.normal(0.0, 0.5, 2)
+        S = _tilted_shaft(true, slope, 80, rng)
+        surf = rng.uniform(-15, 15, (800, 2))
+        surf = surf[np.hypot(*(surf - true).T) > R_TOOL + 1.0]
+        uv = np.concatenate([S[:, :2], surf])
+        w = np.concatenate([S[:, 2], rng.normal(-0.5, 0.3, len(surf))])
+        dz = w + 0.0  # a flat pre-operative surface at the tip's height
+        tip, keep, n, sd = fit_instrument_tilted(uv, w, dz, [0.0, 0.0, 0.0], sp)
+        assert n >= 70 and not keep[: len(S)].any() and keep[len(S):].mean() > 0.97
+        # the tip: the kinematic tip (the origin) projected onto the axis, near its projection onto the true one
+        t = float(-true @ slope) / (1.0 + float(slope @ slope))
+        errs.append(tip - np.array([true[0] + t * slope[0], true[1] + t * slope[1], t]))
+        assert 0.3 / 1.3 < sd < 0.3 * 1.3
+    rms = np.sqrt(np.mean(np.square(errs), axis=0))
+    assert (rms < 0.15).all(), rms  # the kinematic prior alone is 0.71 mm off (0.5 mm per coordinate)
+    # a 20 deg shaft through the origin: the fit that assumes the normal puts the axis off by a millimetre or
+    # more (its points lean away with height) and leaves some on the grid; the tilted fit drops them all
+    S = _tilted_shaft([0.0, 0.0], np.tan(np.radians(20.0)) * np.array([1.0, 0.0]), 80, rng)
+    c, keep, _, _ = fit_instrument(S[:, :2], S[:, 2], [0.0, 0.0], spec(instrument_point_sd_mm=0.3))
+    assert np.hypot(*c) > 1.0 and keep.any()
+    tip, keep, _, _ = fit_instrument_tilted(S[:, :2], S[:, 2], S[:, 2], [0.0, 0.0, 0.0], sp)
+    assert np.linalg.norm(tip) < 0.3 and not keep.any()
+
+
+def test_the_tilted_fit_of_a_shaft_along_the_normal_costs_little():
+    """A shaft along the normal: the fit with a free slope finds no significant slope (TILT_WALD) and falls back to
+    the fit that assumes the normal, whose tip is more precise: as near as it, both far nearer than the kinematic
+    tip."""
+    from liverforce.learn.cloud_features import fit_instrument_tilted
+
+    rng = np.random.default_rng(8)
+    e_normal, e_tilted = [], []
+    for trial in range(30):
+        true = rng.normal(0.0, 0.5, 2)
+        S = _tilted_shaft(true, [0.0, 0.0], 80, rng)
+        c, _, _, _ = fit_instrument(S[:, :2], S[:, 2], [0.0, 0.0], spec(instrument_point_sd_mm=0.3))
+        tip, _, _, _ = fit_instrument_tilted(S[:, :2], S[:, 2], S[:, 2], [0.0, 0.0, 0.0],
+                                             spec(instrument_point_sd_mm=0.3, instrument_max_tilt_deg=30.0))
+        e_normal.append(c - true)
+        e_tilted.append(tip[:2] - true)
+    rms_n, rms_t = np.sqrt(np.mean(np.square(e_normal))), np.sqrt(np.mean(np.square(e_tilted)))
+    assert rms_t < 0.15 and rms_t < 1.2 * rms_n, (rms_t, rms_n)
+
+
 def test_gridding_a_cloud_with_the_instrument_gives_the_instrument_free_heights_and_a_better_tip():
     V, U0, T = dent_surface()
     true_tip = np.array([0.0, 0.0, -3.0])
@@ -281,7 +353,8 @@ def test_the_compiled_fit_is_the_reference_fit(monkeypatch):
     sp = spec(instrument_point_sd_mm=0.4, instrument_tip_sd_mm=0.6)
     inst = np.array([sp.instrument_radius_mm, instrument_search_radius(sp), sp.instrument_rise_mm,
                      sp.instrument_clearance_mm, sp.instrument_point_sd_mm, sp.instrument_tip_sd_mm,
-                     sp.instrument_min_points, cloud_features.NOISE_REFIT_RATIO])
+                     sp.instrument_min_points, cloud_features.NOISE_REFIT_RATIO,
+                     np.tan(np.radians(sp.instrument_max_tilt_deg)), cloud_features.TILT_WALD])
     fitted = 0
     for trial in range(60):
         true = rng.normal(0.0, 0.6, 2)
@@ -374,12 +447,17 @@ def test_only_models_trained_without_the_instrument_check_for_it():
     assert radius({"tool_radius_mm": 0.0}, {}) == 0.0
 
 
-@pytest.mark.parametrize("centre,noise", [((0.0, 0.0), 0.5), ((-15.0, 6.0), 0.5), ((0.0, 0.0), 1.5)])
-def test_the_compiled_kernel_grids_a_cloud_with_the_instrument_as_the_reference(centre, noise, monkeypatch):
+@pytest.mark.parametrize("centre,noise,tilt,fit_tilt", [
+    ((0.0, 0.0), 0.5, 0.0, 0.0), ((-15.0, 6.0), 0.5, 0.0, 0.0), ((0.0, 0.0), 1.5, 0.0, 0.0),
+    ((0.0, 0.0), 0.5, 0.0, 30.0), ((0.0, 0.0), 0.5, 20.0, 30.0), ((-15.0, 6.0), 0.5, 20.0, 30.0),
+    ((0.0, 0.0), 1.5, 20.0, 30.0)])
+def test_the_compiled_kernel_grids_a_cloud_with_the_instrument_as_the_reference(centre, noise, tilt, fit_tilt,
+                                                                                monkeypatch):
     """The numba gridding pass with the instrument (its bin scan, the points moved off the grid) against
     cloud_grid, on clouds of the dent with the tool in view, a kinematic tip up to 1.5 mm off, points shuffled:
     the tool mid-grid and 15 mm off (near the grid's edge) at the model's noise, and mid-grid at three times it
-    (the fit done again with the cloud's own noise, in both)."""
+    (the fit done again with the cloud's own noise, in both); with the fit that finds the shaft's slope, the tool
+    along the normal (the slope not significant: the normal fit) and tilted 20 deg."""
     from liverforce.learn import cloud_features
     from liverforce.learn.cloud_features import NOISE_REFIT_RATIO, instrument_search_radius
     from liverforce.serve.compiled_cloud import _FILL_CODES, _grid_clouds
@@ -390,16 +468,18 @@ def test_the_compiled_kernel_grids_a_cloud_with_the_instrument_as_the_reference(
                         estimates[-1])
 
     V, U0, T = dent_surface()
-    sp = spec()
+    sp = spec(instrument_max_tilt_deg=fit_tilt)
     p = np.array([-centre[0], -centre[1], 0.0])  # the exertion point's frame: the dent lies at -p from it
     ref = ReferenceSurface.for_case(U0, T, p, np.eye(3), sp)
     inst = np.array([sp.instrument_radius_mm, instrument_search_radius(sp), sp.instrument_rise_mm,
                      sp.instrument_clearance_mm, sp.instrument_point_sd_mm, sp.instrument_tip_sd_mm,
-                     sp.instrument_min_points, cloud_features.NOISE_REFIT_RATIO])
+                     sp.instrument_min_points, cloud_features.NOISE_REFIT_RATIO,
+                     np.tan(np.radians(sp.instrument_max_tilt_deg)), cloud_features.TILT_WALD])
     rng = np.random.default_rng(7)
     true_tip = np.array([0.0, 0.0, -3.0])
     for seed in range(6):
-        cloud, rec = observe(V, T, true_tip, [0, 0, 1], obs(noise_sd_mm=noise, n_points=(400 + 1500 * seed,) * 2),
+        cloud, rec = observe(V, T, true_tip, [0, 0, 1], obs(noise_sd_mm=noise, n_points=(400 + 1500 * seed,) * 2,
+                                                             tool_tilt_deg=tilt),
                              seed=seed)
         cloud = np.ascontiguousarray(cloud[rng.permutation(len(cloud))])
         kin = true_tip + rng.uniform(-1.5, 1.5, 3)
@@ -417,8 +497,9 @@ def test_the_compiled_kernel_grids_a_cloud_with_the_instrument_as_the_reference(
         assert n_tool[0, 2] == pytest.approx(want.instrument_sd_mm, rel=1e-9)  # the noise estimate
         np.testing.assert_allclose(X[0, :-3], want.features(include_mask=True), atol=1e-9)
         np.testing.assert_allclose(X[0, -3:], want.tip_local, atol=1e-9)
-    refit = np.array(estimates) > NOISE_REFIT_RATIO * sp.instrument_point_sd_mm
-    assert refit.all() if noise > 1.0 else not refit.any()  # the refit, and only at the higher noise
+    if not fit_tilt:  # the shaft along the normal: the refit, and only at the higher noise
+        refit = np.array(estimates) > NOISE_REFIT_RATIO * sp.instrument_point_sd_mm
+        assert len(refit) >= 6 and (refit.all() if noise > 1.0 else not refit.any())
 
 
 def test_the_noisy_cloud_warning_names_the_estimate_and_the_training_noise():

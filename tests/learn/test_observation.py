@@ -257,6 +257,10 @@ def test_a_tilted_tool_is_tilted_by_the_angle_at_a_random_azimuth_and_nothing_el
         az.append(math.atan2(a[1], a[0]))
         assert not np.array_equal(tilted, straight)
     assert np.ptp(np.cos(az)) > 1.0  # azimuths spread round the normal
+    # a range: an angle drawn between its ends per observation
+    tilts = [math.degrees(math.acos(float(observe(V, T, TIP, UP, ObservationConfig(**base, tool_tilt_deg=(5.0, 30.0)),
+                                                  seed=s)[1].tool_axis @ UP))) for s in range(12)]
+    assert 5.0 - 1e-9 <= min(tilts) and max(tilts) <= 30.0 + 1e-9 and np.ptp(tilts) > 10.0
 
 
 def test_camera_is_never_placed_inside_the_tool():
