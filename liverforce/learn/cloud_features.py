@@ -161,7 +161,8 @@ class CloudGridSpec:
         0 (default): the shaft runs along the normal (:func:`fit_instrument`).
         Else it may be tilted up to about this far (degrees) and its slope is
         fitted too (:func:`fit_instrument_tilted`); the tip is then the
-        kinematic one projected onto the fitted axis.
+        kinematic one projected onto the fitted axis, unless the slope is not
+        significant (the fit along the normal is kept).
     instrument_point_sd_mm, instrument_tip_sd_mm : float
         The clouds' point noise and the kinematic tip's tangential noise (sd,
         mm) the fit weighs its points and its prior by (the model's observation
@@ -615,13 +616,12 @@ def fit_instrument_tilted(uv: np.ndarray, w: np.ndarray, dz: np.ndarray, tip_loc
     tip lies on its axis: the kinematic tip projected onto the fitted axis (its tangential part and a small
     change of its height). ``keep``: the points beyond ``r + instrument_clearance_mm`` of the axis, beyond
     another ``2 sd_p`` where they stand above the surface, and beyond the search radius where they stand
-    ``instrument_rise_mm`` above it. ``point_sd``: ``1.4826`` times the median absolute residual of the points
-    fitted (NaN when fewer than ``instrument_min_points`` were found: then the kinematic tip, the axis along the
-    normal). When the points cannot tell the slope from 0 (its Wald statistic below :data:`TILT_WALD`), the fit
-    that assumes the normal is returned instead (:func:`fit_instrument`): with a free slope the tip is an
-    extrapolation down the axis, about twice as far off on a shaft along the normal (0.25 against 0.11 mm rms
-    along the surface on scenario I's clouds). A cloud clearly noisier than the model's point sd is fitted again
-    with its own, as in
+    ``instrument_rise_mm`` above it. ``point_sd``: the noise estimate below (NaN when fewer than
+    ``instrument_min_points`` candidates were found: then the kinematic tip, the axis along the normal). When the
+    points cannot tell the slope from 0 (its Wald statistic below :data:`TILT_WALD`), the fit that assumes the
+    normal is returned instead (:func:`fit_instrument`): with a free slope the tip is an extrapolation down the
+    axis, about twice as far off on a shaft along the normal (0.25 against 0.11 mm rms along the surface on scenario
+    I's clouds). A cloud clearly noisier than the model's point sd is fitted again with its own, as in
     :func:`fit_instrument` (the estimate here: the points standing ``instrument_rise_mm`` above the surface within
     the search radius of the fitted axis). ``w``: the points' heights along the local normal (the kinematic tip's
     is ``tip_local[2]``).

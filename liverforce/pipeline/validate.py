@@ -142,6 +142,9 @@ def camera_sensitivity(model_dir, arrays: dict, grid: dict) -> dict | None:
             elif key == "n_points":
                 obs["n_points"] = [int(val), int(val)]
             elif key in ("noise_sd_mm", "cone_half_angle_deg", "tool_tilt_deg"):
+                if isinstance(val, bool) or not isinstance(val, (int, float)):
+                    raise ValueError(f"validate.camera_sensitivity.{key}: each value is one number, the setting "
+                                     f"itself (got {val!r})")
                 obs[key] = float(val)
             elif key == "instrument_in_cloud":
                 if not isinstance(val, bool):

@@ -508,9 +508,10 @@ def _tilted_pass(U, V, Hs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, h_h
     for _ in range(2):
         x = _tilt_steps(U, V, Hs, idx, k, x, prior, r, wp, W)
         k2 = 0
-        for j in range(k):
+        for j in range(k):  # the outliers behind the others by swaps: idx[:k] keeps every one if too few remain
             t = idx[j]
             if abs(_tilt_terms(U[t], V[t], Hs[t], x, r)[0]) <= thr:
+                idx[j] = idx[k2]
                 idx[k2] = t
                 k2 += 1
         if k2 < inst[6]:
@@ -548,7 +549,9 @@ def _axis_box(x, h_lo, h_hi, reach, h, gstep, sb, pad, nc):
 def _tilted_sd(U, V, Hs, Zs, orig, first, sb, pad, nc, h, gstep, x, h_lo, h_hi, S, r, rise, n_all):
     """``cloud_features._tilted_point_sd``: ``1.4826`` times the median ``|d - r|`` of the points standing ``rise``
     above the surface within ``S`` of the axis ``x`` (NaN without one)."""
-    r_lo, r_hi, c_lo, c_hi = _axis_box(x, h_lo, h_hi, S / gstep + 1.0 / sb, h, gstep, sb, pad, nc)
+    # a point within S of the axis lies within S sqrt(1 + |s|^2) of it sideways at its own height
+    sec = math.sqrt(1.0 + (x[2] * x[2] + x[3] * x[3]))
+    r_lo, r_hi, c_lo, c_hi = _axis_box(x, h_lo, h_hi, S * sec / gstep + 1.0 / sb, h, gstep, sb, pad, nc)
     a = np.empty(n_all)
     k = 0
     for rr in range(r_lo, r_hi + 1):
@@ -600,7 +603,8 @@ def _fit_instrument_tilted(U, V, Wl, GUs, GVs, Zs, orig, first, sb, pad, nc, h, 
                                                inst, idx)
         return cu, cv, 0.0, n_fit, sd
     # dropped: the points near the fitted axis at their height
-    far = max(S, r + clear + 2.0 * sdp) / gstep + 1.0 / sb
+    sec = math.sqrt(1.0 + (x[2] * x[2] + x[3] * x[3]))  # within d of the axis: within d sec sideways (_tilted_sd)
+    far = max(S, r + clear + 2.0 * sdp) * sec / gstep + 1.0 / sb
     r_lo, r_hi, c_lo, c_hi = _axis_box(x, h_lo, h_hi, far, h, gstep, sb, pad, nc)
     for rr in range(r_lo, r_hi + 1):
         for cc in range(c_lo, c_hi + 1):
@@ -636,7 +640,8 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
     :func:`liverforce.serve.cloud.shaft_points`; an inner radius 0: not counted) and the instrument points its
     axis was fitted to, and the point noise estimated from the candidates (NaN when none were fitted): with
     ``inst[0] > 0`` the instrument's axis is fitted to its points, which are dropped, and gives the tip's
-    tangential part (:func:`_fit_instrument`).
+    tangential part (:func:`_fit_instrument`); with a slope as well (``inst[8] > 0``,
+    :func:`_fit_instrument_tilted`) the tip is the kinematic one projected onto the axis, its height too.
     """
     U, V, Wl, GU, GV, Z, key, A, C, Q, HB, GUs, GVs, Zs, orig, first, fill_at, bits, cand = ws[:19]
     M, Hc, valid, idx, unk, Lb, rhs, y = ws[19:]

@@ -240,6 +240,11 @@ def test_the_tip_noise_sensitivity_is_isotropic_whatever_the_model_was_trained_w
     got, want = camera_sensitivity(aniso, a, grid), camera_sensitivity(plain, a, grid)
     assert got["model_settings"]["tip_noise_normal_mm"] == 0.7
     assert got["tip_noise_mm"] == want["tip_noise_mm"]
+    # a tilted tool: a row per angle; a range is not a setting's value
+    tilt = camera_sensitivity(plain, a, {"tool_tilt_deg": [0.0, 20.0]})["tool_tilt_deg"]
+    assert [r["value"] for r in tilt] == [0.0, 20.0] and all(np.isfinite(r["mae_vec"]) for r in tilt)
+    with pytest.raises(ValueError, match="tool_tilt_deg: each value is one number"):
+        camera_sensitivity(plain, a, {"tool_tilt_deg": [[0.0, 30.0]]})
 
 
 def test_exact_tip_scores_the_same_clouds_with_the_true_tool_tip(trained):

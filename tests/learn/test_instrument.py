@@ -462,10 +462,11 @@ def test_the_compiled_kernel_grids_a_cloud_with_the_instrument_as_the_reference(
     from liverforce.learn.cloud_features import NOISE_REFIT_RATIO, instrument_search_radius
     from liverforce.serve.compiled_cloud import _FILL_CODES, _grid_clouds
 
-    estimates = []
-    real_sd = cloud_features.instrument_point_sd
+    estimates, tilted = [], []
+    real_sd, real_tilted = cloud_features.instrument_point_sd, cloud_features._tilted_point_sd
     monkeypatch.setattr(cloud_features, "instrument_point_sd", lambda *a: estimates.append(real_sd(*a)) or
                         estimates[-1])
+    monkeypatch.setattr(cloud_features, "_tilted_point_sd", lambda *a: tilted.append(real_tilted(*a)) or tilted[-1])
 
     V, U0, T = dent_surface()
     sp = spec(instrument_max_tilt_deg=fit_tilt)
@@ -497,6 +498,9 @@ def test_the_compiled_kernel_grids_a_cloud_with_the_instrument_as_the_reference(
         assert n_tool[0, 2] == pytest.approx(want.instrument_sd_mm, rel=1e-9)  # the noise estimate
         np.testing.assert_allclose(X[0, :-3], want.features(include_mask=True), atol=1e-9)
         np.testing.assert_allclose(X[0, -3:], want.tip_local, atol=1e-9)
+    if tilt:  # the tilted fit's noise estimate: a refit at the higher noise only
+        refit = np.array(tilted) > NOISE_REFIT_RATIO * sp.instrument_point_sd_mm
+        assert len(refit) >= 6 and (refit.any() if noise > 1.0 else not refit.any())
     if not fit_tilt:  # the shaft along the normal: the refit, and only at the higher noise
         refit = np.array(estimates) > NOISE_REFIT_RATIO * sp.instrument_point_sd_mm
         assert len(refit) >= 6 and (refit.all() if noise > 1.0 else not refit.any())
@@ -512,3 +516,41 @@ def test_the_noisy_cloud_warning_names_the_estimate_and_the_training_noise():
     assert noisy_cloud(0.5, sp) is None and noisy_cloud(NOISY_CLOUD_RATIO * 0.5, sp) is None
     said = noisy_cloud(1.1, sp)
     assert "scatter 1.1 mm" in said and "2.2 times the 0.5 mm noise" in said
+
+
+def test_the_compiled_tilted_pass_is_the_reference_on_few_points():
+    """The numba search-and-fit pass of the tilted fit (serve.compiled_cloud._tilted_pass, every point in one sort
+    bin) against cloud_features._tilted_pass on shafts of 7-14 points with liver bumps among the candidates:
+    the same axis, points fitted and Wald statistic, also when a trim would leave fewer than the fewest points
+    (the trim must keep every candidate in idx[:k] then)."""
+    import math
+
+    from liverforce.learn import cloud_features as cf
+    from liverforce.serve import compiled_cloud as cc
+
+    sp = spec(instrument_max_tilt_deg=30.0)
+    inst = np.array([sp.instrument_radius_mm, cf.instrument_search_radius(sp), sp.instrument_rise_mm,
+                     sp.instrument_clearance_mm, sp.instrument_point_sd_mm, sp.instrument_tip_sd_mm,
+                     sp.instrument_min_points, cf.NOISE_REFIT_RATIO, math.tan(math.radians(30.0)), cf.TILT_WALD])
+    rng = np.random.default_rng(12)
+    early = 0
+    for trial in range(60):
+        slope = np.tan(np.radians(rng.uniform(0, 25))) * np.array([1.0, 0.0])
+        S = _tilted_shaft(rng.normal(0, 0.3, 2), slope, int(rng.integers(7, 15)), rng, sd=0.2)
+        n_out = int(rng.integers(0, 4))  # liver bumps standing above the surface near the tool, listed first
+        ang = rng.uniform(0, 2 * np.pi, n_out)
+        out = np.column_stack([5.8 * np.cos(ang), 5.8 * np.sin(ang), rng.uniform(2.2, 3.0, n_out)])
+        P = np.concatenate([out, S])
+        uv, H = P[:, :2].copy(), P[:, 2].copy()
+        want = cf._tilted_pass(uv, H, H, np.zeros(2), sp, sp.instrument_point_sd_mm)
+        n = len(P)
+        got = cc._tilted_pass(uv[:, 0].copy(), uv[:, 1].copy(), H.copy(), H.copy(), np.arange(n, dtype=np.int32),
+                              np.array([0, n], dtype=np.int32), 1, 0, 1, 20.0, 1.0, 0.0, 0.0, float(H.max()),
+                              inst[1], sp.instrument_point_sd_mm, inst, np.zeros(n, dtype=np.int32))
+        np.testing.assert_allclose(got[0], want[0], atol=1e-9)
+        assert got[1] == want[1]
+        assert got[2] == pytest.approx(want[2], rel=1e-9, abs=1e-9)
+        res = cf._tilt_residuals(uv, H, cf._fit_tilted(uv[H > 2.0], H[H > 2.0], np.zeros(4), np.zeros(4), R_TOOL,
+                                                       4.0, 4.0, 3.0), R_TOOL)[0]
+        early += int(0 < (np.abs(res) <= 1.8).sum() < 8)
+    assert early > 0  # a trim that would leave too few points happened
