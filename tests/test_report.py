@@ -481,7 +481,8 @@ def test_the_camera_table_shows_the_exact_tip_accuracy_per_scenario_and_on_the_u
             "repeats": [{"split_seed": 7 + i, "test_geometries": ["g"], "metrics": m} for i in range(3)],
             "run_id": f"run{sc}cloud_sv", "n_train": 9, "n_test": 3,
             "model_cfg": {"roi_features": "cloud",  # one of the two cases: a model that fits the instrument
-                          **({"camera": {"grid": {"instrument_radius_mm": 2.5}}} if validated == "cloud_sv" else {})},
+                          **({"camera": {"grid": {"instrument_radius_mm": 2.5, "instrument_max_tilt_deg": 30.0}}}
+                             if validated == "cloud_sv" else {})},
             **({"exact_tip": {"metrics_mean": {"accuracy_pct": 79.3, "mae_vec": 0.125},
                               "metrics_sd": {"accuracy_pct": 0.5, "mae_vec": 0.01}, "n_splits": 3}}
                if sc == "IV" else {})}))
@@ -505,6 +506,7 @@ def test_the_camera_table_shows_the_exact_tip_accuracy_per_scenario_and_on_the_u
     html = _report(stage_outputs)
     cam = _section(html, "id='camera'", "</table>")
     assert ("fits its shaft's axis" in cam) == (validated == "cloud_sv")
+    assert ("tilt from the normal is fitted too" in cam) == (validated == "cloud_sv")
     head = re.findall(r"<th>(.*?)</th>", cam)
     assert head[4] == "camera, exact tip %" and head[7] == "camera, exact tip MAE (N)"
     rows = {_text(r[0]): [_text(c) for c in r] for r in _rows(cam, "cam")}

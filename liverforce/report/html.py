@@ -425,9 +425,11 @@ def camera_section(data: dict, v: dict, main_variant: str | None) -> str:
                      _pm(ut["mae_vec"], ut["mae_sd"]) if exact_ok else "–"])
     cam_cfg = (cams[0].get("model_cfg") or {}).get("camera") or {}
     fits = float((cam_cfg.get("grid") or {}).get("instrument_radius_mm") or 0.0) > 0
+    tilts = float((cam_cfg.get("grid") or {}).get("instrument_max_tilt_deg") or 0.0) > 0
     instrument = ("The cloud shows the instrument too, and the model fits its shaft's axis to its points for the "
                   "tip's position along the surface (the robot's tip is the fit's prior, and the tip along the "
-                  "normal). " if fits else "")
+                  "normal" + ("; the shaft's tilt from the normal is fitted too when its points show one" if tilts
+                              else "") + "). " if fits else "")
     out = ["<h3 id='camera'>What the camera costs: camera cloud against node correspondence</h3>",
            f"<p><code>{html.escape(cam_name)}</code> reads what surgery has: an unordered, partial, noisy camera "
            "cloud of the deformed surface (observed from the stored full surface: camera pose in a cone above the "
