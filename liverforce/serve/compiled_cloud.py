@@ -330,12 +330,14 @@ def _bin_box(u, v, reach, h, gstep, sb, pad, nc):
 
 
 @njit(cache=True)
-def _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, search, rise, idx):
-    """The sorted indices of the instrument's candidates (within ``search`` mm of the kinematic tip ``(c0u, c0v)``,
-    ``rise`` above the surface) into ``idx``, in the bins' order; returns how many."""
+def _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, search, rise, idx,
+                        Hs, t_max, h_hi, by_point):
+    """The instrument's candidates into ``idx``, in the bins' order; returns how many: the points ``rise`` above
+    the surface within ``search + t_max x max(height, 0)`` mm of the kinematic tip's axis ``(c0u, c0v)`` (heights
+    ``Hs``, the highest ``h_hi``; ``t_max`` 0: a cylinder, ``Hs`` unread). ``by_point``: store the points' indices
+    ``t`` (the tilted fit), else their sorted positions ``s``."""
     margin = 1.0 / sb  # grid units: a bin of margin for rounding
-    r_lo, r_hi, c_lo, c_hi = _bin_box(c0u, c0v, search / gstep + margin, h, gstep, sb, pad, nc)
-    s2 = search * search
+    r_lo, r_hi, c_lo, c_hi = _bin_box(c0u, c0v, (search + t_max * h_hi) / gstep + margin, h, gstep, sb, pad, nc)
     k = 0
     for rr in range(r_lo, r_hi + 1):
         for cc in range(c_lo, c_hi + 1):
@@ -345,8 +347,9 @@ def _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, 
                 if t >= 0 and Zs[s] > rise:
                     dx = U[t] - c0u
                     dy = V[t] - c0v
-                    if dx * dx + dy * dy < s2:
-                        idx[k] = s
+                    lim = search if t_max == 0.0 else search + t_max * max(Hs[t], 0.0)
+                    if dx * dx + dy * dy < lim * lim:
+                        idx[k] = t if by_point else s
                         k += 1
     return k
 
@@ -376,7 +379,8 @@ def _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u,
     dropped and the cloud's point noise estimated from every candidate of the last pass (NaN when nothing was
     fitted)."""
     r, search, rise, clear, sdp = inst[0], inst[1], inst[2], inst[3], inst[4]
-    k = _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, search, rise, idx)
+    k = _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, search, rise, idx,
+                            U, 0.0, 0.0, False)
     cu, cv, n_fit = _fit_axis_points(U, V, orig, idx, k, c0u, c0v, inst)
     sd = np.nan
     if n_fit > 0:
@@ -387,7 +391,8 @@ def _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u,
             search = r + 3.0 * inst[5] + 2.0 * sd + 0.5  # cloud_features.instrument_search_radius
             inst[1] = search
             sdp = sd
-            k = _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, search, rise, idx)
+            k = _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, search, rise, idx,
+                            U, 0.0, 0.0, False)
             cu, cv, n_fit = _fit_axis_points(U, V, orig, idx, k, c0u, c0v, inst)
             sd = _point_sd(U, V, orig, idx, k, cu, cv, r)  # from the wider search: less cut off
     # dropped: the candidates (within the search radius of the kinematic tip) and the points near the fitted axis
@@ -460,21 +465,8 @@ def _tilted_pass(U, V, Hs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, h_h
     axis standing ``rise`` above the surface (a box of bins up to the highest point ``h_hi``), the slope's start,
     the fit and its two trims with point sd ``sdp``. Returns the axis ``(cu, cv, su, sv)`` and the points fitted."""
     r, rise, t_max = inst[0], inst[2], inst[8]
-    margin = 1.0 / sb
-    reach = (S + t_max * h_hi) / gstep + margin
-    r_lo, r_hi, c_lo, c_hi = _bin_box(c0u, c0v, reach, h, gstep, sb, pad, nc)
-    k = 0
-    for rr in range(r_lo, r_hi + 1):
-        for cc in range(c_lo, c_hi + 1):
-            kk = _key(rr, cc, sb, nc)
-            for s in range(first[kk], first[kk + 1]):
-                t = orig[s]
-                if t >= 0 and Zs[s] > rise:
-                    dx = U[t] - c0u
-                    dy = V[t] - c0v
-                    if math.sqrt(dx * dx + dy * dy) < S + t_max * max(Hs[t], 0.0):
-                        idx[k] = t
-                        k += 1
+    k = _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, S, rise, idx, Hs, t_max, h_hi,
+                            True)
     x = np.array([c0u, c0v, 0.0, 0.0])
     if k < inst[6]:
         return x, 0, 0.0
