@@ -226,8 +226,8 @@ def _workspace(nmax, g, kr):
         tb += 1
     return (np.empty(nmax), np.empty(nmax), np.empty(nmax),  # U, V, W: local frame of the kept points
             np.empty(nmax), np.empty(nmax), np.empty(nmax), np.empty(nmax, dtype=np.int32),  # GU, GV, Z, key
-            np.empty(nmax), np.empty(nmax), np.empty(nmax, dtype=np.uint64),  # raster cell offsets and index
-            np.empty(nmax, dtype=np.int64),  # duplicate filter's hash
+            np.empty(nmax), np.empty(nmax), np.empty(nmax, dtype=np.uint64),  # raster cell offsets, index (A: then
+            np.empty(nmax, dtype=np.int64),  # the tilted fit's scratch); duplicate filter's hash (then its raised list)
             np.empty(nmax), np.empty(nmax), np.empty(nmax), np.empty(nmax, dtype=np.int32),  # sorted; origin
             np.empty(nc * nc + 1, dtype=np.int32), np.empty(nc * nc, dtype=np.int32),  # first, fill_at
             np.zeros(1 << (tb - 5), dtype=np.int64), np.empty(nmax, dtype=np.int32),  # bit table, candidates
@@ -236,25 +236,33 @@ def _workspace(nmax, g, kr):
             np.zeros(gg), np.zeros(gg))  # rhs, y
 
 
+@njit(cache=True, fastmath={"reassoc", "nsz", "contract", "arcp"})  # reassociated sums: vectorised
+def _axis_system(P, k, cu, cv, r):
+    """The Gauss-Newton sums of ``cloud_features._fit_axis`` at ``(cu, cv)`` on the points ``P[:, :k]`` (rows
+    ``u, v``, contiguous, so the loop runs in SIMD lanes): ``J^T J`` (upper triangle) and ``J^T res``."""
+    hxx = hxy = hyy = gx = gy = 0.0
+    for j in range(k):
+        dx = P[0, j] - cu
+        dy = P[1, j] - cv
+        n = max(math.sqrt(dx * dx + dy * dy), 1e-9)
+        inv = 1.0 / n
+        res = n - r
+        jx = -dx * inv
+        jy = -dy * inv
+        hxx += jx * jx
+        hxy += jx * jy
+        hyy += jy * jy
+        gx += jx * res
+        gy += jy * res
+    return hxx, hxy, hyy, gx, gy
+
+
 @njit(cache=True)
-def _axis_steps(U, V, orig, idx, k, cu, cv, c0u, c0v, r, wp, wk):
-    """Gauss-Newton steps of the instrument's axis on the points ``orig[idx[:k]]`` (local ``U, V``), from
+def _axis_steps(P, k, cu, cv, c0u, c0v, r, wp, wk):
+    """Gauss-Newton steps of the instrument's axis on the points ``P[:, :k]`` (rows: local ``u, v``), from
     ``(cu, cv)``, the kinematic tip ``(c0u, c0v)`` the prior: ``cloud_features._fit_axis``."""
     for _ in range(_FIT_ITERATIONS):
-        hxx = hxy = hyy = gx = gy = 0.0
-        for j in range(k):
-            t = orig[idx[j]]
-            dx = U[t] - cu
-            dy = V[t] - cv
-            n = max(math.sqrt(dx * dx + dy * dy), 1e-9)
-            res = n - r
-            jx = -dx / n
-            jy = -dy / n
-            hxx += jx * jx
-            hxy += jx * jy
-            hyy += jy * jy
-            gx += jx * res
-            gy += jy * res
+        hxx, hxy, hyy, gx, gy = _axis_system(P, k, cu, cv, r)
         a = wp * hxx + wk
         b = wp * hxy
         d = wp * hyy + wk
@@ -282,20 +290,26 @@ def _fit_axis_points(U, V, orig, idx, k, c0u, c0v, inst):
         return c0u, c0v, 0
     wp = 1.0 / max(sdp, _MIN_POINT_SD) ** 2
     wk = 1.0 / max(sdk, _MIN_TIP_SD) ** 2
-    cu, cv = _axis_steps(U, V, orig, idx, k, c0u, c0v, c0u, c0v, r, wp, wk)
+    P = np.empty((2, k))  # the candidates' u, v, contiguous
+    for j in range(k):
+        t = orig[idx[j]]
+        P[0, j] = U[t]
+        P[1, j] = V[t]
+    cu, cv = _axis_steps(P, k, c0u, c0v, c0u, c0v, r, wp, wk)
     thr = 3.0 * sdp + 0.3
     k2 = 0
     for j in range(k):  # the outliers to the end, in place (the others in their order; idx[:k] keeps every one)
-        t = orig[idx[j]]
-        dx = U[t] - cu
-        dy = V[t] - cv
+        dx = P[0, j] - cu
+        dy = P[1, j] - cv
         if abs(math.sqrt(dx * dx + dy * dy) - r) <= thr:
             keep = idx[j]
             idx[j] = idx[k2]
             idx[k2] = keep
+            P[0, k2] = P[0, j]  # and their coordinates in the order of idx[:k2]
+            P[1, k2] = P[1, j]
             k2 += 1
     if n_min <= k2 < k:
-        cu, cv = _axis_steps(U, V, orig, idx, k2, cu, cv, c0u, c0v, r, wp, wk)
+        cu, cv = _axis_steps(P, k2, cu, cv, c0u, c0v, r, wp, wk)
         return cu, cv, k2
     return cu, cv, k
 
@@ -330,14 +344,11 @@ def _bin_box(u, v, reach, h, gstep, sb, pad, nc):
 
 
 @njit(cache=True)
-def _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, search, rise, idx,
-                        Hs, t_max, h_hi, by_point):
-    """The instrument's candidates into ``idx``, in the bins' order; returns how many: the points ``rise`` above
-    the surface within ``search + t_max x max(height, 0)`` mm of the kinematic tip's axis ``(c0u, c0v)`` (heights
-    ``Hs``, the highest ``h_hi``; ``t_max`` 0: a cylinder, ``Hs`` unread). ``by_point``: store the points' indices
-    ``t`` (the tilted fit), else their sorted positions ``s``."""
+def _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, search, rise, idx):
+    """The instrument's candidates' sorted positions into ``idx``, in the bins' order; returns how many: the points
+    ``rise`` above the surface within ``search`` mm of the kinematic tip's axis ``(c0u, c0v)``."""
     margin = 1.0 / sb  # grid units: a bin of margin for rounding
-    r_lo, r_hi, c_lo, c_hi = _bin_box(c0u, c0v, (search + t_max * h_hi) / gstep + margin, h, gstep, sb, pad, nc)
+    r_lo, r_hi, c_lo, c_hi = _bin_box(c0u, c0v, search / gstep + margin, h, gstep, sb, pad, nc)
     k = 0
     for rr in range(r_lo, r_hi + 1):
         for cc in range(c_lo, c_hi + 1):
@@ -347,9 +358,8 @@ def _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, 
                 if t >= 0 and Zs[s] > rise:
                     dx = U[t] - c0u
                     dy = V[t] - c0v
-                    lim = search if t_max == 0.0 else search + t_max * max(Hs[t], 0.0)
-                    if dx * dx + dy * dy < lim * lim:
-                        idx[k] = t if by_point else s
+                    if dx * dx + dy * dy < search * search:
+                        idx[k] = s
                         k += 1
     return k
 
@@ -379,8 +389,7 @@ def _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u,
     dropped and the cloud's point noise estimated from every candidate of the last pass (NaN when nothing was
     fitted)."""
     r, search, rise, clear, sdp = inst[0], inst[1], inst[2], inst[3], inst[4]
-    k = _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, search, rise, idx,
-                            U, 0.0, 0.0, False)
+    k = _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, search, rise, idx)
     cu, cv, n_fit = _fit_axis_points(U, V, orig, idx, k, c0u, c0v, inst)
     sd = np.nan
     if n_fit > 0:
@@ -391,8 +400,7 @@ def _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u,
             search = r + 3.0 * inst[5] + 2.0 * sd + 0.5  # cloud_features.instrument_search_radius
             inst[1] = search
             sdp = sd
-            k = _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, search, rise, idx,
-                            U, 0.0, 0.0, False)
+            k = _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, search, rise, idx)
             cu, cv, n_fit = _fit_axis_points(U, V, orig, idx, k, c0u, c0v, inst)
             sd = _point_sd(U, V, orig, idx, k, cu, cv, r)  # from the wider search: less cut off
     # dropped: the candidates (within the search radius of the kinematic tip) and the points near the fitted axis
@@ -432,41 +440,133 @@ def _tilt_terms(u, v, hh, x, r):
 
 
 @njit(cache=True)
-def _tilt_steps(U, V, Hs, idx, k, x, prior, r, wp, W):
-    """``cloud_features._fit_tilted`` on the points ``idx[:k]`` (local ``U, V``, heights ``Hs``), from ``x``."""
-    A = np.empty((4, 4))
-    b = np.empty(4)
-    row = np.empty(4)
+def _spd4_solve(a00, a01, a02, a03, a11, a12, a13, a22, a23, a33, b0, b1, b2, b3):
+    """``x = A^-1 b`` for a symmetric positive definite 4 x 4 ``A`` (upper triangle ``aij``), by its Cholesky factor
+    ``L`` (no allocation: the tilted fit solves one per Gauss-Newton step). Returns ``(x0, x1, x2, x3, l22, l32,
+    l33)``: the lower-right block ``L_ss`` of ``L`` is the Cholesky factor of the Schur complement ``A_ss - A_sc
+    A_cc^-1 A_cs = ((A^-1)_ss)^-1``, so ``s^T ((A^-1)_ss)^-1 s = |L_ss^T s|^2`` (the slope's Wald statistic,
+    ``cloud_features._slope_wald``)."""
+    l00 = math.sqrt(a00)
+    l10 = a01 / l00
+    l20 = a02 / l00
+    l30 = a03 / l00
+    l11 = math.sqrt(a11 - l10 * l10)
+    l21 = (a12 - l20 * l10) / l11
+    l31 = (a13 - l30 * l10) / l11
+    l22 = math.sqrt(a22 - l20 * l20 - l21 * l21)
+    l32 = (a23 - l30 * l20 - l31 * l21) / l22
+    l33 = math.sqrt(a33 - l30 * l30 - l31 * l31 - l32 * l32)
+    y0 = b0 / l00
+    y1 = (b1 - l10 * y0) / l11
+    y2 = (b2 - l20 * y0 - l21 * y1) / l22
+    y3 = (b3 - l30 * y0 - l31 * y1 - l32 * y2) / l33
+    x3 = y3 / l33
+    x2 = (y2 - l32 * x3) / l22
+    x1 = (y1 - l21 * x2 - l31 * x3) / l11
+    x0 = (y0 - l10 * x1 - l20 * x2 - l30 * x3) / l00
+    return x0, x1, x2, x3, l22, l32, l33
+
+
+@njit(cache=True, fastmath={"reassoc", "nsz", "contract", "arcp"})  # reassociated sums: vectorised
+def _tilt_normal(Q, k, x, prior, r, wp, W):
+    """The Gauss-Newton system of ``cloud_features._fit_tilted`` at ``x`` on the points ``Q[:, :k]`` (rows: local
+    ``u, v``, height): ``wp J^T J + diag(W)`` (its upper triangle) and ``wp J^T res + W (x - prior)``, in scalars
+    (:func:`_tilt_terms` inlined by hand; the points contiguous, so the loop runs in SIMD lanes)."""
+    cu = x[0]
+    cv = x[1]
+    su = x[2]
+    sv = x[3]
+    kap = 1.0 / (1.0 + (su * su + sv * sv))
+    a00 = a01 = a02 = a03 = a11 = a12 = a13 = a22 = a23 = a33 = 0.0
+    b0 = b1 = b2 = b3 = 0.0
+    for j in range(k):
+        hh = Q[2, j]
+        du = Q[0, j] - cu - hh * su
+        dv = Q[1, j] - cv - hh * sv
+        p = du * su + dv * sv
+        d = math.sqrt(max((du * du + dv * dv) - kap * p * p, 1e-18))
+        gx = du - kap * p * su
+        gy = dv - kap * p * sv
+        kp = kap * kap * p * p
+        inv = 1.0 / d
+        res = d - r
+        j0 = -gx * inv
+        j1 = -gy * inv
+        j2 = (-hh * gx - kap * p * du + kp * su) * inv
+        j3 = (-hh * gy - kap * p * dv + kp * sv) * inv
+        a00 += j0 * j0
+        a01 += j0 * j1
+        a02 += j0 * j2
+        a03 += j0 * j3
+        a11 += j1 * j1
+        a12 += j1 * j2
+        a13 += j1 * j3
+        a22 += j2 * j2
+        a23 += j2 * j3
+        a33 += j3 * j3
+        b0 += j0 * res
+        b1 += j1 * res
+        b2 += j2 * res
+        b3 += j3 * res
+    return (wp * a00 + W[0], wp * a01, wp * a02, wp * a03, wp * a11 + W[1], wp * a12, wp * a13, wp * a22 + W[2],
+            wp * a23, wp * a33 + W[3], wp * b0 + W[0] * (x[0] - prior[0]), wp * b1 + W[1] * (x[1] - prior[1]),
+            wp * b2 + W[2] * (x[2] - prior[2]), wp * b3 + W[3] * (x[3] - prior[3]))
+
+
+@njit(cache=True, fastmath={"nsz", "contract", "arcp"})
+def _tilt_near(Q, k, x, r, thr):
+    """How many of the points ``Q[:, :k]`` are within ``thr`` of the cylinder of radius ``r`` about the axis ``x``
+    (:func:`_tilt_terms`'s residual); ``Q[3, j]`` set to 1 for those, else 0."""
+    cu = x[0]
+    cv = x[1]
+    su = x[2]
+    sv = x[3]
+    kap = 1.0 / (1.0 + (su * su + sv * sv))
+    n = 0
+    for j in range(k):
+        hh = Q[2, j]
+        du = Q[0, j] - cu - hh * su
+        dv = Q[1, j] - cv - hh * sv
+        p = du * su + dv * sv
+        near = abs(math.sqrt(max((du * du + dv * dv) - kap * p * p, 1e-18)) - r) <= thr
+        Q[3, j] = 1.0 if near else 0.0
+        n += near
+    return n
+
+
+@njit(cache=True)
+def _tilt_steps(Q, k, x, prior, r, wp, W):
+    """``cloud_features._fit_tilted`` on the points ``Q[:, :k]`` (:func:`_tilt_normal`), from ``x`` (updated in
+    place, and returned)."""
     for _ in range(_FIT_ITERATIONS):
-        A[:] = 0.0
-        b[:] = 0.0
-        for j in range(k):
-            t = idx[j]
-            res, row[0], row[1], row[2], row[3] = _tilt_terms(U[t], V[t], Hs[t], x, r)
-            for a in range(4):
-                b[a] += row[a] * res
-                for c in range(4):
-                    A[a, c] += row[a] * row[c]
-        for a in range(4):
-            b[a] = wp * b[a] + W[a] * (x[a] - prior[a])
-            for c in range(4):
-                A[a, c] *= wp
-            A[a, a] += W[a]
-        step = np.linalg.solve(A, b)
-        x = x - step
-        if step[0] * step[0] + step[1] * step[1] + step[2] * step[2] + step[3] * step[3] < 1e-16:
+        a00, a01, a02, a03, a11, a12, a13, a22, a23, a33, b0, b1, b2, b3 = _tilt_normal(Q, k, x, prior, r, wp, W)
+        s0, s1, s2, s3, _, _, _ = _spd4_solve(a00, a01, a02, a03, a11, a12, a13, a22, a23, a33, b0, b1, b2, b3)
+        x[0] -= s0
+        x[1] -= s1
+        x[2] -= s2
+        x[3] -= s3
+        if s0 * s0 + s1 * s1 + s2 * s2 + s3 * s3 < 1e-16:
             break
     return x
 
 
 @njit(cache=True)
-def _tilted_pass(U, V, Hs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, h_hi, S, sdp, inst, idx):
+def _tilted_pass(U, V, Hs, orig, raised, n_raised, c0u, c0v, S, sdp, inst, idx):
     """``cloud_features._tilted_pass``: the candidates within ``S + tan(max tilt) x height`` of the kinematic tip's
-    axis standing ``rise`` above the surface (a box of bins up to the highest point ``h_hi``), the slope's start,
-    the fit and its two trims with point sd ``sdp``. Returns the axis ``(cu, cv, su, sv)`` and the points fitted."""
-    r, rise, t_max = inst[0], inst[2], inst[8]
-    k = _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, S, rise, idx, Hs, t_max, h_hi,
-                            True)
+    axis among the points standing ``rise`` above the surface (sorted positions ``raised[:n_raised]``), the slope's
+    start, the fit and its two trims with point sd ``sdp``. Returns the axis ``(cu, cv, su, sv)``, the points fitted
+    and the slope's Wald statistic."""
+    r, t_max = inst[0], inst[8]
+    k = 0
+    for j in range(n_raised):
+        t = orig[raised[j]]
+        if t >= 0:
+            dx = U[t] - c0u
+            dy = V[t] - c0v
+            lim = S + t_max * max(Hs[t], 0.0)
+            if dx * dx + dy * dy < lim * lim:
+                idx[k] = t
+                k += 1
     x = np.array([c0u, c0v, 0.0, 0.0])
     if k < inst[6]:
         return x, 0, 0.0
@@ -475,12 +575,16 @@ def _tilted_pass(U, V, Hs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, h_h
     wk = 1.0 / max(inst[5], _MIN_TIP_SD) ** 2
     ws = 1.0 / max(t_max, 1e-3) ** 2
     W = np.array([wk, wk, ws, ws])
+    Q = np.empty((4, k))  # the candidates' u, v, height and scratch, contiguous (the trims compact them stably)
     lo = np.inf
     hi = -np.inf
     sh = shh = su = sv = shu = shv = 0.0
     for j in range(k):
         t = idx[j]
         hh = Hs[t]
+        Q[0, j] = U[t]
+        Q[1, j] = V[t]
+        Q[2, j] = hh
         lo = min(lo, hh)
         hi = max(hi, hh)
         sh += hh
@@ -498,34 +602,25 @@ def _tilted_pass(U, V, Hs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, h_h
             x[3] = slv
     thr = 3.0 * sdp + 0.3
     for _ in range(2):
-        x = _tilt_steps(U, V, Hs, idx, k, x, prior, r, wp, W)
-        k2 = 0
-        for j in range(k):  # the outliers behind the others by swaps: idx[:k] keeps every one if too few remain
-            t = idx[j]
-            if abs(_tilt_terms(U[t], V[t], Hs[t], x, r)[0]) <= thr:
-                idx[j] = idx[k2]
-                idx[k2] = t
-                k2 += 1
-        if k2 < inst[6]:
+        x = _tilt_steps(Q, k, x, prior, r, wp, W)
+        k2 = _tilt_near(Q, k, x, r, thr)  # the points near the fitted axis (Q[3]: 1 or 0)
+        if k2 < inst[6]:  # too few: every candidate stays
             break
+        k2 = 0
+        for j in range(k):  # kept in their order
+            if Q[3, j] > 0.0:
+                Q[0, k2] = Q[0, j]
+                Q[1, k2] = Q[1, j]
+                Q[2, k2] = Q[2, j]
+                k2 += 1
         k = k2
-    x = _tilt_steps(U, V, Hs, idx, k, x, prior, r, wp, W)
-    # the slope's Wald statistic (cloud_features._slope_wald)
-    A = np.zeros((4, 4))
-    row = np.empty(4)
-    for j in range(k):
-        t = idx[j]
-        _, row[0], row[1], row[2], row[3] = _tilt_terms(U[t], V[t], Hs[t], x, r)
-        for a in range(4):
-            for c in range(4):
-                A[a, c] += row[a] * row[c]
-    for a in range(4):
-        for c in range(4):
-            A[a, c] *= wp
-        A[a, a] += W[a]
-    cov = np.linalg.inv(A)[2:, 2:].copy()
-    sl = x[2:].copy()
-    return x, k, float(sl @ np.linalg.solve(cov, sl))
+    x = _tilt_steps(Q, k, x, prior, r, wp, W)
+    # the slope's Wald statistic (cloud_features._slope_wald): s^T Cov(s)^-1 s, Cov(s)^-1 = the Schur complement
+    a00, a01, a02, a03, a11, a12, a13, a22, a23, a33, b0, b1, b2, b3 = _tilt_normal(Q, k, x, prior, r, wp, W)
+    _, _, _, _, l22, l32, l33 = _spd4_solve(a00, a01, a02, a03, a11, a12, a13, a22, a23, a33, b0, b1, b2, b3)
+    e2 = l22 * x[2] + l32 * x[3]  # L_ss^T s
+    e3 = l33 * x[3]
+    return x, k, e2 * e2 + e3 * e3
 
 
 @njit(cache=True)
@@ -538,39 +633,36 @@ def _axis_box(x, h_lo, h_hi, reach, h, gstep, sb, pad, nc):
 
 
 @njit(cache=True)
-def _tilted_sd(U, V, Hs, Zs, orig, first, sb, pad, nc, h, gstep, x, h_lo, h_hi, S, r, rise, n_all):
+def _tilted_sd(U, V, Hs, orig, raised, n_raised, x, S, r, a):
     """``cloud_features._tilted_point_sd``: ``1.4826`` times the median ``|d - r|`` of the points standing ``rise``
-    above the surface within ``S`` of the axis ``x`` (NaN without one)."""
-    # a point within S of the axis lies within S sqrt(1 + |s|^2) of it sideways at its own height
-    sec = math.sqrt(1.0 + (x[2] * x[2] + x[3] * x[3]))
-    r_lo, r_hi, c_lo, c_hi = _axis_box(x, h_lo, h_hi, S * sec / gstep + 1.0 / sb, h, gstep, sb, pad, nc)
-    a = np.empty(n_all)
+    above the surface (sorted positions ``raised[:n_raised]``) within ``S`` of the axis ``x`` (NaN without one);
+    ``a``: scratch, as long as the cloud."""
     k = 0
-    for rr in range(r_lo, r_hi + 1):
-        for cc in range(c_lo, c_hi + 1):
-            kk = _key(rr, cc, sb, nc)
-            for s in range(first[kk], first[kk + 1]):
-                t = orig[s]
-                if t >= 0 and Zs[s] > rise:
-                    d = _tilt_terms(U[t], V[t], Hs[t], x, 0.0)[0]
-                    if d < S:
-                        a[k] = abs(d - r)
-                        k += 1
+    for j in range(n_raised):
+        t = orig[raised[j]]
+        if t >= 0:
+            d = _tilt_terms(U[t], V[t], Hs[t], x, 0.0)[0]
+            if d < S:
+                a[k] = abs(d - r)
+                k += 1
     return _MAD_SD * np.median(a[:k]) if k else np.nan
 
 
 @njit(cache=True)
 def _fit_instrument_tilted(U, V, Wl, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, tw, inst, idx,
-                           Hs):
+                           Hs, scr, raised):
     """:func:`liverforce.learn.cloud_features.fit_instrument_tilted` on the sorted, distinct points (as
     :func:`_fit_instrument`): the shaft's axis with its slope (``inst[8]``: the tangent of the largest tilt), a
     cloud clearly noisier than the model's point sd fitted again with its own, the instrument's points moved off
-    the grid. ``tw``: the kinematic tip's height; ``Hs``: scratch, the points' heights above it. Returns the tip
-    ``(tu, tv)``, its height change along the normal, the points fitted and the noise estimate."""
+    the grid. ``tw``: the kinematic tip's height; ``Hs``: scratch, the points' heights above it; ``scr`` and
+    ``raised``: scratch as long (the noise estimate's distances; the sorted positions of the points standing
+    ``rise`` above the surface, the only ones the search and the noise estimate read). Returns the tip ``(tu,
+    tv)``, its height change along the normal, the points fitted and the noise estimate."""
     r, rise, clear, sdp, sdk = inst[0], inst[2], inst[3], inst[4], inst[5]
     n_all = first[nc * nc]
     h_lo = 0.0
     h_hi = 0.0
+    n_raised = 0
     for s in range(n_all):
         t = orig[s]
         if t >= 0:
@@ -578,18 +670,18 @@ def _fit_instrument_tilted(U, V, Wl, GUs, GVs, Zs, orig, first, sb, pad, nc, h, 
             Hs[t] = hh
             h_lo = min(h_lo, hh)
             h_hi = max(h_hi, hh)
+            raised[n_raised] = s  # the points standing rise above the surface: the only candidates
+            n_raised += Zs[s] > rise
     S = inst[1]
-    x, n_fit, wald = _tilted_pass(U, V, Hs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, h_hi, S, sdp, inst,
-                                  idx)
+    x, n_fit, wald = _tilted_pass(U, V, Hs, orig, raised, n_raised, c0u, c0v, S, sdp, inst, idx)
     sd = np.nan
     if n_fit > 0:
-        sd = _tilted_sd(U, V, Hs, Zs, orig, first, sb, pad, nc, h, gstep, x, h_lo, h_hi, S, r, rise, n_all)
+        sd = _tilted_sd(U, V, Hs, orig, raised, n_raised, x, S, r, scr)
         if sd > inst[7] * max(sdp, _MIN_POINT_SD):  # the cloud's own noise: search and fit again
             sdp = sd
             S = r + 3.0 * sdk + 2.0 * sd + 0.5  # cloud_features.instrument_search_radius
-            x, n_fit, wald = _tilted_pass(U, V, Hs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, h_hi, S, sdp,
-                                          inst, idx)
-            sd = _tilted_sd(U, V, Hs, Zs, orig, first, sb, pad, nc, h, gstep, x, h_lo, h_hi, S, r, rise, n_all)
+            x, n_fit, wald = _tilted_pass(U, V, Hs, orig, raised, n_raised, c0u, c0v, S, sdp, inst, idx)
+            sd = _tilted_sd(U, V, Hs, orig, raised, n_raised, x, S, r, scr)
     if wald < inst[9]:  # no tilt the points can tell from the normal: the fit along it (TILT_WALD)
         cu, cv, n_fit, _, sd = _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v,
                                                inst, idx)
@@ -774,7 +866,7 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
     if inst[0] > 0.0 and inst[8] > 0.0:  # the instrument, its shaft perhaps tilted: the tip from its axis
         tw = R[2, 0] * tp0 + R[2, 1] * tp1 + R[2, 2] * tp2
         tu, tv, dw, nf, sd = _fit_instrument_tilted(U, V, Wl, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, tu,
-                                                    tv, tw, inst, cand, GU)
+                                                    tv, tw, inst, cand, GU, A, HB)
     elif inst[0] > 0.0:  # the instrument's points: fitted (the tip's tangential part), then moved off the grid
         tu, tv, nf, _, sd = _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, tu, tv, inst, cand)
     if n_dup:

@@ -519,10 +519,11 @@ def test_the_noisy_cloud_warning_names_the_estimate_and_the_training_noise():
 
 
 def test_the_compiled_tilted_pass_is_the_reference_on_few_points():
-    """The numba search-and-fit pass of the tilted fit (serve.compiled_cloud._tilted_pass, every point in one sort
-    bin) against cloud_features._tilted_pass on shafts of 7-14 points with liver bumps among the candidates:
-    the same axis, points fitted and Wald statistic, also when a trim would leave fewer than the fewest points
-    (the trim must keep every candidate in idx[:k] then)."""
+    """The numba search-and-fit pass of the tilted fit (serve.compiled_cloud._tilted_pass, on the list of the
+    points standing above the surface, one of them a duplicate the kernel has struck out) against
+    cloud_features._tilted_pass on shafts of 7-14 points with liver bumps among the candidates: the same axis,
+    points fitted and Wald statistic, also when a trim would leave fewer than the fewest points (every candidate
+    must stay in the fit then)."""
     import math
 
     from liverforce.learn import cloud_features as cf
@@ -544,9 +545,14 @@ def test_the_compiled_tilted_pass_is_the_reference_on_few_points():
         uv, H = P[:, :2].copy(), P[:, 2].copy()
         want = cf._tilted_pass(uv, H, H, np.zeros(2), sp, sp.instrument_point_sd_mm)
         n = len(P)
-        got = cc._tilted_pass(uv[:, 0].copy(), uv[:, 1].copy(), H.copy(), H.copy(), np.arange(n, dtype=np.int32),
-                              np.array([0, n], dtype=np.int32), 1, 0, 1, 20.0, 1.0, 0.0, 0.0, float(H.max()),
-                              inst[1], sp.instrument_point_sd_mm, inst, np.zeros(n, dtype=np.int32))
+        # the kernel's list of the points standing above the surface, with a struck-out duplicate (orig -1) of a shaft
+        # point in it: it must be skipped
+        U, V, Hk = (np.append(a, a[-1]) for a in (uv[:, 0], uv[:, 1], H))
+        orig = np.append(np.arange(n, dtype=np.int32), np.int32(-1))
+        raised = np.flatnonzero(Hk > inst[2])
+        assert raised[-1] == n
+        got = cc._tilted_pass(U, V, Hk, orig, raised, len(raised), 0.0, 0.0, inst[1], sp.instrument_point_sd_mm, inst,
+                              np.zeros(n + 1, dtype=np.int32))
         np.testing.assert_allclose(got[0], want[0], atol=1e-9)
         assert got[1] == want[1]
         assert got[2] == pytest.approx(want[2], rel=1e-9, abs=1e-9)
