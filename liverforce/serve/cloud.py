@@ -255,6 +255,12 @@ MASKED_INSTRUMENT = ("too few points of the tool's shaft to fit its axis (the in
 NOISY_CLOUD_RATIO = 1.75
 
 
+def noisy_threshold_mm(spec) -> float:
+    """The point noise (sd, mm) above which :func:`noisy_cloud` warns: :data:`NOISY_CLOUD_RATIO` times the
+    training clouds' (``spec.instrument_point_sd_mm``, floored at 0.05 mm as the fit floors it)."""
+    return NOISY_CLOUD_RATIO * max(float(spec.instrument_point_sd_mm), 0.05)
+
+
 def noisy_cloud(point_sd_mm: float, spec) -> str | None:
     """The warning for a cloud noisier than the model's training clouds, or None: its point noise estimated from
     the instrument's points (:func:`liverforce.learn.cloud_features.instrument_point_sd`; NaN when nothing was
@@ -263,7 +269,7 @@ def noisy_cloud(point_sd_mm: float, spec) -> str | None:
     regressor has not seen such clouds."""
     trained = max(float(spec.instrument_point_sd_mm), 0.05)
     sd = float(point_sd_mm)
-    if not sd > NOISY_CLOUD_RATIO * trained:
+    if not sd > noisy_threshold_mm(spec):
         return None
     return (f"the cloud's points scatter {sd:.2g} mm (sd) about the tool's shaft, {sd / trained:.1f} times the "
             f"{trained:g} mm noise of the model's training clouds: a noisier camera than the model was trained for; "

@@ -89,9 +89,9 @@ from liverforce.learn.cloud_features import (_FIT_ITERATIONS, _MAD_SD, _MIN_POIN
 from liverforce.learn.encoders import PCAEncoder
 from liverforce.learn.state import THICKNESS_COLUMN, compliance_matrices, state_vector
 from liverforce.serve.checks import Limits, TrainingScale, outside_training
-from liverforce.serve.cloud import (MASKED_INSTRUMENT, NOISY_CLOUD_RATIO, SHAFT_MARGIN_MM, SHAFT_POINTS, SHAFT_RING_MM,
-                                    SHAFT_RISE_MM, camera_checks, instrument_check_radius, instrument_refusal,
-                                    noisy_cloud, tool_tip_of)
+from liverforce.serve.cloud import (MASKED_INSTRUMENT, SHAFT_MARGIN_MM, SHAFT_POINTS, SHAFT_RING_MM, SHAFT_RISE_MM,
+                                    camera_checks, instrument_check_radius, instrument_refusal, noisy_cloud,
+                                    noisy_threshold_mm, tool_tip_of)
 from liverforce.serve.compiled import numpy_layers, regressor_head
 from liverforce.serve.errors import PredictionInputError
 from liverforce.serve.input_frame import InputFrame
@@ -654,24 +654,20 @@ def _fit_instrument_tilted(U, V, Wl, GUs, GVs, Zs, orig, first, sb, pad, nc, h, 
     """:func:`liverforce.learn.cloud_features.fit_instrument_tilted` on the sorted, distinct points (as
     :func:`_fit_instrument`): the shaft's axis with its slope (``inst[8]``: the tangent of the largest tilt), a
     cloud clearly noisier than the model's point sd fitted again with its own, the instrument's points moved off
-    the grid. ``tw``: the kinematic tip's height; ``Hs``: scratch, the points' heights above it; ``scr`` and
+    the grid. ``tw``: the kinematic tip's height; ``Hs``: scratch, the raised points' heights above it; ``scr`` and
     ``raised``: scratch as long (the noise estimate's distances; the sorted positions of the points standing
     ``rise`` above the surface, the only ones the search and the noise estimate read). Returns the tip ``(tu,
     tv)``, its height change along the normal, the points fitted and the noise estimate."""
     r, rise, clear, sdp, sdk = inst[0], inst[2], inst[3], inst[4], inst[5]
     n_all = first[nc * nc]
-    h_lo = 0.0
-    h_hi = 0.0
     n_raised = 0
-    for s in range(n_all):
-        t = orig[s]
+    for s in range(n_all):  # the points standing rise above the surface, the only candidates (branch-free)
+        raised[n_raised] = s
+        n_raised += Zs[s] > rise
+    for j in range(n_raised):  # their heights above the kinematic tip (duplicates struck out: orig -1)
+        t = orig[raised[j]]
         if t >= 0:
-            hh = Wl[t] - tw
-            Hs[t] = hh
-            h_lo = min(h_lo, hh)
-            h_hi = max(h_hi, hh)
-            raised[n_raised] = s  # the points standing rise above the surface: the only candidates
-            n_raised += Zs[s] > rise
+            Hs[t] = Wl[t] - tw
     S = inst[1]
     x, n_fit, wald = _tilted_pass(U, V, Hs, orig, raised, n_raised, c0u, c0v, S, sdp, inst, idx)
     sd = np.nan
@@ -686,8 +682,15 @@ def _fit_instrument_tilted(U, V, Wl, GUs, GVs, Zs, orig, first, sb, pad, nc, h, 
         cu, cv, n_fit, _, sd = _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v,
                                                inst, idx)
         return cu, cv, 0.0, n_fit, sd
-    # dropped: the points near the fitted axis at their height
-    sec = math.sqrt(1.0 + (x[2] * x[2] + x[3] * x[3]))  # within d of the axis: within d sec sideways (_tilted_sd)
+    # dropped: the points near the fitted axis at their height (between the lowest and the highest point's)
+    h_lo = 0.0
+    h_hi = 0.0
+    for s in range(n_all):
+        t = orig[s]
+        if t >= 0:
+            h_lo = min(h_lo, Wl[t] - tw)
+            h_hi = max(h_hi, Wl[t] - tw)
+    sec = math.sqrt(1.0 + (x[2] * x[2] + x[3] * x[3]))  # within d of the axis: within d sec sideways
     far = max(S, r + clear + 2.0 * sdp) * sec / gstep + 1.0 / sb
     r_lo, r_hi, c_lo, c_hi = _axis_box(x, h_lo, h_hi, far, h, gstep, sb, pad, nc)
     for rr in range(r_lo, r_hi + 1):
@@ -696,7 +699,7 @@ def _fit_instrument_tilted(U, V, Wl, GUs, GVs, Zs, orig, first, sb, pad, nc, h, 
             for s in range(first[kk], first[kk + 1]):
                 t = orig[s]
                 if t >= 0:
-                    d = _tilt_terms(U[t], V[t], Hs[t], x, 0.0)[0]
+                    d = _tilt_terms(U[t], V[t], Wl[t] - tw, x, 0.0)[0]
                     z = Zs[s]
                     if (d < r + clear or (d < r + clear + 2.0 * sdp and z > 0.0)) or (z > rise and d < S):
                         GUs[s] = _FAR
@@ -1285,7 +1288,7 @@ class CompiledCloud:
                         refused[r] = str(exc)
         if self.fits_instrument:  # predict_cloud's order: too little of the instrument to fit (the kinematic tip),
             # noisier than the training clouds (noisy_cloud decides), then the feature checks
-            for r in np.flatnonzero(n_tool[:, 2] > NOISY_CLOUD_RATIO * max(self.spec.instrument_point_sd_mm, 0.05)):
+            for r in np.flatnonzero(n_tool[:, 2] > noisy_threshold_mm(self.spec)):
                 if refused[r] is None:
                     noisy = noisy_cloud(n_tool[r, 2], self.spec)
                     warnings[r] = [noisy] + warnings[r] if noisy else warnings[r]
