@@ -495,10 +495,6 @@ _MAD_SD = 1.4826  # sd of a normal variable per median absolute deviation
 #: the fitted slope's Wald statistic below which a shaft counts as along the normal (chi-square, 2 degrees of
 #: freedom, p = 0.001): the fit that assumes it is then used, its tip far more precise
 TILT_WALD = 13.8
-#: the slope is fitted only when the points show a tilt at the fit along the normal (:func:`_tilt_evident`): the
-#: shaft's candidate points scatter more than this many times the model's point sd about its axis, or the slope's
-#: score statistic reaches :data:`TILT_WALD`
-TILT_GATE_RATIO = 1.2
 
 
 def _fit_axis(Q: np.ndarray, c: np.ndarray, c0: np.ndarray, r: float, wp: float, wk: float) -> np.ndarray:
@@ -603,47 +599,6 @@ def _slope_wald(Q, H, x, r, wp, wk, ws) -> float:
     return float(x[2:] @ np.linalg.solve(cov, x[2:]))
 
 
-def _slope_score(Q, H, c, c0, r, wp, wk, ws) -> float:
-    """The score (Lagrange multiplier) statistic of the slope at the axis ``c`` fitted along the normal:
-    ``g^T A^-1 g`` with ``g`` the gradient of half :func:`_fit_tilted`'s objective at ``x = (c, 0, 0)`` (prior
-    ``(c0, 0, 0)``) and ``A`` its Gauss-Newton Hessian there, without fitting the slope. Chi-square with 2 degrees
-    of freedom for a shaft along the normal when ``c`` is the optimum on the same points; on points the normal fit
-    did not use (the tilted fit's candidates) ``g``'s axis part adds to it: a gate that opens more often, never
-    less."""
-    x = np.array([c[0], c[1], 0.0, 0.0])
-    W = np.array([wk, wk, ws, ws])
-    res, J = _tilt_residuals(Q, H, x, r)
-    g = wp * (J.T @ res) + W * (x - np.array([c0[0], c0[1], 0.0, 0.0]))
-    return float(g @ np.linalg.solve(wp * (J.T @ J) + np.diag(W), g))
-
-
-def _tilt_evident(uv, H, dz, c0, c, spec: CloudGridSpec) -> bool:
-    """Whether the points may show a tilt, judged at the axis ``c`` fitted along the normal (:func:`fit_instrument`)
-    before the slope is fitted: on the tilted fit's candidates with the model's point sd (:func:`_tilted_pass`:
-    within the search radius of the kinematic tip's axis ``c0`` widened by ``tan(max tilt)`` per mm of height
-    ``H``), their scatter about ``c`` (``1.4826`` x the median ``||q - c| - r|``) above :data:`TILT_GATE_RATIO`
-    times the point sd, or the slope's score statistic (:func:`_slope_score`) reaching :data:`TILT_WALD`. False
-    with fewer than ``instrument_min_points`` candidates (the slope's fit would have none either). The scatter
-    catches a shaft tilted well beyond the normal fit's candidates (the score, at a fit of the shaft's foot, can
-    miss it); the score catches small tilts. On 48 synthetic clouds per tilt (0.5 mm point and kinematic noise),
-    it passed 3 of 48 shafts along the normal, 26 / 45 / 47 / 48 / 48 at 2 / 5 / 10 / 20 / 30 deg, and the fit
-    returned was the same as without it on every cloud tilted 10 deg or more."""
-    sdp = spec.instrument_point_sd_mm
-    t_max = math.tan(math.radians(spec.instrument_max_tilt_deg))
-    lat0 = np.hypot(uv[:, 0] - c0[0], uv[:, 1] - c0[1])
-    cand = (dz > spec.instrument_rise_mm) & (lat0 < instrument_search_radius(spec) + t_max * np.maximum(H, 0.0))
-    if cand.sum() < spec.instrument_min_points:
-        return False
-    Q, Hc = uv[cand], H[cand]
-    r = spec.instrument_radius_mm
-    if _MAD_SD * float(np.median(np.abs(np.hypot(Q[:, 0] - c[0], Q[:, 1] - c[1]) - r))) > TILT_GATE_RATIO * max(
-            sdp, _MIN_POINT_SD):
-        return True
-    wp = 1.0 / max(sdp, _MIN_POINT_SD) ** 2
-    wk = 1.0 / max(spec.instrument_tip_sd_mm, _MIN_TIP_SD) ** 2
-    return _slope_score(Q, Hc, c, c0, r, wp, wk, 1.0 / max(t_max, 1e-3) ** 2) >= TILT_WALD
-
-
 def fit_instrument_tilted(uv: np.ndarray, w: np.ndarray, dz: np.ndarray, tip_local,
                           spec: CloudGridSpec) -> tuple[np.ndarray, np.ndarray, int, float]:
     """The instrument's axis when its shaft may be tilted from the normal (``instrument_max_tilt_deg`` > 0);
@@ -662,10 +617,9 @@ def fit_instrument_tilted(uv: np.ndarray, w: np.ndarray, dz: np.ndarray, tip_loc
     change of its height). ``keep``: the points beyond ``r + instrument_clearance_mm`` of the axis, beyond
     another ``2 sd_p`` where they stand above the surface, and beyond the search radius where they stand
     ``instrument_rise_mm`` above it. ``point_sd``: the noise estimate below (NaN when fewer than
-    ``instrument_min_points`` candidates were found: then the kinematic tip, the axis along the normal). The fit
-    that assumes the normal (:func:`fit_instrument`) comes first, and is returned unless its points show a tilt
-    (:func:`_tilt_evident`: most shafts along the normal skip the slope's fit) and the fitted slope is significant
-    (its Wald statistic reaching :data:`TILT_WALD`): with a free slope the tip is an extrapolation down the
+    ``instrument_min_points`` candidates were found: then the kinematic tip, the axis along the normal). When the
+    points cannot tell the slope from 0 (its Wald statistic below :data:`TILT_WALD`), the fit that assumes the
+    normal is returned instead (:func:`fit_instrument`): with a free slope the tip is an extrapolation down the
     axis, about twice as far off on a shaft along the normal (0.25 against 0.11 mm rms along the surface on scenario
     I's clouds). A cloud clearly noisier than the model's point sd is fitted again with its own, as in
     :func:`fit_instrument` (the estimate here: the points standing ``instrument_rise_mm`` above the surface within
@@ -678,10 +632,6 @@ def fit_instrument_tilted(uv: np.ndarray, w: np.ndarray, dz: np.ndarray, tip_loc
     H = np.asarray(w, dtype=np.float64) - tip[2]  # heights above the kinematic tip along the normal
     r = spec.instrument_radius_mm
     sdp = spec.instrument_point_sd_mm
-    c, keep, n_fit, sd = fit_instrument(uv, dz, tip[:2], spec)  # the fit along the normal
-    normal = np.array([c[0], c[1], tip[2]]), keep, n_fit, sd
-    if not _tilt_evident(uv, H, dz, tip[:2], c, spec):
-        return normal
     x, n_fit, wald = _tilted_pass(uv, H, dz, tip[:2], spec, sdp)
     sd = math.nan
     if n_fit:
@@ -691,7 +641,8 @@ def fit_instrument_tilted(uv: np.ndarray, w: np.ndarray, dz: np.ndarray, tip_loc
             x, n_fit, wald = _tilted_pass(uv, H, dz, tip[:2], spec, sdp)
             sd = _tilted_point_sd(uv, H, dz, x, spec, sdp)
     if wald < TILT_WALD:  # no tilt the points can tell from the normal: the fit along it, more precise
-        return normal
+        c, keep, n_fit, sd = fit_instrument(uv, dz, tip[:2], spec)
+        return np.array([c[0], c[1], tip[2]]), keep, n_fit, sd
     d_all, _ = _tilt_residuals(uv, H, x, 0.0)  # every point's distance from the fitted axis
     near = d_all < r + spec.instrument_clearance_mm
     near |= (d_all < r + spec.instrument_clearance_mm + 2.0 * sdp) & (dz > 0)

@@ -62,7 +62,6 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from liverforce.learn import camera
-from liverforce.learn.cloud_features import _MIN_POINT_SD
 from liverforce.learn.representation import interpolate_to_grid
 from liverforce.serve.checks import Limits, TrainingScale
 from liverforce.serve.errors import PredictionInputError
@@ -256,24 +255,19 @@ MASKED_INSTRUMENT = ("too few points of the tool's shaft to fit its axis (the in
 NOISY_CLOUD_RATIO = 1.75
 
 
-def _trained_sd_mm(spec) -> float:
-    """The training clouds' point sd (``spec.instrument_point_sd_mm``), floored as the instrument fit floors it."""
-    return max(float(spec.instrument_point_sd_mm), _MIN_POINT_SD)
-
-
 def noisy_threshold_mm(spec) -> float:
     """The point noise (sd, mm) above which :func:`noisy_cloud` warns: :data:`NOISY_CLOUD_RATIO` times the
-    training clouds' (floored as the instrument fit floors it)."""
-    return NOISY_CLOUD_RATIO * _trained_sd_mm(spec)
+    training clouds' (``spec.instrument_point_sd_mm``, floored at 0.05 mm as the fit floors it)."""
+    return NOISY_CLOUD_RATIO * max(float(spec.instrument_point_sd_mm), 0.05)
 
 
 def noisy_cloud(point_sd_mm: float, spec) -> str | None:
     """The warning for a cloud noisier than the model's training clouds, or None: its point noise estimated from
     the instrument's points (:func:`liverforce.learn.cloud_features.instrument_point_sd`; NaN when nothing was
-    fitted: None) above :func:`noisy_threshold_mm`, :data:`NOISY_CLOUD_RATIO` times the training clouds'.
+    fitted: None) above :data:`NOISY_CLOUD_RATIO` times the training clouds' (``spec.instrument_point_sd_mm``).
     The fit has used the cloud's own noise (:func:`~liverforce.learn.cloud_features.fit_instrument`); the
     regressor has not seen such clouds."""
-    trained = _trained_sd_mm(spec)
+    trained = max(float(spec.instrument_point_sd_mm), 0.05)
     sd = float(point_sd_mm)
     if not sd > noisy_threshold_mm(spec):
         return None

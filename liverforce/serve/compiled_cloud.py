@@ -85,8 +85,7 @@ from numba.typed import List
 
 from liverforce.learn import camera
 from liverforce.learn.cloud_features import (_FIT_ITERATIONS, _MAD_SD, _MIN_POINT_SD, _MIN_TIP_SD, NOISE_REFIT_RATIO,
-                                             TILT_GATE_RATIO, TILT_WALD, ReferenceSurface, _fill,
-                                             instrument_search_radius)
+                                             TILT_WALD, ReferenceSurface, _fill, instrument_search_radius)
 from liverforce.learn.encoders import PCAEncoder
 from liverforce.learn.state import THICKNESS_COLUMN, compliance_matrices, state_vector
 from liverforce.serve.checks import Limits, TrainingScale, outside_training
@@ -226,8 +225,7 @@ def _workspace(nmax, g, kr):
     while (1 << tb) < 16 * nmax:
         tb += 1
     return (np.empty(nmax), np.empty(nmax), np.empty(nmax),  # U, V, W: local frame of the kept points
-            np.empty(nmax), np.empty(nmax), np.empty(nmax), np.empty(nmax, dtype=np.int32),  # GU (then the tilted
-            # fit's heights), GV, Z, key
+            np.empty(nmax), np.empty(nmax), np.empty(nmax), np.empty(nmax, dtype=np.int32),  # GU, GV, Z, key
             np.empty(nmax), np.empty(nmax), np.empty(nmax, dtype=np.uint64),  # raster cell offsets, index (A: then
             np.empty(nmax, dtype=np.int64),  # the tilted fit's scratch); duplicate filter's hash (then its raised list)
             np.empty(nmax), np.empty(nmax), np.empty(nmax), np.empty(nmax, dtype=np.int32),  # sorted; origin
@@ -379,11 +377,18 @@ def _point_sd(U, V, orig, idx, k, cu, cv, r):
 
 
 @njit(cache=True)
-def _fit_normal(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, inst, idx):
-    """The fit of :func:`_fit_instrument`, without the drop: returns the axis ``(cu, cv)``, the points fitted, the
-    noise estimate and ``inst`` as the drop reads it (a copy with the cloud's own point sd and search radius
-    when it was refitted with them)."""
-    r, search, rise, sdp = inst[0], inst[1], inst[2], inst[4]
+def _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, inst, idx):
+    """The instrument's axis from the sorted, distinct points (``orig[s] >= 0``; local ``U[orig[s]], V[orig[s]]``,
+    height change ``Zs[s]``; bins as :func:`_grid_one` sorts them), as
+    :func:`liverforce.learn.cloud_features.fit_instrument`, a cloud clearly noisier than the model's point sd
+    fitted again with its own. Only the bins that can hold its points are read (the search radius round the
+    kinematic tip ``(c0u, c0v)``, the clearance round the fitted axis); the instrument's points are moved far off
+    the grid (``GUs, GVs``), so they add exact zeros to every cell's moments. ``inst``: radius, search radius,
+    rise, clearance, point sd, tip sd, fewest points, refit ratio (``NOISE_REFIT_RATIO``, passed in: a module
+    constant would be frozen into the cached kernel). Returns the axis ``(cu, cv)``, the points fitted, the points
+    dropped and the cloud's point noise estimated from every candidate of the last pass (NaN when nothing was
+    fitted)."""
+    r, search, rise, clear, sdp = inst[0], inst[1], inst[2], inst[3], inst[4]
     k = _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, search, rise, idx)
     cu, cv, n_fit = _fit_axis_points(U, V, orig, idx, k, c0u, c0v, inst)
     sd = np.nan
@@ -394,16 +399,10 @@ def _fit_normal(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, inst, id
             inst[4] = sd
             search = r + 3.0 * inst[5] + 2.0 * sd + 0.5  # cloud_features.instrument_search_radius
             inst[1] = search
+            sdp = sd
             k = _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, search, rise, idx)
             cu, cv, n_fit = _fit_axis_points(U, V, orig, idx, k, c0u, c0v, inst)
             sd = _point_sd(U, V, orig, idx, k, cu, cv, r)  # from the wider search: less cut off
-    return cu, cv, n_fit, sd, inst
-
-
-@njit(cache=True)
-def _drop_normal(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, cu, cv, c0u, c0v, inst):
-    """The drop of :func:`_fit_instrument` (``inst`` as :func:`_fit_normal` returns it); returns how many."""
-    r, search, clear, sdp = inst[0], inst[1], inst[3], inst[4]
     # dropped: the candidates (within the search radius of the kinematic tip) and the points near the fitted axis
     margin = 1.0 / sb
     r_lo, r_hi, c_lo, c_hi = _bin_box(c0u, c0v, search / gstep + margin, h, gstep, sb, pad, nc)
@@ -419,23 +418,6 @@ def _drop_normal(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, cu, cv,
                     GUs[s] = _FAR
                     GVs[s] = _FAR
                     n_drop += 1
-    return n_drop
-
-
-@njit(cache=True)
-def _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, inst, idx):
-    """The instrument's axis from the sorted, distinct points (``orig[s] >= 0``; local ``U[orig[s]], V[orig[s]]``,
-    height change ``Zs[s]``; bins as :func:`_grid_one` sorts them), as
-    :func:`liverforce.learn.cloud_features.fit_instrument`, a cloud clearly noisier than the model's point sd
-    fitted again with its own (:func:`_fit_normal`). Only the bins that can hold its points are read (the search
-    radius round the kinematic tip ``(c0u, c0v)``, the clearance round the fitted axis); the instrument's points
-    are moved far off the grid (``GUs, GVs``; :func:`_drop_normal`), so they add exact zeros to every cell's
-    moments. ``inst``: radius, search radius, rise, clearance, point sd, tip sd, fewest points, refit ratio
-    (``NOISE_REFIT_RATIO``, passed in: a module constant would be frozen into the cached kernel). Returns the axis
-    ``(cu, cv)``, the points fitted, the points dropped and the cloud's point noise estimated from every candidate
-    of the last pass (NaN when nothing was fitted)."""
-    cu, cv, n_fit, sd, inst_d = _fit_normal(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, inst, idx)
-    n_drop = _drop_normal(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, cu, cv, c0u, c0v, inst_d)
     return cu, cv, n_fit, n_drop, sd
 
 
@@ -569,10 +551,12 @@ def _tilt_steps(Q, k, x, prior, r, wp, W):
 
 
 @njit(cache=True)
-def _cone_candidates(U, V, Hs, orig, raised, n_raised, c0u, c0v, S, t_max, idx):
-    """The tilted fit's candidates' point indices into ``idx``; returns how many: the points standing ``rise``
-    above the surface (sorted positions ``raised[:n_raised]``, struck-out duplicates skipped) within ``S + t_max x
-    max(height, 0)`` of the kinematic tip's axis ``(c0u, c0v)`` (heights ``Hs``)."""
+def _tilted_pass(U, V, Hs, orig, raised, n_raised, c0u, c0v, S, sdp, inst, idx):
+    """``cloud_features._tilted_pass``: the candidates within ``S + tan(max tilt) x height`` of the kinematic tip's
+    axis among the points standing ``rise`` above the surface (sorted positions ``raised[:n_raised]``), the slope's
+    start, the fit and its two trims with point sd ``sdp``. Returns the axis ``(cu, cv, su, sv)``, the points fitted
+    and the slope's Wald statistic."""
+    r, t_max = inst[0], inst[8]
     k = 0
     for j in range(n_raised):
         t = orig[raised[j]]
@@ -583,49 +567,6 @@ def _cone_candidates(U, V, Hs, orig, raised, n_raised, c0u, c0v, S, t_max, idx):
             if dx * dx + dy * dy < lim * lim:
                 idx[k] = t
                 k += 1
-    return k
-
-
-@njit(cache=True)
-def _tilt_gate(U, V, Hs, orig, raised, n_raised, c0u, c0v, cu, cv, inst, idx):
-    """``cloud_features._tilt_evident`` at the axis ``(cu, cv)`` fitted along the normal: the tilted fit's
-    candidates (the model's point sd) scatter about it more than ``inst[10]`` (``TILT_GATE_RATIO``) times the point
-    sd, or the slope's score statistic reaches ``inst[9]`` (``TILT_WALD``); False with fewer than the fewest
-    points."""
-    r, sdp, t_max = inst[0], inst[4], inst[8]
-    k = _cone_candidates(U, V, Hs, orig, raised, n_raised, c0u, c0v, inst[1], t_max, idx)
-    if k < inst[6]:
-        return False
-    Q = np.empty((4, k))  # u, v, height; | distance from the axis - r |
-    for j in range(k):
-        t = idx[j]
-        Q[0, j] = U[t]
-        Q[1, j] = V[t]
-        Q[2, j] = Hs[t]
-        dx = U[t] - cu
-        dy = V[t] - cv
-        Q[3, j] = abs(math.sqrt(dx * dx + dy * dy) - r)
-    if _MAD_SD * np.median(Q[3]) > inst[10] * max(sdp, _MIN_POINT_SD):
-        return True
-    wk = 1.0 / max(inst[5], _MIN_TIP_SD) ** 2
-    ws = 1.0 / max(t_max, 1e-3) ** 2
-    W = np.array([wk, wk, ws, ws])
-    x = np.array([cu, cv, 0.0, 0.0])
-    prior = np.array([c0u, c0v, 0.0, 0.0])
-    a00, a01, a02, a03, a11, a12, a13, a22, a23, a33, b0, b1, b2, b3 = _tilt_normal(
-        Q, k, x, prior, r, 1.0 / max(sdp, _MIN_POINT_SD) ** 2, W)
-    s0, s1, s2, s3, _, _, _ = _spd4_solve(a00, a01, a02, a03, a11, a12, a13, a22, a23, a33, b0, b1, b2, b3)
-    return b0 * s0 + b1 * s1 + b2 * s2 + b3 * s3 >= inst[9]  # g^T A^-1 g
-
-
-@njit(cache=True)
-def _tilted_pass(U, V, Hs, orig, raised, n_raised, c0u, c0v, S, sdp, inst, idx):
-    """``cloud_features._tilted_pass``: the candidates within ``S + tan(max tilt) x height`` of the kinematic tip's
-    axis among the points standing ``rise`` above the surface (sorted positions ``raised[:n_raised]``), the slope's
-    start, the fit and its two trims with point sd ``sdp``. Returns the axis ``(cu, cv, su, sv)``, the points fitted
-    and the slope's Wald statistic."""
-    r, t_max = inst[0], inst[8]
-    k = _cone_candidates(U, V, Hs, orig, raised, n_raised, c0u, c0v, S, t_max, idx)
     x = np.array([c0u, c0v, 0.0, 0.0])
     if k < inst[6]:
         return x, 0, 0.0
@@ -711,15 +652,12 @@ def _tilted_sd(U, V, Hs, orig, raised, n_raised, x, S, r, a):
 def _fit_instrument_tilted(U, V, Wl, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, tw, inst, idx,
                            Hs, scr, raised):
     """:func:`liverforce.learn.cloud_features.fit_instrument_tilted` on the sorted, distinct points (as
-    :func:`_fit_instrument`): the fit along the normal first (:func:`_fit_normal`), returned with its drop unless
-    the points show a tilt there (:func:`_tilt_gate`) and the slope's fit (``inst[8]``: the tangent of the largest
-    tilt; a cloud clearly noisier than the model's point sd fitted again with its own) finds it significant; then
-    the shaft's axis with its slope, the instrument's points moved off the grid. ``idx``: scratch of the fits. ``tw``:
-    the kinematic tip's height; ``Hs``: scratch, the raised points' heights above it; ``scr`` and ``raised``: scratch as
-    long (the noise estimate's distances; the sorted positions of the points standing ``rise`` above the surface, the
-    only ones the search and the noise estimate read, struck-out duplicates among them: readers skip ``orig < 0``;
-    ``Hs`` is set for these points only). Returns the tip ``(tu, tv)``, its height change along the normal, the points
-    fitted and the noise estimate."""
+    :func:`_fit_instrument`): the shaft's axis with its slope (``inst[8]``: the tangent of the largest tilt), a
+    cloud clearly noisier than the model's point sd fitted again with its own, the instrument's points moved off
+    the grid. ``tw``: the kinematic tip's height; ``Hs``: scratch, the raised points' heights above it; ``scr`` and
+    ``raised``: scratch as long (the noise estimate's distances; the sorted positions of the points standing
+    ``rise`` above the surface, the only ones the search and the noise estimate read). Returns the tip ``(tu,
+    tv)``, its height change along the normal, the points fitted and the noise estimate."""
     r, rise, clear, sdp, sdk = inst[0], inst[2], inst[3], inst[4], inst[5]
     n_all = first[nc * nc]
     n_raised = 0
@@ -730,12 +668,6 @@ def _fit_instrument_tilted(U, V, Wl, GUs, GVs, Zs, orig, first, sb, pad, nc, h, 
         t = orig[raised[j]]
         if t >= 0:
             Hs[t] = Wl[t] - tw
-    cu, cv, n_fit, sd, inst_n = _fit_normal(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, inst, idx)
-    if not _tilt_gate(U, V, Hs, orig, raised, n_raised, c0u, c0v, cu, cv, inst, idx):  # no tilt shows: the normal
-        _drop_normal(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, cu, cv, c0u, c0v, inst_n)
-        return cu, cv, 0.0, n_fit, sd
-    n_normal = n_fit
-    sd_normal = sd
     S = inst[1]
     x, n_fit, wald = _tilted_pass(U, V, Hs, orig, raised, n_raised, c0u, c0v, S, sdp, inst, idx)
     sd = np.nan
@@ -747,8 +679,9 @@ def _fit_instrument_tilted(U, V, Wl, GUs, GVs, Zs, orig, first, sb, pad, nc, h, 
             x, n_fit, wald = _tilted_pass(U, V, Hs, orig, raised, n_raised, c0u, c0v, S, sdp, inst, idx)
             sd = _tilted_sd(U, V, Hs, orig, raised, n_raised, x, S, r, scr)
     if wald < inst[9]:  # no tilt the points can tell from the normal: the fit along it (TILT_WALD)
-        _drop_normal(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, cu, cv, c0u, c0v, inst_n)
-        return cu, cv, 0.0, n_normal, sd_normal
+        cu, cv, n_fit, _, sd = _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v,
+                                               inst, idx)
+        return cu, cv, 0.0, n_fit, sd
     # dropped: the points near the fitted axis at their height (between the lowest and the highest point's)
     h_lo = 0.0
     h_hi = 0.0
@@ -1126,17 +1059,6 @@ def _dense_rows(Hin, WT, b, slope, act):
 # --------------------------------------------------------------------------
 
 
-def instrument_params(sp) -> np.ndarray:
-    """The kernel's ``inst`` vector of a grid spec: the tool's radius, the search radius, the rise, the clearance,
-    the point sd, the tip sd, the fewest points, ``NOISE_REFIT_RATIO``, ``tan(instrument_max_tilt_deg)``,
-    ``TILT_WALD`` and ``TILT_GATE_RATIO`` (the module constants passed in: read in a cached kernel they would be
-    frozen into it)."""
-    return np.array([sp.instrument_radius_mm, instrument_search_radius(sp), sp.instrument_rise_mm,
-                     sp.instrument_clearance_mm, sp.instrument_point_sd_mm, sp.instrument_tip_sd_mm,
-                     sp.instrument_min_points, NOISE_REFIT_RATIO, math.tan(math.radians(sp.instrument_max_tilt_deg)),
-                     TILT_WALD, TILT_GATE_RATIO], dtype=np.float64)
-
-
 def _check_size(n: int, what: str) -> None:
     """Refuse ``n`` points per cloud beyond the kernel's 32-bit sort keys and indices (``_MAX_POINTS``);
     ``what`` leads the message (e.g. ``"cloud: 12 points"``)."""
@@ -1257,7 +1179,10 @@ class CompiledCloud:
                                 SHAFT_POINTS], dtype=np.float64)
         sp = self.spec  # the instrument's axis fitted to its points in the cloud (cloud_features.fit_instrument)
         self.fits_instrument = sp.instrument_radius_mm > 0
-        self._inst = instrument_params(sp)
+        self._inst = np.array([sp.instrument_radius_mm, instrument_search_radius(sp), sp.instrument_rise_mm,
+                               sp.instrument_clearance_mm, sp.instrument_point_sd_mm, sp.instrument_tip_sd_mm,
+                               sp.instrument_min_points, NOISE_REFIT_RATIO,
+                               math.tan(math.radians(sp.instrument_max_tilt_deg)), TILT_WALD], dtype=np.float64)
         # the kernel reads clouds and tips as given: R (A s x + t - p) = (s R A) (x - A^-1 (p - t) / s), so an input
         # frame costs nothing per point (the checks and messages below convert the few points they read)
         if self.frame is None:

@@ -177,9 +177,9 @@ def test_a_tilted_shaft_is_fitted_with_its_slope_and_dropped():
 
 
 def test_the_tilted_fit_of_a_shaft_along_the_normal_costs_little():
-    """A shaft along the normal: the fit with a free slope shows no tilt (_tilt_evident) or finds no significant
-    slope (TILT_WALD), and returns the fit that assumes the normal, whose tip is more precise: as near as it, both
-    far nearer than the kinematic tip."""
+    """A shaft along the normal: the fit with a free slope finds no significant slope (TILT_WALD) and falls back to
+    the fit that assumes the normal, whose tip is more precise: as near as it, both far nearer than the kinematic
+    tip."""
     from liverforce.learn.cloud_features import fit_instrument_tilted
 
     rng = np.random.default_rng(8)
@@ -194,46 +194,6 @@ def test_the_tilted_fit_of_a_shaft_along_the_normal_costs_little():
         e_tilted.append(tip[:2] - true)
     rms_n, rms_t = np.sqrt(np.mean(np.square(e_normal))), np.sqrt(np.mean(np.square(e_tilted)))
     assert rms_t < 0.15 and rms_t < 1.2 * rms_n, (rms_t, rms_n)
-
-
-def _gate_cloud(tilt_deg, rng, sd=0.3):
-    """A shaft tilted ``tilt_deg`` (random azimuth) through a point 0.5 mm (sd) off the kinematic tip (the
-    origin), among liver points on a flat surface: ``(uv, w, dz)``."""
-    az = rng.uniform(0, 2 * np.pi)
-    slope = np.tan(np.radians(tilt_deg)) * np.array([np.cos(az), np.sin(az)])
-    true = rng.normal(0.0, 0.5, 2)
-    S = _tilted_shaft(true, slope, 80, rng, sd=sd)
-    surf = rng.uniform(-15, 15, (800, 2))
-    surf = surf[np.hypot(*(surf - true).T) > R_TOOL + 1.0]
-    uv = np.concatenate([S[:, :2], surf])
-    w = np.concatenate([S[:, 2], rng.normal(-0.5, sd, len(surf))])
-    return uv, w, w + 0.0
-
-
-def test_the_slope_is_fitted_only_when_the_points_show_a_tilt():
-    """cloud_features._tilt_evident, judged at the fit along the normal before the slope is fitted: a shaft along
-    the normal rarely passes (the slope's fit skipped: the serving kernel's cost), most at 5 deg and every shaft
-    tilted 10 deg or more pass, and the numba gate (serve.compiled_cloud._tilt_gate) decides as the reference on
-    every cloud, at 0-30 deg."""
-    from liverforce.learn import cloud_features as cf
-    from liverforce.serve import compiled_cloud as cc
-
-    rng = np.random.default_rng(21)
-    sp = spec(instrument_point_sd_mm=0.3, instrument_max_tilt_deg=30.0)
-    inst = cc.instrument_params(sp)
-    passed = {0: 0, 3: 0, 5: 0, 10: 0, 20: 0, 30: 0}  # at 3-5 deg the score decides, near its threshold
-    for tilt in passed:
-        for trial in range(30):
-            uv, w, dz = _gate_cloud(tilt, rng)
-            c, _, _, _ = cf.fit_instrument(uv, dz, [0.0, 0.0], sp)
-            want = cf._tilt_evident(uv, w, dz, np.zeros(2), c, sp)
-            passed[tilt] += want
-            n = len(uv)
-            raised = np.flatnonzero(dz > sp.instrument_rise_mm)
-            got = cc._tilt_gate(uv[:, 0].copy(), uv[:, 1].copy(), w.copy(), np.arange(n, dtype=np.int32), raised,
-                                len(raised), 0.0, 0.0, c[0], c[1], inst, np.zeros(n, dtype=np.int32))
-            assert got == want, (tilt, trial)
-    assert passed[0] <= 3 and passed[5] >= 24 and passed[10] == passed[20] == passed[30] == 30, passed
 
 
 def test_gridding_a_cloud_with_the_instrument_gives_the_instrument_free_heights_and_a_better_tip():
@@ -385,15 +345,16 @@ def test_the_compiled_fit_is_the_reference_fit(monkeypatch):
     noise estimate, the same points fitted and dropped, in any point order. The refit with the cloud's own noise
     is switched off here (it is the same pieces again with another sd; the gridding test below covers it)."""
     from liverforce.learn import cloud_features
-    from liverforce.learn.cloud_features import instrument_point_sd
-    from liverforce.serve import compiled_cloud as cc
+    from liverforce.learn.cloud_features import instrument_point_sd, instrument_search_radius
     from liverforce.serve.compiled_cloud import _fit_axis_points, _instrument_point, _point_sd
 
     monkeypatch.setattr(cloud_features, "NOISE_REFIT_RATIO", np.inf)
     rng = np.random.default_rng(3)
     sp = spec(instrument_point_sd_mm=0.4, instrument_tip_sd_mm=0.6)
-    inst = cc.instrument_params(sp)
-    inst[7] = cloud_features.NOISE_REFIT_RATIO  # no refit in the kernel either
+    inst = np.array([sp.instrument_radius_mm, instrument_search_radius(sp), sp.instrument_rise_mm,
+                     sp.instrument_clearance_mm, sp.instrument_point_sd_mm, sp.instrument_tip_sd_mm,
+                     sp.instrument_min_points, cloud_features.NOISE_REFIT_RATIO,
+                     np.tan(np.radians(sp.instrument_max_tilt_deg)), cloud_features.TILT_WALD])
     fitted = 0
     for trial in range(60):
         true = rng.normal(0.0, 0.6, 2)
@@ -486,22 +447,19 @@ def test_only_models_trained_without_the_instrument_check_for_it():
     assert radius({"tool_radius_mm": 0.0}, {}) == 0.0
 
 
-@pytest.mark.parametrize("centre,noise,tilt,fit_tilt,gate", [
-    ((0.0, 0.0), 0.5, 0.0, 0.0, None), ((-15.0, 6.0), 0.5, 0.0, 0.0, None), ((0.0, 0.0), 1.5, 0.0, 0.0, None),
-    ((0.0, 0.0), 0.5, 0.0, 30.0, None), ((0.0, 0.0), 0.5, 0.0, 30.0, 0.0), ((0.0, 0.0), 1.5, 0.0, 30.0, None),
-    ((0.0, 0.0), 0.5, 20.0, 30.0, None), ((-15.0, 6.0), 0.5, 20.0, 30.0, None), ((0.0, 0.0), 1.5, 20.0, 30.0, None)])
-def test_the_compiled_kernel_grids_a_cloud_with_the_instrument_as_the_reference(centre, noise, tilt, fit_tilt, gate,
+@pytest.mark.parametrize("centre,noise,tilt,fit_tilt", [
+    ((0.0, 0.0), 0.5, 0.0, 0.0), ((-15.0, 6.0), 0.5, 0.0, 0.0), ((0.0, 0.0), 1.5, 0.0, 0.0),
+    ((0.0, 0.0), 0.5, 0.0, 30.0), ((0.0, 0.0), 0.5, 20.0, 30.0), ((-15.0, 6.0), 0.5, 20.0, 30.0),
+    ((0.0, 0.0), 1.5, 20.0, 30.0)])
+def test_the_compiled_kernel_grids_a_cloud_with_the_instrument_as_the_reference(centre, noise, tilt, fit_tilt,
                                                                                 monkeypatch):
     """The numba gridding pass with the instrument (its bin scan, the points moved off the grid) against
     cloud_grid, on clouds of the dent with the tool in view, a kinematic tip up to 1.5 mm off, points shuffled:
     the tool mid-grid and 15 mm off (near the grid's edge) at the model's noise, and mid-grid at three times it
     (the fit done again with the cloud's own noise, in both); with the fit that finds the shaft's slope, the tool
-    along the normal (no tilt shows: the normal fit; at three times the noise the gate opens on the scatter, the
-    slope is fitted, not significant, and the normal fit with the cloud's own noise is returned; and with the gate
-    forced open, ``gate`` 0, at the model's noise) and tilted 20 deg."""
+    along the normal (the slope not significant: the normal fit) and tilted 20 deg."""
     from liverforce.learn import cloud_features
-    from liverforce.learn.cloud_features import NOISE_REFIT_RATIO
-    from liverforce.serve import compiled_cloud as cc
+    from liverforce.learn.cloud_features import NOISE_REFIT_RATIO, instrument_search_radius
     from liverforce.serve.compiled_cloud import _FILL_CODES, _grid_clouds
 
     estimates, tilted = [], []
@@ -514,10 +472,10 @@ def test_the_compiled_kernel_grids_a_cloud_with_the_instrument_as_the_reference(
     sp = spec(instrument_max_tilt_deg=fit_tilt)
     p = np.array([-centre[0], -centre[1], 0.0])  # the exertion point's frame: the dent lies at -p from it
     ref = ReferenceSurface.for_case(U0, T, p, np.eye(3), sp)
-    inst = cc.instrument_params(sp)
-    if gate is not None:  # the slope's fit behind the gate, whatever the points show
-        monkeypatch.setattr(cloud_features, "TILT_GATE_RATIO", gate)
-        inst[10] = gate
+    inst = np.array([sp.instrument_radius_mm, instrument_search_radius(sp), sp.instrument_rise_mm,
+                     sp.instrument_clearance_mm, sp.instrument_point_sd_mm, sp.instrument_tip_sd_mm,
+                     sp.instrument_min_points, cloud_features.NOISE_REFIT_RATIO,
+                     np.tan(np.radians(sp.instrument_max_tilt_deg)), cloud_features.TILT_WALD])
     rng = np.random.default_rng(7)
     true_tip = np.array([0.0, 0.0, -3.0])
     for seed in range(6):
@@ -540,10 +498,6 @@ def test_the_compiled_kernel_grids_a_cloud_with_the_instrument_as_the_reference(
         assert n_tool[0, 2] == pytest.approx(want.instrument_sd_mm, rel=1e-9)  # the noise estimate
         np.testing.assert_allclose(X[0, :-3], want.features(include_mask=True), atol=1e-9)
         np.testing.assert_allclose(X[0, -3:], want.tip_local, atol=1e-9)
-    if fit_tilt and (tilt or gate is not None or noise > 1.0):  # the slope was fitted on every cloud
-        assert len(tilted) >= 6
-    if fit_tilt and not tilt and gate is None and noise < 1.0:  # no tilt showed on any cloud: not fitted
-        assert not tilted
     if tilt:  # the tilted fit's noise estimate: a refit at the higher noise only
         refit = np.array(tilted) > NOISE_REFIT_RATIO * sp.instrument_point_sd_mm
         assert len(refit) >= 6 and (refit.any() if noise > 1.0 else not refit.any())
@@ -570,12 +524,15 @@ def test_the_compiled_tilted_pass_is_the_reference_on_few_points():
     cloud_features._tilted_pass on shafts of 7-14 points with liver bumps among the candidates: the same axis,
     points fitted and Wald statistic, also when a trim would leave fewer than the fewest points (every candidate
     must stay in the fit then)."""
+    import math
 
     from liverforce.learn import cloud_features as cf
     from liverforce.serve import compiled_cloud as cc
 
     sp = spec(instrument_max_tilt_deg=30.0)
-    inst = cc.instrument_params(sp)
+    inst = np.array([sp.instrument_radius_mm, cf.instrument_search_radius(sp), sp.instrument_rise_mm,
+                     sp.instrument_clearance_mm, sp.instrument_point_sd_mm, sp.instrument_tip_sd_mm,
+                     sp.instrument_min_points, cf.NOISE_REFIT_RATIO, math.tan(math.radians(30.0)), cf.TILT_WALD])
     rng = np.random.default_rng(12)
     early = 0
     for trial in range(60):
