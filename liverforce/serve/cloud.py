@@ -62,6 +62,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from liverforce.learn import camera
+from liverforce.learn.cloud_features import _MIN_POINT_SD
 from liverforce.learn.representation import interpolate_to_grid
 from liverforce.serve.checks import Limits, TrainingScale
 from liverforce.serve.errors import PredictionInputError
@@ -255,10 +256,15 @@ MASKED_INSTRUMENT = ("too few points of the tool's shaft to fit its axis (the in
 NOISY_CLOUD_RATIO = 1.75
 
 
+def _trained_sd_mm(spec) -> float:
+    """The training clouds' point sd (``spec.instrument_point_sd_mm``), floored as the instrument fit floors it."""
+    return max(float(spec.instrument_point_sd_mm), _MIN_POINT_SD)
+
+
 def noisy_threshold_mm(spec) -> float:
     """The point noise (sd, mm) above which :func:`noisy_cloud` warns: :data:`NOISY_CLOUD_RATIO` times the
-    training clouds' (``spec.instrument_point_sd_mm``, floored at 0.05 mm as the fit floors it)."""
-    return NOISY_CLOUD_RATIO * max(float(spec.instrument_point_sd_mm), 0.05)
+    training clouds' (:func:`_trained_sd_mm`)."""
+    return NOISY_CLOUD_RATIO * _trained_sd_mm(spec)
 
 
 def noisy_cloud(point_sd_mm: float, spec) -> str | None:
@@ -267,7 +273,7 @@ def noisy_cloud(point_sd_mm: float, spec) -> str | None:
     fitted: None) above :data:`NOISY_CLOUD_RATIO` times the training clouds' (``spec.instrument_point_sd_mm``).
     The fit has used the cloud's own noise (:func:`~liverforce.learn.cloud_features.fit_instrument`); the
     regressor has not seen such clouds."""
-    trained = max(float(spec.instrument_point_sd_mm), 0.05)
+    trained = _trained_sd_mm(spec)
     sd = float(point_sd_mm)
     if not sd > noisy_threshold_mm(spec):
         return None
