@@ -624,6 +624,18 @@ def _tilted_pass(U, V, Hs, orig, raised, n_raised, c0u, c0v, S, sdp, inst, idx):
 
 
 @njit(cache=True)
+def _tilt_credible(x, c0u, c0v, S):
+    """``cloud_features.tilt_credible``: the kinematic tip ``(c0u, c0v)`` projected onto the fitted axis ``x``
+    within ``S`` of it along the surface."""
+    su = x[2]
+    sv = x[3]
+    t = ((c0u - x[0]) * su + (c0v - x[1]) * sv) / (1.0 + (su * su + sv * sv))
+    du = x[0] + t * su - c0u
+    dv = x[1] + t * sv - c0v
+    return du * du + dv * dv <= S * S
+
+
+@njit(cache=True)
 def _axis_box(x, h_lo, h_hi, reach, h, gstep, sb, pad, nc):
     """Sort-bin rows and columns holding every point within ``reach`` grid units of the axis ``x`` at heights
     ``h_lo`` to ``h_hi`` (the box of the segment's two ends)."""
@@ -678,7 +690,8 @@ def _fit_instrument_tilted(U, V, Wl, GUs, GVs, Zs, orig, first, sb, pad, nc, h, 
             S = r + 3.0 * sdk + 2.0 * sd + 0.5  # cloud_features.instrument_search_radius
             x, n_fit, wald = _tilted_pass(U, V, Hs, orig, raised, n_raised, c0u, c0v, S, sdp, inst, idx)
             sd = _tilted_sd(U, V, Hs, orig, raised, n_raised, x, S, r, scr)
-    if wald < inst[9]:  # no tilt the points can tell from the normal: the fit along it (TILT_WALD)
+    if wald < inst[9] or not _tilt_credible(x, c0u, c0v, S):
+        # no tilt the points can tell from the normal (TILT_WALD), or an axis they cannot support: the fit along it
         cu, cv, n_fit, _, sd = _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v,
                                                inst, idx)
         return cu, cv, 0.0, n_fit, sd

@@ -560,3 +560,72 @@ def test_the_compiled_tilted_pass_is_the_reference_on_few_points():
                                                        4.0, 4.0, 3.0), R_TOOL)[0]
         early += int(0 < (np.abs(res) <= 1.8).sum() < 8)
     assert early > 0  # a trim that would leave too few points happened
+
+
+def test_a_tilted_fit_that_runs_off_is_not_believed():
+    """The candidates of a real camera cloud (tests/learn/data/runaway_shaft.csv: an unseen liver, the tool tilted
+    30 deg; the shaft's points and liver points to its side standing above the surface) send the tilted fit's
+    Gauss-Newton to a near-horizontal axis whose tip lies tens of mm from the kinematic tip, with a large Wald
+    statistic: before the check its tip was read as the tool's. ``tilt_credible`` refuses it (the tip on the axis
+    beyond the search radius of the kinematic tip), so the fit along the normal is returned, as for a slope the
+    points cannot tell from 0; the compiled kernel does the same, on the candidates alone and on a whole cloud."""
+    from pathlib import Path
+
+    from liverforce.learn import cloud_features as cf
+    from liverforce.learn.cloud_features import fit_instrument_tilted, instrument_search_radius, tilt_credible
+    from liverforce.serve import compiled_cloud as cc
+
+    P = np.loadtxt(Path(__file__).parent / "data" / "runaway_shaft.csv", delimiter=",")
+    sp = spec(instrument_max_tilt_deg=30.0)
+    S = instrument_search_radius(sp)
+    uv, H = P[:, :2].copy(), P[:, 2].copy()
+    x, n, wald = cf._tilted_pass(uv, H, H, np.zeros(2), sp, sp.instrument_point_sd_mm)
+    t = float(-x[:2] @ x[2:]) / (1.0 + float(x[2:] @ x[2:]))
+    off = np.hypot(x[0] + t * x[2], x[1] + t * x[3])  # the tip the fit would give, from the kinematic tip
+    assert n == len(P) and wald > cf.TILT_WALD and off > 20.0, (x, n, wald, off)
+    assert not tilt_credible(x, np.zeros(2), S)
+    assert tilt_credible(np.array([0.3, -0.4, 0.2, -0.5]), np.zeros(2), S)  # a shaft tilted 28 deg near the tip
+    tip, keep, n_fit, sd = fit_instrument_tilted(uv, H, H, [0.0, 0.0, 0.0], sp)
+    c, keep_n, n_n, sd_n = fit_instrument(uv, H, np.zeros(2), sp)
+    np.testing.assert_array_equal(tip, [c[0], c[1], 0.0])
+    np.testing.assert_array_equal(keep, keep_n)
+    assert (n_fit, sd) == (n_n, sd_n) and np.hypot(*tip[:2]) < S
+    # the kernel's pass on the same candidates runs off the same way, and its check agrees on both axes
+    inst = np.array([sp.instrument_radius_mm, S, sp.instrument_rise_mm, sp.instrument_clearance_mm,
+                     sp.instrument_point_sd_mm, sp.instrument_tip_sd_mm, sp.instrument_min_points,
+                     cf.NOISE_REFIT_RATIO, np.tan(np.radians(30.0)), cf.TILT_WALD])
+    raised = np.arange(len(P))
+    got = cc._tilted_pass(uv[:, 0].copy(), uv[:, 1].copy(), H, np.arange(len(P), dtype=np.int32), raised, len(P),
+                          0.0, 0.0, S, sp.instrument_point_sd_mm, inst, np.zeros(len(P), dtype=np.int32))
+    # (not to 1e-9: the iteration diverges, and it amplifies the last bits of the kernel's reassociated sums)
+    np.testing.assert_allclose(got[0], x, rtol=1e-4)
+    assert got[1] == n and got[2] == pytest.approx(wald, rel=1e-3)
+    assert not cc._tilt_credible(got[0], 0.0, 0.0, S) and cc._tilt_credible(np.array([0.3, -0.4, 0.2, -0.5]), 0.0,
+                                                                           0.0, S)
+    # a whole cloud: a flat pre-operative surface, the kinematic tip 7.2 mm below it (the dent), these points
+    # standing on it, liver points round them; cloud_grid and the compiled kernel both fall back to the normal fit
+    from liverforce.serve.compiled_cloud import _FILL_CODES, _grid_clouds
+
+    _, U0, T = dent_surface()
+    ref = ReferenceSurface.for_case(U0, T, np.zeros(3), np.eye(3), sp)
+    rng = np.random.default_rng(3)
+    flat = rng.uniform(-25.0, 25.0, (3000, 2))
+    flat = flat[np.hypot(*flat.T) > R_TOOL + 1.0]
+    tw = -7.2
+    cloud = np.concatenate([np.column_stack([flat, rng.normal(0.0, 0.3, len(flat))]),
+                            np.column_stack([uv, H + tw])])
+    cloud = np.ascontiguousarray(cloud[rng.permutation(len(cloud))])
+    kin = np.array([0.0, 0.0, tw])
+    want = cloud_grid(cloud, ref, sp, kin)
+    assert want.n_instrument > 0 and np.hypot(*want.tip_local[:2]) < S
+    g, gg = sp.grid_size, sp.grid_size**2
+    X = np.empty((1, 2 * gg + 3))
+    n_used, n_bad, n_tool = np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros((1, 3))
+    _grid_clouds(cloud, np.zeros(1, np.int64), np.array([len(cloud)]), kin[None], ref.origin, ref.R,
+                 np.ascontiguousarray(ref.raster), ref.lo, ref.step, g, sp.half_width_mm, sp.spacing_mm,
+                 sp.kernel_radius_cells, sp.max_abs_height_mm, sp.min_points, sp.max_leverage, True,
+                 _FILL_CODES["laplace"], sp.half_width_mm * (1 + 2 / (g - 1)), np.zeros(4), inst, X, n_used, n_bad,
+                 n_tool)
+    assert n_tool[0, 1] == want.n_instrument
+    np.testing.assert_allclose(X[0, :-3], want.features(include_mask=True), atol=1e-9)
+    np.testing.assert_allclose(X[0, -3:], want.tip_local, atol=1e-9)
