@@ -162,7 +162,8 @@ class CloudGridSpec:
         Else it may be tilted up to about this far (degrees) and its slope is
         fitted too (:func:`fit_instrument_tilted`); the tip is then the
         kinematic one projected onto the fitted axis, unless the slope is not
-        significant (the fit along the normal is kept).
+        significant or that tip lies beyond the search radius of the kinematic
+        one (:func:`tilt_credible`; the fit along the normal is kept then).
     instrument_point_sd_mm, instrument_tip_sd_mm : float
         The clouds' point noise and the kinematic tip's tangential noise (sd,
         mm) the fit weighs its points and its prior by (the model's observation
@@ -502,9 +503,9 @@ def tilt_credible(x, c0, search_mm: float) -> bool:
     it (the kinematic tip ``c0`` (u, v) projected onto the axis) within the search radius ``search_mm`` of the
     kinematic tip along the surface, where the candidates were searched. From a poor start Gauss-Newton can run off
     to a near-horizontal axis far away: on the unseen livers with the tool tilted 30 deg, one cloud in 240 had its
-    tip 75 mm off (a slope of 87 deg), against 0.5 mm for the kinematic tip."""
+    tip 75 mm from the FE tip (a slope of 87 deg), where the kinematic tip is 0.5 mm off per coordinate."""
     su, sv = float(x[2]), float(x[3])
-    t = ((float(c0[0]) - float(x[0])) * su + (float(c0[1]) - float(x[1])) * sv) / (1.0 + su * su + sv * sv)
+    t = ((float(c0[0]) - float(x[0])) * su + (float(c0[1]) - float(x[1])) * sv) / (1.0 + (su * su + sv * sv))
     du, dv = float(x[0]) + t * su - float(c0[0]), float(x[1]) + t * sv - float(c0[1])
     return du * du + dv * dv <= search_mm * search_mm
 

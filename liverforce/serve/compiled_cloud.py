@@ -741,7 +741,8 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
     axis was fitted to, and the point noise estimated from the candidates (NaN when none were fitted): with
     ``inst[0] > 0`` the instrument's axis is fitted to its points, which are dropped, and gives the tip's
     tangential part (:func:`_fit_instrument`); with a slope as well (``inst[8] > 0``,
-    :func:`_fit_instrument_tilted`) the tip is the kinematic one projected onto the axis, its height too.
+    :func:`_fit_instrument_tilted`) the tip is the kinematic one projected onto the axis, its height too (the fit
+    along the normal where the slope is not significant or that tip is not credible, :func:`_tilt_credible`).
     """
     U, V, Wl, GU, GV, Z, key, A, C, Q, HB, GUs, GVs, Zs, orig, first, fill_at, bits, cand = ws[:19]
     M, Hc, valid, idx, unk, Lb, rhs, y = ws[19:]
