@@ -447,6 +447,23 @@ def test_only_models_trained_without_the_instrument_check_for_it():
     assert radius({"tool_radius_mm": 0.0}, {}) == 0.0
 
 
+def _compiled_grid(cloud, ref, sp, kin, inst):
+    """One cloud through the compiled gridding pass (serve.compiled_cloud._grid_clouds) with the instrument
+    settings ``inst``: its feature row (2 g^2 + 3) and its tool counts (shaft points, instrument points fitted,
+    noise estimate)."""
+    from liverforce.serve.compiled_cloud import _FILL_CODES, _grid_clouds
+
+    g = sp.grid_size
+    X = np.empty((1, 2 * g * g + 3))
+    n_used, n_bad, n_tool = np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros((1, 3))
+    _grid_clouds(cloud, np.zeros(1, np.int64), np.array([len(cloud)]), kin[None], ref.origin, ref.R,
+                 np.ascontiguousarray(ref.raster), ref.lo, ref.step, g, sp.half_width_mm, sp.spacing_mm,
+                 sp.kernel_radius_cells, sp.max_abs_height_mm, sp.min_points, sp.max_leverage, True,
+                 _FILL_CODES["laplace"], sp.half_width_mm * (1 + 2 / (g - 1)), np.zeros(4), inst, X, n_used, n_bad,
+                 n_tool)
+    return X[0], n_tool[0]
+
+
 @pytest.mark.parametrize("centre,noise,tilt,fit_tilt", [
     ((0.0, 0.0), 0.5, 0.0, 0.0), ((-15.0, 6.0), 0.5, 0.0, 0.0), ((0.0, 0.0), 1.5, 0.0, 0.0),
     ((0.0, 0.0), 0.5, 0.0, 30.0), ((0.0, 0.0), 0.5, 20.0, 30.0), ((-15.0, 6.0), 0.5, 20.0, 30.0),
@@ -460,7 +477,6 @@ def test_the_compiled_kernel_grids_a_cloud_with_the_instrument_as_the_reference(
     along the normal (the slope not significant: the normal fit) and tilted 20 deg."""
     from liverforce.learn import cloud_features
     from liverforce.learn.cloud_features import NOISE_REFIT_RATIO, instrument_search_radius
-    from liverforce.serve.compiled_cloud import _FILL_CODES, _grid_clouds
 
     estimates, tilted = [], []
     real_sd, real_tilted = cloud_features.instrument_point_sd, cloud_features._tilted_point_sd
@@ -485,19 +501,12 @@ def test_the_compiled_kernel_grids_a_cloud_with_the_instrument_as_the_reference(
         cloud = np.ascontiguousarray(cloud[rng.permutation(len(cloud))])
         kin = true_tip + rng.uniform(-1.5, 1.5, 3)
         want = cloud_grid(cloud, ref, sp, kin)
-        g, gg = sp.grid_size, sp.grid_size**2
-        X = np.empty((1, 2 * gg + 3))
-        n_used, n_bad, n_tool = np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros((1, 3))
-        _grid_clouds(cloud, np.zeros(1, np.int64), np.array([len(cloud)]), kin[None], ref.origin, ref.R,
-                     np.ascontiguousarray(ref.raster), ref.lo, ref.step, g, sp.half_width_mm, sp.spacing_mm,
-                     sp.kernel_radius_cells, sp.max_abs_height_mm, sp.min_points, sp.max_leverage, True,
-                     _FILL_CODES["laplace"], sp.half_width_mm * (1 + 2 / (g - 1)), np.zeros(4), inst, X, n_used,
-                     n_bad, n_tool)
+        X, n_tool = _compiled_grid(cloud, ref, sp, kin, inst)
         assert rec.n_instrument_points > 0 and want.n_instrument > 0
-        assert n_tool[0, 1] == want.n_instrument
-        assert n_tool[0, 2] == pytest.approx(want.instrument_sd_mm, rel=1e-9)  # the noise estimate
-        np.testing.assert_allclose(X[0, :-3], want.features(include_mask=True), atol=1e-9)
-        np.testing.assert_allclose(X[0, -3:], want.tip_local, atol=1e-9)
+        assert n_tool[1] == want.n_instrument
+        assert n_tool[2] == pytest.approx(want.instrument_sd_mm, rel=1e-9)  # the noise estimate
+        np.testing.assert_allclose(X[:-3], want.features(include_mask=True), atol=1e-9)
+        np.testing.assert_allclose(X[-3:], want.tip_local, atol=1e-9)
     if tilt:  # the tilted fit's noise estimate: a refit at the higher noise only
         refit = np.array(tilted) > NOISE_REFIT_RATIO * sp.instrument_point_sd_mm
         assert len(refit) >= 6 and (refit.any() if noise > 1.0 else not refit.any())
@@ -604,8 +613,6 @@ def test_a_tilted_fit_that_runs_off_is_not_believed():
                                                                            0.0, S)
     # a whole cloud: a flat pre-operative surface, the kinematic tip 7.2 mm below it (the dent), these points
     # standing on it, liver points round them; cloud_grid and the compiled kernel both fall back to the normal fit
-    from liverforce.serve.compiled_cloud import _FILL_CODES, _grid_clouds
-
     _, U0, T = dent_surface()
     ref = ReferenceSurface.for_case(U0, T, np.zeros(3), np.eye(3), sp)
     rng = np.random.default_rng(3)
@@ -618,14 +625,7 @@ def test_a_tilted_fit_that_runs_off_is_not_believed():
     kin = np.array([0.0, 0.0, tw])
     want = cloud_grid(cloud, ref, sp, kin)
     assert want.n_instrument > 0 and np.hypot(*want.tip_local[:2]) < S
-    g, gg = sp.grid_size, sp.grid_size**2
-    X = np.empty((1, 2 * gg + 3))
-    n_used, n_bad, n_tool = np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros((1, 3))
-    _grid_clouds(cloud, np.zeros(1, np.int64), np.array([len(cloud)]), kin[None], ref.origin, ref.R,
-                 np.ascontiguousarray(ref.raster), ref.lo, ref.step, g, sp.half_width_mm, sp.spacing_mm,
-                 sp.kernel_radius_cells, sp.max_abs_height_mm, sp.min_points, sp.max_leverage, True,
-                 _FILL_CODES["laplace"], sp.half_width_mm * (1 + 2 / (g - 1)), np.zeros(4), inst, X, n_used, n_bad,
-                 n_tool)
-    assert n_tool[0, 1] == want.n_instrument
-    np.testing.assert_allclose(X[0, :-3], want.features(include_mask=True), atol=1e-9)
-    np.testing.assert_allclose(X[0, -3:], want.tip_local, atol=1e-9)
+    X, n_tool = _compiled_grid(cloud, ref, sp, kin, inst)
+    assert n_tool[1] == want.n_instrument
+    np.testing.assert_allclose(X[:-3], want.features(include_mask=True), atol=1e-9)
+    np.testing.assert_allclose(X[-3:], want.tip_local, atol=1e-9)
