@@ -270,7 +270,7 @@ def noisy_threshold_mm(spec) -> float:
 def noisy_cloud(point_sd_mm: float, spec) -> str | None:
     """The warning for a cloud noisier than the model's training clouds, or None: its point noise estimated from
     the instrument's points (:func:`liverforce.learn.cloud_features.instrument_point_sd`; NaN when nothing was
-    fitted: None) above :data:`NOISY_CLOUD_RATIO` times the training clouds' (``spec.instrument_point_sd_mm``).
+    fitted: None) above :func:`noisy_threshold_mm`, :data:`NOISY_CLOUD_RATIO` times the training clouds'.
     The fit has used the cloud's own noise (:func:`~liverforce.learn.cloud_features.fit_instrument`); the
     regressor has not seen such clouds."""
     trained = _trained_sd_mm(spec)

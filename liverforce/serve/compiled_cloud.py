@@ -83,9 +83,9 @@ import numpy as np
 from numba import njit, types
 from numba.typed import List
 
-from liverforce.learn import camera
-from liverforce.learn.cloud_features import (_FIT_ITERATIONS, _MAD_SD, _MIN_POINT_SD, _MIN_TIP_SD, NOISE_REFIT_RATIO,
-                                             TILT_WALD, ReferenceSurface, _fill, instrument_search_radius)
+from liverforce.learn import camera, cloud_features
+from liverforce.learn.cloud_features import (_FIT_ITERATIONS, _MAD_SD, _MIN_POINT_SD, _MIN_TIP_SD, ReferenceSurface,
+                                             _fill, instrument_search_radius)
 from liverforce.learn.encoders import PCAEncoder
 from liverforce.learn.state import THICKNESS_COLUMN, compliance_matrices, state_vector
 from liverforce.serve.checks import Limits, TrainingScale, outside_training
@@ -1073,6 +1073,17 @@ def _dense_rows(Hin, WT, b, slope, act):
 # --------------------------------------------------------------------------
 
 
+def instrument_params(sp) -> np.ndarray:
+    """The kernels' ``inst`` vector of a grid spec: the tool's radius, the search radius, the rise, the clearance,
+    the point sd, the tip sd, the fewest points, ``NOISE_REFIT_RATIO``, ``tan(instrument_max_tilt_deg)`` and
+    ``TILT_WALD`` (the module constants passed in, read when called: inside a cached kernel they would be frozen
+    into it)."""
+    return np.array([sp.instrument_radius_mm, instrument_search_radius(sp), sp.instrument_rise_mm,
+                     sp.instrument_clearance_mm, sp.instrument_point_sd_mm, sp.instrument_tip_sd_mm,
+                     sp.instrument_min_points, cloud_features.NOISE_REFIT_RATIO,
+                     math.tan(math.radians(sp.instrument_max_tilt_deg)), cloud_features.TILT_WALD], dtype=np.float64)
+
+
 def _check_size(n: int, what: str) -> None:
     """Refuse ``n`` points per cloud beyond the kernel's 32-bit sort keys and indices (``_MAX_POINTS``);
     ``what`` leads the message (e.g. ``"cloud: 12 points"``)."""
@@ -1193,10 +1204,7 @@ class CompiledCloud:
                                 SHAFT_POINTS], dtype=np.float64)
         sp = self.spec  # the instrument's axis fitted to its points in the cloud (cloud_features.fit_instrument)
         self.fits_instrument = sp.instrument_radius_mm > 0
-        self._inst = np.array([sp.instrument_radius_mm, instrument_search_radius(sp), sp.instrument_rise_mm,
-                               sp.instrument_clearance_mm, sp.instrument_point_sd_mm, sp.instrument_tip_sd_mm,
-                               sp.instrument_min_points, NOISE_REFIT_RATIO,
-                               math.tan(math.radians(sp.instrument_max_tilt_deg)), TILT_WALD], dtype=np.float64)
+        self._inst = instrument_params(sp)
         # the kernel reads clouds and tips as given: R (A s x + t - p) = (s R A) (x - A^-1 (p - t) / s), so an input
         # frame costs nothing per point (the checks and messages below convert the few points they read)
         if self.frame is None:

@@ -345,16 +345,13 @@ def test_the_compiled_fit_is_the_reference_fit(monkeypatch):
     noise estimate, the same points fitted and dropped, in any point order. The refit with the cloud's own noise
     is switched off here (it is the same pieces again with another sd; the gridding test below covers it)."""
     from liverforce.learn import cloud_features
-    from liverforce.learn.cloud_features import instrument_point_sd, instrument_search_radius
-    from liverforce.serve.compiled_cloud import _fit_axis_points, _instrument_point, _point_sd
+    from liverforce.learn.cloud_features import instrument_point_sd
+    from liverforce.serve.compiled_cloud import _fit_axis_points, _instrument_point, _point_sd, instrument_params
 
     monkeypatch.setattr(cloud_features, "NOISE_REFIT_RATIO", np.inf)
     rng = np.random.default_rng(3)
     sp = spec(instrument_point_sd_mm=0.4, instrument_tip_sd_mm=0.6)
-    inst = np.array([sp.instrument_radius_mm, instrument_search_radius(sp), sp.instrument_rise_mm,
-                     sp.instrument_clearance_mm, sp.instrument_point_sd_mm, sp.instrument_tip_sd_mm,
-                     sp.instrument_min_points, cloud_features.NOISE_REFIT_RATIO,
-                     np.tan(np.radians(sp.instrument_max_tilt_deg)), cloud_features.TILT_WALD])
+    inst = instrument_params(sp)
     fitted = 0
     for trial in range(60):
         true = rng.normal(0.0, 0.6, 2)
@@ -476,7 +473,8 @@ def test_the_compiled_kernel_grids_a_cloud_with_the_instrument_as_the_reference(
     (the fit done again with the cloud's own noise, in both); with the fit that finds the shaft's slope, the tool
     along the normal (the slope not significant: the normal fit) and tilted 20 deg."""
     from liverforce.learn import cloud_features
-    from liverforce.learn.cloud_features import NOISE_REFIT_RATIO, instrument_search_radius
+    from liverforce.learn.cloud_features import NOISE_REFIT_RATIO
+    from liverforce.serve.compiled_cloud import instrument_params
 
     estimates, tilted = [], []
     real_sd, real_tilted = cloud_features.instrument_point_sd, cloud_features._tilted_point_sd
@@ -488,10 +486,7 @@ def test_the_compiled_kernel_grids_a_cloud_with_the_instrument_as_the_reference(
     sp = spec(instrument_max_tilt_deg=fit_tilt)
     p = np.array([-centre[0], -centre[1], 0.0])  # the exertion point's frame: the dent lies at -p from it
     ref = ReferenceSurface.for_case(U0, T, p, np.eye(3), sp)
-    inst = np.array([sp.instrument_radius_mm, instrument_search_radius(sp), sp.instrument_rise_mm,
-                     sp.instrument_clearance_mm, sp.instrument_point_sd_mm, sp.instrument_tip_sd_mm,
-                     sp.instrument_min_points, cloud_features.NOISE_REFIT_RATIO,
-                     np.tan(np.radians(sp.instrument_max_tilt_deg)), cloud_features.TILT_WALD])
+    inst = instrument_params(sp)
     rng = np.random.default_rng(7)
     true_tip = np.array([0.0, 0.0, -3.0])
     for seed in range(6):
@@ -533,15 +528,11 @@ def test_the_compiled_tilted_pass_is_the_reference_on_few_points():
     cloud_features._tilted_pass on shafts of 7-14 points with liver bumps among the candidates: the same axis,
     points fitted and Wald statistic, also when a trim would leave fewer than the fewest points (every candidate
     must stay in the fit then)."""
-    import math
-
     from liverforce.learn import cloud_features as cf
     from liverforce.serve import compiled_cloud as cc
 
     sp = spec(instrument_max_tilt_deg=30.0)
-    inst = np.array([sp.instrument_radius_mm, cf.instrument_search_radius(sp), sp.instrument_rise_mm,
-                     sp.instrument_clearance_mm, sp.instrument_point_sd_mm, sp.instrument_tip_sd_mm,
-                     sp.instrument_min_points, cf.NOISE_REFIT_RATIO, math.tan(math.radians(30.0)), cf.TILT_WALD])
+    inst = cc.instrument_params(sp)
     rng = np.random.default_rng(12)
     early = 0
     for trial in range(60):
@@ -600,9 +591,7 @@ def test_a_tilted_fit_that_runs_off_is_not_believed():
     np.testing.assert_array_equal(keep, keep_n)
     assert (n_fit, sd) == (n_n, sd_n) and np.hypot(*tip[:2]) < S
     # the kernel's pass on the same candidates runs off the same way, and its check agrees on both axes
-    inst = np.array([sp.instrument_radius_mm, S, sp.instrument_rise_mm, sp.instrument_clearance_mm,
-                     sp.instrument_point_sd_mm, sp.instrument_tip_sd_mm, sp.instrument_min_points,
-                     cf.NOISE_REFIT_RATIO, np.tan(np.radians(30.0)), cf.TILT_WALD])
+    inst = cc.instrument_params(sp)
     raised = np.arange(len(P))
     got = cc._tilted_pass(uv[:, 0].copy(), uv[:, 1].copy(), H, np.arange(len(P), dtype=np.int32), raised, len(P),
                           0.0, 0.0, S, sp.instrument_point_sd_mm, inst, np.zeros(len(P), dtype=np.int32))
