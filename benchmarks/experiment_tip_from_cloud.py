@@ -23,6 +23,18 @@ visibility, tool, density, noise and tip noise; the seed of its first view):
   shadow, favour the larger shadow (no points where the tool hides the surface); the posterior mean
   (:func:`shadow_estimate`).
 
+Along the normal (``--normal``, the tip's normal displacement; the model's tip there is the kinematic one, moved
+a little along the fitted axis), ridge regressions from the kinematic tip plus
+
+- ``dent rings``: the median height change of the cloud's points in rings 3-4.5 / 4.5-6 / 6-8 / 8-11 mm round the
+  fitted axis (below the kinematic tip plus 4 mm: not the shaft), and their counts;
+- ``shaft's lowest points``: the heights along the normal of the instrument's candidates (the points within the
+  search radius of the fitted axis standing ``instrument_rise_mm`` above the pre-operative surface, as the fit
+  finds them) at the quantiles 0 / 0.02 / 0.05 / 0.1 / 0.2, and their count: where the shaft comes out of the
+  dent;
+- ``instrument's own points`` (a ceiling no camera gives): the same quantiles of the points the observation drew
+  on the instrument (the cloud's last ``n_instrument_points`` rows), the tip sphere's included.
+
 Measured on the 9ac4790 run's IV shards (1 Dec 2026, 400 cases of 20 livers; README, "What a camera sees"):
 the heights do not locate the tip (no ridge row beats the kinematic tip's own recalibration, 0.509 / 0.475 mm, by
 more than 0.006 mm; the kinematic tip as read 0.525 / 0.486 mm), the tool's shadow with the camera's position does
@@ -30,6 +42,14 @@ more than 0.006 mm; the kinematic tip as read 0.525 / 0.486 mm), the tool's shad
 
     PYTHONPATH=. OMP_NUM_THREADS=1 .venv/bin/python benchmarks/experiment_tip_from_cloud.py \\
         --results results/default --shadow-cases 400
+
+Along the normal, on a fresh clone of 764e3ee (2 Dec 2026, the same 400 IV cases; 332 with every ring and 8 shaft
+points seen; ``--shadow-cases 0 --normal``): nothing the cloud shows beats the kinematic tip, 0.506 mm rms (ridge
+0.507). With the dent rings 0.691 mm (0.793 alone): the dent's profile varies too much for its rim to place the
+tip. With the shaft's lowest points 0.502 mm (2.507 alone): the lowest candidate stands 7.99 +- 2.79 mm above the
+tip, because the shaft's part inside the dent is below the pre-operative surface and cannot be told from the liver
+by height. Only the instrument's own points, labelled as no camera cloud is, would help: 0.435 mm (0.724 alone;
+the lowest 1.60 +- 0.88 mm above the tip).
 """
 
 from __future__ import annotations
@@ -169,6 +189,63 @@ def shadow_estimate(points: np.ndarray, camera: np.ndarray, tip: np.ndarray, *, 
     return c0[:2] + np.array([w @ cu, w @ cv])
 
 
+RIM_RINGS_MM = ((3.0, 4.5), (4.5, 6.0), (6.0, 8.0), (8.0, 11.0))
+SHAFT_QUANTILES = (0.0, 0.02, 0.05, 0.1, 0.2)
+_MIN_SEEN = 8  # points for a quantile row (as the fit's instrument_min_points)
+
+
+def normal_features(loc: np.ndarray, ref, axis_uv: np.ndarray, kin_n: float, spec, n_instrument: int,
+                    search_mm: float) -> np.ndarray:
+    """One case's inputs of the normal-tip estimators (module docstring), NaN where too few points were seen:
+    the dent rings' median height change and counts (``2 x 4``), the candidates' height quantiles and count
+    (``5 + 1``), the instrument's own points' quantiles (``5``). ``loc``: the cloud in the local frame."""
+    dz = loc[:, 2] - ref.height(loc[:, 0], loc[:, 1])
+    rr = np.hypot(loc[:, 0] - axis_uv[0], loc[:, 1] - axis_uv[1])
+    out = np.full(2 * len(RIM_RINGS_MM) + 2 * len(SHAFT_QUANTILES) + 1, np.nan)
+    low = dz < kin_n + 4.0
+    for j, (lo, hi) in enumerate(RIM_RINGS_MM):
+        m = (rr >= lo) & (rr < hi) & low
+        out[2 * j + 1] = m.sum()
+        if m.sum() >= 3:
+            out[2 * j] = np.median(dz[m])
+    o = 2 * len(RIM_RINGS_MM)
+    cand = (rr < search_mm) & (dz > spec.instrument_rise_mm)
+    out[o + len(SHAFT_QUANTILES)] = cand.sum()
+    if cand.sum() >= _MIN_SEEN:
+        out[o:o + len(SHAFT_QUANTILES)] = np.quantile(loc[cand, 2], SHAFT_QUANTILES)
+    if n_instrument >= _MIN_SEEN:
+        out[o + len(SHAFT_QUANTILES) + 1:] = np.quantile(loc[-n_instrument:, 2], SHAFT_QUANTILES)
+    return out
+
+
+def score_normal(F: np.ndarray, kin_n: np.ndarray, model_n: np.ndarray, target_n: np.ndarray,
+                 groups: np.ndarray) -> None:
+    """Print the normal-tip estimators' rms error (mm) on the cases where every input was seen."""
+    nr, nq = 2 * len(RIM_RINGS_MM), len(SHAFT_QUANTILES)
+    ok = np.isfinite(F).all(axis=1)
+    k, t, g = kin_n[ok, None], target_n[ok, None], groups[ok]
+    rings, cand, own = F[ok, :nr], F[ok, nr:nr + nq + 1], F[ok, nr + nq + 1:]
+
+    def rms(est) -> str:
+        return f"{np.sqrt(np.mean((np.ravel(est) - t[:, 0]) ** 2)):.3f} mm"
+
+    print(f"along the normal: {ok.sum()} of {len(F)} cases with every ring and >= {_MIN_SEEN} shaft points seen; "
+          f"the tip's normal displacement rms {np.sqrt(np.mean(t ** 2)):.2f} mm; shaft's lowest point "
+          f"{np.mean(cand[:, 0] - t[:, 0]):.2f} +- {np.std(cand[:, 0] - t[:, 0]):.2f} mm above the tip, the "
+          f"instrument's own {np.mean(own[:, 0] - t[:, 0]):.2f} +- {np.std(own[:, 0] - t[:, 0]):.2f} mm", flush=True)
+    print(f"{'kinematic':34s} n {rms(k)}", flush=True)
+    label = "the model's tip"
+    print(f"{label:34s} n {rms(model_n[ok])}", flush=True)
+    for label, Z, free in (("ridge: kinematic", k, 1),
+                           ("ridge: + dent rings", np.column_stack([k, rings]), 1),
+                           ("ridge: + shaft's lowest points", np.column_stack([k, cand]), 1),
+                           ("ridge: + instrument's own points", np.column_stack([k, own]), 1),
+                           ("dent rings alone", rings, 0),
+                           ("shaft's lowest points alone", cand, 0),
+                           ("instrument's own points alone", own, 0)):
+        print(f"{label:34s} n {rms(ridge_cv(Z, t, g, free=free))}", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--results", default="results/default")
@@ -177,10 +254,11 @@ def main() -> None:
     ap.add_argument("--cases", type=int, default=400, help="cases drawn (seeded) from the scenario")
     ap.add_argument("--shadow-cases", type=int, default=60, help="the first of those the shadow estimate runs on")
     ap.add_argument("--window", type=float, default=12.0, help="shadow estimate's window around the tip, mm")
+    ap.add_argument("--normal", action="store_true", help="also score the tip along the normal (module docstring)")
     args = ap.parse_args()
 
     from liverforce.learn import camera as C
-    from liverforce.learn.cloud_features import ReferenceSurface
+    from liverforce.learn.cloud_features import ReferenceSurface, instrument_search_radius
     from liverforce.learn.frames import case_rotations
     from liverforce.learn.model import view_seeds
 
@@ -210,9 +288,14 @@ def main() -> None:
     fitted = X[:, -3:] if spec.instrument_radius_mm > 0 else None  # the instrument's axis, where the model fits it
     axis = np.linspace(-hw, hw, g)
     moments, par = [], []
+    normal_rows = []
     for k, i in enumerate(rows):
         ref = ReferenceSurface.for_case(a["roi_undeformed_mm"][i], a.get("roi_triangles", [None] * n)[i], P[i],
                                         R[i], spec)
+        if args.normal:
+            axis_uv = X[k, -3:-1] if spec.instrument_radius_mm > 0 else kin[k, :2]
+            normal_rows.append(normal_features(ref.to_local(clouds[k]), ref, axis_uv, kin[k, 2], spec,
+                                               recs[k].n_instrument_points, instrument_search_radius(spec)))
         h_, p_ = ring_features(X[k, :g * g].reshape(g, g), X[k, g * g:2 * g * g].reshape(g, g), ref.grid_height,
                                axis)
         moments.append(h_)
@@ -245,6 +328,9 @@ def main() -> None:
     for label, F in ridge_inputs:  # the kinematic tip's 3 columns unpenalised
         print(line(label, ridge_cv(F, target, groups, free=3)), flush=True)
     print(line("parallax alone (no tip)", ridge_cv(par, target, groups)), flush=True)
+    if args.normal:
+        score_normal(np.array(normal_rows), kin[:, 2], X[:, -1] if fitted is not None else kin[:, 2],
+                     np.einsum("nij,nj->ni", R[rows], fe_tip - P[rows])[:, 2], groups)
     ns = min(args.shadow_cases, len(rows))
     if ns:
         obs = C.observation_config(cam, hw, g)

@@ -1,11 +1,14 @@
 """benchmarks/experiment_tip_from_cloud.py: its estimators of the tool tip's tangential position, checked against
-geometry with a known answer (a surface slid along itself, a tool's shadow on a plane), and its folds by liver."""
+geometry with a known answer (a surface slid along itself, a tool's shadow on a plane), the inputs of its estimators
+along the normal (a dent of known profile with a shaft in it), and its folds by liver."""
 from __future__ import annotations
 
 import numpy as np
 
-from benchmarks.experiment_tip_from_cloud import (_by_group_folds, _segment_distances, parallax_shift, ridge_cv,
-                                                  ring_features, shadow_estimate)
+from benchmarks.experiment_tip_from_cloud import (RIM_RINGS_MM, SHAFT_QUANTILES, _by_group_folds, _segment_distances,
+                                                  normal_features, parallax_shift, ridge_cv, ring_features,
+                                                  score_normal, shadow_estimate)
+from liverforce.learn.cloud_features import CloudGridSpec, ReferenceSurface, instrument_search_radius
 from liverforce.learn import camera
 from liverforce.learn.observation import ObservationConfig, observe
 from liverforce.learn.synthetic import synthetic_surface_arrays
@@ -129,3 +132,73 @@ def test_observe_cases_returns_the_records_of_its_clouds():
     assert np.array_equal(np.array([r.tool_tip_mm for r in recs]), tips)
     alone = [camera.observe_cases(a, cam, 15.0, 8, 4, np.array([i]), records=True)[2][0] for i in rows]
     assert all(np.array_equal(r.camera_position_mm, r1.camera_position_mm) for r, r1 in zip(recs, alone))
+
+
+def _dented_plane_with_shaft(depth=8.0, width=10.0, axis=(0.3, -0.2), r=2.5):
+    """A flat pre-operative patch (local frame = world), its surface pushed down by a Gaussian dent of ``depth`` and
+    ``width`` (mm) round ``axis``, and the camera-facing half of a shaft of radius ``r`` along the normal whose tip
+    sphere's centre is ``r`` above the dent's bottom (the instrument's points last). Returns the local cloud, the
+    reference, the spec and the number of instrument points."""
+    spec = CloudGridSpec(grid_size=9, half_width_mm=15.0, instrument_radius_mm=r)
+    g = np.linspace(-25.0, 25.0, 201)
+    U, V = [a.ravel() for a in np.meshgrid(g, g)]
+    ref = ReferenceSurface.build(np.column_stack([U, V, np.zeros(U.size)]), [0, 0, 0], [0, 0, 1], [1, 0, 0],
+                                 [0, 1, 0], spec)
+    rr = np.hypot(U - axis[0], V - axis[1])
+    liver = np.column_stack([U, V, -depth * np.exp(-rr ** 2 / (2 * width ** 2))])[rr > r]  # under the tool: hidden
+    phi, h = np.meshgrid(np.linspace(0.0, np.pi, 25), np.arange(-depth + r, 20.0, 0.25))
+    shaft = np.column_stack([axis[0] + r * np.cos(phi.ravel()), axis[1] + r * np.sin(phi.ravel()), h.ravel()])
+    return np.vstack([liver, shaft]), ref, spec, len(shaft), depth, width, np.array(axis)
+
+
+def test_normal_features_read_the_dent_and_the_shaft_where_they_are():
+    """On a dent of known profile: each ring's median height change is the median of the profile over the ring's
+    points below the kinematic tip plus 4 mm; the shaft's candidates are the points standing ``instrument_rise_mm``
+    above the pre-operative surface (the shaft inside the dent is not among them); the instrument's own points
+    start at the tip sphere's centre. Too few points seen: NaN, not a number."""
+    cloud, ref, spec, n_inst, depth, width, axis = _dented_plane_with_shaft()
+    kin_n = -depth + 0.3
+    F = normal_features(cloud, ref, axis, kin_n, spec, n_inst, instrument_search_radius(spec))
+    liver = cloud[:-n_inst]
+    d = np.hypot(liver[:, 0] - axis[0], liver[:, 1] - axis[1])
+    prof = -depth * np.exp(-d ** 2 / (2 * width ** 2))
+    low = prof < kin_n + 4.0  # the rings leave out what stands 4 mm above the kinematic tip (the shaft's height)
+    assert not low.all()
+    for j, (lo, hi) in enumerate(RIM_RINGS_MM):
+        m = (d >= lo) & (d < hi) & low
+        assert F[2 * j + 1] == m.sum() > 3
+        assert abs(F[2 * j] - np.median(prof[m])) < 1e-9
+    o = 2 * len(RIM_RINGS_MM)
+    nq = len(SHAFT_QUANTILES)
+    shaft = cloud[-n_inst:]
+    raised = shaft[shaft[:, 2] > spec.instrument_rise_mm]
+    assert F[o + nq] == len(raised)  # the liver stands nowhere above the pre-operative surface
+    assert F[o] == raised[:, 2].min() > spec.instrument_rise_mm
+    assert np.allclose(F[o:o + nq], np.quantile(raised[:, 2], SHAFT_QUANTILES))
+    assert F[o + nq + 1] == -depth + spec.instrument_radius_mm  # the shaft's own lowest point
+    assert np.all(np.diff(F[o + nq + 1:]) >= 0)
+    # nothing of the instrument in the cloud, and a search that finds nothing: NaN for both
+    G = normal_features(cloud[:-n_inst], ref, axis, kin_n, spec, 0, instrument_search_radius(spec))
+    assert np.isnan(G[o:o + nq]).all() and G[o + nq] == 0 and np.isnan(G[o + nq + 1:]).all()
+    assert np.array_equal(G[:o], F[:o])
+
+
+def test_score_normal_recovers_a_tip_its_inputs_determine(capsys):
+    """Rows whose instrument quantiles are the tip plus a constant: that estimator's error is ~0 mm, the
+    kinematic tip's is its noise; a row with a NaN input is left out."""
+    rng = np.random.default_rng(5)
+    n = 200
+    groups = np.repeat(np.array([f"liver-{k}" for k in range(10)]), n // 10)
+    t = rng.normal(-6.0, 2.0, n)
+    kin = t + rng.normal(0.0, 0.5, n)
+    nr, nq = 2 * len(RIM_RINGS_MM), len(SHAFT_QUANTILES)
+    F = rng.normal(size=(n, nr + 2 * nq + 1))
+    F[:, nr + nq + 1:] = t[:, None] + 2.5 + np.arange(nq)
+    F[0, 0] = np.nan
+    score_normal(F, kin, kin, t, groups)
+    out = capsys.readouterr().out
+    assert f"{n - 1} of {n} cases" in out
+    lines = {ln.rsplit(" n ", 1)[0].strip(): float(ln.rsplit(" n ", 1)[1].split()[0]) for ln in out.splitlines()[1:]}
+    assert lines["instrument's own points alone"] < 0.01
+    assert abs(lines["kinematic"] - np.sqrt(np.mean((kin[1:] - t[1:]) ** 2))) < 1e-3
+    assert 0.4 < lines["kinematic"] < 0.6
