@@ -27,11 +27,11 @@ Along the normal (``--normal``, the tip's normal displacement; the model's tip t
 a little along the fitted axis), ridge regressions from the kinematic tip plus
 
 - ``dent rings``: the median height change of the cloud's points in rings 3-4.5 / 4.5-6 / 6-8 / 8-11 mm round the
-  fitted axis (below the kinematic tip plus 4 mm: not the shaft), and their counts;
-- ``shaft's lowest points``: the heights along the normal of the instrument's candidates (the points within the
-  search radius of the fitted axis standing ``instrument_rise_mm`` above the pre-operative surface, as the fit
-  finds them) at the quantiles 0 / 0.02 / 0.05 / 0.1 / 0.2, and their count: where the shaft comes out of the
-  dent;
+  fitted axis (the points lower than the kinematic tip plus 4 mm: not the shaft), and their counts;
+- ``shaft's lowest points``: the heights along the normal of the points within ``instrument_search_radius`` of the
+  fitted axis (u, v) standing ``instrument_rise_mm`` above the pre-operative surface (the instrument fit's
+  candidates, simplified: no widening with height for a tilted shaft, no noise refit) at the quantiles 0 / 0.02 /
+  0.05 / 0.1 / 0.2, and their count: where the shaft comes out of the dent;
 - ``instrument's own points`` (a ceiling no camera gives): the same quantiles of the points the observation drew
   on the instrument (the cloud's last ``n_instrument_points`` rows), the tip sphere's included.
 
@@ -43,13 +43,13 @@ more than 0.006 mm; the kinematic tip as read 0.525 / 0.486 mm), the tool's shad
     PYTHONPATH=. OMP_NUM_THREADS=1 .venv/bin/python benchmarks/experiment_tip_from_cloud.py \\
         --results results/default --shadow-cases 400
 
-Along the normal, on a fresh clone of 764e3ee (2 Dec 2026, the same 400 IV cases; 332 with every ring and 8 shaft
-points seen; ``--shadow-cases 0 --normal``): nothing the cloud shows beats the kinematic tip, 0.506 mm rms (ridge
-0.507). With the dent rings 0.691 mm (0.793 alone): the dent's profile varies too much for its rim to place the
-tip. With the shaft's lowest points 0.502 mm (2.507 alone): the lowest candidate stands 7.99 +- 2.79 mm above the
-tip, because the shaft's part inside the dent is below the pre-operative surface and cannot be told from the liver
-by height. Only the instrument's own points, labelled as no camera cloud is, would help: 0.435 mm (0.724 alone;
-the lowest 1.60 +- 0.88 mm above the tip).
+Along the normal, on a fresh clone of 764e3ee (2 Dec 2026, the same 400 IV cases; the 345 with every ring, 8 shaft
+candidates and 8 of the instrument's own points seen; ``--shadow-cases 0 --normal``): nothing the cloud shows does
+better than the kinematic tip, 0.507 mm rms (its ridge recalibration 0.506). With the dent rings 0.598 mm (1.115
+alone): the dent's profile varies too much for its rim to place the tip. With the shaft's lowest points 0.502 mm
+(2.610 alone): the lowest candidate stands 7.99 +- 2.97 mm above the tip, because the shaft's part inside the dent
+is below the pre-operative surface and cannot be told from the liver by height. Only the instrument's own points,
+labelled as no camera cloud is, would help: 0.441 mm (0.734 alone; the lowest 1.60 +- 0.89 mm above the tip).
 """
 
 from __future__ import annotations
@@ -202,7 +202,7 @@ def normal_features(loc: np.ndarray, ref, axis_uv: np.ndarray, kin_n: float, spe
     dz = loc[:, 2] - ref.height(loc[:, 0], loc[:, 1])
     rr = np.hypot(loc[:, 0] - axis_uv[0], loc[:, 1] - axis_uv[1])
     out = np.full(2 * len(RIM_RINGS_MM) + 2 * len(SHAFT_QUANTILES) + 1, np.nan)
-    low = dz < kin_n + 4.0
+    low = loc[:, 2] < kin_n + 4.0  # not the shaft: it stands above the tip
     for j, (lo, hi) in enumerate(RIM_RINGS_MM):
         m = (rr >= lo) & (rr < hi) & low
         out[2 * j + 1] = m.sum()
@@ -223,13 +223,17 @@ def score_normal(F: np.ndarray, kin_n: np.ndarray, model_n: np.ndarray, target_n
     """Print the normal-tip estimators' rms error (mm) on the cases where every input was seen."""
     nr, nq = 2 * len(RIM_RINGS_MM), len(SHAFT_QUANTILES)
     ok = np.isfinite(F).all(axis=1)
+    if not ok.any():
+        raise SystemExit(f"--normal: no case had every ring, {_MIN_SEEN} shaft candidates and {_MIN_SEEN} of the "
+                         "instrument's own points seen (a variant with model.camera.observation.instrument_in_cloud?)")
     k, t, g = kin_n[ok, None], target_n[ok, None], groups[ok]
     rings, cand, own = F[ok, :nr], F[ok, nr:nr + nq + 1], F[ok, nr + nq + 1:]
 
     def rms(est) -> str:
         return f"{np.sqrt(np.mean((np.ravel(est) - t[:, 0]) ** 2)):.3f} mm"
 
-    print(f"along the normal: {ok.sum()} of {len(F)} cases with every ring and >= {_MIN_SEEN} shaft points seen; "
+    print(f"along the normal: {ok.sum()} of {len(F)} cases with every ring, >= {_MIN_SEEN} shaft candidates and "
+          f">= {_MIN_SEEN} of the instrument's own points seen; "
           f"the tip's normal displacement rms {np.sqrt(np.mean(t ** 2)):.2f} mm; shaft's lowest point "
           f"{np.mean(cand[:, 0] - t[:, 0]):.2f} +- {np.std(cand[:, 0] - t[:, 0]):.2f} mm above the tip, the "
           f"instrument's own {np.mean(own[:, 0] - t[:, 0]):.2f} +- {np.std(own[:, 0] - t[:, 0]):.2f} mm", flush=True)

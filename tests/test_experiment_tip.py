@@ -136,16 +136,19 @@ def test_observe_cases_returns_the_records_of_its_clouds():
 
 def _dented_plane_with_shaft(depth=8.0, width=10.0, axis=(0.3, -0.2), r=2.5):
     """A flat pre-operative patch (local frame = world), its surface pushed down by a Gaussian dent of ``depth`` and
-    ``width`` (mm) round ``axis``, and the camera-facing half of a shaft of radius ``r`` along the normal whose tip
-    sphere's centre is ``r`` above the dent's bottom (the instrument's points last). Returns the local cloud, the
-    reference, the spec and the number of instrument points."""
+    ``width`` (mm) round ``axis`` (half a ring 6-8 mm from it raised 3 mm), and the camera-facing half of a shaft
+    of radius ``r`` along the normal whose tip sphere's centre is ``r`` above the dent's bottom (the instrument's
+    points last). Returns the local cloud, the reference, the spec, the number of instrument points, the dent's
+    depth and width and the axis."""
     spec = CloudGridSpec(grid_size=9, half_width_mm=15.0, instrument_radius_mm=r)
     g = np.linspace(-25.0, 25.0, 201)
     U, V = [a.ravel() for a in np.meshgrid(g, g)]
     ref = ReferenceSurface.build(np.column_stack([U, V, np.zeros(U.size)]), [0, 0, 0], [0, 0, 1], [1, 0, 0],
                                  [0, 1, 0], spec)
     rr = np.hypot(U - axis[0], V - axis[1])
-    liver = np.column_stack([U, V, -depth * np.exp(-rr ** 2 / (2 * width ** 2))])[rr > r]  # under the tool: hidden
+    Z = -depth * np.exp(-rr ** 2 / (2 * width ** 2))
+    Z[(rr >= 6.0) & (rr < 8.0) & (V > axis[1])] = 3.0  # a raised lip beyond the search radius: neither rim nor shaft
+    liver = np.column_stack([U, V, Z])[rr > r]  # under the tool: hidden
     phi, h = np.meshgrid(np.linspace(0.0, np.pi, 25), np.arange(-depth + r, 20.0, 0.25))
     shaft = np.column_stack([axis[0] + r * np.cos(phi.ravel()), axis[1] + r * np.sin(phi.ravel()), h.ravel()])
     return np.vstack([liver, shaft]), ref, spec, len(shaft), depth, width, np.array(axis)
@@ -161,18 +164,20 @@ def test_normal_features_read_the_dent_and_the_shaft_where_they_are():
     F = normal_features(cloud, ref, axis, kin_n, spec, n_inst, instrument_search_radius(spec))
     liver = cloud[:-n_inst]
     d = np.hypot(liver[:, 0] - axis[0], liver[:, 1] - axis[1])
-    prof = -depth * np.exp(-d ** 2 / (2 * width ** 2))
+    prof = liver[:, 2]
     low = prof < kin_n + 4.0  # the rings leave out what stands 4 mm above the kinematic tip (the shaft's height)
-    assert not low.all()
+    lip = (d >= 6.0) & (d < 8.0) & (prof > 0.0)
+    assert lip.any() and not low[lip].any()
     for j, (lo, hi) in enumerate(RIM_RINGS_MM):
         m = (d >= lo) & (d < hi) & low
         assert F[2 * j + 1] == m.sum() > 3
-        assert abs(F[2 * j] - np.median(prof[m])) < 1e-9
+        assert abs(F[2 * j] - np.median(-depth * np.exp(-d[m] ** 2 / (2 * width ** 2)))) < 1e-9
+    assert F[5] == ((d >= 6.0) & (d < 8.0)).sum() - lip.sum()  # the lip is not in its ring
     o = 2 * len(RIM_RINGS_MM)
     nq = len(SHAFT_QUANTILES)
     shaft = cloud[-n_inst:]
     raised = shaft[shaft[:, 2] > spec.instrument_rise_mm]
-    assert F[o + nq] == len(raised)  # the liver stands nowhere above the pre-operative surface
+    assert F[o + nq] == len(raised)  # the raised lip is beyond the search radius
     assert F[o] == raised[:, 2].min() > spec.instrument_rise_mm
     assert np.allclose(F[o:o + nq], np.quantile(raised[:, 2], SHAFT_QUANTILES))
     assert F[o + nq + 1] == -depth + spec.instrument_radius_mm  # the shaft's own lowest point
@@ -200,5 +205,8 @@ def test_score_normal_recovers_a_tip_its_inputs_determine(capsys):
     assert f"{n - 1} of {n} cases" in out
     lines = {ln.rsplit(" n ", 1)[0].strip(): float(ln.rsplit(" n ", 1)[1].split()[0]) for ln in out.splitlines()[1:]}
     assert lines["instrument's own points alone"] < 0.01
+    assert lines["ridge: + instrument's own points"] < 0.01  # the kinematic column is not what it reads
+    assert lines["shaft's lowest points alone"] > 1.0  # noise columns: about the tip's own spread
     assert abs(lines["kinematic"] - np.sqrt(np.mean((kin[1:] - t[1:]) ** 2))) < 1e-3
-    assert 0.4 < lines["kinematic"] < 0.6
+    assert 0.4 < lines["kinematic"] < 0.6 and abs(lines["ridge: kinematic"] - lines["kinematic"]) < 0.05
+    assert "the instrument's own 2.50 +- 0.00 mm" in out  # its lowest quantile read, the tip plus 2.5
