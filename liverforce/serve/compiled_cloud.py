@@ -84,8 +84,8 @@ from numba import njit, types
 from numba.typed import List
 
 from liverforce.learn import camera, cloud_features
-from liverforce.learn.cloud_features import (_FIT_ITERATIONS, _MAD_SD, _MIN_POINT_SD, _MIN_TIP_SD, ReferenceSurface,
-                                             _fill, instrument_search_radius)
+from liverforce.learn.cloud_features import (_COST_RTOL, _FIT_ITERATIONS, _MAD_SD, _MIN_POINT_SD, _MIN_TIP_SD,
+                                             ReferenceSurface, _fill, instrument_search_radius)
 from liverforce.learn.encoders import PCAEncoder
 from liverforce.learn.state import THICKNESS_COLUMN, compliance_matrices, state_vector
 from liverforce.serve.checks import Limits, TrainingScale, outside_training
@@ -471,7 +471,8 @@ def _spd4_solve(a00, a01, a02, a03, a11, a12, a13, a22, a23, a33, b0, b1, b2, b3
 def _tilt_normal(Q, k, x, prior, r, wp, W):
     """The Gauss-Newton system of ``cloud_features._fit_tilted`` at ``x`` on the points ``Q[:, :k]`` (rows: local
     ``u, v``, height): ``wp J^T J + diag(W)`` (its upper triangle) and ``wp J^T res + W (x - prior)``, in scalars
-    (:func:`_tilt_terms` inlined by hand; the points contiguous, so the loop runs in SIMD lanes)."""
+    (:func:`_tilt_terms` inlined by hand; the points contiguous, so the loop runs in SIMD lanes), then the
+    objective ``wp sum res^2 + sum W (x - prior)^2``."""
     cu = x[0]
     cv = x[1]
     su = x[2]
@@ -479,6 +480,7 @@ def _tilt_normal(Q, k, x, prior, r, wp, W):
     kap = 1.0 / (1.0 + (su * su + sv * sv))
     a00 = a01 = a02 = a03 = a11 = a12 = a13 = a22 = a23 = a33 = 0.0
     b0 = b1 = b2 = b3 = 0.0
+    c = 0.0
     for j in range(k):
         hh = Q[2, j]
         du = Q[0, j] - cu - hh * su
@@ -508,9 +510,14 @@ def _tilt_normal(Q, k, x, prior, r, wp, W):
         b1 += j1 * res
         b2 += j2 * res
         b3 += j3 * res
+        c += res * res
+    e0 = x[0] - prior[0]
+    e1 = x[1] - prior[1]
+    e2 = x[2] - prior[2]
+    e3 = x[3] - prior[3]
     return (wp * a00 + W[0], wp * a01, wp * a02, wp * a03, wp * a11 + W[1], wp * a12, wp * a13, wp * a22 + W[2],
-            wp * a23, wp * a33 + W[3], wp * b0 + W[0] * (x[0] - prior[0]), wp * b1 + W[1] * (x[1] - prior[1]),
-            wp * b2 + W[2] * (x[2] - prior[2]), wp * b3 + W[3] * (x[3] - prior[3]))
+            wp * a23, wp * a33 + W[3], wp * b0 + W[0] * e0, wp * b1 + W[1] * e1, wp * b2 + W[2] * e2,
+            wp * b3 + W[3] * e3, wp * c + (W[0] * e0 * e0 + W[1] * e1 * e1 + W[2] * e2 * e2 + W[3] * e3 * e3))
 
 
 @njit(cache=True, fastmath={"nsz", "contract", "arcp"})
@@ -535,18 +542,42 @@ def _tilt_near(Q, k, x, r, thr):
 
 
 @njit(cache=True)
-def _tilt_steps(Q, k, x, prior, r, wp, W):
+def _tilt_steps(Q, k, x, prior, r, wp, W, iterations=_FIT_ITERATIONS):
     """``cloud_features._fit_tilted`` on the points ``Q[:, :k]`` (:func:`_tilt_normal`), from ``x`` (updated in
-    place, and returned)."""
-    for _ in range(_FIT_ITERATIONS):
-        a00, a01, a02, a03, a11, a12, a13, a22, a23, a33, b0, b1, b2, b3 = _tilt_normal(Q, k, x, prior, r, wp, W)
+    place, and returned): damped, a step that raises the objective halved, as there. (The objective's sum, in the
+    same vectorised loop as the system's, reorders those sums' rounding: the kernel moved by ~1e-16 with it.)"""
+    f_prev = math.inf
+    p0 = p1 = p2 = p3 = 0.0  # the point before the last step, and that step
+    s0 = s1 = s2 = s3 = 0.0
+    lam = 1.0
+    done = False
+    for _ in range(iterations):
+        a00, a01, a02, a03, a11, a12, a13, a22, a23, a33, b0, b1, b2, b3, f = _tilt_normal(Q, k, x, prior, r, wp, W)
+        if f > f_prev * (1.0 + _COST_RTOL):  # the last step raised the objective: half of it instead
+            lam *= 0.5
+            x[0] = p0 - lam * s0
+            x[1] = p1 - lam * s1
+            x[2] = p2 - lam * s2
+            x[3] = p3 - lam * s3
+            continue
         s0, s1, s2, s3, _, _, _ = _spd4_solve(a00, a01, a02, a03, a11, a12, a13, a22, a23, a33, b0, b1, b2, b3)
+        p0, p1, p2, p3 = x[0], x[1], x[2], x[3]
+        f_prev = f
+        lam = 1.0
         x[0] -= s0
         x[1] -= s1
         x[2] -= s2
         x[3] -= s3
         if s0 * s0 + s1 * s1 + s2 * s2 + s3 * s3 < 1e-16:
+            done = True
             break
+    if not done:  # the budget spent: the last step not yet checked
+        f = _tilt_normal(Q, k, x, prior, r, wp, W)[14]
+        if f > f_prev * (1.0 + _COST_RTOL):
+            x[0] = p0
+            x[1] = p1
+            x[2] = p2
+            x[3] = p3
     return x
 
 
@@ -616,7 +647,7 @@ def _tilted_pass(U, V, Hs, orig, raised, n_raised, c0u, c0v, S, sdp, inst, idx):
         k = k2
     x = _tilt_steps(Q, k, x, prior, r, wp, W)
     # the slope's Wald statistic (cloud_features._slope_wald): s^T Cov(s)^-1 s, Cov(s)^-1 = the Schur complement
-    a00, a01, a02, a03, a11, a12, a13, a22, a23, a33, b0, b1, b2, b3 = _tilt_normal(Q, k, x, prior, r, wp, W)
+    a00, a01, a02, a03, a11, a12, a13, a22, a23, a33, b0, b1, b2, b3, _ = _tilt_normal(Q, k, x, prior, r, wp, W)
     _, _, _, _, l22, l32, l33 = _spd4_solve(a00, a01, a02, a03, a11, a12, a13, a22, a23, a33, b0, b1, b2, b3)
     e2 = l22 * x[2] + l32 * x[3]  # L_ss^T s
     e3 = l33 * x[3]

@@ -562,13 +562,63 @@ def test_the_compiled_tilted_pass_is_the_reference_on_few_points():
     assert early > 0  # a trim that would leave too few points happened
 
 
-def test_a_tilted_fit_that_runs_off_is_not_believed():
+def _undamped_fit_tilted(Q, H, x0, prior, r, wp, wk, ws):
+    """The tilted fit's Gauss-Newton before the damping: every full step taken."""
+    from liverforce.learn import cloud_features as cf
+
+    x = np.array(x0, dtype=np.float64)
+    W = np.array([wk, wk, ws, ws])
+    for _ in range(cf._FIT_ITERATIONS):
+        res, J = cf._tilt_residuals(Q, H, x, r)
+        step = np.linalg.solve(wp * (J.T @ J) + np.diag(W), wp * (J.T @ res) + W * (x - prior))
+        x = x - step
+        if float(step @ step) < 1e-16:
+            break
+    return x
+
+
+def _tilt_objective(Q, H, x, prior, r, wp, wk, ws) -> float:
+    from liverforce.learn import cloud_features as cf
+
+    res, _ = cf._tilt_residuals(Q, H, x, r)
+    return wp * float(res @ res) + float(np.array([wk, wk, ws, ws]) @ (x - prior) ** 2)
+
+
+def test_the_damped_tilted_fit_takes_the_undamped_steps_where_they_lower_the_objective(monkeypatch):
+    """On tilted shafts with liver points round them every full Gauss-Newton step lowers the objective: the damped
+    fit's tip, points and noise equal those of the undamped one, bit for bit."""
+    from liverforce.learn import cloud_features as cf
+
+    rng = np.random.default_rng(12)
+    sp = spec(instrument_point_sd_mm=0.3, instrument_max_tilt_deg=30.0)
+    cases = []
+    for trial in range(12):
+        tilt = np.radians(rng.uniform(5.0, 30.0))
+        az = rng.uniform(0, 2 * np.pi)
+        true = rng.normal(0.0, 0.5, 2)
+        S = _tilted_shaft(true, np.tan(tilt) * np.array([np.cos(az), np.sin(az)]), 80, rng)
+        surf = rng.uniform(-15, 15, (600, 2))
+        surf = surf[np.hypot(*(surf - true).T) > R_TOOL + 1.0]
+        w = np.concatenate([S[:, 2], rng.normal(-0.5, 0.3, len(surf))])
+        cases.append((np.concatenate([S[:, :2], surf]), w))
+    damped = [cf.fit_instrument_tilted(uv, w, w, [0.0, 0.0, 0.0], sp) for uv, w in cases]
+    monkeypatch.setattr(cf, "_fit_tilted", _undamped_fit_tilted)
+    for (uv, w), got in zip(cases, damped):
+        want = cf.fit_instrument_tilted(uv, w, w, [0.0, 0.0, 0.0], sp)
+        np.testing.assert_array_equal(got[0], want[0])
+        np.testing.assert_array_equal(got[1], want[1])
+        assert got[2:] == want[2:]
+        assert np.hypot(*got[0][:2]) < 2.0 and got[0][2] != 0.0  # tilted fits (a fallback keeps the tip's height)
+
+
+def test_a_tilted_fit_is_damped_and_one_that_runs_off_is_not_believed(monkeypatch):
     """The candidates of a real camera cloud (tests/learn/data/runaway_shaft.csv: an unseen liver, the tool tilted
-    30 deg; the shaft's points and liver points to its side standing above the surface) send the tilted fit's
-    Gauss-Newton to a near-horizontal axis whose tip lies tens of mm from the kinematic tip, with a large Wald
-    statistic: before the check its tip was read as the tool's. ``tilt_credible`` refuses it (the tip on the axis
-    beyond the search radius of the kinematic tip), so the fit along the normal is returned, as for a slope the
-    points cannot tell from 0; the compiled kernel does the same, on the candidates alone and on a whole cloud."""
+    30 deg; the shaft's points and liver points to its side standing above the surface) sent the undamped
+    Gauss-Newton off to a near-horizontal axis whose tip lay tens of mm from the kinematic tip, with a large Wald
+    statistic. Damped (a step that raises the objective halved), the fit finds a shaft tilted about 30 deg through
+    the kinematic tip, at a lower objective, and the compiled kernel finds the same. An axis that runs off is still
+    refused by ``tilt_credible`` (the tip on it beyond the search radius of the kinematic tip), numpy and kernel,
+    and a cloud of these points is gridded alike by both."""
     from pathlib import Path
 
     from liverforce.learn import cloud_features as cf
@@ -579,29 +629,67 @@ def test_a_tilted_fit_that_runs_off_is_not_believed():
     sp = spec(instrument_max_tilt_deg=30.0)
     S = instrument_search_radius(sp)
     uv, H = P[:, :2].copy(), P[:, 2].copy()
+
+    def tip_off(x):  # the tip the fit gives (the kinematic tip, the origin, projected onto its axis), from it
+        t = float(-x[:2] @ x[2:]) / (1.0 + float(x[2:] @ x[2:]))
+        return np.hypot(x[0] + t * x[2], x[1] + t * x[3])
+
     x, n, wald = cf._tilted_pass(uv, H, H, np.zeros(2), sp, sp.instrument_point_sd_mm)
-    t = float(-x[:2] @ x[2:]) / (1.0 + float(x[2:] @ x[2:]))
-    off = np.hypot(x[0] + t * x[2], x[1] + t * x[3])  # the tip the fit would give, from the kinematic tip
-    assert n == len(P) and wald > cf.TILT_WALD and off > 20.0, (x, n, wald, off)
-    assert not tilt_credible(x, np.zeros(2), S)
-    assert tilt_credible(np.array([0.3, -0.4, 0.2, -0.5]), np.zeros(2), S)  # a shaft tilted 28 deg near the tip
+    tilt = np.degrees(np.arctan(np.hypot(*x[2:])))
+    assert wald > cf.TILT_WALD and 25.0 < tilt < 35.0 and tip_off(x) < 1.0, (x, n, wald)
+    assert tilt_credible(x, np.zeros(2), S)
+    with monkeypatch.context() as m:
+        m.setattr(cf, "_fit_tilted", _undamped_fit_tilted)
+        x_u, n_u, wald_u = cf._tilted_pass(uv, H, H, np.zeros(2), sp, sp.instrument_point_sd_mm)
+        assert n_u == len(P) and wald_u > cf.TILT_WALD and tip_off(x_u) > 20.0, (x_u, n_u, wald_u)
+        assert not tilt_credible(x_u, np.zeros(2), S)
+        tip_u, keep_u, n_fit_u, sd_u = fit_instrument_tilted(uv, H, H, [0.0, 0.0, 0.0], sp)
+        c, keep_n, n_n, sd_n = fit_instrument(uv, H, np.zeros(2), sp)  # refused: the fit along the normal
+        np.testing.assert_array_equal(tip_u, [c[0], c[1], 0.0])
+        np.testing.assert_array_equal(keep_u, keep_n)
+        assert (n_fit_u, sd_u) == (n_n, sd_n)
+    # from the same start on every candidate, damping ends lower than the undamped steps
+    wp, wk = 1.0 / sp.instrument_point_sd_mm ** 2, 1.0 / sp.instrument_tip_sd_mm ** 2
+    ws = 1.0 / np.tan(np.radians(30.0)) ** 2
+    x0 = np.array([0.0, 0.0, *np.linalg.lstsq(np.column_stack([np.ones(len(H)), H]), uv, rcond=None)[0][1]])
+    obj = [_tilt_objective(uv, H, f(uv, H, x0, np.zeros(4), R_TOOL, wp, wk, ws), np.zeros(4), R_TOOL, wp, wk, ws)
+           for f in (cf._fit_tilted, _undamped_fit_tilted)]
+    assert obj[0] < obj[1] and obj[0] < _tilt_objective(uv, H, x0, np.zeros(4), R_TOOL, wp, wk, ws), obj
+    # on every budget of iterations the damped fit ends no higher than with one fewer (a last step that raised the
+    # objective is not kept), the kernel's alike; the undamped steps do end higher
+    ends, ends_u = [], []
+    Qk = np.ascontiguousarray(np.vstack([uv.T, H, np.zeros(len(H))]))
+    Wv = np.array([wk, wk, ws, ws])
+    for it in range(1, cf._FIT_ITERATIONS + 1):
+        xd = cf._fit_tilted(uv, H, x0, np.zeros(4), R_TOOL, wp, wk, ws, iterations=it)
+        xk = cc._tilt_steps(Qk, len(H), x0.copy(), np.zeros(4), R_TOOL, wp, Wv, it)
+        np.testing.assert_allclose(xk, xd, atol=1e-9)
+        ends.append(_tilt_objective(uv, H, xd, np.zeros(4), R_TOOL, wp, wk, ws))
+        cf_it = cf._FIT_ITERATIONS
+        try:
+            cf._FIT_ITERATIONS = it
+            ends_u.append(_tilt_objective(uv, H, _undamped_fit_tilted(uv, H, x0, np.zeros(4), R_TOOL, wp, wk, ws),
+                                          np.zeros(4), R_TOOL, wp, wk, ws))
+        finally:
+            cf._FIT_ITERATIONS = cf_it
+    assert all(b <= a * (1.0 + 1e-9) for a, b in zip(ends, ends[1:])), ends
+    assert any(b > a * 1.01 for a, b in zip(ends_u, ends_u[1:])), ends_u
+    # the tilted tip is returned: the kinematic tip projected onto the damped axis
     tip, keep, n_fit, sd = fit_instrument_tilted(uv, H, H, [0.0, 0.0, 0.0], sp)
-    c, keep_n, n_n, sd_n = fit_instrument(uv, H, np.zeros(2), sp)
-    np.testing.assert_array_equal(tip, [c[0], c[1], 0.0])
-    np.testing.assert_array_equal(keep, keep_n)
-    assert (n_fit, sd) == (n_n, sd_n) and np.hypot(*tip[:2]) < S
-    # the kernel's pass on the same candidates runs off the same way, and its check agrees on both axes
+    t = float(-x[:2] @ x[2:]) / (1.0 + float(x[2:] @ x[2:]))
+    np.testing.assert_allclose(tip, [x[0] + t * x[2], x[1] + t * x[3], t], atol=1e-12)
+    assert n_fit == n
+    # the kernel's pass on the same candidates: the same damped axis, and its check agrees on both axes
     inst = cc.instrument_params(sp)
     raised = np.arange(len(P))
     got = cc._tilted_pass(uv[:, 0].copy(), uv[:, 1].copy(), H, np.arange(len(P), dtype=np.int32), raised, len(P),
                           0.0, 0.0, S, sp.instrument_point_sd_mm, inst, np.zeros(len(P), dtype=np.int32))
-    # (not compared to the numpy axis: the iteration diverges and amplifies the last bits of the kernel's
-    # reassociated sums)
-    assert got[1] == n and got[2] > cf.TILT_WALD
-    assert not cc._tilt_credible(got[0], 0.0, 0.0, S) and cc._tilt_credible(np.array([0.3, -0.4, 0.2, -0.5]), 0.0,
-                                                                           0.0, S)
+    np.testing.assert_allclose(got[0], x, atol=1e-9)
+    assert got[1] == n and np.isclose(got[2], wald, rtol=1e-6)
+    assert cc._tilt_credible(got[0], 0.0, 0.0, S) and not cc._tilt_credible(x_u, 0.0, 0.0, S)
+    assert cc._tilt_credible(np.array([0.3, -0.4, 0.2, -0.5]), 0.0, 0.0, S)  # a shaft tilted 28 deg near the tip
     # a whole cloud: a flat pre-operative surface, the kinematic tip 7.2 mm below it (the dent), these points
-    # standing on it, liver points round them; cloud_grid and the compiled kernel both fall back to the normal fit
+    # standing on it, liver points round them; cloud_grid and the compiled kernel grid it alike
     _, U0, T = dent_surface()
     ref = ReferenceSurface.for_case(U0, T, np.zeros(3), np.eye(3), sp)
     rng = np.random.default_rng(3)
