@@ -139,6 +139,22 @@ def _tilted_shaft(centre, slope, n, rng, sd=0.3):
     return P + rng.normal(0.0, sd, P.shape)
 
 
+def _tilted_scene(rng, tilt_lo_deg: float, tilt_hi_deg: float, n_surface: int):
+    """A shaft (80 points) tilted uniformly in ``[tilt_lo_deg, tilt_hi_deg]`` towards a random azimuth, its axis
+    through ``true`` (0.5 mm sd about the origin, the kinematic tip), and up to ``n_surface`` liver points on a flat
+    surface round it (0.3 mm sd about -0.5 mm). Returns the shaft's points, every point's ``(u, v)`` and height
+    (shaft first), ``true`` and the slope."""
+    tilt = np.radians(rng.uniform(tilt_lo_deg, tilt_hi_deg))
+    az = rng.uniform(0, 2 * np.pi)
+    slope = np.tan(tilt) * np.array([np.cos(az), np.sin(az)])
+    true = rng.normal(0.0, 0.5, 2)
+    S = _tilted_shaft(true, slope, 80, rng)
+    surf = rng.uniform(-15, 15, (n_surface, 2))
+    surf = surf[np.hypot(*(surf - true).T) > R_TOOL + 1.0]
+    return (S, np.concatenate([S[:, :2], surf]), np.concatenate([S[:, 2], rng.normal(-0.5, 0.3, len(surf))]), true,
+            slope)
+
+
 def test_a_tilted_shaft_is_fitted_with_its_slope_and_dropped():
     """instrument_max_tilt_deg: a shaft tilted 0-25 deg from the normal gives its axis (the tip: where the
     kinematic tip projects onto it) and the points' noise, and every one of its points is dropped; on a 20 deg
@@ -149,15 +165,7 @@ def test_a_tilted_shaft_is_fitted_with_its_slope_and_dropped():
     sp = spec(instrument_point_sd_mm=0.3, instrument_max_tilt_deg=30.0)
     errs = []
     for trial in range(24):
-        tilt = np.radians(rng.uniform(0.0, 25.0))
-        az = rng.uniform(0, 2 * np.pi)
-        slope = np.tan(tilt) * np.array([np.cos(az), np.sin(az)])
-        true = rng.normal(0.0, 0.5, 2)
-        S = _tilted_shaft(true, slope, 80, rng)
-        surf = rng.uniform(-15, 15, (800, 2))
-        surf = surf[np.hypot(*(surf - true).T) > R_TOOL + 1.0]
-        uv = np.concatenate([S[:, :2], surf])
-        w = np.concatenate([S[:, 2], rng.normal(-0.5, 0.3, len(surf))])
+        S, uv, w, true, slope = _tilted_scene(rng, 0.0, 25.0, 800)
         dz = w + 0.0  # a flat pre-operative surface at the tip's height
         tip, keep, n, sd = fit_instrument_tilted(uv, w, dz, [0.0, 0.0, 0.0], sp)
         assert n >= 70 and not keep[: len(S)].any() and keep[len(S):].mean() > 0.97
@@ -593,14 +601,8 @@ def test_the_damped_tilted_fit_takes_the_undamped_steps_where_they_lower_the_obj
     sp = spec(instrument_point_sd_mm=0.3, instrument_max_tilt_deg=30.0)
     cases = []
     for trial in range(12):
-        tilt = np.radians(rng.uniform(5.0, 30.0))
-        az = rng.uniform(0, 2 * np.pi)
-        true = rng.normal(0.0, 0.5, 2)
-        S = _tilted_shaft(true, np.tan(tilt) * np.array([np.cos(az), np.sin(az)]), 80, rng)
-        surf = rng.uniform(-15, 15, (600, 2))
-        surf = surf[np.hypot(*(surf - true).T) > R_TOOL + 1.0]
-        w = np.concatenate([S[:, 2], rng.normal(-0.5, 0.3, len(surf))])
-        cases.append((np.concatenate([S[:, :2], surf]), w))
+        _, uv, w, _, _ = _tilted_scene(rng, 5.0, 30.0, 600)
+        cases.append((uv, w))
     damped = [cf.fit_instrument_tilted(uv, w, w, [0.0, 0.0, 0.0], sp) for uv, w in cases]
     monkeypatch.setattr(cf, "_fit_tilted", _undamped_fit_tilted)
     for (uv, w), got in zip(cases, damped):
