@@ -85,7 +85,7 @@ from numba.typed import List
 
 from liverforce.learn import camera, cloud_features
 from liverforce.learn.cloud_features import (_COST_RTOL, _FIT_ITERATIONS, _MAD_SD, _MIN_POINT_SD, _MIN_TIP_SD,
-                                             ReferenceSurface, _fill, instrument_search_radius)
+                                             ReferenceSurface, _fill, instrument_search_radius, shaft_fit_radius)
 from liverforce.learn.encoders import PCAEncoder
 from liverforce.learn.state import THICKNESS_COLUMN, compliance_matrices, state_vector
 from liverforce.serve.checks import Limits, TrainingScale, outside_training
@@ -283,9 +283,11 @@ def _fit_axis_points(U, V, orig, idx, k, c0u, c0v, inst):
     """The instrument's axis fitted to the candidate points ``orig[idx[:k]]`` (local ``U, V``; the sorted indices
     ``idx[:k]`` are reordered, the outliers behind the others), the kinematic tip ``(c0u, c0v)`` the prior, as
     :func:`liverforce.learn.cloud_features.fit_instrument`: Gauss-Newton, then once more without the outliers.
-    ``inst``: radius, search radius, rise, clearance, point sd, tip sd, fewest points. Returns ``(cu, cv,
-    n_fitted)`` (the prior and 0 with fewer than the fewest points)."""
-    r, sdp, sdk, n_min = inst[0], inst[4], inst[5], inst[6]
+    ``inst``: radius, search radius, rise, clearance, point sd, tip sd, fewest points; the distances are compared
+    with ``shaft_fit_radius`` of the radius and point sd. Returns ``(cu, cv, n_fitted)`` (the prior and 0 with
+    fewer than the fewest points)."""
+    sdp, sdk, n_min = inst[4], inst[5], inst[6]
+    r = shaft_fit_radius(inst[0], sdp)
     if k < n_min:
         return c0u, c0v, 0
     wp = 1.0 / max(sdp, _MIN_POINT_SD) ** 2
@@ -315,18 +317,18 @@ def _fit_axis_points(U, V, orig, idx, k, c0u, c0v, inst):
 
 
 @njit(cache=True)
-def _instrument_point(u, v, z, cu, cv, c0u, c0v, inst):
+def _instrument_point(u, v, z, cu, cv, c0u, c0v, inst, rf):
     """Is the point ``(u, v)`` (local, mm; height change ``z``) the instrument's, to be dropped: a candidate
     (within the search radius of the kinematic tip ``(c0u, c0v)``, ``rise`` above the surface), within the
-    clearance of the fitted axis ``(cu, cv)``, or within another 2 point sds of it above the surface
-    (``fit_instrument``'s ``keep``, negated)."""
-    r, search, rise, clear, sdp = inst[0], inst[1], inst[2], inst[3], inst[4]
+    clearance of the fitted axis ``(cu, cv)`` beyond ``rf`` (``shaft_fit_radius`` of the fit's point sd), or
+    within another 2 point sds of it above the surface (``fit_instrument``'s ``keep``, negated)."""
+    search, rise, clear, sdp = inst[1], inst[2], inst[3], inst[4]
     dx = u - cu
     dy = v - cv
     d2 = dx * dx + dy * dy
     ex = u - c0u
     ey = v - c0v
-    return (d2 < (r + clear) ** 2 or (d2 < (r + clear + 2.0 * sdp) ** 2 and z > 0.0)
+    return (d2 < (rf + clear) ** 2 or (d2 < (rf + clear + 2.0 * sdp) ** 2 and z > 0.0)
             or (z > rise and ex * ex + ey * ey < search * search))
 
 
@@ -393,7 +395,7 @@ def _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u,
     cu, cv, n_fit = _fit_axis_points(U, V, orig, idx, k, c0u, c0v, inst)
     sd = np.nan
     if n_fit > 0:
-        sd = _point_sd(U, V, orig, idx, k, cu, cv, r)
+        sd = _point_sd(U, V, orig, idx, k, cu, cv, shaft_fit_radius(r, sdp))
         if sd > inst[7] * max(sdp, _MIN_POINT_SD):  # the cloud's own noise: search and fit again
             inst = inst.copy()
             inst[4] = sd
@@ -402,11 +404,12 @@ def _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u,
             sdp = sd
             k = _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, search, rise, idx)
             cu, cv, n_fit = _fit_axis_points(U, V, orig, idx, k, c0u, c0v, inst)
-            sd = _point_sd(U, V, orig, idx, k, cu, cv, r)  # from the wider search: less cut off
+            sd = _point_sd(U, V, orig, idx, k, cu, cv, shaft_fit_radius(r, sdp))  # the wider search: less cut off
     # dropped: the candidates (within the search radius of the kinematic tip) and the points near the fitted axis
     margin = 1.0 / sb
+    rf = shaft_fit_radius(r, sdp)
     r_lo, r_hi, c_lo, c_hi = _bin_box(c0u, c0v, search / gstep + margin, h, gstep, sb, pad, nc)
-    a_lo, a_hi, b_lo, b_hi = _bin_box(cu, cv, (r + clear + 2.0 * sdp) / gstep + margin, h, gstep, sb, pad, nc)
+    a_lo, a_hi, b_lo, b_hi = _bin_box(cu, cv, (rf + clear + 2.0 * sdp) / gstep + margin, h, gstep, sb, pad, nc)
     r_lo, r_hi, c_lo, c_hi = min(r_lo, a_lo), max(r_hi, a_hi), min(c_lo, b_lo), max(c_hi, b_hi)
     n_drop = 0
     for rr in range(r_lo, r_hi + 1):
@@ -414,7 +417,7 @@ def _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u,
             kk = _key(rr, cc, sb, nc)
             for s in range(first[kk], first[kk + 1]):
                 t = orig[s]
-                if t >= 0 and _instrument_point(U[t], V[t], Zs[s], cu, cv, c0u, c0v, inst):
+                if t >= 0 and _instrument_point(U[t], V[t], Zs[s], cu, cv, c0u, c0v, inst, rf):
                     GUs[s] = _FAR
                     GVs[s] = _FAR
                     n_drop += 1
@@ -586,8 +589,8 @@ def _tilted_pass(U, V, Hs, orig, raised, n_raised, c0u, c0v, S, sdp, inst, idx):
     """``cloud_features._tilted_pass``: the candidates within ``S + tan(max tilt) x height`` of the kinematic tip's
     axis among the points standing ``rise`` above the surface (sorted positions ``raised[:n_raised]``), the slope's
     start, the fit and its two trims with point sd ``sdp``. Returns the axis ``(cu, cv, su, sv)``, the points fitted
-    and the slope's Wald statistic."""
-    r, t_max = inst[0], inst[8]
+    and the slope's Wald statistic. The distances are compared with ``shaft_fit_radius`` of the radius and ``sdp``."""
+    r, t_max = shaft_fit_radius(inst[0], sdp), inst[8]
     k = 0
     for j in range(n_raised):
         t = orig[raised[j]]
@@ -715,12 +718,12 @@ def _fit_instrument_tilted(U, V, Wl, GUs, GVs, Zs, orig, first, sb, pad, nc, h, 
     x, n_fit, wald = _tilted_pass(U, V, Hs, orig, raised, n_raised, c0u, c0v, S, sdp, inst, idx)
     sd = np.nan
     if n_fit > 0:
-        sd = _tilted_sd(U, V, Hs, orig, raised, n_raised, x, S, r, scr)
+        sd = _tilted_sd(U, V, Hs, orig, raised, n_raised, x, S, shaft_fit_radius(r, sdp), scr)
         if sd > inst[7] * max(sdp, _MIN_POINT_SD):  # the cloud's own noise: search and fit again
             sdp = sd
             S = r + 3.0 * sdk + 2.0 * sd + 0.5  # cloud_features.instrument_search_radius
             x, n_fit, wald = _tilted_pass(U, V, Hs, orig, raised, n_raised, c0u, c0v, S, sdp, inst, idx)
-            sd = _tilted_sd(U, V, Hs, orig, raised, n_raised, x, S, r, scr)
+            sd = _tilted_sd(U, V, Hs, orig, raised, n_raised, x, S, shaft_fit_radius(r, sdp), scr)
     if wald < inst[9] or not _tilt_credible(x, c0u, c0v, S):
         # no tilt the points can tell from the normal (TILT_WALD), or an axis they cannot support: the fit along it
         cu, cv, n_fit, _, sd = _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v,
@@ -735,7 +738,8 @@ def _fit_instrument_tilted(U, V, Wl, GUs, GVs, Zs, orig, first, sb, pad, nc, h, 
             h_lo = min(h_lo, Wl[t] - tw)
             h_hi = max(h_hi, Wl[t] - tw)
     sec = math.sqrt(1.0 + (x[2] * x[2] + x[3] * x[3]))  # within d of the axis: within d sec sideways
-    far = max(S, r + clear + 2.0 * sdp) * sec / gstep + 1.0 / sb
+    rf = shaft_fit_radius(r, sdp)
+    far = max(S, rf + clear + 2.0 * sdp) * sec / gstep + 1.0 / sb
     r_lo, r_hi, c_lo, c_hi = _axis_box(x, h_lo, h_hi, far, h, gstep, sb, pad, nc)
     for rr in range(r_lo, r_hi + 1):
         for cc in range(c_lo, c_hi + 1):
@@ -745,7 +749,7 @@ def _fit_instrument_tilted(U, V, Wl, GUs, GVs, Zs, orig, first, sb, pad, nc, h, 
                 if t >= 0:
                     d = _tilt_terms(U[t], V[t], Wl[t] - tw, x, 0.0)[0]
                     z = Zs[s]
-                    if (d < r + clear or (d < r + clear + 2.0 * sdp and z > 0.0)) or (z > rise and d < S):
+                    if (d < rf + clear or (d < rf + clear + 2.0 * sdp and z > 0.0)) or (z > rise and d < S):
                         GUs[s] = _FAR
                         GVs[s] = _FAR
     su = x[2]
