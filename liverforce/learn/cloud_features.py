@@ -500,6 +500,8 @@ _MAD_SD = 1.4826  # sd of a normal variable per median absolute deviation
 TILT_WALD = 13.8
 
 
+# scipy.special has i0e / i1e, but the serving kernel (numba) cannot call them: these two are written out once and
+# compiled there from this source (register_jitable), so reference and kernel run the same arithmetic.
 @register_jitable  # plain Python here; compiled where the serving kernel calls it
 def _i0e(x: float) -> float:
     """``exp(-x) I0(x)`` for ``x >= 0`` (Abramowitz & Stegun 9.8.1-2; against scipy's ``i0e`` on [0, 1000] the
@@ -619,16 +621,18 @@ def fit_instrument(uv: np.ndarray, dz: np.ndarray, tip_uv,
     sdp = spec.instrument_point_sd_mm
     cand = (d0 < instrument_search_radius(spec)) & (dz > spec.instrument_rise_mm)
     c, n_fit = _fit_candidates(uv[cand], c0, spec, sdp)
+    rf = shaft_fit_radius(r, sdp)  # where the shaft's points stand, at this pass's point sd
     sd = math.nan
     if n_fit:
-        sd = instrument_point_sd(uv[cand], c, shaft_fit_radius(r, sdp))
+        sd = instrument_point_sd(uv[cand], c, rf)
         if sd > NOISE_REFIT_RATIO * max(sdp, _MIN_POINT_SD):
             sdp = sd
+            rf = shaft_fit_radius(r, sdp)
             cand = (d0 < instrument_search_radius(spec, sdp)) & (dz > spec.instrument_rise_mm)
             c, n_fit = _fit_candidates(uv[cand], c0, spec, sdp)
-            sd = instrument_point_sd(uv[cand], c, shaft_fit_radius(r, sdp))  # from the wider search: less cut off
+            sd = instrument_point_sd(uv[cand], c, rf)  # from the wider search: less cut off
     d = np.hypot(uv[:, 0] - c[0], uv[:, 1] - c[1])
-    clear = shaft_fit_radius(r, sdp) + spec.instrument_clearance_mm  # from where the shaft's points stand
+    clear = rf + spec.instrument_clearance_mm
     near = d < clear
     # the shaft's lowest points, at the surface's height, whose noise put them beyond the clearance
     near |= (d < clear + 2.0 * sdp) & (dz > 0)

@@ -393,21 +393,22 @@ def _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u,
     r, search, rise, clear, sdp = inst[0], inst[1], inst[2], inst[3], inst[4]
     k = _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, search, rise, idx)
     cu, cv, n_fit = _fit_axis_points(U, V, orig, idx, k, c0u, c0v, inst)
+    rf = shaft_fit_radius(r, sdp)  # where the shaft's points stand, at this pass's point sd
     sd = np.nan
     if n_fit > 0:
-        sd = _point_sd(U, V, orig, idx, k, cu, cv, shaft_fit_radius(r, sdp))
+        sd = _point_sd(U, V, orig, idx, k, cu, cv, rf)
         if sd > inst[7] * max(sdp, _MIN_POINT_SD):  # the cloud's own noise: search and fit again
             inst = inst.copy()
             inst[4] = sd
             search = r + 3.0 * inst[5] + 2.0 * sd + 0.5  # cloud_features.instrument_search_radius
             inst[1] = search
             sdp = sd
+            rf = shaft_fit_radius(r, sdp)
             k = _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, search, rise, idx)
             cu, cv, n_fit = _fit_axis_points(U, V, orig, idx, k, c0u, c0v, inst)
-            sd = _point_sd(U, V, orig, idx, k, cu, cv, shaft_fit_radius(r, sdp))  # the wider search: less cut off
+            sd = _point_sd(U, V, orig, idx, k, cu, cv, rf)  # from the wider search: less cut off
     # dropped: the candidates (within the search radius of the kinematic tip) and the points near the fitted axis
     margin = 1.0 / sb
-    rf = shaft_fit_radius(r, sdp)
     r_lo, r_hi, c_lo, c_hi = _bin_box(c0u, c0v, search / gstep + margin, h, gstep, sb, pad, nc)
     a_lo, a_hi, b_lo, b_hi = _bin_box(cu, cv, (rf + clear + 2.0 * sdp) / gstep + margin, h, gstep, sb, pad, nc)
     r_lo, r_hi, c_lo, c_hi = min(r_lo, a_lo), max(r_hi, a_hi), min(c_lo, b_lo), max(c_hi, b_hi)
@@ -716,14 +717,16 @@ def _fit_instrument_tilted(U, V, Wl, GUs, GVs, Zs, orig, first, sb, pad, nc, h, 
             Hs[t] = Wl[t] - tw
     S = inst[1]
     x, n_fit, wald = _tilted_pass(U, V, Hs, orig, raised, n_raised, c0u, c0v, S, sdp, inst, idx)
+    rf = shaft_fit_radius(r, sdp)  # where the shaft's points stand, at this pass's point sd
     sd = np.nan
     if n_fit > 0:
-        sd = _tilted_sd(U, V, Hs, orig, raised, n_raised, x, S, shaft_fit_radius(r, sdp), scr)
+        sd = _tilted_sd(U, V, Hs, orig, raised, n_raised, x, S, rf, scr)
         if sd > inst[7] * max(sdp, _MIN_POINT_SD):  # the cloud's own noise: search and fit again
             sdp = sd
+            rf = shaft_fit_radius(r, sdp)
             S = r + 3.0 * sdk + 2.0 * sd + 0.5  # cloud_features.instrument_search_radius
             x, n_fit, wald = _tilted_pass(U, V, Hs, orig, raised, n_raised, c0u, c0v, S, sdp, inst, idx)
-            sd = _tilted_sd(U, V, Hs, orig, raised, n_raised, x, S, shaft_fit_radius(r, sdp), scr)
+            sd = _tilted_sd(U, V, Hs, orig, raised, n_raised, x, S, rf, scr)
     if wald < inst[9] or not _tilt_credible(x, c0u, c0v, S):
         # no tilt the points can tell from the normal (TILT_WALD), or an axis they cannot support: the fit along it
         cu, cv, n_fit, _, sd = _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v,
@@ -738,7 +741,6 @@ def _fit_instrument_tilted(U, V, Wl, GUs, GVs, Zs, orig, first, sb, pad, nc, h, 
             h_lo = min(h_lo, Wl[t] - tw)
             h_hi = max(h_hi, Wl[t] - tw)
     sec = math.sqrt(1.0 + (x[2] * x[2] + x[3] * x[3]))  # within d of the axis: within d sec sideways
-    rf = shaft_fit_radius(r, sdp)
     far = max(S, rf + clear + 2.0 * sdp) * sec / gstep + 1.0 / sb
     r_lo, r_hi, c_lo, c_hi = _axis_box(x, h_lo, h_hi, far, h, gstep, sb, pad, nc)
     for rr in range(r_lo, r_hi + 1):

@@ -487,16 +487,11 @@ def test_a_noisy_half_shaft_is_fitted_on_its_axis_not_away_from_the_camera(tilte
         facing = rng.uniform(0, 2 * np.pi)
         towards = np.array([np.cos(facing), np.sin(facing)])
         true = rng.normal(0.0, 0.5, 2)
-        if tilted:  # a shaft tilted 20 deg across the view; the kinematic tip on its axis
-            slope = np.tan(np.radians(20.0)) * np.array([-towards[1], towards[0]])
-            a = np.array([slope[0], slope[1], 1.0]) / np.hypot(1.0, np.tan(np.radians(20.0)))
-            e1 = np.array([towards[0], towards[1], 0.0])
-            e2 = np.cross(a, e1)
-            phi = rng.uniform(-np.pi / 2, np.pi / 2, 150)
-            t = rng.uniform(3.0, 20.0, 150) / a[2]
-            P = (np.array([true[0], true[1], 0.0]) + t[:, None] * a
-                 + R_TOOL * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2))
-            P += rng.normal(0.0, 1.0, P.shape)
+        if tilted:  # a shaft tilted 20 deg; the kinematic tip on its axis; the camera on the side its points face
+            slope = np.tan(np.radians(20.0)) * towards
+            P = _tilted_shaft(true, slope, 150, rng, sd=1.0)
+            side = (P[:, :2] - true - P[:, 2:] * slope).mean(axis=0)  # the seen half's offset from the axis
+            towards = side / np.linalg.norm(side)
             tip, _, n, _ = fit_instrument_tilted(P[:, :2], P[:, 2], P[:, 2] + 3.0, [true[0], true[1], 0.0], sp)
             c = tip[:2]
             assert n >= 140
