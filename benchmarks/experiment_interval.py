@@ -1,26 +1,28 @@
 """Experiment: the calibrated interval's coverage with each scale, on the IV test livers and the unseen livers.
 
-Retrains the scenario-IV model of one variant on a finished run's shards, once
-per ``train.interval.scale`` (``--scales``) on each of ``--splits`` seeded
-splits (the main split, then the repeats' split seeds, as
-:meth:`benchmarks.experiment.PipelineTraining.score` uses them), with the
-default config's training settings otherwise (cross-conformal calibration on
-the training livers only). The fits are seeded, so the scales get the same
-models and differ only in their interval; each scale still trains its own (the
-model and its 4 calibration fits per split and scale). Prints, per scale,
-mean +- sd over the splits of:
+Retrains the scenario-IV model of one variant on a finished run's shards once
+per seeded split (``--splits``: the main split, then the repeats' split seeds,
+as :meth:`benchmarks.experiment.PipelineTraining.score` uses them), with the
+default config's training settings (cross-conformal calibration on the
+training livers only). Every scale (``--scales``; ``force_bins`` once per
+``--bins``) is then fitted on the same calibration predictions
+(``interval_calibration.npz`` next to the model,
+:func:`liverforce.learn.train.interval_from_calibration`): the scales share
+the model and differ only in their interval. Prints, per scale, mean +- sd
+over the splits of:
 
 - the coverage per local component (t1, t2, n) on the split's IV test livers
   and on the unseen livers of scenario V, and the mean half-widths;
-- the coverage per quintile of the true |F| (mean over the splits), and the
-  worst quintile-component of each split (mean): whether the interval holds
-  for the large forces as well as for the small ones.
+- the coverage per quintile of the true |F| (mean over the splits), the worst
+  quintile-component of each split (mean), and the spread: the range over
+  the quintiles of each component's coverage, mean over the components and
+  splits. Whether the interval holds for the small forces as for the large.
 
 The validate stage writes the same numbers for the validated model
 (``validate/metrics.json`` ``interval``: ``coverage``, ``coverage_by_force``).
 
     PYTHONPATH=. OMP_NUM_THREADS=1 .venv/bin/python benchmarks/experiment_interval.py --results results/default \\
-        --variant cloud_sv --scales none force
+        --variant cloud_sv --scales force force_bins --bins 2 3 4 5 8
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ from liverforce.config import interval_scales
 
 
 def summary(docs: list[dict]) -> str:
-    """One line of :func:`liverforce.pipeline.validate.interval_on_unseen` results over splits."""
+    """One line of :func:`liverforce.pipeline.validate.interval_coverage` results over splits."""
     cov = 100 * np.array([d["coverage"] for d in docs])
     half = np.array([d["half_width_mean_n"] for d in docs], dtype=float)
     if any(len(d["coverage_by_force"]) != 5 for d in docs):  # an empty quintile (tied or very few cases)
@@ -43,23 +45,25 @@ def summary(docs: list[dict]) -> str:
     sd = cov.std(axis=0, ddof=1) if len(docs) > 1 else np.zeros(3)
     per_bin = " | ".join(f"{ax} " + " ".join(f"{v:.0f}" for v in bins.mean(axis=0)[:, j])
                          for j, ax in enumerate(("t1", "t2", "n")))
+    spread = (bins.max(axis=1) - bins.min(axis=1)).mean()
     return (f"coverage {' / '.join(f'{m:.1f} +- {s:.1f}' for m, s in zip(cov.mean(axis=0), sd))} %, "
             f"half-widths {' / '.join(f'{h:.3f}' for h in half.mean(axis=0))} N; per |F| quintile {per_bin} %; "
-            f"worst quintile {bins.min(axis=(1, 2)).mean():.1f} %")
+            f"worst quintile {bins.min(axis=(1, 2)).mean():.1f} %; spread over the quintiles {spread:.1f} points")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--results", default="results/default")
     ap.add_argument("--variant", default="cloud_sv")
-    ap.add_argument("--scales", nargs="+", default=["none", "force"], choices=interval_scales())
+    ap.add_argument("--scales", nargs="+", default=["force", "force_bins"], choices=interval_scales())
+    ap.add_argument("--bins", nargs="+", type=int, default=[5], help="bins for scale force_bins (one row each)")
     ap.add_argument("--splits", type=int, default=5)
     ap.add_argument("--out", default="/tmp/liverforce-interval-experiment")
     args = ap.parse_args()
 
-    from liverforce.learn.model import subset
-    from liverforce.learn.train import train_scenario
-    from liverforce.pipeline.validate import interval_on_unseen
+    from liverforce.learn.model import ForceModel, subset
+    from liverforce.learn.train import interval_from_calibration, train_scenario
+    from liverforce.pipeline.validate import interval_coverage
     from liverforce.seeds import derive
 
     from benchmarks.experiment import PipelineTraining
@@ -69,21 +73,31 @@ def main() -> None:
     camera = model_cfg.get("roi_features") == "cloud"
     arrays, unseen = run.arrays("IV", camera), run.arrays("V", camera)
     geo = np.asarray(arrays["geometry_id"]).astype(str)
-    got: dict = {s: {"test": [], "unseen": []} for s in args.scales}
+    forms = [(s, b) for s in args.scales for b in (args.bins if s == "force_bins" else [None])]
+    name = {f: f[0] if f[1] is None else f"{f[0]}:{f[1]}" for f in forms}
+    got: dict = {f: {"test": [], "unseen": []} for f in forms}
+    base = run.cfg["train"]["interval"]
     t = time.perf_counter()
     for r in range(args.splits):
         seed = run.seed if r == 0 else derive(run.seed, "split.repeat", r)
-        for s in args.scales:
-            train = {**run.train, "repeats": 1, "interval": {**run.cfg["train"]["interval"], "scale": s}}
-            res = train_scenario(arrays, model_cfg, train, run.cfg["tune"], "IV", args.variant, seed=seed,
-                                 out_dir=f"{args.out}/{args.variant}-{s}-{r}")
-            test = subset(arrays, np.flatnonzero(np.isin(geo, res["split"]["test_geometries"])))
-            got[s]["test"].append(interval_on_unseen(res["model_path"], test))
-            got[s]["unseen"].append(interval_on_unseen(res["model_path"], unseen))
+        train = {**run.train, "repeats": 1, "interval": dict(base)}
+        out = f"{args.out}/{args.variant}-{r}"
+        res = train_scenario(arrays, model_cfg, train, run.cfg["tune"], "IV", args.variant, seed=seed, out_dir=out)
+        if res["interval"] is None:  # no calibration (its npz would be an earlier run's)
+            raise SystemExit(f"split {r}: no calibrated interval ({'; '.join(res['split']['notes'])})")
+        with np.load(f"{out}/interval_calibration.npz") as z:
+            cal = {k: z[k] for k in z.files}
+        m = ForceModel.load(res["model_path"])
+        test = subset(arrays, np.flatnonzero(np.isin(geo, res["split"]["test_geometries"])))
+        for f in forms:
+            cfg = {**base, "scale": f[0], **({} if f[1] is None else {"bins": f[1]})}
+            m.meta["interval"] = interval_from_calibration(cal, cfg, "IV").to_dict()
+            got[f]["test"].append(interval_coverage(m, test))
+            got[f]["unseen"].append(interval_coverage(m, unseen))
         print(f"split {r + 1}/{args.splits} done ({time.perf_counter() - t:.0f} s)", flush=True)
-    for s in args.scales:
+    for f in forms:
         for part in ("test", "unseen"):
-            print(f"{args.variant} scale {s:9s} {part:6s} ({args.splits} splits): {summary(got[s][part])}")
+            print(f"{args.variant} scale {name[f]:12s} {part:6s} ({args.splits} splits): {summary(got[f][part])}")
 
 
 if __name__ == "__main__":

@@ -200,6 +200,8 @@ class IntervalConfig:
     calibration_fraction: float = MISSING  # of the training split, held out to calibrate it
     folds: int = MISSING  # > 1: cross-conformal over the training split (by liver in IV); 1: one held-out split
     scale: str = MISSING  # none | stiffness (x the case's stiffness factor) | force (x a + b |predicted force|)
+    # | force_bins (a width per bin of the predicted |force|)
+    bins: int = MISSING  # scale: force_bins: bins at the quantiles of the calibration cases' predicted |force|
 
 
 @dataclass
@@ -742,6 +744,8 @@ def _check_ranges(cfg: dict) -> None:
     if t["interval"]["folds"] < 1:
         _fail("train.interval.folds", f"must be >= 1 (got {t['interval']['folds']})", "e.g. 4 (1: one held-out split)")
     _check_choice("train.interval.scale", t["interval"]["scale"], interval_scales(), "interval scale")
+    if t["interval"]["bins"] < 1:
+        _fail("train.interval.bins", f"must be >= 1 (got {t['interval']['bins']})", "e.g. 4 (with scale: force_bins)")
     if t["heldout_points"]["folds"] < 2:
         _fail("train.heldout_points.folds", f"must be >= 2 (got {t['heldout_points']['folds']})")
     for sc in t["heldout_points"]["scenarios"]:

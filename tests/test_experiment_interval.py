@@ -11,13 +11,15 @@ def _doc(cov, bins, half=(0.3, 0.3, 0.4)):
             "coverage_by_force": [{"coverage": b} for b in bins]}
 
 
-def test_summary_is_the_mean_and_sd_over_splits_with_the_worst_quintile():
+def test_summary_is_the_mean_and_sd_over_splits_with_the_worst_quintile_and_the_spread():
     b1 = [[1.0, 1.0, 1.0], [0.9, 0.9, 0.9], [0.9, 0.9, 0.9], [0.8, 0.9, 0.9], [0.7, 0.8, 0.9]]
     b2 = [[0.9, 0.9, 0.9]] * 4 + [[0.9, 0.5, 0.9]]
     line = summary([_doc([0.88, 0.90, 0.92], b1), _doc([0.92, 0.90, 0.96], b2, half=(0.5, 0.3, 0.2))])
     assert line.startswith("coverage 90.0 +- 2.8 / 90.0 +- 0.0 / 94.0 +- 2.8 %, half-widths 0.400 / 0.300 / 0.300 N")
     assert "t1 95 90 90 85 80 | t2 95 90 90 90 65 | n 95 90 90 90 90 %" in line
-    assert line.endswith("worst quintile 60.0 %")  # (70 + 50) / 2: each split's worst quintile-component
+    assert "worst quintile 60.0 %" in line  # (70 + 50) / 2: each split's worst quintile-component
+    # range over the quintiles per component: split 1 30 / 20 / 10 points, split 2 0 / 40 / 0 -> mean 16.7
+    assert line.endswith("spread over the quintiles 16.7 points")
 
 
 def test_summary_refuses_a_split_with_an_empty_quintile():

@@ -36,7 +36,7 @@ if it comes from the same population: the validation on unseen livers
 (constants outside the training range) measures the coverage actually
 reached.
 
-Outside the calibration's stiffness range (``scale: none`` and ``force``): inside the range
+Outside the calibration's stiffness range (``scale: none``, ``force`` and ``force_bins``): inside the range
 the calibration residuals do not grow with the stiffness factor (fitted
 exponent of |r| ~ k^g per component: -0.02 to 0.10 on the 7423f34 run's
 camera model), but beyond it the model extrapolates. The half-widths are then
@@ -52,7 +52,7 @@ the range this changes nothing. Measured on that run's camera model
 coverage per component 91.7 / 87.1 / 85.0 % unwidened, 93.3 / 90.0 / 89.2 %
 widened; the IV test livers (inside the range) are unchanged.
 
-Scaled by the predicted force (``scale: force``, the default; locally weighted
+Scaled by the predicted force (``scale: force``, the default until session 28; locally weighted
 conformal, Lei et al. 2018 section 5.2): the error in newtons grows with the
 force, so a fixed half-width over-covers small forces and under-covers the
 large ones a surgeon most needs bounded. The score divides each residual by a
@@ -79,9 +79,45 @@ largest (4-5 N), on the unseen livers 100 / 100 / 100 and 79 / 78 / 87 %;
 forces under-cover in t1 and t2 with every scale tried on the same
 calibration residuals (an ad-hoc comparison, not in the repository), binned
 (Mondrian) conformal over quintiles of ``|f^|`` included (85 / 85 / 96 %):
-their relative error is larger than the training livers'. A square-root or
+their relative error is larger than the training livers'. (That was the
+ac86fa2 model; on the 08f70c9 model the line under-covers them more, and
+the bins below do better.) A square-root or
 quadrature scale did no better on the test livers (largest departure of a
 quintile from 90 %: 5.6 and 6.7 points against the linear scale's 4.4).
+
+A fixed width per bin of the predicted force (``scale: force_bins``, the default
+since session 29; Mondrian conformal, Vovk et al. 2005 section 4.5, with the
+bins a function of the prediction only): the calibration cases are cut into
+``bins`` bins at the quantiles of their predicted ``|f^|``, and each bin gets
+its own split-conformal quantile per component::
+
+    q_bj = s_(ceil((n_b + 1) c)) of |f_ij - f^_ij| over the n_b cases of bin b
+    interval_ij = f^_ij +- q_b(i)j x max(1, k_i / k_hi, k_lo / k_i)
+
+with ``b(i)`` the bin of the case's own predicted ``|f^_i|``. For cases
+exchangeable with the calibration cases the coverage then holds within each
+bin, not only on average (approximately: the edges come from the same
+calibration predictions, and cross-conformal weakens the guarantee as above):
+the small forces get their own width instead of a share of a line fitted
+through all of them. A calibration case whose prediction is not finite counts
+as an infinite residual in every bin (its bin is unknown). The linear scale's line is pulled
+by the many mid-range cases and is too narrow at the small forces of a new
+liver, whose relative error is larger. Each bin needs
+:func:`min_calibration_cases` cases; with fewer, fewer bins are used (the
+number used is recorded). Measured with ``benchmarks/experiment_interval.py
+--scales force force_bins --bins 2 3 4 5 8`` on the 08f70c9 run's shards
+(cloud_sv, IV, 5 seeded splits, each scale fitted on the same calibration
+predictions of a split; coverage t1 / t2 / n, mean over the splits; spread: the
+range of a component's coverage over the quintiles of the true |F|, mean over
+components and splits):
+
+- IV test livers (the choice of the scale and of 5 bins): spread ``force``
+  10.7 points, ``force_bins`` with 2 / 3 / 4 / 5 / 8 bins 12.6 / 11.1 / 8.7 /
+  8.1 / 8.7; the worst quintile-component 81.1 % against 84.4 % (5 bins).
+- Unseen livers: ``force`` 90.2 / 88.2 / 93.7 %, spread 16.2 points, the
+  smallest fifth of the forces covered in 82 / 71 / 91 %; 5 bins 91.1 / 90.0 /
+  94.3 %, spread 10.4 points, the smallest fifth 89 / 85 / 97 %, at mean
+  half-widths within 0.007 N of ``force``'s.
 """
 
 from __future__ import annotations
@@ -91,13 +127,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-SCALES = ("none", "stiffness", "force")  # what the half-widths are multiplied by (module docstring)
+SCALES = ("none", "stiffness", "force", "force_bins")  # how the half-widths vary per case (module docstring)
+FORCE_SCALES = ("force", "force_bins")  # the half-widths read the predicted force
 
 
 @dataclass(frozen=True)
 class ConformalInterval:
     """Half-widths ``q`` (3,) per local component (before the stiffness factor) at nominal ``coverage``: N, or
-    with ``scale: force`` a multiple of ``sigma_j(|f^|)`` (no unit; ``force_scale`` holds ``sigma``'s N)."""
+    with ``scale: force`` a multiple of ``sigma_j(|f^|)`` (no unit; ``force_scale`` holds ``sigma``'s N). With
+    ``scale: force_bins`` ``q`` is the quantile over all calibration cases (what ``none`` would give, for
+    reference) and ``bin_half_width_n`` holds the widths used, per bin of ``|f^|`` between ``bin_edges_n``."""
 
     coverage: float
     half_width_n: tuple[float, float, float]
@@ -105,28 +144,46 @@ class ConformalInterval:
     grouping: str  # what the calibration split held out: "geometry" (livers) or "case"
     scale: str = "stiffness"  # "stiffness": x the case's stiffness factor; "none": fixed; "force": x sigma(|f^|)
     folds: int = 1  # 1: one calibration split; > 1: cross-conformal over the whole training split
-    stiffness_range: tuple[float, float] | None = None  # calibration cases' stiffness factors (none, force)
+    stiffness_range: tuple[float, float] | None = None  # calibration cases' stiffness factors (not stiffness)
     force_scale: tuple[tuple[float, float], ...] | None = None  # scale: force: (a_j, b_j) N, N/N per component
+    bin_edges_n: tuple[float, ...] | None = None  # scale: force_bins: the B - 1 inner edges of |f^| (N), ascending
+    bin_half_width_n: tuple[tuple[float, float, float], ...] | None = None  # scale: force_bins: (B, 3) N
 
     def half_widths(self, stiffness: np.ndarray, force: np.ndarray | None = None) -> np.ndarray:
         """Half-widths ``(n, 3)`` N for rows with stiffness factors ``(n, 1)`` and predicted forces ``(n, 3)``
-        (any frame; ``scale: force`` only): times ``k`` with ``scale: stiffness``; with ``scale: none`` fixed
-        inside the calibration's stiffness range, widened outside it; with ``scale: force`` times
-        ``sigma_j(|f^|)`` and widened the same way (module docstring)."""
-        q = self.stiffness_half_widths(stiffness)
+        (any frame; ``scale: force`` and ``force_bins`` only): times ``k`` with ``scale: stiffness``; with
+        ``scale: none`` fixed inside the calibration's stiffness range, widened outside it; with ``scale: force``
+        times ``sigma_j(|f^|)``, with ``force_bins`` the width of the bin of ``|f^|``, both widened the same way
+        (module docstring)."""
+        return self.stiffness_factor(stiffness) * self.force_widths(force)
+
+    def stiffness_factor(self, stiffness: np.ndarray) -> np.ndarray:
+        """What the widths are multiplied by for each row's stiffness factor ``(n, 1)``: ``k`` with
+        ``scale: stiffness``, else the widening outside the calibration's range (:meth:`extrapolation_factor`)."""
+        k = np.asarray(stiffness, dtype=np.float64).reshape(-1, 1)
+        return k if self.scale == "stiffness" else self.extrapolation_factor(k)
+
+    def force_widths(self, force: np.ndarray | None = None) -> np.ndarray:
+        """The half-widths before the stiffness factor: ``(n, 3)`` for predicted forces ``(n, 3)`` (any frame:
+        only ``|f^|`` is read), ``(1, 3)`` without forces for a scale that does not read them."""
+        q = np.asarray(self.half_width_n, dtype=np.float64)[None, :]
+        if self.scale not in FORCE_SCALES:
+            return q if force is None else np.repeat(q, len(np.asarray(force).reshape(-1, 3)), axis=0)
+        if force is None:
+            raise ValueError(f"an interval scaled by the force (scale: {self.scale}) needs the predicted forces")
         if self.scale == "force":
-            if force is None:
-                raise ValueError("an interval scaled by the force (scale: force) needs the predicted forces")
-            q = q * self.sigma(force)
-        return q
+            return q * self.sigma(force)
+        return np.asarray(self.bin_half_width_n, dtype=np.float64)[self.force_bin(force)]
+
+    def force_bin(self, force: np.ndarray) -> np.ndarray:
+        """The bin ``(n,)`` of ``|f^|`` of each predicted force ``(n, 3)`` (``scale: force_bins``; a NaN force
+        falls in the last bin)."""
+        return force_bin_of(self.bin_edges_n or (), force)
 
     def stiffness_half_widths(self, stiffness: np.ndarray) -> np.ndarray:
         """``q_j`` times the stiffness factor of each row ``(n, 1)`` (``k``, or the widening outside the
         calibration's range): the half-widths before the force's scale, ``(n, 3)``."""
-        k = np.asarray(stiffness, dtype=np.float64).reshape(-1, 1)
-        if self.scale in ("none", "force"):
-            k = self.extrapolation_factor(k)
-        return k * np.asarray(self.half_width_n)[None, :]
+        return self.stiffness_factor(stiffness) * np.asarray(self.half_width_n)[None, :]
 
     def sigma(self, force: np.ndarray) -> np.ndarray:
         """``sigma_j(|f|)`` ``(n, 3)`` of predicted forces ``(n, 3)`` (``scale: force``; ones otherwise)."""
@@ -143,7 +200,8 @@ class ConformalInterval:
     @property
     def bounded(self) -> bool:
         """False when there were too few calibration cases (:func:`min_calibration_cases`): infinite width."""
-        return all(math.isfinite(v) for v in self.half_width_n)
+        bins = [v for row in (self.bin_half_width_n or ()) for v in row]
+        return all(math.isfinite(v) for v in (*self.half_width_n, *bins))
 
     def to_dict(self) -> dict:
         """JSON-ready; an unbounded half-width is written as null."""
@@ -152,24 +210,39 @@ class ConformalInterval:
                 "n_calibration": int(self.n_calibration), "grouping": self.grouping, "scale": self.scale,
                 "folds": int(self.folds),
                 "stiffness_range": None if self.stiffness_range is None else [float(v) for v in self.stiffness_range],
-                "force_scale": None if self.force_scale is None else [[float(a), float(b)] for a, b in self.force_scale]}
+                "force_scale": None if self.force_scale is None else
+                [[float(a), float(b)] for a, b in self.force_scale],
+                "bin_edges_n": None if self.bin_edges_n is None else [float(v) for v in self.bin_edges_n],
+                "bin_half_width_n": None if self.bin_half_width_n is None else
+                [[float(v) if math.isfinite(v) else None for v in row] for row in self.bin_half_width_n]}
 
     @classmethod
     def from_dict(cls, d: dict) -> "ConformalInterval":
         rng, fs = d.get("stiffness_range"), d.get("force_scale")
-        return cls(float(d["coverage"]), tuple(math.inf if v is None else float(v) for v in d["half_width_n"]),
+        edges, bins = d.get("bin_edges_n"), d.get("bin_half_width_n")
+        return cls(float(d["coverage"]), _widths(d["half_width_n"]),
                    int(d["n_calibration"]), str(d["grouping"]), str(d.get("scale", "stiffness")),
                    int(d.get("folds", 1)), None if rng is None else (float(rng[0]), float(rng[1])),
-                   None if fs is None else tuple((float(a), float(b)) for a, b in fs))
+                   None if fs is None else tuple((float(a), float(b)) for a, b in fs),
+                   None if edges is None else tuple(float(v) for v in edges),
+                   None if bins is None else tuple(_widths(row) for row in bins))
+
+
+def _widths(row) -> tuple[float, ...]:
+    """Half-widths as stored (an unbounded one as null) back to floats."""
+    return tuple(math.inf if v is None else float(v) for v in row)
 
 
 def fit_conformal(true_local: np.ndarray, pred_local: np.ndarray, stiffness: np.ndarray, coverage: float,
-                  grouping: str, scale: str = "stiffness", folds: int = 1) -> ConformalInterval:
-    """The split-conformal quantile per component (module docstring) from calibration predictions."""
+                  grouping: str, scale: str = "stiffness", folds: int = 1, bins: int = 5) -> ConformalInterval:
+    """The split-conformal quantile per component (module docstring) from calibration predictions; ``bins``:
+    the bins of the predicted ``|f^|`` with ``scale: force_bins`` (fewer when a bin would hold too few cases)."""
     if not 0.0 < coverage < 1.0:
         raise ValueError(f"interval coverage must be in (0, 1), got {coverage}")
     if scale not in SCALES:
         raise ValueError(f"interval scale must be one of {SCALES}, got {scale!r}")
+    if int(bins) < 1:
+        raise ValueError(f"interval bins must be >= 1, got {bins}")
     k_rows = np.asarray(stiffness, float).reshape(-1, 1)
     k = k_rows if scale == "stiffness" else 1.0
     pred = np.asarray(pred_local, float)
@@ -178,13 +251,49 @@ def fit_conformal(true_local: np.ndarray, pred_local: np.ndarray, stiffness: np.
     rng = (float(k_rows.min()), float(k_rows.max())) if scale != "stiffness" and k_rows.size else None
     rank = _rank(n, coverage)
     if rank > n:  # too few cases for this coverage: the honest split-conformal interval is unbounded
-        return ConformalInterval(float(coverage), (math.inf,) * 3, int(n), grouping, scale, int(folds), rng)
+        unbounded = ((), ((math.inf,) * 3,)) if scale == "force_bins" else (None, None)
+        return ConformalInterval(float(coverage), (math.inf,) * 3, int(n), grouping, scale, int(folds), rng,
+                                 None, *unbounded)
     ok = np.isfinite(pred).all(axis=1) & np.isfinite(r).all(axis=1)  # a non-finite row sorts last, as before
     fs = force_scale_fit(pred[ok], r[ok]) if scale == "force" and ok.any() else None
     s = r / k if fs is None else r / force_sigma(fs, pred)
     q = np.sort(s, axis=0)[rank - 1]
+    edges = widths = None
+    if scale == "force_bins":
+        edges, widths = _force_bins(pred, r, coverage, int(bins))
     return ConformalInterval(float(coverage), tuple(float(v) for v in q), int(n), grouping, scale, int(folds), rng,
-                             fs)
+                             fs, edges, widths)
+
+
+def _force_bins(pred: np.ndarray, r: np.ndarray, coverage: float, bins: int):
+    """Inner edges (at the quantiles of the calibration cases' ``|f^|``) and the quantile of ``|r|`` per bin and
+    component; as many bins as asked for, fewer while a bin would hold fewer than :func:`min_calibration_cases`
+    cases (tied predictions share an edge: the duplicate, or one at the smallest ``|f^|``, is dropped). A case
+    whose prediction or residual is not finite counts as an infinite residual in every bin."""
+    bad = ~(np.isfinite(pred).all(axis=1) & np.isfinite(r).all(axis=1))
+    mag = np.linalg.norm(pred[~bad], axis=1)
+    r_ok = r[~bad]
+    n_bad = int(bad.sum())
+    need = min_calibration_cases(coverage)
+    for b in range(min(bins, max(1, len(r) // need)), 0, -1):
+        e = np.unique(np.quantile(mag, np.arange(1, b) / b)) if mag.size else np.empty(0)
+        edges = tuple(float(v) for v in e[e > mag.min()]) if mag.size else ()  # an edge at the minimum: empty bin
+        which = force_bin_of(edges, pred[~bad])
+        counts = np.bincount(which, minlength=len(edges) + 1) + n_bad
+        if len(edges) == 0 or counts.min() >= need:
+            widths = []
+            for j in range(len(edges) + 1):
+                rj = np.vstack([r_ok[which == j], np.full((n_bad, r.shape[1]), math.inf)])
+                widths.append(tuple(float(v) for v in np.sort(rj, axis=0)[_rank(int(counts[j]), coverage) - 1]))
+            return edges, tuple(widths)
+    raise AssertionError("unreachable: one bin holds every case")
+
+
+def force_bin_of(edges, force: np.ndarray) -> np.ndarray:
+    """Bin index ``(n,)`` of ``|f|`` for forces ``(n, 3)`` between ascending inner ``edges`` (a value on an edge
+    goes to the bin above it; NaN to the last)."""
+    mag = np.linalg.norm(np.asarray(force, dtype=np.float64).reshape(-1, 3), axis=1)
+    return np.searchsorted(np.asarray(edges, dtype=np.float64), mag, side="right")
 
 
 def force_sigma(force_scale, force: np.ndarray) -> np.ndarray:

@@ -120,7 +120,7 @@ from liverforce.learn.torchutil import EpochCallback
 from liverforce.seeds import derive
 
 FORMAT = "liverforce.force_model"
-FORMAT_VERSION = 10  # 3: probe compliance in the state vector (material from column 22), linear force estimate;
+FORMAT_VERSION = 11  # 3: probe compliance in the state vector (material from column 22), linear force estimate;
 #                     4: the GP regressor may be a GPEnsemble (model.gp.code_members), which a reader of 3 cannot load;
 #                     5: the state features may end with the indentation strain, which a reader of 4 would misread;
 #                     6: a GP's kernel may be the rational quadratic (a ``shape`` buffer), which a reader of 5 would
@@ -134,12 +134,15 @@ FORMAT_VERSION = 10  # 3: probe compliance in the state vector (material from co
 #                        calibration's stiffness range
 #                     10: the interval may scale with the predicted force (train.interval.scale: force), which a
 #                        reader of 9 would read as scaled by the stiffness
-READ_VERSIONS = (3, 4, 5, 6, 7, 8, 9, 10)  # a version-3 bundle is a version-4 bundle with a single GP (or an MLP); 4 is 5
+#                     11: the interval may have a width per bin of the predicted force (scale: force_bins), which
+#                        a reader of 10 would read as scaled by the stiffness
+READ_VERSIONS = (3, 4, 5, 6, 7, 8, 9, 10, 11)
+# a version-3 bundle is a version-4 bundle with a single GP (or an MLP); 4 is 5
 #                                     without the indentation strain; 5 is 6 with squared-exponential GPs (no shape
 #                                     buffer); 6 is 7 with camera models on the ROI points' reference (reference:
 #                                     points); 7 is 8 with node models on the points' interpolant (no interpolation
 #                                     key: the Representation default, points); 8 is 9 without material_ref (the
-#                                     force scaling's reference, if any, stands in)
+#                                     force scaling's reference, if any, stands in); 10 is 11 without force_bins
 
 ROI_INPUTS = (
     "exertion_point_mm",

@@ -32,7 +32,8 @@ Steps (every fitted quantity sees the training split only):
    ``exact_tip``), which separates what the tracker's error costs from what
    the cloud does;
 6. outputs: ``out_dir/model/`` (bundle), ``out_dir/figures/*.png``,
-   ``out_dir/test_predictions.csv`` (atomic) and the result dict, which the
+   ``out_dir/test_predictions.csv`` (atomic), ``out_dir/interval_calibration.npz``
+   (the calibration predictions of the interval, atomic) and the result dict, which the
    caller writes to ``metrics.json`` (:mod:`liverforce.pipeline.train`, its only writer);
    with a ``tracker`` everything is also logged (parent run per scenario +
    variant, one nested run per Ax trial). The tracker is duck-typed (see
@@ -41,13 +42,14 @@ Steps (every fitted quantity sees the training split only):
 
 from __future__ import annotations
 
+import io
 import time
 from pathlib import Path
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from liverforce.atomic import write_text_atomic
+from liverforce.atomic import write_bytes_atomic, write_text_atomic
 from liverforce.config import config_hash
 from liverforce.learn.camera import exact_tip
 from liverforce.learn.interval import coverage_per_component, fit_conformal
@@ -305,10 +307,13 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
     model.meta["test_metrics"] = metrics
     interval = None
     ci = None
+    (out_dir / "interval_calibration.npz").unlink(missing_ok=True)  # an earlier run's, not this model's
     if (train_cfg.get("interval") or {}).get("coverage"):
         try:
-            ci = calibrate_interval(train_arrays, model_cfg, train_cfg["interval"], scenario, seed, encoder,
-                                    use_state, code_size, dae_noise, hidden, dropout, fit)
+            cal = calibration_predictions(train_arrays, model_cfg, train_cfg["interval"], scenario, seed, encoder,
+                                          use_state, code_size, dae_noise, hidden, dropout, fit)
+            ci = interval_from_calibration(cal, train_cfg["interval"], scenario)
+            _write_calibration(out_dir / "interval_calibration.npz", cal)
         except ValueError as exc:  # e.g. one training liver in IV: nothing to hold out by liver
             notes.append(f"no calibrated interval: {exc}")
     if ci is not None:
@@ -399,7 +404,32 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
 
 def calibrate_interval(train_arrays, model_cfg, interval_cfg, scenario, seed, encoder, use_state, code_size,
                        dae_noise, hidden, dropout, fit):
-    """Conformal interval (:mod:`liverforce.learn.interval`) from the training split alone.
+    """Conformal interval (:mod:`liverforce.learn.interval`) from the training split alone
+    (:func:`calibration_predictions`, then :func:`interval_from_calibration`)."""
+    cal = calibration_predictions(train_arrays, model_cfg, interval_cfg, scenario, seed, encoder, use_state,
+                                  code_size, dae_noise, hidden, dropout, fit)
+    return interval_from_calibration(cal, interval_cfg, scenario)
+
+
+def interval_from_calibration(cal: dict, interval_cfg, scenario):
+    """The interval of ``interval_cfg`` (coverage, scale, bins) fitted on :func:`calibration_predictions`'
+    output: the same calibration predictions give every scale, with no new fit."""
+    return fit_conformal(cal["true_local"], cal["pred_local"], cal["stiffness"], float(interval_cfg["coverage"]),
+                         group_key(scenario), scale=str(interval_cfg.get("scale", "stiffness")),
+                         folds=int(cal["folds"]), bins=int(interval_cfg.get("bins", 5)))
+
+
+def _write_calibration(path: Path, cal: dict) -> None:
+    """The calibration predictions an interval was fitted on, next to the model (atomic): another scale or
+    coverage can be fitted on them later without retraining (``benchmarks/experiment_interval.py``)."""
+    buf = io.BytesIO()
+    np.savez(buf, **{k: np.asarray(v) for k, v in cal.items()})
+    write_bytes_atomic(path, buf.getvalue())
+
+
+def calibration_predictions(train_arrays, model_cfg, interval_cfg, scenario, seed, encoder, use_state, code_size,
+                            dae_noise, hidden, dropout, fit) -> dict:
+    """The calibration cases' true and predicted local forces and stiffness factors, from the training split alone.
 
     ``interval_cfg["folds"]`` > 1: cross-conformal, the training cases cut into
     that many folds (by liver in IV, as the test split), each predicted by a model
@@ -408,8 +438,9 @@ def calibrate_interval(train_arrays, model_cfg, interval_cfg, scenario, seed, en
     fold uses the main split's observation seeds (``seed``): each case is observed as it is in the main
     model's training or test (the observed data are fixed, only the split differs), so a camera model's
     features of a case are computed once per run and reused from the cache.
-    ``interval_cfg["scale"]``: ``none``, ``stiffness`` or ``force`` (the module docstring; the config sets it,
-    ``force`` by default; a dict without the key gets ``stiffness``, what it meant before the key existed).
+    ``interval_cfg["scale"]``: ``none``, ``stiffness``, ``force`` or ``force_bins`` (the module docstring; the
+    config sets it, ``force_bins`` by default, with ``interval_cfg["bins"]`` bins; a dict without the key gets
+    ``stiffness``, what it meant before the key existed).
     """
     geo = np.asarray(train_arrays["geometry_id"]).astype(str)
     n_folds = int(interval_cfg.get("folds", 1))
@@ -435,8 +466,8 @@ def calibrate_interval(train_arrays, model_cfg, interval_cfg, scenario, seed, en
         true.append(prep_cal.y_local)
         pred.append(f_cal)
         stiff.append(model.pre.material_factor(prep_cal.state if use_state else None, len(f_cal)))
-    return fit_conformal(np.vstack(true), np.vstack(pred), np.vstack(stiff), float(interval_cfg["coverage"]),
-                         group_key(scenario), scale=str(interval_cfg.get("scale", "stiffness")), folds=len(pairs))
+    return {"true_local": np.vstack(true), "pred_local": np.vstack(pred), "stiffness": np.vstack(stiff),
+            "folds": len(pairs)}
 
 
 def _geometries(arrays: dict) -> list[str]:

@@ -56,12 +56,17 @@ def choose_variant(metrics_paths: list, how: str = "auto", input: str = "any") -
 
 def interval_on_unseen(model_dir, arrays: dict) -> dict | None:
     """Coverage of the model's calibrated interval per local component on the unseen livers (None without one)."""
+    from liverforce.learn.model import ForceModel
+
+    return interval_coverage(ForceModel.load(Path(model_dir)), arrays)
+
+
+def interval_coverage(m, arrays: dict) -> dict | None:
+    """:func:`interval_on_unseen` for a loaded :class:`~liverforce.learn.model.ForceModel` ``m``."""
     from liverforce.learn.frames import force_to_local
     from liverforce.learn.interval import coverage_per_component
     from liverforce.learn.metrics import force_bins
-    from liverforce.learn.model import ForceModel
 
-    m = ForceModel.load(Path(model_dir))
     ci = m.interval
     if ci is None:
         return None

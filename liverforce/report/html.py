@@ -836,6 +836,9 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
         how = {"force": "scaled per case by the predicted force's magnitude, a + b |F| fitted on the calibration "
                         "residuals, and widened where a liver's stiffness lies outside the calibration livers' "
                         "range, by how far outside",
+               "force_bins": "a width per bin of the predicted force's magnitude, each bin calibrated on its own "
+                             "calibration cases, and widened where a liver's stiffness lies outside the calibration "
+                             "livers' range, by how far outside",
                "stiffness": "scaled by each case's stiffness factor C10 / C10_ref"}.get(
             scale, "fixed per component, widened where a liver's stiffness lies outside the calibration livers' "
                    "range, by how far outside")
@@ -856,9 +859,12 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
                     + [_fmt(100 * c, 1) for c in b["coverage"]]
                     + [", ".join("unbounded" if h is None else f"{h:.3f}" for h in b["half_width_mean_n"])]
                     for b in bins]
-            why = ("the half-widths grow with the predicted force, so that the large forces are bounded as the "
-                   "small ones are" if scale == "force" else "with widths that do not follow the force, the small "
-                   "forces tend to be over-covered and the large ones under-covered")
+            why = {"force": "the half-widths grow with the predicted force, so that the large forces are bounded as "
+                            "the small ones are",
+                   "force_bins": "each bin of the predicted force has its own width, so that the small forces and "
+                                 "the large ones are each covered at the nominal rate"}.get(
+                scale, "with widths that do not follow the force, the small forces tend to be over-covered and the "
+                       "large ones under-covered")
             parts.append(f"<p>Coverage per quintile of the true force magnitude on the unseen livers: {why}.</p>"
                          + _table(["|F| (N)", "cases", "t1 %", "t2 %", "n %", "mean half-widths t1, t2, n (N)"],
                                   rows, cls="interval-bins"))

@@ -1230,8 +1230,8 @@ class CompiledCloud:
                                 np.float32(slope), act))
         self.tmean, self.tscale = pre.target_scaler.mean, pre.target_scaler.scale
         self.interval = model.interval  # its half-widths: the context's stiffness factor, and per cloud its force
-        if self.interval is not None:  # q_j x the context's stiffness factor, once; sigma_j(|F|) per cloud
-            self._q = self.interval.stiffness_half_widths(np.array([[self.k_material]]))[0]
+        if self.interval is not None:  # the context's stiffness factor, once; the widths of |F| per cloud
+            self._kf = float(self.interval.stiffness_factor(np.array([[self.k_material]]))[0, 0])
         self._rec = ((model.meta or {}).get("training_scale") or {}).get("camera")
         self._raster = np.ascontiguousarray(self.ref.raster, dtype=np.float64)
         # the instrument's points in a cloud (a model trained without them refuses it: serve.cloud.shaft_points)
@@ -1421,7 +1421,7 @@ class CompiledCloud:
         without an interval."""
         if self.interval is None:
             return None
-        half = self._q * self.interval.sigma(F)  # ones for a scale other than force
+        half = self._kf * self.interval.force_widths(F)  # the same widths per cloud for a scale without the force
         half[~np.isfinite(F).all(axis=1)] = np.nan  # a refused cloud: no force, no interval
         return half
 

@@ -182,7 +182,7 @@ def test_the_indentation_strain_is_the_normal_displacement_under_the_tool_over_t
     thin[:, THICKNESS_COLUMN] /= 2
     np.testing.assert_allclose(pre.state_features(thin, x)[:, -1], 2 * feats[:, -1], rtol=1e-12)
     saved = model.save(tmp_path / "m")
-    assert json.loads((saved / "model.json").read_text())["format_version"] == 10
+    assert json.loads((saved / "model.json").read_text())["format_version"] == 11
     again = ForceModel.load(saved)
     assert again.pre.indentation_strain
     np.testing.assert_array_equal(again.predict(data), model.predict(data))

@@ -11,7 +11,7 @@ from liverforce.learn.frames import force_to_local, local_rotations
 from liverforce.learn.interval import ConformalInterval, coverage_per_component, fit_conformal, min_calibration_cases
 from liverforce.learn.model import ForceModel, subset
 from liverforce.learn.synthetic import synthetic_arrays
-from liverforce.learn.train import train_scenario
+from liverforce.learn.train import interval_from_calibration, train_scenario
 
 MODEL = {"encoder": "pca", "code_size": 6, "state_vector": True, "grid_size": 8, "hidden": [64], "dropout": 0.0,
          "occlusion": {"radius_mm": 0.0, "mode": "remove"}, "noise_mm": 0.5, "force_scaling": "stiffness",
@@ -133,6 +133,10 @@ def test_scale_force_holds_the_coverage_for_small_and_large_forces_alike():
     R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
     np.testing.assert_allclose(scaled.half_widths(ones[:5], p2[:5] @ R.T), scaled.half_widths(ones[:5], p2[:5]))
     assert ConformalInterval.from_dict(scaled.to_dict()) == scaled
+    v10 = scaled.to_dict()  # a bundle of format 10 (before force_bins) has no bin keys: it reads the same
+    assert v10.pop("bin_edges_n") is None and v10.pop("bin_half_width_n") is None
+    np.testing.assert_array_equal(ConformalInterval.from_dict(v10).half_widths(ones[:5], p2[:5]),
+                                  scaled.half_widths(ones[:5], p2[:5]))
     with pytest.raises(ValueError, match="predicted forces"):
         scaled.half_widths(ones)
     # outside the calibration's stiffness range it widens as scale: none does
@@ -155,6 +159,91 @@ def test_scale_force_falls_back_to_a_fixed_width_when_errors_do_not_grow_with_th
     np.testing.assert_allclose(ci.half_widths(np.ones((3, 1)), pred[:3]), fixed.half_widths(np.ones(3)))
 
 
+def _step_noise(n, rng):
+    """|f^| uniform in 0-5 N; residual sd 0.12 N per component below 1 N, 0.02 + 0.05 |f^| above: the small
+    forces err more than a line through the rest says (as a new liver's small forces do)."""
+    d = rng.normal(size=(n, 3))
+    pred = d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(0.0, 5.0, (n, 1))
+    m = np.linalg.norm(pred, axis=1, keepdims=True)
+    sd = np.where(m < 1.0, 0.12, 0.02 + 0.05 * m) * np.ones((1, 3))
+    return pred, pred + sd * rng.normal(size=(n, 3))
+
+
+def test_scale_force_bins_covers_every_bin_of_the_predicted_force_where_a_line_does_not():
+    """Mondrian conformal: a split-conformal quantile per bin of |f^| (bins at the calibration's quintiles here)
+    covers each bin's fresh cases at the nominal 90 % (binomial sd on 4,000 per bin ~0.5 %, the quantile's on
+    2,000 calibration cases per bin ~0.7 %: 3.5 points is over 4 sd). The linear force scale, fitted through
+    the same residuals, under-covers the smallest fifth: the test's errors break its line there."""
+    rng = np.random.default_rng(11)
+    pred, true = _step_noise(10000, rng)
+    k = np.ones(10000)
+    binned = fit_conformal(true, pred, k, 0.9, "case", scale="force_bins", bins=5)
+    line = fit_conformal(true, pred, k, 0.9, "case", scale="force")
+    assert len(binned.bin_half_width_n) == 5 and len(binned.bin_edges_n) == 4
+    p2, t2 = _step_noise(20000, rng)
+    ones = np.ones((20000, 1))
+    cov_bins = _by_quintile(p2, t2, binned.half_widths(ones, p2))
+    cov_line = _by_quintile(p2, t2, line.half_widths(ones, p2))
+    assert np.abs(cov_bins - 0.9).max() < 0.035, cov_bins
+    assert (cov_line[0] < 0.85).all(), cov_line  # the case is one a line gets wrong
+    # each bin's width is the conformal rank of its own residuals, the edges the calibration's quantiles
+    mag = np.linalg.norm(pred, axis=1)
+    np.testing.assert_allclose(binned.bin_edges_n, np.quantile(mag, [0.2, 0.4, 0.6, 0.8]))
+    which = np.searchsorted(binned.bin_edges_n, mag, side="right")
+    for b in range(5):
+        r = np.abs(true - pred)[which == b]
+        np.testing.assert_array_equal(binned.bin_half_width_n[b], np.sort(r, axis=0)[math.ceil((len(r) + 1) * 0.9) - 1])
+    # frame-free, JSON round-trips (through json text), needs the force, widens outside the stiffness range
+    R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    np.testing.assert_allclose(binned.half_widths(ones[:5], p2[:5] @ R.T), binned.half_widths(ones[:5], p2[:5]))
+    assert ConformalInterval.from_dict(json.loads(json.dumps(binned.to_dict()))) == binned
+    with pytest.raises(ValueError, match="predicted forces"):
+        binned.half_widths(ones)
+    wide = fit_conformal(true, pred, rng.uniform(0.8, 1.2, 10000), 0.9, "case", scale="force_bins", bins=5)
+    lo, hi = wide.stiffness_range
+    in_bin = np.asarray(wide.bin_half_width_n)[wide.force_bin(p2[:2])]
+    np.testing.assert_allclose(wide.half_widths(np.array([[2 * hi], [lo / 3]]), p2[:2]), [[2.0], [3.0]] * in_bin)
+    np.testing.assert_allclose(wide.half_widths(np.array([[hi], [lo]]), p2[:2]), in_bin)
+    # a NaN force (a refused case) falls in the last bin instead of failing
+    assert binned.force_bin(np.array([[np.nan, 0.0, 0.0]]))[0] == 4
+
+
+def test_scale_force_bins_uses_fewer_bins_when_too_few_cases_and_is_unbounded_below_the_minimum():
+    """A bin needs min_calibration_cases cases (9 for 90 %) for a bounded quantile: 30 cases give at most 3
+    bins; tied predictions that would leave a bin short give fewer; below 9 cases the interval is unbounded."""
+    rng = np.random.default_rng(12)
+    pred, true = _step_noise(30, rng)
+    ci = fit_conformal(true, pred, np.ones(30), 0.9, "case", scale="force_bins", bins=8)
+    assert len(ci.bin_half_width_n) == 3 and ci.bounded
+    counts = np.bincount(ci.force_bin(pred), minlength=3)
+    assert counts.min() >= min_calibration_cases(0.9) and counts.sum() == 30
+    tied = np.vstack([np.tile(pred[:1], (25, 1)), pred[:5]])  # 25 equal predictions: no quantile splits them
+    ci = fit_conformal(tied + 0.1, tied, np.ones(30), 0.9, "case", scale="force_bins", bins=3)
+    assert len(ci.bin_half_width_n) < 3 and ci.bounded
+    assert np.bincount(ci.force_bin(tied)).min() >= min_calibration_cases(0.9)
+    # 60 tied of 100: the duplicate edge is dropped, and the tied cases get a bin of their own
+    rng2 = np.random.default_rng(13)
+    p60 = np.vstack([np.zeros((60, 3)), rng2.uniform(1.0, 5.0, (40, 3))])
+    ci = fit_conformal(p60 + 0.01 * rng2.normal(size=(100, 3)), p60, np.ones(100), 0.9, "case", scale="force_bins",
+                       bins=4)
+    assert len(ci.bin_half_width_n) >= 2 and np.bincount(ci.force_bin(p60)).min() >= min_calibration_cases(0.9)
+    assert (ci.force_bin(p60[:60]) == 0).all()
+    # a calibration case the model could not predict (NaN) counts as an infinite residual in every bin: with 3 of
+    # 200 the 90 % quantile of every bin stays finite, and each bin's width is not below the one without them
+    p200, t200 = _step_noise(200, rng2)
+    clean = fit_conformal(t200[3:], p200[3:], np.ones(197), 0.9, "case", scale="force_bins", bins=2)
+    p_nan = p200.copy()
+    p_nan[:3] = np.nan
+    dirty = fit_conformal(t200, p_nan, np.ones(200), 0.9, "case", scale="force_bins", bins=2)
+    assert dirty.bounded and len(dirty.bin_half_width_n) == 2
+    assert (np.asarray(dirty.bin_half_width_n) >= np.asarray(clean.bin_half_width_n)).all()
+    few = fit_conformal(true[:8], pred[:8], np.ones(8), 0.9, "case", scale="force_bins")
+    assert not few.bounded and np.isinf(few.half_widths(np.ones((2, 1)), pred[:2])).all()
+    assert ConformalInterval.from_dict(json.loads(json.dumps(few.to_dict()))) == few
+    with pytest.raises(ValueError, match="bins"):
+        fit_conformal(true, pred, np.ones(30), 0.9, "case", scale="force_bins", bins=0)
+
+
 def test_cross_conformal_calibrates_on_every_training_case_and_covers_fresh_cases(tmp_path):
     """folds: 4 -> every training case is predicted once by a model that did not see it; the 90 % interval
     covers 85-95 % of 600 fresh exchangeable cases per component."""
@@ -165,6 +254,13 @@ def test_cross_conformal_calibrates_on_every_training_case_and_covers_fresh_case
     res = train_scenario(first, MODEL, train, NO_TUNE, "II", "v", out_dir=tmp_path)
     assert res["interval"]["folds"] == 4 and res["interval"]["n_calibration"] == res["n_train"]
     model = ForceModel.load(res["model_path"])
+    # the calibration predictions are kept next to the model: the same interval refits from them, another scale too
+    with np.load(tmp_path / "interval_calibration.npz") as z:
+        cal = {k: z[k] for k in z.files}
+    assert len(cal["pred_local"]) == res["n_train"] and int(cal["folds"]) == 4
+    assert interval_from_calibration(cal, train["interval"], "II") == model.interval
+    binned = interval_from_calibration(cal, {**train["interval"], "scale": "force_bins", "bins": 2}, "II")
+    assert binned.scale == "force_bins" and len(binned.bin_half_width_n) == 2
     fresh = subset(data, np.arange(300, 900))
     got = model.predict_interval(fresh, observation_seed=777)
     R = local_rotations(fresh["frame_normal"], fresh["frame_t1"], fresh["frame_t2"])

@@ -206,13 +206,23 @@ def test_batch_equals_per_cloud_predictions(served):
         model.meta = {**model.meta, "interval": interval}
         return Predictor(model).compile_cloud(ctx)
 
-    if fast.interval.scale == "force":  # each cloud's own width: with a positive slope, wider for a larger force
-        sloped = compiled_with({**fast.interval.to_dict(), "force_scale": [[0.1, 0.05]] * 3})
-        h2 = sloped.predict_batch(clouds, tips).half_width
-        m = np.linalg.norm(res.force, axis=1)
-        assert np.ptp(m) > 0 and (h2[np.argmax(m)] > h2[np.argmin(m)]).all()
-        np.testing.assert_allclose(h2, sloped.interval.half_widths(np.full((len(m), 1), fast.k_material), res.force),
-                                   rtol=1e-12)
+    # each cloud's own width from its force, whatever scale the fixture's model was calibrated with
+    m = np.linalg.norm(res.force, axis=1)
+    assert np.ptp(m) > 0
+    k_rows = np.full((len(m), 1), fast.k_material)
+    sloped = compiled_with({**fast.interval.to_dict(), "scale": "force", "force_scale": [[0.1, 0.05]] * 3})
+    h2 = sloped.predict_batch(clouds, tips).half_width  # with a positive slope, wider for a larger force
+    assert (h2[np.argmax(m)] > h2[np.argmin(m)]).all()
+    np.testing.assert_allclose(h2, sloped.interval.half_widths(k_rows, res.force), rtol=1e-12)
+    edge = float(np.median(m))  # force_bins: one width below the median |F|, three times it above
+    binned = compiled_with({**fast.interval.to_dict(), "scale": "force_bins", "bin_edges_n": [edge],
+                            "bin_half_width_n": [[0.1, 0.1, 0.2], [0.3, 0.3, 0.6]]})
+    h3 = binned.predict_batch(clouds, tips).half_width
+    np.testing.assert_allclose(h3, binned.interval.half_widths(k_rows, res.force), rtol=1e-12)
+    kf = binned.interval.stiffness_factor(np.array([[fast.k_material]]))[0, 0]
+    np.testing.assert_allclose(h3, kf * np.where((m >= edge)[:, None], [[0.3, 0.3, 0.6]], [[0.1, 0.1, 0.2]]),
+                               rtol=1e-12)
+    np.testing.assert_allclose(binned.predict(clouds[0], tips[0])[1], h3[0], rtol=1e-12)
     # a model without an interval: the force alone, and None for the widths
     bare = compiled_with(None)
     f0, h0, _ = bare.predict(clouds[0], tips[0])
