@@ -296,6 +296,7 @@ def test_report_validates_on_every_unseen_liver_with_mean_sd_and_the_worst_named
     bins = _section(sec, "<table class='interval-bins'>", "</table>")
     assert "<td>1.50–4.90</td><td>5</td><td>80.0</td><td>100.0</td><td>60.0</td><td>0.600, 0.580, unbounded</td>" in bins
     assert "<td>0.10–1.50</td><td>6</td><td>100.0</td><td>83.3</td><td>100.0</td>" in bins
+    assert "The lowest is 60.0 % (n, 1.50–4.90 N): below 88 %" in sec  # the worst quintile-component, named
     # the unseen cases outside the training range, named by input, and their error against the others'
     ext = _section(sec, "<h3>Outside the training range</h3>", "</p>")
     assert "3 of 11 unseen cases" in ext and "tissue thickness under the tool 1, distance from the liver centroid 2" in ext
@@ -325,6 +326,20 @@ def test_report_says_how_the_interval_width_was_set(stage_outputs, scale, says):
     iv = _section(html, "<h3>Calibrated interval</h3>", "</p>")
     assert says in iv and "predicted force" not in iv
     assert "with widths that do not follow the force, the small forces tend to be over-covered" in html
+
+
+def test_report_says_the_interval_has_a_width_per_force_bin_and_names_no_quintile_when_all_are_covered(
+        stage_outputs):
+    path = stage_outputs["validation"]
+    doc = json.loads(path.read_text())
+    doc["interval"]["scale"] = "force_bins"
+    for b in doc["interval"]["coverage_by_force"]:
+        b["coverage"] = [0.9, 0.88, 0.95]
+    path.write_text(json.dumps(doc))
+    html = _report(stage_outputs)
+    iv = _section(html, "<h3>Calibrated interval</h3>", "</p>")
+    assert "a width per bin of the predicted force's magnitude" in iv and "scaled per case" not in iv
+    assert "each bin of the predicted force has its own width" in html and "The lowest is" not in html
 
 
 def test_report_refuses_a_validation_without_per_liver_metrics(stage_outputs):
