@@ -867,8 +867,9 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
                        "large ones under-covered")
             worst = min(((c, j, b) for b in bins for j, c in enumerate(b["coverage"])), key=lambda t: t[0])
             c, j, b = worst
-            flag = (f" The lowest is {_fmt(100 * c, 1)} % ({('t1', 't2', 'n')[j]}, {b['lo_n']:.2f}–{b['hi_n']:.2f} N): "
-                    "below 88 %, the unseen livers' errors at those forces are larger than the training livers'."
+            axis = ("t1", "t2", "n")[j]
+            flag = (f" The lowest is {_fmt(100 * c, 1)} % ({axis}, {b['lo_n']:.2f}–{b['hi_n']:.2f} N): below 88 %, "
+                    "the unseen livers' errors at those forces are larger than the training livers'."
                     if c < 0.88 else "")
             parts.append(f"<p>Coverage per quintile of the true force magnitude on the unseen livers: {why}.{flag}</p>"
                          + _table(["|F| (N)", "cases", "t1 %", "t2 %", "n %", "mean half-widths t1, t2, n (N)"],
