@@ -66,8 +66,8 @@ def test_every_stage_produced_its_outputs(smoke_run):
     # the calibrated interval, measured on the unseen livers (smoke: too few calibration cases -> unbounded)
     iv = val["interval"]
     assert iv["nominal"] == 0.9 and len(iv["coverage"]) == 3 and sorted(iv["coverage_per_liver"]) == ["val-1000", "val-1001"]
-    # scaled by the predicted force (the default), with its coverage per quintile of |F|: every case in one bin
-    assert iv["scale"] == "force" and 1 <= len(iv["coverage_by_force"]) <= 5
+    # a width per bin of the predicted force (the default), with its coverage per quintile of |F|
+    assert iv["scale"] == "force_bins" and 1 <= len(iv["coverage_by_force"]) <= 5
     assert sum(b["n"] for b in iv["coverage_by_force"]) == val["n_cases"]
     # the unseen cases serving would warn about (state outside the training range), counted per input and liver
     ext = val["outside_training"]
