@@ -142,7 +142,7 @@ class ConformalInterval:
     half_width_n: tuple[float, float, float]
     n_calibration: int
     grouping: str  # what the calibration split held out: "geometry" (livers) or "case"
-    scale: str = "stiffness"  # "stiffness": x the case's stiffness factor; "none": fixed; "force": x sigma(|f^|)
+    scale: str = "stiffness"  # "stiffness": x k; "none": fixed; "force": x sigma(|f^|); "force_bins": per bin
     folds: int = 1  # 1: one calibration split; > 1: cross-conformal over the whole training split
     stiffness_range: tuple[float, float] | None = None  # calibration cases' stiffness factors (not stiffness)
     force_scale: tuple[tuple[float, float], ...] | None = None  # scale: force: (a_j, b_j) N, N/N per component
@@ -179,11 +179,6 @@ class ConformalInterval:
         """The bin ``(n,)`` of ``|f^|`` of each predicted force ``(n, 3)`` (``scale: force_bins``; a NaN force
         falls in the last bin)."""
         return force_bin_of(self.bin_edges_n or (), force)
-
-    def stiffness_half_widths(self, stiffness: np.ndarray) -> np.ndarray:
-        """``q_j`` times the stiffness factor of each row ``(n, 1)`` (``k``, or the widening outside the
-        calibration's range): the half-widths before the force's scale, ``(n, 3)``."""
-        return self.stiffness_factor(stiffness) * np.asarray(self.half_width_n)[None, :]
 
     def sigma(self, force: np.ndarray) -> np.ndarray:
         """``sigma_j(|f|)`` ``(n, 3)`` of predicted forces ``(n, 3)`` (``scale: force``; ones otherwise)."""
@@ -260,17 +255,17 @@ def fit_conformal(true_local: np.ndarray, pred_local: np.ndarray, stiffness: np.
     q = np.sort(s, axis=0)[rank - 1]
     edges = widths = None
     if scale == "force_bins":
-        edges, widths = _force_bins(pred, r, coverage, int(bins))
+        edges, widths = _force_bins(pred, r, ok, coverage, int(bins))
     return ConformalInterval(float(coverage), tuple(float(v) for v in q), int(n), grouping, scale, int(folds), rng,
                              fs, edges, widths)
 
 
-def _force_bins(pred: np.ndarray, r: np.ndarray, coverage: float, bins: int):
+def _force_bins(pred: np.ndarray, r: np.ndarray, ok: np.ndarray, coverage: float, bins: int):
     """Inner edges (at the quantiles of the calibration cases' ``|f^|``) and the quantile of ``|r|`` per bin and
     component; as many bins as asked for, fewer while a bin would hold fewer than :func:`min_calibration_cases`
     cases (tied predictions share an edge: the duplicate, or one at the smallest ``|f^|``, is dropped). A case
-    whose prediction or residual is not finite counts as an infinite residual in every bin."""
-    bad = ~(np.isfinite(pred).all(axis=1) & np.isfinite(r).all(axis=1))
+    whose prediction or residual is not finite (``ok`` False) counts as an infinite residual in every bin."""
+    bad = ~ok
     mag = np.linalg.norm(pred[~bad], axis=1)
     r_ok = r[~bad]
     n_bad = int(bad.sum())

@@ -402,18 +402,12 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
     }
 
 
-def calibrate_interval(train_arrays, model_cfg, interval_cfg, scenario, seed, encoder, use_state, code_size,
-                       dae_noise, hidden, dropout, fit):
-    """Conformal interval (:mod:`liverforce.learn.interval`) from the training split alone
-    (:func:`calibration_predictions`, then :func:`interval_from_calibration`)."""
-    cal = calibration_predictions(train_arrays, model_cfg, interval_cfg, scenario, seed, encoder, use_state,
-                                  code_size, dae_noise, hidden, dropout, fit)
-    return interval_from_calibration(cal, interval_cfg, scenario)
-
-
 def interval_from_calibration(cal: dict, interval_cfg, scenario):
-    """The interval of ``interval_cfg`` (coverage, scale, bins) fitted on :func:`calibration_predictions`'
-    output: the same calibration predictions give every scale, with no new fit."""
+    """Conformal interval (:mod:`liverforce.learn.interval`) of ``interval_cfg`` (coverage, scale, bins) fitted on
+    :func:`calibration_predictions`' output: the same calibration predictions give every scale, with no new fit.
+    ``interval_cfg["scale"]``: ``none``, ``stiffness``, ``force`` or ``force_bins`` (the module docstring; the
+    config sets it, ``force_bins`` by default, with ``interval_cfg["bins"]`` bins; a dict without the key gets
+    ``stiffness``, what it meant before the key existed)."""
     return fit_conformal(cal["true_local"], cal["pred_local"], cal["stiffness"], float(interval_cfg["coverage"]),
                          group_key(scenario), scale=str(interval_cfg.get("scale", "stiffness")),
                          folds=int(cal["folds"]), bins=int(interval_cfg.get("bins", 5)))
@@ -438,9 +432,6 @@ def calibration_predictions(train_arrays, model_cfg, interval_cfg, scenario, see
     fold uses the main split's observation seeds (``seed``): each case is observed as it is in the main
     model's training or test (the observed data are fixed, only the split differs), so a camera model's
     features of a case are computed once per run and reused from the cache.
-    ``interval_cfg["scale"]``: ``none``, ``stiffness``, ``force`` or ``force_bins`` (the module docstring; the
-    config sets it, ``force_bins`` by default, with ``interval_cfg["bins"]`` bins; a dict without the key gets
-    ``stiffness``, what it meant before the key existed).
     """
     geo = np.asarray(train_arrays["geometry_id"]).astype(str)
     n_folds = int(interval_cfg.get("folds", 1))
