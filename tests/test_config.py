@@ -58,6 +58,7 @@ def test_thesis_is_the_study_scale():
         ("model.gp.shape=inf", "model.gp.shape"),
         ("model.camera.tip_noise_normal_mm=-0.5", "model.camera.tip_noise_normal_mm"),
         ("model.camera.grid.instrument_radius_mm=-1", "model.camera.grid"),
+        ("model.camera.grid.dent_radius_mm=10", "model.camera.grid"),  # a dent fit needs the tool's radius
         ("model.camera.observation.tool_tilt_deg=90", "model.camera.observation"),
         ("+validate.camera_sensitivity.tool_tilt=[10]", "validate.camera_sensitivity"),
         ("model.camera.grid.instrument_radius_mm=2.5", "model.camera.grid.instrument_radius_mm"),

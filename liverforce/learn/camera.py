@@ -4,15 +4,22 @@ In surgery there are no FE node ids. What is known is the pre-operative
 surface near the exertion point (and its local frame), the tool tip's position
 from the robot's kinematics, and an unordered, partial, noisy cloud of the
 visible deformed surface. A ``cloud`` model's feature vector is built from
-exactly these (length ``2 g^2 + 3``)::
+exactly these (length ``2 g^2 + 3``, ``+ 2`` with the dent fit)::
 
-    [ dz (g^2) | valid (g^2) | tip (3) ]
+    [ dz (g^2) | valid (g^2) | (dent (2)) | tip (3) ]
 
 - ``dz``: the cloud's signed normal height change over the pre-operative
   surface on the ``g x g`` tangent-plane grid, invalid cells filled
   (:func:`liverforce.learn.cloud_features.cloud_grid`; no correspondence);
 - ``valid``: 1 where the cloud covers the cell, 0 where it was filled (hidden
   by the tool or the liver itself, out of view, too sparse);
+- ``dent`` (``camera.grid.dent_radius_mm > 0``, with the instrument fit): the amplitude and the offset of a
+  flat punch's profile over a plane, fitted to the liver's points round the tool's axis
+  (:func:`liverforce.learn.cloud_features.fit_dent`): the dent the tool makes, read from the ring it leaves
+  visible, apart from the liver's own motion there. The regressor reads the amplitude as a force, ``k
+  amplitude / C_nn`` (``C_nn`` the probe's normal compliance at the reference material, ``k = C10 / C10_ref``),
+  which stays in the training range of the forces on a stiffer liver, and the offset
+  (:meth:`liverforce.learn.model.Preprocessor.dent_features`);
 - ``tip``: the tool tip's displacement ``R (q - p)`` in the local frame (mm),
   ``q`` the tip position the robot reports, ``p`` the pre-operative exertion
   point. The tip touches the tissue, so this is the surface's displacement at
@@ -76,20 +83,25 @@ FEATURES_KEY = "camera_features"
 GRID_KEYS = ("kernel_radius_cells", "min_points", "fill", "max_abs_height_mm", "reference_oversample",
              "estimator", "max_leverage", "reference", "instrument_radius_mm", "instrument_rise_mm",
              "instrument_clearance_mm", "instrument_min_points", "instrument_point_sd_mm", "instrument_tip_sd_mm",
-             "instrument_max_tilt_deg")
+             "instrument_max_tilt_deg", "dent_radius_mm")
 
 _CACHE: dict[tuple, np.ndarray] = {}
 _CACHE_MAX = 200_000
 
 
-def n_features(grid_size: int) -> int:
-    return 2 * grid_size**2 + 3
+def n_features(grid_size: int, dent: bool = False) -> int:
+    return 2 * grid_size**2 + (N_DENT if dent else 0) + 3
 
 
-def channel_groups(grid_size: int) -> np.ndarray:
-    """Scaling groups: the height channel, the mask, the tip displacement."""
+#: columns of the dent fit (``camera.grid.dent_radius_mm > 0``), between the mask and the tip: amplitude, offset
+N_DENT = 2
+
+
+def channel_groups(grid_size: int, dent: bool = False) -> np.ndarray:
+    """Scaling groups: the height channel, the mask, (the dent fit,) the tip displacement."""
     g2 = grid_size**2
-    return np.concatenate([np.zeros(g2, int), np.ones(g2, int), np.full(3, 2)])
+    mid = [np.full(N_DENT, 3)] if dent else []
+    return np.concatenate([np.zeros(g2, int), np.ones(g2, int), *mid, np.full(3, 2)])
 
 
 def isotropic_tip(camera: dict, sd_mm: float) -> dict:
@@ -200,7 +212,9 @@ def features_from_clouds(clouds, tips, arrays: dict, spec: CloudGridSpec,
     tips = np.asarray(tips, dtype=np.float64).reshape(-1, 3)
     if len(clouds) != len(rows) or len(tips) != len(rows):
         raise ValueError(f"need one cloud and one tool tip per case ({len(rows)}); got {len(clouds)} and {len(tips)}")
-    out = np.empty((len(rows), n_features(spec.grid_size)))
+    dent = spec.dent_radius_mm > 0
+    g2 = 2 * spec.grid_size**2
+    out = np.empty((len(rows), n_features(spec.grid_size, dent)))
     refs: dict = {}
     for k, i in enumerate(rows):
         key = tuple(np.round(P[i], 6)) + tuple(np.round(R[i].ravel(), 9)) + (len(arrays["roi_undeformed_mm"][i]),)
@@ -213,7 +227,9 @@ def features_from_clouds(clouds, tips, arrays: dict, spec: CloudGridSpec,
         cloud = np.asarray(clouds[k], dtype=np.float64).reshape(-1, 3)
         if spec.instrument_radius_mm > 0:  # the instrument's points dropped, its axis the tip's tangential part
             grid = cloud_grid(cloud, ref, spec, tips[k])
-            out[k, :-3] = grid.features(include_mask=True)
+            out[k, :g2] = grid.features(include_mask=True)
+            if dent:
+                out[k, g2:g2 + N_DENT] = grid.dent
             out[k, -3:] = grid.tip_local
             if fitted is not None:
                 fitted.append(grid.n_instrument)
@@ -268,4 +284,4 @@ def camera_features(arrays: dict, camera: dict, grid_size: int, half_width_mm: f
             _CACHE.clear()
         for k, i in enumerate(todo):
             _CACHE[keys[i]] = rows[k]
-    return np.stack([_CACHE[k] for k in keys]) if n else np.empty((0, n_features(grid_size)))
+    return np.stack([_CACHE[k] for k in keys]) if n else np.empty((0, n_features(grid_size, spec.dent_radius_mm > 0)))

@@ -166,6 +166,11 @@ class CloudGridSpec:
         kinematic one projected onto the fitted axis, unless the slope is not
         significant or that tip lies beyond the search radius of the kinematic
         one (:func:`tilt_credible`; the fit along the normal is kept then).
+    dent_radius_mm : float
+        0 (default): no dent fit. Else the liver points within this tangent
+        distance of the tool's axis give the dent's amplitude and the plane it
+        sits in (:func:`fit_dent`; needs ``instrument_radius_mm > 0``, the
+        tool's radius, and the tool tip).
     instrument_point_sd_mm, instrument_tip_sd_mm : float
         The clouds' point noise and the kinematic tip's tangential noise (sd,
         mm) the fit weighs its points and its prior by (the model's observation
@@ -192,6 +197,7 @@ class CloudGridSpec:
     instrument_point_sd_mm: float = 0.5
     instrument_tip_sd_mm: float = 0.5
     instrument_max_tilt_deg: float = 0.0
+    dent_radius_mm: float = 0.0
 
     def __post_init__(self) -> None:
         for k, f in (("grid_size", int), ("min_points", int), ("reference_oversample", int),
@@ -199,7 +205,7 @@ class CloudGridSpec:
                      ("max_leverage", float), ("instrument_radius_mm", float), ("instrument_rise_mm", float),
                      ("instrument_clearance_mm", float), ("instrument_min_points", int),
                      ("instrument_point_sd_mm", float), ("instrument_tip_sd_mm", float),
-                     ("instrument_max_tilt_deg", float)):
+                     ("instrument_max_tilt_deg", float), ("dent_radius_mm", float)):
             object.__setattr__(self, k, f(getattr(self, k)))
         checks = {
             "grid_size": self.grid_size >= 3,
@@ -219,6 +225,8 @@ class CloudGridSpec:
             "instrument_point_sd_mm": self.instrument_point_sd_mm >= 0,
             "instrument_tip_sd_mm": self.instrument_tip_sd_mm >= 0,
             "instrument_max_tilt_deg": 0 <= self.instrument_max_tilt_deg < 80,
+            "dent_radius_mm": self.dent_radius_mm == 0 or (
+                self.instrument_radius_mm < self.dent_radius_mm < math.inf and self.instrument_radius_mm > 0),
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
@@ -228,7 +236,7 @@ class CloudGridSpec:
                 f"fill one of {FILL_RULES}, max_abs_height_mm > 0, reference_oversample in [1, 32], "
                 f"estimator one of {ESTIMATORS}, max_leverage > 0, reference one of {REFERENCES}, "
                 "instrument_radius_mm >= 0 (finite), instrument_rise_mm > 0, instrument_clearance_mm >= 0, "
-                "instrument_min_points >= 3, instrument sds >= 0)"
+                "instrument_min_points >= 3, instrument sds >= 0, dent_radius_mm 0 or above instrument_radius_mm > 0)"
             )
 
     @property
@@ -447,6 +455,7 @@ class CloudGrid:
     n_instrument : the instrument points the axis was fitted to (0: the kinematic tip kept)
     instrument_sd_mm : the cloud's point noise estimated from the instrument's points (sd, mm;
         :func:`instrument_point_sd`), NaN when no axis was fitted
+    dent : ``(amplitude, offset)`` of :func:`fit_dent` (mm), with ``spec.dent_radius_mm > 0``; else None
     """
 
     height: np.ndarray
@@ -458,6 +467,7 @@ class CloudGrid:
     tip_local: np.ndarray | None = None
     n_instrument: int = 0
     instrument_sd_mm: float = math.nan
+    dent: np.ndarray | None = None
 
     def features(self, include_mask: bool = False) -> np.ndarray:
         """Flat feature vector: ``height`` (``g^2``), then the validity mask as 0/1 if ``include_mask``."""
@@ -824,6 +834,48 @@ def _fit_candidates(Q: np.ndarray, c0: np.ndarray, spec: CloudGridSpec, sdp: flo
     return c, len(Q)
 
 
+#: fewest liver points within ``dent_radius_mm`` for a dent fit (below it: amplitude and offset 0)
+DENT_MIN_POINTS = 12
+#: a pivot of the dent fit's normal matrix at most this fraction of its diagonal entry: singular (zeros)
+DENT_PIVOT_TOL = 1e-10
+
+
+def fit_dent(u: np.ndarray, v: np.ndarray, dz: np.ndarray, tip_uv, spec: CloudGridSpec) -> np.ndarray:
+    """The dent round the tool: ``(amplitude, offset)`` mm of the least-squares fit, over the liver points
+    within ``spec.dent_radius_mm`` of the tool's axis ``tip_uv`` (local frame), of::
+
+        dz = offset + s_u (u - u_t) + s_v (v - v_t) + amplitude * (2 / pi) asin(min(1, a / r))
+
+    ``r`` the tangent distance from the axis, ``a = spec.instrument_radius_mm``: a plane (the liver's own
+    motion there) plus the outer profile of a flat punch of the tool's radius pressed into a half-space
+    (Sneddon 1946; ``amplitude`` is the punch's depth below the plane). Far enough from the supports the
+    amplitude scales with the normal force over the stiffness, and the fit reads it from the visible ring
+    round the tool, where the tip itself is hidden. Solved by the normal equations' Cholesky factor (the
+    compiled serving path does the same sums); fewer than :data:`DENT_MIN_POINTS` points, or a pivot at most
+    :data:`DENT_PIVOT_TOL` of its diagonal entry (points on one line through the axis, or on one circle round
+    it): zeros.
+    """
+    a, rd = spec.instrument_radius_mm, spec.dent_radius_mm
+    du, dv = u - float(tip_uv[0]), v - float(tip_uv[1])
+    r = np.hypot(du, dv)
+    sel = r < rd
+    if int(sel.sum()) < DENT_MIN_POINTS:
+        return np.zeros(2)
+    g = (2.0 / math.pi) * np.arcsin(np.minimum(1.0, a / np.maximum(r[sel], 1e-12)))
+    A = np.column_stack([np.ones(g.size), du[sel] / rd, dv[sel] / rd, g])  # the slopes per dent radius
+    M = A.T @ A
+    try:
+        L = np.linalg.cholesky(M)
+    except np.linalg.LinAlgError:
+        return np.zeros(2)
+    if not np.all(np.diag(L) ** 2 > DENT_PIVOT_TOL * np.diag(M)):
+        return np.zeros(2)
+    coef = np.linalg.solve(L.T, np.linalg.solve(L, A.T @ dz[sel]))
+    if not np.all(np.isfinite(coef)):
+        return np.zeros(2)
+    return np.array([coef[3], coef[0]])
+
+
 def cloud_grid(cloud_mm, reference: ReferenceSurface, spec: CloudGridSpec, tip_mm=None) -> CloudGrid:
     """Grid the cloud of one case (module docstring).
 
@@ -863,6 +915,11 @@ def cloud_grid(cloud_mm, reference: ReferenceSurface, spec: CloudGridSpec, tip_m
             axis, keep, n_inst, inst_sd = fit_instrument(np.column_stack([u, v]), dz, tip_local[:2], spec)
             tip_local = np.array([axis[0], axis[1], tip_local[2]])
         u, v, dz = u[keep], v[keep], dz[keep]
+    dent = None
+    if spec.dent_radius_mm > 0:
+        if tip_local is None:
+            raise ValueError("this cloud model fits the dent around the tool tip: give the tip")
+        dent = fit_dent(u, v, dz, tip_local[:2], spec)
     W = np.zeros(g * g)
     S = np.zeros(g * g)
     N = np.zeros(g * g, dtype=np.int64)
@@ -910,7 +967,7 @@ def cloud_grid(cloud_mm, reference: ReferenceSurface, spec: CloudGridSpec, tip_m
     height = _fill(height.reshape(g, g), valid.reshape(g, g), spec.fill)
     return CloudGrid(height=height, valid=valid.reshape(g, g), count=N.reshape(g, g).astype(np.int64),
                      weight=W.reshape(g, g), reference=reference.grid_height.copy(), n_points=int(len(u)),
-                     tip_local=tip_local, n_instrument=n_inst, instrument_sd_mm=inst_sd)
+                     tip_local=tip_local, n_instrument=n_inst, instrument_sd_mm=inst_sd, dent=dent)
 
 
 def _fill(H: np.ndarray, valid: np.ndarray, rule: str) -> np.ndarray:

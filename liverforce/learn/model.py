@@ -93,6 +93,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from liverforce.learn.camera import N_DENT
 from liverforce.learn.cloud_features import ROI_TRIANGLES_KEY
 from liverforce.learn.encoders import AutoEncoder, Encoder, PCAEncoder
 from liverforce.learn.frames import case_rotations, force_to_local, force_to_source
@@ -120,7 +121,7 @@ from liverforce.learn.torchutil import EpochCallback
 from liverforce.seeds import derive
 
 FORMAT = "liverforce.force_model"
-FORMAT_VERSION = 11  # 3: probe compliance in the state vector (material from column 22), linear force estimate;
+FORMAT_VERSION = 12  # 3: probe compliance in the state vector (material from column 22), linear force estimate;
 #                     4: the GP regressor may be a GPEnsemble (model.gp.code_members), which a reader of 3 cannot load;
 #                     5: the state features may end with the indentation strain, which a reader of 4 would misread;
 #                     6: a GP's kernel may be the rational quadratic (a ``shape`` buffer), which a reader of 5 would
@@ -136,7 +137,9 @@ FORMAT_VERSION = 11  # 3: probe compliance in the state vector (material from co
 #                        reader of 9 would read as scaled by the stiffness
 #                     11: the interval may have a width per bin of the predicted force (scale: force_bins), which
 #                        a reader of 10 would read as scaled by the stiffness
-READ_VERSIONS = (3, 4, 5, 6, 7, 8, 9, 10, 11)
+#                     12: a camera model's features may hold the dent fit (camera.grid.dent_radius_mm) and its state
+#                        features end with it, which a reader of 11 would read as the tool tip
+READ_VERSIONS = (3, 4, 5, 6, 7, 8, 9, 10, 11, 12)
 # a version-3 bundle is a version-4 bundle with a single GP (or an MLP); 4 is 5
 #                                     without the indentation strain; 5 is 6 with squared-exponential GPs (no shape
 #                                     buffer); 6 is 7 with camera models on the ROI points' reference (reference:
@@ -335,6 +338,8 @@ class Preprocessor:
     indentation_strain: bool = False  # the state features end with u_w,n / h (after f_lin; module docstring)
     material_ref: float | None = None  # state-vector models, any force scaling: C10's training mean (MPa), the
     #                                    reference of material_factor (bundles before format 9: None)
+    dent_force: bool = False  # camera models with the dent fit: the state features end with (amplitude / C_nn,
+    #                           offset), the features' columns before the tip (liverforce.learn.camera.N_DENT)
 
     def inputs(self, x: np.ndarray, state: np.ndarray | None) -> np.ndarray:
         code = self.code_scaler.transform(self.encoder.encode(self.feature_scaler.transform(x)))
@@ -379,7 +384,17 @@ class Preprocessor:
         parts = [out, self._linear_force(u_w, state)]
         if self.indentation_strain:
             parts.append(indentation_strain(u_w, state))
+        if self.dent_force:
+            parts.append(self.dent_features(x, state))
         return np.hstack(parts)
+
+    def dent_features(self, x: np.ndarray, state: np.ndarray) -> np.ndarray:
+        """``(k amplitude / C_nn, offset)`` ``(n, 2)`` of a camera model's dent fit: its amplitude as a force (N;
+        ``C_nn`` the probe's normal compliance at the reference material, ``k = C10 / C10_ref`` the case's
+        stiffness relative to training, :meth:`material_factor`) and the plane's offset at the tool (mm)."""
+        d = np.asarray(x, dtype=np.float64)[:, -3 - N_DENT:-3]
+        c_nn = compliance_matrices(state)[:, 2, 2]
+        return np.column_stack([d[:, 0] / c_nn * self.material_factor(state, len(d))[:, 0], d[:, 1]])
 
     @property
     def n_linear_force(self) -> int:
@@ -389,7 +404,8 @@ class Preprocessor:
     def n_displacement_features(self) -> int:
         """State-feature columns after the material constants, read from the displacement: ``f_lin`` (3) and
         the indentation strain (1)."""
-        return self.n_linear_force + (1 if self.indentation_strain and self.n_linear_force else 0)
+        return (self.n_linear_force + (1 if self.indentation_strain and self.n_linear_force else 0)
+                + (N_DENT if self.dent_force else 0))
 
     @property
     def n_material(self) -> int | None:
@@ -488,6 +504,7 @@ def fit_preprocessor(
                              "displacement features (roi_features: displacement, both or cloud)")
         if rep.is_camera:
             pre.linear_force_tip = True
+            pre.dent_force = rep.dent
         else:
             pre.linear_force_weights = linear_force_weights(rep, linear_force_radius_mm)
     if indentation_strain:
@@ -688,6 +705,7 @@ class ForceModel:
                     "linear_force_ref": self.pre.linear_force_ref,
                     "indentation_strain": bool(self.pre.indentation_strain),
                     "material_ref": self.pre.material_ref,
+                    "dent_force": bool(self.pre.dent_force),
                 },
                 "meta": self.meta,
             }
@@ -740,6 +758,7 @@ class ForceModel:
             sc.get("linear_force_ref"),
             bool(sc.get("indentation_strain", False)),
             sc.get("material_ref"),
+            bool(sc.get("dent_force", False)),
         )
         rspec = RegressorSpec.from_dict(doc["regressor"])
         net = load_regressor(rspec, torch.load(path / "regressor.pt", weights_only=True))

@@ -241,12 +241,17 @@ class Representation:
         return str((self.camera.get("grid") or {}).get("reference", CloudGridSpec.reference))
 
     @property
+    def dent(self) -> bool:
+        """A camera model whose features hold the dent fit round the tool (``camera.grid.dent_radius_mm > 0``)."""
+        return self.is_camera and float((self.camera.get("grid") or {}).get("dent_radius_mm") or 0.0) > 0
+
+    @property
     def n_features(self) -> int:
         """Length of the feature vector, ``channels * g^2`` (``+ 3``, the tool tip, for ``cloud``)."""
         if self.is_camera:
             from liverforce.learn import camera
 
-            return camera.n_features(self.grid_size)
+            return camera.n_features(self.grid_size, self.dent)
         return self.channels * self.grid_size**2
 
     @property
@@ -264,7 +269,7 @@ class Representation:
         if self.is_camera:
             from liverforce.learn import camera
 
-            return camera.channel_groups(self.grid_size)
+            return camera.channel_groups(self.grid_size, self.dent)
         return np.repeat(np.arange(self.channels), self.grid_size**2)
 
     def state_arrays(self, arrays: dict) -> dict:

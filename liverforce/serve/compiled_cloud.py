@@ -765,10 +765,66 @@ _H1 = 2654435761  # odd multipliers of the duplicate filter's hash (products sta
 _H2 = 2246822519
 
 
+_TINY = 1e-280  # added to the dent fit's last two diagonal entries: a zero pivot becomes 1e-140, not a 0 division
+
+
+@njit(cache=True)
+def _dent_fit(GUs, GVs, Zs, n, h, gstep, tu, tv, a, rd, min_points, cloud_tol):
+    """``(amplitude, offset)`` of :func:`liverforce.learn.cloud_features.fit_dent` from the sorted, distinct points
+    ``[0, n)`` (grid-index coordinates ``GUs, GVs``, the instrument's moved far off the grid; height change
+    ``Zs``), round the axis ``(tu, tv)``: the same least squares, by its normal equations in the same scaled
+    columns and the same pivot test (``cloud_tol``: ``DENT_PIVOT_TOL``). Fewer than ``min_points`` points or a
+    singular system: zeros."""
+    rd2 = rd * rd
+    inv = 1.0 / rd
+    c = 2.0 / math.pi
+    a00 = a01 = a02 = a03 = a11 = a12 = a13 = a22 = a23 = a33 = 0.0
+    b0 = b1 = b2 = b3 = 0.0
+    k = 0
+    for s in range(n):
+        du = GUs[s] * gstep - h - tu
+        dv = GVs[s] * gstep - h - tv
+        r2 = du * du + dv * dv
+        if r2 < rd2:
+            r = math.sqrt(r2)
+            gq = c * math.asin(min(1.0, a / max(r, 1e-12)))
+            p1 = du * inv
+            p2 = dv * inv
+            z = Zs[s]
+            a00 += 1.0
+            a01 += p1
+            a02 += p2
+            a03 += gq
+            a11 += p1 * p1
+            a12 += p1 * p2
+            a13 += p1 * gq
+            a22 += p2 * p2
+            a23 += p2 * gq
+            a33 += gq * gq
+            b0 += z
+            b1 += p1 * z
+            b2 += p2 * z
+            b3 += gq * z
+            k += 1
+    if k < min_points:
+        return 0.0, 0.0
+    # a pivot of the normal matrix's Cholesky factor at most cloud_tol of its diagonal entry: singular (e.g. the
+    # points on one line through the axis, or on one circle round it), as cloud_features.fit_dent decides. The
+    # last two pivots come from the solve, on a matrix nudged by _TINY so that a zero pivot divides nothing
+    if not a11 - a01 * a01 / a00 > cloud_tol * a11:
+        return 0.0, 0.0
+    x0, _, _, x3, l22, _, l33 = _spd4_solve(a00, a01, a02, a03, a11, a12, a13, a22 + _TINY, a23, a33 + _TINY, b0, b1,
+                                            b2, b3)
+    if not (l22 * l22 - _TINY > cloud_tol * a22 and l33 * l33 - _TINY > cloud_tol * a33
+            and math.isfinite(x0) and math.isfinite(x3)):
+        return 0.0, 0.0
+    return x3, x0
+
+
 @njit(cache=True, fastmath={"contract"})  # FMAs: u, v, w as BLAS computes R (x - p) more often
 def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_abs, min_points, max_leverage,
               linear, fill, reach_count, shaft, inst, ws, x):
-    """Feature row ``x = [height (g^2), mask (g^2), R (tip - p) (3)]`` of the cloud ``P[s0:s0 + n]``.
+    """Feature row ``x = [height (g^2), mask (g^2), (dent (2),) R (tip - p) (3)]`` of the cloud ``P[s0:s0 + n]``.
 
     Mirrors :func:`liverforce.learn.cloud_features.cloud_grid` (module docstring); ``ws``: :func:`_workspace`.
     Returns the points over the grid (``|u|, |v| <= reach_count``), the points whose local coordinates are
@@ -780,6 +836,7 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
     tangential part (:func:`_fit_instrument`); with a slope as well (``inst[8] > 0``,
     :func:`_fit_instrument_tilted`) the tip is the kinematic one projected onto the axis, its height too (the fit
     along the normal where the slope is not significant or that tip is not credible, :func:`_tilt_credible`).
+    With ``inst[10] > 0`` the dent round that axis is fitted to the liver's points (:func:`_dent_fit`).
     """
     U, V, Wl, GU, GV, Z, key, A, C, Q, HB, GUs, GVs, Zs, orig, first, fill_at, bits, cand = ws[:19]
     M, Hc, valid, idx, unk, Lb, rhs, y = ws[19:]
@@ -936,6 +993,9 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
                     Zs[w] = Zs[t]
                     w += 1
         first[nc * nc] = w
+    if inst[10] > 0.0:  # the dent round the tool's axis, from the liver's distinct points
+        x[2 * gg], x[2 * gg + 1] = _dent_fit(GUs, GVs, Zs, first[nc * nc], h, gstep, tu, tv, inst[0], inst[10],
+                                             inst[11], inst[12])
     # 4. moments, per-cell weighted plane fit and validity test (cloud_grid's formulas)
     _cell_moments(GUs, GVs, Zs, first, g, kr, sb, pad, nc, exact, M)
     kr2 = kr * kr
@@ -974,9 +1034,10 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
     for cell in range(gg):
         x[cell] = Hc[cell]
         x[gg + cell] = 1.0 if valid[cell] else 0.0
-    x[2 * gg] = tu
-    x[2 * gg + 1] = tv
-    x[2 * gg + 2] = R[2, 0] * tp0 + R[2, 1] * tp1 + R[2, 2] * tp2 + dw
+    nx = x.shape[0]  # the tip last, after the dent's columns if any
+    x[nx - 3] = tu
+    x[nx - 2] = tv
+    x[nx - 1] = R[2, 0] * tp0 + R[2, 1] * tp1 + R[2, 2] * tp2 + dw
     return nu, nb, ns, nf, sd
 
 
@@ -1112,13 +1173,15 @@ def _dense_rows(Hin, WT, b, slope, act):
 
 def instrument_params(sp) -> np.ndarray:
     """The kernels' ``inst`` vector of a grid spec: the tool's radius, the search radius, the rise, the clearance,
-    the point sd, the tip sd, the fewest points, ``NOISE_REFIT_RATIO``, ``tan(instrument_max_tilt_deg)`` and
-    ``TILT_WALD`` (the module constants passed in, read when called: inside a cached kernel they would be frozen
-    into it)."""
+    the point sd, the tip sd, the fewest points, ``NOISE_REFIT_RATIO``, ``tan(instrument_max_tilt_deg)``,
+    ``TILT_WALD``, ``dent_radius_mm``, ``DENT_MIN_POINTS`` and ``DENT_PIVOT_TOL`` (the module constants passed in,
+    read when called: inside a cached kernel they would be frozen into it)."""
     return np.array([sp.instrument_radius_mm, instrument_search_radius(sp), sp.instrument_rise_mm,
                      sp.instrument_clearance_mm, sp.instrument_point_sd_mm, sp.instrument_tip_sd_mm,
                      sp.instrument_min_points, cloud_features.NOISE_REFIT_RATIO,
-                     math.tan(math.radians(sp.instrument_max_tilt_deg)), cloud_features.TILT_WALD], dtype=np.float64)
+                     math.tan(math.radians(sp.instrument_max_tilt_deg)), cloud_features.TILT_WALD,
+                     sp.dent_radius_mm, cloud_features.DENT_MIN_POINTS, cloud_features.DENT_PIVOT_TOL],
+                    dtype=np.float64)
 
 
 def _check_size(n: int, what: str) -> None:
@@ -1184,6 +1247,7 @@ class CompiledCloud:
         self.half_width_mm = float(rep.half_width_mm)
         self.reach = rep.half_width_mm * (1.0 + 2.0 / (rep.grid_size - 1))
         self.g = int(self.spec.grid_size)
+        self.n_features = int(rep.n_features)  # 2 g^2 (+ the dent's columns) + 3
         pre = model.pre
         fs, enc, cs = pre.feature_scaler, pre.encoder, pre.code_scaler
         # code = ((x - mu_f) / s_f - mu_pca) C^T, scaled: one affine map A x + b
@@ -1196,6 +1260,8 @@ class CompiledCloud:
         self.k_material = 1.0
         self.s_base = np.zeros(0)
         self.lin = False
+        self.strain = False
+        self.dent = False
         self.n_disp = 0
         if self.uses_state:
             arrays = rep.state_arrays(preop.to_arrays(preop.roi_undeformed_mm))
@@ -1211,8 +1277,12 @@ class CompiledCloud:
                 self.Cinv = pre.linear_factor(s, 1)[0, 0] * np.linalg.inv(compliance_matrices(s)[0])
                 self.lin_mean, self.lin_scale = ss.mean[n_base:], ss.scale[n_base:]
                 self.n_disp = pre.n_displacement_features
-                if self.n_disp > 3:  # the indentation strain tip_n / h (Preop refuses a thickness <= 0)
+                self.strain = bool(pre.indentation_strain)
+                if self.strain:  # the indentation strain tip_n / h (Preop refuses a thickness <= 0)
                     self.inv_h = 1.0 / float(s[0, THICKNESS_COLUMN])
+                self.dent = bool(pre.dent_force)  # (k amplitude / C_nn, offset): Preprocessor.dent_features
+                if self.dent:
+                    self.dent_k = float(pre.material_factor(s, 1)[0, 0]) / float(compliance_matrices(s)[0][2, 2])
         self.context_warnings = []  # the context's state outside the training range (Predictor.context_warnings)
         if self.uses_state:
             self.context_warnings = outside_training(preop.to_arrays(preop.roi_undeformed_mm),
@@ -1267,7 +1337,7 @@ class CompiledCloud:
         the input frame, if any)."""
         B = len(P) if starts is None else len(starts)
         sp = self.spec
-        X = np.empty((B, 2 * self.g * self.g + 3))
+        X = np.empty((B, self.n_features))
         n_used = np.zeros(B, dtype=np.int64)
         n_bad = np.zeros(B, dtype=np.int64)
         n_tool = np.zeros((B, 3))  # points on the shaft, instrument points fitted, the point noise from them (mm)
@@ -1308,8 +1378,13 @@ class CompiledCloud:
                 lin = (t[:, 0:1] * self.Cinv[:, 0] + t[:, 1:2] * self.Cinv[:, 1]) + t[:, 2:3] * self.Cinv[:, 2]
                 o = nz + ns
                 Z[:, o:o + 3] = (lin - self.lin_mean[:3]) / self.lin_scale[:3]
-                if self.n_disp > 3:  # the indentation strain tip_n / h
+                if self.strain:  # the indentation strain tip_n / h
                     Z[:, o + 3] = (t[:, 2] * self.inv_h - self.lin_mean[3]) / self.lin_scale[3]
+                if self.dent:  # the dent's amplitude as a force and the plane's offset, the last columns
+                    j = self.n_disp - camera.N_DENT
+                    d = X[:, -3 - camera.N_DENT:-3]
+                    Z[:, o + j] = (d[:, 0] * self.dent_k - self.lin_mean[j]) / self.lin_scale[j]
+                    Z[:, o + j + 1] = (d[:, 1] - self.lin_mean[j + 1]) / self.lin_scale[j + 1]
         h = Z.astype(np.float32)
         if self.gp is not None:
             h = self.gp(h)
@@ -1511,7 +1586,7 @@ class CompiledCloud:
             cnt = np.full(B, N, np.int64) if counts is None else np.asarray(counts, dtype=np.int64).reshape(-1)
             if cnt.shape != (B,) or (cnt < 0).any() or (cnt > N).any():
                 raise PredictionInputError(f"counts: need {B} counts in [0, {N}], got {counts!r}")
-            X = np.empty((B, 2 * self.g * self.g + 3))
+            X = np.empty((B, self.n_features))
             n_used = np.zeros(B, dtype=np.int64)
             n_bad = np.zeros(B, dtype=np.int64)
             n_tool = np.zeros((B, 3))  # as _grid's

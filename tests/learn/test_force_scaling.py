@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from liverforce.learn.metrics import force_metrics
-from liverforce.learn.model import ForceModel
+from liverforce.learn.model import FORMAT_VERSION, ForceModel
 from liverforce.learn.synthetic import synthetic_arrays
 from liverforce.learn.train import train_scenario
 
@@ -182,7 +182,7 @@ def test_the_indentation_strain_is_the_normal_displacement_under_the_tool_over_t
     thin[:, THICKNESS_COLUMN] /= 2
     np.testing.assert_allclose(pre.state_features(thin, x)[:, -1], 2 * feats[:, -1], rtol=1e-12)
     saved = model.save(tmp_path / "m")
-    assert json.loads((saved / "model.json").read_text())["format_version"] == 11
+    assert json.loads((saved / "model.json").read_text())["format_version"] == FORMAT_VERSION
     again = ForceModel.load(saved)
     assert again.pre.indentation_strain
     np.testing.assert_array_equal(again.predict(data), model.predict(data))
