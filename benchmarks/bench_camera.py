@@ -19,10 +19,10 @@ Gaussian process, and ``mlp``), prints, on one core (1 BLAS / torch / numba thre
 
 The models are trained here on synthetic cases with whole surfaces
 (``liverforce.learn.synthetic.synthetic_surface_arrays``, ``--cases``; accuracy is irrelevant): the sizes are the
-shipped config's (12 x 12 grid, state vector; the GP is the mean of five GPs on PCA codes of 8, 12, 16, 24 and 32
-components, ``model.gp.code_members``, each on every training row, about 640 with the default 480 cases, the
-shipped runs have 500-1000; the MLP 2 x 128, 3 epochs). Clouds are observed from a case's
-deformed surface with ``--points`` points (default 5,000) of the liver, the instrument's visible points at the
+shipped config's (12 x 12 grid, state vector, the dent fit round the tool; the GP is the mean of five GPs on PCA
+codes of 8, 16, 32, 48 and 64 components, ``model.gp.code_members``, each on every training row, about 640
+with the default 480 cases, the shipped runs have 500-1000; the MLP 2 x 128, 3 epochs). Clouds are observed from
+a case's deformed surface with ``--points`` points (default 5,000) of the liver, the instrument's visible points at the
 same density (a few hundred more; the shipped camera model fits the tool's axis to them) and 0.5 mm noise: 20
 observations, and
 ``--distinct`` (default 256) jittered copies of them for the batches, so a batch reads clouds from memory, not
@@ -78,16 +78,17 @@ CASES = ARGS.cases or (120 if ARGS.quick else 480)
 MODEL = {"encoder": "pca", "code_size": 16, "state_vector": True, "grid_size": 12, "hidden": [128, 128],
          "dropout": 0.1, "occlusion": {"radius_mm": 0.0, "mode": "remove"}, "noise_mm": 0.0, "roi_features": "cloud",
          "force_scaling": "none", "probe_force_radius_mm": 5.0, "indentation_strain": True,
-         "gp": {"max_points": 2000, "iterations": 50, "code_members": [8, 12, 16, 24, 32],
+         "gp": {"max_points": 2000, "iterations": 50, "code_members": [8, 16, 32, 48, 64],
                 "kernel": "squared_exponential"},  # as the shipped camera variant (config/train/default.yaml)
          "camera": {"observation": {"n_points": [200, 20000], "instrument_in_cloud": True},
-                    "grid": {"kernel_radius_cells": 1.5, "instrument_radius_mm": 2.5, "instrument_max_tilt_deg": 30.0},
+                    "grid": {"kernel_radius_cells": 1.5, "instrument_radius_mm": 2.5, "instrument_max_tilt_deg": 30.0,
+                             "dent_radius_mm": 15.0},
                     "tip_noise_mm": 0.5}}
 if ARGS.no_instrument:
     MODEL["camera"] = {**MODEL["camera"], "observation": {"n_points": [200, 20000]},
-                       "grid": {"kernel_radius_cells": 1.5}}
+                       "grid": {"kernel_radius_cells": 1.5}}  # (no instrument radius: no dent fit either)
 TRAIN = {"test_fraction": 0.2, "epochs": 3, "batch_size": 64, "lr": 3e-3, "weight_decay": 0.0, "seed": 0,
-         "interval": {"coverage": 0.9, "calibration_fraction": 0.25, "scale": "force"}}  # the shipped interval scale
+         "interval": {"coverage": 0.9, "calibration_fraction": 0.25, "scale": "force_bins"}}  # the shipped scale
 NO_TUNE = {"enabled": False, "trials": 1, "folds": 2, "sobol_trials": 1, "epochs": 1}
 
 
