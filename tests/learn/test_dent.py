@@ -197,16 +197,9 @@ DENT_CAMERA = {"observation": {"n_points": [300, 3000], "noise_sd_mm": 0.3, "too
 
 @pytest.fixture(scope="module")
 def served(tmp_path_factory):
-    from liverforce.learn.model import ForceModel, subset
-    from liverforce.learn.synthetic import synthetic_surface_arrays
-    from liverforce.learn.train import train_scenario
-    from tests.serve.test_camera_serving import MODEL, NO_TUNE, TRAIN
+    from tests.learn.test_instrument import train_camera_model
 
-    arrays = synthetic_surface_arrays(200, n_geometries=4, seed=7, material_varies=True)
-    res = train_scenario(arrays, {**MODEL, "camera": DENT_CAMERA}, TRAIN, NO_TUNE, "IV", "cloud",
-                         out_dir=tmp_path_factory.mktemp("dent"))
-    test = np.flatnonzero(np.isin(arrays["geometry_id"], res["split"]["test_geometries"]))
-    return res, ForceModel.load(res["model_path"]), subset(arrays, test)
+    return train_camera_model(tmp_path_factory.mktemp("dent"), DENT_CAMERA)
 
 
 def test_a_model_with_the_dent_reads_it_as_a_force_and_serves_it_on_both_paths(served):

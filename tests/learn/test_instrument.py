@@ -266,8 +266,9 @@ INSTRUMENT = {"observation": {"n_points": [300, 3000], "noise_sd_mm": 0.3, "tool
               "grid": {"instrument_radius_mm": R_TOOL}, "tip_noise_mm": 0.5}
 
 
-@pytest.fixture(scope="module")
-def served(tmp_path_factory):
+def train_camera_model(out_dir, camera: dict):
+    """A camera model with these camera settings, trained on 200 synthetic cases of 4 livers (IV split): the
+    training result, the loaded model and the test livers' arrays."""
     from tests.serve.test_camera_serving import MODEL, NO_TUNE, TRAIN
 
     from liverforce.learn.model import ForceModel, subset
@@ -275,10 +276,14 @@ def served(tmp_path_factory):
     from liverforce.learn.train import train_scenario
 
     arrays = synthetic_surface_arrays(200, n_geometries=4, seed=7, material_varies=True)
-    res = train_scenario(arrays, {**MODEL, "camera": INSTRUMENT}, TRAIN, NO_TUNE, "IV", "cloud",
-                         out_dir=tmp_path_factory.mktemp("inst"))
+    res = train_scenario(arrays, {**MODEL, "camera": camera}, TRAIN, NO_TUNE, "IV", "cloud", out_dir=out_dir)
     test = np.flatnonzero(np.isin(arrays["geometry_id"], res["split"]["test_geometries"]))
     return res, ForceModel.load(res["model_path"]), subset(arrays, test)
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory):
+    return train_camera_model(tmp_path_factory.mktemp("inst"), INSTRUMENT)
 
 
 def _instrument_case(arrays: dict, i: int, seed: int, tip_sd: float = 0.5, shuffle: bool = True,
