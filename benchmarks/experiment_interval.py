@@ -18,6 +18,11 @@ over the splits of:
   the quintiles of each component's coverage, mean over the components and
   splits. Whether the interval holds for the small forces as for the large.
 
+With ``--unwidened`` every scale is also scored without the widening outside
+the calibration's stiffness range (:meth:`liverforce.learn.interval.ConformalInterval.extrapolation_factor`;
+the same interval with its ``stiffness_range`` removed): how much of a coverage
+the widening makes.
+
 The validate stage writes the same numbers for the validated model
 (``validate/metrics.json`` ``interval``: ``coverage``, ``coverage_by_force``).
 
@@ -59,6 +64,8 @@ def main() -> None:
     ap.add_argument("--bins", nargs="+", type=int, default=[5], help="bins for scale force_bins (one row each)")
     ap.add_argument("--splits", type=int, default=5)
     ap.add_argument("--out", default="/tmp/liverforce-interval-experiment")
+    ap.add_argument("--unwidened", action="store_true", help="also each scale without the widening outside the "
+                    "calibration's stiffness range (the same interval, its stiffness_range removed)")
     args = ap.parse_args()
 
     from liverforce.learn.model import ForceModel, subset
@@ -73,8 +80,9 @@ def main() -> None:
     camera = model_cfg.get("roi_features") == "cloud"
     arrays, unseen = run.arrays("IV", camera), run.arrays("V", camera)
     geo = np.asarray(arrays["geometry_id"]).astype(str)
-    forms = [(s, b) for s in args.scales for b in (args.bins if s == "force_bins" else [None])]
-    name = {f: f[0] if f[1] is None else f"{f[0]}:{f[1]}" for f in forms}
+    forms = [(s, b, w) for s in args.scales for b in (args.bins if s == "force_bins" else [None])
+             for w in ((True, False) if args.unwidened else (True,))]
+    name = {f: (f[0] if f[1] is None else f"{f[0]}:{f[1]}") + ("" if f[2] else " unwidened") for f in forms}
     got: dict = {f: {"test": [], "unseen": []} for f in forms}
     base = run.cfg["train"]["interval"]
     t = time.perf_counter()
@@ -91,13 +99,14 @@ def main() -> None:
         test = subset(arrays, np.flatnonzero(np.isin(geo, res["split"]["test_geometries"])))
         for f in forms:
             cfg = {**base, "scale": f[0], **({} if f[1] is None else {"bins": f[1]})}
-            m.meta["interval"] = interval_from_calibration(cal, cfg, "IV").to_dict()
+            iv = interval_from_calibration(cal, cfg, "IV").to_dict()
+            m.meta["interval"] = iv if f[2] else {**iv, "stiffness_range": None}
             got[f]["test"].append(interval_coverage(m, test))
             got[f]["unseen"].append(interval_coverage(m, unseen))
         print(f"split {r + 1}/{args.splits} done ({time.perf_counter() - t:.0f} s)", flush=True)
     for f in forms:
         for part in ("test", "unseen"):
-            print(f"{args.variant} scale {name[f]:12s} {part:6s} ({args.splits} splits): {summary(got[f][part])}")
+            print(f"{args.variant} scale {name[f]:22s} {part:6s} ({args.splits} splits): {summary(got[f][part])}")
 
 
 if __name__ == "__main__":
