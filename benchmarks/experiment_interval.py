@@ -56,6 +56,16 @@ def summary(docs: list[dict]) -> str:
             f"worst quintile {bins.min(axis=(1, 2)).mean():.1f} %; spread over the quintiles {spread:.1f} points")
 
 
+def interval_form(cal: dict, cfg: dict, widened: bool = True) -> dict:
+    """The interval of config ``cfg`` fitted on calibration predictions ``cal`` (scenario IV), as a model's
+    ``meta["interval"]``; ``widened`` False: the same interval without the widening outside the calibration's
+    stiffness range (its ``stiffness_range`` removed)."""
+    from liverforce.learn.train import interval_from_calibration
+
+    iv = interval_from_calibration(cal, cfg, "IV").to_dict()
+    return iv if widened else {**iv, "stiffness_range": None}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--results", default="results/default")
@@ -69,7 +79,7 @@ def main() -> None:
     args = ap.parse_args()
 
     from liverforce.learn.model import ForceModel, subset
-    from liverforce.learn.train import interval_from_calibration, train_scenario
+    from liverforce.learn.train import train_scenario
     from liverforce.pipeline.validate import interval_coverage
     from liverforce.seeds import derive
 
@@ -99,8 +109,7 @@ def main() -> None:
         test = subset(arrays, np.flatnonzero(np.isin(geo, res["split"]["test_geometries"])))
         for f in forms:
             cfg = {**base, "scale": f[0], **({} if f[1] is None else {"bins": f[1]})}
-            iv = interval_from_calibration(cal, cfg, "IV").to_dict()
-            m.meta["interval"] = iv if f[2] else {**iv, "stiffness_range": None}
+            m.meta["interval"] = interval_form(cal, cfg, widened=f[2])
             got[f]["test"].append(interval_coverage(m, test))
             got[f]["unseen"].append(interval_coverage(m, unseen))
         print(f"split {r + 1}/{args.splits} done ({time.perf_counter() - t:.0f} s)", flush=True)

@@ -1,9 +1,11 @@
 """benchmarks/experiment_interval.py: the line it prints per scale from the validation's interval results."""
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
-from benchmarks.experiment_interval import summary
+from benchmarks.experiment_interval import interval_form, summary
+from liverforce.learn.interval import ConformalInterval
 
 
 def _doc(cov, bins, half=(0.3, 0.3, 0.4)):
@@ -25,3 +27,22 @@ def test_summary_is_the_mean_and_sd_over_splits_with_the_worst_quintile_and_the_
 def test_summary_refuses_a_split_with_an_empty_quintile():
     with pytest.raises(SystemExit, match="fewer than 5"):
         summary([_doc([0.9] * 3, [[0.9] * 3] * 4)])
+
+
+@pytest.mark.parametrize("scale", ["none", "force", "force_bins"])
+def test_interval_form_unwidened_drops_only_the_widening_outside_the_stiffness_range(scale):
+    rng = np.random.default_rng(0)
+    n = 400
+    true = rng.normal(0.0, 1.0, (n, 3))
+    pred = true + rng.normal(0.0, 0.1, (n, 3)) * np.array([1.0, 2.0, 3.0])
+    cal = {"true_local": true, "pred_local": pred, "stiffness": rng.uniform(0.7, 1.3, (n, 1)), "folds": 4}
+    cfg = {"coverage": 0.9, "scale": scale, "bins": 3}
+    wide = ConformalInterval.from_dict(interval_form(cal, cfg))
+    bare = ConformalInterval.from_dict(interval_form(cal, cfg, widened=False))
+    k_hi = cal["stiffness"].max()
+    assert wide.stiffness_range == (cal["stiffness"].min(), k_hi) and bare.stiffness_range is None
+    f = pred[:5]
+    inside, outside = np.full((5, 1), 1.0), np.full((5, 1), 1.4)
+    np.testing.assert_allclose(bare.half_widths(inside, f), wide.half_widths(inside, f))  # inside: unchanged
+    np.testing.assert_allclose(bare.half_widths(outside, f), bare.half_widths(inside, f))  # no widening
+    np.testing.assert_allclose(wide.half_widths(outside, f), bare.half_widths(outside, f) * 1.4 / k_hi)
