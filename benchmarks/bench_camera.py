@@ -15,7 +15,11 @@ Gaussian process, and ``mlp``), prints, on one core (1 BLAS / torch / numba thre
    (default 256 and 4096), against the per-cloud compiled loop and the reference
    ``ForceModel.predict`` on a list of clouds (on ``--ref-batch`` clouds), and the largest batch again in a
    lab's frame (LPS metres, ``compile_cloud(ctx, frame="LPS", units="m")``) against the same clouds in RAS mm;
-3. whether the targets are met on this machine, and a summary table of both regressors.
+3. whether the targets are met on this machine, and a summary table of both regressors;
+4. with ``--profile``: where a batch's time goes, per cloud (the largest batch, medians of ``--repeats`` calls):
+   the gridding pass (``CompiledCloud._grid``), again with the dent fit, the tilted instrument fit and both
+   switched off in the kernel's parameters (what each costs; the features then differ, only the time is read),
+   the head (affine map, regressor: ``_head``) and the checks (``_reasons``).
 
 The models are trained here on synthetic cases with whole surfaces
 (``liverforce.learn.synthetic.synthetic_surface_arrays``, ``--cases``; accuracy is irrelevant): the sizes are the
@@ -54,6 +58,7 @@ _ap.add_argument("--ref-batch", type=int, default=None, help="clouds through the
 _ap.add_argument("--points", type=int, default=5000, help="points per cloud")
 _ap.add_argument("--cases", type=int, default=None, help="synthetic training cases (default 480; quick 120)")
 _ap.add_argument("--distinct", type=int, default=256, help="distinct clouds (jittered copies) cycled in a batch")
+_ap.add_argument("--profile", action="store_true", help="also time the compiled path's stages per cloud")
 _ap.add_argument("--no-instrument", action="store_true", help="models trained on clouds without the instrument, "
                  "served such clouds (the camera model before it fitted the instrument's axis)")
 ARGS = _ap.parse_args()
@@ -135,6 +140,40 @@ def describe(model) -> str:
     return f"MLP {model.regressor_spec.hidden}"
 
 
+def profile(fast, batch: list, tips: np.ndarray) -> None:
+    """Per-cloud time of the compiled batch's stages (module docstring, 4.): gridding with the shipped kernel
+    parameters and with the dent (``inst[10]``), the tilted fit (``inst[8]``) or both off, head, checks."""
+    nb = len(batch)
+
+    def per_cloud(fn) -> float:
+        fn()
+        runs = []
+        for _ in range(REPEATS):
+            t0 = time.perf_counter()
+            fn()
+            runs.append(time.perf_counter() - t0)
+        return 1e6 * float(np.median(runs)) / nb
+
+    P = [fast._cloud(c) for c in batch]
+    inst = fast._inst.copy()
+    grid = {}
+    for name, off in (("as shipped", ()), ("without the dent fit", (10,)), ("without the tilted fit", (8,)),
+                      ("without both", (8, 10))):
+        fast._inst[:] = inst
+        fast._inst[list(off)] = 0.0
+        grid[name] = per_cloud(lambda: fast._grid(P, None, None, tips))
+    fast._inst[:] = inst
+    X, n_used, n_bad, n_tool = fast._grid(P, None, None, tips)
+    head = per_cloud(lambda: fast._head(X))
+    counts = np.array([len(c) for c in P])
+    checks = per_cloud(lambda: fast._reasons(lambda r: P[r], counts, tips, X, n_used, n_bad, n_tool))
+    total = per_cloud(lambda: fast.predict_batch(batch, tips))
+    print(f"profile, batch of {nb} clouds, us per cloud (medians of {REPEATS}): predict_batch {total:.1f}; "
+          f"gridding {grid['as shipped']:.1f} (" + ", ".join(f"{k} {v:.1f}" for k, v in grid.items()
+                                                         if k != "as shipped") +
+          f"); head {head:.1f}; checks {checks:.1f}")
+
+
 def measure(kind: str, model, arrays: dict, ctx, tip, clouds, batch_pool) -> dict:
     pred = Predictor(model)
     print(f"\n== {kind}: {describe(model)}; {len(clouds[0])} points per cloud, grid "
@@ -188,6 +227,8 @@ def measure(kind: str, model, arrays: dict, ctx, tip, clouds, batch_pool) -> dic
     print(f"predict_batch, {nb} clouds in LPS metres (compile_cloud(ctx, frame='LPS', units='m')): {r_lab:,.0f} "
           f"clouds/s ({r_lab / rates[nb]:.2f}x the same clouds in RAS mm); max |dF| against RAS mm {d_lab:.1e} N")
     print(f"reference ForceModel.predict, list of {REF_BATCH} clouds (peer): {r_ref:,.0f} clouds/s")
+    if ARGS.profile:
+        profile(fast, [batch_pool[k % len(batch_pool)] for k in range(nb)], np.tile(tip, (nb, 1)))
     best = max(rates.values())
     print(f"targets on this machine: p99 {1e3 * t_fast[1]:.3f} ms <= 2 ms: "
           f"{'met' if t_fast[1] <= 2e-3 else 'NOT met'}; batch {best:,.0f} clouds/s >= 10,000: "
