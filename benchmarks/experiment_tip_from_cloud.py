@@ -1,10 +1,10 @@
 """Experiment: does the camera cloud locate the tool tip along the surface better than the robot's kinematics?
 
-The camera model's largest loss is the tool tip's tangential position (README, "What a camera sees": retrained
-with a tip exact along the surface, IV 88.7 -> 91.6 %, unseen 0.302 -> 0.215 N). This scores estimators of the
-tip's tangential displacement (local t1, t2; mm) against the FE tip (the exertion point moved with the surface)
-on a finished run's cases, observed as the pipeline observes a training view (the camera variant's camera,
-visibility, tool, density, noise and tip noise; the seed of its first view):
+The camera model's largest loss is the tool tip's tangential position (docs/experiments.md, "What a camera sees":
+retrained with a tip exact along the surface, IV 88.7 -> 91.6 %, unseen 0.302 -> 0.215 N). This scores estimators of the
+tip's tangential displacement (local t1, t2; mm) against the FE tip (the exertion point moved with the surface) on a
+finished run's cases, observed as the pipeline observes a training view (the camera variant's camera, visibility, tool,
+density, noise and tip noise; the seed of its first view):
 
 - ``kinematic``: the noisy tip the robot reports (``model.camera.tip_noise_mm``);
 - ``instrument's axis``: for a variant that fits it (``model.camera.grid.instrument_radius_mm``, the default since
@@ -35,7 +35,7 @@ a little along the fitted axis), ridge regressions from the kinematic tip plus
 - ``instrument's own points`` (a ceiling no camera gives): the same quantiles of the points the observation drew
   on the instrument (the cloud's last ``n_instrument_points`` rows), the tip sphere's included.
 
-Measured on the 9ac4790 run's IV shards (1 Dec 2026, 400 cases of 20 livers; README, "What a camera sees"):
+Measured on the 9ac4790 run's IV shards (1 Dec 2026, 400 cases of 20 livers; docs/experiments.md, "What a camera sees"):
 the heights do not locate the tip (no ridge row beats the kinematic tip's own recalibration, 0.509 / 0.475 mm, by
 more than 0.006 mm; the kinematic tip as read 0.525 / 0.486 mm), the tool's shadow with the camera's position does
 (0.336 / 0.322 mm; along the normal the tip stays the kinematic one). ::
