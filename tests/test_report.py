@@ -539,3 +539,32 @@ def test_the_camera_table_shows_the_exact_tip_accuracy_per_scenario_and_on_the_u
         assert _tilt_text([0.0, 30.0]) == "0-30°" and _tilt_text([12.0, 12.0]) == "12°" and _tilt_text(5) == "5°"
     else:  # no sensitivity of this camera model: nothing to show
         assert rows["unseen livers"][4] == rows["unseen livers"][7] == "–"
+
+
+@pytest.mark.parametrize("gap, mae, missed", [(2.5, 0.25, True), (1.5, 0.19, False), (2.0, 0.2, False)])
+def test_the_camera_table_flags_the_unseen_livers_against_the_targets(stage_outputs, gap, mae, missed):
+    """The unseen livers' row: the camera's accuracy gap to the reference flagged above 2 points (as each
+    scenario's), its MAE flagged above 0.2 N (issue 15's targets); the limits themselves meet them."""
+    root = stage_outputs["root"]
+    m = {"accuracy_pct": 75.0, "mae_vec": 0.3, "rmse_vec": 0.4}
+    stage_outputs["metrics"].append(_write(root / "models" / "IV" / "cloud_sv" / "metrics.json", {
+        "scenario": "IV", "variant": "cloud_sv", "encoder": "pca", "state_vector": True, "metrics": m,
+        "metrics_mean": m, "metrics_sd": {"accuracy_pct": 1.2, "mae_vec": 0.02, "rmse_vec": 0.03}, "n_splits": 3,
+        "repeats": [{"split_seed": 7 + i, "test_geometries": ["g"], "metrics": m} for i in range(3)],
+        "run_id": "runIVcloud_sv", "n_train": 9, "n_test": 3, "model_cfg": {"roi_features": "cloud"}}))
+    path = stage_outputs["validation"]
+    doc = json.loads(path.read_text())
+    ref = doc["all_variants"]["pca_sv"]["livers"]
+    cam = {"n": 3, "worst": "val-1001", "sd": {"mae_vec": 0.04, "accuracy_pct": 1.7},
+           "mean": {"mae_vec": mae, "accuracy_pct": ref["mean"]["accuracy_pct"] - gap}}
+    doc["all_variants"]["cloud_sv"] = {**doc["all_variants"]["pca_nosv"], "livers": cam,
+                                       "model_run_id": "runIVcloud_sv"}
+    path.write_text(json.dumps(doc))
+    html = _report(stage_outputs)
+    sec = _section(html, "id='camera'", "</table>")
+    assert "at most 0.2 N (⚠ where missed)" in sec
+    row = next(r for r in _rows(sec, "cam") if _text(r[0]) == "unseen livers")
+    assert _text(row[3]) == (f"{gap:.1f} ⚠" if missed else f"{gap:.1f}")
+    assert _text(row[6]) == (f"{mae:.3f} ± 0.040 ⚠" if missed else f"{mae:.3f} ± 0.040")
+    iv = next(r for r in _rows(sec, "cam") if _text(r[0]) == "IV")  # 80 +- ... against 75: flagged as before
+    assert _text(iv[3]).endswith("⚠")
