@@ -99,6 +99,11 @@ def _pm(mean, sd, nd=3) -> str:
     return f"{_fmt(float(mean), nd)} ± {_fmt(float(sd), nd)}"
 
 
+def _flagged(text: str, missed: bool) -> str:
+    """``text`` marked as missing its target (red, ⚠) when ``missed``."""
+    return f"<b class='flag'>{text} ⚠</b>" if missed else text
+
+
 def _worst_bin(bins) -> str:
     """The force bin with the largest relative MAE, as "x % (lo–hi N)", flagged at or above the target."""
     scored = [(r, b) for b in (bins or []) if (r := _rel_mae(b)) is not None]
@@ -106,7 +111,7 @@ def _worst_bin(bins) -> str:
         return "–"
     r, b = max(scored, key=lambda t: t[0])
     text = f"{100 * r:.1f} % ({b['force_lo_n']:.2f}–{b['force_hi_n']:.2f} N)"
-    return f"<b class='flag'>{text} ⚠</b>" if r >= REL_MAE_LIMIT else text
+    return _flagged(text, r >= REL_MAE_LIMIT)
 
 
 def _rel_mae(b: dict) -> float | None:
@@ -387,7 +392,7 @@ def _gap_cell(gap: float | None) -> str:
     """The camera's accuracy gap to the reference (points), flagged above :data:`CAMERA_GAP_LIMIT`."""
     if gap is None:
         return "–"
-    return f"<b class='flag'>{gap:.1f} ⚠</b>" if gap > CAMERA_GAP_LIMIT else f"{gap:.1f}"
+    return _flagged(f"{gap:.1f}", gap > CAMERA_GAP_LIMIT)
 
 
 def camera_section(data: dict, v: dict, main_variant: str | None) -> str:
@@ -423,14 +428,13 @@ def camera_section(data: dict, v: dict, main_variant: str | None) -> str:
         # the validated camera model with an exact tip: its sensitivity row at tip noise 0, when it has one
         ut = next((r for r in (sens or {}).get("tip_noise_mm") or [] if float(r["value"]) == 0.0), None)
         exact_ok = ut is not None and v.get("model_variant") == cam_name
-        cam_mae = _pm(u[1]["mean"]["mae_vec"], u[1]["sd"]["mae_vec"])
         rows.append(["unseen livers", _pm(u[0]["mean"]["accuracy_pct"], u[0]["sd"]["accuracy_pct"], 1),
                      _pm(u[1]["mean"]["accuracy_pct"], u[1]["sd"]["accuracy_pct"], 1),
                      _gap_cell(u[0]["mean"]["accuracy_pct"] - u[1]["mean"]["accuracy_pct"]),
                      _pm(ut["accuracy_pct"], ut["accuracy_sd"], 1) if exact_ok else "–",
                      _pm(u[0]["mean"]["mae_vec"], u[0]["sd"]["mae_vec"]),
-                     f"<b class='flag'>{cam_mae} ⚠</b>" if u[1]["mean"]["mae_vec"] > CAMERA_UNSEEN_MAE_LIMIT_N
-                     else cam_mae,
+                     _flagged(_pm(u[1]["mean"]["mae_vec"], u[1]["sd"]["mae_vec"]),
+                              u[1]["mean"]["mae_vec"] > CAMERA_UNSEEN_MAE_LIMIT_N),
                      _pm(ut["mae_vec"], ut["mae_sd"]) if exact_ok else "–"])
     cam_cfg = (cams[0].get("model_cfg") or {}).get("camera") or {}
     fits = float((cam_cfg.get("grid") or {}).get("instrument_radius_mm") or 0.0) > 0
@@ -919,7 +923,7 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
         bad = r is not None and r >= REL_MAE_LIMIT
         rel = "–" if r is None else f"{100 * r:.1f} %"
         rows.append([_fmt(b["force_lo_n"], 2), _fmt(b["force_hi_n"], 2), b["n"], _fmt(b.get("mean_force_n"), 2),
-                     _fmt(b["mae_vec_n"]), f"<b class='flag'>{rel} ⚠</b>" if bad else rel])
+                     _fmt(b["mae_vec_n"]), _flagged(rel, bad)])
     table = _table(["|F| from (N)", "to (N)", "cases", "mean |F| (N)", "MAE (N)", "relative MAE"], rows,
                    cls="force-bins", row_cls="force-bin")
     fig = (_figure(vfigs["force"], out_dir, f"Error of every unseen case against its true force magnitude; red: "
