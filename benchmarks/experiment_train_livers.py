@@ -12,13 +12,29 @@ The unseen livers are the same for every point of the curve, so the curve says w
 still lower the error a new liver sees, for the camera model and the node model alike::
 
     PYTHONPATH=. OMP_NUM_THREADS=1 .venv/bin/python benchmarks/experiment_train_livers.py --results results/default \\
-        --variants pca_sv cloud_sv --livers 8 12 16 20 --replicates 3
+        --variants pca_sv cloud_sv --livers 8 14 20 --cases-per-liver 0 30 --replicates 3
+
+(``--cases-per-liver 30``: the same number of cases from each kept liver, to tell livers from cases.)
 """
 
 from __future__ import annotations
 
 import argparse
 import time
+
+import numpy as np
+
+
+def liver_subset(geo: np.ndarray, n: int, per: int, rng: np.random.Generator) -> np.ndarray:
+    """Sorted rows of ``n`` livers drawn from ``geo`` (one geometry id per case), all of their cases or ``per`` of
+    each (all of a liver with fewer)."""
+    livers = np.array(sorted(set(geo)))
+    keep = np.sort(rng.choice(livers, n, replace=False))
+    rows = np.flatnonzero(np.isin(geo, keep))
+    if per > 0:
+        own = [rows[geo[rows] == g] for g in keep]
+        rows = np.sort(np.concatenate([rng.choice(o, min(per, len(o)), replace=False) for o in own]))
+    return rows
 
 
 def main() -> None:
@@ -31,8 +47,6 @@ def main() -> None:
     ap.add_argument("--replicates", type=int, default=3, help="seeded subsets (and splits) per number of livers")
     ap.add_argument("--out", default="/tmp/liverforce-experiment-train-livers")
     args = ap.parse_args()
-
-    import numpy as np
 
     from liverforce.learn.model import subset
     from liverforce.learn.train import train_scenario
@@ -55,11 +69,7 @@ def main() -> None:
             t = time.perf_counter()
             for r in range(args.replicates):
                 rng = np.random.default_rng(derive(run.seed, "experiment.train_livers", n, r))
-                keep = np.sort(rng.choice(livers, n, replace=False))
-                rows = np.flatnonzero(np.isin(geo, keep))
-                if per > 0:  # the same number of cases from each kept liver
-                    rows = np.sort(np.concatenate([rng.choice(rows[geo[rows] == g], min(per, int(np.sum(geo[rows] == g))),
-                                                              replace=False) for g in keep]))
+                rows = liver_subset(geo, n, per, rng)
                 seed = run.seed if r == 0 else derive(run.seed, "split.repeat", r)
                 res = train_scenario(subset(arrays, rows), cfg, train, run.cfg["tune"], "IV", name, seed=seed,
                                      out_dir=f"{args.out}/{name}-{n}-{per}-{r}")
@@ -67,7 +77,8 @@ def main() -> None:
                 unseen.append(g["mean"]["mae_vec"])
                 cv.append(res["cv_mae_n"])
             cases = f"{per} cases each" if per > 0 else "all cases"
-            print(f"{name:8s} {n:3d} livers, {cases:14s} | unseen MAE {np.mean(unseen):.4f} +- {np.std(unseen, ddof=1) if len(unseen) > 1 else 0.0:.4f} N "
+            sd = np.std(unseen, ddof=1) if len(unseen) > 1 else 0.0
+            print(f"{name:8s} {n:3d} livers, {cases:14s} | unseen MAE {np.mean(unseen):.4f} +- {sd:.4f} N "
                   f"({' '.join(f'{u:.4f}' for u in unseen)}) | CV MAE {np.mean(cv):.4f} N | "
                   f"{time.perf_counter() - t:.0f} s", flush=True)
 
