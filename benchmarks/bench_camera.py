@@ -25,7 +25,8 @@ The models are trained here on synthetic cases with whole surfaces
 (``liverforce.learn.synthetic.synthetic_surface_arrays``, ``--cases``; accuracy is irrelevant): the sizes are the
 shipped config's (12 x 12 grid, state vector, the dent fit round the tool; the GP is the mean of five GPs on PCA
 codes of 8, 16, 32, 48 and 64 components, ``model.gp.code_members``, each on every training row, about 640
-with the default 480 cases, the shipped runs have 500-1000; the MLP 2 x 128, 3 epochs). Clouds are observed from
+with the default 480 cases; the default experiment's camera model has 1,920, as ``--cases 1440`` gives; the MLP
+2 x 128, 3 epochs). Clouds are observed from
 a case's deformed surface with ``--points`` points (default 5,000) of the liver, the instrument's visible points at the
 same density (a few hundred more; the shipped camera model fits the tool's axis to them) and 0.5 mm noise: 20
 observations, and
