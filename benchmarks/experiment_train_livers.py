@@ -1,12 +1,16 @@
 """Experiment: how the unseen-liver error falls with the number of training livers (a learning curve).
 
 On a finished run's shards (``--results``), scenario IV's livers are cut to ``--livers`` of them (a seeded subset per
-replicate; all of them once each replicate's split differs). Each subset is trained as the pipeline trains it
-(:func:`liverforce.learn.train.train_scenario`: its split by liver, ``train.test_fraction`` of the livers held out,
-the GP's 4-fold CV by liver), one split per replicate, and the saved model scores the run's unseen livers
-(scenario V, the validation's 8 livers at constants x``validate.material_scale``). Printed per variant and number
-of livers: the training livers, the unseen MAE (mean +- sd over the replicates of the mean over the unseen livers)
-and the training-side CV MAE.
+replicate; with all of the run's livers the replicates differ by their split only). Each subset is trained as the
+pipeline trains it (:func:`liverforce.learn.train.train_scenario`: its split by liver, ``train.test_fraction`` of the
+livers held out, the GP's 4-fold CV by liver), one split per replicate, and the saved model scores the run's unseen
+livers (scenario V, the validation's 8 livers at constants x``validate.material_scale``). Printed per variant, number
+of livers and cases per liver: the unseen MAE (mean +- sd over the replicates of the mean over the unseen livers, and
+each replicate's) and the training-side CV MAE (mean over the replicates).
+
+The subsets are drawn independently for each number of livers (not nested, unlike the ``train_livers`` study's
+:func:`liverforce.learn.study.first_geometries`), so that ``--cases-per-liver`` can draw cases from the same
+generator; the figures in docs/experiments.md (session 34) were measured with this draw.
 
 The unseen livers are the same for every point of the curve, so the curve says whether more simulated livers would
 still lower the error a new liver sees, for the camera model and the node model alike::
