@@ -88,7 +88,11 @@ def main() -> None:
         doc = json.loads(Path(run.model_metrics("IV", variant)).read_text())
         test = subset(iv, np.flatnonzero(np.isin(geo, doc["split"]["test_geometries"])))
         seed = int(m.meta.get("eval_observation_seed", 0))
-        for part, arrays in (("unseen", unseen), ("IV test", test)):
+        parts = [("unseen", unseen), ("IV test", test)]
+        if m.meta.get("final_fit"):  # train.final_fit: the saved model was fitted on the split's test livers too
+            print(f"{variant}: the saved model is the final fit on every IV liver; no IV test row", flush=True)
+            parts = parts[:1]
+        for part, arrays in parts:
             settings = [("as is", m)]
             if m.representation.is_camera:
                 settings += [(w, m.observed_with(ideal_camera(m.representation.camera, w))) for w in IDEAL]

@@ -98,7 +98,9 @@ def main() -> None:
     t = time.perf_counter()
     for r in range(args.splits):
         seed = run.seed if r == 0 else derive(run.seed, "split.repeat", r)
-        train = {**run.train, "repeats": 1, "interval": dict(base)}
+        # final_fit off: the split's own model, so that its test livers are held out (the pipeline then refits the
+        # configuration on every liver and calibrates that model's interval the same way)
+        train = {**run.train, "repeats": 1, "interval": dict(base), "final_fit": False}
         out = f"{args.out}/{args.variant}-{r}"
         res = train_scenario(arrays, model_cfg, train, run.cfg["tune"], "IV", args.variant, seed=seed, out_dir=out)
         if res["interval"] is None:  # no calibration (its npz would be an earlier run's)

@@ -121,6 +121,8 @@ def main() -> None:
     configure_torch(1)
     cfg = compose(list(args.overrides))
     train = {k: v for k, v in cfg["train"].items() if k != "variants"}
+    if args.peer:  # the peer is scored on the main split's held-out livers: save that split's model, not a final fit
+        train["final_fit"] = False
     variants = {x["name"]: x for x in cfg["train"]["variants"]}
     loaded: dict = {}
 

@@ -3,10 +3,12 @@
 On a finished run's shards (``--results``), scenario IV's livers are cut to ``--livers`` of them (a seeded subset per
 replicate; with all of the run's livers the replicates differ by their split only). Each subset is trained as the
 pipeline trains it (:func:`liverforce.learn.train.train_scenario`: its split by liver, ``train.test_fraction`` of the
-livers held out, the GP's 4-fold CV by liver), one split per replicate, and the saved model scores the run's unseen
-livers (scenario V, the validation's 8 livers at constants x``validate.material_scale``). Printed per variant, number
-of livers and cases per liver: the unseen MAE (mean +- sd over the replicates of the mean over the unseen livers, and
-each replicate's) and the training-side CV MAE (mean over the replicates).
+livers held out, the GP's 4-fold CV by liver), one split per replicate, and the split's model scores the run's unseen
+livers (scenario V, the validation's 8 livers at constants x``validate.material_scale``). ``train.final_fit`` is off
+here: the model is fitted on the subset's training livers, as in session 34's figures (the pipeline's saved model now
+sees all of a run's livers). Printed per variant, number of livers and cases per liver: the unseen MAE (mean +- sd
+over the replicates of the mean over the unseen livers, and each replicate's) and the training-side CV MAE (mean over
+the replicates).
 
 The subsets are drawn independently for each number of livers (not nested, unlike the ``train_livers`` study's
 :func:`liverforce.learn.study.first_geometries`), so that ``--cases-per-liver`` can draw cases from the same
@@ -59,7 +61,7 @@ def main() -> None:
     from benchmarks.experiment import PipelineTraining
 
     run = PipelineTraining(args.results, "train-livers experiment")
-    train = {**run.train, "repeats": 1}
+    train = {**run.train, "repeats": 1, "final_fit": False}  # the split's model: n x (1 - test_fraction) livers
     for name in args.variants:
         cfg = dict(run.variants[name])
         camera = cfg.get("roi_features") == "cloud"

@@ -270,7 +270,8 @@ class TrainConfig:
     lr: float = MISSING
     weight_decay: float = MISSING
     seed: int = MISSING
-    repeats: int = MISSING  # seeded train/test splits per model (the first is the saved model's): mean +- sd
+    repeats: int = MISSING  # seeded train/test splits per model (the first is the main split): mean +- sd
+    final_fit: bool = MISSING  # the saved model is refitted on every case of the scenario (else the main split's)
     interval: IntervalConfig = field(default_factory=IntervalConfig)
     heldout_points: HeldoutPointsConfig = field(default_factory=HeldoutPointsConfig)
 

@@ -25,13 +25,18 @@ Steps (every fitted quantity sees the training split only):
    refitted on ``R - 1`` further seeded splits (``seed + r``; other test
    cases, for IV other test livers) and scored on each split's own test set.
    ``metrics_mean`` / ``metrics_sd`` summarise the ``R`` splits (the first is
-   the main model's). The hyper-parameters tuned on the first split's training
+   the main split's). The hyper-parameters tuned on the first split's training
    side are reused: the repeats measure the spread due to the split, not a
    fresh tuning. A camera-cloud model is also scored on each split's test set
    with an exact tool tip (the same model and clouds, no kinematics noise:
    ``exact_tip``), which separates what the tracker's error costs from what
    the cloud does;
-6. outputs: ``out_dir/model/`` (bundle), ``out_dir/figures/*.png``,
+6. with ``train.final_fit`` (the default config's setting) the saved model is not the main split's: the
+   same configuration is refitted on every case of the scenario, test split included (:func:`fit_final`),
+   and its interval calibrated on all of them. The splits measure the configuration; the served model
+   then sees all the data (in IV all the livers; the validation's unseen livers are still never seen).
+   Without it the main split's model is saved;
+7. outputs: ``out_dir/model/`` (bundle), ``out_dir/figures/*.png``,
    ``out_dir/test_predictions.csv`` (atomic), ``out_dir/interval_calibration.npz``
    (the calibration predictions of the interval, atomic) and the result dict, which the
    caller writes to ``metrics.json`` (:mod:`liverforce.pipeline.train`, its only writer);
@@ -308,12 +313,15 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
     interval = None
     ci = None
     (out_dir / "interval_calibration.npz").unlink(missing_ok=True)  # an earlier run's, not this model's
-    if (train_cfg.get("interval") or {}).get("coverage"):
+    interval_on = bool((train_cfg.get("interval") or {}).get("coverage"))
+    final = bool(train_cfg.get("final_fit"))
+    if interval_on:
         try:
             cal = calibration_predictions(train_arrays, model_cfg, train_cfg["interval"], scenario, seed, encoder,
                                           use_state, code_size, dae_noise, hidden, dropout, fit)
             ci = interval_from_calibration(cal, train_cfg["interval"], scenario)
-            _write_calibration(out_dir / "interval_calibration.npz", cal)
+            if not final:
+                _write_calibration(out_dir / "interval_calibration.npz", cal)
         except ValueError as exc:  # e.g. one training liver in IV: nothing to hold out by liver
             notes.append(f"no calibrated interval: {exc}")
     if ci is not None:
@@ -322,17 +330,23 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
         interval = {**ci.to_dict(), "test_coverage": coverage_per_component(
             prep_test.y_local, got["force_local_n"], got["half_width_local_n"])}
         model.meta["interval_test_coverage"] = interval["test_coverage"]
+    repeats = [{"split_seed": seed, "test_geometries": _geometries(test_arrays), "metrics": metrics,
+                "outside_training": outside_training_split(model, test_arrays, pred),
+                **exact_tip_metrics(model, test_arrays, seed)}]
+    final_info, rep_saved = None, rep
+    if final:  # train.final_fit: the saved model is the same configuration fitted on every case (step 6)
+        model, rep_saved, interval, final_info = fit_final(
+            train_arrays, test_arrays, model_cfg, train_cfg, scenario, seed, encoder, use_state, code_size, dae_noise,
+            hidden, dropout, fit, meta, metrics, interval, out_dir)
+    saved_pred = model.predict(test_arrays, observation_seed=eval_seed(seed)) if final else pred
     model_path = model.save(out_dir / "model")
-    # the saved bundle must reproduce the metrics exactly (guards the format)
+    # the saved bundle must reproduce its predictions exactly (guards the format)
     reloaded = ForceModel.load(model_path).predict(test_arrays, observation_seed=eval_seed(seed))
-    if not np.array_equal(reloaded, pred):
+    if not np.array_equal(reloaded, saved_pred):
         raise RuntimeError(f"the saved model at {model_path} does not reproduce its predictions")
     figures = evaluation_figures(prep_test.force, pred, out_dir / "figures", title=f"{scenario} {variant}")
     _write_predictions(out_dir / "test_predictions.csv", test_arrays["case_id"], prep_test.force, pred)
 
-    repeats = [{"split_seed": seed, "test_geometries": _geometries(test_arrays), "metrics": metrics,
-                "outside_training": outside_training_split(model, test_arrays, pred),
-                **exact_tip_metrics(model, test_arrays, seed)}]
     repeats += repeated_splits(train_arrays, test_arrays, rep, model_cfg, train_cfg, scenario, seed, encoder,
                                use_state, code_size, dae_noise, hidden, dropout, fit)
     summary = summarise_repeats([r["metrics"] for r in repeats])
@@ -380,6 +394,7 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
         "cv_mse": best_cv,
         "cv_mae_n": cv_mae_n,
         "interval": interval,
+        "final_fit": final_info,
         "exact_tip": exact,
         "heldout_points": points,
         "outside_training": outside,
@@ -393,13 +408,48 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
             "test_geometries": sorted(set(np.asarray(test_arrays["geometry_id"]).astype(str).tolist())),
             "notes": notes,
         },
-        "representation": rep.to_dict(),
+        "representation": rep_saved.to_dict(),  # the saved model's
         "eval_observation_seed": eval_seed(seed),
         "final_train_loss": history["train_loss"][-1],
         "model_path": str(model_path),
         "model_uri": None,
         "figures": [str(p) for p in figures],
     }
+
+
+def fit_final(train_arrays, test_arrays, model_cfg, train_cfg, scenario, seed, encoder, use_state, code_size,
+              dae_noise, hidden, dropout, fit, meta, split_metrics, split_interval, out_dir):
+    """``train.final_fit``: the chosen configuration refitted on every case of the scenario, the saved model.
+
+    The splits measure the configuration; the model a user serves should then see all the data there is (for IV
+    every liver: the unseen livers of the validation are still never seen). Same hyper-parameters, seeds and
+    observation seeds as the main split; its interval is calibrated the same way on all the cases
+    (cross-conformal by liver in IV) and its calibration predictions replace the split's
+    ``interval_calibration.npz``. The bundle records ``final_fit: true``, no test cases, and as
+    ``test_metrics`` / ``interval_test_coverage`` the main split's (the same settings on held-out cases: what
+    this model is expected to do on new ones). Returns the model, its representation, the result's ``interval``
+    (the final interval, with the main split's test coverage) and ``final_fit`` (what it was fitted on).
+    """
+    cases = _all_cases(train_arrays, test_arrays)
+    rep = representation_from_config(model_cfg, cases)
+    prep = prepare(cases, rep, observation_seeds=view_seeds(seed, n_views_for(rep)))
+    meta = {**meta, "test_case_ids": [], "final_fit": True,
+            "split_test_case_ids": [str(c) for c in test_arrays["case_id"]]}
+    model, _ = fit_force_model(prep, rep, encoder=encoder, code_size=code_size, use_state=use_state, hidden=hidden,
+                               dropout=dropout, fit=fit, seed=seed, dae_input_noise=dae_noise, meta=meta,
+                               **state_options(model_cfg))
+    model.meta["test_metrics"] = split_metrics
+    interval = None
+    if split_interval is not None:  # the split was calibrated, so the full set can be
+        cal = calibration_predictions(cases, model_cfg, train_cfg["interval"], scenario, seed, encoder, use_state,
+                                      code_size, dae_noise, hidden, dropout, fit)
+        ci = interval_from_calibration(cal, train_cfg["interval"], scenario)
+        _write_calibration(out_dir / "interval_calibration.npz", cal)
+        model.meta["interval"] = ci.to_dict()
+        model.meta["interval_test_coverage"] = split_interval["test_coverage"]
+        interval = {**ci.to_dict(), "test_coverage": split_interval["test_coverage"]}
+    info = {"n_cases": len(cases["case_id"]), "geometries": _geometries(cases)}
+    return model, rep, interval, info
 
 
 def interval_from_calibration(cal: dict, interval_cfg, scenario):
