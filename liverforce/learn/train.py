@@ -313,9 +313,8 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
     interval = None
     ci = None
     (out_dir / "interval_calibration.npz").unlink(missing_ok=True)  # an earlier run's, not this model's
-    interval_on = bool((train_cfg.get("interval") or {}).get("coverage"))
     final = bool(train_cfg.get("final_fit"))
-    if interval_on:
+    if (train_cfg.get("interval") or {}).get("coverage"):
         try:
             cal = calibration_predictions(train_arrays, model_cfg, train_cfg["interval"], scenario, seed, encoder,
                                           use_state, code_size, dae_noise, hidden, dropout, fit)

@@ -186,6 +186,11 @@ def collect(model_metrics: list[str | Path], manifests: list[str | Path], valida
 # --------------------------------------------------------------------------
 
 
+#: the label of a headline cell's single split: the saved model's own, or the main split of a model refitted on
+#: every case (``train.final_fit``)
+SPLIT_LABEL = {False: "saved model's split", True: "main split"}
+
+
 def table59(data: dict, main_variant: str | None = None) -> list[dict]:
     """Per scenario: our accuracy/MAE without and with the state vector, the study's, and the source run.
 
@@ -615,7 +620,7 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
             if c and c["accuracy_mean"] is not None:
                 cells.append(f"<span class='pm'>{_pm(c['accuracy_mean'], c['accuracy_sd'], 1)} %</span><br>"
                              f"<small>MAE {_pm(c['mae_mean'], c['mae_sd'])} N; {c['n_splits']} splits<br>"
-                             f"{'main' if c.get('final_fit') else 'saved model' + chr(39) + 's'} split: "
+                             f"{SPLIT_LABEL[bool(c.get('final_fit'))]}: "
                              f"<span class='split'>{_fmt(c['accuracy_pct'], 1)} %</span>, "
                              f"MAE {_fmt(c['mae_vec'])} N; {html.escape(c['source'])}</small>"
                              f"{_small_run(c['run_id'])}")
