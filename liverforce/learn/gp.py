@@ -145,11 +145,12 @@ class GPRegressor(nn.Module):
             Za[:, d] = -0.5 * np.einsum("ij,ij->i", Zs, Zs)
             Za[:, d + 1] = 1.0
             E = Za @ XaT  # -d2 / 2, not clamped at 0: where it rounds above 0 (~1e-13) the kernel is 1 + 1e-13
+            # in place, the same memory: torch's float64 exp and log1p are vectorised (SLEEF, 1 ulp), NumPy's
+            # only with AVX-512; 3x faster on an AVX2 host, where exp was half the GP head's time
+            Et = torch.from_numpy(E)
             if rq:  # (1 + d2 / (2 a))^-a = exp(-a log1p(-E / a))
-                E *= -1.0 / a
-                np.log1p(E, out=E)
-                E *= -a
-            np.exp(E, out=E)
+                Et.mul_(-1.0 / a).log1p_().mul_(-a)
+            Et.exp_()
             out = E @ alpha_s + Z @ beta
             if b0 is not None:
                 out += b0
