@@ -568,3 +568,18 @@ def test_the_camera_table_flags_the_unseen_livers_against_the_targets(stage_outp
     assert _text(row[6]) == (f"{mae:.3f} ± 0.040 ⚠" if missed else f"{mae:.3f} ± 0.040")
     iv = next(r for r in _rows(sec, "cam") if _text(r[0]) == "IV")  # 80 +- ... against 75: flagged as before
     assert _text(iv[3]).endswith("⚠")
+
+
+def test_report_gives_the_coverage_band_over_the_livers_when_the_validation_has_one(stage_outputs):
+    """The unseen livers are few: the report says how well they pin the coverage down (none in older runs)."""
+    path = stage_outputs["validation"]
+    doc = json.loads(path.read_text())
+    doc["interval"]["coverage_per_liver"] = {"val-1000": [0.9, 0.95, 1.0], "val-1001": [0.85, 0.85, 0.9]}
+    doc["interval"]["coverage_band_by_liver"] = [[0.583, 1.0], [0.265, 1.0], [0.315, 1.0]]
+    path.write_text(json.dumps(doc))
+    iv = _section(_report(stage_outputs), "<h3>Calibrated interval</h3>", "</p>")
+    assert ("band; from 2 livers, the population's coverage lies in 58.3–100.0, 26.5–100.0, 31.5–100.0 % "
+            "(95 %, by liver)); ") in iv
+    del doc["interval"]["coverage_band_by_liver"]
+    path.write_text(json.dumps(doc))
+    assert "population's coverage" not in _section(_report(stage_outputs), "<h3>Calibrated interval</h3>", "</p>")

@@ -85,8 +85,28 @@ def interval_coverage(m, arrays: dict) -> dict | None:
             "coverage": coverage_per_component(true_local, got["force_local_n"], half),
             "coverage_by_force": bins,
             "coverage_per_liver": per,
+            "coverage_band_by_liver": coverage_band_by_liver(per),
             "half_width_mean_n": [float(v) if np.isfinite(v) else None for v in half.mean(axis=0)],
             "test_coverage": m.meta.get("interval_test_coverage")}
+
+
+def coverage_band_by_liver(per_liver: dict, level: float = 0.95) -> list | None:
+    """How far a coverage measured on a few livers may be from the coverage on the livers' population, per component.
+
+    A liver's cases share its shape and material, so their misses are not independent: the unit is the liver. The
+    band is the mean of the per-liver coverages ``+- t_(level, L - 1) sd / sqrt(L)`` (``L`` livers; Student's t on
+    the livers' means), clipped to [0, 1]: a list of ``[lo, hi]``, one per component. None with fewer than two livers.
+    On 8 livers of 30 cases each a 90 % interval's coverage is known to about +-4 points this way, so a
+    measured 94 % does not by itself show that the population's is above 92 %.
+    """
+    from scipy.stats import t
+
+    cov = np.array([c for c in per_liver.values() if c is not None and all(v is not None for v in c)], float)
+    if len(cov) < 2:
+        return None
+    mean = cov.mean(axis=0)
+    half = t.ppf(0.5 + level / 2.0, len(cov) - 1) * cov.std(axis=0, ddof=1) / np.sqrt(len(cov))
+    return [[float(max(m - h, 0.0)), float(min(m + h, 1.0))] for m, h in zip(mean, half)]
 
 
 def extrapolation_on_unseen(model_dir, arrays: dict, err: np.ndarray) -> dict | None:

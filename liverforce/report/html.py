@@ -859,6 +859,7 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
         cov = iv["coverage"]
         band = "within" if all(0.88 <= c <= 0.92 for c in cov) else "<b class='flag'>outside</b>"
         test = iv.get("test_coverage")
+        lb = iv.get("coverage_band_by_liver")  # how well the livers measure it (runs before this field: absent)
         scale = iv.get("scale")
         how = {"force": "scaled per case by the predicted force's magnitude, a + b |F| fitted on the calibration "
                         "residuals, and widened where a liver's stiffness lies outside the calibration livers' "
@@ -874,7 +875,10 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
             f"(conformal, calibrated on the training livers' predictions by models that did not see them: "
             f"{iv['n_calibration']} cases, nominal "
             f"{100 * iv['nominal']:.0f} %). On the unseen livers it covers the true tangential (t1, t2) and normal "
-            f"(n) force in {', '.join(f'{100 * c:.1f}' for c in cov)} % of the cases ({band} the 88–92 % band); "
+            f"(n) force in {', '.join(f'{100 * c:.1f}' for c in cov)} % of the cases ({band} the 88–92 % band"
+            + (f"; from {len(iv.get('coverage_per_liver') or {})} livers, the population's coverage lies in "
+               f"{', '.join(f'{100 * lo:.1f}–{100 * hi:.1f}' for lo, hi in lb)} % (95 %, by liver)" if lb else "")
+            + "); "
             + (f"on the IV test livers in {', '.join(f'{100 * c:.1f}' for c in test)} %; " if test else "")
             + "mean half-widths "
             + ", ".join("unbounded" if h is None else f"{h:.3f}" for h in iv["half_width_mean_n"])
