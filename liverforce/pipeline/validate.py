@@ -101,7 +101,7 @@ def coverage_band_by_liver(per_liver: dict, level: float = 0.95) -> list | None:
     """
     from scipy.stats import t
 
-    cov = np.array([c for c in per_liver.values() if c is not None and all(v is not None for v in c)], float)
+    cov = np.array(list(per_liver.values()), float)  # (livers, components)
     if len(cov) < 2:
         return None
     mean = cov.mean(axis=0)
