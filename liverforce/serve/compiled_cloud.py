@@ -101,7 +101,8 @@ _FILL_CODES = {"zero": 0, "laplace": 1, "nearest": 2}
 _CHUNK = 64  # clouds per conversion of a padded array that is not float32 / float64 C-contiguous (bounds the copy)
 _RUN = 8  # _cell_moments reads a run on to a multiple of this many points (fewer scalar loop remainders)
 _MAX_POINTS = 2**31 - 1  # points per cloud: the kernel's sort keys and indices are 32-bit
-_HEAD_ROWS = 256  # feature rows per call of the head: the GP's kernel matrix (rows x ~640 training rows) stays in L2
+_HEAD_ROWS = 128  # feature rows per call of the head (the GP's kernel matrix: rows x 2,000 training rows). On an
+# AVX-512 host, 5 members of 38-94 inputs, us per row at 64 / 128 / 256 rows: 45 / 44 / 47 (1 thread, medians of 9)
 _CLOUD_TYPE = types.Array(types.float64, 2, "C", readonly=True)  # items of the typed list of clouds: one signature
 # for writable and read-only (e.g. Arrow-backed) clouds alike
 

@@ -191,6 +191,37 @@ def test_each_kernel_learns_the_map_and_its_numpy_head_equals_the_module(kernel,
     np.testing.assert_allclose(gp.numpy_head()(Xt), pred, rtol=0, atol=1e-6)
 
 
+@pytest.mark.parametrize("use_numpy", [True, False])
+def test_the_heads_exp_and_log1p_by_numpy_and_by_torch_are_exact_to_a_few_ulp(use_numpy, monkeypatch):
+    """The head computes exp and log1p in place with NumPy or torch, whichever is faster on the CPU
+    (``gp._numpy_avx512``); each path is checked here, whatever this host picks: against the correctly rounded
+    ``math`` functions over the head's range, and the compiled head of both kernels against the module."""
+    import math
+
+    from liverforce.learn import gp as gp_module
+
+    exp_, log1p_ = gp_module._in_place("exp", use_numpy), gp_module._in_place("log1p", use_numpy)
+    x = np.linspace(-60.0, 0.0, 20001)
+    E = x.copy()
+    exp_(E)
+    ref = np.array([math.exp(v) for v in x])
+    assert np.all(np.abs(E - ref) <= 4 * np.spacing(ref))
+    y = np.linspace(0.0, 40.0, 20001)
+    L = y.copy()
+    log1p_(L)
+    ref = np.array([math.log1p(v) for v in y])
+    assert np.all(np.abs(L - ref) <= 4 * np.spacing(np.maximum(ref, 1e-300)))
+    monkeypatch.setattr(gp_module, "_exp_", exp_)
+    monkeypatch.setattr(gp_module, "_log1p_", log1p_)
+    rng = np.random.default_rng(0)
+    X = rng.uniform(-2, 2, (120, 5))
+    Xt = rng.uniform(-2, 2, (50, 5))
+    for kernel, shape in (("squared_exponential", None), ("rational_quadratic", 2.0)):
+        gp, _ = fit_gp(X, truth(X), seed=0, iterations=20, kernel=kernel, shape=shape)
+        np.testing.assert_allclose(gp.numpy_head()(Xt), gp(torch.from_numpy(Xt)).numpy(), rtol=0, atol=1e-9)
+    assert isinstance(gp_module._numpy_avx512("exp"), bool) and gp_module._numpy_avx512("no_such_ufunc") is False
+
+
 def test_a_gp_saved_before_the_kernel_was_a_choice_loads_as_the_squared_exponential():
     """Bundles of format 5 and older hold no ``shape`` buffer: their GP is read as the squared exponential it was."""
     rng = np.random.default_rng(5)
