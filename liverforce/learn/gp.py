@@ -184,8 +184,8 @@ def _in_place(ufunc: str, use_numpy: bool):
     if use_numpy:
         f = getattr(np, ufunc)
         return lambda E: f(E, out=E)
-    method = ufunc + "_"
-    return lambda E: getattr(torch.from_numpy(E), method)()
+    method = getattr(torch.Tensor, ufunc + "_")  # looked up once, not per call
+    return lambda E: method(torch.from_numpy(E))
 
 
 _exp_ = _in_place("exp", _numpy_avx512("exp"))

@@ -5,10 +5,13 @@ exponential): the closed-form likelihood gradient against autograd, the limit th
 head against the module, and a bundle written before the kernel was a choice."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
 
+from liverforce.learn import gp as gp_module
 from liverforce.learn.gp import JITTER, MIN_LENGTH, GPRegressor, _shape_kernel, fit_gp, neg_log_likelihood
 from liverforce.learn.model import ForceModel
 from liverforce.learn.regressor import fit_params
@@ -196,10 +199,6 @@ def test_the_heads_exp_and_log1p_by_numpy_and_by_torch_are_exact_to_a_few_ulp(us
     """The head computes exp and log1p in place with NumPy or torch, whichever is faster on the CPU
     (``gp._numpy_avx512``); each path is checked here, whatever this host picks: against the correctly rounded
     ``math`` functions over the head's range, and the compiled head of both kernels against the module."""
-    import math
-
-    from liverforce.learn import gp as gp_module
-
     exp_, log1p_ = gp_module._in_place("exp", use_numpy), gp_module._in_place("log1p", use_numpy)
     x = np.linspace(-60.0, 0.0, 20001)
     E = x.copy()
