@@ -226,6 +226,7 @@ class GPConfig:
     code_members: Optional[list[int]] = MISSING  # PCA code sizes of a GP ensemble (mean of one GP per size); null: one GP
     kernel: str = MISSING  # rational_quadratic | squared_exponential (liverforce.learn.gp)
     shape: Optional[float] = MISSING  # the rational quadratic's a; null: fitted by the marginal likelihood
+    per_output: bool = MISSING  # one kernel per force component (own length scales and variances)
 
 
 @dataclass
@@ -824,6 +825,9 @@ def _check_model(mo: dict, key: str) -> None:
         _fail(f"{key}.gp.shape",
               f"the rational quadratic's shape must be a finite number > 0 (got {mo['gp']['shape']})",
               "or null to fit it by the marginal likelihood")
+    if mo["gp"]["per_output"] and mo["gp"]["kernel"] == "rational_quadratic" and mo["gp"]["shape"] is None:
+        _fail(f"{key}.gp.per_output", "one kernel per force component needs a fixed rational-quadratic shape "
+              "(gp.shape null: fitted)", "set model.gp.shape to a number (2 is the default) or per_output false")
     _check_choice(f"{key}.rigid_motion", mo["rigid_motion"], ("keep", "remove"))
     _check_choice(f"{key}.interpolation", mo["interpolation"], ("surface", "points"))
     if mo["rigid_motion_radius_mm"] < 0:

@@ -1,7 +1,9 @@
 """The Gaussian-process force regressor (``model.regressor: gp``).
 
 An exact GP per force component with one kernel shared by the three
-components (the standardised local force ``(F.t1, F.t2, F.n)``)::
+components (the standardised local force ``(F.t1, F.t2, F.n)``), or with
+``model.gp.per_output: true`` one kernel per component (own length scales and
+variances, each by its own marginal likelihood)::
 
     k(z, z') = s_f^2 (1 + r^2 / (2 a))^-a + s_l^2 z . z',   r = |(z - z') / l|   (ARD length scales l, one per input)
     f(z)     = k(z, Z) alpha,   alpha = (K + s_n^2 I)^-1 Y
@@ -49,6 +51,9 @@ from liverforce.learn import names
 from liverforce.seeds import derive
 
 POW_SHAPE_MAX = 64.0  # integer rational-quadratic shapes up to this are evaluated as pow(B, -a) (neg_log_likelihood)
+POW_SHAPE_MAX_HEAD = 4  # and up to this as 1 / B^a by products in the NumPy head (GPRegressor.numpy_head): a
+#                        relative rounding of about a eps, where exp(-a log1p(t)) has 1-2 ulp; a = 2 (the default)
+#                        costs one product and a reciprocal per kernel value instead of log1p and exp
 JITTER = 1e-6  # added to the noise variance: keeps K + s_n^2 I positive definite for noise-free FE targets
 MIN_LENGTH = 1.0  # shortest length scale, in standard deviations of the (standardised) input. Without it the
 #                 likelihood can send one input's length scale to zero: the kernel becomes the identity and the GP
@@ -66,10 +71,16 @@ class GPRegressor(nn.Module):
         super().__init__()
         self.register_buffer("X", X.double().contiguous())
         self.register_buffer("alpha", alpha.double().contiguous())
-        self.register_buffer("inv_length", inv_length.double().contiguous())
-        self.register_buffer("signal_var", signal_var.double().reshape(()))
-        self.register_buffer("linear_var", linear_var.double().reshape(()))
-        self.register_buffer("noise_var", noise_var.double().reshape(()))
+        inv_length = inv_length.double().contiguous()
+        if inv_length.ndim not in (1, 2) or (inv_length.ndim == 2 and inv_length.shape[0] != self.alpha.shape[1]):
+            raise ValueError(f"GPRegressor: inverse length scales (inputs,) or (outputs, inputs); got "
+                             f"{tuple(inv_length.shape)} for {self.alpha.shape[1]} outputs")
+        # per output (model.gp.per_output): one row of length scales, and one of each variance, per output
+        var_shape = (inv_length.shape[0],) if inv_length.ndim == 2 else ()
+        self.register_buffer("inv_length", inv_length)
+        self.register_buffer("signal_var", signal_var.double().reshape(var_shape))
+        self.register_buffer("linear_var", linear_var.double().reshape(var_shape))
+        self.register_buffer("noise_var", noise_var.double().reshape(var_shape))
         # the rational-quadratic shape a; inf: the squared exponential (bundles written before the
         # kernel was a choice have no such buffer and are squared-exponential GPs)
         self.register_buffer("shape", torch.as_tensor(shape, dtype=torch.float64).reshape(()))
@@ -90,8 +101,22 @@ class GPRegressor(nn.Module):
     def n_train(self) -> int:
         return int(self.X.shape[0])
 
+    @property
+    def per_output(self) -> bool:
+        """Whether each output has its own kernel (``model.gp.per_output``)."""
+        return self.inv_length.ndim == 2
+
+    def output(self, k: int) -> "GPRegressor":
+        """Output ``k`` of a per-output GP as a GP of its own (one output; the buffers are views)."""
+        return GPRegressor(self.X, self.alpha[:, k:k + 1], self.inv_length[k], self.signal_var[k],
+                           self.linear_var[k], self.noise_var[k], self.shape)
+
     def forward(self, z: torch.Tensor) -> torch.Tensor:
         z = z.double()
+        if self.per_output:
+            return torch.cat([_kernel(z, self.X, self.inv_length[k], self.signal_var[k], self.linear_var[k],
+                                      float(self.shape)) @ self.alpha[:, k:k + 1]
+                              for k in range(self.alpha.shape[1])], 1)
         return _kernel(z, self.X, self.inv_length, self.signal_var, self.linear_var, float(self.shape)) @ self.alpha
 
     def numpy_head(self, fixed: dict | None = None):
@@ -104,13 +129,24 @@ class GPRegressor(nn.Module):
         ``[x_s, 1, -|x_s|^2 / 2]``,
         ``s_f^2`` folded into ``alpha`` and the linear term into one (d, 3) matrix ``s_l^2 X^T alpha``: one
         BLAS product, ``exp`` and two products with 3 columns. The rational quadratic is
-        ``exp(-a log1p(d2 / (2 a)))``: one ``log1p`` more.
+        ``exp(-a log1p(d2 / (2 a)))``: one ``log1p`` more; for a whole ``a`` up to
+        :data:`POW_SHAPE_MAX_HEAD` (the default 2) ``1 / (1 + d2 / (2 a))^a`` by products, no ``exp``.
 
         ``fixed``: ``{input column: value}`` for inputs that are the same in every row (a compiled
         context's state vector). The head then takes only the other columns, in their order; the fixed
         inputs' part of each training row's distance (``|v_s - x_s|^2``, computed directly) and of the
         linear term is computed here, once.
+
+        A per-output GP (``model.gp.per_output``) runs one such head per output, each on its own length
+        scales, and returns their columns side by side.
         """
+        if self.per_output:
+            heads = [self.output(k).numpy_head(fixed) for k in range(self.alpha.shape[1])]
+
+            def head_per_output(Z: np.ndarray) -> np.ndarray:
+                return np.concatenate([h(Z) for h in heads], axis=1)
+
+            return head_per_output
         Xs = (self.X * self.inv_length).numpy()
         d_all = Xs.shape[1]
         fixed = _fixed_inputs(fixed, d_all)
@@ -134,6 +170,7 @@ class GPRegressor(nn.Module):
         b0 = fv @ beta_all[fc] if fc.size else None  # the fixed inputs' linear term
         a = float(self.shape)
         rq = not math.isinf(a)
+        power = int(a) if rq and a == int(a) and a <= POW_SHAPE_MAX_HEAD else 0  # B^-a by products, 1 / B^a
 
         def head(Z: np.ndarray) -> np.ndarray:
             Z = np.asarray(Z, dtype=np.float64)
@@ -146,11 +183,23 @@ class GPRegressor(nn.Module):
             Za[:, d + 1] = 1.0
             E = Za @ XaT  # -d2 / 2, not clamped at 0: where it rounds above 0 (~1e-13) the kernel is 1 + 1e-13
             # exp and log1p in place, with the faster of NumPy and torch on this CPU (_exp_, _log1p_)
-            if rq:  # (1 + d2 / (2 a))^-a = exp(-a log1p(-E / a))
+            if power:  # a small whole a: (1 + d2 / (2 a))^-a = 1 / B^a, B = 1 - E / a, no exp or log1p
                 E *= -1.0 / a
-                _log1p_(E)
-                E *= -a
-            _exp_(E)
+                E += 1.0
+                if power == 3:
+                    B = E.copy()
+                    np.square(E, out=E)
+                    E *= B
+                elif power > 1:  # 2 or 4: squared once or twice, in place
+                    for _ in range(power // 2):
+                        np.square(E, out=E)
+                np.reciprocal(E, out=E)
+            else:
+                if rq:  # (1 + d2 / (2 a))^-a = exp(-a log1p(-E / a))
+                    E *= -1.0 / a
+                    _log1p_(E)
+                    E *= -a
+                _exp_(E)
             out = E @ alpha_s + Z @ beta
             if b0 is not None:
                 out += b0
@@ -286,11 +335,19 @@ def neg_log_likelihood(X: torch.Tensor, Y: torch.Tensor, log_l: torch.Tensor, lo
 
 def fit_gp(z: np.ndarray, y: np.ndarray, *, seed: int, max_points: int = 2000,
            iterations: int = 200, groups: np.ndarray | None = None,
-           kernel: str = "rational_quadratic", shape: float | None = 2.0) -> tuple[GPRegressor, dict]:
+           kernel: str = "rational_quadratic", shape: float | None = 2.0,
+           per_output: bool = False) -> tuple[GPRegressor, dict]:
     """Fit the GP of the module docstring to ``z (n, d) -> y (n, k)`` (standardised); returns ``(gp, info)``.
 
     ``kernel``: ``rational_quadratic`` or ``squared_exponential``. ``shape``: the rational quadratic's
     ``a``, fixed (2, the config's default); None: fitted with the rest by the likelihood (from ``a = 1``).
+
+    ``per_output`` (``model.gp.per_output``): one kernel per output instead of one shared by all: each
+    output's length scales and variances maximise its own marginal likelihood (k fits instead of one).
+    The tangential force components and the normal one are read from different inputs (a camera model's
+    tangential force mostly from the tool's tangential displacement, its normal force from the dent), and a
+    shared kernel's length scales are a compromise between them. A fitted shape (``shape`` None) is refused
+    with it: the rational quadratic's ``a`` is one number for the whole GP.
 
     ``groups`` (n,): rows with the same label are views of one case (a camera model sees each training
     case through several seeded noisy observations, all with the case's force). The hyper-parameters
@@ -310,6 +367,9 @@ def fit_gp(z: np.ndarray, y: np.ndarray, *, seed: int, max_points: int = 2000,
     if shape is not None and not (math.isfinite(float(shape)) and float(shape) > 0):
         raise ValueError(f"model.gp.shape: the rational quadratic's a must be a positive number, or null to fit it; "
                          f"got {shape}")
+    if per_output and kernel == "rational_quadratic" and shape is None:
+        raise ValueError("model.gp.per_output: the rational quadratic's shape must be fixed (model.gp.shape a "
+                         "number) with one kernel per output; got null (fitted)")
     z = np.asarray(z, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64)
     if z.ndim != 2 or y.ndim != 2 or len(z) != len(y):
@@ -332,12 +392,37 @@ def fit_gp(z: np.ndarray, y: np.ndarray, *, seed: int, max_points: int = 2000,
         rows = np.sort(rng.choice(len(z), size=int(max_points), replace=False))
     X = torch.from_numpy(z[rows])
     Y = torch.from_numpy(y[rows])
-    n, d = X.shape
+    n = X.shape[0]
     Xh, Yh = X, Y
     if groups is not None:  # one row per case for the likelihood: the first of its views among the rows kept
         first = np.sort(np.unique(groups[rows], return_index=True)[1])
         if len(first) < n:
             Xh, Yh = X[first], Y[first]
+    if not per_output:
+        raw, log_a, v, alpha, evaluations = _fit_hyper(X, Y, Xh, Yh, kernel, shape, iterations)
+        shape = math.inf if log_a is None else float(shape) if shape is not None else float(torch.exp(log_a))
+        gp = GPRegressor(X, alpha, 1.0 / (MIN_LENGTH + torch.exp(raw[0])), torch.exp(2 * raw[1]),
+                         torch.exp(2 * raw[2]), torch.exp(2 * raw[3]) + JITTER, shape)
+        return gp.eval(), {"n_used": int(n), "n_likelihood": int(len(Xh)), "nll": float(v),
+                           "evaluations": int(evaluations), "length_scales": (MIN_LENGTH + torch.exp(raw[0])).tolist(),
+                           "noise_var": float(gp.noise_var), "kernel": kernel,
+                           "shape": None if math.isinf(shape) else shape}
+    # one kernel per output: its own length scales and variances, by its own marginal likelihood
+    fits = [_fit_hyper(X, Y[:, k:k + 1], Xh, Yh[:, k:k + 1], kernel, shape, iterations) for k in range(Y.shape[1])]
+    raw = [torch.stack([f[0][i] for f in fits]) for i in range(4)]
+    shape = math.inf if fits[0][1] is None else float(shape)  # fixed (a fitted shape is refused above)
+    gp = GPRegressor(X, torch.cat([f[3] for f in fits], 1), 1.0 / (MIN_LENGTH + torch.exp(raw[0])),
+                     torch.exp(2 * raw[1]), torch.exp(2 * raw[2]), torch.exp(2 * raw[3]) + JITTER, shape)
+    return gp.eval(), {"n_used": int(n), "n_likelihood": int(len(Xh)), "nll": float(np.mean([f[2] for f in fits])),
+                       "evaluations": int(sum(f[4] for f in fits)), "per_output": True,
+                       "length_scales": (MIN_LENGTH + torch.exp(raw[0])).tolist(), "noise_var": gp.noise_var.tolist(),
+                       "kernel": kernel, "shape": None if math.isinf(shape) else shape}
+
+
+def _fit_hyper(X, Y, Xh, Yh, kernel: str, shape: float | None, iterations: int):
+    """The hyper-parameters of :func:`fit_gp` for ``Xh -> Yh`` (the likelihood's rows), ``alpha`` over ``X -> Y``:
+    returns ``(raw (log_l, log_sf, log_sl, log_sn), log_a or None, nll per row and output, alpha, evaluations)``."""
+    d = X.shape[1]
     # length scale l = MIN_LENGTH + exp(raw): smooth, and never below MIN_LENGTH
     l0 = max(math.sqrt(d) / 2.0, 2.0 * MIN_LENGTH)
     log_l = torch.full((d,), math.log(l0 - MIN_LENGTH), dtype=torch.float64)
@@ -350,9 +435,6 @@ def fit_gp(z: np.ndarray, y: np.ndarray, *, seed: int, max_points: int = 2000,
         log_a = torch.tensor(0.0 if shape is None else math.log(float(shape)), dtype=torch.float64)
         if shape is None:
             params.append(log_a)  # fitted, from a = 1
-
-    def length():
-        return MIN_LENGTH + torch.exp(log_l)
 
     opt = torch.optim.LBFGS(params, lr=1.0, max_iter=int(iterations), line_search_fn="strong_wolfe")
     evaluations = [0]
@@ -380,21 +462,14 @@ def fit_gp(z: np.ndarray, y: np.ndarray, *, seed: int, max_points: int = 2000,
         raise RuntimeError("fit_gp: the kernel matrix is not positive definite even at the start; are there "
                            "duplicated training rows with different targets?")
     v, _, alpha = got
-    if len(Xh) < n:  # the posterior over every row, at the hyper-parameters of one row per case
+    if len(Xh) < len(X):  # the posterior over every row, at the hyper-parameters of one row per case
         full = neg_log_likelihood(X, Y, *params[:4], log_a, gradient=False)
         if full is None:
             raise RuntimeError("fit_gp: the kernel matrix over all views is not positive definite at the "
                                "hyper-parameters fitted on one view per case; are two views of different cases "
                                "identical with different targets?")
         alpha = full[2]
-    shape = math.inf if log_a is None else float(torch.exp(log_a))
-    gp = GPRegressor(X, alpha, 1.0 / length(), torch.exp(2 * log_sf), torch.exp(2 * log_sl),
-                     torch.exp(2 * log_sn) + JITTER, shape)
-    return gp.eval(), {"n_used": int(n), "n_likelihood": int(len(Xh)), "nll": float(v),
-                       "evaluations": int(evaluations[0]),
-                       "length_scales": length().tolist(),
-                       "noise_var": float(gp.noise_var), "kernel": kernel,
-                       "shape": None if math.isinf(shape) else shape}
+    return [p.detach() for p in params[:4]], log_a, v, alpha, evaluations[0]
 
 
 class GPEnsemble(nn.Module):
@@ -471,7 +546,8 @@ class GPEnsemble(nn.Module):
 
 def fit_gp_ensemble(z: np.ndarray, y: np.ndarray, columns: list, *, seed: int, max_points: int = 2000,
                     iterations: int = 200, groups: np.ndarray | None = None,
-                    kernel: str = "rational_quadratic", shape: float | None = 2.0) -> tuple[GPEnsemble, dict]:
+                    kernel: str = "rational_quadratic", shape: float | None = 2.0,
+                    per_output: bool = False) -> tuple[GPEnsemble, dict]:
     """One :func:`fit_gp` per column set of ``z``, their mean as a :class:`GPEnsemble`; returns ``(gp, info)``.
 
     ``info``: the members' :func:`fit_gp` infos under ``members`` and each one's input count under
@@ -483,7 +559,7 @@ def fit_gp_ensemble(z: np.ndarray, y: np.ndarray, columns: list, *, seed: int, m
         if c.ndim != 1 or c.size == 0 or c.min() < 0 or c.max() >= z.shape[1]:
             raise ValueError(f"fit_gp_ensemble: a member's columns must index the {z.shape[1]} inputs; got {c}")
     fitted = [fit_gp(z[:, c], y, seed=seed, max_points=max_points, iterations=iterations, groups=groups,
-                     kernel=kernel, shape=shape) for c in cols]
+                     kernel=kernel, shape=shape, per_output=per_output) for c in cols]
     infos = [info for _, info in fitted]
     return GPEnsemble([gp for gp, _ in fitted], cols).eval(), {
         "n_used": infos[0]["n_used"], "n_likelihood": infos[0]["n_likelihood"],

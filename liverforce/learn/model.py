@@ -121,7 +121,7 @@ from liverforce.learn.torchutil import EpochCallback
 from liverforce.seeds import derive
 
 FORMAT = "liverforce.force_model"
-FORMAT_VERSION = 12  # 3: probe compliance in the state vector (material from column 22), linear force estimate;
+FORMAT_VERSION = 13  # 3: probe compliance in the state vector (material from column 22), linear force estimate;
 #                     4: the GP regressor may be a GPEnsemble (model.gp.code_members), which a reader of 3 cannot load;
 #                     5: the state features may end with the indentation strain, which a reader of 4 would misread;
 #                     6: a GP's kernel may be the rational quadratic (a ``shape`` buffer), which a reader of 5 would
@@ -139,7 +139,9 @@ FORMAT_VERSION = 12  # 3: probe compliance in the state vector (material from co
 #                        a reader of 10 would read as scaled by the stiffness
 #                     12: a camera model's features may hold the dent fit (camera.grid.dent_radius_mm) and its state
 #                        features end with it, which a reader of 11 would read as the tool tip
-READ_VERSIONS = (3, 4, 5, 6, 7, 8, 9, 10, 11, 12)
+#                     13: a GP may have one kernel per force component (model.gp.per_output: length scales
+#                        (outputs, inputs)), which a reader of 12 cannot evaluate
+READ_VERSIONS = (3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13)
 # a version-3 bundle is a version-4 bundle with a single GP (or an MLP); 4 is 5
 #                                     without the indentation strain; 5 is 6 with squared-exponential GPs (no shape
 #                                     buffer); 6 is 7 with camera models on the ROI points' reference (reference:

@@ -83,6 +83,7 @@ class FitParams:
     gp_code_members: tuple[int, ...] = ()  # model.gp.code_members (PCA code sizes of a GP ensemble; () = one GP)
     gp_kernel: str = "rational_quadratic"  # model.gp.kernel (liverforce.learn.gp)
     gp_shape: float | None = 2.0  # model.gp.shape: the rational quadratic's a, None = fitted (unused by the SE)
+    gp_per_output: bool = False  # model.gp.per_output: one kernel per force component
 
 
 def gp_code_members(model_cfg: dict) -> tuple[int, ...]:
@@ -106,7 +107,7 @@ def fit_params(model_cfg: dict, *, lr: float, batch_size: int, epochs: int, weig
     return FitParams(float(lr), int(batch_size), int(epochs), float(weight_decay), kind,
                      int(gp.get("max_points", FitParams.gp_max_points)),
                      int(gp.get("iterations", FitParams.gp_iterations)), gp_code_members(model_cfg),
-                     *_kernel_settings(gp))
+                     *_kernel_settings(gp), bool(gp.get("per_output", FitParams.gp_per_output)))
 
 
 def _kernel_settings(gp: dict) -> tuple[str, float | None]:
@@ -144,10 +145,10 @@ def fit_regressor(
         if columns:
             gp, info = fit_gp_ensemble(z, y, columns, seed=seed, max_points=fit.gp_max_points,
                                        iterations=fit.gp_iterations, groups=groups, kernel=fit.gp_kernel,
-                                       shape=fit.gp_shape)
+                                       shape=fit.gp_shape, per_output=fit.gp_per_output)
         else:
             gp, info = fit_gp(z, y, seed=seed, max_points=fit.gp_max_points, iterations=fit.gp_iterations,
-                              groups=groups, kernel=fit.gp_kernel, shape=fit.gp_shape)
+                              groups=groups, kernel=fit.gp_kernel, shape=fit.gp_shape, per_output=fit.gp_per_output)
         hist = {"train_loss": [float(np.mean((forward_numpy(gp, z) - y) ** 2))], "val_loss": [], "gp": info}
         if z_val is not None and y_val is not None:
             hist["val_loss"] = [float(np.mean((forward_numpy(gp, z_val) - y_val) ** 2))]

@@ -96,7 +96,8 @@ def _fit_of(params: dict, epochs: int, weight_decay: float) -> FitParams:
                          gp_max_points=int(params.get("max_points", FitParams.gp_max_points)),
                          gp_iterations=int(params.get("iterations", FitParams.gp_iterations)),
                          gp_kernel=str(params.get("kernel", FitParams.gp_kernel)),
-                         gp_shape=None if params.get("shape") is None else float(params["shape"]))
+                         gp_shape=None if params.get("shape") is None else float(params["shape"]),
+                         gp_per_output=bool(params.get("per_output", False)))
     return FitParams(lr=float(params["lr"]), batch_size=int(params["batch_size"]), epochs=int(epochs),
                      weight_decay=weight_decay)
 

@@ -215,7 +215,7 @@ def test_the_heads_exp_and_log1p_by_numpy_and_by_torch_are_exact_to_a_few_ulp(us
     rng = np.random.default_rng(0)
     X = rng.uniform(-2, 2, (120, 5))
     Xt = rng.uniform(-2, 2, (50, 5))
-    for kernel, shape in (("squared_exponential", None), ("rational_quadratic", 2.0)):
+    for kernel, shape in (("squared_exponential", None), ("rational_quadratic", 2.5)):  # 2.5: log1p, then exp
         gp, _ = fit_gp(X, truth(X), seed=0, iterations=20, kernel=kernel, shape=shape)
         np.testing.assert_allclose(gp.numpy_head()(Xt), gp(torch.from_numpy(Xt)).numpy(), rtol=0, atol=1e-9)
     assert isinstance(gp_module._numpy_avx512("exp"), bool) and gp_module._numpy_avx512("no_such_ufunc") is False
@@ -503,3 +503,103 @@ def test_members_larger_than_the_pca_code_are_capped_at_it():
     assert isinstance(model.regressor, GPEnsemble) and model.pre.encoder.code_size == 6
     assert model.meta["gp"]["code_members"] == [2, 4, 6]
     assert np.isfinite(model.predict(arrays)).all()
+
+
+@pytest.fixture(scope="module")
+def fitted_per_output():
+    rng = np.random.default_rng(0)
+    X = rng.uniform(-2, 2, (200, 5))
+    return X, *fit_gp(X, truth(X), seed=0, iterations=60, kernel="squared_exponential", per_output=True)
+
+
+def test_one_kernel_per_output_is_each_output_fitted_alone(fitted_per_output):
+    """``per_output``: output k's kernel, weights and prediction are exactly those of fit_gp on output k alone,
+    and each output's length scales find its own inputs, which one shared kernel cannot: output 1 (0.5 x2^2)
+    reads input 2 only, so its kernel ignores inputs 0, 1, 3 and 4 while output 0's needs input 0."""
+    X, gp, info = fitted_per_output
+    Xt = torch.from_numpy(np.random.default_rng(1).uniform(-1.8, 1.8, (200, 5)))
+    pred = gp(Xt).numpy()
+    ls = np.asarray(info["length_scales"])
+    assert gp.per_output and ls.shape == (3, 5) and np.asarray(info["noise_var"]).shape == (3,)
+    for k in range(3):
+        alone, info_k = fit_gp(X, truth(X)[:, k:k + 1], seed=0, iterations=60, kernel="squared_exponential")
+        np.testing.assert_allclose(pred[:, k:k + 1], alone(Xt).numpy(), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(ls[k], info_k["length_scales"], rtol=1e-12)
+    assert ls[1, [0, 1, 3, 4]].min() > 10 * ls[1, 2] and ls[0, 0] < 0.1 * ls[1, 0]
+    shared, info_s = fit_gp(X, truth(X), seed=0, iterations=60, kernel="squared_exponential")
+    assert np.asarray(info_s["length_scales"]).shape == (5,) and not shared.per_output
+    # on the output whose inputs differ most from the others', its own kernel predicts better than the shared one
+    err = np.abs(pred - truth(Xt.numpy())).mean(0)
+    err_s = np.abs(shared(Xt).numpy() - truth(Xt.numpy())).mean(0)
+    assert err[1] < err_s[1], (err, err_s)
+
+
+def test_a_per_output_gp_numpy_head_and_saved_state_equal_the_module(fitted_per_output):
+    """The compiled serving head (with and without fixed inputs) and a saved-and-loaded state give the module's
+    posterior mean; so does an ensemble of per-output members."""
+    from liverforce.learn.gp import GPEnsemble, fit_gp_ensemble
+    from liverforce.learn.regressor import RegressorSpec, load_regressor
+
+    X, gp, _ = fitted_per_output
+    Xt = np.random.default_rng(2).uniform(-2, 2, (64, 5))
+    want = gp(torch.from_numpy(Xt)).numpy()
+    np.testing.assert_allclose(gp.numpy_head()(Xt), want, rtol=0, atol=1e-6)
+    Z = Xt.copy()
+    Z[:, 1] = 0.3
+    np.testing.assert_allclose(gp.numpy_head({1: 0.3})(Z[:, [0, 2, 3, 4]]), gp(torch.from_numpy(Z)).numpy(),
+                               rtol=0, atol=1e-6)
+    again = load_regressor(RegressorSpec(5, (), 0.0, kind="gp"), {k: v.clone() for k, v in gp.state_dict().items()})
+    assert isinstance(again, GPRegressor) and again.per_output
+    np.testing.assert_array_equal(again(torch.from_numpy(Xt)).numpy(), want)
+    ens, _ = fit_gp_ensemble(X, truth(X), [np.array([0, 2]), np.arange(5)], seed=0, iterations=30,
+                             kernel="rational_quadratic", per_output=True)
+    assert all(m.per_output for m in ens.members)
+    ens2 = GPEnsemble.from_state_dict(ens.state_dict())
+    np.testing.assert_allclose(ens.numpy_head()(Xt), ens2(torch.from_numpy(Xt)).numpy(), rtol=0, atol=1e-6)
+
+
+def test_per_output_with_a_fitted_shape_is_refused_with_the_fix():
+    from liverforce.config import ConfigError, compose
+
+    X = np.random.default_rng(0).uniform(-2, 2, (20, 2))
+    with pytest.raises(ValueError, match="per_output.*shape must be fixed"):
+        fit_gp(X, truth(np.c_[X, X, X[:, :1]]), seed=0, kernel="rational_quadratic", shape=None, per_output=True)
+    with pytest.raises(ConfigError, match="gp.per_output.*set model.gp.shape to a number"):
+        compose(["train.variants=[{name: v, gp: {per_output: true, shape: null}}]", "validate.variant=main"])
+    with pytest.raises(ValueError, match=r"\(outputs, inputs\)"):
+        GPRegressor(torch.zeros(4, 2), torch.zeros(4, 3), torch.ones(2, 2), torch.ones(2), torch.ones(2),
+                    torch.ones(2))
+
+
+def test_a_per_output_gp_force_model_trains_through_the_pipeline_and_round_trips(tmp_path):
+    arrays = synthetic_arrays(60, n_geometries=3, seed=2, material_varies=True)
+    model_cfg = {"encoder": "pca", "code_size": 4, "state_vector": True, "grid_size": 8, "hidden": [8],
+                 "dropout": 0.0, "occlusion": {"radius_mm": 0.0, "mode": "remove"}, "noise_mm": 0.0,
+                 "regressor": "gp", "gp": {"max_points": 500, "iterations": 40, "per_output": True,
+                                           "code_members": [2, 4]}}
+    train = {"test_fraction": 0.25, "epochs": 5, "batch_size": 16, "lr": 3e-3, "weight_decay": 0.0, "seed": 0}
+    tune = {"enabled": False, "trials": 1, "folds": 2, "sobol_trials": 1, "epochs": 1}
+    res = train_scenario(arrays, model_cfg, train, tune, "IV", "gp", out_dir=tmp_path)
+    assert res["best_params"]["per_output"] is True
+    model = ForceModel.load(res["model_path"])
+    assert all(m.per_output for m in model.regressor.members)
+    assert all(m["per_output"] for m in model.meta["gp"]["members"])
+    again = ForceModel.load(model.save(tmp_path / "copy"))
+    np.testing.assert_array_equal(again.predict(arrays), model.predict(arrays))
+
+
+@pytest.mark.parametrize("shape", [1.0, 2.0, 3.0, 4.0, 5.0])
+def test_a_whole_shape_head_is_the_module_by_products_and_a_reciprocal(shape, monkeypatch):
+    """For a whole rational-quadratic shape up to POW_SHAPE_MAX_HEAD the head computes ``1 / B^a`` by products
+    and never calls exp or log1p (5: through them); either way it gives the module's posterior mean, also at
+    and next to the training inputs."""
+    calls = []
+    for name in ("_exp_", "_log1p_"):
+        f = getattr(gp_module, name)
+        monkeypatch.setattr(gp_module, name, lambda E, f=f, name=name: (calls.append(name), f(E)))
+    rng = np.random.default_rng(0)
+    X = rng.uniform(-2, 2, (120, 5))
+    gp, _ = fit_gp(X, truth(X), seed=0, iterations=20, kernel="rational_quadratic", shape=shape)
+    for Xt in (rng.uniform(-2, 2, (50, 5)), X[:10], X[:10] + 1e-6):
+        np.testing.assert_allclose(gp.numpy_head()(Xt), gp(torch.from_numpy(Xt)).numpy(), rtol=0, atol=1e-9)
+    assert (calls == []) == (shape <= gp_module.POW_SHAPE_MAX_HEAD), calls
