@@ -1,0 +1,73 @@
+"""Benchmark: the GP's NumPy serving head (``GPRegressor.numpy_head``) per kernel and shape path.
+
+The compiled serving paths evaluate, per cloud and GP member, one kernel row against every training row.
+The squared exponential costs one ``exp`` per kernel value; the rational quadratic ``exp(-a log1p(t))``, one
+``log1p`` more; for a whole shape up to ``POW_SHAPE_MAX_HEAD`` (the default a = 2) the head computes
+``1 / (1 + t)^a`` by products and a reciprocal instead. This times the three on the same rows, side by side
+in the same run (the rational quadratic through exp and log1p is the peer: the path the whole shape took
+before), and checks that both rational-quadratic paths give the same outputs. Sizes are the shipped camera
+model's: 2,000 training rows, blocks of 128 feature rows (``compiled_cloud._HEAD_ROWS``). Prints medians over
+``--repeats`` runs, in microseconds per feature row (one cloud), one thread.
+
+    PYTHONPATH=. OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_gp_head.py [--inputs 62] [--repeats 9]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+
+import numpy as np
+import torch
+
+from liverforce.learn import gp as gp_module
+from liverforce.learn.gp import GPRegressor
+
+
+def _head(X, alpha, inv_l, shape: float, products: bool):
+    gp = GPRegressor(X, alpha, inv_l, torch.tensor(1.0), torch.tensor(0.01), torch.tensor(1e-4), shape)
+    keep = gp_module.POW_SHAPE_MAX_HEAD
+    gp_module.POW_SHAPE_MAX_HEAD = keep if products else 0  # 0: the whole shape through exp and log1p
+    try:
+        return gp.numpy_head()
+    finally:
+        gp_module.POW_SHAPE_MAX_HEAD = keep
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--rows", type=int, default=2000, help="training rows")
+    ap.add_argument("--inputs", type=int, default=62, help="inputs of the member (the shipped 62 for code 32)")
+    ap.add_argument("--block", type=int, default=128, help="feature rows per head call")
+    ap.add_argument("--calls", type=int, default=200)
+    ap.add_argument("--repeats", type=int, default=9)
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    rng = np.random.default_rng(0)
+    X = torch.from_numpy(rng.normal(size=(args.rows, args.inputs)))
+    alpha = torch.from_numpy(rng.normal(size=(args.rows, 3)))
+    inv_l = torch.from_numpy(rng.uniform(0.05, 0.3, args.inputs))
+    Z = rng.normal(size=(args.block, args.inputs))
+    heads = {"squared exponential (exp)": _head(X, alpha, inv_l, math.inf, True),
+             "rational quadratic a = 2, exp and log1p (peer)": _head(X, alpha, inv_l, 2.0, False),
+             "rational quadratic a = 2, products": _head(X, alpha, inv_l, 2.0, True)}
+    a, b = heads["rational quadratic a = 2, exp and log1p (peer)"](Z), heads["rational quadratic a = 2, products"](Z)
+    print(f"head: {args.rows} training rows x {args.inputs} inputs, blocks of {args.block} rows, 1 thread, "
+          f"medians of {args.repeats} runs of {args.calls} calls; rational quadratic paths agree to "
+          f"{np.abs(a - b).max() / np.abs(a).max():.1e} (relative)")
+    times = {k: [] for k in heads}
+    for _ in range(args.repeats):
+        for name, h in heads.items():  # interleaved, so a noisy neighbour hits every path alike
+            t = time.perf_counter()
+            for _ in range(args.calls):
+                h(Z)
+            times[name].append((time.perf_counter() - t) / (args.calls * args.block) * 1e6)
+    peer = float(np.median(times["rational quadratic a = 2, exp and log1p (peer)"]))
+    for name, ts in times.items():
+        m = float(np.median(ts))
+        print(f"  {name:48s} {m:6.2f} us per row ({peer / m:.2f}x the peer)")
+
+
+if __name__ == "__main__":
+    main()
