@@ -398,25 +398,19 @@ def fit_gp(z: np.ndarray, y: np.ndarray, *, seed: int, max_points: int = 2000,
         first = np.sort(np.unique(groups[rows], return_index=True)[1])
         if len(first) < n:
             Xh, Yh = X[first], Y[first]
-    if not per_output:
-        raw, log_a, v, alpha, evaluations = _fit_hyper(X, Y, Xh, Yh, kernel, shape, iterations)
-        shape = math.inf if log_a is None else float(shape) if shape is not None else float(torch.exp(log_a))
-        gp = GPRegressor(X, alpha, 1.0 / (MIN_LENGTH + torch.exp(raw[0])), torch.exp(2 * raw[1]),
-                         torch.exp(2 * raw[2]), torch.exp(2 * raw[3]) + JITTER, shape)
-        return gp.eval(), {"n_used": int(n), "n_likelihood": int(len(Xh)), "nll": float(v),
-                           "evaluations": int(evaluations), "length_scales": (MIN_LENGTH + torch.exp(raw[0])).tolist(),
-                           "noise_var": float(gp.noise_var), "kernel": kernel,
-                           "shape": None if math.isinf(shape) else shape}
-    # one kernel per output: its own length scales and variances, by its own marginal likelihood
-    fits = [_fit_hyper(X, Y[:, k:k + 1], Xh, Yh[:, k:k + 1], kernel, shape, iterations) for k in range(Y.shape[1])]
-    raw = [torch.stack([f[0][i] for f in fits]) for i in range(4)]
-    shape = math.inf if fits[0][1] is None else float(shape)  # fixed (a fitted shape is refused above)
+    # one fit for the shared kernel, or one per output (its own length scales and variances, own likelihood)
+    parts = [slice(k, k + 1) for k in range(Y.shape[1])] if per_output else [slice(None)]
+    fits = [_fit_hyper(X, Y[:, c], Xh, Yh[:, c], kernel, shape, iterations) for c in parts]
+    raw = [torch.stack([f[0][i] for f in fits]) if per_output else fits[0][0][i] for i in range(4)]
+    log_a = fits[0][1]
+    shape = math.inf if log_a is None else float(shape) if shape is not None else float(torch.exp(log_a))
     gp = GPRegressor(X, torch.cat([f[3] for f in fits], 1), 1.0 / (MIN_LENGTH + torch.exp(raw[0])),
                      torch.exp(2 * raw[1]), torch.exp(2 * raw[2]), torch.exp(2 * raw[3]) + JITTER, shape)
-    return gp.eval(), {"n_used": int(n), "n_likelihood": int(len(Xh)), "nll": float(np.mean([f[2] for f in fits])),
-                       "evaluations": int(sum(f[4] for f in fits)), "per_output": True,
-                       "length_scales": (MIN_LENGTH + torch.exp(raw[0])).tolist(), "noise_var": gp.noise_var.tolist(),
-                       "kernel": kernel, "shape": None if math.isinf(shape) else shape}
+    return gp.eval(), {"n_used": int(n), "n_likelihood": int(len(Xh)),
+                       "nll": float(np.mean([f[2] for f in fits])), "evaluations": int(sum(f[4] for f in fits)),
+                       "per_output": bool(per_output), "length_scales": (MIN_LENGTH + torch.exp(raw[0])).tolist(),
+                       "noise_var": gp.noise_var.tolist(), "kernel": kernel,
+                       "shape": None if math.isinf(shape) else shape}
 
 
 def _fit_hyper(X, Y, Xh, Yh, kernel: str, shape: float | None, iterations: int):
