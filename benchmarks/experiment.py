@@ -51,7 +51,8 @@ class PipelineTraining:
         """Train ``model_cfg`` as the pipeline does and return one line: the training-side CV MAE (4 folds by
         liver, ``cv_mae_n``) on ``cv_splits`` seeded splits (the main split, then the repeats' split seeds, each
         trained as its own run; what a default is chosen on; 0: not reported), the test accuracy per split over
-        ``train.repeats``, and for IV the unseen livers' MAE (the main split's model)."""
+        ``train.repeats``, the main split's test MAE per local component (:func:`local_test_mae`), and for IV the
+        unseen livers' MAE (the main split's model)."""
         import time
 
         import numpy as np
@@ -74,9 +75,32 @@ class PipelineTraining:
             line += f" CV MAE {np.mean(cv):.4f} N ({len(cv)} splits: {' '.join(f'{c:.4f}' for c in cv)}) |"
         m, s = res["metrics_mean"], res["metrics_sd"]
         per_split = [x["metrics"]["accuracy_pct"] for x in res["repeats"]]  # the main split first
+        local = ' / '.join(f'{e:.4f}' for e in local_test_mae(f"{out}/test_predictions.csv", arrays))
         line += (f" test {m['accuracy_pct']:6.2f} +- {s['accuracy_pct']:.2f} % (splits "
-                 f"{' '.join(f'{a:.1f}' for a in per_split)}), MAE {m['mae_vec']:.4f} +- {s['mae_vec']:.4f} N")
+                 f"{' '.join(f'{a:.1f}' for a in per_split)}), MAE {m['mae_vec']:.4f} +- {s['mae_vec']:.4f} N, "
+                 f"main split t1 / t2 / n {local} N")
         if scenario == "IV":
             g = self.unseen(res, camera)
             line += f" | unseen MAE {g['mean']['mae_vec']:.4f} +- {g['sd']['mae_vec']:.4f} N"
         return f"{line} | {time.perf_counter() - t:.0f} s"
+
+
+def local_test_mae(predictions_csv, arrays: dict):
+    """MAE per local force component ``(t1, t2, n)`` N of a training run's ``test_predictions.csv`` (source-frame
+    forces, true and predicted, by ``case_id``), each case in its own local frame from ``arrays``: what the
+    vector MAE hides, the normal component against the tangential ones (``benchmarks/experiment_camera_loss.py``
+    gives the same split for the shipped models)."""
+    import numpy as np
+    import pandas as pd
+
+    from liverforce.learn.frames import case_rotations, force_to_local
+
+    d = pd.read_csv(predictions_csv)
+    row = {str(c): i for i, c in enumerate(arrays["case_id"])}
+    missing = [c for c in d["case_id"].astype(str) if c not in row]
+    if missing:
+        raise ValueError(f"{predictions_csv}: {len(missing)} case ids not in the arrays (e.g. {missing[0]})")
+    R = case_rotations(arrays)[[row[c] for c in d["case_id"].astype(str)]]
+    true = force_to_local(d[["fx_true_n", "fy_true_n", "fz_true_n"]].to_numpy(np.float64), R)
+    pred = force_to_local(d[["fx_pred_n", "fy_pred_n", "fz_pred_n"]].to_numpy(np.float64), R)
+    return np.abs(pred - true).mean(axis=0)

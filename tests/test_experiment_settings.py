@@ -29,3 +29,30 @@ def test_nested_keys_and_yaml_values():
 def test_unknown_or_malformed_settings_are_refused(text):
     with pytest.raises(SystemExit, match="--settings"):
         parse_setting(text, cloud_variant())
+
+
+def test_local_test_mae_splits_the_error_by_each_case_s_own_frame(tmp_path):
+    """An error along one case's normal counts as n, along another case's first tangent as t1, whatever the
+    source-frame axes; the cases are found by id, in any order."""
+    import numpy as np
+    import pandas as pd
+
+    from benchmarks.experiment import local_test_mae
+
+    c, s = np.cos(0.7), np.sin(0.7)
+    arrays = {"case_id": np.array(["a", "b"]),
+              "frame_normal": np.array([[0.0, 0.0, 1.0], [c, s, 0.0]]),
+              "frame_t1": np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
+              "frame_t2": np.array([[0.0, 1.0, 0.0], [s, -c, 0.0]])}
+    true = np.array([[0.3, -0.2, 1.0], [1.0, 2.0, -0.5]])
+    err = np.array([0.4 * arrays["frame_normal"][0], 0.1 * arrays["frame_t1"][1]])  # n of a, t1 of b
+    rows = pd.DataFrame({"case_id": ["b", "a"]})  # not in the arrays' order
+    for k, ax in enumerate("xyz"):
+        rows[f"f{ax}_true_n"] = true[[1, 0], k]
+        rows[f"f{ax}_pred_n"] = (true + err)[[1, 0], k]
+    rows.to_csv(tmp_path / "test_predictions.csv", index=False)
+    mae = local_test_mae(tmp_path / "test_predictions.csv", arrays)
+    assert np.allclose(mae, [0.05, 0.0, 0.2], atol=1e-12)
+    rows.assign(case_id=["b", "z"]).to_csv(tmp_path / "other.csv", index=False)
+    with pytest.raises(ValueError, match="not in the arrays"):
+        local_test_mae(tmp_path / "other.csv", arrays)
