@@ -88,11 +88,12 @@ class PipelineTraining:
 def local_test_mae(predictions_csv, arrays: dict):
     """MAE per local force component ``(t1, t2, n)`` N of a training run's ``test_predictions.csv`` (source-frame
     forces, true and predicted, by ``case_id``), each case in its own local frame from ``arrays``: what the
-    vector MAE hides, the normal component against the tangential ones (``benchmarks/experiment_camera_loss.py``
-    gives the same split for the shipped models)."""
+    vector MAE hides, the normal component against the tangential ones, mean over the cases (``component_mae``
+    of ``benchmarks/experiment_camera_loss.py``, which gives the same split for the shipped models)."""
     import numpy as np
     import pandas as pd
 
+    from benchmarks.experiment_camera_loss import component_mae
     from liverforce.learn.frames import case_rotations, force_to_local
 
     d = pd.read_csv(predictions_csv)
@@ -103,4 +104,4 @@ def local_test_mae(predictions_csv, arrays: dict):
     R = case_rotations(arrays)[[row[c] for c in d["case_id"].astype(str)]]
     true = force_to_local(d[["fx_true_n", "fy_true_n", "fz_true_n"]].to_numpy(np.float64), R)
     pred = force_to_local(d[["fx_pred_n", "fy_pred_n", "fz_pred_n"]].to_numpy(np.float64), R)
-    return np.abs(pred - true).mean(axis=0)
+    return component_mae(true, pred, np.zeros(len(d)))[:3]  # one group: the mean over the cases
