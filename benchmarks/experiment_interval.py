@@ -18,6 +18,10 @@ over the splits of:
   the quintiles of each component's coverage, mean over the components and
   splits. Whether the interval holds for the small forces as for the large.
 
+With ``--folds`` (several fold counts) the split's model is calibrated once per
+fold count (cross-conformal, ``train.interval.folds``): the same model, each
+fold model fitted on fewer or more of the training livers.
+
 With ``--unwidened`` every scale is also scored without the widening outside
 the calibration's stiffness range (:meth:`liverforce.learn.interval.ConformalInterval.extrapolation_factor`;
 the same interval with its ``stiffness_range`` removed): how much of a coverage
@@ -66,6 +70,15 @@ def interval_form(cal: dict, cfg: dict, widened: bool = True) -> dict:
     return iv if widened else {**iv, "stiffness_range": None}
 
 
+def interval_forms(fold_counts, scales, bins, unwidened: bool) -> dict:
+    """Every interval the experiment scores, ``(folds, scale, bins or None, widened)`` -> its printed name: each
+    scale once per fold count, ``force_bins`` once per number of bins, and with ``unwidened`` each also without
+    the widening outside the stiffness range."""
+    return {(k, s, b, w): (s if b is None else f"{s}:{b}") + f" {k} folds" + ("" if w else " unwidened")
+            for k in fold_counts for s in scales for b in (bins if s == "force_bins" else [None])
+            for w in ((True, False) if unwidened else (True,))}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--results", default="results/default")
@@ -73,6 +86,8 @@ def main() -> None:
     ap.add_argument("--scales", nargs="+", default=["force", "force_bins"], choices=interval_scales())
     ap.add_argument("--bins", nargs="+", type=int, default=[5], help="bins for scale force_bins (one row each)")
     ap.add_argument("--splits", type=int, default=5)
+    ap.add_argument("--folds", nargs="+", type=int, default=None,
+                    help="cross-conformal folds (one calibration each, on the same split model; default: the config's)")
     ap.add_argument("--out", default="/tmp/liverforce-interval-experiment")
     ap.add_argument("--unwidened", action="store_true", help="also each scale without the widening outside the "
                     "calibration's stiffness range (the same interval, its stiffness_range removed)")
@@ -90,34 +105,35 @@ def main() -> None:
     camera = model_cfg.get("roi_features") == "cloud"
     arrays, unseen = run.arrays("IV", camera), run.arrays("V", camera)
     geo = np.asarray(arrays["geometry_id"]).astype(str)
-    forms = [(s, b, w) for s in args.scales for b in (args.bins if s == "force_bins" else [None])
-             for w in ((True, False) if args.unwidened else (True,))]
-    name = {f: (f[0] if f[1] is None else f"{f[0]}:{f[1]}") + ("" if f[2] else " unwidened") for f in forms}
-    got: dict = {f: {"test": [], "unseen": []} for f in forms}
     base = run.cfg["train"]["interval"]
+    fold_counts = args.folds or [int(base["folds"])]
+    forms = interval_forms(fold_counts, args.scales, args.bins, args.unwidened)
+    got: dict = {f: {"test": [], "unseen": []} for f in forms}
     t = time.perf_counter()
     for r in range(args.splits):
         seed = run.seed if r == 0 else derive(run.seed, "split.repeat", r)
         # final_fit off: the split's own model, so that its test livers are held out (the pipeline then refits the
         # configuration on every liver and calibrates that model's interval the same way)
-        train = {**run.train, "repeats": 1, "interval": dict(base), "final_fit": False}
-        out = f"{args.out}/{args.variant}-{r}"
-        res = train_scenario(arrays, model_cfg, train, run.cfg["tune"], "IV", args.variant, seed=seed, out_dir=out)
-        if res["interval"] is None:  # no calibration (its npz would be an earlier run's)
-            raise SystemExit(f"split {r}: no calibrated interval ({'; '.join(res['split']['notes'])})")
-        with np.load(f"{out}/interval_calibration.npz") as z:
-            cal = {k: z[k] for k in z.files}
-        m = ForceModel.load(res["model_path"])
-        test = subset(arrays, np.flatnonzero(np.isin(geo, res["split"]["test_geometries"])))
-        for f in forms:
-            cfg = {**base, "scale": f[0], **({} if f[1] is None else {"bins": f[1]})}
-            m.meta["interval"] = interval_form(cal, cfg, widened=f[2])
-            got[f]["test"].append(interval_coverage(m, test))
-            got[f]["unseen"].append(interval_coverage(m, unseen))
+        for k in fold_counts:  # the same split model each time (the fit is seeded); only the calibration differs
+            train = {**run.train, "repeats": 1, "interval": {**base, "folds": k}, "final_fit": False}
+            out = f"{args.out}/{args.variant}-{r}-folds{k}"
+            res = train_scenario(arrays, model_cfg, train, run.cfg["tune"], "IV", args.variant, seed=seed,
+                                 out_dir=out)
+            if res["interval"] is None:  # no calibration (its npz would be an earlier run's)
+                raise SystemExit(f"split {r}: no calibrated interval ({'; '.join(res['split']['notes'])})")
+            with np.load(f"{out}/interval_calibration.npz") as z:
+                cal = {key: z[key] for key in z.files}
+            m = ForceModel.load(res["model_path"])
+            test = subset(arrays, np.flatnonzero(np.isin(geo, res["split"]["test_geometries"])))
+            for f in (f for f in forms if f[0] == k):
+                cfg = {**base, "folds": k, "scale": f[1], **({} if f[2] is None else {"bins": f[2]})}
+                m.meta["interval"] = interval_form(cal, cfg, widened=f[3])
+                got[f]["test"].append(interval_coverage(m, test))
+                got[f]["unseen"].append(interval_coverage(m, unseen))
         print(f"split {r + 1}/{args.splits} done ({time.perf_counter() - t:.0f} s)", flush=True)
     for f in forms:
         for part in ("test", "unseen"):
-            print(f"{args.variant} scale {name[f]:22s} {part:6s} ({args.splits} splits): {summary(got[f][part])}")
+            print(f"{args.variant} scale {forms[f]:22s} {part:6s} ({args.splits} splits): {summary(got[f][part])}")
 
 
 if __name__ == "__main__":

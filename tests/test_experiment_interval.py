@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from benchmarks.experiment_interval import interval_form, summary
+from benchmarks.experiment_interval import interval_form, interval_forms, summary
 from liverforce.learn.interval import ConformalInterval
 
 
@@ -46,3 +46,12 @@ def test_interval_form_unwidened_drops_only_the_widening_outside_the_stiffness_r
     np.testing.assert_allclose(bare.half_widths(inside, f), wide.half_widths(inside, f))  # inside: unchanged
     np.testing.assert_allclose(bare.half_widths(outside, f), bare.half_widths(inside, f))  # no widening
     np.testing.assert_allclose(wide.half_widths(outside, f), bare.half_widths(outside, f) * 1.4 / k_hi)
+
+
+def test_interval_forms_score_every_scale_once_per_fold_count_and_force_bins_once_per_bin_count():
+    forms = interval_forms([4, 8], ["force", "force_bins"], [3, 5], unwidened=False)
+    assert list(forms) == [(4, "force", None, True), (4, "force_bins", 3, True), (4, "force_bins", 5, True),
+                           (8, "force", None, True), (8, "force_bins", 3, True), (8, "force_bins", 5, True)]
+    assert forms[(8, "force_bins", 5, True)] == "force_bins:5 8 folds"
+    both = interval_forms([4], ["none"], [5], unwidened=True)
+    assert both == {(4, "none", None, True): "none 4 folds", (4, "none", None, False): "none 4 folds unwidened"}
