@@ -87,7 +87,7 @@ def test_compiled_features_equal_the_reference_cloud_grid(served):
     assert filled > 0  # the Laplace fill was exercised
 
 
-@pytest.mark.parametrize("kr", [0.7, 1.25, 1.5, 1.6])
+@pytest.mark.parametrize("kr", [0.7, 1.25, 1.5, 1.6, 2.0])
 def test_compiled_features_with_another_kernel_radius(served, kr):
     """Kernel radii other than one cell (more or fewer bin rows per grid point; sort bins a quarter (1.25) or half
     (0.7, 1.5, 1.6) grid step wide), and points present three times."""
@@ -105,7 +105,7 @@ def test_compiled_features_with_another_kernel_radius(served, kr):
 
 
 @pytest.mark.parametrize("g", [8, 40])
-@pytest.mark.parametrize("kr", [1.0, 1.25, 1.5, 1.75, 2.5, 0.7, 4 / 3, 1.5000000000000002])
+@pytest.mark.parametrize("kr", [1.0, 1.25, 1.5, 1.75, 2.0, 2.5, 0.7, 4 / 3, 1.5000000000000002])
 def test_sort_bins_and_padded_runs_change_no_sum(g, kr):
     """The counting sort's bins, their groups of rows and the runs read on past a grid point's last bin
     (compiled_cloud._bins, _bin_key, _cell_moments) change no grid point's sums: on a lattice with points on
@@ -117,7 +117,7 @@ def test_sort_bins_and_padded_runs_change_no_sum(g, kr):
     from liverforce.serve import compiled_cloud as cc
 
     sb, pad, nc, exact = cc._bins(g, kr)
-    assert exact == (kr in ((1.0, 1.25, 1.5, 1.75, 2.5) if g == 8 else (1.0,)))  # at most 64 bins over the grid
+    assert exact == (kr in ((1.0, 1.25, 1.5, 1.75, 2.0, 2.5) if g == 8 else (1.0, 2.0)))  # <= 64 bins over the grid
     inner = np.nextafter(kr, 0.0)
     offs = np.concatenate([np.arange(-24, 25) / 8.0, [kr, -kr, inner, -inner]])
     anchors = np.unique([0, 1, g // 2, g - 2, g - 1])
@@ -132,7 +132,7 @@ def test_sort_bins_and_padded_runs_change_no_sum(g, kr):
     GU, GV = GU[kept], GV[kept]
     count, on_edge = _check_moments(GU, GV, rng.normal(0.0, 2.0, len(GU)), g, kr, sb, pad, nc, exact)
     assert (count > 0).sum() > 0.5 * g * g
-    assert on_edge > 0 or kr not in (1.0, 1.25, 1.5, 1.75, 2.5)  # the edge was exercised
+    assert on_edge > 0 or kr not in (1.0, 1.25, 1.5, 1.75, 2.0, 2.5)  # the edge was exercised
     # a sparse cloud, points only near the grid's left edge: a run read on to a multiple of 8 points reaches
     # the end of its group of bin rows, where it must stop (the next group's points are within the kernel)
     strip = (GU < 0.5) & (rng.random(len(GU)) < 0.3)
