@@ -22,15 +22,15 @@ Gaussian process, and ``mlp``), prints, on one core (1 BLAS / torch / numba thre
    the head (affine map, regressor: ``_head``) and the checks (``_reasons``).
 
 The models are trained here on synthetic cases with whole surfaces
-(``liverforce.learn.synthetic.synthetic_surface_arrays``, ``--cases``; accuracy is irrelevant): the sizes are the
-shipped config's (16 x 16 grid with a 1.5-cell kernel, ``--grid`` and ``--kernel-cells`` to change them; state
-vector, the dent fit round the tool; the GP is the mean of five GPs on PCA codes of 8, 16, 32, 48 and 64
-components, ``model.gp.code_members``, each on every training row, about 640 with the default 480 cases; the
-default experiment's camera model has 1,920, as ``--cases 1440`` gives; the MLP 2 x 128, 3 epochs). Clouds are
-observed from a case's deformed surface with ``--points`` points (default 5,000) of the liver, the instrument's
-visible points at the same density (a few hundred more; the shipped camera model fits the tool's axis to them)
-and 0.5 mm noise: 20 observations, and ``--distinct`` (default 256) jittered copies of them for the batches, so a
-batch reads clouds from memory, not from a few cached ones.
+(``liverforce.learn.synthetic.synthetic_surface_arrays``, ``--cases``; accuracy is irrelevant). The model config is
+the shipped camera variant's, read from the config (``cloud_sv``: a 16 x 16 grid with a 1.5-cell kernel, ``--grid``
+and ``--kernel-cells`` to change them; state vector, the dent fit round the tool; the GP is the mean of five GPs on
+PCA codes of 8, 16, 32, 48 and 64 components, ``model.gp.code_members``, each on every training row, about 640 with
+the default 480 cases; the default experiment's camera model has 1,920, as ``--cases 1440`` gives; the MLP 2 x 128,
+3 epochs). Clouds are observed from a case's deformed surface with ``--points`` points (default 5,000) of the liver,
+the instrument's visible points at the same density (a few hundred more; the shipped camera model fits the tool's
+axis to them) and 0.5 mm noise: 20 observations, and ``--distinct`` (default 256) jittered copies of them for the
+batches, so a batch reads clouds from memory, not from a few cached ones.
 
 Usage: ``python benchmarks/bench_camera.py [--quick] [--regressors gp mlp] [--calls N] [--repeats N]
 [--batches 256 4096] [--points K] [--grid G] [--kernel-cells C] [--cases N] [--no-instrument]``
@@ -56,8 +56,10 @@ _ap.add_argument("--batches", type=int, nargs="+", default=None, help="batch siz
 _ap.add_argument("--ref-batch", type=int, default=None, help="clouds through the reference batch (default 1000; "
                  "quick 200)")
 _ap.add_argument("--points", type=int, default=5000, help="points per cloud")
-_ap.add_argument("--grid", type=int, default=16, help="the cloud's grid points per side (shipped: 16)")
-_ap.add_argument("--kernel-cells", type=float, default=1.5, help="the grid's kernel radius in cells (shipped: 1.5)")
+_ap.add_argument("--grid", type=int, default=None, help="the cloud's grid points per side (default: the shipped "
+                 "camera variant's, config/train/default.yaml cloud_sv)")
+_ap.add_argument("--kernel-cells", type=float, default=None, help="the grid's kernel radius in cells (default: the "
+                 "shipped variant's)")
 _ap.add_argument("--cases", type=int, default=None, help="synthetic training cases (default 480; quick 120)")
 _ap.add_argument("--distinct", type=int, default=256, help="distinct clouds (jittered copies) cycled in a batch")
 _ap.add_argument("--profile", action="store_true", help="also time the compiled path's stages per cloud")
@@ -77,24 +79,34 @@ from liverforce.learn.train import train_scenario  # noqa: E402
 from liverforce.serve import Predictor, Preop  # noqa: E402
 
 torch.set_num_threads(1)
+
+
+def shipped_camera_model(grid: int | None, kernel_cells: float | None, no_instrument: bool) -> dict:
+    """The shipped camera variant's model config (``cloud_sv``: ``config/model/default.yaml`` with the variant's
+    overrides in ``config/train/default.yaml``, as the pipeline merges them), with ``grid`` points per side and a
+    ``kernel_cells`` kernel when given; ``no_instrument``: the instrument neither in the cloud nor fitted (no tool
+    axis, no dent fit)."""
+    from liverforce.config import compose, merge_mapping
+    from liverforce.pipeline.plan import Plan
+
+    model = Plan(compose([])).variants()["cloud_sv"]
+    over: dict = {"camera": {"grid": {}}}
+    if grid is not None:
+        over["grid_size"] = int(grid)
+    if kernel_cells is not None:
+        over["camera"]["grid"]["kernel_radius_cells"] = float(kernel_cells)
+    if no_instrument:
+        over["camera"]["observation"] = {"instrument_in_cloud": False}
+        over["camera"]["grid"].update(instrument_radius_mm=0.0, instrument_max_tilt_deg=0.0, dent_radius_mm=0.0)
+    return merge_mapping(model, over)
+
+
 CALLS = ARGS.calls or (300 if ARGS.quick else 2000)
 REPEATS = ARGS.repeats or (2 if ARGS.quick else 5)
 BATCHES = ARGS.batches or ([256] if ARGS.quick else [256, 4096])
 REF_BATCH = ARGS.ref_batch or (200 if ARGS.quick else 1000)
 CASES = ARGS.cases or (120 if ARGS.quick else 480)
-MODEL = {"encoder": "pca", "code_size": 16, "state_vector": True, "grid_size": ARGS.grid, "hidden": [128, 128],
-         "dropout": 0.1, "occlusion": {"radius_mm": 0.0, "mode": "remove"}, "noise_mm": 0.0, "roi_features": "cloud",
-         "force_scaling": "none", "probe_force_radius_mm": 5.0, "indentation_strain": True,
-         "gp": {"max_points": 2000, "iterations": 50, "code_members": [8, 16, 32, 48, 64],
-                "kernel": "rational_quadratic", "shape": 2.0},  # as the shipped camera variant (config/train)
-         "camera": {"observation": {"n_points": [200, 20000], "instrument_in_cloud": True},
-                    "grid": {"kernel_radius_cells": ARGS.kernel_cells, "instrument_radius_mm": 2.5,
-                             "instrument_max_tilt_deg": 30.0,
-                             "dent_radius_mm": 15.0},
-                    "tip_noise_mm": 0.5}}
-if ARGS.no_instrument:
-    MODEL["camera"] = {**MODEL["camera"], "observation": {"n_points": [200, 20000]},
-                       "grid": {"kernel_radius_cells": ARGS.kernel_cells}}  # (no instrument radius: no dent fit)
+MODEL = shipped_camera_model(ARGS.grid, ARGS.kernel_cells, ARGS.no_instrument)
 TRAIN = {"test_fraction": 0.2, "epochs": 3, "batch_size": 64, "lr": 3e-3, "weight_decay": 0.0, "seed": 0,
          "interval": {"coverage": 0.9, "calibration_fraction": 0.25, "scale": "force_bins"}}  # the shipped scale
 NO_TUNE = {"enabled": False, "trials": 1, "folds": 2, "sobol_trials": 1, "epochs": 1}
