@@ -18,9 +18,10 @@ over the splits of:
   the quintiles of each component's coverage, mean over the components and
   splits. Whether the interval holds for the small forces as for the large.
 
-With ``--folds`` (several fold counts) the split's model is calibrated once per
-fold count (cross-conformal, ``train.interval.folds``): the same model, each
-fold model fitted on fewer or more of the training livers.
+With ``--folds`` (several fold counts) the split's model, fitted once, is
+calibrated once per fold count (cross-conformal, ``train.interval.folds``;
+``train_scenario(..., calibrate_folds=...)``): the same model, each fold
+model fitted on fewer or more of the training livers.
 
 With ``--unwidened`` every scale is also scored without the widening outside
 the calibration's stiffness range (:meth:`liverforce.learn.interval.ConformalInterval.extrapolation_factor`;
@@ -114,17 +115,22 @@ def main() -> None:
         seed = run.seed if r == 0 else derive(run.seed, "split.repeat", r)
         # final_fit off: the split's own model, so that its test livers are held out (the pipeline then refits the
         # configuration on every liver and calibrates that model's interval the same way)
-        for k in fold_counts:  # the same split model each time (the fit is seeded); only the calibration differs
-            train = {**run.train, "repeats": 1, "interval": {**base, "folds": k}, "final_fit": False}
-            out = f"{args.out}/{args.variant}-{r}-folds{k}"
-            res = train_scenario(arrays, model_cfg, train, run.cfg["tune"], "IV", args.variant, seed=seed,
-                                 out_dir=out)
-            if res["interval"] is None:  # no calibration (its npz would be an earlier run's)
-                raise SystemExit(f"split {r}: no calibrated interval ({'; '.join(res['split']['notes'])})")
-            with np.load(f"{out}/interval_calibration.npz") as z:
+        # one split model; its calibration with the first fold count, and again with each other fold count
+        # (train_scenario's calibrate_folds: the same model's settings, each fold model fitted on more or fewer
+        # of the training livers)
+        train = {**run.train, "repeats": 1, "interval": {**base, "folds": fold_counts[0]}, "final_fit": False}
+        out = f"{args.out}/{args.variant}-{r}"
+        res = train_scenario(arrays, model_cfg, train, run.cfg["tune"], "IV", args.variant, seed=seed,
+                             out_dir=out, calibrate_folds=tuple(fold_counts[1:]))
+        if res["interval"] is None:  # no calibration (its npz would be an earlier run's)
+            raise SystemExit(f"split {r}: no calibrated interval ({'; '.join(res['split']['notes'])})")
+        m = ForceModel.load(res["model_path"])
+        test = subset(arrays, np.flatnonzero(np.isin(geo, res["split"]["test_geometries"])))
+        for i, k in enumerate(fold_counts):
+            with np.load(f"{out}/interval_calibration{'' if i == 0 else f'_folds{k}'}.npz") as z:
                 cal = {key: z[key] for key in z.files}
-            m = ForceModel.load(res["model_path"])
-            test = subset(arrays, np.flatnonzero(np.isin(geo, res["split"]["test_geometries"])))
+            if int(cal["folds"]) != k:
+                raise SystemExit(f"split {r}: the calibration file holds {int(cal['folds'])} folds, not {k}")
             for f in (f for f in forms if f[0] == k):
                 cfg = {**base, "folds": k, "scale": f[1], **({} if f[2] is None else {"bins": f[2]})}
                 m.meta["interval"] = interval_form(cal, cfg, widened=f[3])

@@ -146,6 +146,7 @@ def train_scenario(
     out_dir: str | Path,
     tags: dict | None = None,
     model_meta: dict | None = None,
+    calibrate_folds: tuple[int, ...] = (),
 ) -> dict:
     """Train and evaluate one scenario + variant; returns the result dict (the pipeline writes ``metrics.json``).
 
@@ -171,6 +172,10 @@ def train_scenario(
         Output folder.
     tags : dict, optional
         Run tags, e.g. ``{"rule": "train", "config_hash": ..., "data_version": ...}``.
+    calibrate_folds : tuple of int
+        Without ``train.final_fit`` only (an experiment's): the split model's calibration predictions again with
+        each of these cross-conformal fold counts, written to ``out_dir/interval_calibration_folds{k}.npz``
+        (the same model, fitted once; ``benchmarks/experiment_interval.py --folds``).
 
     Returns
     -------
@@ -185,6 +190,9 @@ def train_scenario(
         model_cfg = {**model_cfg, "_meta": dict(model_meta)}
     seed = int(train_cfg.get("seed", 0) if seed is None else seed)
     out_dir = Path(out_dir)
+    if calibrate_folds and (train_cfg.get("final_fit") or not (train_cfg.get("interval") or {}).get("coverage")):
+        raise ValueError("calibrate_folds needs an interval (train.interval.coverage) and train.final_fit off: "
+                         "the split model's calibration is recalibrated")
     n = check_arrays(arrays)
     geo = np.asarray(arrays["geometry_id"]).astype(str)
 
@@ -215,6 +223,7 @@ def train_scenario(
             result = _train(
             tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_cfg, train_cfg, tune_cfg,
                 scenario, variant, seed, encoder, use_state, code_size, dae_noise, weight_decay, out_dir,
+                calibrate_folds,
             )
         result.update(run_id=run_id, tags=run_tags, n_cases=n, seconds=time.perf_counter() - t_start)
         if tracker is not None:
@@ -229,7 +238,8 @@ def train_scenario(
 
 
 def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_cfg, train_cfg, tune_cfg,
-           scenario, variant, seed, encoder, use_state, code_size, dae_noise, weight_decay, out_dir) -> dict:
+           scenario, variant, seed, encoder, use_state, code_size, dae_noise, weight_decay, out_dir,
+           calibrate_folds=()) -> dict:
     prep_train = prepare(train_arrays, rep, observation_seeds=view_seeds(seed, n_views_for(rep)))
     prep_test = prepare(test_arrays, rep, observation_seeds=[eval_seed(seed)])
     notes: list[str] = []
@@ -313,7 +323,8 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
     model.meta["test_metrics"] = metrics
     interval = None
     ci = None
-    (out_dir / "interval_calibration.npz").unlink(missing_ok=True)  # an earlier run's, not this model's
+    for suffix in ("", *(f"_folds{int(k)}" for k in calibrate_folds)):  # an earlier run's, not this model's
+        (out_dir / f"interval_calibration{suffix}.npz").unlink(missing_ok=True)
     final = bool(train_cfg.get("final_fit"))
     if (train_cfg.get("interval") or {}).get("coverage"):
         try:
@@ -322,6 +333,11 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
             ci = interval_from_calibration(cal, train_cfg["interval"], scenario)
             if not final:
                 _write_calibration(out_dir / "interval_calibration.npz", cal)
+            for k in calibrate_folds:  # an experiment's other fold counts, on the same split model's settings
+                cal_k = calibration_predictions(train_arrays, model_cfg, {**train_cfg["interval"], "folds": int(k)},
+                                                scenario, seed, encoder, use_state, code_size, dae_noise, hidden,
+                                                dropout, fit)
+                _write_calibration(out_dir / f"interval_calibration_folds{int(k)}.npz", cal_k)
         except ValueError as exc:  # e.g. one training liver in IV: nothing to hold out by liver
             notes.append(f"no calibrated interval: {exc}")
     if ci is not None:

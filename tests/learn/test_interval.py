@@ -244,6 +244,37 @@ def test_scale_force_bins_uses_fewer_bins_when_too_few_cases_and_is_unbounded_be
         fit_conformal(true, pred, np.ones(30), 0.9, "case", scale="force_bins", bins=0)
 
 
+def test_calibrate_folds_recalibrates_the_same_split_model_as_a_run_with_that_fold_count(tmp_path):
+    """train_scenario(calibrate_folds=(2,)) with the config's 4 folds writes the 2-fold calibration of the same
+    split model: identical to the calibration of a run configured with 2 folds (the model is fitted once, the
+    benchmark's --folds reads it); with final_fit on, or no interval, it refuses."""
+    data = synthetic_arrays(200, seed=6, n_geometries=1, nodes=(150, 200), dent_width_mm=12.0, material_varies=True,
+                            dtype=np.float64)
+    iv = {"coverage": 0.9, "calibration_fraction": 0.3, "folds": 4, "scale": "none"}
+    res = train_scenario(data, MODEL, {**TRAIN, "interval": iv}, NO_TUNE, "II", "v", out_dir=tmp_path / "a",
+                         calibrate_folds=(2,))
+    two = train_scenario(data, MODEL, {**TRAIN, "interval": {**iv, "folds": 2}}, NO_TUNE, "II", "v",
+                         out_dir=tmp_path / "b")
+    with np.load(tmp_path / "a" / "interval_calibration_folds2.npz") as z:
+        extra = {k: z[k] for k in z.files}
+    with np.load(tmp_path / "b" / "interval_calibration.npz") as z:
+        ref = {k: z[k] for k in z.files}
+    with np.load(tmp_path / "a" / "interval_calibration.npz") as z:
+        four = {k: z[k] for k in z.files}
+    assert int(extra["folds"]) == 2 and int(four["folds"]) == 4 and len(extra["pred_local"]) == res["n_train"]
+    assert extra.keys() == ref.keys()
+    for k in ref:
+        np.testing.assert_array_equal(extra[k], ref[k])
+    assert not np.array_equal(four["pred_local"], extra["pred_local"])  # other fold models, other predictions
+    assert res["metrics"] == two["metrics"]  # the same split model
+    with pytest.raises(ValueError, match="final_fit"):
+        train_scenario(data, MODEL, {**TRAIN, "interval": iv, "final_fit": True}, NO_TUNE, "II", "v",
+                       out_dir=tmp_path / "c", calibrate_folds=(2,))
+    with pytest.raises(ValueError, match="interval"):
+        train_scenario(data, MODEL, {**TRAIN, "interval": None}, NO_TUNE, "II", "v", out_dir=tmp_path / "d",
+                       calibrate_folds=(2,))
+
+
 def test_cross_conformal_calibrates_on_every_training_case_and_covers_fresh_cases(tmp_path):
     """folds: 4 -> every training case is predicted once by a model that did not see it; the 90 % interval
     covers 85-95 % of 600 fresh exchangeable cases per component."""
