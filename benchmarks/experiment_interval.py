@@ -23,16 +23,22 @@ calibrated once per fold count (cross-conformal, ``train.interval.folds``;
 ``train_scenario(..., calibrate_folds=...)``): the same model, each fold
 model fitted on fewer or more of the training livers.
 
-With ``--unwidened`` every scale is also scored without the widening outside
-the calibration's stiffness range (:meth:`liverforce.learn.interval.ConformalInterval.extrapolation_factor`;
-the same interval with its ``stiffness_range`` removed): how much of a coverage
-the widening makes.
+With ``--widen`` (``proportional``, ``fitted``, ``none``) every scale is scored with each widening outside the
+calibration's stiffness range (``train.interval.widen``,
+:meth:`liverforce.learn.interval.ConformalInterval.extrapolation_factor`; ``none``: the same interval with its
+``stiffness_range`` removed); ``--unwidened`` adds ``none``.
+
+With ``--train-stiffness LO HI`` the split model and its calibration see only the training livers' cases whose
+stiffness factor (first constant over the mean) lies in ``[LO, HI]``; the test livers' cases outside it are
+scored apart (``test outside``): a liver stiffer or softer than every calibration case, as the unseen livers
+are, on the training side of the data (the widening can be chosen there without looking at the unseen livers).
 
 The validate stage writes the same numbers for the validated model
 (``validate/metrics.json`` ``interval``: ``coverage``, ``coverage_by_force``).
 
     PYTHONPATH=. OMP_NUM_THREADS=1 .venv/bin/python benchmarks/experiment_interval.py --results results/default \\
         --variant cloud_sv --scales force force_bins --bins 2 3 4 5 8
+    ... --variant cloud_sv --scales force_bins --widen proportional fitted none --train-stiffness 0.8 1.2
 """
 
 from __future__ import annotations
@@ -42,7 +48,7 @@ import time
 
 import numpy as np
 
-from liverforce.config import interval_scales
+from liverforce.config import interval_scales, interval_widenings
 
 
 def summary(docs: list[dict]) -> str:
@@ -61,23 +67,34 @@ def summary(docs: list[dict]) -> str:
             f"worst quintile {bins.min(axis=(1, 2)).mean():.1f} %; spread over the quintiles {spread:.1f} points")
 
 
-def interval_form(cal: dict, cfg: dict, widened: bool = True) -> dict:
+def interval_form(cal: dict, cfg: dict, widen: str = "proportional") -> dict:
     """The interval of config ``cfg`` fitted on calibration predictions ``cal`` (scenario IV), as a model's
-    ``meta["interval"]``; ``widened`` False: the same interval without the widening outside the calibration's
-    stiffness range (its ``stiffness_range`` removed)."""
+    ``meta["interval"]``, with widening ``widen`` outside the calibration's stiffness range (``train.interval.widen``:
+    ``proportional`` or ``fitted``); ``none``: the same interval without any (its ``stiffness_range`` removed)."""
     from liverforce.learn.train import interval_from_calibration
 
-    iv = interval_from_calibration(cal, cfg, "IV").to_dict()
-    return iv if widened else {**iv, "stiffness_range": None}
+    iv = interval_from_calibration(cal, {**cfg, "widen": "proportional" if widen == "none" else widen}, "IV")
+    iv = iv.to_dict()
+    return {**iv, "stiffness_range": None} if widen == "none" else iv
 
 
-def interval_forms(fold_counts, scales, bins, unwidened: bool) -> dict:
-    """Every interval the experiment scores, ``(folds, scale, bins or None, widened)`` -> its printed name: each
-    scale once per fold count, ``force_bins`` once per number of bins, and with ``unwidened`` each also without
-    the widening outside the stiffness range."""
-    return {(k, s, b, w): (s if b is None else f"{s}:{b}") + f" {k} folds" + ("" if w else " unwidened")
+WIDEN_NAMES = {"proportional": "", "fitted": " widen fitted", "none": " unwidened"}  # suffix of a printed name
+
+
+def interval_forms(fold_counts, scales, bins, widenings=("proportional",)) -> dict:
+    """Every interval the experiment scores, ``(folds, scale, bins or None, widen)`` -> its printed name: each
+    scale once per fold count, ``force_bins`` once per number of bins, each with every widening of ``widenings``
+    (``proportional``, ``fitted``, ``none``: :func:`interval_form`)."""
+    return {(k, s, b, w): (s if b is None else f"{s}:{b}") + f" {k} folds" + WIDEN_NAMES[w]
             for k in fold_counts for s in scales for b in (bins if s == "force_bins" else [None])
-            for w in ((True, False) if unwidened else (True,))}
+            for w in widenings}
+
+
+def stiffness_factors(arrays: dict) -> np.ndarray:
+    """Each case's first material constant over the mean of the arrays' cases (the model's stiffness factor
+    ``k``, up to the training split's mean instead of all cases')."""
+    c1 = np.asarray(arrays["material_params_mpa"], dtype=np.float64)[:, 0]
+    return c1 / c1.mean()
 
 
 def main() -> None:
@@ -92,6 +109,12 @@ def main() -> None:
     ap.add_argument("--out", default="/tmp/liverforce-interval-experiment")
     ap.add_argument("--unwidened", action="store_true", help="also each scale without the widening outside the "
                     "calibration's stiffness range (the same interval, its stiffness_range removed)")
+    ap.add_argument("--widen", nargs="+", default=None, choices=[*interval_widenings(), "none"],
+                    help="widenings outside the stiffness range to score (default: the config's)")
+    ap.add_argument("--train-stiffness", nargs=2, type=float, default=None, metavar=("LO", "HI"),
+                    help="fit and calibrate the split model on the training livers' cases with stiffness factor "
+                    "in [LO, HI] only, and also score the test livers' cases outside it (a training-side stand-in "
+                    "for a liver stiffer or softer than every calibration case)")
     args = ap.parse_args()
 
     from liverforce.learn.model import ForceModel, subset
@@ -108,8 +131,22 @@ def main() -> None:
     geo = np.asarray(arrays["geometry_id"]).astype(str)
     base = run.cfg["train"]["interval"]
     fold_counts = args.folds or [int(base["folds"])]
-    forms = interval_forms(fold_counts, args.scales, args.bins, args.unwidened)
-    got: dict = {f: {"test": [], "unseen": []} for f in forms}
+    widenings = list(dict.fromkeys([*(args.widen or [str(base.get("widen", "proportional"))]),
+                                    *(["none"] if args.unwidened else [])]))
+    forms = interval_forms(fold_counts, args.scales, args.bins, widenings)
+    parts = ["test", "unseen"]
+    fit_arrays, outside_rows = arrays, None
+    if args.train_stiffness is not None:
+        lo, hi = args.train_stiffness
+        k_case = stiffness_factors(arrays)
+        inside = (k_case >= lo) & (k_case <= hi)
+        if not inside.any() or inside.all():
+            raise SystemExit(f"--train-stiffness {lo} {hi}: keeps {int(inside.sum())} of {len(inside)} cases")
+        fit_arrays, outside_rows = subset(arrays, np.flatnonzero(inside)), ~inside
+        parts = ["test", "test outside", "unseen"]
+        print(f"training on the {int(inside.sum())} of {len(inside)} cases with k in [{lo}, {hi}]; the test "
+              f"livers' cases outside it scored as 'test outside'", flush=True)
+    got: dict = {f: {p: [] for p in parts} for f in forms}
     t = time.perf_counter()
     for r in range(args.splits):
         seed = run.seed if r == 0 else derive(run.seed, "split.repeat", r)
@@ -120,12 +157,16 @@ def main() -> None:
         # of the training livers)
         train = {**run.train, "repeats": 1, "interval": {**base, "folds": fold_counts[0]}, "final_fit": False}
         out = f"{args.out}/{args.variant}-{r}"
-        res = train_scenario(arrays, model_cfg, train, run.cfg["tune"], "IV", args.variant, seed=seed,
+        res = train_scenario(fit_arrays, model_cfg, train, run.cfg["tune"], "IV", args.variant, seed=seed,
                              out_dir=out, calibrate_folds=tuple(fold_counts[1:]))
         if res["interval"] is None:  # no calibration (its npz would be an earlier run's)
             raise SystemExit(f"split {r}: no calibrated interval ({'; '.join(res['split']['notes'])})")
         m = ForceModel.load(res["model_path"])
-        test = subset(arrays, np.flatnonzero(np.isin(geo, res["split"]["test_geometries"])))
+        in_test = np.isin(geo, res["split"]["test_geometries"])
+        scored = {"test": subset(arrays, np.flatnonzero(in_test & (True if outside_rows is None else ~outside_rows))),
+                  "unseen": unseen}
+        if outside_rows is not None:
+            scored["test outside"] = subset(arrays, np.flatnonzero(in_test & outside_rows))
         for i, k in enumerate(fold_counts):
             with np.load(f"{out}/interval_calibration{'' if i == 0 else f'_folds{k}'}.npz") as z:
                 cal = {key: z[key] for key in z.files}
@@ -133,13 +174,13 @@ def main() -> None:
                 raise SystemExit(f"split {r}: the calibration file holds {int(cal['folds'])} folds, not {k}")
             for f in (f for f in forms if f[0] == k):
                 cfg = {**base, "folds": k, "scale": f[1], **({} if f[2] is None else {"bins": f[2]})}
-                m.meta["interval"] = interval_form(cal, cfg, widened=f[3])
-                got[f]["test"].append(interval_coverage(m, test))
-                got[f]["unseen"].append(interval_coverage(m, unseen))
+                m.meta["interval"] = interval_form(cal, cfg, widen=f[3])
+                for part, cases in scored.items():
+                    got[f][part].append(interval_coverage(m, cases))
         print(f"split {r + 1}/{args.splits} done ({time.perf_counter() - t:.0f} s)", flush=True)
     for f in forms:
-        for part in ("test", "unseen"):
-            print(f"{args.variant} scale {forms[f]:22s} {part:6s} ({args.splits} splits): {summary(got[f][part])}")
+        for part in parts:
+            print(f"{args.variant} scale {forms[f]:22s} {part:12s} ({args.splits} splits): {summary(got[f][part])}")
 
 
 if __name__ == "__main__":

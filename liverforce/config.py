@@ -202,6 +202,8 @@ class IntervalConfig:
     scale: str = MISSING  # none | stiffness (x the case's stiffness factor) | force (x a + b |predicted force|)
     # | force_bins (a width per bin of the predicted |force|)
     bins: int = MISSING  # scale: force_bins: bins at the quantiles of the calibration cases' predicted |force|
+    widen: str = MISSING  # outside the calibration's stiffness range: proportional (x k / k_hi) | fitted (x (k /
+    # k_hi)^g, g the calibration residuals' growth with the stiffness)
 
 
 @dataclass
@@ -517,6 +519,13 @@ def tool_models() -> tuple[str, ...]:
     return tuple(TOOL_MODELS)
 
 
+def interval_widenings() -> tuple[str, ...]:
+    """``train.interval.widen``: :data:`liverforce.learn.interval.WIDENINGS`."""
+    from liverforce.learn.interval import WIDENINGS
+
+    return tuple(WIDENINGS)
+
+
 def interval_scales() -> tuple[str, ...]:
     """``train.interval.scale``: :data:`liverforce.learn.interval.SCALES`."""
     from liverforce.learn.interval import SCALES
@@ -746,6 +755,7 @@ def _check_ranges(cfg: dict) -> None:
     if t["interval"]["folds"] < 1:
         _fail("train.interval.folds", f"must be >= 1 (got {t['interval']['folds']})", "e.g. 4 (1: one held-out split)")
     _check_choice("train.interval.scale", t["interval"]["scale"], interval_scales(), "interval scale")
+    _check_choice("train.interval.widen", t["interval"]["widen"], interval_widenings(), "interval widening")
     if t["interval"]["bins"] < 1:
         _fail("train.interval.bins", f"must be >= 1 (got {t['interval']['bins']})", "e.g. 4 (with scale: force_bins)")
     if t["heldout_points"]["folds"] < 2:

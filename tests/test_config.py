@@ -168,6 +168,8 @@ BAD_CHOICES = [
     ("model.roi_features=curvature", "model.roi_features", "curvature", config_mod.roi_features),
     ("model.occlusion.mode=blur", "model.occlusion.mode", "blur", config_mod.occlusion_modes),
     ("model.force_scaling=log", "model.force_scaling", "log", config_mod.force_scalings),
+    ("train.interval.widen=double", "train.interval.widen", "double", config_mod.interval_widenings),
+    ("train.interval.scale=log", "train.interval.scale", "log", config_mod.interval_scales),
     ("validate.variant=nope", "validate.variant", "nope", _variant_choices),
     ("report.format=pdf", "report.format", "pdf", lambda: config_mod.REPORT_FORMATS),
     ("study.hyper_parameters=best", "study.hyper_parameters", "best", lambda: ("main", "config")),
@@ -204,6 +206,8 @@ def test_registries_are_the_implementations_own():
     assert config_mod.encoders() == tuple(names.ENCODERS)
     assert config_mod.roi_features() == tuple(names.ROI_FEATURE_CHANNELS)
     assert config_mod.occlusion_modes() == tuple(names.OCCLUSION_MODES)
+    from liverforce.learn import interval
+    assert config_mod.interval_widenings() == interval.WIDENINGS and config_mod.interval_scales() == interval.SCALES
 
 
 # every name of a registry is accepted by the config
@@ -218,6 +222,8 @@ ACCEPTED = [
     ("mesh.mesher", lambda: config_mod.MESHERS),
     ("report.format", lambda: config_mod.REPORT_FORMATS),
     ("validate.variant", _variant_choices),
+    ("train.interval.widen", config_mod.interval_widenings),
+    ("train.interval.scale", config_mod.interval_scales),
 ]
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from benchmarks.experiment_interval import interval_form, interval_forms, summary
+from benchmarks.experiment_interval import interval_form, interval_forms, stiffness_factors, summary
 from liverforce.learn.interval import ConformalInterval
 
 
@@ -38,20 +38,33 @@ def test_interval_form_unwidened_drops_only_the_widening_outside_the_stiffness_r
     cal = {"true_local": true, "pred_local": pred, "stiffness": rng.uniform(0.7, 1.3, (n, 1)), "folds": 4}
     cfg = {"coverage": 0.9, "scale": scale, "bins": 3}
     wide = ConformalInterval.from_dict(interval_form(cal, cfg))
-    bare = ConformalInterval.from_dict(interval_form(cal, cfg, widened=False))
+    bare = ConformalInterval.from_dict(interval_form(cal, cfg, widen="none"))
+    fitted = ConformalInterval.from_dict(interval_form(cal, cfg, widen="fitted"))
     k_hi = cal["stiffness"].max()
     assert wide.stiffness_range == (cal["stiffness"].min(), k_hi) and bare.stiffness_range is None
+    assert wide.widen == "proportional" and fitted.widen == "fitted" and len(fitted.stiffness_exponent) == 3
     f = pred[:5]
     inside, outside = np.full((5, 1), 1.0), np.full((5, 1), 1.4)
     np.testing.assert_allclose(bare.half_widths(inside, f), wide.half_widths(inside, f))  # inside: unchanged
+    np.testing.assert_allclose(fitted.half_widths(inside, f), wide.half_widths(inside, f))
     np.testing.assert_allclose(bare.half_widths(outside, f), bare.half_widths(inside, f))  # no widening
     np.testing.assert_allclose(wide.half_widths(outside, f), bare.half_widths(outside, f) * 1.4 / k_hi)
+    g = np.clip(fitted.stiffness_exponent, 0.0, 1.0)  # residuals that do not grow with k: g near 0
+    np.testing.assert_allclose(fitted.half_widths(outside, f), bare.half_widths(outside, f) * (1.4 / k_hi) ** g)
 
 
 def test_interval_forms_score_every_scale_once_per_fold_count_and_force_bins_once_per_bin_count():
-    forms = interval_forms([4, 8], ["force", "force_bins"], [3, 5], unwidened=False)
-    assert list(forms) == [(4, "force", None, True), (4, "force_bins", 3, True), (4, "force_bins", 5, True),
-                           (8, "force", None, True), (8, "force_bins", 3, True), (8, "force_bins", 5, True)]
-    assert forms[(8, "force_bins", 5, True)] == "force_bins:5 8 folds"
-    both = interval_forms([4], ["none"], [5], unwidened=True)
-    assert both == {(4, "none", None, True): "none 4 folds", (4, "none", None, False): "none 4 folds unwidened"}
+    forms = interval_forms([4, 8], ["force", "force_bins"], [3, 5])
+    assert list(forms) == [(4, "force", None, "proportional"), (4, "force_bins", 3, "proportional"),
+                           (4, "force_bins", 5, "proportional"), (8, "force", None, "proportional"),
+                           (8, "force_bins", 3, "proportional"), (8, "force_bins", 5, "proportional")]
+    assert forms[(8, "force_bins", 5, "proportional")] == "force_bins:5 8 folds"
+    both = interval_forms([4], ["none"], [5], ["proportional", "fitted", "none"])
+    assert both == {(4, "none", None, "proportional"): "none 4 folds",
+                    (4, "none", None, "fitted"): "none 4 folds widen fitted",
+                    (4, "none", None, "none"): "none 4 folds unwidened"}
+
+
+def test_stiffness_factors_are_the_first_constant_over_its_mean():
+    arrays = {"material_params_mpa": np.array([[0.001, 0.01, 0.0], [0.003, 0.02, 0.0]])}
+    np.testing.assert_allclose(stiffness_factors(arrays), [0.5, 1.5])

@@ -314,13 +314,20 @@ def test_report_validates_on_every_unseen_liver_with_mean_sd_and_the_worst_named
     assert _text(variants[1][7]) == "–"
 
 
-@pytest.mark.parametrize("scale, says", [("none", "fixed per component, widened where"),
-                                         ("stiffness", "scaled by each case's stiffness factor"),
-                                         (None, "fixed per component, widened where")])  # before the key
-def test_report_says_how_the_interval_width_was_set(stage_outputs, scale, says):
+@pytest.mark.parametrize("scale, widen, says", [
+    ("none", None, "fixed per component, widened where a liver's stiffness lies outside the calibration livers' "
+                   "range, by how far outside"),
+    ("none", "fitted", "fixed per component, widened where a liver's stiffness lies outside the calibration livers' "
+                       "range as the calibration residuals grow with the stiffness, (k / k_hi)^g with g = 0.12 / "
+                       "-0.30 / 0.00 for t1 / t2 / n"),
+    ("stiffness", None, "scaled by each case's stiffness factor"),
+    (None, None, "fixed per component, widened where")])  # before the key
+def test_report_says_how_the_interval_width_was_set(stage_outputs, scale, widen, says):
     path = stage_outputs["validation"]
     doc = json.loads(path.read_text())
     doc["interval"]["scale"] = scale
+    if widen:
+        doc["interval"].update(widen=widen, stiffness_exponent=[0.12, -0.3, 0.0])
     path.write_text(json.dumps(doc))
     html = _report(stage_outputs)
     iv = _section(html, "<h3>Calibrated interval</h3>", "</p>")

@@ -473,10 +473,12 @@ def interval_from_calibration(cal: dict, interval_cfg, scenario):
     :func:`calibration_predictions`' output: the same calibration predictions give every scale, with no new fit.
     ``interval_cfg["scale"]``: ``none``, ``stiffness``, ``force`` or ``force_bins`` (the module docstring; the
     config sets it, ``force_bins`` by default, with ``interval_cfg["bins"]`` bins; a dict without the key gets
-    ``stiffness``, what it meant before the key existed)."""
+    ``stiffness``, what it meant before the key existed); ``interval_cfg["widen"]``: ``proportional`` (without
+    the key) or ``fitted``, the widening outside the calibration's stiffness range."""
     return fit_conformal(cal["true_local"], cal["pred_local"], cal["stiffness"], float(interval_cfg["coverage"]),
                          group_key(scenario), scale=str(interval_cfg.get("scale", "stiffness")),
-                         folds=int(cal["folds"]), bins=int(interval_cfg.get("bins", 5)))
+                         folds=int(cal["folds"]), bins=int(interval_cfg.get("bins", 5)),
+                         widen=str(interval_cfg.get("widen", "proportional")))
 
 
 def _write_calibration(path: Path, cal: dict) -> None:

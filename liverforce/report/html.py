@@ -861,15 +861,18 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
         test = iv.get("test_coverage")
         lb = iv.get("coverage_band_by_liver")  # how well the livers measure it (runs before this field: absent)
         scale = iv.get("scale")
+        g = iv.get("stiffness_exponent")
+        widened = ("widened where a liver's stiffness lies outside the calibration livers' range, by how far "
+                   "outside" if iv.get("widen", "proportional") != "fitted" else
+                   "widened where a liver's stiffness lies outside the calibration livers' range as the calibration "
+                   "residuals grow with the stiffness, (k / k_hi)^g with g = "
+                   + (" / ".join(f"{v:.2f}" for v in g) if g else "0") + " for t1 / t2 / n (not where they shrink)")
         how = {"force": "scaled per case by the predicted force's magnitude, a + b |F| fitted on the calibration "
-                        "residuals, and widened where a liver's stiffness lies outside the calibration livers' "
-                        "range, by how far outside",
+                        "residuals, and " + widened,
                "force_bins": "a width per bin of the predicted force's magnitude, each bin calibrated on its own "
-                             "calibration cases, and widened where a liver's stiffness lies outside the calibration "
-                             "livers' range, by how far outside",
+                             "calibration cases, and " + widened,
                "stiffness": "scaled by each case's stiffness factor C10 / C10_ref"}.get(
-            scale, "fixed per component, widened where a liver's stiffness lies outside the calibration livers' "
-                   "range, by how far outside")
+            scale, "fixed per component, " + widened)
         parts.append(
             "<h3>Calibrated interval</h3><p>Every prediction comes with an interval per local force component "
             f"(conformal, calibrated on the training livers' predictions by models that did not see them: "

@@ -1302,7 +1302,8 @@ class CompiledCloud:
         self.tmean, self.tscale = pre.target_scaler.mean, pre.target_scaler.scale
         self.interval = model.interval  # its half-widths: the context's stiffness factor, and per cloud its force
         if self.interval is not None:  # the context's stiffness factor, once; the widths of |F| per cloud
-            self._kf = float(self.interval.stiffness_factor(np.array([[self.k_material]]))[0, 0])
+            # (1, 1), or (1, 3) per component with widen: fitted
+            self._kf = self.interval.stiffness_factor(np.array([[self.k_material]]))
         self._rec = ((model.meta or {}).get("training_scale") or {}).get("camera")
         self._raster = np.ascontiguousarray(self.ref.raster, dtype=np.float64)
         # the instrument's points in a cloud (a model trained without them refuses it: serve.cloud.shaft_points)

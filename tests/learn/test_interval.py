@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from liverforce.learn.frames import force_to_local, local_rotations
-from liverforce.learn.interval import ConformalInterval, coverage_per_component, fit_conformal, min_calibration_cases
+from liverforce.learn.interval import (ConformalInterval, coverage_per_component, fit_conformal, min_calibration_cases,
+                                      stiffness_exponent_fit)
 from liverforce.learn.model import ForceModel, subset
 from liverforce.learn.synthetic import synthetic_arrays
 from liverforce.learn.train import interval_from_calibration, train_scenario
@@ -242,6 +243,53 @@ def test_scale_force_bins_uses_fewer_bins_when_too_few_cases_and_is_unbounded_be
     assert ConformalInterval.from_dict(json.loads(json.dumps(few.to_dict()))) == few
     with pytest.raises(ValueError, match="bins"):
         fit_conformal(true, pred, np.ones(30), 0.9, "case", scale="force_bins", bins=0)
+
+
+def _growing(n, rng, g, k_range=(0.7, 1.3)):
+    """Calibration-like cases: stiffness factors uniform in ``k_range``, residual sd ``0.1 k^g_j`` per component."""
+    k = rng.uniform(*k_range, (n, 1))
+    pred = rng.normal(0.0, 1.0, (n, 3))
+    return k, pred, pred + 0.1 * k ** np.asarray(g, float)[None, :] * rng.normal(size=(n, 3))
+
+
+def test_fitted_widening_follows_the_residuals_growth_with_the_stiffness_and_covers_a_stiffer_liver():
+    """widen: fitted: the exponent of q_90(|r_j|) ~ k^g_j is recovered from the calibration (residuals growing as
+    k^1, k^0 and k^-1 per component); outside [k_lo, k_hi] the widths grow by (k / k_hi)^g_j above, (k_lo / k)^-g_j
+    below, clipped to [0, 1], never narrower. Fresh cases at k = 1.8 (residual sd 0.1 k^g): the component that
+    does not grow is covered near 90 % where proportional over-covers it; the widening starts from the pooled
+    quantile, so a component growing as k is under-covered by both rules alike (a limit of the rule)."""
+    rng = np.random.default_rng(21)
+    g_true = (1.0, 0.0, -1.0)
+    k, pred, true = _growing(20_000, rng, g_true)
+    g = stiffness_exponent_fit(k, np.abs(true - pred), 0.9)
+    np.testing.assert_allclose(g, g_true, atol=0.12)
+    fitted = fit_conformal(true, pred, k, 0.9, "geometry", scale="none", widen="fitted")
+    prop = fit_conformal(true, pred, k, 0.9, "geometry", scale="none")
+    assert fitted.stiffness_exponent == g and prop.widen == "proportional" and prop.stiffness_exponent is None
+    lo, hi = fitted.stiffness_range
+    f = np.zeros((3, 3))
+    kk = np.array([[1.0], [1.8], [0.35]])
+    ratio = fitted.half_widths(kk, f) / fitted.half_widths(np.ones((3, 1)), f)
+    np.testing.assert_allclose(ratio[0], 1.0)  # inside the range: unchanged
+    gc = np.clip(g, -1.0, 1.0)
+    np.testing.assert_allclose(ratio[1], (1.8 / hi) ** np.maximum(gc, 0.0))  # stiffer: the growing ones
+    np.testing.assert_allclose(ratio[2], (lo / 0.35) ** np.maximum(-gc, 0.0))  # softer: the one growing there
+    assert ratio[1, 0] > 1.3 and ratio[1, 1] < 1.02 and ratio[1, 2] == 1.0  # (1.8 / 1.3)^1; ~1; 1
+    assert ratio[2, 0] == 1.0 and ratio[2, 1] < 1.02 and ratio[2, 2] > 1.9  # 1; ~1; 0.7 / 0.35
+    assert ConformalInterval.from_dict(json.loads(json.dumps(fitted.to_dict()))) == fitted
+    k_new, p_new, t_new = _growing(20_000, np.random.default_rng(22), g_true, k_range=(1.8, 1.8))
+    got = coverage_per_component(t_new, p_new, fitted.half_widths(k_new, p_new))
+    over = coverage_per_component(t_new, p_new, prop.half_widths(k_new, p_new))
+    assert abs(got[1] - 0.9) < 0.015 and over[1] > 0.95, (got, over)  # not growing: x 1.8 / 1.3 over-covers
+    assert got[2] > 0.97 and over[2] > 0.99, (got, over)  # shrinking: never narrowed, over-covers either way
+    # growing as k: both widen by ~1.8 / k_hi from the pooled quantile (that of k ~ 1, below k_hi's): under-cover
+    assert abs(got[0] - over[0]) < 0.02 and got[0] < 0.85, (got, over)
+    # a bundle written before the key meant proportional; one material (no stiffness range): no exponent to fit
+    old = {k_: v for k_, v in prop.to_dict().items() if k_ not in ("widen", "stiffness_exponent")}
+    assert ConformalInterval.from_dict(old) == prop
+    assert stiffness_exponent_fit(np.ones((50, 1)), np.abs(true[:50] - pred[:50]), 0.9) == (0.0, 0.0, 0.0)
+    with pytest.raises(ValueError, match="widen"):
+        fit_conformal(true, pred, k, 0.9, "geometry", scale="none", widen="double")
 
 
 def test_calibrate_folds_recalibrates_the_same_split_model_as_a_run_with_that_fold_count(tmp_path):

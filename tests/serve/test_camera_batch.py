@@ -223,6 +223,14 @@ def test_batch_equals_per_cloud_predictions(served):
     np.testing.assert_allclose(h3, kf * np.where((m >= edge)[:, None], [[0.3, 0.3, 0.6]], [[0.1, 0.1, 0.2]]),
                                rtol=1e-12)
     np.testing.assert_allclose(binned.predict(clouds[0], tips[0])[1], h3[0], rtol=1e-12)
+    # widen: fitted, the context's liver stiffer than every calibration case: a factor per component
+    k = fast.k_material
+    fitted = compiled_with({**binned.interval.to_dict(), "stiffness_range": [0.5 * k, 0.8 * k], "widen": "fitted",
+                            "stiffness_exponent": [0.5, -0.3, 1.0]})
+    h4 = fitted.predict_batch(clouds, tips).half_width
+    np.testing.assert_allclose(h4, fitted.interval.half_widths(k_rows, res.force), rtol=1e-12)
+    np.testing.assert_allclose(h4 / h3, np.tile([[1.25 ** 0.5, 1.0, 1.25]], (len(m), 1)) / kf, rtol=1e-12)
+    np.testing.assert_allclose(fitted.predict(clouds[0], tips[0])[1], h4[0], rtol=1e-12)
     # a model without an interval: the force alone, and None for the widths
     bare = compiled_with(None)
     f0, h0, _ = bare.predict(clouds[0], tips[0])
