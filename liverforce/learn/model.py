@@ -121,7 +121,7 @@ from liverforce.learn.torchutil import EpochCallback
 from liverforce.seeds import derive
 
 FORMAT = "liverforce.force_model"
-FORMAT_VERSION = 13  # 3: probe compliance in the state vector (material from column 22), linear force estimate;
+FORMAT_VERSION = 14  # 3: probe compliance in the state vector (material from column 22), linear force estimate;
 #                     4: the GP regressor may be a GPEnsemble (model.gp.code_members), which a reader of 3 cannot load;
 #                     5: the state features may end with the indentation strain, which a reader of 4 would misread;
 #                     6: a GP's kernel may be the rational quadratic (a ``shape`` buffer), which a reader of 5 would
@@ -141,13 +141,17 @@ FORMAT_VERSION = 13  # 3: probe compliance in the state vector (material from co
 #                        features end with it, which a reader of 11 would read as the tool tip
 #                     13: a GP may have one kernel per force component (model.gp.per_output: length scales
 #                        (outputs, inputs)), which a reader of 12 cannot evaluate
-READ_VERSIONS = (3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13)
+#                     14: the interval may widen outside the calibration's stiffness range as its residuals grow
+#                        with the stiffness (train.interval.widen: fitted), which a reader of 13 would widen in
+#                        proportion to it
+READ_VERSIONS = (3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14)
 # a version-3 bundle is a version-4 bundle with a single GP (or an MLP); 4 is 5
 #                                     without the indentation strain; 5 is 6 with squared-exponential GPs (no shape
 #                                     buffer); 6 is 7 with camera models on the ROI points' reference (reference:
 #                                     points); 7 is 8 with node models on the points' interpolant (no interpolation
 #                                     key: the Representation default, points); 8 is 9 without material_ref (the
-#                                     force scaling's reference, if any, stands in); 10 is 11 without force_bins
+#                                     force scaling's reference, if any, stands in); 10 is 11 without force_bins;
+#                                     13 is 14 without widen (proportional)
 
 ROI_INPUTS = (
     "exertion_point_mm",
