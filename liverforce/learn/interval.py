@@ -178,7 +178,8 @@ class ConformalInterval:
 
     def stiffness_factor(self, stiffness: np.ndarray) -> np.ndarray:
         """What the widths are multiplied by for each row's stiffness factor ``(n, 1)``: ``k`` with
-        ``scale: stiffness``, else the widening outside the calibration's range (:meth:`extrapolation_factor`)."""
+        ``scale: stiffness``, else the widening outside the calibration's range (:meth:`extrapolation_factor`;
+        ``(n, 3)``, one factor per component, with ``widen: fitted``)."""
         k = np.asarray(stiffness, dtype=np.float64).reshape(-1, 1)
         return k if self.scale == "stiffness" else self.extrapolation_factor(k)
 
