@@ -317,9 +317,10 @@ def test_report_validates_on_every_unseen_liver_with_mean_sd_and_the_worst_named
 @pytest.mark.parametrize("scale, widen, says", [
     ("none", None, "fixed per component, widened where a liver's stiffness lies outside the calibration livers' "
                    "range, by how far outside"),
-    ("none", "fitted", "fixed per component, widened where a liver's stiffness lies outside the calibration livers' "
-                       "range as the calibration residuals grow with the stiffness, (k / k_hi)^g with g = 0.12 / "
-                       "-0.30 / 0.00 for t1 / t2 / n"),
+    ("none", "fitted", "fixed per component, widened outside the calibration livers' stiffness range as far as the "
+                       "calibration residuals grow with the stiffness (|r| ~ k^g, g = 0.12 / -0.30 / 0.00 for t1 / t2 "
+                       "/ n: a stiffer liver's widths grow by (k / k_hi)^g where g is positive, a softer one's by "
+                       "(k_lo / k)^-g where g is negative)"),
     ("stiffness", None, "scaled by each case's stiffness factor"),
     (None, None, "fixed per component, widened where")])  # before the key
 def test_report_says_how_the_interval_width_was_set(stage_outputs, scale, widen, says):
@@ -590,3 +591,14 @@ def test_report_gives_the_coverage_band_over_the_livers_when_the_validation_has_
     del doc["interval"]["coverage_band_by_liver"]
     path.write_text(json.dumps(doc))
     assert "population's coverage" not in _section(_report(stage_outputs), "<h3>Calibrated interval</h3>", "</p>")
+
+
+@pytest.mark.parametrize("g, says", [
+    ([-0.27, -0.45, -0.45], "they shrink as the stiffness grows, so a stiffer liver's widths are not widened"),
+    ([0.2, 0.0, 0.5], "they grow with it, so a stiffer liver's widths grow by (k / k_hi)^g"),
+    ([0.2, -0.1, 0.0], "where g is positive, a softer one's by (k_lo / k)^-g where g is negative")])
+def test_the_fitted_widening_is_said_by_the_sign_of_its_exponents(g, says):
+    from liverforce.report.html import _fitted_widening
+
+    text = _fitted_widening(g)
+    assert says in text and " / ".join(f"{v:.2f}" for v in g) in text and "<" not in text and ">" not in text

@@ -70,6 +70,21 @@ STUDY_TEXT = {
 }
 
 
+def _fitted_widening(g) -> str:
+    """How an interval with ``widen: fitted`` widens outside the calibration's stiffness range, from its exponents
+    ``g`` (t1, t2, n; :func:`liverforce.learn.interval.stiffness_exponent_fit`)."""
+    say = ("widened outside the calibration livers' stiffness range as far as the calibration residuals grow with "
+           f"the stiffness (|r| ~ k^g, g = {' / '.join(f'{v:.2f}' for v in g)} for t1 / t2 / n: ")
+    if all(v <= 0 for v in g):
+        return say + ("they shrink as the stiffness grows, so a stiffer liver's widths are not widened and a softer "
+                      "one's grow by (k_lo / k)^-g)")
+    if all(v >= 0 for v in g):
+        return say + ("they grow with it, so a stiffer liver's widths grow by (k / k_hi)^g and a softer one's are not "
+                      "widened)")
+    return say + ("a stiffer liver's widths grow by (k / k_hi)^g where g is positive, a softer one's by "
+                  "(k_lo / k)^-g where g is negative)")
+
+
 def _rel(path: str | Path, start: Path) -> str:
     return html.escape(os.path.relpath(Path(path).resolve(), start.resolve()))
 
@@ -861,12 +876,9 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
         test = iv.get("test_coverage")
         lb = iv.get("coverage_band_by_liver")  # how well the livers measure it (runs before this field: absent)
         scale = iv.get("scale")
-        g = iv.get("stiffness_exponent")
         widened = ("widened where a liver's stiffness lies outside the calibration livers' range, by how far "
-                   "outside" if iv.get("widen", "proportional") != "fitted" else
-                   "widened where a liver's stiffness lies outside the calibration livers' range as the calibration "
-                   "residuals grow with the stiffness, (k / k_hi)^g with g = "
-                   + (" / ".join(f"{v:.2f}" for v in g) if g else "0") + " for t1 / t2 / n (not where they shrink)")
+                   "outside" if iv.get("widen", "proportional") != "fitted" else _fitted_widening(
+                       iv.get("stiffness_exponent") or [0.0, 0.0, 0.0]))
         how = {"force": "scaled per case by the predicted force's magnitude, a + b |F| fitted on the calibration "
                         "residuals, and " + widened,
                "force_bins": "a width per bin of the predicted force's magnitude, each bin calibrated on its own "
