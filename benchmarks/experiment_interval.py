@@ -176,11 +176,14 @@ def main() -> None:
                 cfg = {**base, "folds": k, "scale": f[1], **({} if f[2] is None else {"bins": f[2]})}
                 m.meta["interval"] = interval_form(cal, cfg, widen=f[3])
                 for part, cases in scored.items():
-                    got[f][part].append(interval_coverage(m, cases))
+                    if len(cases["case_id"]):  # (a split's test livers may have no case outside the range)
+                        got[f][part].append(interval_coverage(m, cases))
         print(f"split {r + 1}/{args.splits} done ({time.perf_counter() - t:.0f} s)", flush=True)
     for f in forms:
         for part in parts:
-            print(f"{args.variant} scale {forms[f]:22s} {part:12s} ({args.splits} splits): {summary(got[f][part])}")
+            docs = got[f][part]
+            print(f"{args.variant} scale {forms[f]:22s} {part:12s} ({len(docs)} splits): "
+                  + (summary(docs) if docs else "no cases"))
 
 
 if __name__ == "__main__":

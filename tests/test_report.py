@@ -321,14 +321,16 @@ def test_report_validates_on_every_unseen_liver_with_mean_sd_and_the_worst_named
                        "calibration residuals grow with the stiffness (|r| ~ k^g, g = 0.12 / -0.30 / 0.00 for t1 / t2 "
                        "/ n: a stiffer liver's widths grow by (k / k_hi)^g where g is positive, a softer one's by "
                        "(k_lo / k)^-g where g is negative)"),
+    ("none", "fitted-none", "fixed per component, widened where a liver's stiffness lies outside the calibration "
+                            "livers' range, by how far outside (the calibration spans too few stiffnesses"),
     ("stiffness", None, "scaled by each case's stiffness factor"),
     (None, None, "fixed per component, widened where")])  # before the key
 def test_report_says_how_the_interval_width_was_set(stage_outputs, scale, widen, says):
     path = stage_outputs["validation"]
     doc = json.loads(path.read_text())
     doc["interval"]["scale"] = scale
-    if widen:
-        doc["interval"].update(widen=widen, stiffness_exponent=[0.12, -0.3, 0.0])
+    if widen:  # fitted-none: widen fitted with nothing fitted (one material): the proportional rule
+        doc["interval"].update(widen="fitted", stiffness_exponent=None if widen == "fitted-none" else [0.12, -0.3, 0.0])
     path.write_text(json.dumps(doc))
     html = _report(stage_outputs)
     iv = _section(html, "<h3>Calibrated interval</h3>", "</p>")
@@ -596,7 +598,8 @@ def test_report_gives_the_coverage_band_over_the_livers_when_the_validation_has_
 @pytest.mark.parametrize("g, says", [
     ([-0.27, -0.45, -0.45], "they shrink as the stiffness grows, so a stiffer liver's widths are not widened"),
     ([0.2, 0.0, 0.5], "they grow with it, so a stiffer liver's widths grow by (k / k_hi)^g"),
-    ([0.2, -0.1, 0.0], "where g is positive, a softer one's by (k_lo / k)^-g where g is negative")])
+    ([0.2, -0.1, 0.0], "where g is positive, a softer one's by (k_lo / k)^-g where g is negative"),
+    ([0.0, 0.0, 0.0], "they do not, so no liver is widened")])
 def test_the_fitted_widening_is_said_by_the_sign_of_its_exponents(g, says):
     from liverforce.report.html import _fitted_widening
 

@@ -333,13 +333,13 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
             ci = interval_from_calibration(cal, train_cfg["interval"], scenario)
             if not final:
                 _write_calibration(out_dir / "interval_calibration.npz", cal)
-            for k in calibrate_folds:  # an experiment's other fold counts, on the same split model's settings
-                cal_k = calibration_predictions(train_arrays, model_cfg, {**train_cfg["interval"], "folds": int(k)},
-                                                scenario, seed, encoder, use_state, code_size, dae_noise, hidden,
-                                                dropout, fit)
-                _write_calibration(out_dir / f"interval_calibration_folds{int(k)}.npz", cal_k)
         except ValueError as exc:  # e.g. one training liver in IV: nothing to hold out by liver
             notes.append(f"no calibrated interval: {exc}")
+    for k in (calibrate_folds if ci is not None else ()):  # an experiment's other fold counts (errors propagate)
+        cal_k = calibration_predictions(train_arrays, model_cfg, {**train_cfg["interval"], "folds": int(k)},
+                                        scenario, seed, encoder, use_state, code_size, dae_noise, hidden, dropout,
+                                        fit)
+        _write_calibration(out_dir / f"interval_calibration_folds{int(k)}.npz", cal_k)
     if ci is not None:
         model.meta["interval"] = ci.to_dict()
         got = model.predict_interval(test_arrays, observation_seed=eval_seed(seed))

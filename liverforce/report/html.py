@@ -75,6 +75,8 @@ def _fitted_widening(g) -> str:
     ``g`` (t1, t2, n; :func:`liverforce.learn.interval.stiffness_exponent_fit`)."""
     say = ("widened outside the calibration livers' stiffness range as far as the calibration residuals grow with "
            f"the stiffness (|r| ~ k^g, g = {' / '.join(f'{v:.2f}' for v in g)} for t1 / t2 / n: ")
+    if all(v == 0 for v in g):
+        return say + "they do not, so no liver is widened)"
     if all(v <= 0 for v in g):
         return say + ("they shrink as the stiffness grows, so a stiffer liver's widths are not widened and a softer "
                       "one's grow by (k_lo / k)^-g)")
@@ -876,9 +878,11 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
         test = iv.get("test_coverage")
         lb = iv.get("coverage_band_by_liver")  # how well the livers measure it (runs before this field: absent)
         scale = iv.get("scale")
+        g = iv.get("stiffness_exponent")
         widened = ("widened where a liver's stiffness lies outside the calibration livers' range, by how far "
-                   "outside" if iv.get("widen", "proportional") != "fitted" else _fitted_widening(
-                       iv.get("stiffness_exponent") or [0.0, 0.0, 0.0]))
+                   "outside" + ("" if iv.get("widen", "proportional") != "fitted" else
+                                " (the calibration spans too few stiffnesses to fit how its residuals grow)")
+                   if iv.get("widen", "proportional") != "fitted" or g is None else _fitted_widening(g))
         how = {"force": "scaled per case by the predicted force's magnitude, a + b |F| fitted on the calibration "
                         "residuals, and " + widened,
                "force_bins": "a width per bin of the predicted force's magnitude, each bin calibrated on its own "

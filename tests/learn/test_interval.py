@@ -287,9 +287,37 @@ def test_fitted_widening_follows_the_residuals_growth_with_the_stiffness_and_cov
     # a bundle written before the key meant proportional; one material (no stiffness range): no exponent to fit
     old = {k_: v for k_, v in prop.to_dict().items() if k_ not in ("widen", "stiffness_exponent")}
     assert ConformalInterval.from_dict(old) == prop
-    assert stiffness_exponent_fit(np.ones((50, 1)), np.abs(true[:50] - pred[:50]), 0.9) == (0.0, 0.0, 0.0)
+    # one material (scenarios I, II): nothing to fit, the proportional rule; likewise too few cases for two bins
+    one = fit_conformal(true[:50], pred[:50], np.ones((50, 1)), 0.9, "case", scale="none", widen="fitted")
+    assert one.stiffness_exponent is None and stiffness_exponent_fit(k[:15], true[:15], 0.9) is None
+    np.testing.assert_allclose(one.stiffness_factor(np.array([[1.3], [0.5]])), [[1.3], [2.0]])
     with pytest.raises(ValueError, match="widen"):
         fit_conformal(true, pred, k, 0.9, "geometry", scale="none", widen="double")
+
+
+def test_the_stiffness_exponent_ignores_a_growth_the_widths_already_follow_and_survives_ties_and_zeros():
+    """scale: force with errors proportional to |f| and forces growing as k: the widths already follow the growth,
+    so the exponent of the scores r / sigma is ~0 (raw |r| would give ~1 and widen a stiffer liver twice). Tied
+    stiffness factors (an edge at the smallest k) still give bins; a component with zero residuals gets the
+    proportional 1 without touching the others."""
+    rng = np.random.default_rng(31)
+    n = 6000
+    k = rng.uniform(0.7, 1.3, (n, 1))
+    d = rng.normal(size=(n, 3))
+    pred = d / np.linalg.norm(d, axis=1, keepdims=True) * 3.0 * k  # |f^| = 3 k
+    true = pred + 0.05 * np.linalg.norm(pred, axis=1, keepdims=True) * rng.normal(size=(n, 3))
+    raw = stiffness_exponent_fit(k, np.abs(true - pred), 0.9)
+    ci = fit_conformal(true, pred, k, 0.9, "geometry", scale="force", widen="fitted")
+    assert all(abs(v - 1.0) < 0.15 for v in raw), raw
+    assert all(abs(v) < 0.15 for v in ci.stiffness_exponent), ci.stiffness_exponent
+    binned = fit_conformal(true, pred, k, 0.9, "geometry", scale="force_bins", widen="fitted")
+    assert all(abs(v) < 0.3 for v in binned.stiffness_exponent), binned.stiffness_exponent  # 5 steps of |f^|
+    m = 40_000  # two bins 0.26 apart in log k: the slope's sd is ~0.04 here
+    tied = np.where(np.arange(m)[:, None] < 0.6 * m, 1.0, 1.3)  # 60 % at k = 1: the 20-60 % quantiles are 1.0
+    r = np.abs(rng.normal(size=(m, 3))) * tied ** np.array([0.5, 0.0, 0.0])
+    r[:, 2] = 0.0
+    g = stiffness_exponent_fit(tied, r, 0.9)
+    assert abs(g[0] - 0.5) < 0.15 and abs(g[1]) < 0.15 and g[2] == 1.0, g
 
 
 def test_calibrate_folds_recalibrates_the_same_split_model_as_a_run_with_that_fold_count(tmp_path):
