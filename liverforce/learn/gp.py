@@ -45,6 +45,7 @@ import math
 
 import numpy as np
 import torch
+from numba import njit
 from torch import nn
 
 from liverforce.learn import names
@@ -130,7 +131,8 @@ class GPRegressor(nn.Module):
         ``s_f^2`` folded into ``alpha`` and the linear term into one (d, 3) matrix ``s_l^2 X^T alpha``: one
         BLAS product, ``exp`` and two products with 3 columns. The rational quadratic is
         ``exp(-a log1p(d2 / (2 a)))``: one ``log1p`` more; for a whole ``a`` up to
-        :data:`POW_SHAPE_MAX_HEAD` (the default 2) ``1 / (1 + d2 / (2 a))^a`` by products, no ``exp``.
+        :data:`POW_SHAPE_MAX_HEAD` (the default 2) ``1 / (1 + d2 / (2 a))^a`` by products, no ``exp``, in one
+        compiled pass with the product by ``alpha`` (:func:`_rq_power_mean`).
 
         ``fixed``: ``{input column: value}`` for inputs that are the same in every row (a compiled
         context's state vector). The head then takes only the other columns, in their order; the fixed
@@ -165,6 +167,7 @@ class GPRegressor(nn.Module):
         inv_l = inv_l_all[fr].copy()
         alpha = self.alpha.numpy()
         alpha_s = float(self.signal_var) * alpha
+        alpha_sT = np.ascontiguousarray(alpha_s.T)  # (3, n_train): _rq_power_mean reads each output's row
         beta_all = float(self.linear_var) * (self.X.numpy().T @ alpha)
         beta = np.ascontiguousarray(beta_all[fr])
         b0 = fv @ beta_all[fc] if fc.size else None  # the fixed inputs' linear term
@@ -182,24 +185,19 @@ class GPRegressor(nn.Module):
             Za[:, d] = -0.5 * np.einsum("ij,ij->i", Zs, Zs)
             Za[:, d + 1] = 1.0
             E = Za @ XaT  # -d2 / 2, not clamped at 0: where it rounds above 0 (~1e-13) the kernel is 1 + 1e-13
+            if power:  # a small whole a: (1 + d2 / (2 a))^-a = 1 / B^a, B = 1 - E / a, no exp or log1p, and the
+                # product with alpha in the same pass over E (_rq_power_mean)
+                out = Z @ beta
+                _rq_power_mean(E, 1.0 / a, power, alpha_sT, out)
+                if b0 is not None:
+                    out += b0
+                return out
             # exp and log1p in place, with the faster of NumPy and torch on this CPU (_exp_, _log1p_)
-            if power:  # a small whole a: (1 + d2 / (2 a))^-a = 1 / B^a, B = 1 - E / a, no exp or log1p
+            if rq:  # (1 + d2 / (2 a))^-a = exp(-a log1p(-E / a))
                 E *= -1.0 / a
-                E += 1.0
-                if power == 3:
-                    B = E.copy()
-                    np.square(E, out=E)
-                    E *= B
-                elif power > 1:  # 2 or 4: squared once or twice, in place
-                    for _ in range(power // 2):
-                        np.square(E, out=E)
-                np.reciprocal(E, out=E)
-            else:
-                if rq:  # (1 + d2 / (2 a))^-a = exp(-a log1p(-E / a))
-                    E *= -1.0 / a
-                    _log1p_(E)
-                    E *= -a
-                _exp_(E)
+                _log1p_(E)
+                E *= -a
+            _exp_(E)
             out = E @ alpha_s + Z @ beta
             if b0 is not None:
                 out += b0
@@ -209,6 +207,58 @@ class GPRegressor(nn.Module):
 
 
 KERNELS = names.GP_KERNELS
+
+
+@njit(cache=True, error_model="numpy", fastmath={"reassoc", "nsz", "contract", "arcp"})
+def _rq_power_mean(E, inv_a, power, alphaT, out):
+    """``out[i] += sum_j B_ij^-power alphaT[:, j]``, ``B = 1 - E inv_a``: the rational quadratic of a whole shape
+    ``a = power`` (1 to :data:`POW_SHAPE_MAX_HEAD`) and its product with the (m, n) weights in one pass over
+    ``E`` (``-d2 / 2``, rows x training rows) for the three outputs (one pass per output otherwise: a
+    per-output GP's heads have one each), where NumPy makes five (scale, shift, power, reciprocal, product).
+    The NumPy error model lets LLVM vectorise the division (Python's raises on a zero divisor: a branch per
+    value; ``B >= 1`` here up to rounding), and the fast-math flags the sums; their order depends on the row
+    alone, so a row gives the same bits alone and in a batch (``benchmarks/bench_gp_head.py`` times both)."""
+    n, N = E.shape
+    m = alphaT.shape[0]
+    nn_ = np.uint64(N)
+    for i in range(n):
+        e = E[i]
+        if m == 3:
+            a0, a1, a2 = alphaT[0], alphaT[1], alphaT[2]
+            o0 = 0.0
+            o1 = 0.0
+            o2 = 0.0
+            if power == 2:  # the default shape: its own loop, which LLVM vectorises fully
+                for j in range(nn_):
+                    b = 1.0 - e[j] * inv_a
+                    k = 1.0 / (b * b)
+                    o0 += k * a0[j]
+                    o1 += k * a1[j]
+                    o2 += k * a2[j]
+            else:
+                for j in range(nn_):
+                    b = 1.0 - e[j] * inv_a
+                    bp = b
+                    for _ in range(power - 1):
+                        bp *= b
+                    k = 1.0 / bp
+                    o0 += k * a0[j]
+                    o1 += k * a1[j]
+                    o2 += k * a2[j]
+            out[i, 0] += o0
+            out[i, 1] += o1
+            out[i, 2] += o2
+        else:
+            for c in range(m):
+                ac = alphaT[c]
+                o = 0.0
+                for j in range(nn_):
+                    b = 1.0 - e[j] * inv_a
+                    bp = b
+                    for _ in range(power - 1):
+                        bp *= b
+                    o += ac[j] / bp
+                out[i, c] += o
 
 
 def _numpy_avx512(ufunc: str) -> bool:
