@@ -3,13 +3,16 @@
 The compiled serving paths evaluate, per cloud and GP member, one kernel row against every training row.
 The squared exponential costs one ``exp`` per kernel value; the rational quadratic ``exp(-a log1p(t))``, one
 ``log1p`` more; for a whole shape up to ``POW_SHAPE_MAX_HEAD`` (the default a = 2) the head computes
-``1 / (1 + t)^a`` by products and a reciprocal instead. This times the three on the same rows, side by side
-in the same run (the rational quadratic through exp and log1p is the peer: the path the whole shape took
+``1 / (1 + t)^a`` by products and a reciprocal instead. This times them on the same rows, side by side in
+the same run (the rational quadratic through exp and log1p is the peer: the path the whole shape took
 before), and checks that the rational-quadratic paths give the same outputs. Since session 42 the products
 are fused with the product by the weights in one compiled pass (``gp._rq_power_mean``); the NumPy passes it
-replaced (scale, shift, square, reciprocal, product: ``_numpy_passes`` here) are timed beside it. Sizes are the shipped camera
-model's: 2,000 training rows, blocks of 128 feature rows (``compiled_cloud._HEAD_ROWS``). Prints medians over
-``--repeats`` runs, in microseconds per feature row (one cloud), one thread.
+replaced (scale, shift, square, reciprocal, product: ``_numpy_passes`` here) are timed beside it. Sizes are
+the shipped camera model's: 2,000 training rows, blocks of 128 feature rows (``compiled_cloud._HEAD_ROWS``).
+Prints medians over ``--repeats`` runs, in microseconds per feature row (one cloud), one thread.
+
+Measured (session 42, 1 thread, nothing else running, medians of 9): exp and log1p 21.72 us per row, squared
+exponential 12.16, five NumPy passes 10.44, fused 7.37 (2.95x the peer, 1.42x the passes).
 
     PYTHONPATH=. OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_gp_head.py [--inputs 62] [--repeats 9]
 """

@@ -102,7 +102,9 @@ _CHUNK = 64  # clouds per conversion of a padded array that is not float32 / flo
 _RUN = 8  # _cell_moments reads a run on to a multiple of this many points (fewer scalar loop remainders)
 _MAX_POINTS = 2**31 - 1  # points per cloud: the kernel's sort keys and indices are 32-bit
 _HEAD_ROWS = 128  # feature rows per call of the head (the GP's kernel matrix: rows x 2,000 training rows). On an
-# AVX-512 host, 5 members of 38-94 inputs, us per row at 64 / 128 / 256 rows: 45 / 44 / 47 (1 thread, medians of 9)
+# AVX-512 host, 5 members of 38-94 inputs, us per row at 64 / 128 / 256 rows: 45 / 44 / 47 (1 thread, medians of 9);
+# with the fused pass (gp._rq_power_mean, session 42), one 62-input member at 32 / 64 / 128 / 256 rows: 9.0 / 7.8
+# / 7.4 / 7.2 us (benchmarks/bench_gp_head.py --block, medians of 7)
 _CLOUD_TYPE = types.Array(types.float64, 2, "C", readonly=True)  # items of the typed list of clouds: one signature
 # for writable and read-only (e.g. Arrow-backed) clouds alike
 
