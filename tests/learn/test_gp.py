@@ -621,6 +621,8 @@ def test_the_fused_rational_quadratic_pass_equals_the_numpy_formula(outputs):
         gp_module._rq_power_mean(E, 1.0 / a, a, alphaT, out)
         want = out0 + (1.0 - E / a) ** -float(a) @ alphaT.T
         np.testing.assert_allclose(out, want, rtol=1e-12, atol=1e-12 * np.abs(alphaT).sum())
+        buf = np.empty(E.shape[1] + 1)  # the row alone, copied to other memory, one element off the block's alignment
+        buf[1:] = E[5]
         one = out0[5:6].copy()
-        gp_module._rq_power_mean(E[5:6], 1.0 / a, a, alphaT, one)
+        gp_module._rq_power_mean(buf[1:].reshape(1, -1), 1.0 / a, a, alphaT, one)
         np.testing.assert_array_equal(one, out[5:6])  # a row alone gives the bits it gets in a block
