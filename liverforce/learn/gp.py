@@ -216,8 +216,9 @@ KERNELS = names.GP_KERNELS
 def _rq_power_mean(E, inv_a, power, alphaT, out):
     """``out[i] += sum_j B_ij^-power alphaT[:, j]``, ``B = 1 - E inv_a``: the rational quadratic of a whole shape
     ``a = power`` (1 to :data:`POW_SHAPE_MAX_HEAD`) and its product with the (m, n) weights in one pass over
-    ``E`` (``-d2 / 2``, rows x training rows) for the three outputs (one pass per output otherwise: a
-    per-output GP's heads have one each), where NumPy makes five (scale, shift, power, reciprocal, product).
+    ``E`` (``-d2 / 2``, rows x training rows) for the shipped a = 2 and three outputs (one pass per output
+    otherwise: a per-output GP's heads have one each), where NumPy makes five (scale, shift, power, reciprocal,
+    product).
     The NumPy error model lets LLVM vectorise the division (Python's raises on a zero divisor: a branch per
     value; ``B >= 1`` here up to rounding), and the fast-math flags the sums; their order depends on the row
     alone, so a row gives the same bits alone and in a batch (``benchmarks/bench_gp_head.py`` times both)."""
@@ -226,28 +227,17 @@ def _rq_power_mean(E, inv_a, power, alphaT, out):
     nn_ = np.uint64(N)
     for i in range(n):
         e = E[i]
-        if m == 3:
+        if m == 3 and power == 2:  # the default shape and outputs: one loop for the three, which LLVM vectorises
             a0, a1, a2 = alphaT[0], alphaT[1], alphaT[2]
             o0 = 0.0
             o1 = 0.0
             o2 = 0.0
-            if power == 2:  # the default shape: its own loop, which LLVM vectorises fully
-                for j in range(nn_):
-                    b = 1.0 - e[j] * inv_a
-                    k = 1.0 / (b * b)
-                    o0 += k * a0[j]
-                    o1 += k * a1[j]
-                    o2 += k * a2[j]
-            else:
-                for j in range(nn_):
-                    b = 1.0 - e[j] * inv_a
-                    bp = b
-                    for _ in range(power - 1):
-                        bp *= b
-                    k = 1.0 / bp
-                    o0 += k * a0[j]
-                    o1 += k * a1[j]
-                    o2 += k * a2[j]
+            for j in range(nn_):
+                b = 1.0 - e[j] * inv_a
+                k = 1.0 / (b * b)
+                o0 += k * a0[j]
+                o1 += k * a1[j]
+                o2 += k * a2[j]
             out[i, 0] += o0
             out[i, 1] += o1
             out[i, 2] += o2

@@ -302,10 +302,8 @@ def fit_conformal(true_local: np.ndarray, pred_local: np.ndarray, stiffness: np.
         edges, widths = _force_bins(pred, r, ok, coverage, int(bins))
     g = None
     if widen == "fitted" and rng is not None:  # the growth with k of the scores the widths do not already follow
-        score = r[ok]
-        if fs is not None:
-            score = score / force_sigma(fs, pred[ok])
-        elif widths is not None:
+        score = s[ok]  # r, or r / sigma with scale: force (k is 1 for every scale with a range)
+        if widths is not None:
             w = np.asarray(widths, dtype=np.float64)[force_bin_of(edges, pred[ok])]
             score = np.where(np.isfinite(w) & (w > 0), score / np.where(w > 0, w, 1.0), score)
         g = stiffness_exponent_fit(k_rows[ok], score, coverage)
@@ -328,19 +326,32 @@ def stiffness_exponent_fit(stiffness: np.ndarray, score: np.ndarray, coverage: f
     r = np.asarray(score, dtype=np.float64).reshape(len(k), -1)
     if k.size == 0 or not k.min() > 0 or k.max() <= k.min() * (1 + 1e-9):
         return None
-    need = min_calibration_cases(coverage)
-    for b in range(min(int(bins), len(k) // need), 1, -1):
-        edges = np.unique(np.quantile(k, np.arange(1, b) / b))
-        edges = edges[edges > k.min()]  # an edge at the smallest k would leave the first bin empty (ties)
-        which = np.searchsorted(edges, k, side="right")
-        counts = np.bincount(which, minlength=len(edges) + 1)
-        if len(edges) == 0 or counts.min() < need:
-            continue
-        x = np.log([k[which == i].mean() for i in range(len(counts))])
-        q = np.array([np.sort(r[which == i], axis=0)[_rank(int(counts[i]), coverage) - 1]
-                      for i in range(len(counts))])
-        return tuple(float(np.polyfit(x, np.log(q[:, j]), 1)[0]) if (q[:, j] > 0).all() and np.isfinite(q[:, j]).all()
-                     else 1.0 for j in range(r.shape[1]))
+    cut = _quantile_bins(k, int(bins), min_calibration_cases(coverage), fewest=2)
+    if cut is None:
+        return None
+    _, which, counts = cut
+    x = np.log([k[which == i].mean() for i in range(len(counts))])
+    q = np.array([np.sort(r[which == i], axis=0)[_rank(int(counts[i]), coverage) - 1] for i in range(len(counts))])
+    return tuple(float(np.polyfit(x, np.log(q[:, j]), 1)[0]) if (q[:, j] > 0).all() and np.isfinite(q[:, j]).all()
+                 else 1.0 for j in range(r.shape[1]))
+
+
+def _quantile_bins(values: np.ndarray, bins: int, need: int, n_extra: int = 0, fewest: int = 1):
+    """``(inner edges, bin of each value, cases per bin)`` with the edges at the quantiles of ``values``: as many
+    bins as asked for, fewer while a bin would hold fewer than ``need`` cases (``n_extra`` cases counted in every
+    bin: :func:`_force_bins`' non-finite ones). Tied values share an edge: the duplicate, or one at the smallest
+    value (an empty first bin), is dropped. None when not even ``fewest`` bins can be filled (one bin always can)."""
+    top = max(1, (len(values) + n_extra) // need)
+    for b in range(min(bins, top), fewest - 1, -1):
+        e = np.unique(np.quantile(values, np.arange(1, b) / b)) if values.size else np.empty(0)
+        edges = e[e > values.min()] if values.size else e
+        which = np.searchsorted(edges, values, side="right")
+        counts = np.bincount(which, minlength=len(edges) + 1) + n_extra
+        if len(edges) == 0:
+            if fewest <= 1:
+                return edges, which, counts
+        elif counts.min() >= need:
+            return edges, which, counts
     return None
 
 
@@ -349,23 +360,15 @@ def _force_bins(pred: np.ndarray, r: np.ndarray, ok: np.ndarray, coverage: float
     component; as many bins as asked for, fewer while a bin would hold fewer than :func:`min_calibration_cases`
     cases (tied predictions share an edge: the duplicate, or one at the smallest ``|f^|``, is dropped). A case
     whose prediction or residual is not finite (``ok`` False) counts as an infinite residual in every bin."""
-    bad = ~ok
-    mag = np.linalg.norm(pred[~bad], axis=1)
-    r_ok = r[~bad]
-    n_bad = int(bad.sum())
-    need = min_calibration_cases(coverage)
-    for b in range(min(bins, max(1, len(r) // need)), 0, -1):
-        e = np.unique(np.quantile(mag, np.arange(1, b) / b)) if mag.size else np.empty(0)
-        edges = tuple(float(v) for v in e[e > mag.min()]) if mag.size else ()  # an edge at the minimum: empty bin
-        which = force_bin_of(edges, pred[~bad])
-        counts = np.bincount(which, minlength=len(edges) + 1) + n_bad
-        if len(edges) == 0 or counts.min() >= need:
-            widths = []
-            for j in range(len(edges) + 1):
-                rj = np.vstack([r_ok[which == j], np.full((n_bad, r.shape[1]), math.inf)])
-                widths.append(tuple(float(v) for v in np.sort(rj, axis=0)[_rank(int(counts[j]), coverage) - 1]))
-            return edges, tuple(widths)
-    raise AssertionError("unreachable: one bin holds every case")
+    mag = np.linalg.norm(pred[ok], axis=1)
+    r_ok = r[ok]
+    n_bad = int((~ok).sum())
+    e, which, counts = _quantile_bins(mag, bins, min_calibration_cases(coverage), n_extra=n_bad)
+    widths = []
+    for j in range(len(e) + 1):
+        rj = np.vstack([r_ok[which == j], np.full((n_bad, r.shape[1]), math.inf)])
+        widths.append(tuple(float(v) for v in np.sort(rj, axis=0)[_rank(int(counts[j]), coverage) - 1]))
+    return tuple(float(v) for v in e), tuple(widths)
 
 
 def force_bin_of(edges, force: np.ndarray) -> np.ndarray:
