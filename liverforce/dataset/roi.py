@@ -158,8 +158,13 @@ def thickness_along_normal(points: np.ndarray, facets: np.ndarray, point: np.nda
     A ray from the exertion point into the liver (``-normal``, the outward
     normal negated) is intersected with every surface triangle
     (Möller–Trumbore); the nearest hit farther than ``min_mm`` (which skips the
-    triangles around the point itself) is the thickness. ``nan`` when the ray
-    leaves through no triangle (an open surface).
+    triangles around the point itself) where the ray *leaves* the liver is the
+    thickness. Triangles the ray enters through are skipped, so a point a
+    little outside the surface (a point snapped onto the FE mesh, given with
+    the surface it was segmented on) is not read as a liver a millimetre
+    thick. Which side is out follows the surface's enclosed volume, so the
+    triangles' winding may be inward or outward. ``nan`` when the ray leaves
+    through no triangle (an open surface).
 
     Examples
     --------
@@ -180,5 +185,8 @@ def thickness_along_normal(points: np.ndarray, facets: np.ndarray, point: np.nda
     q = np.cross(s, e1)
     v = f * (q @ d)
     t = f * np.einsum("ij,ij->i", e2, q)
-    hit = ok & (u >= -1e-9) & (v >= -1e-9) & (u + v <= 1 + 1e-9) & (t > min_mm)
+    # a = -d . (e1 x e2): negative where the ray leaves through a triangle wound outward
+    outward = np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() >= 0.0
+    leaves = (a < 0) if outward else (a > 0)
+    hit = ok & leaves & (u >= -1e-9) & (v >= -1e-9) & (u + v <= 1 + 1e-9) & (t > min_mm)
     return float(t[hit].min()) if hit.any() else float("nan")

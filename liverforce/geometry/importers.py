@@ -90,7 +90,8 @@ def load_surface(
     check_self_intersections : bool
         Detect self-intersections (skipped for label volumes, whose
         marching-cubes surfaces cannot self-intersect); local ones are
-        repaired by voxel remeshing, many are refused.
+        repaired by replacing the triangles round them (MeshFix; a voxel
+        remesh of the whole surface if that fails), many are refused.
     max_edge_mm : float or None
         A coarse surface (mean edge longer than this, e.g. the boundary of a
         toy tet mesh) is smoothed and refined by Loop subdivision until its

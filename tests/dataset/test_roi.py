@@ -82,6 +82,20 @@ def test_thickness_along_the_inward_normal_is_the_chord():
     assert np.isnan(thickness_along_normal(s.vertices, top, [0, 0, 40.0], [0, 0, 1.0]))
 
 
+def test_thickness_counts_where_the_ray_leaves_the_liver():
+    """A point a millimetre off the surface (snapped onto the FE mesh, given with the segmented surface): the
+    chord to the far side, not the millimetre to the near one; the triangles' winding does not matter."""
+    from liverforce.dataset.roi import thickness_along_normal
+    from liverforce.geometry.procedural import cube_phantom
+
+    cube = cube_phantom(50.0, divisions=6)
+    up = [0, 0, 1.0]
+    for faces in (cube.faces, cube.faces[:, ::-1]):  # wound outward, then inward
+        assert thickness_along_normal(cube.vertices, faces, [3.0, -2.0, 26.0], up) == pytest.approx(51.0)
+        assert thickness_along_normal(cube.vertices, faces, [3.0, -2.0, 24.0], up) == pytest.approx(49.0)
+        assert thickness_along_normal(cube.vertices, faces, [3.0, -2.0, 25.0], up) == pytest.approx(50.0)
+
+
 def test_roi_triangles_are_the_facets_inside_the_roi_and_a_wrapped_roi_keeps_the_camera_side_on_top():
     """Round a thin plate's edge the ROI holds both faces. Its triangles are the facets with three ROI nodes
     (indices into the ROI's own order); the z-buffer of them along the top face's normal is the top face."""

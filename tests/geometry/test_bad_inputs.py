@@ -184,16 +184,58 @@ def sphere(radius=120.0, subdivisions=3):
     return np.asarray(s.vertices), np.asarray(s.faces)
 
 
-def test_local_self_intersection_is_remeshed(tmp_path):
+def folded_sphere():
     v, f = sphere()
     v = v.copy()
     i = int(np.argmax(v[:, 2]))
     v[i] = [3.0, 2.0, -150.0]  # the north pole dives through the body and out of the south cap
+    return v, f, i
+
+
+def test_local_self_intersection_is_repaired_locally(tmp_path):
+    """Only the triangles round the fold change: every other vertex and triangle is the file's, exactly."""
+    from liverforce.geometry.repair import self_intersections
+
+    v, f, pole = folded_sphere()
+    v = v.astype(np.float32).astype(np.float64)  # as the PLY file holds them
+    assert len(self_intersections(v, f)) > 0
     path = save(tmp_path, "folded.ply", v, f)
     s, msgs = load(path)
-    assert any(m.startswith("self-intersections removed by voxel remeshing") for m in msgs), msgs
+    assert any(m.startswith("self-intersections removed locally (8 intersecting triangle pairs")
+               and "(MeshFix), every other triangle kept as given" in m for m in msgs), msgs
     m = s.to_trimesh()
-    assert m.is_watertight and s.volume_mm3 > 0
+    assert m.is_watertight and len(self_intersections(s.vertices, s.faces)) == 0
+    # the spike is gone: the sphere less its polar cap (a pentagon of the icosphere's 3rd subdivision)
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=120.0).volume
+    assert s.volume_mm3 == pytest.approx(ball, rel=1e-3) and s.volume_mm3 < ball
+    others = np.delete(v, pole, axis=0)
+    assert len(s.vertices) == len(others)
+    assert {tuple(x) for x in s.vertices.tolist()} == {tuple(x) for x in others.tolist()}  # bit for bit
+    given = {frozenset(map(tuple, v[t].tolist())) for t in f}
+    same = sum(frozenset(map(tuple, s.vertices[t].tolist())) in given for t in s.faces)
+    assert same == len(f) - 6  # the pole's five triangles and one more replaced, by four
+
+
+def test_self_intersection_falls_back_to_a_voxel_remesh(tmp_path, monkeypatch):
+    """Where the local repair fails, the whole surface is rebuilt from its inside, and the message says so."""
+    import liverforce.geometry.repair as repair
+
+    monkeypatch.setattr(repair, "local_self_intersection_repair", lambda v, f: None)
+    v, f, _ = folded_sphere()
+    s, msgs = load(save(tmp_path, "folded.ply", v, f))
+    assert any(m.startswith("self-intersections removed by voxel remeshing") and "local repair failed" in m
+               for m in msgs), msgs
+    m = s.to_trimesh()
+    assert m.is_watertight and s.volume_mm3 > 0 and len(s.vertices) > 10 * len(v)
+
+
+def test_local_repair_refuses_what_is_not_local():
+    """The local repair hands back None (the caller's fallback) when it would replace too much."""
+    from liverforce.geometry.repair import local_self_intersection_repair
+
+    v, f, _ = folded_sphere()
+    assert local_self_intersection_repair(v, f) is not None
+    assert local_self_intersection_repair(v, f, max_replaced=5 / len(f)) is None  # 6 triangles replaced
 
 
 def test_many_self_intersections_are_refused(tmp_path):
