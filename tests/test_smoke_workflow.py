@@ -334,3 +334,50 @@ def test_a_finished_runs_scenario_loads_for_the_experiments(smoke_run):
     assert list(other["case_id"]) == list(run_arrays(root, "V", True, "test")["case_id"])
     with pytest.raises(Exception, match="nosuch"):
         run_arrays(root, "nosuch", False, "test")
+
+
+def test_a_camera_cloud_in_a_labs_frame_with_only_the_mesh_gives_the_shard_contexts_force(smoke_run, tmp_path, capsys):
+    """The camera model from a lab's files: the cloud, the tool tip and the exertion point in the lab's frame and in
+    metres, and the mesh stage's mesh, no surface. The pre-operative surface is then the mesh's own, the one the
+    training cases were cut from, so the force is the one the shard row's own context gives (ROI, frame,
+    thickness, liver size, probe), given back in the lab's frame."""
+    from liverforce.cli import main
+    from liverforce.learn.observation import ObservationConfig, observe_many, surface_point_displacement
+    from liverforce.pipeline.shared import run_arrays
+    from liverforce.serve import Predictor
+    from liverforce.serve.preop import Preop
+
+    root = smoke_run / "results" / "smoke"
+    model_dir = root / "models" / "IV" / "cloud_sv" / "model"
+    a = run_arrays(root, "IV", True, "test")
+    i = 1
+    g = str(a["geometry_id"][i])
+    V, T = a["surface_meshes"][g]
+    p = a["exertion_point_mm"][i]
+    u = np.asarray(a["surface_displacement_mm"][i], float)
+    tip = p + surface_point_displacement(V, T, p[None], [u])[0]
+    cfg = ObservationConfig(n_points=(4000, 4000), noise_sd_mm=0.5, instrument_in_cloud=True)
+    cloud = observe_many(V, T, [u], p[None], a["frame_normal"][i:i + 1], cfg, seed=3)[0][0]
+    pred = Predictor.load(model_dir)
+    expect, info = pred.predict_cloud(cloud, Preop.from_arrays(a, i), tool_tip_mm=tip, return_info=True)
+
+    q, _ = np.linalg.qr(np.random.default_rng(1).normal(size=(3, 3)))
+    M = np.eye(4)
+    M[:3, :3] = q * np.sign(np.linalg.det(q))
+    M[:3, 3] = [-40.0, 220.0, 35.0]
+    np.save(tmp_path / "M.npy", M)
+
+    def lab(x):  # RAS mm -> the lab's frame, metres
+        return (np.asarray(x, float) - M[:3, 3]) @ M[:3, :3] / 1000.0
+
+    np.save(tmp_path / "cloud_m.npy", lab(cloud))
+    mesh = root / "mesh" / f"{g}.vtu"
+    args = ["predict", "-m", str(model_dir), str(tmp_path / "cloud_m.npy"), "--mesh", str(mesh),
+            "--exertion-point", *map(str, lab(p)), "--tool-tip", *map(str, lab(tip)),
+            "--material", *map(str, a["material_params_mpa"][i]), "--units", "m", "--frame", str(tmp_path / "M.npy"),
+            "--out", str(tmp_path / "f.json")]
+    assert main(args) == 0, capsys.readouterr().err
+    out = json.loads((tmp_path / "f.json").read_text())
+    np.testing.assert_allclose(out["force_n_model"], expect, atol=1e-6)
+    np.testing.assert_allclose(out["force_n"], np.asarray(expect) @ M[:3, :3], atol=1e-6)
+    assert out.get("warnings", []) == info["warnings"]  # none of its own: no liver size or thickness of another

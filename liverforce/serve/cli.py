@@ -68,7 +68,9 @@ def register(subparsers, *, fetch: Callable[..., str | Path] | None = None) -> a
                    help="cloud mode for models that need correspondence: normal-only displacement estimate")
     p.add_argument("--context", help="JSON/YAML context: exertion point, material, surface or ROI + frame (+ the ROI "
                                      "patch's roi_triangles)")
-    p.add_argument("--surface", help="undeformed liver surface file (overrides the context's)")
+    p.add_argument("--surface", help="undeformed liver surface file (overrides the context's; in --units and "
+                                     "--frame). Without it, --mesh's own surface (RAS mm): the one the training "
+                                     "cases were cut from")
     p.add_argument("--mesh", help="the liver's tet mesh (mm, support regions tagged, e.g. results/<exp>/mesh/<id>.vtu):"
                                   " state-vector models compute the pre-operative stiffness probe from it")
     p.add_argument("--exertion-point", nargs=3, type=float, metavar=("X", "Y", "Z"),

@@ -27,8 +27,9 @@ Context files (``read_context`` / ``load_context``): JSON or YAML with
     liver_centroid_mm: [..]               #   and, for state-vector models, the liver features
     inertia_mm5: [[..], [..], [..]]
     tool_thickness_mm: 60.0               # tissue thickness under the tool along the inward normal
-    mesh: liver.vtu                       # state-vector models: the liver's tet mesh (mm, supports tagged),
-                                          #   for the pre-operative stiffness probe, or
+    mesh: liver.vtu                       # the liver's tet mesh (the mesh stage's copy, RAS mm, supports
+                                          #   tagged): state-vector models' pre-operative stiffness probe and,
+                                          #   with no surface or roi_undeformed, the undeformed surface, or
     probe_compliance_mm_per_n: [[..], [..], [..]]   # the probe's compliance itself, in the local frame (t1, t2, n)
                                           #   the model computes in RAS mm (the given frame, converted)
     units: mm                             # mm (default), cm or m: scales every point and the inertia
@@ -360,8 +361,20 @@ def read_context(source: str | Path | dict, predictor, *, overrides: dict | None
             tool_thickness_mm=None if "tool_thickness_mm" not in doc else fr.length(doc["tool_thickness_mm"]),
             roi_triangles=tris,
         )
+    elif "mesh" in doc:
+        # no surface given: the tet mesh's own surface, the one the training cases were cut from (RAS mm, as the
+        # mesh stage wrote it: not converted by input_frame). A lab's segmented surface differs from it by the
+        # geometry stage's repairs and smoothing and by the mesher, and ROI, thickness and liver size would too.
+        pts, tri = read_surface(rel(doc["mesh"]))
+        preop = Preop.from_surface(pts, tri, point, material,
+                                   roi_fraction=float(doc.get("roi_fraction", predictor.roi_fraction)),
+                                   frame_radius_mm=float(doc.get("frame_radius_mm", predictor.frame_radius_mm)))
+        if "liver_centroid_mm" in doc or "inertia_mm5" in doc or "tool_thickness_mm" in doc or "roi_triangles" in doc:
+            raise PredictionInputError("context: give either the tet 'mesh' (its surface is then used) or "
+                                       "liver_centroid_mm/inertia_mm5/tool_thickness_mm/roi_triangles, not both")
     else:
-        raise PredictionInputError("context: give the undeformed 'surface' file, or 'roi_undeformed' with 'frame'")
+        raise PredictionInputError("context: give the undeformed 'surface' file, the tet 'mesh' (its own surface is "
+                                   "then used), or 'roi_undeformed' with 'frame'")
     if "probe_compliance_mm_per_n" in doc:
         if "mesh" in doc:
             raise PredictionInputError("context: give either the tet 'mesh' or probe_compliance_mm_per_n, not both")
