@@ -131,7 +131,12 @@ def state_names(n_material: int) -> list[str]:
 # the geometric state against the training range (serving warnings, IV test breakdown)
 # --------------------------------------------------------------------------
 
-_BOUND_TOL = 1e-9  #: relative margin of a training bound in :func:`outside_ranges` (liver vs local frame rounding)
+#: relative margin of a training bound in :func:`outside_ranges`. A lab gives its exertion point rounded, often
+#: in metres: on the SOFA liver (the mesh stage's context, 8 cases), rounding it to 1 / 10 / 100 um moved the
+#: thickness, the probe's compliance and the centroid distance by up to 6.5e-6 / 5.7e-5 / 5.6e-4 of their values,
+#: and a test case at a training case's own exertion point was warned of as 'thinner than in every training case'.
+#: Within 0.1 % of a bound is inside: no model's error changes over that.
+_BOUND_TOL = 1e-3
 #: geometric state inputs compared with the training range: name -> (what, unit, word below, word above)
 STATE_RANGES = {
     "tool_thickness_mm": ("the tissue under the tool", "mm", "thinner", "thicker"),
@@ -177,7 +182,7 @@ def outside_ranges(arrays: dict, ranges: dict) -> tuple[dict[str, np.ndarray], l
     model extrapolates, and the warning says so with the value, the range and
     the direction. Material constants are not checked: the models scale force
     by the material's stiffness (``model.force_scaling``), so they extrapolate
-    there by construction. A value within ``1e-9`` (relative) of a bound is inside.
+    there by construction. A value within ``_BOUND_TOL`` (0.1 %, relative) of a bound is inside.
     """
     n = len(arrays["exertion_point_mm"])
     masks, warnings = {}, [[] for _ in range(n)]
