@@ -549,24 +549,35 @@ def local_self_intersection_repair(
     MeshFix (M. Attene, "A lightweight approach to repairing digitized
     polygon meshes", The Visual Computer 26, 2010; the ``pymeshfix``
     binding) deletes the intersecting triangles and a small neighbourhood,
-    then fills the holes. It hands back the vertices it kept within about
-    1e-5 of their input coordinates; they are put back at the input
-    coordinates exactly, so away from the defects the surface is the one
-    given, vertex for vertex and triangle for triangle.
+    then fills the holes. It hands its points back rounded to float32, an
+    error that grows with a coordinate's distance from the origin, so the
+    surface is handed to it centred on its bounding box (a liver in scanner
+    coordinates, a metre from the origin, keeps its local repair); the
+    vertices it kept are put back at the input coordinates exactly, so away
+    from the defects the surface is the one given, vertex for vertex and
+    triangle for triangle. Without pymeshfix 0.18 or newer (``clean``,
+    ``n_boundaries``): ``None``, and the caller's fallback.
     """
-    import pymeshfix
     from scipy.spatial import cKDTree
 
+    try:
+        import pymeshfix
+    except ImportError:
+        return None
     v = np.ascontiguousarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
-    fix = pymeshfix.MeshFix(v, f.astype(np.int32))
-    if not fix.clean() or fix.n_boundaries:
+    centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
+    try:
+        fix = pymeshfix.MeshFix(v - centre, f.astype(np.int32))
+        if not fix.clean() or fix.n_boundaries:
+            return None
+        v2 = np.array(fix.points, dtype=np.float64) + centre
+        f2 = np.array(fix.faces, dtype=np.int64).reshape(-1, 3)
+    except AttributeError:  # an older pymeshfix
         return None
-    v2 = np.array(fix.points, dtype=np.float64)
-    f2 = np.array(fix.faces, dtype=np.int64).reshape(-1, 3)
     if len(f2) == 0:
         return None
-    tol = 1e-6 * float(np.ptp(v, axis=0).max())
+    tol = 1e-6 * float(np.ptp(v, axis=0).max())  # float32 rounding of centred points: 6e-8 of the extent at most
     dist, src = cKDTree(v).query(v2)
     kept = dist <= tol
     v2[kept] = v[src[kept]]

@@ -299,8 +299,8 @@ def check_patch(arrays: dict, i: int, U_loc: np.ndarray, model, limits: Limits, 
     if tris is None:
         raise PredictionInputError(
             f"{label}this model reads the ROI patch's top sheet from its triangles: give roi_triangles, (m, 3) "
-            "indices into roi_undeformed_mm (Preop.from_surface and `liverforce predict --surface` compute them "
-            "from the liver's surface; shards of schema 1.4 hold them)")
+            "indices into roi_undeformed_mm (Preop.from_surface and `liverforce predict --surface` or --mesh "
+            "compute them from the liver's surface; shards of schema 1.4 hold them)")
     try:
         T = check_triangles(tris[i], len(U_loc), "roi_triangles")
     except ValueError as exc:

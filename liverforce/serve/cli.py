@@ -10,12 +10,14 @@ liverforce predict -m results/default/models/IV/cloud_sv/model cloud.ply --surfa
 liverforce predict -m my-registered-model --shards results/exp/shards/II --out preds.parquet
 liverforce predict -m results/exp/models/II/pca_sv/model --describe
 liverforce predict -m results/lab/models/IV/cloud_sv/model cloud_lps_m.ply --frame results/lab/geometry/imp-lab01.json \
-    --surface lab01_lps_m.stl --mesh results/lab/mesh/imp-lab01.vtu --exertion-point -0.031 0.024 0.029 \
-    --material 0.0016 0.0125 0.0053 --tool-tip -0.0305 0.0236 0.0262   # a liver imported from LPS metres
+    --mesh results/lab/mesh/imp-lab01.vtu --exertion-point -0.031 0.024 0.029 \
+    --material 0.0016 0.0125 0.0053 --tool-tip -0.0305 0.0236 0.0262   # a liver imported from LPS metres; the
+    # pre-operative surface is the mesh's own (no --surface): the one the training cases were cut from
 
 Modes for the point-cloud file: ``cloud`` (default) an unordered observed
 cloud; ``nodes`` the deformed ROI nodes in the context's ROI order; ``surface``
-the deformed positions of every vertex of the context's surface file. Exit
+the deformed positions of every vertex of the context's surface file (of a tet
+mesh: every node, interior ones too, in the file's order). Exit
 codes: 0 done, 2 input refused (the message says why).
 
 Point inputs are in the model's frame (RAS mm) unless ``--units`` and
@@ -69,10 +71,11 @@ def register(subparsers, *, fetch: Callable[..., str | Path] | None = None) -> a
     p.add_argument("--context", help="JSON/YAML context: exertion point, material, surface or ROI + frame (+ the ROI "
                                      "patch's roi_triangles)")
     p.add_argument("--surface", help="undeformed liver surface file (overrides the context's; in --units and "
-                                     "--frame). Without it, --mesh's own surface (RAS mm): the one the training "
-                                     "cases were cut from")
+                                     "--frame). Without it (and without a surface or roi_undeformed in --context), "
+                                     "--mesh's own surface (RAS mm): the one the training cases were cut from")
     p.add_argument("--mesh", help="the liver's tet mesh (mm, support regions tagged, e.g. results/<exp>/mesh/<id>.vtu):"
-                                  " state-vector models compute the pre-operative stiffness probe from it")
+                                  " state-vector models compute the pre-operative stiffness probe from it; without "
+                                  "--surface its own surface is the pre-operative one")
     p.add_argument("--exertion-point", nargs=3, type=float, metavar=("X", "Y", "Z"),
                    help="tool contact point (--units and --frame apply)")
     p.add_argument("--tool-tip", nargs=3, type=float, metavar=("X", "Y", "Z"),

@@ -329,14 +329,15 @@ def read_context(source: str | Path | dict, predictor, *, overrides: dict | None
         p = Path(p)
         return p if p.is_absolute() else base / p
 
+    computed = [k for k in ("liver_centroid_mm", "inertia_mm5", "tool_thickness_mm", "roi_triangles") if k in doc]
     if "surface" in doc:
+        if computed:
+            raise PredictionInputError(f"context: give either a surface or {'/'.join(computed)}, not both (they are "
+                                       f"computed from the surface)")
         pts, tri = fr.surface(*read_surface(rel(doc["surface"])))
         preop = Preop.from_surface(pts, tri, point, material,
                                    roi_fraction=float(doc.get("roi_fraction", predictor.roi_fraction)),
                                    frame_radius_mm=float(doc.get("frame_radius_mm", predictor.frame_radius_mm)))
-        if "liver_centroid_mm" in doc or "inertia_mm5" in doc or "tool_thickness_mm" in doc or "roi_triangles" in doc:
-            raise PredictionInputError("context: give either a surface or liver_centroid_mm/inertia_mm5/"
-                                       "tool_thickness_mm/roi_triangles, not both")
     elif "roi_undeformed" in doc:
         if "frame" not in doc:
             raise PredictionInputError("context: with roi_undeformed, give the local frame {normal, t1, t2} too")
@@ -365,13 +366,13 @@ def read_context(source: str | Path | dict, predictor, *, overrides: dict | None
         # no surface given: the tet mesh's own surface, the one the training cases were cut from (RAS mm, as the
         # mesh stage wrote it: not converted by input_frame). A lab's segmented surface differs from it by the
         # geometry stage's repairs and smoothing and by the mesher, and ROI, thickness and liver size would too.
+        if computed:
+            raise PredictionInputError(f"context: give either the tet 'mesh' alone (its surface is then used) or "
+                                       f"{'/'.join(computed)} with roi_undeformed and frame, not both")
         pts, tri = read_surface(rel(doc["mesh"]))
         preop = Preop.from_surface(pts, tri, point, material,
                                    roi_fraction=float(doc.get("roi_fraction", predictor.roi_fraction)),
                                    frame_radius_mm=float(doc.get("frame_radius_mm", predictor.frame_radius_mm)))
-        if "liver_centroid_mm" in doc or "inertia_mm5" in doc or "tool_thickness_mm" in doc or "roi_triangles" in doc:
-            raise PredictionInputError("context: give either the tet 'mesh' (its surface is then used) or "
-                                       "liver_centroid_mm/inertia_mm5/tool_thickness_mm/roi_triangles, not both")
     else:
         raise PredictionInputError("context: give the undeformed 'surface' file, the tet 'mesh' (its own surface is "
                                    "then used), or 'roi_undeformed' with 'frame'")

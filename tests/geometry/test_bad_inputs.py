@@ -229,6 +229,20 @@ def test_self_intersection_falls_back_to_a_voxel_remesh(tmp_path, monkeypatch):
     assert m.is_watertight and s.volume_mm3 > 0 and len(s.vertices) > 10 * len(v)
 
 
+def test_a_fold_far_from_the_origin_is_repaired_locally_too():
+    """MeshFix hands its points back rounded to float32: a liver in scanner coordinates, a metre and more from the
+    origin, keeps its local repair (the surface is centred for it) and every vertex but the fold's, bit for bit."""
+    from liverforce.geometry.repair import local_self_intersection_repair
+
+    v, f, pole = folded_sphere()
+    v = v + np.array([1.0e5, -2.5e4, 3.0e3])
+    fixed = local_self_intersection_repair(v, f)
+    assert fixed is not None
+    v2, f2, removed, added = fixed
+    assert (removed, added) == (6, 4)
+    assert {tuple(x) for x in v2.tolist()} == {tuple(x) for x in np.delete(v, pole, axis=0).tolist()}
+
+
 def test_local_repair_refuses_what_is_not_local():
     """The local repair hands back None (the caller's fallback) when it would replace too much."""
     from liverforce.geometry.repair import local_self_intersection_repair

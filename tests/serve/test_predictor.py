@@ -149,3 +149,42 @@ def test_load_refuses_a_file_and_names_missing_dirs(tmp_path, trained):
     with pytest.raises(PredictionInputError, match="no model.json"):
         Predictor.from_dir(tmp_path / "empty")
     assert isinstance(Predictor.load(trained("disp")).model, ForceModel)
+
+
+def test_a_context_of_the_mesh_alone_takes_the_meshs_own_surface(trained, ellipsoid, tmp_path):
+    """`mesh` without `surface`: the pre-operative surface is the tet mesh's boundary, in RAS mm whatever frame
+    the other inputs come in (the mesh stage wrote it so); liver features and a surface are refused beside it,
+    before anything else is read."""
+    import meshio
+
+    from liverforce.serve import PredictionInputError
+    from liverforce.serve.files import read_context
+
+    pts, tri = ellipsoid()
+    pts = pts + np.array([30.0, -20.0, 140.0])  # off the origin, as a liver in RAS is
+    tets = Delaunay(pts).simplices  # convex: the hull's facets are the boundary
+    a, b, c, d = (pts[tets[:, k]] for k in range(4))
+    neg = np.einsum("ij,ij->i", np.cross(b - a, c - a), d - a) < 0
+    tets[neg] = tets[neg][:, [0, 2, 1, 3]]
+    meshio.write(tmp_path / "liver.vtu", meshio.Mesh(pts, [("tetra", tets)]))
+    pred = Predictor.load(trained("deformed"))  # no state vector: no stiffness probe needed
+    p = pts[123]
+    ctx, _ = read_context({"exertion_point_mm": p.tolist(), "mesh": str(tmp_path / "liver.vtu"),
+                           "input_frame": "RAS"}, pred)
+    ref = Preop.from_surface(pts, tri, p, None, roi_fraction=pred.roi_fraction, frame_radius_mm=pred.frame_radius_mm)
+    np.testing.assert_allclose(ctx.frame, ref.frame, atol=1e-12)
+    np.testing.assert_array_equal(ctx.roi_undeformed_mm, ref.roi_undeformed_mm)
+    assert ctx.tool_thickness_mm == pytest.approx(ref.tool_thickness_mm, rel=1e-12)
+    np.testing.assert_allclose(ctx.liver_centroid_mm, ref.liver_centroid_mm, atol=1e-9)
+    # the exertion point in LPS metres: converted; the mesh is not
+    lps, _ = read_context({"exertion_point_mm": (p * [-1.0, -1.0, 1.0] / 1000.0).tolist(),
+                           "mesh": str(tmp_path / "liver.vtu"), "input_frame": "LPS", "units": "m"}, pred)
+    np.testing.assert_array_equal(lps.roi_point_ids, ctx.roi_point_ids)
+    assert lps.tool_thickness_mm == pytest.approx(ctx.tool_thickness_mm, rel=1e-9)
+    # liver features beside the mesh: refused by name, even with an exertion point nowhere near the liver
+    with pytest.raises(PredictionInputError, match=r"either the tet 'mesh' alone .*tool_thickness_mm"):
+        read_context({"exertion_point_mm": [0.0, 0.0, 9e3], "mesh": str(tmp_path / "liver.vtu"),
+                      "input_frame": "RAS", "tool_thickness_mm": 60.0}, pred)
+    with pytest.raises(PredictionInputError, match=r"either a surface or inertia_mm5"):
+        read_context({"exertion_point_mm": [0.0, 0.0, 9e3], "surface": str(tmp_path / "liver.vtu"),
+                      "input_frame": "RAS", "inertia_mm5": np.eye(3).tolist()}, pred)
