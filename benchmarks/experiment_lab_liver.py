@@ -142,7 +142,8 @@ def predict_cases(work: Path, inputs: dict, seed: int) -> list[dict]:
                 doc = json.loads(out.read_text())
                 row[name] = (np.asarray(doc["force_n"]), doc.get("warnings", []))
             else:
-                row[name] = (None, [f"refused (exit {rc}): {err.getvalue().strip()[-160:]}"])
+                last = (err.getvalue().strip().splitlines() or [""])[-1]
+                row[name] = (None, [f"refused (exit {rc}): {last.split('error: ', 1)[-1]}"])
         rows.append(row)
         if k == 0:
             print("command (mesh only):", ".venv/bin/liverforce " + " ".join(common), flush=True)
