@@ -555,26 +555,19 @@ def local_self_intersection_repair(
     coordinates, a metre from the origin, keeps its local repair); the
     vertices it kept are put back at the input coordinates exactly, so away
     from the defects the surface is the one given, vertex for vertex and
-    triangle for triangle. Without pymeshfix 0.18 or newer (``clean``,
-    ``n_boundaries``): ``None``, and the caller's fallback.
+    triangle for triangle.
     """
+    import pymeshfix
     from scipy.spatial import cKDTree
 
-    try:
-        import pymeshfix
-    except ImportError:
-        return None
     v = np.ascontiguousarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
     centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
-    try:
-        fix = pymeshfix.MeshFix(v - centre, f.astype(np.int32))
-        if not fix.clean() or fix.n_boundaries:
-            return None
-        v2 = np.array(fix.points, dtype=np.float64) + centre
-        f2 = np.array(fix.faces, dtype=np.int64).reshape(-1, 3)
-    except AttributeError:  # an older pymeshfix
+    fix = pymeshfix.MeshFix(v - centre, f.astype(np.int32))
+    if not fix.clean() or fix.n_boundaries:
         return None
+    v2 = np.array(fix.points, dtype=np.float64) + centre
+    f2 = np.array(fix.faces, dtype=np.int64).reshape(-1, 3)
     if len(f2) == 0:
         return None
     tol = 1e-6 * float(np.ptp(v, axis=0).max())  # float32 rounding of centred points: 6e-8 of the extent at most

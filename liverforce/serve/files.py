@@ -330,11 +330,18 @@ def read_context(source: str | Path | dict, predictor, *, overrides: dict | None
         return p if p.is_absolute() else base / p
 
     computed = [k for k in ("liver_centroid_mm", "inertia_mm5", "tool_thickness_mm", "roi_triangles") if k in doc]
-    if "surface" in doc:
+    if "surface" in doc or ("mesh" in doc and "roi_undeformed" not in doc):
         if computed:
-            raise PredictionInputError(f"context: give either a surface or {'/'.join(computed)}, not both (they are "
-                                       f"computed from the surface)")
-        pts, tri = fr.surface(*read_surface(rel(doc["surface"])))
+            what = "a surface" if "surface" in doc else "the tet 'mesh' alone (its surface is then used)"
+            raise PredictionInputError(f"context: give either {what} or {'/'.join(computed)} with roi_undeformed "
+                                       f"and frame, not both (they are computed from the surface)")
+        if "surface" in doc:
+            pts, tri = fr.surface(*read_surface(rel(doc["surface"])))
+        else:
+            # no surface given: the tet mesh's own surface, the one the training cases were cut from (RAS mm, as
+            # the mesh stage wrote it: not converted by input_frame). A lab's segmented surface differs from it by
+            # the geometry stage's repairs and smoothing and by the mesher, and ROI, thickness and size would too.
+            pts, tri = read_surface(rel(doc["mesh"]))
         preop = Preop.from_surface(pts, tri, point, material,
                                    roi_fraction=float(doc.get("roi_fraction", predictor.roi_fraction)),
                                    frame_radius_mm=float(doc.get("frame_radius_mm", predictor.frame_radius_mm)))
@@ -362,17 +369,6 @@ def read_context(source: str | Path | dict, predictor, *, overrides: dict | None
             tool_thickness_mm=None if "tool_thickness_mm" not in doc else fr.length(doc["tool_thickness_mm"]),
             roi_triangles=tris,
         )
-    elif "mesh" in doc:
-        # no surface given: the tet mesh's own surface, the one the training cases were cut from (RAS mm, as the
-        # mesh stage wrote it: not converted by input_frame). A lab's segmented surface differs from it by the
-        # geometry stage's repairs and smoothing and by the mesher, and ROI, thickness and liver size would too.
-        if computed:
-            raise PredictionInputError(f"context: give either the tet 'mesh' alone (its surface is then used) or "
-                                       f"{'/'.join(computed)} with roi_undeformed and frame, not both")
-        pts, tri = read_surface(rel(doc["mesh"]))
-        preop = Preop.from_surface(pts, tri, point, material,
-                                   roi_fraction=float(doc.get("roi_fraction", predictor.roi_fraction)),
-                                   frame_radius_mm=float(doc.get("frame_radius_mm", predictor.frame_radius_mm)))
     else:
         raise PredictionInputError("context: give the undeformed 'surface' file, the tet 'mesh' (its own surface is "
                                    "then used), or 'roi_undeformed' with 'frame'")
