@@ -134,8 +134,10 @@ def load_surface(
                                "(NIfTI: RAS; NRRD: its 'space', converted to RAS on reading)",
                          "Leave frame at RAS for label volumes (a 4x4 is applied after the header's map)")
         volume = read_label_volume(path)
+        for m in volume.messages:  # an assumed frame: a warning, not only a line in the record
+            log.warning("%s: %s", path, m)
         vertices, faces, vmsgs, used_label = label_surface(volume, label, path)
-        msgs += vmsgs
+        msgs += volume.messages + vmsgs
         if scale is None:
             file_unit = volume.units or "mm"
             scale, unit_label = {"mm": 1.0, "m": 1000.0, "um": 1e-3}[file_unit], file_unit

@@ -1,8 +1,13 @@
 """Label volumes (NIfTI, NRRD) to a triangle surface in physical mm.
 
 The voxel-to-world map comes from the file (NIfTI ``affine``, RAS+; NRRD
-``space directions``/``space origin``, converted to RAS when the space is
-LPS).  The chosen label's mask is cropped, lightly smoothed (Gaussian,
+``space directions``/``space origin``, converted to RAS from the stated
+``space``: right-anterior-superior, left-anterior-superior or
+left-posterior-superior). A header that states no anatomical frame (NIfTI
+sform and qform codes 0; NRRD with no ``space`` or a ``scanner-xyz`` /
+``3D-right-handed`` one) is read as RAS and says so in the messages; a
+``3D-left-handed`` NRRD is refused (read as RAS, the liver would be
+mirrored). The chosen label's mask is cropped, lightly smoothed (Gaussian,
 σ = ``smooth_voxels``), contoured by marching cubes at 0.5 and mapped to the
 world frame, so the surface is in the file's physical units (mm for nearly
 all medical images).
@@ -10,7 +15,7 @@ all medical images).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +34,19 @@ class LabelVolume:
     affine: np.ndarray  # (4, 4)
     units: str | None  # spatial unit stated by the file ("mm", "m", "um") or None
     format: str
+    messages: list[str] = field(default_factory=list)  # what the header did not state and what was assumed
+
+
+#: NRRD ``space`` (lower case, without a ``-time`` suffix) -> the diagonal that takes it to RAS
+_NRRD_ANATOMICAL = {
+    "right-anterior-superior": (1.0, 1.0, 1.0), "ras": (1.0, 1.0, 1.0),
+    "left-anterior-superior": (-1.0, 1.0, 1.0), "las": (-1.0, 1.0, 1.0),
+    "left-posterior-superior": (-1.0, -1.0, 1.0), "lps": (-1.0, -1.0, 1.0),
+}
+#: NRRD spaces with no anatomical meaning, right-handed: read as RAS, with a message
+_NRRD_RIGHT_HANDED = ("scanner-xyz", "3d-right-handed")
+_NO_FRAME_FIX = ("if the liver is mirrored or its supports and tool positions do not land on it, save the "
+                 "segmentation with its orientation (3D Slicer does) or give frame=<4x4>")
 
 
 def is_volume_file(path: Path) -> bool:
@@ -49,11 +67,16 @@ def read_label_volume(path: str | Path) -> LabelVolume:
             data = np.asanyarray(img.dataobj)
             affine = np.asarray(img.affine, dtype=np.float64)
             unit = img.header.get_xyzt_units()[0]
+            coded = int(img.header["sform_code"]) > 0 or int(img.header["qform_code"]) > 0
         except Exception as exc:  # nibabel raises several types
             raise refuse(path, f"could not read the NIfTI image ({type(exc).__name__}: {exc})",
                          "Check the file opens in a NIfTI viewer (e.g. 3D Slicer, ITK-SNAP)") from None
         units = {"mm": "mm", "meter": "m", "micron": "um"}.get(unit)
         fmt = "nifti"
+        messages = [] if coded else [
+            "the NIfTI header states no frame (sform and qform codes 0): nibabel's default map was used "
+            "(voxel sizes from pixdim, x reversed, the image centred on the origin) and read as RAS; "
+            + _NO_FRAME_FIX]
     else:
         import nrrd
 
@@ -62,7 +85,7 @@ def read_label_volume(path: str | Path) -> LabelVolume:
         except Exception as exc:  # pynrrd raises several types
             raise refuse(path, f"could not read the NRRD image ({type(exc).__name__}: {exc})",
                          "Check the file opens in 3D Slicer") from None
-        affine = _nrrd_affine(header, data.ndim, path)
+        affine, messages = _nrrd_affine(header, data.ndim, path)
         su = header.get("space units")
         units = str(su[0]) if su is not None and len(su) else None
         fmt = "nrrd"
@@ -72,11 +95,12 @@ def read_label_volume(path: str | Path) -> LabelVolume:
     if data.ndim != 3:
         raise refuse(path, f"expected a 3-D label image, got shape {data.shape}",
                      "Give a single 3-D segmentation (one label per voxel)")
-    return LabelVolume(data, affine, units, fmt)
+    return LabelVolume(data, affine, units, fmt, messages)
 
 
-def _nrrd_affine(header: dict, ndim: int, path: Path) -> np.ndarray:
-    """Voxel → RAS world affine from NRRD ``space directions``/``origin``/``spacings``."""
+def _nrrd_affine(header: dict, ndim: int, path: Path) -> tuple[np.ndarray, list[str]]:
+    """Voxel → RAS world affine from NRRD ``space directions``/``origin``/``spacings`` and ``space``, and the
+    messages on what the header did not state."""
     aff = np.eye(4)
     dirs = header.get("space directions")
     if dirs is not None:
@@ -89,10 +113,25 @@ def _nrrd_affine(header: dict, ndim: int, path: Path) -> np.ndarray:
         aff[:3, 3] = np.asarray(header.get("space origin", np.zeros(3)), dtype=np.float64)[:3]
     elif "spacings" in header:
         aff[:3, :3] = np.diag(np.asarray(header["spacings"], dtype=np.float64)[:3])
-    space = str(header.get("space", "")).lower()
-    if space in ("left-posterior-superior", "lps"):
-        aff = np.diag([-1.0, -1.0, 1.0, 1.0]) @ aff  # LPS -> RAS
-    return aff
+    given = header.get("space")
+    space = str(given or "").strip().lower()
+    space = space.removesuffix("-time")
+    if space in ("rast", "last", "lpst"):
+        space = space[:3]
+    if space in _NRRD_ANATOMICAL:
+        return np.diag([*_NRRD_ANATOMICAL[space], 1.0]) @ aff, []
+    if space == "3d-left-handed":
+        raise refuse(path, "NRRD space '3D-left-handed' has no anatomical frame, and read as RAS the liver "
+                           "would be mirrored",
+                     "Save the segmentation in an anatomical space (3D Slicer writes left-posterior-superior)")
+    if not space:
+        what = "states no 'space'"
+    elif space in _NRRD_RIGHT_HANDED:
+        what = f"states space '{given}', which has no anatomical frame"
+    else:
+        raise refuse(path, f"NRRD space '{given}' is not one this importer knows",
+                     "Use right-anterior-superior, left-anterior-superior or left-posterior-superior")
+    return aff, [f"the NRRD header {what}: its coordinates were read as RAS; {_NO_FRAME_FIX}"]
 
 
 def labels_present(data: np.ndarray) -> list[int]:

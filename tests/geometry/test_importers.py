@@ -217,6 +217,65 @@ def test_nrrd_lps_space_is_converted_to_ras(tmp_path):
     assert s.volume_mm3 > 0 and s.to_trimesh().is_watertight
 
 
+def _nrrd_seg(tmp_path, space):
+    import nrrd
+
+    header = {"space directions": np.diag([2.5, 2.5, 3.0]), "space origin": np.array([10.0, 20.0, 30.0])}
+    if space is not None:
+        header["space"] = space
+    path = tmp_path / "seg.nrrd"
+    nrrd.write(str(path), ellipsoid_labels(), header)
+    return path, np.array([10.0, 20.0, 30.0]) + np.diag([2.5, 2.5, 3.0]) @ np.array([35, 28, 24])
+
+
+@pytest.mark.parametrize("space, to_ras", [
+    ("right-anterior-superior", (1, 1, 1)), ("left-anterior-superior", (-1, 1, 1)),
+    ("left-posterior-superior-time", (-1, -1, 1)), ("LAS", (-1, 1, 1)), ("RAS", (1, 1, 1)),
+])
+def test_every_anatomical_nrrd_space_is_converted_to_ras_without_a_warning(tmp_path, caplog, space, to_ras):
+    path, centre = _nrrd_seg(tmp_path, space)
+    with caplog.at_level(logging.WARNING, logger="liverforce.geometry.importers"):
+        s, msgs = load_surface(path, label=2)
+    assert np.allclose(s.vertices.mean(axis=0), centre * np.array(to_ras), atol=1.5)
+    assert s.volume_mm3 > 0 and s.to_trimesh().is_watertight
+    assert not any("frame" in m for m in msgs) and not caplog.records
+
+
+@pytest.mark.parametrize("space, said", [(None, "states no 'space'"),
+                                         ("scanner-xyz", "space 'scanner-xyz', which has no anatomical frame"),
+                                         ("3D-right-handed", "space '3D-right-handed', which has no anatomical")])
+def test_a_nrrd_with_no_anatomical_space_is_read_as_ras_and_says_so(tmp_path, caplog, space, said):
+    path, centre = _nrrd_seg(tmp_path, space)
+    with caplog.at_level(logging.WARNING, logger="liverforce.geometry.importers"):
+        s, msgs = load_surface(path, label=2)
+    assert np.allclose(s.vertices.mean(axis=0), centre, atol=1.5)
+    assert any(said in m and "read as RAS" in m and "frame=<4x4>" in m for m in msgs)
+    assert any(said in r.getMessage() for r in caplog.records if r.levelno == logging.WARNING)
+
+
+@pytest.mark.parametrize("space, message", [("3D-left-handed", r"3D-left-handed.*mirrored"),
+                                            ("left-posterior", r"space 'left-posterior' is not one")])
+def test_a_nrrd_in_a_left_handed_or_unknown_space_is_refused(tmp_path, space, message):
+    path, _ = _nrrd_seg(tmp_path, space)
+    with pytest.raises(GeometryError, match=rf"seg\.nrrd.*{message}"):
+        load_surface(path, label=2)
+
+
+def test_a_nifti_with_no_orientation_says_its_frame_was_assumed(tmp_path):
+    import nibabel as nib
+
+    coded, bare = tmp_path / "coded.nii", tmp_path / "bare.nii"
+    nib.save(nib.Nifti1Image(ellipsoid_labels(), np.diag([3.0, 3.0, 3.0, 1.0])), coded)
+    img = nib.Nifti1Image(ellipsoid_labels(), None)
+    img.header.set_zooms((3.0, 3.0, 3.0))
+    nib.save(img, bare)
+    _, msgs = load_surface(coded, label=2)
+    assert not any("states no frame" in m for m in msgs)
+    s, msgs = load_surface(bare, label=2)
+    assert any("states no frame (sform and qform codes 0)" in m and "frame=<4x4>" in m for m in msgs)
+    assert np.allclose(s.extent_mm, 2 * 3.0 * np.array([28, 22, 15]), rtol=0.06)
+
+
 def test_label_volume_label_choice_is_checked(tmp_path):
     import nibabel as nib
 
