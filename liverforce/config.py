@@ -68,7 +68,7 @@ class ImportedGeometry:
     name: str = "???"
     path: str = "???"
     units: str = "mm"  # mm | cm | m | auto | a number (scale to mm)
-    label: Optional[int] = None
+    label: Optional[Any] = None  # a label volume's liver label value, or a 3D Slicer segment's name or ID
     # RAS | LPS (3D Slicer models, DICOM) | a 4x4 [[...],...,[0,0,0,1]]: file mm (after units) -> RAS mm
     frame: Any = "RAS"
     # own supports, in the file's frame (liverforce.mesh.supports): {mode: replace|add, list: [{name, kind:
@@ -975,6 +975,10 @@ def _check_mesh_mode(key: str, imp: dict) -> None:
                                  f"got {imp['path']}", "use remesh (or auto) for surfaces and label volumes")
         if imp.get("label") is not None:
             _fail(f"{key}.label", "a label value is for label volumes, not a mesh taken as given")
+    label = imp.get("label")
+    if label is not None and (isinstance(label, bool) or not isinstance(label, (int, str)) or not str(label).strip()):
+        _fail(f"{key}.label", f"got {label!r}", "give the liver's label value (an integer) or, for a 3D Slicer "
+                                                "segmentation, a segment's name or ID")
 
 
 def _check_frame(key: str, frame: Any) -> None:

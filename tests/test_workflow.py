@@ -1,12 +1,14 @@
 """The Snakemake workflow: lint, dry runs of every experiment, overrides reach the jobs."""
 from __future__ import annotations
 
+import json
 import os
 import re
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -82,6 +84,42 @@ def test_imported_liver_runs_through_geometry_and_mesh_rules(tmp_path, shared_li
     assert set(mesh.facet_region.tolist()) >= {1, 2, 3, 4}
     log = (tmp_path / "results/smoke/logs/geometry/imp-sofa.log").read_text()
     assert "self-intersections removed" in log  # the repair is reported to the user
+
+
+@pytest.mark.slow  # voxelises a liver and meshes it through snakemake (~25 s)
+def test_a_slicer_segmentation_in_lps_runs_through_geometry_and_mesh_by_segment_name(tmp_path):
+    """A lab's 3D Slicer export: a .seg.nrrd in LPS with two segments; ``label: liver`` picks the liver."""
+    import slicerio
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    from liverforce.geometry.procedural import LiverShapeParams, procedural_liver
+    from liverforce.mesh.io import read_mesh
+
+    liver = procedural_liver(7, LiverShapeParams())  # RAS mm
+    vox = liver.to_trimesh().voxelized(2.0).fill()
+    ijk_to_lps = np.diag([-1.0, -1.0, 1.0, 1.0]) @ np.asarray(vox.transform)  # Slicer writes LPS
+    shape = vox.matrix.shape
+    seg = slicerio.create_segmentation(shape, ijk_to_lps)
+    spleen = np.zeros(shape, bool)
+    spleen[:6, :6, :6] = True  # a corner the liver does not reach
+    assert not (spleen & vox.matrix).any()
+    slicerio.add_segment(seg, spleen, {"id": "Segment_1", "name": "spleen"})
+    slicerio.add_segment(seg, vox.matrix, {"id": "Segment_2", "name": "liver"})
+    src = tmp_path / "Segmentation.seg.nrrd"
+    slicerio.write_segmentation(str(src), seg)
+    override = f"overrides=geometry.imported=[{{name:seg,path:{src},label:liver}}]"
+    snakemake("--cores", "1", "--directory", str(tmp_path), "--config", "experiment=smoke", override,
+              "--", "results/smoke/mesh/imp-seg.vtu")
+    record = json.loads((tmp_path / "results/smoke/geometry/imp-seg.json").read_text())
+    assert record["label"] == 2 and record["spec"]["label"] == "liver"
+    assert any("segment 'liver' (ID Segment_2, label 2) used (label='liver')" in m for m in record["repairs"])
+    mesh = read_mesh(tmp_path / "results/smoke/mesh/imp-seg.vtu")
+    pts = np.asarray(mesh.points)[np.unique(mesh.facets)]  # the boundary's nodes
+    dense, _ = trimesh.sample.sample_surface(liver.to_trimesh(), 200_000, seed=0)  # ~0.5 mm apart
+    dist, _ = cKDTree(dense).query(pts)
+    # in RAS, where the procedural liver is: within a voxel or two (a mirrored or LPS-read liver is cm off)
+    assert np.median(dist) < 2.0 and dist.max() < 8.0
 
 
 def test_broken_import_stops_with_the_file_named(tmp_path, shared_livers):

@@ -56,7 +56,7 @@ def sha256_file(path: str | Path) -> str:
 def load_surface(
     path: str | Path,
     units="mm",
-    label: int | None = None,
+    label: int | str | None = None,
     *,
     frame="RAS",
     size_range_mm: tuple[float, float] | None = LIVER_EXTENT_MM,
@@ -74,9 +74,11 @@ def load_surface(
         or ``"auto"``: guessed from the largest bounding-box extent so that
         the liver is 100–450 mm (label volumes: the unit stated in the
         header, mm if none); the guess is logged and reported.
-    label : int, optional
+    label : int or str, optional
         Label value of the liver in a label volume (required if the volume
-        holds several labels).  Ignored for meshes.
+        holds several labels), or for a 3D Slicer segmentation (``.seg.nrrd``)
+        a segment's name or ID; a segmentation with one segment named "liver"
+        needs none.  Ignored for meshes.
     frame : {"RAS", "LPS"} or array_like (4, 4)
         Frame of the file's coordinates (see :mod:`liverforce.geometry.frames`):
         ``"RAS"`` (default, kept), ``"LPS"`` (3D Slicer models, DICOM:

@@ -16,6 +16,7 @@ all medical images).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+import re
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +36,20 @@ class LabelVolume:
     units: str | None  # spatial unit stated by the file ("mm", "m", "um") or None
     format: str
     messages: list[str] = field(default_factory=list)  # what the header did not state and what was assumed
+    #: a 3D Slicer segmentation's named segments (``.seg.nrrd``: ``SegmentN_`` header fields); with ``layered``
+    #: the data is ``(layer, i, j, k)`` (segments that overlap are kept in separate layers)
+    segments: list[Segment] = field(default_factory=list)
+    layered: bool = False
+
+
+@dataclass
+class Segment:
+    """One named segment of a 3D Slicer segmentation: its voxels are ``label`` in layer ``layer``."""
+
+    name: str
+    id: str
+    label: int
+    layer: int
 
 
 #: NRRD ``space`` (lower case, without a ``-time`` suffix) -> the diagonal that takes it to RAS
@@ -89,6 +104,20 @@ def read_label_volume(path: str | Path) -> LabelVolume:
         su = header.get("space units")
         units = str(su[0]) if su is not None and len(su) else None
         fmt = "nrrd"
+        kinds = [str(k).lower() for k in header.get("kinds", [])]
+        layered = np.ndim(data) == 4 and kinds[:1] == ["list"]
+        if any(_SEGMENT_FIELD.match(str(k)) for k in header):
+            segments = _slicer_segments(path)
+            fmt = "slicer segmentation (nrrd)"
+            if layered and any(not 0 <= sg.layer < np.shape(data)[0] for sg in segments):
+                raise refuse(path, f"a segment's layer is beyond the file's {np.shape(data)[0]} layers",
+                             "Save the segmentation from 3D Slicer again")
+            return LabelVolume(np.asarray(data), affine, units, fmt, messages, segments, layered)
+        if layered:
+            raise refuse(path, f"a 4-D NRRD with a list axis of {np.shape(data)[0]} and no segment names: "
+                               "cannot tell which layer is the liver",
+                         "Save it from 3D Slicer as a segmentation (.seg.nrrd) or export the liver as a 3-D "
+                         "labelmap")
     data = np.asarray(data)
     if data.ndim == 4 and data.shape[3] == 1:
         data = data[..., 0]
@@ -96,6 +125,24 @@ def read_label_volume(path: str | Path) -> LabelVolume:
         raise refuse(path, f"expected a 3-D label image, got shape {data.shape}",
                      "Give a single 3-D segmentation (one label per voxel)")
     return LabelVolume(data, affine, units, fmt, messages)
+
+
+_SEGMENT_FIELD = re.compile(r"^Segment[0-9]+_")
+
+
+def _slicer_segments(path: Path) -> list[Segment]:
+    """The named segments of a 3D Slicer segmentation, read by slicerio from the header (the voxels are
+    pynrrd's: :func:`read_label_volume`)."""
+    import slicerio
+
+    try:
+        seg = slicerio.read_segmentation(str(path), skip_voxels=True)
+        segments = [Segment(str(s.get("name", "")), str(s.get("id", "")), int(s.get("labelValue", 1)),
+                            int(s.get("layer", 0))) for s in seg.get("segments", [])]
+    except Exception as exc:  # slicerio raises IOError, KeyError, ValueError on a header it cannot read
+        raise refuse(path, f"could not read the 3D Slicer segment list ({type(exc).__name__}: {exc})",
+                     "Save the segmentation from 3D Slicer again, or export the liver as a 3-D labelmap") from None
+    return segments
 
 
 def _nrrd_affine(header: dict, ndim: int, path: Path) -> tuple[np.ndarray, list[str]]:
@@ -140,21 +187,36 @@ def labels_present(data: np.ndarray) -> list[int]:
 
 
 def label_surface(
-    volume: LabelVolume, label: int | None, path=None, smooth_voxels: float = 0.7, max_triangles: int = 80_000
+    volume: LabelVolume, label: int | str | None, path=None, smooth_voxels: float = 0.7,
+    max_triangles: int = 80_000,
 ) -> tuple[np.ndarray, np.ndarray, list[str], int]:
     """Surface of ``label`` in world units (before unit scaling).
+
+    ``label``: the liver's label value, or for a 3D Slicer segmentation also a segment's name or ID (None: the
+    only label, the only segment, or the one segment named "liver").
 
     Returns
     -------
     vertices, faces, messages, label
         Outward-oriented surface (not yet repaired), what was done, the
-        label used.
+        label value used.
     """
     from scipy.ndimage import gaussian_filter
     from skimage.measure import marching_cubes
 
     msgs: list[str] = []
-    present = labels_present(volume.data)
+    if isinstance(label, str) and label.strip().lstrip("-").isdigit():
+        label = int(label)
+    if volume.segments:
+        data, label, msg = _segment_voxels(volume, label, path)
+        msgs.append(msg)
+    else:
+        data = volume.data
+        if isinstance(label, str):
+            raise refuse(path, f"label '{label}' names a segment, but the file names none (labels present: "
+                               f"{labels_present(data)[:20] or 'none'})",
+                         "Give the liver's label value, e.g. label=5")
+    present = labels_present(data)
     if label is None:
         if len(present) != 1:
             raise refuse(
@@ -165,7 +227,7 @@ def label_surface(
             )
         label = present[0]
         msgs.append(f"label {label} used (the only non-zero label)")
-    mask = volume.data == label
+    mask = data == label
     if not mask.any():
         raise refuse(
             path,
@@ -194,6 +256,43 @@ def label_surface(
     if vol < 0:
         faces = faces[:, ::-1].copy()
     return world, faces, msgs, int(label)
+
+
+def _segment_voxels(volume: LabelVolume, label: int | str | None, path) -> tuple[np.ndarray, int, str]:
+    """The voxels (one layer) holding the chosen segment of a 3D Slicer segmentation, its label value, and
+    which segment it is."""
+    segs = volume.segments
+    listing = "; ".join(f"'{sg.name}' (label {sg.label}" + (f", layer {sg.layer})" if volume.layered else ")")
+                        for sg in segs[:30]) + (f"; and {len(segs) - 30} more" if len(segs) > 30 else "")
+    fix = "Pass label=<a segment's name or label value>"
+    if label is None:
+        named = [sg for sg in segs if sg.name.strip().lower() == "liver"]
+        if len(segs) == 1:
+            chosen, why = segs, "the only segment"
+        elif len(named) == 1:
+            chosen, why = named, "the one named liver; give label= to choose another"
+        else:
+            raise refuse(path, f"the segmentation holds {len(segs)} segments and "
+                               f"{'several' if named else 'none'} named liver: {listing}", fix)
+    elif isinstance(label, str):
+        want = label.strip().lower()
+        chosen = [sg for sg in segs if sg.id == label] or [sg for sg in segs if sg.name.strip().lower() == want]
+        why = f"label='{label}'"
+        if len(chosen) != 1:
+            raise refuse(path, f"{'several segments are' if chosen else 'no segment is'} named or has ID "
+                               f"'{label}' (segments: {listing})",
+                         "Give the segment's ID" if chosen else fix)
+    else:
+        chosen = [sg for sg in segs if sg.label == label]
+        why = f"label={label}"
+        if len(chosen) > 1 and volume.layered:
+            raise refuse(path, f"label {label} is used by {len(chosen)} segments in different layers "
+                               f"(segments: {listing})", "Give the segment's name or ID")
+        if not chosen:
+            raise refuse(path, f"no segment has label {label} (segments: {listing})", fix)
+    sg = chosen[0]
+    data = volume.data[sg.layer] if volume.layered else volume.data
+    return data, sg.label, f"segment '{sg.name}' (ID {sg.id}, label {sg.label}) used ({why})"
 
 
 def _signed_volume(v: np.ndarray, f: np.ndarray) -> float:
