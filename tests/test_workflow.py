@@ -88,31 +88,40 @@ def test_imported_liver_runs_through_geometry_and_mesh_rules(tmp_path, shared_li
 
 @pytest.mark.slow  # voxelises a liver and meshes it through snakemake (~25 s)
 def test_a_slicer_segmentation_in_lps_runs_through_geometry_and_mesh_by_segment_name(tmp_path):
-    """A lab's 3D Slicer export: a .seg.nrrd in LPS with two segments; ``label: liver`` picks the liver."""
+    """A lab's 3D Slicer export: a .seg.nrrd in LPS with three segments; ``label: liver`` picks the liver and
+    ``group: ivc`` fixes the liver where it touches the cava segment (its only support: ``mode: replace``)."""
     import slicerio
     import trimesh
+    from scipy.ndimage import binary_dilation
     from scipy.spatial import cKDTree
 
     from liverforce.geometry.procedural import LiverShapeParams, procedural_liver
     from liverforce.mesh.io import read_mesh
+    from liverforce.mesh.types import REGION_CODES
 
     liver = procedural_liver(7, LiverShapeParams())  # RAS mm
     vox = liver.to_trimesh().voxelized(2.0).fill()
-    ijk_to_lps = np.diag([-1.0, -1.0, 1.0, 1.0]) @ np.asarray(vox.transform)  # Slicer writes LPS
+    ijk_to_ras = np.asarray(vox.transform)
     shape = vox.matrix.shape
-    seg = slicerio.create_segmentation(shape, ijk_to_lps)
+    ras = np.indices(shape).transpose(1, 2, 3, 0) @ ijk_to_ras[:3, :3].T + ijk_to_ras[:3, 3]
+    centre = liver.vertices.mean(axis=0)
+    # a cava: the voxels just outside the liver in a posterior band round the centre's x and z
+    ivc = (binary_dilation(vox.matrix, iterations=2) & ~vox.matrix & (ras[..., 1] < centre[1] - 20.0)
+           & (np.abs(ras[..., 0] - centre[0]) < 15.0) & (np.abs(ras[..., 2] - centre[2]) < 25.0))
     spleen = np.zeros(shape, bool)
     spleen[:6, :6, :6] = True  # a corner the liver does not reach
-    assert not (spleen & vox.matrix).any()
-    slicerio.add_segment(seg, spleen, {"id": "Segment_1", "name": "spleen"})
-    slicerio.add_segment(seg, vox.matrix, {"id": "Segment_2", "name": "liver"})
+    assert ivc.sum() > 50 and not (spleen & vox.matrix).any()
+    seg = slicerio.create_segmentation(shape, np.diag([-1.0, -1.0, 1.0, 1.0]) @ ijk_to_ras)  # Slicer writes LPS
+    for k, (name, mask) in enumerate([("spleen", spleen), ("liver", vox.matrix), ("ivc", ivc)], start=1):
+        slicerio.add_segment(seg, mask, {"id": f"Segment_{k}", "name": name})
     src = tmp_path / "Segmentation.seg.nrrd"
     slicerio.write_segmentation(str(src), seg)
-    override = f"overrides=geometry.imported=[{{name:seg,path:{src},label:liver}}]"
+    override = (f"overrides=geometry.imported=[{{name:seg,path:{src},label:liver,supports:{{mode:replace,"
+                f"list:[{{name:cava,kind:fixed,group:ivc}}]}}}}]")
     snakemake("--cores", "1", "--directory", str(tmp_path), "--config", "experiment=smoke", override,
               "--", "results/smoke/mesh/imp-seg.vtu")
     record = json.loads((tmp_path / "results/smoke/geometry/imp-seg.json").read_text())
-    assert record["label"] == 2 and record["spec"]["label"] == "liver"
+    assert record["label"] == 2 and record["segment"] == "Segment_2" and record["spec"]["label"] == "liver"
     assert any("segment 'liver' (ID Segment_2, label 2) used (label='liver')" in m for m in record["repairs"])
     mesh = read_mesh(tmp_path / "results/smoke/mesh/imp-seg.vtu")
     pts = np.asarray(mesh.points)[np.unique(mesh.facets)]  # the boundary's nodes
@@ -120,6 +129,13 @@ def test_a_slicer_segmentation_in_lps_runs_through_geometry_and_mesh_by_segment_
     dist, _ = cKDTree(dense).query(pts)
     # in RAS, where the procedural liver is: within a voxel or two (a mirrored or LPS-read liver is cm off)
     assert np.median(dist) < 2.0 and dist.max() < 8.0
+    features = json.loads((tmp_path / "results/smoke/mesh/imp-seg.features.json").read_text())
+    (cava,) = [s for s in features["supports"] if s["name"] == "cava"]
+    assert cava["segment"] == "segment 'ivc' (ID Segment_3, label 3)" and cava["n_facets"] > 0
+    fixed = np.asarray(mesh.points)[mesh.facets[mesh.facet_region == REGION_CODES["ivc"]]].mean(axis=1)
+    d_ivc, _ = cKDTree(ras[ivc]).query(fixed)
+    # the only fixed facets (mode: replace) are the contact, to within the smoke mesh's facet size (~14 mm)
+    assert len(fixed) > 10 and np.median(d_ivc) < 3.0 and d_ivc.max() < 15.0
 
 
 def test_broken_import_stops_with_the_file_named(tmp_path, shared_livers):

@@ -129,7 +129,7 @@ def load_surface(
     frame_m, frame_label = frame_matrix(frame, path)
     name = path.name.lower()
     msgs: list[str] = []
-    used_label = None
+    used_label = used_segment = None
     if is_volume_file(path):
         if frame_label == "LPS":
             raise refuse(path, "frame LPS given for a label volume, whose header already states its frame "
@@ -138,7 +138,7 @@ def load_surface(
         volume = read_label_volume(path)
         for m in volume.messages:  # an assumed frame: a warning, not only a line in the record
             log.warning("%s: %s", path, m)
-        vertices, faces, vmsgs, used_label = label_surface(volume, label, path)
+        vertices, faces, vmsgs, used_label, used_segment = label_surface(volume, label, path)
         msgs += volume.messages + vmsgs
         if scale is None:
             file_unit = volume.units or "mm"
@@ -194,6 +194,7 @@ def load_surface(
         "scale_to_mm": float(scale),
         "frame": frame_label,
         "label": used_label,
+        "segment": used_segment,
         "repairs": list(msgs),
         "conversion": conversion,
     }

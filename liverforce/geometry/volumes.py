@@ -189,7 +189,7 @@ def labels_present(data: np.ndarray) -> list[int]:
 def label_surface(
     volume: LabelVolume, label: int | str | None, path=None, smooth_voxels: float = 0.7,
     max_triangles: int = 80_000,
-) -> tuple[np.ndarray, np.ndarray, list[str], int]:
+) -> tuple[np.ndarray, np.ndarray, list[str], int, str | None]:
     """Surface of ``label`` in world units (before unit scaling).
 
     ``label``: the liver's label value, or for a 3D Slicer segmentation also a segment's name or ID (None: the
@@ -197,9 +197,9 @@ def label_surface(
 
     Returns
     -------
-    vertices, faces, messages, label
+    vertices, faces, messages, label, segment
         Outward-oriented surface (not yet repaired), what was done, the
-        label value used.
+        label value used and the segment's ID (None: the file names no segments).
     """
     from scipy.ndimage import gaussian_filter
     from skimage.measure import marching_cubes
@@ -207,9 +207,11 @@ def label_surface(
     msgs: list[str] = []
     if isinstance(label, str) and label.strip().lstrip("-").isdigit():
         label = int(label)
+    segment = None
     if volume.segments:
-        data, label, msg = _segment_voxels(volume, label, path)
-        msgs.append(msg)
+        data, sg, why = _segment_voxels(volume, label, path)
+        label, segment = sg.label, sg.id
+        msgs.append(f"segment '{sg.name}' (ID {sg.id}, label {sg.label}) used ({why})")
     else:
         data = volume.data
         if isinstance(label, str):
@@ -255,12 +257,12 @@ def label_surface(
     vol = _signed_volume(world, faces)
     if vol < 0:
         faces = faces[:, ::-1].copy()
-    return world, faces, msgs, int(label)
+    return world, faces, msgs, int(label), segment
 
 
-def _segment_voxels(volume: LabelVolume, label: int | str | None, path) -> tuple[np.ndarray, int, str]:
-    """The voxels (one layer) holding the chosen segment of a 3D Slicer segmentation, its label value, and
-    which segment it is."""
+def _segment_voxels(volume: LabelVolume, label: int | str | None, path) -> tuple[np.ndarray, Segment, str]:
+    """The voxels (one layer) holding the chosen segment of a 3D Slicer segmentation, the segment, and why it
+    was chosen."""
     segs = volume.segments
     listing = "; ".join(f"'{sg.name}' (label {sg.label}" + (f", layer {sg.layer})" if volume.layered else ")")
                         for sg in segs[:30]) + (f"; and {len(segs) - 30} more" if len(segs) > 30 else "")
@@ -291,8 +293,39 @@ def _segment_voxels(volume: LabelVolume, label: int | str | None, path) -> tuple
         if not chosen:
             raise refuse(path, f"no segment has label {label} (segments: {listing})", fix)
     sg = chosen[0]
-    data = volume.data[sg.layer] if volume.layered else volume.data
-    return data, sg.label, f"segment '{sg.name}' (ID {sg.id}, label {sg.label}) used ({why})"
+    return (volume.data[sg.layer] if volume.layered else volume.data), sg, why
+
+
+def segment_boundary_points(volume: LabelVolume, label: int | str, path=None
+                            ) -> tuple[np.ndarray, float, str, int, str | None]:
+    """Voxel centres (world frame and units: the surface's before unit scaling) of the boundary voxels of a
+    label value or a segment (name or ID); the largest voxel spacing; what it is (for messages); its label
+    value and segment ID (None: the file names no segments).
+
+    A support given as another segment of the liver's segmentation (e.g. the inferior vena cava) is where
+    the liver's surface touches these points (:class:`liverforce.mesh.groups.VolumeGroups`).
+    """
+    from scipy.ndimage import binary_erosion
+
+    if isinstance(label, str) and label.strip().lstrip("-").isdigit():
+        label = int(label)
+    segment = None
+    if volume.segments:
+        data, sg, _ = _segment_voxels(volume, label, path)
+        value, segment, what = sg.label, sg.id, f"segment '{sg.name}' (ID {sg.id}, label {sg.label})"
+    elif isinstance(label, str):
+        raise refuse(path, f"'{label}' names a segment, but the file names none (labels present: "
+                           f"{labels_present(volume.data)[:20] or 'none'})", "Give the support's label value")
+    else:
+        data, value, what = volume.data, int(label), f"label {label}"
+    mask = data == value
+    if not mask.any():
+        raise refuse(path, f"{what} has no voxel (labels present: {labels_present(data)[:20] or 'none'})",
+                     "Give a label value or segment present in the file")
+    ijk = np.argwhere(mask & ~binary_erosion(mask))
+    world = ijk @ volume.affine[:3, :3].T + volume.affine[:3, 3]
+    spacing = float(np.linalg.norm(volume.affine[:3, :3], axis=0).max())
+    return world, spacing, what, int(value), segment
 
 
 def _signed_volume(v: np.ndarray, f: np.ndarray) -> float:

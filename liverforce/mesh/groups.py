@@ -12,6 +12,12 @@ A support may select its surface with ``group:`` (see :mod:`liverforce.mesh.supp
 ``group: {array: CellEntityIds, value: 7}``
     a value of a named cell-data array (``{array: name}`` alone: its non-zero cells).
 
+For a liver segmented from a label volume (NIfTI, NRRD, a 3D Slicer ``.seg.nrrd``) a
+group is another label value or segment of the same file, by number or by segment
+name or ID (``group: inferior_vena_cava``): the support is where the liver's surface
+touches it, the surface facets whose centroid lies within 1.5 voxels of the
+segment's boundary voxels (:class:`VolumeGroups`).
+
 The group's cells give faces and nodes: triangles (and quads, split in two) are
 faces; tetrahedra give their faces that lie on the boundary; lines and vertices
 give nodes. On a surface (the mesh's boundary facets, or the input surface of
@@ -125,6 +131,44 @@ class FileGroups:
             raise GroupError(f"{where}: no cell has {array} = {value} in {self.path} (values: "
                              f"{self._values(array) if array in self._int_arrays() else '?'})")
         return masks
+
+
+@dataclass
+class VolumeGroups:
+    """The other labels and segments of the label volume a liver was segmented from (module docstring)."""
+
+    path: str
+    volume: object  # liverforce.geometry.volumes.LabelVolume
+    liver: tuple  # the liver's own (label value, segment ID or None): never a support
+
+    #: facets within this many voxels (the largest spacing) of the segment's boundary voxels touch it
+    REACH_VOXELS = 1.5
+
+    def contact(self, spec: dict, where: str = "group") -> tuple[np.ndarray, float, str]:
+        """Boundary voxel centres (file units and frame) of the group ``spec``, the reach (file units) within
+        which a facet touches them, and which label or segment it is."""
+        from liverforce.geometry.errors import GeometryError
+        from liverforce.geometry.volumes import segment_boundary_points
+
+        if "array" in spec:
+            raise GroupError(f"{where}: {self.path} is a label volume, it has no cell-data arrays; give a label "
+                             "value or a segment's name or ID")
+        try:
+            pts, spacing, what, value, segment = segment_boundary_points(
+                self.volume, spec.get("name", spec.get("value")), self.path)
+        except GeometryError as exc:
+            raise GroupError(f"{where}: {exc}") from None
+        if (value, segment) == tuple(self.liver):
+            raise GroupError(f"{where}: {what} is the liver itself; a support is another segment it touches")
+        return pts, self.REACH_VOXELS * spacing, what
+
+
+def read_volume_groups(path, liver_label: int | None, liver_segment: str | None = None) -> VolumeGroups:
+    """The label volume ``path`` as support groups (:class:`VolumeGroups`); the liver is ``liver_label``
+    (and ``liver_segment``), as the geometry stage recorded it."""
+    from liverforce.geometry.volumes import read_label_volume
+
+    return VolumeGroups(str(Path(path)), read_label_volume(path), (liver_label, liver_segment))
 
 
 def read_file_groups(path) -> FileGroups:

@@ -37,7 +37,10 @@ lengths in mm:
   nearest boundary triangle of the file is one of them (exactly the tagged
   faces on a mesh imported as given; transferred onto a remeshed surface, the
   largest centroid distance reported as ``transfer_mm``); a group of nodes only
-  (vertex or line cells) is snapped as a file of vertex ids.
+  (vertex or line cells) is snapped as a file of vertex ids. For a liver segmented
+  from a label volume, a group is another label value or segment of that file
+  (``group: inferior_vena_cava``): the facets where the liver touches it, within
+  1.5 voxels of its boundary voxels (``contact_mm``).
 
 Supports are applied in order (a later one overrides an earlier one) onto zero
 regions (``mode: replace``) or onto the auto-tagged ones (``mode: add``).
@@ -294,6 +297,8 @@ def _select_group(vertices, faces, support: Support, frame: PointFrame, groups) 
     from liverforce.mesh.groups import GroupError
 
     where = f"support '{support.name}' group {support.selector[1]}"
+    if hasattr(groups, "contact"):  # a label volume's other segment: where the liver touches it
+        return _select_contact(vertices, faces, frame, groups, support.selector[1], where)
     try:
         gfaces, gnodes = groups.select(support.selector[1], where)
     except GroupError as exc:
@@ -319,6 +324,28 @@ def _select_group(vertices, faces, support: Support, frame: PointFrame, groups) 
         info["group_nodes"] = int(len(gnodes))
         info["snap_mm"] = {"max": float(dist.max()), "mean": float(dist.mean()), "n_points": int(len(dist))}
     return mask, info
+
+
+def _select_contact(vertices, faces, frame: PointFrame, groups, spec: dict, where: str) -> tuple[np.ndarray, dict]:
+    """Facets whose centroid lies within the reach of a segment's boundary voxels (:class:`VolumeGroups`)."""
+    from scipy.spatial import cKDTree
+
+    from liverforce.mesh.groups import GroupError
+
+    try:
+        pts, reach, what = groups.contact(spec, where)
+    except GroupError as exc:
+        raise SupportError(str(exc)) from None
+    P = frame.to_mesh(pts * frame.scale)
+    reach_mm = reach * frame.scale
+    d, _ = cKDTree(P).query(vertices[faces].mean(axis=1))
+    mask = d <= reach_mm
+    if not mask.any():
+        raise SupportError(f"{where}: {what} of {groups.path} does not touch the liver (its nearest surface "
+                           f"facet is {d.min():.3g} mm away, beyond {reach_mm:.3g} mm): choose the segment the "
+                           "liver rests on, or select the support by sphere, box or file")
+    return mask, {"file": groups.path, "segment": what, "contact_mm": float(reach_mm),
+                  "boundary_voxels": int(len(P))}
 
 
 def _units_scale(units) -> float:

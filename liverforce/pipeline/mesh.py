@@ -174,17 +174,22 @@ def _user_scene(spec: dict, surface_meta: dict) -> dict:
             cache["v"] = _read_mesh_file(path, path.name.lower()).points
         return cache["v"]
 
-    def file_groups():  # the geometry file's tagged cells (Gmsh physical groups, cell data)
+    def file_groups():  # the geometry file's tagged cells (Gmsh physical groups, cell data) or other segments
         if "g" not in cache:
             from liverforce.geometry.volume_mesh import VOLUME_MESH_SUFFIXES
-            from liverforce.mesh.groups import read_file_groups
+            from liverforce.geometry.volumes import is_volume_file
+            from liverforce.mesh.groups import read_file_groups, read_volume_groups
             from liverforce.mesh.supports import SupportError
 
             path = Path(spec["path"])
-            if not path.name.lower().endswith(VOLUME_MESH_SUFFIXES):
+            if is_volume_file(path):  # the segments beside the liver's (label values, a segmentation's names)
+                cache["g"] = read_volume_groups(path, surface_meta.get("label"), surface_meta.get("segment"))
+            elif not path.name.lower().endswith(VOLUME_MESH_SUFFIXES):
                 raise SupportError(f"geometry.imported[{name}]: {path} carries no tagged groups (only Gmsh MSH, "
-                                   "VTU, VTK and XDMF files do); select the support by sphere, box or file")
-            cache["g"] = read_file_groups(path)
+                                   "VTU, VTK, XDMF files and label volumes do); select the support by sphere, box "
+                                   "or file")
+            else:
+                cache["g"] = read_file_groups(path)
         return cache["g"]
 
     name = spec.get("name", "?")

@@ -1,0 +1,124 @@
+"""Supports given as another segment of the liver's segmentation: where the liver touches it.
+
+A 3D Slicer segmentation in LPS holds the liver (an ellipsoid), an inferior vena cava (a cylinder lying in a
+groove of the liver's posterior face, as the real one does) and a kidney that does not touch the liver.
+The contact patch is worked out here from the shapes in RAS, not from the selector's code.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from liverforce.geometry import load_surface
+from liverforce.mesh.groups import read_volume_groups
+from liverforce.mesh.supports import PointFrame, Support, SupportError, parse_supports, select_facets
+
+SHAPE = (90, 70, 50)
+SPACING = np.array([2.0, 2.0, 2.5])
+IJK_TO_LPS = np.array([[-2.0, 0.0, 0.0, 80.0], [0.0, -2.0, 0.0, 60.0], [0.0, 0.0, 2.5, -100.0], [0, 0, 0, 1.0]])
+IJK = np.indices(SHAPE).transpose(1, 2, 3, 0).astype(float)
+LIVER_C, LIVER_R = np.array([45.0, 35.0, 25.0]), np.array([36.0, 26.0, 18.0])  # voxels: 144 x 104 x 90 mm
+IVC_AXIS_IJ, IVC_R = np.array([45.0, 35.0 - 26.0 + 3.0]), 4.0  # along k, sunk 3 voxels into the liver's -j side
+
+
+def masks():
+    liver = (((IJK - LIVER_C) / LIVER_R) ** 2).sum(axis=-1) <= 1.0
+    ivc = (np.linalg.norm(IJK[..., :2] - IVC_AXIS_IJ, axis=-1) <= IVC_R) & (np.abs(IJK[..., 2] - 25) <= 10)
+    liver &= ~ivc  # the liver wraps round the cava: a groove, no overlap
+    kidney = (np.linalg.norm(IJK - np.array([8.0, 8.0, 8.0]), axis=-1) <= 4.0)
+    assert not (kidney & liver).any()
+    return liver, ivc, kidney
+
+
+def to_ras(ijk):
+    lps = np.asarray(ijk, float) @ IJK_TO_LPS[:3, :3].T + IJK_TO_LPS[:3, 3]
+    return lps * np.array([-1.0, -1.0, 1.0])
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    import slicerio
+
+    path = tmp_path_factory.mktemp("seg") / "Segmentation.seg.nrrd"
+    seg = slicerio.create_segmentation(SHAPE, IJK_TO_LPS)
+    liver, ivc, kidney = masks()
+    for k, (name, m) in enumerate([("liver", liver), ("inferior_vena_cava", ivc), ("kidney", kidney)], start=1):
+        slicerio.add_segment(seg, m, {"id": f"Segment_{k}", "name": name})
+    slicerio.write_segmentation(str(path), seg)
+    surface, _ = load_surface(path, label="liver")
+    assert surface.meta["label"] == 1 and surface.meta["segment"] == "Segment_1"
+    groups = read_volume_groups(path, surface.meta["label"], surface.meta["segment"])
+    return path, surface, groups
+
+
+def select(scene, group, kind="fixed"):
+    _, surface, groups = scene
+    (support,) = parse_supports({"mode": "add", "list": [{"name": "cava", "kind": kind, "group": group}]})[1]
+    frame = PointFrame.from_surface_meta(surface.meta)
+    return select_facets(surface.vertices, surface.faces, support, frame, file_groups=lambda: groups)
+
+
+def distance_to_cava_mm(points_ras):
+    """Distance (mm) of RAS points from the cava's voxels as a solid cylinder (radius 4 voxels of 2 mm, ends at
+    the outer faces of voxels k = 15 and 35), worked out from its axis in RAS."""
+    end_lo, end_hi = to_ras([*IVC_AXIS_IJ, 14.5]), to_ras([*IVC_AXIS_IJ, 35.5])
+    length = np.linalg.norm(end_hi - end_lo)
+    u = (end_hi - end_lo) / length
+    rel = points_ras - end_lo
+    t = rel @ u
+    radial = np.linalg.norm(rel - np.outer(t, u), axis=1)
+    beyond = np.maximum(np.maximum(-t, t - length), 0.0)
+    return np.hypot(np.maximum(radial - IVC_R * 2.0, 0.0), beyond)
+
+
+@pytest.mark.parametrize("group", ["inferior_vena_cava", "Segment_2", 2])
+def test_the_cava_segment_selects_the_groove_it_lies_in(scene, group):
+    _, surface, _ = scene
+    mask, info = select(scene, group)
+    cent = surface.vertices[surface.faces].mean(axis=1)
+    d = distance_to_cava_mm(cent)
+    assert info["segment"].startswith("segment 'inferior_vena_cava' (ID Segment_2, label 2")
+    assert info["contact_mm"] == pytest.approx(1.5 * 2.5) and info["n_facets"] == mask.sum() > 50
+    # every selected facet hugs the cylinder; every facet hugging it is selected
+    assert d[mask].max() < 1.5 * 2.5 + 1.5
+    assert mask[d < 0.5].all() and (d < 0.5).sum() > 0.5 * mask.sum()
+    # on the posterior side, where the cava is (RAS: -y is posterior; LPS +j is posterior too)
+    assert cent[mask, 1].max() < to_ras(LIVER_C)[1] - 30.0
+
+
+def test_a_segment_the_liver_does_not_touch_is_refused_with_the_distance(scene):
+    with pytest.raises(SupportError, match=r"segment 'kidney' \(ID Segment_3, label 3\) of .*Segmentation\.seg\.nrrd "
+                                           r"does not touch the liver \(its nearest surface facet is [0-9.]+ mm "
+                                           r"away, beyond 3\.75 mm\)"):
+        select(scene, "kidney")
+
+
+@pytest.mark.parametrize("group, message", [
+    ("liver", r"segment 'liver' \(ID Segment_1, label 1\) is the liver itself"),
+    ("spleen", r"no segment is named or has ID 'spleen'.*'inferior_vena_cava' \(label 2\)"),
+    ({"array": "labels", "value": 2}, r"is a label volume, it has no cell-data arrays"),
+])
+def test_a_wrong_segment_is_refused_by_name(scene, group, message):
+    with pytest.raises(SupportError, match=rf"support 'cava' group .*{message}"):
+        select(scene, group)
+
+
+def test_a_plain_label_volume_takes_a_label_value(tmp_path):
+    import nibabel as nib
+
+    liver, ivc, _ = masks()
+    data = np.zeros(SHAPE, np.uint8)
+    data[liver], data[ivc] = 5, 9
+    path = tmp_path / "seg.nii.gz"
+    affine = np.diag([-1.0, -1.0, 1.0, 1.0]) @ IJK_TO_LPS  # NIfTI is RAS: the same world as the LPS file
+    nib.save(nib.Nifti1Image(data, affine), path)
+    surface, _ = load_surface(path, label=5)
+    groups = read_volume_groups(path, 5)
+    mask, info = select_facets(surface.vertices, surface.faces, Support("cava", "fixed", ("group", {"value": 9})),
+                               PointFrame.from_surface_meta(surface.meta), file_groups=lambda: groups)
+    d = distance_to_cava_mm(surface.vertices[surface.faces].mean(axis=1))
+    assert info["segment"] == "label 9" and mask.sum() > 50 and d[mask].max() < 1.5 * 2.5 + 1.5
+    with pytest.raises(SupportError, match=r"'cava' names a segment, but the file names none"):
+        select_facets(surface.vertices, surface.faces, Support("x", "fixed", ("group", {"name": "cava"})),
+                      PointFrame.from_surface_meta(surface.meta), file_groups=lambda: groups)
