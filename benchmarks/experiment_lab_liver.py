@@ -15,6 +15,13 @@ the exertion point are written in LPS metres and predicted with ``liverforce pre
 - ``--frame <import record> --mesh <mesh stage's copy>`` and no ``--surface`` (the README's advice);
 - the same with the lab's STL as ``--surface``.
 
+With ``--input segmentation`` the lab brings a 3D Slicer segmentation instead: the same liver voxelised at
+1.5 mm into a ``.seg.nrrd`` in LPS (as Slicer writes it) with an ``inferior_vena_cava`` segment lying against
+the liver where the sphere was and a ``gallbladder`` segment that does not touch it. The liver is chosen
+with ``label: liver``, the cava support with ``group: inferior_vena_cava`` (the floor stays a box), and the
+clouds are predicted with ``--frame LPS --units m`` (a label volume's record is not an input frame); there
+is no STL to give as ``--surface``.
+
 It prints the geometry stage's repairs, how far its surface lies from the file, each force (LPS) and the
 warnings. The smoke-sized model (19 training cases) is a toy: the forces' agreement is the point, not
 their accuracy.
@@ -60,15 +67,47 @@ def write_inputs(livers: Path, out: Path, mm_per_unit: float) -> dict:
             "floor": (floor_lo.round(1).tolist(), floor_hi.round(1).tolist()), "vertices_ras": V, "triangles": T}
 
 
+def write_segmentation(inputs: dict, out: Path, pitch_mm: float = 1.5) -> dict:
+    """The same liver as a 3D Slicer segmentation (LPS): liver, a cava against it, a gallbladder apart."""
+    import slicerio
+    import trimesh
+    from scipy.ndimage import binary_dilation
+
+    V, T = inputs["vertices_ras"], inputs["triangles"]
+    vox = trimesh.Trimesh(V, T, process=False).voxelized(pitch_mm).fill()
+    liver = np.asarray(vox.matrix, bool)
+    ijk_to_ras = np.asarray(vox.transform)
+    ras = np.indices(liver.shape).transpose(1, 2, 3, 0) @ ijk_to_ras[:3, :3].T + ijk_to_ras[:3, 3]
+    cava_ras = np.asarray(inputs["cava"]) * FLIP
+    cava = binary_dilation(liver, iterations=3) & ~liver & (np.linalg.norm(ras - cava_ras, axis=-1) < 25.0)
+    far = np.argwhere(~binary_dilation(liver, iterations=8))[0]  # a corner well away from the liver
+    gall = np.linalg.norm(np.indices(liver.shape).transpose(1, 2, 3, 0) - far, axis=-1) < 4.0
+    gall &= ~binary_dilation(liver, iterations=8)
+    seg = slicerio.create_segmentation(liver.shape, np.diag([*FLIP, 1.0]) @ ijk_to_ras)
+    for k, (name, m) in enumerate([("gallbladder", gall), ("liver", liver), ("inferior_vena_cava", cava)], 1):
+        slicerio.add_segment(seg, m, {"id": f"Segment_{k}", "name": name})
+    path = out / "lab01_Segmentation.seg.nrrd"
+    slicerio.write_segmentation(str(path), seg)
+    print(f"segmentation: {liver.shape} voxels of {pitch_mm} mm, liver {int(liver.sum())}, cava {int(cava.sum())}, "
+          f"gallbladder {int(gall.sum())} voxels", flush=True)
+    return {**inputs, "segmentation": path}
+
+
 def run_models(work: Path, inputs: dict, cases: int, cores: int, floor_n_per_mm: float, max_force_n: float) -> None:
     lo, hi = inputs["floor"]
+    if inputs.get("segmentation"):  # the volume's points are RAS unless stated: the lab's are LPS
+        source, lps = f"path:{inputs['segmentation']},label:liver", ",frame:LPS"
+        cava = "{name:cava,kind:fixed,group:inferior_vena_cava},"
+    else:  # the STL's own frame is LPS: its points need not say so
+        source, lps = f"path:{inputs['stl']},units:m,frame:LPS", ""
+        cava = f"{{name:cava,kind:fixed,sphere:{{center_mm:{inputs['cava']},radius_mm:25}}}},"
     imported = (
-        f"[{{name:lab01,path:{inputs['stl']},units:m,frame:LPS,"
+        f"[{{name:lab01,{source},"
         f"supports:{{mode:replace,list:["
-        f"{{name:cava,kind:fixed,sphere:{{center_mm:{inputs['cava']},radius_mm:25}}}},"
+        f"{cava}"
         f"{{name:floor,kind:foundation,region:visceral,stiffness:{{total_n_per_mm:{floor_n_per_mm}}},"
-        f"box:{{min_mm:{lo},max_mm:{hi}}}}}]}},"
-        f"exertion_points:{{path:{inputs['points']},units:m}}}}]"
+        f"box:{{min_mm:{lo},max_mm:{hi}{lps}}}}}]}},"
+        f"exertion_points:{{path:{inputs['points']},units:m{lps}}}}}]"
     ).replace(" ", "")
     overrides = (f"geometry.procedural.count=0 geometry.imported={imported} sweep.scenarios.II.n_cases={cases} "
                  f"sweep.force.max_n={max_force_n} train.scenarios=[II] study.enabled=false")
@@ -128,11 +167,15 @@ def predict_cases(work: Path, inputs: dict, seed: int) -> list[dict]:
             row["shard"] = (f * FLIP, info["warnings"])
         except PredictionInputError as exc:
             row["shard"] = (None, [f"refused: {exc}"])
-        common = ["predict", "-m", str(model), str(path), "--frame", str(res / "geometry" / "imp-lab01.json"),
+        frame = (["--frame", "LPS", "--units", "m"] if inputs.get("segmentation")
+                 else ["--frame", str(res / "geometry" / "imp-lab01.json")])
+        common = ["predict", "-m", str(model), str(path), *frame,
                   "--mesh", str(mesh), "--exertion-point", *map(repr, (P[0] * FLIP / 1000.0).tolist()),
                   "--material", *map(str, a["material_params_mpa"][i]),
                   "--tool-tip", *map(repr, (tip * FLIP / 1000.0).tolist())]
-        for name, extra in (("mesh only", []), ("lab STL", ["--surface", str(inputs["stl"])])):
+        paths = [("mesh only", [])] + ([] if inputs.get("segmentation") else [("lab STL", ["--surface",
+                                                                                           str(inputs["stl"])])])
+        for name, extra in paths:
             out = work / "inputs" / f"force_{cid}.json"
             out.unlink(missing_ok=True)
             err = io.StringIO()
@@ -161,15 +204,23 @@ def main() -> int:
                     help="the sweep's largest force: on this softly supported liver, 2 N keeps most tool tips "
                          "within the model's +-20 mm grid")
     ap.add_argument("--seed", type=int, default=7, help="the camera clouds' observation seed")
+    ap.add_argument("--input", choices=["stl", "segmentation"], default="stl",
+                    help="what the lab brings: an STL in LPS metres, or a 3D Slicer segmentation (.seg.nrrd)")
     args = ap.parse_args()
     if not (args.livers / "liver-smooth.obj").is_file():
         raise SystemExit(f"{args.livers}/liver-smooth.obj not found: give --livers (../shared/data/livers)")
     warnings.simplefilter("ignore")
     inputs = write_inputs(args.livers, args.work / "inputs", 40.0)
+    if args.input == "segmentation":
+        inputs = write_segmentation(inputs, args.work / "inputs")
     run_models(args.work, inputs, args.cases, args.cores, args.floor_n_per_mm, args.max_force_n)
     rec = json.loads((args.work / "results" / "smoke" / "geometry" / "imp-lab01.json").read_text())
     print("conversion:", rec["conversion"]["summary"])
     print("repairs:", *rec.get("repairs", []), sep="\n  ")
+    feats = json.loads((args.work / "results" / "smoke" / "mesh" / "imp-lab01.features.json").read_text())
+    for sup in feats.get("supports", []):
+        print(f"support {sup.get('name')}: {sup.get('n_facets')} facets of the input surface",
+              {k: sup[k] for k in ("segment", "contact_mm", "snap_mm") if k in sup})
     mean, top = surface_deviation(inputs, args.work / "results" / "smoke" / "geometry" / "imp-lab01.ply")
     print(f"the file's vertices from the geometry stage's surface: mean {mean:.3f} mm, max {top:.3f} mm")
     rows = predict_cases(args.work, inputs, args.seed)
@@ -177,9 +228,11 @@ def main() -> int:
     for r in rows:
         print(f"{r['case']}: true force (LPS) {np.round(r['true'], 3)}, tool tip {r['tip_mm']:.1f} mm from the point")
         for name in ("shard", "mesh only", "lab STL"):
+            if name not in r:
+                continue
             f, w = r[name]
             print(f"  {name:>9}: {'-' if f is None else np.round(f, 4)}  {w}")
-        f0, f1, f2 = r["shard"][0], r["mesh only"][0], r["lab STL"][0]
+        f0, f1, f2 = r["shard"][0], r["mesh only"][0], r.get("lab STL", (None,))[0]
         if f0 is not None and f1 is not None:
             same += bool(np.allclose(f0, f1, atol=1e-6))
             diff.append(float(np.abs(f0 - f1).max()))
@@ -187,8 +240,8 @@ def main() -> int:
             gap.append(float(np.abs(f2 - f1).max()))
     scored = sum(r["shard"][0] is not None for r in rows)
     print(f"{scored} of {len(rows)} test cases predicted; mesh only equals the shard context (1e-6 N) on {same} "
-          f"(max |diff| {max(diff, default=float('nan')):.1e} N); the lab STL is up to "
-          f"{max(gap, default=float('nan')):.3f} N away (median {np.median(gap) if gap else float('nan'):.3f} N)")
+          f"(max |diff| {max(diff, default=float('nan')):.1e} N)" + (
+              f"; the lab STL is up to {max(gap):.3f} N away (median {np.median(gap):.3f} N)" if gap else ""))
     return 0
 
 

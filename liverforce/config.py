@@ -1002,9 +1002,13 @@ def _check_user_scene(key: str, imp: dict) -> None:
     if ep is None:
         return
     ep = dict(ep)
-    keys = set(ep) - {"units"}
+    keys = set(ep) - {"units", "frame"}
     if keys not in ({"coordinates_mm"}, {"vertex_ids"}, {"path"}):
         _fail(f"{key}.exertion_points", f"give one of coordinates_mm, vertex_ids or path, got {sorted(ep)}")
+    if ep.get("frame") is not None:
+        if "vertex_ids" in ep:
+            _fail(f"{key}.exertion_points.frame", "vertex ids have no frame (they index the file's vertices)")
+        _check_frame(f"{key}.exertion_points.frame", ep["frame"])
     if "coordinates_mm" in ep:
         import numpy as np
 

@@ -18,8 +18,10 @@ ligament); its stiffness is ``{normal_n_per_mm3, tangential_n_per_mm3}`` or
 ``{total_n_per_mm, tangential_ratio}`` (the total spread over the region's area,
 as the study's). Two foundations in one slot must have the same stiffness.
 
-Selectors, all in the frame of the geometry file (``geometry.imported[].frame``),
-lengths in mm:
+Selectors, all in the frame of the geometry file (``geometry.imported[].frame``; for
+a label volume RAS, its header's world converted), lengths in mm, unless a selector
+states its own ``frame`` (``RAS``, ``LPS`` or a 4x4, as the geometry's: e.g. LPS
+points from DICOM, ITK or a 3D Slicer markups file beside a NIfTI or NRRD liver):
 
 * ``sphere: {center_mm: [x, y, z], radius_mm: r}`` and
   ``box: {min_mm: [x, y, z], max_mm: [x, y, z]}`` select a facet when its
@@ -106,6 +108,24 @@ class PointFrame:
         M = np.linalg.inv(np.asarray(self.matrix, float))
         return np.asarray(xyz_mesh, float) @ M[:3, :3].T + M[:3, 3]
 
+    def stated(self, frame, where: str) -> "PointFrame":
+        """This frame, or, when a point spec states its own ``frame`` (RAS, LPS or a 4x4: its coordinates, in
+        mm after units, to RAS mm), that one in place of the geometry file's; the file's units stay."""
+        if frame is None:
+            return self
+        return PointFrame(self.scale, tuple(map(tuple, points_frame(frame, where))))
+
+
+def points_frame(frame, where: str) -> np.ndarray:
+    """The 4x4 (point mm -> RAS mm) of a point spec's ``frame``; :class:`SupportError` naming ``where``."""
+    from liverforce.geometry.errors import GeometryError
+    from liverforce.geometry.frames import frame_matrix
+
+    try:
+        return frame_matrix(frame)[0]
+    except (GeometryError, ValueError) as exc:
+        raise SupportError(f"{where}.frame: {exc}") from None
+
 
 def parse_supports(cfg, where: str = "supports") -> tuple[str, list[Support]]:
     """``{mode, list}`` config → ``(mode, [Support])``; ``ValueError`` naming the key on a bad entry."""
@@ -176,9 +196,11 @@ def _check_selector(selector, key):
     if kind == "group":
         return
     need = {"sphere": {"center_mm", "radius_mm"}, "box": {"min_mm", "max_mm"}, "file": {"path"}}[kind]
-    allowed = need | ({"units"} if kind == "file" else set())
+    allowed = need | ({"units"} if kind == "file" else set()) | {"frame"}
     if not need <= set(d) or not set(d) <= allowed:
         raise SupportError(f"{key}: needs keys {sorted(need)} (optional {sorted(allowed - need)}), got {sorted(d)}")
+    if d.get("frame") is not None:
+        points_frame(d["frame"], key)
     if kind == "sphere" and (np.shape(d["center_mm"]) != (3,) or not float(d["radius_mm"]) > 0):
         raise SupportError(f"{key}: center_mm must be [x, y, z] and radius_mm > 0")
     if kind == "box" and (np.shape(d["min_mm"]) != (3,) or np.shape(d["max_mm"]) != (3,)
@@ -258,7 +280,8 @@ def select_facets(vertices, faces, support: Support, frame: PointFrame = PointFr
         mask, ginfo = _select_group(vertices, faces, support, frame, file_groups())
         info.update(ginfo)
     elif kind in ("sphere", "box"):
-        cent = frame.to_file(vertices[faces].mean(axis=1))  # file frame, mm
+        frame = frame.stated(d.get("frame"), f"support '{support.name}' {kind}")
+        cent = frame.to_file(vertices[faces].mean(axis=1))  # file frame (or the stated one), mm
         if kind == "sphere":
             mask = np.linalg.norm(cent - np.asarray(d["center_mm"], float), axis=1) <= float(d["radius_mm"])
         else:
@@ -279,7 +302,7 @@ def select_facets(vertices, faces, support: Support, frame: PointFrame = PointFr
             xyz = frame.to_mesh(fv[a] * frame.scale)
         else:
             scale = frame.scale if d.get("units") is None else _units_scale(d["units"])
-            xyz = frame.to_mesh(a * scale)
+            xyz = frame.stated(d.get("frame"), f"support '{support.name}' file").to_mesh(a * scale)
         ids, dist = snap_to_vertices(vertices, xyz, f"support '{support.name}' ({path})")
         chosen = np.zeros(len(vertices), bool)
         chosen[ids] = True
@@ -427,7 +450,9 @@ def snap_exertion_points(vertices, faces, region, xyz_mesh: np.ndarray, max_mm: 
     for j in range(len(q)):
         if d[j] > max_mm:
             raise SupportError(f"exertion point {j} {np.round(q[j], 3).tolist()} (mesh frame, mm) is {d[j]:.3g} mm "
-                               f"from the surface (limit {max_mm} mm): check its units and frame")
+                               f"from the surface (limit {max_mm} mm): check its units and frame (points are in "
+                               "the geometry file's frame unless they state frame: LPS, RAS or a 4x4; a label "
+                               "volume's is RAS, its header's world converted)")
         if region is not None and int(region[facet[j]]) == REGION_CODES["ivc"]:
             raise SupportError(f"exertion point {j} {np.round(q[j], 3).tolist()} lies on a fixed support: "
                                "the tool cannot push a clamped surface; move the point or the support")
@@ -438,7 +463,10 @@ def exertion_points_mesh(spec, frame: PointFrame = PointFrame(), file_vertices=N
     """Given exertion points → mesh-frame mm: ``{coordinates_mm: [[x,y,z],..]}``,
     ``{vertex_ids: [..]}`` or ``{path: ..., units: ...}`` (a point file, as support files)."""
     spec = dict(spec)
-    keys = set(spec) - {"units"}
+    keys = set(spec) - {"units", "frame"}
+    if spec.get("frame") is not None and keys == {"vertex_ids"}:
+        raise SupportError("exertion_points.frame: vertex ids have no frame (they index the file's vertices)")
+    frame = frame.stated(spec.get("frame"), "exertion_points")
     if keys == {"coordinates_mm"}:
         a = np.asarray(spec["coordinates_mm"], float)
         if a.ndim != 2 or a.shape[1] != 3 or not len(a):
@@ -454,7 +482,7 @@ def exertion_points_mesh(spec, frame: PointFrame = PointFrame(), file_vertices=N
             return frame.to_mesh(a * scale)
     else:
         raise SupportError("exertion_points: give one of coordinates_mm, vertex_ids or path "
-                           f"(with optional units), got {sorted(spec)}")
+                           f"(with optional units and frame), got {sorted(spec)}")
     if file_vertices is None:
         raise SupportError("exertion_points.vertex_ids need the geometry file's vertices (an imported geometry)")
     fv = np.asarray(file_vertices(), float)

@@ -122,3 +122,45 @@ def test_a_plain_label_volume_takes_a_label_value(tmp_path):
     with pytest.raises(SupportError, match=r"'cava' names a segment, but the file names none"):
         select_facets(surface.vertices, surface.faces, Support("x", "fixed", ("group", {"name": "cava"})),
                       PointFrame.from_surface_meta(surface.meta), file_groups=lambda: groups)
+
+
+def test_points_beside_a_label_volume_state_their_frame(scene, tmp_path):
+    """A label volume's points are RAS (its header's world, converted); LPS ones (DICOM, ITK, Slicer markups
+    files) say frame: LPS, on exertion points and on coordinate selectors alike."""
+    from liverforce.mesh.supports import exertion_points_mesh, snap_exertion_points
+
+    _, surface, _ = scene
+    frame = PointFrame.from_surface_meta(surface.meta)
+    side_ras = surface.vertices[np.argmax(surface.vertices[:, 0])]  # the liver's rightmost point, RAS mm
+    side_lps_m = side_ras * np.array([-1.0, -1.0, 1.0]) / 1000.0
+    np.savetxt(tmp_path / "points_lps_m.csv", [side_lps_m], delimiter=",")
+    for spec in ({"coordinates_mm": [(side_lps_m * 1000).tolist()], "frame": "LPS"},
+                 {"path": str(tmp_path / "points_lps_m.csv"), "units": "m", "frame": "LPS"}):
+        q = exertion_points_mesh(spec, frame)
+        assert np.allclose(q, side_ras, atol=1e-9)
+        snap_exertion_points(surface.vertices, surface.faces, None, q)
+    with pytest.raises(SupportError, match=r"from the surface .*unless they state frame: LPS.*a label volume's "
+                                           r"is RAS"):
+        snap_exertion_points(surface.vertices, surface.faces, None,
+                             exertion_points_mesh({"coordinates_mm": [(side_lps_m * 1000).tolist()]}, frame))
+    with pytest.raises(SupportError, match=r"exertion_points.frame: vertex ids have no frame"):
+        exertion_points_mesh({"vertex_ids": [0], "frame": "LPS"}, frame)
+    # a sphere stated in LPS takes the facets the same sphere takes in RAS
+    ras = Support("s", "fixed", ("sphere", {"center_mm": side_ras.tolist(), "radius_mm": 20.0}))
+    lps = Support("s", "fixed", ("sphere", {"center_mm": (side_ras * [-1, -1, 1]).tolist(), "radius_mm": 20.0,
+                                            "frame": "LPS"}))
+    m_ras, _ = select_facets(surface.vertices, surface.faces, ras, frame)
+    m_lps, _ = select_facets(surface.vertices, surface.faces, lps, frame)
+    assert m_ras.sum() > 20 and (m_ras == m_lps).all()
+    with pytest.raises(SupportError, match=r"supports.list\[0\].sphere.frame: unknown frame 'XYZ'"):
+        parse_supports({"list": [{"name": "cava", "kind": "fixed",
+                                  "sphere": {"center_mm": [0, 0, 0], "radius_mm": 5, "frame": "XYZ"}}]})
+
+
+def test_the_config_takes_a_frame_on_points_and_refuses_a_bad_one():
+    from liverforce.config import ConfigError, compose
+
+    base = "geometry.imported=[{name:a,path:/x/seg.seg.nrrd,label:liver,exertion_points:{coordinates_mm:[[1,2,3]]"
+    compose([base + ",frame:LPS}}]"])
+    with pytest.raises(ConfigError, match=r"'geometry.imported\[0\].exertion_points.frame'"):
+        compose([base + ",frame:XYZ}}]"])
