@@ -17,9 +17,9 @@ the exertion point are written in LPS metres and predicted with ``liverforce pre
 
 With ``--input segmentation`` the lab brings a 3D Slicer segmentation instead: the same liver voxelised at
 1.5 mm into a ``.seg.nrrd`` in LPS (as Slicer writes it) with an ``inferior_vena_cava`` segment lying against
-the liver where the sphere was and a ``gallbladder`` segment that does not touch it. The liver is chosen
-with ``label: liver``, the cava support with ``group: inferior_vena_cava`` (the floor stays a box), and the
-clouds are predicted with ``--frame LPS --units m`` (a label volume's record is not an input frame); there
+the liver where the sphere was and a ``gallbladder`` segment that does not touch it, and the tool positions
+as a Slicer markups file (``.mrk.json``, LPS mm). The liver is chosen with ``label: liver``, the cava support
+with ``group: inferior_vena_cava`` (the floor stays a box, stated ``frame: LPS``), and the clouds are predicted with ``--frame LPS --units m`` (a label volume's record is not an input frame); there
 is no STL to give as ``--surface``.
 
 It prints the geometry stage's repairs, how far its surface lies from the file, each force (LPS) and the
@@ -88,9 +88,15 @@ def write_segmentation(inputs: dict, out: Path, pitch_mm: float = 1.5) -> dict:
         slicerio.add_segment(seg, m, {"id": f"Segment_{k}", "name": name})
     path = out / "lab01_Segmentation.seg.nrrd"
     slicerio.write_segmentation(str(path), seg)
+    lps_mm = np.loadtxt(inputs["points"], delimiter=",", ndmin=2) * 1000.0  # the tool positions, as placed in
+    markups = out / "tool_positions.mrk.json"  # Slicer and saved: a point list in LPS mm
+    markups.write_text(json.dumps({"markups": [{"type": "Fiducial", "coordinateSystem": "LPS", "coordinateUnits":
+                                                "mm", "controlPoints": [{"label": f"T-{k + 1}", "position": list(p),
+                                                                         "positionStatus": "defined"}
+                                                                        for k, p in enumerate(lps_mm.tolist())]}]}))
     print(f"segmentation: {liver.shape} voxels of {pitch_mm} mm, liver {int(liver.sum())}, cava {int(cava.sum())}, "
           f"gallbladder {int(gall.sum())} voxels", flush=True)
-    return {**inputs, "segmentation": path}
+    return {**inputs, "segmentation": path, "markups": markups}
 
 
 def run_models(work: Path, inputs: dict, cases: int, cores: int, floor_n_per_mm: float, max_force_n: float) -> None:
@@ -107,7 +113,8 @@ def run_models(work: Path, inputs: dict, cases: int, cores: int, floor_n_per_mm:
         f"{cava}"
         f"{{name:floor,kind:foundation,region:visceral,stiffness:{{total_n_per_mm:{floor_n_per_mm}}},"
         f"box:{{min_mm:{lo},max_mm:{hi}{lps}}}}}]}},"
-        f"exertion_points:{{path:{inputs['points']},units:m{lps}}}}}]"
+        + (f"exertion_points:{{path:{inputs['markups']}}}}}]" if inputs.get("markups") else
+           f"exertion_points:{{path:{inputs['points']},units:m}}}}]")
     ).replace(" ", "")
     overrides = (f"geometry.procedural.count=0 geometry.imported={imported} sweep.scenarios.II.n_cases={cases} "
                  f"sweep.force.max_n={max_force_n} train.scenarios=[II] study.enabled=false")

@@ -31,7 +31,9 @@ points from DICOM, ITK or a 3D Slicer markups file beside a NIfTI or NRRD liver)
   integer column = vertex ids of the file as read (before repair), or three
   columns = coordinates in ``units`` (default: the geometry's units). Each is
   snapped to the nearest surface vertex (snapping distance reported); a facet is
-  selected when **all three** of its vertices are.
+  selected when **all three** of its vertices are. A 3D Slicer markups file
+  (``.mrk.json``, ``.fcsv``) gives its control points in the coordinate system
+  and units it states (LPS or RAS world, mm), so it takes no ``units`` or ``frame``.
 
 * ``group: <name or number>`` or ``group: {array: <cell-data name>, value: <n>}``:
   a Gmsh physical group or a VTU/VTK/XDMF cell-data tag of the geometry file
@@ -235,7 +237,7 @@ def read_point_file(path) -> np.ndarray:
     elif path.suffix in (".txt", ".csv"):
         a = np.loadtxt(path, delimiter="," if path.suffix == ".csv" else None, ndmin=2, comments="#")
     else:
-        raise SupportError(f"{path}: use .npy, .txt or .csv")
+        raise SupportError(f"{path}: use .npy, .txt or .csv, or a 3D Slicer markups file (.mrk.json, .fcsv)")
     a = np.asarray(a)
     if a.ndim == 1 or (a.ndim == 2 and a.shape[1] == 1):
         ids = a.reshape(-1)
@@ -245,6 +247,57 @@ def read_point_file(path) -> np.ndarray:
     if a.ndim == 2 and a.shape[1] == 3:
         return a.astype(float)
     raise SupportError(f"{path}: expected one column of vertex ids or three of coordinates, got shape {a.shape}")
+
+
+#: 3D Slicer markups files: control points in the coordinate system and units the file states
+MARKUPS_SUFFIXES = (".mrk.json", ".fcsv")
+
+
+def is_markups(path) -> bool:
+    return str(path).lower().endswith(MARKUPS_SUFFIXES)
+
+
+def read_markups(path, spec: dict | None = None, where: str = "points") -> np.ndarray:
+    """The control points of a 3D Slicer markups file (``.mrk.json``; legacy ``.fcsv`` read by slicerio) in
+    RAS mm, the mesh frame: each markup's ``coordinateSystem`` (LPS or RAS) and ``coordinateUnits`` (mm) are
+    the file's, so a spec may not state ``units`` or ``frame`` beside one. A point whose position is not
+    defined (``positionStatus``) is refused by its label."""
+    import json
+
+    path = Path(path)
+    extra = sorted(k for k in ("units", "frame") if (spec or {}).get(k) is not None)
+    if extra:
+        raise SupportError(f"{where}: {path.name} is a 3D Slicer markups file, which states its own coordinate "
+                           f"system and units: leave out {' and '.join(extra)}")
+    if not path.exists():
+        raise SupportError(f"{path}: file not found")
+    try:
+        if path.name.lower().endswith(".fcsv"):
+            from slicerio.markups import read_markups_fcsv
+
+            doc = read_markups_fcsv(str(path))
+        else:
+            doc = json.loads(path.read_text(encoding="utf-8"))
+        markups = list(doc["markups"])
+    except Exception as exc:  # malformed JSON or CSV, a missing key
+        raise SupportError(f"{path}: not a readable 3D Slicer markups file ({type(exc).__name__}: {exc})") from None
+    out = []
+    for m in markups:
+        system = str(m.get("coordinateSystem", "LPS")).upper()  # the schema's default is LPS
+        units = str(m.get("coordinateUnits", "mm")).lower()
+        if system not in ("LPS", "RAS") or units not in ("mm", "um"):
+            raise SupportError(f"{path}: coordinateSystem '{system}' and coordinateUnits '{units}' are not LPS or "
+                               "RAS and mm or um")
+        for cp in m.get("controlPoints") or []:
+            label = cp.get("label") or cp.get("id") or "?"
+            if cp.get("positionStatus", "defined") != "defined" or len(cp.get("position") or []) != 3:
+                raise SupportError(f"{path}: control point '{label}' has no position "
+                                   f"(positionStatus {cp.get('positionStatus', '?')}): place it or delete it")
+            xyz = np.asarray(cp["position"], float) * (1e-3 if units == "um" else 1.0)
+            out.append(xyz * (np.array([-1.0, -1.0, 1.0]) if system == "LPS" else 1.0))
+    if not out:
+        raise SupportError(f"{path}: the markups file holds no control point")
+    return np.asarray(out)
 
 
 def snap_to_vertices(vertices: np.ndarray, xyz: np.ndarray, what: str, max_mm: float = MAX_SNAP_MM):
@@ -290,8 +343,10 @@ def select_facets(vertices, faces, support: Support, frame: PointFrame = PointFr
         path = Path(d["path"])
         if not path.is_absolute() and base_dir is not None:
             path = Path(base_dir) / path
-        a = read_point_file(path)
-        if a.ndim == 1:
+        a = None if is_markups(path) else read_point_file(path)
+        if a is None:  # a Slicer markups file: RAS mm, the mesh frame
+            xyz = read_markups(path, d, f"support '{support.name}' file")
+        elif a.ndim == 1:
             if file_vertices is None:
                 raise SupportError(f"support '{support.name}': vertex ids need the geometry file's vertices "
                                    "(an imported geometry)")
@@ -476,7 +531,10 @@ def exertion_points_mesh(spec, frame: PointFrame = PointFrame(), file_vertices=N
         a = np.asarray(spec["vertex_ids"], np.int64).reshape(-1)
     elif keys == {"path"}:
         p = Path(spec["path"])
-        a = read_point_file(p if p.is_absolute() or base_dir is None else Path(base_dir) / p)
+        p = p if p.is_absolute() or base_dir is None else Path(base_dir) / p
+        if is_markups(p):  # a Slicer markups file: RAS mm, the mesh frame
+            return read_markups(p, spec, "exertion_points")
+        a = read_point_file(p)
         if a.ndim == 2:
             scale = frame.scale if spec.get("units") is None else _units_scale(spec["units"])
             return frame.to_mesh(a * scale)

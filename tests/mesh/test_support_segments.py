@@ -164,3 +164,74 @@ def test_the_config_takes_a_frame_on_points_and_refuses_a_bad_one():
     compose([base + ",frame:LPS}}]"])
     with pytest.raises(ConfigError, match=r"'geometry.imported\[0\].exertion_points.frame'"):
         compose([base + ",frame:XYZ}}]"])
+
+
+def _mrk_json(path, points, system="LPS", status=None):
+    import json
+
+    cps = [{"id": str(k + 1), "label": f"F-{k + 1}", "position": list(map(float, p)),
+            **({"positionStatus": status[k]} if status else {})} for k, p in enumerate(points)]
+    doc = {"@schema": "https://raw.githubusercontent.com/slicer/slicer/master/Modules/Loadable/Markups/Resources/"
+                      "Schema/markups-schema-v1.0.3.json#",
+           "markups": [{"type": "Fiducial", "coordinateSystem": system, "coordinateUnits": "mm",
+                        "controlPoints": cps}]}
+    path.write_text(json.dumps(doc))
+    return path
+
+
+def _fcsv(path, points, system_line):
+    rows = [f"vtkMRMLMarkupsFiducialNode_{k},{p[0]},{p[1]},{p[2]},0,0,0,1,1,1,0,F-{k + 1},,"
+            for k, p in enumerate(points)]
+    path.write_text("# Markups fiducial file version = 4.11\n" + system_line + "\n"
+                    "# columns = id,x,y,z,ow,ox,oy,oz,vis,sel,lock,label,desc,associatedNodeID\n"
+                    + "\n".join(rows) + "\n")
+    return path
+
+
+def test_slicer_markups_files_give_points_in_their_own_coordinate_system(scene, tmp_path):
+    """Tool positions placed in 3D Slicer and saved as .mrk.json (LPS, Slicer's default since 4.11) or as a
+    legacy .fcsv (LPS, or RAS written as 0) land where they were placed, with no units or frame to give."""
+    from liverforce.mesh.supports import exertion_points_mesh, snap_exertion_points
+
+    _, surface, _ = scene
+    frame = PointFrame.from_surface_meta(surface.meta)
+    ras = surface.vertices[[np.argmax(surface.vertices[:, 0]), np.argmax(surface.vertices[:, 2])]]
+    lps = ras * np.array([-1.0, -1.0, 1.0])
+    files = [_mrk_json(tmp_path / "tool.mrk.json", lps), _mrk_json(tmp_path / "tool_ras.mrk.json", ras, "RAS"),
+             _fcsv(tmp_path / "tool.fcsv", lps, "# CoordinateSystem = LPS"),
+             _fcsv(tmp_path / "old.fcsv", ras, "# CoordinateSystem = 0")]
+    for path in files:
+        q = exertion_points_mesh({"path": str(path)}, frame)
+        assert np.allclose(q, ras, atol=1e-9), path.name
+        snap_exertion_points(surface.vertices, surface.faces, None, q)
+    # a support selected by a markups file of points round the cava's groove
+    cent = surface.vertices[surface.faces].mean(axis=1)
+    near = surface.vertices[np.unique(surface.faces[distance_to_cava_mm(cent) < 0.5])]
+    support = Support("cava", "fixed", ("file", {"path": str(_mrk_json(tmp_path / "cava.mrk.json",
+                                                                           near * [-1, -1, 1]))}))
+    mask, info = select_facets(surface.vertices, surface.faces, support, frame)
+    assert info["snap_mm"]["max"] < 1e-9 and mask.sum() > 50 and distance_to_cava_mm(cent[mask]).max() < 0.5 + 4.0
+
+
+@pytest.mark.parametrize("spec, message", [
+    ({"units": "m"}, r"tool\.mrk\.json is a 3D Slicer markups file, which states its own coordinate system and "
+                     r"units: leave out units"),
+    ({"frame": "LPS"}, r"leave out frame"),
+])
+def test_a_markups_file_takes_no_units_or_frame(tmp_path, spec, message):
+    from liverforce.mesh.supports import exertion_points_mesh
+
+    path = _mrk_json(tmp_path / "tool.mrk.json", [[1.0, 2.0, 3.0]])
+    with pytest.raises(SupportError, match=message):
+        exertion_points_mesh({"path": str(path), **spec})
+
+
+def test_an_unplaced_or_broken_markups_point_is_refused_by_its_label(tmp_path):
+    from liverforce.mesh.supports import exertion_points_mesh
+
+    path = _mrk_json(tmp_path / "tool.mrk.json", [[1.0, 2.0, 3.0], [0.0, 0.0, 0.0]], status=["defined", "undefined"])
+    with pytest.raises(SupportError, match=r"control point 'F-2' has no position \(positionStatus undefined\)"):
+        exertion_points_mesh({"path": str(path)})
+    (tmp_path / "bad.mrk.json").write_text("{\"markups\": ")
+    with pytest.raises(SupportError, match=r"bad\.mrk\.json: not a readable 3D Slicer markups file"):
+        exertion_points_mesh({"path": str(tmp_path / "bad.mrk.json")})
