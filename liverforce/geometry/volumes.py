@@ -52,7 +52,7 @@ class Segment:
     layer: int
 
 
-#: NRRD ``space`` (lower case, without a ``-time`` suffix) -> the diagonal that takes it to RAS
+#: NRRD ``space`` (lower case) -> the diagonal that takes it to RAS
 _NRRD_ANATOMICAL = {
     "right-anterior-superior": (1.0, 1.0, 1.0), "ras": (1.0, 1.0, 1.0),
     "left-anterior-superior": (-1.0, 1.0, 1.0), "las": (-1.0, 1.0, 1.0),
@@ -105,15 +105,9 @@ def read_label_volume(path: str | Path) -> LabelVolume:
         units = str(su[0]) if su is not None and len(su) else None
         fmt = "nrrd"
         kinds = [str(k).lower() for k in header.get("kinds", [])]
-        layered = np.ndim(data) == 4 and kinds[:1] == ["list"]
         if any(_SEGMENT_FIELD.match(str(k)) for k in header):
-            segments = _slicer_segments(path)
-            fmt = "slicer segmentation (nrrd)"
-            if layered and any(not 0 <= sg.layer < np.shape(data)[0] for sg in segments):
-                raise refuse(path, f"a segment's layer is beyond the file's {np.shape(data)[0]} layers",
-                             "Save the segmentation from 3D Slicer again")
-            return LabelVolume(np.asarray(data), affine, units, fmt, messages, segments, layered)
-        if layered:
+            return _slicer_segmentation(path, np.asarray(data), header, kinds, affine, units, messages)
+        if np.ndim(data) == 4 and kinds[:1] == ["list"]:
             raise refuse(path, f"a 4-D NRRD with a list axis of {np.shape(data)[0]} and no segment names: "
                                "cannot tell which layer is the liver",
                          "Save it from 3D Slicer as a segmentation (.seg.nrrd) or export the liver as a 3-D "
@@ -127,22 +121,44 @@ def read_label_volume(path: str | Path) -> LabelVolume:
     return LabelVolume(data, affine, units, fmt, messages)
 
 
-_SEGMENT_FIELD = re.compile(r"^Segment[0-9]+_")
+_SEGMENT_FIELD = re.compile(r"^Segment([0-9]+)_")
 
 
-def _slicer_segments(path: Path) -> list[Segment]:
-    """The named segments of a 3D Slicer segmentation, read by slicerio from the header (the voxels are
-    pynrrd's: :func:`read_label_volume`)."""
-    import slicerio
-
-    try:
-        seg = slicerio.read_segmentation(str(path), skip_voxels=True)
-        segments = [Segment(str(s.get("name", "")), str(s.get("id", "")), int(s.get("labelValue", 1)),
-                            int(s.get("layer", 0))) for s in seg.get("segments", [])]
-    except Exception as exc:  # slicerio raises IOError, KeyError, ValueError on a header it cannot read
-        raise refuse(path, f"could not read the 3D Slicer segment list ({type(exc).__name__}: {exc})",
-                     "Save the segmentation from 3D Slicer again, or export the liver as a 3-D labelmap") from None
-    return segments
+def _slicer_segmentation(path: Path, data: np.ndarray, header: dict, kinds: list[str], affine: np.ndarray,
+                         units: str | None, messages: list[str]) -> LabelVolume:
+    """A 3D Slicer segmentation: its segments from the ``SegmentN_ID``, ``_Name``, ``_LabelValue`` and ``_Layer``
+    header fields, read as Slicer reads them (a missing label value is 1; a missing layer is the segment's
+    index in a 4-D file, as Slicer before 4.11 wrote one segment per layer, and 0 in a 3-D one). The frame is
+    the header's, as for any NRRD (:func:`_nrrd_affine`)."""
+    fields: dict[int, dict] = {}
+    for key, value in header.items():
+        m = _SEGMENT_FIELD.match(str(key))
+        if m:
+            fields.setdefault(int(m.group(1)), {})[str(key)[m.end():]] = str(value).strip()
+    layered = data.ndim == 4
+    if layered and kinds and kinds[0] != "list":
+        raise refuse(path, f"a 4-D segmentation whose first axis is '{kinds[0]}', not the list of layers",
+                     "Save the segmentation from 3D Slicer again")
+    if data.ndim not in (3, 4):
+        raise refuse(path, f"expected a 3-D segmentation or a 4-D one of layers, got shape {data.shape}",
+                     "Save the segmentation from 3D Slicer again")
+    segments = []
+    for index in sorted(fields):
+        f = fields[index]
+        try:
+            label = int(f.get("LabelValue", 1))
+            layer = int(f.get("Layer", index if layered else 0))
+        except ValueError:
+            raise refuse(path, f"segment {index} ('{f.get('Name', '')}') has LabelValue '{f.get('LabelValue')}' "
+                               f"and Layer '{f.get('Layer')}', not integers",
+                         "Save the segmentation from 3D Slicer again") from None
+        n_layers = data.shape[0] if layered else 1
+        if not 0 <= layer < n_layers:
+            raise refuse(path, f"segment {index} ('{f.get('Name', '')}') is in layer {layer}, but the file has "
+                               f"{n_layers}", "Save the segmentation from 3D Slicer again")
+        segments.append(Segment(f.get("Name", f.get("ID", f"Segment_{index}")), f.get("ID", f"Segment_{index}"),
+                                label, layer))
+    return LabelVolume(data, affine, units, "slicer segmentation (nrrd)", messages, segments, layered)
 
 
 def _nrrd_affine(header: dict, ndim: int, path: Path) -> tuple[np.ndarray, list[str]]:
@@ -162,9 +178,9 @@ def _nrrd_affine(header: dict, ndim: int, path: Path) -> tuple[np.ndarray, list[
         aff[:3, :3] = np.diag(np.asarray(header["spacings"], dtype=np.float64)[:3])
     given = header.get("space")
     space = str(given or "").strip().lower()
-    space = space.removesuffix("-time")
-    if space in ("rast", "last", "lpst"):
-        space = space[:3]
+    if space.endswith("-time") or space in ("rast", "last", "lpst"):
+        raise refuse(path, f"NRRD space '{given}' is a time series, not a 3-D segmentation",
+                     "Save one 3-D segmentation of the liver")
     if space in _NRRD_ANATOMICAL:
         return np.diag([*_NRRD_ANATOMICAL[space], 1.0]) @ aff, []
     if space == "3d-left-handed":
@@ -205,8 +221,7 @@ def label_surface(
     from skimage.measure import marching_cubes
 
     msgs: list[str] = []
-    if isinstance(label, str) and label.strip().lstrip("-").isdigit():
-        label = int(label)
+    label = _as_value(volume, label, path)
     segment = None
     if volume.segments:
         data, sg, why = _segment_voxels(volume, label, path)
@@ -215,9 +230,10 @@ def label_surface(
     else:
         data = volume.data
         if isinstance(label, str):
+            present = labels_present(data)
             raise refuse(path, f"label '{label}' names a segment, but the file names none (labels present: "
-                               f"{labels_present(data)[:20] or 'none'})",
-                         "Give the liver's label value, e.g. label=5")
+                               f"{present[:20] or 'none'})",
+                         f"Give the liver's label value, e.g. label={present[0] if present else 1}")
     present = labels_present(data)
     if label is None:
         if len(present) != 1:
@@ -260,6 +276,20 @@ def label_surface(
     return world, faces, msgs, int(label), segment
 
 
+def _as_value(volume: LabelVolume, label, path):
+    """A label given as digits in text (a command line, a config) is a label value, unless a segment is named
+    or has that ID with another value: that is refused as ambiguous."""
+    if not (isinstance(label, str) and label.strip().lstrip("-").isdigit()):
+        return label
+    value = int(label)
+    same = [sg for sg in volume.segments if label.strip() in (sg.id, sg.name.strip())]
+    if any(sg.label != value for sg in same):
+        raise refuse(path, f"'{label}' is a label value and also the name or ID of segment '{same[0].name}' "
+                           f"(label {same[0].label})",
+                     "Give that segment by its ID, or the label value as a number, unquoted")
+    return value
+
+
 def _segment_voxels(volume: LabelVolume, label: int | str | None, path) -> tuple[np.ndarray, Segment, str]:
     """The voxels (one layer) holding the chosen segment of a 3D Slicer segmentation, the segment, and why it
     was chosen."""
@@ -296,19 +326,21 @@ def _segment_voxels(volume: LabelVolume, label: int | str | None, path) -> tuple
     return (volume.data[sg.layer] if volume.layered else volume.data), sg, why
 
 
-def segment_boundary_points(volume: LabelVolume, label: int | str, path=None
-                            ) -> tuple[np.ndarray, float, str, int, str | None]:
-    """Voxel centres (world frame and units: the surface's before unit scaling) of the boundary voxels of a
-    label value or a segment (name or ID); the largest voxel spacing; what it is (for messages); its label
-    value and segment ID (None: the file names no segments).
+def segment_boundary_voxels(volume: LabelVolume, label: int | str, path=None
+                            ) -> tuple[np.ndarray, str, int, str | None]:
+    """Voxel indices ``(k, 3)`` of the boundary voxels of a label value or a segment (name or ID) (the voxel to
+    world map is ``volume.affine``, world frame and units: the surface's before unit scaling); what it is
+    (for messages); its label value and segment ID (None: the file names no segments).
 
     A support given as another segment of the liver's segmentation (e.g. the inferior vena cava) is where
     the liver's surface touches these points (:class:`liverforce.mesh.groups.VolumeGroups`).
     """
     from scipy.ndimage import binary_erosion
 
-    if isinstance(label, str) and label.strip().lstrip("-").isdigit():
-        label = int(label)
+    label = _as_value(volume, label, path)
+    if label == 0:
+        raise refuse(path, "label 0 is the background: its boundary is the whole liver's",
+                     "Give the label value or segment the liver rests on")
     segment = None
     if volume.segments:
         data, sg, _ = _segment_voxels(volume, label, path)
@@ -322,10 +354,7 @@ def segment_boundary_points(volume: LabelVolume, label: int | str, path=None
     if not mask.any():
         raise refuse(path, f"{what} has no voxel (labels present: {labels_present(data)[:20] or 'none'})",
                      "Give a label value or segment present in the file")
-    ijk = np.argwhere(mask & ~binary_erosion(mask))
-    world = ijk @ volume.affine[:3, :3].T + volume.affine[:3, 3]
-    spacing = float(np.linalg.norm(volume.affine[:3, :3], axis=0).max())
-    return world, spacing, what, int(value), segment
+    return np.argwhere(mask & ~binary_erosion(mask)), what, int(value), segment
 
 
 def _signed_volume(v: np.ndarray, f: np.ndarray) -> float:

@@ -15,8 +15,9 @@ A support may select its surface with ``group:`` (see :mod:`liverforce.mesh.supp
 For a liver segmented from a label volume (NIfTI, NRRD, a 3D Slicer ``.seg.nrrd``) a
 group is another label value or segment of the same file, by number or by segment
 name or ID (``group: inferior_vena_cava``): the support is where the liver's surface
-touches it, the surface facets whose centroid lies within 1.5 voxels of the
-segment's boundary voxels (:class:`VolumeGroups`).
+touches it, the surface facets whose centroid lies within 1.5 voxels (in voxel
+indices, so each axis in its own spacing) of the segment's boundary voxels
+(:class:`VolumeGroups`).
 
 The group's cells give faces and nodes: triangles (and quads, split in two) are
 faces; tetrahedra give their faces that lie on the boundary; lines and vertices
@@ -141,26 +142,27 @@ class VolumeGroups:
     volume: object  # liverforce.geometry.volumes.LabelVolume
     liver: tuple  # the liver's own (label value, segment ID or None): never a support
 
-    #: facets within this many voxels (the largest spacing) of the segment's boundary voxels touch it
+    #: facets within this many voxels of the segment's boundary voxels touch it (measured in voxel indices,
+    #: so along each axis in that axis's spacing)
     REACH_VOXELS = 1.5
 
-    def contact(self, spec: dict, where: str = "group") -> tuple[np.ndarray, float, str]:
-        """Boundary voxel centres (file units and frame) of the group ``spec``, the reach (file units) within
-        which a facet touches them, and which label or segment it is."""
+    def contact(self, spec: dict, where: str = "group") -> tuple[np.ndarray, np.ndarray, str]:
+        """Boundary voxel indices ``(k, 3)`` of the group ``spec``, the voxel-to-world map (file units and
+        frame), and which label or segment it is."""
         from liverforce.geometry.errors import GeometryError
-        from liverforce.geometry.volumes import segment_boundary_points
+        from liverforce.geometry.volumes import segment_boundary_voxels
 
         if "array" in spec:
             raise GroupError(f"{where}: {self.path} is a label volume, it has no cell-data arrays; give a label "
                              "value or a segment's name or ID")
         try:
-            pts, spacing, what, value, segment = segment_boundary_points(
+            ijk, what, value, segment = segment_boundary_voxels(
                 self.volume, spec.get("name", spec.get("value")), self.path)
         except GeometryError as exc:
             raise GroupError(f"{where}: {exc}") from None
         if (value, segment) == tuple(self.liver):
             raise GroupError(f"{where}: {what} is the liver itself; a support is another segment it touches")
-        return pts, self.REACH_VOXELS * spacing, what
+        return ijk, np.asarray(self.volume.affine, float), what
 
 
 def read_volume_groups(path, liver_label: int | None, liver_segment: str | None = None) -> VolumeGroups:

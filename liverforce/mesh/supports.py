@@ -19,9 +19,11 @@ ligament); its stiffness is ``{normal_n_per_mm3, tangential_n_per_mm3}`` or
 as the study's). Two foundations in one slot must have the same stiffness.
 
 Selectors, all in the frame of the geometry file (``geometry.imported[].frame``; for
-a label volume RAS, its header's world converted), lengths in mm, unless a selector
-states its own ``frame`` (``RAS``, ``LPS`` or a 4x4, as the geometry's: e.g. LPS
-points from DICOM, ITK or a 3D Slicer markups file beside a NIfTI or NRRD liver):
+a label volume its header's world in RAS, then that frame), lengths in mm, unless a
+selector states its own ``frame`` (``RAS``, ``LPS`` or a 4x4 to the world's RAS: e.g.
+LPS points from DICOM or ITK beside a NIfTI or NRRD liver). The world is the mesh
+frame for a file in RAS or LPS and the header's world for a label volume; a file
+given in a 4x4 frame has none, and stated frames are refused there (:class:`PointFrame`):
 
 * ``sphere: {center_mm: [x, y, z], radius_mm: r}`` and
   ``box: {min_mm: [x, y, z], max_mm: [x, y, z]}`` select a facet when its
@@ -44,7 +46,7 @@ points from DICOM, ITK or a 3D Slicer markups file beside a NIfTI or NRRD liver)
   (vertex or line cells) is snapped as a file of vertex ids. For a liver segmented
   from a label volume, a group is another label value or segment of that file
   (``group: inferior_vena_cava``): the facets where the liver touches it, within
-  1.5 voxels of its boundary voxels (``contact_mm``).
+  1.5 voxels of its boundary voxels, each axis in its own spacing (``contact_mm``).
 
 Supports are applied in order (a later one overrides an earlier one) onto zero
 regions (``mode: replace``) or onto the auto-tagged ones (``mode: add``).
@@ -90,17 +92,30 @@ class PointFrame:
     """How user coordinates map to the surface: ``x_mesh = R @ (scale * x_file) + t`` (mm, RAS).
 
     ``scale`` converts the geometry file's units to mm; ``matrix`` (4×4) maps
-    file mm to mesh mm (identity for procedural livers and the cube).
+    file mm to mesh mm (identity for procedural livers and the cube). ``world``
+    (4×4) maps the world's RAS mm to mesh mm: where points that state their own
+    frame, and 3D Slicer markups, are taken from. For a surface or mesh file in
+    RAS or LPS the world is the mesh frame (identity); for a label volume it is
+    the image header's world, then the geometry's ``frame`` (a registration
+    4x4, identity by default); for a surface or mesh file given in a 4x4 frame
+    it is not known (None) and such points are refused.
     """
 
     scale: float = 1.0
     matrix: tuple = tuple(map(tuple, np.eye(4)))
+    world: tuple | None = tuple(map(tuple, np.eye(4)))
 
     @classmethod
     def from_surface_meta(cls, meta: dict) -> "PointFrame":
         conv = meta.get("conversion") or {}
-        return cls(float(conv.get("scale_to_mm", 1.0)),
-                   tuple(map(tuple, conv.get("frame_matrix", np.eye(4).tolist()))))
+        matrix = tuple(map(tuple, conv.get("frame_matrix", np.eye(4).tolist())))
+        if meta.get("label") is not None:  # a label volume: its header's world, then the geometry's frame
+            world = matrix
+        elif str(conv.get("frame", "RAS")).upper() in ("RAS", "LPS"):
+            world = tuple(map(tuple, np.eye(4)))
+        else:
+            world = None
+        return cls(float(conv.get("scale_to_mm", 1.0)), matrix, world)
 
     def to_mesh(self, xyz_mm: np.ndarray) -> np.ndarray:
         M = np.asarray(self.matrix, float)
@@ -110,12 +125,26 @@ class PointFrame:
         M = np.linalg.inv(np.asarray(self.matrix, float))
         return np.asarray(xyz_mesh, float) @ M[:3, :3].T + M[:3, 3]
 
+    def _world(self, where: str) -> np.ndarray:
+        if self.world is None:
+            raise SupportError(f"{where}: the geometry file's frame is a 4x4, so points in a world frame (a stated "
+                               "frame, a 3D Slicer markups file) cannot be placed on it; give them in the file's "
+                               "own frame, without frame:")
+        return np.asarray(self.world, float)
+
     def stated(self, frame, where: str) -> "PointFrame":
         """This frame, or, when a point spec states its own ``frame`` (RAS, LPS or a 4x4: its coordinates, in
-        mm after units, to RAS mm), that one in place of the geometry file's; the file's units stay."""
+        mm after units, to the world's RAS mm), that one followed by the world's map to the mesh; the file's
+        units stay."""
         if frame is None:
             return self
-        return PointFrame(self.scale, tuple(map(tuple, points_frame(frame, where))))
+        m = self._world(f"{where}.frame") @ points_frame(frame, where)
+        return PointFrame(self.scale, tuple(map(tuple, m)), self.world)
+
+    def from_world(self, xyz_ras_mm: np.ndarray, where: str) -> np.ndarray:
+        """World RAS mm (e.g. a markups file's points) to mesh mm."""
+        W = self._world(where)
+        return np.asarray(xyz_ras_mm, float) @ W[:3, :3].T + W[:3, 3]
 
 
 def points_frame(frame, where: str) -> np.ndarray:
@@ -201,6 +230,8 @@ def _check_selector(selector, key):
     allowed = need | ({"units"} if kind == "file" else set()) | {"frame"}
     if not need <= set(d) or not set(d) <= allowed:
         raise SupportError(f"{key}: needs keys {sorted(need)} (optional {sorted(allowed - need)}), got {sorted(d)}")
+    if kind == "file" and is_markups(d["path"]):
+        read_markups_spec(d, key)
     if d.get("frame") is not None:
         points_frame(d["frame"], key)
     if kind == "sphere" and (np.shape(d["center_mm"]) != (3,) or not float(d["radius_mm"]) > 0):
@@ -257,6 +288,14 @@ def is_markups(path) -> bool:
     return str(path).lower().endswith(MARKUPS_SUFFIXES)
 
 
+def read_markups_spec(spec: dict, where: str) -> None:
+    """Refuse ``units`` or ``frame`` beside a markups file: it states both itself."""
+    extra = sorted(k for k in ("units", "frame") if (spec or {}).get(k) is not None)
+    if extra:
+        raise SupportError(f"{where}: {Path(str(spec['path'])).name} is a 3D Slicer markups file, which states its "
+                           f"own coordinate system and units: leave out {' and '.join(extra)}")
+
+
 def read_markups(path, spec: dict | None = None, where: str = "points") -> np.ndarray:
     """The control points of a 3D Slicer markups file (``.mrk.json``; legacy ``.fcsv`` read by slicerio) in
     RAS mm, the mesh frame: each markup's ``coordinateSystem`` (LPS or RAS) and ``coordinateUnits`` (mm) are
@@ -265,10 +304,7 @@ def read_markups(path, spec: dict | None = None, where: str = "points") -> np.nd
     import json
 
     path = Path(path)
-    extra = sorted(k for k in ("units", "frame") if (spec or {}).get(k) is not None)
-    if extra:
-        raise SupportError(f"{where}: {path.name} is a 3D Slicer markups file, which states its own coordinate "
-                           f"system and units: leave out {' and '.join(extra)}")
+    read_markups_spec({**(spec or {}), "path": str(path)}, where)
     if not path.exists():
         raise SupportError(f"{path}: file not found")
     try:
@@ -284,7 +320,8 @@ def read_markups(path, spec: dict | None = None, where: str = "points") -> np.nd
     out = []
     for m in markups:
         system = str(m.get("coordinateSystem", "LPS")).upper()  # the schema's default is LPS
-        units = str(m.get("coordinateUnits", "mm")).lower()
+        units = m.get("coordinateUnits", "mm")
+        units = str(units.get("CodeValue", "") if isinstance(units, dict) else units).lower()  # or a UCUM code
         if system not in ("LPS", "RAS") or units not in ("mm", "um"):
             raise SupportError(f"{path}: coordinateSystem '{system}' and coordinateUnits '{units}' are not LPS or "
                                "RAS and mm or um")
@@ -344,8 +381,12 @@ def select_facets(vertices, faces, support: Support, frame: PointFrame = PointFr
         if not path.is_absolute() and base_dir is not None:
             path = Path(base_dir) / path
         a = None if is_markups(path) else read_point_file(path)
-        if a is None:  # a Slicer markups file: RAS mm, the mesh frame
-            xyz = read_markups(path, d, f"support '{support.name}' file")
+        if a is not None and a.ndim == 1 and d.get("frame") is not None:
+            raise SupportError(f"support '{support.name}' file.frame: vertex ids have no frame (they index the "
+                               "file's vertices)")
+        if a is None:  # a Slicer markups file: world RAS mm
+            where = f"support '{support.name}' file"
+            xyz = frame.from_world(read_markups(path, d, where), where)
         elif a.ndim == 1:
             if file_vertices is None:
                 raise SupportError(f"support '{support.name}': vertex ids need the geometry file's vertices "
@@ -365,8 +406,10 @@ def select_facets(vertices, faces, support: Support, frame: PointFrame = PointFr
         info["snap_mm"] = {"max": float(dist.max()), "mean": float(dist.mean()), "n_points": int(len(dist))}
     info["n_facets"] = int(mask.sum())
     if not mask.any():
+        in_frame = f"frame {d['frame']}" if isinstance(d, dict) and d.get("frame") is not None else \
+            "the geometry file's frame"
         raise SupportError(f"support '{support.name}': its {kind} selector {d} selects no surface facet "
-                           "(coordinates are in the geometry file's frame, mm): enlarge it or check the frame")
+                           f"(coordinates are in {in_frame}, mm): enlarge it or check the frame")
     return mask, info
 
 
@@ -405,25 +448,28 @@ def _select_group(vertices, faces, support: Support, frame: PointFrame, groups) 
 
 
 def _select_contact(vertices, faces, frame: PointFrame, groups, spec: dict, where: str) -> tuple[np.ndarray, dict]:
-    """Facets whose centroid lies within the reach of a segment's boundary voxels (:class:`VolumeGroups`)."""
+    """Facets whose centroid lies within ``groups.REACH_VOXELS`` voxels (in voxel indices) of a segment's
+    boundary voxels (:class:`~liverforce.mesh.groups.VolumeGroups`)."""
     from scipy.spatial import cKDTree
 
     from liverforce.mesh.groups import GroupError
 
     try:
-        pts, reach, what = groups.contact(spec, where)
+        ijk, affine, what = groups.contact(spec, where)
     except GroupError as exc:
         raise SupportError(str(exc)) from None
-    P = frame.to_mesh(pts * frame.scale)
-    reach_mm = reach * frame.scale
-    d, _ = cKDTree(P).query(vertices[faces].mean(axis=1))
-    mask = d <= reach_mm
+    world = frame.to_file(vertices[faces].mean(axis=1)) / frame.scale  # the image's world, its units
+    inv = np.linalg.inv(affine)
+    d, _ = cKDTree(ijk).query(world @ inv[:3, :3].T + inv[:3, 3])  # in voxels
+    reach = groups.REACH_VOXELS
+    mask = d <= reach
+    spacing_mm = np.linalg.norm(affine[:3, :3], axis=0) * frame.scale
     if not mask.any():
         raise SupportError(f"{where}: {what} of {groups.path} does not touch the liver (its nearest surface "
-                           f"facet is {d.min():.3g} mm away, beyond {reach_mm:.3g} mm): choose the segment the "
-                           "liver rests on, or select the support by sphere, box or file")
-    return mask, {"file": groups.path, "segment": what, "contact_mm": float(reach_mm),
-                  "boundary_voxels": int(len(P))}
+                           f"facet is {d.min():.3g} voxels away, beyond {reach:g}): choose the segment the liver "
+                           "rests on, or select the support by sphere, box or file")
+    return mask, {"file": groups.path, "segment": what, "contact_voxels": reach,
+                  "contact_mm": [round(float(reach * v), 4) for v in spacing_mm], "boundary_voxels": int(len(ijk))}
 
 
 def _units_scale(units) -> float:
@@ -505,9 +551,10 @@ def snap_exertion_points(vertices, faces, region, xyz_mesh: np.ndarray, max_mm: 
     for j in range(len(q)):
         if d[j] > max_mm:
             raise SupportError(f"exertion point {j} {np.round(q[j], 3).tolist()} (mesh frame, mm) is {d[j]:.3g} mm "
-                               f"from the surface (limit {max_mm} mm): check its units and frame (points are in "
-                               "the geometry file's frame unless they state frame: LPS, RAS or a 4x4; a label "
-                               "volume's is RAS, its header's world converted)")
+                               f"from the surface (limit {max_mm} mm): check its units and frame (points are read "
+                               "in the geometry file's frame, a label volume's being its header's world in RAS "
+                               "then the geometry's frame, unless they state frame: LPS, RAS or a 4x4; a 3D "
+                               "Slicer markups file states its own)")
         if region is not None and int(region[facet[j]]) == REGION_CODES["ivc"]:
             raise SupportError(f"exertion point {j} {np.round(q[j], 3).tolist()} lies on a fixed support: "
                                "the tool cannot push a clamped surface; move the point or the support")
@@ -532,9 +579,11 @@ def exertion_points_mesh(spec, frame: PointFrame = PointFrame(), file_vertices=N
     elif keys == {"path"}:
         p = Path(spec["path"])
         p = p if p.is_absolute() or base_dir is None else Path(base_dir) / p
-        if is_markups(p):  # a Slicer markups file: RAS mm, the mesh frame
-            return read_markups(p, spec, "exertion_points")
+        if is_markups(p):  # a Slicer markups file: world RAS mm
+            return frame.from_world(read_markups(p, spec, "exertion_points"), "exertion_points")
         a = read_point_file(p)
+        if a.ndim == 1 and spec.get("frame") is not None:
+            raise SupportError("exertion_points.frame: vertex ids have no frame (they index the file's vertices)")
         if a.ndim == 2:
             scale = frame.scale if spec.get("units") is None else _units_scale(spec["units"])
             return frame.to_mesh(a * scale)

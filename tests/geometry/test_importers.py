@@ -230,7 +230,7 @@ def _nrrd_seg(tmp_path, space):
 
 @pytest.mark.parametrize("space, to_ras", [
     ("right-anterior-superior", (1, 1, 1)), ("left-anterior-superior", (-1, 1, 1)),
-    ("left-posterior-superior-time", (-1, -1, 1)), ("LAS", (-1, 1, 1)), ("RAS", (1, 1, 1)),
+    ("LPS", (-1, -1, 1)), ("LAS", (-1, 1, 1)), ("RAS", (1, 1, 1)),
 ])
 def test_every_anatomical_nrrd_space_is_converted_to_ras_without_a_warning(tmp_path, caplog, space, to_ras):
     path, centre = _nrrd_seg(tmp_path, space)
@@ -254,7 +254,8 @@ def test_a_nrrd_with_no_anatomical_space_is_read_as_ras_and_says_so(tmp_path, ca
 
 
 @pytest.mark.parametrize("space, message", [("3D-left-handed", r"3D-left-handed.*mirrored"),
-                                            ("left-posterior", r"space 'left-posterior' is not one")])
+                                            ("left-posterior", r"space 'left-posterior' is not one"),
+                                            ("left-posterior-superior-time", r"is a time series")])
 def test_a_nrrd_in_a_left_handed_or_unknown_space_is_refused(tmp_path, space, message):
     path, _ = _nrrd_seg(tmp_path, space)
     with pytest.raises(GeometryError, match=rf"seg\.nrrd.*{message}"):

@@ -132,7 +132,7 @@ def test_a_name_for_a_file_without_segments_is_refused(tmp_path):
     path = tmp_path / "seg.nii.gz"
     nib.save(nib.Nifti1Image(data, np.diag([2.0, 2.0, 2.5, 1.0])), path)
     with pytest.raises(GeometryError, match=r"label 'liver' names a segment, but the file names none \(labels "
-                                             r"present: \[3\]\).*label=5"):
+                                             r"present: \[3\]\).*label=3"):
         load_surface(path, label="liver")
     s, _ = load_surface(path, label="3")  # a number given as text, as a command line gives it
     assert s.meta["label"] == 3
@@ -162,3 +162,68 @@ def test_the_config_takes_a_segment_name_or_a_label_value(label, ok):
     else:
         with pytest.raises(ConfigError, match=r"'geometry.imported\[0\].label'.*segment's name or ID"):
             compose([override])
+
+
+def test_a_legacy_segmentation_has_one_segment_per_layer_without_layer_fields(tmp_path):
+    """Slicer before 4.11 wrote one segment per layer of a 4-D file and no Layer or LabelValue fields: a
+    segment's layer is its index, as Slicer's own reader takes it (here the liver is in layer 1)."""
+    import nrrd
+
+    data = np.stack([ball(*SPLEEN), ball(*LIVER)]).astype(np.uint8)
+    header = {"space": "left-posterior-superior", "kinds": ["list", "domain", "domain", "domain"],
+              "space directions": np.vstack([np.full(3, np.nan), IJK_TO_LPS[:3, :3].T]),
+              "space origin": IJK_TO_LPS[:3, 3]}
+    for k, name in enumerate(["spleen", "liver"]):
+        header.update({f"Segment{k}_ID": f"Segment_{k + 1}", f"Segment{k}_Name": name})
+    path = tmp_path / "legacy.seg.nrrd"
+    nrrd.write(str(path), data, header)
+    s, msgs = load_surface(path)
+    assert s.volume_mm3 == pytest.approx(ras_volume(LIVER[1]), rel=0.05)
+    assert any("segment 'liver' (ID Segment_2, label 1) used" in m for m in msgs)
+
+
+@pytest.mark.parametrize("space, kinds, to_ras", [
+    ("left-anterior-superior", ["domain"] * 3, (-1, 1, 1)), ("LPS", ["domain"] * 3, (-1, -1, 1)),
+    ("RAS", ["space"] * 3, (1, 1, 1)),
+])
+def test_a_segmentation_in_any_anatomical_space_is_read_in_it(tmp_path, space, kinds, to_ras):
+    """The segment list is read from the header beside the frame, so every space the importer converts
+    works for a .seg.nrrd too (slicerio's own reader takes only the two full LPS and RAS names)."""
+    import nrrd
+
+    data = np.zeros(SHAPE, np.uint8)
+    data[ball(*LIVER)] = 4
+    header = {"space": space, "kinds": kinds, "space directions": IJK_TO_LPS[:3, :3].T,
+              "space origin": IJK_TO_LPS[:3, 3], "Segment0_ID": "Segment_1", "Segment0_Name": "Liver",
+              "Segment0_LabelValue": "4", "Segment0_Layer": "0"}
+    path = tmp_path / "seg.seg.nrrd"
+    nrrd.write(str(path), data, header)
+    s, _ = load_surface(path)
+    lps_centre = IJK_TO_LPS @ np.array([*LIVER[0], 1.0])
+    assert np.allclose(s.vertices.mean(axis=0), lps_centre[:3] * np.array(to_ras), atol=1.5)
+
+
+def test_a_four_d_segmentation_without_kinds_is_read_by_layer(tmp_path):
+    import nrrd
+
+    data = np.stack([ball(*LIVER), ball(*TUMOUR)]).astype(np.uint8)
+    header = {"space": "left-posterior-superior",
+              "space directions": np.vstack([np.full(3, np.nan), IJK_TO_LPS[:3, :3].T]),
+              "space origin": IJK_TO_LPS[:3, 3]}
+    for k, name in enumerate(["liver", "tumour"]):
+        header.update({f"Segment{k}_ID": name, f"Segment{k}_Name": name, f"Segment{k}_LabelValue": "1",
+                       f"Segment{k}_Layer": str(k)})
+    path = tmp_path / "nokinds.seg.nrrd"
+    nrrd.write(str(path), data, header)
+    s, _ = load_surface(path)
+    assert s.volume_mm3 == pytest.approx(ras_volume(LIVER[1]), rel=0.05)
+
+
+def test_digits_that_are_also_a_segments_name_are_refused_as_ambiguous(tmp_path):
+    path = tmp_path / "digits.seg.nrrd"
+    write_slicer(path, [("2", ball(*SPLEEN)), ("Liver", ball(*LIVER))])  # segment named "2" has label 1
+    with pytest.raises(GeometryError, match=r"'2' is a label value and also the name or ID of segment '2' "
+                                           r"\(label 1\)"):
+        load_surface(path, label="2")
+    s, _ = load_surface(path, label=2)  # an integer is a label value
+    assert s.meta["label"] == 2

@@ -79,7 +79,7 @@ def test_the_cava_segment_selects_the_groove_it_lies_in(scene, group):
     cent = surface.vertices[surface.faces].mean(axis=1)
     d = distance_to_cava_mm(cent)
     assert info["segment"].startswith("segment 'inferior_vena_cava' (ID Segment_2, label 2")
-    assert info["contact_mm"] == pytest.approx(1.5 * 2.5) and info["n_facets"] == mask.sum() > 50
+    assert info["contact_mm"] == pytest.approx([3.0, 3.0, 3.75]) and info["n_facets"] == mask.sum() > 50
     # every selected facet hugs the cylinder; every facet hugging it is selected
     assert d[mask].max() < 1.5 * 2.5 + 1.5
     assert mask[d < 0.5].all() and (d < 0.5).sum() > 0.5 * mask.sum()
@@ -89,8 +89,8 @@ def test_the_cava_segment_selects_the_groove_it_lies_in(scene, group):
 
 def test_a_segment_the_liver_does_not_touch_is_refused_with_the_distance(scene):
     with pytest.raises(SupportError, match=r"segment 'kidney' \(ID Segment_3, label 3\) of .*Segmentation\.seg\.nrrd "
-                                           r"does not touch the liver \(its nearest surface facet is [0-9.]+ mm "
-                                           r"away, beyond 3\.75 mm\)"):
+                                           r"does not touch the liver \(its nearest surface facet is [0-9.]+ "
+                                           r"voxels away, beyond 1\.5\)"):
         select(scene, "kidney")
 
 
@@ -98,6 +98,7 @@ def test_a_segment_the_liver_does_not_touch_is_refused_with_the_distance(scene):
     ("liver", r"segment 'liver' \(ID Segment_1, label 1\) is the liver itself"),
     ("spleen", r"no segment is named or has ID 'spleen'.*'inferior_vena_cava' \(label 2\)"),
     ({"array": "labels", "value": 2}, r"is a label volume, it has no cell-data arrays"),
+    (0, r"label 0 is the background"),
 ])
 def test_a_wrong_segment_is_refused_by_name(scene, group, message):
     with pytest.raises(SupportError, match=rf"support 'cava' group .*{message}"):
@@ -139,8 +140,8 @@ def test_points_beside_a_label_volume_state_their_frame(scene, tmp_path):
         q = exertion_points_mesh(spec, frame)
         assert np.allclose(q, side_ras, atol=1e-9)
         snap_exertion_points(surface.vertices, surface.faces, None, q)
-    with pytest.raises(SupportError, match=r"from the surface .*unless they state frame: LPS.*a label volume's "
-                                           r"is RAS"):
+    with pytest.raises(SupportError, match=r"from the surface .*a label volume's being its header's world in RAS "
+                                           r"then the geometry's frame, unless they state frame: LPS"):
         snap_exertion_points(surface.vertices, surface.faces, None,
                              exertion_points_mesh({"coordinates_mm": [(side_lps_m * 1000).tolist()]}, frame))
     with pytest.raises(SupportError, match=r"exertion_points.frame: vertex ids have no frame"):
@@ -235,3 +236,78 @@ def test_an_unplaced_or_broken_markups_point_is_refused_by_its_label(tmp_path):
     (tmp_path / "bad.mrk.json").write_text("{\"markups\": ")
     with pytest.raises(SupportError, match=r"bad\.mrk\.json: not a readable 3D Slicer markups file"):
         exertion_points_mesh({"path": str(tmp_path / "bad.mrk.json")})
+
+
+def test_a_registration_frame_moves_stated_and_markups_points_with_the_liver(tmp_path):
+    """A label volume imported with a 4x4 frame (a registration after its header's map): points in the
+    image's world, stated LPS or RAS or from a markups file, land where that frame puts the liver."""
+    import nibabel as nib
+
+    from liverforce.mesh.supports import exertion_points_mesh
+
+    liver, _, _ = masks()
+    data = np.zeros(SHAPE, np.uint8)
+    data[liver] = 5
+    path = tmp_path / "seg.nii.gz"
+    nib.save(nib.Nifti1Image(data, np.diag([-1.0, -1.0, 1.0, 1.0]) @ IJK_TO_LPS), path)
+    shift = [[1, 0, 0, 4.0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
+    plain, _ = load_surface(path, label=5)
+    moved, _ = load_surface(path, label=5, frame=shift)
+    assert np.allclose(moved.vertices, plain.vertices + [4.0, 0, 0])
+    frame = PointFrame.from_surface_meta(moved.meta)
+    world_ras = plain.vertices[np.argmax(plain.vertices[:, 0])]  # a point of the image's world, RAS mm
+    mrk = _mrk_json(tmp_path / "p.mrk.json", [world_ras * [-1, -1, 1]])
+    for spec in ({"coordinates_mm": [world_ras.tolist()]},  # the file's frame: the header's world, then shift
+                 {"coordinates_mm": [world_ras.tolist()], "frame": "RAS"},
+                 {"coordinates_mm": [(world_ras * [-1, -1, 1]).tolist()], "frame": "LPS"},
+                 {"path": str(mrk)}):
+        assert np.allclose(exertion_points_mesh(spec, frame), world_ras + [4.0, 0, 0], atol=1e-9), spec
+
+
+def test_a_surface_in_a_4x4_frame_refuses_points_in_a_world_frame(tmp_path):
+    """An STL given with a 4x4 frame has no world a stated frame or a markups file could refer to."""
+    from liverforce.geometry.procedural import cube_phantom
+    from liverforce.mesh.supports import exertion_points_mesh
+
+    cube = cube_phantom(120.0)
+    path = tmp_path / "cube.stl"
+    cube.to_trimesh().export(path)
+    m = [[0, -1, 0, 10.0], [1, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
+    s, _ = load_surface(path, units="mm", frame=m, size_range_mm=None)
+    frame = PointFrame.from_surface_meta(s.meta)
+    assert frame.world is None
+    for spec in ({"coordinates_mm": [[1.0, 2.0, 3.0]], "frame": "LPS"},
+                 {"path": str(_mrk_json(tmp_path / "p.mrk.json", [[1.0, 2.0, 3.0]]))}):
+        with pytest.raises(SupportError, match=r"the geometry file's frame is a 4x4, so points in a world frame"):
+            exertion_points_mesh(spec, frame)
+    assert np.allclose(exertion_points_mesh({"coordinates_mm": [[1.0, 2.0, 3.0]]}, frame), [[8.0, 1.0, 3.0]])
+
+
+def test_a_file_of_vertex_ids_with_a_frame_is_refused(tmp_path):
+    from liverforce.mesh.supports import exertion_points_mesh
+
+    np.savetxt(tmp_path / "ids.txt", [3, 4], fmt="%d")
+    with pytest.raises(SupportError, match=r"exertion_points.frame: vertex ids have no frame"):
+        exertion_points_mesh({"path": str(tmp_path / "ids.txt"), "frame": "LPS"}, PointFrame(),
+                             file_vertices=lambda: np.zeros((10, 3)))
+    support = Support("ids", "fixed", ("file", {"path": str(tmp_path / "ids.txt"), "frame": "LPS"}))
+    with pytest.raises(SupportError, match=r"support 'ids' file.frame: vertex ids have no frame"):
+        select_facets(np.zeros((10, 3)), np.array([[0, 1, 2]]), support, file_vertices=lambda: np.zeros((10, 3)))
+
+
+def test_markups_units_as_a_ucum_code_and_markups_with_units_refused_in_the_config(tmp_path):
+    import json
+
+    from liverforce.config import ConfigError, compose
+    from liverforce.mesh.supports import exertion_points_mesh
+
+    path = tmp_path / "p.mrk.json"
+    path.write_text(json.dumps({"markups": [{"type": "Fiducial", "coordinateSystem": "RAS", "coordinateUnits": {
+        "CodeValue": "um", "CodingSchemeDesignator": "UCUM", "CodeMeaning": "micrometer"},
+        "controlPoints": [{"label": "F-1", "position": [1000.0, 2000.0, 3000.0]}]}]}))
+    assert np.allclose(exertion_points_mesh({"path": str(path)}), [[1.0, 2.0, 3.0]])
+    base = "geometry.imported=[{name:a,path:/x/seg.seg.nrrd,label:liver,"
+    with pytest.raises(ConfigError, match=r"'geometry.imported\[0\].exertion_points'.*markups file.*leave out units"):
+        compose([base + "exertion_points:{path:/x/t.mrk.json,units:m}}]"])
+    with pytest.raises(ConfigError, match=r"supports.list\[0\].file.*markups file.*leave out frame"):
+        compose([base + "supports:{list:[{name:c,kind:fixed,file:{path:/x/t.fcsv,frame:LPS}}]}}]"])
