@@ -345,10 +345,17 @@ def _record_frame(doc: dict, path: Path) -> tuple[object, str, float]:
         raise PredictionInputError(f"input frame {path}: the record's conversion lacks frame_matrix, units or "
                                    f"scale_to_mm; {redo}")
     if doc.get("label") is not None:  # the label of a label volume the surface was extracted from
+        try:
+            moved = not np.allclose(np.asarray(conv["frame_matrix"], dtype=np.float64), np.eye(4))
+        except (TypeError, ValueError):
+            moved = True
         raise PredictionInputError(
             f"input frame {path}: this liver came from a label volume, whose image header set its frame on reading "
             "(NRRD and DICOM world coordinates are LPS, NIfTI's RAS); the record cannot say which your points are "
-            "in: give --frame LPS or --frame RAS (and --units) for them")
+            "in: give --frame LPS or --frame RAS (and --units) for them" + (
+                "; this liver was also moved by its import frame (a 4x4, the record's conversion.frame_matrix): give "
+                "--frame a 4x4 file, that matrix times diag(-1, -1, 1, 1) for LPS points, the matrix itself for RAS "
+                "ones" if moved else ""))
     try:
         m = np.asarray(conv["frame_matrix"], dtype=np.float64)
         scale = float(conv["scale_to_mm"])

@@ -208,13 +208,18 @@ def test_bad_frames_and_context_values_are_refused_by_name_not_by_traceback(trai
         "null_scale": {"conversion": {**good["conversion"], "scale_to_mm": None}},
         "not_a_dict": {"conversion": 5},
         "ragged": {"conversion": {**good["conversion"], "frame": "matrix", "frame_matrix": [[1, 0], [0, 1, 0, 0]]}},
-        "label_volume": {"label": 1, "conversion": {**good["conversion"], "summary": (
+        "label_volume": {"label": 1, "conversion": {**good["conversion"], "frame": "RAS",
+                                                     "frame_matrix": np.eye(4).tolist(), "summary": (
             "units mm (x1 to mm); frame RAS: ...; label volume: header frame converted to RAS first")}},
+        "label_volume_moved": {"label": 1, "conversion": {**good["conversion"], "frame": "matrix",
+                                                           "frame_matrix": [[1, 0, 0, 4.0], [0, 1, 0, 0],
+                                                                            [0, 0, 1, 0], [0, 0, 0, 1]]}},
     }
+    expect = {"label_volume": r"label volume.*--frame LPS or --frame RAS \(and --units\) for them$",
+              "label_volume_moved": r"label volume.*--frame LPS.*also moved by its import frame.*diag\(-1, -1, 1, 1\)"}
     for name, rec in bad_records.items():
         (tmp_path / f"{name}.json").write_text(json.dumps(rec))
-        with pytest.raises(PredictionInputError, match="label volume.*--frame LPS" if name == "label_volume"
-                           else "geometry stage again"):
+        with pytest.raises(PredictionInputError, match=expect.get(name, "geometry stage again")):
             InputFrame.resolve(tmp_path / f"{name}.json")
     (tmp_path / "num.yaml").write_text(f"matrix: {np.eye(4).tolist()}\nunits: 1000\n")
     with pytest.raises(PredictionInputError, match="units 1000"):
