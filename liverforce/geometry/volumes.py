@@ -127,27 +127,32 @@ _SEGMENT_FIELD = re.compile(r"^Segment([0-9]+)_")
 def _slicer_segmentation(path: Path, data: np.ndarray, header: dict, kinds: list[str], affine: np.ndarray,
                          units: str | None, messages: list[str]) -> LabelVolume:
     """A 3D Slicer segmentation: its segments from the ``SegmentN_ID``, ``_Name``, ``_LabelValue`` and ``_Layer``
-    header fields, read as Slicer reads them (a missing label value is 1; a missing layer is the segment's
-    index in a 4-D file, as Slicer before 4.11 wrote one segment per layer, and 0 in a 3-D one). The frame is
-    the header's, as for any NRRD (:func:`_nrrd_affine`)."""
+    header fields, read as Slicer reads them (a missing label value is 1, a missing layer the segment's index:
+    Slicer before 4.11 wrote one segment per layer). The frame is the header's, as for any NRRD
+    (:func:`_nrrd_affine`)."""
     fields: dict[int, dict] = {}
     for key, value in header.items():
         m = _SEGMENT_FIELD.match(str(key))
         if m:
             fields.setdefault(int(m.group(1)), {})[str(key)[m.end():]] = str(value).strip()
     layered = data.ndim == 4
-    if layered and kinds and kinds[0] != "list":
-        raise refuse(path, f"a 4-D segmentation whose first axis is '{kinds[0]}', not the list of layers",
-                     "Save the segmentation from 3D Slicer again")
+    if layered:  # the layers' axis: the 'list' kind, or without kinds the axis with no space direction
+        dirs = header.get("space directions")
+        spatial = [bool(np.all(np.isfinite(np.asarray(r, dtype=float)))) if r is not None else False
+                   for r in (dirs if dirs is not None else [])]
+        axis = kinds.index("list") if "list" in kinds else (spatial.index(False) if False in spatial else 0)
+        if axis != 0:
+            raise refuse(path, f"a 4-D segmentation whose layers are on axis {axis}, not the first",
+                         "Save the segmentation from 3D Slicer again")
     if data.ndim not in (3, 4):
         raise refuse(path, f"expected a 3-D segmentation or a 4-D one of layers, got shape {data.shape}",
                      "Save the segmentation from 3D Slicer again")
     segments = []
     for index in sorted(fields):
         f = fields[index]
-        try:
+        try:  # as Slicer reads a file that lacks them: label 1, the segment's index as its layer
             label = int(f.get("LabelValue", 1))
-            layer = int(f.get("Layer", index if layered else 0))
+            layer = int(f.get("Layer", index))
         except ValueError:
             raise refuse(path, f"segment {index} ('{f.get('Name', '')}') has LabelValue '{f.get('LabelValue')}' "
                                f"and Layer '{f.get('Layer')}', not integers",
@@ -156,8 +161,14 @@ def _slicer_segmentation(path: Path, data: np.ndarray, header: dict, kinds: list
         if not 0 <= layer < n_layers:
             raise refuse(path, f"segment {index} ('{f.get('Name', '')}') is in layer {layer}, but the file has "
                                f"{n_layers}", "Save the segmentation from 3D Slicer again")
-        segments.append(Segment(f.get("Name", f.get("ID", f"Segment_{index}")), f.get("ID", f"Segment_{index}"),
+        segments.append(Segment(f.get("Name", f.get("ID", f"Segment{index}")), f.get("ID", f"Segment{index}"),
                                 label, layer))
+    seen: dict = {}
+    for sg in segments:
+        if (sg.layer, sg.label) in seen:
+            raise refuse(path, f"segments '{seen[sg.layer, sg.label]}' and '{sg.name}' are both label {sg.label} in "
+                               f"layer {sg.layer}", "Save the segmentation from 3D Slicer again")
+        seen[sg.layer, sg.label] = sg.name
     return LabelVolume(data, affine, units, "slicer segmentation (nrrd)", messages, segments, layered)
 
 

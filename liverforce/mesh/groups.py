@@ -156,8 +156,9 @@ class VolumeGroups:
             raise GroupError(f"{where}: {self.path} is a label volume, it has no cell-data arrays; give a label "
                              "value or a segment's name or ID")
         try:
+            # a value goes in as text: digits that also name a segment are refused as ambiguous (_as_value)
             ijk, what, value, segment = segment_boundary_voxels(
-                self.volume, spec.get("name", spec.get("value")), self.path)
+                self.volume, spec["name"] if "name" in spec else str(spec.get("value")), self.path)
         except GeometryError as exc:
             raise GroupError(f"{where}: {exc}") from None
         if (value, segment) == tuple(self.liver):

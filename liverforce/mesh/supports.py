@@ -21,9 +21,9 @@ as the study's). Two foundations in one slot must have the same stiffness.
 Selectors, all in the frame of the geometry file (``geometry.imported[].frame``; for
 a label volume its header's world in RAS, then that frame), lengths in mm, unless a
 selector states its own ``frame`` (``RAS``, ``LPS`` or a 4x4 to the world's RAS: e.g.
-LPS points from DICOM or ITK beside a NIfTI or NRRD liver). The world is the mesh
-frame for a file in RAS or LPS and the header's world for a label volume; a file
-given in a 4x4 frame has none, and stated frames are refused there (:class:`PointFrame`):
+LPS points from DICOM or ITK beside a NIfTI or NRRD liver). The world is the mesh's
+RAS for a surface or mesh file and the header's world, then the geometry's frame, for
+a label volume (:class:`PointFrame`):
 
 * ``sphere: {center_mm: [x, y, z], radius_mm: r}`` and
   ``box: {min_mm: [x, y, z], max_mm: [x, y, z]}`` select a facet when its
@@ -94,27 +94,22 @@ class PointFrame:
     ``scale`` converts the geometry file's units to mm; ``matrix`` (4×4) maps
     file mm to mesh mm (identity for procedural livers and the cube). ``world``
     (4×4) maps the world's RAS mm to mesh mm: where points that state their own
-    frame, and 3D Slicer markups, are taken from. For a surface or mesh file in
-    RAS or LPS the world is the mesh frame (identity); for a label volume it is
-    the image header's world, then the geometry's ``frame`` (a registration
-    4x4, identity by default); for a surface or mesh file given in a 4x4 frame
-    it is not known (None) and such points are refused.
+    frame, and 3D Slicer markups, are taken from. For a surface or mesh file the
+    world is the mesh frame (identity): its ``frame`` (RAS, LPS or a 4x4) maps the
+    file's coordinates to RAS mm. For a label volume it is the image header's
+    world, then the geometry's ``frame`` (a registration 4x4, identity by default).
     """
 
     scale: float = 1.0
     matrix: tuple = tuple(map(tuple, np.eye(4)))
-    world: tuple | None = tuple(map(tuple, np.eye(4)))
+    world: tuple = tuple(map(tuple, np.eye(4)))
 
     @classmethod
     def from_surface_meta(cls, meta: dict) -> "PointFrame":
         conv = meta.get("conversion") or {}
         matrix = tuple(map(tuple, conv.get("frame_matrix", np.eye(4).tolist())))
-        if meta.get("label") is not None:  # a label volume: its header's world, then the geometry's frame
-            world = matrix
-        elif str(conv.get("frame", "RAS")).upper() in ("RAS", "LPS"):
-            world = tuple(map(tuple, np.eye(4)))
-        else:
-            world = None
+        # a label volume: its header's world, then the geometry's frame; any other file: the mesh's RAS
+        world = matrix if meta.get("label") is not None else tuple(map(tuple, np.eye(4)))
         return cls(float(conv.get("scale_to_mm", 1.0)), matrix, world)
 
     def to_mesh(self, xyz_mm: np.ndarray) -> np.ndarray:
@@ -126,10 +121,6 @@ class PointFrame:
         return np.asarray(xyz_mesh, float) @ M[:3, :3].T + M[:3, 3]
 
     def _world(self, where: str) -> np.ndarray:
-        if self.world is None:
-            raise SupportError(f"{where}: the geometry file's frame is a 4x4, so points in a world frame (a stated "
-                               "frame, a 3D Slicer markups file) cannot be placed on it; give them in the file's "
-                               "own frame, without frame:")
         return np.asarray(self.world, float)
 
     def stated(self, frame, where: str) -> "PointFrame":

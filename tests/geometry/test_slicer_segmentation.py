@@ -227,3 +227,33 @@ def test_digits_that_are_also_a_segments_name_are_refused_as_ambiguous(tmp_path)
         load_surface(path, label="2")
     s, _ = load_surface(path, label=2)  # an integer is a label value
     assert s.meta["label"] == 2
+
+
+def test_a_three_d_segmentation_without_layer_fields_is_refused_not_misread(tmp_path):
+    """Two segments with no Layer or LabelValue in a 3-D file would both be label 1 of one layer: as Slicer
+    reads it, the second is in layer 1, which a 3-D file does not have."""
+    import nrrd
+
+    data = np.zeros(SHAPE, np.uint8)
+    data[ball(*LIVER)] = 1
+    header = {"space": "left-posterior-superior", "space directions": IJK_TO_LPS[:3, :3].T,
+              "space origin": IJK_TO_LPS[:3, 3]}
+    for k, name in enumerate(["liver", "kidney"]):
+        header.update({f"Segment{k}_ID": name, f"Segment{k}_Name": name})
+    path = tmp_path / "flat.seg.nrrd"
+    nrrd.write(str(path), data, header)
+    with pytest.raises(GeometryError, match=r"segment 1 \('kidney'\) is in layer 1, but the file has 1"):
+        load_surface(path, label="kidney")
+
+
+def test_a_four_d_segmentation_with_its_layers_last_is_refused(tmp_path):
+    import nrrd
+
+    data = np.stack([ball(*LIVER), ball(*TUMOUR)], axis=-1).astype(np.uint8)
+    header = {"space": "left-posterior-superior",
+              "space directions": np.vstack([IJK_TO_LPS[:3, :3].T, np.full(3, np.nan)]),
+              "space origin": IJK_TO_LPS[:3, 3], "Segment0_ID": "liver", "Segment0_Layer": "0"}
+    path = tmp_path / "last.seg.nrrd"
+    nrrd.write(str(path), data, header)
+    with pytest.raises(GeometryError, match=r"layers are on axis 3, not the first"):
+        load_surface(path)

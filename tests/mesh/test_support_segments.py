@@ -264,8 +264,9 @@ def test_a_registration_frame_moves_stated_and_markups_points_with_the_liver(tmp
         assert np.allclose(exertion_points_mesh(spec, frame), world_ras + [4.0, 0, 0], atol=1e-9), spec
 
 
-def test_a_surface_in_a_4x4_frame_refuses_points_in_a_world_frame(tmp_path):
-    """An STL given with a 4x4 frame has no world a stated frame or a markups file could refer to."""
+def test_beside_a_surface_in_a_4x4_frame_world_points_are_the_meshs_ras(tmp_path):
+    """An STL's 4x4 frame maps its coordinates to RAS mm: points that state a frame, or come from a markups
+    file, are in that RAS (the mesh's), and points without one go through the 4x4 as the file's do."""
     from liverforce.geometry.procedural import cube_phantom
     from liverforce.mesh.supports import exertion_points_mesh
 
@@ -275,12 +276,12 @@ def test_a_surface_in_a_4x4_frame_refuses_points_in_a_world_frame(tmp_path):
     m = [[0, -1, 0, 10.0], [1, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
     s, _ = load_surface(path, units="mm", frame=m, size_range_mm=None)
     frame = PointFrame.from_surface_meta(s.meta)
-    assert frame.world is None
-    for spec in ({"coordinates_mm": [[1.0, 2.0, 3.0]], "frame": "LPS"},
-                 {"path": str(_mrk_json(tmp_path / "p.mrk.json", [[1.0, 2.0, 3.0]]))}):
-        with pytest.raises(SupportError, match=r"the geometry file's frame is a 4x4, so points in a world frame"):
-            exertion_points_mesh(spec, frame)
-    assert np.allclose(exertion_points_mesh({"coordinates_mm": [[1.0, 2.0, 3.0]]}, frame), [[8.0, 1.0, 3.0]])
+    p_ras = np.array([[1.0, 2.0, 3.0]])
+    for spec in ({"coordinates_mm": (p_ras * [-1, -1, 1]).tolist(), "frame": "LPS"},
+                 {"coordinates_mm": p_ras.tolist(), "frame": "RAS"},
+                 {"path": str(_mrk_json(tmp_path / "p.mrk.json", p_ras * [-1, -1, 1]))}):
+        assert np.allclose(exertion_points_mesh(spec, frame), p_ras), spec
+    assert np.allclose(exertion_points_mesh({"coordinates_mm": p_ras.tolist()}, frame), [[8.0, 1.0, 3.0]])
 
 
 def test_a_file_of_vertex_ids_with_a_frame_is_refused(tmp_path):
@@ -311,3 +312,21 @@ def test_markups_units_as_a_ucum_code_and_markups_with_units_refused_in_the_conf
         compose([base + "exertion_points:{path:/x/t.mrk.json,units:m}}]"])
     with pytest.raises(ConfigError, match=r"supports.list\[0\].file.*markups file.*leave out frame"):
         compose([base + "supports:{list:[{name:c,kind:fixed,file:{path:/x/t.fcsv,frame:LPS}}]}}]"])
+
+
+def test_digits_for_a_group_that_also_name_a_segment_are_refused(tmp_path):
+    import slicerio
+
+    seg = slicerio.create_segmentation(SHAPE, IJK_TO_LPS)
+    liver, ivc, _ = masks()
+    slicerio.add_segment(seg, liver, {"id": "Segment_1", "name": "liver"})
+    slicerio.add_segment(seg, ivc, {"id": "Segment_2", "name": "1"})  # a segment named "1", label 2
+    path = tmp_path / "s.seg.nrrd"
+    slicerio.write_segmentation(str(path), seg)
+    surface, _ = load_surface(path)
+    groups = read_volume_groups(path, surface.meta["label"], surface.meta["segment"])
+    (support,) = parse_supports({"list": [{"name": "cava", "kind": "fixed", "group": "1"}]})[1]
+    with pytest.raises(SupportError, match=r"'1' is a label value and also the name or ID of segment '1' "
+                                           r"\(label 2\)"):
+        select_facets(surface.vertices, surface.faces, support, PointFrame.from_surface_meta(surface.meta),
+                      file_groups=lambda: groups)
