@@ -1010,11 +1010,11 @@ def _check_user_scene(key: str, imp: dict) -> None:
             _fail(f"{key}.exertion_points.frame", "vertex ids have no frame (they index the file's vertices)")
         _check_frame(f"{key}.exertion_points.frame", ep["frame"])
     if "path" in ep:
-        from liverforce.mesh.supports import is_markups, read_markups_spec
+        from liverforce.mesh.supports import check_markups_spec, is_markups
 
         if is_markups(ep["path"]):
             try:
-                read_markups_spec(ep, f"{key}.exertion_points")
+                check_markups_spec(ep, f"{key}.exertion_points")
             except SupportError as exc:
                 _fail(f"{key}.exertion_points", str(exc).split(": ", 1)[1])
     if "coordinates_mm" in ep:

@@ -135,18 +135,18 @@ def _slicer_segmentation(path: Path, data: np.ndarray, header: dict, kinds: list
         m = _SEGMENT_FIELD.match(str(key))
         if m:
             fields.setdefault(int(m.group(1)), {})[str(key)[m.end():]] = str(value).strip()
+    if data.ndim not in (3, 4):
+        raise refuse(path, f"expected a 3-D segmentation or a 4-D one of layers, got shape {data.shape}",
+                     "Save the segmentation from 3D Slicer again")
     layered = data.ndim == 4
     if layered:  # the layers' axis: the 'list' kind, or without kinds the axis with no space direction
         dirs = header.get("space directions")
-        spatial = [bool(np.all(np.isfinite(np.asarray(r, dtype=float)))) if r is not None else False
-                   for r in (dirs if dirs is not None else [])]
+        spatial = [r is not None and bool(np.all(np.isfinite(np.asarray(r, dtype=float)))) for r in
+                   (dirs if dirs is not None else [])]
         axis = kinds.index("list") if "list" in kinds else (spatial.index(False) if False in spatial else 0)
         if axis != 0:
             raise refuse(path, f"a 4-D segmentation whose layers are on axis {axis}, not the first",
                          "Save the segmentation from 3D Slicer again")
-    if data.ndim not in (3, 4):
-        raise refuse(path, f"expected a 3-D segmentation or a 4-D one of layers, got shape {data.shape}",
-                     "Save the segmentation from 3D Slicer again")
     segments = []
     for index in sorted(fields):
         f = fields[index]
@@ -232,19 +232,10 @@ def label_surface(
     from skimage.measure import marching_cubes
 
     msgs: list[str] = []
-    label = _as_value(volume, label, path)
-    segment = None
-    if volume.segments:
-        data, sg, why = _segment_voxels(volume, label, path)
-        label, segment = sg.label, sg.id
+    data, label, sg, why = _resolve(volume, label, path)
+    segment = None if sg is None else sg.id
+    if sg is not None:
         msgs.append(f"segment '{sg.name}' (ID {sg.id}, label {sg.label}) used ({why})")
-    else:
-        data = volume.data
-        if isinstance(label, str):
-            present = labels_present(data)
-            raise refuse(path, f"label '{label}' names a segment, but the file names none (labels present: "
-                               f"{present[:20] or 'none'})",
-                         f"Give the liver's label value, e.g. label={present[0] if present else 1}")
     present = labels_present(data)
     if label is None:
         if len(present) != 1:
@@ -285,6 +276,21 @@ def label_surface(
     if vol < 0:
         faces = faces[:, ::-1].copy()
     return world, faces, msgs, int(label), segment
+
+
+def _resolve(volume: LabelVolume, label, path) -> tuple[np.ndarray, int | None, Segment | None, str | None]:
+    """The voxels a label value, segment name or ID (or None) refers to: ``(data, label value, segment, why)``
+    (a segmentation's one layer; label None stays None in a file with no segments)."""
+    label = _as_value(volume, label, path)
+    if volume.segments:
+        data, sg, why = _segment_voxels(volume, label, path)
+        return data, sg.label, sg, why
+    if isinstance(label, str):
+        present = labels_present(volume.data)
+        raise refuse(path, f"label '{label}' names a segment, but the file names none (labels present: "
+                           f"{present[:20] or 'none'})",
+                     f"Give its label value, e.g. label={present[0] if present else 1}")
+    return volume.data, label, None, None
 
 
 def _as_value(volume: LabelVolume, label, path):
@@ -348,19 +354,12 @@ def segment_boundary_voxels(volume: LabelVolume, label: int | str, path=None
     """
     from scipy.ndimage import binary_erosion
 
-    label = _as_value(volume, label, path)
-    if label == 0:
+    if str(label).strip() == "0":
         raise refuse(path, "label 0 is the background: its boundary is the whole liver's",
                      "Give the label value or segment the liver rests on")
-    segment = None
-    if volume.segments:
-        data, sg, _ = _segment_voxels(volume, label, path)
-        value, segment, what = sg.label, sg.id, f"segment '{sg.name}' (ID {sg.id}, label {sg.label})"
-    elif isinstance(label, str):
-        raise refuse(path, f"'{label}' names a segment, but the file names none (labels present: "
-                           f"{labels_present(volume.data)[:20] or 'none'})", "Give the support's label value")
-    else:
-        data, value, what = volume.data, int(label), f"label {label}"
+    data, value, sg, _ = _resolve(volume, label, path)
+    segment = None if sg is None else sg.id
+    what = f"label {value}" if sg is None else f"segment '{sg.name}' (ID {sg.id}, label {sg.label})"
     mask = data == value
     if not mask.any():
         raise refuse(path, f"{what} has no voxel (labels present: {labels_present(data)[:20] or 'none'})",

@@ -120,32 +120,28 @@ class PointFrame:
         M = np.linalg.inv(np.asarray(self.matrix, float))
         return np.asarray(xyz_mesh, float) @ M[:3, :3].T + M[:3, 3]
 
-    def _world(self, where: str) -> np.ndarray:
-        return np.asarray(self.world, float)
-
     def stated(self, frame, where: str) -> "PointFrame":
         """This frame, or, when a point spec states its own ``frame`` (RAS, LPS or a 4x4: its coordinates, in
         mm after units, to the world's RAS mm), that one followed by the world's map to the mesh; the file's
         units stay."""
         if frame is None:
             return self
-        m = self._world(f"{where}.frame") @ points_frame(frame, where)
+        m = np.asarray(self.world, float) @ points_frame(frame, where)
         return PointFrame(self.scale, tuple(map(tuple, m)), self.world)
 
-    def from_world(self, xyz_ras_mm: np.ndarray, where: str) -> np.ndarray:
+    def from_world(self, xyz_ras_mm: np.ndarray) -> np.ndarray:
         """World RAS mm (e.g. a markups file's points) to mesh mm."""
-        W = self._world(where)
+        W = np.asarray(self.world, float)
         return np.asarray(xyz_ras_mm, float) @ W[:3, :3].T + W[:3, 3]
 
 
 def points_frame(frame, where: str) -> np.ndarray:
     """The 4x4 (point mm -> RAS mm) of a point spec's ``frame``; :class:`SupportError` naming ``where``."""
-    from liverforce.geometry.errors import GeometryError
     from liverforce.geometry.frames import frame_matrix
 
     try:
         return frame_matrix(frame)[0]
-    except (GeometryError, ValueError) as exc:
+    except ValueError as exc:  # GeometryError is one
         raise SupportError(f"{where}.frame: {exc}") from None
 
 
@@ -222,7 +218,7 @@ def _check_selector(selector, key):
     if not need <= set(d) or not set(d) <= allowed:
         raise SupportError(f"{key}: needs keys {sorted(need)} (optional {sorted(allowed - need)}), got {sorted(d)}")
     if kind == "file" and is_markups(d["path"]):
-        read_markups_spec(d, key)
+        check_markups_spec(d, key)
     if d.get("frame") is not None:
         points_frame(d["frame"], key)
     if kind == "sphere" and (np.shape(d["center_mm"]) != (3,) or not float(d["radius_mm"]) > 0):
@@ -279,7 +275,7 @@ def is_markups(path) -> bool:
     return str(path).lower().endswith(MARKUPS_SUFFIXES)
 
 
-def read_markups_spec(spec: dict, where: str) -> None:
+def check_markups_spec(spec: dict, where: str) -> None:
     """Refuse ``units`` or ``frame`` beside a markups file: it states both itself."""
     extra = sorted(k for k in ("units", "frame") if (spec or {}).get(k) is not None)
     if extra:
@@ -289,13 +285,13 @@ def read_markups_spec(spec: dict, where: str) -> None:
 
 def read_markups(path, spec: dict | None = None, where: str = "points") -> np.ndarray:
     """The control points of a 3D Slicer markups file (``.mrk.json``; legacy ``.fcsv`` read by slicerio) in
-    RAS mm, the mesh frame: each markup's ``coordinateSystem`` (LPS or RAS) and ``coordinateUnits`` (mm) are
-    the file's, so a spec may not state ``units`` or ``frame`` beside one. A point whose position is not
-    defined (``positionStatus``) is refused by its label."""
+    the world's RAS mm (:meth:`PointFrame.from_world` places them): each markup's ``coordinateSystem`` (LPS
+    or RAS) and ``coordinateUnits`` (mm) are the file's, so a spec may not state ``units`` or ``frame``
+    beside one. A point whose position is not defined (``positionStatus``) is refused by its label."""
     import json
 
     path = Path(path)
-    read_markups_spec({**(spec or {}), "path": str(path)}, where)
+    check_markups_spec({**(spec or {}), "path": str(path)}, where)
     if not path.exists():
         raise SupportError(f"{path}: file not found")
     try:
@@ -377,7 +373,7 @@ def select_facets(vertices, faces, support: Support, frame: PointFrame = PointFr
                                "file's vertices)")
         if a is None:  # a Slicer markups file: world RAS mm
             where = f"support '{support.name}' file"
-            xyz = frame.from_world(read_markups(path, d, where), where)
+            xyz = frame.from_world(read_markups(path, d, where))
         elif a.ndim == 1:
             if file_vertices is None:
                 raise SupportError(f"support '{support.name}': vertex ids need the geometry file's vertices "
@@ -571,7 +567,7 @@ def exertion_points_mesh(spec, frame: PointFrame = PointFrame(), file_vertices=N
         p = Path(spec["path"])
         p = p if p.is_absolute() or base_dir is None else Path(base_dir) / p
         if is_markups(p):  # a Slicer markups file: world RAS mm
-            return frame.from_world(read_markups(p, spec, "exertion_points"), "exertion_points")
+            return frame.from_world(read_markups(p, spec, "exertion_points"))
         a = read_point_file(p)
         if a.ndim == 1 and spec.get("frame") is not None:
             raise SupportError("exertion_points.frame: vertex ids have no frame (they index the file's vertices)")
