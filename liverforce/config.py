@@ -318,6 +318,7 @@ class ValidateConfig:
     variant: str = MISSING  # auto: lowest CV MAE (N) on the training livers | main: the first variant | a name
     input: str = MISSING  # camera: auto chooses among the camera-cloud variants (what surgery has) | any
     camera_sensitivity: dict[str, Any] = MISSING  # setting -> values re-observed for the camera-cloud model
+    registration_errors: list[Any] = MISSING  # [shift_mm, turn_deg] pairs: the camera's registration that far off
     physics: PhysicsConfig = field(default_factory=PhysicsConfig)
 
 
@@ -706,6 +707,12 @@ def _check_ranges(cfg: dict) -> None:
         _check_choice("validate.camera_sensitivity", k, ["n_points", "noise_sd_mm", "cone_half_angle_deg",
                                                         "tip_noise_mm", "instrument_in_cloud", "tool_tilt_deg"],
                       "camera setting")
+    for e in cfg["validate"]["registration_errors"]:
+        if (not isinstance(e, (list, tuple)) or len(e) != 2
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v for v in e)):
+            _fail("validate.registration_errors",
+                  f"each entry is a pair [shift_mm, turn_deg] of numbers >= 0 (got {e!r})",
+                  "e.g. [[0, 0], [1, 0], [2, 2]]")
     obs = cfg["model"]["camera"]["observation"]
     if obs.get("cone_axis") is None and float(obs.get("tool_radius_mm") or 0) > 0:
         # the shaft runs along the normal, the cone's axis: a camera within the tool's radius plus the clearance of

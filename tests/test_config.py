@@ -61,6 +61,8 @@ def test_thesis_is_the_study_scale():
         ("model.camera.grid.dent_radius_mm=10", "model.camera.grid"),  # a dent fit needs the tool's radius
         ("model.camera.observation.tool_tilt_deg=90", "model.camera.observation"),
         ("+validate.camera_sensitivity.tool_tilt=[10]", "validate.camera_sensitivity"),
+        ("validate.registration_errors=[[1,-1]]", "validate.registration_errors"),
+        ("validate.registration_errors=[2]", "validate.registration_errors"),
         ("model.camera.grid.instrument_radius_mm=2.5", "model.camera.grid.instrument_radius_mm"),
         ("validate.seed=1", "validate.seed"),
         ("geometry.procedural.shape.lobe_ratio=9", "geometry.procedural.shape"),

@@ -527,6 +527,14 @@ def test_the_camera_table_shows_the_exact_tip_accuracy_per_scenario_and_on_the_u
             {"value": True, "mae_vec": 0.41, "mae_sd": 0.07, "accuracy_pct": 81.0, "accuracy_sd": 3.0}],
             "tool_tilt_deg": [
             {"value": 20.0, "mae_vec": 0.52, "mae_sd": 0.08, "accuracy_pct": 77.0, "accuracy_sd": 3.5}]}
+        scores = {"mae_vec": 0.2, "mae_sd": 0.05, "accuracy_pct": 92.0, "accuracy_sd": 2.0}
+        doc["registration"] = {"rows": [
+            {"shift_mm": 0.0, "turn_deg": 0.0, "as_registered": scores,
+             "refined": {**scores, "n_refused": 0, "anchors": {"instrument": 9}}},
+            {"shift_mm": 2.0, "turn_deg": 1.5, "as_registered": {**scores, "mae_vec": 1.1, "accuracy_pct": 57.0},
+             "refined": {**scores, "mae_vec": 0.21, "n_refused": 2, "anchors": {"instrument": 6, "contact tip": 1}}},
+            {"shift_mm": 9.0, "turn_deg": 9.0, "as_registered": {**scores, "mae_vec": 3.0, "accuracy_pct": 5.0},
+             "refined": {"n_refused": 9, "anchors": {}}}]}
     path.write_text(json.dumps(doc))
     html = _report(stage_outputs)
     cam = _section(html, "id='camera'", "</table>")
@@ -545,10 +553,17 @@ def test_the_camera_table_shows_the_exact_tip_accuracy_per_scenario_and_on_the_u
         assert ["instrument's points in the cloud", "no", "0.330 ± 0.060", "85.0 ± 2.5"] in sens
         assert ["tool axis tilted from the normal", "20°", "0.520 ± 0.080", "77.0 ± 3.5"] in sens
         assert "the tool's axis 0° from the normal" in html  # the model's own observation (none recorded: 0)
+        reg = [[_text(c) for c in r] for r in _rows(_section(html, "class='registration'", "</table>"), "reg")]
+        assert reg == [["0 mm, 0°", "0.200 ± 0.050", "92.0 ± 2.0", "0.200 ± 0.050", "92.0 ± 2.0", "0",
+                        "instrument 9"],
+                       ["2 mm, 1.5°", "1.100 ± 0.050", "57.0 ± 2.0", "0.210 ± 0.050", "92.0 ± 2.0", "2 ⚠",
+                        "contact tip 1, instrument 6"],
+                       ["9 mm, 9°", "3.000 ± 0.050", "5.0 ± 2.0", "–", "–", "9 ⚠", "–"]]
         from liverforce.report.html import _tilt_text
         assert _tilt_text([0.0, 30.0]) == "0-30°" and _tilt_text([12.0, 12.0]) == "12°" and _tilt_text(5) == "5°"
     else:  # no sensitivity of this camera model: nothing to show
         assert rows["unseen livers"][4] == rows["unseen livers"][7] == "–"
+        assert "id='registration'" not in html
 
 
 @pytest.mark.parametrize("gap, mae, missed", [(2.5, 0.25, True), (1.5, 0.19, False), (2.0, 0.2, False)])

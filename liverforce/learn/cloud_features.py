@@ -286,6 +286,8 @@ class ReferenceSurface:
     step : float          raster spacing, mm
     raster : (r, r)       ``z_ref`` at ``(u, v) = (lo + step j, lo + step i)`` (row ``i`` = ``v``)
     grid_height : (g, g)  ``z_ref`` at the feature grid points
+    covered : (r, r) bool or None  raster nodes under the patch (:meth:`from_patch`; the others take the
+                          nearest covered node's height); None: every node is interpolated
     """
 
     origin: np.ndarray
@@ -294,6 +296,7 @@ class ReferenceSurface:
     step: float
     raster: np.ndarray
     grid_height: np.ndarray
+    covered: np.ndarray | None = None
 
     @classmethod
     def build(cls, undeformed_points_mm, exertion_point_mm, normal, t1, t2, spec: CloudGridSpec,
@@ -353,7 +356,7 @@ class ReferenceSurface:
 
             _, (ii, jj) = distance_transform_edt(~covered, return_indices=True)
             raster = raster[ii, jj]
-        return cls._with_raster(p, R, lo, step, raster, spec)
+        return cls._with_raster(p, R, lo, step, raster, spec, covered)
 
     @classmethod
     def for_case(cls, undeformed_points_mm, triangles, exertion_point_mm, R, spec: CloudGridSpec,
@@ -370,8 +373,9 @@ class ReferenceSurface:
         return cls.from_patch(undeformed_points_mm, triangles, exertion_point_mm, R, spec, label=label)
 
     @classmethod
-    def _with_raster(cls, p, R, lo: float, step: float, raster, spec: CloudGridSpec) -> "ReferenceSurface":
-        ref = cls(p, R, float(lo), float(step), raster, np.empty(0))
+    def _with_raster(cls, p, R, lo: float, step: float, raster, spec: CloudGridSpec,
+                     covered: np.ndarray | None = None) -> "ReferenceSurface":
+        ref = cls(p, R, float(lo), float(step), raster, np.empty(0), covered)
         g = spec.grid()
         object.__setattr__(ref, "grid_height", ref.height(g[:, 0], g[:, 1]).reshape(spec.grid_size, spec.grid_size))
         return ref
@@ -379,6 +383,20 @@ class ReferenceSurface:
     def to_local(self, points_mm) -> np.ndarray:
         """``R (x - p)`` for points ``(k, 3)`` of the source frame."""
         return (np.asarray(points_mm, dtype=np.float64).reshape(-1, 3) - self.origin) @ self.R.T
+
+    def is_covered(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """True where the pre-operative patch lies under ``(u, v)``: the four raster nodes round it covered and
+        inside the raster (no height extrapolated past the patch's edge or clamped at the raster's)."""
+        r = self.raster.shape[0]
+        fu = (np.asarray(u, dtype=np.float64) - self.lo) / self.step
+        fv = (np.asarray(v, dtype=np.float64) - self.lo) / self.step
+        ok = (fu >= 0) & (fv >= 0) & (fu < r - 1) & (fv < r - 1)
+        if self.covered is None:
+            return ok
+        j = np.where(ok, fu, 0).astype(np.int64)
+        i = np.where(ok, fv, 0).astype(np.int64)
+        C = self.covered
+        return ok & C[i, j] & C[i, j + 1] & C[i + 1, j] & C[i + 1, j + 1]
 
     def height(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         """``z_ref`` at tangent coordinates (bilinear on the raster; clamped to the raster's extent)."""

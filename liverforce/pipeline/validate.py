@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import logging
 from pathlib import Path
 
@@ -190,9 +191,93 @@ def camera_sensitivity(model_dir, arrays: dict, grid: dict) -> dict | None:
     return out
 
 
+def registration_sensitivity(model_dir, arrays: dict, errors) -> dict | None:
+    """A camera-cloud model's error on the unseen livers when the camera's registration to the pre-operative
+    surface is off, as registered and refined from the unloaded view (:mod:`liverforce.learn.registration`).
+
+    ``errors``: ``[shift_mm, turn_deg]`` pairs. Each case's camera side (the cloud and the tool tip) is moved
+    by a rigid motion: a shift of ``shift_mm`` in a random direction and a turn of ``turn_deg`` about a random
+    axis through the liver's centroid (the directions seeded per case, the same for every pair). The unloaded
+    view is the undeformed surface observed with the model's camera settings, its tool tip at contact with the
+    kinematics' noise (its own observation seed), moved by the same motion. Returns ``{"rows": [{shift_mm,
+    turn_deg, as_registered: {mae_vec, mae_sd, accuracy_pct, accuracy_sd}, refined: {... , n_refused, anchors}}]}``
+    (the refined metrics over the cases not refused), None for a model that is not a camera-cloud model.
+    """
+    from liverforce.learn.camera import CLOUD_KEY, TIP_KEY, grid_spec, observe_cases
+    from liverforce.learn.cloud_features import ReferenceSurface
+    from liverforce.learn.frames import case_rotations
+    from liverforce.learn.metrics import metrics_by_group
+    from liverforce.learn.model import ForceModel, subset
+    from liverforce.learn.registration import RegistrationError, axis_angle_rotation, refine_registration
+    from liverforce.seeds import derive
+
+    m = ForceModel.load(Path(model_dir))
+    rep = m.representation
+    if not rep.is_camera or not errors:
+        return None
+    seed = int(m.meta.get("eval_observation_seed", 0))
+    clouds, tips = observe_cases(arrays, rep.camera, rep.half_width_mm, rep.grid_size, seed)
+    still = dict(arrays)
+    still["surface_displacement_mm"] = [np.zeros_like(np.asarray(d)) for d in arrays["surface_displacement_mm"]]
+    clouds0, tips0 = observe_cases(still, rep.camera, rep.half_width_mm, rep.grid_size,
+                                   derive(seed, "validate.registration.unloaded"))
+    spec = grid_spec(rep.grid_size, rep.half_width_mm, rep.camera)
+    R = case_rotations(arrays)
+    P = np.asarray(arrays["exertion_point_mm"], dtype=np.float64)
+    centre = np.asarray(arrays["liver_centroid_mm"], dtype=np.float64)
+    ids = np.asarray(arrays["case_id"]).astype(str)
+    tris = arrays.get("roi_triangles")
+    refs = [ReferenceSurface.for_case(arrays["roi_undeformed_mm"][i], None if tris is None else tris[i], P[i], R[i],
+                                      spec, label=f"case {ids[i]}") for i in range(len(ids))]
+    draws = []
+    for cid in ids:
+        rng = np.random.default_rng(derive(seed, "validate.registration", cid))
+        d, a = rng.normal(size=3), rng.normal(size=3)
+        draws.append((d / np.linalg.norm(d), a / np.linalg.norm(a)))
+
+    def scores(pred, rows):
+        g = metrics_by_group(np.asarray(arrays["force_n"])[rows], pred, np.asarray(arrays["geometry_id"])[rows])
+        return {"mae_vec": g["mean"]["mae_vec"], "mae_sd": g["sd"]["mae_vec"],
+                "accuracy_pct": g["mean"]["accuracy_pct"], "accuracy_sd": g["sd"]["accuracy_pct"]}
+
+    out = []
+    for shift, turn in errors:
+        moved, refined, kept, anchors = [], [], [], {}
+        for i, (d, a) in enumerate(draws):
+            Q = axis_angle_rotation(math.radians(float(turn)) * a)
+            b = centre[i] - Q @ centre[i] + float(shift) * d
+
+            def move(x, Q=Q, b=b):
+                return np.asarray(x, dtype=np.float64) @ Q.T + b
+
+            moved.append((move(clouds[i]), move(tips[i])))
+            try:
+                fix = refine_registration(refs[i], spec, move(clouds0[i]), move(tips0[i]))
+            except RegistrationError as exc:
+                log.info("registration %s mm / %s deg, case %s: refused (%s)", shift, turn, ids[i], exc)
+                continue
+            kept.append(i)
+            anchors[fix.anchor] = anchors.get(fix.anchor, 0) + 1
+            refined.append((fix.points(moved[-1][0]), fix.points(moved[-1][1])))
+        as_reg = m.predict({**arrays, CLOUD_KEY: [c for c, _ in moved], TIP_KEY: np.array([t for _, t in moved])})
+        row = {"shift_mm": float(shift), "turn_deg": float(turn),
+               "as_registered": scores(as_reg, np.arange(len(ids)))}
+        if kept:
+            sub = subset(arrays, np.asarray(kept))
+            pred = m.predict({**sub, CLOUD_KEY: [c for c, _ in refined], TIP_KEY: np.array([t for _, t in refined])})
+            row["refined"] = {**scores(pred, np.asarray(kept)), "n_refused": len(ids) - len(kept), "anchors": anchors}
+        else:
+            row["refined"] = {"n_refused": len(ids), "anchors": anchors}
+        log.info("registration off by %s mm and %s deg: unseen MAE %.3f N as registered, %s refined", shift, turn,
+                 row["as_registered"]["mae_vec"],
+                 f"{row['refined']['mae_vec']:.3f} N" if kept else "every case refused")
+        out.append(row)
+    return {"rows": out}
+
+
 def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_path, tracking_uri, out_path, *,
                    experiment_name: str, variant: str, input: str = "any", mesh_paths=None,
-                   sensitivity: dict | None = None) -> dict:
+                   sensitivity: dict | None = None, registration_errors=None) -> dict:
     """Predict the unseen livers' cases with the chosen scenario-IV model.
 
     ``model_dir`` / ``model_metrics_path`` may be lists (every scenario-IV
@@ -209,7 +294,9 @@ def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_
     also a training liver of the model. ``input="camera"`` makes the choice
     among the camera-cloud variants; ``sensitivity`` (``validate.camera_sensitivity``)
     re-observes the unseen livers with other camera settings for the chosen
-    model if it is a camera-cloud model (:func:`camera_sensitivity`).
+    model if it is a camera-cloud model (:func:`camera_sensitivity`); ``registration_errors``
+    (``validate.registration_errors``) measures it with the camera's registration off, as registered and refined
+    from the unloaded view (:func:`registration_sensitivity`).
     """
     from liverforce.learn.metrics import error_by_force_bin, force_metrics, metrics_by_group
     from liverforce.learn.model import ForceModel
@@ -263,6 +350,7 @@ def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_
     model_metrics = json.loads(Path(model_metrics_path).read_text())
     interval = interval_on_unseen(model_dir, arrays)
     sens = camera_sensitivity(model_dir, arrays, sensitivity or {})
+    registration = registration_sensitivity(model_dir, arrays, registration_errors or [])
     extrapolation = extrapolation_on_unseen(model_dir, arrays, err)
     result = {
         "n_cases": n,
@@ -279,6 +367,7 @@ def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_
         "all_variants": others,
         "interval": interval,
         "camera_sensitivity": sens,
+        "registration": registration,
         "outside_training": extrapolation,
         "predictions": {"case_id": [str(c) for c in arrays["case_id"]], "true_n": true.tolist(), "pred_n": pred.tolist()},
     }

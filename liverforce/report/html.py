@@ -506,7 +506,39 @@ def camera_section(data: dict, v: dict, main_variant: str | None) -> str:
                    "the livers.</p>")
         out.append(_table(["setting", "value", "unseen MAE (N)", "unseen accuracy %"], srows, cls="camera-sens",
                           row_cls="sens"))
+    out.append(registration_table(v.get("registration")))
     return "".join(out)
+
+
+def registration_table(reg: dict | None) -> str:
+    """The validated camera model with its camera's registration off, as registered and refined from the unloaded
+    view (``validation["registration"]``, :func:`liverforce.pipeline.validate.registration_sensitivity`)."""
+    if not reg or not reg.get("rows"):
+        return ""
+    rows = []
+    for r in reg["rows"]:
+        a, f = r["as_registered"], r.get("refined") or {}
+        refused = int(f.get("n_refused") or 0)
+        rows.append([f"{r['shift_mm']:g} mm, {r['turn_deg']:g}°", _pm(a["mae_vec"], a["mae_sd"]),
+                     _pm(a["accuracy_pct"], a["accuracy_sd"], 1),
+                     _pm(f["mae_vec"], f["mae_sd"]) if "mae_vec" in f else "–",
+                     _pm(f["accuracy_pct"], f["accuracy_sd"], 1) if "accuracy_pct" in f else "–",
+                     _flagged(str(refused), refused > 0),
+                     ", ".join(f"{k} {n}" for k, n in sorted((f.get("anchors") or {}).items())) or "–"])
+    return ("<h4 id='registration'>When the camera's registration is off</h4>"
+            "<p>The model reads the cloud's height over the pre-operative surface and the tool tip's displacement "
+            "from the exertion point, both through the registration that places the camera on the pre-operative "
+            "surface. Here each unseen case's cloud and tool tip are moved together by a rigid motion: a shift in a "
+            "random direction and a turn about a random axis through the liver's centroid. <i>As registered</i>: "
+            "predicted as they come. <i>Refined</i>: the registration first refined from the camera's view of the "
+            "same region before the tool pushed (<code>liverforce predict --unloaded</code>; the surface fit gives "
+            "the offset along the normal and the tilt, the instrument's axis in that view, or else the tool tip at "
+            "contact, the shift along the surface; "
+            "<code>liverforce.learn.registration</code>); a refinement beyond 10 mm or 15° at the exertion point is "
+            "refused and counted. Mean ± sd over the livers.</p>"
+            + _table(["registration off by", "as registered MAE (N)", "as registered %", "refined MAE (N)",
+                      "refined %", "refused", "shift along the surface from"], rows, cls="registration",
+                     row_cls="reg"))
 
 
 def _tilt_text(tilt) -> str:

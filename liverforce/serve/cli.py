@@ -7,6 +7,8 @@ liverforce predict -m runs:/<run_id>/model nodes.npy --mode nodes --context ctx.
 liverforce predict -m <run_id> cloud.csv --surface liver.stl --exertion-point 12 -40 88 --material 0.0016 0.0125
 liverforce predict -m results/default/models/IV/cloud_sv/model cloud.ply --surface liver.stl --mesh liver.vtu \
     --exertion-point 12 -40 88 --material 0.0016 0.0125 --tool-tip 11.2 -41.0 84.5   # camera-cloud model
+liverforce predict -m results/default/models/IV/cloud_sv/model cloud.ply --unloaded before.ply --mesh liver.vtu \
+    --exertion-point 12 -40 88 --material 0.0016 0.0125 --tool-tip 11.2 -41.0 84.5   # registration refined first
 liverforce predict -m my-registered-model --shards results/exp/shards/II --out preds.parquet
 liverforce predict -m results/exp/models/II/pca_sv/model --describe
 liverforce predict -m results/lab/models/IV/cloud_sv/model cloud_lps_m.ply --frame results/lab/geometry/imp-lab01.json \
@@ -81,6 +83,16 @@ def register(subparsers, *, fetch: Callable[..., str | Path] | None = None) -> a
     p.add_argument("--tool-tip", nargs=3, type=float, metavar=("X", "Y", "Z"),
                    help="the tool tip's position now (robot kinematics; --units and --frame apply): camera-cloud "
                         "models need it")
+    p.add_argument("--unloaded", metavar="FILE",
+                   help="camera-cloud models: the camera's cloud (.ply, .csv, .npy) of the same region before the tool "
+                        "pushed, the tool touching at the exertion point (--units and --frame apply). The "
+                        "registration is refined first: the rigid correction that puts this cloud on the "
+                        "pre-operative surface moves the cloud and the tool tip (liverforce.learn.registration); "
+                        "the output's 'registration' says by how much")
+    p.add_argument("--contact-tip", nargs=3, type=float, metavar=("X", "Y", "Z"),
+                   help="with --unloaded: the tool tip at contact (robot kinematics; --units and --frame apply): "
+                        "where the instrument's search starts, and the shift along the surface when the instrument "
+                        "is not seen in the unloaded cloud")
     p.add_argument("--material", nargs="+", type=float, metavar="MPA", help="material constants, MPa")
     p.add_argument("--units", choices=("mm", "cm", "m"),
                    help="units of every point input, the context's too (default: the context's units or the "
@@ -158,10 +170,18 @@ def _run(args) -> int:
     preop, frame = read_context(args.context, predictor, overrides=overrides)
     pts = frame.points(read_points(args.points))
     info: dict = {"mode": args.mode}
+    if (args.unloaded or args.contact_tip) and args.mode != "cloud":
+        return _error("--unloaded and --contact-tip refine a camera cloud's registration: --mode cloud only")
+    if args.contact_tip and not args.unloaded:
+        return _error("--contact-tip goes with --unloaded (the camera's cloud before the tool pushed)")
     if args.mode == "cloud":
         tip = None if args.tool_tip is None else frame.points(args.tool_tip)
+        fix = None
+        if args.unloaded:
+            fix = predictor.refine_registration(frame.points(read_points(args.unloaded)), preop,
+                                                None if args.contact_tip is None else frame.points(args.contact_tip))
         force, extra = predictor.predict_cloud(pts, preop, approximate=args.approximate, tool_tip_mm=tip,
-                                               return_info=True)
+                                               return_info=True, registration=fix)
         info.update(extra)
     else:
         nodes = preop.roi_of_surface(pts) if args.mode == "surface" else pts

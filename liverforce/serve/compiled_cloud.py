@@ -1228,13 +1228,28 @@ class CompiledCloud:
     --frame`` converts them, the map folded into the kernel's rotation (no copy of a cloud), and the forces are
     given back in the inputs' frame (the half-widths are local: they have no global axes). The ``preop`` is in
     the model's frame (:func:`~liverforce.serve.files.read_context` returns both).
+
+    ``registration`` (a :class:`~liverforce.learn.registration.Refinement`,
+    :meth:`~liverforce.serve.Predictor.refine_registration`): the camera's registration refined from its unloaded
+    view, applied to every cloud and tip after the input frame (folded into the kernel's rotation too); the forces
+    stay in the pre-operative surface's frame, as :meth:`~liverforce.serve.Predictor.predict_cloud` gives them.
     """
 
-    def __init__(self, model, preop: Preop, *, limits: Limits | None = None, frame: InputFrame | None = None):
+    def __init__(self, model, preop: Preop, *, limits: Limits | None = None, frame: InputFrame | None = None,
+                 registration=None):
         rep = model.representation
         # clouds and tips in another frame or unit (a lab's own liver): read as given (the map is folded into the
         # kernel's rotation below), forces given back in that frame
         self.frame = None if frame is None or frame.identity else frame
+        self.registration = registration
+        # how the points are read: the input frame, then the registration's refinement (the forces go back through
+        # the input frame only)
+        self._points_frame = self.frame
+        if registration is not None:
+            fr = self.frame or InputFrame()
+            self._points_frame = InputFrame(scale=fr.scale, units=fr.units, label="matrix",
+                                            matrix=np.asarray(registration.matrix, dtype=np.float64) @ fr.matrix,
+                                            source=fr.source)
         if not rep.is_camera or not isinstance(model.pre.encoder, PCAEncoder):
             raise PredictionInputError("the compiled cloud path needs a camera-cloud model (roi_features: cloud) with "
                                        "the PCA encoder; use Predictor.predict_cloud")
@@ -1318,10 +1333,10 @@ class CompiledCloud:
         self._inst = instrument_params(sp)
         # the kernel reads clouds and tips as given: R (A s x + t - p) = (s R A) (x - A^-1 (p - t) / s), so an input
         # frame costs nothing per point (the checks and messages below convert the few points they read)
-        if self.frame is None:
+        if self._points_frame is None:
             self._kp, self._kR = self.p, self.R
         else:
-            fr = self.frame
+            fr = self._points_frame
             # A^-1, not A^T: a registration's matrix printed to 6 decimals is orthogonal only to ~1e-6, and with a
             # shift of hundreds of mm A^T would move every local point by ~1e-3 mm
             self._kp = np.ascontiguousarray(np.linalg.solve(fr.A, self.p - fr.t) / fr.scale)
@@ -1439,7 +1454,7 @@ class CompiledCloud:
 
     def _model(self, x: np.ndarray) -> np.ndarray:
         """Points as given -> the model's frame (RAS mm)."""
-        return x if self.frame is None else self.frame.points(x)
+        return x if self._points_frame is None else self._points_frame.points(x)
 
     def _flagged(self, counts, tips, n_used, n_bad, n_tool) -> np.ndarray:
         """(B,) True for a cloud that may be refused before its features are read (:meth:`_refusal` decides;

@@ -41,7 +41,7 @@ from liverforce.serve.cloud import (MASKED_INSTRUMENT, camera_checks, check_inst
                                    cloud_to_arrays)
 from liverforce.serve.compiled import CompiledROI
 from liverforce.serve.errors import PredictionInputError
-from liverforce.serve.preop import DEFAULT_FRAME_RADIUS_MM, DEFAULT_ROI_FRACTION, Preop, _points
+from liverforce.serve.preop import DEFAULT_FRAME_RADIUS_MM, DEFAULT_ROI_FRACTION, Preop, _points, _vector
 
 #: keys of one case's pre-operative context in the input contract (everything but the deformed ROI and the
 #: material): rows that agree on all of them share one compiled context (predict_arrays' fast path), so every
@@ -218,8 +218,32 @@ class Predictor:
             return None
         return interval_doc(self.model, self._checked_arrays(deformed_roi_mm, preop), rotations=preop.rotation[None])
 
+    def refine_registration(self, unloaded_cloud_mm, preop: Preop, contact_tip_mm=None):
+        """The registration refinement (:class:`liverforce.learn.registration.Refinement`) that puts the camera's
+        unloaded cloud (the same region before the tool pushed, model frame, mm) on ``preop``'s surface; pass it to
+        :meth:`predict_cloud` (``registration=``). ``contact_tip_mm``: the tool tip at contact (robot kinematics).
+        Camera-cloud models only; refused (:class:`PredictionInputError`, the reason said) when the cloud does not
+        lie on the surface or the correction is beyond a refinement."""
+        from liverforce.learn.cloud_features import ReferenceSurface
+        from liverforce.learn.registration import RegistrationError, refine_registration
+
+        rep = self.model.representation
+        if not rep.is_camera:
+            raise PredictionInputError("an unloaded cloud refines a camera-cloud model's registration; this model "
+                                       f"reads {rep.features} node displacements (give the deformed ROI instead)")
+        self.check_preop(preop)
+        spec = camera.grid_spec(rep.grid_size, rep.half_width_mm, rep.camera)
+        cloud = _points("unloaded cloud", unloaded_cloud_mm, min_points=1)
+        tip = None if contact_tip_mm is None else _vector("contact_tip_mm", contact_tip_mm, 3)
+        try:
+            ref = ReferenceSurface.for_case(preop.roi_undeformed_mm, preop.roi_triangles, preop.exertion_point_mm,
+                                            preop.rotation, spec, label="the pre-operative surface")
+            return refine_registration(ref, spec, cloud, tip)
+        except RegistrationError as exc:
+            raise PredictionInputError(f"registration refinement: {exc}") from None
+
     def predict_cloud(self, cloud_mm, preop: Preop, *, approximate: bool = False, tool_tip_mm=None,
-                      return_info: bool = False) -> np.ndarray | tuple[np.ndarray, dict]:
+                      return_info: bool = False, registration=None) -> np.ndarray | tuple[np.ndarray, dict]:
         """(b) Force ``(3,)`` N from an unordered observed cloud ``(m, 3)`` mm (:mod:`liverforce.serve.cloud`).
 
         Exact for camera-cloud models (``roi_features: cloud``; they need the
@@ -228,9 +252,14 @@ class Predictor:
         only with ``approximate=True`` (normal-only displacement estimate),
         refused otherwise. Camera-cloud inputs outside what training covered are
         refused, milder departures listed in ``info["warnings"]``, with the
-        context's (:meth:`context_warnings`) for every model.
+        context's (:meth:`context_warnings`) for every model. ``registration``: a
+        :meth:`refine_registration` result, applied to the cloud and the tool tip first (``info["registration"]``
+        says what it moved); the force stays in ``preop``'s frame.
         """
         self.check_preop(preop)
+        if registration is not None:
+            cloud_mm = registration.points(_points("cloud", cloud_mm, min_points=1))
+            tool_tip_mm = None if tool_tip_mm is None else registration.points(_vector("tool_tip_mm", tool_tip_mm, 3))
         arrays, info = cloud_to_arrays(self.model, cloud_mm, preop, approximate=approximate, scale=self.scale,
                                        limits=self.limits, tool_tip_mm=tool_tip_mm)
         R = preop.rotation[None]
@@ -249,6 +278,8 @@ class Predictor:
         else:
             info["warnings"] = self.context_warnings(preop)
         force = self.model.predict(arrays, rotations=R)[0]
+        if registration is not None:
+            info["registration"] = {**registration.to_dict(), "description": registration.describe()}
         if return_info and self.model.interval is not None:
             info["interval"] = interval_doc(self.model, arrays, rotations=R)
         return (force, info) if return_info else force
@@ -258,17 +289,19 @@ class Predictor:
         """``exact`` or ``approximate``: what :meth:`predict_cloud` can do for this model."""
         return cloud_support(self.model)
 
-    def compile_cloud(self, preop: Preop, frame=None, units: str | None = None):
+    def compile_cloud(self, preop: Preop, frame=None, units: str | None = None, registration=None):
         """The camera-cloud fast path for ``preop`` (:class:`liverforce.serve.compiled_cloud.CompiledCloud`;
         the context is checked once here). ``frame`` and ``units``: the clouds' and tips' frame and units (an
         :class:`~liverforce.serve.input_frame.InputFrame`, or what :meth:`InputFrame.resolve` takes: ``"LPS"``, a
-        4x4, an import record; ``"m"``); their forces come back in that frame. Default: RAS mm."""
+        4x4, an import record; ``"m"``); their forces come back in that frame. Default: RAS mm. ``registration``:
+        a :meth:`refine_registration` result (computed from points in the model's frame) applied to every cloud and
+        tip after the frame."""
         from liverforce.serve.compiled_cloud import CompiledCloud
         from liverforce.serve.input_frame import InputFrame
 
         self.check_preop(preop)
         fr = None if frame is None and units is None else InputFrame.resolve(frame, units)
-        return CompiledCloud(self.model, preop, limits=self.limits, frame=fr)
+        return CompiledCloud(self.model, preop, limits=self.limits, frame=fr, registration=registration)
 
     def compile(self, preop: Preop) -> CompiledROI:
         """The fixed-topology fast path for ``preop`` (checked once here)."""

@@ -247,6 +247,26 @@ def test_the_tip_noise_sensitivity_is_isotropic_whatever_the_model_was_trained_w
         camera_sensitivity(plain, a, {"tool_tilt_deg": [[0.0, 30.0]]})
 
 
+def test_the_registration_rows_score_the_model_off_and_refined(trained, tmp_path):
+    """validate's registration rows: with the camera side moved off the pre-operative surface the model's error
+    grows; refined from the unloaded view it is the well-registered error again; a correction beyond a
+    refinement is refused and counted, not scored."""
+    from liverforce.pipeline.validate import registration_sensitivity
+
+    model, a_te = trained
+    a = subset(a_te, np.arange(16))
+    path = model.save(tmp_path / "m")
+    rows = registration_sensitivity(path, a, [[0.0, 0.0], [2.0, 2.0], [30.0, 0.0]])["rows"]
+    base, off, far = rows
+    assert base["refined"]["n_refused"] == 0 and off["refined"]["n_refused"] == 0
+    assert base["refined"]["anchors"] == {"contact tip": 16}  # this model fits no instrument
+    assert off["as_registered"]["mae_vec"] > 3 * base["as_registered"]["mae_vec"]
+    assert abs(off["refined"]["mae_vec"] - base["as_registered"]["mae_vec"]) < 0.25 * base["as_registered"]["mae_vec"]
+    assert abs(base["refined"]["mae_vec"] - base["as_registered"]["mae_vec"]) < 0.25 * base["as_registered"]["mae_vec"]
+    assert far["refined"] == {"n_refused": 16, "anchors": {}}  # 30 mm: beyond a refinement, every case refused
+    assert registration_sensitivity(path, a, []) is None
+
+
 def test_exact_tip_scores_the_same_clouds_with_the_true_tool_tip(trained):
     """train's exact-tip accuracy: the fitted model and the clouds unchanged, the tool tip without its kinematics
     noise in any direction (exact_tip also drops a split of the noise along the normal)."""

@@ -18,6 +18,7 @@ rule validate:
         variant=config_slice("validate", "variant"),
         input=config_slice("validate", "input"),
         sensitivity=config_slice("validate", "camera_sensitivity"),
+        registration_errors=config_slice("validate", "registration_errors"),
         experiment_name=PLAN.experiment_name("validation"),
     log:
         P.log("validate", "validate"),

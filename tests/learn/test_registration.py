@@ -1,0 +1,125 @@
+"""Refining the camera's registration from its view before the tool pushes (liverforce.learn.registration).
+
+The pre-operative surface is a spherical cap (radius 80 mm) round the exertion point, the unloaded cloud the
+camera's noisy view of it with the instrument touching there (liverforce.learn.observation). The camera side
+is then moved by a known rigid motion; the refinement must undo it where the model reads it: the exertion
+point's position and the surface's height round it. The turn about the normal is not measured (a cap turned
+about its own axis is the same cap), so only those are checked.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from liverforce.learn.cloud_features import CloudGridSpec, ReferenceSurface
+from liverforce.learn.observation import ObservationConfig, observe
+from liverforce.learn.registration import RegistrationError, axis_angle_rotation, refine_registration
+
+R_CAP = 80.0
+P = np.zeros(3)
+CAM = np.array([30.0, -25.0, 80.0])
+
+
+def cap(radius=R_CAP, half=45.0, n=91, bumps=0.0):
+    """A spherical cap through the origin, outward +z (``bumps``: a sinusoid of that amplitude added, mm)."""
+    x = np.linspace(-half, half, n)
+    X, Y = np.meshgrid(x, x)
+    Z = np.sqrt(radius**2 - X**2 - Y**2) - radius + bumps * np.sin(X / 4.0) * np.sin(Y / 4.0)
+    q = np.arange((n - 1) * n).reshape(n - 1, n)[:, : n - 1].ravel()
+    T = np.concatenate([np.column_stack([q, q + 1, q + n + 1]), np.column_stack([q, q + n + 1, q + n])])
+    return np.column_stack([X.ravel(), Y.ravel(), Z.ravel()]), T
+
+
+def spec(instrument=True):
+    return CloudGridSpec(grid_size=16, half_width_mm=20.0, kernel_radius_cells=1.5,
+                         instrument_radius_mm=2.5 if instrument else 0.0, instrument_point_sd_mm=0.5,
+                         instrument_tip_sd_mm=0.5)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    V, T = cap()
+    s = spec()
+    ref = ReferenceSurface.from_patch(V, T, P, np.eye(3), s)
+    cfg = ObservationConfig(n_points=(5000, 5000), noise_sd_mm=0.5, roi_radius_mm=32.0, instrument_in_cloud=True)
+    with_tool, rec = observe(V, T, P, [0, 0, 1], cfg, seed=3, camera_position_mm=CAM)
+    assert rec.n_instrument_points > 50
+    return V, T, ref, with_tool, with_tool[: rec.n_points - rec.n_instrument_points]
+
+
+def motion(shift_mm, turn_deg, seed=0):
+    """A shift in a random direction and a turn about a random axis through the cap's centre (0, 0, -80)."""
+    rng = np.random.default_rng(seed)
+    d, a = rng.normal(size=3), rng.normal(size=3)
+    Q = axis_angle_rotation(math.radians(turn_deg) * a / np.linalg.norm(a))
+    c = np.array([0.0, 0.0, -R_CAP])
+    return Q, c - Q @ c + shift_mm * d / np.linalg.norm(d)
+
+
+def height_error(points):
+    """Signed distance of points from the cap (mm, outward)."""
+    return np.linalg.norm(points - np.array([0.0, 0.0, -R_CAP]), axis=1) - R_CAP
+
+
+RING = np.array([[15.0 * math.cos(t), 15.0 * math.sin(t), 0.0] for t in np.linspace(0, 2 * math.pi, 12, False)])
+RING[:, 2] = np.sqrt(R_CAP**2 - 15.0**2) - R_CAP  # on the cap, 15 mm round the exertion point
+
+
+@pytest.mark.parametrize("shift_mm, turn_deg", [(0.0, 0.0), (2.0, 0.0), (0.0, 2.0), (3.0, 3.0)])
+def test_the_refinement_undoes_the_cameras_misregistration(scene, shift_mm, turn_deg):
+    V, T, ref, cloud0, _ = scene
+    Q, b = motion(shift_mm, turn_deg)
+    fix = refine_registration(ref, spec(), cloud0 @ Q.T + b, Q @ P + b)
+    assert fix.anchor == "instrument"
+    p = fix.points(Q @ P + b)  # where the camera side's exertion point lands
+    assert abs(p[2]) < 0.05 and np.hypot(p[0], p[1]) < 0.3
+    ring = fix.points(RING @ Q.T + b)
+    assert np.abs(height_error(ring)).max() < 0.1  # the surface round the tool is back on the cap
+    assert 0.4 < fix.rms_mm < 0.6  # the cloud's own noise (0.5 mm) is what is left
+    moved = np.hypot(*(Q @ P + b)[:2])
+    if shift_mm or turn_deg:
+        assert fix.rms_before_mm > 2 * fix.rms_mm or moved > 1.0  # a real misregistration was there to undo
+    np.testing.assert_allclose(fix.A @ fix.A.T, np.eye(3), atol=1e-12)  # rigid
+
+
+def test_without_the_instrument_the_contact_tip_gives_the_shift_along_the_surface(scene):
+    V, T, ref, _, liver_only = scene
+    Q, b = motion(2.0, 2.0)
+    tip_error = np.array([0.3, -0.2, 0.4])  # the robot's tip at contact, off by this
+    fix = refine_registration(ref, spec(instrument=False), liver_only @ Q.T + b, Q @ (P + tip_error) + b)
+    assert fix.anchor == "contact tip"
+    p = fix.points(Q @ P + b)
+    assert abs(p[2]) < 0.05  # along the normal: from the surface, not the tip
+    R3 = fix.A @ Q  # the composite's turn: only about the normal is left
+    e = R3 @ tip_error
+    np.testing.assert_allclose(p[:2], -e[:2], atol=0.05)  # along the surface: the tip's own error, no more
+    # nothing to anchor the shift along the surface: it stays; the height is still corrected
+    fix0 = refine_registration(ref, spec(instrument=False), liver_only @ Q.T + b)
+    assert fix0.anchor == "none"
+    p0 = fix0.points(Q @ P + b)
+    assert abs(height_error(p0[None])[0]) < 0.05
+    assert np.hypot(*(Q @ P + b)[:2]) > 1.0 and abs(np.hypot(*p0[:2]) - np.hypot(*(Q @ P + b)[:2])) < 0.5
+
+
+def test_a_cloud_in_metres_is_refused_naming_the_units(scene):
+    V, T, ref, cloud0, _ = scene
+    with pytest.raises(RegistrationError, match="same units and frame"):
+        refine_registration(ref, spec(), cloud0 / 1000.0, P)
+
+
+def test_a_registration_too_far_off_is_refused(scene):
+    V, T, ref, cloud0, _ = scene
+    with pytest.raises(RegistrationError, match="register the pre-operative surface to the camera again"):
+        refine_registration(ref, spec(), cloud0 + [0.0, 0.0, 12.0], P + [0.0, 0.0, 12.0])
+
+
+def test_a_cloud_of_another_surface_is_refused(scene):
+    V, T, ref, _, _ = scene
+    Vb, Tb = cap(bumps=6.0)
+    cfg = ObservationConfig(n_points=(5000, 5000), noise_sd_mm=0.5, roi_radius_mm=32.0)
+    other, _ = observe(Vb, Tb, P, [0, 0, 1], cfg, seed=4, camera_position_mm=CAM)
+    with pytest.raises(RegistrationError, match="rms"):
+        refine_registration(ref, spec(), other, P)

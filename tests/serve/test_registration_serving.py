@@ -1,0 +1,129 @@
+"""Serving a camera-cloud model when the camera's registration to the pre-operative surface is off: refined from
+the camera's cloud of the same region before the tool pushed (``Predictor.refine_registration``, ``liverforce
+predict --unloaded``)."""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+
+import numpy as np
+import pytest
+
+from liverforce.cli import register_predict
+from liverforce.learn.observation import ObservationConfig, observe
+from liverforce.learn.registration import axis_angle_rotation
+from liverforce.serve import Predictor
+from liverforce.serve.errors import PredictionInputError
+
+from tests.serve.test_camera_serving import _case, served  # noqa: F401 (the module's trained camera model)
+
+
+def _unloaded(a: dict, i: int, seed: int = 11):
+    """The camera's cloud of case ``i``'s undeformed surface, the tool touching at the exertion point."""
+    V, T = a["surface_meshes"][a["geometry_id"][i]]
+    cfg = ObservationConfig(n_points=(3000, 3000), noise_sd_mm=0.3, roi_radius_mm=40.0)
+    cloud, _ = observe(V, T, a["exertion_point_mm"][i], a["frame_normal"][i], cfg, seed=seed)
+    return cloud
+
+
+def _misregistration(a: dict, i: int, shift_mm: float, turn_deg: float):
+    """A shift in a seeded direction and a turn about a seeded axis through the liver's centroid."""
+    rng = np.random.default_rng(i)
+    d, ax = rng.normal(size=3), rng.normal(size=3)
+    Q = axis_angle_rotation(math.radians(turn_deg) * ax / np.linalg.norm(ax))
+    c = np.asarray(a["liver_centroid_mm"][i], dtype=np.float64)
+    b = c - Q @ c + shift_mm * d / np.linalg.norm(d)
+    return lambda x: np.asarray(x, dtype=np.float64) @ Q.T + b
+
+
+def test_a_misregistered_camera_is_put_back_by_the_unloaded_view(served):  # noqa: F811
+    path, model, a = served
+    pred = Predictor.from_dir(path)
+    off, fixed, moved = [], [], []
+    for i in range(6):
+        ctx, cloud, tip = _case(a, i)
+        want = pred.predict_cloud(cloud, ctx, tool_tip_mm=tip)
+        move = _misregistration(a, i, 2.0, 2.0)
+        try:
+            bad = pred.predict_cloud(move(cloud), ctx, tool_tip_mm=move(tip))
+        except PredictionInputError:  # so far off that the cloud is refused outright
+            bad = None
+        fix = pred.refine_registration(move(_unloaded(a, i)), ctx, contact_tip_mm=move(a["exertion_point_mm"][i]))
+        assert fix.anchor == "contact tip"  # this model fits no instrument: the robot's tip at contact
+        got, info = pred.predict_cloud(move(cloud), ctx, tool_tip_mm=move(tip), registration=fix, return_info=True)
+        assert info["registration"]["anchor"] == "contact tip" and "along the normal" in info["registration"]["description"]
+        fixed.append(np.linalg.norm(got - want))
+        moved.append(np.linalg.norm(move(a["exertion_point_mm"][i]) - a["exertion_point_mm"][i]))
+        if bad is not None:
+            off.append(np.linalg.norm(bad - want))
+    assert min(moved) > 0.5 and np.median(moved) > 1.5  # the camera side really was off
+    # refined, the force is the one the well-registered camera gives, to a small part of the force itself
+    assert max(fixed) < 0.02 * np.linalg.norm(a["force_n"][:6], axis=1).max()  # 0.023-0.038 N of 4.5 N here
+    assert off and np.median(off) > 20 * np.median(fixed)  # as registered it was far off (or refused)
+
+
+def test_cli_refines_the_registration_from_the_unloaded_cloud(served, tmp_path, capsys):  # noqa: F811
+    path, model, a = served
+    i = 2
+    ctx, cloud, tip = _case(a, i)
+    move = _misregistration(a, i, 1.5, 1.0)
+    np.save(tmp_path / "cloud.npy", move(cloud) / 1000.0)  # in metres
+    np.save(tmp_path / "before.npy", move(_unloaded(a, i)) / 1000.0)
+    np.save(tmp_path / "roi.npy", ctx.roi_undeformed_mm / 1000.0)
+    np.save(tmp_path / "roi_tri.npy", ctx.roi_triangles)
+    doc = {"units": "m", "exertion_point_mm": (ctx.exertion_point_mm / 1000).tolist(), "roi_undeformed": "roi.npy",
+           "roi_triangles": "roi_tri.npy",
+           "frame": {"normal": ctx.frame[2].tolist(), "t1": ctx.frame[0].tolist(), "t2": ctx.frame[1].tolist()},
+           "material_params_mpa": ctx.material_params_mpa.tolist(),
+           "liver_centroid_mm": (ctx.liver_centroid_mm / 1000).tolist(),
+           "inertia_mm5": (ctx.inertia_mm5 / 1000**5).tolist(), "tool_thickness_mm": ctx.tool_thickness_mm / 1000,
+           "probe_compliance_mm_per_n": (ctx.probe_compliance_mm_per_n / 1000).tolist()}
+    (tmp_path / "ctx.json").write_text(json.dumps(doc))
+    parser = argparse.ArgumentParser(prog="liverforce")
+    register_predict(parser.add_subparsers(dest="command", required=True))
+    base = ["predict", "-m", str(path), str(tmp_path / "cloud.npy"), "--context", str(tmp_path / "ctx.json"),
+            "--units", "m", "--tool-tip", *map(str, move(tip) / 1000)]
+    contact = ["--contact-tip", *map(str, move(ctx.exertion_point_mm) / 1000)]
+    args = parser.parse_args(base + ["--unloaded", str(tmp_path / "before.npy")] + contact)
+    assert args.func(args) == 0
+    out = json.loads(capsys.readouterr().out)
+    pred = Predictor.from_dir(path)
+    fix = pred.refine_registration(move(_unloaded(a, i)), ctx, contact_tip_mm=move(ctx.exertion_point_mm))
+    want = pred.predict_cloud(move(cloud), ctx, tool_tip_mm=move(tip), registration=fix)
+    np.testing.assert_allclose(out["force_n"], want, atol=1e-6)
+    reg = out["registration"]
+    assert reg["anchor"] == "contact tip" and reg["rms_mm"] < reg["rms_before_mm"]
+    np.testing.assert_allclose(np.asarray(reg["matrix"]), fix.matrix, atol=1e-9)
+    assert np.linalg.norm(out["force_n"] - pred.predict_cloud(cloud, ctx, tool_tip_mm=tip)) < 0.1
+    # --contact-tip alone, and an unloaded cloud of another place, are refused with the reason
+    assert parser.parse_args(base + contact).func(parser.parse_args(base + contact)) == 2
+    assert "--unloaded" in capsys.readouterr().err
+    np.save(tmp_path / "far.npy", (move(_unloaded(a, i)) + 40.0 * ctx.frame[0]) / 1000.0)
+    args = parser.parse_args(base + ["--unloaded", str(tmp_path / "far.npy")])
+    assert args.func(args) == 2
+    assert "registration refinement" in capsys.readouterr().err
+
+
+def test_a_node_model_has_no_registration_to_refine(trained):
+    pred = Predictor.from_dir(trained("disp"))
+    with pytest.raises(PredictionInputError, match="camera-cloud"):
+        pred.refine_registration(np.zeros((10, 3)), None)  # refused before the context is read
+
+
+def test_the_compiled_path_applies_the_refinement_as_the_reference_does(served):  # noqa: F811
+    path, model, a = served
+    pred = Predictor.from_dir(path)
+    i = 1
+    ctx, cloud, tip = _case(a, i)
+    move = _misregistration(a, i, 2.0, 2.0)
+    fix = pred.refine_registration(move(_unloaded(a, i)), ctx, contact_tip_mm=move(a["exertion_point_mm"][i]))
+    want = pred.predict_cloud(move(cloud), ctx, tool_tip_mm=move(tip), registration=fix)
+    got = pred.compile_cloud(ctx, registration=fix).predict(move(cloud), move(tip))[0]
+    np.testing.assert_allclose(got, want, atol=1e-6)
+    # clouds in LPS metres: the frame first, then the refinement; the force back in LPS
+    lps = np.diag([-1.0, -1.0, 1.0])
+    fast = pred.compile_cloud(ctx, frame="LPS", units="m", registration=fix)
+    got = fast.predict(move(cloud) @ lps / 1000.0, lps @ move(tip) / 1000.0)[0]
+    np.testing.assert_allclose(got, lps @ want, atol=1e-6)
+    assert np.linalg.norm(pred.compile_cloud(ctx).predict(move(cloud), move(tip))[0] - want) > 0.1  # it mattered
