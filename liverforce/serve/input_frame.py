@@ -46,8 +46,9 @@ _HINT = ("use RAS, LPS, a 4x4 matrix (file mm to RAS mm; .npy, .json or .yaml) o
 
 #: input-contract columns (:meth:`InputFrame.arrays`) that are points: one (3,) per case, or (ragged) a set per case
 POINT_KEYS = ("exertion_point_mm", "liver_centroid_mm", "roi_centroid_undeformed_mm", "roi_centroid_deformed_mm",
-              "tool_tip_mm", "roi_undeformed_mm", "roi_deformed_mm", "camera_cloud_mm")
-RAGGED_POINT_KEYS = ("roi_undeformed_mm", "roi_deformed_mm", "camera_cloud_mm")
+              "tool_tip_mm", "roi_undeformed_mm", "roi_deformed_mm", "camera_cloud_mm", "unloaded_cloud_mm",
+              "contact_tip_mm")
+RAGGED_POINT_KEYS = ("roi_undeformed_mm", "roi_deformed_mm", "camera_cloud_mm", "unloaded_cloud_mm")
 #: the local frame's axes (unit vectors, no translation)
 DIRECTION_KEYS = ("frame_normal", "frame_t1", "frame_t2")
 #: lengths (mm) and the probe's compliance (mm/N in the local frame, which moves with the liver): scaled only

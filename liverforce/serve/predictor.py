@@ -43,6 +43,11 @@ from liverforce.serve.compiled import CompiledROI
 from liverforce.serve.errors import PredictionInputError
 from liverforce.serve.preop import DEFAULT_FRAME_RADIUS_MM, DEFAULT_ROI_FRACTION, Preop, _points, _vector
 
+#: input-contract columns of a camera model's registration refinement (:meth:`Predictor.refine_arrays`): per row the
+#: camera's cloud before the tool pushed, and the tool tip at contact (optional)
+UNLOADED_KEY = "unloaded_cloud_mm"
+CONTACT_KEY = "contact_tip_mm"
+
 #: keys of one case's pre-operative context in the input contract (everything but the deformed ROI and the
 #: material): rows that agree on all of them share one compiled context (predict_arrays' fast path), so every
 #: input a CompiledROI freezes must be here (the undeformed ROI centroid is the mean of roi_undeformed_mm)
@@ -308,6 +313,47 @@ class Predictor:
         self.check_preop(preop)
         return CompiledROI(self.model, preop, limits=self.limits, scale=self.scale)
 
+    def refine_arrays(self, arrays: dict) -> tuple[dict, list | None]:
+        """Input-contract arrays with the columns ``unloaded_cloud_mm`` (per row, the camera's cloud before the
+        tool pushed; an empty one: none for that row) and optionally ``contact_tip_mm`` (the tool tip at contact,
+        NaN where unknown): each row's registration refined (:meth:`refine_registration`, from the row's context)
+        and applied to its ``camera_cloud_mm`` and ``tool_tip_mm``. Returns the arrays without those two columns
+        and each row's refinement (None where none), or the arrays unchanged and None without the columns."""
+        if UNLOADED_KEY not in arrays:
+            if CONTACT_KEY in arrays:
+                raise PredictionInputError(f"{CONTACT_KEY} (the tool tip at contact) goes with {UNLOADED_KEY}, the "
+                                           "camera's cloud before the tool pushed; give both, or neither")
+            return arrays, None
+        if camera.CLOUD_KEY not in arrays or camera.TIP_KEY not in arrays:
+            raise PredictionInputError(f"{UNLOADED_KEY} refines the registration of camera clouds: give "
+                                       f"'{camera.CLOUD_KEY}' and '{camera.TIP_KEY}' with it")
+        n = len(arrays["exertion_point_mm"])
+        unloaded, contact = arrays[UNLOADED_KEY], arrays.get(CONTACT_KEY)
+        if len(unloaded) != n or (contact is not None and len(contact) != n):
+            raise PredictionInputError(f"{UNLOADED_KEY} / {CONTACT_KEY}: one per case ({n} exertion points)")
+        clouds = list(arrays[camera.CLOUD_KEY])
+        tips = np.array(arrays[camera.TIP_KEY], dtype=np.float64, copy=True).reshape(n, 3)
+        ids = arrays.get("case_id")
+        fixes: list = []
+        for i in range(n):
+            u = np.asarray(unloaded[i], dtype=np.float64).reshape(-1, 3)
+            if not len(u):
+                fixes.append(None)
+                continue
+            c = None if contact is None else np.asarray(contact[i], dtype=np.float64).reshape(3)
+            try:
+                fix = self.refine_registration(u, Preop.from_arrays(arrays, i),
+                                               None if c is None or not np.isfinite(c).all() else c)
+            except PredictionInputError as exc:
+                raise PredictionInputError(f"{'case ' + str(ids[i]) if ids is not None else f'row {i}'}: "
+                                           f"{exc}") from None
+            clouds[i] = fix.points(np.asarray(clouds[i], dtype=np.float64).reshape(-1, 3))
+            tips[i] = fix.points(tips[i])
+            fixes.append(fix)
+        out = {k: v for k, v in arrays.items() if k not in (UNLOADED_KEY, CONTACT_KEY)}
+        out[camera.CLOUD_KEY], out[camera.TIP_KEY] = clouds, tips
+        return out, fixes
+
     def predict_arrays(self, arrays: dict, *, observation_seed: int | None = None, fast: bool = False,
                        min_group: int = 2) -> np.ndarray:
         """Forces ``(n, 3)`` N for input-contract arrays (e.g. a shard), every row checked first.
@@ -323,7 +369,11 @@ class Predictor:
             may differ) in groups of at least ``min_group`` go through
             :class:`CompiledROI` (equal to the reference to ~1e-6 N); needs
             ``roi_features: displacement`` and no stochastic observation.
+
+        Camera clouds with ``unloaded_cloud_mm`` (and ``contact_tip_mm``) are registered first
+        (:meth:`refine_arrays`).
         """
+        arrays, _ = self.refine_arrays(arrays)
         if self.model.representation.is_camera and "camera_cloud_mm" not in arrays:
             raise PredictionInputError(
                 "this camera-cloud model predicts from camera clouds with the tool tip ('camera_cloud_mm', "

@@ -51,8 +51,8 @@ INTERVAL_COLUMNS = ("ft1_n", "ft2_n", "fn_n", "ft1_half_n", "ft2_half_n", "fn_ha
 #: the last column: the case's geometric state outside the training range (Predictor.context_warnings),
 #: "; "-joined, "" when none
 WARNINGS_COLUMN = "warnings"
-_ROI_KEYS = ("roi_undeformed_mm", "roi_deformed_mm", "camera_cloud_mm", "roi_triangles")  # ragged (k, 3) point
-#                                                               sets and triangles (vertex indices), flattened
+_ROI_KEYS = ("roi_undeformed_mm", "roi_deformed_mm", "camera_cloud_mm", "unloaded_cloud_mm", "roi_triangles")  # ragged
+# (k, 3) point sets and triangles (vertex indices), flattened
 
 
 # --------------------------------------------------------------------------
@@ -105,6 +105,10 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
     fn_half_n`` (nominal coverage in the bundle's ``meta["interval"]``), and ``warnings``
     (the case's geometric state outside the training range, ``"; "``-joined, ``""`` when none).
 
+    A camera-cloud model also takes the optional columns ``unloaded_cloud_mm`` (per row the camera's cloud
+    before the tool pushed, flattened; empty: none) and ``contact_tip_mm`` (the tool tip at contact): the
+    row's registration is refined from them first (:meth:`~liverforce.serve.Predictor.refine_arrays`).
+
     Param ``observation_seed`` (int, -1 = none) draws the stochastic observation model as in evaluation.
     Params ``input_frame`` and ``units`` (:func:`pyfunc_input_frame`; default ``""``: RAS, and mm unless the
     frame's record or JSON says) give the inputs' frame and units: every column is converted to the model's
@@ -129,6 +133,7 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
             except (TypeError, ValueError) as exc:  # a flattened point set not 3 k long, a non-number
                 raise PredictionInputError(f"input columns: {exc}") from None
             arrays = frame.arrays(arrays)
+            arrays, _ = predictor.refine_arrays(arrays)  # registration refined from unloaded clouds, if given
             force = predictor.predict_arrays(arrays, observation_seed=None if seed < 0 else seed)
         except PredictionInputError as exc:
             raise PyfuncInputError(str(exc)) from exc
@@ -245,9 +250,12 @@ def log_force_model(uri: str, run_id: str, model_dir: str | Path, example_arrays
     output = _output_frame(model, ex, model.predict(ex), None)
     signature = infer_signature(example, output, params={"observation_seed": -1, "input_frame": "", "units": ""})
     # case_id only seeds the per-case observation noise: optional
-    signature.inputs = Schema([
-        ColSpec(c.type, c.name, required=c.name != "case_id") for c in signature.inputs.inputs
-    ])
+    cols = [ColSpec(c.type, c.name, required=c.name != "case_id") for c in signature.inputs.inputs]
+    if model.representation.is_camera:  # optional: the camera's registration refined from its unloaded view
+        kind = {c.name: c.type for c in signature.inputs.inputs}
+        cols += [ColSpec(kind["camera_cloud_mm"], "unloaded_cloud_mm", required=False),
+                 ColSpec(kind["tool_tip_mm"], "contact_tip_mm", required=False)]
+    signature.inputs = Schema(cols)
 
     def _log():
         mlflow.set_tracking_uri(uri)
@@ -376,7 +384,12 @@ def predict_pyfunc(pyfunc_model, arrays: dict, observation_seed: int | None = No
     """Run a loaded pyfunc model on input-contract ``arrays`` (in ``units`` and ``input_frame``: the pyfunc's
     params, :func:`pyfunc_input_frame`; a 4x4 or a record may be given as a list, array or dict); returns
     ``(n, 3)`` N in the inputs' frame."""
-    keys = [k for k in arrays if k in _pyfunc_inputs(pyfunc_model)]
+    inputs = _pyfunc_inputs(pyfunc_model)
+    dropped = sorted({"unloaded_cloud_mm", "contact_tip_mm"} & set(arrays) - inputs)
+    if dropped:  # MLflow would drop them and the clouds would be predicted as registered, unrefined
+        raise PredictionInputError(f"this model was logged before it took {', '.join(dropped)}: log it again, or "
+                                   "refine the registration first (Predictor.refine_arrays)")
+    keys = [k for k in arrays if k in inputs]
     df = arrays_to_frame(arrays, keys)
     params = {"observation_seed": -1 if observation_seed is None else observation_seed}
     if input_frame is not None and not isinstance(input_frame, str):  # a 4x4 or a record: the param is JSON text

@@ -127,3 +127,39 @@ def test_the_compiled_path_applies_the_refinement_as_the_reference_does(served):
     got = fast.predict(move(cloud) @ lps / 1000.0, lps @ move(tip) / 1000.0)[0]
     np.testing.assert_allclose(got, lps @ want, atol=1e-6)
     assert np.linalg.norm(pred.compile_cloud(ctx).predict(move(cloud), move(tip))[0] - want) > 0.1  # it mattered
+
+
+def test_the_mlflow_pyfunc_refines_rows_that_bring_their_unloaded_cloud(served, tmp_path):  # noqa: F811
+    from liverforce.tracking import Tracker, load_pyfunc, predict_pyfunc
+
+    path, model, a = served
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    tracker = Tracker(uri, "camera-registration")
+    run_id = tracker.start_run("cloud", params={}, tags={})
+    tracker.log_force_model(run_id, path, {k: v[:1] if not isinstance(v, dict) else v for k, v in a.items()})
+    tracker.end_run(run_id)
+    pf = load_pyfunc(f"runs:/{run_id}/model", uri)
+    assert {"unloaded_cloud_mm", "contact_tip_mm"} <= set(pf.metadata.get_input_schema().input_names())
+    rows = [_case(a, i, seed=70 + i) for i in range(3)]
+    moves = [_misregistration(a, i, 2.0, 2.0) for i in range(3)]
+    cases = {k: [a[k][i] for i in range(3)] if isinstance(a[k], list) else np.asarray(a[k])[:3]
+             for k in ("case_id", "exertion_point_mm", "frame_normal", "frame_t1", "frame_t2", "roi_undeformed_mm",
+                       "liver_centroid_mm", "inertia_mm5", "tool_thickness_mm", "probe_compliance_mm_per_n",
+                       "material_params_mpa", "roi_triangles")}
+    cases["roi_centroid_undeformed_mm"] = np.stack([r[0].roi_undeformed_mm.mean(axis=0) for r in rows])
+    cases["camera_cloud_mm"] = [m(r[1]) for m, r in zip(moves, rows)]
+    cases["tool_tip_mm"] = np.stack([m(r[2]) for m, r in zip(moves, rows)])
+    cases["unloaded_cloud_mm"] = [m(_unloaded(a, i)) for i, m in enumerate(moves)]
+    cases["unloaded_cloud_mm"][2] = np.zeros((0, 3))  # this row brings none: predicted as registered
+    cases["contact_tip_mm"] = np.stack([m(a["exertion_point_mm"][i]) for i, m in enumerate(moves)])
+    got = predict_pyfunc(pf, cases)
+    pred = Predictor.from_dir(path)
+    for i, (ctx, cloud, tip) in enumerate(rows):
+        fix = None if i == 2 else pred.refine_registration(cases["unloaded_cloud_mm"][i], ctx,
+                                                           contact_tip_mm=cases["contact_tip_mm"][i])
+        want = pred.predict_cloud(moves[i](cloud), ctx, tool_tip_mm=moves[i](tip), registration=fix)
+        np.testing.assert_allclose(got[i], want, rtol=1e-5, atol=1e-6)
+    honest = [pred.predict_cloud(c, ctx, tool_tip_mm=t) for ctx, c, t in rows]
+    assert np.linalg.norm(got[0] - honest[0]) < 0.1 and np.linalg.norm(got[2] - honest[2]) > 0.3
+    with pytest.raises(PredictionInputError, match="goes with unloaded_cloud_mm"):
+        predict_pyfunc(pf, {k: v for k, v in cases.items() if k != "unloaded_cloud_mm"})
