@@ -531,9 +531,10 @@ def registration_table(reg: dict | None) -> str:
             "surface. Here each unseen case's cloud and tool tip are moved together by a rigid motion: a shift in a "
             "random direction and a turn about a random axis through the liver's centroid. <i>As registered</i>: "
             "predicted as they come. <i>Refined</i>: the registration first refined from the camera's view of the "
-            "same region before the tool pushed (<code>liverforce predict --unloaded</code>; the surface fit gives "
-            "the offset along the normal and the tilt, the instrument's axis in that view, or else the tool tip at "
-            "contact, the shift along the surface; "
+            "same region before the tool pushed (<code>liverforce predict --unloaded --contact-tip</code>: the "
+            "undeformed surface observed with the model's camera settings, the robot's tip at contact with its "
+            "kinematics noise; the surface fit gives the offset along the normal and the tilt, the instrument's axis "
+            "in that view, or else the tip at contact, the shift along the surface; "
             "<code>liverforce.learn.registration</code>); a refinement beyond 10 mm or 15° at the exertion point is "
             "refused and counted. Mean ± sd over the livers.</p>"
             + _table(["registration off by", "as registered MAE (N)", "as registered %", "refined MAE (N)",

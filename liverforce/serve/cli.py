@@ -90,9 +90,10 @@ def register(subparsers, *, fetch: Callable[..., str | Path] | None = None) -> a
                         "pre-operative surface moves the cloud and the tool tip (liverforce.learn.registration); "
                         "the output's 'registration' says by how much")
     p.add_argument("--contact-tip", nargs=3, type=float, metavar=("X", "Y", "Z"),
-                   help="with --unloaded: the tool tip at contact (robot kinematics; --units and --frame apply): "
-                        "where the instrument's search starts, and the shift along the surface when the instrument "
-                        "is not seen in the unloaded cloud")
+                   help="with --unloaded: the tool tip at contact (robot kinematics; --units and --frame apply): the "
+                        "instrument's fit in the unloaded cloud starts from it, and it gives the shift along the "
+                        "surface where the instrument is not seen. Without it only the height and tilt are refined "
+                        "(a warning says so)")
     p.add_argument("--material", nargs="+", type=float, metavar="MPA", help="material constants, MPa")
     p.add_argument("--units", choices=("mm", "cm", "m"),
                    help="units of every point input, the context's too (default: the context's units or the "

@@ -1231,8 +1231,8 @@ class CompiledCloud:
 
     ``registration`` (a :class:`~liverforce.learn.registration.Refinement`,
     :meth:`~liverforce.serve.Predictor.refine_registration`): the camera's registration refined from its unloaded
-    view, applied to every cloud and tip after the input frame (folded into the kernel's rotation too); the forces
-    stay in the pre-operative surface's frame, as :meth:`~liverforce.serve.Predictor.predict_cloud` gives them.
+    view (its matrix in the model's frame), applied to every cloud and tip after the input frame (folded into the
+    kernel's rotation too); the forces go back through the input frame only, as without it.
     """
 
     def __init__(self, model, preop: Preop, *, limits: Limits | None = None, frame: InputFrame | None = None,

@@ -285,6 +285,11 @@ class Predictor:
         force = self.model.predict(arrays, rotations=R)[0]
         if registration is not None:
             info["registration"] = {**registration.to_dict(), "description": registration.describe()}
+            if registration.anchor == "none":
+                info["warnings"] = info.get("warnings", []) + [
+                    "the registration was refined along the normal only: without the tool tip at contact nothing "
+                    "fixed the shift along the surface, which the tip's displacement reads (give the robot's tip "
+                    "at contact: --contact-tip, contact_tip_mm)"]
         if return_info and self.model.interval is not None:
             info["interval"] = interval_doc(self.model, arrays, rotations=R)
         return (force, info) if return_info else force
@@ -324,6 +329,9 @@ class Predictor:
                 raise PredictionInputError(f"{CONTACT_KEY} (the tool tip at contact) goes with {UNLOADED_KEY}, the "
                                            "camera's cloud before the tool pushed; give both, or neither")
             return arrays, None
+        if not self.model.representation.is_camera:
+            raise PredictionInputError(f"{UNLOADED_KEY} refines a camera-cloud model's registration; this model reads "
+                                       f"{self.model.representation.features} node displacements: leave it out")
         if camera.CLOUD_KEY not in arrays or camera.TIP_KEY not in arrays:
             raise PredictionInputError(f"{UNLOADED_KEY} refines the registration of camera clouds: give "
                                        f"'{camera.CLOUD_KEY}' and '{camera.TIP_KEY}' with it")
@@ -332,26 +340,30 @@ class Predictor:
         if len(unloaded) != n or (contact is not None and len(contact) != n):
             raise PredictionInputError(f"{UNLOADED_KEY} / {CONTACT_KEY}: one per case ({n} exertion points)")
         clouds = list(arrays[camera.CLOUD_KEY])
-        tips = np.array(arrays[camera.TIP_KEY], dtype=np.float64, copy=True).reshape(n, 3)
+        tips = list(arrays[camera.TIP_KEY])
         ids = arrays.get("case_id")
         fixes: list = []
         for i in range(n):
-            u = np.asarray(unloaded[i], dtype=np.float64).reshape(-1, 3)
-            if not len(u):
-                fixes.append(None)
-                continue
-            c = None if contact is None else np.asarray(contact[i], dtype=np.float64).reshape(3)
+            row = f"{'case ' + str(ids[i]) if ids is not None else f'row {i}'}: "
             try:
+                empty = unloaded[i] is None or np.size(unloaded[i]) == 0
+                u = None if empty else _points(UNLOADED_KEY, unloaded[i], min_points=1)
+                if u is None:  # none for this row: predicted as registered
+                    fixes.append(None)
+                    continue
+                c = None if contact is None or contact[i] is None else np.asarray(contact[i], dtype=np.float64)
+                if c is not None and c.size == 1 and np.isnan(c).all():  # a missing value in the column
+                    c = None
                 fix = self.refine_registration(u, Preop.from_arrays(arrays, i),
-                                               None if c is None or not np.isfinite(c).all() else c)
+                                               None if c is None else _vector(CONTACT_KEY, c, 3))
+                clouds[i] = fix.points(_points(camera.CLOUD_KEY, clouds[i], min_points=1))
+                tips[i] = fix.points(_vector(camera.TIP_KEY, tips[i], 3))
             except PredictionInputError as exc:
-                raise PredictionInputError(f"{'case ' + str(ids[i]) if ids is not None else f'row {i}'}: "
-                                           f"{exc}") from None
-            clouds[i] = fix.points(np.asarray(clouds[i], dtype=np.float64).reshape(-1, 3))
-            tips[i] = fix.points(tips[i])
+                raise PredictionInputError(row + str(exc)) from None
             fixes.append(fix)
         out = {k: v for k, v in arrays.items() if k not in (UNLOADED_KEY, CONTACT_KEY)}
-        out[camera.CLOUD_KEY], out[camera.TIP_KEY] = clouds, tips
+        out[camera.CLOUD_KEY] = clouds
+        out[camera.TIP_KEY] = np.stack([_vector(camera.TIP_KEY, t, 3) for t in tips])
         return out, fixes
 
     def predict_arrays(self, arrays: dict, *, observation_seed: int | None = None, fast: bool = False,

@@ -68,14 +68,18 @@ RING = np.array([[15.0 * math.cos(t), 15.0 * math.sin(t), 0.0] for t in np.linsp
 RING[:, 2] = np.sqrt(R_CAP**2 - 15.0**2) - R_CAP  # on the cap, 15 mm round the exertion point
 
 
-@pytest.mark.parametrize("shift_mm, turn_deg", [(0.0, 0.0), (2.0, 0.0), (0.0, 2.0), (3.0, 3.0)])
+TIP_ERROR = np.array([0.4, -0.3, 0.3])  # the robot's tip at contact, off by 0.5 mm along the surface
+
+
+@pytest.mark.parametrize("shift_mm, turn_deg", [(0.0, 0.0), (2.0, 0.0), (0.0, 2.0), (3.0, 3.0), (6.0, 1.0)])
 def test_the_refinement_undoes_the_cameras_misregistration(scene, shift_mm, turn_deg):
     V, T, ref, cloud0, _ = scene
     Q, b = motion(shift_mm, turn_deg)
-    fix = refine_registration(ref, spec(), cloud0 @ Q.T + b, Q @ P + b)
+    fix = refine_registration(ref, spec(), cloud0 @ Q.T + b, Q @ (P + TIP_ERROR) + b)
     assert fix.anchor == "instrument"
     p = fix.points(Q @ P + b)  # where the camera side's exertion point lands
-    assert abs(p[2]) < 0.05 and np.hypot(p[0], p[1]) < 0.3
+    # along the surface from the instrument's axis, not the tip it started from (0.5 mm off): 0.013-0.038 mm
+    assert abs(p[2]) < 0.05 and np.hypot(p[0], p[1]) < 0.1
     ring = fix.points(RING @ Q.T + b)
     assert np.abs(height_error(ring)).max() < 0.1  # the surface round the tool is back on the cap
     assert 0.4 < fix.rms_mm < 0.6  # the cloud's own noise (0.5 mm) is what is left
@@ -96,9 +100,14 @@ def test_without_the_instrument_the_contact_tip_gives_the_shift_along_the_surfac
     R3 = fix.A @ Q  # the composite's turn: only about the normal is left
     e = R3 @ tip_error
     np.testing.assert_allclose(p[:2], -e[:2], atol=0.05)  # along the surface: the tip's own error, no more
-    # nothing to anchor the shift along the surface: it stays; the height is still corrected
+    # nothing to anchor the shift along the surface: it stays; the height is still corrected. With the instrument
+    # in the cloud too: its fit starts from the tip at contact, and without one it is not used (started from the
+    # exertion point, its prior would confirm it)
+    _, _, _, cloud0, _ = scene
+    for s, cloud in ((spec(instrument=False), liver_only), (spec(), cloud0)):
+        fix0 = refine_registration(ref, s, cloud @ Q.T + b)
+        assert fix0.anchor == "none"
     fix0 = refine_registration(ref, spec(instrument=False), liver_only @ Q.T + b)
-    assert fix0.anchor == "none"
     p0 = fix0.points(Q @ P + b)
     assert abs(height_error(p0[None])[0]) < 0.05
     assert np.hypot(*(Q @ P + b)[:2]) > 1.0 and abs(np.hypot(*p0[:2]) - np.hypot(*(Q @ P + b)[:2])) < 0.5
@@ -108,6 +117,10 @@ def test_a_cloud_in_metres_is_refused_naming_the_units(scene):
     V, T, ref, cloud0, _ = scene
     with pytest.raises(RegistrationError, match="same units and frame"):
         refine_registration(ref, spec(), cloud0 / 1000.0, P)
+    with pytest.raises(RegistrationError, match="not finite"):
+        refine_registration(ref, spec(), cloud0, [np.nan, 0.0, 0.0])
+    with pytest.raises(RegistrationError, match="one .3,. point"):
+        refine_registration(ref, spec(), cloud0, [0.0, 0.0])
 
 
 def test_a_registration_too_far_off_is_refused(scene):

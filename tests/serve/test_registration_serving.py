@@ -163,3 +163,39 @@ def test_the_mlflow_pyfunc_refines_rows_that_bring_their_unloaded_cloud(served, 
     assert np.linalg.norm(got[0] - honest[0]) < 0.1 and np.linalg.norm(got[2] - honest[2]) > 0.3
     with pytest.raises(PredictionInputError, match="goes with unloaded_cloud_mm"):
         predict_pyfunc(pf, {k: v for k, v in cases.items() if k != "unloaded_cloud_mm"})
+
+
+def test_without_the_tip_at_contact_only_the_height_is_refined_and_a_warning_says_so(served):  # noqa: F811
+    path, model, a = served
+    pred = Predictor.from_dir(path)
+    i = 4
+    ctx, cloud, tip = _case(a, i)
+    move = _misregistration(a, i, 0.0, 0.0)  # registered: only the warning is at stake
+    fix = pred.refine_registration(move(_unloaded(a, i)), ctx)
+    assert fix.anchor == "none" and fix.tangential_mm < 1e-3  # tilts about the exertion point only
+    _, info = pred.predict_cloud(cloud, ctx, tool_tip_mm=tip, registration=fix, return_info=True)
+    assert any("along the normal only" in w and "--contact-tip" in w for w in info["warnings"])
+
+
+def test_unloaded_columns_on_arrays_are_checked_row_by_row(served, trained):  # noqa: F811
+    path, model, a = served
+    pred = Predictor.from_dir(path)
+    rows = [_case(a, i) for i in range(2)]
+    cases = {k: [a[k][i] for i in range(2)] if isinstance(a[k], list) else np.asarray(a[k])[:2]
+             for k in ("case_id", "exertion_point_mm", "frame_normal", "frame_t1", "frame_t2", "roi_undeformed_mm",
+                       "liver_centroid_mm", "inertia_mm5", "tool_thickness_mm", "probe_compliance_mm_per_n",
+                       "material_params_mpa", "roi_triangles", "roi_centroid_undeformed_mm")}
+    cases["camera_cloud_mm"] = [r[1] for r in rows]
+    cases["tool_tip_mm"] = np.stack([r[2] for r in rows])
+    plain = pred.predict_arrays(cases)
+    # empty or None rows: nothing to refine; a missing contact tip (None, NaN): the height only
+    got = pred.predict_arrays({**cases, "unloaded_cloud_mm": [[], None], "contact_tip_mm": [None, np.nan]})
+    np.testing.assert_allclose(got, plain, atol=1e-12)
+    bad = {**cases, "unloaded_cloud_mm": [np.zeros((50, 2)), None]}
+    with pytest.raises(PredictionInputError, match=f"case {cases['case_id'][0]}: unloaded_cloud_mm"):
+        pred.predict_arrays(bad)
+    bad = {**cases, "unloaded_cloud_mm": [_unloaded(a, 0), None], "contact_tip_mm": [[1.0, 2.0], None]}
+    with pytest.raises(PredictionInputError, match="contact_tip_mm"):
+        pred.predict_arrays(bad)
+    with pytest.raises(PredictionInputError, match="refines a camera-cloud model"):
+        Predictor.from_dir(trained("disp")).refine_arrays({**cases, "unloaded_cloud_mm": [None, None]})
