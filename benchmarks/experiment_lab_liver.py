@@ -22,6 +22,13 @@ as a Slicer markups file (``.mrk.json``, LPS mm). The liver is chosen with ``lab
 with ``group: inferior_vena_cava`` (the floor stays a box, stated ``frame: LPS``), and the clouds are predicted with ``--frame LPS --units m`` (a label volume's record is not an input frame); there
 is no STL to give as ``--surface``.
 
+With ``--misregister SHIFT_MM TURN_DEG`` (default 2 2; 0 0 skips it) the camera side is also moved off the
+liver, as a surgical registration leaves it: each case's cloud and tool tip shifted that far in a seeded
+direction and turned about the liver's centroid, and predicted twice more, ``misregistered`` as they come and
+``refined`` with ``--unloaded`` (the camera's view of the undeformed surface, the instrument touching at the
+exertion point, moved the same way) and ``--contact-tip`` (the exertion point with 0.5 mm of kinematics noise,
+moved too): the force should come back to the ``mesh only`` one.
+
 It prints the geometry stage's repairs, how far its surface lies from the file, each force (LPS) and the
 warnings. The smoke-sized model (19 training cases) is a toy: the forces' agreement is the point, not
 their accuracy.
@@ -138,12 +145,13 @@ def surface_deviation(inputs: dict, ply: Path) -> tuple[float, float]:
     return float(d.mean()), float(d.max())
 
 
-def predict_cases(work: Path, inputs: dict, seed: int) -> list[dict]:
+def predict_cases(work: Path, inputs: dict, seed: int, misregister: tuple[float, float] = (0.0, 0.0)) -> list[dict]:
     import meshio
 
     from liverforce.cli import main
     from liverforce.dataset.io import load_training_arrays
     from liverforce.learn.observation import ObservationConfig, observe_many, surface_point_displacement
+    from liverforce.learn.registration import axis_angle_rotation
     from liverforce.pipeline.shared import surface_meshes
     from liverforce.serve import Predictor
     from liverforce.serve.errors import PredictionInputError
@@ -180,17 +188,42 @@ def predict_cases(work: Path, inputs: dict, seed: int) -> list[dict]:
                   "--mesh", str(mesh), "--exertion-point", *map(repr, (P[0] * FLIP / 1000.0).tolist()),
                   "--material", *map(str, a["material_params_mpa"][i]),
                   "--tool-tip", *map(repr, (tip * FLIP / 1000.0).tolist())]
-        paths = [("mesh only", [])] + ([] if inputs.get("segmentation") else [("lab STL", ["--surface",
-                                                                                           str(inputs["stl"])])])
-        for name, extra in paths:
+        paths = [("mesh only", common)] + ([] if inputs.get("segmentation") else
+                                           [("lab STL", common + ["--surface", str(inputs["stl"])])])
+        shift, turn = misregister
+        if shift or turn:  # the camera side off the liver: as it comes, then refined from the unloaded view
+            rng = np.random.default_rng([seed, k])
+            d, ax = rng.normal(size=3), rng.normal(size=3)
+            Q = axis_angle_rotation(np.radians(turn) * ax / np.linalg.norm(ax))
+            centre = V.mean(axis=0)
+            b = centre - Q @ centre + shift * d / np.linalg.norm(d)
+
+            def lps_m(x, Q=Q, b=b):  # RAS mm, moved -> LPS metres
+                return (np.asarray(x) @ Q.T + b) * FLIP / 1000.0
+
+            still = [np.zeros_like(np.asarray(disp[0]))]
+            before = observe_many(V, T, still, P, a["frame_normal"][i:i + 1], cfg, seed=seed + 1, case_keys=[cid])
+            contact = P[0] + rng.normal(0.0, 0.5, 3)
+            moved_path = work / "inputs" / f"cloud_{cid}_lps_m_moved.ply"
+            before_path = work / "inputs" / f"unloaded_{cid}_lps_m_moved.ply"
+            meshio.write(moved_path, meshio.Mesh(lps_m(cloud), []))
+            meshio.write(before_path, meshio.Mesh(lps_m(before[0][0]), []))
+            moved = [c if c != str(path) else str(moved_path) for c in common]
+            moved[moved.index("--tool-tip") + 1:moved.index("--tool-tip") + 4] = map(repr, lps_m(tip).tolist())
+            paths += [("misregistered", moved),
+                      ("refined", moved + ["--unloaded", str(before_path), "--contact-tip",
+                                           *map(repr, lps_m(contact).tolist())])]
+        for name, args_ in paths:
             out = work / "inputs" / f"force_{cid}.json"
             out.unlink(missing_ok=True)
             err = io.StringIO()
             with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
-                rc = main(common + extra + ["--out", str(out)])
+                rc = main(args_ + ["--out", str(out)])
             if rc == 0:
                 doc = json.loads(out.read_text())
                 row[name] = (np.asarray(doc["force_n"]), doc.get("warnings", []))
+                if "registration" in doc:
+                    row[name + " registration"] = doc["registration"]["description"]
             else:
                 last = (err.getvalue().strip().splitlines() or [""])[-1]
                 row[name] = (None, [f"refused (exit {rc}): {last.split('error: ', 1)[-1]}"])
@@ -211,6 +244,9 @@ def main() -> int:
                     help="the sweep's largest force: on this softly supported liver, 2 N keeps most tool tips "
                          "within the model's +-20 mm grid")
     ap.add_argument("--seed", type=int, default=7, help="the camera clouds' observation seed")
+    ap.add_argument("--misregister", type=float, nargs=2, default=[2.0, 2.0], metavar=("SHIFT_MM", "TURN_DEG"),
+                    help="also predict with the camera side moved off the liver this far, as it comes and refined "
+                         "from the unloaded view (0 0: skip)")
     ap.add_argument("--input", choices=["stl", "segmentation"], default="stl",
                     help="what the lab brings: an STL in LPS metres, or a 3D Slicer segmentation (.seg.nrrd)")
     args = ap.parse_args()
@@ -230,15 +266,21 @@ def main() -> int:
               {k: sup[k] for k in ("segment", "contact_mm", "snap_mm") if k in sup})
     mean, top = surface_deviation(inputs, args.work / "results" / "smoke" / "geometry" / "imp-lab01.ply")
     print(f"the file's vertices from the geometry stage's surface: mean {mean:.3f} mm, max {top:.3f} mm")
-    rows = predict_cases(args.work, inputs, args.seed)
-    same, gap, diff = 0, [], []
+    rows = predict_cases(args.work, inputs, args.seed, tuple(args.misregister))
+    same, gap, diff, off, back = 0, [], [], [], []
     for r in rows:
         print(f"{r['case']}: true force (LPS) {np.round(r['true'], 3)}, tool tip {r['tip_mm']:.1f} mm from the point")
-        for name in ("shard", "mesh only", "lab STL"):
+        for name in ("shard", "mesh only", "lab STL", "misregistered", "refined"):
             if name not in r:
                 continue
             f, w = r[name]
-            print(f"  {name:>9}: {'-' if f is None else np.round(f, 4)}  {w}")
+            print(f"  {name:>13}: {'-' if f is None else np.round(f, 4)}  {w}")
+            if name + " registration" in r:
+                print(f"  {'':>13}  {r[name + ' registration']}")
+        if r["mesh only"][0] is not None:
+            for name, acc in (("misregistered", off), ("refined", back)):
+                if name in r:
+                    acc.append(np.nan if r[name][0] is None else float(np.linalg.norm(r[name][0] - r["mesh only"][0])))
         f0, f1, f2 = r["shard"][0], r["mesh only"][0], r.get("lab STL", (None,))[0]
         if f0 is not None and f1 is not None:
             same += bool(np.allclose(f0, f1, atol=1e-6))
@@ -249,6 +291,12 @@ def main() -> int:
     print(f"{scored} of {len(rows)} test cases predicted; mesh only equals the shard context (1e-6 N) on {same} "
           f"(max |diff| {max(diff, default=float('nan')):.1e} N)" + (
               f"; the lab STL is up to {max(gap):.3f} N away (median {np.median(gap):.3f} N)" if gap else ""))
+    if off:
+        shift, turn = args.misregister
+        print(f"camera side moved {shift:g} mm and {turn:g} deg: |F - F(mesh only)| as it comes median "
+              f"{np.nanmedian(off):.3f} N (max {np.nanmax(off):.3f}; {int(np.isnan(off).sum())} refused), refined "
+              f"from the unloaded view median {np.nanmedian(back):.3f} N (max {np.nanmax(back):.3f}; "
+              f"{int(np.isnan(back).sum())} refused)")
     return 0
 
 
