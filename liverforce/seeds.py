@@ -50,6 +50,9 @@ Stages used by the package (``stage`` strings; keys in brackets)::
     observation [case]         a case's occlusion and noise draw (from an observation seed)
     observation.camera [case]  a case's camera observation draw (from an observation seed)
     observation.tip [case]     a case's tool-tip (robot kinematics) noise draw (from an observation seed)
+    validate.registration [case]  a case's misregistration directions in the validation (from the evaluation's
+                               observation seed)
+    validate.registration.unloaded  the unloaded views' observation seed of those rows (from the same)
 
 Helpers that also touch seeds live here, so no other module does:
 :func:`spawn_rngs` (independent streams of one draw), :func:`liver_seeds`
