@@ -555,9 +555,9 @@ def test_the_camera_table_shows_the_exact_tip_accuracy_per_scenario_and_on_the_u
         assert "the tool's axis 0° from the normal" in html  # the model's own observation (none recorded: 0)
         reg = [[_text(c) for c in r] for r in _rows(_section(html, "class='registration'", "</table>"), "reg")]
         assert reg == [["0 mm, 0°", "0.200 ± 0.050", "92.0 ± 2.0", "0.200 ± 0.050", "92.0 ± 2.0", "0",
-                        "instrument 9"],
+                        "instrument (9)"],
                        ["2 mm, 1.5°", "1.100 ± 0.050", "57.0 ± 2.0", "0.210 ± 0.050", "92.0 ± 2.0", "2 ⚠",
-                        "contact tip 1, instrument 6"],
+                        "contact tip (1), instrument (6)"],
                        ["9 mm, 9°", "3.000 ± 0.050", "5.0 ± 2.0", "–", "–", "9 ⚠", "–"]]
         from liverforce.report.html import _tilt_text
         assert _tilt_text([0.0, 30.0]) == "0-30°" and _tilt_text([12.0, 12.0]) == "12°" and _tilt_text(5) == "5°"

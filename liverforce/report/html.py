@@ -524,7 +524,7 @@ def registration_table(reg: dict | None) -> str:
                      _pm(f["mae_vec"], f["mae_sd"]) if "mae_vec" in f else "–",
                      _pm(f["accuracy_pct"], f["accuracy_sd"], 1) if "accuracy_pct" in f else "–",
                      _flagged(str(refused), refused > 0),
-                     ", ".join(f"{k} {n}" for k, n in sorted((f.get("anchors") or {}).items())) or "–"])
+                     ", ".join(f"{k} ({n})" for k, n in sorted((f.get("anchors") or {}).items())) or "–"])
     return ("<h4 id='registration'>When the camera's registration is off</h4>"
             "<p>The model reads the cloud's height over the pre-operative surface and the tool tip's displacement "
             "from the exertion point, both through the registration that places the camera on the pre-operative "
@@ -538,7 +538,7 @@ def registration_table(reg: dict | None) -> str:
             "<code>liverforce.learn.registration</code>); a refinement beyond 10 mm or 15° at the exertion point is "
             "refused and counted. Mean ± sd over the livers.</p>"
             + _table(["registration off by", "as registered MAE (N)", "as registered %", "refined MAE (N)",
-                      "refined %", "refused", "shift along the surface from"], rows, cls="registration",
+                      "refined %", "refused", "shift along the surface from (cases)"], rows, cls="registration",
                      row_cls="reg"))
 
 
