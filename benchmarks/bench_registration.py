@@ -21,6 +21,7 @@ import math
 import time
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 
 def main() -> None:
@@ -36,7 +37,7 @@ def main() -> None:
     from liverforce.learn.camera import grid_spec
     from liverforce.learn.cloud_features import ReferenceSurface
     from liverforce.learn.observation import ObservationConfig, observe
-    from liverforce.learn.registration import axis_angle_rotation, refine_registration
+    from liverforce.learn.registration import refine_registration
     from liverforce.learn.synthetic import synthetic_surface_arrays
     from liverforce.pipeline.plan import Plan
     from liverforce.serve.preop import Preop
@@ -53,7 +54,7 @@ def main() -> None:
         ref = ReferenceSurface.for_case(ctx.roi_undeformed_mm, ctx.roi_triangles, ctx.exertion_point_mm, ctx.rotation,
                                         spec)
         d, ax = rng.normal(size=3), rng.normal(size=3)
-        Q = axis_angle_rotation(math.radians(args.turn) * ax / np.linalg.norm(ax))
+        Q = Rotation.from_rotvec(math.radians(args.turn) * ax / np.linalg.norm(ax)).as_matrix()
         c = np.asarray(a["liver_centroid_mm"][i], dtype=np.float64)
         cases.append((i, ctx, ref, Q, c - Q @ c + args.shift * d / np.linalg.norm(d)))
     print(f"grid {spec.grid_size} x {spec.grid_size}, +-{half:g} mm, instrument radius {spec.instrument_radius_mm:g} "

@@ -48,6 +48,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 ROOT = Path(__file__).resolve().parents[1]
 FLIP = np.array([-1.0, -1.0, 1.0])  # RAS <-> LPS
@@ -151,7 +152,6 @@ def predict_cases(work: Path, inputs: dict, seed: int, misregister: tuple[float,
     from liverforce.cli import main
     from liverforce.dataset.io import load_training_arrays
     from liverforce.learn.observation import ObservationConfig, observe_many, surface_point_displacement
-    from liverforce.learn.registration import axis_angle_rotation
     from liverforce.pipeline.shared import surface_meshes
     from liverforce.serve import Predictor
     from liverforce.serve.errors import PredictionInputError
@@ -194,7 +194,7 @@ def predict_cases(work: Path, inputs: dict, seed: int, misregister: tuple[float,
         if shift or turn:  # the camera side off the liver: as it comes, then refined from the unloaded view
             rng = np.random.default_rng([seed, k])
             d, ax = rng.normal(size=3), rng.normal(size=3)
-            Q = axis_angle_rotation(np.radians(turn) * ax / np.linalg.norm(ax))
+            Q = Rotation.from_rotvec(np.radians(turn) * ax / np.linalg.norm(ax)).as_matrix()
             centre = V.mean(axis=0)
             b = centre - Q @ centre + shift * d / np.linalg.norm(d)
 

@@ -46,6 +46,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 #: radius (mm) of the disc round the exertion point left out of the surface fit: the tool and the instrument's
 #: lowest points (a 5 mm instrument, its tip sphere and a margin)
@@ -125,16 +126,6 @@ class Refinement:
                 f"the unloaded points lie {self.rms_before_mm:.2f} -> {self.rms_mm:.2f} mm (rms) from the surface")
 
 
-def axis_angle_rotation(w: np.ndarray) -> np.ndarray:
-    """The rotation by the vector ``w`` (axis times angle, rad; Rodrigues)."""
-    a = float(np.linalg.norm(w))
-    if a == 0.0:
-        return np.eye(3)
-    k = w / a
-    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + math.sin(a) * K + (1.0 - math.cos(a)) * (K @ K)
-
-
 def _kept(r: np.ndarray) -> np.ndarray:
     """The residuals within 3 robust sds of their median (the tool's shaft and stray points left out)."""
     med = float(np.median(r))
@@ -145,6 +136,12 @@ def _kept(r: np.ndarray) -> np.ndarray:
 def _trimmed_rms(r: np.ndarray) -> float:
     r = r[_kept(r)] if len(r) else r
     return float(np.sqrt(np.mean(r**2))) if len(r) else math.inf
+
+
+def _in_model_frame(reference, Rl: np.ndarray, tl: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The local frame's motion ``y -> Rl y + tl`` as ``x -> M x + c`` in the model frame."""
+    M = reference.R.T @ Rl @ reference.R
+    return M, reference.origin + reference.R.T @ tl - M @ reference.origin
 
 
 def _surface_step(ref, X: np.ndarray, Rl: np.ndarray, tl: np.ndarray):
@@ -166,7 +163,7 @@ def _surface_step(ref, X: np.ndarray, Rl: np.ndarray, tl: np.ndarray):
     # point to plane: d r = n . (w x y + d t); columns: turns about t1 and t2 (scaled to mm), shift along n
     J = np.column_stack([np.cross(Y, nrm)[:, :2] / _LEVER_MM, nrm[:, 2]])[w]
     x = np.linalg.lstsq(J, -r[w], rcond=None)[0]
-    dR = axis_angle_rotation(np.array([x[0] / _LEVER_MM, x[1] / _LEVER_MM, 0.0]))
+    dR = Rotation.from_rotvec([x[0] / _LEVER_MM, x[1] / _LEVER_MM, 0.0]).as_matrix()
     return dR @ Rl, dR @ tl + np.array([0.0, 0.0, x[2]]), int(w.sum())
 
 
@@ -204,13 +201,13 @@ def refine_registration(reference, spec, unloaded_cloud_mm, contact_tip_mm=None)
                                 "none")
     P = P[np.isfinite(P).all(axis=1)]
     X = reference.to_local(P)
-    n_over = int((reference.is_covered(X[:, 0], X[:, 1]) & (X[:, 0] ** 2 + X[:, 1] ** 2 > TOOL_DISC_MM**2)).sum())
+    over = reference.is_covered(X[:, 0], X[:, 1])
+    n_over = int((over & (X[:, 0] ** 2 + X[:, 1] ** 2 > TOOL_DISC_MM**2)).sum())
     if n_over < MIN_POINTS:
         raise RegistrationError(
             f"the unloaded cloud has {n_over} points over the pre-operative patch round the exertion point (outside "
             f"the tool's {TOOL_DISC_MM:g} mm): at least {MIN_POINTS} are needed. Is it the "
             "camera's view of this region before the tool pushed, in the same units and frame as the loaded cloud?")
-    over = reference.is_covered(X[:, 0], X[:, 1])
     rms_before = _trimmed_rms(X[over][:, 2] - reference.height(X[over][:, 0], X[over][:, 1]))
     Rl, tl = np.eye(3), np.zeros(3)
     anchor = "none"
@@ -227,8 +224,7 @@ def refine_registration(reference, spec, unloaded_cloud_mm, contact_tip_mm=None)
             Rl, tl = R1, t1
             if moved < 1e-6:
                 break
-        M = reference.R.T @ Rl @ reference.R  # the local motion in the model frame
-        c = reference.origin + reference.R.T @ tl - M @ reference.origin
+        M, c = _in_model_frame(reference, Rl, tl)
         q = None
         if spec.instrument_radius_mm > 0 and tip0 is not None:  # fitted each round: it reads the points' rise
             try:
@@ -242,9 +238,8 @@ def refine_registration(reference, spec, unloaded_cloud_mm, contact_tip_mm=None)
         if q is None:
             break
         tl = tl - np.array([q[0], q[1], 0.0])  # the tool meets the surface at the exertion point
-    M = reference.R.T @ Rl @ reference.R
-    c = reference.origin + reference.R.T @ tl - M @ reference.origin
-    shift = reference.R @ (M @ reference.origin + c - reference.origin)  # at the exertion point, local frame
+    M, c = _in_model_frame(reference, Rl, tl)
+    shift = tl  # the exertion point (the local origin) moves by tl: the correction there, local frame
     turn = math.degrees(math.acos(min(1.0, max(-1.0, (float(np.trace(Rl)) - 1.0) / 2.0))))
     tilt = math.degrees(math.acos(min(1.0, max(-1.0, float(Rl[2, 2])))))
     total = float(np.linalg.norm(shift))

@@ -203,12 +203,14 @@ def registration_sensitivity(model_dir, arrays: dict, errors) -> dict | None:
     turn_deg, as_registered: {mae_vec, mae_sd, accuracy_pct, accuracy_sd}, refined: {... , n_refused, anchors}}]}``
     (the refined metrics over the cases not refused), None for a model that is not a camera-cloud model.
     """
+    from scipy.spatial.transform import Rotation
+
     from liverforce.learn.camera import CLOUD_KEY, TIP_KEY, grid_spec, observe_cases
     from liverforce.learn.cloud_features import ReferenceSurface
     from liverforce.learn.frames import case_rotations
     from liverforce.learn.metrics import metrics_by_group
     from liverforce.learn.model import ForceModel, subset
-    from liverforce.learn.registration import RegistrationError, axis_angle_rotation, refine_registration
+    from liverforce.learn.registration import RegistrationError, refine_registration
     from liverforce.seeds import derive
 
     m = ForceModel.load(Path(model_dir))
@@ -244,7 +246,7 @@ def registration_sensitivity(model_dir, arrays: dict, errors) -> dict | None:
     for shift, turn in errors:
         moved, refined, kept, anchors = [], [], [], {}
         for i, (d, a) in enumerate(draws):
-            Q = axis_angle_rotation(math.radians(float(turn)) * a)
+            Q = Rotation.from_rotvec(math.radians(float(turn)) * a).as_matrix()
             b = centre[i] - Q @ centre[i] + float(shift) * d
 
             def move(x, Q=Q, b=b):

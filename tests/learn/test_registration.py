@@ -13,10 +13,11 @@ import math
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from liverforce.learn.cloud_features import CloudGridSpec, ReferenceSurface
 from liverforce.learn.observation import ObservationConfig, observe
-from liverforce.learn.registration import RegistrationError, axis_angle_rotation, refine_registration
+from liverforce.learn.registration import RegistrationError, refine_registration
 
 R_CAP = 80.0
 P = np.zeros(3)
@@ -54,7 +55,7 @@ def motion(shift_mm, turn_deg, seed=0):
     """A shift in a random direction and a turn about a random axis through the cap's centre (0, 0, -80)."""
     rng = np.random.default_rng(seed)
     d, a = rng.normal(size=3), rng.normal(size=3)
-    Q = axis_angle_rotation(math.radians(turn_deg) * a / np.linalg.norm(a))
+    Q = Rotation.from_rotvec(math.radians(turn_deg) * a / np.linalg.norm(a)).as_matrix()
     c = np.array([0.0, 0.0, -R_CAP])
     return Q, c - Q @ c + shift_mm * d / np.linalg.norm(d)
 

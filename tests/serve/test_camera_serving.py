@@ -52,6 +52,30 @@ def _case(arrays: dict, i: int, n_points: int = 3000, seed: int = 0):
     return ctx, cloud, tip
 
 
+CONTEXT_COLUMNS = ("case_id", "exertion_point_mm", "frame_normal", "frame_t1", "frame_t2", "roi_undeformed_mm",
+                   "roi_centroid_undeformed_mm", "liver_centroid_mm", "inertia_mm5", "tool_thickness_mm",
+                   "probe_compliance_mm_per_n", "material_params_mpa", "roi_triangles")
+
+
+def _context_columns(arrays: dict, n: int) -> dict:
+    """The pre-operative context of the first ``n`` cases, as input-contract columns (no clouds, no node ids)."""
+    return {k: [arrays[k][i] for i in range(n)] if isinstance(arrays[k], list) else np.asarray(arrays[k])[:n]
+            for k in CONTEXT_COLUMNS}
+
+
+def _context_in_metres(ctx, folder) -> dict:
+    """A context file's document of ``ctx`` in metres (its ROI and triangles written beside it as .npy)."""
+    np.save(folder / "roi.npy", ctx.roi_undeformed_mm / 1000.0)
+    np.save(folder / "roi_tri.npy", ctx.roi_triangles)
+    return {"units": "m", "exertion_point_mm": (ctx.exertion_point_mm / 1000).tolist(), "roi_undeformed": "roi.npy",
+            "roi_triangles": "roi_tri.npy",
+            "frame": {"normal": ctx.frame[2].tolist(), "t1": ctx.frame[0].tolist(), "t2": ctx.frame[1].tolist()},
+            "material_params_mpa": ctx.material_params_mpa.tolist(),
+            "liver_centroid_mm": (ctx.liver_centroid_mm / 1000).tolist(),
+            "inertia_mm5": (ctx.inertia_mm5 / 1000**5).tolist(), "tool_thickness_mm": ctx.tool_thickness_mm / 1000,
+            "probe_compliance_mm_per_n": (ctx.probe_compliance_mm_per_n / 1000).tolist()}
+
+
 def test_a_camera_model_predicts_exactly_from_a_cloud_with_its_interval(served):
     path, model, a = served
     pred = Predictor.from_dir(path)
@@ -132,15 +156,7 @@ def test_cli_predicts_a_camera_cloud_with_the_tool_tip(served, tmp_path, capsys)
     path, model, a = served
     ctx, cloud, tip = _case(a, 3)
     np.save(tmp_path / "cloud.npy", cloud / 1000.0)  # in metres, as a camera pipeline may give it
-    np.save(tmp_path / "roi.npy", ctx.roi_undeformed_mm / 1000.0)
-    np.save(tmp_path / "roi_tri.npy", ctx.roi_triangles)
-    doc = {"units": "m", "exertion_point_mm": (ctx.exertion_point_mm / 1000).tolist(), "roi_undeformed": "roi.npy",
-           "roi_triangles": "roi_tri.npy",
-           "frame": {"normal": ctx.frame[2].tolist(), "t1": ctx.frame[0].tolist(), "t2": ctx.frame[1].tolist()},
-           "material_params_mpa": ctx.material_params_mpa.tolist(),
-           "liver_centroid_mm": (ctx.liver_centroid_mm / 1000).tolist(),
-           "inertia_mm5": (ctx.inertia_mm5 / 1000**5).tolist(), "tool_thickness_mm": ctx.tool_thickness_mm / 1000,
-           "probe_compliance_mm_per_n": (ctx.probe_compliance_mm_per_n / 1000).tolist()}
+    doc = _context_in_metres(ctx, tmp_path)
     (tmp_path / "ctx.json").write_text(json.dumps(doc))
     parser = argparse.ArgumentParser(prog="liverforce")
     register_predict(parser.add_subparsers(dest="command", required=True))
@@ -177,10 +193,7 @@ def test_the_mlflow_pyfunc_serves_the_camera_model_from_clouds(served, tmp_path)
     inputs = set(pf.metadata.get_input_schema().input_names())
     assert {"camera_cloud_mm", "tool_tip_mm"} <= inputs and "roi_deformed_mm" not in inputs
     rows = [_case(a, i, seed=50 + i) for i in range(3)]
-    cases = {k: [a[k][i] for i in range(3)] if isinstance(a[k], list) else np.asarray(a[k])[:3]
-             for k in ("case_id", "exertion_point_mm", "frame_normal", "frame_t1", "frame_t2", "roi_undeformed_mm",
-                       "roi_centroid_undeformed_mm", "liver_centroid_mm", "inertia_mm5", "tool_thickness_mm",
-                       "probe_compliance_mm_per_n", "material_params_mpa", "roi_triangles")}
+    cases = _context_columns(a, 3)
     cases["camera_cloud_mm"] = [r[1] for r in rows]
     cases["tool_tip_mm"] = np.stack([r[2] for r in rows])
     # the centroid as the context computes it (from the float32 ROI points; the synthetic row's is from float64)

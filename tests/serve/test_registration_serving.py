@@ -9,14 +9,15 @@ import math
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from liverforce.cli import register_predict
 from liverforce.learn.observation import ObservationConfig, observe
-from liverforce.learn.registration import axis_angle_rotation
 from liverforce.serve import Predictor
 from liverforce.serve.errors import PredictionInputError
 
-from tests.serve.test_camera_serving import _case, served  # noqa: F401 (the module's trained camera model)
+from tests.serve.test_camera_serving import _case, _context_columns, _context_in_metres
+from tests.serve.test_camera_serving import served  # noqa: F401 (the module's trained camera model)
 
 
 def _unloaded(a: dict, i: int, seed: int = 11):
@@ -31,7 +32,7 @@ def _misregistration(a: dict, i: int, shift_mm: float, turn_deg: float):
     """A shift in a seeded direction and a turn about a seeded axis through the liver's centroid."""
     rng = np.random.default_rng(i)
     d, ax = rng.normal(size=3), rng.normal(size=3)
-    Q = axis_angle_rotation(math.radians(turn_deg) * ax / np.linalg.norm(ax))
+    Q = Rotation.from_rotvec(math.radians(turn_deg) * ax / np.linalg.norm(ax)).as_matrix()
     c = np.asarray(a["liver_centroid_mm"][i], dtype=np.float64)
     b = c - Q @ c + shift_mm * d / np.linalg.norm(d)
     return lambda x: np.asarray(x, dtype=np.float64) @ Q.T + b
@@ -70,15 +71,7 @@ def test_cli_refines_the_registration_from_the_unloaded_cloud(served, tmp_path, 
     move = _misregistration(a, i, 1.5, 1.0)
     np.save(tmp_path / "cloud.npy", move(cloud) / 1000.0)  # in metres
     np.save(tmp_path / "before.npy", move(_unloaded(a, i)) / 1000.0)
-    np.save(tmp_path / "roi.npy", ctx.roi_undeformed_mm / 1000.0)
-    np.save(tmp_path / "roi_tri.npy", ctx.roi_triangles)
-    doc = {"units": "m", "exertion_point_mm": (ctx.exertion_point_mm / 1000).tolist(), "roi_undeformed": "roi.npy",
-           "roi_triangles": "roi_tri.npy",
-           "frame": {"normal": ctx.frame[2].tolist(), "t1": ctx.frame[0].tolist(), "t2": ctx.frame[1].tolist()},
-           "material_params_mpa": ctx.material_params_mpa.tolist(),
-           "liver_centroid_mm": (ctx.liver_centroid_mm / 1000).tolist(),
-           "inertia_mm5": (ctx.inertia_mm5 / 1000**5).tolist(), "tool_thickness_mm": ctx.tool_thickness_mm / 1000,
-           "probe_compliance_mm_per_n": (ctx.probe_compliance_mm_per_n / 1000).tolist()}
+    doc = _context_in_metres(ctx, tmp_path)
     (tmp_path / "ctx.json").write_text(json.dumps(doc))
     parser = argparse.ArgumentParser(prog="liverforce")
     register_predict(parser.add_subparsers(dest="command", required=True))
@@ -142,10 +135,7 @@ def test_the_mlflow_pyfunc_refines_rows_that_bring_their_unloaded_cloud(served, 
     assert {"unloaded_cloud_mm", "contact_tip_mm"} <= set(pf.metadata.get_input_schema().input_names())
     rows = [_case(a, i, seed=70 + i) for i in range(3)]
     moves = [_misregistration(a, i, 2.0, 2.0) for i in range(3)]
-    cases = {k: [a[k][i] for i in range(3)] if isinstance(a[k], list) else np.asarray(a[k])[:3]
-             for k in ("case_id", "exertion_point_mm", "frame_normal", "frame_t1", "frame_t2", "roi_undeformed_mm",
-                       "liver_centroid_mm", "inertia_mm5", "tool_thickness_mm", "probe_compliance_mm_per_n",
-                       "material_params_mpa", "roi_triangles")}
+    cases = _context_columns(a, 3)
     cases["roi_centroid_undeformed_mm"] = np.stack([r[0].roi_undeformed_mm.mean(axis=0) for r in rows])
     cases["camera_cloud_mm"] = [m(r[1]) for m, r in zip(moves, rows)]
     cases["tool_tip_mm"] = np.stack([m(r[2]) for m, r in zip(moves, rows)])
@@ -181,10 +171,7 @@ def test_unloaded_columns_on_arrays_are_checked_row_by_row(served, trained):  # 
     path, model, a = served
     pred = Predictor.from_dir(path)
     rows = [_case(a, i) for i in range(2)]
-    cases = {k: [a[k][i] for i in range(2)] if isinstance(a[k], list) else np.asarray(a[k])[:2]
-             for k in ("case_id", "exertion_point_mm", "frame_normal", "frame_t1", "frame_t2", "roi_undeformed_mm",
-                       "liver_centroid_mm", "inertia_mm5", "tool_thickness_mm", "probe_compliance_mm_per_n",
-                       "material_params_mpa", "roi_triangles", "roi_centroid_undeformed_mm")}
+    cases = _context_columns(a, 2)
     cases["camera_cloud_mm"] = [r[1] for r in rows]
     cases["tool_tip_mm"] = np.stack([r[2] for r in rows])
     plain = pred.predict_arrays(cases)
