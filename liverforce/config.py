@@ -318,6 +318,7 @@ class ValidateConfig:
     variant: str = MISSING  # auto: lowest CV MAE (N) on the training livers | main: the first variant | a name
     input: str = MISSING  # camera: auto chooses among the camera-cloud variants (what surgery has) | any
     camera_sensitivity: dict[str, Any] = MISSING  # setting -> values re-observed for the camera-cloud model
+    shape_changes: list[Any] = MISSING  # [amplitude_mm, wavelength_mm] pairs: each unseen liver's shape changed
     registration_errors: list[Any] = MISSING  # [shift_mm, turn_deg] pairs: the camera's registration that far off
     physics: PhysicsConfig = field(default_factory=PhysicsConfig)
 
@@ -713,6 +714,13 @@ def _check_ranges(cfg: dict) -> None:
             _fail("validate.registration_errors",
                   f"each entry is a pair [shift_mm, turn_deg] of numbers >= 0 (got {e!r})",
                   "e.g. [[0, 0], [1, 0], [2, 2]]")
+    for e in cfg["validate"]["shape_changes"]:
+        if (not isinstance(e, (list, tuple)) or len(e) != 2
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in e)
+                or not (e[0] >= 0 and e[1] > 0)):
+            _fail("validate.shape_changes",
+                  f"each entry is a pair [amplitude_mm >= 0, wavelength_mm > 0] (got {e!r})",
+                  "e.g. [[2, 150], [5, 300]]")
     obs = cfg["model"]["camera"]["observation"]
     if obs.get("cone_axis") is None and float(obs.get("tool_radius_mm") or 0) > 0:
         # the shaft runs along the normal, the cone's axis: a camera within the tool's radius plus the clearance of

@@ -53,6 +53,8 @@ Stages used by the package (``stage`` strings; keys in brackets)::
     validate.registration [case]  a case's misregistration directions in the validation (from the evaluation's
                                observation seed)
     validate.registration.unloaded  the unloaded views' observation seed of those rows (from the same)
+    validate.shape [liver]     a liver's change of shape since its scan in the validation's shape rows (from the
+                               evaluation's observation seed)
 
 Helpers that also touch seeds live here, so no other module does:
 :func:`spawn_rngs` (independent streams of one draw), :func:`liver_seeds`

@@ -63,6 +63,8 @@ def test_thesis_is_the_study_scale():
         ("+validate.camera_sensitivity.tool_tilt=[10]", "validate.camera_sensitivity"),
         ("validate.registration_errors=[[1,-1]]", "validate.registration_errors"),
         ("validate.registration_errors=[2]", "validate.registration_errors"),
+        ("validate.shape_changes=[[2,0]]", "validate.shape_changes"),
+        ("validate.shape_changes=[[-1,150]]", "validate.shape_changes"),
         ("model.camera.grid.instrument_radius_mm=2.5", "model.camera.grid.instrument_radius_mm"),
         ("validate.seed=1", "validate.seed"),
         ("geometry.procedural.shape.lobe_ratio=9", "geometry.procedural.shape"),

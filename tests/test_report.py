@@ -535,6 +535,12 @@ def test_the_camera_table_shows_the_exact_tip_accuracy_per_scenario_and_on_the_u
              "refined": {**scores, "mae_vec": 0.21, "n_refused": 2, "anchors": {"instrument": 6, "contact tip": 1}}},
             {"shift_mm": 9.0, "turn_deg": 9.0, "as_registered": {**scores, "mae_vec": 3.0, "accuracy_pct": 5.0},
              "refined": {"n_refused": 9, "anchors": {}}}]}
+        doc["shape"] = {"rows": [
+            {"amplitude_mm": 5.0, "wavelength_mm": 150.0, "as_registered": {**scores, "mae_vec": 1.6},
+             "rigid": {**scores, "mae_vec": 0.295, "n_refused": 4, "anchors": {"instrument": 5}},
+             "refined": {**scores, "mae_vec": 0.236, "n_refused": 0, "anchors": {"instrument": 9}}},
+            {"amplitude_mm": 9.0, "wavelength_mm": 100.0, "as_registered": {**scores, "mae_vec": 2.5},
+             "rigid": {"n_refused": 9, "anchors": {}}, "refined": {"n_refused": 9, "anchors": {}}}]}
     path.write_text(json.dumps(doc))
     html = _report(stage_outputs)
     cam = _section(html, "id='camera'", "</table>")
@@ -559,11 +565,16 @@ def test_the_camera_table_shows_the_exact_tip_accuracy_per_scenario_and_on_the_u
                        ["2 mm, 1.5°", "1.100 ± 0.050", "57.0 ± 2.0", "0.210 ± 0.050", "92.0 ± 2.0", "2 ⚠",
                         "contact tip (1), instrument (6)"],
                        ["9 mm, 9°", "3.000 ± 0.050", "5.0 ± 2.0", "–", "–", "9 ⚠", "–"]]
+        shape = [[_text(c) for c in r] for r in _rows(_section(html, "class='shape'", "</table>"), "shape")]
+        assert shape == [["5 mm, 150 mm", "1.600 ± 0.050", "0.295 ± 0.050", "92.0 ± 2.0", "4 ⚠", "0.236 ± 0.050",
+                          "92.0 ± 2.0", "0"],
+                         ["9 mm, 100 mm", "2.500 ± 0.050", "–", "–", "9 ⚠", "–", "–", "9 ⚠"]]
+        assert "id='shape'" in html and "changed shape since the scan" in html
         from liverforce.report.html import _tilt_text
         assert _tilt_text([0.0, 30.0]) == "0-30°" and _tilt_text([12.0, 12.0]) == "12°" and _tilt_text(5) == "5°"
     else:  # no sensitivity of this camera model: nothing to show
         assert rows["unseen livers"][4] == rows["unseen livers"][7] == "–"
-        assert "id='registration'" not in html
+        assert "id='registration'" not in html and "id='shape'" not in html
 
 
 @pytest.mark.parametrize("gap, mae, missed", [(2.5, 0.25, True), (1.5, 0.19, False), (2.0, 0.2, False)])

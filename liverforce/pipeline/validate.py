@@ -191,6 +191,79 @@ def camera_sensitivity(model_dir, arrays: dict, grid: dict) -> dict | None:
     return out
 
 
+class _CameraCases:
+    """What the registration and shape rows share: the validated camera model, its evaluation's clouds and tips of
+    the unseen cases, their unloaded views (its own observation seed), the pre-operative references and the scores
+    per liver."""
+
+    def __init__(self, m, arrays: dict):
+        from liverforce.learn.camera import grid_spec
+        from liverforce.learn.cloud_features import ReferenceSurface
+        from liverforce.learn.frames import case_rotations
+        from liverforce.seeds import derive
+
+        rep = m.representation
+        self.m, self.arrays, self.rep = m, arrays, rep
+        self.seed = int(m.meta.get("eval_observation_seed", 0))
+        self.unloaded_seed = derive(self.seed, "validate.registration.unloaded")
+        self.clouds, self.tips = self.observe(arrays)
+        self.clouds0, self.tips0 = self.observe(unloaded(arrays), self.unloaded_seed)
+        self.spec = grid_spec(rep.grid_size, rep.half_width_mm, rep.camera)
+        self.P = np.asarray(arrays["exertion_point_mm"], dtype=np.float64)
+        self.centre = np.asarray(arrays["liver_centroid_mm"], dtype=np.float64)
+        self.ids = np.asarray(arrays["case_id"]).astype(str)
+        R = case_rotations(arrays)
+        tris = arrays.get("roi_triangles")
+        self.refs = [ReferenceSurface.for_case(arrays["roi_undeformed_mm"][i], None if tris is None else tris[i],
+                                               self.P[i], R[i], self.spec, label=f"case {self.ids[i]}")
+                     for i in range(len(self.ids))]
+
+    def observe(self, arrays: dict, seed: int | None = None):
+        from liverforce.learn.camera import observe_cases
+
+        rep = self.rep
+        return observe_cases(arrays, rep.camera, rep.half_width_mm, rep.grid_size, self.seed if seed is None else seed)
+
+    def scores(self, moved: list, rows) -> dict:
+        """The metrics over the livers of the clouds and tips ``moved`` of cases ``rows``."""
+        from liverforce.learn.camera import CLOUD_KEY, TIP_KEY
+        from liverforce.learn.metrics import metrics_by_group
+        from liverforce.learn.model import subset
+
+        rows = np.asarray(rows)
+        sub = subset(self.arrays, rows) if len(rows) < len(self.ids) else self.arrays
+        pred = self.m.predict({**sub, CLOUD_KEY: [c for c, _ in moved], TIP_KEY: np.array([t for _, t in moved])})
+        g = metrics_by_group(np.asarray(self.arrays["force_n"])[rows], pred,
+                             np.asarray(self.arrays["geometry_id"])[rows])
+        return {"mae_vec": g["mean"]["mae_vec"], "mae_sd": g["sd"]["mae_vec"],
+                "accuracy_pct": g["mean"]["accuracy_pct"], "accuracy_sd": g["sd"]["accuracy_pct"]}
+
+    def refined(self, clouds, tips, clouds0, tips0, what: str, **kwargs) -> dict:
+        """Each case's registration refined from its unloaded view (``refine_registration(**kwargs)``) and applied
+        to its cloud and tip: the scores over the cases not refused, ``n_refused`` and ``anchors``."""
+        from liverforce.learn.registration import RegistrationError, refine_registration
+
+        out, kept, anchors = [], [], {}
+        for i in range(len(self.ids)):
+            try:
+                fix = refine_registration(self.refs[i], self.spec, clouds0[i], tips0[i], **kwargs)
+            except RegistrationError as exc:
+                log.info("%s, case %s: refused (%s)", what, self.ids[i], exc)
+                continue
+            kept.append(i)
+            anchors[fix.anchor] = anchors.get(fix.anchor, 0) + 1
+            out.append((fix.points(clouds[i]), fix.points(tips[i])))
+        scored = self.scores(out, kept) if kept else {}
+        return {**scored, "n_refused": len(self.ids) - len(kept), "anchors": anchors}
+
+
+def unloaded(arrays: dict) -> dict:
+    """The cases with the tool not pushing: every surface displacement zero (the camera's unloaded view)."""
+    still = dict(arrays)
+    still["surface_displacement_mm"] = [np.zeros_like(np.asarray(d)) for d in arrays["surface_displacement_mm"]]
+    return still
+
+
 def registration_sensitivity(model_dir, arrays: dict, errors) -> dict | None:
     """A camera-cloud model's error on the unseen livers when the camera's registration to the pre-operative
     surface is off, as registered and refined from the unloaded view (:mod:`liverforce.learn.registration`).
@@ -205,81 +278,140 @@ def registration_sensitivity(model_dir, arrays: dict, errors) -> dict | None:
     """
     from scipy.spatial.transform import Rotation
 
-    from liverforce.learn.camera import CLOUD_KEY, TIP_KEY, grid_spec, observe_cases
-    from liverforce.learn.cloud_features import ReferenceSurface
-    from liverforce.learn.frames import case_rotations
-    from liverforce.learn.metrics import metrics_by_group
-    from liverforce.learn.model import ForceModel, subset
-    from liverforce.learn.registration import RegistrationError, refine_registration
+    from liverforce.learn.model import ForceModel
     from liverforce.seeds import derive
 
     m = ForceModel.load(Path(model_dir))
-    rep = m.representation
-    if not rep.is_camera or not errors:
+    if not m.representation.is_camera or not errors:
         return None
-    seed = int(m.meta.get("eval_observation_seed", 0))
-    clouds, tips = observe_cases(arrays, rep.camera, rep.half_width_mm, rep.grid_size, seed)
-    still = dict(arrays)
-    still["surface_displacement_mm"] = [np.zeros_like(np.asarray(d)) for d in arrays["surface_displacement_mm"]]
-    clouds0, tips0 = observe_cases(still, rep.camera, rep.half_width_mm, rep.grid_size,
-                                   derive(seed, "validate.registration.unloaded"))
-    spec = grid_spec(rep.grid_size, rep.half_width_mm, rep.camera)
-    R = case_rotations(arrays)
-    P = np.asarray(arrays["exertion_point_mm"], dtype=np.float64)
-    centre = np.asarray(arrays["liver_centroid_mm"], dtype=np.float64)
-    ids = np.asarray(arrays["case_id"]).astype(str)
-    tris = arrays.get("roi_triangles")
-    refs = [ReferenceSurface.for_case(arrays["roi_undeformed_mm"][i], None if tris is None else tris[i], P[i], R[i],
-                                      spec, label=f"case {ids[i]}") for i in range(len(ids))]
+    cases = _CameraCases(m, arrays)
     draws = []
-    for cid in ids:
-        rng = np.random.default_rng(derive(seed, "validate.registration", cid))
+    for cid in cases.ids:
+        rng = np.random.default_rng(derive(cases.seed, "validate.registration", cid))
         d, a = rng.normal(size=3), rng.normal(size=3)
         draws.append((d / np.linalg.norm(d), a / np.linalg.norm(a)))
-
-    def scores(pred, rows):
-        g = metrics_by_group(np.asarray(arrays["force_n"])[rows], pred, np.asarray(arrays["geometry_id"])[rows])
-        return {"mae_vec": g["mean"]["mae_vec"], "mae_sd": g["sd"]["mae_vec"],
-                "accuracy_pct": g["mean"]["accuracy_pct"], "accuracy_sd": g["sd"]["accuracy_pct"]}
-
     out = []
     for shift, turn in errors:
-        moved, refined, kept, anchors = [], [], [], {}
+        moves = []
         for i, (d, a) in enumerate(draws):
             Q = Rotation.from_rotvec(math.radians(float(turn)) * a).as_matrix()
-            b = centre[i] - Q @ centre[i] + float(shift) * d
+            moves.append((Q, cases.centre[i] - Q @ cases.centre[i] + float(shift) * d))
 
-            def move(x, Q=Q, b=b):
-                return np.asarray(x, dtype=np.float64) @ Q.T + b
+        def move(items):
+            return [np.asarray(x, dtype=np.float64) @ Q.T + b for x, (Q, b) in zip(items, moves)]
 
-            moved.append((move(clouds[i]), move(tips[i])))
-            try:
-                fix = refine_registration(refs[i], spec, move(clouds0[i]), move(tips0[i]))
-            except RegistrationError as exc:
-                log.info("registration %s mm / %s deg, case %s: refused (%s)", shift, turn, ids[i], exc)
-                continue
-            kept.append(i)
-            anchors[fix.anchor] = anchors.get(fix.anchor, 0) + 1
-            refined.append((fix.points(moved[-1][0]), fix.points(moved[-1][1])))
-        as_reg = m.predict({**arrays, CLOUD_KEY: [c for c, _ in moved], TIP_KEY: np.array([t for _, t in moved])})
+        clouds, tips = move(cases.clouds), move(cases.tips)
         row = {"shift_mm": float(shift), "turn_deg": float(turn),
-               "as_registered": scores(as_reg, np.arange(len(ids)))}
-        if kept:
-            sub = subset(arrays, np.asarray(kept))
-            pred = m.predict({**sub, CLOUD_KEY: [c for c, _ in refined], TIP_KEY: np.array([t for _, t in refined])})
-            row["refined"] = {**scores(pred, np.asarray(kept)), "n_refused": len(ids) - len(kept), "anchors": anchors}
-        else:
-            row["refined"] = {"n_refused": len(ids), "anchors": anchors}
+               "as_registered": cases.scores(list(zip(clouds, tips)), np.arange(len(cases.ids))),
+               "refined": cases.refined(clouds, tips, move(cases.clouds0), move(cases.tips0),
+                                        f"registration {shift} mm / {turn} deg")}
         log.info("registration off by %s mm and %s deg: unseen MAE %.3f N as registered, %s refined", shift, turn,
                  row["as_registered"]["mae_vec"],
-                 f"{row['refined']['mae_vec']:.3f} N" if kept else "every case refused")
+                 f"{row['refined']['mae_vec']:.3f} N" if "mae_vec" in row["refined"] else "every case refused")
+        out.append(row)
+    return {"rows": out}
+
+
+def shape_field(seed: int, geometry_id: str, amplitude_mm: float, wavelength_mm: float, centre):
+    """A smooth change of a liver's shape since its scan: ``x -> x + d(x)``, ``d(x) = (a / sqrt 3) sum_j e_j
+    sin(2 pi k_j . (x - centre) / wavelength + phi_j)`` over three modes, ``k_j`` and ``e_j`` unit vectors and
+    ``phi_j`` phases drawn per liver (``validate.shape [liver]``): over space its rms is ``a / sqrt 2``, a single
+    sinusoid's of amplitude ``a``, and ``|d| <= sqrt(3) a``. Returns the map (points ``(n, 3)`` or one ``(3,)``)."""
+    from liverforce.seeds import derive
+
+    rng = np.random.default_rng(derive(seed, "validate.shape", str(geometry_id)))
+    k = rng.normal(size=(3, 3))
+    k /= np.linalg.norm(k, axis=1, keepdims=True)
+    e = rng.normal(size=(3, 3))
+    e /= np.linalg.norm(e, axis=1, keepdims=True)
+    phase = rng.uniform(0.0, 2.0 * math.pi, 3)
+    c = np.asarray(centre, dtype=np.float64)
+    scale = float(amplitude_mm) / math.sqrt(3.0)
+
+    def f(x):
+        x = np.asarray(x, dtype=np.float64)
+        return x + scale * (np.sin((x - c) @ k.T * (2.0 * math.pi / float(wavelength_mm)) + phase) @ e)
+
+    return f
+
+
+def local_turn(f, x: np.ndarray, normal, t1, h: float = 1e-3) -> np.ndarray:
+    """The rotation ``(3, 3)`` that carries the local frame at point ``x`` (``normal``, ``t1``) with a map ``f``:
+    the normal to the mapped surface's (``J^-T n``), ``t1`` to its mapped direction in that tangent plane
+    (central differences for the Jacobian ``J``)."""
+    J = np.column_stack([(f(x + h * u) - f(x - h * u)) / (2.0 * h) for u in np.eye(3)])
+    n = np.asarray(normal, dtype=np.float64) / np.linalg.norm(normal)
+    a = np.asarray(t1, dtype=np.float64) / np.linalg.norm(t1)
+    n2 = np.linalg.solve(J.T, n)
+    n2 /= np.linalg.norm(n2)
+    a2 = J @ a - (J @ a @ n2) * n2
+    a2 /= np.linalg.norm(a2)
+    return np.column_stack([a2, np.cross(n2, a2), n2]) @ np.stack([a, np.cross(n, a), n])
+
+
+def changed_shape(arrays: dict, seed: int, amplitude_mm: float, wavelength_mm: float) -> dict:
+    """The cases on livers whose shape changed since the scan (:func:`shape_field`): each liver's surface moved by
+    its field; each case's exertion point and normal carried by it, and the tool's dent (the surface
+    displacements) turned with the local frame the field carries there (:func:`local_turn`), so the tool pushes
+    the changed surface as it pushed the scanned one in its local frame (the force label unchanged)."""
+    from liverforce.learn.camera import SURFACES_KEY
+
+    geo = np.asarray(arrays["geometry_id"]).astype(str)
+    centre = np.asarray(arrays["liver_centroid_mm"], dtype=np.float64)
+    P = np.asarray(arrays["exertion_point_mm"], dtype=np.float64)
+    N = np.asarray(arrays["frame_normal"], dtype=np.float64)
+    T1 = np.asarray(arrays["frame_t1"], dtype=np.float64)
+    T2 = np.asarray(arrays["frame_t2"], dtype=np.float64)
+    fields = {g: shape_field(seed, g, amplitude_mm, wavelength_mm, centre[np.flatnonzero(geo == g)[0]])
+              for g in sorted(set(geo))}
+    out = dict(arrays)
+    out[SURFACES_KEY] = {g: (fields[g](V), T) if g in fields else (V, T) for g, (V, T) in arrays[SURFACES_KEY].items()}
+    P2, N2, A2, B2, disp = P.copy(), N.copy(), T1.copy(), T2.copy(), []
+    for i, g in enumerate(geo):
+        Rw = local_turn(fields[g], P[i], N[i], T1[i])
+        P2[i], N2[i], A2[i], B2[i] = fields[g](P[i]), Rw @ N[i], Rw @ T1[i], Rw @ T2[i]
+        disp.append(np.asarray(arrays["surface_displacement_mm"][i], dtype=np.float64) @ Rw.T)
+    out.update({"exertion_point_mm": P2, "frame_normal": N2, "frame_t1": A2, "frame_t2": B2,
+                "surface_displacement_mm": disp})
+    return out
+
+
+def shape_sensitivity(model_dir, arrays: dict, changes) -> dict | None:
+    """A camera-cloud model's error on the unseen livers when each liver has changed shape since its scan
+    (:func:`changed_shape`; the pre-operative surface the model reads stays the scanned one): predicted as the
+    camera sees it, with the registration refined rigidly from the unloaded view, and refined with the change of
+    shape as well (:mod:`liverforce.learn.registration`, step 4).
+
+    ``changes``: ``[amplitude_mm, wavelength_mm]`` pairs. Returns ``{"rows": [{amplitude_mm, wavelength_mm,
+    as_registered: {...}, rigid: {..., n_refused, anchors}, refined: {...}}]}``, None for a model that is not a
+    camera-cloud model.
+    """
+    from liverforce.learn.model import ForceModel
+
+    m = ForceModel.load(Path(model_dir))
+    if not m.representation.is_camera or not changes:
+        return None
+    cases = _CameraCases(m, arrays)
+    out = []
+    for amp, wave in changes:
+        changed = changed_shape(arrays, cases.seed, float(amp), float(wave))
+        clouds, tips = cases.observe(changed)
+        clouds0, tips0 = cases.observe(unloaded(changed), cases.unloaded_seed)
+        what = f"shape changed {amp} mm / {wave} mm"
+        row = {"amplitude_mm": float(amp), "wavelength_mm": float(wave),
+               "as_registered": cases.scores(list(zip(clouds, tips)), np.arange(len(cases.ids))),
+               "rigid": cases.refined(clouds, tips, clouds0, tips0, what + " (rigid)", shape_degree=0),
+               "refined": cases.refined(clouds, tips, clouds0, tips0, what)}
+        log.info("%s: unseen MAE %.3f N as registered, rigid %s, refined %s", what, row["as_registered"]["mae_vec"],
+                 *(f"{row[k]['mae_vec']:.3f} N" if "mae_vec" in row[k] else "every case refused"
+                   for k in ("rigid", "refined")))
         out.append(row)
     return {"rows": out}
 
 
 def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_path, tracking_uri, out_path, *,
                    experiment_name: str, variant: str, input: str = "any", mesh_paths=None,
-                   sensitivity: dict | None = None, registration_errors=None) -> dict:
+                   sensitivity: dict | None = None, registration_errors=None, shape_changes=None) -> dict:
     """Predict the unseen livers' cases with the chosen scenario-IV model.
 
     ``model_dir`` / ``model_metrics_path`` may be lists (every scenario-IV
@@ -298,7 +430,9 @@ def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_
     re-observes the unseen livers with other camera settings for the chosen
     model if it is a camera-cloud model (:func:`camera_sensitivity`); ``registration_errors``
     (``validate.registration_errors``) measures it with the camera's registration off, as registered and refined
-    from the unloaded view (:func:`registration_sensitivity`).
+    from the unloaded view (:func:`registration_sensitivity`); ``shape_changes`` (``validate.shape_changes``) with
+    each unseen liver's shape changed since its scan, as registered, refined rigidly and refined with the change of
+    shape (:func:`shape_sensitivity`).
     """
     from liverforce.learn.metrics import error_by_force_bin, force_metrics, metrics_by_group
     from liverforce.learn.model import ForceModel
@@ -353,6 +487,7 @@ def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_
     interval = interval_on_unseen(model_dir, arrays)
     sens = camera_sensitivity(model_dir, arrays, sensitivity or {})
     registration = registration_sensitivity(model_dir, arrays, registration_errors or [])
+    shape = shape_sensitivity(model_dir, arrays, shape_changes or [])
     extrapolation = extrapolation_on_unseen(model_dir, arrays, err)
     result = {
         "n_cases": n,
@@ -370,6 +505,7 @@ def validate_model(model_dir, model_metrics_path, manifest_path, train_manifest_
         "interval": interval,
         "camera_sensitivity": sens,
         "registration": registration,
+        "shape": shape,
         "outside_training": extrapolation,
         "predictions": {"case_id": [str(c) for c in arrays["case_id"]], "true_n": true.tolist(), "pred_n": pred.tolist()},
     }

@@ -507,6 +507,7 @@ def camera_section(data: dict, v: dict, main_variant: str | None) -> str:
         out.append(_table(["setting", "value", "unseen MAE (N)", "unseen accuracy %"], srows, cls="camera-sens",
                           row_cls="sens"))
     out.append(registration_table(v.get("registration")))
+    out.append(shape_table(v.get("shape")))
     return "".join(out)
 
 
@@ -535,11 +536,48 @@ def registration_table(reg: dict | None) -> str:
             "undeformed surface observed with the model's camera settings, the robot's tip at contact with its "
             "kinematics noise; the surface fit gives the offset along the normal and the tilt, the instrument's axis "
             "in that view, or else the tip at contact, the shift along the surface; "
-            "<code>liverforce.learn.registration</code>); a refinement beyond 10 mm or 15° at the exertion point is "
-            "refused and counted. Mean ± sd over the livers.</p>"
+            "<code>liverforce.learn.registration</code>; the liver's change of shape since the scan, next table, is "
+            "fitted too); a refinement beyond 10 mm or 15° at the exertion point is refused and counted. Mean ± sd "
+            "over the livers.</p>"
             + _table(["registration off by", "as registered MAE (N)", "as registered %", "refined MAE (N)",
                       "refined %", "refused", "shift along the surface from (cases)"], rows, cls="registration",
                      row_cls="reg"))
+
+
+def shape_table(shape: dict | None) -> str:
+    """The validated camera model on unseen livers whose shape changed since the scan, as seen, refined rigidly
+    and refined with the change of shape (``validation["shape"]``,
+    :func:`liverforce.pipeline.validate.shape_sensitivity`)."""
+    if not shape or not shape.get("rows"):
+        return ""
+
+    def cells(f: dict) -> list:
+        refused = int(f.get("n_refused") or 0)
+        return [_pm(f["mae_vec"], f["mae_sd"]) if "mae_vec" in f else "–",
+                _pm(f["accuracy_pct"], f["accuracy_sd"], 1) if "accuracy_pct" in f else "–",
+                _flagged(str(refused), refused > 0)]
+
+    rows = []
+    for r in shape["rows"]:
+        a = r["as_registered"]
+        rows.append([f"{r['amplitude_mm']:g} mm, {r['wavelength_mm']:g} mm", _pm(a["mae_vec"], a["mae_sd"]),
+                     *cells(r.get("rigid") or {}), *cells(r.get("refined") or {})])
+    return ("<h4 id='shape'>When the liver has changed shape since the scan</h4>"
+            "<p>Between the scan and the operation the liver changes shape (pneumoperitoneum, breathing, "
+            "mobilisation), and the model reads the cloud against the scanned surface. Here each unseen liver's "
+            "surface is moved by a smooth field (three sinusoidal modes of random direction and phase; the amplitude "
+            "of each, the rms displacement its amplitude's / √2, and the wavelength), and the tool pushes the changed "
+            "surface as it pushed the scanned one in the local frame the field carries (the force label unchanged); "
+            "the unloaded view is that surface observed before the push. <i>As seen</i>: predicted as the camera sees "
+            "it. <i>Rigid</i>: the registration refined from the unloaded view by a rigid motion only "
+            "(<code>--shape-degree 0</code>). <i>Refined</i>: refined with the change of shape as well, the default "
+            "(a cubic in the tangent coordinates fitted to what the unloaded view still lies off the surface, its "
+            "tangent plane at the exertion point taken by the rigid motion, the rest taken off every point's "
+            "height). Refused and counted: a change of more than 5 mm over the model's grid, or the unloaded view "
+            "still more than 2 mm (rms) off the surface. Mean ± sd over the livers.</p>"
+            + _table(["shape changed by (amplitude, wavelength)", "as seen MAE (N)", "rigid MAE (N)", "rigid %",
+                      "rigid refused", "refined MAE (N)", "refined %", "refined refused"], rows, cls="shape",
+                     row_cls="shape"))
 
 
 def _tilt_text(tilt) -> str:

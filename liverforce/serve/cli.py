@@ -87,8 +87,12 @@ def register(subparsers, *, fetch: Callable[..., str | Path] | None = None) -> a
                    help="camera-cloud models: the camera's cloud (.ply, .csv, .npy) of the same region before the tool "
                         "pushed, the tool touching at the exertion point (--units and --frame apply). The "
                         "registration is refined first: the rigid correction that puts this cloud on the "
-                        "pre-operative surface moves the cloud and the tool tip (liverforce.learn.registration); "
-                        "the output's 'registration' says by how much")
+                        "pre-operative surface moves the cloud and the tool tip, and the liver's smooth change of "
+                        "shape since the scan is taken off their height (liverforce.learn.registration); the "
+                        "output's 'registration' says by how much")
+    p.add_argument("--shape-degree", type=int, choices=range(5), metavar="N",
+                   help="with --unloaded: the degree of the change of shape fitted (0-4; default 3; 0: the rigid "
+                        "correction only)")
     p.add_argument("--contact-tip", nargs=3, type=float, metavar=("X", "Y", "Z"),
                    help="with --unloaded: the tool tip at contact (robot kinematics; --units and --frame apply): the "
                         "instrument's fit in the unloaded cloud starts from it, and it gives the shift along the "
@@ -180,7 +184,8 @@ def _run(args) -> int:
         fix = None
         if args.unloaded:
             fix = predictor.refine_registration(frame.points(read_points(args.unloaded)), preop,
-                                                None if args.contact_tip is None else frame.points(args.contact_tip))
+                                                None if args.contact_tip is None else frame.points(args.contact_tip),
+                                                shape_degree=args.shape_degree)
         force, extra = predictor.predict_cloud(pts, preop, approximate=args.approximate, tool_tip_mm=tip,
                                                return_info=True, registration=fix)
         info.update(extra)

@@ -1232,7 +1232,10 @@ class CompiledCloud:
     ``registration`` (a :class:`~liverforce.learn.registration.Refinement`,
     :meth:`~liverforce.serve.Predictor.refine_registration`): the camera's registration refined from its unloaded
     view (its matrix in the model's frame), applied to every cloud and tip after the input frame (folded into the
-    kernel's rotation too); the forces go back through the input frame only, as without it.
+    kernel's rotation too); the forces go back through the input frame only, as without it. A refinement with a
+    change of shape (not :attr:`~liverforce.learn.registration.Refinement.rigid`) is not a rigid map: the clouds
+    are then converted to the model's frame and reshaped before the kernel (one pass over the points, ~10 us per
+    1,000), as the reference path does.
     """
 
     def __init__(self, model, preop: Preop, *, limits: Limits | None = None, frame: InputFrame | None = None,
@@ -1333,7 +1336,9 @@ class CompiledCloud:
         self._inst = instrument_params(sp)
         # the kernel reads clouds and tips as given: R (A s x + t - p) = (s R A) (x - A^-1 (p - t) / s), so an input
         # frame costs nothing per point (the checks and messages below convert the few points they read)
-        if self._points_frame is None:
+        # a change of shape: the points are converted and reshaped before the kernel (_grid), which reads them as is
+        self._reshape = None if registration is None or registration.rigid else registration.reshaped
+        if self._points_frame is None or self._reshape is not None:
             self._kp, self._kR = self.p, self.R
         else:
             fr = self._points_frame
@@ -1355,6 +1360,9 @@ class CompiledCloud:
         clouds (``starts`` and ``counts`` None: read in place, no concatenation). Clouds and ``tips`` as given (in
         the input frame, if any)."""
         B = len(P) if starts is None else len(starts)
+        if self._reshape is not None:  # not a rigid map: the points in the model's frame, reshaped, for the kernel
+            tips = np.ascontiguousarray(self._model(tips))
+            P = [np.ascontiguousarray(self._model(c)) for c in P] if starts is None else self._model(P)
         sp = self.spec
         X = np.empty((B, self.n_features))
         n_used = np.zeros(B, dtype=np.int64)
@@ -1453,8 +1461,9 @@ class CompiledCloud:
         return refused, warnings
 
     def _model(self, x: np.ndarray) -> np.ndarray:
-        """Points as given -> the model's frame (RAS mm)."""
-        return x if self._points_frame is None else self._points_frame.points(x)
+        """Points as given -> the model's frame (RAS mm), the registration's change of shape taken off if any."""
+        x = x if self._points_frame is None else self._points_frame.points(x)
+        return x if self._reshape is None else self._reshape(x)
 
     def _flagged(self, counts, tips, n_used, n_bad, n_tool) -> np.ndarray:
         """(B,) True for a cloud that may be refused before its features are read (:meth:`_refusal` decides;

@@ -223,12 +223,16 @@ class Predictor:
             return None
         return interval_doc(self.model, self._checked_arrays(deformed_roi_mm, preop), rotations=preop.rotation[None])
 
-    def refine_registration(self, unloaded_cloud_mm, preop: Preop, contact_tip_mm=None):
+    def refine_registration(self, unloaded_cloud_mm, preop: Preop, contact_tip_mm=None, *,
+                            shape_degree: int | None = None):
         """The registration refinement (:class:`liverforce.learn.registration.Refinement`) that puts the camera's
         unloaded cloud (the same region before the tool pushed, model frame, mm) on ``preop``'s surface; pass it to
         :meth:`predict_cloud` (``registration=``). ``contact_tip_mm``: the tool tip at contact (robot kinematics).
-        Camera-cloud models only; refused (:class:`PredictionInputError`, the reason said) when the cloud does not
-        lie on the surface or the correction is beyond a refinement."""
+        ``shape_degree``: the liver's change of shape since the scan, fitted to that degree and taken off the
+        points' height (0: the rigid motion only; default
+        :data:`~liverforce.learn.registration.SHAPE_DEGREE`). Camera-cloud models only; refused
+        (:class:`PredictionInputError`, the reason said) when the cloud does not lie on the surface, the
+        correction is beyond a refinement or the liver has changed shape there beyond a local correction."""
         from liverforce.learn.cloud_features import ReferenceSurface
         from liverforce.learn.registration import RegistrationError, refine_registration
 
@@ -243,7 +247,8 @@ class Predictor:
         try:
             ref = ReferenceSurface.for_case(preop.roi_undeformed_mm, preop.roi_triangles, preop.exertion_point_mm,
                                             preop.rotation, spec, label="the pre-operative surface")
-            return refine_registration(ref, spec, cloud, tip)
+            return refine_registration(ref, spec, cloud, tip,
+                                       **({} if shape_degree is None else {"shape_degree": shape_degree}))
         except RegistrationError as exc:
             raise PredictionInputError(f"registration refinement: {exc}") from None
 

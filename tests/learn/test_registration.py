@@ -137,3 +137,72 @@ def test_a_cloud_of_another_surface_is_refused(scene):
     other, _ = observe(Vb, Tb, P, [0, 0, 1], cfg, seed=4, camera_position_mm=CAM)
     with pytest.raises(RegistrationError, match="rms"):
         refine_registration(ref, spec(), other, P)
+
+
+def changed(x):
+    """A smooth change of the cap's shape since the scan (heights, mm): raised, tilted and bent (its curvature
+    changed) round the exertion point, about 2 mm at the grid's edge."""
+    x = np.asarray(x, dtype=np.float64)
+    u, v = x[:, 0], x[:, 1]
+    dz = 0.5 + 0.05 * u + 0.004 * u**2 - 0.003 * u * v + 0.0025 * v**2
+    return x + np.column_stack([0 * u, 0 * u, dz])
+
+
+def dent(x, depth=2.5, width=6.0):
+    """The tool's dent at the exertion point (mm, into the surface)."""
+    x = np.asarray(x, dtype=np.float64)
+    return x - np.column_stack([0 * x[:, 0], 0 * x[:, 0], depth * np.exp(-(x[:, 0] ** 2 + x[:, 1] ** 2) / width**2)])
+
+
+@pytest.fixture(scope="module")
+def changed_scene():
+    """The cap changed in shape since the scan; its unloaded cloud (the instrument touching at the exertion point
+    of the changed surface) and the points of the changed surface with the tool's dent, noise-free."""
+    V, T = cap()
+    s = spec()
+    ref = ReferenceSurface.from_patch(V, T, P, np.eye(3), s)
+    V2 = changed(V)
+    p2 = changed(P[None])[0]
+    cfg = ObservationConfig(n_points=(5000, 5000), noise_sd_mm=0.5, roi_radius_mm=32.0, instrument_in_cloud=True)
+    cloud0, _ = observe(V2, T, p2, [0, 0, 1], cfg, seed=5, camera_position_mm=CAM + p2)
+    near = V[np.hypot(V[:, 0], V[:, 1]) < 18.0]
+    return ref, cloud0, p2, near
+
+
+def test_a_change_of_shape_since_the_scan_is_taken_off_and_the_dent_kept(changed_scene):
+    """The loaded surface is the changed surface with the tool's dent: refined with the change of shape, the
+    dent is read against the cap as it would be on the scanned liver; refined rigidly, the bend is left in."""
+    ref, cloud0, p2, near = changed_scene
+    want = height_error(dent(near))  # the dent on the scanned cap: what the model was trained to read
+    loaded = dent(changed(near))  # what the camera sees now (noise-free here)
+    fix = refine_registration(ref, spec(), cloud0, p2)
+    rigid = refine_registration(ref, spec(), cloud0, p2, shape_degree=0)
+    assert not fix.rigid and rigid.rigid and rigid.shape == () and 2.5 < fix.shape_mm < 4.5  # 3.5 mm here
+    err = np.abs(height_error(fix.points(loaded)) - want)
+    err_rigid = np.abs(height_error(rigid.points(loaded)) - want)
+    assert err.max() < 0.15  # fitted to 0.5 mm noise: 0.02 mm here
+    assert err_rigid.max() > 0.6 and np.median(err_rigid) > 10 * np.median(err)  # 1.2 mm; medians 0.75, 0.007 mm
+    assert 0.4 < fix.rms_shape_mm < 0.6 and fix.rms_shape_mm < fix.rms_mm - 0.05  # the noise is what is left
+    # the dent itself is not taken for a change of shape: at the exertion point it is read at its depth
+    top = np.argmin(np.hypot(near[:, 0], near[:, 1]))
+    assert abs(height_error(fix.points(loaded[top:top + 1]))[0] + 2.5) < 0.15
+    # the shape's correction is a function of the point only: the tip at contact lands on the cap
+    assert abs(height_error(fix.points(p2[None]))[0]) < 0.1
+    d = fix.to_dict()
+    assert d["shape_degree"] == 3 and len(d["shape_coefficients"]) == 10 and "change of shape" in fix.describe()
+    np.testing.assert_allclose(rigid.points(loaded), loaded @ rigid.A.T + rigid.t)  # rigid: the matrix alone
+
+
+def test_a_change_of_shape_beyond_a_local_correction_is_refused(scene):
+    V, T, ref, _, _ = scene
+    V2 = V.copy()
+    V2[:, 2] += 0.016 * (V[:, 0] ** 2 - V[:, 1] ** 2)  # a saddle: 6.4 mm up and down 20 mm from the exertion point
+    cfg = ObservationConfig(n_points=(5000, 5000), noise_sd_mm=0.5, roi_radius_mm=32.0)
+    other, _ = observe(V2, T, P, [0, 0, 1], cfg, seed=6, camera_position_mm=CAM)
+    with pytest.raises(RegistrationError, match="changed shape here since the scan"):
+        refine_registration(ref, spec(instrument=False), other, P)
+    with pytest.raises(RegistrationError, match=r"after the best rigid fit \("):  # rigid only: not on the surface
+        refine_registration(ref, spec(instrument=False), other, P, shape_degree=0)
+    for bad in (-1, 5, 2.0, True):
+        with pytest.raises(RegistrationError, match="shape_degree"):
+            refine_registration(ref, spec(), other, P, shape_degree=bad)

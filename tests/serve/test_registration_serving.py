@@ -186,3 +186,59 @@ def test_unloaded_columns_on_arrays_are_checked_row_by_row(served, trained):  # 
         pred.predict_arrays(bad)
     with pytest.raises(PredictionInputError, match="refines a camera-cloud model"):
         Predictor.from_dir(trained("disp")).refine_arrays({**cases, "unloaded_cloud_mm": [None, None]})
+
+
+def _bent(a: dict, i: int, amplitude_mm: float = 3.0) -> dict:
+    """The arrays with case ``i``'s liver bent along its normal round the exertion point since the scan (a smooth
+    height change of the tangent coordinates, up to ``amplitude_mm``), the tool's dent turned with the surface
+    there (as the validation's ``changed_shape`` carries it)."""
+    from liverforce.pipeline.validate import local_turn
+
+    g = a["geometry_id"][i]
+    V, T = a["surface_meshes"][g]
+    R = np.stack([a["frame_t1"][i], a["frame_t2"][i], a["frame_normal"][i]])
+    p = np.asarray(a["exertion_point_mm"][i], dtype=np.float64)
+
+    def bend(x):
+        L = (np.atleast_2d(x) - p) @ R.T
+        return np.atleast_2d(x) + amplitude_mm * (np.sin(L[:, 0] / 24.0 + 0.3) * np.cos(L[:, 1] / 30.0))[:, None] * R[2]
+
+    P = np.array(a["exertion_point_mm"], dtype=np.float64)
+    P[i] = bend(p)[0]
+    disp = list(a["surface_displacement_mm"])
+    disp[i] = np.asarray(disp[i], dtype=np.float64) @ local_turn(lambda x: bend(x)[0], p, R[2], R[0]).T
+    return {**a, "surface_meshes": {**a["surface_meshes"], g: (bend(V), T)}, "exertion_point_mm": P,
+            "surface_displacement_mm": disp}
+
+
+def test_a_liver_changed_in_shape_since_the_scan_is_read_against_its_unloaded_view(served):  # noqa: F811
+    """Each case's liver bent along its normal round the exertion point since the scan (3 mm), the tool's
+    dent on top: refined with the change of shape the force is the scanned liver's again, refined rigidly the
+    bend is read as a dent. The compiled path reshapes the clouds as the reference path does (RAS mm, LPS m)."""
+    path, model, a = served
+    pred = Predictor.from_dir(path)
+    rigid, shaped, force = [], [], []
+    for i in range(6):
+        ctx, cloud, tip = _case(a, i)
+        want = pred.predict_cloud(cloud, ctx, tool_tip_mm=tip)
+        bent = _bent(a, i)
+        _, cloud2, tip2 = _case(bent, i)
+        un, contact = _unloaded(bent, i), bent["exertion_point_mm"][i]
+        fix = pred.refine_registration(un, ctx, contact_tip_mm=contact)
+        fix0 = pred.refine_registration(un, ctx, contact_tip_mm=contact, shape_degree=0)
+        assert not fix.rigid and fix0.rigid and fix.shape_mm > 0.2
+        got = pred.predict_cloud(cloud2, ctx, tool_tip_mm=tip2, registration=fix)
+        shaped.append(np.linalg.norm(got - want))
+        rigid.append(np.linalg.norm(pred.predict_cloud(cloud2, ctx, tool_tip_mm=tip2, registration=fix0) - want))
+        force.append(np.linalg.norm(want))
+        if i == 0:
+            fast = pred.compile_cloud(ctx, registration=fix)
+            np.testing.assert_allclose(fast.predict(cloud2, tip2)[0], got, atol=1e-6)
+            batch = fast.predict_batch(np.stack([cloud2, cloud2]), [tip2, tip2])
+            np.testing.assert_allclose(batch.force, [got, got], atol=1e-6)
+            lps = np.diag([-1.0, -1.0, 1.0])
+            fast = pred.compile_cloud(ctx, frame="LPS", units="m", registration=fix)
+            np.testing.assert_allclose(fast.predict(cloud2 @ lps / 1000.0, lps @ tip2 / 1000.0)[0], lps @ got,
+                                       atol=1e-6)
+    # 0.02-0.14 N against 0.07-0.24 N rigidly, on forces of 2-4.4 N
+    assert np.median(shaped) < 0.5 * np.median(rigid) and max(shaped) < 0.04 * max(force)

@@ -19,6 +19,7 @@ rule validate:
         input=config_slice("validate", "input"),
         sensitivity=config_slice("validate", "camera_sensitivity"),
         registration_errors=config_slice("validate", "registration_errors"),
+        shape_changes=config_slice("validate", "shape_changes"),
         experiment_name=PLAN.experiment_name("validation"),
     log:
         P.log("validate", "validate"),
