@@ -10,6 +10,11 @@ over the cases and ``--repeats`` runs (the pre-operative raster is built beforeh
 well it undid the motion at the exertion point (the median error along the normal and along the surface). The
 grid settings are the shipped camera variant's (``cloud_sv``).
 
+Each is run twice in the same loop: with the liver's change of shape since the scan fitted (the default,
+``SHAPE_DEGREE``) and rigid only (``shape_degree=0``), their ratio printed; and the time to apply each to a
+cloud of the same size (``Refinement.points``: the rigid map, or the rigid map and the reshaping, which a
+compiled path with such a refinement runs once per cloud).
+
 Usage: ``PYTHONPATH=. OMP_NUM_THREADS=1 python benchmarks/bench_registration.py [--points 1000 5000 20000]
 [--cases 40] [--repeats 5] [--shift 2] [--turn 2]``
 """
@@ -37,7 +42,7 @@ def main() -> None:
     from liverforce.learn.camera import grid_spec
     from liverforce.learn.cloud_features import ReferenceSurface
     from liverforce.learn.observation import ObservationConfig, observe
-    from liverforce.learn.registration import refine_registration
+    from liverforce.learn.registration import SHAPE_DEGREE, refine_registration
     from liverforce.learn.synthetic import synthetic_surface_arrays
     from liverforce.pipeline.plan import Plan
     from liverforce.serve.preop import Preop
@@ -64,22 +69,34 @@ def main() -> None:
         cfg = ObservationConfig(n_points=(k, k), noise_sd_mm=0.5, instrument_in_cloud=True,
                                 roi_radius_mm=math.sqrt(2.0) * half + 2.0 * spec.spacing_mm,
                                 tool_radius_mm=float(obs.get("tool_radius_mm") or 2.5))
-        times, err_n, err_t, sizes = [], [], [], []
+        degrees = (SHAPE_DEGREE, 0)
+        times = {d: [] for d in degrees}
+        apply = {d: [] for d in degrees}
+        err_n, err_t, sizes = [], [], []
         for i, ctx, ref, Q, b in cases:
             V, T = a["surface_meshes"][a["geometry_id"][i]]
             cloud, _ = observe(V, T, ctx.exertion_point_mm, ctx.frame[2], cfg, seed=i)
             moved, tip = cloud @ Q.T + b, Q @ ctx.exertion_point_mm + b
             sizes.append(len(cloud))
             for _ in range(args.repeats):
-                t0 = time.perf_counter()
-                fix = refine_registration(ref, spec, moved, tip)
-                times.append(time.perf_counter() - t0)
+                for d in degrees:  # interleaved: the host's drift falls on both
+                    t0 = time.perf_counter()
+                    fix = refine_registration(ref, spec, moved, tip, shape_degree=d)
+                    times[d].append(time.perf_counter() - t0)
+                    t0 = time.perf_counter()
+                    fix.points(moved)
+                    apply[d].append(time.perf_counter() - t0)
+            fix = refine_registration(ref, spec, moved, tip)
             e = ctx.rotation @ (fix.points(tip) - ctx.exertion_point_mm)
             err_n.append(abs(e[2]))
             err_t.append(math.hypot(e[0], e[1]))
-        t = np.asarray(times) * 1e3
-        print(f"{k:6d} liver points ({int(np.median(sizes))} with the instrument's): median {np.median(t):.1f} ms, "
-              f"p90 {np.quantile(t, 0.9):.1f} ms; left at the exertion point: {np.median(err_n):.3f} mm along the "
+        t = {d: np.asarray(v) * 1e3 for d, v in times.items()}
+        u = {d: np.median(v) * 1e6 for d, v in apply.items()}
+        deg = SHAPE_DEGREE
+        print(f"{k:6d} liver points ({int(np.median(sizes))} with the instrument's): median {np.median(t[deg]):.1f} "
+              f"ms, p90 {np.quantile(t[deg], 0.9):.1f} ms (rigid only {np.median(t[0]):.1f} ms, "
+              f"{np.median(t[deg]) / np.median(t[0]):.2f}x); applied to the cloud {u[deg]:.0f} us "
+              f"(rigid {u[0]:.0f} us); left at the exertion point: {np.median(err_n):.3f} mm along the "
               f"normal, {np.median(err_t):.3f} mm along the surface (medians; moved {args.shift:g} mm / "
               f"{args.turn:g} deg)", flush=True)
 

@@ -64,6 +64,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from scipy.spatial.transform import Rotation
 
 #: radius (mm) of the disc round the exertion point left out of the surface fit: the tool and the instrument's
@@ -167,10 +168,9 @@ class Refinement:
             return x
         one = x.ndim == 1
         x = np.atleast_2d(x)
-        R, o = self.shape_R, self.shape_origin
-        L = (x - o) @ R.T
-        dz = _shape_basis(L[:, 0], L[:, 1], self.shape_degree, self.shape_extent_mm) @ np.asarray(self.shape)
-        out = x - dz[:, None] * R[2][None, :]
+        out = np.empty_like(x)
+        _reshape(np.ascontiguousarray(x), self.shape_origin, self.shape_R, np.asarray(self.shape, dtype=np.float64),
+                 self.shape_degree, self.shape_extent_mm, out)
         return out[0] if one else out
 
     def to_dict(self) -> dict:
@@ -196,12 +196,49 @@ class Refinement:
                 f"{shape}")
 
 
-def _shape_basis(u: np.ndarray, v: np.ndarray, degree: int, extent: float) -> np.ndarray:
-    """Columns ``(u / s)^i (v / s)^j``, ``i + j <= degree`` (``s`` = ``_LEVER_MM``), at ``(u, v)`` clamped to
+def _powers(u, v, degree: int, extent: float) -> tuple[list, list]:
+    """``[(u / s)^i]`` and ``[(v / s)^i]``, ``i <= degree`` (``s`` = ``_LEVER_MM``), ``(u, v)`` clamped to
     ``[-extent, extent]``."""
-    u = np.clip(np.asarray(u, dtype=np.float64), -extent, extent) / _LEVER_MM
-    v = np.clip(np.asarray(v, dtype=np.float64), -extent, extent) / _LEVER_MM
-    return np.column_stack([u ** (d - j) * v ** j for d in range(degree + 1) for j in range(d + 1)])
+    u = np.clip(np.asarray(u, dtype=np.float64), -extent, extent) * (1.0 / _LEVER_MM)
+    v = np.clip(np.asarray(v, dtype=np.float64), -extent, extent) * (1.0 / _LEVER_MM)
+    pu, pv = [np.ones_like(u), u], [np.ones_like(v), v]
+    for _ in range(2, degree + 1):
+        pu.append(pu[-1] * u)
+        pv.append(pv[-1] * v)
+    return pu, pv
+
+
+def _shape_basis(u, v, degree: int, extent: float) -> np.ndarray:
+    """Columns ``(u / s)^(d - j) (v / s)^j`` for ``d <= degree``, ``j <= d`` (:func:`_powers`)."""
+    pu, pv = _powers(u, v, degree, extent)
+    return np.column_stack([pu[d - j] * pv[j] for d in range(degree + 1) for j in range(d + 1)])
+
+
+@njit(cache=True)
+def _reshape(X, o, R, coef, degree, extent, out):
+    """``out[i] = X[i] - p(u_i, v_i) n`` (one pass; :func:`_shape_basis`'s terms and clamping), ``(u, v)`` the
+    tangent coordinates of ``X[i]`` in the frame ``o``, ``R`` (rows ``t1, t2, n``)."""
+    s = 1.0 / _LEVER_MM
+    pu = np.empty(degree + 1)
+    pv = np.empty(degree + 1)
+    for i in range(X.shape[0]):
+        d0, d1, d2 = X[i, 0] - o[0], X[i, 1] - o[1], X[i, 2] - o[2]
+        u = min(max(R[0, 0] * d0 + R[0, 1] * d1 + R[0, 2] * d2, -extent), extent) * s
+        v = min(max(R[1, 0] * d0 + R[1, 1] * d1 + R[1, 2] * d2, -extent), extent) * s
+        pu[0] = 1.0
+        pv[0] = 1.0
+        for k in range(1, degree + 1):
+            pu[k] = pu[k - 1] * u
+            pv[k] = pv[k - 1] * v
+        dz = 0.0
+        k = 0
+        for d in range(degree + 1):
+            for j in range(d + 1):
+                dz += coef[k] * pu[d - j] * pv[j]
+                k += 1
+        out[i, 0] = X[i, 0] - dz * R[2, 0]
+        out[i, 1] = X[i, 1] - dz * R[2, 1]
+        out[i, 2] = X[i, 2] - dz * R[2, 2]
 
 
 def _largest(Y: np.ndarray, dz: np.ndarray, half_width: float) -> float:

@@ -191,6 +191,14 @@ def test_a_change_of_shape_since_the_scan_is_taken_off_and_the_dent_kept(changed
     d = fix.to_dict()
     assert d["shape_degree"] == 3 and len(d["shape_coefficients"]) == 10 and "change of shape" in fix.describe()
     np.testing.assert_allclose(rigid.points(loaded), loaded @ rigid.A.T + rigid.t)  # rigid: the matrix alone
+    # the compiled reshaping is the fitted polynomial: the height taken off along the reference's normal
+    from liverforce.learn.registration import _shape_basis
+
+    y = loaded @ fix.A.T + fix.t
+    L = (y - fix.shape_origin) @ fix.shape_R.T
+    dz = _shape_basis(L[:, 0], L[:, 1], 3, fix.shape_extent_mm) @ np.asarray(fix.shape)
+    np.testing.assert_allclose(fix.points(loaded), y - dz[:, None] * fix.shape_R[2], atol=1e-12)
+    np.testing.assert_allclose(fix.points(loaded[0]), fix.points(loaded[:1])[0], atol=1e-12)  # one point, (3,)
 
 
 def test_a_change_of_shape_beyond_a_local_correction_is_refused(scene):
