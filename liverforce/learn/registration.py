@@ -54,8 +54,9 @@ Rotation about the normal is left as it is: a smooth patch and a round tool do
 not show it; a few degrees turn the tangential force by as much.
 
 Everything here is in the model's frame (mm); :class:`Refinement` holds the
-4x4 that maps the camera's points (already in that frame through the nominal
-registration) to the corrected ones.
+4x4 that moves the camera's points (already in that frame through the nominal
+registration) rigidly, and the polynomial whose height is then taken off them
+(:meth:`Refinement.points` applies both).
 """
 
 from __future__ import annotations
@@ -175,13 +176,18 @@ class Refinement:
 
     def to_dict(self) -> dict:
         return {"matrix": np.round(self.matrix, 12).tolist(),
-                "matrix_frame": "the model's frame (RAS mm): corrected point = matrix @ [x, 1], x the camera's point "
-                                "after the input frame's conversion",
+                "matrix_frame": "the model's frame (RAS mm): y = matrix @ [x, 1], x the camera's point after the input "
+                                "frame's conversion; corrected point = y - p(u, v) n, (u, v, .) = shape_R (y - "
+                                "shape_origin) with u, v clamped to +-shape_extent_mm, n = shape_R's last row, p the "
+                                "polynomial sum c_k (u / 20)^(d - j) (v / 20)^j over d <= shape_degree, j <= d in that "
+                                "order (none: y)",
                 "normal_offset_mm": self.normal_offset_mm,
                 "tangential_mm": self.tangential_mm, "tilt_deg": self.tilt_deg, "anchor": self.anchor,
                 "n_points": self.n_points, "rms_before_mm": self.rms_before_mm, "rms_mm": self.rms_mm,
                 "shape_degree": self.shape_degree, "shape_coefficients": [float(c) for c in self.shape],
-                "shape_mm": self.shape_mm, "rms_shape_mm": self.rms_shape_mm}
+                "shape_origin": None if self.rigid else np.asarray(self.shape_origin).tolist(),
+                "shape_R": None if self.rigid else np.asarray(self.shape_R).tolist(),
+                "shape_extent_mm": self.shape_extent_mm, "shape_mm": self.shape_mm, "rms_shape_mm": self.rms_shape_mm}
 
     def describe(self) -> str:
         along = {"instrument": "along the surface from the instrument's axis",
@@ -241,10 +247,23 @@ def _reshape(X, o, R, coef, degree, extent, out):
         out[i, 2] = X[i, 2] - dz * R[2, 2]
 
 
-def _largest(Y: np.ndarray, dz: np.ndarray, half_width: float) -> float:
-    """The largest height ``dz`` taken off the points ``Y`` over the model's grid (``|u|, |v| <= half_width``)."""
-    on = (np.abs(Y[:, 0]) <= half_width) & (np.abs(Y[:, 1]) <= half_width)
-    return float(np.max(np.abs(dz[on]))) if on.any() else 0.0
+def _largest(reference, spec, coef, degree: int, extent: float, Y: np.ndarray) -> float:
+    """The largest height the polynomial takes off over the model's grid: at its nodes (``grid_size`` over
+    ``+-half_width_mm``) over the pre-operative patch that the fitted points ``Y`` (local) reach (a point within
+    half a spacing) or that lie in the tool's disc the fit bridges; inf where there is none."""
+    g, hw = int(spec.grid_size), float(spec.half_width_mm)
+    step = 2.0 * hw / (g - 1)
+    axis = np.linspace(-hw, hw, g)
+    u, v = (m.ravel() for m in np.meshgrid(axis, axis))
+    j = np.rint((Y[:, 0] + hw) / step).astype(np.int64)
+    i = np.rint((Y[:, 1] + hw) / step).astype(np.int64)
+    inside = (j >= 0) & (j < g) & (i >= 0) & (i < g)
+    seen = np.zeros(g * g, dtype=bool)
+    seen[i[inside] * g + j[inside]] = True
+    on = reference.is_covered(u, v) & (seen | (u**2 + v**2 <= TOOL_DISC_MM**2))
+    if not on.any():
+        return math.inf
+    return float(np.max(np.abs(_shape_basis(u[on], v[on], degree, extent) @ np.asarray(coef))))
 
 
 def _fit_shape(reference, Y: np.ndarray, degree: int, extent: float):
@@ -380,19 +399,20 @@ def refine_registration(reference, spec, unloaded_cloud_mm, contact_tip_mm=None,
         tl = tl - np.array([q[0], q[1], 0.0])  # the tool meets the surface at the exertion point
     Y = X @ Rl.T + tl
     ok = reference.is_covered(Y[:, 0], Y[:, 1])
-    rms = _trimmed_rms(Y[ok][:, 2] - reference.height(Y[ok][:, 0], Y[ok][:, 1]))
+    rigid_fit = (Rl, tl, Y, ok)  # restored if the shape's fit gives up after moving it
     shape: dict = {}
     extent = float(spec.half_width_mm) + TOOL_DISC_MM  # the cloud's points are read this far (the grid's reach)
     for last in [False] * SHAPE_ROUNDS + [True] if shape_degree > 0 else []:
         fit = ok & (Y[:, 0] ** 2 + Y[:, 1] ** 2 > TOOL_DISC_MM**2)
-        if fit.sum() < SHAPE_MIN_POINTS:
+        if fit.sum() < SHAPE_MIN_POINTS:  # too few for it: the rigid fit alone, as it was
+            Rl, tl, Y, ok = rigid_fit
             break
-        coef, kept, res, B = _fit_shape(reference, Y[fit], int(shape_degree), extent)
+        coef, _, res, _ = _fit_shape(reference, Y[fit], int(shape_degree), extent)
         if last:
             shape = dict(shape_degree=int(shape_degree), shape=tuple(float(x) for x in coef),
                          shape_origin=np.asarray(reference.origin, dtype=np.float64).copy(),
                          shape_R=np.asarray(reference.R, dtype=np.float64).copy(), shape_extent_mm=extent,
-                         shape_mm=_largest(Y[fit][kept], B[kept] @ coef, float(spec.half_width_mm)),
+                         shape_mm=_largest(reference, spec, coef, int(shape_degree), extent, Y[fit]),
                          rms_shape_mm=float(np.sqrt(np.mean(res**2))))
             break
         # the changed surface's tangent plane at the exertion point (the polynomial's offset and slopes there) is
@@ -402,6 +422,8 @@ def refine_registration(reference, spec, unloaded_cloud_mm, contact_tip_mm=None,
         Rl, tl = dR @ Rl, dR @ tl - np.array([0.0, 0.0, a0])
         Y = X @ Rl.T + tl
         ok = reference.is_covered(Y[:, 0], Y[:, 1])
+    # the unloaded points' distance to the surface after the final rigid motion (before the shape is taken off)
+    rms = _trimmed_rms(Y[ok][:, 2] - reference.height(Y[ok][:, 0], Y[ok][:, 1]))
     M, c = _in_model_frame(reference, Rl, tl)
     shift = tl  # the exertion point (the local origin) moves by tl: the correction there, local frame
     turn = math.degrees(math.acos(min(1.0, max(-1.0, (float(np.trace(Rl)) - 1.0) / 2.0))))

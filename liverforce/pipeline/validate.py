@@ -192,9 +192,9 @@ def camera_sensitivity(model_dir, arrays: dict, grid: dict) -> dict | None:
 
 
 class _CameraCases:
-    """What the registration and shape rows share: the validated camera model, its evaluation's clouds and tips of
-    the unseen cases, their unloaded views (its own observation seed), the pre-operative references and the scores
-    per liver."""
+    """What the registration and shape rows share: the validated camera model, the unseen cases' observation
+    (:meth:`observe`: the evaluation's seed; their unloaded views with their own), the pre-operative references
+    and the scores per liver."""
 
     def __init__(self, m, arrays: dict):
         from liverforce.learn.camera import grid_spec
@@ -206,8 +206,6 @@ class _CameraCases:
         self.m, self.arrays, self.rep = m, arrays, rep
         self.seed = int(m.meta.get("eval_observation_seed", 0))
         self.unloaded_seed = derive(self.seed, "validate.registration.unloaded")
-        self.clouds, self.tips = self.observe(arrays)
-        self.clouds0, self.tips0 = self.observe(unloaded(arrays), self.unloaded_seed)
         self.spec = grid_spec(rep.grid_size, rep.half_width_mm, rep.camera)
         self.P = np.asarray(arrays["exertion_point_mm"], dtype=np.float64)
         self.centre = np.asarray(arrays["liver_centroid_mm"], dtype=np.float64)
@@ -285,6 +283,7 @@ def registration_sensitivity(model_dir, arrays: dict, errors) -> dict | None:
     if not m.representation.is_camera or not errors:
         return None
     cases = _CameraCases(m, arrays)
+    loaded, still = cases.observe(arrays), cases.observe(unloaded(arrays), cases.unloaded_seed)
     draws = []
     for cid in cases.ids:
         rng = np.random.default_rng(derive(cases.seed, "validate.registration", cid))
@@ -300,10 +299,10 @@ def registration_sensitivity(model_dir, arrays: dict, errors) -> dict | None:
         def move(items):
             return [np.asarray(x, dtype=np.float64) @ Q.T + b for x, (Q, b) in zip(items, moves)]
 
-        clouds, tips = move(cases.clouds), move(cases.tips)
+        clouds, tips = move(loaded[0]), move(loaded[1])
         row = {"shift_mm": float(shift), "turn_deg": float(turn),
                "as_registered": cases.scores(list(zip(clouds, tips)), np.arange(len(cases.ids))),
-               "refined": cases.refined(clouds, tips, move(cases.clouds0), move(cases.tips0),
+               "refined": cases.refined(clouds, tips, move(still[0]), move(still[1]),
                                         f"registration {shift} mm / {turn} deg")}
         log.info("registration off by %s mm and %s deg: unseen MAE %.3f N as registered, %s refined", shift, turn,
                  row["as_registered"]["mae_vec"],
@@ -356,6 +355,8 @@ def changed_shape(arrays: dict, seed: int, amplitude_mm: float, wavelength_mm: f
     the changed surface as it pushed the scanned one in its local frame (the force label unchanged)."""
     from liverforce.learn.camera import SURFACES_KEY
 
+    if float(amplitude_mm) == 0.0:  # no change: the cases exactly as they are (no rounding of a unit turn)
+        return dict(arrays)
     geo = np.asarray(arrays["geometry_id"]).astype(str)
     centre = np.asarray(arrays["liver_centroid_mm"], dtype=np.float64)
     P = np.asarray(arrays["exertion_point_mm"], dtype=np.float64)

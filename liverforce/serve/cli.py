@@ -177,6 +177,8 @@ def _run(args) -> int:
     info: dict = {"mode": args.mode}
     if (args.unloaded or args.contact_tip) and args.mode != "cloud":
         return _error("--unloaded and --contact-tip refine a camera cloud's registration: --mode cloud only")
+    if args.shape_degree is not None and not args.unloaded:
+        return _error("--shape-degree goes with --unloaded (the change of shape is fitted to that cloud)")
     if args.contact_tip and not args.unloaded:
         return _error("--contact-tip goes with --unloaded (the camera's cloud before the tool pushed)")
     if args.mode == "cloud":

@@ -1619,7 +1619,8 @@ class CompiledCloud:
             n_bad = np.zeros(B, dtype=np.int64)
             n_tool = np.zeros((B, 3))  # as _grid's
             direct = clouds.dtype in (np.float32, np.float64) and clouds.flags.c_contiguous
-            step = max(B, 1) if direct else _CHUNK  # a conversion is done a chunk at a time (bounds the copy)
+            # a conversion (or a change of shape's reshaping) is done a chunk at a time (bounds the copy)
+            step = max(B, 1) if direct and self._reshape is None else _CHUNK
             for a in range(0, B, step):
                 e = min(a + step, B)
                 P = clouds[a:e] if direct else np.ascontiguousarray(clouds[a:e], dtype=np.float64)

@@ -280,7 +280,8 @@ def test_the_shape_rows_score_the_model_on_livers_changed_since_the_scan(trained
     reg = registration_sensitivity(path, a, [[0.0, 0.0]])["rows"][0]
     assert base["as_registered"] == reg["as_registered"] and base["refined"]["n_refused"] == 0
     assert base["refined"] == reg["refined"]  # the same refinement as the registration rows'
-    assert base["rigid"]["n_refused"] == 0 and base["rigid"]["mae_vec"] != base["refined"]["mae_vec"]
+    assert base["rigid"]["n_refused"] == 0  # with no change, the change of shape fitted to noise costs little:
+    assert abs(base["refined"]["mae_vec"] - base["rigid"]["mae_vec"]) < 0.15 * base["rigid"]["mae_vec"]  # 0.189, 0.175
     assert (base["amplitude_mm"], bent["wavelength_mm"]) == (0.0, 150.0)
     assert bent["as_registered"]["mae_vec"] > 2 * base["as_registered"]["mae_vec"]  # the change was there
     for k in ("rigid", "refined"):

@@ -201,6 +201,11 @@ def test_a_change_of_shape_since_the_scan_is_taken_off_and_the_dent_kept(changed
     np.testing.assert_allclose(fix.points(loaded[0]), fix.points(loaded[:1])[0], atol=1e-12)  # one point, (3,)
 
 
+def cloud0_of_cap(V, T):
+    cfg = ObservationConfig(n_points=(3000, 3000), noise_sd_mm=0.5, roi_radius_mm=32.0)
+    return observe(V, T, P, [0, 0, 1], cfg, seed=8, camera_position_mm=CAM)[0]
+
+
 def test_a_change_of_shape_beyond_a_local_correction_is_refused(scene):
     V, T, ref, _, _ = scene
     V2 = V.copy()
@@ -211,6 +216,20 @@ def test_a_change_of_shape_beyond_a_local_correction_is_refused(scene):
         refine_registration(ref, spec(instrument=False), other, P)
     with pytest.raises(RegistrationError, match=r"after the best rigid fit \("):  # rigid only: not on the surface
         refine_registration(ref, spec(instrument=False), other, P, shape_degree=0)
+    # too few points for the change of shape: the rigid fit as it was, and it says so
+    import liverforce.learn.registration as rg
+
+    few = refine_registration(ref, spec(instrument=False), cloud0_of_cap(V, T), P)
+    assert not few.rigid
+    keep = rg.SHAPE_MIN_POINTS
+    try:
+        rg.SHAPE_MIN_POINTS = 10**6
+        few = refine_registration(ref, spec(instrument=False), cloud0_of_cap(V, T), P)
+    finally:
+        rg.SHAPE_MIN_POINTS = keep
+    rigid = refine_registration(ref, spec(instrument=False), cloud0_of_cap(V, T), P, shape_degree=0)
+    assert few.rigid and "no change of shape fitted" in few.describe()
+    np.testing.assert_array_equal(few.matrix, rigid.matrix)
     for bad in (-1, 5, 2.0, True):
         with pytest.raises(RegistrationError, match="shape_degree"):
             refine_registration(ref, spec(), other, P, shape_degree=bad)

@@ -89,6 +89,14 @@ def test_cli_refines_the_registration_from_the_unloaded_cloud(served, tmp_path, 
     assert reg["anchor"] == "contact tip" and reg["rms_mm"] < reg["rms_before_mm"]
     np.testing.assert_allclose(np.asarray(reg["matrix"]), fix.matrix, atol=1e-9)
     assert np.linalg.norm(out["force_n"] - pred.predict_cloud(cloud, ctx, tool_tip_mm=tip)) < 0.1
+    assert reg["shape_degree"] == 3 and len(reg["shape_coefficients"]) == 10 and len(reg["shape_R"]) == 3
+    # rigid only on request; --shape-degree without --unloaded is refused
+    args = parser.parse_args(base + ["--unloaded", str(tmp_path / "before.npy"), "--shape-degree", "0"] + contact)
+    assert args.func(args) == 0
+    reg0 = json.loads(capsys.readouterr().out)["registration"]
+    assert reg0["shape_degree"] == 0 and reg0["shape_coefficients"] == [] and reg0["shape_R"] is None
+    args = parser.parse_args(base + ["--shape-degree", "2"])
+    assert args.func(args) == 2 and "--shape-degree goes with --unloaded" in capsys.readouterr().err
     # --contact-tip alone, and an unloaded cloud of another place, are refused with the reason
     assert parser.parse_args(base + contact).func(parser.parse_args(base + contact)) == 2
     assert "--unloaded" in capsys.readouterr().err
@@ -205,10 +213,14 @@ def _bent(a: dict, i: int, amplitude_mm: float = 3.0) -> dict:
 
     P = np.array(a["exertion_point_mm"], dtype=np.float64)
     P[i] = bend(p)[0]
+    Rw = local_turn(lambda x: bend(x)[0], p, R[2], R[0])
     disp = list(a["surface_displacement_mm"])
-    disp[i] = np.asarray(disp[i], dtype=np.float64) @ local_turn(lambda x: bend(x)[0], p, R[2], R[0]).T
+    disp[i] = np.asarray(disp[i], dtype=np.float64) @ Rw.T
+    frame = {k: np.array(a[k], dtype=np.float64) for k in ("frame_normal", "frame_t1", "frame_t2")}
+    for k in frame:
+        frame[k][i] = Rw @ frame[k][i]
     return {**a, "surface_meshes": {**a["surface_meshes"], g: (bend(V), T)}, "exertion_point_mm": P,
-            "surface_displacement_mm": disp}
+            "surface_displacement_mm": disp, **frame}
 
 
 def test_a_liver_changed_in_shape_since_the_scan_is_read_against_its_unloaded_view(served):  # noqa: F811
@@ -236,6 +248,20 @@ def test_a_liver_changed_in_shape_since_the_scan_is_read_against_its_unloaded_vi
             np.testing.assert_allclose(fast.predict(cloud2, tip2)[0], got, atol=1e-6)
             batch = fast.predict_batch(np.stack([cloud2, cloud2]), [tip2, tip2])
             np.testing.assert_allclose(batch.force, [got, got], atol=1e-6)
+            # float32 padded (a cloud with a NaN point and padding), a list; a refused cloud keeps its message
+            with_nan = np.vstack([cloud2, [[np.nan, 0.0, 0.0]]])
+            pad = np.zeros((3, len(with_nan) + 5, 3), np.float32)
+            pad[0, :len(cloud2)], pad[1, :len(with_nan)], pad[2, :3] = cloud2, with_nan, cloud2[:3]
+            b32 = fast.predict_batch(pad, [tip2] * 3, counts=[len(cloud2), len(with_nan), 3])
+            want32 = pred.predict_cloud(cloud2.astype(np.float32).astype(np.float64), ctx, tool_tip_mm=tip2,
+                                        registration=fix)
+            np.testing.assert_allclose(b32.force[0], want32, atol=1e-6)
+            assert "NaN" in b32.refused[1] and "at least" in b32.refused[2] and b32.refused[0] is None
+            blist = fast.predict_batch([cloud2, cloud2[:3]], [tip2, tip2])
+            np.testing.assert_allclose(blist.force[0], got, atol=1e-6)
+            with pytest.raises(PredictionInputError) as why:
+                pred.predict_cloud(cloud2[:3], ctx, tool_tip_mm=tip2, registration=fix)
+            assert blist.refused[1] == b32.refused[2] == str(why.value)
             lps = np.diag([-1.0, -1.0, 1.0])
             fast = pred.compile_cloud(ctx, frame="LPS", units="m", registration=fix)
             np.testing.assert_allclose(fast.predict(cloud2 @ lps / 1000.0, lps @ tip2 / 1000.0)[0], lps @ got,
