@@ -537,8 +537,8 @@ def registration_table(reg: dict | None) -> str:
             "kinematics noise; the surface fit gives the offset along the normal and the tilt, the instrument's axis "
             "in that view, or else the tip at contact, the shift along the surface; "
             "<code>liverforce.learn.registration</code>; the liver's change of shape since the scan, next table, is "
-            "fitted too); a refinement beyond 10 mm or 15° at the exertion point is refused and counted. Mean ± sd "
-            "over the livers.</p>"
+            "fitted too); a refinement beyond 10 mm or 15° at the exertion point, or a change of shape beyond 5 mm, "
+            "is refused and counted. Mean ± sd over the livers.</p>"
             + _table(["registration off by", "as registered MAE (N)", "as registered %", "refined MAE (N)",
                       "refined %", "refused", "shift along the surface from (cases)"], rows, cls="registration",
                      row_cls="reg"))
@@ -565,9 +565,9 @@ def shape_table(shape: dict | None) -> str:
     return ("<h4 id='shape'>When the liver has changed shape since the scan</h4>"
             "<p>Between the scan and the operation the liver changes shape (pneumoperitoneum, breathing, "
             "mobilisation), and the model reads the cloud against the scanned surface. Here each unseen liver's "
-            "surface is moved by a smooth field (three sinusoidal modes of random direction and phase, each of the "
-            "amplitude given / √3, so the rms displacement is a single sinusoid's of that amplitude, its / √2; "
-            "and the wavelength), and the tool pushes the changed "
+            "surface is moved by a smooth field of the amplitude and wavelength given (three sinusoidal modes of "
+            "random direction and phase, each of the amplitude / √3: the field's rms displacement is the amplitude "
+            "/ √2, as one sinusoid's), and the tool pushes the changed "
             "surface as it pushed the scanned one in the local frame the field carries (the force label unchanged); "
             "the unloaded view is that surface observed before the push. <i>As seen</i>: predicted as the camera sees "
             "it. <i>Rigid</i>: the registration refined from the unloaded view by a rigid motion only "
