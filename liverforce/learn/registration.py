@@ -104,7 +104,8 @@ SHAPE_DEGREE = 3
 SHAPE_ROUNDS = 2
 #: fewest kept unloaded points for the shape's fit (fewer: rigid only, and the refinement says so)
 SHAPE_MIN_POINTS = 100
-#: refused beyond this (mm): the largest height the shape's correction takes off a point over the patch
+#: refused beyond this (mm): the largest height the shape's correction takes off over the model's grid (at the
+#: grid nodes the unloaded points reach, and in the tool's disc)
 MAX_SHAPE_MM = 5.0
 _LEVER_MM = 20.0  # scales the rotations' columns to millimetres at the patch's reach (conditioning only)
 
@@ -126,8 +127,8 @@ class Refinement:
     The change of shape (step 4 of the module docstring), after the rigid motion: ``shape`` holds the
     polynomial's coefficients (``shape_degree``, 0 and empty: none fitted) of the height taken off each point
     at its tangent coordinates ``(u, v)`` in the local frame ``shape_origin``, ``shape_R`` (the reference's), read
-    with ``(u, v)`` clamped to ``shape_extent_mm``; ``shape_mm``: the largest height it takes off an unloaded point
-    over the patch; ``rms_shape_mm``: their distance to the surface after it.
+    with ``(u, v)`` clamped to ``shape_extent_mm``; ``shape_mm``: the largest height it takes off over the model's
+    grid (:data:`MAX_SHAPE_MM`); ``rms_shape_mm``: the unloaded points' distance to the surface after it.
     """
 
     matrix: np.ndarray
