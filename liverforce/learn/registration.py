@@ -173,8 +173,8 @@ class Refinement:
         one = x.ndim == 1
         x = np.atleast_2d(x)
         out = np.empty_like(x)
-        _reshape(np.ascontiguousarray(x), self.shape_origin, self.shape_R, np.asarray(self.shape, dtype=np.float64),
-                 self.shape_degree, self.shape_extent_mm, out)
+        _reshape(np.ascontiguousarray(x), self.shape_origin, self.shape_R, _padded(self.shape, self.shape_degree),
+                 self.shape_extent_mm, out)
         return out[0] if one else out
 
     def to_dict(self) -> dict:
@@ -224,30 +224,34 @@ def _shape_basis(u, v, degree: int, extent: float) -> np.ndarray:
 
 
 @njit(cache=True)
-def _reshape(X, o, R, coef, degree, extent, out):
-    """``out[i] = X[i] - p(u_i, v_i) n`` (one pass; :func:`_shape_basis`'s terms and clamping), ``(u, v)`` the
-    tangent coordinates of ``X[i]`` in the frame ``o``, ``R`` (rows ``t1, t2, n``)."""
+def _reshape(X, o, R, c, extent, out):
+    """``out[i] = X[i] - p(u_i, v_i) n`` in one pass, ``(u, v)`` the tangent coordinates of ``X[i]`` in the frame
+    ``o``, ``R`` (rows ``t1, t2, n``) clamped as :func:`_shape_basis` clamps them, ``p`` its polynomial with the
+    15 coefficients ``c`` of degree 4 (:func:`_padded`: a lower degree's padded with zeros), written out so the
+    loop has no inner loop."""
     s = 1.0 / _LEVER_MM
-    pu = np.empty(degree + 1)
-    pv = np.empty(degree + 1)
     for i in range(X.shape[0]):
         d0, d1, d2 = X[i, 0] - o[0], X[i, 1] - o[1], X[i, 2] - o[2]
         u = min(max(R[0, 0] * d0 + R[0, 1] * d1 + R[0, 2] * d2, -extent), extent) * s
         v = min(max(R[1, 0] * d0 + R[1, 1] * d1 + R[1, 2] * d2, -extent), extent) * s
-        pu[0] = 1.0
-        pv[0] = 1.0
-        for k in range(1, degree + 1):
-            pu[k] = pu[k - 1] * u
-            pv[k] = pv[k - 1] * v
-        dz = 0.0
-        k = 0
-        for d in range(degree + 1):
-            for j in range(d + 1):
-                dz += coef[k] * pu[d - j] * pv[j]
-                k += 1
+        uu, uv, vv = u * u, u * v, v * v
+        dz = (c[0] + c[1] * u + c[2] * v + c[3] * uu + c[4] * uv + c[5] * vv
+              + c[6] * uu * u + c[7] * uu * v + c[8] * u * vv + c[9] * vv * v
+              + c[10] * uu * uu + c[11] * uu * uv + c[12] * uu * vv + c[13] * uv * vv + c[14] * vv * vv)
         out[i, 0] = X[i, 0] - dz * R[2, 0]
         out[i, 1] = X[i, 1] - dz * R[2, 1]
         out[i, 2] = X[i, 2] - dz * R[2, 2]
+
+
+def _padded(coef, degree: int) -> np.ndarray:
+    """:func:`_shape_basis`'s coefficients of ``degree`` as the 15 of degree 4 (the terms it lacks zero)."""
+    c = np.zeros(15)
+    k = 0
+    for d in range(degree + 1):
+        for j in range(d + 1):
+            c[d * (d + 1) // 2 + j] = coef[k]
+            k += 1
+    return c
 
 
 def _largest(reference, spec, coef, degree: int, extent: float, Y: np.ndarray) -> float:

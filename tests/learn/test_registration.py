@@ -233,3 +233,20 @@ def test_a_change_of_shape_beyond_a_local_correction_is_refused(scene):
     for bad in (-1, 5, 2.0, True):
         with pytest.raises(RegistrationError, match="shape_degree"):
             refine_registration(ref, spec(), other, P, shape_degree=bad)
+
+
+@pytest.mark.parametrize("degree", [1, 2, 3, 4])
+def test_the_compiled_reshaping_is_the_fitted_polynomial_of_each_degree(degree):
+    from liverforce.learn.registration import Refinement, _shape_basis
+
+    rng = np.random.default_rng(degree)
+    R = Rotation.from_rotvec([0.2, -0.1, 0.4]).as_matrix()
+    o = np.array([5.0, -3.0, 2.0])
+    n = (degree + 1) * (degree + 2) // 2
+    fix = Refinement(matrix=np.eye(4), normal_offset_mm=0.0, tangential_mm=0.0, tilt_deg=0.0, anchor="none",
+                     n_points=0, rms_before_mm=0.0, rms_mm=0.0, shape_degree=degree,
+                     shape=tuple(rng.normal(size=n)), shape_origin=o, shape_R=R, shape_extent_mm=26.0)
+    x = o + rng.normal(size=(500, 3)) * 15.0  # some beyond the extent: clamped alike
+    L = (x - o) @ R.T
+    dz = _shape_basis(L[:, 0], L[:, 1], degree, 26.0) @ np.asarray(fix.shape)
+    np.testing.assert_allclose(fix.points(x), x - dz[:, None] * R[2], atol=1e-12)
