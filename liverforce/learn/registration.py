@@ -173,7 +173,7 @@ class Refinement:
         one = x.ndim == 1
         x = np.atleast_2d(x)
         out = np.empty_like(x)
-        _reshape(np.ascontiguousarray(x), self.shape_origin, self.shape_R, _padded(self.shape, self.shape_degree),
+        _reshape(np.ascontiguousarray(x), self.shape_origin, self.shape_R, _padded(self.shape),
                  self.shape_extent_mm, out)
         return out[0] if one else out
 
@@ -205,22 +205,12 @@ class Refinement:
                 f"{shape}")
 
 
-def _powers(u, v, degree: int, extent: float) -> tuple[list, list]:
-    """``[(u / s)^i]`` and ``[(v / s)^i]``, ``i <= degree`` (``s`` = ``_LEVER_MM``), ``(u, v)`` clamped to
-    ``[-extent, extent]``."""
+def _shape_basis(u, v, degree: int, extent: float) -> np.ndarray:
+    """Columns ``(u / s)^(d - j) (v / s)^j`` for ``d <= degree``, ``j <= d`` (``s`` = ``_LEVER_MM``), ``(u, v)``
+    clamped to ``[-extent, extent]``. A lower degree's columns are the first of a higher one's."""
     u = np.clip(np.asarray(u, dtype=np.float64), -extent, extent) * (1.0 / _LEVER_MM)
     v = np.clip(np.asarray(v, dtype=np.float64), -extent, extent) * (1.0 / _LEVER_MM)
-    pu, pv = [np.ones_like(u), u], [np.ones_like(v), v]
-    for _ in range(2, degree + 1):
-        pu.append(pu[-1] * u)
-        pv.append(pv[-1] * v)
-    return pu, pv
-
-
-def _shape_basis(u, v, degree: int, extent: float) -> np.ndarray:
-    """Columns ``(u / s)^(d - j) (v / s)^j`` for ``d <= degree``, ``j <= d`` (:func:`_powers`)."""
-    pu, pv = _powers(u, v, degree, extent)
-    return np.column_stack([pu[d - j] * pv[j] for d in range(degree + 1) for j in range(d + 1)])
+    return np.column_stack([u ** (d - j) * v**j for d in range(degree + 1) for j in range(d + 1)])
 
 
 @njit(cache=True)
@@ -243,14 +233,10 @@ def _reshape(X, o, R, c, extent, out):
         out[i, 2] = X[i, 2] - dz * R[2, 2]
 
 
-def _padded(coef, degree: int) -> np.ndarray:
-    """:func:`_shape_basis`'s coefficients of ``degree`` as the 15 of degree 4 (the terms it lacks zero)."""
+def _padded(coef) -> np.ndarray:
+    """:func:`_shape_basis`'s coefficients of a degree up to 4 as the 15 of degree 4 (its columns come first)."""
     c = np.zeros(15)
-    k = 0
-    for d in range(degree + 1):
-        for j in range(d + 1):
-            c[d * (d + 1) // 2 + j] = coef[k]
-            k += 1
+    c[: len(coef)] = coef
     return c
 
 
@@ -258,10 +244,8 @@ def _largest(reference, spec, coef, degree: int, extent: float, Y: np.ndarray) -
     """The largest height the polynomial takes off over the model's grid: at its nodes (``grid_size`` over
     ``+-half_width_mm``) over the pre-operative patch that the fitted points ``Y`` (local) reach (a point within
     half a spacing) or that lie in the tool's disc the fit bridges; inf where there is none."""
-    g, hw = int(spec.grid_size), float(spec.half_width_mm)
-    step = 2.0 * hw / (g - 1)
-    axis = np.linspace(-hw, hw, g)
-    u, v = (m.ravel() for m in np.meshgrid(axis, axis))
+    g, hw, step = int(spec.grid_size), float(spec.half_width_mm), float(spec.spacing_mm)
+    u, v = spec.grid().T  # node i * g + j at (u_j, v_i)
     j = np.rint((Y[:, 0] + hw) / step).astype(np.int64)
     i = np.rint((Y[:, 1] + hw) / step).astype(np.int64)
     inside = (j >= 0) & (j < g) & (i >= 0) & (i < g)
