@@ -12,7 +12,9 @@ Gaussian process, and ``mlp``), prints, on one core (1 BLAS / torch / numba thre
    (``cloud_grid``) and of the reference path (``Predictor.predict_cloud(..., return_info=True)``:
    context checks, features, torch, interval), with the ratio;
 2. batch throughput (clouds/s): ``CompiledCloud.predict_batch`` on lists of ``--batches`` clouds
-   (default 256 and 4096), against the per-cloud compiled loop and the reference
+   (default 256 and 4096), on one thread and the largest batch again gridded in ``--threads`` threads
+   (``predict_batch(threads=)``; default 2; its forces checked to be the same bits), against the per-cloud compiled
+   loop and the reference
    ``ForceModel.predict`` on a list of clouds (on ``--ref-batch`` clouds), and the largest batch again in a
    lab's frame (LPS metres, ``compile_cloud(ctx, frame="LPS", units="m")``) against the same clouds in RAS mm;
 3. whether the targets are met on this machine, and a summary table of both regressors;
@@ -63,6 +65,8 @@ _ap.add_argument("--kernel-cells", type=float, default=None, help="the grid's ke
                  "shipped variant's)")
 _ap.add_argument("--cases", type=int, default=None, help="synthetic training cases (default 480; quick 120)")
 _ap.add_argument("--distinct", type=int, default=256, help="distinct clouds (jittered copies) cycled in a batch")
+_ap.add_argument("--threads", type=int, default=2, help="also the largest batch gridded in this many threads "
+                 "(predict_batch(threads=); default 2, this machine's cores; 1: not measured)")
 _ap.add_argument("--profile", action="store_true", help="also time the compiled path's stages per cloud")
 _ap.add_argument("--no-instrument", action="store_true", help="models trained on clouds without the instrument, "
                  "served such clouds (the camera model before it fitted the instrument's axis)")
@@ -226,6 +230,15 @@ def measure(kind: str, model, arrays: dict, ctx, tip, clouds, batch_pool) -> dic
         batch = [batch_pool[k % len(batch_pool)] for k in range(nb)]
         tips = np.tile(tip, (nb, 1))
         rates[nb] = rate(lambda: fast.predict_batch(batch, tips), nb, REPEATS)
+    # the largest batch again, gridded in ARGS.threads threads (the same bits: checked)
+    r_thr = None
+    if ARGS.threads > 1:
+        nb = max(BATCHES)
+        batch = [batch_pool[k % len(batch_pool)] for k in range(nb)]
+        tips = np.tile(tip, (nb, 1))
+        one, many = fast.predict_batch(batch, tips), fast.predict_batch(batch, tips, threads=ARGS.threads)
+        same = np.array_equal(one.force, many.force, equal_nan=True) and one.refused == many.refused
+        r_thr = rate(lambda: fast.predict_batch(batch, tips, threads=ARGS.threads), nb, REPEATS)
     # a lab's clouds in LPS metres: the compiled path folds the map into its rotation (no conversion per point)
     lab = pred.compile_cloud(ctx, frame="LPS", units="m")
     lps = np.array([-1.0, -1.0, 1.0])
@@ -243,6 +256,9 @@ def measure(kind: str, model, arrays: dict, ctx, tip, clouds, batch_pool) -> dic
     for nb, r in rates.items():
         print(f"predict_batch, {nb} clouds: {r:,.0f} clouds/s ({r / r_loop:.1f}x the loop, {r / r_ref:.0f}x the "
               f"reference)")
+    if r_thr is not None:
+        print(f"predict_batch, {nb} clouds gridded in {ARGS.threads} threads: {r_thr:,.0f} clouds/s "
+              f"({r_thr / rates[nb]:.2f}x 1 thread); forces and refusals {'the same bits' if same else 'DIFFERENT'} as 1 thread")
     print(f"predict_batch, {nb} clouds in LPS metres (compile_cloud(ctx, frame='LPS', units='m')): {r_lab:,.0f} "
           f"clouds/s ({r_lab / rates[nb]:.2f}x the same clouds in RAS mm); max |dF| against RAS mm {d_lab:.1e} N")
     print(f"reference ForceModel.predict, list of {REF_BATCH} clouds (peer): {r_ref:,.0f} clouds/s")
@@ -251,8 +267,9 @@ def measure(kind: str, model, arrays: dict, ctx, tip, clouds, batch_pool) -> dic
     best = max(rates.values())
     print(f"targets on this machine: p99 {1e3 * t_fast[1]:.3f} ms <= 2 ms: "
           f"{'met' if t_fast[1] <= 2e-3 else 'NOT met'}; batch {best:,.0f} clouds/s >= 10,000: "
-          f"{'met' if best >= 1e4 else 'NOT met'}")
-    return {"rates": rates, "p": t_fast, "ref_p": t_ref, "ref_rate": r_ref, "diff": diff}
+          f"{'met' if best >= 1e4 else 'NOT met'} on 1 core" + ("" if r_thr is None else
+          f"; {r_thr:,.0f} clouds/s in {ARGS.threads} threads ({ARGS.threads} cores)"))
+    return {"rates": rates, "p": t_fast, "ref_p": t_ref, "ref_rate": r_ref, "diff": diff, "threads": r_thr}
 
 
 def main() -> None:
@@ -281,11 +298,13 @@ def main() -> None:
     inst = "" if ARGS.no_instrument else f" of the liver, {len(clouds[0]) - ARGS.points} of the instrument"
     print(f"\nsummary (1 thread, medians of {REPEATS} runs; {ARGS.points}-point clouds{inst}; reference = "
           f"ForceModel.predict on a list / predict_cloud per cloud):")
-    head = "regressor | " + " | ".join(f"batch {nb} clouds/s (x ref)" for nb in BATCHES) + \
+    thr = f" | batch {max(BATCHES)} in {ARGS.threads} threads" if ARGS.threads > 1 else ""
+    head = "regressor | " + " | ".join(f"batch {nb} clouds/s (x ref)" for nb in BATCHES) + thr + \
         " | p50 / p99 ms (x ref p50) | max |dF| N"
     print(head)
     for kind, o in out.items():
         cols = [f"{o['rates'][nb]:,.0f} ({o['rates'][nb] / o['ref_rate']:.0f}x)" for nb in BATCHES]
+        cols += [] if o["threads"] is None else [f"{o['threads']:,.0f}"]
         print(f"{kind} | " + " | ".join(cols) + f" | {1e3 * o['p'][0]:.3f} / {1e3 * o['p'][1]:.3f} "
               f"({o['ref_p'][0] / o['p'][0]:.0f}x) | {o['diff']:.1e}")
 

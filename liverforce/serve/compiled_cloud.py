@@ -77,6 +77,7 @@ module.
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
 import numpy as np
@@ -889,17 +890,19 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
         v = V[t]
         fu = min(max((u - lo) * inv_rstep, 0.0), r_last)
         fv = min(max((v - lo) * inv_rstep, 0.0), r_last)
-        j0 = np.uint64(fu)
-        i0 = np.uint64(fv)
+        j0 = np.int32(fu)  # 32-bit conversions: AVX2 has no vector conversion of a double to a 64-bit integer
+        i0 = np.int32(fv)
         A[t] = fu - j0
         C[t] = fv - i0
-        Q[t] = i0 * rs + j0
-        gu = (u + h) * inv_gstep
+        Q[t] = np.uint64(i0) * rs + np.uint64(j0)
+        gu = (u + h) * inv_gstep  # a kept point's |gu|, |gv| stay within the grid's reach: 32 bits hold gu 4096
         gv = (v + h) * inv_gstep
         GU[t] = gu
         GV[t] = gv
-        key[t] = _bin_key(gu, gv, sb, pad, nc)
-        HB[t] = (int(gu * 4096.0) * _H1 + int(gv * 4096.0) * _H2) & mask  # duplicate filter: equal points, equal bits
+        key[t] = _key(min(max(np.int32(math.floor(gv * sb)) + pad, 0), nc - 1),  # _bin_key, in 32 bits
+                      min(max(np.int32(math.floor(gu * sb)) + pad, 0), nc - 1), sb, nc)
+        HB[t] = (np.int64(np.int32(gu * 4096.0)) * _H1  # duplicate filter: equal points, equal bits
+                 + np.int64(np.int32(gv * 4096.0)) * _H2) & mask
     shaft_r2, ring_r2, shaft_rise, shaft_min = shaft[0], shaft[1], shaft[2], shaft[3]
     n_near = 0
     n_ring = 0
@@ -1044,7 +1047,7 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
     return nu, nb, ns, nf, sd
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)  # threads: predict_batch(threads=)
 def _grid_clouds(P, starts, counts, tips, origin, R, raster, lo, rstep, g, h, gstep, kr, max_abs, min_points,
                  max_leverage, linear, fill, reach_count, shaft, inst, X, n_used, n_bad, n_tool):
     """Feature rows ``X[b]`` of the clouds ``P[starts[b]:starts[b] + counts[b]]`` (float64 or float32 points),
@@ -1060,7 +1063,7 @@ def _grid_clouds(P, starts, counts, tips, origin, R, raster, lo, rstep, g, h, gs
             max_leverage, linear, fill, reach_count, shaft, inst, ws, X[b])
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)  # threads: predict_batch(threads=)
 def _grid_list(clouds, tips, origin, R, raster, lo, rstep, g, h, gstep, kr, max_abs, min_points, max_leverage,
                linear, fill, reach_count, shaft, inst, X, n_used, n_bad, n_tool):
     """:func:`_grid_clouds` of a typed list of (n_b, 3) float64 clouds, read in place (no concatenation)."""
@@ -1354,11 +1357,12 @@ class CompiledCloud:
 
     # -- per-cloud pieces ------------------------------------------------------
 
-    def _grid(self, P, starts, counts, tips: np.ndarray):
+    def _grid(self, P, starts, counts, tips: np.ndarray, threads: int = 1):
         """Feature rows, points over the grid, non-finite points of the clouds ``P[starts[b]:starts[b] + counts[b]]``
         (``P``: (n, 3) float64 or float32, C-contiguous), or of a list ``P`` of (n_b, 3) C-contiguous float64
         clouds (``starts`` and ``counts`` None: read in place, no concatenation). Clouds and ``tips`` as given (in
-        the input frame, if any)."""
+        the input frame, if any). ``threads`` > 1: the batch cut into that many contiguous parts, gridded at once in
+        as many threads (the kernel releases the GIL; every cloud gets the same bits as alone)."""
         B = len(P) if starts is None else len(starts)
         if self._reshape is not None:  # not a rigid map: the points in the model's frame, reshaped, for the kernel
             tips = np.ascontiguousarray(self._model(tips))
@@ -1369,17 +1373,27 @@ class CompiledCloud:
         n_bad = np.zeros(B, dtype=np.int64)
         n_tool = np.zeros((B, 3))  # points on the shaft, instrument points fitted, the point noise from them (mm)
         if B:
-            args = (tips, self._kp, self._kR, self._raster, self.ref.lo, self.ref.step, self.g, sp.half_width_mm,
-                    sp.spacing_mm, sp.kernel_radius_cells, sp.max_abs_height_mm, sp.min_points, sp.max_leverage,
-                    sp.estimator == "linear", _FILL_CODES[sp.fill], self.reach, self._shaft, self._inst, X, n_used,
-                    n_bad, n_tool)
-            if starts is None:
-                clouds = List.empty_list(_CLOUD_TYPE)
-                for c in P:
-                    clouds.append(c)
-                _grid_list(clouds, *args)
-            else:
-                _grid_clouds(P, starts, counts, *args)
+            params = (self._kp, self._kR, self._raster, self.ref.lo, self.ref.step, self.g, sp.half_width_mm,
+                      sp.spacing_mm, sp.kernel_radius_cells, sp.max_abs_height_mm, sp.min_points, sp.max_leverage,
+                      sp.estimator == "linear", _FILL_CODES[sp.fill], self.reach, self._shaft, self._inst)
+
+            def part(a: int, e: int) -> None:  # clouds [a, e): their own rows of the outputs (views, no copy)
+                out = (X[a:e], n_used[a:e], n_bad[a:e], n_tool[a:e])
+                if starts is None:
+                    clouds = List.empty_list(_CLOUD_TYPE)
+                    for c in P[a:e]:
+                        clouds.append(c)
+                    _grid_list(clouds, tips[a:e], *params, *out)
+                else:
+                    _grid_clouds(P, starts[a:e], counts[a:e], tips[a:e], *params, *out)
+
+            cuts = np.linspace(0, B, min(threads, B) + 1).round().astype(int)
+            if len(cuts) <= 2:
+                part(0, B)
+            else:  # the kernel releases the GIL: one contiguous part of the batch per thread, each cloud as alone
+                with ThreadPoolExecutor(len(cuts) - 1) as pool:
+                    for f in [pool.submit(part, a, e) for a, e in zip(cuts[:-1], cuts[1:])]:
+                        f.result()
             if sp.fill == "nearest":
                 g, gg = self.g, self.g * self.g
                 for r in range(B):
@@ -1582,7 +1596,7 @@ class CompiledCloud:
         half = self._half(F)
         return self._out(F[0]), None if half is None else half[0], warnings
 
-    def predict_batch(self, clouds, tool_tips, counts=None) -> CloudBatch:
+    def predict_batch(self, clouds, tool_tips, counts=None, *, threads: int = 1) -> CloudBatch:
         """Forces of many clouds at this exertion point in one go (a :class:`CloudBatch`).
 
         Parameters
@@ -1591,6 +1605,9 @@ class CompiledCloud:
             array (B, N, 3) with ``counts``
         tool_tips : (B, 3), as the clouds (one per cloud; a single (3,) tip is used for every cloud)
         counts : (B,) points of each padded cloud (rows ``[:counts[b]]``; default all N)
+        threads : threads that grid the batch's clouds (default 1: this thread only). The gridding is most of a
+            batch's time and each cloud's is independent, so ``threads`` up to the cores free speed a batch up nearly
+            in proportion (``benchmarks/bench_camera.py --threads``); the results are the same bits
 
         Each cloud gives what :meth:`predict` gives it (bit for bit with an MLP, to rounding with a GP: module
         docstring); a cloud :meth:`predict` would refuse
@@ -1599,6 +1616,8 @@ class CompiledCloud:
         folded into the kernel's rotation, so nothing is converted), then the checks and the head over all rows
         at once.
         """
+        if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 1:
+            raise PredictionInputError(f"threads: need a whole number >= 1, got {threads!r}")
         tips = np.asarray(tool_tips, dtype=np.float64)
         B = len(clouds)
         if tips.ndim == 1 and tips.shape == (3,):
@@ -1625,7 +1644,7 @@ class CompiledCloud:
                 e = min(a + step, B)
                 P = clouds[a:e] if direct else np.ascontiguousarray(clouds[a:e], dtype=np.float64)
                 X[a:e], n_used[a:e], n_bad[a:e], n_tool[a:e] = self._grid(
-                    P.reshape(-1, 3), np.arange(e - a, dtype=np.int64) * N, cnt[a:e], tips[a:e])
+                    P.reshape(-1, 3), np.arange(e - a, dtype=np.int64) * N, cnt[a:e], tips[a:e], threads)
             refused, warnings = self._reasons(lambda r: clouds[r, :cnt[r]], cnt, tips, X, n_used, n_bad, n_tool)
             F = self._forces(X, np.array([r is None for r in refused], dtype=bool))
             return CloudBatch(self._out(F), self._half(F), warnings, refused)
@@ -1643,7 +1662,7 @@ class CompiledCloud:
         force = np.full((B, 3), np.nan)
         if good:
             P = [arrays[i] for i in good]
-            X, n_used, n_bad, n_tool = self._grid(P, None, None, tips[good])
+            X, n_used, n_bad, n_tool = self._grid(P, None, None, tips[good], threads)
             why, warn = self._reasons(lambda r: P[r], np.array([len(c) for c in P]), tips[good], X, n_used, n_bad,
                                       n_tool)
             force[good] = self._forces(X, np.array([r is None for r in why], dtype=bool))

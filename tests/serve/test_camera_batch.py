@@ -295,6 +295,52 @@ def test_a_refused_cloud_does_not_poison_the_batch(served):
     assert res.warnings[1] == info["warnings"] and len(info["warnings"]) == len(fast.context_warnings) + 1
 
 
+def test_a_batch_gridded_in_threads_gives_the_same_bits(served, monkeypatch):
+    """predict_batch(threads=N) cuts the batch into N contiguous parts gridded at once (the kernels release the
+    GIL); every cloud's force, width, warnings and refusal are the same bits as on one thread, for a list (refused
+    clouds among them) and a padded array, an uneven cut and more threads than clouds."""
+    from liverforce.serve import compiled_cloud
+
+    pred, a, ctx, fast = served
+    items = _clouds(a)
+    clouds = [c for c, _ in items] + [items[0][0][:5], np.ones((4, 2))]  # two refused: too few points, not (n, 3)
+    tips = np.stack([t for _, t in items] + [items[0][1]] * 2)
+    parts = []
+    real = compiled_cloud.ThreadPoolExecutor
+
+    class Counting(real):
+        def submit(self, fn, *args):
+            parts.append(args)
+            return super().submit(fn, *args)
+
+    monkeypatch.setattr(compiled_cloud, "ThreadPoolExecutor", Counting)
+    one = fast.predict_batch(clouds, tips)
+    assert not parts and one.ok.sum() == len(items) and one.refused[-2] and one.refused[-1]
+    for threads in (2, 3, 40):
+        many = fast.predict_batch(clouds, tips, threads=threads)
+        np.testing.assert_array_equal(many.force, one.force)
+        np.testing.assert_array_equal(many.half_width, one.half_width)
+        assert many.refused == one.refused and many.warnings == one.warnings
+    # 2 parts, 3, then one per cloud: each a contiguous run, together every gridded cloud once (the one that is
+    # not (n, 3) never reaches the kernel; the 5 points are refused after the gridding)
+    n_grid = len(clouds) - 1
+    for cut in (parts[:2], parts[2:5], parts[5:]):
+        assert [s for s, _ in cut] == [0] + [e for _, e in cut[:-1]] and cut[-1][1] == n_grid
+        assert max(e - s for s, e in cut) - min(e - s for s, e in cut) <= 1
+    assert len(parts) == 5 + n_grid
+    N = max(len(c) for c in clouds[:len(items)])
+    pad = np.full((len(items), N, 3), np.nan)
+    for k, c in enumerate(clouds[:len(items)]):
+        pad[k, :len(c)] = c
+    n = [len(c) for c in clouds[:len(items)]]
+    np.testing.assert_array_equal(fast.predict_batch(pad, tips[:len(items)], counts=n, threads=2).force,
+                                  fast.predict_batch(pad, tips[:len(items)], counts=n).force)
+    assert compiled_cloud._grid_list.targetoptions["nogil"] and compiled_cloud._grid_clouds.targetoptions["nogil"]
+    for bad in (0, -1, 1.5, True, "2"):
+        with pytest.raises(PredictionInputError, match="threads"):
+            fast.predict_batch(clouds, tips, threads=bad)
+
+
 def test_empty_batch(served):
     pred, a, ctx, fast = served
     res = fast.predict_batch([], np.zeros((0, 3)))
