@@ -212,7 +212,7 @@ class GPRegressor(nn.Module):
 KERNELS = names.GP_KERNELS
 
 
-@njit(cache=True, error_model="numpy", fastmath={"reassoc", "nsz", "contract", "arcp"})
+@njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc", "nsz", "contract", "arcp"})
 def _rq_power_mean(E, inv_a, power, alphaT, out):
     """``out[i] += sum_j B_ij^-power alphaT[:, j]``, ``B = 1 - E inv_a``: the rational quadratic of a whole shape
     ``a = power`` (1 to :data:`POW_SHAPE_MAX_HEAD`) and its product with the (m, n) weights in one pass over

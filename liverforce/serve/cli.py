@@ -9,6 +9,8 @@ liverforce predict -m results/default/models/IV/cloud_sv/model cloud.ply --surfa
     --exertion-point 12 -40 88 --material 0.0016 0.0125 --tool-tip 11.2 -41.0 84.5   # camera-cloud model
 liverforce predict -m results/default/models/IV/cloud_sv/model cloud.ply --unloaded before.ply --mesh liver.vtu \
     --exertion-point 12 -40 88 --material 0.0016 0.0125 --tool-tip 11.2 -41.0 84.5   # registration refined first
+liverforce predict -m results/default/models/IV/cloud_sv/model frames/ --tool-tips tips.csv --mesh liver.vtu \
+    --exertion-point 12 -40 88 --material 0.0016 0.0125 --out forces.csv   # a recorded sequence: a row per cloud
 liverforce predict -m my-registered-model --shards results/exp/shards/II --out preds.parquet
 liverforce predict -m results/exp/models/II/pca_sv/model --describe
 liverforce predict -m results/lab/models/IV/cloud_sv/model cloud_lps_m.ply --frame results/lab/geometry/imp-lab01.json \
@@ -19,8 +21,10 @@ liverforce predict -m results/lab/models/IV/cloud_sv/model cloud_lps_m.ply --fra
 Modes for the point-cloud file: ``cloud`` (default) an unordered observed
 cloud; ``nodes`` the deformed ROI nodes in the context's ROI order; ``surface``
 the deformed positions of every vertex of the context's surface file (of a tet
-mesh: every node, interior ones too, in the file's order). Exit
-codes: 0 done, 2 input refused (the message says why).
+mesh: every node, interior ones too, in the file's order). A sequence of clouds
+(several files, a folder, a (T, N, 3) .npy) with ``--tool-tips`` gives one row
+per cloud, a refused cloud with its reason (:mod:`liverforce.serve.sequence`).
+Exit codes: 0 done, 2 input refused (the message says why).
 
 Point inputs are in the model's frame (RAS mm) unless ``--units`` and
 ``--frame`` (or the context's ``units`` and ``input_frame``) say otherwise
@@ -65,7 +69,10 @@ def register(subparsers, *, fetch: Callable[..., str | Path] | None = None) -> a
     p.add_argument("-m", "--model", required=True,
                    help="model directory, MLflow run id, runs:/<id>/model, models:/<name>/<version> "
                         "or a registered name")
-    p.add_argument("points", nargs="?", help="point-cloud file (.ply, .csv, .npy), in --units and --frame")
+    p.add_argument("points", nargs="*", help="point-cloud file (.ply, .csv, .npy), in --units and --frame. A "
+                                             "recorded sequence at one exertion point: several files, a folder "
+                                             "(its cloud files in natural name order) or one .npy of shape (T, N, "
+                                             "3), with --tool-tips: one row per cloud (liverforce.serve.sequence)")
     p.add_argument("--mode", choices=("cloud", "nodes", "surface"), default="cloud",
                    help="what the point file holds (default: an unordered observed cloud)")
     p.add_argument("--approximate", action="store_true",
@@ -83,6 +90,11 @@ def register(subparsers, *, fetch: Callable[..., str | Path] | None = None) -> a
     p.add_argument("--tool-tip", nargs=3, type=float, metavar=("X", "Y", "Z"),
                    help="the tool tip's position now (robot kinematics; --units and --frame apply): camera-cloud "
                         "models need it")
+    p.add_argument("--tool-tips", metavar="FILE",
+                   help="a sequence of clouds: the tool tip of each cloud (robot kinematics), one x y z row per cloud "
+                        "in the clouds' order (.csv, .npy; --units and --frame apply)")
+    p.add_argument("--threads", type=int, default=1, metavar="N",
+                   help="a sequence of clouds: grid them in N threads at once (the compiled path; default 1)")
     p.add_argument("--unloaded", metavar="FILE",
                    help="camera-cloud models: the camera's cloud (.ply, .csv, .npy) of the same region before the tool "
                         "pushed, the tool touching at the exertion point (--units and --frame apply). The "
@@ -110,8 +122,9 @@ def register(subparsers, *, fetch: Callable[..., str | Path] | None = None) -> a
                         "else RAS. --mesh stays the mesh stage's copy (RAS mm)")
     p.add_argument("--shards", nargs="+", metavar="PATH", help="batch: shard files, folders or manifest.json")
     p.add_argument("--observation-seed", type=int, help="batch: draw the evaluation's observation model")
-    p.add_argument("--reference", action="store_true", help="batch: skip the compiled fast path")
-    p.add_argument("--out", help="write the result (.json or .csv for one force; .parquet or .csv for shards)")
+    p.add_argument("--reference", action="store_true", help="batch and sequences: skip the compiled fast path")
+    p.add_argument("--out", help="write the result (.json or .csv for one force; .parquet or .csv for shards; "
+                                 ".csv, .parquet or .json for a sequence)")
     p.add_argument("--tracking-uri", help="MLflow tracking URI (default: MLFLOW_TRACKING_URI / MLflow's default)")
     p.add_argument("--describe", action="store_true", help="print what the model needs and how it was trained")
     p.set_defaults(func=cmd_predict, fetch_model=fetch)
@@ -164,6 +177,20 @@ def _run(args) -> int:
         return 0
     if not args.points:
         return _error("give a point-cloud file (or --shards for batch prediction)")
+    sequence = len(args.points) > 1 or Path(args.points[0]).is_dir() or args.tool_tips is not None
+    if sequence and args.mode != "cloud":
+        return _error("a sequence of files is predicted in --mode cloud (camera clouds) only; give one file for "
+                      "--mode nodes or surface")
+    if sequence and args.approximate:
+        return _error("--approximate reads one cloud for a correspondence model; a sequence needs a camera-cloud "
+                      "model")
+    if sequence and not predictor.model.representation.is_camera:
+        return _error(f"a sequence of clouds needs a camera-cloud model (roi_features: cloud); this model reads "
+                      f"{predictor.model.representation.features} node displacements: give it one file at a time")
+    if args.tool_tips is not None and args.tool_tip is not None:
+        return _error("give --tool-tips (one tip per cloud) or --tool-tip (one for every cloud), not both")
+    if args.threads < 1:
+        return _error(f"--threads: need a whole number >= 1, got {args.threads}")
     overrides = {"exertion_point_mm": args.exertion_point, "material_params_mpa": args.material, "units": args.units}
     # file paths given here are relative to the working directory (a context file's own are relative to it)
     if args.frame:
@@ -173,7 +200,6 @@ def _run(args) -> int:
     if args.mesh:
         overrides["mesh"] = str(Path(args.mesh).absolute())
     preop, frame = read_context(args.context, predictor, overrides=overrides)
-    pts = frame.points(read_points(args.points))
     info: dict = {"mode": args.mode}
     if (args.unloaded or args.contact_tip) and args.mode != "cloud":
         return _error("--unloaded and --contact-tip refine a camera cloud's registration: --mode cloud only")
@@ -181,13 +207,16 @@ def _run(args) -> int:
         return _error("--shape-degree goes with --unloaded (the change of shape is fitted to that cloud)")
     if args.contact_tip and not args.unloaded:
         return _error("--contact-tip goes with --unloaded (the camera's cloud before the tool pushed)")
+    fix = None
+    if args.unloaded:
+        fix = predictor.refine_registration(frame.points(read_points(args.unloaded)), preop,
+                                            None if args.contact_tip is None else frame.points(args.contact_tip),
+                                            shape_degree=args.shape_degree)
+    if sequence:
+        return _sequence(args, predictor, preop, frame, fix)
+    pts = frame.points(read_points(args.points[0]))
     if args.mode == "cloud":
         tip = None if args.tool_tip is None else frame.points(args.tool_tip)
-        fix = None
-        if args.unloaded:
-            fix = predictor.refine_registration(frame.points(read_points(args.unloaded)), preop,
-                                                None if args.contact_tip is None else frame.points(args.contact_tip),
-                                                shape_degree=args.shape_degree)
         force, extra = predictor.predict_cloud(pts, preop, approximate=args.approximate, tool_tip_mm=tip,
                                                return_info=True, registration=fix)
         info.update(extra)
@@ -216,4 +245,45 @@ def _run(args) -> int:
     elif args.out:
         write_text_atomic(args.out, json.dumps(doc, indent=2) + "\n")
     print(json.dumps(doc))
+    return 0
+
+
+def _sequence(args, predictor, preop, frame, fix) -> int:
+    """``liverforce predict`` of a recorded sequence of clouds (:mod:`liverforce.serve.sequence`): one row per
+    cloud to ``--out`` (.csv, .parquet or .json), a summary (and the rows, without ``--out``) on stdout."""
+    from liverforce.atomic import write_text_atomic
+    from liverforce.serve.files import write_frame
+    from liverforce.serve.sequence import predict_sequence, read_sequence, read_tips
+
+    if args.out and Path(args.out).suffix.lower() not in (".csv", ".parquet", ".json"):
+        return _error(f"--out {args.out}: a sequence's rows are written as .csv, .parquet or .json")
+    names, clouds = read_sequence(args.points)
+    if args.tool_tips is not None:
+        tips = read_tips(args.tool_tips, len(clouds))
+    elif args.tool_tip is not None:
+        tips = np.tile(np.asarray(args.tool_tip, dtype=np.float64), (len(clouds), 1))
+    else:
+        return _error("a camera-cloud model needs the tool tip of each cloud: --tool-tips FILE (one x y z row per "
+                      "cloud, robot kinematics), or --tool-tip X Y Z if the tool stood still")
+    rows, summary = predict_sequence(predictor, preop, frame, clouds, tips, registration=fix, threads=args.threads,
+                                     reference=args.reference)
+    rows = [{"cloud": name, **row} for name, row in zip(names, rows)]
+    plain = [{k: None if isinstance(v, float) and v != v else v for k, v in r.items()} for r in rows]  # JSON: null
+    summary.update({"frame": ("liver (source) frame of the inputs" if frame.identity else
+                              f"the inputs' frame ({'a 4x4 matrix' if frame.label == 'matrix' else frame.label})"),
+                    "input_frame": frame.describe(), "model": predictor.source,
+                    "context_warnings": predictor.context_warnings(preop)})
+    if fix is not None:
+        summary["registration"] = {**fix.to_dict(), "description": fix.describe()}
+    if args.out:
+        if args.out.lower().endswith(".json"):
+            write_text_atomic(args.out, json.dumps({**summary, "rows": plain}, indent=2) + "\n")
+        else:
+            import pandas as pd
+
+            write_frame(pd.DataFrame(rows), args.out)
+        summary["out"] = str(args.out)
+    else:
+        summary["rows"] = plain
+    print(json.dumps(summary))
     return 0

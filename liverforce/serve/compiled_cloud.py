@@ -1135,7 +1135,7 @@ def _laplace_fill(H, valid, g, idx, unk, Lb, rhs, y):
         H[unk[ii]] = rhs[ii]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _affine_rows(X, AT, b, out):
     """``out[r, :n] = A X[r] + b`` (``AT = A^T``, n = its columns), row by row in a fixed order (independent of
     the batch size)."""
@@ -1151,7 +1151,7 @@ def _affine_rows(X, AT, b, out):
             out[r, i] += b[i]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _dense_rows(Hin, WT, b, slope, act):
     """float32 ``act(Hin W^T + b)`` row by row in a fixed order; ``act``: 0 none, 1 ReLU, 2 LeakyReLU(slope)."""
     n, k_in = Hin.shape
@@ -1522,13 +1522,20 @@ class CompiledCloud:
             return instrument_refusal(n_shaft, self._shaft_tool_mm)
         return None
 
-    def _forces(self, X: np.ndarray, ok: np.ndarray) -> np.ndarray:
-        """Forces (B, 3) N of the feature rows ``X[ok]`` (NaN elsewhere), the head in blocks of ``_HEAD_ROWS``."""
+    def _forces(self, X: np.ndarray, ok: np.ndarray, threads: int = 1) -> np.ndarray:
+        """Forces (B, 3) N of the feature rows ``X[ok]`` (NaN elsewhere), the head in blocks of ``_HEAD_ROWS``
+        (``threads`` > 1: the blocks in that many threads; the same blocks, so the same bits)."""
         F = np.full((len(X), 3), np.nan)
         rows = np.flatnonzero(ok)
         every = len(rows) == len(X)  # then blocks of rows are views, not copies
-        for a in range(0, len(rows), _HEAD_ROWS):
-            r = slice(a, a + _HEAD_ROWS) if every else rows[a:a + _HEAD_ROWS]
+        blocks = [slice(a, a + _HEAD_ROWS) if every else rows[a:a + _HEAD_ROWS]
+                  for a in range(0, len(rows), _HEAD_ROWS)]
+        if threads > 1 and len(blocks) > 1:  # BLAS and the compiled passes release the GIL
+            with ThreadPoolExecutor(min(threads, len(blocks))) as pool:
+                for r, f in zip(blocks, pool.map(lambda r: self._head(X[r]), blocks)):
+                    F[r] = f
+            return F
+        for r in blocks:
             F[r] = self._head(X[r])
         return F
 
@@ -1646,7 +1653,7 @@ class CompiledCloud:
                 X[a:e], n_used[a:e], n_bad[a:e], n_tool[a:e] = self._grid(
                     P.reshape(-1, 3), np.arange(e - a, dtype=np.int64) * N, cnt[a:e], tips[a:e], threads)
             refused, warnings = self._reasons(lambda r: clouds[r, :cnt[r]], cnt, tips, X, n_used, n_bad, n_tool)
-            F = self._forces(X, np.array([r is None for r in refused], dtype=bool))
+            F = self._forces(X, np.array([r is None for r in refused], dtype=bool), threads)
             return CloudBatch(self._out(F), self._half(F), warnings, refused)
         if counts is not None:
             raise PredictionInputError("counts: only with one padded (B, N, 3) array of clouds")
@@ -1665,7 +1672,7 @@ class CompiledCloud:
             X, n_used, n_bad, n_tool = self._grid(P, None, None, tips[good], threads)
             why, warn = self._reasons(lambda r: P[r], np.array([len(c) for c in P]), tips[good], X, n_used, n_bad,
                                       n_tool)
-            force[good] = self._forces(X, np.array([r is None for r in why], dtype=bool))
+            force[good] = self._forces(X, np.array([r is None for r in why], dtype=bool), threads)
             for k, i in enumerate(good):
                 refused[i], warnings[i] = why[k], warn[k]
         return CloudBatch(self._out(force), self._half(force), warnings, refused)

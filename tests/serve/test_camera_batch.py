@@ -297,8 +297,9 @@ def test_a_refused_cloud_does_not_poison_the_batch(served):
 
 def test_a_batch_gridded_in_threads_gives_the_same_bits(served, monkeypatch):
     """predict_batch(threads=N) cuts the batch into N contiguous parts gridded at once (the kernels release the
-    GIL); every cloud's force, width, warnings and refusal are the same bits as on one thread, for a list (refused
-    clouds among them) and a padded array, an uneven cut and more threads than clouds."""
+    GIL), and runs the head's blocks in the threads too; every cloud's force, width, warnings and refusal are the
+    same bits as on one thread, for a list (refused clouds among them) and a padded array, an uneven cut, more
+    threads than clouds and a batch of several head blocks."""
     from liverforce.serve import compiled_cloud
 
     pred, a, ctx, fast = served
@@ -310,7 +311,8 @@ def test_a_batch_gridded_in_threads_gives_the_same_bits(served, monkeypatch):
 
     class Counting(real):
         def submit(self, fn, *args):
-            parts.append(args)
+            if fn.__name__ == "part":  # the gridding's parts (the head's blocks: below)
+                parts.append(args)
             return super().submit(fn, *args)
 
     monkeypatch.setattr(compiled_cloud, "ThreadPoolExecutor", Counting)
@@ -336,6 +338,15 @@ def test_a_batch_gridded_in_threads_gives_the_same_bits(served, monkeypatch):
     np.testing.assert_array_equal(fast.predict_batch(pad, tips[:len(items)], counts=n, threads=2).force,
                                   fast.predict_batch(pad, tips[:len(items)], counts=n).force)
     assert compiled_cloud._grid_list.targetoptions["nogil"] and compiled_cloud._grid_clouds.targetoptions["nogil"]
+    # a batch of more than one block of the head (_HEAD_ROWS): the blocks in threads too, the same bits
+    big = (clouds * (2 * compiled_cloud._HEAD_ROWS // len(clouds) + 1))[:2 * compiled_cloud._HEAD_ROWS + 5]
+    tips_big = np.resize(tips, (len(big), 3))
+    one = fast.predict_batch(big, tips_big)
+    for threads in (2, 3):
+        many = fast.predict_batch(big, tips_big, threads=threads)
+        np.testing.assert_array_equal(many.force, one.force)
+        np.testing.assert_array_equal(many.half_width, one.half_width)
+        assert many.refused == one.refused
     for bad in (0, -1, 1.5, True, "2"):
         with pytest.raises(PredictionInputError, match="threads"):
             fast.predict_batch(clouds, tips, threads=bad)

@@ -489,3 +489,100 @@ def test_clean_clouds_are_not_taken_for_the_instrument(served):
                 assert "instrument" not in str(exc), (i, shift, str(exc))
                 assert batch.refused[0] == str(exc)
     assert checked >= 20
+
+
+def test_cli_predicts_a_recorded_sequence_of_clouds(served, tmp_path, capsys, trained):
+    """``liverforce predict -m M frames/ --tool-tips tips.csv``: a folder of clouds in LPS metres (natural name
+    order), the tip of each from a file; one row per cloud equal to the reference path's force and interval, a
+    cloud of 5 points refused with the reference's reason while the rest are predicted; the same from one
+    (T, N, 3) .npy, in 2 threads and on the reference path; the rows written as .csv, .parquet and .json."""
+    import pandas as pd
+
+    path, model, a = served
+    pred = Predictor.from_dir(path)
+    lps = np.array([-1.0, -1.0, 1.0])
+    case, _, _ = _case(a, 3)
+    V, T = a["surface_meshes"][a["geometry_id"][3]]
+    ctx = Preop.from_surface(V, T, case.exertion_point_mm, case.material_params_mpa).with_compliance(
+        case.probe_compliance_mm_per_n)  # what the context file below gives, in RAS mm
+    seq = [_case(a, 3, n_points=n, seed=s)[1:] for s, n in enumerate([3000, 1500, 2500, 800])]
+    clouds = [c for c, _ in seq]
+    tips = np.stack([t for _, t in seq]) + np.random.default_rng(2).normal(0.0, 0.1, (len(seq), 3))
+    clouds.append(clouds[0][:5])  # too few points: refused, the rest predicted
+    tips = np.vstack([tips, tips[:1]])
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for k, c in enumerate(clouds):  # f2 before f10: natural order
+        np.save(frames / f"f{[1, 2, 10, 11, 20][k]}.npy", c * lps / 1000.0)
+    (frames / "notes.md").write_text("not a cloud")
+    np.savetxt(tmp_path / "tips.csv", tips * lps / 1000.0, delimiter=",", header="x,y,z")
+    np.savez(tmp_path / "lps.npz", points=V * lps / 1000, facets=T)
+    (tmp_path / "ctx.json").write_text(json.dumps({  # the local frame's compliance: only its units change (m/N)
+        "surface": "lps.npz", "probe_compliance_mm_per_n": (case.probe_compliance_mm_per_n / 1000).tolist(),
+        "material_params_mpa": case.material_params_mpa.tolist()}))
+    parser = argparse.ArgumentParser(prog="liverforce")
+    register_predict(parser.add_subparsers(dest="command", required=True))
+
+    def run(*argv, rc=0):
+        args = parser.parse_args(["predict", "-m", str(path), *map(str, argv)])
+        got = args.func(args)
+        out, err = capsys.readouterr()
+        assert got == rc, err
+        return json.loads(out) if rc == 0 else err
+
+    base = ("--context", tmp_path / "ctx.json", "--units", "m", "--frame", "LPS", "--exertion-point",
+            *(ctx.exertion_point_mm * lps / 1000))
+    out = run(frames, "--tool-tips", tmp_path / "tips.csv", *base)
+    assert [r["cloud"] for r in out["rows"]] == ["f1.npy", "f2.npy", "f10.npy", "f11.npy", "f20.npy"]
+    assert out["clouds"] == 5 and out["predicted"] == 4 and out["refused"] == 1 and out["path"] == "compiled"
+    assert "frame LPS" in out["input_frame"]
+    for k, (c, t) in enumerate(zip(clouds[:4], tips)):
+        want, info = pred.predict_cloud(c, ctx, tool_tip_mm=t, return_info=True)
+        row = out["rows"][k]
+        np.testing.assert_allclose([row["fx_n"], row["fy_n"], row["fz_n"]], want * lps, atol=1e-6)
+        np.testing.assert_allclose([row[f"half_width_{j}_n"] for j in ("t1", "t2", "n")],
+                                   info["interval"]["half_width_local_n"], rtol=1e-6)
+        assert row["refused"] == "" and row["warnings"] == "; ".join(info["warnings"])
+    with pytest.raises(PredictionInputError) as exc:
+        pred.predict_cloud(clouds[4], ctx, tool_tip_mm=tips[4])
+    last = out["rows"][4]
+    assert last["refused"] == str(exc.value) and last["fx_n"] is None and last["half_width_n_n"] is None
+    # one (T, N, 3) stack, 2 threads, the reference path: the same rows
+    np.save(tmp_path / "stack.npy", np.stack([c[:800] for c in clouds[:4]]) * lps / 1000.0)
+    stack = run(tmp_path / "stack.npy", "--tool-tips", tmp_path / "tips4.npy", *base, rc=2)
+    assert "no such point-cloud file" in stack
+    np.save(tmp_path / "tips4.npy", tips[:4] * lps / 1000.0)
+    stack = run(tmp_path / "stack.npy", "--tool-tips", tmp_path / "tips4.npy", *base, "--threads", "2")
+    ref = run(tmp_path / "stack.npy", "--tool-tips", tmp_path / "tips4.npy", *base, "--reference")
+    assert [r["cloud"] for r in stack["rows"]] == [f"stack.npy[{k}]" for k in range(4)]
+    assert stack["threads"] == 2 and ref["path"] == "reference"
+    for r, q, c, t in zip(stack["rows"], ref["rows"], clouds, tips):
+        want = pred.predict_cloud(c[:800], ctx, tool_tip_mm=t)
+        np.testing.assert_allclose([r["fx_n"], r["fy_n"], r["fz_n"]], want * lps, atol=1e-6)
+        np.testing.assert_allclose([q["fx_n"], q["fy_n"], q["fz_n"]], want * lps, atol=1e-9)
+        assert r["warnings"] == q["warnings"]
+    # the rows written: .csv, .parquet, .json
+    files = [run(frames, "--tool-tips", tmp_path / "tips.csv", *base, "--out", tmp_path / f"rows.{e}")["out"]
+             for e in ("csv", "parquet", "json")]
+    for f in files[:2]:
+        df = pd.read_csv(f) if f.endswith(".csv") else pd.read_parquet(f)
+        assert list(df["cloud"]) == [r["cloud"] for r in out["rows"]]
+        np.testing.assert_allclose(df[["fx_n", "fy_n", "fz_n"]].to_numpy()[:4],
+                                   [[r["fx_n"], r["fy_n"], r["fz_n"]] for r in out["rows"][:4]], atol=1e-8)
+        assert df["refused"].fillna("").tolist()[4] == last["refused"]
+    assert json.loads((tmp_path / "rows.json").read_text())["rows"] == out["rows"]
+    # refused inputs, by name
+    np.savetxt(tmp_path / "tips2.csv", tips[:2], delimiter=",")
+    assert "2 tips for 5 clouds" in run(frames, "--tool-tips", tmp_path / "tips2.csv", *base, rc=2)
+    assert "--tool-tips FILE" in run(frames, *base, rc=2)
+    assert "not both" in run(frames, "--tool-tips", tmp_path / "tips.csv", "--tool-tip", 0, 0, 0, *base, rc=2)
+    assert "--mode cloud" in run(frames, "--tool-tips", tmp_path / "tips.csv", "--mode", "nodes", *base, rc=2)
+    assert "--threads" in run(frames, "--tool-tips", tmp_path / "tips.csv", "--threads", 0, *base, rc=2)
+    assert ".csv, .parquet or .json" in run(frames, "--tool-tips", tmp_path / "tips.csv", *base, "--out",
+                                            tmp_path / "rows.txt", rc=2)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert "no point-cloud files" in run(empty, "--tool-tips", tmp_path / "tips.csv", *base, rc=2)
+    node = parser.parse_args(["predict", "-m", trained("disp"), str(frames), "--tool-tips", str(tmp_path / "tips.csv"),
+                              "--exertion-point", "0", "0", "0", "--material", "0.002", "0.01"])
+    assert node.func(node) == 2 and "camera-cloud model" in capsys.readouterr().err
