@@ -94,7 +94,8 @@ def register(subparsers, *, fetch: Callable[..., str | Path] | None = None) -> a
                    help="a sequence of clouds: the tool tip of each cloud (robot kinematics), one x y z row per cloud "
                         "in the clouds' order (.csv, .npy; --units and --frame apply)")
     p.add_argument("--threads", type=int, default=1, metavar="N",
-                   help="a sequence of clouds: grid them in N threads at once (the compiled path; default 1)")
+                   help="a sequence of clouds: grid them in N threads at once (the compiled path; at most the cores; "
+                        "default 1)")
     p.add_argument("--unloaded", metavar="FILE",
                    help="camera-cloud models: the camera's cloud (.ply, .csv, .npy) of the same region before the tool "
                         "pushed, the tool touching at the exertion point (--units and --frame apply). The "
@@ -177,7 +178,9 @@ def _run(args) -> int:
         return 0
     if not args.points:
         return _error("give a point-cloud file (or --shards for batch prediction)")
-    sequence = len(args.points) > 1 or Path(args.points[0]).is_dir() or args.tool_tips is not None
+    from liverforce.serve.sequence import is_sequence
+
+    sequence = args.tool_tips is not None or is_sequence(args.points)
     if sequence and args.mode != "cloud":
         return _error("a sequence of files is predicted in --mode cloud (camera clouds) only; give one file for "
                       "--mode nodes or surface")
@@ -191,6 +194,8 @@ def _run(args) -> int:
         return _error("give --tool-tips (one tip per cloud) or --tool-tip (one for every cloud), not both")
     if args.threads < 1:
         return _error(f"--threads: need a whole number >= 1, got {args.threads}")
+    if args.threads != 1 and not sequence:
+        return _error("--threads grids a sequence of clouds at once; one cloud is predicted on one thread")
     overrides = {"exertion_point_mm": args.exertion_point, "material_params_mpa": args.material, "units": args.units}
     # file paths given here are relative to the working directory (a context file's own are relative to it)
     if args.frame:
@@ -200,6 +205,7 @@ def _run(args) -> int:
     if args.mesh:
         overrides["mesh"] = str(Path(args.mesh).absolute())
     preop, frame = read_context(args.context, predictor, overrides=overrides)
+    pts = None if sequence else frame.points(read_points(args.points[0]))
     info: dict = {"mode": args.mode}
     if (args.unloaded or args.contact_tip) and args.mode != "cloud":
         return _error("--unloaded and --contact-tip refine a camera cloud's registration: --mode cloud only")
@@ -214,7 +220,6 @@ def _run(args) -> int:
                                             shape_degree=args.shape_degree)
     if sequence:
         return _sequence(args, predictor, preop, frame, fix)
-    pts = frame.points(read_points(args.points[0]))
     if args.mode == "cloud":
         tip = None if args.tool_tip is None else frame.points(args.tool_tip)
         force, extra = predictor.predict_cloud(pts, preop, approximate=args.approximate, tool_tip_mm=tip,
@@ -257,7 +262,7 @@ def _sequence(args, predictor, preop, frame, fix) -> int:
 
     if args.out and Path(args.out).suffix.lower() not in (".csv", ".parquet", ".json"):
         return _error(f"--out {args.out}: a sequence's rows are written as .csv, .parquet or .json")
-    names, clouds = read_sequence(args.points)
+    names, clouds = read_sequence(args.points, skip=(args.tool_tips, args.out))  # if kept beside the clouds
     if args.tool_tips is not None:
         tips = read_tips(args.tool_tips, len(clouds))
     elif args.tool_tip is not None:

@@ -43,6 +43,12 @@ in a few loops over the points instead of NumPy temporaries:
    order), instead of the reference's dense LU; ``nearest`` fill goes back to
    the reference's function.
 
+A batch can be gridded in several threads (``predict_batch(threads=N)``): the
+batch is cut into ``N`` contiguous parts, each gridded by the kernel (which
+releases the GIL) with its own scratch arrays, and the head's blocks of
+``_HEAD_ROWS`` rows run in the threads too. Each cloud is gridded as it would
+be alone and the blocks are the same, so the results are the same bits.
+
 Indices into the arrays are unsigned where numba cannot see they are >= 0
 (it would otherwise emit the negative-index wrap, which stops LLVM from
 loading runs contiguously: the moments took 2.4x longer), and the pass lets
@@ -77,6 +83,7 @@ module.
 from __future__ import annotations
 
 import math
+import os
 from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
@@ -111,7 +118,7 @@ _CLOUD_TYPE = types.Array(types.float64, 2, "C", readonly=True)  # items of the 
 
 
 # --------------------------------------------------------------------------
-# compiled kernels (numba; serial and deterministic)
+# compiled kernels (numba; serial and deterministic; the batch entries release the GIL for predict_batch threads)
 # --------------------------------------------------------------------------
 
 
@@ -1190,6 +1197,14 @@ def instrument_params(sp) -> np.ndarray:
                     dtype=np.float64)
 
 
+def cores() -> int:
+    """The cores this process may run on (its CPU affinity where the platform tells it, else the CPU count)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - macOS, Windows
+        return max(1, os.cpu_count() or 1)
+
+
 def _check_size(n: int, what: str) -> None:
     """Refuse ``n`` points per cloud beyond the kernel's 32-bit sort keys and indices (``_MAX_POINTS``);
     ``what`` leads the message (e.g. ``"cloud: 12 points"``)."""
@@ -1612,9 +1627,10 @@ class CompiledCloud:
             array (B, N, 3) with ``counts``
         tool_tips : (B, 3), as the clouds (one per cloud; a single (3,) tip is used for every cloud)
         counts : (B,) points of each padded cloud (rows ``[:counts[b]]``; default all N)
-        threads : threads that grid the batch's clouds (default 1: this thread only). The gridding is most of a
-            batch's time and each cloud's is independent, so ``threads`` up to the cores free speed a batch up nearly
-            in proportion (``benchmarks/bench_camera.py --threads``); the results are the same bits
+        threads : threads that grid the batch's clouds and run the head (default 1: this thread only; at most
+            :func:`cores`, this process's cores). The gridding is most of a batch's time and each cloud's is
+            independent, so ``threads`` up to the cores free speed a batch up nearly in proportion
+            (``benchmarks/bench_camera.py --threads``); the results are the same bits
 
         Each cloud gives what :meth:`predict` gives it (bit for bit with an MLP, to rounding with a GP: module
         docstring); a cloud :meth:`predict` would refuse
@@ -1625,6 +1641,7 @@ class CompiledCloud:
         """
         if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 1:
             raise PredictionInputError(f"threads: need a whole number >= 1, got {threads!r}")
+        threads = min(int(threads), cores())  # more threads than cores only add switching
         tips = np.asarray(tool_tips, dtype=np.float64)
         B = len(clouds)
         if tips.ndim == 1 and tips.shape == (3,):

@@ -29,41 +29,68 @@ CLOUD_SUFFIXES = (".ply", ".csv", ".txt", ".xyz", ".npy")
 COMPONENTS = ("t1", "t2", "n")  # the interval's local components
 
 
-def _natural(name: str) -> list:
-    """Sort key: the digits as numbers (``frame_2`` before ``frame_10``)."""
-    return [int(p) if p.isdigit() else p for p in re.split(r"(\d+)", name)]
+def _natural(name: str) -> tuple:
+    """Sort key: runs of ASCII digits as numbers (``frame_2`` before ``frame_10``), then the name (``f01`` before
+    ``f1``: a total order, whatever order the folder lists them in)."""
+    return [int(p) if i % 2 else p for i, p in enumerate(re.split(r"([0-9]+)", name))], name
 
 
-def read_sequence(paths: list[str | Path]) -> tuple[list[str], list[np.ndarray]]:
+def _stack(path: Path) -> np.ndarray | None:
+    """The (T, N, 3) array of a ``.npy`` file of stacked clouds (memory-mapped), None for any other file."""
+    if path.suffix.lower() != ".npy" or not path.is_file():
+        return None
+    try:
+        arr = np.load(path, allow_pickle=False, mmap_mode="r")
+    except (ValueError, OSError) as exc:
+        raise PredictionInputError(f"{path}: cannot read the point clouds ({exc})") from None
+    return arr if arr.ndim == 3 else None
+
+
+def is_sequence(paths: list[str | Path]) -> bool:
+    """Whether ``paths`` (the command line's point files) are a sequence: several files, a folder, or one ``.npy``
+    of stacked clouds (T, N, 3)."""
+    return len(paths) > 1 or any(Path(p).is_dir() for p in paths) or _stack(Path(paths[0])) is not None
+
+
+def read_sequence(paths: list[str | Path], skip=()) -> tuple[list[str], list[np.ndarray]]:
     """The clouds of a sequence as given (the file's units and frame) and a name for each.
 
     ``paths``: several cloud files (in the order given); one folder (its ``.ply``, ``.csv``, ``.txt``, ``.xyz``
-    and ``.npy`` files in natural name order); or one ``.npy`` file of shape (T, N, 3) (names ``file.npy[k]``).
+    and ``.npy`` files in natural name order, but the files ``skip``: the tips and the output, if they are kept
+    there); or one ``.npy`` file of shape (T, N, 3) (names ``file.npy[k]``).
     """
     paths = [Path(p) for p in paths]
     if len(paths) == 1 and paths[0].is_dir():
-        files = sorted((f for f in paths[0].iterdir() if f.is_file() and f.suffix.lower() in CLOUD_SUFFIXES),
-                       key=lambda f: _natural(f.name))
+        folder = paths[0]
+        skip = {Path(p).resolve() for p in skip if p is not None}
+        files = sorted((f for f in paths[0].iterdir() if f.is_file() and f.suffix.lower() in CLOUD_SUFFIXES
+                        and f.resolve() not in skip), key=lambda f: _natural(f.name))
         if not files:
             raise PredictionInputError(f"{paths[0]}: no point-cloud files ({', '.join(CLOUD_SUFFIXES)}) in this folder")
-        paths = files
-    if len(paths) == 1 and paths[0].suffix.lower() == ".npy" and paths[0].is_file():
         try:
-            stack = np.load(paths[0], allow_pickle=False, mmap_mode="r")
-        except (ValueError, OSError) as exc:
-            raise PredictionInputError(f"{paths[0]}: cannot read the point clouds ({exc})") from None
-        if stack.ndim == 3:
-            if stack.shape[2] != 3 or not np.issubdtype(stack.dtype, np.number):
-                raise PredictionInputError(f"{paths[0]}: a stack of clouds must have shape (T, N, 3), got "
-                                           f"{stack.shape}")
-            return ([f"{paths[0].name}[{k}]" for k in range(stack.shape[0])],
-                    [np.asarray(c, dtype=np.float64) for c in stack])
+            return [f.name for f in files], [read_points(f) for f in files]
+        except PredictionInputError as exc:
+            raise PredictionInputError(f"{exc}. A sequence's folder is read as its clouds: keep only the clouds "
+                                       f"in {folder} (the tips and the output may stay), or name the cloud "
+                                       "files") from None
+    stack = _stack(paths[0]) if len(paths) == 1 else None
+    if stack is not None:
+        if stack.shape[0] == 0 or stack.shape[2] != 3 or not np.issubdtype(stack.dtype, np.number):
+            raise PredictionInputError(f"{paths[0]}: a stack of clouds must have shape (T, N, 3) with T >= 1, got "
+                                       f"{stack.shape}")
+        return ([f"{paths[0].name}[{k}]" for k in range(stack.shape[0])],
+                [np.asarray(c, dtype=np.float64) for c in stack])
     return [p.name for p in paths], [read_points(p) for p in paths]
 
 
 def read_tips(path: str | Path, n: int) -> np.ndarray:
     """The tool tip of each of ``n`` clouds: ``n`` rows of x, y, z (``.csv``/``.txt``/``.npy``, as given)."""
-    tips = read_points(path)
+    if not Path(path).is_file():
+        raise PredictionInputError(f"--tool-tips {path}: no such file of tool tips")
+    try:
+        tips = read_points(path)
+    except PredictionInputError as exc:
+        raise PredictionInputError(f"--tool-tips: {str(exc).replace('point cloud', 'tool tips')}") from None
     if len(tips) != n:
         raise PredictionInputError(f"--tool-tips {path}: {len(tips)} tips for {n} clouds; give one x y z row per "
                                    "cloud, in the clouds' order")

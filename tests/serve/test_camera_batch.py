@@ -306,13 +306,12 @@ def test_a_batch_gridded_in_threads_gives_the_same_bits(served, monkeypatch):
     items = _clouds(a)
     clouds = [c for c, _ in items] + [items[0][0][:5], np.ones((4, 2))]  # two refused: too few points, not (n, 3)
     tips = np.stack([t for _, t in items] + [items[0][1]] * 2)
-    parts = []
+    parts, blocks = [], []
     real = compiled_cloud.ThreadPoolExecutor
 
     class Counting(real):
         def submit(self, fn, *args):
-            if fn.__name__ == "part":  # the gridding's parts (the head's blocks: below)
-                parts.append(args)
+            (parts if fn.__name__ == "part" else blocks).append(args)  # the gridding's parts, the head's blocks
             return super().submit(fn, *args)
 
     monkeypatch.setattr(compiled_cloud, "ThreadPoolExecutor", Counting)
@@ -323,13 +322,18 @@ def test_a_batch_gridded_in_threads_gives_the_same_bits(served, monkeypatch):
         np.testing.assert_array_equal(many.force, one.force)
         np.testing.assert_array_equal(many.half_width, one.half_width)
         assert many.refused == one.refused and many.warnings == one.warnings
-    # 2 parts, 3, then one per cloud: each a contiguous run, together every gridded cloud once (the one that is
-    # not (n, 3) never reaches the kernel; the 5 points are refused after the gridding)
+    # as many parts as threads, at most the cores (and clouds): each a contiguous run, together every gridded
+    # cloud once (the one that is not (n, 3) never reaches the kernel; the 5 points are refused after it)
     n_grid = len(clouds) - 1
-    for cut in (parts[:2], parts[2:5], parts[5:]):
+    sizes = [min(t, compiled_cloud.cores(), n_grid) for t in (2, 3, 40)]
+    cuts, at = [], 0
+    for k in sizes:
+        cuts.append(parts[at:at + k])
+        at += k
+    assert at == len(parts) and not blocks  # one block of the head: run where it is
+    for cut in (c for c in cuts if len(c) > 1):
         assert [s for s, _ in cut] == [0] + [e for _, e in cut[:-1]] and cut[-1][1] == n_grid
         assert max(e - s for s, e in cut) - min(e - s for s, e in cut) <= 1
-    assert len(parts) == 5 + n_grid
     N = max(len(c) for c in clouds[:len(items)])
     pad = np.full((len(items), N, 3), np.nan)
     for k, c in enumerate(clouds[:len(items)]):
@@ -337,16 +341,24 @@ def test_a_batch_gridded_in_threads_gives_the_same_bits(served, monkeypatch):
     n = [len(c) for c in clouds[:len(items)]]
     np.testing.assert_array_equal(fast.predict_batch(pad, tips[:len(items)], counts=n, threads=2).force,
                                   fast.predict_batch(pad, tips[:len(items)], counts=n).force)
+    # a padded array in another layout: converted a chunk (_CHUNK clouds) at a time, each chunk in threads
+    fort = np.asfortranarray(np.concatenate([pad] * (compiled_cloud._CHUNK // len(items) + 2)))
+    n_f, tips_f = n * (len(fort) // len(items)), np.resize(tips[:len(items)], (len(fort), 3))
+    np.testing.assert_array_equal(fast.predict_batch(fort, tips_f, counts=n_f, threads=2).force,
+                                  fast.predict_batch(fort, tips_f, counts=n_f).force)
     assert compiled_cloud._grid_list.targetoptions["nogil"] and compiled_cloud._grid_clouds.targetoptions["nogil"]
     # a batch of more than one block of the head (_HEAD_ROWS): the blocks in threads too, the same bits
     big = (clouds * (2 * compiled_cloud._HEAD_ROWS // len(clouds) + 1))[:2 * compiled_cloud._HEAD_ROWS + 5]
     tips_big = np.resize(tips, (len(big), 3))
     one = fast.predict_batch(big, tips_big)
+    blocks.clear()
     for threads in (2, 3):
         many = fast.predict_batch(big, tips_big, threads=threads)
         np.testing.assert_array_equal(many.force, one.force)
         np.testing.assert_array_equal(many.half_width, one.half_width)
         assert many.refused == one.refused
+    if compiled_cloud.cores() > 1:  # the head's blocks of the predicted clouds, each run in the pool
+        assert len(blocks) == 2 * -(-int(one.ok.sum()) // compiled_cloud._HEAD_ROWS) >= 4
     for bad in (0, -1, 1.5, True, "2"):
         with pytest.raises(PredictionInputError, match="threads"):
             fast.predict_batch(clouds, tips, threads=bad)

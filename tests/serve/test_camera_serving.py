@@ -550,7 +550,7 @@ def test_cli_predicts_a_recorded_sequence_of_clouds(served, tmp_path, capsys, tr
     # one (T, N, 3) stack, 2 threads, the reference path: the same rows
     np.save(tmp_path / "stack.npy", np.stack([c[:800] for c in clouds[:4]]) * lps / 1000.0)
     stack = run(tmp_path / "stack.npy", "--tool-tips", tmp_path / "tips4.npy", *base, rc=2)
-    assert "no such point-cloud file" in stack
+    assert "--tool-tips" in stack and "no such file of tool tips" in stack
     np.save(tmp_path / "tips4.npy", tips[:4] * lps / 1000.0)
     stack = run(tmp_path / "stack.npy", "--tool-tips", tmp_path / "tips4.npy", *base, "--threads", "2")
     ref = run(tmp_path / "stack.npy", "--tool-tips", tmp_path / "tips4.npy", *base, "--reference")
@@ -561,9 +561,20 @@ def test_cli_predicts_a_recorded_sequence_of_clouds(served, tmp_path, capsys, tr
         np.testing.assert_allclose([r["fx_n"], r["fy_n"], r["fz_n"]], want * lps, atol=1e-6)
         np.testing.assert_allclose([q["fx_n"], q["fy_n"], q["fz_n"]], want * lps, atol=1e-9)
         assert r["warnings"] == q["warnings"]
-    # the rows written: .csv, .parquet, .json
+    # a stack with one tip for every cloud (the tool held still) is a sequence too
+    still = run(tmp_path / "stack.npy", "--tool-tip", *(tips[0] * lps / 1000), *base)
+    assert still["clouds"] == 4 and [r["cloud"] for r in still["rows"]] == [r["cloud"] for r in stack["rows"]]
+    # the rows written: .csv, .parquet, .json; the tips and the rows kept in the clouds' folder are not clouds
     files = [run(frames, "--tool-tips", tmp_path / "tips.csv", *base, "--out", tmp_path / f"rows.{e}")["out"]
              for e in ("csv", "parquet", "json")]
+    (frames / "tips.csv").write_text((tmp_path / "tips.csv").read_text())
+    for _ in range(2):  # run again: the rows it wrote are skipped too
+        again = run(frames, "--tool-tips", frames / "tips.csv", *base, "--out", frames / "rows.csv")
+        assert again["clouds"] == 5 and (frames / "rows.csv").read_text() == (tmp_path / "rows.csv").read_text()
+    err = run(frames, "--tool-tips", frames / "tips.csv", *base, rc=2)  # another file there: named, and what to do
+    assert "rows.csv" in err and "keep only the clouds" in err
+    (frames / "rows.csv").unlink()
+    (frames / "tips.csv").unlink()
     for f in files[:2]:
         df = pd.read_csv(f) if f.endswith(".csv") else pd.read_parquet(f)
         assert list(df["cloud"]) == [r["cloud"] for r in out["rows"]]
@@ -578,6 +589,10 @@ def test_cli_predicts_a_recorded_sequence_of_clouds(served, tmp_path, capsys, tr
     assert "not both" in run(frames, "--tool-tips", tmp_path / "tips.csv", "--tool-tip", 0, 0, 0, *base, rc=2)
     assert "--mode cloud" in run(frames, "--tool-tips", tmp_path / "tips.csv", "--mode", "nodes", *base, rc=2)
     assert "--threads" in run(frames, "--tool-tips", tmp_path / "tips.csv", "--threads", 0, *base, rc=2)
+    assert "one cloud is predicted on one thread" in run(frames / "f1.npy", "--tool-tip", 0, 0, 0, "--threads", 2,
+                                                          *base, rc=2)
+    np.save(tmp_path / "none.npy", np.zeros((0, 10, 3)))
+    assert "T >= 1" in run(tmp_path / "none.npy", "--tool-tip", 0, 0, 0, *base, rc=2)
     assert ".csv, .parquet or .json" in run(frames, "--tool-tips", tmp_path / "tips.csv", *base, "--out",
                                             tmp_path / "rows.txt", rc=2)
     empty = tmp_path / "empty"

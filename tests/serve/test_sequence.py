@@ -53,3 +53,13 @@ def test_a_stack_of_clouds_and_the_refusals(tmp_path):
     assert read_tips(tmp_path / "tips.csv", 3).shape == (3, 3)
     with pytest.raises(PredictionInputError, match="3 tips for 2 clouds"):
         read_tips(tmp_path / "tips.csv", 2)
+
+
+def test_natural_order_is_total_and_takes_only_ascii_digits(tmp_path):
+    from liverforce.serve.sequence import _natural
+
+    names = ["f1.npy", "f01.npy", "f10.npy", "f2.npy", "cam1\u00b2.npy"]
+    for n in names:
+        np.save(tmp_path / n, np.zeros((2, 3)))
+    got, _ = read_sequence([tmp_path])
+    assert got == sorted(names, key=_natural) == ["cam1\u00b2.npy", "f01.npy", "f1.npy", "f2.npy", "f10.npy"]
