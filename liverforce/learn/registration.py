@@ -213,7 +213,7 @@ def _shape_basis(u, v, degree: int, extent: float) -> np.ndarray:
     return np.column_stack([u ** (d - j) * v**j for d in range(degree + 1) for j in range(d + 1)])
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)  # CompiledCloud reshapes a batch's parts in threads
 def _reshape(X, o, R, c, extent, out):
     """``out[i] = X[i] - p(u_i, v_i) n`` in one pass, ``(u, v)`` the tangent coordinates of ``X[i]`` in the frame
     ``o``, ``R`` (rows ``t1, t2, n``) clamped as :func:`_shape_basis` clamps them, ``p`` its polynomial with the

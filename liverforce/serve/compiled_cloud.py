@@ -1379,9 +1379,6 @@ class CompiledCloud:
         the input frame, if any). ``threads`` > 1: the batch cut into that many contiguous parts, gridded at once in
         as many threads (the kernel releases the GIL; every cloud gets the same bits as alone)."""
         B = len(P) if starts is None else len(starts)
-        if self._reshape is not None:  # not a rigid map: the points in the model's frame, reshaped, for the kernel
-            tips = np.ascontiguousarray(self._model(tips))
-            P = [np.ascontiguousarray(self._model(c)) for c in P] if starts is None else self._model(P)
         sp = self.spec
         X = np.empty((B, self.n_features))
         n_used = np.zeros(B, dtype=np.int64)
@@ -1394,13 +1391,18 @@ class CompiledCloud:
 
             def part(a: int, e: int) -> None:  # clouds [a, e): their own rows of the outputs (views, no copy)
                 out = (X[a:e], n_used[a:e], n_bad[a:e], n_tool[a:e])
+                shaped = self._reshape is not None  # not a rigid map: the points in the model's frame, reshaped
+                t = np.ascontiguousarray(self._model(tips[a:e])) if shaped else tips[a:e]
                 if starts is None:
                     clouds = List.empty_list(_CLOUD_TYPE)
                     for c in P[a:e]:
-                        clouds.append(c)
-                    _grid_list(clouds, tips[a:e], *params, *out)
+                        clouds.append(np.ascontiguousarray(self._model(c)) if shaped else c)
+                    _grid_list(clouds, t, *params, *out)
+                elif shaped:  # the part's rows only, converted in this thread
+                    s0, s1 = int(starts[a:e].min()), int((starts[a:e] + counts[a:e]).max())
+                    _grid_clouds(self._model(P[s0:s1]), starts[a:e] - s0, counts[a:e], t, *params, *out)
                 else:
-                    _grid_clouds(P, starts[a:e], counts[a:e], tips[a:e], *params, *out)
+                    _grid_clouds(P, starts[a:e], counts[a:e], t, *params, *out)
 
             cuts = np.linspace(0, B, min(threads, B) + 1).round().astype(int)
             if len(cuts) <= 2:

@@ -262,6 +262,11 @@ def test_a_liver_changed_in_shape_since_the_scan_is_read_against_its_unloaded_vi
             with pytest.raises(PredictionInputError) as why:
                 pred.predict_cloud(cloud2[:3], ctx, tool_tip_mm=tip2, registration=fix)
             assert blist.refused[1] == b32.refused[2] == str(why.value)
+            # in threads each part is reshaped in its own thread: the same bits
+            for clouds, kw in ((pad, {"counts": [len(cloud2), len(with_nan), 3]}), ([cloud2, cloud2[:3], cloud2], {})):
+                one, two = (fast.predict_batch(clouds, [tip2] * 3, threads=n, **kw) for n in (1, 2))
+                np.testing.assert_array_equal(two.force, one.force)
+                assert two.refused == one.refused
             lps = np.diag([-1.0, -1.0, 1.0])
             fast = pred.compile_cloud(ctx, frame="LPS", units="m", registration=fix)
             np.testing.assert_allclose(fast.predict(cloud2 @ lps / 1000.0, lps @ tip2 / 1000.0)[0], lps @ got,
