@@ -235,7 +235,7 @@ def _workspace(nmax, g, kr):
     tb = 16  # duplicate filter: a bit table of >= 16 bits per point
     while (1 << tb) < 16 * nmax:
         tb += 1
-    return (np.empty(nmax), np.empty(nmax), np.empty(nmax),  # U, V, W: local frame of the kept points
+    return (np.empty(nmax), np.empty(nmax), np.empty(nmax),  # U, V, W: local frame (every point, then the kept)
             np.empty(nmax), np.empty(nmax), np.empty(nmax), np.empty(nmax, dtype=np.int32),  # GU, GV, Z, key
             np.empty(nmax), np.empty(nmax), np.empty(nmax, dtype=np.uint64),  # raster cell offsets, index (A: then
             np.empty(nmax, dtype=np.int64),  # the tilted fit's scratch); duplicate filter's hash (then its raised list)
@@ -865,8 +865,10 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
     tp0, tp1, tp2 = tip[0] - o0, tip[1] - o1, tip[2] - o2
     tu = tp0 * r00 + tp1 * r01 + tp2 * r02  # the tip's tangential position: the axis of the shaft check
     tv = tp0 * r10 + tp1 * r11 + tp2 * r12
-    # 1. every point: local frame; not finite (a NaN or inf coordinate makes u NaN or inf) and over the grid
-    #    (the refusal checks); the points within the kernel's reach compacted in their order (branch-free).
+    # 1. every point: local frame (a pass of its own, which LLVM vectorises); not finite (a NaN or inf
+    #    coordinate makes u NaN or inf) and over the grid (the refusal checks); the points within the kernel's
+    #    reach compacted in their order, in place (branch-free: a branch mispredicts on a camera's point order).
+    #    The two passes take 19 us against 23 us in one for 5,300 points (the benchmark's distinct clouds, AVX2).
     #    Unsigned indices here and below: numba then skips the negative-index wrap and LLVM can vectorise.
     m = np.uint64(0)
     nu = 0
@@ -877,14 +879,19 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
         d0 = P[row, 0] - o0
         d1 = P[row, 1] - o1
         d2 = P[row, 2] - o2
-        u = d0 * r00 + d1 * r01 + d2 * r02
-        v = d0 * r10 + d1 * r11 + d2 * r12
+        U[k] = d0 * r00 + d1 * r01 + d2 * r02
+        V[k] = d0 * r10 + d1 * r11 + d2 * r12
+        Wl[k] = d0 * r20 + d1 * r21 + d2 * r22
+    for k in range(n):
+        u = U[k]
+        v = V[k]
+        w = Wl[k]
         nb += (u - u) != 0.0
         e = max(abs(u), abs(v))  # not finite (u and v both are) for a point with a NaN or inf: never counted
         nu += e <= reach_count
-        U[m] = u
+        U[m] = u  # m <= k: read before it is overwritten
         V[m] = v
-        Wl[m] = d0 * r20 + d1 * r21 + d2 * r22
+        Wl[m] = w
         m += np.uint64(e < reach)
     tb = 16
     while (1 << tb) < 16 * m:
