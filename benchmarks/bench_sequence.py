@@ -5,7 +5,8 @@ run's own camera model (``<results>/models/IV/cloud_sv/model``, a GP over the ru
 of the unseen livers (``<results>/shards/V``, its mesh from ``<results>/mesh``): ``--distinct`` clouds of it
 are observed as the evaluation's camera sees them (``--points`` liver points, 0.5 mm noise, the instrument in
 the cloud), the FE displacement scaled from 0 to 1 and back (the tool pressing in and out, a stand-in for a
-recording), each tip with 0.5 mm of kinematic noise; the batch repeats them to ``--clouds`` clouds. It times
+recording), each tip with 0.5 mm of kinematic noise; the batch repeats them to ``--clouds`` clouds. The
+pre-operative context is the case's own (its shard row: ROI, frame, state), as the validation reads it. It times
 ``CompiledCloud.predict_batch`` on 1 and ``--threads`` threads, interleaved, ``--repeats`` times, and prints
 the medians per cloud and in clouds/s, and whether the forces are the same bits.
 
@@ -34,8 +35,7 @@ import numpy as np  # noqa: E402
 
 from liverforce.learn.observation import ObservationConfig, observe  # noqa: E402
 from liverforce.pipeline.shared import run_arrays  # noqa: E402
-from liverforce.serve import Predictor  # noqa: E402
-from liverforce.serve.files import read_context  # noqa: E402
+from liverforce.serve import Predictor, Preop  # noqa: E402
 
 
 def main() -> None:
@@ -58,9 +58,7 @@ def main() -> None:
     tips = np.array([tips[k % len(tips)] for k in range(ARGS.clouds)])
     model_dir = f"{ARGS.results}/models/IV/cloud_sv/model"
     pred = Predictor.load(model_dir)
-    preop, _ = read_context(None, pred, overrides={
-        "mesh": f"{ARGS.results}/mesh/{geo}.vtu", "exertion_point_mm": p.tolist(),
-        "material_params_mpa": [float(c) for c in a["material_params_mpa"][i]], "units": None})
+    preop = Preop.from_arrays({k: v for k, v in a.items() if k != "roi_deformed_mm"}, i)  # the case's own context
     fast = pred.compile_cloud(preop)
     counts = (1, ARGS.threads)
     first = {n: fast.predict_batch(clouds, tips, threads=n) for n in counts}  # also the warm-up
