@@ -134,6 +134,12 @@ def register(subparsers, *, fetch: Callable[..., str | Path] | None = None) -> a
     return p
 
 
+def _frame_label(frame) -> str:
+    """The output's ``frame``: the frame its forces are given in."""
+    return ("liver (source) frame of the inputs" if frame.identity
+            else f"the inputs' frame ({'a 4x4 matrix' if frame.label == 'matrix' else frame.label})")
+
+
 def _error(msg: str) -> int:
     print(f"liverforce predict: error: {msg}", file=sys.stderr)
     return 2
@@ -234,8 +240,7 @@ def _run(args) -> int:
         info["warnings"] = predictor.context_warnings(preop)
     force_in = frame.vectors_out(force)
     doc = {"force_n": [float(v) for v in force_in], "magnitude_n": float(np.linalg.norm(force)),
-           "frame": ("liver (source) frame of the inputs" if frame.identity
-                     else f"the inputs' frame ({'a 4x4 matrix' if frame.label == 'matrix' else frame.label})"),
+           "frame": _frame_label(frame),
            "input_frame": frame.describe(), "model": predictor.source}
     if not frame.same_axes:
         doc["force_n_model"] = [float(v) for v in force]  # RAS, the frame the liver was meshed in
@@ -274,8 +279,7 @@ def _sequence(args, predictor, preop, frame, fix) -> int:
                                      reference=args.reference)
     rows = [{"cloud": name, **row} for name, row in zip(names, rows)]
     plain = [{k: None if isinstance(v, float) and v != v else v for k, v in r.items()} for r in rows]  # JSON: null
-    summary.update({"frame": ("liver (source) frame of the inputs" if frame.identity else
-                              f"the inputs' frame ({'a 4x4 matrix' if frame.label == 'matrix' else frame.label})"),
+    summary.update({"frame": _frame_label(frame),
                     "input_frame": frame.describe(), "model": predictor.source,
                     "context_warnings": predictor.context_warnings(preop)})
     if fix is not None:

@@ -214,9 +214,11 @@ def _bins(g, kr):
 @njit(cache=True)
 def _bin_key(gu, gv, sb, pad, nc):
     """Bin of grid-index coordinates ``(gu, gv)`` (clamped to the bins; a kept point never is): bin row ``r``,
-    column ``c``; key ``(r // sb, c, r % sb)`` row-major (groups of ``sb`` rows, column by column within one)."""
-    r = min(max(int(math.floor(gv * sb)) + pad, 0), nc - 1)
-    c = min(max(int(math.floor(gu * sb)) + pad, 0), nc - 1)
+    column ``c``; key ``(r // sb, c, r % sb)`` row-major (groups of ``sb`` rows, column by column within one).
+    32-bit conversions (a kept point's ``gu sb``, ``gv sb`` are within the bins): AVX2 has no vector conversion
+    of a double to a 64-bit integer, and :func:`_grid_one`'s pass over the kept points vectorises with these."""
+    r = min(max(np.int32(math.floor(gv * sb)) + pad, 0), nc - 1)
+    c = min(max(np.int32(math.floor(gu * sb)) + pad, 0), nc - 1)
     return _key(r, c, sb, nc)
 
 
@@ -913,8 +915,7 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
         gv = (v + h) * inv_gstep
         GU[t] = gu
         GV[t] = gv
-        key[t] = _key(min(max(np.int32(math.floor(gv * sb)) + pad, 0), nc - 1),  # _bin_key, in 32 bits
-                      min(max(np.int32(math.floor(gu * sb)) + pad, 0), nc - 1), sb, nc)
+        key[t] = _bin_key(gu, gv, sb, pad, nc)
         HB[t] = (np.int64(np.int32(gu * 4096.0)) * _H1  # duplicate filter: equal points, equal bits
                  + np.int64(np.int32(gv * 4096.0)) * _H2) & mask
     shaft_r2, ring_r2, shaft_rise, shaft_min = shaft[0], shaft[1], shaft[2], shaft[3]
@@ -1212,6 +1213,18 @@ def cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+def _in_threads(fn, calls: list, threads: int) -> None:
+    """``fn(*args)`` for each ``args`` of ``calls``, at most ``threads`` at once in a pool (the compiled passes and
+    BLAS release the GIL; each call writes its own rows), or here, in order, when one thread suffices."""
+    if threads <= 1 or len(calls) <= 1:
+        for args in calls:
+            fn(*args)
+        return
+    with ThreadPoolExecutor(min(threads, len(calls))) as pool:
+        for _ in pool.map(fn, *zip(*calls)):  # raises a call's exception here
+            pass
+
+
 def _check_size(n: int, what: str) -> None:
     """Refuse ``n`` points per cloud beyond the kernel's 32-bit sort keys and indices (``_MAX_POINTS``);
     ``what`` leads the message (e.g. ``"cloud: 12 points"``)."""
@@ -1411,13 +1424,8 @@ class CompiledCloud:
                 else:
                     _grid_clouds(P, starts[a:e], counts[a:e], t, *params, *out)
 
-            cuts = np.linspace(0, B, min(threads, B) + 1).round().astype(int)
-            if len(cuts) <= 2:
-                part(0, B)
-            else:  # the kernel releases the GIL: one contiguous part of the batch per thread, each cloud as alone
-                with ThreadPoolExecutor(len(cuts) - 1) as pool:
-                    for f in [pool.submit(part, a, e) for a, e in zip(cuts[:-1], cuts[1:])]:
-                        f.result()
+            cuts = np.linspace(0, B, min(threads, B) + 1).round().astype(int)  # one contiguous part per thread
+            _in_threads(part, list(zip(cuts[:-1], cuts[1:])), threads)
             if sp.fill == "nearest":
                 g, gg = self.g, self.g * self.g
                 for r in range(B):
@@ -1552,15 +1560,13 @@ class CompiledCloud:
         F = np.full((len(X), 3), np.nan)
         rows = np.flatnonzero(ok)
         every = len(rows) == len(X)  # then blocks of rows are views, not copies
-        blocks = [slice(a, a + _HEAD_ROWS) if every else rows[a:a + _HEAD_ROWS]
+        blocks = [(slice(a, a + _HEAD_ROWS) if every else rows[a:a + _HEAD_ROWS],)
                   for a in range(0, len(rows), _HEAD_ROWS)]
-        if threads > 1 and len(blocks) > 1:  # BLAS and the compiled passes release the GIL
-            with ThreadPoolExecutor(min(threads, len(blocks))) as pool:
-                for r, f in zip(blocks, pool.map(lambda r: self._head(X[r]), blocks)):
-                    F[r] = f
-            return F
-        for r in blocks:
+
+        def block(r) -> None:  # its own rows of F
             F[r] = self._head(X[r])
+
+        _in_threads(block, blocks, threads)
         return F
 
     def _half(self, F: np.ndarray) -> np.ndarray | None:
