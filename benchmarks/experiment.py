@@ -52,7 +52,7 @@ class PipelineTraining:
         liver, ``cv_mae_n``) on ``cv_splits`` seeded splits (the main split, then the repeats' split seeds, each
         trained as its own run; what a default is chosen on; 0: not reported), the test accuracy per split over
         ``train.repeats``, the main split's test MAE per local component (:func:`local_test_mae`), and for IV the
-        unseen livers' MAE (the main split's model)."""
+        unseen livers' MAE (the saved model: with ``train.final_fit``, refitted on every case of the scenario)."""
         import time
 
         import numpy as np

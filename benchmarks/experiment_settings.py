@@ -10,8 +10,8 @@ shards (``--results``), through the pipeline's own
   ``train.repeats``), each split trained as its own run. A default is chosen on
   this alone: no test or unseen liver enters it.
 - **test accuracy** over the pipeline's ``train.repeats`` seeded splits, per split;
-- for IV, **the unseen livers' MAE** (mean +- sd over livers; the main split's model,
-  the one the validation scores).
+- for IV, **the unseen livers' MAE** (mean +- sd over livers; the saved model, the one
+  the validation scores: with ``train.final_fit``, refitted on every IV case).
 
 ::
 

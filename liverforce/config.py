@@ -229,6 +229,7 @@ class GPConfig:
     kernel: str = MISSING  # rational_quadratic | squared_exponential (liverforce.learn.gp)
     shape: Optional[float] = MISSING  # the rational quadratic's a; null: fitted by the marginal likelihood
     per_output: bool = MISSING  # one kernel per force component (own length scales and variances)
+    noise_floor: float = MISSING  # the least noise variance (standardised targets), in the likelihood and posterior
 
 
 @dataclass
@@ -850,6 +851,9 @@ def _check_model(mo: dict, key: str) -> None:
         _fail(f"{key}.gp.shape",
               f"the rational quadratic's shape must be a finite number > 0 (got {mo['gp']['shape']})",
               "or null to fit it by the marginal likelihood")
+    if not (math.isfinite(mo["gp"]["noise_floor"]) and mo["gp"]["noise_floor"] >= 0):
+        _fail(f"{key}.gp.noise_floor", f"must be a finite variance >= 0 (got {mo['gp']['noise_floor']})",
+              "0 leaves the noise variance to the marginal likelihood alone")
     if mo["gp"]["per_output"] and mo["gp"]["kernel"] == "rational_quadratic" and mo["gp"]["shape"] is None:
         _fail(f"{key}.gp.per_output", "one kernel per force component needs a fixed rational-quadratic shape "
               "(gp.shape null: fitted)", "set model.gp.shape to a number (2 is the default) or per_output false")

@@ -103,7 +103,7 @@ def test_a_variant_changes_only_the_keys_of_a_group_it_names():
 
     cfg = compose([])
     cloud = Plan(cfg).variants()["cloud_sv"]
-    assert cloud["gp"] == {**cfg["model"]["gp"], "code_members": [8, 16, 32, 48, 64]}
+    assert cloud["gp"] == {**cfg["model"]["gp"], "code_members": [8, 16, 32, 48, 64], "noise_floor": 0.003}
     assert cloud["gp"]["kernel"] == "rational_quadratic" and cloud["gp"]["shape"] == 2.0
     assert cloud["gp"]["max_points"] == cfg["model"]["gp"]["max_points"]
     assert Plan(cfg).variants()["pca_sv"]["gp"] == cfg["model"]["gp"]

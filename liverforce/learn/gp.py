@@ -315,11 +315,12 @@ def _kernel(A, B, inv_length, signal_var, linear_var, shape: float = math.inf):
 
 def neg_log_likelihood(X: torch.Tensor, Y: torch.Tensor, log_l: torch.Tensor, log_sf: torch.Tensor,
                        log_sl: torch.Tensor, log_sn: torch.Tensor, log_a: torch.Tensor | None = None, *,
-                       gradient: bool = True, shape_gradient: bool = True):
+                       gradient: bool = True, shape_gradient: bool = True, noise_floor: float = 0.0):
     """Negative log marginal likelihood per row and output of ``Y (n, m)`` given ``X (n, d)``, its gradient
     with respect to ``(log_l, log_sf, log_sl, log_sn[, log_a])`` (raw parameters of :func:`fit_gp`: ``l =
     MIN_LENGTH + exp(log_l)``, variances ``exp(2 log_s)``, the rational-quadratic shape ``a = exp(log_a)``;
     ``log_a`` None: the squared exponential) and ``alpha = K^-1 Y``; None where ``K`` is not positive definite.
+    ``noise_floor``: a fixed variance added to the fitted noise variance ``exp(2 log_sn)`` (:func:`fit_gp`).
     ``shape_gradient=False``: the shape is fixed, its derivative is not computed (four gradients).
 
     The gradient is the closed form (Rasmussen & Williams 2006, eq. 5.9) summed over the outputs::
@@ -350,7 +351,7 @@ def neg_log_likelihood(X: torch.Tensor, Y: torch.Tensor, log_l: torch.Tensor, lo
         P = torch.pow(B, -a) if fast else torch.exp(-a * logB)
     XX = X @ X.T
     K = sf2 * P + sl2 * XX
-    K.diagonal().add_(sn2 + JITTER)
+    K.diagonal().add_(sn2 + JITTER + noise_floor)
     L, info = torch.linalg.cholesky_ex(K)
     if int(info) != 0:
         return None
@@ -379,7 +380,7 @@ def neg_log_likelihood(X: torch.Tensor, Y: torch.Tensor, log_l: torch.Tensor, lo
 def fit_gp(z: np.ndarray, y: np.ndarray, *, seed: int, max_points: int = 2000,
            iterations: int = 200, groups: np.ndarray | None = None,
            kernel: str = "rational_quadratic", shape: float | None = 2.0,
-           per_output: bool = False) -> tuple[GPRegressor, dict]:
+           per_output: bool = False, noise_floor: float = 0.0) -> tuple[GPRegressor, dict]:
     """Fit the GP of the module docstring to ``z (n, d) -> y (n, k)`` (standardised); returns ``(gp, info)``.
 
     ``kernel``: ``rational_quadratic`` or ``squared_exponential``. ``shape``: the rational quadratic's
@@ -399,6 +400,12 @@ def fit_gp(z: np.ndarray, y: np.ndarray, *, seed: int, max_points: int = 2000,
     twin views exactly: the noise variance falls to the jitter and the GP interpolates the input noise
     (seen on scenario IV with a tool tip noisy along the normal only: test accuracy 72 % against
     87 % with one row per case; ``tests/learn/test_gp.py`` reproduces it on synthetic data).
+
+    ``noise_floor`` (``model.gp.noise_floor``, in the standardised targets' variance): the noise variance is
+    at least this, in the likelihood and in the posterior alike (the fitted variance is added to it). A camera
+    model's inputs are noisy while its FE targets are not: on one view per case the likelihood sends the noise
+    variance to the jitter, and the posterior over every view then interpolates each case's views, which
+    differ only by the observation's noise, exactly (``config/train/default.yaml``, the camera variant).
 
     ``info``: ``n_used`` (rows after the ``max_points`` cap, a subset drawn with ``seed``),
     ``n_likelihood`` (rows of the likelihood), ``nll`` (negative log marginal likelihood per row and
@@ -423,6 +430,8 @@ def fit_gp(z: np.ndarray, y: np.ndarray, *, seed: int, max_points: int = 2000,
         raise ValueError("fit_gp: non-finite training inputs or targets")
     if int(max_points) < 2:
         raise ValueError(f"model.gp.max_points must be at least 2, got {max_points}")
+    if not (math.isfinite(float(noise_floor)) and float(noise_floor) >= 0):
+        raise ValueError(f"model.gp.noise_floor must be a finite variance >= 0, got {noise_floor}")
     if groups is not None:
         groups = np.asarray(groups)
         if groups.shape != (len(z),):
@@ -443,21 +452,23 @@ def fit_gp(z: np.ndarray, y: np.ndarray, *, seed: int, max_points: int = 2000,
             Xh, Yh = X[first], Y[first]
     # one fit for the shared kernel, or one per output (its own length scales and variances, own likelihood)
     parts = [slice(k, k + 1) for k in range(Y.shape[1])] if per_output else [slice(None)]
-    fits = [_fit_hyper(X, Y[:, c], Xh, Yh[:, c], kernel, shape, iterations) for c in parts]
+    fits = [_fit_hyper(X, Y[:, c], Xh, Yh[:, c], kernel, shape, iterations, float(noise_floor)) for c in parts]
     raw = [torch.stack([f[0][i] for f in fits]) if per_output else fits[0][0][i] for i in range(4)]
     log_a = fits[0][1]
     shape = math.inf if log_a is None else float(shape) if shape is not None else float(torch.exp(log_a))
     gp = GPRegressor(X, torch.cat([f[3] for f in fits], 1), 1.0 / (MIN_LENGTH + torch.exp(raw[0])),
-                     torch.exp(2 * raw[1]), torch.exp(2 * raw[2]), torch.exp(2 * raw[3]) + JITTER, shape)
+                     torch.exp(2 * raw[1]), torch.exp(2 * raw[2]),
+                     torch.exp(2 * raw[3]) + JITTER + float(noise_floor), shape)
     return gp.eval(), {"n_used": int(n), "n_likelihood": int(len(Xh)),
                        "nll": float(np.mean([f[2] for f in fits])), "evaluations": int(sum(f[4] for f in fits)),
                        "per_output": bool(per_output), "length_scales": (MIN_LENGTH + torch.exp(raw[0])).tolist(),
-                       "noise_var": gp.noise_var.tolist(), "kernel": kernel,
+                       "noise_var": gp.noise_var.tolist(), "noise_floor": float(noise_floor), "kernel": kernel,
                        "shape": None if math.isinf(shape) else shape}
 
 
-def _fit_hyper(X, Y, Xh, Yh, kernel: str, shape: float | None, iterations: int):
-    """The hyper-parameters of :func:`fit_gp` for ``Xh -> Yh`` (the likelihood's rows), ``alpha`` over ``X -> Y``:
+def _fit_hyper(X, Y, Xh, Yh, kernel: str, shape: float | None, iterations: int, noise_floor: float = 0.0):
+    """The hyper-parameters of :func:`fit_gp` for ``Xh -> Yh`` (the likelihood's rows), ``alpha`` over ``X -> Y``
+    (the noise variance ``noise_floor`` + the fitted one):
     returns ``(raw (log_l, log_sf, log_sl, log_sn), log_a or None, nll per row and output, alpha, evaluations)``."""
     d = X.shape[1]
     # length scale l = MIN_LENGTH + exp(raw): smooth, and never below MIN_LENGTH
@@ -479,7 +490,8 @@ def _fit_hyper(X, Y, Xh, Yh, kernel: str, shape: float | None, iterations: int):
 
     def closure():
         evaluations[0] += 1
-        got = neg_log_likelihood(Xh, Yh, *params[:4], log_a, gradient=True, shape_gradient=len(params) > 4)
+        got = neg_log_likelihood(Xh, Yh, *params[:4], log_a, gradient=True, shape_gradient=len(params) > 4,
+                                 noise_floor=noise_floor)
         if got is None:  # not positive definite at this trial point: make the line search step back
             for p in params:
                 p.grad = torch.zeros_like(p)
@@ -494,13 +506,13 @@ def _fit_hyper(X, Y, Xh, Yh, kernel: str, shape: float | None, iterations: int):
     opt.step(closure)
     for p, s in zip(params, best["state"]):
         p.copy_(s)
-    got = neg_log_likelihood(Xh, Yh, *params[:4], log_a, gradient=False)
+    got = neg_log_likelihood(Xh, Yh, *params[:4], log_a, gradient=False, noise_floor=noise_floor)
     if got is None:
         raise RuntimeError("fit_gp: the kernel matrix is not positive definite even at the start; are there "
                            "duplicated training rows with different targets?")
     v, _, alpha = got
     if len(Xh) < len(X):  # the posterior over every row, at the hyper-parameters of one row per case
-        full = neg_log_likelihood(X, Y, *params[:4], log_a, gradient=False)
+        full = neg_log_likelihood(X, Y, *params[:4], log_a, gradient=False, noise_floor=noise_floor)
         if full is None:
             raise RuntimeError("fit_gp: the kernel matrix over all views is not positive definite at the "
                                "hyper-parameters fitted on one view per case; are two views of different cases "
@@ -584,7 +596,7 @@ class GPEnsemble(nn.Module):
 def fit_gp_ensemble(z: np.ndarray, y: np.ndarray, columns: list, *, seed: int, max_points: int = 2000,
                     iterations: int = 200, groups: np.ndarray | None = None,
                     kernel: str = "rational_quadratic", shape: float | None = 2.0,
-                    per_output: bool = False) -> tuple[GPEnsemble, dict]:
+                    per_output: bool = False, noise_floor: float = 0.0) -> tuple[GPEnsemble, dict]:
     """One :func:`fit_gp` per column set of ``z``, their mean as a :class:`GPEnsemble`; returns ``(gp, info)``.
 
     ``info``: the members' :func:`fit_gp` infos under ``members`` and each one's input count under
@@ -596,7 +608,7 @@ def fit_gp_ensemble(z: np.ndarray, y: np.ndarray, columns: list, *, seed: int, m
         if c.ndim != 1 or c.size == 0 or c.min() < 0 or c.max() >= z.shape[1]:
             raise ValueError(f"fit_gp_ensemble: a member's columns must index the {z.shape[1]} inputs; got {c}")
     fitted = [fit_gp(z[:, c], y, seed=seed, max_points=max_points, iterations=iterations, groups=groups,
-                     kernel=kernel, shape=shape, per_output=per_output) for c in cols]
+                     kernel=kernel, shape=shape, per_output=per_output, noise_floor=noise_floor) for c in cols]
     infos = [info for _, info in fitted]
     return GPEnsemble([gp for gp, _ in fitted], cols).eval(), {
         "n_used": infos[0]["n_used"], "n_likelihood": infos[0]["n_likelihood"],

@@ -84,6 +84,7 @@ class FitParams:
     gp_kernel: str = "rational_quadratic"  # model.gp.kernel (liverforce.learn.gp)
     gp_shape: float | None = 2.0  # model.gp.shape: the rational quadratic's a, None = fitted (unused by the SE)
     gp_per_output: bool = False  # model.gp.per_output: one kernel per force component
+    gp_noise_floor: float = 0.0  # model.gp.noise_floor: the least noise variance (standardised targets)
 
 
 def gp_code_members(model_cfg: dict) -> tuple[int, ...]:
@@ -107,7 +108,8 @@ def fit_params(model_cfg: dict, *, lr: float, batch_size: int, epochs: int, weig
     return FitParams(float(lr), int(batch_size), int(epochs), float(weight_decay), kind,
                      int(gp.get("max_points", FitParams.gp_max_points)),
                      int(gp.get("iterations", FitParams.gp_iterations)), gp_code_members(model_cfg),
-                     *_kernel_settings(gp), bool(gp.get("per_output", FitParams.gp_per_output)))
+                     *_kernel_settings(gp), bool(gp.get("per_output", FitParams.gp_per_output)),
+                     float(gp.get("noise_floor", FitParams.gp_noise_floor)))
 
 
 def _kernel_settings(gp: dict) -> tuple[str, float | None]:
@@ -145,10 +147,12 @@ def fit_regressor(
         if columns:
             gp, info = fit_gp_ensemble(z, y, columns, seed=seed, max_points=fit.gp_max_points,
                                        iterations=fit.gp_iterations, groups=groups, kernel=fit.gp_kernel,
-                                       shape=fit.gp_shape, per_output=fit.gp_per_output)
+                                       shape=fit.gp_shape, per_output=fit.gp_per_output,
+                                       noise_floor=fit.gp_noise_floor)
         else:
             gp, info = fit_gp(z, y, seed=seed, max_points=fit.gp_max_points, iterations=fit.gp_iterations,
-                              groups=groups, kernel=fit.gp_kernel, shape=fit.gp_shape, per_output=fit.gp_per_output)
+                              groups=groups, kernel=fit.gp_kernel, shape=fit.gp_shape, per_output=fit.gp_per_output,
+                              noise_floor=fit.gp_noise_floor)
         hist = {"train_loss": [float(np.mean((forward_numpy(gp, z) - y) ** 2))], "val_loss": [], "gp": info}
         if z_val is not None and y_val is not None:
             hist["val_loss"] = [float(np.mean((forward_numpy(gp, z_val) - y_val) ** 2))]

@@ -274,7 +274,7 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
             fp = fit_params(model_cfg, lr=0.0, batch_size=1, epochs=0)
             best = {"regressor": "gp", "max_points": fp.gp_max_points, "iterations": fp.gp_iterations,
                     "kernel": fp.gp_kernel, "shape": fp.gp_shape, "code_members": list(fp.gp_code_members),
-                    "per_output": fp.gp_per_output}
+                    "per_output": fp.gp_per_output, "noise_floor": fp.gp_noise_floor}
             hidden, dropout = [], 0.0
             lr, batch_size = float(train_cfg["lr"]), int(train_cfg["batch_size"])
             # the CV error in newtons (validate.variant: auto) and of the scaled targets, from one fit per fold

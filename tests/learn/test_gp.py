@@ -626,3 +626,64 @@ def test_the_fused_rational_quadratic_pass_equals_the_numpy_formula(outputs):
         one = out0[5:6].copy()
         gp_module._rq_power_mean(buf[1:].reshape(1, -1), 1.0 / a, a, alphaT, one)
         np.testing.assert_array_equal(one, out[5:6])  # a row alone gives the bits it gets in a block
+
+
+def test_a_noise_floor_is_a_noise_variance_added_to_the_fitted_one_in_the_likelihood_and_the_posterior():
+    """``model.gp.noise_floor``: the likelihood with a floor f at raw noise s is the likelihood at the noise whose
+    variance is exp(2 s) + f, with the same value, alpha and gradients of the other parameters (the noise's own
+    gradient is that of exp(2 s) alone); a fit with it reports a noise variance of at least f and its posterior
+    weights solve (K + noise I) alpha = Y with that noise; a negative or non-finite floor is refused by name, in
+    fit_gp and in the config."""
+    from liverforce.config import ConfigError, compose
+
+    rng = np.random.default_rng(7)
+    n, d, f = 90, 3, 0.05
+    X = torch.from_numpy(rng.normal(size=(n, d)))
+    Y = torch.from_numpy(rng.normal(size=(n, 3)))
+    log_l, log_sf, log_sl = torch.zeros(d, dtype=torch.float64), torch.tensor(0.2, dtype=torch.float64), \
+        torch.tensor(-1.0, dtype=torch.float64)
+    s = -2.0
+    log_a = torch.tensor(math.log(2.0), dtype=torch.float64)
+    v, g, alpha = neg_log_likelihood(X, Y, log_l, log_sf, log_sl, torch.tensor(s, dtype=torch.float64), log_a,
+                                     noise_floor=f)
+    s_eq = 0.5 * math.log(math.exp(2 * s) + f)
+    v2, g2, alpha2 = neg_log_likelihood(X, Y, log_l, log_sf, log_sl, torch.tensor(s_eq, dtype=torch.float64), log_a)
+    assert v == pytest.approx(v2, rel=1e-12)
+    torch.testing.assert_close(alpha, alpha2, rtol=1e-10, atol=1e-12)
+    for a, b in zip(g[:3], g2[:3]):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-12)
+    # d v / d s = d v / d s_eq * (exp(2 s) / (exp(2 s) + f)): the chain rule through the added variance
+    assert float(g[3]) == pytest.approx(float(g2[3]) * math.exp(2 * s) / (math.exp(2 * s) + f), rel=1e-9)
+    assert float(neg_log_likelihood(X, Y, log_l, log_sf, log_sl, torch.tensor(s, dtype=torch.float64), log_a,
+                                    gradient=False)[0]) != pytest.approx(v, rel=1e-6)  # the floor changes it
+
+    Xn = rng.uniform(-2, 2, (80, 2))
+    Yn = truth(np.c_[Xn, Xn, Xn[:, :1]])
+    gp, info = fit_gp(Xn, Yn, seed=0, iterations=40, noise_floor=0.02)
+    assert info["noise_floor"] == 0.02
+    assert float(gp.noise_var) >= 0.02 + JITTER and info["noise_var"] == pytest.approx(float(gp.noise_var))
+    K = gp_module._kernel(gp.X, gp.X, gp.inv_length, gp.signal_var, gp.linear_var, float(gp.shape))
+    K += float(gp.noise_var) * torch.eye(len(K), dtype=torch.float64)
+    torch.testing.assert_close(K @ gp.alpha, torch.from_numpy(Yn), rtol=0, atol=1e-8)
+    plain, plain_info = fit_gp(Xn, Yn, seed=0, iterations=40)
+    assert plain_info["noise_var"] < 0.02  # noise-free targets: without the floor the noise is far below it
+    for bad in (-0.1, math.nan, math.inf):
+        with pytest.raises(ValueError, match="model.gp.noise_floor must be a finite variance >= 0"):
+            fit_gp(Xn, Yn, seed=0, iterations=5, noise_floor=bad)
+    with pytest.raises(ConfigError, match="gp.noise_floor.*finite variance >= 0"):
+        compose(["train.variants=[{name: v, gp: {noise_floor: -0.01}}]", "validate.variant=main"])
+
+
+def test_a_noise_floor_in_the_config_reaches_every_member_of_a_trained_model(tmp_path):
+    arrays = synthetic_arrays(60, n_geometries=3, seed=2, material_varies=True)
+    model_cfg = {"encoder": "pca", "code_size": 4, "state_vector": True, "grid_size": 8, "hidden": [8],
+                 "dropout": 0.0, "occlusion": {"radius_mm": 0.0, "mode": "remove"}, "noise_mm": 0.0,
+                 "regressor": "gp", "gp": {"max_points": 500, "iterations": 20, "noise_floor": 0.03,
+                                           "code_members": [2, 4]}}
+    train = {"test_fraction": 0.25, "epochs": 5, "batch_size": 16, "lr": 3e-3, "weight_decay": 0.0, "seed": 0}
+    tune = {"enabled": False, "trials": 1, "folds": 2, "sobol_trials": 1, "epochs": 1}
+    res = train_scenario(arrays, model_cfg, train, tune, "IV", "gp", out_dir=tmp_path)
+    assert res["best_params"]["noise_floor"] == 0.03
+    model = ForceModel.load(res["model_path"])
+    assert [m["noise_floor"] for m in model.meta["gp"]["members"]] == [0.03, 0.03]
+    assert all(float(m.noise_var) >= 0.03 + JITTER for m in model.regressor.members)
