@@ -81,7 +81,8 @@ def peer(results: Path, arrays: dict, unseen: dict, cfg: dict) -> None:
 
     t = time.perf_counter()
     hp = model.meta.get("hyper_parameters") or {}  # the model's own GP settings (its kernel and shape)
-    gp, _ = fit_gp(z_tr, target, seed=seed, kernel=hp.get("kernel", "rational_quadratic"), shape=hp.get("shape", 2.0))
+    gp, _ = fit_gp(z_tr, target, seed=seed, kernel=hp.get("kernel", "rational_quadratic"), shape=hp.get("shape", 2.0),
+                   per_output=bool(hp.get("per_output", False)), noise_floor=float(hp.get("noise_floor", 0.0)))
     ours = time.perf_counter() - t
     head = gp.numpy_head()
     print(f"  liverforce.learn.gp  fit {ours:6.1f} s   IV test MAE {mae(head(z_te), y_te, k_te):.3f} N   "

@@ -851,8 +851,10 @@ def _check_model(mo: dict, key: str) -> None:
         _fail(f"{key}.gp.shape",
               f"the rational quadratic's shape must be a finite number > 0 (got {mo['gp']['shape']})",
               "or null to fit it by the marginal likelihood")
-    if not (math.isfinite(mo["gp"]["noise_floor"]) and mo["gp"]["noise_floor"] >= 0):
-        _fail(f"{key}.gp.noise_floor", f"must be a finite variance >= 0 (got {mo['gp']['noise_floor']})",
+    nf = mo["gp"]["noise_floor"]  # a variant's entries are not type-checked by the structured config: a string or
+    # a bool (YAML's true, which float() would read as 1, the targets' whole variance) is refused here too
+    if isinstance(nf, bool) or not isinstance(nf, (int, float)) or not (math.isfinite(nf) and nf >= 0):
+        _fail(f"{key}.gp.noise_floor", f"must be a finite variance >= 0 (got {nf!r})",
               "0 leaves the noise variance to the marginal likelihood alone")
     if mo["gp"]["per_output"] and mo["gp"]["kernel"] == "rational_quadratic" and mo["gp"]["shape"] is None:
         _fail(f"{key}.gp.per_output", "one kernel per force component needs a fixed rational-quadratic shape "

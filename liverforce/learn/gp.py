@@ -409,7 +409,8 @@ def fit_gp(z: np.ndarray, y: np.ndarray, *, seed: int, max_points: int = 2000,
 
     ``info``: ``n_used`` (rows after the ``max_points`` cap, a subset drawn with ``seed``),
     ``n_likelihood`` (rows of the likelihood), ``nll`` (negative log marginal likelihood per row and
-    output at the optimum), ``length_scales``, ``noise_var``, ``evaluations``, ``kernel`` and
+    output at the optimum), ``length_scales``, ``noise_var`` (the fitted variance + the floor + the jitter, the
+    posterior's), ``noise_floor``, ``evaluations``, ``kernel`` and
     ``shape`` (``a``; None for the squared exponential).
     """
     if kernel not in KERNELS:

@@ -670,19 +670,57 @@ def test_a_noise_floor_is_a_noise_variance_added_to_the_fitted_one_in_the_likeli
     for bad in (-0.1, math.nan, math.inf):
         with pytest.raises(ValueError, match="model.gp.noise_floor must be a finite variance >= 0"):
             fit_gp(Xn, Yn, seed=0, iterations=5, noise_floor=bad)
-    with pytest.raises(ConfigError, match="gp.noise_floor.*finite variance >= 0"):
-        compose(["train.variants=[{name: v, gp: {noise_floor: -0.01}}]", "validate.variant=main"])
+    for bad in ("-0.01", "abc", "true", "'0.003'", "null"):  # in a variant: not type-checked by the structured config
+        with pytest.raises(ConfigError, match="gp.noise_floor"):
+            compose([f"train.variants=[{{name: v, gp: {{noise_floor: {bad}}}}}]", "validate.variant=main"])
+    for bad in ("-0.01", "abc", "true"):
+        with pytest.raises(ConfigError, match="gp.noise_floor"):
+            compose([f"model.gp.noise_floor={bad}", "validate.variant=main"])
 
 
-def test_a_noise_floor_in_the_config_reaches_every_member_of_a_trained_model(tmp_path):
+def test_the_floor_reaches_every_likelihood_evaluation_and_the_posterior_over_every_view(monkeypatch):
+    """Views of one case (the camera model's rows): every likelihood evaluation of the fit, the optimiser's and the
+    posterior's over all views, sees the floor, and the posterior weights over both views solve (K + noise I) alpha
+    = Y with the reported noise variance."""
+    Z, Y, groups, _, _ = _noisy_views(0, n=60)
+    seen = []
+    real = gp_module.neg_log_likelihood
+
+    def spy(X, Yy, *args, **kw):
+        seen.append((len(X), kw.get("noise_floor", 0.0)))
+        return real(X, Yy, *args, **kw)
+
+    monkeypatch.setattr(gp_module, "neg_log_likelihood", spy)
+    gp, info = fit_gp(Z, Y, seed=0, iterations=15, groups=groups, noise_floor=0.04)
+    assert info["n_likelihood"] == 60 and gp.n_train == 120
+    assert len(seen) > 3 and {f for _, f in seen} == {0.04}
+    assert seen[-1][0] == 120  # the last evaluation: the posterior over both views
+    K = gp_module._kernel(gp.X, gp.X, gp.inv_length, gp.signal_var, gp.linear_var, float(gp.shape))
+    K += float(gp.noise_var) * torch.eye(len(K), dtype=torch.float64)
+    assert float(gp.noise_var) >= 0.04 + JITTER
+    torch.testing.assert_close(K @ gp.alpha, torch.from_numpy(Y), rtol=0, atol=1e-8)
+
+
+def test_a_noise_floor_in_the_config_reaches_every_member_of_a_trained_model(tmp_path, monkeypatch):
     arrays = synthetic_arrays(60, n_geometries=3, seed=2, material_varies=True)
     model_cfg = {"encoder": "pca", "code_size": 4, "state_vector": True, "grid_size": 8, "hidden": [8],
                  "dropout": 0.0, "occlusion": {"radius_mm": 0.0, "mode": "remove"}, "noise_mm": 0.0,
                  "regressor": "gp", "gp": {"max_points": 500, "iterations": 20, "noise_floor": 0.03,
                                            "code_members": [2, 4]}}
-    train = {"test_fraction": 0.25, "epochs": 5, "batch_size": 16, "lr": 3e-3, "weight_decay": 0.0, "seed": 0}
+    train = {"test_fraction": 0.25, "epochs": 5, "batch_size": 16, "lr": 3e-3, "weight_decay": 0.0, "seed": 0,
+             "repeats": 2, "final_fit": True, "interval": {"coverage": 0.9, "folds": 2, "scale": "none"}}
     tune = {"enabled": False, "trials": 1, "folds": 2, "sobol_trials": 1, "epochs": 1}
+    floors = []
+    real = gp_module.fit_gp
+
+    def spy(*args, **kw):
+        floors.append(kw.get("noise_floor"))
+        return real(*args, **kw)
+
+    monkeypatch.setattr(gp_module, "fit_gp", spy)
     res = train_scenario(arrays, model_cfg, train, tune, "IV", "gp", out_dir=tmp_path)
+    # every GP (2 members each): the CV's 2 folds, the 2 splits, the final fit and the interval's folds (18 calls)
+    assert len(floors) >= 2 * 7 and set(floors) == {0.03}
     assert res["best_params"]["noise_floor"] == 0.03
     model = ForceModel.load(res["model_path"])
     assert [m["noise_floor"] for m in model.meta["gp"]["members"]] == [0.03, 0.03]
