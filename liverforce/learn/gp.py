@@ -431,7 +431,8 @@ def fit_gp(z: np.ndarray, y: np.ndarray, *, seed: int, max_points: int = 2000,
         raise ValueError("fit_gp: non-finite training inputs or targets")
     if int(max_points) < 2:
         raise ValueError(f"model.gp.max_points must be at least 2, got {max_points}")
-    if not (math.isfinite(float(noise_floor)) and float(noise_floor) >= 0):
+    noise_floor = float(noise_floor)
+    if not (math.isfinite(noise_floor) and noise_floor >= 0):
         raise ValueError(f"model.gp.noise_floor must be a finite variance >= 0, got {noise_floor}")
     if groups is not None:
         groups = np.asarray(groups)
@@ -453,17 +454,17 @@ def fit_gp(z: np.ndarray, y: np.ndarray, *, seed: int, max_points: int = 2000,
             Xh, Yh = X[first], Y[first]
     # one fit for the shared kernel, or one per output (its own length scales and variances, own likelihood)
     parts = [slice(k, k + 1) for k in range(Y.shape[1])] if per_output else [slice(None)]
-    fits = [_fit_hyper(X, Y[:, c], Xh, Yh[:, c], kernel, shape, iterations, float(noise_floor)) for c in parts]
+    fits = [_fit_hyper(X, Y[:, c], Xh, Yh[:, c], kernel, shape, iterations, noise_floor) for c in parts]
     raw = [torch.stack([f[0][i] for f in fits]) if per_output else fits[0][0][i] for i in range(4)]
     log_a = fits[0][1]
     shape = math.inf if log_a is None else float(shape) if shape is not None else float(torch.exp(log_a))
     gp = GPRegressor(X, torch.cat([f[3] for f in fits], 1), 1.0 / (MIN_LENGTH + torch.exp(raw[0])),
                      torch.exp(2 * raw[1]), torch.exp(2 * raw[2]),
-                     torch.exp(2 * raw[3]) + JITTER + float(noise_floor), shape)
+                     torch.exp(2 * raw[3]) + JITTER + noise_floor, shape)
     return gp.eval(), {"n_used": int(n), "n_likelihood": int(len(Xh)),
                        "nll": float(np.mean([f[2] for f in fits])), "evaluations": int(sum(f[4] for f in fits)),
                        "per_output": bool(per_output), "length_scales": (MIN_LENGTH + torch.exp(raw[0])).tolist(),
-                       "noise_var": gp.noise_var.tolist(), "noise_floor": float(noise_floor), "kernel": kernel,
+                       "noise_var": gp.noise_var.tolist(), "noise_floor": noise_floor, "kernel": kernel,
                        "shape": None if math.isinf(shape) else shape}
 
 

@@ -144,15 +144,10 @@ def fit_regressor(
     if spec.kind == "gp":
         from liverforce.learn.gp import fit_gp, fit_gp_ensemble
 
-        if columns:
-            gp, info = fit_gp_ensemble(z, y, columns, seed=seed, max_points=fit.gp_max_points,
-                                       iterations=fit.gp_iterations, groups=groups, kernel=fit.gp_kernel,
-                                       shape=fit.gp_shape, per_output=fit.gp_per_output,
-                                       noise_floor=fit.gp_noise_floor)
-        else:
-            gp, info = fit_gp(z, y, seed=seed, max_points=fit.gp_max_points, iterations=fit.gp_iterations,
-                              groups=groups, kernel=fit.gp_kernel, shape=fit.gp_shape, per_output=fit.gp_per_output,
-                              noise_floor=fit.gp_noise_floor)
+        settings = dict(seed=seed, max_points=fit.gp_max_points, iterations=fit.gp_iterations, groups=groups,
+                        kernel=fit.gp_kernel, shape=fit.gp_shape, per_output=fit.gp_per_output,
+                        noise_floor=fit.gp_noise_floor)
+        gp, info = fit_gp_ensemble(z, y, columns, **settings) if columns else fit_gp(z, y, **settings)
         hist = {"train_loss": [float(np.mean((forward_numpy(gp, z) - y) ** 2))], "val_loss": [], "gp": info}
         if z_val is not None and y_val is not None:
             hist["val_loss"] = [float(np.mean((forward_numpy(gp, z_val) - y_val) ** 2))]

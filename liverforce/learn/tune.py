@@ -97,8 +97,8 @@ def _fit_of(params: dict, epochs: int, weight_decay: float) -> FitParams:
                          gp_iterations=int(params.get("iterations", FitParams.gp_iterations)),
                          gp_kernel=str(params.get("kernel", FitParams.gp_kernel)),
                          gp_shape=None if params.get("shape") is None else float(params["shape"]),
-                         gp_per_output=bool(params.get("per_output", False)),
-                         gp_noise_floor=float(params.get("noise_floor", 0.0)))
+                         gp_per_output=bool(params.get("per_output", FitParams.gp_per_output)),
+                         gp_noise_floor=float(params.get("noise_floor", FitParams.gp_noise_floor)))
     return FitParams(lr=float(params["lr"]), batch_size=int(params["batch_size"]), epochs=int(epochs),
                      weight_decay=weight_decay)
 
