@@ -36,23 +36,31 @@ class PipelineTraining:
             self._loaded[(scenario, camera)] = run_arrays(self.results, scenario, camera, self.label)
         return self._loaded[(scenario, camera)]
 
-    def unseen(self, res: dict, camera: bool) -> dict:
+    def unseen(self, res: dict, camera: bool, observation: dict | None = None) -> dict:
         """Per-liver metrics of a training result's saved model on the run's unseen livers (scenario V):
-        :func:`liverforce.learn.metrics.metrics_by_group` (``mean``, ``sd`` over livers)."""
+        :func:`liverforce.learn.metrics.metrics_by_group` (``mean``, ``sd`` over livers). ``observation``: a
+        camera model re-observed with these observation settings over its own, nothing refitted."""
+        from liverforce.config import merge_mapping
         from liverforce.learn.metrics import metrics_by_group
         from liverforce.learn.model import ForceModel, eval_seed
 
         model = ForceModel.load(res["model_path"])
+        if observation:
+            cam = model.representation.camera
+            model = model.observed_with({**cam, "observation": merge_mapping(cam.get("observation") or {},
+                                                                             observation)})
         u = self.arrays("V", camera)
         pred = model.predict(u, observation_seed=eval_seed(int(res["seed"])))
         return metrics_by_group(u["force_n"], pred, u["geometry_id"])
 
-    def score(self, model_cfg: dict, scenario: str, name: str, label: str, out: str, cv_splits: int) -> str:
+    def score(self, model_cfg: dict, scenario: str, name: str, label: str, out: str, cv_splits: int,
+              observe: list | None = None) -> str:
         """Train ``model_cfg`` as the pipeline does and return one line: the training-side CV MAE (4 folds by
         liver, ``cv_mae_n``) on ``cv_splits`` seeded splits (the main split, then the repeats' split seeds, each
         trained as its own run; what a default is chosen on; 0: not reported), the test accuracy per split over
         ``train.repeats``, the main split's test MAE per local component (:func:`local_test_mae`), and for IV the
-        unseen livers' MAE (the saved model: with ``train.final_fit``, refitted on every case of the scenario)."""
+        unseen livers' MAE (the saved model: with ``train.final_fit``, refitted on every case of the scenario), for
+        a camera model also re-observed with each ``(label, observation settings)`` of ``observe``."""
         import time
 
         import numpy as np
@@ -82,6 +90,9 @@ class PipelineTraining:
         if scenario == "IV":
             g = self.unseen(res, camera)
             line += f" | unseen MAE {g['mean']['mae_vec']:.4f} +- {g['sd']['mae_vec']:.4f} N"
+            for text, obs in (observe or []) if camera else []:
+                g = self.unseen(res, camera, obs)
+                line += f" | unseen, {text}: {g['mean']['mae_vec']:.4f} +- {g['sd']['mae_vec']:.4f} N"
         return f"{line} | {time.perf_counter() - t:.0f} s"
 
 

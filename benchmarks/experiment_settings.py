@@ -11,7 +11,9 @@ shards (``--results``), through the pipeline's own
   this alone: no test or unseen liver enters it.
 - **test accuracy** over the pipeline's ``train.repeats`` seeded splits, per split;
 - for IV, **the unseen livers' MAE** (mean +- sd over livers; the saved model, the one
-  the validation scores: with ``train.final_fit``, refitted on every IV case).
+  the validation scores: with ``train.final_fit``, refitted on every IV case); with
+  ``--observe`` (camera variants), also that of the same model re-observed with other
+  observation settings, nothing refitted (``noise_sd_mm=1.0``: a noisier camera).
 
 ::
 
@@ -86,6 +88,9 @@ def main() -> None:
     ap.add_argument("--scenario", default="IV")
     ap.add_argument("--settings", nargs="+", default=["default"])
     ap.add_argument("--cv-splits", type=int, default=5, help="seeded splits the training-side CV MAE is averaged over")
+    ap.add_argument("--observe", nargs="*", default=[],
+                    help="camera variants, IV: the unseen livers also re-observed with each of these observation "
+                         "settings (key=value[,key=value], values as YAML), nothing refitted")
     ap.add_argument("--out", default="/tmp/liverforce-experiment-settings")
     args = ap.parse_args()
 
@@ -96,9 +101,27 @@ def main() -> None:
     run = PipelineTraining(args.results, "settings experiment")
     v = dict(run.variants[args.variant])
     overs = [(text, parse_setting(text, v)) for text in args.settings]  # all checked before any training
+    observe = [(text, parse_observation(text)) for text in args.observe]
     for k, (text, over) in enumerate(overs):
         print(run.score(merge_mapping(v, over), args.scenario, args.variant, text,
-                        f"{args.out}/{args.variant}-{args.scenario}-{k}", args.cv_splits), flush=True)
+                        f"{args.out}/{args.variant}-{args.scenario}-{k}", args.cv_splits, observe), flush=True)
+
+
+def parse_observation(text: str) -> dict:
+    """``noise_sd_mm=1.0,n_points=[5000, 5000]`` -> observation settings, refused (SystemExit) unless valid."""
+    from liverforce.learn.observation import ObservationConfig
+
+    out = {}
+    for item in _split_top(text):
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise SystemExit(f"--observe: '{item}' is not key=value")
+        out[key.strip()] = yaml.safe_load(value)
+    try:
+        ObservationConfig.from_dict(out)
+    except (TypeError, ValueError) as exc:
+        raise SystemExit(f"--observe '{text}': {exc}") from exc
+    return out
 
 
 if __name__ == "__main__":

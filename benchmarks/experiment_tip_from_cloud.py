@@ -348,7 +348,7 @@ def main() -> None:
             cam_l = R[i] @ (recs[k].camera_position_mm - P[i])
             est[k] = shadow_estimate(pts, cam_l, kin[k], tool_radius_mm=obs.tool_radius_mm,
                                      shaft_mm=obs.tool_shaft_length_mm, tip_sd_mm=sd_t,
-                                     noise_sd_mm=max(obs.noise_sd_mm, 0.05),  # > 0: a noise-free cloud's
+                                     noise_sd_mm=max(recs[k].noise_sd_mm, 0.05),  # > 0: a noise-free cloud's
                                      window_mm=args.window)  # edge as a near-hard limit
         print(line("kinematic (shadow cases)", kin[:ns, :2], slice(0, ns)), flush=True)
         print(line("shadow, camera pose known", est, slice(0, ns)), flush=True)

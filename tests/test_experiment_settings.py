@@ -56,3 +56,16 @@ def test_local_test_mae_splits_the_error_by_each_case_s_own_frame(tmp_path):
     rows.assign(case_id=["b", "z"]).to_csv(tmp_path / "other.csv", index=False)
     with pytest.raises(ValueError, match="not in the arrays"):
         local_test_mae(tmp_path / "other.csv", arrays)
+
+
+def test_observation_settings_for_the_unseen_livers_are_read_and_checked():
+    """--observe: the unseen livers re-observed with these observation settings; values as YAML, checked by
+    ObservationConfig before any training."""
+    from benchmarks.experiment_settings import parse_observation
+
+    assert parse_observation("noise_sd_mm=1.0") == {"noise_sd_mm": 1.0}
+    assert parse_observation("noise_sd_mm=[0.5, 1.0],n_points=[5000, 5000]") == {"noise_sd_mm": [0.5, 1.0],
+                                                                                  "n_points": [5000, 5000]}
+    for bad in ("noise_sd_mm", "noise=1.0", "noise_sd_mm=-1", "noise_sd_mm=[1.0, 0.5]"):
+        with pytest.raises(SystemExit, match="--observe"):
+            parse_observation(bad)

@@ -570,8 +570,9 @@ def test_the_camera_table_shows_the_exact_tip_accuracy_per_scenario_and_on_the_u
                           "92.0 ± 2.0", "0"],
                          ["9 mm, 100 mm", "2.500 ± 0.050", "–", "–", "9 ⚠", "–", "–", "9 ⚠"]]
         assert "id='shape'" in html and "changed shape since the scan" in html
-        from liverforce.report.html import _tilt_text
-        assert _tilt_text([0.0, 30.0]) == "0-30°" and _tilt_text([12.0, 12.0]) == "12°" and _tilt_text(5) == "5°"
+        from liverforce.report.html import _range_text
+        assert _range_text([0.0, 30.0]) == "0-30°" and _range_text([12.0, 12.0]) == "12°" and _range_text(5) == "5°"
+        assert _range_text([0.5, 1.0], " mm") == "0.5-1 mm" and _range_text(0.5, " mm") == "0.5 mm"
     else:  # no sensitivity of this camera model: nothing to show
         assert rows["unseen livers"][4] == rows["unseen livers"][7] == "–"
         assert "id='registration'" not in html and "id='shape'" not in html

@@ -83,7 +83,7 @@ FEATURES_KEY = "camera_features"
 GRID_KEYS = ("kernel_radius_cells", "min_points", "fill", "max_abs_height_mm", "reference_oversample",
              "estimator", "max_leverage", "reference", "instrument_radius_mm", "instrument_rise_mm",
              "instrument_clearance_mm", "instrument_min_points", "instrument_point_sd_mm", "instrument_tip_sd_mm",
-             "instrument_max_tilt_deg", "dent_radius_mm")
+             "instrument_max_tilt_deg", "dent_radius_mm", "instrument_point_sd_max_mm")
 
 _CACHE: dict[tuple, np.ndarray] = {}
 _CACHE_MAX = 200_000
@@ -118,9 +118,12 @@ def exact_tip(camera: dict) -> dict:
 
 def instrument_sds(camera: dict, half_width_mm: float, grid_size: int) -> dict:
     """The sds an instrument fit weighs its points and its prior by, from these camera settings: the
-    observation's point noise and the kinematic tip's tangential noise (``tip_noise_mm``)."""
-    return {"instrument_point_sd_mm": observation_config(camera, half_width_mm, grid_size).noise_sd_mm,
-            "instrument_tip_sd_mm": float(camera.get("tip_noise_mm", 0.0))}
+    observation's point noise (the least of a range: the fit refits a noisier cloud with its own,
+    :func:`~liverforce.learn.cloud_features.fit_instrument`; a range's most is recorded too, for serving's
+    warning) and the kinematic tip's tangential noise (``tip_noise_mm``)."""
+    lo, hi = observation_config(camera, half_width_mm, grid_size).noise_sd_mm
+    out = {"instrument_point_sd_mm": lo, "instrument_tip_sd_mm": float(camera.get("tip_noise_mm", 0.0))}
+    return {**out, "instrument_point_sd_max_mm": hi} if hi > lo else out
 
 
 def grid_spec(grid_size: int, half_width_mm: float, camera: dict) -> CloudGridSpec:

@@ -178,6 +178,12 @@ class CloudGridSpec:
         cloud clearly noisier than ``instrument_point_sd_mm`` is fitted with
         its own noise, estimated from its instrument points
         (:func:`fit_instrument`).
+    instrument_point_sd_max_mm : float or None
+        The noisiest training clouds' point sd, when the model was trained on
+        a range of point noise (``observation.noise_sd_mm: [lo, hi]``; then
+        ``instrument_point_sd_mm`` is ``lo``); None: ``instrument_point_sd_mm``.
+        Serving warns about clouds noisier than training from it
+        (:func:`liverforce.serve.cloud.noisy_cloud`); the features do not read it.
     """
 
     grid_size: int
@@ -198,6 +204,7 @@ class CloudGridSpec:
     instrument_tip_sd_mm: float = 0.5
     instrument_max_tilt_deg: float = 0.0
     dent_radius_mm: float = 0.0
+    instrument_point_sd_max_mm: float | None = None
 
     def __post_init__(self) -> None:
         for k, f in (("grid_size", int), ("min_points", int), ("reference_oversample", int),
@@ -207,6 +214,8 @@ class CloudGridSpec:
                      ("instrument_point_sd_mm", float), ("instrument_tip_sd_mm", float),
                      ("instrument_max_tilt_deg", float), ("dent_radius_mm", float)):
             object.__setattr__(self, k, f(getattr(self, k)))
+        if self.instrument_point_sd_max_mm is not None:
+            object.__setattr__(self, "instrument_point_sd_max_mm", float(self.instrument_point_sd_max_mm))
         checks = {
             "grid_size": self.grid_size >= 3,
             "half_width_mm": self.half_width_mm > 0,
@@ -224,6 +233,8 @@ class CloudGridSpec:
             "instrument_min_points": self.instrument_min_points >= 3,
             "instrument_point_sd_mm": self.instrument_point_sd_mm >= 0,
             "instrument_tip_sd_mm": self.instrument_tip_sd_mm >= 0,
+            "instrument_point_sd_max_mm": self.instrument_point_sd_max_mm is None or (
+                self.instrument_point_sd_mm <= self.instrument_point_sd_max_mm < math.inf),
             "instrument_max_tilt_deg": 0 <= self.instrument_max_tilt_deg < 80,
             "dent_radius_mm": self.dent_radius_mm == 0 or (
                 self.instrument_radius_mm < self.dent_radius_mm < math.inf and self.instrument_radius_mm > 0),
@@ -236,7 +247,8 @@ class CloudGridSpec:
                 f"fill one of {FILL_RULES}, max_abs_height_mm > 0, reference_oversample in [1, 32], "
                 f"estimator one of {ESTIMATORS}, max_leverage > 0, reference one of {REFERENCES}, "
                 "instrument_radius_mm >= 0 (finite), instrument_rise_mm > 0, instrument_clearance_mm >= 0, "
-                "instrument_min_points >= 3, instrument sds >= 0, dent_radius_mm 0 or above instrument_radius_mm > 0)"
+                "instrument_min_points >= 3, instrument sds >= 0, instrument_point_sd_max_mm null or at least "
+                "instrument_point_sd_mm, dent_radius_mm 0 or above instrument_radius_mm > 0)"
             )
 
     @property

@@ -54,7 +54,8 @@ without new FE. This module does that, seeded, with numpy only:
    ``self_occluded``); drawn from a stream of their own, so the liver's points
    are those of the same seed without the instrument, and appended after
    them (the cloud is unordered: no model reads the order).
-6. **Noise.** Gaussian, standard deviation ``noise_sd_mm``: ``isotropic``
+6. **Noise.** Gaussian, standard deviation ``noise_sd_mm`` (or one drawn
+   uniformly in a range ``noise_sd_mm = (lo, hi)`` per observation): ``isotropic``
    (every coordinate) or ``ray`` (along the line of sight, as stereo depth
    error).
 
@@ -172,8 +173,12 @@ class ObservationConfig:
     max_camera_draws : int
         Pose draws before giving up (the last pose is used and
         ``record.camera_ok`` is False).
-    noise_sd_mm : float
-        Standard deviation of the Gaussian point noise (default 0.5 mm).
+    noise_sd_mm : float or (float, float)
+        Standard deviation of the Gaussian point noise (default 0.5 mm; a
+        pair: drawn uniformly between the two per observation, from a stream
+        of its own, so a single value gives the clouds it gave before the
+        pair existed). An endoscope's stereo or depth noise is 0.5-1 mm,
+        varying with the distance, the texture and the light.
     noise_mode : str
         ``isotropic`` (default) or ``ray`` (along the line of sight).
     n_points : (int, int)
@@ -213,7 +218,7 @@ class ObservationConfig:
     camera_tool_clearance_mm: float = 5.0
     require_tool_visible: bool = True
     max_camera_draws: int = 50
-    noise_sd_mm: float = 0.5
+    noise_sd_mm: tuple[float, float] = (0.5, 0.5)
     noise_mode: str = "isotropic"
     n_points: tuple[int, int] = (200, 20000)
     max_candidates: int = 2_000_000
@@ -228,13 +233,14 @@ class ObservationConfig:
         set_("camera_distance_mm", tuple(float(v) for v in _pair(self.camera_distance_mm, "camera_distance_mm")))
         set_("n_points", tuple(int(v) for v in _pair(self.n_points, "n_points")))
         set_("tool_tilt_deg", tuple(float(v) for v in _pair(self.tool_tilt_deg, "tool_tilt_deg")))
+        set_("noise_sd_mm", tuple(float(v) for v in _pair(self.noise_sd_mm, "noise_sd_mm")))
         if self.cone_axis is not None:
             ax = np.asarray(self.cone_axis, dtype=np.float64).ravel()
             if ax.shape != (3,) or not np.isfinite(ax).all() or np.linalg.norm(ax) == 0:
                 raise ValueError(f"observation cone_axis must be a nonzero 3-vector or null (got {self.cone_axis!r})")
             set_("cone_axis", tuple(float(v) for v in ax))
         for k in ("cone_half_angle_deg", "half_fov_deg", "roi_radius_mm", "tool_radius_mm", "tool_shaft_length_mm",
-                  "camera_tool_clearance_mm", "noise_sd_mm", "min_view_cos", "depth_tolerance_mm"):
+                  "camera_tool_clearance_mm", "min_view_cos", "depth_tolerance_mm"):
             set_(k, float(getattr(self, k)))
         for k in ("max_camera_draws", "max_candidates", "zbuffer_pixels"):
             set_(k, int(getattr(self, k)))
@@ -251,7 +257,7 @@ class ObservationConfig:
             "tool_shaft_length_mm": self.tool_shaft_length_mm >= 0,
             "camera_tool_clearance_mm": self.camera_tool_clearance_mm >= 0,
             "max_camera_draws": self.max_camera_draws >= 1,
-            "noise_sd_mm": self.noise_sd_mm >= 0,
+            "noise_sd_mm": 0.0 <= self.noise_sd_mm[0] <= self.noise_sd_mm[1] < math.inf,
             "noise_mode": self.noise_mode in NOISE_MODES,
             "n_points": 1 <= n0 <= n1,
             "max_candidates": self.max_candidates >= n1,
@@ -315,6 +321,7 @@ class ObservationRecord:
         estimate the area fractions of the ROI hidden by each mechanism
     visible_fraction : visible candidates / candidates within the ROI radius
     n_instrument_points : points of the instrument in the cloud (``instrument_in_cloud``; the last rows)
+    noise_sd_mm : the point noise's standard deviation (drawn when ``noise_sd_mm`` is a range)
     """
 
     camera_position_mm: np.ndarray
@@ -330,6 +337,7 @@ class ObservationRecord:
     dropped: dict = field(default_factory=lambda: {r: 0 for r in DROP_REASONS})
     visible_fraction: float = 0.0
     n_instrument_points: int = 0
+    noise_sd_mm: float = 0.0
 
     def to_dict(self) -> dict:
         out = {}
@@ -819,10 +827,10 @@ def _half_window(config: ObservationConfig, d: float) -> float:
 
 
 def _streams(seed) -> tuple[np.random.Generator, ...]:
-    """Camera pose, sampling, noise, instrument and tool-tilt streams (each as before the later ones existed:
-    ``SeedSequence.spawn`` keys a child by its index)."""
+    """Camera pose, sampling, noise, instrument, tool-tilt and noise-level streams (each as before the later ones
+    existed: ``SeedSequence.spawn`` keys a child by its index)."""
     try:
-        return tuple(spawn_rngs(seed, 5))
+        return tuple(spawn_rngs(seed, 6))
     except ValueError:
         raise ValueError(f"observation seeds must be non-negative integers (got {seed!r})") from None
 
@@ -929,7 +937,7 @@ def observe(
         _check_outward(V, topo.triangles)
     tip = np.asarray(exertion_point_mm, dtype=np.float64).reshape(3)
     n_out = _unit(normal, "normal")
-    rng_cam, rng_smp, rng_noise, rng_inst, rng_tilt = _streams(seed)
+    rng_cam, rng_smp, rng_noise, rng_inst, rng_tilt, rng_sd = _streams(seed)
     a_tool = n_out if tool_axis is None else _unit(tool_axis, "tool_axis")
     if tool_axis is None and cfg.tool_tilt_deg[1] > 0:  # tilted by that angle, towards a random azimuth
         a, b = _basis(n_out)
@@ -1035,13 +1043,16 @@ def observe(
     rec.n_points = int(len(cloud))
 
     # ---- noise
-    if cfg.noise_sd_mm > 0 and len(cloud):
+    s0, s1 = cfg.noise_sd_mm
+    sd = s0 + (s1 - s0) * rng_sd.random() if s1 > s0 else s0
+    rec.noise_sd_mm = float(sd)
+    if sd > 0 and len(cloud):
         if cfg.noise_mode == "isotropic":
-            cloud = cloud + rng_noise.normal(0.0, cfg.noise_sd_mm, size=cloud.shape)
+            cloud = cloud + rng_noise.normal(0.0, sd, size=cloud.shape)
         else:
             ray = cloud - C
             ray /= np.linalg.norm(ray, axis=1, keepdims=True)
-            cloud = cloud + rng_noise.normal(0.0, cfg.noise_sd_mm, size=len(cloud))[:, None] * ray
+            cloud = cloud + rng_noise.normal(0.0, sd, size=len(cloud))[:, None] * ray
     return cloud, rec
 
 # --------------------------------------------------------------------------

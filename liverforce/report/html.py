@@ -499,10 +499,10 @@ def camera_section(data: dict, v: dict, main_variant: str | None) -> str:
         ms = sens.get("model_settings") or {}
         obs = ms.get("observation") or {}
         out.append("<p>The validated camera model on the unseen livers with one camera setting changed at a time "
-                   f"(trained with {obs.get('n_points')} points, noise {obs.get('noise_sd_mm')} mm, view cone "
-                   f"{obs.get('cone_half_angle_deg')}°, tip noise {ms.get('tip_noise_mm')} mm, the instrument's "
-                   f"points {'in the cloud' if obs.get('instrument_in_cloud') else 'masked out'}, the tool's axis "
-                   f"{_tilt_text(obs.get('tool_tilt_deg'))} from the normal); mean ± sd over "
+                   f"(trained with {obs.get('n_points')} points, noise {_range_text(obs.get('noise_sd_mm'), ' mm')}, "
+                   f"view cone {obs.get('cone_half_angle_deg')}°, tip noise {ms.get('tip_noise_mm')} mm, the "
+                   f"instrument's points {'in the cloud' if obs.get('instrument_in_cloud') else 'masked out'}, the "
+                   f"tool's axis {_range_text(obs.get('tool_tilt_deg'))} from the normal); mean ± sd over "
                    "the livers.</p>")
         out.append(_table(["setting", "value", "unseen MAE (N)", "unseen accuracy %"], srows, cls="camera-sens",
                           row_cls="sens"))
@@ -581,11 +581,12 @@ def shape_table(shape: dict | None) -> str:
                      row_cls="shape"))
 
 
-def _tilt_text(tilt) -> str:
-    """The tool's tilt of a model's observation settings: ``12°``, or ``0-30°`` for a range (0 when absent)."""
+def _range_text(tilt, unit: str = "°") -> str:
+    """A setting of a model's observation that may be a range: the tool's tilt ``12°``, or ``0-30°`` for a range
+    (0 when absent); the point noise likewise with ``unit=" mm"``."""
     lo, hi = (tilt, tilt) if tilt is None or isinstance(tilt, (int, float)) else tuple(tilt)
     lo, hi = float(lo or 0.0), float(hi or 0.0)
-    return f"{lo:g}°" if lo == hi else f"{lo:g}-{hi:g}°"
+    return f"{lo:g}{unit}" if lo == hi else f"{lo:g}-{hi:g}{unit}"
 
 
 def physics_section(phys: dict | None, validated: str | None) -> str:

@@ -257,8 +257,10 @@ NOISY_CLOUD_RATIO = 1.75
 
 
 def _trained_sd_mm(spec) -> float:
-    """The training clouds' point sd (``spec.instrument_point_sd_mm``), floored as the instrument fit floors it."""
-    return max(float(spec.instrument_point_sd_mm), _MIN_POINT_SD)
+    """The training clouds' point sd (``spec.instrument_point_sd_mm``; trained on a range, its most,
+    ``instrument_point_sd_max_mm``), floored as the instrument fit floors it."""
+    most = spec.instrument_point_sd_max_mm
+    return max(float(spec.instrument_point_sd_mm if most is None else most), _MIN_POINT_SD)
 
 
 def noisy_threshold_mm(spec) -> float:

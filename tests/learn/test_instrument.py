@@ -611,6 +611,26 @@ def test_the_noisy_cloud_warning_names_the_estimate_and_the_training_noise():
     assert "scatter 1.1 mm" in said and "2.2 times the 0.5 mm noise" in said
 
 
+def test_a_model_trained_on_a_range_of_point_noise_fits_with_the_least_and_warns_above_the_most():
+    """observation.noise_sd_mm: [lo, hi]: the instrument fit's prior sd is lo (a noisier cloud is refitted with
+    its own), the grid spec records hi, and serving warns only about clouds noisier than 1.75 x hi. A single value
+    records no range, as before ranges existed."""
+    from liverforce.learn.camera import grid_spec
+    from liverforce.serve.cloud import NOISY_CLOUD_RATIO, noisy_cloud
+
+    cam = {"observation": {"noise_sd_mm": [0.5, 1.0]}, "tip_noise_mm": 0.5, "grid": {"instrument_radius_mm": 2.5}}
+    sp = grid_spec(16, 20.0, cam)
+    assert (sp.instrument_point_sd_mm, sp.instrument_point_sd_max_mm) == (0.5, 1.0)
+    assert noisy_cloud(NOISY_CLOUD_RATIO * 1.0, sp) is None  # 1.75 mm: the noisiest training clouds' ratio
+    assert "1.9 times the 1 mm noise" in noisy_cloud(1.9, sp)
+    one = grid_spec(16, 20.0, {**cam, "observation": {"noise_sd_mm": 0.5}})
+    assert (one.instrument_point_sd_mm, one.instrument_point_sd_max_mm) == (0.5, None)
+    assert grid_spec(16, 20.0, {**cam, "observation": {}}).instrument_point_sd_max_mm is None
+    assert noisy_cloud(1.0, one) is not None  # 2 x the single training noise
+    with pytest.raises(ValueError, match="instrument_point_sd_max_mm"):
+        spec(instrument_point_sd_mm=0.5, instrument_point_sd_max_mm=0.4)
+
+
 def test_the_compiled_tilted_pass_is_the_reference_on_few_points():
     """The numba search-and-fit pass of the tilted fit (serve.compiled_cloud._tilted_pass, on the list of the
     points standing above the surface, one of them a duplicate the kernel has struck out) against

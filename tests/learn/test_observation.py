@@ -309,7 +309,9 @@ def test_noise_sd_matches_config(mode):
     base = dict(n_points=(20000, 20000), cone_half_angle_deg=40.0, camera_distance_mm=(60.0, 120.0))
     clean, rc = observe(V, T, TIP, UP, cfg(**base), seed=5)
     noisy, rn = observe(V, T, TIP, UP, cfg(**base, noise_sd_mm=sd, noise_mode=mode), seed=5)
-    assert rc.to_dict() == rn.to_dict()  # noise has its own stream: same camera, same points
+    drop = lambda d: {k: v for k, v in d.items() if k != "noise_sd_mm"}  # noqa: E731
+    assert drop(rc.to_dict()) == drop(rn.to_dict())  # noise has its own stream: same camera, same points
+    assert (rc.noise_sd_mm, rn.noise_sd_mm) == (0.0, sd)
     e = noisy - clean
     tol = 4 * sd / math.sqrt(2 * 20000)  # ~4 standard errors of a sd estimate
     if mode == "isotropic":
@@ -322,6 +324,30 @@ def test_noise_sd_matches_config(mode):
         along = np.einsum("ij,ij->i", e, ray)
         assert np.abs(e - along[:, None] * ray).max() < 1e-9
         assert abs(along.std() - sd) < tol
+
+
+def test_a_noise_range_draws_one_sd_per_observation_and_nothing_else_changes():
+    """noise_sd_mm = (lo, hi): each observation's sd drawn uniformly between them from a stream of its own
+    (recorded); the cloud is the noise-free one plus Gaussian noise of that sd, with the same camera and points;
+    a range of one value gives exactly the clouds of that single value."""
+    V, T = grid_plate(np.linspace(-40, 40, 21), np.linspace(-40, 40, 21))
+    base = dict(n_points=(20000, 20000), cone_half_angle_deg=40.0)
+    sds = []
+    for s in range(10):
+        clean, rc = observe(V, T, TIP, UP, cfg(**base, noise_sd_mm=0.0), seed=s)
+        noisy, rn = observe(V, T, TIP, UP, cfg(**base, noise_sd_mm=(0.4, 1.2)), seed=s)
+        np.testing.assert_array_equal(rc.camera_position_mm, rn.camera_position_mm)
+        assert 0.4 <= rn.noise_sd_mm <= 1.2
+        e = noisy - clean
+        assert np.allclose(e.std(axis=0), rn.noise_sd_mm, rtol=0.03)  # 20,000 points: ~0.5 % standard error
+        sds.append(rn.noise_sd_mm)
+        fixed, _ = observe(V, T, TIP, UP, cfg(**base, noise_sd_mm=(0.7, 0.7)), seed=s)
+        np.testing.assert_array_equal(fixed, observe(V, T, TIP, UP, cfg(**base, noise_sd_mm=0.7), seed=s)[0])
+    assert np.ptp(sds) > 0.4 and len(set(sds)) == 10  # spread over the range, a new draw per seed
+    assert ObservationConfig(noise_sd_mm=0.5).noise_sd_mm == (0.5, 0.5)
+    for bad in ((1.0, 0.5), (-0.1, 0.5), (0.5, float("inf")), (0.1, 0.2, 0.3)):
+        with pytest.raises(ValueError, match="noise_sd_mm"):
+            ObservationConfig(noise_sd_mm=bad)
 
 
 # --------------------------------------------------------------------------
@@ -443,7 +469,7 @@ def test_procedural_liver_observation():
         cloud, rec = observe(V, topo, V[i], n, c, seed=seed)
         assert rec.camera_ok and rec.n_points == 2000
         assert 0.2 < rec.visible_fraction < 1.0
-        assert np.linalg.norm(cloud - V[i], axis=1).max() < c.roi_radius_mm + 5 * c.noise_sd_mm
+        assert np.linalg.norm(cloud - V[i], axis=1).max() < c.roi_radius_mm + 5 * c.noise_sd_mm[1]
         assert sum(rec.dropped.values()) + rec.n_points <= rec.candidates
     # looking from the anterior axis instead of the normal
     cloud, rec = observe(V, topo, V[i], n, ObservationConfig(cone_axis=(0, 1, 0), n_points=(500, 500)), seed=0)
