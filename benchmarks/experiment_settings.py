@@ -102,6 +102,9 @@ def main() -> None:
     v = dict(run.variants[args.variant])
     overs = [(text, parse_setting(text, v)) for text in args.settings]  # all checked before any training
     observe = [(text, parse_observation(text)) for text in args.observe]
+    if observe and (args.scenario != "IV" or v.get("roi_features") != "cloud"):
+        raise SystemExit("--observe re-observes a camera variant's saved model on the unseen livers: scenario IV and "
+                         f"a camera variant only (got {args.variant}, {args.scenario})")
     for k, (text, over) in enumerate(overs):
         print(run.score(merge_mapping(v, over), args.scenario, args.variant, text,
                         f"{args.out}/{args.variant}-{args.scenario}-{k}", args.cv_splits, observe), flush=True)

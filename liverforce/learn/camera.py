@@ -119,11 +119,14 @@ def exact_tip(camera: dict) -> dict:
 def instrument_sds(camera: dict, half_width_mm: float, grid_size: int) -> dict:
     """The sds an instrument fit weighs its points and its prior by, from these camera settings: the
     observation's point noise (the least of a range: the fit refits a noisier cloud with its own,
-    :func:`~liverforce.learn.cloud_features.fit_instrument`; a range's most is recorded too, for serving's
-    warning) and the kinematic tip's tangential noise (``tip_noise_mm``)."""
+    :func:`~liverforce.learn.cloud_features.fit_instrument`; a range's most too, for serving's warning, unless
+    the grid sets the point sd) and the kinematic tip's tangential noise (``tip_noise_mm``)."""
     lo, hi = observation_config(camera, half_width_mm, grid_size).noise_sd_mm
     out = {"instrument_point_sd_mm": lo, "instrument_tip_sd_mm": float(camera.get("tip_noise_mm", 0.0))}
-    return {**out, "instrument_point_sd_max_mm": hi} if hi > lo else out
+    if hi > lo and "instrument_point_sd_mm" not in (camera.get("grid") or {}):
+        out["instrument_point_sd_max_mm"] = hi  # not where the grid holds the point sd: a trained model's (it
+        # records both; re-observed with other noise, it keeps its own) or one the config sets
+    return out
 
 
 def grid_spec(grid_size: int, half_width_mm: float, camera: dict) -> CloudGridSpec:

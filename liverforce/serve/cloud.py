@@ -279,9 +279,10 @@ def noisy_cloud(point_sd_mm: float, spec) -> str | None:
     sd = float(point_sd_mm)
     if not sd > noisy_threshold_mm(spec):
         return None
+    most = "noisiest " if spec.instrument_point_sd_max_mm is not None else ""
     return (f"the cloud's points scatter {sd:.2g} mm (sd) about the tool's shaft, {sd / trained:.1f} times the "
-            f"{trained:g} mm noise of the model's training clouds: a noisier camera than the model was trained for; "
-            "its error grows with the point noise (the report's camera sensitivity)")
+            f"{trained:g} mm noise of the model's {most}training clouds: a noisier camera than the model was trained "
+            "for; its error grows with the point noise (the report's camera sensitivity)")
 
 
 def instrument_check_radius(rep, spec) -> float:

@@ -631,6 +631,39 @@ def test_a_model_trained_on_a_range_of_point_noise_fits_with_the_least_and_warns
         spec(instrument_point_sd_mm=0.5, instrument_point_sd_max_mm=0.4)
 
 
+def test_a_trained_model_keeps_its_noise_range_when_saved_and_when_re_observed():
+    """The representation records both ends of the training noise in its grid (and back from its dict); a model
+    re-observed with another camera (the validation's sensitivity, --observe) keeps its own, whether it was
+    trained on a range or on one value and re-observed with a range below it; a config that sets the fit's point
+    sd itself records no range."""
+    from dataclasses import replace
+
+    from liverforce.learn.camera import grid_spec
+    from liverforce.learn.representation import Representation, representation_from_config
+    from liverforce.learn.synthetic import synthetic_surface_arrays
+
+    arrays = synthetic_surface_arrays(6, n_geometries=1, seed=0)
+    cam = {"observation": {"noise_sd_mm": [0.5, 1.0], "tool_radius_mm": 2.5}, "tip_noise_mm": 0.5,
+           "grid": {"instrument_radius_mm": 2.5}}
+    model = {"grid_size": 8, "roi_features": "cloud", "camera": cam, "occlusion": {"radius_mm": 0.0},
+             "noise_mm": 0.0, "grid_half_width_mm": 20.0}
+
+    def sds(rep):
+        sp = grid_spec(rep.grid_size, rep.half_width_mm, rep.camera)
+        return sp.instrument_point_sd_mm, sp.instrument_point_sd_max_mm
+
+    rep = Representation.from_dict(representation_from_config(model, arrays).to_dict())
+    assert sds(rep) == (0.5, 1.0)
+    for noise in (0.2, 2.0, [0.1, 0.3]):  # re-observed: the grid's own sds stay
+        assert sds(replace(rep, camera={**rep.camera, "observation": {**cam["observation"], "noise_sd_mm": noise}})) \
+            == (0.5, 1.0)
+    one = representation_from_config({**model, "camera": {**cam, "observation": {"noise_sd_mm": 0.8}}}, arrays)
+    assert sds(one) == (0.8, None)
+    assert sds(replace(one, camera={**one.camera, "observation": {"noise_sd_mm": [0.3, 0.6]}})) == (0.8, None)
+    own = {**cam, "grid": {**cam["grid"], "instrument_point_sd_mm": 1.5}}
+    assert sds(representation_from_config({**model, "camera": own}, arrays)) == (1.5, None)
+
+
 def test_the_compiled_tilted_pass_is_the_reference_on_few_points():
     """The numba search-and-fit pass of the tilted fit (serve.compiled_cloud._tilted_pass, on the list of the
     points standing above the surface, one of them a duplicate the kernel has struck out) against

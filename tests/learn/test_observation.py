@@ -14,6 +14,7 @@ from liverforce.learn.observation import (
     DROP_REASONS,
     VISIBLE,
     ObservationConfig,
+    _streams,
     SurfaceTopology,
     case_seed,
     draw_count,
@@ -24,6 +25,7 @@ from liverforce.learn.observation import (
     surface_point_displacement,
     tool_axes_from_forces,
 )
+from liverforce.seeds import spawn_rngs
 
 CODE = {r: 1 + i for i, r in enumerate(DROP_REASONS)}
 UP = np.array([0.0, 0.0, 1.0])
@@ -343,7 +345,13 @@ def test_a_noise_range_draws_one_sd_per_observation_and_nothing_else_changes():
         sds.append(rn.noise_sd_mm)
         fixed, _ = observe(V, T, TIP, UP, cfg(**base, noise_sd_mm=(0.7, 0.7)), seed=s)
         np.testing.assert_array_equal(fixed, observe(V, T, TIP, UP, cfg(**base, noise_sd_mm=0.7), seed=s)[0])
+        # the noise stream's own normals, scaled by the drawn sd (the sd comes from another stream)
+        unit, _ = observe(V, T, TIP, UP, cfg(**base, noise_sd_mm=1.0), seed=s)
+        np.testing.assert_allclose(e / rn.noise_sd_mm, unit - clean, rtol=0, atol=1e-12)
     assert np.ptp(sds) > 0.4 and len(set(sds)) == 10  # spread over the range, a new draw per seed
+    for s in (0, 7, [3, 11]):  # the five streams before the noise level's are those of five children
+        old, new = spawn_rngs(s, 5), _streams(s)
+        assert [g.random() for g in old] == [g.random() for g in new[:5]]
     assert ObservationConfig(noise_sd_mm=0.5).noise_sd_mm == (0.5, 0.5)
     for bad in ((1.0, 0.5), (-0.1, 0.5), (0.5, float("inf")), (0.1, 0.2, 0.3)):
         with pytest.raises(ValueError, match="noise_sd_mm"):
