@@ -36,17 +36,14 @@ def parse_setting(text: str, variant: dict) -> dict:
     over: dict = {}
     if text == "default":
         return over
-    for item in _split_top(text):
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise SystemExit(f"--settings: '{item}' is not key=value")
-        parts = key.strip().split(".")
+    for key, value in _items(text, "--settings"):
+        parts = key.split(".")
         node = over
         for p in parts[:-1]:
             node = node.setdefault(p, {})
             if not isinstance(node, dict):
                 raise SystemExit(f"--settings: '{key}' sets a key inside a value")
-        node[parts[-1]] = yaml.safe_load(value)
+        node[parts[-1]] = value
     unknown = _unknown_keys(variant, over)
     if unknown:
         raise SystemExit(f"--settings '{text}': not model settings: {unknown}")
@@ -66,6 +63,16 @@ def _same_shape(base: dict, over: dict, text: str, prefix: str) -> None:
             raise SystemExit(f"--settings '{text}': {prefix}{k} is {kind}")
         if isinstance(val, dict):
             _same_shape(base[k], val, text, f"{prefix}{k}.")
+
+
+def _items(text: str, flag: str):
+    """``(key, value)`` of each ``key=value`` of ``text`` (:func:`_split_top`; values read as YAML), refused
+    (SystemExit, naming ``flag``) where an item is not ``key=value``."""
+    for item in _split_top(text):
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise SystemExit(f"{flag}: '{item}' is not key=value")
+        yield key.strip(), yaml.safe_load(value)
 
 
 def _split_top(text: str) -> list[str]:
@@ -114,12 +121,7 @@ def parse_observation(text: str) -> dict:
     """``noise_sd_mm=1.0,n_points=[5000, 5000]`` -> observation settings, refused (SystemExit) unless valid."""
     from liverforce.learn.observation import ObservationConfig
 
-    out = {}
-    for item in _split_top(text):
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise SystemExit(f"--observe: '{item}' is not key=value")
-        out[key.strip()] = yaml.safe_load(value)
+    out = dict(_items(text, "--observe"))
     try:
         ObservationConfig.from_dict(out)
     except (TypeError, ValueError) as exc:

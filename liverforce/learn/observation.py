@@ -826,6 +826,12 @@ def _half_window(config: ObservationConfig, d: float) -> float:
 # --------------------------------------------------------------------------
 
 
+def _in_range(pair: tuple[float, float], rng: np.random.Generator) -> float:
+    """A value drawn uniformly in ``pair = (lo, hi)``; ``lo`` itself, drawing nothing, when ``hi <= lo``."""
+    lo, hi = pair
+    return float(lo + (hi - lo) * rng.random()) if hi > lo else float(lo)
+
+
 def _streams(seed) -> tuple[np.random.Generator, ...]:
     """Camera pose, sampling, noise, instrument, tool-tilt and noise-level streams (each as before the later ones
     existed: ``SeedSequence.spawn`` keys a child by its index)."""
@@ -942,8 +948,7 @@ def observe(
     if tool_axis is None and cfg.tool_tilt_deg[1] > 0:  # tilted by that angle, towards a random azimuth
         a, b = _basis(n_out)
         phi = 2.0 * math.pi * rng_tilt.random()
-        lo, hi = cfg.tool_tilt_deg
-        th = math.radians(lo + (hi - lo) * rng_tilt.random() if hi > lo else lo)
+        th = math.radians(_in_range(cfg.tool_tilt_deg, rng_tilt))
         a_tool = math.cos(th) * n_out + math.sin(th) * (math.cos(phi) * a + math.sin(phi) * b)
     cone = n_out if cfg.cone_axis is None else _unit(cfg.cone_axis, "cone_axis")
     tool = Tool.at_tip(tip, a_tool, cfg.tool_radius_mm, cfg.tool_shaft_length_mm)
@@ -1043,9 +1048,8 @@ def observe(
     rec.n_points = int(len(cloud))
 
     # ---- noise
-    s0, s1 = cfg.noise_sd_mm
-    sd = s0 + (s1 - s0) * rng_sd.random() if s1 > s0 else s0
-    rec.noise_sd_mm = float(sd)
+    sd = _in_range(cfg.noise_sd_mm, rng_sd)
+    rec.noise_sd_mm = sd
     if sd > 0 and len(cloud):
         if cfg.noise_mode == "isotropic":
             cloud = cloud + rng_noise.normal(0.0, sd, size=cloud.shape)
