@@ -90,7 +90,8 @@ def predict_shards(predictor, inputs: Sequence[str | Path], out_path: str | Path
     paths = shard_paths(inputs)
     arrays, skipped = load_shards(paths)
     t0 = time.perf_counter()
-    force = predictor.predict_arrays(arrays, observation_seed=observation_seed, fast=fast)
+    force, warnings = predictor.predict_arrays(arrays, observation_seed=observation_seed, fast=fast,
+                                               return_warnings=True)
     seconds = time.perf_counter() - t0
     n = len(force)
     cols = {
@@ -98,8 +99,9 @@ def predict_shards(predictor, inputs: Sequence[str | Path], out_path: str | Path
         "geometry_id": [str(c) for c in arrays["geometry_id"]],
         "scenario": [str(c) for c in arrays.get("scenario", [""] * n)],
         "fx_n": force[:, 0], "fy_n": force[:, 1], "fz_n": force[:, 2],
-        # the context outside the training range (Predictor.context_warnings), "; "-joined; "" when none
-        "warnings": ["; ".join(w) for w in predictor.arrays_warnings(arrays)],
+        # the context outside the training range (Predictor.context_warnings), a force beyond training's
+        # (Predictor.force_warnings), "; "-joined; "" when none
+        "warnings": ["; ".join(w) for w in warnings],
     }
     summary: dict = {"rows": n, "skipped_failed": int(skipped), "shards": [str(p) for p in paths],
                      "seconds": seconds, "predictions_per_s": n / seconds if seconds > 0 else None}

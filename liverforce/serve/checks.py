@@ -30,6 +30,12 @@ material (units)             a constant outside its training range by more
                              than ``scale_factor`` (e.g. Pa or kPa for MPa)
 ===========================  ==================================================
 
+After the prediction, a force larger than every training case's (``|F|`` above the largest of
+``meta["training_scale"]["force_magnitude_n"]``) is returned with a warning (:func:`force_warnings`): the
+regressor extrapolates there, and the interval's widths were calibrated on smaller forces. A wrong exertion
+point is one way to get there: on the default run's unseen liver val-1000, the exertion point given 5 mm from
+where the tool pressed turned a 3.8 N case into 7.5 N, with every input check passed.
+
 The ranges come from ``meta["training_scale"]`` of the bundle
 (:func:`liverforce.learn.model.training_scale`); bundles written before it
 existed fall back to ranges derived from the fitted scalers (approximate,
@@ -77,6 +83,7 @@ class TrainingScale:
     source: str
     thickness_mm: tuple[float, float] | None = None
     compliance_trace: tuple[float, float] | None = None
+    force_max_n: float | None = None  # the largest |F| of the training cases (N; bundles since it was recorded)
 
     @property
     def recorded(self) -> bool:
@@ -94,10 +101,11 @@ class TrainingScale:
             lo, hi = (np.asarray(v, dtype=np.float64) for v in rec["material_params_mpa"])
             thick = rec.get("tool_thickness_mm")
             ctr = rec.get("probe_compliance_mm_per_n")
+            fmag = rec.get("force_magnitude_n")
             return cls(rep.half_width_mm, tuple(rec["inertia_length_mm"]), tuple(rec["centroid_distance_mm"]),
                        lo, hi, tuple(rec["feature_abs_max"]), n_mat if n_mat is not None else int(lo.size),
                        _RECORDED, None if thick is None else tuple(thick),
-                       None if ctr is None else tuple(ctr))
+                       None if ctr is None else tuple(ctr), None if fmag is None else float(fmag[1]))
         fs = model.pre.feature_scaler
         g2 = rep.grid_size**2
         feat = tuple(float(np.max(np.abs(fs.mean[c * g2:(c + 1) * g2]) + 4 * fs.scale[c * g2:(c + 1) * g2]))
@@ -356,6 +364,23 @@ def outside_training(arrays: dict, scale: TrainingScale) -> tuple[dict[str, np.n
                                    "probe_compliance_mm_per_n": scale.compliance_trace,
                                    "liver_size_mm": scale.inertia_length_mm,
                                    "centroid_distance_mm": scale.centroid_distance_mm})
+
+
+def force_warnings(force: np.ndarray, scale: TrainingScale) -> list[list[str]]:
+    """Per row of predicted forces ``(n, 3)`` N: a warning where ``|F|`` exceeds every training case's (module
+    docstring). A row that is not finite (a refused cloud's NaN) gets none; nor does any row of a model whose
+    bundle did not record its training forces."""
+    F = np.asarray(force, dtype=np.float64).reshape(-1, 3)
+    out: list[list[str]] = [[] for _ in range(len(F))]
+    top = scale.force_max_n
+    if top is None or not scale.recorded:
+        return out
+    mag = np.linalg.norm(F, axis=1)
+    for i in np.flatnonzero(np.isfinite(mag) & (mag > top)):
+        out[i] = [f"the predicted force ({mag[i]:.3g} N) exceeds every training case's ({top:.3g} N): the model "
+                  "extrapolates there and its interval was calibrated on smaller forces; check the exertion point, "
+                  "the tool tip and the registration"]
+    return out
 
 
 def check_thickness(arrays: dict, i: int, scale: TrainingScale, limits: Limits, label: str) -> None:

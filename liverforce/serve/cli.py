@@ -237,7 +237,7 @@ def _run(args) -> int:
         force = predictor.predict(nodes, preop) if iv is None else np.asarray(iv.pop("force_n"))
         if iv is not None:
             info["interval"] = iv
-        info["warnings"] = predictor.context_warnings(preop)
+        info["warnings"] = predictor.context_warnings(preop) + predictor.force_warnings(force)[0]
     force_in = frame.vectors_out(force)
     doc = {"force_n": [float(v) for v in force_in], "magnitude_n": float(np.linalg.norm(force)),
            "frame": _frame_label(frame),

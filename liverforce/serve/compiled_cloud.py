@@ -96,7 +96,7 @@ from liverforce.learn.cloud_features import (_COST_RTOL, _FIT_ITERATIONS, _MAD_S
                                              ReferenceSurface, _fill, instrument_search_radius, shaft_fit_radius)
 from liverforce.learn.encoders import PCAEncoder
 from liverforce.learn.state import THICKNESS_COLUMN, compliance_matrices, state_vector
-from liverforce.serve.checks import Limits, TrainingScale, outside_training
+from liverforce.serve.checks import Limits, TrainingScale, force_warnings, outside_training
 from liverforce.serve.cloud import (MASKED_INSTRUMENT, SHAFT_MARGIN_MM, SHAFT_POINTS, SHAFT_RING_MM, SHAFT_RISE_MM,
                                     camera_checks, instrument_check_radius, instrument_refusal, noisy_cloud,
                                     noisy_threshold_mm, tool_tip_of)
@@ -1192,6 +1192,11 @@ def _dense_rows(Hin, WT, b, slope, act):
 # --------------------------------------------------------------------------
 
 
+def _with_force(warnings: list, force: np.ndarray, scale: TrainingScale) -> list:
+    """Each cloud's warnings, a force beyond the training forces' appended (a refused cloud's NaN gets none)."""
+    return [w + f for w, f in zip(warnings, force_warnings(force, scale))]
+
+
 def instrument_params(sp) -> np.ndarray:
     """The kernels' ``inst`` vector of a grid spec: the tool's radius, the search radius, the rise, the clearance,
     the point sd, the tip sd, the fewest points, ``NOISE_REFIT_RATIO``, ``tan(instrument_max_tilt_deg)``,
@@ -1343,9 +1348,9 @@ class CompiledCloud:
                 if self.dent:
                     self.dent_k = float(pre.material_factor(s, 1)[0, 0]) / float(compliance_matrices(s)[0][2, 2])
         self.context_warnings = []  # the context's state outside the training range (Predictor.context_warnings)
+        self.scale = TrainingScale.of(model)  # and the training forces (force_warnings)
         if self.uses_state:
-            self.context_warnings = outside_training(preop.to_arrays(preop.roi_undeformed_mm),
-                                                     TrainingScale.of(model))[1][0]
+            self.context_warnings = outside_training(preop.to_arrays(preop.roi_undeformed_mm), self.scale)[1][0]
         self.layers = []
         nz = self.A.shape[0]
         # the GP takes the (float32-rounded, as the reference feeds it) state once: its share of every training
@@ -1631,7 +1636,7 @@ class CompiledCloud:
             raise PredictionInputError(why)
         F = self._head(X)
         half = self._half(F)
-        return self._out(F[0]), None if half is None else half[0], warnings
+        return self._out(F[0]), None if half is None else half[0], warnings + force_warnings(F, self.scale)[0]
 
     def predict_batch(self, clouds, tool_tips, counts=None, *, threads: int = 1) -> CloudBatch:
         """Forces of many clouds at this exertion point in one go (a :class:`CloudBatch`).
@@ -1686,7 +1691,7 @@ class CompiledCloud:
                     P.reshape(-1, 3), np.arange(e - a, dtype=np.int64) * N, cnt[a:e], tips[a:e], threads)
             refused, warnings = self._reasons(lambda r: clouds[r, :cnt[r]], cnt, tips, X, n_used, n_bad, n_tool)
             F = self._forces(X, np.array([r is None for r in refused], dtype=bool), threads)
-            return CloudBatch(self._out(F), self._half(F), warnings, refused)
+            return CloudBatch(self._out(F), self._half(F), _with_force(warnings, F, self.scale), refused)
         if counts is not None:
             raise PredictionInputError("counts: only with one padded (B, N, 3) array of clouds")
         refused: list = [None] * B
@@ -1707,4 +1712,4 @@ class CompiledCloud:
             force[good] = self._forces(X, np.array([r is None for r in why], dtype=bool), threads)
             for k, i in enumerate(good):
                 refused[i], warnings[i] = why[k], warn[k]
-        return CloudBatch(self._out(force), self._half(force), warnings, refused)
+        return CloudBatch(self._out(force), self._half(force), _with_force(warnings, force, self.scale), refused)

@@ -36,7 +36,7 @@ import numpy as np
 
 from liverforce.learn import camera
 from liverforce.learn.model import ForceModel, ModelFormatError
-from liverforce.serve.checks import Limits, TrainingScale, check_case, outside_training
+from liverforce.serve.checks import Limits, TrainingScale, check_case, force_warnings, outside_training
 from liverforce.serve.cloud import (MASKED_INSTRUMENT, camera_checks, check_instrument, cloud_support, noisy_cloud,
                                    cloud_to_arrays)
 from liverforce.serve.compiled import CompiledROI
@@ -179,6 +179,11 @@ class Predictor:
             return [[] for _ in range(len(arrays["exertion_point_mm"]))]
         return outside_training(arrays, self.scale)[1]
 
+    def force_warnings(self, force) -> list[list[str]]:
+        """Per predicted force ``(n, 3)`` N (or one ``(3,)``): a warning where ``|F|`` exceeds every training
+        case's (:func:`liverforce.serve.checks.force_warnings`); every path adds it after the input's warnings."""
+        return force_warnings(force, self.scale)
+
     def _check_state_inputs(self, preop: Preop) -> None:
         if self.model.uses_state:
             missing = [k for k in ("liver_centroid_mm", "inertia_mm5", "material_params_mpa", "tool_thickness_mm",
@@ -288,6 +293,7 @@ class Predictor:
         else:
             info["warnings"] = self.context_warnings(preop)
         force = self.model.predict(arrays, rotations=R)[0]
+        info["warnings"] = info["warnings"] + self.force_warnings(force)[0]
         if registration is not None:
             info["registration"] = {**registration.to_dict(), "description": registration.describe()}
             if registration.anchor == "none":
@@ -372,8 +378,10 @@ class Predictor:
         return out, fixes
 
     def predict_arrays(self, arrays: dict, *, observation_seed: int | None = None, fast: bool = False,
-                       min_group: int = 2) -> np.ndarray:
-        """Forces ``(n, 3)`` N for input-contract arrays (e.g. a shard), every row checked first.
+                       min_group: int = 2, return_warnings: bool = False):
+        """Forces ``(n, 3)`` N for input-contract arrays (e.g. a shard), every row checked first; with
+        ``return_warnings`` also each row's warnings, those :meth:`predict_cloud` gives one cloud (the context's,
+        a camera cloud's, a force beyond training's), as ``(force, warnings)``.
 
         Parameters
         ----------
@@ -404,26 +412,41 @@ class Predictor:
         if bad:
             raise PredictionInputError(f"inputs disagree on the number of cases ({n} exertion points): {bad}")
         if n == 0:
-            return np.zeros((0, 3))
+            return (np.zeros((0, 3)), []) if return_warnings else np.zeros((0, 3))
         # each row's frame is checked (and its rotation computed) once, here; the model reuses the rotations
         R = np.stack([check_case(arrays, i, self.model, self.scale, self.limits) for i in range(n)])
         rep = self.model.representation
+        cloud_warnings = [[] for _ in range(n)]
         if rep.is_camera and "camera_cloud_mm" in arrays:  # observed clouds: features once, each row checked
-            from liverforce.learn.camera import FEATURES_KEY
-
-            x = rep.features_of(arrays, R=R)
+            spec, fitted, point_sd = camera.grid_spec(rep.grid_size, rep.half_width_mm, rep.camera), [], []
+            x = camera.features_from_clouds(arrays[camera.CLOUD_KEY], arrays[camera.TIP_KEY], arrays, spec, R=R,
+                                            fitted=fitted, point_sd=point_sd)
             tris = arrays.get("roi_triangles")
             for i in range(n):
                 try:  # the instrument in a cloud for a model trained without it, then the features' ranges
                     check_instrument(rep, arrays["camera_cloud_mm"][i], arrays["tool_tip_mm"][i],
                                      arrays["roi_undeformed_mm"][i], None if tris is None else tris[i],
                                      arrays["exertion_point_mm"][i], R[i])
-                    camera_checks(self.model, x[i], self.limits)
+                    checked = camera_checks(self.model, x[i], self.limits)
                 except PredictionInputError as exc:
                     ids = arrays.get("case_id")
                     raise PredictionInputError(f"{'case ' + str(ids[i]) if ids is not None else f'row {i}'}: "
                                                f"{exc}") from None
-            arrays = {**arrays, FEATURES_KEY: x}
+                noisy = noisy_cloud(point_sd[i], spec) if point_sd else None  # predict_cloud's order
+                cloud_warnings[i] = ([MASKED_INSTRUMENT] if fitted and fitted[i] == 0 else []) + (
+                    [noisy] if noisy else []) + checked
+            arrays = {**arrays, camera.FEATURES_KEY: x}
+        force = self._forces(arrays, R, observation_seed, fast, min_group)
+        if not return_warnings:
+            return force
+        return force, [c + w + f for c, w, f in zip(self.arrays_warnings(arrays), cloud_warnings,
+                                                     self.force_warnings(force))]
+
+    def _forces(self, arrays: dict, R: np.ndarray, observation_seed, fast: bool, min_group: int) -> np.ndarray:
+        """:meth:`predict_arrays`' forces of checked rows (``R``: their rotations), by the compiled node path
+        where ``fast`` allows it."""
+        n = len(R)
+        rep = self.model.representation
         can_fast = fast and rep.features == "displacement" and not (observation_seed is not None and rep.stochastic)
         if not can_fast:
             return self.model.predict(arrays, observation_seed=observation_seed, rotations=R)

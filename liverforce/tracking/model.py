@@ -48,8 +48,8 @@ MODEL_NAME = "model"
 OUTPUT_COLUMNS = ("fx_n", "fy_n", "fz_n")
 #: further columns for a model with a calibrated interval: the local force (t1, t2, n) and its half-widths, N
 INTERVAL_COLUMNS = ("ft1_n", "ft2_n", "fn_n", "ft1_half_n", "ft2_half_n", "fn_half_n")
-#: the last column: the case's geometric state outside the training range (Predictor.context_warnings),
-#: "; "-joined, "" when none
+#: the last column: each row's warnings (Predictor.predict_arrays: the case's geometric state outside the training
+#: range, a camera cloud's departures from the training clouds, a force beyond training's), "; "-joined, "" when none
 WARNINGS_COLUMN = "warnings"
 _ROI_KEYS = ("roi_undeformed_mm", "roi_deformed_mm", "camera_cloud_mm", "unloaded_cloud_mm", "roi_triangles")  # ragged
 # (k, 3) point sets and triangles (vertex indices), flattened
@@ -103,7 +103,9 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
     and for a model with a calibrated interval also the local force
     ``ft1_n, ft2_n, fn_n`` and its interval half-widths ``ft1_half_n, ft2_half_n,
     fn_half_n`` (nominal coverage in the bundle's ``meta["interval"]``), and ``warnings``
-    (the case's geometric state outside the training range, ``"; "``-joined, ``""`` when none).
+    (the case's geometric state outside the training range, a camera cloud's departures from the training
+    clouds, a predicted force beyond the training forces: those of ``Predictor.predict_cloud``; ``"; "``-joined,
+    ``""`` when none).
 
     A camera-cloud model also takes the optional columns ``unloaded_cloud_mm`` (per row the camera's cloud
     before the tool pushed, flattened; empty: none) and ``contact_tip_mm`` (the tool tip at contact): the
@@ -134,10 +136,11 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
                 raise PredictionInputError(f"input columns: {exc}") from None
             arrays = frame.arrays(arrays)
             arrays, _ = predictor.refine_arrays(arrays)  # registration refined from unloaded clouds, if given
-            force = predictor.predict_arrays(arrays, observation_seed=None if seed < 0 else seed)
+            force, warnings = predictor.predict_arrays(arrays, observation_seed=None if seed < 0 else seed,
+                                                       return_warnings=True)
         except PredictionInputError as exc:
             raise PyfuncInputError(str(exc)) from exc
-        out = _output_frame(self.model, arrays, force, None if seed < 0 else seed, predictor)
+        out = _output_frame(self.model, arrays, force, None if seed < 0 else seed, predictor, warnings)
         if not frame.same_axes:  # the force back in the inputs' frame; the local columns have no global axes
             out[list(OUTPUT_COLUMNS)] = frame.vectors_out(out[list(OUTPUT_COLUMNS)].to_numpy(dtype=np.float64))
         return out
@@ -169,9 +172,10 @@ def pyfunc_input_frame(input_frame: str | None, units: str | None) -> InputFrame
 
 
 def _output_frame(model: ForceModel, arrays: dict, force: np.ndarray, seed: int | None,
-                  predictor: Predictor | None = None) -> pd.DataFrame:
+                  predictor: Predictor | None = None, warnings: list | None = None) -> pd.DataFrame:
     """The output columns: ``force`` (already computed), the interval columns when the model has one,
-    and ``warnings`` (from ``predictor``'s training scale, else a new one's)."""
+    and ``warnings`` (each row's, from :meth:`Predictor.predict_arrays`; without them the context's and the
+    force's, from ``predictor``'s training scale, else a new one's)."""
     out = pd.DataFrame(force, columns=list(OUTPUT_COLUMNS))
     if model.interval is not None:
         got = model.predict_interval(arrays, observation_seed=seed)
@@ -179,7 +183,10 @@ def _output_frame(model: ForceModel, arrays: dict, force: np.ndarray, seed: int 
             out[c] = got["force_local_n"][:, j]
         for j, c in enumerate(INTERVAL_COLUMNS[3:]):
             out[c] = got["half_width_local_n"][:, j]
-    out[WARNINGS_COLUMN] = ["; ".join(w) for w in (predictor or Predictor(model)).arrays_warnings(arrays)]
+    if warnings is None:
+        p = predictor or Predictor(model)
+        warnings = [w + f for w, f in zip(p.arrays_warnings(arrays), p.force_warnings(force))]
+    out[WARNINGS_COLUMN] = ["; ".join(w) for w in warnings]
     return out
 
 

@@ -63,6 +63,28 @@ def test_cases_outside_the_training_range_carry_their_warning(trained, test_case
     assert not any("tissue under the tool" in w for w in df["warnings"])
 
 
+def test_forces_beyond_the_training_forces_carry_their_warning(trained, shards):
+    """--shards' rows (the compiled node path and the reference alike): a predicted |F| above the model's largest
+    training force is warned about, by both magnitudes; at or below it, not."""
+    import copy
+
+    pred = Predictor.load(trained("disp"))
+    model = copy.copy(pred.model)
+    model.meta = copy.deepcopy(pred.model.meta)
+    for fast in (True, False):
+        df = predict_shards(pred, [shards], None, fast=fast)["frame"]
+        mag = np.linalg.norm(df[["fx_n", "fy_n", "fz_n"]].to_numpy(), axis=1)
+        cap = float(np.median(mag))
+        model.meta["training_scale"]["force_magnitude_n"][1] = cap
+        capped = predict_shards(Predictor(model), [shards], None, fast=fast)["frame"]
+        warned = np.array(["the predicted force" in w for w in capped["warnings"]])
+        assert warned.any() and not warned.all()
+        np.testing.assert_array_equal(warned, mag > cap)
+        assert not any("the predicted force" in w for w in df["warnings"][mag <= pred.scale.force_max_n])
+        k = int(np.flatnonzero(warned)[0])
+        assert f"({mag[k]:.3g} N) exceeds every training case's ({cap:.3g} N)" in capped["warnings"][k]
+
+
 def test_bad_shards_are_refused(trained, shards, tmp_path):
     pred = Predictor.load(trained("disp"))
     with pytest.raises(PredictionInputError, match="no such shard"):

@@ -292,7 +292,12 @@ def test_a_refused_cloud_does_not_poison_the_batch(served):
     res = fast.predict_batch([cloud, cloud], np.stack([tip, push]))
     _, info = pred.predict_cloud(cloud, ctx, tool_tip_mm=push, return_info=True)
     assert res.ok.all() and res.warnings[0] == fast.context_warnings  # the context's (if any), nothing of the cloud's
-    assert res.warnings[1] == info["warnings"] and len(info["warnings"]) == len(fast.context_warnings) + 1
+    assert res.warnings[1] == info["warnings"] and len(_inputs(info["warnings"])) == len(fast.context_warnings) + 1
+
+
+def _inputs(warnings: list) -> list:
+    """The warnings about the inputs: without a force beyond training's (a deep push may also give one)."""
+    return [w for w in warnings if not w.startswith("the predicted force")]
 
 
 def test_a_batch_gridded_in_threads_gives_the_same_bits(served, monkeypatch):
@@ -413,3 +418,46 @@ def test_gp_head_equals_the_regressors_posterior_mean(served):
         np.testing.assert_allclose(fast.gp(Z[:, free]), want, rtol=0, atol=1e-9 * np.abs(want).max())
     with pytest.raises(ValueError, match=f"rows of {free.size} inputs"):  # the full row is not what it takes
         fast.gp(Z)
+
+
+def _capped(pred, cap_n: float) -> Predictor:
+    """The same model, its recorded training forces' largest magnitude set to ``cap_n``."""
+    model = copy.copy(pred.model)
+    model.meta = copy.deepcopy(pred.model.meta)
+    model.meta["training_scale"]["force_magnitude_n"][1] = cap_n
+    return Predictor(model)
+
+
+def test_a_force_beyond_the_training_forces_is_warned_on_every_path(served):
+    """A predicted |F| above every training case's comes with a warning naming both, after the inputs' warnings,
+    on the reference path, the compiled path (one cloud and a batch) and predict_arrays (the MLflow pyfunc's and
+    --shards' path), which also gives a camera cloud's own warnings as predict_cloud does. The model is the
+    served one with its recorded largest training force lowered below the clouds' forces; the served model
+    itself warns about none of the three clouds of the case as simulated."""
+    pred, a, ctx, fast = served
+    items = _clouds(a, 3)[:3]
+    top = pred.model.meta["training_scale"]["camera"]["tip_displacement_max_mm"]
+    items.append((items[0][0], ctx.exertion_point_mm - 1.3 * top * ctx.frame[2]))  # a cloud warning as well
+    clouds, tips = [c for c, _ in items], np.stack([t for _, t in items])
+    plain = [pred.predict_cloud(c, ctx, tool_tip_mm=t, return_info=True) for c, t in items]
+    mags = np.array([np.linalg.norm(f) for f, _ in plain])
+    assert all(_inputs(info["warnings"]) == info["warnings"] for _, info in plain[:3])
+    capped = _capped(pred, 0.5 * mags.min())
+    cfast = capped.compile_cloud(ctx)
+    batch = cfast.predict_batch(clouds, tips)
+    n = len(items)
+    rows = {k: np.repeat(v, n, axis=0) if isinstance(v, np.ndarray) else [v[0]] * n
+            for k, v in ctx.to_arrays(ctx.roi_undeformed_mm).items()}
+    rows.update({"camera_cloud_mm": clouds, "tool_tip_mm": tips})
+    force, warned = capped.predict_arrays(rows, return_warnings=True)
+    for k, ((c, t), (f0, info0)) in enumerate(zip(items, plain)):
+        f, info = capped.predict_cloud(c, ctx, tool_tip_mm=t, return_info=True)
+        assert info["warnings"][:-1] == _inputs(info0["warnings"])  # the inputs' warnings first, unchanged
+        assert info["warnings"][-1].startswith(f"the predicted force ({mags[k]:.3g} N) exceeds every training "
+                                               f"case's ({0.5 * mags.min():.3g} N)")
+        assert cfast.predict(c, t)[2] == info["warnings"] and batch.warnings[k] == info["warnings"]
+        assert warned[k] == info["warnings"]
+        np.testing.assert_allclose(force[k], f, rtol=0, atol=1e-6)
+    assert len(_inputs(plain[3][1]["warnings"])) > len(plain[0][1]["warnings"])  # the deep push's tip warning is kept
+    refused = cfast.predict_batch([clouds[0][:5]], tips[:1])  # a refused cloud: its reason, no force warning
+    assert refused.refused[0] is not None and refused.warnings == [[]]
