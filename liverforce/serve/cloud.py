@@ -203,6 +203,19 @@ def tool_tip_of(tool_tip_mm) -> np.ndarray:
     return tip
 
 
+def few_points(O: np.ndarray, p: np.ndarray, n_used: int, half_width_mm: float, min_points: int) -> str:
+    """Why a cloud ``O`` (model frame) with ``n_used`` points over the grid round ``p`` is refused; a cloud less
+    than a hundredth of the grid across (a liver region in metres read as mm) is named as one in metres."""
+    med = float(np.median(np.linalg.norm(O - p, axis=1)))
+    why = (f"cloud: only {n_used} of {len(O)} points lie over the model's {2 * half_width_mm:.3g} mm grid around the "
+           f"exertion point (at least {min_points} needed; the points are a median {med:.4g} mm from it)")
+    span = float(np.max(np.ptp(O, axis=0)))
+    if len(O) >= min_points and 0.0 < span < 0.02 * half_width_mm:
+        return (f"{why}: the whole cloud spans {span:.3g} mm, too small for a view of the liver; it looks like "
+                "metres read as mm: give --units m (in Python, convert to mm or compile_cloud(..., units='m'))")
+    return f"{why}: is the cloud in mm, registered to the liver frame, and does it show the tool region?"
+
+
 def _camera_arrays(model, cloud_mm, preop: Preop, tool_tip_mm, limits: Limits) -> tuple[dict, dict]:
     """Arrays of a camera-cloud model: the cloud as given, the tool tip, the pre-operative context."""
     tip = tool_tip_of(tool_tip_mm)
@@ -214,11 +227,7 @@ def _camera_arrays(model, cloud_mm, preop: Preop, tool_tip_mm, limits: Limits) -
     reach = rep.half_width_mm * (1.0 + 2.0 / (rep.grid_size - 1))
     n_used = int((np.abs(O_loc[:, :2]) <= reach).all(axis=1).sum())
     if n_used < limits.min_cloud_points:
-        med = float(np.median(np.linalg.norm(O - p, axis=1)))
-        raise PredictionInputError(
-            f"cloud: only {n_used} of {len(O)} points lie over the model's {2 * rep.half_width_mm:.3g} mm grid around "
-            f"the exertion point (at least {limits.min_cloud_points} needed; the points are a median {med:.4g} mm "
-            "from it): is the cloud in mm, registered to the liver frame, and does it show the tool region?")
+        raise PredictionInputError(few_points(O, p, n_used, rep.half_width_mm, limits.min_cloud_points))
     d_tip = float(np.linalg.norm(tip - p))
     if d_tip > rep.half_width_mm:
         raise PredictionInputError(

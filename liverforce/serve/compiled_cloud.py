@@ -98,8 +98,8 @@ from liverforce.learn.encoders import PCAEncoder
 from liverforce.learn.state import THICKNESS_COLUMN, compliance_matrices, state_vector
 from liverforce.serve.checks import Limits, TrainingScale, force_warnings, outside_training
 from liverforce.serve.cloud import (MASKED_INSTRUMENT, SHAFT_MARGIN_MM, SHAFT_POINTS, SHAFT_RING_MM, SHAFT_RISE_MM,
-                                    camera_checks, instrument_check_radius, instrument_refusal, noisy_cloud,
-                                    noisy_threshold_mm, tool_tip_of)
+                                    camera_checks, few_points, instrument_check_radius, instrument_refusal,
+                                    noisy_cloud, noisy_threshold_mm, tool_tip_of)
 from liverforce.serve.compiled import numpy_layers, regressor_head
 from liverforce.serve.errors import PredictionInputError
 from liverforce.serve.input_frame import InputFrame
@@ -1545,11 +1545,7 @@ class CompiledCloud:
             return (f"cloud: {int(bad.sum())} of {len(O)} points contain NaN or inf (first at row "
                     f"{int(np.argmax(bad))}); drop invalid points (e.g. missing depth) before predicting")
         if n_used < self.limits.min_cloud_points:
-            med = float(np.median(np.linalg.norm(O - self.p, axis=1)))
-            return (f"cloud: only {n_used} of {len(O)} points lie over the model's {2 * self.half_width_mm:.3g} mm "
-                    f"grid around the exertion point (at least {self.limits.min_cloud_points} needed; the points are "
-                    f"a median {med:.4g} mm from it): is the cloud in mm, registered to the liver frame, and does it "
-                    "show the tool region?")
+            return few_points(O, self.p, n_used, self.half_width_mm, self.limits.min_cloud_points)
         d_tip = float(np.linalg.norm(tip - self.p))
         if d_tip > self.half_width_mm:
             return (f"tool_tip_mm is {d_tip:.4g} mm from the exertion point, beyond the model's grid "

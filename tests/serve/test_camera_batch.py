@@ -461,3 +461,16 @@ def test_a_force_beyond_the_training_forces_is_warned_on_every_path(served):
     assert len(_inputs(plain[3][1]["warnings"])) > len(plain[0][1]["warnings"])  # the deep push's tip warning is kept
     refused = cfast.predict_batch([clouds[0][:5]], tips[:1])  # a refused cloud: its reason, no force warning
     assert refused.refused[0] is not None and refused.warnings == [[]]
+
+
+def test_a_cloud_in_metres_is_refused_as_one_on_both_paths(served):
+    """A cloud given in metres (read as mm it spans a fraction of a millimetre) is refused, naming metres and
+    --units m, by the reference and the compiled path alike; a cloud in mm that misses the grid is not called
+    metres."""
+    pred, a, ctx, fast = served
+    cloud, tip = _clouds(a, 2)[0]
+    for c, metres in ((cloud / 1000.0, True), (cloud + 10 * fast.half_width_mm * ctx.frame[0], False)):
+        with pytest.raises(PredictionInputError) as exc:
+            pred.predict_cloud(c, ctx, tool_tip_mm=tip)
+        assert ("looks like metres read as mm: give --units m" in str(exc.value)) == metres
+        assert fast.predict_batch([c], tip[None]).refused == [str(exc.value)]

@@ -120,7 +120,7 @@ def test_out_of_distribution_inputs_are_refused_naming_the_reason(served):
         pred.predict_cloud(cloud, ctx)  # no tool tip
     with pytest.raises(PredictionInputError, match=r"only \d of 5 points"):
         pred.predict_cloud(cloud[:5], ctx, tool_tip_mm=tip)  # too few points
-    with pytest.raises(PredictionInputError, match="is the cloud in mm"):
+    with pytest.raises(PredictionInputError, match="looks like metres read as mm: give --units m"):
         pred.predict_cloud(cloud / 1000.0, ctx, tool_tip_mm=tip)  # metres
     R = ctx.frame
     loc = (cloud - ctx.exertion_point_mm) @ R.T
