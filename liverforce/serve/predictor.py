@@ -485,6 +485,7 @@ class Predictor:
             "uses_state_vector": m.uses_state,
             "n_material_params": self.scale.n_material,
             "required_inputs": list(m.required_inputs()),
+            "command_line": self.command_line(),
             "cloud_support": self.cloud_support,
             "roi_fraction": self.roi_fraction,
             "frame_radius_mm": self.frame_radius_mm,
@@ -493,6 +494,39 @@ class Predictor:
             "variant": m.meta.get("variant"),
             "test_metrics": m.meta.get("test_metrics"),
         }
+
+
+    def command_line(self) -> list[str]:
+        """What ``liverforce predict`` needs for this model, option by option (:meth:`describe`): the
+        ``required_inputs`` are the input contract's names, which the command computes from these."""
+        m, rep = self.model, self.model.representation
+        out = []
+        if rep.is_camera:
+            out += ["CLOUD: the camera's points of the liver round the tool, the instrument's included (PLY, CSV or NPY; "
+                    "a folder or several files: a sequence, with --tool-tips FILE)",
+                    "--tool-tip X Y Z: the tool tip now, from the robot's kinematics"]
+        elif self.cloud_support == "exact":
+            out += ["CLOUD: the deformed surface's points round the tool (PLY, CSV or NPY)"]
+        else:
+            out += ["--mode nodes NODES with --context (the deformed ROI nodes, in the context's order) or --mode "
+                    "surface SURFACE (the deformed surface, same vertices as the undeformed one); a cloud only with "
+                    "--approximate (normal motion only)"]
+        out.append("--exertion-point X Y Z: where the tool touches the pre-operative surface")
+        if m.uses_state:
+            n = self.scale.n_material or 1
+            out += ["--mesh MESH: the liver's tet mesh (results/<exp>/mesh/<id>.vtu): its surface is the pre-operative "
+                    "one, its stiffness probe the state vector's compliance (--surface SURFACE replaces the surface; "
+                    "a --context FILE may give both)",
+                    f"--material {' '.join(f'C{j + 1}' for j in range(n))}: the {n} material constant"
+                    f"{'s' if n > 1 else ''} of the liver, MPa"]
+        else:
+            out.append("--surface SURFACE or --mesh MESH: the pre-operative surface (or a --context FILE)")
+        out.append("--units m / cm and --frame LPS | a 4x4 | results/<exp>/geometry/imp-<name>.json: inputs not in "
+                   "RAS mm (say --frame RAS beside the mesh of a liver imported in another frame)")
+        if rep.is_camera:
+            out.append("optional: --unloaded CLOUD --contact-tip X Y Z (the view before the tool pushed, and the tip "
+                       "at contact): the registration refined first")
+        return out
 
 
 def _context_key(arrays: dict, i: int) -> bytes:

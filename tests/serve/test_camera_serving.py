@@ -171,6 +171,10 @@ def test_cli_predicts_a_camera_cloud_with_the_tool_tip(served, tmp_path, capsys)
                               str(tmp_path / "ctx.json"), "--units", "m"])
     assert args.func(args) == 2
     assert "tool tip" in capsys.readouterr().err
+    args = parser.parse_args(["predict", "-m", str(path), "--describe"])  # what it needs says the tool tip
+    assert args.func(args) == 0
+    cli = json.loads(capsys.readouterr().out)["command_line"]
+    assert cli[0].startswith("CLOUD") and cli[1].startswith("--tool-tip X Y Z")
     # the patch's triangles are what the pre-operative height is read from: without them, a named refusal
     (tmp_path / "ctx_nt.json").write_text(json.dumps({k: v for k, v in doc.items() if k != "roi_triangles"}))
     args = parser.parse_args(["predict", "-m", str(path), str(tmp_path / "cloud.npy"), "--context",

@@ -34,6 +34,9 @@ def test_describe_and_required_context(trained, test_cases):
     assert d["representation"]["features"] == "displacement"
     assert d["cloud_support"] == "approximate"
     assert d["training_scale_source"] == "bundle meta training_scale"
+    cli = d["command_line"]  # the options of liverforce predict this model needs, its 2 constants named
+    assert cli[0].startswith("--mode nodes") and any(c.startswith("--material C1 C2: the 2 ") for c in cli)
+    assert any(c.startswith("--mesh MESH") for c in cli) and not any("--tool-tip" in c for c in cli)
     ctx = Preop.from_arrays(test_cases, 0)
     from liverforce.serve import PredictionInputError
 
