@@ -7,7 +7,8 @@ cases are skipped (their ROI carries no deformation) and counted.
 
 Output columns: ``case_id, geometry_id, scenario, fx_n, fy_n, fz_n`` (the
 predicted force, liver frame, N), ``warnings`` (the case's geometric state
-outside the training range, ``"; "``-joined, empty when none) and, when the shards carry labels,
+outside the training range, a predicted force beyond the training forces; ``"; "``-joined, empty when none) and,
+when the shards carry labels,
 ``fx_true_n, fy_true_n, fz_true_n, error_n`` (``|F̂ − F|``); the returned
 summary adds the metrics of :func:`liverforce.learn.metrics.force_metrics`.
 """

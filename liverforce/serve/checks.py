@@ -366,20 +366,22 @@ def outside_training(arrays: dict, scale: TrainingScale) -> tuple[dict[str, np.n
                                    "centroid_distance_mm": scale.centroid_distance_mm})
 
 
-def force_warnings(force: np.ndarray, scale: TrainingScale) -> list[list[str]]:
+def force_warnings(force: np.ndarray, scale: TrainingScale, camera: bool = True) -> list[list[str]]:
     """Per row of predicted forces ``(n, 3)`` N: a warning where ``|F|`` exceeds every training case's (module
     docstring). A row that is not finite (a refused cloud's NaN) gets none; nor does any row of a model whose
-    bundle did not record its training forces."""
+    bundle did not record its training forces. ``camera``: the advice names the tool tip and the registration
+    (a camera-cloud model's inputs), else the ROI nodes."""
     F = np.asarray(force, dtype=np.float64).reshape(-1, 3)
     out: list[list[str]] = [[] for _ in range(len(F))]
     top = scale.force_max_n
     if top is None or not scale.recorded:
         return out
-    mag = np.linalg.norm(F, axis=1)
-    for i in np.flatnonzero(np.isfinite(mag) & (mag > top)):
-        out[i] = [f"the predicted force ({mag[i]:.3g} N) exceeds every training case's ({top:.3g} N): the model "
-                  "extrapolates there and its interval was calibrated on smaller forces; check the exertion point, "
-                  "the tool tip and the registration"]
+    mag = np.sqrt(np.einsum("ij,ij->i", F, F))
+    check = "the tool tip and the registration" if camera else "the ROI nodes and their order"
+    for i in np.flatnonzero(mag > top):  # NaN compares False
+        out[i] = [f"the predicted force ({mag[i]:.4g} N) exceeds every training case's (at most {top:.4g} N): the "
+                  f"model extrapolates there and its interval was calibrated on smaller forces; check the exertion "
+                  f"point, {check}"]
     return out
 
 

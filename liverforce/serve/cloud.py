@@ -203,17 +203,38 @@ def tool_tip_of(tool_tip_mm) -> np.ndarray:
     return tip
 
 
-def few_points(O: np.ndarray, p: np.ndarray, n_used: int, half_width_mm: float, min_points: int) -> str:
-    """Why a cloud ``O`` (model frame) with ``n_used`` points over the grid round ``p`` is refused; a cloud less
-    than a hundredth of the grid across (a liver region in metres read as mm) is named as one in metres."""
-    med = float(np.median(np.linalg.norm(O - p, axis=1)))
-    why = (f"cloud: only {n_used} of {len(O)} points lie over the model's {2 * half_width_mm:.3g} mm grid around the "
-           f"exertion point (at least {min_points} needed; the points are a median {med:.4g} mm from it)")
+REGISTRATION_NORMAL_ONLY = (
+    "the registration was refined along the normal only: without the tool tip at contact nothing fixed the shift "
+    "along the surface, which the tip's displacement reads (give the robot's tip at contact: --contact-tip, "
+    "contact_tip_mm)")
+
+
+def registration_warnings(fix) -> list[str]:
+    """The warning of a registration refinement (:meth:`liverforce.serve.Predictor.refine_registration`; None:
+    none) that fixed nothing along the surface, as every path gives it after the cloud's own warnings."""
+    return [REGISTRATION_NORMAL_ONLY] if fix is not None and fix.anchor == "none" else []
+
+
+def metres_cloud(O: np.ndarray, half_width_mm: float, min_points: int) -> str | None:
+    """The refusal of a cloud ``O`` (finite points) in metres read as mm, else None: at least ``min_points``
+    points spanning less than a fiftieth of the grid's half-width (0.4 mm for the shipped 20 mm; no view of a liver
+    is that small) but at least a thousandth of it once read as metres (a few identical points are not named)."""
+    if len(O) < min_points:
+        return None
     span = float(np.max(np.ptp(O, axis=0)))
-    if len(O) >= min_points and 0.0 < span < 0.02 * half_width_mm:
-        return (f"{why}: the whole cloud spans {span:.3g} mm, too small for a view of the liver; it looks like "
-                "metres read as mm: give --units m (in Python, convert to mm or compile_cloud(..., units='m'))")
-    return f"{why}: is the cloud in mm, registered to the liver frame, and does it show the tool region?"
+    if not 0.001 * half_width_mm <= span < 0.02 * half_width_mm:
+        return None
+    return (f"cloud: its {len(O)} points span {span:.3g} mm, too small for a view of the liver: it looks like metres "
+            "read as mm; give --units m (in Python, convert to mm or compile_cloud(..., units='m'); the MLflow "
+            "pyfunc: params units='m')")
+
+
+def few_points(O: np.ndarray, p: np.ndarray, n_used: int, half_width_mm: float, min_points: int) -> str:
+    """Why a cloud ``O`` (model frame) with ``n_used`` points over the grid round ``p`` is refused."""
+    med = float(np.median(np.linalg.norm(O - p, axis=1)))
+    return (f"cloud: only {n_used} of {len(O)} points lie over the model's {2 * half_width_mm:.3g} mm grid around the "
+            f"exertion point (at least {min_points} needed; the points are a median {med:.4g} mm from it): is the "
+            "cloud in mm, registered to the liver frame, and does it show the tool region?")
 
 
 def _camera_arrays(model, cloud_mm, preop: Preop, tool_tip_mm, limits: Limits) -> tuple[dict, dict]:
@@ -221,6 +242,9 @@ def _camera_arrays(model, cloud_mm, preop: Preop, tool_tip_mm, limits: Limits) -
     tip = tool_tip_of(tool_tip_mm)
     O = _points("cloud", cloud_mm, min_points=1)
     rep = model.representation
+    metres = metres_cloud(O, rep.half_width_mm, limits.min_cloud_points)
+    if metres:
+        raise PredictionInputError(metres)
     p = preop.exertion_point_mm
     R = preop.rotation
     O_loc = (O - p) @ R.T

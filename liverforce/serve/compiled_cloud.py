@@ -99,7 +99,7 @@ from liverforce.learn.state import THICKNESS_COLUMN, compliance_matrices, state_
 from liverforce.serve.checks import Limits, TrainingScale, force_warnings, outside_training
 from liverforce.serve.cloud import (MASKED_INSTRUMENT, SHAFT_MARGIN_MM, SHAFT_POINTS, SHAFT_RING_MM, SHAFT_RISE_MM,
                                     camera_checks, few_points, instrument_check_radius, instrument_refusal,
-                                    noisy_cloud, noisy_threshold_mm, tool_tip_of)
+                                    metres_cloud, noisy_cloud, noisy_threshold_mm, registration_warnings, tool_tip_of)
 from liverforce.serve.compiled import numpy_layers, regressor_head
 from liverforce.serve.errors import PredictionInputError
 from liverforce.serve.input_frame import InputFrame
@@ -1194,7 +1194,7 @@ def _dense_rows(Hin, WT, b, slope, act):
 
 def _with_force(warnings: list, force: np.ndarray, scale: TrainingScale) -> list:
     """Each cloud's warnings, a force beyond the training forces' appended (a refused cloud's NaN gets none)."""
-    return [w + f for w, f in zip(warnings, force_warnings(force, scale))]
+    return [w + f for w, f in zip(warnings, force_warnings(force, scale, camera=True))]
 
 
 def instrument_params(sp) -> np.ndarray:
@@ -1496,8 +1496,9 @@ class CompiledCloud:
                 if refused[r] is None:
                     try:
                         warnings[r] = camera_checks(self.model, X[r], lim)
-                    except PredictionInputError as exc:
-                        refused[r] = str(exc)
+                    except PredictionInputError as exc:  # a cloud in metres is named first, as the reference does
+                        refused[r] = metres_cloud(self._model(cloud_of(r)), self.half_width_mm,
+                                                  lim.min_cloud_points) or str(exc)
         if self.fits_instrument:  # predict_cloud's order: too little of the instrument to fit (the kinematic tip),
             # noisier than the training clouds (noisy_cloud decides), then the feature checks
             for r in np.flatnonzero(n_tool[:, 2] > noisy_threshold_mm(self.spec)):
@@ -1509,6 +1510,9 @@ class CompiledCloud:
                     warnings[r] = [MASKED_INSTRUMENT] + warnings[r]
         if self.context_warnings:
             warnings = [w if why is not None else self.context_warnings + w for w, why in zip(warnings, refused)]
+        reg = registration_warnings(self.registration)  # predict_cloud's: after the cloud's own
+        if reg:
+            warnings = [w if why is not None else w + reg for w, why in zip(warnings, refused)]
         return refused, warnings
 
     def _model(self, x: np.ndarray) -> np.ndarray:
@@ -1544,6 +1548,9 @@ class CompiledCloud:
         if bad.any():
             return (f"cloud: {int(bad.sum())} of {len(O)} points contain NaN or inf (first at row "
                     f"{int(np.argmax(bad))}); drop invalid points (e.g. missing depth) before predicting")
+        metres = metres_cloud(O, self.half_width_mm, self.limits.min_cloud_points)
+        if metres:
+            return metres
         if n_used < self.limits.min_cloud_points:
             return few_points(O, self.p, n_used, self.half_width_mm, self.limits.min_cloud_points)
         d_tip = float(np.linalg.norm(tip - self.p))

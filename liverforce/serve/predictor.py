@@ -37,7 +37,8 @@ import numpy as np
 from liverforce.learn import camera
 from liverforce.learn.model import ForceModel, ModelFormatError
 from liverforce.serve.checks import Limits, TrainingScale, check_case, force_warnings, outside_training
-from liverforce.serve.cloud import (MASKED_INSTRUMENT, camera_checks, check_instrument, cloud_support, noisy_cloud,
+from liverforce.serve.cloud import (MASKED_INSTRUMENT, camera_checks, check_instrument, cloud_support, metres_cloud,
+                                    noisy_cloud, registration_warnings,
                                    cloud_to_arrays)
 from liverforce.serve.compiled import CompiledROI
 from liverforce.serve.errors import PredictionInputError
@@ -173,16 +174,16 @@ class Predictor:
         return self.arrays_warnings(preop.to_arrays(preop.roi_undeformed_mm))[0]
 
     def arrays_warnings(self, arrays: dict) -> list[list[str]]:
-        """:meth:`context_warnings` of every row of input-contract ``arrays`` (what :meth:`predict_arrays`,
-        ``liverforce predict --shards`` and the MLflow pyfunc return beside the forces)."""
+        """:meth:`context_warnings` of every row of input-contract ``arrays`` (the first of each row's warnings
+        that :meth:`predict_arrays`, ``liverforce predict --shards`` and the MLflow pyfunc return)."""
         if not self.model.uses_state:
             return [[] for _ in range(len(arrays["exertion_point_mm"]))]
         return outside_training(arrays, self.scale)[1]
 
     def force_warnings(self, force) -> list[list[str]]:
         """Per predicted force ``(n, 3)`` N (or one ``(3,)``): a warning where ``|F|`` exceeds every training
-        case's (:func:`liverforce.serve.checks.force_warnings`); every path adds it after the input's warnings."""
-        return force_warnings(force, self.scale)
+        case's (:func:`liverforce.serve.checks.force_warnings`); every path adds it after the inputs' warnings."""
+        return force_warnings(force, self.scale, camera=self.model.representation.is_camera)
 
     def _check_state_inputs(self, preop: Preop) -> None:
         if self.model.uses_state:
@@ -293,14 +294,9 @@ class Predictor:
         else:
             info["warnings"] = self.context_warnings(preop)
         force = self.model.predict(arrays, rotations=R)[0]
-        info["warnings"] = info["warnings"] + self.force_warnings(force)[0]
         if registration is not None:
             info["registration"] = {**registration.to_dict(), "description": registration.describe()}
-            if registration.anchor == "none":
-                info["warnings"] = info.get("warnings", []) + [
-                    "the registration was refined along the normal only: without the tool tip at contact nothing "
-                    "fixed the shift along the surface, which the tip's displacement reads (give the robot's tip "
-                    "at contact: --contact-tip, contact_tip_mm)"]
+        info["warnings"] = info["warnings"] + registration_warnings(registration) + self.force_warnings(force)[0]
         if return_info and self.model.interval is not None:
             info["interval"] = interval_doc(self.model, arrays, rotations=R)
         return (force, info) if return_info else force
@@ -378,10 +374,12 @@ class Predictor:
         return out, fixes
 
     def predict_arrays(self, arrays: dict, *, observation_seed: int | None = None, fast: bool = False,
-                       min_group: int = 2, return_warnings: bool = False):
+                       min_group: int = 2, return_warnings: bool = False, registrations: list | None = None):
         """Forces ``(n, 3)`` N for input-contract arrays (e.g. a shard), every row checked first; with
         ``return_warnings`` also each row's warnings, those :meth:`predict_cloud` gives one cloud (the context's,
-        a camera cloud's, a force beyond training's), as ``(force, warnings)``.
+        a camera cloud's, the registration's, a force beyond training's), as ``(force, warnings)``.
+        ``registrations``: each row's refinement when the caller has already applied :meth:`refine_arrays`
+        (its warnings; the arrays' own ``unloaded_cloud_mm`` are refined here otherwise).
 
         Parameters
         ----------
@@ -398,7 +396,8 @@ class Predictor:
         Camera clouds with ``unloaded_cloud_mm`` (and ``contact_tip_mm``) are registered first
         (:meth:`refine_arrays`).
         """
-        arrays, _ = self.refine_arrays(arrays)
+        arrays, fixes = self.refine_arrays(arrays)
+        fixes = fixes if fixes is not None else registrations
         if self.model.representation.is_camera and "camera_cloud_mm" not in arrays:
             raise PredictionInputError(
                 "this camera-cloud model predicts from camera clouds with the tool tip ('camera_cloud_mm', "
@@ -418,6 +417,20 @@ class Predictor:
         rep = self.model.representation
         cloud_warnings = [[] for _ in range(n)]
         if rep.is_camera and "camera_cloud_mm" in arrays:  # observed clouds: features once, each row checked
+            if camera.TIP_KEY not in arrays:
+                raise PredictionInputError(
+                    "a camera-cloud model needs the tool tip position ('tool_tip_mm', from the robot's kinematics) "
+                    "with each cloud")
+            ids = arrays.get("case_id")
+            for i in range(n):  # a cloud in metres, named before its other checks (predict_cloud's order)
+                try:
+                    metres = metres_cloud(_points("cloud", arrays[camera.CLOUD_KEY][i], min_points=1),
+                                          rep.half_width_mm, self.limits.min_cloud_points)
+                    if metres:
+                        raise PredictionInputError(metres)
+                except PredictionInputError as exc:
+                    raise PredictionInputError(f"{'case ' + str(ids[i]) if ids is not None else f'row {i}'}: "
+                                               f"{exc}") from None
             spec, fitted, point_sd = camera.grid_spec(rep.grid_size, rep.half_width_mm, rep.camera), [], []
             x = camera.features_from_clouds(arrays[camera.CLOUD_KEY], arrays[camera.TIP_KEY], arrays, spec, R=R,
                                             fitted=fitted, point_sd=point_sd)
@@ -429,7 +442,6 @@ class Predictor:
                                      arrays["exertion_point_mm"][i], R[i])
                     checked = camera_checks(self.model, x[i], self.limits)
                 except PredictionInputError as exc:
-                    ids = arrays.get("case_id")
                     raise PredictionInputError(f"{'case ' + str(ids[i]) if ids is not None else f'row {i}'}: "
                                                f"{exc}") from None
                 noisy = noisy_cloud(point_sd[i], spec) if point_sd else None  # predict_cloud's order
@@ -439,8 +451,9 @@ class Predictor:
         force = self._forces(arrays, R, observation_seed, fast, min_group)
         if not return_warnings:
             return force
-        return force, [c + w + f for c, w, f in zip(self.arrays_warnings(arrays), cloud_warnings,
-                                                     self.force_warnings(force))]
+        regs = [registration_warnings(f) for f in fixes] if fixes is not None else [[] for _ in range(n)]
+        return force, [c + w + g + f for c, w, g, f in zip(self.arrays_warnings(arrays), cloud_warnings, regs,
+                                                             self.force_warnings(force))]
 
     def _forces(self, arrays: dict, R: np.ndarray, observation_seed, fast: bool, min_group: int) -> np.ndarray:
         """:meth:`predict_arrays`' forces of checked rows (``R``: their rotations), by the compiled node path
@@ -502,8 +515,8 @@ class Predictor:
         m, rep = self.model, self.model.representation
         out = []
         if rep.is_camera:
-            out += ["CLOUD: the camera's points of the liver round the tool, the instrument's included (PLY, CSV or NPY; "
-                    "a folder or several files: a sequence, with --tool-tips FILE)",
+            out += ["CLOUD: the camera's points of the liver round the tool, the instrument's included (PLY, CSV or "
+                    "NPY; a folder or several files: a sequence, with --tool-tips FILE)",
                     "--tool-tip X Y Z: the tool tip now, from the robot's kinematics"]
         elif self.cloud_support == "exact":
             out += ["CLOUD: the deformed surface's points round the tool (PLY, CSV or NPY)"]

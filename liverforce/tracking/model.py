@@ -135,9 +135,9 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
             except (TypeError, ValueError) as exc:  # a flattened point set not 3 k long, a non-number
                 raise PredictionInputError(f"input columns: {exc}") from None
             arrays = frame.arrays(arrays)
-            arrays, _ = predictor.refine_arrays(arrays)  # registration refined from unloaded clouds, if given
+            arrays, fixes = predictor.refine_arrays(arrays)  # registration refined from unloaded clouds, if given
             force, warnings = predictor.predict_arrays(arrays, observation_seed=None if seed < 0 else seed,
-                                                       return_warnings=True)
+                                                       return_warnings=True, registrations=fixes)
         except PredictionInputError as exc:
             raise PyfuncInputError(str(exc)) from exc
         out = _output_frame(self.model, arrays, force, None if seed < 0 else seed, predictor, warnings)

@@ -82,7 +82,8 @@ def test_forces_beyond_the_training_forces_carry_their_warning(trained, shards):
         np.testing.assert_array_equal(warned, mag > cap)
         assert not any("the predicted force" in w for w in df["warnings"][mag <= pred.scale.force_max_n])
         k = int(np.flatnonzero(warned)[0])
-        assert f"({mag[k]:.3g} N) exceeds every training case's ({cap:.3g} N)" in capped["warnings"][k]
+        assert f"({mag[k]:.4g} N) exceeds every training case's (at most {cap:.4g} N)" in capped["warnings"][k]
+        assert "the ROI nodes" in capped["warnings"][k] and "tool tip" not in capped["warnings"][k]
 
 
 def test_bad_shards_are_refused(trained, shards, tmp_path):

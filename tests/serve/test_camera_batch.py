@@ -453,8 +453,8 @@ def test_a_force_beyond_the_training_forces_is_warned_on_every_path(served):
     for k, ((c, t), (f0, info0)) in enumerate(zip(items, plain)):
         f, info = capped.predict_cloud(c, ctx, tool_tip_mm=t, return_info=True)
         assert info["warnings"][:-1] == _inputs(info0["warnings"])  # the inputs' warnings first, unchanged
-        assert info["warnings"][-1].startswith(f"the predicted force ({mags[k]:.3g} N) exceeds every training "
-                                               f"case's ({0.5 * mags.min():.3g} N)")
+        assert info["warnings"][-1].startswith(f"the predicted force ({mags[k]:.4g} N) exceeds every training "
+                                               f"case's (at most {0.5 * mags.min():.4g} N)")
         assert cfast.predict(c, t)[2] == info["warnings"] and batch.warnings[k] == info["warnings"]
         assert warned[k] == info["warnings"]
         np.testing.assert_allclose(force[k], f, rtol=0, atol=1e-6)
@@ -463,14 +463,28 @@ def test_a_force_beyond_the_training_forces_is_warned_on_every_path(served):
     assert refused.refused[0] is not None and refused.warnings == [[]]
 
 
-def test_a_cloud_in_metres_is_refused_as_one_on_both_paths(served):
+def test_a_cloud_in_metres_is_refused_as_one_on_every_path(served):
     """A cloud given in metres (read as mm it spans a fraction of a millimetre) is refused, naming metres and
-    --units m, by the reference and the compiled path alike; a cloud in mm that misses the grid is not called
-    metres."""
+    --units m, by the reference path, the compiled path and predict_arrays alike: off the grid, and also lying
+    over it (a frame whose origin is near the exertion point), where the grid's coverage would refuse it first.
+    A cloud in mm that misses the grid, and twenty identical points, are not called metres."""
     pred, a, ctx, fast = served
     cloud, tip = _clouds(a, 2)[0]
-    for c, metres in ((cloud / 1000.0, True), (cloud + 10 * fast.half_width_mm * ctx.frame[0], False)):
+    p = ctx.exertion_point_mm
+    over = p + (cloud - p) / 1000.0  # metres about the exertion point: every point over the grid
+    same = np.repeat(cloud[:1] + 10 * fast.half_width_mm * ctx.frame[0], 20, axis=0)
+    n = 1
+    row = {k: np.repeat(v, n, axis=0) if isinstance(v, np.ndarray) else [v[0]] * n
+           for k, v in ctx.to_arrays(ctx.roi_undeformed_mm).items()}
+    for c, metres in ((cloud / 1000.0, True), (over, True), (cloud + 10 * fast.half_width_mm * ctx.frame[0], False),
+                      (same, False)):
         with pytest.raises(PredictionInputError) as exc:
             pred.predict_cloud(c, ctx, tool_tip_mm=tip)
-        assert ("looks like metres read as mm: give --units m" in str(exc.value)) == metres
+        assert ("looks like metres read as mm; give --units m" in str(exc.value)) == metres
         assert fast.predict_batch([c], tip[None]).refused == [str(exc.value)]
+        with pytest.raises(PredictionInputError) as exc2:
+            fast.predict(c, tip)
+        assert str(exc2.value) == str(exc.value)
+        with pytest.raises(PredictionInputError) as exc3:
+            pred.predict_arrays({**row, "camera_cloud_mm": [c], "tool_tip_mm": tip[None]})
+        assert ("looks like metres read as mm" in str(exc3.value)) == metres

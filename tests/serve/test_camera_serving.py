@@ -120,7 +120,7 @@ def test_out_of_distribution_inputs_are_refused_naming_the_reason(served):
         pred.predict_cloud(cloud, ctx)  # no tool tip
     with pytest.raises(PredictionInputError, match=r"only \d of 5 points"):
         pred.predict_cloud(cloud[:5], ctx, tool_tip_mm=tip)  # too few points
-    with pytest.raises(PredictionInputError, match="looks like metres read as mm: give --units m"):
+    with pytest.raises(PredictionInputError, match="looks like metres read as mm; give --units m"):
         pred.predict_cloud(cloud / 1000.0, ctx, tool_tip_mm=tip)  # metres
     R = ctx.frame
     loc = (cloud - ctx.exertion_point_mm) @ R.T
@@ -210,6 +210,18 @@ def test_the_mlflow_pyfunc_serves_the_camera_model_from_clouds(served, tmp_path)
     far = dict(cases, tool_tip_mm=cases["tool_tip_mm"] + 100.0 * np.asarray(cases["frame_normal"]))
     with pytest.raises(PredictionInputError, match="tool tip displacement"):
         predict_pyfunc(pf, far)
+    # the warnings column: each row's, as predict_cloud gives them (a tip pushed past every training case's is
+    # predicted with the cloud's own warning, which the column once dropped)
+    top = model.meta["training_scale"]["camera"]["tip_displacement_max_mm"]
+    deep = dict(cases, tool_tip_mm=cases["tool_tip_mm"].copy())
+    deep["tool_tip_mm"][1] = rows[1][0].exertion_point_mm - 1.3 * top * rows[1][0].frame[2]
+    from liverforce.tracking.model import arrays_to_frame
+
+    out = pf.predict(arrays_to_frame(deep, [k for k in deep if k in inputs]), params={"observation_seed": -1})
+    infos = [Predictor.from_dir(path).predict_cloud(c, ctx, tool_tip_mm=t, return_info=True)[1]
+             for (ctx, c, _), t in zip(rows, deep["tool_tip_mm"])]
+    assert list(out["warnings"]) == ["; ".join(info["warnings"]) for info in infos]
+    assert "tool tip displacement" in out["warnings"][1] and "tool tip displacement" not in out["warnings"][0]
     # a lab's columns in metres and a registration's frame (params input_frame, units): the force of the same
     # inputs in RAS mm, given back in the inputs' frame; the interval's local columns unchanged
     assert {"input_frame", "units"} <= {p.name for p in pf.metadata.get_params_schema().params}

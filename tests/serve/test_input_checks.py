@@ -244,6 +244,25 @@ def test_a_state_outside_the_training_range_is_named_row_by_row():
     assert outside_training(a, replace(scale, source="approximate: fitted scalers")) == ({}, [[]] * 5)
 
 
+def test_a_force_beyond_the_training_forces_is_warned_only_where_recorded():
+    """force_warnings: a warning on each row whose |F| exceeds the recorded largest training force (at it, below
+    it and a refused row's NaN: none); none at all for a bundle that recorded no training forces, or whose ranges
+    come from the scalers; the advice names a camera model's inputs or a node model's."""
+    from liverforce.serve.checks import TrainingScale, force_warnings
+
+    scale = TrainingScale(half_width_mm=20.0, inertia_length_mm=None, centroid_distance_mm=None, material_lo=None,
+                          material_hi=None, feature_abs_max=None, n_material=None,
+                          source="bundle meta training_scale", force_max_n=5.0)
+    F = np.array([[3.0, 4.0, 0.0], [0.0, 0.0, 5.2], [np.nan] * 3, [4.0, 0.0, 0.0], [0.0, 6.0, 8.0]])
+    got = force_warnings(F, scale)
+    assert [bool(w) for w in got] == [False, True, False, False, True]
+    assert got[1][0].startswith("the predicted force (5.2 N) exceeds every training case's (at most 5 N)")
+    assert "(10 N)" in got[4][0] and "the tool tip and the registration" in got[4][0]
+    assert "the ROI nodes" in force_warnings(F, scale, camera=False)[1][0]
+    assert force_warnings(F, replace(scale, force_max_n=None)) == [[]] * 5
+    assert force_warnings(F, replace(scale, source="approximate: fitted scalers")) == [[]] * 5
+
+
 def test_a_context_inside_every_training_range_gets_no_warning(pred, test_cases, mid_range):
     """Every held-out case moved into the middle of every training range is served without a context warning
     (no false alarm); moved onto a bound (bounds inclusive) too."""

@@ -110,6 +110,20 @@ def test_nodes_mode_yaml_context_and_outputs(trained, test_cases, tmp_path, caps
                         "--out", tmp_path / "f.csv"], capsys)
     assert rc == 0
     np.testing.assert_allclose(pd.read_csv(tmp_path / "f.csv").to_numpy()[0], expect, atol=1e-12)
+    # a force beyond the training forces is said: the same model with its recorded largest force below this one's
+    assert not any(w.startswith("the predicted force") for w in doc["warnings"])
+    import shutil
+
+    capped = tmp_path / "capped"
+    shutil.copytree(model, capped)
+    bundle = json.loads((capped / "model.json").read_text())
+    bundle["meta"]["training_scale"]["force_magnitude_n"][1] = 0.5 * float(np.linalg.norm(expect))
+    (capped / "model.json").write_text(json.dumps(bundle))
+    rc, out, err = run(["-m", capped, tmp_path / "nodes.npy", "--mode", "nodes", "--context", tmp_path / "ctx.yaml"],
+                       capsys)
+    assert rc == 0, err
+    warned = json.loads(out)["warnings"]
+    assert warned[:-1] == doc["warnings"] and warned[-1].startswith("the predicted force") and "ROI nodes" in warned[-1]
     # the same in metres: --units m scales every point input (and the inertia)
     in_m = Preop.from_dict({**ctx.to_dict(), "exertion_point_mm": ctx.exertion_point_mm / 1000})
     doc = context_doc(in_m, "roi_m.npy")

@@ -173,6 +173,13 @@ def test_without_the_tip_at_contact_only_the_height_is_refined_and_a_warning_say
     assert fix.anchor == "none" and fix.tangential_mm < 1e-3  # tilts about the exertion point only
     _, info = pred.predict_cloud(cloud, ctx, tool_tip_mm=tip, registration=fix, return_info=True)
     assert any("along the normal only" in w and "--contact-tip" in w for w in info["warnings"])
+    # the same warnings, in the same order, on the compiled path and on rows bringing their unloaded cloud
+    fast = pred.compile_cloud(ctx, registration=fix)
+    assert fast.predict(cloud, tip)[2] == info["warnings"] == fast.predict_batch([cloud], tip[None]).warnings[0]
+    rows = {k: [v[0]] if isinstance(v, list) else np.asarray(v)
+            for k, v in ctx.to_arrays(ctx.roi_undeformed_mm).items()}
+    rows.update({"camera_cloud_mm": [cloud], "tool_tip_mm": tip[None], "unloaded_cloud_mm": [move(_unloaded(a, i))]})
+    assert pred.predict_arrays(rows, return_warnings=True)[1] == [info["warnings"]]
 
 
 def test_unloaded_columns_on_arrays_are_checked_row_by_row(served, trained):  # noqa: F811
