@@ -392,18 +392,10 @@ def _point_sd(U, V, orig, idx, k, cu, cv, r):
 
 
 @njit(cache=True)
-def _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, inst, idx):
-    """The instrument's axis from the sorted, distinct points (``orig[s] >= 0``; local ``U[orig[s]], V[orig[s]]``,
-    height change ``Zs[s]``; bins as :func:`_grid_one` sorts them), as
-    :func:`liverforce.learn.cloud_features.fit_instrument`, a cloud clearly noisier than the model's point sd
-    fitted again with its own. Only the bins that can hold its points are read (the search radius round the
-    kinematic tip ``(c0u, c0v)``, the clearance round the fitted axis); the instrument's points are moved far off
-    the grid (``GUs, GVs``), so they add exact zeros to every cell's moments. ``inst``: radius, search radius,
-    rise, clearance, point sd, tip sd, fewest points, refit ratio (``NOISE_REFIT_RATIO``, passed in: a module
-    constant would be frozen into the cached kernel). Returns the axis ``(cu, cv)``, the points fitted, the points
-    dropped and the cloud's point noise estimated from every candidate of the last pass (NaN when nothing was
-    fitted)."""
-    r, search, rise, clear, sdp = inst[0], inst[1], inst[2], inst[3], inst[4]
+def _normal_axis(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, inst, idx):
+    """The axis along the normal of :func:`_fit_instrument`, nothing dropped: ``(cu, cv, n_fit, sd, inst)`` (the
+    ``inst`` the last pass used: a noisy cloud's own point sd and search radius)."""
+    r, search, rise, sdp = inst[0], inst[1], inst[2], inst[4]
     k = _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, search, rise, idx)
     cu, cv, n_fit = _fit_axis_points(U, V, orig, idx, k, c0u, c0v, inst)
     rf = shaft_fit_radius(r, sdp)  # where the shaft's points stand, at this pass's point sd
@@ -415,11 +407,19 @@ def _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u,
             inst[4] = sd
             search = r + 3.0 * inst[5] + 2.0 * sd + 0.5  # cloud_features.instrument_search_radius
             inst[1] = search
-            sdp = sd
-            rf = shaft_fit_radius(r, sdp)
+            rf = shaft_fit_radius(r, sd)
             k = _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, search, rise, idx)
             cu, cv, n_fit = _fit_axis_points(U, V, orig, idx, k, c0u, c0v, inst)
             sd = _point_sd(U, V, orig, idx, k, cu, cv, rf)  # from the wider search: less cut off
+    return cu, cv, n_fit, sd, inst
+
+
+@njit(cache=True)
+def _drop_normal(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, cu, cv, inst):
+    """The instrument's points of the axis ``(cu, cv)`` along the normal (``inst`` as :func:`_normal_axis` returns
+    it) moved far off the grid; returns how many."""
+    r, search, clear, sdp = inst[0], inst[1], inst[3], inst[4]
+    rf = shaft_fit_radius(r, sdp)
     # dropped: the candidates (within the search radius of the kinematic tip) and the points near the fitted axis
     margin = 1.0 / sb
     r_lo, r_hi, c_lo, c_hi = _bin_box(c0u, c0v, search / gstep + margin, h, gstep, sb, pad, nc)
@@ -435,6 +435,23 @@ def _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u,
                     GUs[s] = _FAR
                     GVs[s] = _FAR
                     n_drop += 1
+    return n_drop
+
+
+@njit(cache=True)
+def _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, inst, idx):
+    """The instrument's axis from the sorted, distinct points (``orig[s] >= 0``; local ``U[orig[s]], V[orig[s]]``,
+    height change ``Zs[s]``; bins as :func:`_grid_one` sorts them), as
+    :func:`liverforce.learn.cloud_features.fit_instrument`, a cloud clearly noisier than the model's point sd
+    fitted again with its own (:func:`_normal_axis`). Only the bins that can hold its points are read (the search
+    radius round the kinematic tip ``(c0u, c0v)``, the clearance round the fitted axis); the instrument's points
+    are moved far off the grid (``GUs, GVs``; :func:`_drop_normal`), so they add exact zeros to every cell's
+    moments. ``inst``: radius, search radius, rise, clearance, point sd, tip sd, fewest points, refit ratio
+    (``NOISE_REFIT_RATIO``, passed in: a module constant would be frozen into the cached kernel). Returns the axis
+    ``(cu, cv)``, the points fitted, the points dropped and the cloud's point noise estimated from every candidate
+    of the last pass (NaN when nothing was fitted)."""
+    cu, cv, n_fit, sd, used = _normal_axis(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, inst, idx)
+    n_drop = _drop_normal(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, cu, cv, used)
     return cu, cv, n_fit, n_drop, sd
 
 
@@ -740,11 +757,17 @@ def _fit_instrument_tilted(U, V, Wl, GUs, GVs, Zs, orig, first, sb, pad, nc, h, 
             S = r + 3.0 * sdk + 2.0 * sd + 0.5  # cloud_features.instrument_search_radius
             x, n_fit, wald = _tilted_pass(U, V, Hs, orig, raised, n_raised, c0u, c0v, S, sdp, inst, idx)
             sd = _tilted_sd(U, V, Hs, orig, raised, n_raised, x, S, rf, scr)
-    if wald < inst[9] or not _tilt_credible(x, c0u, c0v, S):
-        # no tilt the points can tell from the normal (TILT_WALD), or an axis they cannot support: the fit along it
-        cu, cv, n_fit, _, sd = _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v,
-                                               inst, idx)
-        return cu, cv, 0.0, n_fit, sd
+    cu, cv, n_nf, sd_n, used = c0u, c0v, 0, np.nan, inst
+    if n_fit > 0:  # the fit along the normal, to judge the tilted one by (TILT_SD_RATIO)
+        cu, cv, n_nf, sd_n, used = _normal_axis(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, inst, idx)
+    if (wald < inst[9] or not _tilt_credible(x, c0u, c0v, S) or (n_fit > 0 and sd > inst[13] * sd_n)):
+        # no tilt the points can tell from the normal (TILT_WALD), an axis they cannot support, or one they scatter
+        # about far more than about the normal's: the fit along it
+        if n_fit == 0:
+            cu, cv, n_nf, sd_n, used = _normal_axis(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, inst,
+                                                    idx)
+        _drop_normal(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, cu, cv, used)
+        return cu, cv, 0.0, n_nf, sd_n
     # dropped: the points near the fitted axis at their height (between the lowest and the highest point's)
     h_lo = 0.0
     h_hi = 0.0
@@ -1200,13 +1223,14 @@ def _with_force(warnings: list, force: np.ndarray, scale: TrainingScale) -> list
 def instrument_params(sp) -> np.ndarray:
     """The kernels' ``inst`` vector of a grid spec: the tool's radius, the search radius, the rise, the clearance,
     the point sd, the tip sd, the fewest points, ``NOISE_REFIT_RATIO``, ``tan(instrument_max_tilt_deg)``,
-    ``TILT_WALD``, ``dent_radius_mm``, ``DENT_MIN_POINTS`` and ``DENT_PIVOT_TOL`` (the module constants passed in,
-    read when called: inside a cached kernel they would be frozen into it)."""
+    ``TILT_WALD``, ``dent_radius_mm``, ``DENT_MIN_POINTS``, ``DENT_PIVOT_TOL`` and ``TILT_SD_RATIO`` (the module
+    constants passed in, read when called: inside a cached kernel they would be frozen into it)."""
     return np.array([sp.instrument_radius_mm, instrument_search_radius(sp), sp.instrument_rise_mm,
                      sp.instrument_clearance_mm, sp.instrument_point_sd_mm, sp.instrument_tip_sd_mm,
                      sp.instrument_min_points, cloud_features.NOISE_REFIT_RATIO,
                      math.tan(math.radians(sp.instrument_max_tilt_deg)), cloud_features.TILT_WALD,
-                     sp.dent_radius_mm, cloud_features.DENT_MIN_POINTS, cloud_features.DENT_PIVOT_TOL],
+                     sp.dent_radius_mm, cloud_features.DENT_MIN_POINTS, cloud_features.DENT_PIVOT_TOL,
+                     cloud_features.TILT_SD_RATIO],
                     dtype=np.float64)
 
 

@@ -845,3 +845,64 @@ def test_a_tilted_fit_is_damped_and_one_that_runs_off_is_not_believed(monkeypatc
     assert n_tool[1] == want.n_instrument
     np.testing.assert_allclose(X[:-3], want.features(include_mask=True), atol=1e-9)
     np.testing.assert_allclose(X[-3:], want.tip_local, atol=1e-9)
+
+
+def test_a_tilted_axis_its_points_scatter_about_far_more_than_the_normals_is_not_taken(monkeypatch):
+    """fit_instrument_tilted: when the tilted fit ends in a minimum that is not the tool's (here forced: an axis
+    3 mm off with a slope, its Wald statistic high), its points scatter about it far more than about the fit
+    along the normal, and that fit is returned (its tip, points and noise estimate); with the gate off
+    (TILT_SD_RATIO infinite) the wrong axis would have given a tip millimetres off."""
+    from liverforce.learn import cloud_features as cf
+    from liverforce.learn.cloud_features import fit_instrument_tilted
+
+    rng = np.random.default_rng(21)
+    sp = spec(instrument_point_sd_mm=0.3, instrument_max_tilt_deg=30.0)
+    true = rng.normal(0.0, 0.3, 2)
+    S = _tilted_shaft(true, [0.0, 0.0], 80, rng)  # a shaft along the normal
+    real = cf._tilted_pass
+
+    def wrong(uv, H, dz, c0, spec_, sdp):
+        _, n, _ = real(uv, H, dz, c0, spec_, sdp)
+        return np.array([true[0] + 3.0, true[1], 0.2, 0.0]), n, 100.0
+
+    monkeypatch.setattr(cf, "_tilted_pass", wrong)
+    tip, keep, n, sd = fit_instrument_tilted(S[:, :2], S[:, 2], S[:, 2], [0.0, 0.0, 0.0], sp)
+    c, keep_n, n_n, sd_n = cf.fit_instrument(S[:, :2], S[:, 2], [0.0, 0.0], sp)
+    np.testing.assert_array_equal(tip, [c[0], c[1], 0.0])
+    assert np.hypot(*(tip[:2] - true)) < 0.2 and n == n_n and sd == sd_n and (keep == keep_n).all()
+    monkeypatch.setattr(cf, "TILT_SD_RATIO", np.inf)
+    tip_off, _, _, sd_off = fit_instrument_tilted(S[:, :2], S[:, 2], S[:, 2], [0.0, 0.0, 0.0], sp)
+    assert np.hypot(*(tip_off[:2] - true)) > 2.0 and sd_off > 1.5 * sd_n  # what the default ratio turned down
+
+
+@pytest.mark.parametrize("tilt", [0.0, 20.0])
+def test_the_compiled_kernel_takes_the_normals_fit_where_the_reference_does(tilt, monkeypatch):
+    """The compiled kernel's TILT_SD_RATIO gate against cloud_grid's: with the ratio lowered so far that every
+    tilted fit is judged worse than the fit along the normal, both take the normal's (the same features, tip and
+    noise estimate) on clouds of the dent with the tool along the normal or tilted 20 deg; the tilted tool's tip
+    then stays the kinematic one's height, where at the default ratio its tilted fit moves it."""
+    from liverforce.learn import cloud_features
+    from liverforce.serve.compiled_cloud import instrument_params
+
+    V, U0, T = dent_surface()
+    sp = spec(instrument_max_tilt_deg=30.0)
+    ref = ReferenceSurface.for_case(U0, T, [0.0, 0.0, 0.0], np.eye(3), sp)
+    rng = np.random.default_rng(8)
+    true_tip = np.array([0.0, 0.0, -3.0])
+    moved = []
+    for seed in range(4):
+        cloud, _ = observe(V, T, true_tip, [0, 0, 1], obs(noise_sd_mm=0.5, n_points=(3000, 3000), tool_tilt_deg=tilt),
+                           seed=seed)
+        cloud = np.ascontiguousarray(cloud[rng.permutation(len(cloud))])
+        kin = true_tip + rng.uniform(-1.0, 1.0, 3)
+        default = cloud_grid(cloud, ref, sp, kin)
+        monkeypatch.setattr(cloud_features, "TILT_SD_RATIO", 1e-6)
+        want = cloud_grid(cloud, ref, sp, kin)
+        X, n_tool = _compiled_grid(cloud, ref, sp, kin, instrument_params(sp))
+        monkeypatch.setattr(cloud_features, "TILT_SD_RATIO", 1.5)
+        assert want.tip_local[2] == pytest.approx(kin[2])  # the fit along the normal keeps the kinematic height
+        assert n_tool[1] == want.n_instrument and n_tool[2] == pytest.approx(want.instrument_sd_mm, rel=1e-9)
+        np.testing.assert_allclose(X[:-3], want.features(include_mask=True), atol=1e-9)
+        np.testing.assert_allclose(X[-3:], want.tip_local, atol=1e-9)
+        moved.append(abs(default.tip_local[2] - kin[2]))
+    assert (max(moved) > 0.05) == (tilt > 0)  # at the default ratio only the tilted tool's fit is the tilted one
