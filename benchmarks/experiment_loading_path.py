@@ -15,7 +15,8 @@ Prints per frame the true and predicted force magnitude, the error and whether t
 local component; then the path's MAE, the interval's coverage along it, the error's mean (what a smoother
 cannot remove) and its frame-to-frame noise (the sd of successive error differences over sqrt 2, per local
 component: what a smoother over frames can remove). ``--out DIR`` writes the recording (``DIR/frames/frame_NN.npy``,
-``DIR/tips.csv``, ``DIR/truth.csv``) and prints the ``liverforce predict`` command that replays it.
+``DIR/tips.csv``, ``DIR/truth.csv``, and this run's forces ``DIR/predicted.csv``) and prints the ``liverforce
+predict`` command that replays it.
 
 Usage: ``PYTHONPATH=. OMP_NUM_THREADS=1 .venv/bin/python benchmarks/experiment_loading_path.py --results
 results/default [--steps 24] [--out /tmp/path]``
@@ -118,7 +119,8 @@ def run_path(res: Path, cfg: dict, case: dict, steps: int, points: int, seed: in
             inside = " ".join("y" if abs(e[j]) <= H[k, j] else "-" for j in range(3)) if np.isfinite(e).all() else ""
             print(f"{k + 1:5d} | {np.linalg.norm(F[k]):8.3f} | {r['magnitude_n']:8.3f} | "
                   f"{np.linalg.norm(P[k] - F[k]):7.3f} | {inside:>23} | {r['refused'] or r['warnings']}")
-    return s, {"clouds": clouds, "tips": tips, "true": F, "model_dir": model_dir, "mesh_path": mesh_path, "point": p}
+    return s, {"clouds": clouds, "tips": tips, "true": F, "predicted": P, "model_dir": model_dir,
+               "mesh_path": mesh_path, "point": p}
 
 
 def _line(s: dict) -> str:
@@ -181,6 +183,8 @@ def main() -> None:
             np.save(d / "frames" / f"frame_{k + 1:02d}.npy", c)
         np.savetxt(d / "tips.csv", frames["tips"], delimiter=",", fmt="%.6f")
         np.savetxt(d / "truth.csv", frames["true"], delimiter=",", fmt="%.6f", header="fx_n,fy_n,fz_n", comments="")
+        np.savetxt(d / "predicted.csv", frames["predicted"], delimiter=",", fmt="%.6f", header="fx_n,fy_n,fz_n",
+                   comments="")  # this run's forces (the case's own shard context)
         mat = " ".join(f"{v:g}" for v in np.asarray(chosen[0]["material_params_mpa"]))
         print(f"replay: liverforce predict -m {frames['model_dir']} {d / 'frames'} --tool-tips {d / 'tips.csv'} "
               f"--mesh {frames['mesh_path']} --exertion-point {' '.join(f'{v:.6f}' for v in frames['point'])} "
