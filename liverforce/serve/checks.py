@@ -322,8 +322,9 @@ def check_patch(arrays: dict, i: int, U_loc: np.ndarray, model, limits: Limits, 
     if covered[0] and abs(z[0]) > limits.surface_tol_mm:
         raise PredictionInputError(
             f"{label}roi_triangles: the patch's top sheet passes {z[0]:.3g} mm from the exertion point along the "
-            f"normal (at most {limits.surface_tol_mm:g} mm): do the triangles index roi_undeformed_mm in its own "
-            "point order, and is the exertion point on the patch?")
+            f"normal (at most {limits.surface_tol_mm:g} mm): is the exertion point on the pre-operative surface, in "
+            "its frame and units (--exertion-point: where the tool touches it)? With a context file's patch: do the "
+            "triangles index roi_undeformed_mm in its own point order?")
 
 
 def check_compliance(arrays: dict, i: int, scale: TrainingScale, limits: Limits, label: str) -> None:
