@@ -731,7 +731,10 @@ def _fit_instrument_tilted(U, V, Wl, GUs, GVs, Zs, orig, first, sb, pad, nc, h, 
     """:func:`liverforce.learn.cloud_features.fit_instrument_tilted` on the sorted, distinct points (as
     :func:`_fit_instrument`): the shaft's axis with its slope (``inst[8]``: the tangent of the largest tilt), a
     cloud clearly noisier than the model's point sd fitted again with its own, the instrument's points moved off
-    the grid. ``tw``: the kinematic tip's height; ``Hs``: scratch, the raised points' heights above it; ``scr`` and
+    the grid; a tilted axis its points scatter about far more than about the fit along the normal's gives way to it
+    (``inst[13]``: ``TILT_SD_RATIO``; :func:`_normal_axis` reuses ``idx``, and the comparison ``scr``, after the tilted
+    pass has done with them). ``tw``: the kinematic tip's height; ``Hs``: scratch, the raised points' heights above
+    it; ``scr`` and
     ``raised``: scratch as long (the noise estimate's distances; the sorted positions of the points standing
     ``rise`` above the surface, the only ones the search and the noise estimate read). Returns the tip ``(tu,
     tv)``, its height change along the normal, the points fitted and the noise estimate."""
@@ -760,9 +763,10 @@ def _fit_instrument_tilted(U, V, Wl, GUs, GVs, Zs, orig, first, sb, pad, nc, h, 
     cu, cv, n_nf, sd_n, used = c0u, c0v, 0, np.nan, inst
     if n_fit > 0:  # the fit along the normal, to judge the tilted one by (TILT_SD_RATIO)
         cu, cv, n_nf, sd_n, used = _normal_axis(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, inst, idx)
-    if (wald < inst[9] or not _tilt_credible(x, c0u, c0v, S) or (n_fit > 0 and sd > inst[13] * sd_n)):
+    if (wald < inst[9] or not _tilt_credible(x, c0u, c0v, S) or (n_fit > 0 and sd > inst[13] * _tilted_sd(
+            U, V, Hs, orig, raised, n_raised, np.array([cu, cv, 0.0, 0.0]), S, rf, scr))):
         # no tilt the points can tell from the normal (TILT_WALD), an axis they cannot support, or one they scatter
-        # about far more than about the normal's: the fit along it
+        # about far more than about the normal's, measured alike (TILT_SD_RATIO): the fit along it
         if n_fit == 0:
             cu, cv, n_nf, sd_n, used = _normal_axis(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, inst,
                                                     idx)

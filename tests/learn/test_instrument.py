@@ -569,7 +569,13 @@ def test_the_compiled_kernel_grids_a_cloud_with_the_instrument_as_the_reference(
     real_sd, real_tilted = cloud_features.instrument_point_sd, cloud_features._tilted_point_sd
     monkeypatch.setattr(cloud_features, "instrument_point_sd", lambda *a: estimates.append(real_sd(*a)) or
                         estimates[-1])
-    monkeypatch.setattr(cloud_features, "_tilted_point_sd", lambda *a: tilted.append(real_tilted(*a)) or tilted[-1])
+    def record_tilted(uv, H, dz, x, sp_, sdp):  # about a fitted axis (not the fit along the normal's, slope 0, that
+        got = real_tilted(uv, H, dz, x, sp_, sdp)  # the TILT_SD_RATIO gate measures alike)
+        if x[2] != 0.0 or x[3] != 0.0:
+            tilted.append(got)
+        return got
+
+    monkeypatch.setattr(cloud_features, "_tilted_point_sd", record_tilted)
 
     V, U0, T = dent_surface()
     sp = spec(instrument_max_tilt_deg=fit_tilt)
@@ -872,7 +878,48 @@ def test_a_tilted_axis_its_points_scatter_about_far_more_than_the_normals_is_not
     assert np.hypot(*(tip[:2] - true)) < 0.2 and n == n_n and sd == sd_n and (keep == keep_n).all()
     monkeypatch.setattr(cf, "TILT_SD_RATIO", np.inf)
     tip_off, _, _, sd_off = fit_instrument_tilted(S[:, :2], S[:, 2], S[:, 2], [0.0, 0.0, 0.0], sp)
-    assert np.hypot(*(tip_off[:2] - true)) > 2.0 and sd_off > 1.5 * sd_n  # what the default ratio turned down
+    about_normal = cf._tilted_point_sd(S[:, :2], S[:, 2], S[:, 2], np.array([c[0], c[1], 0.0, 0.0]), sp, 0.3)
+    assert np.hypot(*(tip_off[:2] - true)) > 2.0 and sd_off > 1.5 * about_normal  # what the default ratio refused
+
+
+def test_a_noisy_cloud_of_a_tilted_tool_keeps_its_tilted_fit(monkeypatch):
+    """The gate compares the scatters alike (the same points near each axis, at every height): the fit along the
+    normal reads only its vertical cylinder of candidates, which a tilted shaft leaves as it rises, so its own
+    estimate is too small for a tilted tool. On these clouds (tilted 20-30 deg, 1-1.5 mm of point noise; a review
+    found them) compared with that estimate the gate took the normal's fit, its tip 2-2.7 mm off; now the tilted
+    fit stays: the tip is the one with the gate off."""
+    from liverforce.learn import cloud_features as cf
+
+    V, U0, T = dent_surface()
+    sp = spec(instrument_max_tilt_deg=30.0)
+    ref = ReferenceSurface.for_case(U0, T, [0.0, 0.0, 0.0], np.eye(3), sp)
+    tip0 = np.array([0.0, 0.0, -3.0])
+    rng = np.random.default_rng(4)
+    own_estimate_fires = 0
+    for tilt, noise, seed in ((20.0, 1.5, 320), (20.0, 1.5, 355), (30.0, 1.0, 328), (30.0, 1.5, 321),
+                              (30.0, 1.5, 342)):
+        cloud, _ = observe(V, T, tip0, [0, 0, 1], obs(noise_sd_mm=noise, n_points=(5000, 5000), tool_tilt_deg=tilt),
+                           seed=seed)
+        kin = tip0 + rng.uniform(-0.5, 0.5, 3)
+        g = cloud_grid(cloud, ref, sp, kin)
+        monkeypatch.setattr(cf, "TILT_SD_RATIO", np.inf)
+        np.testing.assert_array_equal(g.tip_local, cloud_grid(cloud, ref, sp, kin).tip_local)
+        monkeypatch.setattr(cf, "TILT_SD_RATIO", 1.5)
+        assert g.tip_local[2] != kin[2]  # the tilted fit's tip (it moves the height), not the normal's
+        # the tilted fit's scatter against the normal fit's own estimate: the comparison that misfired
+        L = ref.to_local(cloud)
+        L = cf._canonical(L[(np.abs(L[:, 0]) < 24.0) & (np.abs(L[:, 1]) < 24.0)])
+        dz = L[:, 2] - ref.height(L[:, 0], L[:, 1])
+        ok = np.abs(dz) <= sp.max_abs_height_mm
+        uv, H, dz = L[ok, :2], L[ok, 2] - kin[2], dz[ok]
+        sdp = sp.instrument_point_sd_mm
+        x, n, _ = cf._tilted_pass(uv, H, dz, kin[:2], sp, sdp)
+        sd = cf._tilted_point_sd(uv, H, dz, x, sp, sdp)
+        if sd > cf.NOISE_REFIT_RATIO * sdp:
+            x, n, _ = cf._tilted_pass(uv, H, dz, kin[:2], sp, sd)
+            sd = cf._tilted_point_sd(uv, H, dz, x, sp, sd)
+        own_estimate_fires += n > 0 and sd > cf.TILT_SD_RATIO * cf.fit_instrument(uv, dz, kin[:2], sp)[3]
+    assert own_estimate_fires >= 1  # these clouds do tell the two comparisons apart
 
 
 @pytest.mark.parametrize("tilt", [0.0, 20.0])
