@@ -100,8 +100,8 @@ def predict_shards(predictor, inputs: Sequence[str | Path], out_path: str | Path
         "geometry_id": [str(c) for c in arrays["geometry_id"]],
         "scenario": [str(c) for c in arrays.get("scenario", [""] * n)],
         "fx_n": force[:, 0], "fy_n": force[:, 1], "fz_n": force[:, 2],
-        # the context outside the training range (Predictor.context_warnings), a force beyond training's
-        # (Predictor.force_warnings), "; "-joined; "" when none
+        # each row's warnings, as Predictor.predict_cloud gives one case's (the context outside the training
+        # range, a camera cloud's, a force beyond training's), "; "-joined; "" when none
         "warnings": ["; ".join(w) for w in warnings],
     }
     summary: dict = {"rows": n, "skipped_failed": int(skipped), "shards": [str(p) for p in paths],

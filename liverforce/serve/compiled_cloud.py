@@ -1667,7 +1667,7 @@ class CompiledCloud:
             raise PredictionInputError(why)
         F = self._head(X)
         half = self._half(F)
-        return self._out(F[0]), None if half is None else half[0], warnings + force_warnings(F, self.scale)[0]
+        return self._out(F[0]), None if half is None else half[0], _with_force([warnings], F, self.scale)[0]
 
     def predict_batch(self, clouds, tool_tips, counts=None, *, threads: int = 1) -> CloudBatch:
         """Forces of many clouds at this exertion point in one go (a :class:`CloudBatch`).

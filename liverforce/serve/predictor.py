@@ -351,7 +351,7 @@ class Predictor:
         ids = arrays.get("case_id")
         fixes: list = []
         for i in range(n):
-            row = f"{'case ' + str(ids[i]) if ids is not None else f'row {i}'}: "
+            row = _row_label(ids, i)
             try:
                 empty = unloaded[i] is None or np.size(unloaded[i]) == 0
                 u = None if empty else _points(UNLOADED_KEY, unloaded[i], min_points=1)
@@ -424,13 +424,12 @@ class Predictor:
             ids = arrays.get("case_id")
             for i in range(n):  # a cloud in metres, named before its other checks (predict_cloud's order)
                 try:
-                    metres = metres_cloud(_points("cloud", arrays[camera.CLOUD_KEY][i], min_points=1),
-                                          rep.half_width_mm, self.limits.min_cloud_points)
-                    if metres:
-                        raise PredictionInputError(metres)
+                    cloud = _points("cloud", arrays[camera.CLOUD_KEY][i], min_points=1)
                 except PredictionInputError as exc:
-                    raise PredictionInputError(f"{'case ' + str(ids[i]) if ids is not None else f'row {i}'}: "
-                                               f"{exc}") from None
+                    raise PredictionInputError(f"{_row_label(ids, i)}{exc}") from None
+                metres = metres_cloud(cloud, rep.half_width_mm, self.limits.min_cloud_points)
+                if metres:
+                    raise PredictionInputError(f"{_row_label(ids, i)}{metres}")
             spec, fitted, point_sd = camera.grid_spec(rep.grid_size, rep.half_width_mm, rep.camera), [], []
             x = camera.features_from_clouds(arrays[camera.CLOUD_KEY], arrays[camera.TIP_KEY], arrays, spec, R=R,
                                             fitted=fitted, point_sd=point_sd)
@@ -442,8 +441,7 @@ class Predictor:
                                      arrays["exertion_point_mm"][i], R[i])
                     checked = camera_checks(self.model, x[i], self.limits)
                 except PredictionInputError as exc:
-                    raise PredictionInputError(f"{'case ' + str(ids[i]) if ids is not None else f'row {i}'}: "
-                                               f"{exc}") from None
+                    raise PredictionInputError(f"{_row_label(ids, i)}{exc}") from None
                 noisy = noisy_cloud(point_sd[i], spec) if point_sd else None  # predict_cloud's order
                 cloud_warnings[i] = ([MASKED_INSTRUMENT] if fitted and fitted[i] == 0 else []) + (
                     [noisy] if noisy else []) + checked
@@ -508,7 +506,6 @@ class Predictor:
             "test_metrics": m.meta.get("test_metrics"),
         }
 
-
     def command_line(self) -> list[str]:
         """What ``liverforce predict`` needs for this model, option by option (:meth:`describe`): the
         ``required_inputs`` are the input contract's names, which the command computes from these."""
@@ -540,6 +537,12 @@ class Predictor:
             out.append("optional: --unloaded CLOUD --contact-tip X Y Z (the view before the tool pushed, and the tip "
                        "at contact): the registration refined first")
         return out
+
+
+def _row_label(ids, i: int) -> str:
+    """``"case <id>: "`` of row ``i`` (``ids``: the arrays' ``case_id``, or None: ``"row <i>: "``), the prefix of a
+    row's refusal."""
+    return f"case {ids[i]}: " if ids is not None else f"row {i}: "
 
 
 def _context_key(arrays: dict, i: int) -> bytes:
