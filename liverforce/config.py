@@ -707,7 +707,8 @@ def _check_ranges(cfg: dict) -> None:
     _check_choice("validate.input", cfg["validate"]["input"], ["camera", "any"], "validation input")
     for k in cfg["validate"]["camera_sensitivity"]:
         _check_choice("validate.camera_sensitivity", k, ["n_points", "noise_sd_mm", "cone_half_angle_deg",
-                                                        "tip_noise_mm", "instrument_in_cloud", "tool_tilt_deg"],
+                                                        "tip_noise_mm", "instrument_in_cloud", "tool_tilt_deg",
+                                                        "outlier_fraction"],
                       "camera setting")
     for e in cfg["validate"]["registration_errors"]:
         if (not isinstance(e, (list, tuple)) or len(e) != 2

@@ -83,7 +83,7 @@ FEATURES_KEY = "camera_features"
 GRID_KEYS = ("kernel_radius_cells", "min_points", "fill", "max_abs_height_mm", "reference_oversample",
              "estimator", "max_leverage", "reference", "instrument_radius_mm", "instrument_rise_mm",
              "instrument_clearance_mm", "instrument_min_points", "instrument_point_sd_mm", "instrument_tip_sd_mm",
-             "instrument_max_tilt_deg", "dent_radius_mm", "instrument_point_sd_max_mm")
+             "instrument_max_tilt_deg", "dent_radius_mm", "instrument_point_sd_max_mm", "outlier_mm")
 
 _CACHE: dict[tuple, np.ndarray] = {}
 _CACHE_MAX = 200_000
@@ -200,14 +200,16 @@ def observe_cases(arrays: dict, camera: dict, half_width_mm: float, grid_size: i
 
 def features_from_clouds(clouds, tips, arrays: dict, spec: CloudGridSpec,
                          rows: np.ndarray | None = None, R: np.ndarray | None = None,
-                         fitted: list | None = None, point_sd: list | None = None) -> np.ndarray:
+                         fitted: list | None = None, point_sd: list | None = None,
+                         outliers: list | None = None) -> np.ndarray:
     """Feature rows ``(len(rows), 2 g^2 + 3)`` from clouds and tip positions (source frame) of cases ``rows``.
 
     ``R``: the local rotations of all cases of ``arrays`` (:func:`liverforce.learn.frames.case_rotations`),
     when already computed. ``fitted``: a list that gets, per row, the instrument points its axis was fitted to
     (0: the kinematic tip; with ``spec.instrument_radius_mm > 0``); ``point_sd``: one that gets the cloud's
     point noise estimated from the fit's candidates (mm, NaN when nothing was fitted;
-    :func:`liverforce.learn.cloud_features.fit_instrument`).
+    :func:`liverforce.learn.cloud_features.fit_instrument`); ``outliers``: one that gets, per row, the points
+    dropped as gross depth errors and the points tested for them (``spec.outlier_mm``; ``(0, 0)`` without it).
     """
     n = len(arrays["exertion_point_mm"])
     rows = np.arange(n) if rows is None else np.asarray(rows)
@@ -242,8 +244,11 @@ def features_from_clouds(clouds, tips, arrays: dict, spec: CloudGridSpec,
             if point_sd is not None:
                 point_sd.append(grid.instrument_sd_mm)
         else:
-            out[k, :-3] = cloud_grid(cloud, ref, spec).features(include_mask=True)
+            grid = cloud_grid(cloud, ref, spec)
+            out[k, :-3] = grid.features(include_mask=True)
             out[k, -3:] = R[i] @ (tips[k] - P[i])
+        if outliers is not None:
+            outliers.append((grid.n_outliers, grid.n_outlier_tested))
     return out
 
 

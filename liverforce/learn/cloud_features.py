@@ -178,6 +178,14 @@ class CloudGridSpec:
         cloud clearly noisier than ``instrument_point_sd_mm`` is fitted with
         its own noise, estimated from its instrument points
         (:func:`fit_instrument`).
+    outlier_mm : float
+        0 (default): every point counts. Else a point whose height change is
+        farther than this from the plane fitted at its nearest grid point (a
+        valid one, within the kernel's support) is dropped, the planes are
+        fitted again without it, and the dent is fitted without it: a camera's
+        gross depth errors (stereo mismatches, flying pixels), which would
+        pull every plane they fall in. Set it well above the point noise and
+        the deformation's curvature over a cell (a few mm).
     instrument_point_sd_max_mm : float or None
         The noisiest training clouds' point sd, when the model was trained on
         a range of point noise (``observation.noise_sd_mm: [lo, hi]``; then
@@ -205,6 +213,7 @@ class CloudGridSpec:
     instrument_max_tilt_deg: float = 0.0
     dent_radius_mm: float = 0.0
     instrument_point_sd_max_mm: float | None = None
+    outlier_mm: float = 0.0
 
     def __post_init__(self) -> None:
         for k, f in (("grid_size", int), ("min_points", int), ("reference_oversample", int),
@@ -212,7 +221,7 @@ class CloudGridSpec:
                      ("max_leverage", float), ("instrument_radius_mm", float), ("instrument_rise_mm", float),
                      ("instrument_clearance_mm", float), ("instrument_min_points", int),
                      ("instrument_point_sd_mm", float), ("instrument_tip_sd_mm", float),
-                     ("instrument_max_tilt_deg", float), ("dent_radius_mm", float)):
+                     ("instrument_max_tilt_deg", float), ("dent_radius_mm", float), ("outlier_mm", float)):
             object.__setattr__(self, k, f(getattr(self, k)))
         if self.instrument_point_sd_max_mm is not None:
             object.__setattr__(self, "instrument_point_sd_max_mm", float(self.instrument_point_sd_max_mm))
@@ -238,6 +247,7 @@ class CloudGridSpec:
             "instrument_max_tilt_deg": 0 <= self.instrument_max_tilt_deg < 80,
             "dent_radius_mm": self.dent_radius_mm == 0 or (
                 self.instrument_radius_mm < self.dent_radius_mm < math.inf and self.instrument_radius_mm > 0),
+            "outlier_mm": 0.0 <= self.outlier_mm < math.inf,
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
@@ -248,7 +258,7 @@ class CloudGridSpec:
                 f"estimator one of {ESTIMATORS}, max_leverage > 0, reference one of {REFERENCES}, "
                 "instrument_radius_mm >= 0 (finite), instrument_rise_mm > 0, instrument_clearance_mm >= 0, "
                 "instrument_min_points >= 3, instrument sds >= 0, instrument_point_sd_max_mm null or at least "
-                "instrument_point_sd_mm, dent_radius_mm 0 or above instrument_radius_mm > 0)"
+                "instrument_point_sd_mm, dent_radius_mm 0 or above instrument_radius_mm > 0, outlier_mm >= 0)"
             )
 
     @property
@@ -486,6 +496,8 @@ class CloudGrid:
     instrument_sd_mm : the cloud's point noise estimated from the instrument's points (sd, mm;
         :func:`instrument_point_sd`), NaN when no axis was fitted
     dent : ``(amplitude, offset)`` of :func:`fit_dent` (mm), with ``spec.dent_radius_mm > 0``; else None
+    n_outliers : the points dropped as off their cell's plane (``spec.outlier_mm``)
+    n_outlier_tested : the points tested for it (those near a valid grid point; 0 without ``outlier_mm``)
     """
 
     height: np.ndarray
@@ -498,6 +510,8 @@ class CloudGrid:
     n_instrument: int = 0
     instrument_sd_mm: float = math.nan
     dent: np.ndarray | None = None
+    n_outliers: int = 0
+    n_outlier_tested: int = 0
 
     def features(self, include_mask: bool = False) -> np.ndarray:
         """Flat feature vector: ``height`` (``g^2``), then the validity mask as 0/1 if ``include_mask``."""
@@ -943,7 +957,6 @@ def cloud_grid(cloud_mm, reference: ReferenceSurface, spec: CloudGridSpec, tip_m
         (the instrument's points are found around it and dropped, and its axis refines the tip: ``tip_local``).
     """
     g, h = spec.grid_size, spec.half_width_mm
-    step = spec.spacing_mm
     P = np.asarray(cloud_mm, dtype=np.float64).reshape(-1, 3)
     P = P[np.isfinite(P).all(axis=1)]
     L = reference.to_local(P)
@@ -967,59 +980,100 @@ def cloud_grid(cloud_mm, reference: ReferenceSurface, spec: CloudGridSpec, tip_m
             axis, keep, n_inst, inst_sd = fit_instrument(np.column_stack([u, v]), dz, tip_local[:2], spec)
             tip_local = np.array([axis[0], axis[1], tip_local[2]])
         u, v, dz = u[keep], v[keep], dz[keep]
+    fit = _cell_fit(u, v, dz, spec)
+    n_out = n_tested = 0
+    if spec.outlier_mm > 0 and len(u):  # points off their cell's plane by more than outlier_mm: dropped, refitted
+        off, tested = _off_plane(u, v, dz, fit, spec)
+        n_out, n_tested = int(off.sum()), int(tested.sum())
+        if n_out:
+            u, v, dz = u[~off], v[~off], dz[~off]
+            fit = _cell_fit(u, v, dz, spec)
+    W, N, S, valid = fit[:4]
     dent = None
     if spec.dent_radius_mm > 0:
         if tip_local is None:
             raise ValueError("this cloud model fits the dent around the tool tip: give the tip")
         dent = fit_dent(u, v, dz, tip_local[:2], spec)
-    W = np.zeros(g * g)
-    S = np.zeros(g * g)
-    N = np.zeros(g * g, dtype=np.int64)
-    valid = np.zeros(g * g, dtype=bool)
-    if len(u):
-        fu, fv = (u + h) / step, (v + h) / step  # grid-index coordinates
-        jc, ic = np.rint(fu).astype(np.int64), np.rint(fv).astype(np.int64)
-        kr2 = spec.kernel_radius_cells ** 2
-        c = int(math.ceil(spec.kernel_radius_cells))
-        # every (stencil offset, point) pair at once, offset-major: each point against the grid points
-        # within the kernel's reach of its nearest one
-        off = np.arange(-c, c + 1)
-        I = ic[None, :] + np.repeat(off, off.size)[:, None]
-        J = jc[None, :] + np.tile(off, off.size)[:, None]
-        DV, DU = fv[None, :] - I, fu[None, :] - J
-        Q = (DU * DU + DV * DV) / kr2
-        M = (Q < 1.0) & (I >= 0) & (I < g) & (J >= 0) & (J < g)
-        cells = (I * g + J)[M]
-        w = (1.0 - Q[M]) ** 2
-        du, dv = DU[M], DV[M]
-        z = np.broadcast_to(dz, Q.shape)[M]
-
-        def wsum(x=None):
-            return np.bincount(cells, weights=w if x is None else w * x, minlength=g * g)
-
-        W, N = wsum(), np.bincount(cells, minlength=g * g)
-        Wp = np.where(W > 0, W, 1.0)
-        zbar = wsum(z) / Wp
-        ub, vb = wsum(du) / Wp, wsum(dv) / Wp  # weighted centroid of the points, relative to the grid point
-        cuu, cvv, cuv = wsum(du * du) / Wp - ub * ub, wsum(dv * dv) / Wp - vb * vb, wsum(du * dv) / Wp - ub * vb
-        det = cuu * cvv - cuv * cuv
-        spread = det > 1e-6 * kr2 * kr2  # (a full disc of radius k grid units gives about k^4 / 64)
-        dp = np.where(spread, det, 1.0)
-        # squared Mahalanobis distance of the grid point from the points' weighted centroid
-        leverage = np.where(spread, (cvv * ub * ub - 2.0 * cuv * ub * vb + cuu * vb * vb) / dp, np.inf)
-        S = zbar
-        if spec.estimator == "linear":
-            cuz, cvz = wsum(du * z) / Wp - ub * zbar, wsum(dv * z) / Wp - vb * zbar
-            b = (cvv * cuz - cuv * cvz) / dp
-            cc = (cuu * cvz - cuv * cuz) / dp
-            S = np.where(spread, zbar - b * ub - cc * vb, zbar)
-        valid = (N >= spec.min_points) & (W > 0) & (leverage <= spec.max_leverage)
     height = np.zeros(g * g)
     height[valid] = S[valid]
     height = _fill(height.reshape(g, g), valid.reshape(g, g), spec.fill)
     return CloudGrid(height=height, valid=valid.reshape(g, g), count=N.reshape(g, g).astype(np.int64),
                      weight=W.reshape(g, g), reference=reference.grid_height.copy(), n_points=int(len(u)),
-                     tip_local=tip_local, n_instrument=n_inst, instrument_sd_mm=inst_sd, dent=dent)
+                     tip_local=tip_local, n_instrument=n_inst, instrument_sd_mm=inst_sd, dent=dent,
+                     n_outliers=n_out, n_outlier_tested=n_tested)
+
+
+def _cell_fit(u: np.ndarray, v: np.ndarray, dz: np.ndarray, spec: CloudGridSpec) -> tuple:
+    """Per grid point, from the points ``(u, v, dz)`` (local frame, mm): ``(W, N, S, valid, slope_u, slope_v)``,
+    the kernel weights' sum, the points within the support, the estimate (module docstring, step 3), the validity
+    (step 4) and the plane's slopes per grid spacing (0 where no plane was fitted), each of ``g^2``."""
+    g, h = spec.grid_size, spec.half_width_mm
+    step = spec.spacing_mm
+    W = np.zeros(g * g)
+    S = np.zeros(g * g)
+    N = np.zeros(g * g, dtype=np.int64)
+    valid = np.zeros(g * g, dtype=bool)
+    bu = np.zeros(g * g)
+    bv = np.zeros(g * g)
+    if not len(u):
+        return W, N, S, valid, bu, bv
+    fu, fv = (u + h) / step, (v + h) / step  # grid-index coordinates
+    jc, ic = np.rint(fu).astype(np.int64), np.rint(fv).astype(np.int64)
+    kr2 = spec.kernel_radius_cells ** 2
+    c = int(math.ceil(spec.kernel_radius_cells))
+    # every (stencil offset, point) pair at once, offset-major: each point against the grid points
+    # within the kernel's reach of its nearest one
+    off = np.arange(-c, c + 1)
+    I = ic[None, :] + np.repeat(off, off.size)[:, None]
+    J = jc[None, :] + np.tile(off, off.size)[:, None]
+    DV, DU = fv[None, :] - I, fu[None, :] - J
+    Q = (DU * DU + DV * DV) / kr2
+    M = (Q < 1.0) & (I >= 0) & (I < g) & (J >= 0) & (J < g)
+    cells = (I * g + J)[M]
+    w = (1.0 - Q[M]) ** 2
+    du, dv = DU[M], DV[M]
+    z = np.broadcast_to(dz, Q.shape)[M]
+
+    def wsum(x=None):
+        return np.bincount(cells, weights=w if x is None else w * x, minlength=g * g)
+
+    W, N = wsum(), np.bincount(cells, minlength=g * g)
+    Wp = np.where(W > 0, W, 1.0)
+    zbar = wsum(z) / Wp
+    ub, vb = wsum(du) / Wp, wsum(dv) / Wp  # weighted centroid of the points, relative to the grid point
+    cuu, cvv, cuv = wsum(du * du) / Wp - ub * ub, wsum(dv * dv) / Wp - vb * vb, wsum(du * dv) / Wp - ub * vb
+    det = cuu * cvv - cuv * cuv
+    spread = det > 1e-6 * kr2 * kr2  # (a full disc of radius k grid units gives about k^4 / 64)
+    dp = np.where(spread, det, 1.0)
+    # squared Mahalanobis distance of the grid point from the points' weighted centroid
+    leverage = np.where(spread, (cvv * ub * ub - 2.0 * cuv * ub * vb + cuu * vb * vb) / dp, np.inf)
+    S = zbar
+    if spec.estimator == "linear":
+        cuz, cvz = wsum(du * z) / Wp - ub * zbar, wsum(dv * z) / Wp - vb * zbar
+        b = (cvv * cuz - cuv * cvz) / dp
+        cc = (cuu * cvz - cuv * cuz) / dp
+        S = np.where(spread, zbar - b * ub - cc * vb, zbar)
+        bu, bv = np.where(spread, b, 0.0), np.where(spread, cc, 0.0)
+    valid = (N >= spec.min_points) & (W > 0) & (leverage <= spec.max_leverage)
+    return W, N, S, valid, bu, bv
+
+
+def _off_plane(u: np.ndarray, v: np.ndarray, dz: np.ndarray, fit: tuple, spec: CloudGridSpec) -> tuple:
+    """``(off, tested)``, masks of the points: ``off``, those farther than ``spec.outlier_mm`` in height from the plane of their nearest grid point (ties of
+    the rounding: ``np.rint``'s, to even), read at their own ``(u, v)``, where that grid point is valid and within
+    the kernel's support (elsewhere no point is an outlier): a camera's gross depth errors (stereo mismatches,
+    flying pixels at depth edges), which would pull every plane they fall in; ``tested``, those near a valid grid
+    point."""
+    g, h = spec.grid_size, spec.half_width_mm
+    step = spec.spacing_mm
+    S, valid, bu, bv = fit[2], fit[3], fit[4], fit[5]
+    fu, fv = (u + h) / step, (v + h) / step
+    J = np.clip(np.rint(fu), 0, g - 1).astype(np.int64)
+    I = np.clip(np.rint(fv), 0, g - 1).astype(np.int64)
+    du, dv = fu - J, fv - I
+    cell = I * g + J
+    near = (du * du + dv * dv < spec.kernel_radius_cells ** 2) & valid[cell]
+    return near & (np.abs(dz - (S[cell] + bu[cell] * du + bv[cell] * dv)) > spec.outlier_mm), near
 
 
 def _fill(H: np.ndarray, valid: np.ndarray, rule: str) -> np.ndarray:

@@ -121,7 +121,7 @@ from liverforce.learn.torchutil import EpochCallback
 from liverforce.seeds import derive
 
 FORMAT = "liverforce.force_model"
-FORMAT_VERSION = 15  # 3: probe compliance in the state vector (material from column 22), linear force estimate;
+FORMAT_VERSION = 16  # 3: probe compliance in the state vector (material from column 22), linear force estimate;
 #                     4: the GP regressor may be a GPEnsemble (model.gp.code_members), which a reader of 3 cannot load;
 #                     5: the state features may end with the indentation strain, which a reader of 4 would misread;
 #                     6: a GP's kernel may be the rational quadratic (a ``shape`` buffer), which a reader of 5 would
@@ -146,7 +146,9 @@ FORMAT_VERSION = 15  # 3: probe compliance in the state vector (material from co
 #                        proportion to it
 #                     15: a camera model's point noise may be a range (observation.noise_sd_mm: [lo, hi]) and its
 #                        grid records the range's most (instrument_point_sd_max_mm), which a reader of 14 cannot load
-READ_VERSIONS = (3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15)
+#                     16: a camera model's grid may drop a cloud's gross depth errors (camera.grid.outlier_mm) and its
+#                        observation may add them (observation.outlier_fraction), keys a reader of 15 cannot load
+READ_VERSIONS = (3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16)
 # a version-3 bundle is a version-4 bundle with a single GP (or an MLP); 4 is 5
 #                                     without the indentation strain; 5 is 6 with squared-exponential GPs (no shape
 #                                     buffer); 6 is 7 with camera models on the ROI points' reference (reference:

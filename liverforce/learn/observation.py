@@ -58,6 +58,13 @@ without new FE. This module does that, seeded, with numpy only:
    uniformly in a range ``noise_sd_mm = (lo, hi)`` per observation): ``isotropic``
    (every coordinate) or ``ray`` (along the line of sight, as stereo depth
    error).
+7. **Outliers** (``outlier_fraction``, default 0): that share of the cloud's
+   points moved along their line of sight by a depth error drawn uniformly in
+   ``[-outlier_range_mm, outlier_range_mm]``: a stereo mismatch (a specular
+   highlight, a texture-less patch, a pixel at a depth edge) puts a point at a
+   wrong depth on its own ray, not beside it. Drawn from a stream of their
+   own after the noise, so every other point, and the cloud at fraction 0, is
+   that of the same seed without them.
 
 The tool
 --------
@@ -112,7 +119,8 @@ Notes
 -----
 The depth buffer drops triangles that reach behind the camera's near plane
 (1 mm): a surface touching the camera lens is not modelled. Specular
-highlights, texture-less regions and outliers are not modelled; the cloud holds
+highlights, texture-less regions and depth edges are modelled only as their
+outliers (point 7), not as holes in the cloud; the cloud holds
 liver surface points only unless ``instrument_in_cloud`` adds the tool's.
 """
 
@@ -199,6 +207,11 @@ class ObservationConfig:
     instrument_in_cloud : bool
         Add the visible part of the tool's surface to the cloud at the liver
         points' density (default False: the instrument is masked out).
+    outlier_fraction : float
+        Share of the cloud's points (liver and instrument alike) given a gross
+        depth error along their line of sight (default 0: none; in [0, 0.5]).
+    outlier_range_mm : float
+        The outliers' depth error is uniform in ``[-r, r]`` mm (default 10).
     tool_tilt_deg : float or (float, float)
         The tool's axis tilted this far from the outward normal (a pair: an
         angle drawn uniformly between the two per observation), towards a
@@ -227,6 +240,8 @@ class ObservationConfig:
     depth_tolerance_mm: float = 0.25
     instrument_in_cloud: bool = False
     tool_tilt_deg: tuple[float, float] = (0.0, 0.0)
+    outlier_fraction: float = 0.0
+    outlier_range_mm: float = 10.0
 
     def __post_init__(self) -> None:
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731 (frozen dataclass)
@@ -240,7 +255,8 @@ class ObservationConfig:
                 raise ValueError(f"observation cone_axis must be a nonzero 3-vector or null (got {self.cone_axis!r})")
             set_("cone_axis", tuple(float(v) for v in ax))
         for k in ("cone_half_angle_deg", "half_fov_deg", "roi_radius_mm", "tool_radius_mm", "tool_shaft_length_mm",
-                  "camera_tool_clearance_mm", "min_view_cos", "depth_tolerance_mm"):
+                  "camera_tool_clearance_mm", "min_view_cos", "depth_tolerance_mm", "outlier_fraction",
+                  "outlier_range_mm"):
             set_(k, float(getattr(self, k)))
         for k in ("max_camera_draws", "max_candidates", "zbuffer_pixels"):
             set_(k, int(getattr(self, k)))
@@ -265,6 +281,8 @@ class ObservationConfig:
             "zbuffer_pixels": 16 <= self.zbuffer_pixels <= 4096,
             "depth_tolerance_mm": self.depth_tolerance_mm >= 0,
             "tool_tilt_deg": 0.0 <= self.tool_tilt_deg[0] <= self.tool_tilt_deg[1] < 90.0,
+            "outlier_fraction": 0.0 <= self.outlier_fraction <= 0.5,
+            "outlier_range_mm": 0.0 < self.outlier_range_mm < math.inf,
         }
         bad = [k for k, ok in checks.items() if not ok]
         if bad:
@@ -322,6 +340,7 @@ class ObservationRecord:
     visible_fraction : visible candidates / candidates within the ROI radius
     n_instrument_points : points of the instrument in the cloud (``instrument_in_cloud``; the last rows)
     noise_sd_mm : the point noise's standard deviation (drawn when ``noise_sd_mm`` is a range)
+    n_outliers : points given a gross depth error (``outlier_fraction``)
     """
 
     camera_position_mm: np.ndarray
@@ -338,6 +357,7 @@ class ObservationRecord:
     visible_fraction: float = 0.0
     n_instrument_points: int = 0
     noise_sd_mm: float = 0.0
+    n_outliers: int = 0
 
     def to_dict(self) -> dict:
         out = {}
@@ -833,10 +853,10 @@ def _in_range(pair: tuple[float, float], rng: np.random.Generator) -> float:
 
 
 def _streams(seed) -> tuple[np.random.Generator, ...]:
-    """Camera pose, sampling, noise, instrument, tool-tilt and noise-level streams (each as before the later ones
-    existed: ``SeedSequence.spawn`` keys a child by its index)."""
+    """Camera pose, sampling, noise, instrument, tool-tilt, noise-level and outlier streams (each as before the
+    later ones existed: ``SeedSequence.spawn`` keys a child by its index)."""
     try:
-        return tuple(spawn_rngs(seed, 6))
+        return tuple(spawn_rngs(seed, 7))
     except ValueError:
         raise ValueError(f"observation seeds must be non-negative integers (got {seed!r})") from None
 
@@ -943,7 +963,7 @@ def observe(
         _check_outward(V, topo.triangles)
     tip = np.asarray(exertion_point_mm, dtype=np.float64).reshape(3)
     n_out = _unit(normal, "normal")
-    rng_cam, rng_smp, rng_noise, rng_inst, rng_tilt, rng_sd = _streams(seed)
+    rng_cam, rng_smp, rng_noise, rng_inst, rng_tilt, rng_sd, rng_out = _streams(seed)
     a_tool = n_out if tool_axis is None else _unit(tool_axis, "tool_axis")
     if tool_axis is None and cfg.tool_tilt_deg[1] > 0:  # tilted by that angle, towards a random azimuth
         a, b = _basis(n_out)
@@ -1057,6 +1077,16 @@ def observe(
             ray = cloud - C
             ray /= np.linalg.norm(ray, axis=1, keepdims=True)
             cloud = cloud + rng_noise.normal(0.0, sd, size=len(cloud))[:, None] * ray
+
+    # ---- outliers: a wrong depth along the point's own line of sight
+    k_out = int(round(cfg.outlier_fraction * len(cloud)))
+    if k_out:
+        idx = rng_out.choice(len(cloud), size=k_out, replace=False)
+        ray = cloud[idx] - C
+        ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+        cloud = cloud.copy()
+        cloud[idx] += rng_out.uniform(-cfg.outlier_range_mm, cfg.outlier_range_mm, size=k_out)[:, None] * ray
+    rec.n_outliers = k_out
     return cloud, rec
 
 # --------------------------------------------------------------------------

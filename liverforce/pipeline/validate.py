@@ -141,8 +141,9 @@ def camera_sensitivity(model_dir, arrays: dict, grid: dict) -> dict | None:
     points), ``noise_sd_mm``, ``cone_half_angle_deg`` (the view-angle cone
     around the normal), ``tip_noise_mm`` (robot kinematics, the same sd in
     every direction whatever the model's ``tip_noise_normal_mm``),
-    ``instrument_in_cloud`` (the tool's own points in the cloud or masked out) and ``tool_tilt_deg`` (the tool's
-    axis that far from the normal, as an instrument through its trocar comes in). The other
+    ``instrument_in_cloud`` (the tool's own points in the cloud or masked out), ``tool_tilt_deg`` (the tool's
+    axis that far from the normal, as an instrument through its trocar comes in) and ``outlier_fraction`` (that
+    share of the points at a gross depth error along their line of sight, the model's ``outlier_range_mm``). The other
     settings stay the model's own; the evaluation observation seed as in
     validation. Returns ``{setting: [{value, mae_vec (mean over livers),
     mae_sd, accuracy_pct, accuracy_sd}]}``, None for a model that is not a
@@ -169,7 +170,7 @@ def camera_sensitivity(model_dir, arrays: dict, grid: dict) -> dict | None:
                 cam = isotropic_tip(cam, val)
             elif key == "n_points":
                 obs["n_points"] = [int(val), int(val)]
-            elif key in ("noise_sd_mm", "cone_half_angle_deg", "tool_tilt_deg"):
+            elif key in ("noise_sd_mm", "cone_half_angle_deg", "tool_tilt_deg", "outlier_fraction"):
                 if isinstance(val, bool) or not isinstance(val, (int, float)):
                     raise ValueError(f"validate.camera_sensitivity.{key}: each value is one number, the setting "
                                      f"itself (got {val!r})")
@@ -181,7 +182,8 @@ def camera_sensitivity(model_dir, arrays: dict, grid: dict) -> dict | None:
                 obs[key] = val
             else:
                 raise ValueError(f"validate.camera_sensitivity: unknown setting '{key}' (n_points, noise_sd_mm, "
-                                 "cone_half_angle_deg, tip_noise_mm, instrument_in_cloud, tool_tilt_deg)")
+                                 "cone_half_angle_deg, tip_noise_mm, instrument_in_cloud, tool_tilt_deg, "
+                                 "outlier_fraction)")
             pred = m.observed_with(cam).predict(arrays, observation_seed=seed)
             g = metrics_by_group(arrays["force_n"], pred, arrays["geometry_id"])
             rows.append({"value": val, "mae_vec": g["mean"]["mae_vec"], "mae_sd": g["sd"]["mae_vec"],

@@ -489,21 +489,28 @@ def camera_section(data: dict, v: dict, main_variant: str | None) -> str:
         what = {"n_points": ("cloud points (fixed)", ""), "noise_sd_mm": ("point noise", " mm"),
                 "cone_half_angle_deg": ("view cone half-angle", "°"), "tip_noise_mm": ("tool tip noise", " mm"),
                 "instrument_in_cloud": ("instrument's points in the cloud", ""),
-                "tool_tilt_deg": ("tool axis tilted from the normal", "°")}
+                "tool_tilt_deg": ("tool axis tilted from the normal", "°"),
+                "outlier_fraction": ("points at a gross depth error", "")}
         srows = []
         for key, (label, unit) in what.items():
             for r in sens.get(key) or []:
-                val = ("yes" if r["value"] else "no") if isinstance(r["value"], bool) else f"{r['value']:g}{unit}"
+                val = (("yes" if r["value"] else "no") if isinstance(r["value"], bool)
+                       else f"{100 * r['value']:g} %" if key == "outlier_fraction" else f"{r['value']:g}{unit}")
                 srows.append([label, val, _pm(r["mae_vec"], r["mae_sd"]),
                               _pm(r["accuracy_pct"], r["accuracy_sd"], 1)])
         ms = sens.get("model_settings") or {}
         obs = ms.get("observation") or {}
+        drop = float((ms.get("grid") or {}).get("outlier_mm") or 0.0)
         out.append("<p>The validated camera model on the unseen livers with one camera setting changed at a time "
                    f"(trained with {obs.get('n_points')} points, noise {_range_text(obs.get('noise_sd_mm'), ' mm')}, "
                    f"view cone {obs.get('cone_half_angle_deg')}°, tip noise {ms.get('tip_noise_mm')} mm, the "
                    f"instrument's points {'in the cloud' if obs.get('instrument_in_cloud') else 'masked out'}, the "
-                   f"tool's axis {_range_text(obs.get('tool_tilt_deg'))} from the normal); mean ± sd over "
-                   "the livers.</p>")
+                   f"tool's axis {_range_text(obs.get('tool_tilt_deg'))} from the normal"
+                   + (f", {100 * float(obs.get('outlier_fraction') or 0):g} % of its points at a gross depth error, "
+                      f"up to {float(obs.get('outlier_range_mm') or 10.0):g} mm along their line of sight; it drops "
+                      + (f"points farther than {drop:g} mm from their cell's plane" if drop > 0 else "no point as one")
+                      if "outlier_fraction" in sens else "")
+                   + "); mean ± sd over the livers.</p>")
         out.append(_table(["setting", "value", "unseen MAE (N)", "unseen accuracy %"], srows, cls="camera-sens",
                           row_cls="sens"))
     out.append(registration_table(v.get("registration")))

@@ -318,6 +318,23 @@ def noisy_cloud(point_sd_mm: float, spec) -> str | None:
             "for; its error grows with the point noise (the report's camera sensitivity)")
 
 
+#: a cloud with more than this share of its tested points dropped as gross depth errors is warned about
+#: (:func:`outlier_cloud`): the report's camera sensitivity scores 1, 3 and 10 % of the points at such errors
+OUTLIER_WARN_SHARE = 0.05
+
+
+def outlier_cloud(n_out: float, n_tested: float, spec) -> str | None:
+    """The warning for a cloud with more than :data:`OUTLIER_WARN_SHARE` of its points tested dropped as gross
+    depth errors (``spec.outlier_mm``; :func:`liverforce.learn.cloud_features.cloud_grid`), or None."""
+    n_out, n_tested = int(n_out), int(n_tested)
+    if not spec.outlier_mm > 0 or n_tested <= 0 or not n_out > OUTLIER_WARN_SHARE * n_tested:
+        return None
+    return (f"{100 * n_out / n_tested:.0f} % of the cloud's points ({n_out} of the {n_tested} on the model's grid) "
+            f"lay more than {spec.outlier_mm:g} mm off the surface fitted through their neighbours and were dropped "
+            "as gross depth errors (stereo mismatches, flying pixels at depth edges); the force's error grows with "
+            "them (the report's camera sensitivity)")
+
+
 def instrument_check_radius(rep, spec) -> float:
     """The tool radius the serving check for the instrument's points uses, 0 for none: models trained on
     clouds without the instrument (those trained with it see it as in training), whose height reference is the

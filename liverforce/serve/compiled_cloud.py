@@ -99,7 +99,8 @@ from liverforce.learn.state import THICKNESS_COLUMN, compliance_matrices, state_
 from liverforce.serve.checks import Limits, TrainingScale, force_warnings, outside_training
 from liverforce.serve.cloud import (MASKED_INSTRUMENT, SHAFT_MARGIN_MM, SHAFT_POINTS, SHAFT_RING_MM, SHAFT_RISE_MM,
                                     camera_checks, few_points, instrument_check_radius, instrument_refusal,
-                                    metres_cloud, noisy_cloud, noisy_threshold_mm, registration_warnings, tool_tip_of)
+                                    metres_cloud, noisy_cloud, noisy_threshold_mm, outlier_cloud, registration_warnings,
+                                    tool_tip_of)
 from liverforce.serve.compiled import numpy_layers, regressor_head
 from liverforce.serve.errors import PredictionInputError
 from liverforce.serve.input_frame import InputFrame
@@ -246,7 +247,7 @@ def _workspace(nmax, g, kr):
             np.zeros(1 << (tb - 5), dtype=np.int64), np.empty(nmax, dtype=np.int32),  # bit table, candidates
             np.zeros((gg, 10)), np.zeros(gg), np.zeros(gg, dtype=np.bool_),  # M, Hc, valid
             np.empty(gg, dtype=np.int64), np.empty(gg, dtype=np.int64), np.zeros((gg, g + 1)),  # idx, unk, Lb
-            np.zeros(gg), np.zeros(gg))  # rhs, y
+            np.zeros(gg), np.zeros(gg), np.zeros(gg), np.zeros(gg))  # rhs, y; the planes' slopes
 
 
 @njit(cache=True, fastmath={"reassoc", "nsz", "contract", "arcp"})  # reassociated sums: vectorised
@@ -861,6 +862,90 @@ def _dent_fit(GUs, GVs, Zs, n, h, gstep, tu, tv, a, rd, min_points, cloud_tol):
     return x3, x0
 
 
+@njit(cache=True)
+def _cell_planes(M, g, kr, linear, min_points, max_leverage, Hc, valid, Bu, Bv):
+    """Per grid point from its moments ``M`` (:func:`_cell_moments`): the estimate ``Hc`` (0 where not valid), the
+    validity and the plane's slopes ``Bu, Bv`` per grid spacing (0 where no plane was fitted), as
+    ``cloud_features._cell_fit``; returns the valid cells."""
+    kr2 = kr * kr
+    n_valid = 0
+    for cell in range(g * g):
+        mom = M[cell]
+        W = mom[0]
+        Wp = W if W > 0 else 1.0
+        zbar = mom[2] / Wp
+        ub = mom[3] / Wp
+        vb = mom[4] / Wp
+        cuu = mom[5] / Wp - ub * ub
+        cvv = mom[6] / Wp - vb * vb
+        cuv = mom[7] / Wp - ub * vb
+        det = cuu * cvv - cuv * cuv
+        spread = det > 1e-6 * kr2 * kr2
+        dp = det if spread else 1.0
+        lev = (cvv * ub * ub - 2.0 * cuv * ub * vb + cuu * vb * vb) / dp if spread else np.inf
+        est = zbar
+        bs = 0.0
+        cs = 0.0
+        if linear and spread:
+            cuz = mom[8] / Wp - ub * zbar
+            cvz = mom[9] / Wp - vb * zbar
+            bs = (cvv * cuz - cuv * cvz) / dp
+            cs = (cuu * cvz - cuv * cuz) / dp
+            est = zbar - bs * ub - cs * vb
+        ok = mom[1] >= min_points and W > 0 and lev <= max_leverage
+        valid[cell] = ok
+        Hc[cell] = est if ok else 0.0
+        Bu[cell] = bs
+        Bv[cell] = cs
+        if ok:
+            n_valid += 1
+    return n_valid
+
+
+@njit(cache=True)
+def _drop_off_plane(GUs, GVs, Zs, first, nc, g, kr, tol, Hc, valid, Bu, Bv, flag):
+    """Drop, in place, the sorted points whose height change lies more than ``tol`` from the plane of their nearest
+    grid point (``np.rint``, clamped to the grid) where that point is valid and within ``kr`` of them
+    (``cloud_features._off_plane``), keeping the bins' order; ``flag``: scratch of the points' length. Returns
+    the points dropped and the points tested (those near a valid grid point)."""
+    n = first[nc * nc]
+    kr2 = kr * kr
+    g1 = g - 1.0
+    n_off = 0
+    n_test = 0
+    for s in range(n):
+        gu = GUs[s]
+        gv = GVs[s]
+        J = min(max(np.rint(gu), 0.0), g1)
+        I = min(max(np.rint(gv), 0.0), g1)
+        du = gu - J
+        dv = gv - I
+        off = 0
+        if du * du + dv * dv < kr2:
+            cell = int(I) * g + int(J)
+            if valid[cell]:
+                n_test += 1
+                if abs(Zs[s] - (Hc[cell] + Bu[cell] * du + Bv[cell] * dv)) > tol:
+                    off = 1
+                    n_off += 1
+        flag[s] = off
+    if n_off == 0:
+        return 0, n_test
+    w = 0
+    for kk in range(nc * nc):
+        a0 = first[kk]
+        e0 = first[kk + 1]
+        first[kk] = w
+        for t in range(a0, e0):
+            if flag[t] == 0:
+                GUs[w] = GUs[t]
+                GVs[w] = GVs[t]
+                Zs[w] = Zs[t]
+                w += 1
+    first[nc * nc] = w
+    return n_off, n_test
+
+
 @njit(cache=True, fastmath={"contract"})  # FMAs: u, v, w as BLAS computes R (x - p) more often
 def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_abs, min_points, max_leverage,
               linear, fill, reach_count, shaft, inst, ws, x):
@@ -876,10 +961,12 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
     tangential part (:func:`_fit_instrument`); with a slope as well (``inst[8] > 0``,
     :func:`_fit_instrument_tilted`) the tip is the kinematic one projected onto the axis, its height too (the fit
     along the normal where the slope is not significant or that tip is not credible, :func:`_tilt_credible`).
-    With ``inst[10] > 0`` the dent round that axis is fitted to the liver's points (:func:`_dent_fit`).
+    With ``inst[10] > 0`` the dent round that axis is fitted to the liver's points (:func:`_dent_fit`). Last, the
+    points dropped as off their grid point's plane (``inst[14] > 0``: :func:`_drop_off_plane`) and the points
+    tested.
     """
     U, V, Wl, GU, GV, Z, key, A, C, Q, HB, GUs, GVs, Zs, orig, first, fill_at, bits, cand = ws[:19]
-    M, Hc, valid, idx, unk, Lb, rhs, y = ws[19:]
+    M, Hc, valid, idx, unk, Lb, rhs, y, Bu, Bv = ws[19:]
     gg = g * g
     RF = raster.ravel()  # C-contiguous: a view
     rs = np.uint64(raster.shape[1])
@@ -1041,41 +1128,20 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
                     Zs[w] = Zs[t]
                     w += 1
         first[nc * nc] = w
+    # 4. moments, per-cell weighted plane fit and validity test (cloud_grid's formulas); with inst[14] > 0 the
+    #    points off their nearest grid point's plane by more than it are dropped and the planes fitted again
+    _cell_moments(GUs, GVs, Zs, first, g, kr, sb, pad, nc, exact, M)
+    n_valid = _cell_planes(M, g, kr, linear, min_points, max_leverage, Hc, valid, Bu, Bv)
+    n_off = 0
+    n_test = 0
+    if inst[14] > 0.0 and n_valid > 0:
+        n_off, n_test = _drop_off_plane(GUs, GVs, Zs, first, nc, g, kr, inst[14], Hc, valid, Bu, Bv, key)
+        if n_off:
+            _cell_moments(GUs, GVs, Zs, first, g, kr, sb, pad, nc, exact, M)
+            n_valid = _cell_planes(M, g, kr, linear, min_points, max_leverage, Hc, valid, Bu, Bv)
     if inst[10] > 0.0:  # the dent round the tool's axis, from the liver's distinct points
         x[2 * gg], x[2 * gg + 1] = _dent_fit(GUs, GVs, Zs, first[nc * nc], h, gstep, tu, tv, inst[0], inst[10],
                                              inst[11], inst[12])
-    # 4. moments, per-cell weighted plane fit and validity test (cloud_grid's formulas)
-    _cell_moments(GUs, GVs, Zs, first, g, kr, sb, pad, nc, exact, M)
-    kr2 = kr * kr
-    n_valid = 0
-    for I in range(g):
-        for J in range(g):
-            cell = I * g + J
-            mom = M[cell]
-            W = mom[0]
-            Wp = W if W > 0 else 1.0
-            zbar = mom[2] / Wp
-            ub = mom[3] / Wp
-            vb = mom[4] / Wp
-            cuu = mom[5] / Wp - ub * ub
-            cvv = mom[6] / Wp - vb * vb
-            cuv = mom[7] / Wp - ub * vb
-            det = cuu * cvv - cuv * cuv
-            spread = det > 1e-6 * kr2 * kr2
-            dp = det if spread else 1.0
-            lev = (cvv * ub * ub - 2.0 * cuv * ub * vb + cuu * vb * vb) / dp if spread else np.inf
-            est = zbar
-            if linear and spread:
-                cuz = mom[8] / Wp - ub * zbar
-                cvz = mom[9] / Wp - vb * zbar
-                bs = (cvv * cuz - cuv * cvz) / dp
-                cs = (cuu * cvz - cuv * cuz) / dp
-                est = zbar - bs * ub - cs * vb
-            ok = mom[1] >= min_points and W > 0 and lev <= max_leverage
-            valid[cell] = ok
-            Hc[cell] = est if ok else 0.0
-            if ok:
-                n_valid += 1
     # 5. fill of the cells the camera does not see
     if fill == 1 and 0 < n_valid < gg:
         _laplace_fill(Hc, valid, g, idx, unk, Lb, rhs, y)
@@ -1086,7 +1152,7 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
     x[nx - 3] = tu
     x[nx - 2] = tv
     x[nx - 1] = R[2, 0] * tp0 + R[2, 1] * tp1 + R[2, 2] * tp2 + dw
-    return nu, nb, ns, nf, sd
+    return nu, nb, ns, nf, sd, n_off, n_test
 
 
 @njit(cache=True, nogil=True)  # threads: predict_batch(threads=)
@@ -1100,7 +1166,7 @@ def _grid_clouds(P, starts, counts, tips, origin, R, raster, lo, rstep, g, h, gs
         nmax = max(nmax, counts[b])
     ws = _workspace(nmax, g, kr)
     for b in range(starts.shape[0]):
-        n_used[b], n_bad[b], n_tool[b, 0], n_tool[b, 1], n_tool[b, 2] = _grid_one(
+        n_used[b], n_bad[b], n_tool[b, 0], n_tool[b, 1], n_tool[b, 2], n_tool[b, 3], n_tool[b, 4] = _grid_one(
             P, starts[b], counts[b], tips[b], origin, R, raster, lo, rstep, g, h, gstep, kr, max_abs, min_points,
             max_leverage, linear, fill, reach_count, shaft, inst, ws, X[b])
 
@@ -1115,7 +1181,7 @@ def _grid_list(clouds, tips, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
     ws = _workspace(nmax, g, kr)
     for b in range(len(clouds)):
         P = clouds[b]
-        n_used[b], n_bad[b], n_tool[b, 0], n_tool[b, 1], n_tool[b, 2] = _grid_one(
+        n_used[b], n_bad[b], n_tool[b, 0], n_tool[b, 1], n_tool[b, 2], n_tool[b, 3], n_tool[b, 4] = _grid_one(
             P, 0, P.shape[0], tips[b], origin, R, raster, lo, rstep, g, h, gstep, kr, max_abs, min_points,
             max_leverage, linear, fill, reach_count, shaft, inst, ws, X[b])
 
@@ -1227,14 +1293,15 @@ def _with_force(warnings: list, force: np.ndarray, scale: TrainingScale) -> list
 def instrument_params(sp) -> np.ndarray:
     """The kernels' ``inst`` vector of a grid spec: the tool's radius, the search radius, the rise, the clearance,
     the point sd, the tip sd, the fewest points, ``NOISE_REFIT_RATIO``, ``tan(instrument_max_tilt_deg)``,
-    ``TILT_WALD``, ``dent_radius_mm``, ``DENT_MIN_POINTS``, ``DENT_PIVOT_TOL`` and ``TILT_SD_RATIO`` (the module
-    constants passed in, read when called: inside a cached kernel they would be frozen into it)."""
+    ``TILT_WALD``, ``dent_radius_mm``, ``DENT_MIN_POINTS``, ``DENT_PIVOT_TOL``, ``TILT_SD_RATIO`` (the module
+    constants passed in, read when called: inside a cached kernel they would be frozen into it) and
+    ``outlier_mm``."""
     return np.array([sp.instrument_radius_mm, instrument_search_radius(sp), sp.instrument_rise_mm,
                      sp.instrument_clearance_mm, sp.instrument_point_sd_mm, sp.instrument_tip_sd_mm,
                      sp.instrument_min_points, cloud_features.NOISE_REFIT_RATIO,
                      math.tan(math.radians(sp.instrument_max_tilt_deg)), cloud_features.TILT_WALD,
                      sp.dent_radius_mm, cloud_features.DENT_MIN_POINTS, cloud_features.DENT_PIVOT_TOL,
-                     cloud_features.TILT_SD_RATIO],
+                     cloud_features.TILT_SD_RATIO, sp.outlier_mm],
                     dtype=np.float64)
 
 
@@ -1436,7 +1503,8 @@ class CompiledCloud:
         X = np.empty((B, self.n_features))
         n_used = np.zeros(B, dtype=np.int64)
         n_bad = np.zeros(B, dtype=np.int64)
-        n_tool = np.zeros((B, 3))  # points on the shaft, instrument points fitted, the point noise from them (mm)
+        n_tool = np.zeros((B, 5))  # points on the shaft, instrument points fitted, the point noise from them (mm),
+        # points dropped as gross depth errors and points tested for them
         if B:
             params = (self._kp, self._kR, self._raster, self.ref.lo, self.ref.step, self.g, sp.half_width_mm,
                       sp.spacing_mm, sp.kernel_radius_cells, sp.max_abs_height_mm, sp.min_points, sp.max_leverage,
@@ -1527,8 +1595,13 @@ class CompiledCloud:
                     except PredictionInputError as exc:  # a cloud in metres is named first, as the reference does
                         refused[r] = metres_cloud(self._model(cloud_of(r)), self.half_width_mm,
                                                   lim.min_cloud_points) or str(exc)
+        if self.spec.outlier_mm > 0:  # gross depth errors dropped (outlier_cloud decides), before the feature checks
+            for r in np.flatnonzero(n_tool[:, 3] > 0):
+                gross = outlier_cloud(n_tool[r, 3], n_tool[r, 4], self.spec) if refused[r] is None else None
+                if gross:
+                    warnings[r] = [gross] + warnings[r]
         if self.fits_instrument:  # predict_cloud's order: too little of the instrument to fit (the kinematic tip),
-            # noisier than the training clouds (noisy_cloud decides), then the feature checks
+            # noisier than the training clouds (noisy_cloud decides), the gross depth errors, the feature checks
             for r in np.flatnonzero(n_tool[:, 2] > noisy_threshold_mm(self.spec)):
                 if refused[r] is None:
                     noisy = noisy_cloud(n_tool[r, 2], self.spec)
@@ -1711,7 +1784,7 @@ class CompiledCloud:
             X = np.empty((B, self.n_features))
             n_used = np.zeros(B, dtype=np.int64)
             n_bad = np.zeros(B, dtype=np.int64)
-            n_tool = np.zeros((B, 3))  # as _grid's
+            n_tool = np.zeros((B, 5))  # as _grid's
             direct = clouds.dtype in (np.float32, np.float64) and clouds.flags.c_contiguous
             # a conversion (or a change of shape's reshaping) is done a chunk at a time (bounds the copy)
             step = max(B, 1) if direct and self._reshape is None else _CHUNK

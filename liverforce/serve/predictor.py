@@ -38,7 +38,7 @@ from liverforce.learn import camera
 from liverforce.learn.model import ForceModel, ModelFormatError
 from liverforce.serve.checks import Limits, TrainingScale, check_case, force_warnings, outside_training
 from liverforce.serve.cloud import (MASKED_INSTRUMENT, camera_checks, check_instrument, cloud_support, metres_cloud,
-                                    noisy_cloud, registration_warnings,
+                                    noisy_cloud, outlier_cloud, registration_warnings,
                                    cloud_to_arrays)
 from liverforce.serve.compiled import CompiledROI
 from liverforce.serve.errors import PredictionInputError
@@ -283,12 +283,14 @@ class Predictor:
             check_case(arrays, 0, self.model, self.scale, self.limits, label="", rotation=preop.rotation)
         rep = self.model.representation
         if rep.is_camera:
-            spec, fitted, point_sd = camera.grid_spec(rep.grid_size, rep.half_width_mm, rep.camera), [], []
+            spec, fitted, point_sd, dropped = (camera.grid_spec(rep.grid_size, rep.half_width_mm, rep.camera), [], [],
+                                               [])
             x = camera.features_from_clouds(arrays[camera.CLOUD_KEY], arrays[camera.TIP_KEY], arrays, spec, R=R,
-                                            fitted=fitted, point_sd=point_sd)
+                                            fitted=fitted, point_sd=point_sd, outliers=dropped)
             masked = [MASKED_INSTRUMENT] if fitted == [0] else []  # the instrument fit kept the kinematic tip
             noisy = [w for w in [noisy_cloud(point_sd[0], spec)] if w] if point_sd else []
-            info["warnings"] = (self.context_warnings(preop) + masked + noisy
+            gross = [w for w in [outlier_cloud(*dropped[0], spec)] if w]
+            info["warnings"] = (self.context_warnings(preop) + masked + noisy + gross
                                 + camera_checks(self.model, x[0], self.limits))
             arrays["camera_features"] = x  # computed once: the model reads them instead of the cloud
         else:
@@ -430,9 +432,10 @@ class Predictor:
                 metres = metres_cloud(cloud, rep.half_width_mm, self.limits.min_cloud_points)
                 if metres:
                     raise PredictionInputError(f"{_row_label(ids, i)}{metres}")
-            spec, fitted, point_sd = camera.grid_spec(rep.grid_size, rep.half_width_mm, rep.camera), [], []
+            spec, fitted, point_sd, dropped = (camera.grid_spec(rep.grid_size, rep.half_width_mm, rep.camera), [], [],
+                                               [])
             x = camera.features_from_clouds(arrays[camera.CLOUD_KEY], arrays[camera.TIP_KEY], arrays, spec, R=R,
-                                            fitted=fitted, point_sd=point_sd)
+                                            fitted=fitted, point_sd=point_sd, outliers=dropped)
             tris = arrays.get("roi_triangles")
             for i in range(n):
                 try:  # the instrument in a cloud for a model trained without it, then the features' ranges
@@ -443,8 +446,9 @@ class Predictor:
                 except PredictionInputError as exc:
                     raise PredictionInputError(f"{_row_label(ids, i)}{exc}") from None
                 noisy = noisy_cloud(point_sd[i], spec) if point_sd else None  # predict_cloud's order
+                gross = outlier_cloud(*dropped[i], spec)
                 cloud_warnings[i] = ([MASKED_INSTRUMENT] if fitted and fitted[i] == 0 else []) + (
-                    [noisy] if noisy else []) + checked
+                    [noisy] if noisy else []) + ([gross] if gross else []) + checked
             arrays = {**arrays, camera.FEATURES_KEY: x}
         force = self._forces(arrays, R, observation_seed, fast, min_group)
         if not return_warnings:

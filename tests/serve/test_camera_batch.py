@@ -488,3 +488,52 @@ def test_a_cloud_in_metres_is_refused_as_one_on_every_path(served):
         with pytest.raises(PredictionInputError) as exc3:
             pred.predict_arrays({**row, "camera_cloud_mm": [c], "tool_tip_mm": tip[None]})
         assert ("looks like metres read as mm" in str(exc3.value)) == metres
+
+
+def test_gross_depth_errors_are_dropped_and_warned_about_alike_on_every_path(served):
+    """With ``camera.grid.outlier_mm`` (set here on the served model, trained without it) a cloud with 10 % of
+    its points up to 10 mm off along their lines of sight: the reference path, the compiled path (one cloud and a
+    batch) and predict_arrays (the MLflow pyfunc's and --shards' path) drop the same points, give the same force
+    and the same warning, which names the share; its force lies nearer the clean cloud's than without the
+    filter, and the clean cloud gets no such warning."""
+    import copy
+    import dataclasses
+
+    pred, a, ctx, fast = served
+    model = copy.copy(pred.model)
+    cam = copy.deepcopy(model.representation.camera)
+    cam.setdefault("grid", {})["outlier_mm"] = 2.5
+    model.representation = dataclasses.replace(model.representation, camera=cam)
+    robust = Predictor(model)
+    rfast = robust.compile_cloud(ctx)
+    V, T = a["surface_meshes"][a["geometry_id"][0]]
+    u = np.asarray(a["surface_displacement_mm"][0], dtype=np.float64)
+    p = a["exertion_point_mm"][0]
+    tip = p + u[int(np.argmin(np.linalg.norm(V - p, axis=1)))]
+    base = dict(n_points=(3000, 3000), noise_sd_mm=0.3, roi_radius_mm=40.0)
+    clean = observe(V + u, T, tip, a["frame_normal"][0], ObservationConfig(**base), seed=11)[0]
+    dirty = observe(V + u, T, tip, a["frame_normal"][0], ObservationConfig(**base, outlier_fraction=0.1),
+                    seed=11)[0]
+    f_clean, info_clean = robust.predict_cloud(clean, ctx, tool_tip_mm=tip, return_info=True)
+    assert not any("gross depth errors" in w for w in info_clean["warnings"])
+    f, info = robust.predict_cloud(dirty, ctx, tool_tip_mm=tip, return_info=True)
+    gross = [w for w in info["warnings"] if "gross depth errors" in w]
+    assert len(gross) == 1 and "more than 2.5 mm off the surface" in gross[0], info["warnings"]
+    share = float(gross[0].split(" %")[0])
+    assert 5 < share <= 10
+    got, _, warnings = rfast.predict(dirty, tip)
+    np.testing.assert_allclose(got, f, rtol=0, atol=1e-6)
+    assert warnings == info["warnings"]
+    batch = rfast.predict_batch([clean, dirty], np.stack([tip, tip]))
+    np.testing.assert_allclose(batch.force, [f_clean, f], rtol=0, atol=1e-6)
+    assert batch.warnings == [info_clean["warnings"], info["warnings"]]
+    n = 2
+    rows = {k: np.repeat(v, n, axis=0) if isinstance(v, np.ndarray) else [v[0]] * n
+            for k, v in ctx.to_arrays(ctx.roi_undeformed_mm).items()}
+    rows.update({"camera_cloud_mm": [clean, dirty], "tool_tip_mm": np.stack([tip, tip])})
+    force, warned = robust.predict_arrays(rows, return_warnings=True)
+    np.testing.assert_allclose(force, [f_clean, f], rtol=0, atol=1e-6)
+    assert warned == [info_clean["warnings"], info["warnings"]]
+    plain_gap = np.linalg.norm(pred.predict_cloud(dirty, ctx, tool_tip_mm=tip)
+                               - pred.predict_cloud(clean, ctx, tool_tip_mm=tip))
+    assert np.linalg.norm(f - f_clean) < plain_gap
