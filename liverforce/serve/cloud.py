@@ -318,9 +318,12 @@ def noisy_cloud(point_sd_mm: float, spec) -> str | None:
             "for; its error grows with the point noise (the report's camera sensitivity)")
 
 
-#: a cloud with more than this share of its tested points dropped as gross depth errors is warned about
-#: (:func:`outlier_cloud`): the report's camera sensitivity scores 1, 3 and 10 % of the points at such errors
-OUTLIER_WARN_SHARE = 0.05
+#: a cloud with more than this share of its tested points dropped as off the surface through their neighbours is
+#: warned about (:func:`outlier_cloud`): the report's camera sensitivity scores up to 10 % of the points at gross
+#: depth errors (of which about 70 % lie beyond the shipped 3 mm). Clean clouds lose points too where the camera
+#: sees the surface edge-on (no height field there): on 40 clean views of the unseen livers, 2 of about 700 points
+#: lost 12 and 17 %, the others under 1 %
+OUTLIER_WARN_SHARE = 0.10
 
 
 def outlier_cloud(n_out: float, n_tested: float, spec) -> str | None:
@@ -330,9 +333,9 @@ def outlier_cloud(n_out: float, n_tested: float, spec) -> str | None:
     if not spec.outlier_mm > 0 or n_tested <= 0 or not n_out > OUTLIER_WARN_SHARE * n_tested:
         return None
     return (f"{100 * n_out / n_tested:.0f} % of the cloud's points ({n_out} of the {n_tested} on the model's grid) "
-            f"lay more than {spec.outlier_mm:g} mm off the surface fitted through their neighbours and were dropped "
-            "as gross depth errors (stereo mismatches, flying pixels at depth edges); the force's error grows with "
-            "them (the report's camera sensitivity)")
+            f"lay more than {spec.outlier_mm:g} mm off the surface fitted through their neighbours and were dropped: "
+            "gross depth errors (stereo mismatches, flying pixels at depth edges) or a surface seen edge-on; more "
+            "than the report's camera sensitivity scores (up to 10 % of the points at such errors)")
 
 
 def instrument_check_radius(rep, spec) -> float:

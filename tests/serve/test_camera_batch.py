@@ -491,7 +491,7 @@ def test_a_cloud_in_metres_is_refused_as_one_on_every_path(served):
 
 
 def test_gross_depth_errors_are_dropped_and_warned_about_alike_on_every_path(served):
-    """With ``camera.grid.outlier_mm`` (set here on the served model, trained without it) a cloud with 10 % of
+    """With ``camera.grid.outlier_mm`` (set here on the served model, trained without it) a cloud with 20 % of
     its points up to 10 mm off along their lines of sight: the reference path, the compiled path (one cloud and a
     batch) and predict_arrays (the MLflow pyfunc's and --shards' path) drop the same points, give the same force
     and the same warning, which names the share; its force lies nearer the clean cloud's than without the
@@ -512,7 +512,7 @@ def test_gross_depth_errors_are_dropped_and_warned_about_alike_on_every_path(ser
     tip = p + u[int(np.argmin(np.linalg.norm(V - p, axis=1)))]
     base = dict(n_points=(3000, 3000), noise_sd_mm=0.3, roi_radius_mm=40.0)
     clean = observe(V + u, T, tip, a["frame_normal"][0], ObservationConfig(**base), seed=11)[0]
-    dirty = observe(V + u, T, tip, a["frame_normal"][0], ObservationConfig(**base, outlier_fraction=0.1),
+    dirty = observe(V + u, T, tip, a["frame_normal"][0], ObservationConfig(**base, outlier_fraction=0.2),
                     seed=11)[0]
     f_clean, info_clean = robust.predict_cloud(clean, ctx, tool_tip_mm=tip, return_info=True)
     assert not any("gross depth errors" in w for w in info_clean["warnings"])
@@ -520,7 +520,7 @@ def test_gross_depth_errors_are_dropped_and_warned_about_alike_on_every_path(ser
     gross = [w for w in info["warnings"] if "gross depth errors" in w]
     assert len(gross) == 1 and "more than 2.5 mm off the surface" in gross[0], info["warnings"]
     share = float(gross[0].split(" %")[0])
-    assert 5 < share <= 10
+    assert 10 < share <= 20
     got, _, warnings = rfast.predict(dirty, tip)
     np.testing.assert_allclose(got, f, rtol=0, atol=1e-6)
     assert warnings == info["warnings"]
