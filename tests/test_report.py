@@ -519,7 +519,11 @@ def test_the_camera_table_shows_the_exact_tip_accuracy_per_scenario_and_on_the_u
     doc["model_variant"] = validated
     doc["model_run_id"] = f"runIV{validated}"
     if validated == "cloud_sv":
-        doc["camera_sensitivity"] = {"model_settings": {"tip_noise_mm": 0.5, "observation": {}}, "tip_noise_mm": [
+        doc["camera_sensitivity"] = {"model_settings": {"tip_noise_mm": 0.5, "observation": {},
+                                                        "grid": {"outlier_mm": 3.0}},
+                                     "outlier_fraction": [
+            {"value": 0.03, "mae_vec": 0.36, "mae_sd": 0.06, "accuracy_pct": 84.0, "accuracy_sd": 2.5}],
+                                     "tip_noise_mm": [
             {"value": 0.5, "mae_vec": 0.33, "mae_sd": 0.06, "accuracy_pct": 85.0, "accuracy_sd": 2.5},
             {"value": 0.0, "mae_vec": 0.211, "mae_sd": 0.05, "accuracy_pct": 90.5, "accuracy_sd": 2.0}],
             "instrument_in_cloud": [
@@ -559,6 +563,9 @@ def test_the_camera_table_shows_the_exact_tip_accuracy_per_scenario_and_on_the_u
         assert ["instrument's points in the cloud", "no", "0.330 ± 0.060", "85.0 ± 2.5"] in sens
         assert ["tool axis tilted from the normal", "20°", "0.520 ± 0.080", "77.0 ± 3.5"] in sens
         assert "the tool's axis 0° from the normal" in html  # the model's own observation (none recorded: 0)
+        assert ["points at a gross depth error", "3 %", "0.360 ± 0.060", "84.0 ± 2.5"] in sens
+        assert ("0 % of its points at a gross depth error, up to 10 mm along their line of sight; it drops points "
+                "farther than 3 mm from their cell's plane") in html
         reg = [[_text(c) for c in r] for r in _rows(_section(html, "class='registration'", "</table>"), "reg")]
         assert reg == [["0 mm, 0°", "0.200 ± 0.050", "92.0 ± 2.0", "0.200 ± 0.050", "92.0 ± 2.0", "0",
                         "instrument (9)"],

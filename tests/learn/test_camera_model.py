@@ -245,6 +245,11 @@ def test_the_tip_noise_sensitivity_is_isotropic_whatever_the_model_was_trained_w
     assert [r["value"] for r in tilt] == [0.0, 20.0] and all(np.isfinite(r["mae_vec"]) for r in tilt)
     with pytest.raises(ValueError, match="tool_tilt_deg: each value is one number"):
         camera_sensitivity(plain, a, {"tool_tilt_deg": [[0.0, 30.0]]})
+    # gross depth errors: the row at 0 is the model's own camera; 20 % of the points off costs more than none
+    gross = camera_sensitivity(plain, a, {"outlier_fraction": [0.0, 0.2]})["outlier_fraction"]
+    own = camera_sensitivity(plain, a, {"tip_noise_mm": [model.representation.camera["tip_noise_mm"]]})
+    assert gross[0]["mae_vec"] == own["tip_noise_mm"][0]["mae_vec"]
+    assert gross[1]["mae_vec"] > gross[0]["mae_vec"]
 
 
 def test_the_registration_rows_score_the_model_off_and_refined(trained, tmp_path):
