@@ -20,8 +20,9 @@ Gaussian process, and ``mlp``), prints, on one core (1 BLAS / torch / numba thre
 3. whether the targets are met on this machine, and a summary table of both regressors;
 4. with ``--profile``: where a batch's time goes, per cloud (the largest batch, medians of ``--repeats`` calls):
    the gridding pass (``CompiledCloud._grid``), again with the dent fit, the tilted instrument fit and both
-   switched off in the kernel's parameters (what each costs; the features then differ, only the time is read),
-   the head (affine map, regressor: ``_head``) and the checks (``_reasons``).
+   switched off in the kernel's parameters, and without the drop of gross depth errors (what each costs; the
+   features then differ, only the time is read), the head (affine map, regressor: ``_head``) and the checks
+   (``_reasons``).
 
 The models are trained here on synthetic cases with whole surfaces
 (``liverforce.learn.synthetic.synthetic_surface_arrays``, ``--cases``; accuracy is irrelevant). The model config is
@@ -172,7 +173,8 @@ def describe(model) -> str:
 
 def profile(fast, batch: list, tips: np.ndarray) -> None:
     """Per-cloud time of the compiled batch's stages (module docstring, 4.): gridding with the shipped kernel
-    parameters and with the dent (``inst[10]``), the tilted fit (``inst[8]``) or both off, head, checks."""
+    parameters and with the dent (``inst[10]``), the tilted fit (``inst[8]``) or both off, and without the drop of
+    gross depth errors (``inst[14]``, when the model drops them), head, checks."""
     nb = len(batch)
 
     def per_cloud(fn) -> float:  # us per cloud, from the median of the runs' rates (as the batches')
@@ -181,8 +183,9 @@ def profile(fast, batch: list, tips: np.ndarray) -> None:
     P = [fast._cloud(c) for c in batch]
     inst = fast._inst.copy()
     grid = {}
-    for name, off in (("as shipped", ()), ("without the dent fit", (10,)), ("without the tilted fit", (8,)),
-                      ("without both", (8, 10))):
+    rows = [("as shipped", ()), ("without the dent fit", (10,)), ("without the tilted fit", (8,)),
+            ("without both", (8, 10))] + ([("without the gross-error drop", (14,))] if inst[14] > 0 else [])
+    for name, off in rows:
         fast._inst[:] = inst
         fast._inst[list(off)] = 0.0
         grid[name] = per_cloud(lambda: fast._grid(P, None, None, tips))
