@@ -31,9 +31,17 @@ a label volume (:class:`PointFrame`):
   selected facets);
 * ``file: {path: ..., units: ...}`` (``.npy``, ``.txt`` or ``.csv``): one
   integer column = vertex ids of the file as read (before repair), or three
-  columns = coordinates in ``units`` (default: the geometry's units). Each is
-  snapped to the nearest surface vertex (snapping distance reported); a facet is
-  selected when **all three** of its vertices are. A 3D Slicer markups file
+  columns = coordinates in ``units`` (default: the geometry's units). The points
+  mark a **patch** of the surface, however the
+  geometry stage refined it (a coarse file is Loop-subdivided, so its vertices are
+  no longer the surface's): each point is placed at its closest surface point
+  (refused beyond 5 mm; distances reported as ``snap_mm``), the patch is
+  triangulated between neighbouring points (sides at most twice their spacing,
+  the median distance of a point to its 6th nearest: ``spacing_mm``, ``link_mm``)
+  and a facet is selected when its centroid lies on it, facing the same way (never
+  the far side of a thin lobe). Points that are the surface's own vertices select
+  the facets between them; gaps in the points narrower than the link are filled; a
+  few landmarks select the area they span (:func:`points_patch`). A 3D Slicer markups file
   (``.mrk.json``, ``.fcsv``) gives its control points in the coordinate system
   and units it states (LPS or RAS world, mm), so it takes no ``units`` or ``frame``.
 
@@ -43,23 +51,29 @@ a label volume (:class:`PointFrame`):
   nearest boundary triangle of the file is one of them (exactly the tagged
   faces on a mesh imported as given; transferred onto a remeshed surface, the
   largest centroid distance reported as ``transfer_mm``); a group of nodes only
-  (vertex or line cells) is snapped as a file of vertex ids. For a liver segmented
+  (vertex or line cells) marks a patch as a file of points. For a liver segmented
   from a label volume, a group is another label value or segment of that file
   (``group: inferior_vena_cava``): the facets where the liver touches it, within
   1.5 voxels of its boundary voxels, each axis in its own spacing (``contact_mm``).
 
 Supports are applied in order (a later one overrides an earlier one) onto zero
-regions (``mode: replace``) or onto the auto-tagged ones (``mode: add``).
+regions (``mode: replace``) or onto the auto-tagged ones (``mode: add``). Each
+support's report counts the facets it finally holds (``n_facets``; ``n_selected``
+and ``taken_by`` when later ones took some); one left with none by a later support
+of another kind or region is refused, naming both (:func:`apply_supports`).
 """
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from liverforce.mesh.types import REGION_CODES
+
+log = logging.getLogger(__name__)
 
 KIND_CODES = {"fixed": REGION_CODES["ivc"], "sliding": REGION_CODES["rib"]}
 FOUNDATION_SLOTS = ("ligament", "visceral")
@@ -103,14 +117,27 @@ class PointFrame:
     scale: float = 1.0
     matrix: tuple = tuple(map(tuple, np.eye(4)))
     world: tuple = tuple(map(tuple, np.eye(4)))
+    #: for messages: the units of the geometry file (what ``scale`` converts) and where coordinates are read
+    units: str = "mm"
+    frame_label: str = "the geometry file's frame (RAS)"
 
     @classmethod
     def from_surface_meta(cls, meta: dict) -> "PointFrame":
         conv = meta.get("conversion") or {}
         matrix = tuple(map(tuple, conv.get("frame_matrix", np.eye(4).tolist())))
         # a label volume: its header's world, then the geometry's frame; any other file: the mesh's RAS
-        world = matrix if meta.get("label") is not None else tuple(map(tuple, np.eye(4)))
-        return cls(float(conv.get("scale_to_mm", 1.0)), matrix, world)
+        label = meta.get("label") is not None
+        world = matrix if label else tuple(map(tuple, np.eye(4)))
+        name = str(conv.get("frame") or meta.get("frame") or "RAS")
+        name = "a 4x4" if name == "matrix" else name
+        where = (f"the label volume's world (its header's RAS, then the geometry's frame, {name})" if label
+                 else f"the geometry file's frame ({name})")
+        return cls(float(conv.get("scale_to_mm", 1.0)), matrix, world,
+                   str(conv.get("units") or meta.get("units") or "mm"), where)
+
+    def read_as(self, units=None) -> str:
+        """How coordinates are read, for messages: e.g. ``in m, in the geometry file's frame (LPS)``."""
+        return f"in {units if units is not None else self.units}, in {self.frame_label}"
 
     def to_mesh(self, xyz_mm: np.ndarray) -> np.ndarray:
         M = np.asarray(self.matrix, float)
@@ -127,7 +154,8 @@ class PointFrame:
         if frame is None:
             return self
         m = np.asarray(self.world, float) @ points_frame(frame, where)
-        return PointFrame(self.scale, tuple(map(tuple, m)), self.world)
+        name = frame.upper() if isinstance(frame, str) else "a 4x4"
+        return PointFrame(self.scale, tuple(map(tuple, m)), self.world, self.units, f"the stated frame {name}")
 
     def from_world(self, xyz_ras_mm: np.ndarray) -> np.ndarray:
         """World RAS mm (e.g. a markups file's points) to mesh mm."""
@@ -324,16 +352,140 @@ def read_markups(path, spec: dict | None = None, where: str = "points") -> np.nd
     return np.asarray(out)
 
 
-def snap_to_vertices(vertices: np.ndarray, xyz: np.ndarray, what: str, max_mm: float = MAX_SNAP_MM):
+def snap_to_vertices(vertices: np.ndarray, xyz: np.ndarray, what: str, max_mm: float = MAX_SNAP_MM,
+                     read_as: str = "in mm, in the mesh frame"):
     """Nearest surface vertex of each point; refuse beyond ``max_mm``. Returns ``(ids, distances)``."""
     from scipy.spatial import cKDTree
 
     d, idx = cKDTree(vertices).query(np.atleast_2d(xyz))
     if (d > max_mm).any():
         j = int(np.argmax(d))
-        raise SupportError(f"{what}: point {np.round(np.atleast_2d(xyz)[j], 3).tolist()} (mesh frame, mm) is "
-                           f"{d[j]:.3g} mm from the surface (limit {max_mm} mm): check its units and frame")
+        raise SupportError(f"{what}: point {j} ({read_as}; {np.round(np.atleast_2d(xyz)[j], 3).tolist()} mm on "
+                           f"the mesh) is {d[j]:.3g} mm from the nearest surface vertex (limit {max_mm} mm): "
+                           "check its units and frame")
     return idx, d
+
+
+#: a file of points marks the patch triangulated between neighbouring points no farther apart than
+#: ``PATCH_LINK`` times their spacing: the median distance of a point to its ``PATCH_NEIGHBOURS``-th nearest
+#: (the ring of neighbours of a vertex of a triangulated surface; all of a few hand-placed landmarks)
+PATCH_LINK = 2.0
+PATCH_NEIGHBOURS = 6
+#: a facet lies on a patch triangle when its centroid projects inside it (or outside by at most this
+#: fraction of the facet's mean edge), within half the triangle's longest side of its plane, facing the same
+#: way (cosine of the normals above PATCH_COS)
+PATCH_TOL = 0.1
+PATCH_COS = 0.5
+
+
+def points_patch(vertices, faces, xyz, what: str, read_as: str, max_mm: float = MAX_SNAP_MM):
+    """Facets of the surface ``(vertices, faces)`` (mesh mm) marked by the points ``xyz (k, 3)`` (mesh mm).
+
+    The points mark a surface patch, whatever the surface's resolution (the geometry stage may have refined a
+    coarse file by Loop subdivision, so the points are no longer its vertices): each point is placed at its
+    closest point on the surface (refused beyond ``max_mm``); the patch is the union of the triangles whose
+    corners are neighbouring points, each side at most ``PATCH_LINK`` x the points' spacing (``spacing_mm``:
+    the median distance of a point to its ``PATCH_NEIGHBOURS``-th nearest; ``link_mm``), and a facet is
+    selected when its centroid lies on one: projects inside it (or outside by at most ``PATCH_TOL`` x the
+    facet's mean edge), within half its longest side of its plane, its normal within 60 degrees of the
+    patch's (never the far side of a thin lobe). Facets whose three vertices are the nearest vertices of
+    points are selected too (points that are the surface's own vertices select the facets between them).
+    Gaps in the points narrower than the link are filled; fewer than three points mark nothing.
+    Returns ``(mask, info)``, ``info`` with ``snap_mm`` (distances to the surface), ``spacing_mm`` and
+    ``link_mm``.
+    """
+    from itertools import combinations
+
+    from scipy.spatial import cKDTree
+
+    vertices = np.asarray(vertices, float)
+    faces = np.asarray(faces, np.int64)
+    xyz = np.atleast_2d(np.asarray(xyz, float))
+    tri = vertices[faces]
+    on, dist, near_facet = closest_on_triangles(tri, xyz, k=16)
+    if (dist > max_mm).any():
+        j = int(np.argmax(dist))
+        raise SupportError(f"{what}: point {j} {np.round(xyz[j], 3).tolist()} (mm on the mesh; the file's "
+                           f"coordinates read {read_as}) is {dist[j]:.3g} mm from the surface (limit {max_mm} mm): "
+                           "check its units and frame")
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
+    _, ids = cKDTree(vertices).query(xyz)
+    chosen = np.zeros(len(vertices), bool)
+    chosen[ids] = True
+    mask = chosen[faces].all(axis=1)
+    info = {"snap_mm": {"max": float(dist.max()), "mean": float(dist.mean()), "n_points": int(len(dist))}}
+    pts = np.unique(np.round(on, 9), axis=0)
+    if len(pts) < 3:
+        info.update(spacing_mm=None, link_mm=None)
+        return mask, info
+    ptree = cKDTree(pts)
+    spacing = float(np.median(ptree.query(pts, k=min(PATCH_NEIGHBOURS, len(pts) - 1) + 1)[0][:, -1]))
+    link = PATCH_LINK * spacing
+    pn = fn[near_facet[cKDTree(on).query(pts)[1]]]  # surface normal at each (deduplicated) point
+    cent = tri.mean(axis=1)
+    edge = np.linalg.norm(tri - tri[:, [1, 2, 0]], axis=2).mean(axis=1)
+    k = min(8, len(pts))
+    dk, nbr = ptree.query(cent, k=k, distance_upper_bound=link)
+    cand = np.flatnonzero(np.isfinite(dk[:, 2]))  # facets with at least three points within the link
+    for a, b, c in combinations(range(k), 3):
+        f = cand[np.isfinite(dk[cand, c])]
+        if not len(f):
+            continue
+        ia, ib, ic = nbr[f, a], nbr[f, b], nbr[f, c]
+        A, B, C = pts[ia], pts[ib], pts[ic]
+        e1, e2, e3 = B - A, C - A, C - B
+        longest = np.max(np.linalg.norm(np.stack([e1, e2, e3]), axis=2), axis=0)
+        n = np.cross(e1, e2)
+        area2 = np.linalg.norm(n, axis=1)
+        ok = (longest <= link) & (area2 > 1e-6 * longest ** 2)
+        n = n / np.maximum(area2, 1e-300)[:, None]
+        side = np.sign(np.einsum("ij,ij->i", n, pn[ia] + pn[ib] + pn[ic]))
+        n = n * np.where(side == 0, 1.0, side)[:, None]
+        ok &= (np.einsum("ij,ij->i", n, pn[ia]) > 0) & (np.einsum("ij,ij->i", n, pn[ib]) > 0) \
+            & (np.einsum("ij,ij->i", n, pn[ic]) > 0)  # a triangle across a sharp border spans no patch
+        w = cent[f] - A
+        h = np.einsum("ij,ij->i", w, n)
+        ok &= (np.abs(h) <= 0.5 * longest) & (np.einsum("ij,ij->i", fn[f], n) > PATCH_COS)
+        w = w - h[:, None] * n
+        d00, d01, d11 = (np.einsum("ij,ij->i", e1, e1), np.einsum("ij,ij->i", e1, e2),
+                         np.einsum("ij,ij->i", e2, e2))
+        d20, d21 = np.einsum("ij,ij->i", w, e1), np.einsum("ij,ij->i", w, e2)
+        den = np.where(ok, d00 * d11 - d01 * d01, 1.0)
+        v = (d11 * d20 - d01 * d21) / den  # the barycentric coordinate of B
+        u = (d00 * d21 - d01 * d20) / den  # of C
+        # times the heights: the distance inside each side (negative outside), within the facet's tolerance
+        sides = np.linalg.norm(np.stack([e3, e2, e1]), axis=2) / np.maximum(area2, 1e-300)
+        tol = -PATCH_TOL * edge[f]
+        ok &= ((1 - u - v) >= tol * sides[0]) & (v >= tol * sides[1]) & (u >= tol * sides[2])
+        mask[f[ok]] = True
+    info.update(spacing_mm=round(spacing, 4), link_mm=round(link, 4))
+    return mask, info
+
+
+def _no_patch(what: str, n: int, read_as: str, pinfo: dict) -> SupportError:
+    """The error of a point file (or group of nodes) that marks no facet, saying how its points were read."""
+    if pinfo.get("link_mm") is None:
+        why = (f"its {n} point(s) make no patch: a file of points marks the surface patch spanned by "
+               "neighbouring points, so give at least three around the area (or use a sphere or box)")
+    else:
+        why = (f"its {n} points, {pinfo['spacing_mm']:.3g} mm apart (median), make no patch triangle of sides "
+               f"at most {pinfo['link_mm']:.3g} mm over the surface (in a line, or scattered): give points "
+               "covering the area, or use a sphere or box")
+    return SupportError(f"{what}: selects no surface facet: {why} (coordinates read {read_as}; all lie within "
+                        f"{pinfo['snap_mm']['max']:.3g} mm of the surface, so units and frame look right)")
+
+
+def _markups_systems(path: Path) -> str:
+    """The coordinate system(s) a markups file states, for messages."""
+    import json
+
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        names = sorted({str(m.get("coordinateSystem", "LPS")).upper() for m in doc["markups"]})
+        return " and ".join(names) if names else "its own"
+    except Exception:  # .fcsv or unreadable (read_markups has refused the latter already)
+        return "its own"
 
 
 def select_facets(vertices, faces, support: Support, frame: PointFrame = PointFrame(),
@@ -344,7 +496,7 @@ def select_facets(vertices, faces, support: Support, frame: PointFrame = PointFr
     (file units and frame), for selectors of vertex ids. ``file_groups`` : callable
     returning the file's :class:`~liverforce.mesh.groups.FileGroups`, for ``group``
     selectors. Returns ``(mask, info)``, ``info`` with the count and, for files,
-    the snapping distances (mm).
+    the distances of the points to the surface (mm) and the patch they mark (:func:`points_patch`).
     """
     vertices = np.asarray(vertices, float)
     faces = np.asarray(faces, np.int64)
@@ -360,9 +512,17 @@ def select_facets(vertices, faces, support: Support, frame: PointFrame = PointFr
         frame = frame.stated(d.get("frame"), f"support '{support.name}' {kind}")
         cent = frame.to_file(vertices[faces].mean(axis=1))  # file frame (or the stated one), mm
         if kind == "sphere":
-            mask = np.linalg.norm(cent - np.asarray(d["center_mm"], float), axis=1) <= float(d["radius_mm"])
+            r = np.linalg.norm(cent - np.asarray(d["center_mm"], float), axis=1)
+            mask = r <= float(d["radius_mm"])
+            miss = f"the nearest facet centroid is {r.min():.3g} mm from its centre"
         else:
-            mask = ((cent >= np.asarray(d["min_mm"], float)) & (cent <= np.asarray(d["max_mm"], float))).all(axis=1)
+            lo, hi = np.asarray(d["min_mm"], float), np.asarray(d["max_mm"], float)
+            mask = ((cent >= lo) & (cent <= hi)).all(axis=1)
+            miss = (f"the nearest facet centroid is {np.linalg.norm(cent - np.clip(cent, lo, hi), axis=1).min():.3g}"
+                    " mm outside it")
+        if not mask.any():
+            raise SupportError(f"support '{support.name}': its {kind} selector {d} selects no surface facet "
+                               f"({miss}; coordinates read {frame.read_as('mm')}): enlarge it or check the frame")
     else:
         path = Path(d["path"])
         if not path.is_absolute() and base_dir is not None:
@@ -374,6 +534,7 @@ def select_facets(vertices, faces, support: Support, frame: PointFrame = PointFr
         if a is None:  # a Slicer markups file: world RAS mm
             where = f"support '{support.name}' file"
             xyz = frame.from_world(read_markups(path, d, where))
+            read_as = f"in mm, in the markups file's own coordinate system ({_markups_systems(path)})"
         elif a.ndim == 1:
             if file_vertices is None:
                 raise SupportError(f"support '{support.name}': vertex ids need the geometry file's vertices "
@@ -383,20 +544,20 @@ def select_facets(vertices, faces, support: Support, frame: PointFrame = PointFr
                 raise SupportError(f"support '{support.name}': vertex id {int(a.max())} out of range "
                                    f"(the file has {len(fv)} vertices)")
             xyz = frame.to_mesh(fv[a] * frame.scale)
+            read_as = f"as vertex ids of the geometry file, its vertices {frame.read_as()}"
         else:
             scale = frame.scale if d.get("units") is None else _units_scale(d["units"])
-            xyz = frame.stated(d.get("frame"), f"support '{support.name}' file").to_mesh(a * scale)
-        ids, dist = snap_to_vertices(vertices, xyz, f"support '{support.name}' ({path})")
-        chosen = np.zeros(len(vertices), bool)
-        chosen[ids] = True
-        mask = chosen[faces].all(axis=1)
-        info["snap_mm"] = {"max": float(dist.max()), "mean": float(dist.mean()), "n_points": int(len(dist))}
+            stated = frame.stated(d.get("frame"), f"support '{support.name}' file")
+            xyz = stated.to_mesh(a * scale)
+            read_as = stated.read_as(d.get("units"))
+        what = f"support '{support.name}' ({path})"
+        mask, pinfo = points_patch(vertices, faces, xyz, what, read_as)
+        info.update(pinfo)
+        if not mask.any():
+            raise _no_patch(what, len(xyz), read_as, pinfo)
+    if not mask.any():  # a group of faces transferred onto no facet
+        raise SupportError(f"support '{support.name}': its {kind} selector {d} selects no surface facet")
     info["n_facets"] = int(mask.sum())
-    if not mask.any():
-        in_frame = f"frame {d['frame']}" if isinstance(d, dict) and d.get("frame") is not None else \
-            "the geometry file's frame"
-        raise SupportError(f"support '{support.name}': its {kind} selector {d} selects no surface facet "
-                           f"(coordinates are in {in_frame}, mm): enlarge it or check the frame")
     return mask, info
 
 
@@ -424,13 +585,13 @@ def _select_group(vertices, faces, support: Support, frame: PointFrame, groups) 
         mask = in_group[facet]
         info["group_faces"] = int(in_group.sum())
         info["transfer_mm"] = float(d[mask].max()) if mask.any() else 0.0
-    else:  # a group of nodes only (vertex or line cells): snapped as a file of vertex ids
-        ids, dist = snap_to_vertices(vertices, P[gnodes], where)
-        chosen = np.zeros(len(vertices), bool)
-        chosen[ids] = True
-        mask = chosen[faces].all(axis=1)
+    else:  # a group of nodes only (vertex or line cells): the patch they mark, as a file of points
+        read_as = f"as nodes of {groups.path}, {frame.read_as()}"
+        mask, pinfo = points_patch(vertices, faces, P[gnodes], where, read_as)
+        info.update(pinfo)
         info["group_nodes"] = int(len(gnodes))
-        info["snap_mm"] = {"max": float(dist.max()), "mean": float(dist.mean()), "n_points": int(len(dist))}
+        if not mask.any():
+            raise _no_patch(where, len(gnodes), read_as, pinfo)
     return mask, info
 
 
@@ -471,15 +632,50 @@ def _units_scale(units) -> float:
 def apply_supports(vertices, faces, auto_region: np.ndarray, mode: str, supports: list[Support],
                    frame: PointFrame = PointFrame(), file_vertices=None, base_dir=None,
                    file_groups=None) -> tuple[np.ndarray, list]:
-    """Region codes of the input surface's facets after the user supports (in order; later override)."""
+    """Region codes of the input surface's facets after the user supports (in order; later override).
+
+    Each report's ``n_facets`` counts the facets the support finally holds; ``n_selected`` the facets its
+    selector selected and, when later supports took some, ``taken_by`` ``{name: facets}``. A support left
+    with no facet by later ones of another kind or region is refused (:class:`SupportError` naming them):
+    a fixed support or a foundation vanishing silently would change the physics. One wholly inside later
+    supports of its own kind and region (the same boundary term) is only logged.
+    """
     region = np.asarray(auto_region, np.int8).copy() if mode == "add" else np.zeros(len(faces), np.int8)
-    report = []
-    for s in supports:
+    owner = np.full(len(faces), -1, np.int64)
+    report, masks = [], []
+    for i, s in enumerate(supports):
         mask, info = select_facets(vertices, faces, s, frame, file_vertices, base_dir, file_groups)
         region[mask] = s.code
+        owner[mask] = i
         info["region_code"] = int(s.code)
         report.append(info)
+        masks.append(mask)
+    for i, (s, mask, info) in enumerate(zip(supports, masks, report)):
+        held = int((owner == i).sum())
+        info["n_selected"] = int(mask.sum())
+        info["n_facets"] = held
+        if held == info["n_selected"]:
+            continue
+        lost = np.bincount(owner[mask], minlength=len(supports))
+        takers = [j for j in range(i + 1, len(supports)) if lost[j]]
+        info["taken_by"] = {supports[j].name: int(lost[j]) for j in takers}
+        names = ", ".join(f"'{supports[j].name}' ({supports[j].kind}{_slot(supports[j])}, "
+                          f"{supports[j].selector[0]}: {int(lost[j])} facets)" for j in takers)
+        if held == 0 and any(supports[j].code != s.code for j in takers):
+            raise SupportError(
+                f"support '{s.name}' ({s.kind}{_slot(s)}, {s.selector[0]}) selects {info['n_selected']} facets "
+                f"but holds none: the later support(s) {names} took them all. Supports apply in order, each overriding "
+                f"the earlier ones (mode {mode} only decides what lies beneath them: add the auto-tagged regions, "
+                f"replace none). Put '{s.name}' after them in the list, shrink them so they leave it its facets, "
+                "or remove it if they are meant to replace it")
+        log.log(logging.WARNING if held == 0 else logging.INFO,
+                "support %s (%s): %d of its %d facets taken by later support(s) %s; it holds %d",
+                s.name, s.kind, info["n_selected"] - held, info["n_selected"], names, held)
     return region, report
+
+
+def _slot(s: Support) -> str:
+    return f" {s.region}" if s.kind == "foundation" else ""
 
 
 def support_stiffness(supports: list[Support], region_area_mm2: dict[int, float]) -> dict[str, float]:
