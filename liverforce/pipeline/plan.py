@@ -23,6 +23,7 @@ validation scenario ``V`` the unseen livers
 
 from __future__ import annotations
 
+import os
 import re
 from pathlib import Path
 
@@ -107,6 +108,44 @@ class Plan:
                 if imp["name"] == name:
                     return {"kind": "imported", **imp}
         raise KeyError(f"unknown geometry id '{gid}'")
+
+    def geometry_files(self, gid: str, stage: str = "mesh") -> list[str]:
+        """The user's files one geometry is built from, as absolute paths (a rule's ``input:``).
+
+        An imported geometry reads its own file (``path``) at the geometry stage;
+        the mesh stage reads it again (a mesh taken as given, vertex ids, tagged
+        groups) and the point files of its supports (``supports.list[].file.path``)
+        and exertion points (``exertion_points.path``). ``stage="geometry"`` gives
+        the first, ``stage="mesh"`` all of them, each once, in that order.
+        Procedural livers and the cube read no file (an empty list).
+
+        Declared as inputs, an edited file re-runs the stage that reads it and
+        everything after it, and a missing one stops Snakemake before any job.
+        A relative path is taken from the working directory, as the stages
+        (which run there) open it.
+        """
+        if stage not in ("geometry", "mesh"):
+            raise ValueError(f"stage must be 'geometry' or 'mesh', got '{stage}'")
+        spec = self.geometry_spec(gid)
+        if spec["kind"] != "imported":
+            return []
+        paths = [spec["path"]]
+        if stage == "mesh":
+            supports = spec.get("supports") or {}
+            for s in supports.get("list") or []:
+                selector = s.get("file")
+                if selector is not None and selector.get("path") is not None:
+                    paths.append(selector["path"])
+            points = spec.get("exertion_points") or {}
+            if points.get("path") is not None:
+                paths.append(points["path"])
+        cwd = Path(os.getcwd())
+        out: list[str] = []
+        for p in paths:
+            full = str(cwd / str(p))  # an absolute path stays itself
+            if full not in out:
+                out.append(full)
+        return out
 
     def scenario_geometries(self, scenario: str) -> list[str]:
         if scenario == VALIDATION:

@@ -2,6 +2,10 @@
 
 
 rule geometry:
+    input:
+        # an imported liver's file (none for procedural livers): editing it re-runs this geometry and what
+        # follows; a missing one stops Snakemake before any job (Plan.geometry_files)
+        files=lambda wc: PLAN.geometry_files(wc.gid, stage="geometry"),
     output:
         surface=P.surface(),
         meta=P.surface_meta(),

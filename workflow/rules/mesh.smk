@@ -4,6 +4,9 @@
 rule mesh:
     input:
         surface=P.surface(),
+        # an imported liver's own files, read again here: the liver (as given, vertex ids, groups), its
+        # supports' and exertion points' point files; editing one re-runs the mesh and what follows
+        files=lambda wc: PLAN.geometry_files(wc.gid, stage="mesh"),
     output:
         mesh=P.mesh(),
         features=P.features(),
