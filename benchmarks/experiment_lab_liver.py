@@ -1,7 +1,9 @@
 """A lab's own liver, end to end: a real anatomy in LPS metres with its own supports and tool positions.
 
 The SOFA ``liver-smooth.obj`` (``../shared/data/livers``, read in place, never copied) is scaled to an adult
-size (40 mm per file unit, about 255 x 196 x 176 mm), centred, and written as an STL in LPS metres; its
+size (40 mm per file unit), centred, turned from its own axes (SOFA's: +x the patient's left, +y superior,
++z anterior; :data:`OBJ_TO_RAS`) to RAS, about 255 x 176 x 196 mm (R, A, S) with the right lobe on the
+patient's right, and written as an STL in LPS metres; its
 supports are given in LPS mm (the vena cava a fixed sphere, the lowest 15 mm a foundation; ``mode:
 replace``) and three tool positions in a CSV in LPS metres. The smoke-sized ``models`` target then imports,
 meshes, simulates (scenario II only, forces up to 2 N) and trains on it, as a lab would run it::
@@ -19,8 +21,9 @@ With ``--input segmentation`` the lab brings a 3D Slicer segmentation instead: t
 1.5 mm into a ``.seg.nrrd`` in LPS (as Slicer writes it) with an ``inferior_vena_cava`` segment lying against
 the liver where the sphere was and a ``gallbladder`` segment that does not touch it, and the tool positions
 as a Slicer markups file (``.mrk.json``, LPS mm). The liver is chosen with ``label: liver``, the cava support
-with ``group: inferior_vena_cava`` (the floor stays a box, stated ``frame: LPS``), and the clouds are predicted with ``--frame LPS --units m`` (a label volume's record is not an input frame); there
-is no STL to give as ``--surface``.
+with ``group: inferior_vena_cava`` (the floor stays a box, stated ``frame: LPS``), and the clouds are predicted
+with ``--frame LPS --units m`` (a label volume's record is not an input frame); there is no STL to give as
+``--surface``.
 
 With ``--misregister SHIFT_MM TURN_DEG`` (default 2 2; 0 0 skips it) the camera side is also moved off the
 liver, as a surgical registration leaves it: each case's cloud and tool tip shifted that far in a seeded
@@ -52,6 +55,12 @@ from scipy.spatial.transform import Rotation
 
 ROOT = Path(__file__).resolve().parents[1]
 FLIP = np.array([-1.0, -1.0, 1.0])  # RAS <-> LPS
+#: SOFA's liver-smooth.obj to RAS: its +x is the patient's left, +y superior (SOFA's up), +z anterior. A rotation
+#: (det +1): the anatomy is kept, not mirrored. Read as RAS untouched, the file put the right lobe on the left
+#: (mesh.regions_check: right_lobe 0.36) and the dome at the back; turned so, the volume centroid lies at 0.64 of
+#: the left->right extent (the right lobe the larger), the sharp inferior border is anterior and the
+#: smooth diaphragmatic surface faces anterior-superior.
+OBJ_TO_RAS = np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
 
 
 def write_inputs(livers: Path, out: Path, mm_per_unit: float) -> dict:
@@ -59,7 +68,7 @@ def write_inputs(livers: Path, out: Path, mm_per_unit: float) -> dict:
     import meshio
 
     m = meshio.read(livers / "liver-smooth.obj")
-    V = m.points * mm_per_unit
+    V = (m.points * mm_per_unit) @ OBJ_TO_RAS.T
     V = V - V.mean(axis=0)  # RAS mm, centred
     T = m.cells_dict["triangle"]
     out.mkdir(parents=True, exist_ok=True)

@@ -28,6 +28,16 @@ the stated frame, so the IVC and visible checks pass by construction in that
 case and catch instead a tagging that went wrong on an unusual shape (and
 axis swaps that leave the IVC off the posterior face).  The checks do not
 prove a frame right; they flag the common mistakes.
+
+A lab's own supports (``geometry.imported[...].supports`` with ``mode:
+replace``) take the place of the built-in IVC, ligament, visceral and rib
+regions, so the checks that measure those (:data:`BUILT_IN_SUPPORT_CHECKS`)
+are skipped for it (:func:`skipped_checks`), and the report lists them under
+``skipped`` with the reason.  ``right_lobe`` depends on the geometry and the
+stated frame only, and the visible region is tagged from the frame on the free
+surface whatever the supports: those still run (and refuse under ``strict``).
+``visible_area`` is skipped too when the lab also gives its own exertion
+points (the visible region then serves no purpose).
 """
 
 from __future__ import annotations
@@ -43,6 +53,9 @@ from liverforce.mesh.types import REGION_CODES
 log = logging.getLogger(__name__)
 
 MODES = ("warn", "strict", "off")
+
+#: Checks that measure the built-in (auto-tagged) supports: meaningless when a lab's own supports replace them
+BUILT_IN_SUPPORT_CHECKS = ("ivc_posterior", "ivc_area", "ligament_area", "visceral_area", "rib_area")
 
 
 class ImplausibleRegionsError(ValueError):
@@ -163,9 +176,34 @@ def check_regions(points: np.ndarray, facets: np.ndarray, facet_region: np.ndarr
     return out
 
 
+def skipped_checks(supports_mode: str | None, exertion_given: bool = False) -> dict[str, str]:
+    """The checks that do not apply to an imported liver's own scene, each with the reason.
+
+    Parameters
+    ----------
+    supports_mode : {"replace", "add"} or None
+        The mode of the lab's own supports (``geometry.imported[...].supports``),
+        ``None`` when it gives none. Under ``replace`` the checks of
+        :data:`BUILT_IN_SUPPORT_CHECKS` are skipped; ``right_lobe`` (the frame)
+        and the visible region's checks are kept.
+    exertion_given : bool
+        The lab gives its own exertion points: with ``replace`` supports,
+        ``visible_area`` is skipped too (no candidate is sampled there).
+    """
+    if supports_mode != "replace":
+        return {}
+    why = ("the lab's own supports (geometry.imported[...].supports, mode: replace) replace the built-in "
+           "regions this check measures")
+    skip = {name: why for name in BUILT_IN_SUPPORT_CHECKS}
+    if exertion_given:
+        skip["visible_area"] = ("the lab gives its own exertion points (geometry.imported[...].exertion_points) "
+                                "and supports: the visible region is not sampled")
+    return skip
+
+
 def regions_check(points, facets, facet_region, facet_visible, *, mode: str = "warn",
                   params: RegionParams | None = None, thresholds: PlausibilityThresholds | None = None,
-                  frame: str | None = None, where: str = "") -> dict:
+                  frame: str | None = None, where: str = "", skip: dict[str, str] | None = None) -> dict:
     """Run :func:`check_regions`, log a warning per failed check, refuse under ``strict``.
 
     Parameters
@@ -178,13 +216,17 @@ def regions_check(points, facets, facet_region, facet_visible, *, mode: str = "w
         to word the advice.
     where : str
         Names the liver (geometry id or file) in the messages.
+    skip : dict, optional
+        Check name -> why it does not apply (:func:`skipped_checks`): such
+        checks are left out of ``checks`` and of the verdict, and listed under
+        ``skipped``; the others run in ``mode``.
 
     Returns
     -------
     dict
         JSON-serialisable: ``mode``, ``passed`` (bool or ``None`` when off),
         ``checks`` (as :func:`check_regions`), ``warnings`` (messages),
-        ``thresholds``, ``frame``.
+        ``thresholds``, ``frame``, ``skipped`` (``[{check, why}]``).
 
     Raises
     ------
@@ -196,10 +238,17 @@ def regions_check(points, facets, facet_region, facet_visible, *, mode: str = "w
         raise ValueError(f"regions_check mode must be one of {MODES}, got {mode!r}")
     t = thresholds or PlausibilityThresholds()
     frame = _frame_label(frame)
-    report = {"mode": mode, "passed": None, "checks": [], "warnings": [], "thresholds": asdict(t), "frame": frame}
+    skip = dict(skip or {})
+    report = {"mode": mode, "passed": None, "checks": [], "warnings": [], "thresholds": asdict(t), "frame": frame,
+              "skipped": []}
     if mode == "off":
         return report
     checks = check_regions(points, facets, facet_region, facet_visible, params, t)
+    report["skipped"] = [{"check": c["check"], "why": skip[c["check"]]} for c in checks if c["check"] in skip]
+    checks = [c for c in checks if c["check"] not in skip]
+    if report["skipped"]:
+        log.info("%sregions checks skipped: %s", where + ": " if where else "",
+                 "; ".join(f"{c['check']} ({c['why']})" for c in report["skipped"]))
     failed = [c for c in checks if not c["passed"]]
     report.update(checks=checks, passed=not failed)
     if not failed:

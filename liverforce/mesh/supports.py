@@ -29,10 +29,12 @@ a label volume (:class:`PointFrame`):
   ``box: {min_mm: [x, y, z], max_mm: [x, y, z]}`` select a facet when its
   **centroid** lies inside (the mesh then conforms to the border of the
   selected facets);
-* ``file: {path: ..., units: ...}`` (``.npy``, ``.txt`` or ``.csv``): one
-  integer column = vertex ids of the file as read (before repair), or three
-  columns = coordinates in ``units`` (default: the geometry's units). The points
-  mark a **patch** of the surface, however the
+* ``file: {path: ..., units: ...}`` (``.npy``, ``.csv``, ``.txt``, ``.xyz`` or
+  ``.ply``, any case; text read as ``liverforce predict`` reads a point file:
+  comma, semicolon, tab or space separated, one optional header line,
+  :func:`read_point_file`): one integer column = vertex ids of the file as read
+  (before repair), or three columns = coordinates in ``units`` (default: the
+  geometry's units). The points mark a **patch** of the surface, however the
   geometry stage refined it (a coarse file is Loop-subdivided, so its vertices are
   no longer the surface's): each point is placed at its closest surface point
   (refused beyond 5 mm; distances reported as ``snap_mm``), the patch is
@@ -65,6 +67,7 @@ of another kind or region is refused, naming both (:func:`apply_supports`).
 
 from __future__ import annotations
 
+import re
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -270,29 +273,121 @@ def _check_stiffness(st: dict, key: str):
         raise SupportError(f"{key}: stiffness values must be >= 0 (got {st})")
 
 
-def read_point_file(path) -> np.ndarray:
-    """Vertex ids ``(k,)`` int or coordinates ``(k, 3)`` float from ``.npy``, ``.txt`` or ``.csv``.
+#: Point files: the formats ``liverforce predict`` reads a point cloud in (``liverforce.serve.files.read_points``;
+#: ``mesh`` may not import ``serve``, so the same rules are kept here and a test holds the two to the same points),
+#: suffixes in any case
+POINT_FILE_SUFFIXES = (".npy", ".csv", ".txt", ".xyz", ".ply")
+_TEXT_SUFFIXES = (".csv", ".txt", ".xyz")
+_SPLIT = re.compile(r"[,;\t ]+")  # as liverforce.serve.files splits a table
 
-    Text files: one id or one ``x y z`` (``x,y,z`` in csv) per line, ``#`` comments.
+
+def read_point_file(path, units: str | None = None) -> np.ndarray:
+    """Vertex ids ``(k,)`` int or coordinates ``(k, 3)`` float (as in the file: the caller scales them).
+
+    The formats and rules of ``liverforce predict``'s point files
+    (``liverforce.serve.files.read_points``): ``.npy``; ``.csv``/``.txt``/
+    ``.xyz``, three columns separated by commas, semicolons, tabs or spaces,
+    one optional header line, ``#`` comments and blank lines skipped; ``.ply``
+    (its vertices); suffixes in any case. A text or ``.npy`` file of one column
+    holds vertex ids instead (non-negative integers; a text file may have a
+    header). ``units`` (as declared, e.g. ``"m"``) words the messages only. A
+    refused file is named with the line at fault and what was expected; an
+    empty one is said to be.
     """
     path = Path(path)
+    want = f"3 numbers per row (x, y, z in {units or 'mm'}) or one column of vertex ids"
     if not path.exists():
         raise SupportError(f"{path}: file not found")
-    if path.suffix == ".npy":
-        a = np.load(path, allow_pickle=False)
-    elif path.suffix in (".txt", ".csv"):
-        a = np.loadtxt(path, delimiter="," if path.suffix == ".csv" else None, ndmin=2, comments="#")
+    suffix = path.suffix.lower()
+    if suffix not in POINT_FILE_SUFFIXES:
+        raise SupportError(f"{path}: use {', '.join(POINT_FILE_SUFFIXES)} (any case), or a 3D Slicer markups file "
+                           "(.mrk.json, .fcsv)")
+    lines = None
+    if suffix in _TEXT_SUFFIXES:
+        rows, lines = _text_rows(path, want)
+        a = np.asarray([[float(x) for x in r] for r in rows], float)
+        if a.shape[1] == 1:
+            return _vertex_ids(a[:, 0], path, lines)
+    elif suffix == ".npy":
+        try:
+            a = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise SupportError(f"{path}: cannot read the array ({exc}; expected {want})") from None
+        if not np.issubdtype(a.dtype, np.number) or a.ndim not in (1, 2) or a.ndim == 2 and a.shape[1] not in (1, 3):
+            raise SupportError(f"{path}: an array of shape {a.shape} ({a.dtype}); expected {want}")
+        if a.ndim == 1 or a.shape[1] == 1:
+            return _vertex_ids(a.reshape(-1).astype(float), path, None)
     else:
-        raise SupportError(f"{path}: use .npy, .txt or .csv, or a 3D Slicer markups file (.mrk.json, .fcsv)")
-    a = np.asarray(a)
-    if a.ndim == 1 or (a.ndim == 2 and a.shape[1] == 1):
-        ids = a.reshape(-1)
-        if not np.allclose(ids, np.round(ids)) or (ids < 0).any():
-            raise SupportError(f"{path}: one column must hold non-negative integer vertex ids")
-        return ids.astype(np.int64)
-    if a.ndim == 2 and a.shape[1] == 3:
-        return a.astype(float)
-    raise SupportError(f"{path}: expected one column of vertex ids or three of coordinates, got shape {a.shape}")
+        a = _ply_points(path, want)
+    if len(a) == 0:
+        raise SupportError(f"{path}: the file is empty (no points; expected {want})")
+    bad = np.flatnonzero(~np.isfinite(a).all(axis=1))
+    if len(bad):
+        at = f"line {lines[bad[0]]}" if lines else f"row {bad[0]}"
+        raise SupportError(f"{path}, {at}: a coordinate is not a finite number (expected {want})")
+    return np.asarray(a, float)
+
+
+def _ply_points(path: Path, want: str) -> np.ndarray:
+    import meshio
+
+    try:
+        return np.asarray(meshio.read(path, file_format="ply").points, float)[:, :3]
+    except SystemExit as exc:  # meshio 5.3.5 calls sys.exit on some unreadable files
+        raise SupportError(f"{path}: not a readable PLY file (exit {exc.code}; expected {want})") from None
+    except Exception as exc:  # noqa: BLE001 - meshio raises many types; re-raised with the file named
+        raise SupportError(f"{path}: not a readable PLY file ({type(exc).__name__}: {exc}; expected {want})") from None
+
+
+def _text_rows(path: Path, want: str) -> tuple[list[list[str]], list[int]]:
+    """The data rows of a text point file (tokens) and their line numbers (from 1), as the predict reader splits
+    them; a row that is not all numbers, or of another width than the first, is refused naming its line."""
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SupportError(f"{path}: cannot read the file as text ({exc}; expected {want})") from None
+    numbered = [(i, ln.strip()) for i, ln in enumerate(text.splitlines(), 1)
+                if ln.strip() and not ln.lstrip().startswith("#")]
+    if not numbered:
+        raise SupportError(f"{path}: the file is empty (no points; expected {want})")
+    rows = [_SPLIT.split(ln) for _, ln in numbered]
+    if not _all_numbers(rows[0]):  # one header line, as the predict reader allows
+        if len(rows[0]) == 3 and sum(_is_number(x) for x in rows[0]) >= 2:
+            raise SupportError(f"{path}, line {numbered[0][0]}: '{numbered[0][1][:80]}' is neither a header nor "
+                               f"{want} (a row with a value that is not a number?)")
+        numbered, rows = numbered[1:], rows[1:]
+        if not rows:
+            raise SupportError(f"{path}: the file is empty (a header line, no points; expected {want})")
+    width = len(rows[0])
+    for (i, ln), r in zip(numbered, rows):
+        if len(r) != width or not _all_numbers(r) or width not in (1, 3):
+            what = f"{len(r)} value{'s' * (len(r) != 1)}" + ("" if _all_numbers(r) else ", not all numbers")
+            if len(r) != width and width in (1, 3):
+                what += f", the rows above {width}"
+            raise SupportError(f"{path}, line {i}: '{ln[:80]}' ({what}); expected {want}")
+    return rows, [i for i, _ in numbered]
+
+
+def _is_number(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
+
+
+def _all_numbers(tokens: list[str]) -> bool:
+    return all(_is_number(x) for x in tokens)
+
+
+def _vertex_ids(ids: np.ndarray, path: Path, lines: list[int] | None) -> np.ndarray:
+    bad = np.flatnonzero(~np.isfinite(ids) | (ids < 0) | (ids != np.round(ids)))
+    if len(bad):
+        at = f"line {lines[bad[0]]}" if lines else f"row {bad[0]}"
+        raise SupportError(f"{path}, {at}: one column must hold non-negative integer vertex ids (got {ids[bad[0]]:g})")
+    if not len(ids):
+        raise SupportError(f"{path}: the file is empty (no vertex ids)")
+    return ids.astype(np.int64)
 
 
 #: 3D Slicer markups files: control points in the coordinate system and units the file states
@@ -527,7 +622,7 @@ def select_facets(vertices, faces, support: Support, frame: PointFrame = PointFr
         path = Path(d["path"])
         if not path.is_absolute() and base_dir is not None:
             path = Path(base_dir) / path
-        a = None if is_markups(path) else read_point_file(path)
+        a = None if is_markups(path) else read_point_file(path, _units_words(d.get("units"), frame))
         if a is not None and a.ndim == 1 and d.get("frame") is not None:
             raise SupportError(f"support '{support.name}' file.frame: vertex ids have no frame (they index the "
                                "file's vertices)")
@@ -618,6 +713,15 @@ def _select_contact(vertices, faces, frame: PointFrame, groups, spec: dict, wher
                            "rests on, or select the support by sphere, box or file")
     return mask, {"file": groups.path, "segment": what, "contact_voxels": reach,
                   "contact_mm": [round(float(reach * v), 4) for v in spacing_mm], "boundary_voxels": int(len(ijk))}
+
+
+def _units_words(units, frame: PointFrame) -> str:
+    """The units of a point file's numbers, for messages: as declared, else the geometry's."""
+    if units is not None:
+        return str(units)
+    if {"mm": 1.0, "cm": 10.0, "m": 1000.0}.get(str(frame.units).lower()) == frame.scale:
+        return f"{frame.units} (the geometry's units)"
+    return f"the geometry's units ({frame.scale:g} mm each)"
 
 
 def _units_scale(units) -> float:
@@ -764,7 +868,7 @@ def exertion_points_mesh(spec, frame: PointFrame = PointFrame(), file_vertices=N
         p = p if p.is_absolute() or base_dir is None else Path(base_dir) / p
         if is_markups(p):  # a Slicer markups file: world RAS mm
             return frame.from_world(read_markups(p, spec, "exertion_points"))
-        a = read_point_file(p)
+        a = read_point_file(p, _units_words(spec.get("units"), frame))
         if a.ndim == 1 and spec.get("frame") is not None:
             raise SupportError("exertion_points.frame: vertex ids have no frame (they index the file's vertices)")
         if a.ndim == 2:

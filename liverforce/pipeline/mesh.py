@@ -34,8 +34,11 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
     the liver was given in (``mesh.regions_check``: ``warn`` logs and records the
     failed checks in the features JSON under ``regions_check``; ``strict`` refuses,
     before meshing on the input surface's tags and again on the mesh's, before
-    writing anything; ``off`` skips; the cube phantom is never checked, nor a liver
-    whose supports replace the auto-tagged ones).
+    writing anything; ``off`` skips; the cube phantom is never checked). A liver
+    whose own supports replace the auto-tagged ones is still checked for its frame
+    (``right_lobe``) and visible region; the checks of the built-in supports are
+    skipped for it, and listed with the reason under ``regions_check.skipped``
+    (:func:`liverforce.mesh.plausibility.skipped_checks`).
 
     An imported geometry may give its own supports and exertion points
     (``geometry.imported[].supports`` / ``.exertion_points``, carried in the
@@ -65,13 +68,12 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
         surface.meta.update(json.loads(meta_file.read_text()))
     spec = surface.meta.get("spec") or {}
     user = _user_scene(spec, surface.meta)
-    if user["supports"][1] and user["supports"][0] == "replace":
-        mesh_cfg = {**mesh_cfg, "regions_check": "off"}  # the user's supports are not anatomy to check
+    skip = _skipped_checks(user)  # the user's supports are not anatomy to check; the liver's frame still is
     if mesh_cfg["regions_check"] == "strict":  # refuse before meshing: tags of the input surface
         from liverforce.mesh.regions import tag_regions
 
         region, visible = tag_regions(surface.vertices, surface.faces, RegionParams(**mesh_cfg["regions"]))
-        _regions_check(surface.vertices, surface.faces, region, visible, surface.meta, mesh_cfg, gid)
+        _regions_check(surface.vertices, surface.faces, region, visible, surface.meta, mesh_cfg, gid, skip)
     t0 = time.perf_counter()
     if surface.meta.get("mesh_mode") == "as_given":
         mesh = _given_mesh(surface.meta, spec, user, mesh_cfg, exertion, seed, gid)
@@ -79,7 +81,7 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
         mesh = _remeshed(surface, user, mesh_cfg, exertion, seed, gid)
     elapsed = time.perf_counter() - t0
     checked = _regions_check(mesh.points, mesh.facets, mesh.facet_region, mesh.facet_visible, surface.meta,
-                             mesh_cfg, gid)
+                             mesh_cfg, gid, skip)
     write_mesh(mesh_path, mesh)
     feats = compute_features(mesh)
     feats["meshing_time_s"] = elapsed
@@ -210,7 +212,16 @@ def _support_boundary(mesh, supports) -> dict:
     return support_stiffness(supports, region_areas(mesh.points, mesh.facets, mesh.facet_region))
 
 
-def _regions_check(points, facets, region, visible, surface_meta: dict, mesh_cfg: dict, gid: str) -> dict:
+def _skipped_checks(user: dict) -> dict:
+    """The regions checks that do not apply to the user's own supports and exertion points, with why."""
+    from liverforce.mesh.plausibility import skipped_checks
+
+    mode = user["supports"][0] if user["supports"][1] else None
+    return skipped_checks(mode, user["exertion_points"] is not None)
+
+
+def _regions_check(points, facets, region, visible, surface_meta: dict, mesh_cfg: dict, gid: str,
+                   skip: dict | None = None) -> dict:
     """Plausibility of tagged regions for the stated frame (raises under ``strict``)."""
     from liverforce.mesh.plausibility import regions_check
     from liverforce.mesh.regions import RegionParams
@@ -220,4 +231,4 @@ def _regions_check(points, facets, region, visible, surface_meta: dict, mesh_cfg
         mode = "off"  # a phantom has no anatomy to check
     return regions_check(points, facets, region, visible, mode=mode,
                          params=RegionParams(**mesh_cfg["regions"]), frame=surface_meta.get("frame"),
-                         where=f"{gid} ({surface_meta.get('source', '?')})")
+                         where=f"{gid} ({surface_meta.get('source', '?')})", skip=skip)
