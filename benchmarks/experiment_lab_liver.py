@@ -73,7 +73,8 @@ def write_inputs(livers: Path, out: Path, mm_per_unit: float) -> dict:
     T = m.cells_dict["triangle"]
     out.mkdir(parents=True, exist_ok=True)
     meshio.write(out / "lab01_lps_m.stl", meshio.Mesh(V * FLIP / 1000.0, [("triangle", T)]))
-    front = np.argsort(-V[:, 1])[:400]  # the anterior side, where a camera looks
+    front = np.argsort(-(V[:, 1] + V[:, 2]))[:400]  # anterior-superior, where a camera looks (the most anterior
+    # vertices lie on the sharp inferior border, where a coarse mesh cuts the corner by several mm)
     P = V[front[[0, 150, 300]]]
     np.savetxt(out / "points_lps_m.csv", P * FLIP / 1000.0, delimiter=",", fmt="%.6f")
     cava = V[np.argmax(-V[:, 1] + V[:, 2])] * FLIP  # the most posterior-superior vertex, LPS mm
