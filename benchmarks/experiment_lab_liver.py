@@ -5,7 +5,10 @@ size (40 mm per file unit), centred, turned from its own axes (SOFA's: +x the pa
 +z anterior; :data:`OBJ_TO_RAS`) to RAS, about 255 x 176 x 196 mm (R, A, S) with the right lobe on the
 patient's right, and written as an STL in LPS metres; its
 supports are given in LPS mm (the vena cava a fixed sphere, the lowest 15 mm a foundation; ``mode:
-replace``) and three tool positions in a CSV in LPS metres. The smoke-sized ``models`` target then imports,
+replace``) and three tool positions in a CSV in LPS metres, on the anterior surface of the right lobe
+between the dome and the inferior border (:func:`tool_positions`: where a lab would press and the supports hold
+the tissue; on the free left lobe or the dome the liver swings on its supports and the tool tip moves beyond the
+model's 20 mm grid). The smoke-sized ``models`` target then imports,
 meshes, simulates (scenario II only, forces up to 2 N) and trains on it, as a lab would run it::
 
     .venv/bin/python benchmarks/experiment_lab_liver.py --work /tmp/lab_liver
@@ -63,6 +66,32 @@ FLIP = np.array([-1.0, -1.0, 1.0])  # RAS <-> LPS
 OBJ_TO_RAS = np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
 
 
+def tool_positions(V: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Three tool positions (RAS mm) where a lab would press and the tissue is held.
+
+    The anterior surface of the right lobe, between the dome and the inferior border: vertices at least 25 mm
+    to the patient's right of the volume centroid (the right lobe, which the floor holds at its lowest point,
+    not the left lobe hanging free from the cava), whose normal faces anterior (its A component >= 0.8: neither
+    the sharp inferior border, where the normal turns down and a coarse mesh cuts the corner, nor the free dome,
+    where it turns up), in the middle third of the height between the floor's top (the lowest 15 mm) and the
+    dome. Sorted by height, the candidates at 1/6, 1/2 and 5/6 are taken (22-46 mm apart). The most
+    anterior-superior vertices, taken before, lay on the left lobe, and the tool tip moved 18-47 mm per newton
+    there (15 of the 24 cases beyond the model's 20 mm grid); here 5-20 mm per newton (3 of 24, at 1.1-1.8 N).
+    """
+    import trimesh
+
+    m = trimesh.Trimesh(V, T, process=True)  # merged: the file repeats a vertex on every face round it
+    W, N = np.asarray(m.vertices), np.asarray(m.vertex_normals)
+    floor_top, dome = W[:, 2].min() + 15.0, W[:, 2].max()
+    lo, hi = floor_top + (dome - floor_top) / 3.0, floor_top + 2.0 * (dome - floor_top) / 3.0
+    ok = (W[:, 0] >= m.center_mass[0] + 25.0) & (N[:, 1] >= 0.8) & (W[:, 2] >= lo) & (W[:, 2] <= hi)
+    idx = np.flatnonzero(ok)
+    if len(idx) < 3:
+        raise SystemExit(f"only {len(idx)} anterior right-lobe vertices: is the liver turned to RAS?")
+    idx = idx[np.argsort(W[idx, 2], kind="stable")]
+    return W[idx[[len(idx) // 6, len(idx) // 2, (5 * len(idx)) // 6]]]
+
+
 def write_inputs(livers: Path, out: Path, mm_per_unit: float) -> dict:
     """The lab's files: the STL (LPS m), the tool positions (CSV, LPS m) and the supports (LPS mm)."""
     import meshio
@@ -73,9 +102,7 @@ def write_inputs(livers: Path, out: Path, mm_per_unit: float) -> dict:
     T = m.cells_dict["triangle"]
     out.mkdir(parents=True, exist_ok=True)
     meshio.write(out / "lab01_lps_m.stl", meshio.Mesh(V * FLIP / 1000.0, [("triangle", T)]))
-    front = np.argsort(-(V[:, 1] + V[:, 2]))[:400]  # anterior-superior, where a camera looks (the most anterior
-    # vertices lie on the sharp inferior border, where a coarse mesh cuts the corner by several mm)
-    P = V[front[[0, 150, 300]]]
+    P = tool_positions(V, T)
     np.savetxt(out / "points_lps_m.csv", P * FLIP / 1000.0, delimiter=",", fmt="%.6f")
     cava = V[np.argmax(-V[:, 1] + V[:, 2])] * FLIP  # the most posterior-superior vertex, LPS mm
     lo, hi = V.min(axis=0), V.max(axis=0)
