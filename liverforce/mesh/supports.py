@@ -67,13 +67,13 @@ of another kind or region is refused, naming both (:func:`apply_supports`).
 
 from __future__ import annotations
 
-import re
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from liverforce.geometry.point_table import TEXT_SUFFIXES, PointTableError, read_table
 from liverforce.mesh.types import REGION_CODES
 
 log = logging.getLogger(__name__)
@@ -274,11 +274,8 @@ def _check_stiffness(st: dict, key: str):
 
 
 #: Point files: the formats ``liverforce predict`` reads a point cloud in (``liverforce.serve.files.read_points``;
-#: ``mesh`` may not import ``serve``, so the same rules are kept here and a test holds the two to the same points),
-#: suffixes in any case
-POINT_FILE_SUFFIXES = (".npy", ".csv", ".txt", ".xyz", ".ply")
-_TEXT_SUFFIXES = (".csv", ".txt", ".xyz")
-_SPLIT = re.compile(r"[,;\t ]+")  # as liverforce.serve.files splits a table
+#: text files by the same reader, :func:`liverforce.geometry.point_table.read_table`), suffixes in any case
+POINT_FILE_SUFFIXES = (".npy", *TEXT_SUFFIXES, ".ply")
 
 
 def read_point_file(path, units: str | None = None) -> np.ndarray:
@@ -287,12 +284,12 @@ def read_point_file(path, units: str | None = None) -> np.ndarray:
     The formats and rules of ``liverforce predict``'s point files
     (``liverforce.serve.files.read_points``): ``.npy``; ``.csv``/``.txt``/
     ``.xyz``, three columns separated by commas, semicolons, tabs or spaces,
-    one optional header line, ``#`` comments and blank lines skipped; ``.ply``
-    (its vertices); suffixes in any case. A text or ``.npy`` file of one column
-    holds vertex ids instead (non-negative integers; a text file may have a
-    header). ``units`` (as declared, e.g. ``"m"``) words the messages only. A
-    refused file is named with the line at fault and what was expected; an
-    empty one is said to be.
+    one optional header line, ``#`` comments and blank lines skipped
+    (:mod:`liverforce.geometry.point_table`); ``.ply`` (its vertices); suffixes
+    in any case. A text or ``.npy`` file of one column holds vertex ids instead
+    (non-negative integers; a text file may have a header). ``units`` (as
+    declared, e.g. ``"m"``) words the messages only. A refused file is named
+    with the line at fault and what was expected; an empty one is said to be.
     """
     path = Path(path)
     want = f"3 numbers per row (x, y, z in {units or 'mm'}) or one column of vertex ids"
@@ -303,9 +300,11 @@ def read_point_file(path, units: str | None = None) -> np.ndarray:
         raise SupportError(f"{path}: use {', '.join(POINT_FILE_SUFFIXES)} (any case), or a 3D Slicer markups file "
                            "(.mrk.json, .fcsv)")
     lines = None
-    if suffix in _TEXT_SUFFIXES:
-        rows, lines = _text_rows(path, want)
-        a = np.asarray([[float(x) for x in r] for r in rows], float)
+    if suffix in TEXT_SUFFIXES:
+        try:
+            a, lines = read_table(path, columns=(1, 3))
+        except PointTableError as exc:
+            raise SupportError(f"{exc}; expected {want}") from None
         if a.shape[1] == 1:
             return _vertex_ids(a[:, 0], path, lines)
     elif suffix == ".npy":
@@ -337,47 +336,6 @@ def _ply_points(path: Path, want: str) -> np.ndarray:
         raise SupportError(f"{path}: not a readable PLY file (exit {exc.code}; expected {want})") from None
     except Exception as exc:  # noqa: BLE001 - meshio raises many types; re-raised with the file named
         raise SupportError(f"{path}: not a readable PLY file ({type(exc).__name__}: {exc}; expected {want})") from None
-
-
-def _text_rows(path: Path, want: str) -> tuple[list[list[str]], list[int]]:
-    """The data rows of a text point file (tokens) and their line numbers (from 1), as the predict reader splits
-    them; a row that is not all numbers, or of another width than the first, is refused naming its line."""
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise SupportError(f"{path}: cannot read the file as text ({exc}; expected {want})") from None
-    numbered = [(i, ln.strip()) for i, ln in enumerate(text.splitlines(), 1)
-                if ln.strip() and not ln.lstrip().startswith("#")]
-    if not numbered:
-        raise SupportError(f"{path}: the file is empty (no points; expected {want})")
-    rows = [_SPLIT.split(ln) for _, ln in numbered]
-    if not _all_numbers(rows[0]):  # one header line, as the predict reader allows
-        if len(rows[0]) == 3 and sum(_is_number(x) for x in rows[0]) >= 2:
-            raise SupportError(f"{path}, line {numbered[0][0]}: '{numbered[0][1][:80]}' is neither a header nor "
-                               f"{want} (a row with a value that is not a number?)")
-        numbered, rows = numbered[1:], rows[1:]
-        if not rows:
-            raise SupportError(f"{path}: the file is empty (a header line, no points; expected {want})")
-    width = len(rows[0])
-    for (i, ln), r in zip(numbered, rows):
-        if len(r) != width or not _all_numbers(r) or width not in (1, 3):
-            what = f"{len(r)} value{'s' * (len(r) != 1)}" + ("" if _all_numbers(r) else ", not all numbers")
-            if len(r) != width and width in (1, 3):
-                what += f", the rows above {width}"
-            raise SupportError(f"{path}, line {i}: '{ln[:80]}' ({what}); expected {want}")
-    return rows, [i for i, _ in numbered]
-
-
-def _is_number(token: str) -> bool:
-    try:
-        float(token)
-    except ValueError:
-        return False
-    return True
-
-
-def _all_numbers(tokens: list[str]) -> bool:
-    return all(_is_number(x) for x in tokens)
 
 
 def _vertex_ids(ids: np.ndarray, path: Path, lines: list[int] | None) -> np.ndarray:

@@ -3,8 +3,10 @@
 Point clouds (``read_points``), one point per row, mm unless ``units`` says otherwise:
 
 - ``.npy``: an ``(n, 3)`` float array (read with ``allow_pickle=False``);
-- ``.csv`` / ``.txt``: three numeric columns ``x, y, z`` (comma, semicolon,
-  tab or space separated; one optional header line; extra columns refused);
+- ``.csv`` / ``.txt`` / ``.xyz``: three numeric columns ``x, y, z`` (comma, semicolon,
+  tab or space separated; one optional header line; ``#`` comments and blank lines
+  skipped; extra columns, a garbled first line and an empty file refused; the reader the
+  mesh stage reads its point files with, :mod:`liverforce.geometry.point_table`);
 - ``.ply``: ASCII or binary (little/big endian), the ``vertex`` element's
   ``x y z`` properties (other vertex properties and later elements ignored).
 
@@ -45,7 +47,6 @@ Context files (``read_context`` / ``load_context``): JSON or YAML with
 from __future__ import annotations
 
 import json
-import re
 from pathlib import Path
 
 import numpy as np
@@ -159,11 +160,13 @@ def read_points(path: str | Path, units: str | None = "mm") -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise PredictionInputError(f"{path}: no such point-cloud file")
+    from liverforce.geometry.point_table import TEXT_SUFFIXES
+
     suffix = path.suffix.lower()
     try:
         if suffix == ".npy":
             pts = np.load(path, allow_pickle=False)
-        elif suffix in (".csv", ".txt", ".xyz"):
+        elif suffix in TEXT_SUFFIXES:
             pts = _read_table(path)
         elif suffix == ".ply":
             pts, _ = read_ply(path)
@@ -180,23 +183,14 @@ def read_points(path: str | Path, units: str | None = "mm") -> np.ndarray:
 
 
 def _read_table(path: Path) -> np.ndarray:
-    lines = [ln for ln in path.read_text().splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
-    if not lines:
-        return np.zeros((0, 3))
-    split = re.compile(r"[,;\t ]+")
-    first = split.split(lines[0].strip())
+    """The ``(n, 3)`` rows of a text point file, read as the mesh stage reads its own
+    (:func:`liverforce.geometry.point_table.read_table`)."""
+    from liverforce.geometry.point_table import PointTableError, read_table
+
     try:
-        [float(x) for x in first]
-    except ValueError:
-        lines = lines[1:]  # a header
-    rows = [split.split(ln.strip()) for ln in lines]
-    widths = {len(r) for r in rows}
-    if widths and widths != {3}:
-        raise PredictionInputError(f"{path}: every row must hold exactly x, y, z (found {sorted(widths)} columns)")
-    try:
-        return np.asarray(rows, dtype=np.float64).reshape(-1, 3)
-    except ValueError as exc:
-        raise PredictionInputError(f"{path}: non-numeric value ({exc})") from exc
+        return read_table(path, columns=(3,))[0]
+    except PointTableError as exc:
+        raise PredictionInputError(f"{exc}; expected exactly x, y, z numbers per row") from None
 
 
 def read_surface(path: str | Path, units: str | None = "mm") -> tuple[np.ndarray, np.ndarray]:
