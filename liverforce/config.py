@@ -710,6 +710,11 @@ def _check_ranges(cfg: dict) -> None:
                                                         "tip_noise_mm", "instrument_in_cloud", "tool_tilt_deg",
                                                         "outlier_fraction"],
                       "camera setting")
+    for f in cfg["validate"]["camera_sensitivity"].get("outlier_fraction") or []:
+        if isinstance(f, bool) or not isinstance(f, (int, float)) or not 0 <= f <= 0.5:
+            _fail("validate.camera_sensitivity.outlier_fraction",
+                  f"each value is the share of the points at a gross depth error, in [0, 0.5] (got {f!r})",
+                  "e.g. [0.0, 0.01, 0.03, 0.1] for 0, 1, 3 and 10 %")
     for e in cfg["validate"]["registration_errors"]:
         if (not isinstance(e, (list, tuple)) or len(e) != 2
                 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v for v in e)):
@@ -901,6 +906,11 @@ def _check_model(mo: dict, key: str) -> None:
               "a model that fits the instrument must be trained on clouds that show it (its tip would otherwise be "
               "the kinematic one in training and the instrument's axis in surgery)",
               "set camera.observation.instrument_in_cloud: true, or instrument_radius_mm: 0")
+    if float(cam["grid"].get("outlier_mm") or 0.0) > 0 and obs_cfg.instrument_in_cloud and r_fit <= 0:
+        _fail(f"{key}.camera.grid.outlier_mm",
+              "the clouds show the instrument and nothing removes its points: they would be dropped, and counted, "
+              "as gross depth errors", "fit the instrument (grid.instrument_radius_mm: the tool's radius), or set "
+              "outlier_mm: 0")
     if mo["roi_features"] == "cloud" and (mo["occlusion"]["radius_mm"] > 0 or mo["noise_mm"] > 0):
         _fail(f"{key}.roi_features", "a camera-cloud model (cloud) observes the surface with model.camera; "
               "model.occlusion.radius_mm and model.noise_mm apply to node features only", "set them to 0")

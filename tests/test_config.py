@@ -61,6 +61,9 @@ def test_thesis_is_the_study_scale():
         ("model.camera.grid.dent_radius_mm=10", "model.camera.grid"),  # a dent fit needs the tool's radius
         ("model.camera.observation.tool_tilt_deg=90", "model.camera.observation"),
         ("+validate.camera_sensitivity.tool_tilt=[10]", "validate.camera_sensitivity"),
+        ("validate.camera_sensitivity.outlier_fraction=[3]", "validate.camera_sensitivity.outlier_fraction"),
+        ("model.camera.grid.outlier_mm=-1", "model.camera.grid"),
+        ("model.camera.observation.outlier_fraction=0.7", "model.camera.observation"),
         ("validate.registration_errors=[[1,-1]]", "validate.registration_errors"),
         ("validate.registration_errors=[2]", "validate.registration_errors"),
         ("validate.shape_changes=[[2,0]]", "validate.shape_changes"),
@@ -85,6 +88,8 @@ def test_bad_values_name_their_key(override, key):
          "model.camera.grid.instrument_radius_mm", "not the observed tool's"),
         (["model.camera.grid.instrument_radius_mm=2.5"], "model.camera.grid.instrument_radius_mm",
          "trained on clouds that show it"),
+        (["model.camera.observation.instrument_in_cloud=true", "model.camera.grid.outlier_mm=3.0"],
+         "model.camera.grid.outlier_mm", "nothing removes its points"),
     ],
 )
 def test_the_instrument_settings_must_agree(overrides, key, why):

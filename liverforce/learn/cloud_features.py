@@ -180,8 +180,9 @@ class CloudGridSpec:
         (:func:`fit_instrument`).
     outlier_mm : float
         0 (default): every point counts. Else a point whose height change is
-        farther than this from the plane fitted at its nearest grid point (a
-        valid one, within the kernel's support) is dropped, the planes are
+        farther than this from the plane fitted at its nearest grid point
+        (when that grid point is valid and within the kernel's support; a
+        point whose nearest grid point is not valid is kept) is dropped, the planes are
         fitted again without it, and the dent is fitted without it: a camera's
         gross depth errors (stereo mismatches, flying pixels), which would
         pull every plane they fall in. Set it well above the point noise and
@@ -1059,11 +1060,12 @@ def _cell_fit(u: np.ndarray, v: np.ndarray, dz: np.ndarray, spec: CloudGridSpec)
 
 
 def _off_plane(u: np.ndarray, v: np.ndarray, dz: np.ndarray, fit: tuple, spec: CloudGridSpec) -> tuple:
-    """``(off, tested)``, masks of the points: ``off``, those farther than ``spec.outlier_mm`` in height from the plane of their nearest grid point (ties of
-    the rounding: ``np.rint``'s, to even), read at their own ``(u, v)``, where that grid point is valid and within
-    the kernel's support (elsewhere no point is an outlier): a camera's gross depth errors (stereo mismatches,
-    flying pixels at depth edges), which would pull every plane they fall in; ``tested``, those near a valid grid
-    point."""
+    """``(off, tested)``, masks of the points: ``off``, those farther than ``spec.outlier_mm`` in height from the
+    plane of their nearest grid point (ties of the rounding: ``np.rint``'s, to even), read at their own
+    ``(u, v)``, where that grid point is valid and within the kernel's support. A point whose nearest grid point is
+    not valid is not tested, though it may feed a valid neighbour's plane (at the edge of what the camera sees).
+    The points dropped are a camera's gross depth errors (stereo mismatches, flying pixels at depth edges), which
+    would pull every plane they fall in; ``tested``: those near a valid grid point."""
     g, h = spec.grid_size, spec.half_width_mm
     step = spec.spacing_mm
     S, valid, bu, bv = fit[2], fit[3], fit[4], fit[5]

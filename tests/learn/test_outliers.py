@@ -13,7 +13,8 @@ import pytest
 
 from liverforce.learn.cloud_features import CloudGridSpec, ReferenceSurface, cloud_grid
 from liverforce.learn.observation import ObservationConfig, observe
-from tests.learn.test_dent import R_TOOL, _compiled_row, plate, spec
+from liverforce.learn import camera
+from tests.learn.test_dent import R_TOOL, plate, spec
 
 CFG = dict(n_points=(4000, 4000), noise_sd_mm=0.5, roi_radius_mm=30.0, tool_radius_mm=R_TOOL,
            instrument_in_cloud=True)
@@ -37,6 +38,17 @@ def test_outliers_move_that_share_of_the_points_along_their_line_of_sight_and_no
     np.testing.assert_allclose(np.cross(d, ray), 0.0, atol=1e-9)  # along the line of sight
     assert np.abs(along).max() <= 8.0 and np.abs(along).max() > 6.0
     assert abs(np.mean(along)) < 1.5  # both ways
+
+
+def test_the_outlier_stream_is_a_seventh_child_and_leaves_the_six_before_it():
+    from liverforce.learn.observation import _streams
+    from liverforce.seeds import spawn_rngs
+
+    for s in (0, 7, [3, 11]):
+        old, new = spawn_rngs(s, 6), _streams(s)
+        assert len(new) == 7
+        for a, b in zip(old, new[:6]):
+            np.testing.assert_array_equal(a.random(5), b.random(5))
 
 
 @pytest.mark.parametrize("bad", [dict(outlier_fraction=-0.1), dict(outlier_fraction=0.6),
@@ -81,12 +93,30 @@ def test_a_clean_cloud_loses_no_point_and_a_cloud_with_outliers_comes_back_near_
     assert np.mean(better) < 0.3 * np.mean(worse), (better, worse)
 
 
-@pytest.mark.parametrize("tilt,noise", [(0.0, 0.5), (30.0, 0.5), (0.0, 1.0)])
-def test_the_compiled_pass_drops_the_same_points_as_the_reference(tilt, noise):
+def _compiled(cloud, ref, sp, kin):
+    """One cloud through the compiled gridding pass: its feature row and its counts (``n_tool``: shaft points,
+    instrument points fitted, their noise, points dropped as gross depth errors, points tested for them)."""
+    from liverforce.serve.compiled_cloud import _FILL_CODES, _grid_clouds, instrument_params
+
+    g = sp.grid_size
+    X = np.empty((1, camera.n_features(g, sp.dent_radius_mm > 0)))
+    n_used, n_bad, n_tool = np.zeros(1, np.int64), np.zeros(1, np.int64), np.zeros((1, 5))
+    _grid_clouds(cloud, np.zeros(1, np.int64), np.array([len(cloud)]), kin[None], ref.origin, ref.R,
+                 np.ascontiguousarray(ref.raster), ref.lo, ref.step, g, sp.half_width_mm, sp.spacing_mm,
+                 sp.kernel_radius_cells, sp.max_abs_height_mm, sp.min_points, sp.max_leverage,
+                 sp.estimator == "linear", _FILL_CODES["laplace"], sp.half_width_mm * (1 + 2 / (g - 1)), np.zeros(4),
+                 instrument_params(sp), X, n_used, n_bad, n_tool)
+    return X[0], n_tool[0]
+
+
+@pytest.mark.parametrize("tilt,noise,estimator", [(0.0, 0.5, "linear"), (30.0, 0.5, "linear"), (0.0, 1.0, "linear"),
+                                                  (0.0, 0.5, "mean")])
+def test_the_compiled_pass_drops_the_same_points_as_the_reference(tilt, noise, estimator):
     """The numba pass (sorted points, the instrument's moved off the grid) against cloud_grid, with outliers, the
-    tool in view and a kinematic tip off by up to 1.5 mm: the same features, dent and tip."""
+    tool in view and a kinematic tip off by up to 1.5 mm: the same features, dent and tip, and the same points
+    dropped and tested (the counts the serving warning reads)."""
     V, U0, T = plate(3.0)
-    sp = spec(instrument_max_tilt_deg=tilt, outlier_mm=2.5)
+    sp = spec(instrument_max_tilt_deg=tilt, outlier_mm=2.5, estimator=estimator)
     ref = ReferenceSurface.for_case(U0, T, [0, 0, 0], np.eye(3), sp)
     tip = np.array([0.0, 0.0, -3.0])
     rng = np.random.default_rng(3)
@@ -100,7 +130,8 @@ def test_the_compiled_pass_drops_the_same_points_as_the_reference(tilt, noise):
         kin = tip + rng.uniform(-1.5, 1.5, 3)
         want = cloud_grid(cloud, ref, sp, kin)
         dropped += want.n_outliers
-        x = _compiled_row(cloud, ref, sp, kin)
+        x, counts = _compiled(cloud, ref, sp, kin)
+        assert (counts[3], counts[4]) == (want.n_outliers, want.n_outlier_tested) and counts[4] > 0
         np.testing.assert_allclose(x[:g2], want.features(include_mask=True), atol=1e-9)
         np.testing.assert_allclose(x[g2:g2 + 2], want.dent, atol=1e-9)
         np.testing.assert_allclose(x[-3:], want.tip_local, atol=1e-9)
