@@ -906,7 +906,8 @@ def _cell_planes(M, g, kr, linear, min_points, max_leverage, Hc, valid, Bu, Bv):
 def _drop_off_plane(GUs, GVs, Zs, first, nc, g, kr, tol, Hc, valid, Bu, Bv, flag):
     """Drop, in place, the sorted points whose height change lies more than ``tol`` from the plane of their nearest
     grid point (``np.rint``, clamped to the grid) where that point is valid and within ``kr`` of them
-    (``cloud_features._off_plane``), keeping the bins' order; ``flag``: scratch of the points' length. Returns
+    (``cloud_features._off_plane``), keeping the bins' order (:func:`_compact`); ``flag``: scratch of the points'
+    length (-1 for a point dropped). Returns
     the points dropped and the points tested (those near a valid grid point)."""
     n = first[nc * nc]
     kr2 = kr * kr
@@ -926,24 +927,30 @@ def _drop_off_plane(GUs, GVs, Zs, first, nc, g, kr, tol, Hc, valid, Bu, Bv, flag
             if valid[cell]:
                 n_test += 1
                 if abs(Zs[s] - (Hc[cell] + Bu[cell] * du + Bv[cell] * dv)) > tol:
-                    off = 1
+                    off = -1
                     n_off += 1
         flag[s] = off
-    if n_off == 0:
-        return 0, n_test
+    if n_off:
+        _compact(GUs, GVs, Zs, first, nc, flag)
+    return n_off, n_test
+
+
+@njit(cache=True)
+def _compact(GUs, GVs, Zs, first, nc, mark):
+    """Keep, in place and in the bins' order, the sorted points ``t`` with ``mark[t] >= 0`` (``first``: the bins'
+    starts, updated)."""
     w = 0
     for kk in range(nc * nc):
         a0 = first[kk]
         e0 = first[kk + 1]
         first[kk] = w
         for t in range(a0, e0):
-            if flag[t] == 0:
+            if mark[t] >= 0:
                 GUs[w] = GUs[t]
                 GVs[w] = GVs[t]
                 Zs[w] = Zs[t]
                 w += 1
     first[nc * nc] = w
-    return n_off, n_test
 
 
 @njit(cache=True, fastmath={"contract"})  # FMAs: u, v, w as BLAS computes R (x - p) more often
@@ -1115,19 +1122,8 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
                                                     tv, tw, inst, cand, GU, A, HB)
     elif inst[0] > 0.0:  # the instrument's points: fitted (the tip's tangential part), then moved off the grid
         tu, tv, nf, _, sd = _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, tu, tv, inst, cand)
-    if n_dup:
-        w = 0
-        for kk in range(nc * nc):
-            a0 = first[kk]
-            e0 = first[kk + 1]
-            first[kk] = w
-            for t in range(a0, e0):
-                if orig[t] >= 0:
-                    GUs[w] = GUs[t]
-                    GVs[w] = GVs[t]
-                    Zs[w] = Zs[t]
-                    w += 1
-        first[nc * nc] = w
+    if n_dup:  # the duplicates' origin is -1
+        _compact(GUs, GVs, Zs, first, nc, orig)
     # 4. moments, per-cell weighted plane fit and validity test (cloud_grid's formulas); with inst[14] > 0 the
     #    points off their nearest grid point's plane by more than it are dropped and the planes fitted again
     _cell_moments(GUs, GVs, Zs, first, g, kr, sb, pad, nc, exact, M)
