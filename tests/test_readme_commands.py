@@ -10,10 +10,13 @@ executor plugin needs no cluster, see tests/faults/test_cluster.py).  So a
 target after ``--config`` (read by Snakemake as a config entry), an unknown
 option, a bad override or a key the config does not know fails here.
 
-Nothing is substituted: paths under ``/data/`` in the README are placeholders
-for the user's files, and a dry run does not open them (the geometry rule
-takes the path as a parameter, not as an input file), so they stay as written;
-the test checks instead that each has a suffix the importer reads.
+Paths under ``/data/`` in the README are placeholders for the user's files.
+An imported liver's files are inputs of the geometry and mesh rules, so
+Snakemake needs them to exist even in a dry run (a missing one stops it before
+any job, naming the file): each ``/data/...`` path is moved under the run's
+own folder, where an empty placeholder file is made (a dry run does not read
+it); nothing else is substituted. The test also checks that each has a
+suffix the importer reads.
 """
 
 from __future__ import annotations
@@ -80,6 +83,12 @@ def test_placeholder_files_have_supported_suffixes():
 
 
 def dry_run(args: list[str], directory: Path) -> tuple[int, str]:
+    """``snakemake -n`` of the README's ``args`` in ``directory``, its ``/data/...`` placeholder files made there."""
+    data = directory / "data"
+    for p in {m for a in args for m in re.findall(r"/data/[^,}\]\s]+", a)}:
+        (data / p[len("/data/"):]).parent.mkdir(parents=True, exist_ok=True)
+        (data / p[len("/data/"):]).touch()
+    args = [a.replace("/data/", f"{data}/") for a in args]
     cmd = [SNAKEMAKE, "-n", "--snakefile", str(ROOT / "Snakefile"), "--directory", str(directory), *args]
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
     return proc.returncode, proc.stdout + proc.stderr
