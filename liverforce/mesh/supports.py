@@ -405,20 +405,6 @@ def read_markups(path, spec: dict | None = None, where: str = "points") -> np.nd
     return np.asarray(out)
 
 
-def snap_to_vertices(vertices: np.ndarray, xyz: np.ndarray, what: str, max_mm: float = MAX_SNAP_MM,
-                     read_as: str = "in mm, in the mesh frame"):
-    """Nearest surface vertex of each point; refuse beyond ``max_mm``. Returns ``(ids, distances)``."""
-    from scipy.spatial import cKDTree
-
-    d, idx = cKDTree(vertices).query(np.atleast_2d(xyz))
-    if (d > max_mm).any():
-        j = int(np.argmax(d))
-        raise SupportError(f"{what}: point {j} ({read_as}; {np.round(np.atleast_2d(xyz)[j], 3).tolist()} mm on "
-                           f"the mesh) is {d[j]:.3g} mm from the nearest surface vertex (limit {max_mm} mm): "
-                           "check its units and frame")
-    return idx, d
-
-
 #: a file of points marks the patch triangulated between neighbouring points no farther apart than
 #: ``PATCH_LINK`` times their spacing: the median distance of a point to its ``PATCH_NEIGHBOURS``-th nearest
 #: (the ring of neighbours of a vertex of a triangulated surface; all of a few hand-placed landmarks)

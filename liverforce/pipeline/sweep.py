@@ -74,19 +74,12 @@ def closest_surface_points(points, facets, query, k: int = 16) -> np.ndarray:
     """The closest point on the triangles ``points[facets]`` to each query point (mm).
 
     Searched over the ``k`` triangles with the nearest centroids (query points
-    lie on or near the surface).
+    lie on or near the surface; :func:`liverforce.mesh.supports.closest_on_triangles`).
     """
-    from scipy.spatial import cKDTree
-    from trimesh.triangles import closest_point
+    from liverforce.mesh.supports import closest_on_triangles
 
     tri = np.asarray(points, float)[np.asarray(facets)]
-    query = np.atleast_2d(np.asarray(query, float))
-    k = min(k, len(tri))
-    _, near = cKDTree(tri.mean(axis=1)).query(query, k=k)
-    near = near.reshape(len(query), k)
-    cp = closest_point(tri[near.ravel()], np.repeat(query, k, axis=0)).reshape(len(query), k, 3)
-    best = np.argmin(np.linalg.norm(cp - query[:, None], axis=2), axis=1)
-    return cp[np.arange(len(query)), best]
+    return closest_on_triangles(tri, np.atleast_2d(np.asarray(query, float)), k)[0]
 
 
 def make_sweep(params: dict, mesh_paths: list[str], cases_path, report_path) -> dict:

@@ -338,6 +338,17 @@ def outlier_cloud(n_out: float, n_tested: float, spec) -> str | None:
             "than the report's camera sensitivity scores (up to 10 % of the points at such errors)")
 
 
+def cloud_warnings(spec, fitted: int | None, point_sd_mm: float | None, dropped: tuple) -> list[str]:
+    """A camera cloud's own warnings, in their order: too little of the instrument to fit its axis (``fitted``
+    0: the kinematic tip; None: no fit), a cloud noisier than training (:func:`noisy_cloud`; ``point_sd_mm``
+    None: not estimated), gross depth errors dropped (:func:`outlier_cloud`; ``dropped``: dropped, tested).
+    The reference paths' (``Predictor.predict_cloud``, ``predict_arrays``); the compiled one gates its
+    batches by the same functions."""
+    noisy = noisy_cloud(point_sd_mm, spec) if point_sd_mm is not None else None
+    gross = outlier_cloud(*dropped, spec)
+    return [w for w in ([MASKED_INSTRUMENT] if fitted == 0 else []) + [noisy, gross] if w]
+
+
 def instrument_check_radius(rep, spec) -> float:
     """The tool radius the serving check for the instrument's points uses, 0 for none: models trained on
     clouds without the instrument (those trained with it see it as in training), whose height reference is the

@@ -37,9 +37,8 @@ import numpy as np
 from liverforce.learn import camera
 from liverforce.learn.model import ForceModel, ModelFormatError
 from liverforce.serve.checks import Limits, TrainingScale, check_case, force_warnings, outside_training
-from liverforce.serve.cloud import (MASKED_INSTRUMENT, camera_checks, check_instrument, cloud_support, metres_cloud,
-                                    noisy_cloud, outlier_cloud, registration_warnings,
-                                   cloud_to_arrays)
+from liverforce.serve.cloud import (camera_checks, check_instrument, cloud_support, cloud_warnings, metres_cloud,
+                                    registration_warnings, cloud_to_arrays)
 from liverforce.serve.compiled import CompiledROI
 from liverforce.serve.errors import PredictionInputError
 from liverforce.serve.preop import DEFAULT_FRAME_RADIUS_MM, DEFAULT_ROI_FRACTION, Preop, _points, _vector
@@ -287,11 +286,8 @@ class Predictor:
                                                [])
             x = camera.features_from_clouds(arrays[camera.CLOUD_KEY], arrays[camera.TIP_KEY], arrays, spec, R=R,
                                             fitted=fitted, point_sd=point_sd, outliers=dropped)
-            masked = [MASKED_INSTRUMENT] if fitted == [0] else []  # the instrument fit kept the kinematic tip
-            noisy = [w for w in [noisy_cloud(point_sd[0], spec)] if w] if point_sd else []
-            gross = [w for w in [outlier_cloud(*dropped[0], spec)] if w]
-            info["warnings"] = (self.context_warnings(preop) + masked + noisy + gross
-                                + camera_checks(self.model, x[0], self.limits))
+            own = cloud_warnings(spec, fitted[0] if fitted else None, point_sd[0] if point_sd else None, dropped[0])
+            info["warnings"] = self.context_warnings(preop) + own + camera_checks(self.model, x[0], self.limits)
             arrays["camera_features"] = x  # computed once: the model reads them instead of the cloud
         else:
             info["warnings"] = self.context_warnings(preop)
@@ -417,7 +413,7 @@ class Predictor:
         # each row's frame is checked (and its rotation computed) once, here; the model reuses the rotations
         R = np.stack([check_case(arrays, i, self.model, self.scale, self.limits) for i in range(n)])
         rep = self.model.representation
-        cloud_warnings = [[] for _ in range(n)]
+        own_warnings = [[] for _ in range(n)]
         if rep.is_camera and "camera_cloud_mm" in arrays:  # observed clouds: features once, each row checked
             if camera.TIP_KEY not in arrays:
                 raise PredictionInputError(
@@ -445,16 +441,14 @@ class Predictor:
                     checked = camera_checks(self.model, x[i], self.limits)
                 except PredictionInputError as exc:
                     raise PredictionInputError(f"{_row_label(ids, i)}{exc}") from None
-                noisy = noisy_cloud(point_sd[i], spec) if point_sd else None  # predict_cloud's order
-                gross = outlier_cloud(*dropped[i], spec)
-                cloud_warnings[i] = ([MASKED_INSTRUMENT] if fitted and fitted[i] == 0 else []) + (
-                    [noisy] if noisy else []) + ([gross] if gross else []) + checked
+                own_warnings[i] = cloud_warnings(spec, fitted[i] if fitted else None,  # predict_cloud's order
+                                                 point_sd[i] if point_sd else None, dropped[i]) + checked
             arrays = {**arrays, camera.FEATURES_KEY: x}
         force = self._forces(arrays, R, observation_seed, fast, min_group)
         if not return_warnings:
             return force
         regs = [registration_warnings(f) for f in fixes] if fixes is not None else [[] for _ in range(n)]
-        return force, [c + w + g + f for c, w, g, f in zip(self.arrays_warnings(arrays), cloud_warnings, regs,
+        return force, [c + w + g + f for c, w, g, f in zip(self.arrays_warnings(arrays), own_warnings, regs,
                                                              self.force_warnings(force))]
 
     def _forces(self, arrays: dict, R: np.ndarray, observation_seed, fast: bool, min_group: int) -> np.ndarray:
