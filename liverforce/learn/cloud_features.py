@@ -181,9 +181,11 @@ class CloudGridSpec:
     outlier_mm : float
         0 (default): every point counts. Else a point whose height change is
         farther than this from the plane fitted at its nearest grid point
-        (when that grid point is valid and within the kernel's support; a
-        point whose nearest grid point is not valid is kept) is dropped, the planes are
-        fitted again without it, and the dent is fitted without it: a camera's
+        (when that grid point is valid and within the kernel's support; else
+        at the nearest valid grid point within the support, as at the edge
+        of what the camera sees; a point near no valid grid point is kept)
+        is dropped, the planes are fitted again without it, and the dent is
+        fitted without it: a camera's
         gross depth errors (stereo mismatches, flying pixels), which would
         pull every plane they fall in. Set it well above the point noise and
         the deformation's curvature over a cell (a few mm).
@@ -498,7 +500,8 @@ class CloudGrid:
         :func:`instrument_point_sd`), NaN when no axis was fitted
     dent : ``(amplitude, offset)`` of :func:`fit_dent` (mm), with ``spec.dent_radius_mm > 0``; else None
     n_outliers : the points dropped as off their cell's plane (``spec.outlier_mm``)
-    n_outlier_tested : the points tested for it (those near a valid grid point; 0 without ``outlier_mm``)
+    n_outlier_tested : the points tested for it (those within the kernel's support of a valid grid point;
+        0 without ``outlier_mm``)
     """
 
     height: np.ndarray
@@ -1061,21 +1064,47 @@ def _cell_fit(u: np.ndarray, v: np.ndarray, dz: np.ndarray, spec: CloudGridSpec)
 
 def _off_plane(u: np.ndarray, v: np.ndarray, dz: np.ndarray, fit: tuple, spec: CloudGridSpec) -> tuple:
     """``(off, tested)``, masks of the points: ``off``, those farther than ``spec.outlier_mm`` in height from the
-    plane of their nearest grid point (ties of the rounding: ``np.rint``'s, to even), read at their own
-    ``(u, v)``, where that grid point is valid and within the kernel's support. A point whose nearest grid point is
-    not valid is not tested, though it may feed a valid neighbour's plane (at the edge of what the camera sees).
-    The points dropped are a camera's gross depth errors (stereo mismatches, flying pixels at depth edges), which
-    would pull every plane they fall in; ``tested``: those near a valid grid point."""
+    plane of a valid grid point within the kernel's support of them, read at their own ``(u, v)``: their nearest
+    grid point (ties of the rounding: ``np.rint``'s, to even; clamped to the grid) where it is valid and within the
+    support, else the nearest valid grid point within the support (the first of equal distances in the order of
+    rows, then columns). So a point at the edge of what the camera sees, whose nearest grid point has too few
+    points to be valid but which feeds a valid neighbour's plane, is tested against that plane; a flying pixel at a
+    depth edge (the tool's silhouette, a fold) lies there. A point within the support of no valid grid point feeds
+    no estimate and is not tested. The points dropped are a camera's gross depth errors (stereo mismatches, flying
+    pixels), which would pull every plane they fall in; ``tested``: those within the support of a valid grid
+    point."""
     g, h = spec.grid_size, spec.half_width_mm
     step = spec.spacing_mm
     S, valid, bu, bv = fit[2], fit[3], fit[4], fit[5]
+    kr2 = spec.kernel_radius_cells ** 2
     fu, fv = (u + h) / step, (v + h) / step
     J = np.clip(np.rint(fu), 0, g - 1).astype(np.int64)
     I = np.clip(np.rint(fv), 0, g - 1).astype(np.int64)
     du, dv = fu - J, fv - I
     cell = I * g + J
-    near = (du * du + dv * dv < spec.kernel_radius_cells ** 2) & valid[cell]
-    return near & (np.abs(dz - (S[cell] + bu[cell] * du + bv[cell] * dv)) > spec.outlier_mm), near
+    near = (du * du + dv * dv < kr2) & valid[cell]
+    res = np.where(near, dz - (S[cell] + bu[cell] * du + bv[cell] * dv), 0.0)
+    rest = np.flatnonzero(~near)  # the nearest valid grid point within the support, if any
+    if rest.size and valid.any():
+        c = int(math.ceil(spec.kernel_radius_cells))
+        fu_r, fv_r = fu[rest], fv[rest]
+        I0, J0 = np.rint(fv_r).astype(np.int64), np.rint(fu_r).astype(np.int64)
+        best = np.full(rest.size, kr2)
+        r_res = np.zeros(rest.size)
+        for di in range(-c, c + 1):
+            for dj in range(-c, c + 1):
+                Ii, Jj = I0 + di, J0 + dj
+                inside = (Ii >= 0) & (Ii < g) & (Jj >= 0) & (Jj < g)
+                cl = np.where(inside, Ii * g + Jj, 0)
+                ddu, ddv = fu_r - Jj, fv_r - Ii
+                d2 = ddu * ddu + ddv * ddv
+                take = inside & (d2 < best) & valid[cl]
+                best = np.where(take, d2, best)
+                r_res = np.where(take, dz[rest] - (S[cl] + bu[cl] * ddu + bv[cl] * ddv), r_res)
+        found = best < kr2
+        near[rest] = found
+        res[rest] = np.where(found, r_res, 0.0)
+    return near & (np.abs(res) > spec.outlier_mm), near
 
 
 def _fill(H: np.ndarray, valid: np.ndarray, rule: str) -> np.ndarray:

@@ -904,14 +904,16 @@ def _cell_planes(M, g, kr, linear, min_points, max_leverage, Hc, valid, Bu, Bv):
 
 @njit(cache=True)
 def _drop_off_plane(GUs, GVs, Zs, first, nc, g, kr, tol, Hc, valid, Bu, Bv, flag):
-    """Drop, in place, the sorted points whose height change lies more than ``tol`` from the plane of their nearest
-    grid point (``np.rint``, clamped to the grid) where that point is valid and within ``kr`` of them
-    (``cloud_features._off_plane``), keeping the bins' order (:func:`_compact`); ``flag``: scratch of the points'
-    length (-1 for a point dropped). Returns
-    the points dropped and the points tested (those near a valid grid point)."""
+    """Drop, in place, the sorted points whose height change lies more than ``tol`` from the plane of a valid grid
+    point within ``kr`` of them: their nearest grid point (``np.rint``, clamped to the grid) where it is valid and
+    within ``kr``, else the nearest valid one within ``kr`` (the first of equal distances, rows then columns;
+    ``cloud_features._off_plane``), keeping the bins' order (:func:`_compact`); ``flag``: scratch of the points'
+    length (-1 for a point dropped). Returns the points dropped and the points tested (those within ``kr`` of a
+    valid grid point)."""
     n = first[nc * nc]
     kr2 = kr * kr
     g1 = g - 1.0
+    c = int(math.ceil(kr))
     n_off = 0
     n_test = 0
     for s in range(n):
@@ -922,13 +924,35 @@ def _drop_off_plane(GUs, GVs, Zs, first, nc, g, kr, tol, Hc, valid, Bu, Bv, flag
         du = gu - J
         dv = gv - I
         off = 0
-        if du * du + dv * dv < kr2:
-            cell = int(I) * g + int(J)
-            if valid[cell]:
-                n_test += 1
-                if abs(Zs[s] - (Hc[cell] + Bu[cell] * du + Bv[cell] * dv)) > tol:
-                    off = -1
-                    n_off += 1
+        cell = int(I) * g + int(J)
+        tested = du * du + dv * dv < kr2 and valid[cell]
+        if not tested:  # the nearest valid grid point within the support (at the edge of what the camera sees)
+            best = kr2
+            I0 = np.rint(gv)
+            J0 = np.rint(gu)
+            for di in range(-c, c + 1):
+                Ii = I0 + di
+                if Ii < 0.0 or Ii > g1:
+                    continue
+                for dj in range(-c, c + 1):
+                    Jj = J0 + dj
+                    if Jj < 0.0 or Jj > g1:
+                        continue
+                    ddu = gu - Jj
+                    ddv = gv - Ii
+                    d2 = ddu * ddu + ddv * ddv
+                    k = int(Ii) * g + int(Jj)
+                    if d2 < best and valid[k]:
+                        best = d2
+                        cell = k
+                        du = ddu
+                        dv = ddv
+                        tested = True
+        if tested:
+            n_test += 1
+            if abs(Zs[s] - (Hc[cell] + Bu[cell] * du + Bv[cell] * dv)) > tol:
+                off = -1
+                n_off += 1
         flag[s] = off
     if n_off:
         _compact(GUs, GVs, Zs, first, nc, flag)

@@ -93,6 +93,52 @@ def test_a_clean_cloud_loses_no_point_and_a_cloud_with_outliers_comes_back_near_
     assert np.mean(better) < 0.3 * np.mean(worse), (better, worse)
 
 
+def _edge_cloud(seed=0, n=4000):
+    """A flat surface seen up to ``v = 0`` only (0.3 mm noise; the 12 x 12 grid's row 6, at v = 1.8 mm, has no
+    valid plane) and seven flying pixels 6 mm high at ``v = 0.6`` mm, beyond the edge: their nearest grid point is
+    row 6's, row 5's (0.6 cells away) is valid. The reference surface (flat) and the spec without the instrument."""
+    V, U0, T = plate(0.0)
+    sp = spec(instrument_radius_mm=0.0, dent_radius_mm=0.0, outlier_mm=3.0)
+    ref = ReferenceSurface.for_case(U0, T, [0, 0, 0], np.eye(3), sp)
+    rng = np.random.default_rng(seed)
+    clean = np.column_stack([rng.uniform(-24, 24, n), rng.uniform(-24, 0.0, n), rng.normal(0, 0.3, n)])
+    fly = np.column_stack([np.linspace(-15, 15, 7), np.full(7, 0.6), np.full(7, 6.0)])
+    return clean, np.vstack([clean, fly]), ref, sp
+
+
+def test_a_flying_pixel_beyond_the_edge_of_the_view_is_tested_against_the_nearest_valid_plane():
+    """A pixel at a depth edge lands where the camera sees little: its nearest grid point has no valid plane. It
+    still pulls the valid neighbour's plane it falls in, so it is tested against that plane and dropped; the
+    heights are then the clean cloud's, bit for bit."""
+    clean, dirty, ref, sp = _edge_cloud()
+    no_filter = spec(instrument_radius_mm=0.0, dent_radius_mm=0.0)
+    g_clean, g_raw, g_fixed = cloud_grid(clean, ref, no_filter), cloud_grid(dirty, ref, no_filter), cloud_grid(
+        dirty, ref, sp)
+    assert g_raw.valid[5].all() and not g_raw.valid[6].any()  # the pixels' nearest grid points are not valid
+    assert np.abs(g_raw.height - g_clean.height).max() > 0.05  # row 5's planes are pulled by them
+    g_kept = cloud_grid(clean, ref, sp)
+    assert g_kept.n_outliers == 0 and g_fixed.n_outliers == 7
+    assert g_fixed.n_outlier_tested == g_kept.n_outlier_tested + 7  # the pixels are tested
+    np.testing.assert_array_equal(g_fixed.height, g_clean.height)
+    np.testing.assert_array_equal(g_fixed.valid, g_clean.valid)
+    # a point within the support of no valid grid point is neither tested nor dropped
+    far = np.vstack([dirty, [[0.0, 15.0, 6.0]]])
+    g_far = cloud_grid(far, ref, sp)
+    assert (g_far.n_outliers, g_far.n_outlier_tested) == (7, g_fixed.n_outlier_tested)
+
+
+def test_the_compiled_pass_tests_the_edge_of_the_view_as_the_reference():
+    clean, dirty, ref, sp = _edge_cloud(seed=1)
+    rng = np.random.default_rng(1)
+    for cloud in (dirty, clean):
+        cloud = np.ascontiguousarray(cloud[rng.permutation(len(cloud))])
+        want = cloud_grid(cloud, ref, sp)
+        x, counts = _compiled(cloud, ref, sp, np.zeros(3))
+        assert (counts[3], counts[4]) == (want.n_outliers, want.n_outlier_tested)
+        np.testing.assert_allclose(x[:2 * sp.grid_size**2], want.features(include_mask=True), atol=1e-9)
+    assert want.n_outliers == 0 and counts[3] == 0
+
+
 def _compiled(cloud, ref, sp, kin):
     """One cloud through the compiled gridding pass: its feature row and its counts (``n_tool``: shaft points,
     instrument points fitted, their noise, points dropped as gross depth errors, points tested for them)."""
