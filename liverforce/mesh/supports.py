@@ -328,14 +328,13 @@ def read_point_file(path, units: str | None = None) -> np.ndarray:
 
 
 def _ply_points(path: Path, want: str) -> np.ndarray:
-    import meshio
+    """A PLY file's vertices, read as ``liverforce predict`` reads them (:func:`liverforce.geometry.ply.read_ply`)."""
+    from liverforce.geometry.ply import PlyError, read_ply
 
     try:
-        return np.asarray(meshio.read(path, file_format="ply").points, float)[:, :3]
-    except SystemExit as exc:  # meshio 5.3.5 calls sys.exit on some unreadable files
-        raise SupportError(f"{path}: not a readable PLY file (exit {exc.code}; expected {want})") from None
-    except Exception as exc:  # noqa: BLE001 - meshio raises many types; re-raised with the file named
-        raise SupportError(f"{path}: not a readable PLY file ({type(exc).__name__}: {exc}; expected {want})") from None
+        return read_ply(path).points
+    except PlyError as exc:
+        raise SupportError(f"{exc} (expected {want})") from None
 
 
 def _vertex_ids(ids: np.ndarray, path: Path, lines: list[int] | None) -> np.ndarray:

@@ -8,7 +8,8 @@ Point clouds (``read_points``), one point per row, mm unless ``units`` says othe
   skipped; extra columns, a garbled first line and an empty file refused; the reader the
   mesh stage reads its point files with, :mod:`liverforce.geometry.point_table`);
 - ``.ply``: ASCII or binary (little/big endian), the ``vertex`` element's
-  ``x y z`` properties (other vertex properties and later elements ignored).
+  ``x y z`` properties (other vertex properties and other elements ignored;
+  :mod:`liverforce.geometry.ply`, the reader the mesh stage reads its point files with).
 
 Surfaces (``read_surface``): ``.ply`` with faces, ``.npz`` with ``points`` and
 ``facets``, or anything meshio reads (STL, OBJ, OFF, VTU, VTK, ...); a
@@ -56,102 +57,17 @@ from liverforce.serve.errors import PredictionInputError
 from liverforce.serve.input_frame import InputFrame, unit_scale
 from liverforce.serve.preop import Preop
 
-_PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2", "ushort": "u2",
-    "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4", "float": "f4", "float32": "f4",
-    "double": "f8", "float64": "f8",
-}
-
 
 # --------------------------------------------------------------------------- PLY
-def _ply_header(fh) -> tuple[str, list[tuple[str, int, list[tuple[str, ...]]]]]:
-    if fh.readline().strip() != b"ply":
-        raise PredictionInputError(f"{fh.name}: not a PLY file (no 'ply' magic line)")
-    fmt, elements = None, []
-    while True:
-        line = fh.readline()
-        if not line:
-            raise PredictionInputError(f"{fh.name}: PLY header has no end_header")
-        words = line.decode("ascii", "replace").split()
-        if not words or words[0] in ("comment", "obj_info"):
-            continue
-        if words[0] == "format":
-            fmt = words[1]
-        elif words[0] == "element":
-            elements.append((words[1], int(words[2]), []))
-        elif words[0] == "property":
-            elements[-1][2].append(tuple(words[1:]))
-        elif words[0] == "end_header":
-            break
-    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
-        raise PredictionInputError(f"{fh.name}: unsupported PLY format '{fmt}'")
-    return fmt, elements
+def _read_ply(path: Path):
+    """The PLY file's vertices and triangles (:func:`liverforce.geometry.ply.read_ply`, the mesh stage's reader
+    too), its refusals as :class:`PredictionInputError`."""
+    from liverforce.geometry.ply import PlyError, read_ply
 
-
-def read_ply(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """``(points (n, 3), faces (m, 3) or None)`` of a PLY file (triangles only for faces)."""
-    path = Path(path)
-    with open(path, "rb") as fh:
-        fmt, elements = _ply_header(fh)
-        endian = ">" if fmt == "binary_big_endian" else "<"
-        points = faces = None
-        text = fh.read().decode("ascii", "replace").split() if fmt == "ascii" else None
-        pos = 0
-        if fmt != "ascii":
-            fh.seek(0)
-            raw = fh.read()
-            pos = raw.index(b"end_header") + len(b"end_header")
-            pos = raw.index(b"\n", pos) + 1
-        for name, count, props in elements:
-            lists = [p for p in props if p[0] == "list"]
-            if fmt == "ascii":
-                if name == "vertex":
-                    width = len(props)
-                    if lists:
-                        raise PredictionInputError(f"{path}: list properties in the vertex element are not supported")
-                    vals = np.asarray(text[pos:pos + width * count], dtype=np.float64).reshape(count, width)
-                    names = [p[1] for p in props]
-                    points = vals[:, [names.index(a) for a in "xyz"]]
-                    pos += width * count
-                elif name == "face" and lists:
-                    tri = []
-                    for _ in range(count):
-                        n = int(text[pos])
-                        tri.append(text[pos + 1:pos + 1 + n])
-                        pos += 1 + n
-                    faces = _triangles(tri, path)
-                else:
-                    if lists:
-                        break  # cannot skip variable-length elements we do not read
-                    pos += len(props) * count
-            else:
-                if lists:
-                    if name != "face" or len(props) != 1:
-                        break
-                    cnt_t, idx_t = _PLY_TYPES[props[0][1]], _PLY_TYPES[props[0][2]]
-                    cs, isz = np.dtype(cnt_t).itemsize, np.dtype(idx_t).itemsize
-                    # fast path: all triangles
-                    dt = np.dtype([("n", endian + cnt_t), ("v", endian + idx_t, (3,))])
-                    block = np.frombuffer(raw, dtype=dt, count=count, offset=pos)
-                    if (block["n"] != 3).any():
-                        raise PredictionInputError(f"{path}: only triangular faces are supported")
-                    faces = block["v"].astype(np.int64)
-                    pos += count * (cs + 3 * isz)
-                else:
-                    dt = np.dtype([(p[1], endian + _PLY_TYPES[p[0]]) for p in props])
-                    block = np.frombuffer(raw, dtype=dt, count=count, offset=pos)
-                    if name == "vertex":
-                        points = np.column_stack([block[a].astype(np.float64) for a in "xyz"])
-                    pos += count * dt.itemsize
-    if points is None:
-        raise PredictionInputError(f"{path}: the PLY file has no vertex element with x, y, z")
-    return points, faces
-
-
-def _triangles(rows: list, path) -> np.ndarray:
-    if any(len(r) != 3 for r in rows):
-        raise PredictionInputError(f"{path}: only triangular faces are supported")
-    return np.asarray(rows, dtype=np.int64).reshape(-1, 3)
+    try:
+        return read_ply(path)
+    except PlyError as exc:
+        raise PredictionInputError(str(exc)) from None
 
 
 # --------------------------------------------------------------------------- clouds and surfaces
@@ -169,7 +85,7 @@ def read_points(path: str | Path, units: str | None = "mm") -> np.ndarray:
         elif suffix in TEXT_SUFFIXES:
             pts = _read_table(path)
         elif suffix == ".ply":
-            pts, _ = read_ply(path)
+            pts = _read_ply(path).points
         else:
             raise PredictionInputError(f"{path}: unknown point-cloud format '{suffix}' (use .npy, .csv or .ply)")
     except (ValueError, OSError) as exc:
@@ -201,10 +117,13 @@ def read_surface(path: str | Path, units: str | None = "mm") -> tuple[np.ndarray
     scale = unit_scale(units)
     suffix = path.suffix.lower()
     if suffix == ".ply":
-        pts, faces = read_ply(path)
-        if faces is None:
+        ply = _read_ply(path)
+        if ply.polygons:
+            raise PredictionInputError(f"{path}: only triangular faces are supported ({ply.polygons} of the PLY "
+                                       "file's faces are not triangles: triangulate it, e.g. in MeshLab or Slicer)")
+        if ply.faces is None or not len(ply.faces):
             raise PredictionInputError(f"{path}: a surface needs faces; this PLY file holds only points")
-        return pts * scale, faces
+        return ply.points * scale, ply.faces
     if suffix == ".npz":
         with np.load(path, allow_pickle=False) as z:
             return np.asarray(z["points"], dtype=np.float64) * scale, np.asarray(z["facets"], dtype=np.int64)

@@ -1,0 +1,150 @@
+"""One PLY reader (:mod:`liverforce.geometry.ply`) for the mesh stage's point files and ``liverforce predict``'s
+clouds and surfaces: the PLY variants labs and tools write are read alike by both callers, and a broken file is
+refused by both with the file named (the mesh stage's wording ``expected ...`` kept), never a traceback, never a
+silently short point list."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from liverforce.geometry.ply import PlyError, read_ply
+from liverforce.mesh.supports import SupportError, read_point_file
+from liverforce.serve.errors import PredictionInputError
+from liverforce.serve.files import read_points, read_surface
+
+P = np.array([[0.0, 0.0, 0.0], [10.5, 0.0, 0.0], [0.0, 10.25, 0.0], [0.0, 0.0, -10.0]])
+F = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])
+TYPES = {"f4": "float", "f8": "double", "u1": "uchar", "i4": "int", "u4": "uint"}
+
+
+def _header(fmt, vprops, nv, fprops=(), nf=0, before=(), eol="\n"):
+    lines = ["ply", f"format {fmt} 1.0", "comment exported by a lab", "obj_info scanner frame", *before,
+             f"element vertex {nv}", *(f"property {TYPES[t]} {n}" for t, n in vprops)]
+    if fprops:
+        lines += [f"element face {nf}", *fprops]
+    return (eol.join([*lines, "end_header"]) + eol).encode()
+
+
+def _binary(endian, vprops=(("f4", "x"), ("f4", "y"), ("f4", "z")), faces=None, itype="i4", name="vertex_indices",
+            face_flags=False):
+    fmt = "binary_little_endian" if endian == "<" else "binary_big_endian"
+    fprops = () if faces is None else (f"property list uchar {TYPES[itype]} {name}",
+                                       *(["property uchar flags"] if face_flags else []))
+    out = _header(fmt, vprops, len(P), fprops, 0 if faces is None else len(faces))
+    v = np.zeros(len(P), [(n, endian + t) for t, n in vprops])
+    for t, n in vprops:
+        v[n] = P[:, "xyz".index(n)] if n in "xyz" else 7
+    out += v.tobytes()
+    for tri in faces if faces is not None else []:
+        out += np.uint8(3).tobytes() + np.asarray(tri, endian + itype).tobytes() + (b"\x05" if face_flags else b"")
+    return out
+
+
+def _ascii(vprops=(("f4", "x"), ("f4", "y"), ("f4", "z")), faces=None, fprops=None, face_extra="", eol="\n",
+           before=(), before_rows=""):
+    fprops = fprops or ("property list uchar int vertex_indices",)
+    out = _header("ascii", vprops, len(P), fprops if faces is not None else (), len(faces or []), before, eol)
+    out += before_rows.encode()
+    for p in P:
+        out += (" ".join(repr(float(p["xyz".index(n)])) if n in "xyz" else "7" for _, n in vprops) + eol).encode()
+    for tri in faces or []:
+        out += (f"{len(tri)} " + " ".join(map(str, tri)) + face_extra + eol).encode()
+    return out
+
+
+GOOD = {  # file name: (bytes, triangles read)
+    "ascii_points.ply": (_ascii(), None),
+    "ascii_crlf_faces.ply": (_ascii(faces=F.tolist(), eol="\r\n"), F),
+    "ascii_normals_colours.ply": (_ascii(vprops=(("f4", "nx"), ("f8", "z"), ("f4", "x"), ("f4", "y"), ("u1", "red"))),
+                                  None),
+    "ascii_face_flags.ply": (_ascii(faces=F.tolist(), fprops=("property list uchar int vertex_indices",
+                                                              "property uchar flags"), face_extra=" 1"), F),
+    "ascii_camera_first.ply": (_ascii(before=("element camera 1", "property float view_px", "property float view_py"),
+                                      before_rows="5 6\n"), None),
+    "binary_le_points.ply": (_binary("<"), None),
+    "binary_be_points.ply": (_binary(">"), None),
+    "binary_le_double_colour_faces.ply": (_binary("<", (("f8", "x"), ("f8", "y"), ("f8", "z"), ("u1", "red")), F), F),
+    "binary_be_uint_faces.ply": (_binary(">", faces=F, itype="u4"), F),
+    "binary_le_face_flags.ply": (_binary("<", faces=F, face_flags=True), F),
+    "binary_le_vertex_index.ply": (_binary("<", faces=F, name="vertex_index"), F),
+}
+
+
+@pytest.mark.parametrize("name", sorted(GOOD))
+def test_ply_variants_are_read_alike_by_the_mesh_stage_and_predict(tmp_path, name):
+    data, tri = GOOD[name]
+    path = tmp_path / name
+    path.write_bytes(data)
+    got = read_ply(path)
+    np.testing.assert_allclose(got.points, P, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(read_point_file(path, "mm"), P, atol=1e-6)  # a support / exertion-point file
+    np.testing.assert_allclose(read_points(path), P, atol=1e-6)  # liverforce predict's cloud
+    if tri is None:
+        assert got.faces is None
+        with pytest.raises(PredictionInputError, match=f"{name}: a surface needs faces"):
+            read_surface(path)
+    else:
+        np.testing.assert_array_equal(got.faces, tri)
+        pts, faces = read_surface(path, units="m")
+        np.testing.assert_allclose(pts, P * 1000.0, atol=1e-3)
+        np.testing.assert_array_equal(faces, tri)
+
+
+def test_a_quad_face_is_refused_as_a_surface_but_its_vertices_are_a_cloud(tmp_path):
+    path = tmp_path / "quad.ply"
+    path.write_bytes(_ascii(faces=[[0, 1, 2, 3]]))
+    assert read_ply(path).polygons == 1
+    np.testing.assert_allclose(read_points(path), P, atol=1e-6)
+    np.testing.assert_allclose(read_point_file(path), P, atol=1e-6)
+    with pytest.raises(PredictionInputError, match=r"quad\.ply: only triangular faces are supported \(1 of"):
+        read_surface(path)
+
+
+def test_large_binary_faces_are_read_in_one_block(tmp_path):
+    rng = np.random.default_rng(0)
+    pts = rng.normal(size=(5000, 3))
+    tri = rng.integers(0, 5000, size=(20000, 3))
+    body = _header("binary_little_endian", (("f8", "x"), ("f8", "y"), ("f8", "z")), len(pts),
+                   ("property list uchar int vertex_indices",), len(tri))
+    rec = np.zeros(len(tri), [("n", "u1"), ("v", "<i4", (3,))])
+    rec["n"], rec["v"] = 3, tri
+    (tmp_path / "big.ply").write_bytes(body + pts.astype("<f8").tobytes() + rec.tobytes())
+    got = read_ply(tmp_path / "big.ply")
+    np.testing.assert_array_equal(got.points, pts)
+    np.testing.assert_array_equal(got.faces, tri)
+
+
+HEAD = b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+BAD = {  # file name: (bytes, what the message says)
+    "empty.ply": (b"", r"not a PLY file \(no 'ply' magic line\)"),
+    "no_end.ply": (b"ply\nformat ascii 1.0\nelement vertex 1\n", "has no end_header"),
+    "count_word.ply": (b"ply\nformat ascii 1.0\nelement vertex many\nproperty float x\nend_header\n",
+                       r"header line 3 'element vertex many': expected 'element <name> <count>'"),
+    "prop_first.ply": (b"ply\nformat ascii 1.0\nproperty float x\nelement vertex 1\nend_header\n1\n",
+                       "a property before any element"),
+    "float128.ply": (b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float128 x\nend_header\n",
+                     "unknown property type float128"),
+    "format.ply": (b"ply\nformat binary_middle_endian 1.0\nend_header\n", "unsupported PLY format"),
+    "no_xyz.ply": (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float a\nproperty float b\nend_header\n1 2\n",
+                   r"the PLY vertex element has no x, y, z property \(it has a, b\)"),
+    "short_ascii.ply": (HEAD + b"1 2 3\n4 5 6\n", "ends early: its header promises 3 vertex rows, the data holds 2"),
+    "word.ply": (HEAD + b"1 2 3\n4 abc 6\n7 8 9\n", "PLY vertex row 1 holds 'abc', not a number"),
+    "truncated.ply": (_binary("<")[:-10], "ends early: its header promises 4 vertex rows, the data holds 3"),
+    "truncated_faces.ply": (_binary("<", faces=F)[:-3], "ends early: its header promises 4 face rows"),
+    "face_index.ply": (_ascii(faces=[[0, 1, 9]]), "a PLY face refers to a vertex that does not exist"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(BAD))
+def test_broken_ply_files_are_refused_by_both_callers_naming_the_file(tmp_path, name):
+    data, why = BAD[name]
+    path = tmp_path / name
+    path.write_bytes(data)
+    with pytest.raises(PlyError, match=why):
+        read_ply(path)
+    with pytest.raises(SupportError, match=f"{name}: .*{why}.*expected 3 numbers per row"):
+        read_point_file(path, "m")
+    for read in (read_points, read_surface):
+        with pytest.raises(PredictionInputError, match=f"{name}: .*{why}"):
+            read(path)
