@@ -462,24 +462,22 @@ def self_intersections(vertices: np.ndarray, faces: np.ndarray, tol: float = 1e-
 
     Notes
     -----
-    Candidate pairs come from a KD-tree on the triangle centroids (bounding
-    spheres that overlap); pairs sharing a vertex are skipped (neighbours).
+    Candidate pairs come from KD-trees on the triangle centroids (bounding
+    spheres that overlap), the triangles grouped by size (radius within a
+    factor 4) so that a few long triangles (a spike, a fan across a filled
+    hole) search only their own neighbourhood, not make every triangle search
+    theirs (which on a dense surface asked for billions of pairs); pairs
+    sharing a vertex are skipped (neighbours).
     Two triangles intersect if an edge of one crosses the other
     (Möller–Trumbore, strictly inside within ``tol`` relative).  Coplanar
     overlaps are not detected.
     """
-    from scipy.spatial import cKDTree
-
     tri = vertices[faces]
     centre = tri.mean(axis=1)
     radius = np.linalg.norm(tri - centre[:, None, :], axis=2).max(axis=1)
-    tree = cKDTree(centre)
-    pairs = tree.query_pairs(r=2.0 * float(radius.max()), output_type="ndarray")
-    if len(pairs) == 0:
+    a, b = _bounding_sphere_pairs(centre, radius)
+    if len(a) == 0:
         return np.zeros((0, 2), dtype=np.int64)
-    a, b = pairs[:, 0], pairs[:, 1]
-    close = np.linalg.norm(centre[a] - centre[b], axis=1) <= radius[a] + radius[b]
-    a, b = a[close], b[close]
     fa, fb = faces[a], faces[b]
     share = (fa[:, :, None] == fb[:, None, :]).any(axis=(1, 2))
     a, b = a[~share], b[~share]
@@ -494,6 +492,35 @@ def self_intersections(vertices: np.ndarray, faces: np.ndarray, tol: float = 1e-
         for i, j in ((0, 1), (1, 2), (2, 0)):
             hit |= _segment_hits_triangle(tri[s][:, i], tri[s][:, j], tri[t], tol)
     return np.stack([a[hit], b[hit]], axis=1)
+
+
+def _bounding_sphere_pairs(centre: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs ``(a, b)``, ``a != b``, each once, whose bounding spheres overlap; searched per pair of size groups
+    (radius within a factor 4 of each other) with that pair's largest radii only."""
+    from scipy.spatial import cKDTree
+
+    if len(radius) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    base = max(float(np.median(radius)), 1e-12 * float(radius.max()), 1e-300)
+    level = np.floor(np.log(np.maximum(radius, base) / base) / np.log(4.0)).astype(np.int64)
+    groups = [np.flatnonzero(level == k) for k in np.unique(level)]
+    trees = [cKDTree(centre[g]) for g in groups]
+    out_a, out_b = [], []
+    for i, gi in enumerate(groups):
+        for j in range(i, len(groups)):
+            gj = groups[j]
+            r = float(radius[gi].max() + radius[gj].max())
+            if i == j:
+                p = trees[i].query_pairs(r=r, output_type="ndarray")
+                a, b = gi[p[:, 0]], gi[p[:, 1]]
+            else:
+                hits = trees[i].query_ball_tree(trees[j], r=r)
+                a = np.repeat(gi, [len(h) for h in hits])
+                b = gj[np.fromiter((k for h in hits for k in h), np.int64, count=len(a))]
+            close = np.linalg.norm(centre[a] - centre[b], axis=1) <= radius[a] + radius[b]
+            out_a.append(a[close])
+            out_b.append(b[close])
+    return np.concatenate(out_a).astype(np.int64), np.concatenate(out_b).astype(np.int64)
 
 
 def _segment_hits_triangle(p0: np.ndarray, p1: np.ndarray, tri: np.ndarray, tol: float) -> np.ndarray:

@@ -1,0 +1,40 @@
+"""A lab's own liver surfaces with the defects real exports have, beyond tests/geometry/test_bad_inputs.py."""
+
+from __future__ import annotations
+
+import tracemalloc
+
+import numpy as np
+import trimesh
+
+from liverforce.geometry.repair import self_intersections
+
+
+def spiked_sphere(subdivisions=4, radius=100.0):
+    """A fine sphere whose pole vertex is pulled 1.5 diameters inwards: its five long triangles pierce the far
+    side (a segmentation spike), every other triangle is small."""
+    s = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    v, f = np.array(s.vertices), np.array(s.faces)
+    pole = int(np.argmax(v[:, 2]))
+    v[pole] = [0.13 * radius, 0.07 * radius, -1.5 * radius]  # off the axis: no edge coplanar with the far pole's
+    return v, f, pole
+
+
+def test_a_few_long_triangles_do_not_make_the_self_intersection_search_quadratic():
+    """One spike across a dense surface made every triangle search the spike's reach (2x the longest triangle's
+    radius): n^2/2 candidate pairs, which on a 600k-triangle liver killed the geometry job for memory with no
+    message. Only the spike's own neighbourhood is searched now, and the crossing is found where it is."""
+    v, f, pole = spiked_sphere()
+    tracemalloc.start()
+    try:
+        pairs = self_intersections(v, f)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 40e6, f"{peak / 1e6:.0f} MB for {len(f)} triangles"
+    spike = np.flatnonzero((f == pole).any(axis=1))
+    assert len(pairs) and np.isin(pairs, spike).any(axis=1).all()  # every pair has a spike triangle
+    other = np.where(np.isin(pairs[:, 0], spike), pairs[:, 1], pairs[:, 0])
+    hit = v[f[other]].mean(axis=1)
+    np.testing.assert_allclose(hit[:, 2], -100.0, atol=5.0)  # where the spike leaves: near the far pole
+    assert np.abs(hit[:, :2]).max() < 20.0
