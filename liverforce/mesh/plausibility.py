@@ -29,6 +29,10 @@ case and catch instead a tagging that went wrong on an unusual shape (and
 axis swaps that leave the IVC off the posterior face).  The checks do not
 prove a frame right; they flag the common mistakes.
 
+Under ``mode: add`` the lab's supports lie over the built-in regions: those
+checks then run on the regions as auto-tagged, beneath the lab's supports, and
+are skipped on the final ones (listed with the reason).
+
 A lab's own supports (``geometry.imported[...].supports`` with ``mode:
 replace``) take the place of the built-in IVC, ligament, visceral and rib
 regions, so the checks that measure those (:data:`BUILT_IN_SUPPORT_CHECKS`)
@@ -185,11 +189,20 @@ def skipped_checks(supports_mode: str | None, exertion_given: bool = False) -> d
         The mode of the lab's own supports (``geometry.imported[...].supports``),
         ``None`` when it gives none. Under ``replace`` the checks of
         :data:`BUILT_IN_SUPPORT_CHECKS` are skipped; ``right_lobe`` (the frame)
-        and the visible region's checks are kept.
+        and the visible region's checks are kept. Under ``add`` those checks are
+        skipped on the final regions (the lab's supports lie over the built-in
+        ones: a lab's clamp on the anterior face is no IVC in the wrong place)
+        and run instead on the auto-tagged regions beneath
+        (:func:`built_in_only`; the mesh stage records them under
+        ``regions_check.built_in``).
     exertion_given : bool
         The lab gives its own exertion points: with ``replace`` supports,
         ``visible_area`` is skipped too (no candidate is sampled there).
     """
+    if supports_mode == "add":
+        why = ("the lab's own supports (geometry.imported[...].supports, mode: add) lie over the built-in regions "
+               "this check measures: it ran on the regions as auto-tagged, before them (regions_check.built_in)")
+        return {name: why for name in BUILT_IN_SUPPORT_CHECKS}
     if supports_mode != "replace":
         return {}
     why = ("the lab's own supports (geometry.imported[...].supports, mode: replace) replace the built-in "
@@ -199,6 +212,11 @@ def skipped_checks(supports_mode: str | None, exertion_given: bool = False) -> d
         skip["visible_area"] = ("the lab gives its own exertion points (geometry.imported[...].exertion_points) "
                                 "and supports: the visible region is not sampled")
     return skip
+
+
+def built_in_only(reason: str = "checked on the final regions (regions_check.checks)") -> dict[str, str]:
+    """A ``skip`` that leaves only :data:`BUILT_IN_SUPPORT_CHECKS` to run (the other checks run elsewhere)."""
+    return {name: reason for name in ("right_lobe", "visible_anterior", "visible_area")}
 
 
 def regions_check(points, facets, facet_region, facet_visible, *, mode: str = "warn",

@@ -62,7 +62,10 @@ Supports are applied in order (a later one overrides an earlier one) onto zero
 regions (``mode: replace``) or onto the auto-tagged ones (``mode: add``). Each
 support's report counts the facets it finally holds (``n_facets``; ``n_selected``
 and ``taken_by`` when later ones took some); one left with none by a later support
-of another kind or region is refused, naming both (:func:`apply_supports`).
+of another kind or region is refused, naming both (:func:`apply_supports`). Under
+``mode: add`` the same holds for the auto-tagged regions beneath: a lab support
+taking some of one lists them (``took_built_in``), one wholly covered by lab
+supports of another kind is refused.
 """
 
 from __future__ import annotations
@@ -718,7 +721,43 @@ def apply_supports(vertices, faces, auto_region: np.ndarray, mode: str, supports
         log.log(logging.WARNING if held == 0 else logging.INFO,
                 "support %s (%s): %d of its %d facets taken by later support(s) %s; it holds %d",
                 s.name, s.kind, info["n_selected"] - held, info["n_selected"], names, held)
+    if mode == "add":
+        _check_built_in_left(np.asarray(auto_region), owner, supports, report)
     return region, report
+
+
+#: what each auto-tagged region is as a support (its kind, and a foundation's slot)
+_BUILT_IN_KIND = {"ivc": "fixed", "ligament": "foundation ligament", "visceral": "foundation visceral",
+                  "rib": "sliding"}
+
+
+def _check_built_in_left(auto_region: np.ndarray, owner: np.ndarray, supports: list[Support], report: list) -> None:
+    """``mode: add``: the auto-tagged regions lie beneath the lab's supports. One wholly covered by lab supports of
+    another kind or slot would vanish from the physics (the liver's fixed IVC turned into a sliding bed) without a
+    word: refused, naming it and the supports. Facets taken from the built-in regions are listed on each lab
+    support (``took_built_in``: region -> facets) and logged."""
+    for code, name in ((c, n) for n, c in REGION_CODES.items() if c):
+        auto = auto_region == code
+        if not auto.any():
+            continue
+        takers = np.bincount(owner[auto & (owner >= 0)], minlength=len(supports))
+        for j in np.flatnonzero(takers):
+            if supports[j].code != code:
+                report[j].setdefault("took_built_in", {})[name] = int(takers[j])
+        other = [j for j in np.flatnonzero(takers) if supports[j].code != code]
+        if not other:
+            continue
+        left = int((auto & ~np.isin(owner, other)).sum())
+        names = ", ".join(f"'{supports[j].name}' ({supports[j].kind}{_slot(supports[j])}: {int(takers[j])} facets)"
+                          for j in other)
+        if left == 0:
+            raise SupportError(
+                f"the built-in {name} region ({_BUILT_IN_KIND[name]}, {int(auto.sum())} facets auto-tagged) is wholly "
+                f"covered by the lab's support(s) {names}: with mode add the auto-tagged regions lie beneath the "
+                f"lab's supports, so the liver would lose its {_BUILT_IN_KIND[name]} support without a word. Shrink "
+                f"them so they leave it facets, or use mode: replace and list every support the liver has")
+        log.info("built-in %s region (%s): %d of its %d facets taken by the lab's support(s) %s; it keeps %d",
+                 name, _BUILT_IN_KIND[name], int(auto.sum()) - left, int(auto.sum()), names, left)
 
 
 def _slot(s: Support) -> str:

@@ -38,7 +38,9 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
     whose own supports replace the auto-tagged ones is still checked for its frame
     (``right_lobe``) and visible region; the checks of the built-in supports are
     skipped for it, and listed with the reason under ``regions_check.skipped``
-    (:func:`liverforce.mesh.plausibility.skipped_checks`).
+    (:func:`liverforce.mesh.plausibility.skipped_checks`). Under ``mode: add``
+    those checks run on the auto-tagged regions beneath the lab's supports, before
+    meshing, and are recorded under ``regions_check.built_in``.
 
     An imported geometry may give its own supports and exertion points
     (``geometry.imported[].supports`` / ``.exertion_points``, carried in the
@@ -69,11 +71,18 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
     spec = surface.meta.get("spec") or {}
     user = _user_scene(spec, surface.meta)
     skip = _skipped_checks(user)  # the user's supports are not anatomy to check; the liver's frame still is
-    if mesh_cfg["regions_check"] == "strict":  # refuse before meshing: tags of the input surface
+    add = bool(user["supports"][1]) and user["supports"][0] == "add"
+    built_in = None
+    if mesh_cfg["regions_check"] == "strict" or add and mesh_cfg["regions_check"] != "off":
+        # refuse before meshing: tags of the input surface; under add, the built-in regions beneath the lab's
+        # supports are checked here (the final regions hold the lab's supports, which are no anatomy)
+        from liverforce.mesh.plausibility import built_in_only
         from liverforce.mesh.regions import tag_regions
 
         region, visible = tag_regions(surface.vertices, surface.faces, RegionParams(**mesh_cfg["regions"]))
-        _regions_check(surface.vertices, surface.faces, region, visible, surface.meta, mesh_cfg, gid, skip)
+        pre_skip = (built_in_only() if mesh_cfg["regions_check"] != "strict" else {}) if add else skip
+        built_in = _regions_check(surface.vertices, surface.faces, region, visible, surface.meta, mesh_cfg,
+                                  gid + (" (built-in regions, beneath the lab's supports)" if add else ""), pre_skip)
     t0 = time.perf_counter()
     if surface.meta.get("mesh_mode") == "as_given":
         mesh = _given_mesh(surface.meta, spec, user, mesh_cfg, exertion, seed, gid)
@@ -97,7 +106,7 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
     feats["support_boundary"] = _support_boundary(mesh, user["supports"][1])
     feats["refine_points"] = mesh.meta.get("refine_points")
     feats["regions_tagged_on"] = mesh.meta.get("regions_tagged_on")
-    feats["regions_check"] = checked
+    feats["regions_check"] = {**checked, "built_in": built_in} if add else checked
     write_json_atomic(features_path, feats)
     plot_regions(mesh, picture_path)
     log.info("mesh: %d nodes, %d tets in %.1f s", len(mesh.points), len(mesh.tets), elapsed)

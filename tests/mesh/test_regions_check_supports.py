@@ -29,7 +29,10 @@ def _own_regions(s):
 
 
 def test_skipped_checks_name_the_built_in_supports_checks_and_why():
-    assert skipped_checks(None) == {} and skipped_checks("add") == {} and skipped_checks("add", True) == {}
+    assert skipped_checks(None) == {} and skipped_checks(None, True) == {}
+    add = skipped_checks("add")  # checked on the auto-tagged regions beneath instead (tests/mesh/test_add_supports.py)
+    assert set(add) == set(BUILT_IN_SUPPORT_CHECKS) == set(skipped_checks("add", True))
+    assert all("mode: add" in why and "regions_check.built_in" in why for why in add.values())
     skip = skipped_checks("replace")
     assert set(skip) == set(BUILT_IN_SUPPORT_CHECKS) and "right_lobe" not in skip
     assert all("mode: replace" in why for why in skip.values())
