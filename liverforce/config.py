@@ -613,10 +613,12 @@ def _check_ranges(cfg: dict) -> None:
     _check_choice("material.model", mat["model"], material_models(), "material")
     if not 0.0 < mat["nu"] < 0.5:
         _fail("material.nu", f"Poisson ratio must be in (0, 0.5) (got {mat['nu']})")
+    young = "E_pa" if mat.get("E_pa") is not None else "E_mpa" if mat.get("E_mpa") is not None else None
     _material_from_young(mat)
     if not mat["params_mpa"]:
         _fail("material.params_mpa", "no material constants given", "give params_mpa (MPa), or E_pa / E_mpa "
               "for a neo_hookean material")
+    _check_material_scale(mat, f"material.{young}" if young else "material.params_mpa")
     if not 0.0 <= mat["vary_rel"] < 1.0:
         _fail("material.vary_rel", f"must be in [0, 1) (got {mat['vary_rel']})")
     lo_hi = mat["stability_stretch"]
@@ -994,6 +996,42 @@ def _material_from_young(mat: dict) -> None:
         mat["E_mpa"] = float(e_mpa)
     mat["conversion"] = note
     logging.getLogger("liverforce").info("material: %s", note)
+
+
+#: initial shear modulus (MPa) of any liver or liver phantom, and then some: 10 Pa (E about 30 Pa) to 1 MPa
+#: (E about 3 MPa; livers are 1-50 kPa, silicone and PVA phantoms up to about 1 MPa)
+MU0_PLAUSIBLE_MPA = (1e-5, 1.0)
+
+
+def _check_material_scale(mat: dict, key: str) -> None:
+    """Refuse constants whose initial shear modulus is no tissue's: Pa or kPa given as MPa (``E_mpa=14900``,
+    ``params_mpa.C10=2500``) make a liver a million times too stiff, kPa given as Pa one a thousand times too
+    soft, and both are stable, so nothing later would say it. Non-positive moduli are left to the stability
+    check (which names them unstable); Ogden constants are not judged here."""
+    from liverforce.fem.materials import _MODELS, _canonical
+
+    try:
+        mu0 = float(_MODELS[_canonical(mat["model"])].mu0(mat["params_mpa"]))
+    except (KeyError, TypeError, ValueError):
+        return  # a missing constant or an unknown model: refused with its own message elsewhere
+    lo, hi = MU0_PLAUSIBLE_MPA
+    if not mu0 > 0 or lo <= mu0 <= hi:
+        return
+    given = {k: v for k, v in mat.items() if k in ("E_pa", "E_mpa")} or mat["params_mpa"]
+    if key == "material.E_pa":
+        hint = (f"E_pa is in Pa: a liver's E is about 5000-50000 Pa (if {mat['E_pa']:g} is in kPa, give "
+                f"E_pa={mat['E_pa'] * 1e3:g})" if mu0 < lo else "E_pa is in Pa: a liver's E is about 5000-50000 Pa")
+    elif key == "material.E_mpa":
+        hint = (f"E_mpa is in MPa: a liver's E is about 0.005-0.05 MPa (if {mat['E_mpa']:g} is in Pa, give "
+                f"E_pa={mat['E_mpa']:g} instead)")
+    elif mu0 > hi:
+        hint = (f"params_mpa is in MPa, a liver's C10 about 0.001-0.01 MPa: if these constants are in Pa, divide them "
+                f"by 1e6 (mu0 {mu0 * 1e-6:.3g} MPa), if in kPa by 1e3 (mu0 {mu0 * 1e-3:.3g} MPa)")
+    else:
+        hint = (f"params_mpa is in MPa, a liver's C10 about 0.001-0.01 MPa: if these constants are in kPa, divide "
+                f"them by 1e3 (mu0 {mu0 * 1e-3:.3g} MPa)")
+    _fail(key, f"{given} gives an initial shear modulus mu0 = {mu0:.3g} MPa ({mu0 * 1e6:.3g} Pa), outside the "
+               f"{lo:g}-{hi:g} MPa of any liver or liver phantom", hint)
 
 
 def _check_mesh_mode(key: str, imp: dict) -> None:

@@ -1,0 +1,36 @@
+"""A lab's material constants in the wrong unit are refused when the config is composed, naming the key, the
+value and the likely mix-up: Pa or kPa given as MPa made a liver a million or a thousand times too stiff, kPa
+given as Pa one a thousand times too soft, and both passed every check (they are Drucker-stable)."""
+
+from __future__ import annotations
+
+import pytest
+
+from liverforce.config import ConfigError, compose
+
+
+@pytest.mark.parametrize("overrides, key, says", [
+    (["material=neo_hookean_from_e", "material.E_pa=null", "material.E_mpa=14900"], "material.E_mpa",
+     r"mu0 = 5e\+03 MPa .*if 14900 is in Pa, give E_pa=14900 instead"),
+    (["material=neo_hookean_from_e", "material.E_pa=14.9"], "material.E_pa",
+     r"mu0 = 5e-06 MPa \(5 Pa\).*if 14.9 is in kPa, give E_pa=14900"),
+    (["material=neo_hookean", "material.params_mpa.C10=2500"], "material.params_mpa",
+     r"\{'C10': 2500.0\} gives .*mu0 = 5e\+03 MPa.*in Pa, divide them by 1e6 \(mu0 0.005 MPa\)"),
+    (["material=yeoh", "material.params_mpa.C10=1.61", "material.params_mpa.C20=12.5", "material.params_mpa.C30=5.31"],
+     "material.params_mpa", r"mu0 = 3.22 MPa.*in kPa by 1e3 \(mu0 0.00322 MPa\)"),
+])
+def test_constants_in_the_wrong_unit_are_refused_with_the_likely_fix(overrides, key, says):
+    with pytest.raises(ConfigError, match=f"config key '{key}': .*outside the 1e-05-1 MPa") as err:
+        compose(["experiment=smoke", *overrides])
+    assert err.match(says)
+
+
+@pytest.mark.parametrize("overrides", [
+    ["material=neo_hookean_from_e", "material.E_pa=14900"],        # the README's liver
+    ["material=neo_hookean_from_e", "material.E_pa=600"],          # a soft ex-vivo liver
+    ["material=neo_hookean_from_e", "material.E_pa=2.5e6"],        # a stiff silicone phantom
+    ["material=yeoh"], ["material=neo_hookean"],
+    ["material=mooney_rivlin_study"],                              # judged by the stability check, not here
+])
+def test_liver_and_phantom_constants_pass(overrides):
+    compose(["experiment=smoke", *overrides])
