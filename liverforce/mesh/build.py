@@ -39,6 +39,7 @@ def build_liver_mesh(
     support_frame=None,
     file_vertices=None,
     exertion_points=None,
+    exertion_labels: list[str] | None = None,
     file_groups=None,
 ) -> LiverMesh:
     """Tetrahedralise ``surface``, extract and tag its boundary facets.
@@ -112,6 +113,9 @@ def build_liver_mesh(
         input surface (refused beyond 5 mm or on a fixed support), used instead of
         ``exertion_sampling`` as ``meta["exertion_candidates_mm"]``, refined around;
         ``meta["exertion_snap_mm"]`` holds the snapping distances.
+    exertion_labels : list of str, optional
+        Each given point as the user gave it (:func:`liverforce.mesh.supports.exertion_points_mesh`), for the
+        refusals' messages.
     require_regions : bool
         Raise ``ValueError`` if a region (1–4) or the visible set is empty;
         otherwise empty ones are only logged and listed in
@@ -152,7 +156,8 @@ def build_liver_mesh(
         if exertion_points is not None:
             from liverforce.mesh.supports import snap_exertion_points
 
-            candidates, snap = snap_exertion_points(surface.vertices, surface.faces, s_region, exertion_points)
+            candidates, snap = snap_exertion_points(surface.vertices, surface.faces, s_region, exertion_points,
+                                                     labels=exertion_labels)
             log.info("%d given exertion points snapped to the surface (max %.3g mm)", len(candidates), snap.max())
             if refine_points is None and refine_radius_mm:
                 refine_points = candidates

@@ -27,6 +27,7 @@ log = logging.getLogger(__name__)
 def build_given_mesh(points, tets, meta: dict | None = None, region_params: RegionParams | None = None, *,
                      supports: tuple | None = None, support_frame=None, file_vertices=None, file_groups=None,
                      exertion_points=None, exertion_sampling: dict | None = None,
+                     exertion_labels: list[str] | None = None,
                      coarse_edge_mm: float | None = None) -> LiverMesh:
     """Tag the boundary of a given tet mesh; node ``i`` stays node ``i``.
 
@@ -39,6 +40,7 @@ def build_given_mesh(points, tets, meta: dict | None = None, region_params: Regi
         as :func:`liverforce.mesh.build.build_liver_mesh` (user supports applied to the
         mesh's own boundary facets).
     exertion_points : (k, 3) given exertion points (mesh frame, mm): snapped onto the mesh surface.
+    exertion_labels : each given point as the user gave it, for the refusals' messages.
     exertion_sampling : ``{"n_points", "min_spacing_mm", "seed"}``: candidates sampled on the visible facets.
     coarse_edge_mm : warn when the mean boundary edge is longer (mm): the tool's few-mm traction is then
         resolved by few facets (the mesh stage passes twice ``mesh.refine_edge_mm``).
@@ -71,7 +73,7 @@ def build_given_mesh(points, tets, meta: dict | None = None, region_params: Regi
     if exertion_points is not None:
         from liverforce.mesh.supports import snap_exertion_points
 
-        candidates, snap = snap_exertion_points(points, facets, region, exertion_points)
+        candidates, snap = snap_exertion_points(points, facets, region, exertion_points, labels=exertion_labels)
         log.info("%d given exertion points snapped to the given mesh's surface (max %.3g mm)", len(candidates),
                  snap.max())
     elif exertion_sampling and visible.any():

@@ -810,30 +810,43 @@ def closest_on_triangles(tri: np.ndarray, q: np.ndarray, k: int = 16):
     rows = np.arange(len(q))
     return cp[rows, best], dist[rows, best], near[rows, best]
 
-def snap_exertion_points(vertices, faces, region, xyz_mesh: np.ndarray, max_mm: float = MAX_SNAP_MM):
+def _given(a: np.ndarray) -> list:
+    return [float(f"{x:.6g}") for x in np.asarray(a, float)]
+
+
+def snap_exertion_points(vertices, faces, region, xyz_mesh: np.ndarray, max_mm: float = MAX_SNAP_MM,
+                         labels: list[str] | None = None):
     """Closest point on the surface to each given exertion point, refusing far points and fixed supports.
 
+    ``labels`` (from :func:`exertion_points_mesh`) name each point as the user gave it (the file and row, the
+    value in the file's units and frame), for the messages; without them a point is named by its index.
     Returns ``(points (k, 3), distances (k,))`` in mm (mesh frame).
     """
     q = np.atleast_2d(np.asarray(xyz_mesh, float))
     pts, d, facet = closest_on_triangles(np.asarray(vertices, float)[np.asarray(faces)], q, k=16)
     for j in range(len(q)):
+        who = (f"exertion point {j} ({labels[j]}; {np.round(q[j], 3).tolist()} RAS mm as meshed)" if labels
+               and j < len(labels) else f"exertion point {j} {np.round(q[j], 3).tolist()} (mesh frame, mm)")
         if d[j] > max_mm:
-            raise SupportError(f"exertion point {j} {np.round(q[j], 3).tolist()} (mesh frame, mm) is {d[j]:.3g} mm "
-                               f"from the surface (limit {max_mm} mm): check its units and frame (points are read "
-                               "in the geometry file's frame, a label volume's being its header's world in RAS "
-                               "then the geometry's frame, unless they state frame: LPS, RAS or a 4x4; a 3D "
-                               "Slicer markups file states its own)")
+            raise SupportError(f"{who} is {d[j]:.3g} mm from the surface (limit {max_mm} mm): check its units and "
+                               "frame (points are read in the geometry file's frame, a label volume's being its "
+                               "header's world in RAS then the geometry's frame, unless they state frame: LPS, "
+                               "RAS or a 4x4; a 3D Slicer markups file states its own), or move it onto the liver")
         if region is not None and int(region[facet[j]]) == REGION_CODES["ivc"]:
-            raise SupportError(f"exertion point {j} {np.round(q[j], 3).tolist()} lies on a fixed support: "
-                               "the tool cannot push a clamped surface; move the point or the support")
+            raise SupportError(f"{who} lies on a fixed support: the tool cannot push a clamped surface; move the "
+                               "point or the support")
     return pts, d
 
 
-def exertion_points_mesh(spec, frame: PointFrame = PointFrame(), file_vertices=None, base_dir=None) -> np.ndarray:
+def exertion_points_mesh(spec, frame: PointFrame = PointFrame(), file_vertices=None, base_dir=None,
+                         labels: list | None = None) -> np.ndarray:
     """Given exertion points → mesh-frame mm: ``{coordinates_mm: [[x,y,z],..]}``,
-    ``{vertex_ids: [..]}`` or ``{path: ..., units: ...}`` (a point file, as support files)."""
+    ``{vertex_ids: [..]}`` or ``{path: ..., units: ...}`` (a point file, as support files).
+
+    A ``labels`` list is filled with one phrase per point naming it as given (``coordinates_mm[1] [x, y, z]``,
+    ``vertex_ids[0] = 245``, ``row 2 of pts.csv: [x, y, z] m``), for :func:`snap_exertion_points`' messages."""
     spec = dict(spec)
+    labels = labels if labels is not None else []
     keys = set(spec) - {"units", "frame"}
     if spec.get("frame") is not None and keys == {"vertex_ids"}:
         raise SupportError("exertion_points.frame: vertex ids have no frame (they index the file's vertices)")
@@ -842,20 +855,27 @@ def exertion_points_mesh(spec, frame: PointFrame = PointFrame(), file_vertices=N
         a = np.asarray(spec["coordinates_mm"], float)
         if a.ndim != 2 or a.shape[1] != 3 or not len(a):
             raise SupportError(f"exertion_points.coordinates_mm must be a list of [x, y, z], got shape {a.shape}")
+        labels[:] = [f"exertion_points.coordinates_mm[{j}] {_given(x)} mm" for j, x in enumerate(a)]
         return frame.to_mesh(a)
     if keys == {"vertex_ids"}:
         a = np.asarray(spec["vertex_ids"], np.int64).reshape(-1)
+        labels[:] = [f"exertion_points.vertex_ids[{j}] = {int(i)}" for j, i in enumerate(a)]
     elif keys == {"path"}:
         p = Path(spec["path"])
         p = p if p.is_absolute() or base_dir is None else Path(base_dir) / p
         if is_markups(p):  # a Slicer markups file: world RAS mm
-            return frame.from_world(read_markups(p, spec, "exertion_points"))
-        a = read_point_file(p, _units_words(spec.get("units"), frame))
+            a = read_markups(p, spec, "exertion_points")
+            labels[:] = [f"control point {j + 1} of {p}: {_given(x)} RAS mm" for j, x in enumerate(a)]
+            return frame.from_world(a)
+        units = _units_words(spec.get("units"), frame)
+        a = read_point_file(p, units)
         if a.ndim == 1 and spec.get("frame") is not None:
             raise SupportError("exertion_points.frame: vertex ids have no frame (they index the file's vertices)")
         if a.ndim == 2:
             scale = frame.scale if spec.get("units") is None else _units_scale(spec["units"])
+            labels[:] = [f"point {j + 1} of {p}: {_given(x)} in {units}" for j, x in enumerate(a)]
             return frame.to_mesh(a * scale)
+        labels[:] = [f"vertex id {int(i)} (point {j + 1} of {p})" for j, i in enumerate(a)]
     else:
         raise SupportError("exertion_points: give one of coordinates_mm, vertex_ids or path "
                            f"(with optional units and frame), got {sorted(spec)}")

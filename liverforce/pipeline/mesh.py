@@ -130,6 +130,7 @@ def _remeshed(surface, user: dict, mesh_cfg: dict, exertion: dict | None, seed: 
         refine_growth=mesh_cfg["refine_growth"],
         supports=user["supports"], support_frame=user["frame"], file_vertices=user["file_vertices"],
         file_groups=user["file_groups"], exertion_points=user["exertion_points"],
+        exertion_labels=user["exertion_labels"],
         exertion_sampling=None if exertion is None or user["exertion_points"] is not None else {
             "n_points": exertion["n_points"], "min_spacing_mm": exertion["min_spacing_mm"],
             "seed": derive(seed, "mesh.exertion")},
@@ -158,6 +159,7 @@ def _given_mesh(meta: dict, spec: dict, user: dict, mesh_cfg: dict, exertion: di
         RegionParams(**mesh_cfg["regions"]),
         supports=user["supports"], support_frame=user["frame"], file_vertices=user["file_vertices"],
         file_groups=user["file_groups"], exertion_points=user["exertion_points"],
+        exertion_labels=user["exertion_labels"],
         exertion_sampling=None if exertion is None or user["exertion_points"] is not None else {
             "n_points": exertion["n_points"], "min_spacing_mm": exertion["min_spacing_mm"],
             "seed": derive(seed, "mesh.exertion")},
@@ -205,10 +207,10 @@ def _user_scene(spec: dict, surface_meta: dict) -> dict:
 
     name = spec.get("name", "?")
     supports = parse_supports(spec.get("supports"), where=f"geometry.imported[{name}].supports")
-    points = spec.get("exertion_points")
+    points, labels = spec.get("exertion_points"), []
     if points is not None:
-        points = exertion_points_mesh(points, frame, file_vertices if spec.get("path") else None)
-    return {"supports": supports, "exertion_points": points, "frame": frame,
+        points = exertion_points_mesh(points, frame, file_vertices if spec.get("path") else None, labels=labels)
+    return {"supports": supports, "exertion_points": points, "exertion_labels": labels, "frame": frame,
             "file_vertices": file_vertices if spec.get("path") else None,
             "file_groups": file_groups if spec.get("path") else None}
 

@@ -1,0 +1,66 @@
+"""A lab's exertion point refused (too far from the surface, on a fixed support) is named as the lab gave it: the
+file and its row, the numbers in the file's units and frame, then where it lies as meshed. Before, only the
+converted RAS mm was shown ('exertion point 1 [149.78, 275.552, 1210.477] (mesh frame, mm)'), a point the lab's
+file (LPS metres, a scanner origin a metre away) holds nowhere, and no file was named."""
+
+from __future__ import annotations
+
+import meshio
+import numpy as np
+import pytest
+
+from liverforce.mesh.regions import tag_regions
+from liverforce.mesh.supports import PointFrame, SupportError, exertion_points_mesh, snap_exertion_points
+from liverforce.mesh.types import REGION_CODES
+
+LPS_M = np.array([-1.0, -1.0, 1.0])
+ORIGIN_MM = np.array([-150.0, -200.0, 1200.0])  # a CT scanner's origin
+
+
+def to_file(ras_mm):
+    return (np.asarray(ras_mm) * LPS_M + ORIGIN_MM) / 1000.0  # LPS metres, scanner frame
+
+
+def test_a_far_point_in_a_file_is_named_by_file_row_and_value_at_the_mesh_stage(tmp_path, liver_surface):
+    from liverforce.config import compose
+    from liverforce.pipeline.geometry import make_geometry
+    from liverforce.pipeline.mesh import make_mesh
+
+    V, F = liver_surface.vertices, liver_surface.faces
+    path = tmp_path / "liver_lps_m.vtu"
+    meshio.write(path, meshio.Mesh(to_file(V), [("triangle", F)]))
+    top = V[np.argsort(-(V[:, 1] + V[:, 2]))[[0, 40]]]
+    pts = to_file(np.vstack([top[0], top[1] + [0.0, 20.0, 0.0]]))  # the second 20 mm in front of the liver
+    tools = tmp_path / "tools.csv"
+    np.savetxt(tools, pts, delimiter=",", header="x,y,z", comments="")
+    spec = {"kind": "imported", "name": "ct", "path": str(path), "units": "m", "label": None, "frame": "LPS",
+            "exertion_points": {"path": str(tools)}}
+    surface = tmp_path / "geometry" / "imp-ct.ply"
+    make_geometry(spec, surface, surface.with_suffix(".json"))
+    cfg = {**compose(["experiment=smoke"])["mesh"], "target_nodes": 200, "refine_radius_mm": 0.0,
+           "refine_ivc_edge_mm": 0.0}
+    out = tmp_path / "mesh"
+    given = ", ".join(f"{x:.6g}" for x in pts[1])
+    with pytest.raises(SupportError, match=rf"exertion point 1 \(point 2 of {tools}: \[{given}\] in m .*RAS mm as "
+                                           r"meshed\) is 1\d\.?\d* mm from the surface"):
+        make_mesh(surface, cfg, 0, out / "imp-ct.vtu", out / "imp-ct.features.json", out / "imp-ct.regions.png")
+    assert not (out / "imp-ct.vtu").exists() and not (out / "imp-ct.features.json").exists()
+
+
+@pytest.mark.parametrize("spec_of", ["coordinates", "vertex_ids"])
+def test_a_point_on_the_fixed_support_is_named_as_given(liver_surface, spec_of):
+    V, F = liver_surface.vertices, liver_surface.faces
+    region, _ = tag_regions(V, F)
+    on_ivc = np.unique(F[region == REGION_CODES["ivc"]])
+    vid = int(np.setdiff1d(on_ivc, F[region != REGION_CODES["ivc"]])[0])  # a vertex whose every facet is the IVC's
+    if spec_of == "coordinates":
+        spec, frame = {"coordinates_mm": [V[0].tolist(), V[vid].tolist()]}, PointFrame()
+        names = rf"exertion_points\.coordinates_mm\[1\] \[{', '.join(f'{x:.6g}' for x in V[vid])}\] mm"
+    else:
+        spec, frame = {"vertex_ids": [0, vid]}, PointFrame()
+        names = rf"exertion_points\.vertex_ids\[1\] = {vid}"
+    labels = []
+    xyz = exertion_points_mesh(spec, frame, (lambda: V) if spec_of == "vertex_ids" else None, labels=labels)
+    with pytest.raises(SupportError, match=rf"exertion point 1 \({names}; .* RAS mm as meshed\) lies on a fixed "
+                                           "support"):
+        snap_exertion_points(V, F, region, xyz, labels=labels)
