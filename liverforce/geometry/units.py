@@ -79,6 +79,14 @@ def check_liver_size(extent_mm: float, scale: float, label: str, path=None, size
             f"with units {label} (x{scale:g} to mm) the surface is {extent_mm:.4g} mm across "
             f"(largest extent), outside the {lo:g}-{hi:g} mm expected of a liver: the units are "
             "probably wrong",
-            "Give the right units ('mm', 'cm', 'm' or a number of mm per file unit), or pass "
-            "size_range_mm=None for a non-liver phantom",
+            "Give the right units (geometry.imported[].units: 'mm', 'cm', 'm', 'auto' or a number of mm per file "
+            f"unit; {_likely(extent_mm / scale, lo, hi)}). The workflow takes human-liver-sized surfaces only (its "
+            "supports and checks assume one); from Python, load_surface(..., size_range_mm=None) reads a phantom "
+            "of any size",
         )
+
+
+def _likely(extent: float, lo: float, hi: float) -> str:
+    """The units that would make ``extent`` (file units) liver-sized, as a phrase."""
+    fits = [f"'{n}' gives {extent * s:.4g} mm" for n, s in UNIT_TO_MM.items() if lo <= extent * s <= hi]
+    return fits[0] if fits else f"none of mm, cm, m makes {extent:.4g} file units {lo:g}-{hi:g} mm"

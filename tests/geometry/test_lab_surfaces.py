@@ -38,3 +38,23 @@ def test_a_few_long_triangles_do_not_make_the_self_intersection_search_quadratic
     hit = v[f[other]].mean(axis=1)
     np.testing.assert_allclose(hit[:, 2], -100.0, atol=5.0)  # where the spike leaves: near the far pole
     assert np.abs(hit[:, :2]).max() < 20.0
+
+
+def test_a_liver_in_metres_labelled_mm_is_told_which_units_fit(tmp_path):
+    """The refusal named a Python argument (size_range_mm=None) as the way out, which no config key reaches; it
+    now names the config key and the unit that makes the liver liver-sized."""
+    import pytest
+
+    from liverforce.geometry import GeometryError, load_surface
+    from liverforce.geometry.procedural import procedural_liver
+
+    s = procedural_liver(0)
+    path = tmp_path / "ct_liver.stl"
+    trimesh.Trimesh(s.vertices / 1000.0, s.faces, process=False).export(path)
+    extent = float(np.ptp(s.vertices, axis=0).max())
+    for units in ("mm", "cm"):
+        with pytest.raises(GeometryError, match=rf"ct_liver\.stl: with units {units} .*the units are probably wrong\. "
+                                                rf"Give the right units \(geometry\.imported\[\]\.units: .*'m' gives "
+                                                rf"{extent:.4g} mm\)\. The workflow takes human-liver-sized"):
+            load_surface(path, units=units)
+    assert load_surface(path, units="m")[0].extent_mm.max() == pytest.approx(extent, rel=1e-6)
