@@ -166,7 +166,9 @@ def load_surface(
         msgs.append(guess)
     vertices = np.asarray(vertices, dtype=np.float64) * scale
     vertices, faces, finfo = to_ras(vertices, faces, frame_m)
-    vertices, faces, rmsgs = repair_surface(vertices, faces, path, check_self_intersections=check_si, unit="mm")
+    vertices, faces, rmsgs = repair_surface(vertices, faces, path, check_self_intersections=check_si, unit="mm",
+                                            locate=_file_locator(scale, unit_label, frame_m, frame_label,
+                                                                 is_volume_file(path)))
     msgs += rmsgs
     extent_mm = float(np.ptp(vertices, axis=0).max())
     check_liver_size(extent_mm, scale, unit_label, path, size_range_mm)
@@ -205,6 +207,21 @@ def load_surface(
     for m in msgs:
         log.info("%s: %s", path, m)
     return Surface(vertices, faces, meta), msgs
+
+
+def _file_locator(scale: float, unit_label: str, frame_m: np.ndarray, frame_label: str, volume: bool):
+    """``RAS mm point -> 'x, y, z in the file (units, frame)'`` for repair messages, or ``None`` when the file's
+    coordinates are RAS mm already (or a label volume's, whose voxels are no coordinates a lab looks up)."""
+    to_ras_mm = frame_m @ np.diag([scale, scale, scale, 1.0])
+    if volume or np.allclose(to_ras_mm, np.eye(4)):
+        return None
+    back = np.linalg.inv(to_ras_mm)
+
+    def locate(p):
+        q = back[:3, :3] @ np.asarray(p, float) + back[:3, 3]
+        return f"in the file: {[float(f'{x:.6g}') for x in q]} {unit_label}, {frame_label}"
+
+    return locate
 
 
 def _refine_coarse(vertices: np.ndarray, faces: np.ndarray, max_edge_mm: float):

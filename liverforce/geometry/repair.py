@@ -64,6 +64,7 @@ def repair_surface(
     max_non_manifold_fraction: float = 0.01,
     max_cut_fraction: float = 0.02,
     unit: str = "mm",
+    locate=None,
 ) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """Check and repair a triangle surface (units unchanged).
 
@@ -97,6 +98,9 @@ def repair_surface(
         fraction of the surface area; otherwise refused.
     unit : str
         Unit of the coordinates, for messages.
+    locate : callable, optional
+        ``point (3,) -> str``: where a point of ``vertices`` lies in the file as given (its own units and
+        frame); the messages that name a place add it (``load_surface`` passes one whenever it converted).
 
     Returns
     -------
@@ -151,7 +155,7 @@ def repair_surface(
     v = np.asarray(mesh.vertices, dtype=np.float64)
     f = _repair_non_manifold(v, np.asarray(mesh.faces, dtype=np.int64), path, max_non_manifold_fraction,
                              max_cut_fraction, msgs)
-    f = _repair_zero_area(v, f, path, unit, msgs)
+    f = _repair_zero_area(v, f, path, unit, msgs, locate)
     if len(f) == 0:
         raise refuse(path, "no triangles left after removing the defective ones", "Re-export the surface")
     mesh = trimesh.Trimesh(v, f, process=False)
@@ -181,13 +185,13 @@ def repair_surface(
     if check_self_intersections:
         pairs = self_intersections(v, fc)
         if len(pairs):
-            where = np.round(v[fc[pairs[0, 0]]].mean(axis=0), 3).tolist()
+            where = _at(v[fc[pairs[0, 0]]].mean(axis=0), unit, locate)
             local = len(pairs) <= max(10, int(max_intersecting_fraction * len(fc)))
             if not (remesh_self_intersections and local):
                 raise refuse(
                     path,
                     f"the surface intersects itself ({len(pairs)} intersecting triangle pairs, e.g. near "
-                    f"{where} {unit})" + ("" if local else "; too many to repair by remeshing"),
+                    f"{where})" + ("" if local else "; too many to repair by remeshing"),
                     "Repair it (e.g. MeshLab 'Select Self Intersecting Faces' then remesh, or "
                     "re-segment) before meshing",
                 )
@@ -195,23 +199,30 @@ def repair_surface(
             if local_fix is not None:
                 v, fc, n_removed, n_added = local_fix
                 msgs.append(
-                    f"self-intersections removed locally ({len(pairs)} intersecting triangle pairs near {where} "
-                    f"{unit}: {n_removed} triangles round them replaced by {n_added} (MeshFix), every other "
+                    f"self-intersections removed locally ({len(pairs)} intersecting triangle pairs near {where}: "
+                    f"{n_removed} triangles round them replaced by {n_added} (MeshFix), every other "
                     f"triangle kept as given)"
                 )
                 return v, np.ascontiguousarray(fc), msgs
             vol_before = signed_volume(v, fc)
             v, fc, voxel = voxel_remesh(v, fc)
             if abs(signed_volume(v, fc) / vol_before - 1.0) > 0.05 or len(self_intersections(v, fc)):
-                raise refuse(path, f"the surface intersects itself ({len(pairs)} triangle pairs near {where} "
-                                   f"{unit}) and voxel remeshing could not repair it",
+                raise refuse(path, f"the surface intersects itself ({len(pairs)} triangle pairs near {where}) "
+                                   f"and voxel remeshing could not repair it",
                              "Repair it in a mesh editor (e.g. MeshLab) or re-segment")
             msgs.append(
                 f"self-intersections removed by voxel remeshing ({len(pairs)} intersecting triangle "
-                f"pairs near {where} {unit}; a local repair failed, so the whole surface was rebuilt: voxel "
+                f"pairs near {where}; a local repair failed, so the whole surface was rebuilt: voxel "
                 f"{voxel:.3g} {unit}, even-odd inside rule, details below about 2 voxels lost)"
             )
     return v, np.ascontiguousarray(fc), msgs
+
+
+def _at(p: np.ndarray, unit: str, locate=None) -> str:
+    """A place on the surface for a message: its coordinates as repaired and, given ``locate`` (the caller's
+    map back to the file as given), where that is in the file."""
+    here = f"{np.round(p, 3).tolist()} {unit}"
+    return f"{here} ({locate(p)})" if locate is not None else here
 
 
 def _edge_counts(f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -291,7 +302,7 @@ def _repair_non_manifold(v, f, path, max_fraction: float, max_cut: float, msgs: 
     return f[keep]
 
 
-def _repair_zero_area(v, f, path, unit: str, msgs: list[str]) -> np.ndarray:
+def _repair_zero_area(v, f, path, unit: str, msgs: list[str], locate=None) -> np.ndarray:
     """Remove zero-area triangles whose three distinct vertices are collinear, keeping the surface closed.
 
     Notes
@@ -308,10 +319,10 @@ def _repair_zero_area(v, f, path, unit: str, msgs: list[str]) -> np.ndarray:
     tiny = np.flatnonzero(area <= 1e-10 * max(area.mean(), 1e-300))
     if len(tiny) == 0:
         return f
-    where = np.round(v[f[tiny[0]]].mean(axis=0), 3).tolist()
+    where = _at(v[f[tiny[0]]].mean(axis=0), unit, locate)
     if len(tiny) > max(10, 0.01 * len(f)):
         raise refuse(path, f"{len(tiny)} zero-area triangles with three distinct but collinear vertices (e.g. "
-                           f"near {where} {unit}): too many to repair automatically",
+                           f"near {where}): too many to repair automatically",
                      "Remesh or clean the surface (e.g. MeshLab 'Remove Zero Area Faces' + 'Close holes')")
     faces = [list(t) for t in f.tolist()]
     alive = [True] * len(faces)
@@ -348,7 +359,7 @@ def _repair_zero_area(v, f, path, unit: str, msgs: list[str]) -> np.ndarray:
         n = across.pop()
         if across or m in faces[n]:
             raise refuse(path, f"a zero-area triangle with collinear vertices near "
-                               f"{np.round(v[t].mean(axis=0), 3).tolist()} {unit} sits on a non-manifold edge "
+                               f"{_at(v[t].mean(axis=0), unit, locate)} sits on a non-manifold edge "
                                "and cannot be removed without opening the surface",
                          "Remesh or clean the surface (e.g. MeshLab 'Remove Zero Area Faces' + 'Close holes')")
         a, b, d = faces[n]
@@ -365,11 +376,11 @@ def _repair_zero_area(v, f, path, unit: str, msgs: list[str]) -> np.ndarray:
             if triangle_areas(v, np.array([faces[k]]))[0] <= 1e-10 * max(area.mean(), 1e-300):
                 queue.append(k)
         if split > 4 * len(tiny) + 10:
-            raise refuse(path, f"zero-area triangles near {where} {unit} could not be removed (their "
+            raise refuse(path, f"zero-area triangles near {where} could not be removed (their "
                                "neighbours are degenerate too)",
                          "Remesh or clean the surface (e.g. MeshLab 'Remove Zero Area Faces' + 'Close holes')")
-    msgs.append(f"zero-area triangles repaired ({len(tiny)} with three collinear vertices, e.g. near {where} "
-                f"{unit}: {split} removed by splitting the neighbour across their long edge, {dropped} dropped "
+    msgs.append(f"zero-area triangles repaired ({len(tiny)} with three collinear vertices, e.g. near {where}: "
+                f"{split} removed by splitting the neighbour across their long edge, {dropped} dropped "
                 "with no neighbour there)")
     return np.asarray([t for t, ok in zip(faces, alive) if ok], dtype=np.int64).reshape(-1, 3)
 

@@ -58,3 +58,27 @@ def test_a_liver_in_metres_labelled_mm_is_told_which_units_fit(tmp_path):
                                                 rf"{extent:.4g} mm\)\. The workflow takes human-liver-sized"):
             load_surface(path, units=units)
     assert load_surface(path, units="m")[0].extent_mm.max() == pytest.approx(extent, rel=1e-6)
+
+
+def test_a_repair_names_the_place_in_the_files_own_units_and_frame(tmp_path):
+    """A CT liver in LPS metres with a scanner origin: the place of a self-intersection was given only in RAS mm
+    as converted ([208.986, 129.375, 1105.276] mm), numbers the lab's file holds nowhere; the file's own
+    coordinates follow now."""
+    import re
+
+    from liverforce.geometry import GeometryError, load_surface
+
+    v, f, _ = spiked_sphere()
+    origin = np.array([-0.15, -0.2, 1.2])
+    path = tmp_path / "ct_spike.stl"
+    trimesh.Trimesh(v * [-1, -1, 1] / 1000.0 + origin, f, process=False).export(path)
+    try:
+        _, msgs = load_surface(path, units="m", frame="LPS")
+        text = next(m for m in msgs if "self-intersections" in m)
+    except GeometryError as exc:
+        text = str(exc)
+    got = re.search(r"near \[([^\]]+)\] mm \(in the file: \[([^\]]+)\] m, LPS\)", text)
+    assert got, text
+    ras, file = (np.array([float(x) for x in g.split(",")]) for g in got.groups())
+    np.testing.assert_allclose(file, ras * [-1, -1, 1] / 1000.0, atol=2e-6)
+    assert np.linalg.norm(file - origin) < 0.3  # near the scanner's origin, where the file has the liver
