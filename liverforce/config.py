@@ -613,6 +613,11 @@ def _check_ranges(cfg: dict) -> None:
     _check_choice("material.model", mat["model"], material_models(), "material")
     if not 0.0 < mat["nu"] < 0.5:
         _fail("material.nu", f"Poisson ratio must be in (0, 0.5) (got {mat['nu']})")
+    if mat["nu"] > NU_MAX:
+        _fail("material.nu", f"Poisson ratio {mat['nu']} makes the bulk modulus {_k_over_mu(mat['nu']):.3g} times the "
+              "shear modulus: the nearly incompressible solver spends its Newton budget there (at 0.4999999 three "
+              "of four small cases failed, at 0.4999 they converged)",
+              f"give at most {NU_MAX} (liver models use 0.45-0.499; 0.5, incompressible, is approached, not reached)")
     young = "E_pa" if mat.get("E_pa") is not None else "E_mpa" if mat.get("E_mpa") is not None else None
     _material_from_young(mat)
     if not mat["params_mpa"]:
@@ -996,6 +1001,14 @@ def _material_from_young(mat: dict) -> None:
         mat["E_mpa"] = float(e_mpa)
     mat["conversion"] = note
     logging.getLogger("liverforce").info("material: %s", note)
+
+
+#: largest Poisson ratio taken (bulk modulus 5000 times the shear modulus)
+NU_MAX = 0.4999
+
+
+def _k_over_mu(nu: float) -> float:
+    return 2.0 * (1.0 + nu) / (3.0 * (1.0 - 2.0 * nu))
 
 
 #: initial shear modulus (MPa) of any liver or liver phantom, and then some: 10 Pa (E about 30 Pa) to 1 MPa

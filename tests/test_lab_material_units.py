@@ -34,3 +34,17 @@ def test_constants_in_the_wrong_unit_are_refused_with_the_likely_fix(overrides, 
 ])
 def test_liver_and_phantom_constants_pass(overrides):
     compose(["experiment=smoke", *overrides])
+
+
+@pytest.mark.parametrize("nu", [0.49999, 0.4999999])
+def test_a_poisson_ratio_a_hair_below_one_half_is_refused_naming_it(nu):
+    """nu = 0.4999999 passed (it is below 0.5) and every case then spent its Newton budget, 40 s each, failing."""
+    with pytest.raises(ConfigError, match=rf"config key 'material.nu': Poisson ratio {nu} makes the bulk modulus "
+                                          r".* times the shear modulus.*give at most 0.4999"):
+        compose(["experiment=smoke", "material=neo_hookean_from_e", f"material.nu={nu}"])
+
+
+@pytest.mark.parametrize("nu", [0.45, 0.49, 0.499, 0.4999])
+def test_nearly_incompressible_ratios_that_converge_pass(nu):
+    m = compose(["experiment=smoke", "material=neo_hookean_from_e", f"material.nu={nu}"])["material"]
+    assert m["nu"] == nu and f"nu {nu:g}" in m["conversion"]
