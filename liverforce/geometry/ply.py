@@ -4,23 +4,24 @@
 :func:`~liverforce.serve.files.read_surface`) and the mesh stage its support and exertion-point files
 (:func:`liverforce.mesh.supports.read_point_file`); ``geometry`` is the lowest layer both may import.
 
-What it reads:
+The parsing is the ``plyfile`` library's; this module picks the vertices and triangles out of what it read and
+words its refusals for our users (the file named, the fault in plain words). What it reads:
 
 - ``format ascii``, ``binary_little_endian`` and ``binary_big_endian`` (1.0); ``comment`` and ``obj_info``
-  header lines skipped; CRLF line ends accepted;
+  header lines skipped; LF, CRLF or CR line ends;
 - the ``vertex`` element's ``x y z`` (any numeric type; other vertex properties such as normals or colours,
   in any order, ignored);
-- the ``face`` element's list property (``vertex_indices`` or ``vertex_index``, any count and index type) as
-  triangles; other face properties (flags, colours) skipped; a polygon that is not a triangle is reported by
-  :attr:`PlyData.polygons` rather than read;
-- any other element (a ``camera``, ``edge``, ...; before or after the vertices) skipped, list properties
-  included.
+- the ``face`` element's list property (``vertex_indices`` or ``vertex_index``, else the first list; any count
+  and index type) as triangles; other face properties (flags, colours) ignored; a polygon that is not a triangle
+  is reported by :attr:`PlyData.polygons` rather than read. Binary triangles (or quads) are read in one block
+  (memory mapped); a binary file with faces of mixed lengths is read again row by row;
+- any other element (a ``camera``, ``edge``, ...; before or after the vertices) read and ignored.
 
-What it refuses, naming the file (:class:`PlyError`): no ``ply`` magic line, no ``end_header``, an unknown
-format or property type, a count that is not a whole number, a property outside an element, no vertex element
-with ``x``, ``y`` and ``z``, a value that is not a number, and a file that ends before the header's counts do
-(truncated: the vertices it promised are said). Values are returned as read (``nan`` included): callers judge
-them.
+What it refuses, naming the file (:class:`PlyError`): no ``ply`` magic line, no ``end_header``, a header that
+is not ASCII, an unknown format or property type, a count that is not a whole number, a property outside an
+element, no vertex element with ``x``, ``y`` and ``z``, a value that is not a number (ASCII: the row and
+property are named), a row with too few or too many values, and a file that ends before the header's counts do
+(truncated: the rows it promised are said). Values are returned as read (``nan`` included): callers judge them.
 """
 
 from __future__ import annotations
@@ -29,14 +30,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import plyfile
 
-_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2", "ushort": "u2",
-    "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4", "float": "f4", "float32": "f4",
-    "double": "f8", "float64": "f8",
-}
-_FORMATS = ("ascii", "binary_little_endian", "binary_big_endian")
 _FACE_LISTS = ("vertex_indices", "vertex_index")
+_FORMATS = "ascii, binary_little_endian, binary_big_endian"
+_TYPES = "char, uchar, short, ushort, int, uint, float, double, int8, uint8, int16, uint16, int32, uint32, " \
+         "float32, float64"
 
 
 class PlyError(ValueError):
@@ -54,204 +53,139 @@ class PlyData:
     polygons: int = 0
 
 
-@dataclass
-class _Element:
-    name: str
-    count: int
-    props: list  # (name, dtype) or (name, count dtype, item dtype) for a list
-
-
-def _header(path: Path, raw: bytes) -> tuple[str, list[_Element], int]:
-    if not raw.startswith(b"ply"):
-        raise PlyError(f"{path}: not a PLY file (no 'ply' magic line)")
-    end = raw.find(b"end_header")
-    if end < 0:
-        raise PlyError(f"{path}: the PLY header has no end_header")
-    body = raw.find(b"\n", end)
-    body = len(raw) if body < 0 else body + 1
-    fmt, elements = None, []
-    for n, line in enumerate(raw[:end].decode("ascii", "replace").splitlines()[1:], start=2):
-        words = line.split()
-        if not words or words[0] in ("comment", "obj_info"):
-            continue
-        if words[0] == "format":
-            fmt = words[1] if len(words) > 1 else ""
-            if fmt not in _FORMATS:
-                raise PlyError(f"{path}: unsupported PLY format '{fmt}' (header line {n}; expected one of "
-                               f"{', '.join(_FORMATS)})")
-        elif words[0] == "element":
-            if len(words) != 3 or not words[2].isdigit():
-                raise PlyError(f"{path}: PLY header line {n} '{line.strip()}': expected 'element <name> <count>' "
-                               "with a whole-number count")
-            elements.append(_Element(words[1], int(words[2]), []))
-        elif words[0] == "property":
-            if not elements:
-                raise PlyError(f"{path}: PLY header line {n} '{line.strip()}': a property before any element")
-            types = words[2:-1] if words[1:2] == ["list"] else words[1:-1]
-            bad = [t for t in types if t not in _TYPES]
-            if len(words) < 3 or bad or (words[1] == "list" and len(types) != 2):
-                raise PlyError(f"{path}: PLY header line {n} '{line.strip()}': unknown property type "
-                               f"{bad[0] if bad else '(missing)'} (known: {', '.join(sorted(set(_TYPES)))})")
-            elements[-1].props.append((words[-1], *(_TYPES[t] for t in types)))
-        else:
-            raise PlyError(f"{path}: PLY header line {n} '{line.strip()}' is not a PLY header line")
-    if fmt is None:
-        raise PlyError(f"{path}: the PLY header has no format line")
-    return fmt, elements, body
-
-
 def read_ply(path: str | Path) -> PlyData:
     """The vertices (and triangles) of a PLY file (module docstring); :class:`PlyError` if unreadable."""
     path = Path(path)
     try:
-        raw = path.read_bytes()
+        ply = _read(path)
     except OSError as exc:
         raise PlyError(f"{path}: cannot read the file ({exc.strerror or exc})") from None
-    fmt, elements, pos = _header(path, raw)
-    read = _read_ascii if fmt == "ascii" else _read_binary
-    points = faces = None
-    polygons = 0
-    got = read(path, raw, pos, elements, ">" if fmt == "binary_big_endian" else "<")
-    for el, values in zip(elements, got):
-        if el.name == "vertex":
-            names = [p[0] for p in el.props]
-            missing = [a for a in "xyz" if a not in names]
-            if missing:
-                raise PlyError(f"{path}: the PLY vertex element has no {', '.join(missing)} property "
-                               f"(it has {', '.join(names) or 'none'})")
-            points = np.column_stack([np.asarray(values[names.index(a)], np.float64) for a in "xyz"]) \
-                if el.count else np.zeros((0, 3))
-        elif el.name == "face":
-            lists = [i for i, p in enumerate(el.props) if len(p) == 3]
-            pick = [i for i in lists if el.props[i][0] in _FACE_LISTS] or lists
-            if not pick:
-                continue
-            rows = values[pick[0]]
-            if isinstance(rows, np.ndarray):  # every face with the same count (binary)
-                faces = rows if rows.shape[1] == 3 else np.zeros((0, 3), np.int64)
-                polygons = 0 if rows.shape[1] == 3 else len(rows)
-            else:
-                tri = [r for r in rows if len(r) == 3]
-                polygons = len(rows) - len(tri)
-                faces = np.asarray(tri, np.int64).reshape(-1, 3)
-    if points is None:
+    except plyfile.PlyHeaderParseError as exc:
+        raise PlyError(_header_fault(path, exc)) from None
+    except plyfile.PlyElementParseError as exc:
+        raise PlyError(_data_fault(path, exc)) from None
+    except UnicodeDecodeError:
+        why = "not a PLY file (no 'ply' magic line)" if not _head(path).startswith(b"ply") else \
+            "the PLY header (or, format ascii, its data) holds a byte that is not ASCII text"
+        raise PlyError(f"{path}: {why}") from None
+    except OverflowError as exc:  # an ASCII value outside its property's type, e.g. 300 for a uchar
+        raise PlyError(f"{path}: a PLY value does not fit its property's type ({exc})") from None
+    except MemoryError as exc:
+        raise PlyError(f"{path}: the PLY header's element counts need more memory than there is ({exc}); "
+                       "a corrupted header?") from None
+    except ValueError as exc:  # plyfile: a negative count, two elements or properties of one name
+        why = "an element count is negative" if "negative dimensions" in str(exc) else str(exc)
+        raise PlyError(f"{path}: not a readable PLY file: {why}") from None
+    return _pick(path, ply)
+
+
+def _read(path: Path) -> plyfile.PlyData:
+    """plyfile's reading of the file. Binary faces all of one length (triangles; else quads) are memory-mapped
+    in one block, which plyfile can do only when told the length; if the first face is not a triangle the file is
+    tried again with quads, and if the faces' lengths differ it is read again with the faces row by row."""
+    for n in (3, 4):
+        try:
+            return plyfile.PlyData.read(path, known_list_len={"face": dict.fromkeys(_FACE_LISTS, n)})
+        except plyfile.PlyElementParseError as exc:
+            if exc.message != "unexpected list length" or exc.row:
+                break
+    return plyfile.PlyData.read(path)
+
+
+def _pick(path: Path, ply: plyfile.PlyData) -> PlyData:
+    if "vertex" not in ply:
         raise PlyError(f"{path}: the PLY file has no vertex element with x, y, z")
+    vertex = ply["vertex"]
+    names = [p.name for p in vertex.properties]
+    missing = [a for a in "xyz" if a not in names]
+    if missing:
+        raise PlyError(f"{path}: the PLY vertex element has no {', '.join(missing)} property "
+                       f"(it has {', '.join(names) or 'none'})")
+    points = np.column_stack([np.asarray(vertex.data[a], np.float64) for a in "xyz"]).reshape(-1, 3)
+    faces, polygons = None, 0
+    if "face" in ply:
+        lists = [p.name for p in ply["face"].properties if isinstance(p, plyfile.PlyListProperty)]
+        pick = [n for n in lists if n in _FACE_LISTS] or lists
+        if pick:
+            rows = ply["face"].data[pick[0]]
+            if rows.dtype != object:  # memory-mapped: every face of one length
+                triangles = rows.ndim == 2 and rows.shape[1] == 3
+                faces = rows.astype(np.int64) if triangles else np.zeros((0, 3), np.int64)
+                polygons = 0 if triangles else len(rows)
+            else:
+                tri = np.array([len(r) == 3 for r in rows], bool)
+                polygons = int((~tri).sum())
+                faces = np.stack(rows[tri]).astype(np.int64) if tri.any() else np.zeros((0, 3), np.int64)
     if faces is not None and len(faces) and (faces.min() < 0 or faces.max() >= len(points)):
         raise PlyError(f"{path}: a PLY face refers to a vertex that does not exist (indices "
                        f"{faces.min()}..{faces.max()}, {len(points)} vertices)")
     return PlyData(points, faces, polygons)
 
 
-def _short(path, el: _Element, done: int):
-    return PlyError(f"{path}: the PLY file ends early: its header promises {el.count} {el.name} rows, the data "
-                    f"holds {done} (a truncated or interrupted write: export the file again)")
-
-
-def _read_ascii(path, raw: bytes, pos: int, elements: list[_Element], _endian) -> list[list]:
-    tokens = raw[pos:].split()
-    at, out = 0, []
-    for el in elements:
-        if not any(len(p) == 3 for p in el.props):  # fixed width: one block
-            width = len(el.props)
-            block = tokens[at:at + width * el.count]
-            if len(block) < width * el.count:
-                raise _short(path, el, len(block) // max(width, 1))
-            try:
-                vals = np.asarray(block, dtype=np.float64).reshape(el.count, width)
-            except ValueError:
-                bad = next(i for i, t in enumerate(block) if not _is_number(t))
-                raise PlyError(f"{path}: PLY {el.name} row {bad // width} holds '{block[bad].decode(errors='replace')}'"
-                               ", not a number") from None
-            out.append([vals[:, i] for i in range(width)])
-            at += width * el.count
-            continue
-        cols = [[] for _ in el.props]
-        for row in range(el.count):
-            for i, p in enumerate(el.props):
-                try:
-                    if len(p) == 3:
-                        n = int(tokens[at])
-                        cols[i].append([int(t) for t in tokens[at + 1:at + 1 + n]])
-                        if len(cols[i][-1]) < n:
-                            raise IndexError
-                        at += 1 + n
-                    else:
-                        cols[i].append(float(tokens[at]))
-                        at += 1
-                except IndexError:
-                    raise _short(path, el, row) from None
-                except ValueError:
-                    raise PlyError(f"{path}: PLY {el.name} row {row} holds '{tokens[at].decode(errors='replace')}' "
-                                   "where a whole number (a list's count or index) is expected") from None
-        out.append(cols)
-    return out
-
-
-def _is_number(token: bytes) -> bool:
+# --------------------------------------------------------------------------- plyfile's faults in our words
+def _head(path: Path, size: int = 1 << 20) -> bytes:
     try:
-        float(token)
-        return True
-    except ValueError:
-        return False
+        with open(path, "rb") as f:
+            return f.read(size)
+    except OSError:
+        return b""
 
 
-def _read_binary(path, raw: bytes, pos: int, elements: list[_Element], endian: str) -> list[list]:
-    out = []
-    for el in elements:
-        lists = [p for p in el.props if len(p) == 3]
-        if not lists:
-            dt = np.dtype([(f"p{i}", endian + p[1]) for i, p in enumerate(el.props)])
-            if len(raw) - pos < dt.itemsize * el.count:
-                raise _short(path, el, (len(raw) - pos) // max(dt.itemsize, 1))
-            block = np.frombuffer(raw, dtype=dt, count=el.count, offset=pos)
-            out.append([block[f"p{i}"] for i in range(len(el.props))])
-            pos += dt.itemsize * el.count
-            continue
-        fast = _binary_constant_lists(raw, pos, el, endian)
-        if fast is not None:
-            cols, pos = fast
-            out.append(cols)
-            continue
-        cols = [[] for _ in el.props]
-        for row in range(el.count):
-            for i, p in enumerate(el.props):
-                size = np.dtype(p[1]).itemsize
-                if pos + size > len(raw):
-                    raise _short(path, el, row)
-                value = np.frombuffer(raw, endian + p[1], 1, pos)[0]
-                pos += size
-                if len(p) == 3:
-                    n, isz = int(value), np.dtype(p[2]).itemsize
-                    if pos + n * isz > len(raw):
-                        raise _short(path, el, row)
-                    cols[i].append(np.frombuffer(raw, endian + p[2], n, pos).astype(np.int64).tolist())
-                    pos += n * isz
-                else:
-                    cols[i].append(value)
-        out.append(cols)
-    return out
+def _header_fault(path: Path, exc: plyfile.PlyHeaderParseError) -> str:
+    n, what = exc.line or 1, exc.message
+    if n == 1:
+        return f"{path}: not a PLY file (no 'ply' magic line)"
+    lines = _head(path).splitlines()  # the file's own lines (LF, CRLF or CR), as plyfile counts them
+    text = lines[n - 1].decode("ascii", "replace").strip()[:80] if n <= len(lines) else None
+    ends = any(line.strip() == b"end_header" for line in lines[n - 1:])
+    where = f"PLY header line {n} '{text}'"
+    if what == "early end-of-file":
+        if text == "" and ends:
+            return f"{path}: PLY header line {n} is blank (a PLY header has no blank lines)"
+        return f"{path}: the PLY header has no end_header"
+    if what.startswith("expected one of"):
+        keyword = (text or "").split()[0] if (text or "").split() else ""
+        if "format" in what:
+            return f"{path}: the PLY header has no format line ({where} comes first)"
+        if keyword == "property":
+            return f"{path}: {where}: a property before any element"
+        if not ends:
+            return f"{path}: the PLY header has no end_header ({where} is not a header line)"
+        return f"{path}: {where} is not a PLY header line ({what})"
+    if what in ("expected integer count", 'expected "element {name} {count}"'):
+        return f"{path}: {where}: expected 'element <name> <count>' with a whole-number count"
+    if what.startswith("don't understand format"):
+        fmt = what.split("format", 1)[1].strip().strip("'")
+        return f"{path}: unsupported PLY format '{fmt}' (header line {n}; expected one of {_FORMATS})"
+    if what.startswith("expected version") or what.startswith('expected "format'):
+        return f"{path}: {where}: expected 'format <{_FORMATS.replace(', ', '|')}> 1.0'"
+    if what.startswith("field type"):
+        bad = what.split("'")[1] if what.count("'") >= 2 else "?"
+        return f"{path}: {where}: unknown property type {bad} (known: {_TYPES})"
+    if "property" in what:
+        return (f"{path}: {where}: expected 'property <type> <name>' or "
+                "'property list <count type> <index type> <name>'")
+    return f"{path}: {where}: {what}"
 
 
-def _binary_constant_lists(raw: bytes, pos: int, el: _Element, endian: str):
-    """An element whose lists all hold the same count as the first row's (all triangles): one strided read, or
-    ``None`` when the rows differ (read row by row then)."""
-    fields, at = [], pos
-    for i, p in enumerate(el.props):
-        if len(p) == 3:
-            if at + np.dtype(p[1]).itemsize > len(raw):
-                return None
-            n = int(np.frombuffer(raw, endian + p[1], 1, at)[0])
-            fields += [(f"n{i}", endian + p[1]), (f"p{i}", endian + p[2], (n,))]
-            at += np.dtype(p[1]).itemsize + n * np.dtype(p[2]).itemsize
-        else:
-            fields.append((f"p{i}", endian + p[1]))
-            at += np.dtype(p[1]).itemsize
-    dt = np.dtype(fields)
-    if el.count == 0 or len(raw) - pos < dt.itemsize * el.count:
-        return None
-    block = np.frombuffer(raw, dtype=dt, count=el.count, offset=pos)
-    for i, p in enumerate(el.props):
-        if len(p) == 3 and (block[f"n{i}"] != dt[f"p{i}"].shape[0]).any():
-            return None
-    cols = [block[f"p{i}"].astype(np.int64) if len(p) == 3 else block[f"p{i}"] for i, p in enumerate(el.props)]
-    return cols, pos + dt.itemsize * el.count
+def _data_fault(path: Path, exc: plyfile.PlyElementParseError) -> str:
+    el, row, prop, what = exc.element, exc.row, exc.prop, exc.message
+    name = el.name if el is not None else "?"
+    has = ", ".join(p.name for p in el.properties) if el is not None else "?"
+    if what == "early end-of-file":
+        return (f"{path}: the PLY file ends early: its header promises {el.count} {name} rows, the data holds "
+                f"{row} (a truncated or interrupted write: export the file again)")
+    if what == "early end-of-line":
+        end = f"the end of its {prop.name} list" if isinstance(prop, plyfile.PlyListProperty) else \
+            f"its {prop.name} value"
+        return f"{path}: PLY {name} row {row} stops before {end} (each row holds {has}): a row cut short, or a " \
+            "truncated file"
+    if what == "expected end-of-line":
+        return f"{path}: PLY {name} row {row} holds more values than its header's properties ({has})"
+    if what == "malformed input":
+        if isinstance(prop, plyfile.PlyListProperty):
+            return (f"{path}: PLY {name} row {row}: its {prop.name} list holds a value that is not a whole number "
+                    "(a count, then that many indices)")
+        kind = "number" if prop.val_dtype.startswith("f") else "whole number"
+        return f"{path}: PLY {name} row {row}: its {prop.name} value is not a {kind}"
+    return f"{path}: PLY {name} row {row}: {exc}"

@@ -91,13 +91,25 @@ def test_ply_variants_are_read_alike_by_the_mesh_stage_and_predict(tmp_path, nam
         np.testing.assert_array_equal(faces, tri)
 
 
-def test_a_quad_face_is_refused_as_a_surface_but_its_vertices_are_a_cloud(tmp_path):
+def _binary_polygons(polys):
+    out = _header("binary_little_endian", (("f4", "x"), ("f4", "y"), ("f4", "z")), len(P),
+                  ("property list uchar int vertex_indices",), len(polys)) + P.astype("<f4").tobytes()
+    return out + b"".join(np.uint8(len(f)).tobytes() + np.asarray(f, "<i4").tobytes() for f in polys)
+
+
+@pytest.mark.parametrize("kind", ["ascii", "binary_quads", "binary_mixed"])
+def test_a_quad_face_is_refused_as_a_surface_but_its_vertices_are_a_cloud(tmp_path, kind):
+    """Binary faces of one length are read in one block, quads too; mixed lengths are read again row by row."""
     path = tmp_path / "quad.ply"
-    path.write_bytes(_ascii(faces=[[0, 1, 2, 3]]))
-    assert read_ply(path).polygons == 1
+    quads = {"ascii": 1, "binary_quads": 2, "binary_mixed": 1}[kind]
+    path.write_bytes(_ascii(faces=[[0, 1, 2, 3]]) if kind == "ascii" else
+                     _binary_polygons([[0, 1, 2, 3]] * quads + ([[0, 2, 1]] if kind == "binary_mixed" else [])))
+    got = read_ply(path)
+    assert got.polygons == quads
+    np.testing.assert_array_equal(got.faces, [[0, 2, 1]] if kind == "binary_mixed" else np.zeros((0, 3)))
     np.testing.assert_allclose(read_points(path), P, atol=1e-6)
     np.testing.assert_allclose(read_point_file(path), P, atol=1e-6)
-    with pytest.raises(PredictionInputError, match=r"quad\.ply: only triangular faces are supported \(1 of"):
+    with pytest.raises(PredictionInputError, match=rf"quad\.ply: only triangular faces are supported \({quads} of"):
         read_surface(path)
 
 
@@ -129,10 +141,19 @@ BAD = {  # file name: (bytes, what the message says)
     "no_xyz.ply": (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float a\nproperty float b\nend_header\n1 2\n",
                    r"the PLY vertex element has no x, y, z property \(it has a, b\)"),
     "short_ascii.ply": (HEAD + b"1 2 3\n4 5 6\n", "ends early: its header promises 3 vertex rows, the data holds 2"),
-    "word.ply": (HEAD + b"1 2 3\n4 abc 6\n7 8 9\n", "PLY vertex row 1 holds 'abc', not a number"),
+    "word.ply": (HEAD + b"1 2 3\n4 abc 6\n7 8 9\n", "PLY vertex row 1: its y value is not a number"),
     "truncated.ply": (_binary("<")[:-10], "ends early: its header promises 4 vertex rows, the data holds 3"),
     "truncated_faces.ply": (_binary("<", faces=F)[:-3], "ends early: its header promises 4 face rows"),
     "face_index.ply": (_ascii(faces=[[0, 1, 9]]), "a PLY face refers to a vertex that does not exist"),
+    "short_row.ply": (HEAD + b"1 2 3\n4 5\n7 8 9\n",
+                      r"PLY vertex row 1 stops before its z value \(each row holds x, y, z"),
+    "long_row.ply": (HEAD + b"1 2 3\n4 5 6 7\n7 8 9\n", r"PLY vertex row 1 holds more values than its header's"),
+    "face_word.ply": (_ascii(faces=[[0, 1, 2]]).replace(b"3 0 1 2", b"3 0 x 2"),
+                      "PLY face row 0: its vertex_indices list holds a value that is not a whole number"),
+    "blank_header_line.ply": (HEAD.replace(b"1.0\n", b"1.0\n\n") + b"1 2 3\n4 5 6\n7 8 9\n",
+                              "PLY header line 3 is blank"),
+    "latin1_comment.ply": (HEAD.replace(b"1.0\n", b"1.0\ncomment M\xfcller\n") + b"1 2 3\n4 5 6\n7 8 9\n",
+                           r"the PLY header \(or, format ascii, its data\) holds a byte that is not ASCII text"),
 }
 
 
