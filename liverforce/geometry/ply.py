@@ -17,15 +17,20 @@ words its refusals for our users (the file named, the fault in plain words). Wha
   (memory mapped); a binary file with faces of mixed lengths is read again row by row;
 - any other element (a ``camera``, ``edge``, ...; before or after the vertices) read and ignored.
 
-What it refuses, naming the file (:class:`PlyError`): no ``ply`` magic line, no ``end_header``, a header that
-is not ASCII, an unknown format or property type, a count that is not a whole number, a property outside an
-element, no vertex element with ``x``, ``y`` and ``z``, a value that is not a number (ASCII: the row and
-property are named), a row with too few or too many values, and a file that ends before the header's counts do
-(truncated: the rows it promised are said). Values are returned as read (``nan`` included): callers judge them.
+A ``comment`` or ``obj_info`` line holding bytes that are not ASCII (an exporter's name with an accent, in
+Latin-1 or UTF-8) is read with those bytes as ``?``: plyfile would refuse the file for a comment.
+
+What it refuses, naming the file (:class:`PlyError`): no ``ply`` magic line, no ``end_header``, a header line
+other than a comment that is not ASCII, ASCII data that is not ASCII, an unknown format or property type, a
+count that is not a whole number, a property outside an element, no vertex element with ``x``, ``y`` and ``z``,
+a value that is not a number (ASCII: the row and property are named), a row with too few or too many values,
+and a file that ends before the header's counts do (truncated: the rows it promised are said). Values are returned as read (``nan`` included): callers judge them.
 """
 
 from __future__ import annotations
 
+import io
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -82,14 +87,41 @@ def read_ply(path: str | Path) -> PlyData:
 def _read(path: Path) -> plyfile.PlyData:
     """plyfile's reading of the file. Binary faces all of one length (triangles; else quads) are memory-mapped
     in one block, which plyfile can do only when told the length; if the first face is not a triangle the file is
-    tried again with quads, and if the faces' lengths differ it is read again with the faces row by row."""
+    tried again with quads, and if the faces' lengths differ it is read again with the faces row by row. A file
+    whose header comments hold bytes that are not ASCII is read from memory with those bytes as ``?``
+    (:func:`_ascii_comments`)."""
+    data = _ascii_comments(path)
+
+    def src():  # plyfile closes a stream it was given: a new one per reading
+        return path if data is None else io.BytesIO(data)
+
     for n in (3, 4):
         try:
-            return plyfile.PlyData.read(path, known_list_len={"face": dict.fromkeys(_FACE_LISTS, n)})
+            return plyfile.PlyData.read(src(), known_list_len={"face": dict.fromkeys(_FACE_LISTS, n)})
         except plyfile.PlyElementParseError as exc:
             if exc.message != "unexpected list length" or exc.row:
                 break
-    return plyfile.PlyData.read(path)
+    return plyfile.PlyData.read(src())
+
+
+_COMMENT = re.compile(rb"(^|[\r\n])([ \t]*(?:comment|obj_info)\b[^\r\n]*)")
+
+
+def _ascii_comments(path: Path) -> bytes | None:
+    """The file's bytes with those that are not ASCII in its ``comment`` and ``obj_info`` header lines replaced
+    by ``?``, when those are the header's only such bytes; else None (the file is read as it is)."""
+    head = _head(path)
+    end = head.find(b"end_header")
+    if not head.startswith(b"ply") or end < 0 or head[:end].isascii():
+        return None
+    clean = _COMMENT.sub(lambda m: m.group(1) + bytes(c if c < 128 else 63 for c in m.group(2)), head[:end])
+    if not clean.isascii():
+        return None  # a keyword line that is not ASCII: plyfile's refusal stands
+    try:
+        raw = path.read_bytes()
+    except OSError:
+        return None
+    return clean + raw[end:]
 
 
 def _pick(path: Path, ply: plyfile.PlyData) -> PlyData:

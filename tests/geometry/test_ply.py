@@ -152,8 +152,10 @@ BAD = {  # file name: (bytes, what the message says)
                       "PLY face row 0: its vertex_indices list holds a value that is not a whole number"),
     "blank_header_line.ply": (HEAD.replace(b"1.0\n", b"1.0\n\n") + b"1 2 3\n4 5 6\n7 8 9\n",
                               "PLY header line 3 is blank"),
-    "latin1_comment.ply": (HEAD.replace(b"1.0\n", b"1.0\ncomment M\xfcller\n") + b"1 2 3\n4 5 6\n7 8 9\n",
+    "latin1_element.ply": (HEAD.replace(b"element vertex", b"element v\xe9rtex") + b"1 2 3\n4 5 6\n7 8 9\n",
                            r"the PLY header \(or, format ascii, its data\) holds a byte that is not ASCII text"),
+    "latin1_data.ply": (HEAD.replace(b"1.0\n", b"1.0\ncomment M\xfcller\n") + b"1 2 3\n4 5 6\n7 8 \xb59\n",
+                        r"the PLY header \(or, format ascii, its data\) holds a byte that is not ASCII text"),
 }
 
 
@@ -169,3 +171,18 @@ def test_broken_ply_files_are_refused_by_both_callers_naming_the_file(tmp_path, 
     for read in (read_points, read_surface):
         with pytest.raises(PredictionInputError, match=f"{name}: .*{why}"):
             read(path)
+
+
+@pytest.mark.parametrize("comment", [b"comment Cr\xe9\xe9 par M\xfcller", b"comment Cr\xc3\xa9\xc3\xa9 (UTF-8)",
+                                     b"obj_info scanner \xb5m"])
+@pytest.mark.parametrize("eol", [b"\n", b"\r\n", b"\r"])
+def test_a_comment_that_is_not_ascii_does_not_stop_the_file(tmp_path, comment, eol):
+    """An exporter's name with an accent (Latin-1 or UTF-8) in a comment: the file is read, ASCII and binary."""
+    for data in (HEAD.replace(b"1.0\n", b"1.0\n" + comment + b"\n") + b"0 0 0\n10.5 0 0\n0 10.25 0\n",
+                 _binary("<").replace(b"comment exported by a lab", comment)):
+        path = tmp_path / "accent.ply"
+        path.write_bytes(data.replace(b"\n", eol) if data.startswith(HEAD[:4]) and b"ascii" in data[:30] else data)
+        got = read_ply(path)
+        np.testing.assert_array_equal(got.points, P[:len(got.points)])
+        assert len(got.points) in (3, 4)
+        np.testing.assert_array_equal(read_point_file(path, "mm"), got.points)
