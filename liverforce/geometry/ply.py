@@ -24,7 +24,8 @@ What it refuses, naming the file (:class:`PlyError`): no ``ply`` magic line, no 
 other than a comment that is not ASCII, ASCII data that is not ASCII, an unknown format or property type, a
 count that is not a whole number, a property outside an element, no vertex element with ``x``, ``y`` and ``z``,
 a value that is not a number (ASCII: the row and property are named), a row with too few or too many values,
-and a file that ends before the header's counts do (truncated: the rows it promised are said). Values are returned as read (``nan`` included): callers judge them.
+and a file that ends before the header's counts do (truncated: the rows it promised are said). Values are
+returned as read (``nan`` included): callers judge them.
 """
 
 from __future__ import annotations
