@@ -15,6 +15,7 @@ from liverforce.mesh.plausibility import BUILT_IN_SUPPORT_CHECKS, ImplausibleReg
 from liverforce.mesh.supports import SupportError, apply_supports, parse_supports
 from liverforce.mesh.regions import tag_regions
 from liverforce.mesh.types import REGION_CODES
+from tests.mesh.lab_stage import mesh_stage
 
 
 @pytest.fixture(scope="module")
@@ -28,22 +29,6 @@ def _anterior_top(V):
     return V[np.argmax(V[:, 1] + V[:, 2])].round(1).tolist()  # anterior-superior: where a clamp is no IVC
 
 
-def _stage(tmp_path, path, supports, mode):
-    from liverforce.config import compose
-    from liverforce.pipeline.geometry import make_geometry
-    from liverforce.pipeline.mesh import make_mesh
-
-    spec = {"kind": "imported", "name": "lab", "path": str(path), "units": "mm", "label": None, "frame": "RAS",
-            "supports": supports}
-    surface = tmp_path / "geometry" / "imp-lab.ply"
-    make_geometry(spec, surface, surface.with_suffix(".json"))
-    cfg = compose(["experiment=smoke"])["mesh"]
-    cfg = {**cfg, "target_nodes": 200, "refine_radius_mm": 0.0, "refine_ivc_edge_mm": 0.0, "regions_check": mode}
-    out = tmp_path / "mesh"
-    return out, lambda: make_mesh(surface, cfg, 0, out / "imp-lab.vtu", out / "imp-lab.features.json",
-                                  out / "imp-lab.regions.png")
-
-
 @pytest.mark.parametrize("mode", ["strict", "warn"])
 def test_an_added_anterior_clamp_is_not_taken_for_a_misplaced_ivc(tmp_path, ras_file, liver_surface, mode, caplog):
     """Before: strict refused this right RAS liver ('ivc_posterior = 42.6 mm ... probably LPS, state frame: LPS'),
@@ -51,7 +36,7 @@ def test_an_added_anterior_clamp_is_not_taken_for_a_misplaced_ivc(tmp_path, ras_
     clamp = {"mode": "add", "list": [{"name": "clamp", "kind": "fixed",
                                       "sphere": {"center_mm": _anterior_top(liver_surface.vertices),
                                                  "radius_mm": 45.0}}]}
-    out, run = _stage(tmp_path, ras_file, clamp, mode)
+    out, run = mesh_stage(tmp_path, ras_file, clamp, mode)
     feats = run()
     assert not [r for r in caplog.records if "implausible" in r.getMessage()]
     rc = json.loads((out / "imp-lab.features.json").read_text())["regions_check"]
@@ -72,7 +57,7 @@ def test_a_wrong_frame_is_still_refused_under_add(tmp_path, liver_surface):
     clamp = {"mode": "add", "list": [{"name": "clamp", "kind": "fixed",
                                       "sphere": {"center_mm": _anterior_top(liver_surface.vertices * [-1, -1, 1]),
                                                  "radius_mm": 30.0}}]}
-    out, run = _stage(tmp_path, lps, clamp, "strict")
+    out, run = mesh_stage(tmp_path, lps, clamp, "strict")
     with pytest.raises(ImplausibleRegionsError, match=r"right_lobe = 0\.\d+.*frame: LPS"):
         run()
     assert not (out / "imp-lab.vtu").exists()

@@ -16,6 +16,7 @@ from liverforce.mesh.plausibility import (
     skipped_checks,
 )
 from liverforce.mesh.regions import tag_regions, visible_facets
+from tests.mesh.lab_stage import mesh_stage
 
 LPS = np.diag([-1.0, -1.0, 1.0])
 MIRROR = np.diag([-1.0, 1.0, 1.0])
@@ -80,23 +81,11 @@ def lps_file(tmp_path_factory, liver_surface):
 
 
 def _stage(tmp_path, lps_file, liver_surface, frame, mode):
-    from liverforce.config import compose
-    from liverforce.pipeline.geometry import make_geometry
-    from liverforce.pipeline.mesh import make_mesh
-
     V = liver_surface.vertices
     cava = (V[np.argmax(-V[:, 1] + V[:, 2])] * np.diag(LPS)).round(1).tolist()  # posterior-superior, file (LPS) mm
     supports = {"mode": "replace", "list": [{"name": "cava", "kind": "fixed",
                                              "sphere": {"center_mm": cava, "radius_mm": 25.0}}]}
-    spec = {"kind": "imported", "name": "lab", "path": str(lps_file), "units": "mm", "label": None,
-            "frame": frame, "supports": supports}
-    surface = tmp_path / "geometry" / "imp-lab.ply"
-    make_geometry(spec, surface, surface.with_suffix(".json"))
-    cfg = compose(["experiment=smoke"])["mesh"]
-    cfg = {**cfg, "target_nodes": 200, "refine_radius_mm": 0.0, "refine_ivc_edge_mm": 0.0, "regions_check": mode}
-    out = tmp_path / "mesh"
-    return out, lambda: make_mesh(surface, cfg, 0, out / "imp-lab.vtu", out / "imp-lab.features.json",
-                                  out / "imp-lab.regions.png")
+    return mesh_stage(tmp_path, lps_file, supports, mode, frame)
 
 
 def test_mesh_stage_refuses_an_lps_file_stated_ras_with_replace_supports(tmp_path, lps_file, liver_surface):
