@@ -1036,13 +1036,12 @@ def _check_material_scale(mat: dict, key: str) -> None:
                 f"E_pa={mat['E_pa'] * 1e3:g})" if mu0 < lo else "E_pa is in Pa: a liver's E is about 5000-50000 Pa")
     elif key == "material.E_mpa":
         hint = (f"E_mpa is in MPa: a liver's E is about 0.005-0.05 MPa (if {mat['E_mpa']:g} is in Pa, give "
-                f"E_pa={mat['E_mpa']:g} instead)")
+                f"E_pa={mat['E_mpa']:g} instead)" if mu0 > hi else "E_mpa is in MPa: a liver's E is about 0.005-0.05 MPa")
     elif mu0 > hi:
         hint = (f"params_mpa is in MPa, a liver's C10 about 0.001-0.01 MPa: if these constants are in Pa, divide them "
                 f"by 1e6 (mu0 {mu0 * 1e-6:.3g} MPa), if in kPa by 1e3 (mu0 {mu0 * 1e-3:.3g} MPa)")
-    else:
-        hint = (f"params_mpa is in MPa, a liver's C10 about 0.001-0.01 MPa: if these constants are in kPa, divide "
-                f"them by 1e3 (mu0 {mu0 * 1e-3:.3g} MPa)")
+    else:  # too soft: no unit makes a plausible liver by a factor of 1e3 or 1e6 downwards
+        hint = "params_mpa is in MPa, a liver's C10 about 0.001-0.01 MPa"
     _fail(key, f"{given} gives an initial shear modulus mu0 = {mu0:.3g} MPa ({mu0 * 1e6:.3g} Pa), outside the "
                f"{lo:g}-{hi:g} MPa of any liver or liver phantom", hint)
 

@@ -48,3 +48,15 @@ def test_a_poisson_ratio_a_hair_below_one_half_is_refused_naming_it(nu):
 def test_nearly_incompressible_ratios_that_converge_pass(nu):
     m = compose(["experiment=smoke", "material=neo_hookean_from_e", f"material.nu={nu}"])["material"]
     assert m["nu"] == nu and f"nu {nu:g}" in m["conversion"]
+
+
+@pytest.mark.parametrize("overrides, key", [
+    (["material=neo_hookean_from_e", "material.E_pa=null", "material.E_mpa=1e-5"], "material.E_mpa"),
+    (["material=neo_hookean", "material.params_mpa.C10=2.5e-6"], "material.params_mpa"),
+])
+def test_constants_too_soft_are_refused_without_a_hint_that_would_soften_them_further(overrides, key):
+    """A modulus below any liver's in MPa: no unit mix-up divides it up to a liver's, so no 'give it in Pa' or
+    'divide by 1e3' (which made it softer still)."""
+    with pytest.raises(ConfigError, match=f"config key '{key}': .*outside the 1e-05-1 MPa") as err:
+        compose(["experiment=smoke", *overrides])
+    assert "divide" not in str(err.value) and "E_pa=" not in str(err.value)
