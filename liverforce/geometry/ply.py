@@ -30,8 +30,9 @@ returned as read (``nan`` included): callers judge them.
 
 from __future__ import annotations
 
-import io
 import re
+import shutil
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -88,41 +89,66 @@ def read_ply(path: str | Path) -> PlyData:
 def _read(path: Path) -> plyfile.PlyData:
     """plyfile's reading of the file. Binary faces all of one length (triangles; else quads) are memory-mapped
     in one block, which plyfile can do only when told the length; if the first face is not a triangle the file is
-    tried again with quads, and if the faces' lengths differ it is read again with the faces row by row. A file
-    whose header comments hold bytes that are not ASCII is read from memory with those bytes as ``?``
-    (:func:`_ascii_comments`)."""
-    data = _ascii_comments(path)
+    tried again with quads, and if the faces' lengths differ it is read again with the faces row by row. A header
+    plyfile would refuse for its form alone (:func:`_plain_header`) is rewritten, with the data after it, to a
+    temporary file that plyfile reads (and memory-maps) in its place; the arrays are copied out before it goes."""
+    header = _plain_header(path)
+    if header is None:
+        return _read_as_is(path)
+    text, end = header
+    with tempfile.TemporaryDirectory(prefix="liverforce-ply-") as tmp:
+        plain = Path(tmp) / "plain.ply"
+        with open(path, "rb") as src, open(plain, "wb") as dst:
+            dst.write(text)
+            src.seek(end)
+            shutil.copyfileobj(src, dst, 1 << 20)
+        return _copied(_read_as_is(plain))
 
-    def src():  # plyfile closes a stream it was given: a new one per reading
-        return path if data is None else io.BytesIO(data)
 
+def _read_as_is(path: Path) -> plyfile.PlyData:
     for n in (3, 4):
         try:
-            return plyfile.PlyData.read(src(), known_list_len={"face": dict.fromkeys(_FACE_LISTS, n)})
+            return plyfile.PlyData.read(path, known_list_len={"face": dict.fromkeys(_FACE_LISTS, n)})
         except plyfile.PlyElementParseError as exc:
             if exc.message != "unexpected list length" or exc.row:
                 break
-    return plyfile.PlyData.read(src())
+    return plyfile.PlyData.read(path)
 
 
-_COMMENT = re.compile(rb"(^|[\r\n])([ \t]*(?:comment|obj_info)\b[^\r\n]*)")
+def _copied(ply: plyfile.PlyData) -> plyfile.PlyData:
+    """``ply`` with every element's data in memory (not mapped from a file about to be deleted)."""
+    for el in ply.elements:
+        el.data = np.array(el.data)
+    return ply
 
 
-def _ascii_comments(path: Path) -> bytes | None:
-    """The file's bytes with those that are not ASCII in its ``comment`` and ``obj_info`` header lines replaced
-    by ``?``, when those are the header's only such bytes; else None (the file is read as it is)."""
+_END = re.compile(rb"(?:^|\r\n|\r|\n)end_header[ \t]*(\r\n|\r|\n)")
+_EOL = re.compile(rb"\r\n|\r|\n")
+_COMMENT = re.compile(rb"^[ \t]*(?:comment|obj_info)\b")
+
+
+def _plain_header(path: Path) -> tuple[bytes, int] | None:
+    """``(header, end)``: the header (through ``end_header``'s line end, which starts the data) in the form plyfile
+    reads, and where the file's own header ends, when that form differs from the file's; else None (the file is
+    read as it is, and refused by plyfile if it must be). The form: every line ending as the ``end_header`` line's
+    (plyfile takes it from the ``ply`` line, and an exporter may mix them), no trailing blanks, and in
+    ``comment`` and ``obj_info`` lines the bytes that are not ASCII (an exporter's name with an accent) as ``?``.
+    A keyword line that is not ASCII is left for plyfile to refuse."""
     head = _head(path)
-    end = head.find(b"end_header")
-    if not head.startswith(b"ply") or end < 0 or head[:end].isascii():
+    m = _END.search(head)
+    if not head.startswith(b"ply") or m is None:
         return None
-    clean = _COMMENT.sub(lambda m: m.group(1) + bytes(c if c < 128 else 63 for c in m.group(2)), head[:end])
-    if not clean.isascii():
-        return None  # a keyword line that is not ASCII: plyfile's refusal stands
-    try:
-        raw = path.read_bytes()
-    except OSError:
-        return None
-    return clean + raw[end:]
+    eol, end = m.group(1), m.end()
+    lines = _EOL.split(head[:m.start()])
+    plain = []
+    for line in lines:
+        if not line.isascii():
+            if not _COMMENT.match(line):
+                return None
+            line = bytes(c if c < 128 else 63 for c in line)
+        plain.append(line.rstrip(b" \t"))
+    text = eol.join([*plain, b"end_header"]) + eol
+    return None if text == head[:end] else (text, end)
 
 
 def _pick(path: Path, ply: plyfile.PlyData) -> PlyData:
@@ -134,12 +160,19 @@ def _pick(path: Path, ply: plyfile.PlyData) -> PlyData:
     if missing:
         raise PlyError(f"{path}: the PLY vertex element has no {', '.join(missing)} property "
                        f"(it has {', '.join(names) or 'none'})")
+    lists = [p.name for p in vertex.properties if p.name in "xyz" and isinstance(p, plyfile.PlyListProperty)]
+    if lists:
+        raise PlyError(f"{path}: the PLY vertex property {lists[0]} is a list, not one number per vertex")
     points = np.column_stack([np.asarray(vertex.data[a], np.float64) for a in "xyz"]).reshape(-1, 3)
     faces, polygons = None, 0
     if "face" in ply:
         lists = [p.name for p in ply["face"].properties if isinstance(p, plyfile.PlyListProperty)]
         pick = [n for n in lists if n in _FACE_LISTS] or lists
         if pick:
+            prop = ply["face"].ply_property(pick[0])
+            if np.dtype(prop.val_dtype).kind not in "iu":
+                raise PlyError(f"{path}: the PLY face list {pick[0]} holds {np.dtype(prop.val_dtype).name} values; "
+                               "vertex indices are whole numbers (an integer type such as int or uint)")
             rows = ply["face"].data[pick[0]]
             if rows.dtype != object:  # memory-mapped: every face of one length
                 triangles = rows.ndim == 2 and rows.shape[1] == 3

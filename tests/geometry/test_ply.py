@@ -152,6 +152,11 @@ BAD = {  # file name: (bytes, what the message says)
                       "PLY face row 0: its vertex_indices list holds a value that is not a whole number"),
     "blank_header_line.ply": (HEAD.replace(b"1.0\n", b"1.0\n\n") + b"1 2 3\n4 5 6\n7 8 9\n",
                               "PLY header line 3 is blank"),
+    "list_x.ply": (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty list uchar float x\nproperty float y\n"
+                   b"property float z\nend_header\n2 1 2 3 4\n", "the PLY vertex property x is a list"),
+    "float_faces.ply": (HEAD.replace(b"end_header", b"element face 1\nproperty list uchar float vertex_indices\n"
+                                     b"end_header") + b"1 2 3\n4 5 6\n7 8 9\n3 0 1.7 2\n",
+                        "the PLY face list vertex_indices holds float32 values; vertex indices are whole numbers"),
     "latin1_element.ply": (HEAD.replace(b"element vertex", b"element v\xe9rtex") + b"1 2 3\n4 5 6\n7 8 9\n",
                            r"the PLY header \(or, format ascii, its data\) holds a byte that is not ASCII text"),
     "latin1_data.ply": (HEAD.replace(b"1.0\n", b"1.0\ncomment M\xfcller\n") + b"1 2 3\n4 5 6\n7 8 \xb59\n",
@@ -186,3 +191,26 @@ def test_a_comment_that_is_not_ascii_does_not_stop_the_file(tmp_path, comment, e
         np.testing.assert_array_equal(got.points, P[:len(got.points)])
         assert len(got.points) in (3, 4)
         np.testing.assert_array_equal(read_point_file(path, "mm"), got.points)
+
+
+@pytest.mark.parametrize("variant", ["end_header_blank", "mixed_eol", "mixed_eol_binary", "accent_binary_faces"])
+def test_headers_plyfile_would_refuse_for_their_form_are_read(tmp_path, variant):
+    """Trailing blanks after ``end_header``, line ends that change after the ``ply`` line (an exporter's template),
+    an accented comment in a binary file with faces: read as written, through a temporary plain copy."""
+    if variant == "end_header_blank":
+        data = HEAD.replace(b"end_header\n", b"end_header \t\n") + b"0 0 0\n10.5 0 0\n0 10.25 0\n"
+    elif variant == "mixed_eol":
+        data = b"ply\n" + HEAD[4:].replace(b"\n", b"\r\n") + b"0 0 0\r\n10.5 0 0\r\n0 10.25 0\r\n"
+    elif variant == "mixed_eol_binary":
+        raw = _binary("<", faces=F)
+        end = raw.index(b"end_header\n") + len(b"end_header\n")
+        data = b"ply\r\n" + raw[4:end] + raw[end:]
+    else:
+        data = _binary(">", faces=F).replace(b"comment exported by a lab", b"comment export\xe9 par M\xfcller")
+    (tmp_path / "x.ply").write_bytes(data)
+    got = read_ply(tmp_path / "x.ply")
+    np.testing.assert_array_equal(got.points, P[:len(got.points)])
+    if variant.endswith("faces"):
+        np.testing.assert_array_equal(got.faces, F)
+        got.points[0] = 99.0  # in memory, writable: not a map of the deleted copy
+    assert list((tmp_path).iterdir()) == [tmp_path / "x.ply"]
