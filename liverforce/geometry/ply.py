@@ -33,6 +33,7 @@ from __future__ import annotations
 import re
 import shutil
 import tempfile
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -106,6 +107,12 @@ def _read(path: Path) -> plyfile.PlyData:
 
 
 def _read_as_is(path: Path) -> plyfile.PlyData:
+    with warnings.catch_warnings():  # numpy's, on an empty ASCII list (a face of no vertices: counted as a polygon)
+        warnings.filterwarnings("ignore", message="loadtxt: input contained no data")
+        return _read_lists(path)
+
+
+def _read_lists(path: Path) -> plyfile.PlyData:
     for n in (3, 4):
         try:
             return plyfile.PlyData.read(path, known_list_len={"face": dict.fromkeys(_FACE_LISTS, n)})

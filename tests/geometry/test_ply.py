@@ -214,3 +214,16 @@ def test_headers_plyfile_would_refuse_for_their_form_are_read(tmp_path, variant)
         np.testing.assert_array_equal(got.faces, F)
         got.points[0] = 99.0  # in memory, writable: not a map of the deleted copy
     assert list((tmp_path).iterdir()) == [tmp_path / "x.ply"]
+
+
+def test_a_face_of_no_vertices_is_counted_as_a_polygon_without_a_warning(tmp_path):
+    import warnings
+
+    data = HEAD.replace(b"end_header", b"element face 2\nproperty list uchar int vertex_indices\nend_header") + \
+        b"0 0 0\n10.5 0 0\n0 10.25 0\n3 0 1 2\n0\n"
+    (tmp_path / "empty_face.ply").write_bytes(data)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = read_ply(tmp_path / "empty_face.ply")
+    assert got.polygons == 1
+    np.testing.assert_array_equal(got.faces, [[0, 1, 2]])
