@@ -109,17 +109,13 @@ def _read(path: Path) -> plyfile.PlyData:
 def _read_as_is(path: Path) -> plyfile.PlyData:
     with warnings.catch_warnings():  # numpy's, on an empty ASCII list (a face of no vertices: counted as a polygon)
         warnings.filterwarnings("ignore", message="loadtxt: input contained no data")
-        return _read_lists(path)
-
-
-def _read_lists(path: Path) -> plyfile.PlyData:
-    for n in (3, 4):
-        try:
-            return plyfile.PlyData.read(path, known_list_len={"face": dict.fromkeys(_FACE_LISTS, n)})
-        except plyfile.PlyElementParseError as exc:
-            if exc.message != "unexpected list length" or exc.row:
-                break
-    return plyfile.PlyData.read(path)
+        for n in (3, 4):
+            try:
+                return plyfile.PlyData.read(path, known_list_len={"face": dict.fromkeys(_FACE_LISTS, n)})
+            except plyfile.PlyElementParseError as exc:
+                if exc.message != "unexpected list length" or exc.row:
+                    break
+        return plyfile.PlyData.read(path)
 
 
 def _copied(ply: plyfile.PlyData) -> plyfile.PlyData:
@@ -141,7 +137,7 @@ def _plain_header(path: Path) -> tuple[bytes, int] | None:
     (plyfile takes it from the ``ply`` line, and an exporter may mix them), no trailing blanks, and in
     ``comment`` and ``obj_info`` lines the bytes that are not ASCII (an exporter's name with an accent) as ``?``.
     A keyword line that is not ASCII is left for plyfile to refuse."""
-    head = _head(path)
+    head = _head(path, 1 << 16)  # a header; the file itself is plyfile's to read
     m = _END.search(head)
     if not head.startswith(b"ply") or m is None:
         return None

@@ -741,12 +741,11 @@ def _check_built_in_left(auto_region: np.ndarray, owner: np.ndarray, supports: l
         if not auto.any():
             continue
         takers = np.bincount(owner[auto & (owner >= 0)], minlength=len(supports))
-        for j in np.flatnonzero(takers):
-            if supports[j].code != code:
-                report[j].setdefault("took_built_in", {})[name] = int(takers[j])
         other = [j for j in np.flatnonzero(takers) if supports[j].code != code]
         if not other:
             continue
+        for j in other:
+            report[j].setdefault("took_built_in", {})[name] = int(takers[j])
         left = int((auto & ~np.isin(owner, other)).sum())
         names = ", ".join(f"'{supports[j].name}' ({supports[j].kind}{_slot(supports[j])}: {int(takers[j])} facets)"
                           for j in other)
