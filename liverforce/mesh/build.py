@@ -135,15 +135,15 @@ def build_liver_mesh(
     zones = []
     surface_labels = None
     candidates = None
-    support_report, snap = None, None
+    support_report, snap, owner = None, None, None
     user = supports is not None and len(supports[1]) > 0
     if (conforming_regions or refine_visible_edge_mm or exertion_sampling or refine_ivc_edge_mm or user
             or exertion_points is not None):
         s_region, s_visible = tag_regions(surface.vertices, surface.faces, params)
         if user:
-            from liverforce.mesh.supports import PointFrame, apply_supports
+            from liverforce.mesh.supports import PointFrame, assign_supports
 
-            s_region, support_report = apply_supports(
+            s_region, support_report, owner = assign_supports(
                 surface.vertices, surface.faces, s_region, supports[0], supports[1],
                 support_frame or PointFrame(), file_vertices, file_groups=file_groups)
             s_visible = visible_facets(surface.vertices, surface.faces, s_region, params)
@@ -157,7 +157,8 @@ def build_liver_mesh(
             from liverforce.mesh.supports import snap_exertion_points
 
             candidates, snap = snap_exertion_points(surface.vertices, surface.faces, s_region, exertion_points,
-                                                     labels=exertion_labels)
+                                                     labels=exertion_labels, owner=owner,
+                                                     supports=supports[1] if user else None)
             log.info("%d given exertion points snapped to the surface (max %.3g mm)", len(candidates), snap.max())
             if refine_points is None and refine_radius_mm:
                 refine_points = candidates

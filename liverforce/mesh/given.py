@@ -57,14 +57,14 @@ def build_given_mesh(points, tets, meta: dict | None = None, region_params: Regi
     n_reoriented = int((tets != given).any(axis=1).sum())  # 0 from load_volume_mesh, which orients and reports
     facets = boundary_facets(tets)
     region, visible = tag_regions(points, facets, params)
-    support_report = None
+    support_report, owner = None, None
     user = supports is not None and len(supports[1]) > 0
     if user:
-        from liverforce.mesh.supports import PointFrame, apply_supports
+        from liverforce.mesh.supports import PointFrame, assign_supports
 
-        region, support_report = apply_supports(points, facets, region, supports[0], supports[1],
-                                                support_frame or PointFrame(), file_vertices,
-                                                file_groups=file_groups)
+        region, support_report, owner = assign_supports(points, facets, region, supports[0], supports[1],
+                                                        support_frame or PointFrame(), file_vertices,
+                                                        file_groups=file_groups)
         visible = visible_facets(points, facets, region, params)
         for info in support_report:
             log.info("support %s (%s, %s): %d facets of the given mesh", info["name"], info["kind"],
@@ -73,7 +73,8 @@ def build_given_mesh(points, tets, meta: dict | None = None, region_params: Regi
     if exertion_points is not None:
         from liverforce.mesh.supports import snap_exertion_points
 
-        candidates, snap = snap_exertion_points(points, facets, region, exertion_points, labels=exertion_labels)
+        candidates, snap = snap_exertion_points(points, facets, region, exertion_points, labels=exertion_labels,
+                                                owner=owner, supports=supports[1] if user else None)
         log.info("%d given exertion points snapped to the given mesh's surface (max %.3g mm)", len(candidates),
                  snap.max())
     elif exertion_sampling and visible.any():

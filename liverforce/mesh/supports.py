@@ -101,6 +101,8 @@ class Support:
     selector: tuple[str, dict]
     region: str = "ligament"
     stiffness: dict = field(default_factory=dict)
+    #: where the lab gave it, for messages (e.g. ``geometry.imported[ct].supports.list[0]``)
+    key: str = ""
 
     @property
     def code(self) -> int:
@@ -213,7 +215,7 @@ def parse_supports(cfg, where: str = "supports") -> tuple[str, list[Support]]:
             _check_stiffness(stiffness, f"{key}.stiffness")
         elif stiffness or "region" in s:
             raise SupportError(f"{key}: stiffness and region are for kind foundation only")
-        out.append(Support(str(s.get("name") or f"support{i}"), kind, selector, region, stiffness))
+        out.append(Support(str(s.get("name") or f"support{i}"), kind, selector, region, stiffness, key))
     return mode, out
 
 
@@ -690,6 +692,17 @@ def apply_supports(vertices, faces, auto_region: np.ndarray, mode: str, supports
     a fixed support or a foundation vanishing silently would change the physics. One wholly inside later
     supports of its own kind and region (the same boundary term) is only logged.
     """
+    region, report, _ = assign_supports(vertices, faces, auto_region, mode, supports, frame, file_vertices,
+                                        base_dir, file_groups)
+    return region, report
+
+
+def assign_supports(vertices, faces, auto_region: np.ndarray, mode: str, supports: list[Support],
+                    frame: PointFrame = PointFrame(), file_vertices=None, base_dir=None,
+                    file_groups=None) -> tuple[np.ndarray, list, np.ndarray]:
+    """:func:`apply_supports`, and which support holds each facet: ``(region, report, owner)``, ``owner[i]``
+    the index in ``supports`` of the one holding facet ``i``, -1 where none does (an auto-tagged region under
+    ``mode: add``, or a free facet); what :func:`snap_exertion_points` names a refused point's support by."""
     region = np.asarray(auto_region, np.int8).copy() if mode == "add" else np.zeros(len(faces), np.int8)
     owner = np.full(len(faces), -1, np.int64)
     report, masks = [], []
@@ -723,7 +736,7 @@ def apply_supports(vertices, faces, auto_region: np.ndarray, mode: str, supports
                 s.name, s.kind, info["n_selected"] - held, info["n_selected"], names, held)
     if mode == "add":
         _check_built_in_left(np.asarray(auto_region), owner, supports, report)
-    return region, report
+    return region, report, owner
 
 
 #: what each auto-tagged region is as a support (its kind, and a foundation's slot)
@@ -814,12 +827,15 @@ def _given(a: np.ndarray) -> list:
 
 
 def snap_exertion_points(vertices, faces, region, xyz_mesh: np.ndarray, max_mm: float = MAX_SNAP_MM,
-                         labels: list[str] | None = None):
+                         labels: list[str] | None = None, owner: np.ndarray | None = None,
+                         supports: list[Support] | None = None):
     """Closest point on the surface to each given exertion point, refusing far points and fixed supports.
 
     ``labels`` (from :func:`exertion_points_mesh`) name each point as the user gave it (the file and row, the
     value in the file's units and frame), for the messages; without them a point is named by its index.
-    Returns ``(points (k, 3), distances (k,))`` in mm (mesh frame).
+    ``owner`` and ``supports`` (from :func:`assign_supports`) name the fixed support a refused point lies on:
+    the lab's support holding its facet, else the built-in IVC region (as without them: ``region`` is then
+    the auto-tagged one). Returns ``(points (k, 3), distances (k,))`` in mm (mesh frame).
     """
     q = np.atleast_2d(np.asarray(xyz_mesh, float))
     pts, d, facet = closest_on_triangles(np.asarray(vertices, float)[np.asarray(faces)], q, k=16)
@@ -832,9 +848,22 @@ def snap_exertion_points(vertices, faces, region, xyz_mesh: np.ndarray, max_mm: 
                                "header's world in RAS then the geometry's frame, unless they state frame: LPS, "
                                "RAS or a 4x4; a 3D Slicer markups file states its own), or move it onto the liver")
         if region is not None and int(region[facet[j]]) == REGION_CODES["ivc"]:
-            raise SupportError(f"{who} lies on a fixed support: the tool cannot push a clamped surface; move the "
-                               "point or the support")
+            i = -1 if owner is None else int(owner[facet[j]])
+            raise SupportError(f"{who} lies on {_fixed_support_words(supports[i] if i >= 0 else None)}")
     return pts, d
+
+
+def _fixed_support_words(s: Support | None) -> str:
+    """The fixed support a refused exertion point lies on, as the lab's config or the auto-tagging names it,
+    and what to do."""
+    if s is None:
+        return ("the built-in IVC region (the fixed support auto-tagged on the posterior face, "
+                "mesh.regions.ivc_position and ivc_radius_mm; with supports mode: add it lies beneath the lab's "
+                "supports): the tool cannot push a clamped surface; move the point, or shrink or move that region "
+                "(mesh.regions.ivc_radius_mm, ivc_position), or list the liver's own supports with mode: replace")
+    where = f"{s.key}, " if s.key else ""
+    return (f"the fixed support '{s.name}' ({where}selected by {s.selector[0]}): the tool cannot push a clamped "
+            f"surface; move the point, or shrink or move the support '{s.name}'")
 
 
 def exertion_points_mesh(spec, frame: PointFrame = PointFrame(), file_vertices=None, base_dir=None,

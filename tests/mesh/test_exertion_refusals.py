@@ -61,6 +61,40 @@ def test_a_point_on_the_fixed_support_is_named_as_given(liver_surface, spec_of):
         names = rf"exertion_points\.vertex_ids\[1\] = {vid}"
     labels = []
     xyz = exertion_points_mesh(spec, frame, (lambda: V) if spec_of == "vertex_ids" else None, labels=labels)
-    with pytest.raises(SupportError, match=rf"exertion point 1 \({names}; .* RAS mm as meshed\) lies on a fixed "
-                                           "support"):
+    with pytest.raises(SupportError, match=rf"exertion point 1 \({names}; .* RAS mm as meshed\) lies on the "
+                                           r"built-in IVC region \(the fixed support auto-tagged"):
         snap_exertion_points(V, F, region, xyz, labels=labels)
+
+
+# --------------------------------------------------------------------------- which fixed support
+@pytest.mark.parametrize("on", ["lab_clamp", "built_in_ivc"])
+def test_a_point_on_a_fixed_support_names_which_support_at_the_mesh_stage(tmp_path, liver_surface, on):
+    """Before, 'lies on a fixed support' named none: with a lab's clamp added to the built-in IVC (mode add)
+    the lab could not tell which of the two its tool position hit."""
+    from liverforce.config import compose
+    from liverforce.pipeline.geometry import make_geometry
+    from liverforce.pipeline.mesh import make_mesh
+
+    V, F = liver_surface.vertices, liver_surface.faces
+    path = tmp_path / "liver.ply"
+    meshio.write(path, meshio.Mesh(V, [("triangle", F)]), binary=True)
+    clamp = V[np.argmax(V[:, 1] + V[:, 2])]  # anterior-superior, far from the IVC's posterior patch
+    region, _ = tag_regions(V, F)
+    on_ivc = np.setdiff1d(np.unique(F[region == REGION_CODES["ivc"]]), F[region != REGION_CODES["ivc"]])
+    point = clamp if on == "lab_clamp" else V[on_ivc[0]]
+    spec = {"kind": "imported", "name": "lab", "path": str(path), "units": "mm", "label": None, "frame": "RAS",
+            "supports": {"mode": "add", "list": [{"name": "clamp", "kind": "fixed",
+                                                   "sphere": {"center_mm": clamp.tolist(), "radius_mm": 15.0}}]},
+            "exertion_points": {"coordinates_mm": [point.tolist()]}}
+    surface = tmp_path / "geometry" / "imp-lab.ply"
+    make_geometry(spec, surface, surface.with_suffix(".json"))
+    cfg = {**compose(["experiment=smoke"])["mesh"], "target_nodes": 200, "refine_radius_mm": 0.0,
+           "refine_ivc_edge_mm": 0.0, "regions_check": "off"}
+    out = tmp_path / "mesh"
+    given = rf"exertion point 0 \(exertion_points\.coordinates_mm\[0\] \[{', '.join(f'{x:.6g}' for x in point)}\] mm"
+    which = (r"the fixed support 'clamp' \(geometry\.imported\[lab\]\.supports\.list\[0\], selected by sphere\).*"
+             r"shrink or move the support 'clamp'" if on == "lab_clamp" else
+             r"the built-in IVC region \(the fixed support auto-tagged .*mesh\.regions\.ivc_radius_mm")
+    with pytest.raises(SupportError, match=rf"{given}; .* RAS mm as meshed\) lies on {which}"):
+        make_mesh(surface, cfg, 0, out / "imp-lab.vtu", out / "imp-lab.features.json", out / "imp-lab.regions.png")
+    assert not (out / "imp-lab.vtu").exists()
