@@ -168,7 +168,8 @@ def load_surface(
     vertices, faces, finfo = to_ras(vertices, faces, frame_m)
     vertices, faces, rmsgs = repair_surface(vertices, faces, path, check_self_intersections=check_si, unit="mm",
                                             locate=_file_locator(scale, unit_label, frame_m, frame_label,
-                                                                 is_volume_file(path)))
+                                                                 is_volume_file(path)),
+                                            corners_apart=fmt == "trimesh-stl")  # STL: each triangle's own corners
     msgs += rmsgs
     extent_mm = float(np.ptp(vertices, axis=0).max())
     check_liver_size(extent_mm, scale, unit_label, path, size_range_mm)

@@ -9,7 +9,9 @@ reported as one human-readable message:
 defect                                 outcome
 =====================================  =====================================
 no triangles / non-finite coordinates  refused
-duplicate vertices                     merged (reported)
+duplicate vertices                     merged (reported, except the corners an
+                                       STL stores apart for each triangle:
+                                       ``corners_apart``, reading, no repair)
 triangles with a repeated vertex       removed ("degenerate triangles removed")
 duplicate triangles                    removed (reported)
 edges shared by > 2 triangles          a few (≤ ``max_non_manifold_fraction``
@@ -65,6 +67,7 @@ def repair_surface(
     max_cut_fraction: float = 0.02,
     unit: str = "mm",
     locate=None,
+    corners_apart: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """Check and repair a triangle surface (units unchanged).
 
@@ -101,6 +104,10 @@ def repair_surface(
     locate : callable, optional
         ``point (3,) -> str``: where a point of ``vertices`` lies in the file as given (its own units and
         frame); the messages that name a place add it (``load_surface`` passes one whenever it converted).
+    corners_apart : bool
+        The file's format stores each triangle's three corners apart (STL): a vertex shared by six
+        triangles is written six times, so merging them is how the surface is read, not the repair of a
+        broken file, and is not reported. Every other repair still is.
 
     Returns
     -------
@@ -134,7 +141,7 @@ def repair_surface(
     mesh = trimesh.Trimesh(vertices, faces, process=False)
     n_before = len(mesh.vertices)
     mesh.merge_vertices(merge_tex=True, merge_norm=True)
-    if len(mesh.vertices) < n_before:
+    if len(mesh.vertices) < n_before and not corners_apart:
         msgs.append(f"merged {n_before - len(mesh.vertices)} duplicate vertices")
     f = np.asarray(mesh.faces)
     repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 
 import meshio
@@ -83,8 +84,37 @@ def test_trimesh_formats_round_trip(tmp_path, cube, suffix):
     path = tmp_path / f"cube{suffix}"
     trimesh.Trimesh(cube.vertices, cube.faces, process=False).export(path)
     s, msgs = load_surface(path, units="mm", max_edge_mm=None)
-    assert_is_cube(s, msgs, allow=("merged",))  # STL stores each triangle's own vertices
+    assert_is_cube(s, msgs)  # an STL's corners, stored apart for each triangle, are shared without a word
     assert s.meta["format"] == f"trimesh-{suffix[1:]}" and len(s.meta["sha256"]) == 64
+
+
+@pytest.mark.parametrize("file_type", ["stl", "stl_ascii"])
+def test_an_stl_s_shared_corners_are_no_repair_but_its_real_repairs_are(tmp_path, cube, file_type, caplog):
+    """STL writes each triangle's three corners apart, so every STL 'merged N duplicate vertices' as a repair,
+    in the log and the geometry JSON's repairs, hiding the real ones among a repair no file lacked."""
+    from liverforce.geometry.procedural import procedural_liver
+    from liverforce.pipeline.geometry import make_geometry
+
+    clean, inward = tmp_path / "clean.stl", tmp_path / "inward.stl"
+    liver = procedural_liver(0)  # fine enough to be kept as read (no Loop subdivision)
+    trimesh.Trimesh(liver.vertices, liver.faces, process=False).export(clean, file_type=file_type)
+    trimesh.Trimesh(cube.vertices, cube.faces[:, ::-1], process=False).export(inward, file_type=file_type)
+    with caplog.at_level(logging.DEBUG):
+        record = make_geometry({"kind": "imported", "name": "clean", "path": str(clean), "units": "mm"},
+                               tmp_path / "imp-clean.ply", tmp_path / "imp-clean.json")
+    assert record["repairs"] == []
+    assert json.loads((tmp_path / "imp-clean.json").read_text())["repairs"] == []
+    assert not [r for r in caplog.records if "merged" in r.getMessage() or r.levelno >= logging.WARNING]
+    s, msgs = load_surface(inward, units="mm", max_edge_mm=None)  # a real repair is still reported
+    assert msgs == ["normals flipped (all triangles faced inward)"] == s.meta["repairs"]
+    assert s.volume_mm3 == pytest.approx(VOLUME, rel=1e-9)
+    twice = tmp_path / "twice.ply"  # an indexed file that does hold each vertex twice: merged and reported
+    n = len(cube.vertices)
+    faces = np.vstack([cube.faces[::2], cube.faces[1::2] + n])  # the odd triangles on the second copy
+    trimesh.Trimesh(np.vstack([cube.vertices, cube.vertices]), faces, process=False).export(twice)
+    both = len(np.intersect1d(cube.faces[::2], cube.faces[1::2]))  # vertices the two halves share
+    s, msgs = load_surface(twice, units="mm", max_edge_mm=None)
+    assert both > 0 and msgs == [f"merged {both} duplicate vertices"] and s.volume_mm3 == pytest.approx(VOLUME)
 
 
 @pytest.mark.parametrize("binary", [False, True])
