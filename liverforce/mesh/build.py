@@ -41,6 +41,7 @@ def build_liver_mesh(
     exertion_points=None,
     exertion_labels: list[str] | None = None,
     file_groups=None,
+    auto_regions: tuple | None = None,
 ) -> LiverMesh:
     """Tetrahedralise ``surface``, extract and tag its boundary facets.
 
@@ -116,6 +117,11 @@ def build_liver_mesh(
     exertion_labels : list of str, optional
         Each given point as the user gave it (:func:`liverforce.mesh.supports.exertion_points_mesh`), for the
         refusals' messages.
+    auto_regions : (region, visible), optional
+        The auto-tagged regions of ``surface`` with ``region_params``
+        (:func:`~liverforce.mesh.regions.tag_regions`), when the caller has them already (the mesh stage
+        tags them to check them before meshing): used as they are instead of tagging the surface again, which
+        on a large surface takes as long as the check. Their lengths must match ``surface.faces``.
     require_regions : bool
         Raise ``ValueError`` if a region (1–4) or the visible set is empty;
         otherwise empty ones are only logged and listed in
@@ -139,7 +145,14 @@ def build_liver_mesh(
     user = supports is not None and len(supports[1]) > 0
     if (conforming_regions or refine_visible_edge_mm or exertion_sampling or refine_ivc_edge_mm or user
             or exertion_points is not None):
-        s_region, s_visible = tag_regions(surface.vertices, surface.faces, params)
+        if auto_regions is None:
+            s_region, s_visible = tag_regions(surface.vertices, surface.faces, params)
+        else:
+            s_region, s_visible = (np.array(a, copy=True) for a in auto_regions)
+            if s_region.shape != (len(surface.faces),) or s_visible.shape != (len(surface.faces),):
+                raise ValueError(f"auto_regions: {s_region.shape[0]} region codes and {s_visible.shape[0]} visible "
+                                 f"flags for the {len(surface.faces)} facets of {surface.meta.get('source', '?')}: "
+                                 "pass tag_regions(surface.vertices, surface.faces, region_params) of this surface")
         if user:
             from liverforce.mesh.supports import PointFrame, assign_supports
 

@@ -72,7 +72,7 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
     user = _user_scene(spec, surface.meta)
     skip = _skipped_checks(user)  # the user's supports are not anatomy to check; the liver's frame still is
     add = bool(user["supports"][1]) and user["supports"][0] == "add"
-    built_in = None
+    built_in, auto = None, None
     if mesh_cfg["regions_check"] == "strict" or add and mesh_cfg["regions_check"] != "off":
         # refuse before meshing: tags of the input surface; under add, the built-in regions beneath the lab's
         # supports are checked here (the final regions hold the lab's supports, which are no anatomy)
@@ -83,11 +83,12 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
         pre_skip = (built_in_only() if mesh_cfg["regions_check"] != "strict" else {}) if add else skip
         built_in = _regions_check(surface.vertices, surface.faces, region, visible, surface.meta, mesh_cfg,
                                   gid + (" (built-in regions, beneath the lab's supports)" if add else ""), pre_skip)
+        auto = (region, visible)  # meshing starts from these: tagged once
     t0 = time.perf_counter()
     if surface.meta.get("mesh_mode") == "as_given":
         mesh = _given_mesh(surface.meta, spec, user, mesh_cfg, exertion, seed, gid)
     else:
-        mesh = _remeshed(surface, user, mesh_cfg, exertion, seed, gid)
+        mesh = _remeshed(surface, user, mesh_cfg, exertion, seed, gid, auto)
     elapsed = time.perf_counter() - t0
     checked = _regions_check(mesh.points, mesh.facets, mesh.facet_region, mesh.facet_visible, surface.meta,
                              mesh_cfg, gid, skip)
@@ -113,8 +114,9 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
     return feats
 
 
-def _remeshed(surface, user: dict, mesh_cfg: dict, exertion: dict | None, seed: int, gid: str):
-    """Tetrahedralise the stage's input surface (procedural livers, surfaces, remeshed volume files)."""
+def _remeshed(surface, user: dict, mesh_cfg: dict, exertion: dict | None, seed: int, gid: str, auto_regions=None):
+    """Tetrahedralise the stage's input surface (procedural livers, surfaces, remeshed volume files); its
+    auto-tagged ``auto_regions`` (region, visible) when the regions check tagged them already."""
     from liverforce.mesh.build import build_liver_mesh
     from liverforce.mesh.regions import RegionParams
 
@@ -134,6 +136,7 @@ def _remeshed(surface, user: dict, mesh_cfg: dict, exertion: dict | None, seed: 
         exertion_sampling=None if exertion is None or user["exertion_points"] is not None else {
             "n_points": exertion["n_points"], "min_spacing_mm": exertion["min_spacing_mm"],
             "seed": derive(seed, "mesh.exertion")},
+        auto_regions=auto_regions,
     )
 
 

@@ -80,3 +80,52 @@ def test_a_built_in_region_wholly_covered_by_another_kind_is_refused(liver_surfa
     region, report = apply_supports(V, F, auto, *parse_supports(same))
     assert (region[auto == REGION_CODES["ivc"]] == REGION_CODES["ivc"]).all()
     assert "ivc" not in report[0].get("took_built_in", {})
+
+
+@pytest.mark.parametrize("mode", ["warn", "strict"])
+def test_the_mesh_stage_tags_the_regions_once_with_the_same_results(tmp_path, ras_file, liver_surface, mode,
+                                                                     monkeypatch):
+    """Before, with supports mode add and the regions check on, the stage tagged the input surface twice: once to
+    check the built-in regions, then again in build_liver_mesh, the same work on the same surface."""
+    import liverforce.mesh.build as build
+    import liverforce.mesh.regions as regions
+    from liverforce.mesh.io import read_mesh
+
+    clamp = {"mode": "add", "list": [{"name": "clamp", "kind": "fixed",
+                                      "sphere": {"center_mm": _anterior_top(liver_surface.vertices),
+                                                 "radius_mm": 45.0}}]}
+    calls = []
+
+    def counted(points, facets, params=None):
+        calls.append(len(facets))
+        return tag_regions(points, facets, params)
+
+    monkeypatch.setattr(regions, "tag_regions", counted)
+    monkeypatch.setattr(build, "tag_regions", counted)
+    out, run = mesh_stage(tmp_path / "once", ras_file, clamp, mode)
+    run()
+    assert calls == [len(liver_surface.faces)]  # the input surface, once (the mesh conforms to its regions)
+
+    def tagging_again(surface, *args, auto_regions=None, **kw):  # the stage as it was: the build tags again
+        return build_liver_mesh(surface, *args, **kw)
+
+    build_liver_mesh = build.build_liver_mesh
+    monkeypatch.setattr(build, "build_liver_mesh", tagging_again)
+    calls.clear()
+    ref_out, ref_run = mesh_stage(tmp_path / "twice", ras_file, clamp, mode)
+    ref_run()
+    assert calls == [len(liver_surface.faces)] * 2
+    feats, ref = (json.loads((o / "imp-lab.features.json").read_text()) for o in (out, ref_out))
+    assert feats["regions_check"] == ref["regions_check"] and feats["regions_check"]["built_in"]["checks"]
+    assert feats["supports"] == ref["supports"]
+    mesh, ref_mesh = (read_mesh(o / "imp-lab.vtu") for o in (out, ref_out))
+    assert np.array_equal(mesh.facets, ref_mesh.facets) and np.array_equal(mesh.facet_region, ref_mesh.facet_region)
+    assert np.array_equal(mesh.facet_visible, ref_mesh.facet_visible)
+
+
+def test_auto_regions_of_another_surface_are_refused(liver_surface):
+    from liverforce.mesh.build import build_liver_mesh
+
+    with pytest.raises(ValueError, match=rf"auto_regions: 3 region codes and 3 visible flags for the "
+                                         rf"{len(liver_surface.faces)} facets .*pass tag_regions"):
+        build_liver_mesh(liver_surface, target_nodes=200, auto_regions=(np.zeros(3, np.int8), np.zeros(3, bool)))
