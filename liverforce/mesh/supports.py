@@ -857,13 +857,13 @@ def _fixed_support_words(s: Support | None) -> str:
     """The fixed support a refused exertion point lies on, as the lab's config or the auto-tagging names it,
     and what to do."""
     if s is None:
-        return ("the built-in IVC region (the fixed support auto-tagged on the posterior face, "
+        return ("a fixed support, the built-in IVC region (auto-tagged on the posterior face by "
                 "mesh.regions.ivc_position and ivc_radius_mm; with supports mode: add it lies beneath the lab's "
                 "supports): the tool cannot push a clamped surface; move the point, or shrink or move that region "
                 "(mesh.regions.ivc_radius_mm, ivc_position), or list the liver's own supports with mode: replace")
     where = f"{s.key}, " if s.key else ""
-    return (f"the fixed support '{s.name}' ({where}selected by {s.selector[0]}): the tool cannot push a clamped "
-            f"surface; move the point, or shrink or move the support '{s.name}'")
+    return (f"a fixed support, the lab's '{s.name}' ({where}selected by {s.selector[0]}): the tool cannot push a "
+            f"clamped surface; move the point, or shrink or move the support '{s.name}'")
 
 
 def exertion_points_mesh(spec, frame: PointFrame = PointFrame(), file_vertices=None, base_dir=None,

@@ -61,8 +61,8 @@ def test_a_point_on_the_fixed_support_is_named_as_given(liver_surface, spec_of):
         names = rf"exertion_points\.vertex_ids\[1\] = {vid}"
     labels = []
     xyz = exertion_points_mesh(spec, frame, (lambda: V) if spec_of == "vertex_ids" else None, labels=labels)
-    with pytest.raises(SupportError, match=rf"exertion point 1 \({names}; .* RAS mm as meshed\) lies on the "
-                                           r"built-in IVC region \(the fixed support auto-tagged"):
+    with pytest.raises(SupportError, match=rf"exertion point 1 \({names}; .* RAS mm as meshed\) lies on a fixed "
+                                           r"support, the built-in IVC region \(auto-tagged on the posterior"):
         snap_exertion_points(V, F, region, xyz, labels=labels)
 
 
@@ -92,9 +92,9 @@ def test_a_point_on_a_fixed_support_names_which_support_at_the_mesh_stage(tmp_pa
            "refine_ivc_edge_mm": 0.0, "regions_check": "off"}
     out = tmp_path / "mesh"
     given = rf"exertion point 0 \(exertion_points\.coordinates_mm\[0\] \[{', '.join(f'{x:.6g}' for x in point)}\] mm"
-    which = (r"the fixed support 'clamp' \(geometry\.imported\[lab\]\.supports\.list\[0\], selected by sphere\).*"
-             r"shrink or move the support 'clamp'" if on == "lab_clamp" else
-             r"the built-in IVC region \(the fixed support auto-tagged .*mesh\.regions\.ivc_radius_mm")
+    which = (r"a fixed support, the lab's 'clamp' \(geometry\.imported\[lab\]\.supports\.list\[0\], selected by "
+             r"sphere\).*shrink or move the support 'clamp'" if on == "lab_clamp" else
+             r"a fixed support, the built-in IVC region \(auto-tagged .*mesh\.regions\.ivc_radius_mm")
     with pytest.raises(SupportError, match=rf"{given}; .* RAS mm as meshed\) lies on {which}"):
         make_mesh(surface, cfg, 0, out / "imp-lab.vtu", out / "imp-lab.features.json", out / "imp-lab.regions.png")
     assert not (out / "imp-lab.vtu").exists()
