@@ -390,7 +390,8 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
                                             if outside[f"{side}_accuracy_pct"]["mean"] is not None}}
                                         if outside else {}),
                                      **({f"heldout_points_{k}_{m}": v for m in ("mean", "sd")
-                                         for k, v in points[f"metrics_{m}"].items()} if points else {}),
+                                         for k, v in points[f"metrics_{m}"].items()}
+                                        if points and points["metrics_mean"] else {}),
                                      **({f"exact_tip_{k}_{m}": v for m in ("mean", "sd")
                                          for k, v in exact[f"metrics_{m}"].items()} if exact else {})})
         tracker.log_params(run_id, {f"best.{k}": v for k, v in best.items()})
@@ -634,6 +635,28 @@ def _all_cases(train_arrays: dict, test_arrays: dict) -> dict:
     return subset(both, np.argsort(np.asarray(both["case_id"]).astype(str), kind="stable"))
 
 
+#: Fewest distinct exertion points on a liver a held-out-points fold must train on before its test points on that
+#: liver are scored. The exertion point is a position on the liver's 2-D surface, and the state vector's
+#: point-dependent entries (liver and ROI centroid offsets, inertia in the local frame, thickness, probe
+#: compliance) are functions of it: an affine dependence on a 2-D position has 3 unknowns, so fewer than 3
+#: points (1: those entries are constant in training; 2: they vary along one line only) leave the model
+#: extrapolating in a direction it never saw, whatever it predicts.
+MIN_TRAIN_POINTS = 3
+
+
+def _point_liver(point: str) -> str:
+    """The liver (``geometry_id``) of a held-out-points key ``"<geometry_id>#<exertion_id>"``."""
+    return str(point).rsplit("#", 1)[0]
+
+
+def fold_training_points(groups, part) -> dict[str, int]:
+    """Per liver the fold ``part`` tests (points of ``groups`` keyed ``"<geometry_id>#<exertion_id>"``): how many
+    distinct exertion points of that liver its training part (every other point) holds."""
+    held = {str(p) for p in part}
+    livers = sorted({_point_liver(p) for p in held})
+    return {g: sum(1 for p in groups if str(p) not in held and _point_liver(p) == g) for g in livers}
+
+
 def heldout_points(train_arrays, test_arrays, model_cfg, folds, seed, encoder, use_state, code_size, dae_noise,
                    hidden, dropout, fit) -> dict | None:
     """Accuracy on exertion points no training case used (scenarios split by case: II, III).
@@ -643,6 +666,11 @@ def heldout_points(train_arrays, test_arrays, model_cfg, folds, seed, encoder, u
     chosen settings fitted on the others (the cases observed as in the main split).
     Returns the metrics per fold and their mean and sd, or None with fewer than 2
     exertion points.
+
+    A fold whose training part holds fewer than :data:`MIN_TRAIN_POINTS` distinct exertion points on a liver
+    it tests is not fitted nor scored: its record keeps its points and test cases, ``train_points`` (per
+    tested liver) and ``skipped`` (why); the mean and sd are over the scored folds (``n_scored``). With no
+    fold scored, ``metrics_mean`` and ``metrics_sd`` are None and ``not_measured`` says why, with the counts.
     """
     all_arrays = _all_cases(train_arrays, test_arrays)
     point = np.char.add(np.asarray(all_arrays["geometry_id"]).astype(str),
@@ -655,9 +683,20 @@ def heldout_points(train_arrays, test_arrays, model_cfg, folds, seed, encoder, u
     parts = np.array_split(rng.permutation(groups), k)
     fold_seed = derive(seed, "points.fit")
     out = []
-    for part in parts:
+    for i, part in enumerate(parts, start=1):
         te = np.flatnonzero(np.isin(point, part))
         tr = np.flatnonzero(~np.isin(point, part))
+        record = {"points": sorted(str(p) for p in part), "n_test": int(len(te))}
+        n_train = fold_training_points(groups, part)
+        few = {g: n for g, n in n_train.items() if n < MIN_TRAIN_POINTS}
+        if few:
+            record["train_points"] = n_train
+            record["skipped"] = (f"fold {i} trains on " + ", ".join(
+                f"{n} exertion point{'' if n == 1 else 's'} of {g}" for g, n in few.items())
+                + f" (fewer than {MIN_TRAIN_POINTS}: how the force depends on the point is not learnt, only "
+                "extrapolated)")
+            out.append(record)
+            continue
         a_tr, a_te = subset(all_arrays, tr), subset(all_arrays, te)
         rep_p = representation_from_config(model_cfg, a_tr)
         prep_tr = prepare(a_tr, rep_p, observation_seeds=view_seeds(seed, n_views_for(rep_p)))
@@ -665,11 +704,48 @@ def heldout_points(train_arrays, test_arrays, model_cfg, folds, seed, encoder, u
                                    hidden=hidden, dropout=dropout, fit=fit, seed=fold_seed,
                                    dae_input_noise=dae_noise, **state_options(model_cfg))
         pred = model.predict(a_te, observation_seed=eval_seed(seed))
-        out.append({"points": sorted(str(p) for p in part), "n_test": int(len(te)),
-                    "metrics": force_metrics(np.asarray(a_te["force_n"], float), pred)})
-    summary = summarise_repeats([o["metrics"] for o in out])
-    return {"folds": k, "n_points": int(len(groups)), "metrics_mean": summary["mean"], "metrics_sd": summary["sd"],
-            "per_fold": out}
+        record["metrics"] = force_metrics(np.asarray(a_te["force_n"], float), pred)
+        out.append(record)
+    scored = [o["metrics"] for o in out if "metrics" in o]
+    res = {"folds": k, "n_points": int(len(groups)), "min_train_points": MIN_TRAIN_POINTS, "n_scored": len(scored)}
+    if scored:
+        summary = summarise_repeats(scored)
+        res.update(metrics_mean=summary["mean"], metrics_sd=summary["sd"])
+    else:
+        per_liver = {}
+        for p in groups:
+            per_liver[_point_liver(p)] = per_liver.get(_point_liver(p), 0) + 1
+        fewest = min(per_liver.values())
+        most = max(min(o["train_points"].values()) for o in out)
+        more_folds = _folds_needed(fewest)
+        res.update(metrics_mean=None, metrics_sd=None,
+                   not_measured=(f"{len(groups)} exertion point{'' if len(groups) == 1 else 's'} "
+                                 f"({', '.join(f'{n} on {g}' for g, n in per_liver.items())}) in {k} folds leave "
+                                 f"at most {most} point{'' if most == 1 else 's'} of a tested liver to train a fold on"
+                                 f", fewer than the {MIN_TRAIN_POINTS} needed; give >= {_points_needed(k)} exertion "
+                                 f"points per liver at {k} folds"
+                                 + (f" or set train.heldout_points.folds >= {more_folds}" if more_folds else
+                                    f" (>= {MIN_TRAIN_POINTS + 1} with as many folds as points)")))
+    res["per_fold"] = out
+    return res
+
+
+def _folds_needed(n_points: int) -> int | None:
+    """Fewest folds with which a liver of ``n_points`` exertion points leaves every fold
+    :data:`MIN_TRAIN_POINTS` of them to train on (None: no number of folds does)."""
+    for k in range(2, n_points + 1):
+        if n_points - -(-n_points // k) >= MIN_TRAIN_POINTS:
+            return k
+    return None
+
+
+def _points_needed(folds: int) -> int:
+    """Fewest exertion points per liver with which every one of ``folds`` folds trains on
+    :data:`MIN_TRAIN_POINTS` of them (a fold tests at most ``ceil(n / folds)`` points)."""
+    n = MIN_TRAIN_POINTS + 1
+    while n - -(-n // folds) < MIN_TRAIN_POINTS:
+        n += 1
+    return n
 
 
 def summarise_repeats(metrics: list[dict]) -> dict:

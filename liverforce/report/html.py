@@ -27,6 +27,7 @@ import numpy as np
 
 from liverforce.atomic import atomic_path, write_text_atomic
 from liverforce.layout import gid_of, model_of_metrics, scenario_of_manifest, study_picture_of
+from liverforce.report.heldout import ACCURACY_FLOOR_PCT, flag_accuracy, heldout_cell
 
 #: the study's accuracies (Table 5.9), % — deformation only / with state vector
 STUDY_ACCURACY = {
@@ -894,7 +895,10 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
                  ", …). Scenarios II and III split by case, so every test exertion point was also a training "
                  "point; their models are also scored on whole exertion points no training case used "
                  "(<code>train.heldout_points</code>: folds of points, each predicted by a model fitted on the "
-                 "others; mean ± sd over the folds).</p>")
+                 "others; mean ± sd over the folds). A fold whose training part holds fewer than 3 exertion points "
+                 "of a liver it tests is not scored (the force's dependence on the point, a position on a 2-D "
+                 "surface, needs 3 to be learnt rather than extrapolated); an accuracy below "
+                 f"{ACCURACY_FLOOR_PCT:.0f} % (errors larger than the forces) is flagged as extrapolation.</p>")
     rows = []
     for m in sorted(data["models"], key=lambda m: (m["scenario"], m["variant"])):
         sv = "with" if m.get("state_vector") else "without"
@@ -902,14 +906,18 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
         mt, mean, sd = m["metrics"], m["metrics_mean"], m["metrics_sd"]
         hp = m.get("heldout_points") or {}
         rows.append([m["scenario"], html.escape(m["variant"]), html.escape(str(m.get("encoder"))), sv,
-                     _pm(mean.get("accuracy_pct"), sd.get("accuracy_pct"), 1), _pm(mean.get("mae_vec"), sd.get("mae_vec")),
-                     _fmt(m.get("n_splits"), 0), _fmt(mt.get("accuracy_pct"), 1), _fmt(study, 1),
+                     flag_accuracy(_pm(mean.get("accuracy_pct"), sd.get("accuracy_pct"), 1),
+                                   [mean.get("accuracy_pct")] + [r.get("metrics", {}).get("accuracy_pct")
+                                                                 for r in m.get("repeats") or []]),
+                     _pm(mean.get("mae_vec"), sd.get("mae_vec")),
+                     _fmt(m.get("n_splits"), 0),
+                     flag_accuracy(_fmt(mt.get("accuracy_pct"), 1), [mt.get("accuracy_pct")]),
+                     _fmt(study, 1),
                      _fmt(mt.get("mae_vec")), _fmt(mt.get("rmse_vec")),
                      " / ".join(_fmt(mt.get(f"mae_{a}")) for a in "xyz"),
                      _run(m.get("run_id")), f"{_fmt(m.get('n_train'), 0)} / {_fmt(m.get('n_test'), 0)}",
                      _fmt(m.get("seconds"), 0),
-                     (_pm(hp["metrics_mean"].get("accuracy_pct"), hp["metrics_sd"].get("accuracy_pct"), 1)
-                      + f" <small>({hp['folds']} folds of {hp['n_points']} points)</small>") if hp else "–"])
+                     heldout_cell(hp)])
     parts.append(_table(["scenario", "variant", "encoder", "state vector", "accuracy % mean ± sd", "MAE (N) mean ± sd",
                          "splits", "accuracy % (saved split)", "study %", "MAE (N) (saved split)", "RMSE (N)",
                          "MAE x / y / z (N)", "MLflow run", "train / test cases", "train time (s)",
