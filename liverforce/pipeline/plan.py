@@ -16,13 +16,19 @@ Geometry ids
 ``imp-<name>``       an imported liver
 ``val-<seed:04d>``   an unseen validation liver (procedural, held-out seeds ``validate.seed + i``)
 
-Scenarios I–III use the first training geometry, IV all of them, and the
-validation scenario ``V`` the unseen livers
+Scenarios I–III (``sweep.scenarios.<s>.geometries: 1``) use one liver
+(:attr:`Plan.single_geometry`): the first imported liver when the lab brings
+any (``geometry.imported[0]``), else the first training geometry (``proc-0000``
+of the embedded default). IV (``geometries: all``) uses every training geometry,
+and the validation scenario ``V`` the unseen livers
 (``validate.livers`` of them, ``validate.n_cases`` cases each).
+:meth:`Plan.scenario_livers` says which livers each scenario uses; the sweep
+params and the case table's metadata record them (``geometries``).
 """
 
 from __future__ import annotations
 
+import logging
 import os
 import re
 from pathlib import Path
@@ -33,6 +39,7 @@ from liverforce.seeds import derive, liver_seeds
 from liverforce.sweep.design import n_shards
 
 VALIDATION = "V"
+log = logging.getLogger("liverforce.plan")
 _SAFE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]*")
 
 
@@ -65,9 +72,17 @@ class Plan:
         self.train_geometries += [f"imp-{imp['name']}" for imp in g["imported"]]
         if g["cube"]["enabled"]:
             self.train_geometries.append("cube")
+        #: the liver of the single-liver scenarios (I-III): a lab's own liver when it brings one, for the
+        #: procedural ones come first in :attr:`train_geometries` (whose order IV and the seeds keep)
+        self.single_geometry: str = (f"imp-{g['imported'][0]['name']}" if g["imported"]
+                                     else self.train_geometries[0])
         v = cfg["validate"]
         self.validation_geometries: list[str] = [f"val-{s:04d}" for s in liver_seeds(v["seed"], v["livers"])]
         self.scenarios = [s for s in SCENARIOS if s in cfg["sweep"]["scenarios"]]
+        if g["imported"]:
+            log.info("livers per scenario (I-III on the first imported liver, %s): %s", self.single_geometry,
+                     "; ".join(f"{s} {', '.join(ids) if len(ids) <= 3 else f'{len(ids)} livers'}"
+                               for s, ids in self.scenario_livers().items()))
 
     # ------------------------------------------------------------ names, seeds
     def experiment_name(self, kind: str) -> str:
@@ -151,7 +166,16 @@ class Plan:
         if scenario == VALIDATION:
             return list(self.validation_geometries)
         spec = self.cfg["sweep"]["scenarios"][scenario]
-        return self.train_geometries if str(spec["geometries"]) == "all" else self.train_geometries[:1]
+        return list(self.train_geometries) if str(spec["geometries"]) == "all" else [self.single_geometry]
+
+    def scenario_livers(self) -> dict[str, list[str]]:
+        """The geometry ids each scenario of this run simulates (the training scenarios, then ``V``).
+
+        With an imported liver the single-liver scenarios (I-III) are on the lab's
+        liver (``geometry.imported[0]``), not on ``proc-0000``; the procedural livers
+        serve IV and the unseen livers the validation.
+        """
+        return {s: self.scenario_geometries(s) for s in self.all_scenarios()}
 
     # ------------------------------------------------------------------- sweep
     def scenario_spec(self, scenario: str) -> dict:
