@@ -31,8 +31,8 @@ def flag_accuracy(text: str, values) -> str:
     low = [float(v) for v in values if below_floor(v)]
     if not low:
         return text
-    return (f"<b class='flag'>⚠ extrapolation: {text} <small>(below {ACCURACY_FLOOR_PCT:.0f} %: the errors exceed "
-            f"the forces, worse than predicting 0 N; lowest {_num(min(low))} %)</small></b>")
+    return (f"<span class='why'><b class='flag'>⚠ extrapolation: {text} <small>(below {ACCURACY_FLOOR_PCT:.0f} %: "
+            f"the errors exceed the forces, worse than predicting 0 N; lowest {_num(min(low))} %)</small></b></span>")
 
 
 def heldout_cell(hp: dict | None) -> str:
@@ -47,7 +47,7 @@ def heldout_cell(hp: dict | None) -> str:
     folds, n_points = hp.get("folds"), hp.get("n_points")
     if hp.get("not_measured") or hp.get("metrics_mean") is None:
         why = hp.get("not_measured") or "no fold was scored"
-        return f"<b class='flag'>not measured</b>: {html.escape(str(why))}"
+        return f"<span class='why'><b class='flag'>not measured</b>: {html.escape(str(why))}</span>"
     per = hp.get("per_fold") or []
     scored = [f for f in per if "metrics" in f]
     n_scored = hp.get("n_scored", len(scored))
@@ -60,5 +60,5 @@ def heldout_cell(hp: dict | None) -> str:
     if n_scored == folds:
         return text + f" <small>({folds} folds of {n_points} points)</small>"
     skipped = [html.escape(str(f["skipped"])) for f in per if f.get("skipped")]
-    return (text + f" <small>({n_scored} of {folds} folds of {n_points} points scored; not scored: "
-            + "; ".join(skipped) + ")</small>")
+    return (f"<span class='why'>{text} <small>({n_scored} of {folds} folds of {n_points} points scored; "
+            "not scored: " + "; ".join(skipped) + ")</small></span>")

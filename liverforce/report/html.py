@@ -28,6 +28,7 @@ import numpy as np
 from liverforce.atomic import atomic_path, write_text_atomic
 from liverforce.layout import gid_of, model_of_metrics, scenario_of_manifest, study_picture_of
 from liverforce.report.heldout import ACCURACY_FLOOR_PCT, flag_accuracy, heldout_cell
+from liverforce.report.imported import geometry_record, given_points, imported_section, is_imported
 
 #: the study's accuracies (Table 5.9), % — deformation only / with state vector
 STUDY_ACCURACY = {
@@ -190,7 +191,8 @@ def collect(model_metrics: list[str | Path], manifests: list[str | Path], valida
     geoms = []
     for p in features:
         f = json.loads(Path(p).read_text())
-        geoms.append({"id": gid_of(p), **f})
+        rec = geometry_record(p)
+        geoms.append({"id": gid_of(p), **f, **({"geometry_record": rec} if rec is not None else {})})
     study_docs = []
     for p in studies:
         d = json.loads(Path(p).read_text())
@@ -672,6 +674,19 @@ def stretch_section(shards: list[dict], solver_stats: dict) -> str:
                                    "most extreme outside"], rows, cls="stretch", row_cls="stretch")
 
 
+def _points_text(n_points, geometries: list[dict]) -> str:
+    """The sweep's candidate exertion points: ``sweep.exertion.n_points`` per liver, except for the livers that
+    give their own (counted apiece)."""
+    given = given_points(geometries)
+    if not given:
+        return f"{n_points} candidate exertion points per liver"
+    each = ", ".join(f"<code>{html.escape(g)}</code>: {n} given by the lab" for g, n in given.items())
+    if len(given) == len(geometries):
+        return f"candidate exertion points given per liver ({each})"
+    return (f"{n_points} candidate exertion points per sampled liver (<code>sweep.exertion.n_points</code>); "
+            f"livers with their own: {each}")
+
+
 def write_report(data: dict, pictures: list[str | Path], experiment: str, out_html: str | Path,
                  solver_stats: dict | None = None, setup: dict | None = None,
                  population_png: str | Path | None = None) -> Path:
@@ -820,6 +835,8 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
         parts.append(f"<details><summary>Pictures of {what}, per liver ({len(pictures)})</summary>{pics}</details>")
     elif pictures:
         parts.append(f"<p>Pictures: {what}.</p>{pics}")
+    sw = setup.get("sweep") or {}
+    parts.append(imported_section(data["geometries"], sw.get("exertion", {}).get("n_points")))
     mat = setup.get("material")
     if mat:
         consts = ", ".join(f"{k} = {val:g}" for k, val in (mat.get("params_mpa") or {}).items())
@@ -832,8 +849,12 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
     bnd = setup.get("boundary")
     if bnd:
         num = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool)  # noqa: E731
-        parts.append("<p>Boundary: " + html.escape(", ".join(f"{k} = {val:g}" if num(val) else f"{k} = {val}"
-                                                             for k, val in bnd.items())) + "</p>")
+        own = [g["id"] for g in data["geometries"] if is_imported(g) and g.get("supports")]
+        parts.append("<p>Boundary" + (" (the built-in regions)" if own else "") + ": "
+                     + html.escape(", ".join(f"{k} = {val:g}" if num(val) else f"{k} = {val}"
+                                             for k, val in bnd.items()))
+                     + (f"; {html.escape(', '.join(own))} held by {'its' if len(own) == 1 else 'their'} own supports "
+                        "(see Imported livers)" if own else "") + "</p>")
     sw = setup.get("sweep")
     if sw:
         rows = [[sc, s["n_cases"], html.escape(str(s["geometries"])), s["exertion"], s["material"]]
@@ -844,7 +865,7 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
         f = sw.get("force", {})
         parts.append(f"<h3>Simulation sweep</h3><p>Force magnitude {_fmt(f.get('min_n'), 1)}–"
                      f"{_fmt(f.get('max_n'), 1)} N within {_fmt(f.get('cone_deg'), 0)}° of the inward normal; "
-                     f"{sw.get('exertion', {}).get('n_points', '–')} candidate exertion points per liver; "
+                     + _points_text(sw.get("exertion", {}).get("n_points", "–"), data["geometries"]) + "; "
                      f"{html.escape(str(sw.get('design')))} design. ROI: "
                      f"{_fmt(100 * (setup.get('dataset') or {}).get('roi_fraction', float('nan')), 0)} % of the "
                      f"surface; mesh target {(setup.get('mesh') or {}).get('target_nodes', '–')} vertices.</p>")
@@ -1125,6 +1146,9 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
              ".side figure,.pics figure{display:table}.side figcaption,.pics figcaption{display:table-caption;"
              "caption-side:bottom}.flag{color:#b00}tfoot th,tfoot td{background:#f7f7f7;font-weight:bold}"
              "tfoot th{text-align:left}.population img{border:1px solid #ddd}summary{cursor:pointer;margin:6px 0}"
+             ".models .why{white-space:normal;display:block;width:260px;text-align:left}"
+             ".imported{border-left:3px solid #4a7ab5;padding-left:10px;margin:10px 0}"
+             ".imported td,.imported th{text-align:left}.imported h4{margin:6px 0}"
              ".pics{display:flex;flex-wrap:wrap;gap:8px}figure{margin:4px}figcaption{font-size:small}</style>")
     doc = (f"<!doctype html><html><head><meta charset='utf-8'><title>liverforce {html.escape(experiment)}</title>"
            f"{style}</head><body>{''.join(parts)}</body></html>")
