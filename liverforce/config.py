@@ -830,6 +830,7 @@ def _check_ranges(cfg: dict) -> None:
         _fail("validate.seed", f"seeds {shared} of the unseen livers are training livers' seeds",
               f"pick validate.seed outside [{train_seeds.start}, {train_seeds.stop}) minus validate.livers")
     _check_choice("report.format", cfg["report"]["format"], REPORT_FORMATS, "report format")
+    _check_grouped_livers(cfg)
     _check_study(cfg)
 
 
@@ -921,6 +922,74 @@ def _check_model(mo: dict, key: str) -> None:
     if mo["roi_features"] == "cloud" and (mo["occlusion"]["radius_mm"] > 0 or mo["noise_mm"] > 0):
         _fail(f"{key}.roi_features", "a camera-cloud model (cloud) observes the surface with model.camera; "
               "model.occlusion.radius_mm and model.noise_mm apply to node features only", "set them to 0")
+
+
+def _fmt_list(items) -> str:
+    return "[" + ",".join(items) + "]"
+
+
+def _check_grouped_livers(cfg: dict) -> None:
+    """A scenario split by liver (IV, :data:`liverforce.learn.splits.GROUPED_SCENARIOS`) needs 2 training livers.
+
+    Refused here, before any job: scenario IV's models are trained for ``train.scenarios`` and, whatever that
+    lists, for the validation on the unseen livers, the physics study and the report (the default target), so
+    with one liver the run simulated every scenario and then stopped at training IV.
+    """
+    from liverforce.learn.splits import GROUPED_SCENARIOS
+
+    g, s, t = cfg["geometry"], cfg["sweep"], cfg["train"]
+    n_proc, n_imp, cube = g["procedural"]["count"], len(g["imported"]), bool(g["cube"]["enabled"])
+    n_train = n_proc + n_imp + int(cube)
+    for sc in GROUPED_SCENARIOS:
+        spec = s["scenarios"].get(sc)
+        if spec is None:
+            continue
+        key = f"sweep.scenarios.{sc}"
+        if str(spec["geometries"]) != "all":
+            if n_train >= 2:
+                _fail(f"{key}.geometries", f"scenario {sc} splits its data by liver (no liver in both its training "
+                      f"and test split), so it needs more than one liver (got geometries: {spec['geometries']})",
+                      f"set {key}.geometries=all (its {n_train} training livers)")
+            n_livers = 1
+        else:
+            n_livers = n_train
+        if n_livers >= 2:
+            continue
+        have = [f"geometry.procedural.count={n_proc}",
+                f"geometry.imported: {n_imp} liver{'s' * (n_imp != 1)}"
+                + (f" ({', '.join('imp-' + imp['name'] for imp in g['imported'])})" if n_imp else "")]
+        if cube:
+            have.append("geometry.cube.enabled=true")
+        needed_by = ["the validation on the unseen livers (target validate)"]
+        if cfg["validate"]["physics"]["enabled"]:
+            needed_by.append("the physics study (validate.physics)")
+        needed_by.append("the report (the default target: `snakemake` with no target)")
+        if sc in t["scenarios"]:
+            needed_by.insert(0, f"train.scenarios (which lists {sc})")
+        more = max(1, 2 - n_imp - int(cube))
+        fixes = [f"add a second liver: geometry.procedural.count={more}"
+                 + (f" (beside the {n_imp} imported liver{'s' * (n_imp != 1)})" if n_imp else "")
+                 + " or a second entry in geometry.imported"
+                 + (f", and {key}.geometries=all" if str(spec["geometries"]) != "all" else "")]
+        others = [x for x in t["scenarios"] if x not in GROUPED_SCENARIOS] or \
+            [x for x in SCENARIOS if x not in GROUPED_SCENARIOS and x in s["scenarios"]]
+        subset = f"train.scenarios={_fmt_list(others)} ~{key}"  # unquoted: Snakemake's --config keeps quotes
+        st = cfg["study"]
+        studies = [n for n in ("roi_fraction", "encoder", "state_vector", "occlusion", "noise", "train_size",
+                               "train_livers") if st[n]["enabled"] and sc in st[n]["scenarios"]]
+        if st["enabled"] and studies:
+            subset += " study.enabled=false"
+        fixes.append(f"or, to train {', '.join(others)} on this one liver only, leave {sc} out of the run with "
+                     f"{subset}" + (f" (the studies {', '.join(studies)} use {sc})" if st["enabled"] and studies
+                                    else "")
+                     + f" and run the target models: `snakemake --cores 2 models --config overrides=\"... "
+                     f"{subset}\"` (the default target, validate, physics and report need scenario {sc}: "
+                     "they cannot run on one liver)")
+        _fail(key, f"scenario {sc} splits its data by liver (no liver in both its training and test split), so "
+              f"it needs at least 2 training livers, and this config gives it {n_livers} "
+              f"({', '.join(have)}); scenario {sc}'s models are needed by {', '.join(needed_by[:-1])} and "
+              f"{needed_by[-1]}, so the run would simulate every scenario and then stop at training {sc}",
+              "; ".join(fixes))
 
 
 def _check_study(cfg: dict) -> None:

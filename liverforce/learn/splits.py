@@ -38,6 +38,27 @@ class Folds:
     notes: list[str] = field(default_factory=list)
 
 
+def _one_liver_message(scenario: str, groups) -> str:
+    """Why a split by liver is impossible, and the config that gives the scenario a second liver.
+
+    The training livers are ``geometry.procedural.count`` procedural ones (``proc-``), those of
+    ``geometry.imported`` (``imp-``) and the cube: the procedural count that suffices is 2 minus the
+    others in the data (``liverforce.config`` refuses such a config before any job; here the data
+    itself has one liver, e.g. every case of the others failed)."""
+    groups = [str(g) for g in groups]
+    n_imp = sum(1 for g in groups if g.startswith("imp-"))
+    others = n_imp + int("cube" in groups)
+    need = max(1, 2 - others)
+    named = ([f"the {n_imp} imported liver{'s' * (n_imp != 1)}"] if n_imp else []) + \
+        (["the cube"] if "cube" in groups else [])
+    besides = f" beside {' and '.join(named)}" if named else ""
+    return (f"scenario {scenario} splits by geometry but the data has only {len(groups)} geometry "
+            f"({', '.join(groups)}); it needs at least 2: sweep.scenarios.{scenario}.geometries: all and a "
+            f"second training liver (geometry.procedural.count >= {need}{besides}, or a second entry in "
+            f"geometry.imported); if the config has 2 or more, every case of the others failed (see the "
+            "simulate logs)")
+
+
 def train_test_split(
     geometry_ids: np.ndarray, *, scenario: str, test_fraction: float, seed: int
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -53,11 +74,7 @@ def train_test_split(
     if group_key(scenario) == "geometry":
         groups = np.unique(geo)
         if len(groups) < 2:
-            raise ValueError(
-                f"scenario {scenario} splits by geometry but the data has only {len(groups)} geometry "
-                f"({', '.join(groups)}); it needs at least 2 (sweep.scenarios.{scenario}.geometries: all, "
-                "geometry.procedural.count >= 2)"
-            )
+            raise ValueError(_one_liver_message(scenario, groups))
         k = int(min(max(1, round(test_fraction * len(groups))), len(groups) - 1))
         test_groups = rng.permutation(groups)[:k]
         is_test = np.isin(geo, test_groups)
