@@ -42,6 +42,7 @@ def build_liver_mesh(
     exertion_labels: list[str] | None = None,
     file_groups=None,
     auto_regions: tuple | None = None,
+    regions_check: str = "warn",
 ) -> LiverMesh:
     """Tetrahedralise ``surface``, extract and tag its boundary facets.
 
@@ -122,6 +123,10 @@ def build_liver_mesh(
         (:func:`~liverforce.mesh.regions.tag_regions`), when the caller has them already (the mesh stage
         tags them to check them before meshing): used as they are instead of tagging the surface again, which
         on a large surface takes as long as the check. Their lengths must match ``surface.faces``.
+    regions_check : {"warn", "strict", "off"}
+        ``mesh.regions_check``: a given exertion point off the visible area (where built-in sampling places
+        the tool) is logged as a warning and listed in ``meta["exertion_not_visible"]``, or, under ``strict``,
+        refused (:func:`~liverforce.mesh.supports.check_exertion_facing`).
     require_regions : bool
         Raise ``ValueError`` if a region (1–4) or the visible set is empty;
         otherwise empty ones are only logged and listed in
@@ -142,6 +147,7 @@ def build_liver_mesh(
     surface_labels = None
     candidates = None
     support_report, snap, owner = None, None, None
+    not_visible = [] if exertion_points is not None else None
     user = supports is not None and len(supports[1]) > 0
     if (conforming_regions or refine_visible_edge_mm or exertion_sampling or refine_ivc_edge_mm or user
             or exertion_points is not None):
@@ -171,7 +177,9 @@ def build_liver_mesh(
 
             candidates, snap = snap_exertion_points(surface.vertices, surface.faces, s_region, exertion_points,
                                                      labels=exertion_labels, owner=owner,
-                                                     supports=supports[1] if user else None)
+                                                     supports=supports[1] if user else None, visible=s_visible,
+                                                     regions_check=regions_check, params=params,
+                                                     not_visible=not_visible)
             log.info("%d given exertion points snapped to the surface (max %.3g mm)", len(candidates), snap.max())
             if refine_points is None and refine_radius_mm:
                 refine_points = candidates
@@ -240,6 +248,7 @@ def build_liver_mesh(
         "exertion_candidates_mm": None if candidates is None else candidates.tolist(),
         "exertion_given": exertion_points is not None,
         "exertion_snap_mm": None if snap is None else snap.tolist(),
+        "exertion_not_visible": not_visible,
         "supports": support_report,
         "refine_points": (None if refine_points is None or not refine_radius_mm else
                           {"n": int(len(np.atleast_2d(refine_points))), "radius_mm": float(refine_radius_mm),

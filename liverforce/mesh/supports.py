@@ -828,20 +828,24 @@ def _given(a: np.ndarray) -> list:
 
 def snap_exertion_points(vertices, faces, region, xyz_mesh: np.ndarray, max_mm: float = MAX_SNAP_MM,
                          labels: list[str] | None = None, owner: np.ndarray | None = None,
-                         supports: list[Support] | None = None):
+                         supports: list[Support] | None = None, visible: np.ndarray | None = None,
+                         regions_check: str = "warn", params=None, not_visible: list | None = None):
     """Closest point on the surface to each given exertion point, refusing far points and fixed supports.
 
     ``labels`` (from :func:`exertion_points_mesh`) name each point as the user gave it (the file and row, the
     value in the file's units and frame), for the messages; without them a point is named by its index.
     ``owner`` and ``supports`` (from :func:`assign_supports`) name the fixed support a refused point lies on:
     the lab's support holding its facet, else the built-in IVC region (as without them: ``region`` is then
-    the auto-tagged one). Returns ``(points (k, 3), distances (k,))`` in mm (mesh frame).
+    the auto-tagged one). ``visible`` (the facets' visible mask, what built-in sampling draws the tool's
+    positions from; :func:`~liverforce.mesh.regions.visible_facets` with ``params``): a point snapped off it is
+    reported by :func:`check_exertion_facing` (a warning, refused under ``regions_check: strict``), its record
+    appended to ``not_visible``; without ``visible`` that check is not made. Returns ``(points (k, 3),
+    distances (k,))`` in mm (mesh frame).
     """
     q = np.atleast_2d(np.asarray(xyz_mesh, float))
     pts, d, facet = closest_on_triangles(np.asarray(vertices, float)[np.asarray(faces)], q, k=16)
     for j in range(len(q)):
-        who = (f"exertion point {j} ({labels[j]}; {np.round(q[j], 3).tolist()} RAS mm as meshed)" if labels
-               and j < len(labels) else f"exertion point {j} {np.round(q[j], 3).tolist()} (mesh frame, mm)")
+        who = _who(j, q, labels)
         if d[j] > max_mm:
             raise SupportError(f"{who} is {d[j]:.3g} mm from the surface (limit {max_mm} mm): check its units and "
                                "frame (points are read in the geometry file's frame, a label volume's being its "
@@ -850,7 +854,100 @@ def snap_exertion_points(vertices, faces, region, xyz_mesh: np.ndarray, max_mm: 
         if region is not None and int(region[facet[j]]) == REGION_CODES["ivc"]:
             i = -1 if owner is None else int(owner[facet[j]])
             raise SupportError(f"{who} lies on {_fixed_support_words(supports[i] if i >= 0 else None)}")
+    if visible is not None:
+        found = check_exertion_facing(vertices, faces, visible, q, labels=labels, regions_check=regions_check,
+                                      params=params, snapped=(pts, facet), region=region)
+        if not_visible is not None:
+            not_visible.extend(found)
     return pts, d
+
+
+def _who(j: int, q: np.ndarray, labels: list[str] | None) -> str:
+    """Exertion point ``j`` as the messages name it: as given (``labels``) and where it lies as meshed."""
+    if labels and j < len(labels):
+        return f"exertion point {j} ({labels[j]}; {np.round(q[j], 3).tolist()} RAS mm as meshed)"
+    return f"exertion point {j} {np.round(q[j], 3).tolist()} (mesh frame, mm)"
+
+
+def check_exertion_facing(vertices, faces, visible, xyz_mesh: np.ndarray, labels: list[str] | None = None,
+                          regions_check: str = "warn", params=None, snapped=None, region=None) -> list[dict]:
+    """Given exertion points that do not lie on the ``visible`` facets (the camera-facing area built-in sampling
+    draws the tool's positions from): one record each (``point``, ``as_given``, ``snapped_mm``, ``normal_ras``,
+    ``angle_to_view_deg``, ``warning``), each logged as a warning; under ``regions_check: strict`` refused
+    (:class:`SupportError` naming them all). The simulated camera looks along the outward normal at the point,
+    so one on the posterior face (often a point file read in the wrong frame, LPS for RAS, which mirrors x and y)
+    would train the camera model on views from behind the liver. ``params`` (:class:`RegionParams`, defaults if
+    None) give the view direction and normal smoothing of the visible area, for the message. ``snapped``:
+    ``(points, facet)`` as :func:`closest_on_triangles` snapped ``xyz_mesh``, else snapped here; ``region`` (the
+    facets' region codes, optional) names the region a point off the visible area lies on."""
+    from liverforce.mesh.regions import RegionParams
+
+    p = params or RegionParams()
+    V = np.asarray(vertices, float)
+    F = np.asarray(faces, np.int64)
+    visible = np.asarray(visible, bool)
+    q = np.atleast_2d(np.asarray(xyz_mesh, float))
+    tri = V[F]
+    pts, facet = snapped if snapped is not None else closest_on_triangles(tri, q, k=16)[::2]
+    off = [j for j in range(len(q)) if not visible[facet[j]]]
+    if off and visible.any():  # on an edge or corner of a visible facet: on the visible area
+        on_edge = closest_on_triangles(tri[visible], pts[off], k=16)[1] <= 1e-6 * max(1.0, float(np.ptp(V)))
+        off = [j for j, edge in zip(off, on_edge) if not edge]
+    if not off:
+        return []
+    from scipy.spatial import cKDTree
+
+    raw = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # outward, twice the area
+    centre = tri.mean(axis=1)
+    R = p.frame()
+    tilt = np.deg2rad(p.visible_tilt_deg)
+    view = R.T @ np.array([0.0, np.cos(tilt), np.sin(tilt)])  # RAS: the direction the visible area faces
+    ball = cKDTree(centre).query_ball_point(centre[[facet[j] for j in off]], max(p.normal_smoothing_mm, 0.0))
+    found, lines = [], []
+    for j, near in zip(off, ball):
+        n = raw[near].sum(axis=0) if len(near) else raw[facet[j]]
+        n = n / max(np.linalg.norm(n), 1e-300)
+        angle = float(np.degrees(np.arccos(np.clip(n @ view, -1.0, 1.0))))
+        code = 0 if region is None else int(region[facet[j]])
+        msg = _facing_words(_who(j, q, labels), n, angle, view, p, code)
+        found.append({"point": j, "as_given": labels[j] if labels and j < len(labels) else None,
+                      "snapped_mm": _given(pts[j]), "normal_ras": [round(float(x), 3) for x in n],
+                      "angle_to_view_deg": round(angle, 1), "warning": msg})
+        lines.append(msg)
+    if regions_check == "strict":
+        raise SupportError("\n".join(lines) + "\n(mesh.regions_check=strict refuses exertion points off the visible "
+                           "area; set it to warn to go on regardless)")
+    for msg in lines:
+        log.warning("%s", msg)
+    return found
+
+
+def _facing_words(who: str, n: np.ndarray, angle: float, view: np.ndarray, p, code: int = 0) -> str:
+    """Why a given exertion point off the visible area matters, and what to do."""
+    normal = f"its outward normal there is {np.round(n, 2).tolist()} (RAS, averaged over {p.normal_smoothing_mm:g} mm)"
+    cone = (f"{angle:.0f} deg from the view direction {np.round(view, 2).tolist()} (RAS: mesh.regions.anterior tilted "
+            f"visible_tilt_deg={p.visible_tilt_deg:g} toward superior; the visible area takes normals within "
+            f"visible_cone_deg={p.visible_cone_deg:g})")
+    if angle > p.visible_cone_deg:
+        return (f"{who} lies on the surface facing away from the camera, off the visible area where built-in "
+                f"sampling places the tool: {normal}, {cone}. The camera model is trained on views along the "
+                "outward normal at the exertion point, and a laparoscope sees the liver from the front: here it "
+                "would learn views from behind the liver. Likely a frame mix-up: is the point file in LPS or RAS? "
+                "(read in the other frame its x and y are mirrored; state exertion_points.frame: LPS or RAS, or fix "
+                "the geometry's frame). If the point is meant, widen the visible area (mesh.regions.visible_cone_deg,"
+                " visible_tilt_deg, anterior, superior)")
+    if code:
+        name = next(k for k, c in REGION_CODES.items() if c == code)
+        return (f"{who} lies off the visible area where built-in sampling places the tool: {normal}, {cone}, so it "
+                f"faces the camera, but it lies on the {name} region ({_BUILT_IN_KIND.get(name, name)} support, "
+                "the lab's or auto-tagged). The camera model is trained on views along the outward normal at the "
+                "exertion point, on free surface the tool can push; move the point off that support, or shrink it")
+    return (f"{who} lies off the visible area where built-in sampling places the tool: {normal}, {cone}, so it faces "
+            f"the camera, but the facet is within mesh.regions.visible_margin_mm={p.visible_margin_mm:g} mm of a "
+            f"support or tagged region, or in a visible patch smaller than min_patch_fraction="
+            f"{p.min_patch_fraction:g} of the visible area. The camera model is trained on views along the outward "
+            "normal at the exertion point; move the point away from the support, or, if it is meant, lower "
+            "mesh.regions.visible_margin_mm")
 
 
 def _fixed_support_words(s: Support | None) -> str:

@@ -49,7 +49,10 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
     under ``supports`` (facets, snapping distances) and their foundation
     stiffness under ``support_boundary`` (N/mm³, ``BoundaryParams`` fields).
     Given exertion points replace the sampled candidates (``exertion_given``:
-    true, snapping distances in ``exertion_snap_mm``).
+    true, snapping distances in ``exertion_snap_mm``); one off the visible area
+    (facing away from the camera, e.g. a point file read as LPS for RAS) is logged
+    as a warning and listed under ``exertion_not_visible``, refused under
+    ``mesh.regions_check: strict`` (:func:`liverforce.mesh.supports.check_exertion_facing`).
 
     An imported tet mesh taken as given (the geometry JSON's ``mesh_mode:
     as_given``) is not remeshed: the VTU holds the file's nodes in the file's
@@ -87,6 +90,12 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
     t0 = time.perf_counter()
     if surface.meta.get("mesh_mode") == "as_given":
         mesh = _given_mesh(surface.meta, spec, user, mesh_cfg, exertion, seed, gid)
+        if user["exertion_points"] is not None:  # off the visible area: warned, refused under strict
+            from liverforce.mesh.supports import check_exertion_facing
+
+            mesh.meta["exertion_not_visible"] = check_exertion_facing(
+                mesh.points, mesh.facets, mesh.facet_visible, user["exertion_points"], user["exertion_labels"],
+                mesh_cfg["regions_check"], RegionParams(**mesh_cfg["regions"]), region=mesh.facet_region)
     else:
         mesh = _remeshed(surface, user, mesh_cfg, exertion, seed, gid, auto)
     elapsed = time.perf_counter() - t0
@@ -103,6 +112,7 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
     feats["exertion_candidates_mm"] = mesh.meta.get("exertion_candidates_mm")
     feats["exertion_given"] = bool(mesh.meta.get("exertion_given"))
     feats["exertion_snap_mm"] = mesh.meta.get("exertion_snap_mm")
+    feats["exertion_not_visible"] = mesh.meta.get("exertion_not_visible")
     feats["supports"] = mesh.meta.get("supports")
     feats["support_boundary"] = _support_boundary(mesh, user["supports"][1])
     feats["refine_points"] = mesh.meta.get("refine_points")
@@ -136,7 +146,7 @@ def _remeshed(surface, user: dict, mesh_cfg: dict, exertion: dict | None, seed: 
         exertion_sampling=None if exertion is None or user["exertion_points"] is not None else {
             "n_points": exertion["n_points"], "min_spacing_mm": exertion["min_spacing_mm"],
             "seed": derive(seed, "mesh.exertion")},
-        auto_regions=auto_regions,
+        auto_regions=auto_regions, regions_check=mesh_cfg["regions_check"],
     )
 
 
