@@ -454,7 +454,9 @@ def compose(overrides: list[str] | tuple[str, ...] | None = None) -> dict:
         GlobalHydra.instance().clear()
     try:
         with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-            raw = hydra_compose(config_name="config", overrides=overrides)
+            # with Hydra's own record of the run: the command-line overrides (hydra.overrides.task) and the
+            # group choices (hydra.runtime.choices) tell a preset's value from the user's (_young_given_once)
+            raw = hydra_compose(config_name="config", overrides=overrides, return_hydra_config=True)
     except (HydraException, OmegaConfBaseException) as exc:
         raise ConfigError(
             f"could not compose the configuration with overrides {overrides}: {exc}. "
@@ -464,7 +466,8 @@ def compose(overrides: list[str] | tuple[str, ...] | None = None) -> dict:
         GlobalHydra.instance().clear()
 
     OmegaConf.set_struct(raw, False)
-    raw.pop("hydra", None)
+    hydra_cfg = raw.pop("hydra", None)
+    provenance = _provenance(hydra_cfg)
     try:
         typed = OmegaConf.merge(OmegaConf.structured(RootConfig), raw)
         cfg = OmegaConf.to_container(typed, resolve=True, throw_on_missing=True)
@@ -472,8 +475,65 @@ def compose(overrides: list[str] | tuple[str, ...] | None = None) -> dict:
         key = getattr(exc, "full_key", None) or "?"
         msg = str(exc).splitlines()[0]
         raise ConfigError(f"config key '{key}': {msg}") from exc
+    _young_given_once(cfg["material"], provenance)
     _check_ranges(cfg)
     return cfg
+
+
+def _provenance(hydra_cfg) -> dict:
+    """The dotted keys the command line set (Hydra's ``hydra.overrides.task``, parsed by Hydra's own override
+    parser) and the config group chosen for each group (``hydra.runtime.choices``)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    if hydra_cfg is None:
+        return {"overridden": {}, "choices": {}}
+    task = [str(o) for o in hydra_cfg.overrides.task]
+    overridden = {o.key_or_group: o for o in OverridesParser.create().parse_overrides(task)}
+    choices = {str(k): (None if v is None else str(v)) for k, v in hydra_cfg.runtime.choices.items()}
+    return {"overridden": overridden, "choices": choices}
+
+
+def _file_source(key: str, choices: dict) -> str:
+    """Which config file set ``material.<key>``: the material preset's, else the experiment's."""
+    from omegaconf import OmegaConf
+
+    preset = choices.get("material")
+    path = CONFIG_DIR / "material" / f"{preset}.yaml"
+    if preset and path.exists() and OmegaConf.load(path).get(key) is not None:
+        return f"the preset material={preset} (config/material/{preset}.yaml)"
+    exp = choices.get("experiment")
+    return f"the experiment experiment={exp} (config/experiment/{exp}.yaml)" if exp else "the config files"
+
+
+def _young_given_once(mat: dict, provenance: dict) -> None:
+    """``material.E_pa`` and ``E_mpa`` both set: the unit the user gave on the command line wins over a config
+    file's (``material=neo_hookean_from_e material.E_mpa=0.0149``: the preset's ``E_pa: 14900`` is dropped, with
+    a logged note); both from the command line, or both from the files, are refused naming where each came
+    from and the exact fix."""
+    import logging
+
+    keys = ("E_pa", "E_mpa")
+    if any(mat.get(k) is None for k in keys):
+        return
+    over = provenance["overridden"]
+    by_user = [k for k in keys if f"material.{k}" in over and not over[f"material.{k}"].is_delete()]
+    if len(by_user) == 1:
+        mine = by_user[0]
+        other = "E_mpa" if mine == "E_pa" else "E_pa"
+        logging.getLogger("liverforce").info(
+            "material: material.%s=%s given on the command line replaces material.%s %s of %s (Young's modulus "
+            "is given once)", mine, mat[mine], other, mat[other], _file_source(other, provenance["choices"]))
+        mat[other] = None
+        return
+    e_pa, e_mpa = mat["E_pa"], mat["E_mpa"]
+    if by_user:
+        where = f"both on the command line (material.E_pa={e_pa} and material.E_mpa={e_mpa})"
+    else:
+        src = {k: _file_source(k, provenance["choices"]) for k in keys}
+        where = (f"both by {src['E_pa']}" if src["E_pa"] == src["E_mpa"]
+                 else f"E_pa {e_pa} by {src['E_pa']}, E_mpa {e_mpa} by {src['E_mpa']}")
+    _fail("material.E_pa", f"Young's modulus is given twice, E_pa {e_pa} (Pa) and E_mpa {e_mpa} (MPa): {where}",
+          f"give it once: material.E_pa={e_pa} material.E_mpa=null, or material.E_pa=null material.E_mpa={e_mpa}")
 
 
 def _fail(key: str, problem: str, fix: str = "") -> None:
@@ -1047,8 +1107,10 @@ def _material_from_young(mat: dict) -> None:
     e_pa, e_mpa = mat.pop("E_pa", None), mat.pop("E_mpa", None)
     if e_pa is None and e_mpa is None:
         return
-    if e_pa is not None and e_mpa is not None:
-        _fail("material.E_pa", "both E_pa and E_mpa are given", "give Young's modulus once, in Pa or in MPa")
+    if e_pa is not None and e_mpa is not None:  # compose settles a preset's against an override first
+        _fail("material.E_pa", f"both E_pa {e_pa} and E_mpa {e_mpa} are given",
+              f"give Young's modulus once: material.E_pa={e_pa} material.E_mpa=null, or material.E_pa=null "
+              f"material.E_mpa={e_mpa}")
     key, value = ("material.E_pa", e_pa) if e_pa is not None else ("material.E_mpa", e_mpa)
     if mat["model"] != "neo_hookean":
         _fail(key, f"Young's modulus defines a neo_hookean material, not '{mat['model']}'",

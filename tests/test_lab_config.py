@@ -94,3 +94,37 @@ def test_snakemake_refuses_one_liver_before_any_job_and_runs_the_named_target(tm
     proc = _dry_run(tmp_path, ["models"], [*one, "~sweep.scenarios.IV"])
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "scenario=IV" not in proc.stdout and "scenario=II" in proc.stdout
+
+
+# ------------------------------------- C: Young's modulus in MPa over the preset's Pa
+
+def test_an_override_in_mpa_replaces_the_presets_pa_with_a_note(caplog):
+    import logging
+
+    with caplog.at_level(logging.INFO, logger="liverforce"):
+        mine = compose(["material=neo_hookean_from_e", "material.E_mpa=0.0149"])  # the audit's: refused before
+    explicit = compose(["material=neo_hookean_from_e", "material.E_pa=null", "material.E_mpa=0.0149"])
+    assert mine == explicit  # the same config, so the same slices and no re-run between the two spellings
+    assert mine["material"]["E_mpa"] == 0.0149 and "E_pa" not in mine["material"]
+    assert mine["material"]["params_mpa"] == compose(["material=neo_hookean_from_e"])["material"]["params_mpa"]
+    assert ("material.E_mpa=0.0149 given on the command line replaces material.E_pa 14900.0 of the preset "
+            "material=neo_hookean_from_e (config/material/neo_hookean_from_e.yaml)") in caplog.text
+
+
+def test_a_modulus_given_twice_is_refused_naming_where_each_came_from_and_the_fix():
+    from liverforce.config import _young_given_once
+
+    with pytest.raises(ConfigError) as err:
+        compose(["material=neo_hookean_from_e", "material.E_pa=14900", "material.E_mpa=0.0149"])
+    msg = str(err.value)
+    assert msg.startswith("config key 'material.E_pa': Young's modulus is given twice")
+    assert "both on the command line" in msg
+    assert "material.E_pa=14900.0 material.E_mpa=null, or material.E_pa=null material.E_mpa=0.0149" in msg
+    # both from config files (an experiment setting E_mpa over the preset's E_pa): each file named
+    mat = {"E_pa": 14900.0, "E_mpa": 0.0149}
+    with pytest.raises(ConfigError) as err:
+        _young_given_once(mat, {"overridden": {}, "choices": {"material": "neo_hookean_from_e",
+                                                              "experiment": "lab"}})
+    msg = str(err.value)
+    assert "E_pa 14900.0 by the preset material=neo_hookean_from_e (config/material/neo_hookean_from_e.yaml)" in msg
+    assert "E_mpa 0.0149 by the experiment experiment=lab (config/experiment/lab.yaml)" in msg
