@@ -13,10 +13,12 @@ ROI extent (units)           the ROI's centred tangent half-extent is more than
                              ``scale_factor`` x the model's grid half-width
                              ``h``, or its largest tangent extent is below
                              ``h / scale_factor`` (a liver in m, cm or µm)
-exertion point on surface    the undeformed ROI's height at the exertion
-                             point (a quadratic fit of the nearest nodes in the
-                             local frame) is more than ``surface_tol_mm`` off,
-                             or the point lies outside its ROI
+exertion point on surface    the exertion point is more than ``surface_tol_mm``
+                             from the pre-operative surface: measured to its
+                             triangles when the context was built from them
+                             (``Preop.surface_point_mm``), else the undeformed
+                             ROI's height there (a quadratic fit of the nearest
+                             nodes in the local frame); or it lies outside its ROI
 ROI patch                    (models that read it) ``roi_triangles`` missing, not ``(m, 3)`` whole
                              numbers indexing ``roi_undeformed_mm``, covering
                              none of the grid, or their top sheet more than
@@ -50,7 +52,7 @@ import numpy as np
 
 from liverforce.learn.frames import local_rotations
 from liverforce.learn.state import MATERIAL_START, outside_ranges
-from liverforce.serve.errors import PredictionInputError
+from liverforce.serve.errors import OffSurfaceError, PredictionInputError
 from liverforce.serve.preop import _points, _vector
 
 #: how the state vector is laid out (liverforce.learn.state)
@@ -181,8 +183,40 @@ def check_liver(centroid: np.ndarray, inertia: np.ndarray, point: np.ndarray, sc
         )
 
 
-def check_roi(U_loc: np.ndarray, scale: TrainingScale, limits: Limits, label: str) -> None:
-    """ROI extent (units) and exertion point on the undeformed surface, in the local frame."""
+def off_surface(d_mm: float, point_mm, nearest_mm, limit_mm: float, frame=None, surface=None,
+                what: str = "the pre-operative surface") -> str:
+    """The refusal of an exertion point ``d_mm`` from a surface (``point_mm`` and its ``nearest_mm`` point of it
+    in the model's frame, RAS mm): the distance, the point as the user gave it and the nearest point in the same
+    units and frame (``frame``: the inputs' :class:`~liverforce.serve.input_frame.InputFrame`; None: RAS mm, none
+    declared), and, with the surface's triangles ``surface`` ((m, 3, 3) mm), the units or frame under which the
+    value as given would lie on it."""
+    from liverforce.serve.input_frame import as_given, declared_as, reading_hint
+
+    hint = None
+    if surface is not None:
+        from liverforce.mesh.supports import closest_on_triangles
+
+        given = (frame.points_out(point_mm) if frame is not None else np.asarray(point_mm, dtype=np.float64))
+        hint = reading_hint(frame, given, lambda x: float(closest_on_triangles(surface, x[None])[1][0]) <= limit_mm)
+    return (f"the exertion point is {d_mm:.3g} mm off {what} (at most {limit_mm:g} mm): it was given as "
+            f"{as_given(frame, point_mm)} ({declared_as(frame)}); the nearest point of the surface is "
+            f"{as_given(frame, nearest_mm)}: " + (hint or "put the exertion point on the surface (where the tool "
+                                                          "touches it), in the units and frame of the other inputs"))
+
+
+def check_on_surface(point_mm, nearest_mm, limits: Limits, label: str = "", frame=None, surface=None) -> None:
+    """The exertion point against the pre-operative surface's triangles (``nearest_mm``: its closest point on
+    them, :attr:`Preop.surface_point_mm`): refused (:func:`off_surface`) beyond ``limits.surface_tol_mm``.
+    ``surface``: a function giving the triangles (m, 3, 3) mm, called for a refused point only."""
+    d = float(np.linalg.norm(np.asarray(point_mm, dtype=np.float64) - np.asarray(nearest_mm, dtype=np.float64)))
+    if not d <= limits.surface_tol_mm:
+        raise OffSurfaceError(label + off_surface(d, point_mm, nearest_mm, limits.surface_tol_mm, frame,
+                                                  None if surface is None else surface()), point_mm)
+
+
+def check_roi(U_loc: np.ndarray, scale: TrainingScale, limits: Limits, label: str, fit_height: bool = True) -> None:
+    """ROI extent (units) and exertion point on the undeformed surface, in the local frame. ``fit_height``:
+    the point's height over the ROI's quadratic fit too (not when it was measured to the surface's triangles)."""
     h = scale.half_width_mm
     f = limits.scale_factor
     tang = U_loc[:, :2]
@@ -210,6 +244,8 @@ def check_roi(U_loc: np.ndarray, scale: TrainingScale, limits: Limits, label: st
             f"{label}the exertion point lies {r[near].min():.3g} mm (in the tangent plane) from the nearest ROI node: "
             "it is not inside its ROI"
         )
+    if not fit_height:
+        return
     u, v, z = tang[near, 0], tang[near, 1], U_loc[near, 2]
     cols = [np.ones_like(u), u, v] + ([u * u, u * v, v * v] if n_fit >= 9 else [])
     A = np.column_stack(cols)
@@ -236,12 +272,15 @@ def check_displacement(disp_max_mm: float, scale: TrainingScale, limits: Limits,
 
 
 def check_case(arrays: dict, i: int, model, scale: TrainingScale, limits: Limits, *, label: str | None = None,
-               correspondence: bool = True, rotation: np.ndarray | None = None) -> np.ndarray:
+               correspondence: bool = True, rotation: np.ndarray | None = None,
+               on_surface: bool = False) -> np.ndarray:
     """Check row ``i`` of input-contract ``arrays`` (module table); raise :class:`PredictionInputError`.
 
     ``rotation``: the row's local rotation (3 x 3) when the caller holds it already
     (``Preop.rotation``, which checked the frame); computed from the row's frame
     otherwise. Returns the rotation, for the prediction that follows the check.
+    ``on_surface``: the exertion point was checked against the pre-operative surface's triangles
+    (:func:`check_on_surface`): the ROI's quadratic fit is not read for it.
     """
     if label is None:
         ids = arrays.get("case_id")
@@ -269,7 +308,7 @@ def check_case(arrays: dict, i: int, model, scale: TrainingScale, limits: Limits
         except ValueError as exc:
             raise PredictionInputError(f"{label}{exc}") from None
     U_loc = (U - p) @ R.T
-    check_roi(U_loc, scale, limits, label)
+    check_roi(U_loc, scale, limits, label, fit_height=not on_surface)
     if model.representation.uses_triangles:
         check_patch(arrays, i, U_loc, model, limits, label)
     if correspondence:

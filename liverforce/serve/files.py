@@ -53,7 +53,7 @@ from pathlib import Path
 import numpy as np
 
 from liverforce.atomic import atomic_path
-from liverforce.serve.errors import PredictionInputError
+from liverforce.serve.errors import OffSurfaceError, PredictionInputError
 from liverforce.serve.input_frame import InputFrame, unit_scale
 from liverforce.serve.preop import Preop
 
@@ -292,12 +292,53 @@ def read_context(source: str | Path | dict, predictor, *, overrides: dict | None
         # given frame converted; only its units change (m/N -> mm/N with units: m)
         C = np.asarray(doc["probe_compliance_mm_per_n"], dtype=np.float64) * fr.scale
         preop = preop.with_compliance(C)
-    elif "mesh" in doc and predictor.model.uses_state:
-        from liverforce.serve.probe import with_probe
+    try:
+        if "probe_compliance_mm_per_n" not in doc and "mesh" in doc and predictor.model.uses_state:
+            from liverforce.serve.probe import with_probe
 
-        preop = with_probe(preop, rel(doc["mesh"]), predictor.model.meta)
-    predictor.check_preop(preop)
+            preop = with_probe(preop, rel(doc["mesh"]), predictor.model.meta, frame=fr)
+        predictor.check_preop(preop, frame=fr)
+    except OffSurfaceError as exc:
+        if "mesh" not in doc:
+            raise
+        raise OffSurfaceError(str(exc) + _simulated_points(rel(doc["mesh"]), predictor, fr, exc.point_mm),
+                              exc.point_mm) from None
     return preop, fr
+
+
+#: a refused exertion point within this distance (mm) of where the sweep pressed on its liver is told where
+SIMULATED_NEAR_MM = 50.0
+
+
+def _simulated_points(mesh: Path, predictor, frame: InputFrame, point_mm) -> str:
+    """Where the sweep of the model's scenario pressed on the liver of ``mesh`` (``<root>/mesh/<gid>.vtu``), as
+    ``<root>/sweep/<scenario>/sweep.json`` records it (``exertion_points_mm``, RAS mm, each on the mesh's
+    surface; a lab's points were moved onto it): the one nearest ``point_mm`` in the inputs' units and frame,
+    and where to find them all. Empty when there is no such record (a mesh outside a results layout, a model
+    without its scenario, a sweep of other livers)."""
+    from liverforce.layout import Layout, gid_of
+    from liverforce.serve.input_frame import as_given
+
+    try:
+        path = Path(mesh).resolve()
+        scenario = (predictor.model.meta or {}).get("scenario")
+        if path.parent.name != "mesh" or not scenario or point_mm is None:
+            return ""
+        layout = Layout(path.parent.parent)
+        report = Path(layout.sweep_report(str(scenario)))
+        pts = np.asarray(json.loads(report.read_text())["exertion_points_mm"][gid_of(path)],
+                         dtype=np.float64).reshape(-1, 3)
+    except (OSError, ValueError, KeyError, TypeError):
+        return ""
+    if not len(pts) or not np.isfinite(pts).all():
+        return ""
+    dist = np.linalg.norm(pts - np.asarray(point_mm, dtype=np.float64), axis=1)
+    if not dist.min() <= SIMULATED_NEAR_MM:  # a point far off the liver (units, frame): no case is near it
+        return ""
+    near = pts[int(np.argmin(dist))]
+    return (f". The sweep of scenario {scenario} pressed on this liver at {len(pts)} points on the mesh's surface "
+            f"(given points were moved onto it), the nearest at {as_given(frame, near)}: see {report} "
+            f"(exertion_points_mm, RAS mm) and {layout.cases(str(scenario))} (exertion_point_mm of each case)")
 
 
 def _frame_must_be_said(mesh: Path) -> None:

@@ -87,6 +87,8 @@ class InputFrame:
     label: str = "RAS"
     matrix: np.ndarray = field(default_factory=lambda: np.eye(4))
     source: str | None = None
+    #: False when neither units nor a frame were said (:meth:`resolve` of None, None): RAS mm by default
+    declared: bool = field(default=True, compare=False)
 
     @classmethod
     def resolve(cls, frame=None, units: str | None = None, *, base: Path | None = None) -> "InputFrame":
@@ -138,10 +140,12 @@ class InputFrame:
                 f"{np.round(sv, 6).tolist()}), so the force has no frame to be given back in; give a rigid map (a "
                 "rotation, possibly with a reflection, and a shift) with the inputs' units (mm, cm, m) stated apart, "
                 "or convert the inputs to RAS mm yourself")
+        declared = frame is not None or units is not None
         if scale_units is None:
             scale = unit_scale(units)  # refuses anything but mm, cm, m
             scale_units = (scale, (units or "mm").strip().lower())
-        return cls(scale=scale_units[0], units=scale_units[1], label=label, matrix=m, source=source)
+        return cls(scale=scale_units[0], units=scale_units[1], label=label, matrix=m, source=source,
+                   declared=declared)
 
     # -- properties ----------------------------------------------------------
 
@@ -250,6 +254,12 @@ class InputFrame:
 
     # -- results back to the inputs' frame ------------------------------------------
 
+    def points_out(self, x) -> np.ndarray:
+        """Points ``(n, 3)`` or one ``(3,)`` in the model's frame (RAS mm) -> the inputs' units and frame (the
+        inverse of :meth:`points`; for messages that give a point back as the user entered it)."""
+        x = np.asarray(x, dtype=np.float64)
+        return np.linalg.solve(self.A, (x - self.t).T).T / self.scale
+
     def vectors_out(self, v) -> np.ndarray:
         """Vectors (a force in N, or direction rows) in the model frame -> the inputs' frame: ``A^T v``."""
         return np.asarray(v, dtype=np.float64) @ self.A
@@ -269,6 +279,72 @@ class InputFrame:
         units = name if self.scale == 1.0 else f"{name} (x{self.scale:g} to mm)"
         back = "" if self.same_axes else "; the force and the interval's axes are given back in the inputs' frame"
         return f"inputs in {units}, {fr}{src}{back}"
+
+
+# -- how a refusal names a point input: as the user entered it, with the units and frame declared ----------------
+
+def _frame_name(fr: InputFrame) -> str:
+    return fr.label if fr.label in ("RAS", "LPS") else "input frame (a 4x4)"
+
+
+def as_given(frame: InputFrame | None, xyz_model) -> str:
+    """A point of the model's frame written as the user gives it: ``"[0.049058, -0.079043, -0.157016] m LPS"``
+    (``frame``: the inputs' :class:`InputFrame`; None: RAS mm)."""
+    fr = frame if frame is not None else InputFrame(declared=False)
+    return written(fr, fr.points_out(xyz_model))
+
+
+def written(frame: InputFrame | None, xyz_given) -> str:
+    """A point as the user gave it (in the inputs' units and frame), with them: ``"[0.05017, ...] m LPS"``."""
+    fr = frame if frame is not None else InputFrame(declared=False)
+    v = np.asarray(xyz_given, dtype=np.float64).reshape(-1)
+    return "[" + ", ".join(f"{float(x):.6g}" for x in v) + f"] {fr.units} {_frame_name(fr)}"
+
+
+def declared_as(frame: InputFrame | None) -> str:
+    """What the user declared of the inputs' units and frame, in words."""
+    if frame is None or not frame.declared:
+        return "no units or frame were declared, so it was read as mm, RAS"
+    src = "" if frame.source is None else f" by {frame.source}"
+    return f"declared in {frame.units}, {_frame_name(frame)}{src}"
+
+
+def _readings(frame: InputFrame | None):
+    """Other readings of the inputs than the declared one: ``(what it looks like, the reading)``: other units in
+    the declared frame, then the declared units in RAS or LPS (when another frame was declared), then both."""
+    fr = frame if frame is not None else InputFrame(declared=False)
+    out = []
+    lps = np.diag([-1.0, -1.0, 1.0, 1.0])
+    frames = [(None, fr.matrix)] + [(name, m) for name, m in (("RAS", np.eye(4)), ("LPS", lps))
+                                     if not np.array_equal(m, fr.matrix)]
+    for name, m in frames:
+        for units, scale in UNITS_MM.items():
+            if name is None and scale == fr.scale:
+                continue  # the declared reading
+            said = " and ".join(x for x in ((units if scale != fr.scale else None), name) if x)
+            out.append((said, InputFrame(scale=scale, units=units, label=name or fr.label, matrix=m)))
+    return fr, out
+
+
+def reading_hint(frame: InputFrame | None, xyz_given, fits) -> str | None:
+    """The hint of a refused point input given as ``xyz_given`` (the inputs' units and frame; (3,) or (n, 3)):
+    the first other reading (:func:`_readings`) under which ``fits(points in the model's frame)`` is True, said
+    against what was declared (``"it looks like mm while m was declared: give it in m"``); None if none fits, or
+    if the declared reading fits too."""
+    fr, readings = _readings(frame)
+    x = np.asarray(xyz_given, dtype=np.float64)
+    if not np.isfinite(x).all() or fits(fr.points(x)):
+        return None  # the declared reading is not what is wrong
+    for said, alt in readings:
+        if fits(alt.points(x)):
+            if fr.declared:
+                return (f"it looks like {said} while {fr.units}, {_frame_name(fr)} was declared: give it in "
+                        f"{fr.units}, {_frame_name(fr)}, as the other inputs")
+            opts = " ".join(f"--{k} {v}" for k, v in (("units", alt.units if alt.scale != 1.0 else None),
+                                                       ("frame", alt.label if alt.label != "RAS" else None)) if v)
+            return (f"it looks like {said}, but no units or frame were declared (read as mm, RAS): declare them "
+                    f"({opts}, or units/input_frame in a context file)")
+    return None
 
 
 def _numbers(key: str, v, ndim: int | None = None, cols: int | None = None) -> np.ndarray:

@@ -36,7 +36,8 @@ import numpy as np
 
 from liverforce.learn import camera
 from liverforce.learn.model import ForceModel, ModelFormatError
-from liverforce.serve.checks import Limits, TrainingScale, check_case, force_warnings, outside_training
+from liverforce.serve.checks import (Limits, TrainingScale, check_case, check_on_surface, force_warnings,
+                                     outside_training)
 from liverforce.serve.cloud import (camera_checks, check_instrument, cloud_support, cloud_warnings, metres_cloud,
                                     registration_warnings, cloud_to_arrays)
 from liverforce.serve.compiled import CompiledROI
@@ -155,11 +156,20 @@ class Predictor:
         self.check_preop(preop)
         return preop
 
-    def check_preop(self, preop: Preop) -> None:
-        """Refuse a context the model cannot use (missing state inputs, units, point off the surface)."""
+    def check_preop(self, preop: Preop, frame=None) -> None:
+        """Refuse a context the model cannot use (missing state inputs, units, point off the surface).
+
+        A context built from the pre-operative surface (:meth:`Preop.from_surface`) has its exertion point
+        measured to the surface's triangles; ``frame`` (the inputs'
+        :class:`~liverforce.serve.input_frame.InputFrame`, None: RAS mm) says in what units and frame a refusal
+        gives the point back."""
         self._check_state_inputs(preop)
+        exact = preop.surface_point_mm is not None
+        if exact:
+            check_on_surface(preop.exertion_point_mm, preop.surface_point_mm, self.limits, "", frame,
+                             lambda: preop.surface_triangles_mm)
         check_case(preop.to_arrays(preop.roi_undeformed_mm), 0, self.model, self.scale, self.limits, label="",
-                   rotation=preop.rotation)
+                   rotation=preop.rotation, on_surface=exact)
 
     def context_warnings(self, preop: Preop) -> list[str]:
         """Why the model extrapolates in this context: its geometric state outside the training range.
@@ -208,7 +218,8 @@ class Predictor:
             )
         self._check_state_inputs(preop)
         arrays = preop.to_arrays(D)
-        check_case(arrays, 0, self.model, self.scale, self.limits, label="", rotation=preop.rotation)
+        check_case(arrays, 0, self.model, self.scale, self.limits, label="", rotation=preop.rotation,
+                   on_surface=preop.surface_point_mm is not None)
         return arrays
 
     def predict(self, deformed_roi_mm, preop: Preop) -> np.ndarray:
@@ -279,7 +290,8 @@ class Predictor:
                                        limits=self.limits, tool_tip_mm=tool_tip_mm)
         R = preop.rotation[None]
         if info["mode"] == "approximate" and self.model.representation.features != "deformed":
-            check_case(arrays, 0, self.model, self.scale, self.limits, label="", rotation=preop.rotation)
+            check_case(arrays, 0, self.model, self.scale, self.limits, label="", rotation=preop.rotation,
+                       on_surface=preop.surface_point_mm is not None)
         rep = self.model.representation
         if rep.is_camera:
             spec, fitted, point_sd, dropped = (camera.grid_spec(rep.grid_size, rep.half_width_mm, rep.camera), [], [],

@@ -27,6 +27,12 @@ field                       shape      meaning
 ``roi_triangles``           (m, 3)     the ROI patch's own triangles, indices into
                                        ``roi_undeformed_mm`` (models read the
                                        patch's top sheet through them)
+``surface_mm``              tuple      optional: the pre-operative surface the
+                                       context was built from, ``(points (s, 3),
+                                       triangles (m, 3))`` (:meth:`Preop.from_surface`):
+                                       the input checks measure the exertion point's
+                                       distance to its triangles
+                                       (:attr:`Preop.surface_point_mm`)
 ==========================  =========  =============================================
 
 :attr:`Preop.rotation` is the local rotation of ``frame``
@@ -142,6 +148,7 @@ class Preop:
     tool_thickness_mm: float | None = None
     probe_compliance_mm_per_n: np.ndarray | None = None
     roi_triangles: np.ndarray | None = field(default=None, compare=False)
+    surface_mm: tuple | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "exertion_point_mm", _vector("exertion_point_mm", self.exertion_point_mm, 3))
@@ -179,6 +186,25 @@ class Preop:
             except (TypeError, ValueError) as exc:
                 raise PredictionInputError(str(exc)) from None
             object.__setattr__(self, "roi_triangles", T)
+
+    @cached_property
+    def surface_point_mm(self) -> np.ndarray | None:
+        """The closest point to the exertion point on the pre-operative surface's triangles (:attr:`surface_mm`;
+        None without it), computed once per context: on a coarse mesh a point on the surface lies far from every
+        vertex, and a fit of the nearest ones misjudges its distance to it."""
+        if self.surface_mm is None:
+            return None
+        from liverforce.mesh.supports import closest_on_triangles
+
+        return closest_on_triangles(self.surface_triangles_mm, self.exertion_point_mm[None])[0][0]
+
+    @property
+    def surface_triangles_mm(self) -> np.ndarray | None:
+        """The pre-operative surface's triangles ``(m, 3, 3)`` mm (:attr:`surface_mm`), or None."""
+        if self.surface_mm is None:
+            return None
+        pts, tri = self.surface_mm
+        return np.asarray(pts, dtype=np.float64)[np.asarray(tri)]
 
     @cached_property
     def rotation(self) -> np.ndarray:
@@ -266,6 +292,7 @@ class Preop:
             roi_point_ids=point_ids,
             tool_thickness_mm=thickness if np.isfinite(thickness) else None,
             roi_triangles=patch if len(patch) else None,  # no whole facet: none (models that read them refuse)
+            surface_mm=(pts, tri),
         )
 
     @classmethod

@@ -29,8 +29,12 @@ from pathlib import Path
 import numpy as np
 
 from liverforce.layout import features_of_mesh
-from liverforce.serve.errors import PredictionInputError
+from liverforce.serve.errors import OffSurfaceError, PredictionInputError
 from liverforce.serve.preop import Preop
+
+
+#: how far (mm) the exertion point may lie from the mesh's surface (the mesh may differ from a lab's own surface)
+MESH_TOL_MM = 5.0
 
 
 def probe_settings(meta: dict) -> dict:
@@ -88,22 +92,28 @@ class LiverProbe:
         return C
 
 
-def with_probe(preop: Preop, mesh, meta: dict, supports: dict | None = None) -> Preop:
+def with_probe(preop: Preop, mesh, meta: dict, supports: dict | None = None, frame=None) -> Preop:
     """``preop`` with the probe compliance at its exertion point, from the liver's tet mesh.
 
     The mesh must be in the same frame and units (mm) as the context: the
-    exertion point must lie on its surface.
+    exertion point must lie on its surface. ``frame``: the inputs'
+    :class:`~liverforce.serve.input_frame.InputFrame` (None: RAS mm, none declared), in which a refusal gives the
+    point back.
     """
     from liverforce.mesh.supports import closest_on_triangles
+    from liverforce.serve.checks import off_surface
 
     probe = LiverProbe(mesh, probe_settings(meta), supports)
     # to the surface's triangles, not its vertices: on a coarse mesh an exertion point (a P2 node, or a point the
     # user gave) lies far from every vertex while on the surface
-    _, dist, _ = closest_on_triangles(probe.surf.points[probe.surf.triangles], preop.exertion_point_mm[None])
+    tri = probe.surf.points[probe.surf.triangles]
+    near, dist, _ = closest_on_triangles(tri, preop.exertion_point_mm[None])
     d = float(dist[0])
-    if d > 5.0:
-        raise PredictionInputError(f"the exertion point is {d:.1f} mm from the mesh's surface: the mesh and the "
-                                   "context must be the same liver, in the same frame and in mm (the mesh stage's "
-                                   "copy is in RAS mm; inputs in the liver file's own frame or units need --frame "
-                                   "results/<exp>/geometry/imp-<name>.json, or --frame LPS and --units)")
+    if d > MESH_TOL_MM:
+        said = frame is not None and frame.declared
+        raise OffSurfaceError(
+            off_surface(d, preop.exertion_point_mm, near[0], MESH_TOL_MM, frame, tri, what="the mesh's surface")
+            + " (the mesh and the context must be the same liver; the mesh is the mesh stage's copy, in RAS mm"
+            + (")" if said else "; inputs in the liver file's own frame or units need --frame "
+               "results/<exp>/geometry/imp-<name>.json, or --frame LPS and --units)"), preop.exertion_point_mm)
     return preop.with_compliance(probe.compliance(preop.exertion_point_mm, preop.frame))
