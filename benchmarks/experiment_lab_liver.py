@@ -162,7 +162,7 @@ def run_models(work: Path, inputs: dict, cases: int, cores: int, floor_n_per_mm:
            f"exertion_points:{{path:{inputs['points']},units:m}}}}]")
     ).replace(" ", "")
     overrides = (f"geometry.procedural.count=0 geometry.imported={imported} sweep.scenarios.II.n_cases={cases} "
-                 f"sweep.force.max_n={max_force_n} train.scenarios=[II] study.enabled=false")
+                 f"sweep.force.max_n={max_force_n} train.scenarios=[II] study.enabled=false ~sweep.scenarios.IV")
     cmd = [str(Path(sys.executable).parent / "snakemake"), "--snakefile", str(ROOT / "Snakefile"), "--cores",
            str(cores), "--directory", str(work), "models", "--config", "experiment=smoke", f"overrides={overrides}"]
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
