@@ -229,7 +229,7 @@ def _run(args) -> int:
     if args.mode == "cloud":
         tip = None if args.tool_tip is None else frame.points(args.tool_tip)
         force, extra = predictor.predict_cloud(pts, preop, approximate=args.approximate, tool_tip_mm=tip,
-                                               return_info=True, registration=fix)
+                                               return_info=True, registration=fix, input_frame=frame)
         info.update(extra)
     else:
         nodes = preop.roi_of_surface(pts) if args.mode == "surface" else pts

@@ -66,6 +66,7 @@ from liverforce.learn.cloud_features import _MIN_POINT_SD
 from liverforce.learn.representation import interpolate_to_grid
 from liverforce.serve.checks import Limits, TrainingScale
 from liverforce.serve.errors import PredictionInputError
+from liverforce.serve.input_frame import declared_as, reading_hint, written
 from liverforce.serve.preop import Preop, _points
 
 
@@ -127,14 +128,21 @@ def crop_cloud(cloud_local: np.ndarray, U_loc: np.ndarray, scale: TrainingScale,
 
 
 def cloud_to_arrays(model, cloud_mm, preop: Preop, *, approximate: bool, scale: TrainingScale,
-                    limits: Limits, tool_tip_mm=None) -> tuple[dict, dict]:
+                    limits: Limits, tool_tip_mm=None, frame=None, given=None) -> tuple[dict, dict]:
     """One-row input-contract arrays from an unordered cloud; returns ``(arrays, info)``.
 
     ``info``: ``mode`` (exact/approximate), ``points_given``, ``points_used``.
     ``tool_tip_mm``: the tool tip's position (camera-cloud models need it).
+    ``frame``: the units and frame the user declared for the points (an
+    :class:`~liverforce.serve.input_frame.InputFrame`; None: none, RAS mm), for the refusals, which give the
+    inputs back as entered; ``given``: a function returning the cloud and the tip as entered (default: the
+    ones passed, taken back through ``frame``), called for a refusal only.
     """
+    if given is None:
+        def given():
+            return (_entered(frame, cloud_mm), None if tool_tip_mm is None else _entered(frame, tool_tip_mm))
     if model.representation.is_camera:
-        return _camera_arrays(model, cloud_mm, preop, tool_tip_mm, limits)
+        return _camera_arrays(model, cloud_mm, preop, tool_tip_mm, limits, frame, given)
     support = cloud_support(model)
     if support != "exact" and not approximate:
         why = []
@@ -158,11 +166,12 @@ def cloud_to_arrays(model, cloud_mm, preop: Preop, *, approximate: bool, scale: 
     n_used = int(keep.sum())
     if n_used < limits.min_cloud_points:
         med = float(np.median(np.linalg.norm(O - p, axis=1)))
+        hint = cloud_hint(frame, given()[0], p, scale.half_width_mm, limits.min_cloud_points)
         raise PredictionInputError(
             f"cloud: only {n_used} of {len(O)} points lie on the ROI footprint near the pre-operative surface "
             f"(at least {limits.min_cloud_points} needed; the points are a median {med:.4g} mm from the exertion "
-            "point): is the cloud in mm and registered to the liver frame, and does it show the tool region?"
-        )
+            f"point; {declared_as(frame)}): "
+            + (hint or "is the cloud registered to the liver frame, and does it show the tool region?"))
     Ok = O_loc[keep]
     h = scale.half_width_mm
     span = Ok[:, :2].max(axis=0) - Ok[:, :2].min(axis=0)
@@ -215,34 +224,85 @@ def registration_warnings(fix) -> list[str]:
     return [REGISTRATION_NORMAL_ONLY] if fix is not None and fix.anchor == "none" else []
 
 
-def metres_cloud(O: np.ndarray, half_width_mm: float, min_points: int) -> str | None:
-    """The refusal of a cloud ``O`` (finite points) in metres read as mm, else None: at least ``min_points``
-    points spanning less than a fiftieth of the grid's half-width (0.4 mm for the shipped 20 mm; no view of a liver
-    is that small) but at least a thousandth of it once read as metres (a few identical points are not named)."""
+def metres_cloud(O: np.ndarray, half_width_mm: float, min_points: int, frame=None) -> str | None:
+    """The refusal of a cloud ``O`` (finite points, model frame) in metres read as mm, else None: at least
+    ``min_points`` points spanning less than a fiftieth of the grid's half-width (0.4 mm for the shipped 20 mm; no
+    view of a liver is that small) but at least a thousandth of it once read as metres (a few identical points are
+    not named). ``frame``: the units and frame declared (None: none); a cloud declared in metres is not named."""
     if len(O) < min_points:
+        return None
+    said = frame is not None and frame.declared
+    if said and frame.scale >= 1000.0:
         return None
     span = float(np.max(np.ptp(O, axis=0)))
     if not 0.001 * half_width_mm <= span < 0.02 * half_width_mm:
         return None
+    if said:
+        return (f"cloud: its {len(O)} points span {span:.3g} mm, too small for a view of the liver: it looks like "
+                f"metres while {frame.units} was declared ({declared_as(frame)}); give it in {frame.units}, as the "
+                "other inputs")
     return (f"cloud: its {len(O)} points span {span:.3g} mm, too small for a view of the liver: it looks like metres "
             "read as mm; give --units m (in Python, convert to mm or compile_cloud(..., units='m'); the MLflow "
             "pyfunc: params units='m')")
 
 
-def few_points(O: np.ndarray, p: np.ndarray, n_used: int, half_width_mm: float, min_points: int) -> str:
-    """Why a cloud ``O`` (model frame) with ``n_used`` points over the grid round ``p`` is refused."""
+def _entered(frame, x_model) -> np.ndarray:
+    """Points of the model's frame as the user entered them (``frame``: the inputs'; None: RAS mm)."""
+    x = np.asarray(x_model, dtype=np.float64)
+    return x if frame is None or frame.identity else frame.points_out(x)
+
+
+#: a refused cloud's points read in other units or frames (:func:`cloud_hint`): at most this many of them
+_HINT_POINTS = 2000
+
+
+def cloud_hint(frame, cloud_given, p: np.ndarray, half_width_mm: float, min_points: int) -> str | None:
+    """The units or frame a refused cloud (``cloud_given``: as the user entered it) looks like it is in, said
+    against the declared ones (:func:`~liverforce.serve.input_frame.reading_hint`): the reading that puts
+    ``min_points`` of its points within 1.5 grid half-widths of the exertion point ``p`` (model frame); None."""
+    G = np.asarray(cloud_given, dtype=np.float64).reshape(-1, 3)
+    G = G[np.isfinite(G).all(axis=1)]
+    G = G[:: max(1, len(G) // _HINT_POINTS)]
+    need = min(min_points, len(G))
+    if need == 0:
+        return None
+    return reading_hint(frame, G, lambda x: int((np.linalg.norm(x - p, axis=1) <= 1.5 * half_width_mm).sum()) >= need)
+
+
+def few_points(O: np.ndarray, p: np.ndarray, n_used: int, half_width_mm: float, min_points: int, frame=None,
+               given=None) -> str:
+    """Why a cloud ``O`` (model frame) with ``n_used`` points over the grid round ``p`` is refused. ``frame``:
+    the units and frame declared (None: none); ``given``: the cloud as entered (default ``O``)."""
     med = float(np.median(np.linalg.norm(O - p, axis=1)))
+    hint = cloud_hint(frame, O if given is None else given, p, half_width_mm, min_points)
     return (f"cloud: only {n_used} of {len(O)} points lie over the model's {2 * half_width_mm:.3g} mm grid around the "
-            f"exertion point (at least {min_points} needed; the points are a median {med:.4g} mm from it): is the "
-            "cloud in mm, registered to the liver frame, and does it show the tool region?")
+            f"exertion point (at least {min_points} needed; the points are a median {med:.4g} mm from it; "
+            f"{declared_as(frame)}): "
+            + (hint or "is the cloud registered to the liver frame, and does it show the tool region?"))
 
 
-def _camera_arrays(model, cloud_mm, preop: Preop, tool_tip_mm, limits: Limits) -> tuple[dict, dict]:
-    """Arrays of a camera-cloud model: the cloud as given, the tool tip, the pre-operative context."""
+def far_tip(d_tip: float, half_width_mm: float, p: np.ndarray, tip_given, frame=None) -> str:
+    """Why a tool tip ``d_tip`` mm from the exertion point ``p`` (model frame), beyond the grid's half-width, is
+    refused: the tip as entered (``tip_given``) with the units and frame declared (``frame``; None: none), and
+    the units or frame it looks like it is in if another reading puts it on the grid."""
+    hint = reading_hint(frame, tip_given, lambda x: float(np.linalg.norm(x - p)) <= half_width_mm)
+    return (f"tool_tip_mm is {d_tip:.4g} mm from the exertion point, beyond the model's grid ({half_width_mm:.3g} "
+            f"mm): it was given as {written(frame, tip_given)} ({declared_as(frame)}): "
+            + (hint or "is the tool at this exertion point, and the tip in the units and frame of the exertion "
+                       "point?"))
+
+
+def _camera_arrays(model, cloud_mm, preop: Preop, tool_tip_mm, limits: Limits, frame=None,
+                   given=None) -> tuple[dict, dict]:
+    """Arrays of a camera-cloud model: the cloud as given, the tool tip, the pre-operative context (``frame``,
+    ``given``: :func:`cloud_to_arrays`)."""
+    if given is None:
+        def given():
+            return _entered(frame, cloud_mm), _entered(frame, tool_tip_mm)
     tip = tool_tip_of(tool_tip_mm)
     O = _points("cloud", cloud_mm, min_points=1)
     rep = model.representation
-    metres = metres_cloud(O, rep.half_width_mm, limits.min_cloud_points)
+    metres = metres_cloud(O, rep.half_width_mm, limits.min_cloud_points, frame)
     if metres:
         raise PredictionInputError(metres)
     p = preop.exertion_point_mm
@@ -251,12 +311,11 @@ def _camera_arrays(model, cloud_mm, preop: Preop, tool_tip_mm, limits: Limits) -
     reach = rep.half_width_mm * (1.0 + 2.0 / (rep.grid_size - 1))
     n_used = int((np.abs(O_loc[:, :2]) <= reach).all(axis=1).sum())
     if n_used < limits.min_cloud_points:
-        raise PredictionInputError(few_points(O, p, n_used, rep.half_width_mm, limits.min_cloud_points))
+        raise PredictionInputError(few_points(O, p, n_used, rep.half_width_mm, limits.min_cloud_points, frame,
+                                              given()[0]))
     d_tip = float(np.linalg.norm(tip - p))
     if d_tip > rep.half_width_mm:
-        raise PredictionInputError(
-            f"tool_tip_mm is {d_tip:.4g} mm from the exertion point, beyond the model's grid ({rep.half_width_mm:.3g} "
-            "mm): is it in mm and in the liver frame, and is the tool at this exertion point?")
+        raise PredictionInputError(far_tip(d_tip, rep.half_width_mm, p, given()[1], frame))
     info = {"mode": "exact", "points_given": len(O), "points_used": n_used}
     n_shaft = check_instrument(rep, O, tip, preop.roi_undeformed_mm, preop.roi_triangles, p, R)
     if n_shaft is not None:

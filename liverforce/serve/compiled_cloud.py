@@ -98,7 +98,7 @@ from liverforce.learn.encoders import PCAEncoder
 from liverforce.learn.state import THICKNESS_COLUMN, compliance_matrices, state_vector
 from liverforce.serve.checks import Limits, TrainingScale, force_warnings, outside_training
 from liverforce.serve.cloud import (MASKED_INSTRUMENT, SHAFT_MARGIN_MM, SHAFT_POINTS, SHAFT_RING_MM, SHAFT_RISE_MM,
-                                    camera_checks, few_points, instrument_check_radius, instrument_refusal,
+                                    camera_checks, far_tip, few_points, instrument_check_radius, instrument_refusal,
                                     metres_cloud, noisy_cloud, noisy_threshold_mm, outlier_cloud, registration_warnings,
                                     tool_tip_of)
 from liverforce.serve.compiled import numpy_layers, regressor_head
@@ -1397,8 +1397,12 @@ class CompiledCloud:
     """
 
     def __init__(self, model, preop: Preop, *, limits: Limits | None = None, frame: InputFrame | None = None,
-                 registration=None):
+                 registration=None, declared: InputFrame | None = None):
         rep = model.representation
+        # the units and frame the user declared, for the refusals (they give the inputs back as entered): the
+        # input frame, or (``declared``) the one the caller converted the clouds and tips from already
+        self._said = frame if frame is not None else declared
+        self._converted = frame is None and declared is not None and not declared.identity
         # clouds and tips in another frame or unit (a lab's own liver): read as given (the map is folded into the
         # kernel's rotation below), forces given back in that frame
         self.frame = None if frame is None or frame.identity else frame
@@ -1614,7 +1618,7 @@ class CompiledCloud:
                         warnings[r] = camera_checks(self.model, X[r], lim)
                     except PredictionInputError as exc:  # a cloud in metres is named first, as the reference does
                         refused[r] = metres_cloud(self._model(cloud_of(r)), self.half_width_mm,
-                                                  lim.min_cloud_points) or str(exc)
+                                                  lim.min_cloud_points, self._said) or str(exc)
         if self.spec.outlier_mm > 0:  # gross depth errors dropped (outlier_cloud decides), before the feature checks
             for r in np.flatnonzero(n_tool[:, 3] > 0):
                 gross = outlier_cloud(n_tool[r, 3], n_tool[r, 4], self.spec) if refused[r] is None else None
@@ -1635,6 +1639,11 @@ class CompiledCloud:
         if reg:
             warnings = [w if why is not None else w + reg for w, why in zip(warnings, refused)]
         return refused, warnings
+
+    def _entered(self, x: np.ndarray) -> np.ndarray:
+        """Points as given to this path -> as the user entered them (converted back when the caller converted
+        them to the model's frame already)."""
+        return self._said.points_out(x) if self._converted else np.asarray(x, dtype=np.float64)
 
     def _model(self, x: np.ndarray) -> np.ndarray:
         """Points as given -> the model's frame (RAS mm), the registration's change of shape taken off if any."""
@@ -1662,6 +1671,7 @@ class CompiledCloud:
         why = self._tip_refusal(tip)
         if why:
             return why
+        given = (O, tip)
         O, tip = self._model(O), self._model(tip)
         if len(O) == 0:
             return "cloud: 0 points; at least 1 are needed (the cloud is empty)"
@@ -1669,16 +1679,15 @@ class CompiledCloud:
         if bad.any():
             return (f"cloud: {int(bad.sum())} of {len(O)} points contain NaN or inf (first at row "
                     f"{int(np.argmax(bad))}); drop invalid points (e.g. missing depth) before predicting")
-        metres = metres_cloud(O, self.half_width_mm, self.limits.min_cloud_points)
+        metres = metres_cloud(O, self.half_width_mm, self.limits.min_cloud_points, self._said)
         if metres:
             return metres
         if n_used < self.limits.min_cloud_points:
-            return few_points(O, self.p, n_used, self.half_width_mm, self.limits.min_cloud_points)
+            return few_points(O, self.p, n_used, self.half_width_mm, self.limits.min_cloud_points, self._said,
+                              self._entered(given[0]))
         d_tip = float(np.linalg.norm(tip - self.p))
         if d_tip > self.half_width_mm:
-            return (f"tool_tip_mm is {d_tip:.4g} mm from the exertion point, beyond the model's grid "
-                    f"({self.half_width_mm:.3g} mm): is it in mm and in the liver frame, and is the tool at this "
-                    "exertion point?")
+            return far_tip(d_tip, self.half_width_mm, self.p, self._entered(given[1]), self._said)
         if n_shaft >= SHAFT_POINTS:  # (counted for models trained without the instrument only)
             return instrument_refusal(n_shaft, self._shaft_tool_mm)
         return None

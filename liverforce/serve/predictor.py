@@ -269,7 +269,8 @@ class Predictor:
             raise PredictionInputError(f"registration refinement: {exc}") from None
 
     def predict_cloud(self, cloud_mm, preop: Preop, *, approximate: bool = False, tool_tip_mm=None,
-                      return_info: bool = False, registration=None) -> np.ndarray | tuple[np.ndarray, dict]:
+                      return_info: bool = False, registration=None,
+                      input_frame=None) -> np.ndarray | tuple[np.ndarray, dict]:
         """(b) Force ``(3,)`` N from an unordered observed cloud ``(m, 3)`` mm (:mod:`liverforce.serve.cloud`).
 
         Exact for camera-cloud models (``roi_features: cloud``; they need the
@@ -280,14 +281,23 @@ class Predictor:
         refused, milder departures listed in ``info["warnings"]``, with the
         context's (:meth:`context_warnings`) for every model. ``registration``: a
         :meth:`refine_registration` result, applied to the cloud and the tool tip first (``info["registration"]``
-        says what it moved); the force stays in ``preop``'s frame.
+        says what it moved); the force stays in ``preop``'s frame. ``input_frame``: the units and frame the user
+        declared for the cloud and the tip (an :class:`~liverforce.serve.input_frame.InputFrame`), which the caller
+        converted them from to the model's frame already (:meth:`InputFrame.points`): a refusal gives them back
+        as entered, with what was declared (None: nothing declared, RAS mm).
         """
-        self.check_preop(preop)
+        self.check_preop(preop, frame=input_frame)
+        entered = (cloud_mm, tool_tip_mm)  # before the registration: as the user gave them, once converted back
+
+        def given():
+            return tuple(None if x is None else np.asarray(x, dtype=np.float64) if input_frame is None
+                         or input_frame.identity else input_frame.points_out(np.asarray(x, dtype=np.float64))
+                         for x in entered)
         if registration is not None:
             cloud_mm = registration.points(_points("cloud", cloud_mm, min_points=1))
             tool_tip_mm = None if tool_tip_mm is None else registration.points(_vector("tool_tip_mm", tool_tip_mm, 3))
         arrays, info = cloud_to_arrays(self.model, cloud_mm, preop, approximate=approximate, scale=self.scale,
-                                       limits=self.limits, tool_tip_mm=tool_tip_mm)
+                                       limits=self.limits, tool_tip_mm=tool_tip_mm, frame=input_frame, given=given)
         R = preop.rotation[None]
         if info["mode"] == "approximate" and self.model.representation.features != "deformed":
             check_case(arrays, 0, self.model, self.scale, self.limits, label="", rotation=preop.rotation,
@@ -316,19 +326,21 @@ class Predictor:
         """``exact`` or ``approximate``: what :meth:`predict_cloud` can do for this model."""
         return cloud_support(self.model)
 
-    def compile_cloud(self, preop: Preop, frame=None, units: str | None = None, registration=None):
+    def compile_cloud(self, preop: Preop, frame=None, units: str | None = None, registration=None, declared=None):
         """The camera-cloud fast path for ``preop`` (:class:`liverforce.serve.compiled_cloud.CompiledCloud`;
         the context is checked once here). ``frame`` and ``units``: the clouds' and tips' frame and units (an
         :class:`~liverforce.serve.input_frame.InputFrame`, or what :meth:`InputFrame.resolve` takes: ``"LPS"``, a
         4x4, an import record; ``"m"``); their forces come back in that frame. Default: RAS mm. ``registration``:
         a :meth:`refine_registration` result (computed from points in the model's frame) applied to every cloud and
-        tip after the frame."""
+        tip after the frame. ``declared``: without ``frame``, the :class:`InputFrame` the user declared for clouds
+        and tips the caller converted to the model's frame already (refusals give them back as entered)."""
         from liverforce.serve.compiled_cloud import CompiledCloud
         from liverforce.serve.input_frame import InputFrame
 
-        self.check_preop(preop)
         fr = None if frame is None and units is None else InputFrame.resolve(frame, units)
-        return CompiledCloud(self.model, preop, limits=self.limits, frame=fr, registration=registration)
+        self.check_preop(preop, frame=fr if fr is not None else declared)
+        return CompiledCloud(self.model, preop, limits=self.limits, frame=fr, registration=registration,
+                             declared=declared)
 
     def compile(self, preop: Preop) -> CompiledROI:
         """The fixed-topology fast path for ``preop`` (checked once here)."""

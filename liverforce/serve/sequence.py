@@ -116,7 +116,7 @@ def predict_sequence(predictor, preop, frame, clouds: list[np.ndarray], tips: np
     compiled = not reference and isinstance(model.pre.encoder, PCAEncoder)
     t0 = time.perf_counter()
     if compiled:
-        fast = predictor.compile_cloud(preop, registration=registration)
+        fast = predictor.compile_cloud(preop, registration=registration, declared=frame)
         t0 = time.perf_counter()  # the compilation is once per exertion point, not per cloud
         res = fast.predict_batch(P, T, threads=threads)
         force, half, refused, warns = res.force, res.half_width, res.refused, res.warnings
@@ -127,7 +127,7 @@ def predict_sequence(predictor, preop, frame, clouds: list[np.ndarray], tips: np
         for k, (c, tip) in enumerate(zip(P, T)):
             try:
                 force[k], info = predictor.predict_cloud(c, preop, tool_tip_mm=tip, return_info=True,
-                                                         registration=registration)
+                                                         registration=registration, input_frame=frame)
             except PredictionInputError as exc:
                 refused[k] = str(exc)
                 continue

@@ -559,10 +559,13 @@ def test_cli_predicts_a_recorded_sequence_of_clouds(served, tmp_path, capsys, tr
         np.testing.assert_allclose([row[f"half_width_{j}_n"] for j in ("t1", "t2", "n")],
                                    info["interval"]["half_width_local_n"], rtol=1e-6)
         assert row["refused"] == "" and row["warnings"] == "; ".join(info["warnings"])
-    with pytest.raises(PredictionInputError) as exc:
-        pred.predict_cloud(clouds[4], ctx, tool_tip_mm=tips[4])
+    from liverforce.serve.input_frame import InputFrame
+
+    with pytest.raises(PredictionInputError) as exc:  # the reasons name the units and frame declared
+        pred.predict_cloud(clouds[4], ctx, tool_tip_mm=tips[4], input_frame=InputFrame.resolve("LPS", "m"))
     last = out["rows"][4]
     assert last["refused"] == str(exc.value) and last["fx_n"] is None and last["half_width_n_n"] is None
+    assert "declared in m, LPS" in last["refused"]
     # one (T, N, 3) stack, 2 threads, the reference path: the same rows
     np.save(tmp_path / "stack.npy", np.stack([c[:800] for c in clouds[:4]]) * lps / 1000.0)
     stack = run(tmp_path / "stack.npy", "--tool-tips", tmp_path / "tips4.npy", *base, rc=2)
@@ -617,3 +620,37 @@ def test_cli_predicts_a_recorded_sequence_of_clouds(served, tmp_path, capsys, tr
     node = parser.parse_args(["predict", "-m", trained("disp"), str(frames), "--tool-tips", str(tmp_path / "tips.csv"),
                               "--exertion-point", "0", "0", "0", "--material", "0.002", "0.01"])
     assert node.func(node) == 2 and "camera-cloud model" in capsys.readouterr().err
+
+
+def test_refusals_give_the_tip_and_cloud_back_as_entered_on_every_path(served):
+    """A tool tip or a cloud in mm while m and LPS were declared, and a tip in metres with nothing declared: the
+    reference path, the compiled path (compiled with the frame, or given points converted already with the frame
+    declared, as a sequence does) refuse each with the same reason, which gives the value as entered with the
+    units and frame declared and says which units it looks like (never 'is it in mm', never 'give --frame' to a
+    user who declared one)."""
+    from liverforce.serve.input_frame import InputFrame
+
+    path, model, a = served
+    pred = Predictor.from_dir(path)
+    ctx, cloud, tip = _case(a, 4)
+    fr = InputFrame.resolve("LPS", "m")
+    lps = np.array([-1.0, -1.0, 1.0])
+    cloud_in, tip_in = cloud * lps / 1000.0, tip * lps / 1000.0
+    with_frame, declared = pred.compile_cloud(ctx, frame=fr), pred.compile_cloud(ctx, declared=fr)
+    for c, t, what in ((cloud_in, tip_in * 1000.0, "tool_tip_mm is"), (cloud_in * 1000.0, tip_in, "cloud: only")):
+        with pytest.raises(PredictionInputError) as exc:
+            pred.predict_cloud(fr.points(c), ctx, tool_tip_mm=fr.points(t), input_frame=fr)
+        why = str(exc.value)
+        assert why.startswith(what) and "it looks like mm while m, LPS was declared" in why, why
+        assert "declared in m, LPS" in why and "is it in mm" not in why and "--frame" not in why, why
+        assert with_frame.predict_batch([c], t[None]).refused == [why]
+        assert declared.predict_batch([fr.points(c)], fr.points(t)[None]).refused == [why]
+    tip_given = fr.points(tip_in * 1000.0)
+    with pytest.raises(PredictionInputError) as exc:
+        pred.predict_cloud(cloud, ctx, tool_tip_mm=tip_given, input_frame=fr)
+    assert "it was given as [" + ", ".join(f"{x:.6g}" for x in tip_in * 1000.0) + "] m LPS" in str(exc.value)
+    with pytest.raises(PredictionInputError) as exc:  # nothing declared: read as RAS mm; the tip in metres
+        pred.predict_cloud(cloud, ctx, tool_tip_mm=tip / 1000.0)
+    why = str(exc.value)
+    assert "no units or frame were declared" in why and "it looks like m, but" in why and "--units m" in why, why
+    assert pred.compile_cloud(ctx).predict_batch([cloud], (tip / 1000.0)[None]).refused == [why]
