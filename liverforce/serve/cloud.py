@@ -171,7 +171,8 @@ def cloud_to_arrays(model, cloud_mm, preop: Preop, *, approximate: bool, scale: 
             f"cloud: only {n_used} of {len(O)} points lie on the ROI footprint near the pre-operative surface "
             f"(at least {limits.min_cloud_points} needed; the points are a median {med:.4g} mm from the exertion "
             f"point; {declared_as(frame)}): "
-            + (hint or "is the cloud registered to the liver frame, and does it show the tool region?"))
+            + (hint or f"is the cloud {_in_what(frame)}registered to the liver frame, and does it show the tool "
+                       "region?"))
     Ok = O_loc[keep]
     h = scale.half_width_mm
     span = Ok[:, :2].max(axis=0) - Ok[:, :2].min(axis=0)
@@ -252,6 +253,12 @@ def _entered(frame, x_model) -> np.ndarray:
     return x if frame is None or frame.identity else frame.points_out(x)
 
 
+def _in_what(frame) -> str:
+    """The question a refusal asks of the units: none declared, "in mm and " (the model's); else nothing (the
+    declared ones hold, or another reading would have been named)."""
+    return "" if frame is not None and frame.declared else "in mm and "
+
+
 #: a refused cloud's points read in other units or frames (:func:`cloud_hint`): at most this many of them
 _HINT_POINTS = 2000
 
@@ -278,7 +285,8 @@ def few_points(O: np.ndarray, p: np.ndarray, n_used: int, half_width_mm: float, 
     return (f"cloud: only {n_used} of {len(O)} points lie over the model's {2 * half_width_mm:.3g} mm grid around the "
             f"exertion point (at least {min_points} needed; the points are a median {med:.4g} mm from it; "
             f"{declared_as(frame)}): "
-            + (hint or "is the cloud registered to the liver frame, and does it show the tool region?"))
+            + (hint or f"is the cloud {_in_what(frame)}registered to the liver frame, and does it show the tool "
+                       "region?"))
 
 
 def far_tip(d_tip: float, half_width_mm: float, p: np.ndarray, tip_given, frame=None) -> str:
@@ -288,8 +296,8 @@ def far_tip(d_tip: float, half_width_mm: float, p: np.ndarray, tip_given, frame=
     hint = reading_hint(frame, tip_given, lambda x: float(np.linalg.norm(x - p)) <= half_width_mm)
     return (f"tool_tip_mm is {d_tip:.4g} mm from the exertion point, beyond the model's grid ({half_width_mm:.3g} "
             f"mm): it was given as {written(frame, tip_given)} ({declared_as(frame)}): "
-            + (hint or "is the tool at this exertion point, and the tip in the units and frame of the exertion "
-                       "point?"))
+            + (hint or f"is the tip {_in_what(frame)}in the frame of the exertion point, and is the tool at this "
+                       "exertion point?"))
 
 
 def _camera_arrays(model, cloud_mm, preop: Preop, tool_tip_mm, limits: Limits, frame=None,
