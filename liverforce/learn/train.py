@@ -39,7 +39,9 @@ Steps (every fitted quantity sees the training split only):
 7. outputs: ``out_dir/model/`` (bundle), ``out_dir/figures/*.png``,
    ``out_dir/test_predictions.csv`` (atomic), ``out_dir/interval_calibration.npz``
    (the calibration predictions of the interval, atomic) and the result dict, which the
-   caller writes to ``metrics.json`` (:mod:`liverforce.pipeline.train`, its only writer);
+   caller writes to ``metrics.json`` (:mod:`liverforce.pipeline.train`, its only writer). What an
+   earlier run wrote there is removed first (:func:`clear_outputs`): an interrupted run leaves no
+   file of the old model beside the new one's;
    with a ``tracker`` everything is also logged (parent run per scenario +
    variant, one nested run per Ax trial). The tracker is duck-typed (see
    :class:`liverforce.tracking.Tracker`); this module never imports mlflow.
@@ -48,13 +50,16 @@ Steps (every fitted quantity sees the training split only):
 from __future__ import annotations
 
 import io
+import logging
+import re
+import shutil
 import time
 from pathlib import Path
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from liverforce.atomic import write_bytes_atomic, write_text_atomic
+from liverforce.atomic import remove_stale_temps, write_bytes_atomic, write_text_atomic
 from liverforce.config import config_hash
 from liverforce.learn.camera import exact_tip
 from liverforce.learn.interval import coverage_per_component, fit_conformal
@@ -83,6 +88,55 @@ from liverforce.learn.splits import cv_folds, group_key, train_test_split
 from liverforce.learn.torchutil import configure_torch
 from liverforce.learn.tune import FoldData, cv_force_mae, cv_score, tune
 from liverforce.seeds import derive
+
+log = logging.getLogger("liverforce")
+
+#: what :func:`train_scenario` writes in ``out_dir``, by name (step 7; the caller writes ``metrics.json``): the
+#: bundle folder, the figures folder and its files (:func:`~liverforce.learn.plots.evaluation_figures`' names),
+#: the files beside the bundle (:func:`clear_outputs` removes an earlier run's)
+MODEL_DIR = "model"
+FIGURES_DIR = "figures"
+FIGURE_FILES = ("pred_vs_true_x.png", "pred_vs_true_y.png", "pred_vs_true_z.png", "error_histogram.png")
+OUTPUT_FILES = ("test_predictions.csv", "interval_calibration.npz")
+_FOLD_CALIBRATION = re.compile(r"interval_calibration_folds[0-9]+\.npz")  # calibrate_folds' (an experiment's)
+_SAVE_TEMP = re.compile(rf"\.{MODEL_DIR}\.[a-z0-9_]{{8}}")  # ForceModel.save's temporary folder (mkdtemp)
+
+
+def clear_outputs(out_dir: str | Path) -> list[Path]:
+    """Remove what an earlier :func:`train_scenario` left in ``out_dir``; returns the paths removed.
+
+    Only this module's outputs, by name (:data:`MODEL_DIR`, :data:`FIGURE_FILES` in :data:`FIGURES_DIR`, which
+    goes if then empty, :data:`OUTPUT_FILES`, the fold-count calibrations), and the temporary files and folders
+    killed writes of them left; nothing else in ``out_dir``. A run calls it before it writes anything, so an
+    interrupted run never leaves the old model's figures, predictions or calibration beside the new model
+    (or beside none, when Snakemake removed the declared outputs): every file there is the current run's,
+    and each is written atomically.
+    """
+    out_dir = Path(out_dir)
+    if not out_dir.is_dir():
+        return []
+    gone: list[Path] = []
+    files = [out_dir / name for name in OUTPUT_FILES]
+    files += sorted(p for p in out_dir.iterdir() if _FOLD_CALIBRATION.fullmatch(p.name))
+    files += [out_dir / FIGURES_DIR / name for name in FIGURE_FILES]
+    for f in files:
+        gone += remove_stale_temps(f)
+        if f.is_file() or f.is_symlink():
+            f.unlink()
+            gone.append(f)
+    figures = out_dir / FIGURES_DIR
+    if figures.is_dir() and not figures.is_symlink() and not any(figures.iterdir()):
+        figures.rmdir()
+        gone.append(figures)
+    for d in [out_dir / MODEL_DIR, *sorted(p for p in out_dir.iterdir() if _SAVE_TEMP.fullmatch(p.name))]:
+        if d.is_symlink() or d.is_file():
+            d.unlink()
+            gone.append(d)
+        elif d.is_dir():
+            shutil.rmtree(d)
+            gone.append(d)
+    return gone
+
 
 REQUIRED_ARRAYS = (
     "case_id", "geometry_id", "force_n", "exertion_point_mm", "frame_normal", "frame_t1", "frame_t2",
@@ -194,6 +248,8 @@ def train_scenario(
         raise ValueError("calibrate_folds needs an interval (train.interval.coverage) and train.final_fit off: "
                          "the split model's calibration is recalibrated")
     n = check_arrays(arrays)
+    for p in clear_outputs(out_dir):  # an earlier run's model never stays beside this one's (or its absence)
+        log.info("removed %s, an earlier training run's output", p)
     geo = np.asarray(arrays["geometry_id"]).astype(str)
 
     tr, te = train_test_split(geo, scenario=scenario, test_fraction=float(train_cfg["test_fraction"]), seed=seed)
@@ -323,8 +379,6 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
     model.meta["test_metrics"] = metrics
     interval = None
     ci = None
-    for suffix in ("", *(f"_folds{int(k)}" for k in calibrate_folds)):  # an earlier run's, not this model's
-        (out_dir / f"interval_calibration{suffix}.npz").unlink(missing_ok=True)
     final = bool(train_cfg.get("final_fit"))
     if (train_cfg.get("interval") or {}).get("coverage"):
         try:
@@ -355,12 +409,12 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
             train_arrays, test_arrays, model_cfg, train_cfg, scenario, seed, encoder, use_state, code_size, dae_noise,
             hidden, dropout, fit, meta, metrics, interval, out_dir)
     saved_pred = model.predict(test_arrays, observation_seed=eval_seed(seed)) if final else pred
-    model_path = model.save(out_dir / "model")
+    model_path = model.save(out_dir / MODEL_DIR)
     # the saved bundle must reproduce its predictions exactly (guards the format)
     reloaded = ForceModel.load(model_path).predict(test_arrays, observation_seed=eval_seed(seed))
     if not np.array_equal(reloaded, saved_pred):
         raise RuntimeError(f"the saved model at {model_path} does not reproduce its predictions")
-    figures = evaluation_figures(prep_test.force, pred, out_dir / "figures", title=f"{scenario} {variant}")
+    figures = evaluation_figures(prep_test.force, pred, out_dir / FIGURES_DIR, title=f"{scenario} {variant}")
     _write_predictions(out_dir / "test_predictions.csv", test_arrays["case_id"], prep_test.force, pred)
 
     repeats += repeated_splits(train_arrays, test_arrays, rep, model_cfg, train_cfg, scenario, seed, encoder,

@@ -34,9 +34,15 @@ def train_model(manifest_path, scenario: str, variant: str, model_cfg: dict, tra
     for that fraction.
     """
     from liverforce.config import config_hash
-    from liverforce.learn.train import train_scenario
+    from liverforce.learn.train import clear_outputs, train_scenario
     from liverforce.tracking import Tracker
 
+    out_dir = Path(metrics_path).parent
+    # before anything slow: an earlier run's metrics and model files never stay beside (or instead of) this
+    # run's, even when an interrupt stops it before training (Snakemake removes the declared outputs only)
+    Path(metrics_path).unlink(missing_ok=True)
+    for p in clear_outputs(out_dir):
+        log.info("removed %s, an earlier training run's output", p)
     shards = dio.verify_manifest(manifest_path)
     manifest = json.loads(Path(manifest_path).read_text())
     shard_meta = dio.read_metadata(shards[0])
@@ -68,7 +74,6 @@ def train_model(manifest_path, scenario: str, variant: str, model_cfg: dict, tra
             f"scenario {scenario}: only {n} converged cases in {manifest_path}; too few to train "
             f"({manifest['failed']} failed — see the 'reason' column); raise sweep.scenarios.{scenario}.n_cases"
         )
-    out_dir = Path(metrics_path).parent
     tracker = Tracker(tracking_uri, experiment_name)
     tags = {
         "rule": "train", "scenario": scenario, "variant": variant, "experiment": experiment,
