@@ -31,6 +31,12 @@ PARTLY = {"folds": 3, "n_points": 4, "min_train_points": 3, "n_scored": 2,
                         "skipped": "fold 1 trains on 2 exertion points of g (fewer than 3)"},
                        {"points": ["g#2"], "n_test": 3, "metrics": {"accuracy_pct": 80.2, "mae_vec": 0.2}},
                        {"points": ["g#3"], "n_test": 3, "metrics": {"accuracy_pct": 82.3, "mae_vec": 0.2}}]}
+#: 5 points in 2 folds: one fold trains on 2 points (not scored), the other on 3: one fold, no spread
+ONE_SCORED = {"folds": 2, "n_points": 5, "min_train_points": 3, "n_scored": 1,
+              "metrics_mean": {"accuracy_pct": 71.23, "mae_vec": 0.3}, "metrics_sd": None,
+              "per_fold": [{"points": ["g#0", "g#1", "g#2"], "n_test": 9, "train_points": {"g": 2},
+                            "skipped": "fold 1 trains on 2 exertion points of g (fewer than 3)"},
+                           {"points": ["g#3", "g#4"], "n_test": 6, "metrics": {"accuracy_pct": 71.23, "mae_vec": 0.3}}]}
 FOLDS_OK = {"folds": 4, "n_points": 8, "min_train_points": 3, "n_scored": 4,
             "metrics_mean": {"accuracy_pct": 84.04, "mae_vec": 0.2},
             "metrics_sd": {"accuracy_pct": 2.26, "mae_vec": 0.01},
@@ -79,3 +85,13 @@ def test_a_positive_mean_with_one_fold_below_the_floor_is_flagged(stage_outputs)
     cells, _ = _cells(stage_outputs, {("II", "pca_sv"): bad})
     got = cells[("II", "pca_sv")]
     assert got.startswith("⚠ extrapolation: 12.0 ± 60.0") and "lowest -200.0 %" in got
+
+
+def test_one_scored_fold_is_its_mean_without_a_spread(stage_outputs):
+    """One scored fold: the mean alone, no ± (its sd is None; an earlier run's record gave 0.0: not printed)."""
+    earlier = {**ONE_SCORED, "metrics_sd": {"accuracy_pct": 0.0, "mae_vec": 0.0}}
+    cells, _ = _cells(stage_outputs, {("II", "pca_sv"): ONE_SCORED, ("II", "pca_nosv"): earlier})
+    for key in (("II", "pca_sv"), ("II", "pca_nosv")):
+        got = cells[key]
+        assert got.startswith("71.2 (1 of 2 folds of 5 points scored; not scored: fold 1 trains on 2"), got
+        assert "±" not in got

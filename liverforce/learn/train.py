@@ -99,7 +99,19 @@ FIGURES_DIR = "figures"
 FIGURE_FILES = ("pred_vs_true_x.png", "pred_vs_true_y.png", "pred_vs_true_z.png", "error_histogram.png")
 OUTPUT_FILES = ("test_predictions.csv", "interval_calibration.npz")
 _FOLD_CALIBRATION = re.compile(r"interval_calibration_folds[0-9]+\.npz")  # calibrate_folds' (an experiment's)
+#: a killed write's temporary file of one of them (:func:`~liverforce.atomic.atomic_path`'s naming,
+#: ``.<stem>.<8 random>.tmp<suffix>``): names the fold calibration it was written for, which may not exist
+_FOLD_CALIBRATION_TEMP = re.compile(r"\.(interval_calibration_folds[0-9]+)\.[a-z0-9_]{8}\.tmp\.npz")
 _SAVE_TEMP = re.compile(rf"\.{MODEL_DIR}\.[a-z0-9_]{{8}}")  # ForceModel.save's temporary folder (mkdtemp)
+
+
+def _remove_file(f: Path, gone: list[Path]) -> None:
+    """Remove ``f`` (a file, or a symlink itself: never its target) and the temporary files of its killed
+    writes (:func:`~liverforce.atomic.remove_stale_temps`, by name, whether ``f`` exists or not)."""
+    gone += remove_stale_temps(f)
+    if f.is_symlink() or f.is_file():
+        f.unlink()
+        gone.append(f)
 
 
 def clear_outputs(out_dir: str | Path) -> list[Path]:
@@ -107,27 +119,37 @@ def clear_outputs(out_dir: str | Path) -> list[Path]:
 
     Only this module's outputs, by name (:data:`MODEL_DIR`, :data:`FIGURE_FILES` in :data:`FIGURES_DIR`, which
     goes if then empty, :data:`OUTPUT_FILES`, the fold-count calibrations), and the temporary files and folders
-    killed writes of them left; nothing else in ``out_dir``. A run calls it before it writes anything, so an
-    interrupted run never leaves the old model's figures, predictions or calibration beside the new model
-    (or beside none, when Snakemake removed the declared outputs): every file there is the current run's,
-    and each is written atomically.
+    killed writes of them left, also when the final file was never written; nothing else in ``out_dir``. A run
+    calls it before it writes anything, so an interrupted run never leaves the old model's figures, predictions
+    or calibration beside the new model (or beside none, when Snakemake removed the declared outputs): every
+    file there is the current run's, and each is written atomically.
+
+    Never deletes through a symlink: a symlinked output is unlinked, its target kept. A symlinked
+    :data:`FIGURES_DIR` is unlinked as a whole, its folder and files untouched (not even those named as the
+    figures), and the run then writes its figures into a folder of its own: left in place, the link would have
+    the run overwrite the target's files of those names, and an interrupted run leave the old figures there.
     """
     out_dir = Path(out_dir)
     if not out_dir.is_dir():
         return []
     gone: list[Path] = []
-    files = [out_dir / name for name in OUTPUT_FILES]
-    files += sorted(p for p in out_dir.iterdir() if _FOLD_CALIBRATION.fullmatch(p.name))
-    files += [out_dir / FIGURES_DIR / name for name in FIGURE_FILES]
-    for f in files:
-        gone += remove_stale_temps(f)
-        if f.is_file() or f.is_symlink():
-            f.unlink()
-            gone.append(f)
+    for name in OUTPUT_FILES:
+        _remove_file(out_dir / name, gone)
+    names = [p.name for p in out_dir.iterdir()]
+    folds = {n for n in names if _FOLD_CALIBRATION.fullmatch(n)}
+    folds |= {m.group(1) + ".npz" for m in map(_FOLD_CALIBRATION_TEMP.fullmatch, names) if m}
+    for name in sorted(folds):
+        _remove_file(out_dir / name, gone)
     figures = out_dir / FIGURES_DIR
-    if figures.is_dir() and not figures.is_symlink() and not any(figures.iterdir()):
-        figures.rmdir()
+    if figures.is_symlink():
+        figures.unlink()
         gone.append(figures)
+    elif figures.is_dir():
+        for name in FIGURE_FILES:
+            _remove_file(figures / name, gone)
+        if not any(figures.iterdir()):
+            figures.rmdir()
+            gone.append(figures)
     for d in [out_dir / MODEL_DIR, *sorted(p for p in out_dir.iterdir() if _SAVE_TEMP.fullmatch(p.name))]:
         if d.is_symlink() or d.is_file():
             d.unlink()
@@ -444,8 +466,8 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
                                             if outside[f"{side}_accuracy_pct"]["mean"] is not None}}
                                         if outside else {}),
                                      **({f"heldout_points_{k}_{m}": v for m in ("mean", "sd")
-                                         for k, v in points[f"metrics_{m}"].items()}
-                                        if points and points["metrics_mean"] else {}),
+                                         for k, v in (points[f"metrics_{m}"] or {}).items()}
+                                        if points else {}),  # none when not measured, no sd with one fold
                                      **({f"exact_tip_{k}_{m}": v for m in ("mean", "sd")
                                          for k, v in exact[f"metrics_{m}"].items()} if exact else {})})
         tracker.log_params(run_id, {f"best.{k}": v for k, v in best.items()})
@@ -723,8 +745,9 @@ def heldout_points(train_arrays, test_arrays, model_cfg, folds, seed, encoder, u
 
     A fold whose training part holds fewer than :data:`MIN_TRAIN_POINTS` distinct exertion points on a liver
     it tests is not fitted nor scored: its record keeps its points and test cases, ``train_points`` (per
-    tested liver) and ``skipped`` (why); the mean and sd are over the scored folds (``n_scored``). With no
-    fold scored, ``metrics_mean`` and ``metrics_sd`` are None and ``not_measured`` says why, with the counts.
+    tested liver) and ``skipped`` (why); the mean and sd are over the scored folds (``n_scored``), and
+    ``metrics_sd`` is None with one scored fold (no spread to give). With no fold scored, ``metrics_mean`` and
+    ``metrics_sd`` are None and ``not_measured`` says why, with the counts.
     """
     all_arrays = _all_cases(train_arrays, test_arrays)
     point = np.char.add(np.asarray(all_arrays["geometry_id"]).astype(str),
@@ -764,7 +787,8 @@ def heldout_points(train_arrays, test_arrays, model_cfg, folds, seed, encoder, u
     res = {"folds": k, "n_points": int(len(groups)), "min_train_points": MIN_TRAIN_POINTS, "n_scored": len(scored)}
     if scored:
         summary = summarise_repeats(scored)
-        res.update(metrics_mean=summary["mean"], metrics_sd=summary["sd"])
+        # one scored fold has no spread: no sd (not 0), and the report prints the mean alone
+        res.update(metrics_mean=summary["mean"], metrics_sd=summary["sd"] if len(scored) >= 2 else None)
     else:
         per_liver = {}
         for p in groups:

@@ -15,10 +15,23 @@ import numpy as np
 ACCURACY_FLOOR_PCT = 0.0
 
 
-def _num(v, nd: int = 1) -> str:
-    """``v`` with ``nd`` decimals, or in scientific notation when it is huge (a flagged extrapolation)."""
+def number(v, nd: int = 3) -> str:
+    """``v`` with ``nd`` decimals, in scientific notation when it is huge (a flagged extrapolation); ``–`` when
+    it is unknown (None, NaN). The report's one way to print a measured number."""
+    if v is None or not np.isfinite(float(v)):
+        return "–"
     v = float(v)
     return f"{v:.2e}" if abs(v) >= 1e5 else f"{v:.{nd}f}"
+
+
+def pm(mean, sd, nd: int = 3) -> str:
+    """``mean ± sd`` (:func:`number` of each); the mean alone when the sd is unknown (None: no spread, as of
+    one fold or split), ``–`` when the mean is."""
+    if mean is None or not np.isfinite(float(mean)):
+        return "–"
+    if sd is None or not np.isfinite(float(sd)):
+        return number(mean, nd)
+    return f"{number(mean, nd)} ± {number(sd, nd)}"
 
 
 def below_floor(v) -> bool:
@@ -32,15 +45,16 @@ def flag_accuracy(text: str, values) -> str:
     if not low:
         return text
     return (f"<span class='why'><b class='flag'>⚠ extrapolation: {text} <small>(below {ACCURACY_FLOOR_PCT:.0f} %: "
-            f"the errors exceed the forces, worse than predicting 0 N; lowest {_num(min(low))} %)</small></b></span>")
+            f"the errors exceed the forces, worse than predicting 0 N; lowest {number(min(low), 1)} %)"
+            "</small></b></span>")
 
 
 def heldout_cell(hp: dict | None) -> str:
     """The models table's held-out-exertion-points cell of one model's ``heldout_points`` record.
 
     Not measured (every fold trained on too few points): the reason, no number. Partly scored: the mean ± sd
-    of the scored folds and why the others were not. Any scored fold below the floor: flagged as
-    extrapolation with its lowest fold, never bare.
+    of the scored folds (the mean alone of one scored fold: no spread) and why the others were not. Any scored
+    fold below the floor: flagged as extrapolation with its lowest fold, never bare.
     """
     if not hp:
         return "–"
@@ -51,12 +65,10 @@ def heldout_cell(hp: dict | None) -> str:
     per = hp.get("per_fold") or []
     scored = [f for f in per if "metrics" in f]
     n_scored = hp.get("n_scored", len(scored))
-    mean, sd = hp["metrics_mean"].get("accuracy_pct"), (hp.get("metrics_sd") or {}).get("accuracy_pct")
-    if mean is None or not np.isfinite(float(mean)):
-        text = "–"
-    else:
-        text = _num(mean) + (f" ± {_num(sd)}" if sd is not None and np.isfinite(float(sd)) else "")
-    text = flag_accuracy(text, [mean] + [f["metrics"].get("accuracy_pct") for f in scored])
+    mean = hp["metrics_mean"].get("accuracy_pct")
+    # one scored fold has no spread: its sd is None (an earlier run's record may give 0), and no ± is printed
+    sd = (hp.get("metrics_sd") or {}).get("accuracy_pct") if n_scored >= 2 else None
+    text = flag_accuracy(pm(mean, sd, 1), [mean] + [f["metrics"].get("accuracy_pct") for f in scored])
     if n_scored == folds:
         return text + f" <small>({folds} folds of {n_points} points)</small>"
     skipped = [html.escape(str(f["skipped"])) for f in per if f.get("skipped")]

@@ -28,6 +28,7 @@ import numpy as np
 from liverforce.atomic import atomic_path, write_text_atomic
 from liverforce.layout import gid_of, model_of_metrics, scenario_of_manifest, study_picture_of
 from liverforce.report.heldout import ACCURACY_FLOOR_PCT, flag_accuracy, heldout_cell
+from liverforce.report.heldout import pm as _pm  # mean ± sd, as in the held-out cell (one helper)
 from liverforce.report.imported import geometry_record, given_points, imported_section, is_imported
 
 #: the study's accuracies (Table 5.9), % — deformation only / with state vector
@@ -107,15 +108,6 @@ def _fmt(v, nd=3) -> str:
     if isinstance(v, float):
         return "–" if not np.isfinite(v) else f"{v:.{nd}f}"
     return html.escape(str(v))
-
-
-def _pm(mean, sd, nd=3) -> str:
-    """``mean ± sd`` (``–`` when the mean is unknown, the mean alone when the sd is)."""
-    if mean is None or not np.isfinite(float(mean)):
-        return "–"
-    if sd is None or not np.isfinite(float(sd)):
-        return _fmt(float(mean), nd)
-    return f"{_fmt(float(mean), nd)} ± {_fmt(float(sd), nd)}"
 
 
 def _flagged(text: str, missed: bool) -> str:

@@ -129,3 +129,45 @@ def test_the_train_step_removes_the_old_model_before_reading_any_shard(tmp_path,
                        f"sqlite:///{tmp_path / 'mlflow.db'}", "e", "e", 0, 1,
                        variant_dir / "metrics.json", variant_dir / "model")
     assert sorted(_files(variant_dir)) == ["shard-0000.parquet"]  # not a training output: left alone
+
+
+def test_a_symlinked_figures_folder_is_unlinked_never_followed(data, tmp_path):
+    """figures/ a symlink to a folder holding files of the figures' names: clearing removes the link only, the
+    folder and its files stay, and the next training writes its figures into a folder of its own (a followed
+    link would have had them deleted, then overwritten)."""
+    elsewhere = tmp_path / "shared_figures"
+    elsewhere.mkdir()
+    theirs = {name: f"someone else's {name}".encode() for name in lt.FIGURE_FILES}
+    for name, content in theirs.items():
+        (elsewhere / name).write_bytes(content)
+        (elsewhere / f".{Path(name).stem}.abcd1234.tmp.png").write_bytes(b"someone else's temporary file")
+    variant_dir = tmp_path / "pca_sv"
+    variant_dir.mkdir()
+    (variant_dir / "figures").symlink_to(elsewhere, target_is_directory=True)
+    kept = _files(elsewhere)
+    gone = lt.clear_outputs(variant_dir)
+    assert gone == [variant_dir / "figures"] and not (variant_dir / "figures").exists()
+    assert _files(elsewhere) == kept  # nothing deleted through the link
+    (variant_dir / "figures").symlink_to(elsewhere, target_is_directory=True)
+    _train(data, variant_dir)
+    assert _files(elsewhere) == kept  # nor overwritten by the training
+    figures = variant_dir / "figures"
+    assert not figures.is_symlink() and sorted(p.name for p in figures.iterdir()) == sorted(lt.FIGURE_FILES)
+
+
+def test_a_killed_writes_temporary_file_goes_without_its_final_file(tmp_path):
+    """A fold-count calibration killed mid-write leaves only its temporary file (the final name was never
+    written): it is removed all the same; another file's look-alike is not."""
+    variant_dir = tmp_path / "pca_sv"
+    variant_dir.mkdir()
+    temp = variant_dir / ".interval_calibration_folds4.k1lled_0.tmp.npz"
+    temp.write_bytes(b"a killed write's")
+    figure_temp = variant_dir / "figures" / ".error_histogram.x9y8z7w6.tmp.png"
+    figure_temp.parent.mkdir()
+    figure_temp.write_bytes(b"a killed write's")
+    other = variant_dir / ".interval_calibration_folds4.notes.k1lled_0.tmp.npz"  # not atomic_path's name for it
+    other.write_bytes(b"a user's")
+    gone = lt.clear_outputs(variant_dir)
+    assert temp in gone and not temp.exists()
+    assert figure_temp in gone and not figure_temp.exists() and not figure_temp.parent.exists()
+    assert other.exists() and sorted(p.name for p in variant_dir.iterdir()) == [other.name]

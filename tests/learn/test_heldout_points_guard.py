@@ -72,3 +72,49 @@ def test_partly_scored_is_the_mean_of_the_scored_folds_only(monkeypatch):
     kept = [f["metrics"] for i, f in enumerate(plain["per_fold"]) if i not in skipped]
     assert [f["metrics"] for f in guarded["per_fold"] if "metrics" in f] == kept
     assert guarded["metrics_mean"]["accuracy_pct"] == pytest.approx(np.mean([m["accuracy_pct"] for m in kept]))
+
+
+def test_one_scored_fold_has_no_spread():
+    """5 points in 2 folds: one fold trains on 2 points (skipped), the other on 3 (scored). One fold gives a
+    mean but no sd: ``metrics_sd`` is None, not 0."""
+    hp = _points(50, 5, 2)
+    assert hp["n_scored"] == 1 and "not_measured" not in hp
+    assert sorted(f["train_points"]["syn-0000"] for f in hp["per_fold"] if "skipped" in f) == [2]
+    scored = [f["metrics"] for f in hp["per_fold"] if "metrics" in f]
+    assert hp["metrics_mean"] == scored[0]
+    assert hp["metrics_sd"] is None
+
+
+class _Tracker:
+    """Records what train_scenario logs (a duck-typed tracker)."""
+
+    def __init__(self):
+        self.metrics: dict = {}
+
+    def start_run(self, *a, **k):
+        return "run"
+
+    def log_metrics(self, run_id, metrics):
+        assert all(v is not None for v in metrics.values()), [k for k, v in metrics.items() if v is None]
+        self.metrics.update(metrics)
+
+    def log_force_model(self, *a, **k):
+        return "uri"
+
+    def __getattr__(self, name):
+        return lambda *a, **k: None
+
+
+def test_one_scored_fold_logs_its_mean_and_no_sd(tmp_path):
+    """The tracker gets the held-out mean of the one scored fold and no ``_sd`` metric (never None)."""
+    data = synthetic_arrays(50, n_geometries=1, seed=4, nodes=(150, 200))
+    data["exertion_id"] = np.arange(50) % 5
+    train = {"test_fraction": 0.2, "epochs": 3, "batch_size": 16, "lr": 3e-3, "weight_decay": 0.0, "seed": 0,
+             "repeats": 1, "heldout_points": {"scenarios": ["II"], "folds": 2}}
+    no_tune = {"enabled": False, "trials": 1, "folds": 2, "sobol_trials": 1, "epochs": 1}
+    tracker = _Tracker()
+    res = train_mod.train_scenario(data, MODEL, train, no_tune, "II", "v", tracker=tracker, out_dir=tmp_path)
+    hp = res["heldout_points"]
+    assert hp["n_scored"] == 1 and hp["metrics_sd"] is None
+    assert tracker.metrics["heldout_points_accuracy_pct_mean"] == hp["metrics_mean"]["accuracy_pct"]
+    assert not [k for k in tracker.metrics if k.startswith("heldout_points_") and k.endswith("_sd")]
