@@ -80,11 +80,12 @@ def pipeline_meshing(experiment: str, livers: int | None) -> list[dict]:
     from liverforce.pipeline.mesh import make_mesh
     from liverforce.pipeline.plan import Plan
 
-    cfg = compose([f"experiment={experiment}"])
+    # run=False: meshing runs no pipeline, so a count the pipeline refuses (1 liver with scenario IV) is taken
+    cfg = compose([f"experiment={experiment}"], run=False)
     plan = Plan(cfg)
     gids = [g for g in plan.train_geometries if g.startswith("proc-")]
     if livers is not None:
-        plan = Plan(compose([f"experiment={experiment}", f"geometry.procedural.count={livers}"]))
+        plan = Plan(compose([f"experiment={experiment}", f"geometry.procedural.count={livers}"], run=False))
         gids = [g for g in plan.train_geometries if g.startswith("proc-")]
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench_mesh_") as tmp:

@@ -22,7 +22,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from liverforce.config import PROJECT_ROOT, ConfigError, compose, tracking_uri
+from liverforce.config import PROJECT_ROOT, ConfigError, check_run, compose, tracking_uri
 
 
 def _overrides(args) -> list[str]:
@@ -50,8 +50,9 @@ def snakemake_command(cores: int, experiment: str | None, overrides: list[str], 
 
 
 def cmd_run(args) -> int:
-    # validate first: a bad key fails here, before Snakemake starts any job
-    compose(_overrides(args))
+    # validate first, with the run-level checks: a bad key or a run that cannot finish (scenario IV on one
+    # liver) fails here, before Snakemake starts any job (the Snakefile's compose refuses it too)
+    compose(_overrides(args), run=True)
     cmd = snakemake_command(args.cores, args.experiment, args.overrides, args.target or [],
                             (["-n"] if args.dry_run else []) + (["--rerun-incomplete"] if args.rerun_incomplete else []))
     print("+", " ".join(shlex.quote(c) for c in cmd), file=sys.stderr)
@@ -59,7 +60,13 @@ def cmd_run(args) -> int:
 
 
 def cmd_config(args) -> int:
-    cfg = compose(_overrides(args))
+    # printing runs nothing: the config is shown even when a run of it would be refused (noted on stderr)
+    cfg = compose(_overrides(args), run=False)
+    try:
+        check_run(cfg)
+    except ConfigError as exc:
+        print(f"liverforce: note: `liverforce run` (and snakemake) would refuse this config before any job: {exc}",
+              file=sys.stderr)
     if args.json:
         print(json.dumps(cfg, indent=2))
     else:
@@ -84,7 +91,7 @@ def cmd_stability(args) -> int:
 
 
 def cmd_ui(args) -> int:
-    cfg = compose(_overrides(args))
+    cfg = compose(_overrides(args), run=False)
     uri = tracking_uri(cfg)
     cmd = [str(Path(sys.executable).with_name("mlflow")), "ui", "--backend-store-uri", uri, "--host", args.host,
            "--port", str(args.port)]
@@ -96,7 +103,7 @@ def cmd_progress(args) -> int:
     from liverforce.pipeline.plan import Plan
     from liverforce.pipeline.progress import format_progress, sweep_progress
 
-    print(format_progress(sweep_progress(Plan(compose(_overrides(args))))))
+    print(format_progress(sweep_progress(Plan(compose(_overrides(args), run=False)))))
     return 0
 
 
@@ -108,7 +115,7 @@ def cmd_show_case(args) -> int:
     from liverforce.mesh.io import read_mesh
     from liverforce.pipeline.plan import Plan
 
-    plan = Plan(compose(_overrides(args)))
+    plan = Plan(compose(_overrides(args), run=False))
     scenario = scenario_of_case(args.case_id)
     shard_dir = plan.paths.shard_dir(scenario)
     known = plan.shard_ids(scenario) if scenario in plan.all_scenarios() else []

@@ -423,13 +423,18 @@ def _unknown_keys(base: dict, over: dict, prefix: str = "") -> list[str]:
     return sorted(out)
 
 
-def compose(overrides: list[str] | tuple[str, ...] | None = None) -> dict:
+def compose(overrides: list[str] | tuple[str, ...] | None = None, *, run: bool = True) -> dict:
     """Compose ``config/`` with Hydra overrides, validate, return a plain dict.
 
     Parameters
     ----------
     overrides : list of str
         Hydra override strings, e.g. ``["experiment=smoke", "sweep.seed=3"]``.
+    run : bool
+        Also check what only a run of the pipeline needs (:func:`check_run`: scenario IV's two training livers).
+        True (the default) for the Snakefile (``workflow/rules/common.smk``) and ``liverforce run``, which
+        validate the config once before any job; False for commands that do not run the pipeline
+        (``liverforce config``, ``ui``, ``progress``, ``show-case``, ``benchmarks/bench_mesh.py``).
 
     Returns
     -------
@@ -476,8 +481,17 @@ def compose(overrides: list[str] | tuple[str, ...] | None = None) -> dict:
         msg = str(exc).splitlines()[0]
         raise ConfigError(f"config key '{key}': {msg}") from exc
     _young_given_once(cfg["material"], provenance)
-    _check_ranges(cfg)
+    _check_ranges(cfg, run=run)
     return cfg
+
+
+def check_run(cfg: dict) -> None:
+    """Refuse, with :class:`ConfigError`, a composed config that validates but cannot be run by the pipeline:
+    a scenario split by liver (IV) with fewer than two training livers. :func:`compose` calls it unless
+    ``run=False``, so the Snakefile and ``liverforce run`` refuse such a run before any job, while commands
+    that only read the config (``liverforce config``, ``progress``, ``show-case``, ``ui``) or mesh livers
+    (``benchmarks/bench_mesh.py --livers 1``) take it."""
+    _check_grouped_livers(cfg)
 
 
 def _provenance(hydra_cfg) -> dict:
@@ -486,53 +500,97 @@ def _provenance(hydra_cfg) -> dict:
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     if hydra_cfg is None:
-        return {"overridden": {}, "choices": {}}
+        return {"overridden": {}, "choices": {}, "dirs": [str(CONFIG_DIR)]}
     task = [str(o) for o in hydra_cfg.overrides.task]
     overridden = {o.key_or_group: o for o in OverridesParser.create().parse_overrides(task)}
     choices = {str(k): (None if v is None else str(v)) for k, v in hydra_cfg.runtime.choices.items()}
-    return {"overridden": overridden, "choices": choices}
+    # the config folders in Hydra's search order (config/, then any hydra.searchpath=[file://...])
+    dirs = [str(src.path) for src in hydra_cfg.runtime.config_sources if src.schema == "file"]
+    return {"overridden": overridden, "choices": choices, "dirs": dirs or [str(CONFIG_DIR)]}
 
 
-def _file_source(key: str, choices: dict) -> str:
-    """Which config file set ``material.<key>``: the material preset's, else the experiment's."""
+def _group_file(group: str, name: str | None, dirs) -> Path | None:
+    """The file Hydra read for ``<group>=<name>``: the first of the config folders (search order) that has it."""
+    if not name:
+        return None
+    for d in dirs:
+        path = Path(d) / group / f"{name}.yaml"
+        if path.is_file():
+            return path
+    return None
+
+
+def _shown(path: Path) -> str:
+    """``path`` relative to the project folder when it is in it (config/experiment/lab.yaml), else absolute."""
+    try:
+        return str(path.resolve().relative_to(PROJECT_ROOT))
+    except ValueError:
+        return str(path)
+
+
+#: who set a value, weakest first: a later one overrides an earlier one (config/config.yaml's defaults list puts
+#: the experiment after the material preset, and the command line is applied last)
+_RANKS = ("files", "preset", "experiment", "command line")
+
+
+def _young_source(key: str, provenance: dict) -> tuple[int, str, Path | None]:
+    """Who set ``material.<key>`` last: ``(rank in _RANKS, description, the file or None)``.
+
+    The command line (a ``material.<key>=`` override), else the experiment's file when it sets the key (so an
+    experiment changing the preset's value is named, not the preset), else the material preset's file.
+    """
     from omegaconf import OmegaConf
 
-    preset = choices.get("material")
-    path = CONFIG_DIR / "material" / f"{preset}.yaml"
-    if preset and path.exists() and OmegaConf.load(path).get(key) is not None:
-        return f"the preset material={preset} (config/material/{preset}.yaml)"
+    over = provenance["overridden"]
+    if f"material.{key}" in over and not over[f"material.{key}"].is_delete():
+        return 3, "the command line", None
+    choices, dirs = provenance["choices"], provenance.get("dirs") or [str(CONFIG_DIR)]
     exp = choices.get("experiment")
-    return f"the experiment experiment={exp} (config/experiment/{exp}.yaml)" if exp else "the config files"
+    path = _group_file("experiment", exp, dirs)
+    if path is not None:
+        material = OmegaConf.load(path).get("material")
+        if material is not None and hasattr(material, "keys") and material.get(key) is not None:
+            return 2, f"the experiment experiment={exp} ({_shown(path)})", path
+    preset = choices.get("material")
+    path = _group_file("material", preset, dirs)
+    if path is not None and OmegaConf.load(path).get(key) is not None:
+        return 1, f"the preset material={preset} ({_shown(path)})", path
+    return 0, "the config files", None
 
 
 def _young_given_once(mat: dict, provenance: dict) -> None:
-    """``material.E_pa`` and ``E_mpa`` both set: the unit the user gave on the command line wins over a config
-    file's (``material=neo_hookean_from_e material.E_mpa=0.0149``: the preset's ``E_pa: 14900`` is dropped, with
-    a logged note); both from the command line, or both from the files, are refused naming where each came
-    from and the exact fix."""
+    """``material.E_pa`` and ``E_mpa`` both set: the one set by the stronger source wins, with a logged note —
+    the command line over the experiment's file over the material preset's file, as for any other key
+    (``material=neo_hookean_from_e material.E_mpa=0.0149``, or an experiment file with ``material: {E_mpa:
+    0.0149}`` over that preset: the preset's ``E_pa: 14900`` is dropped). Both set by the same source (both on
+    the command line, both in the experiment's file, both in the preset's) are refused naming that source and
+    the exact fix there."""
     import logging
 
     keys = ("E_pa", "E_mpa")
     if any(mat.get(k) is None for k in keys):
         return
-    over = provenance["overridden"]
-    by_user = [k for k in keys if f"material.{k}" in over and not over[f"material.{k}"].is_delete()]
-    if len(by_user) == 1:
-        mine = by_user[0]
-        other = "E_mpa" if mine == "E_pa" else "E_pa"
+    src = {k: _young_source(k, provenance) for k in keys}
+    if src["E_pa"][0] != src["E_mpa"][0]:
+        mine, other = sorted(keys, key=lambda k: -src[k][0])
+        how = "given on" if src[mine][0] == 3 else "set by"
         logging.getLogger("liverforce").info(
-            "material: material.%s=%s given on the command line replaces material.%s %s of %s (Young's modulus "
-            "is given once)", mine, mat[mine], other, mat[other], _file_source(other, provenance["choices"]))
+            "material: material.%s=%s %s %s replaces material.%s %s of %s (Young's modulus is given once)",
+            mine, mat[mine], how, src[mine][1], other, mat[other], src[other][1])
         mat[other] = None
         return
     e_pa, e_mpa = mat["E_pa"], mat["E_mpa"]
-    if by_user:
-        where = f"both on the command line (material.E_pa={e_pa} and material.E_mpa={e_mpa})"
-    else:
-        src = {k: _file_source(k, provenance["choices"]) for k in keys}
-        where = (f"both by {src['E_pa']}" if src["E_pa"] == src["E_mpa"]
-                 else f"E_pa {e_pa} by {src['E_pa']}, E_mpa {e_mpa} by {src['E_mpa']}")
-    _fail("material.E_pa", f"Young's modulus is given twice, E_pa {e_pa} (Pa) and E_mpa {e_mpa} (MPa): {where}",
+    rank, where, path = src["E_pa"]
+    problem = f"Young's modulus is given twice, E_pa {e_pa} (Pa) and E_mpa {e_mpa} (MPa)"
+    if rank == 3:
+        _fail("material.E_pa", f"{problem}: both on the command line (material.E_pa={e_pa} and material.E_mpa={e_mpa})",
+              f"give it once: material.E_pa={e_pa} material.E_mpa=null, or material.E_pa=null material.E_mpa={e_mpa}")
+    if path is not None:
+        _fail("material.E_pa", f"{problem}: both by {where}",
+              f"give it once in {_shown(path)}: under material:, E_pa: null (to keep E_mpa {e_mpa}) or E_mpa: null "
+              f"(to keep E_pa {e_pa}); or once on the command line, which replaces the file's: material.E_pa=null "
+              f"material.E_mpa={e_mpa}, or material.E_pa={e_pa} material.E_mpa=null")
+    _fail("material.E_pa", f"{problem}: both by {where}",
           f"give it once: material.E_pa={e_pa} material.E_mpa=null, or material.E_pa=null material.E_mpa={e_mpa}")
 
 
@@ -635,7 +693,7 @@ def occlusion_modes() -> tuple[str, ...]:
     return tuple(_learn_names().OCCLUSION_MODES)
 
 
-def _check_ranges(cfg: dict) -> None:
+def _check_ranges(cfg: dict, run: bool = True) -> None:
     """Range and consistency checks; each failure names the dotted key."""
     g = cfg["geometry"]
     if g["procedural"]["count"] < 1 and not g["imported"]:
@@ -890,7 +948,8 @@ def _check_ranges(cfg: dict) -> None:
         _fail("validate.seed", f"seeds {shared} of the unseen livers are training livers' seeds",
               f"pick validate.seed outside [{train_seeds.start}, {train_seeds.stop}) minus validate.livers")
     _check_choice("report.format", cfg["report"]["format"], REPORT_FORMATS, "report format")
-    _check_grouped_livers(cfg)
+    if run:
+        check_run(cfg)  # the run-level check (compose(run=False) leaves it out)
     _check_study(cfg)
 
 

@@ -111,20 +111,127 @@ def test_an_override_in_mpa_replaces_the_presets_pa_with_a_note(caplog):
             "material=neo_hookean_from_e (config/material/neo_hookean_from_e.yaml)") in caplog.text
 
 
-def test_a_modulus_given_twice_is_refused_naming_where_each_came_from_and_the_fix():
-    from liverforce.config import _young_given_once
-
+def test_a_modulus_given_twice_on_the_command_line_is_refused_naming_it_and_the_fix():
     with pytest.raises(ConfigError) as err:
         compose(["material=neo_hookean_from_e", "material.E_pa=14900", "material.E_mpa=0.0149"])
     msg = str(err.value)
     assert msg.startswith("config key 'material.E_pa': Young's modulus is given twice")
     assert "both on the command line" in msg
     assert "material.E_pa=14900.0 material.E_mpa=null, or material.E_pa=null material.E_mpa=0.0149" in msg
-    # both from config files (an experiment setting E_mpa over the preset's E_pa): each file named
-    mat = {"E_pa": 14900.0, "E_mpa": 0.0149}
+
+
+def _lab_experiment(root: Path, name: str, material: str) -> list[str]:
+    """A lab's experiment file outside config/ (Hydra's search path, as a lab keeps its own), selecting the
+    preset neo_hookean_from_e (E_pa: 14900) and setting ``material``; the overrides that use it."""
+    (root / "experiment").mkdir(parents=True, exist_ok=True)
+    (root / "experiment" / f"{name}.yaml").write_text(
+        "# @package _global_\ndefaults:\n  - override /material: neo_hookean_from_e\n"
+        f"experiment: {name}\nmaterial: {material}\n")
+    return [f"experiment={name}", f"hydra.searchpath=[file://{root}]"]
+
+
+def test_an_experiment_files_modulus_replaces_the_presets_as_the_command_lines_does(tmp_path, caplog):
+    import logging
+
+    with caplog.at_level(logging.INFO, logger="liverforce"):
+        lab = compose(_lab_experiment(tmp_path, "labmat", "{E_mpa: 0.0149}"))  # refused before: 'given twice'
+    by_hand = compose(["material=neo_hookean_from_e", "material.E_pa=null", "material.E_mpa=0.0149"])
+    assert lab["material"] == by_hand["material"] and "E_pa" not in lab["material"]
+    path = tmp_path / "experiment" / "labmat.yaml"
+    assert (f"material.E_mpa=0.0149 set by the experiment experiment=labmat ({path}) replaces material.E_pa "
+            "14900.0 of the preset material=neo_hookean_from_e (config/material/neo_hookean_from_e.yaml)"
+            ) in caplog.text
+    # the command line still wins over the experiment's file
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="liverforce"):
+        mine = compose([*_lab_experiment(tmp_path, "labmat", "{E_mpa: 0.0149}"), "material.E_pa=20000"])
+    assert mine["material"]["E_pa"] == 20000.0 and "E_mpa" not in mine["material"]
+    assert (f"material.E_pa=20000.0 given on the command line replaces material.E_mpa 0.0149 of the experiment "
+            f"experiment=labmat ({path})") in caplog.text
+
+
+def test_a_value_the_experiment_changed_is_attributed_to_the_experiment_not_the_preset(tmp_path, caplog):
+    import logging
+
+    over = _lab_experiment(tmp_path, "labpa", "{E_pa: 20000.0}")  # the preset sets E_pa 14900: changed here
+    with caplog.at_level(logging.INFO, logger="liverforce"):
+        cfg = compose([*over, "material.E_mpa=0.0149"])
+    assert cfg["material"]["E_mpa"] == 0.0149 and "E_pa" not in cfg["material"]
+    path = tmp_path / "experiment" / "labpa.yaml"
+    assert (f"material.E_mpa=0.0149 given on the command line replaces material.E_pa 20000.0 of the experiment "
+            f"experiment=labpa ({path})") in caplog.text
+    assert "of the preset" not in caplog.text
+
+
+def test_a_modulus_given_twice_in_the_experiment_file_is_refused_naming_the_file_and_the_fix(tmp_path):
+    over = _lab_experiment(tmp_path, "labboth", "{E_pa: 20000.0, E_mpa: 0.0149}")
     with pytest.raises(ConfigError) as err:
-        _young_given_once(mat, {"overridden": {}, "choices": {"material": "neo_hookean_from_e",
-                                                              "experiment": "lab"}})
+        compose(over)
     msg = str(err.value)
-    assert "E_pa 14900.0 by the preset material=neo_hookean_from_e (config/material/neo_hookean_from_e.yaml)" in msg
-    assert "E_mpa 0.0149 by the experiment experiment=lab (config/experiment/lab.yaml)" in msg
+    path = tmp_path / "experiment" / "labboth.yaml"
+    assert msg.startswith("config key 'material.E_pa': Young's modulus is given twice, E_pa 20000.0 (Pa) and "
+                          "E_mpa 0.0149 (MPa)")
+    assert f"both by the experiment experiment=labboth ({path})" in msg and "preset" not in msg
+    assert (f"give it once in {path}: under material:, E_pa: null (to keep E_mpa 0.0149) or E_mpa: null "
+            "(to keep E_pa 20000.0)") in msg
+    # the fix it names composes (the file's E_pa: null; or the command line's unit over the file's)
+    assert compose(_lab_experiment(tmp_path, "labboth", "{E_pa: null, E_mpa: 0.0149}"))["material"]["E_mpa"] == 0.0149
+
+
+# ------------------------- D: what only a run needs is checked by the run, not by every compose
+
+def test_a_one_liver_config_composes_without_the_run_check_and_check_run_refuses_it():
+    from liverforce.config import check_run
+
+    cfg = compose(["experiment=smoke", "geometry.procedural.count=1"], run=False)  # refused by every compose before
+    assert cfg["geometry"]["procedural"]["count"] == 1 and "IV" in cfg["sweep"]["scenarios"]
+    with pytest.raises(ConfigError, match=r"config key 'sweep.scenarios.IV'.*geometry.procedural.count=2"):
+        check_run(cfg)
+    with pytest.raises(ConfigError, match=r"config key 'sweep.scenarios.IV'"):
+        compose(["experiment=smoke", "geometry.procedural.count=1"])  # run=True: the default, the Snakefile's
+    lab = compose(["experiment=smoke", LAB, "geometry.procedural.count=0"], run=False)  # IV in train and studies
+    assert lab["geometry"]["imported"][0]["name"] == "lab01"
+
+
+def test_liverforce_config_prints_a_one_liver_config_with_a_note_and_run_refuses_it(monkeypatch, capsys):
+    import yaml
+
+    from liverforce import cli
+
+    assert cli.main(["config", "-e", "smoke", "geometry.procedural.count=1"]) == 0
+    out, err = capsys.readouterr()
+    assert yaml.safe_load(out)["geometry"]["procedural"]["count"] == 1
+    assert "note: `liverforce run` (and snakemake) would refuse this config before any job" in err
+    assert "config key 'sweep.scenarios.IV'" in err
+    assert cli.main(["config", "-e", "smoke"]) == 0 and "note:" not in capsys.readouterr().err
+
+    def no_snakemake(*a, **k):
+        raise AssertionError("snakemake started on a config the run refuses")
+
+    monkeypatch.setattr(cli.subprocess, "call", no_snakemake)
+    assert cli.main(["run", "-e", "smoke", "-n", "geometry.procedural.count=1"]) == 2
+    assert "configuration error: config key 'sweep.scenarios.IV'" in capsys.readouterr().err
+
+
+def test_bench_mesh_meshes_one_liver(monkeypatch):
+    """benchmarks/bench_mesh.py --livers 1 only meshes: the run-level check does not refuse it (meshing stubbed)."""
+    import importlib.util
+
+    import liverforce.pipeline.geometry as geometry
+    import liverforce.pipeline.mesh as mesh
+
+    spec = importlib.util.spec_from_file_location("bench_mesh", ROOT / "benchmarks" / "bench_mesh.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    meshed = []
+
+    def fake_mesh(surface, mesh_cfg, seed, *paths, **kw):
+        meshed.append(Path(surface).name)
+        attempt = {"edge_length_mm": 5.0, "n_nodes": 10}
+        return {"meshing_time_s": 0.0, "n_nodes": 10, "quality": {"radius_ratio_min": 0.3},
+                "provenance": {"meshing": {"attempts": [attempt], "route": "stub", "edge_length_mm": 5.0}}}
+
+    monkeypatch.setattr(geometry, "make_geometry", lambda *a, **k: None)
+    monkeypatch.setattr(mesh, "make_mesh", fake_mesh)
+    rows = bench.pipeline_meshing("default", 1)
+    assert [r["gid"] for r in rows] == ["proc-0000"] and len(meshed) == 1
