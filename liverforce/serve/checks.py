@@ -190,14 +190,15 @@ def off_surface(d_mm: float, point_mm, nearest_mm, limit_mm: float, frame=None, 
     units and frame (``frame``: the inputs' :class:`~liverforce.serve.input_frame.InputFrame`; None: RAS mm, none
     declared), and, with the surface's triangles ``surface`` ((m, 3, 3) mm), the units or frame under which the
     value as given would lie on it."""
-    from liverforce.serve.input_frame import as_given, declared_as, reading_hint
+    from liverforce.serve.input_frame import as_entered, as_given, declared_as, reading_hint
 
     hint = None
     if surface is not None:
         from liverforce.mesh.supports import closest_on_triangles
 
-        given = (frame.points_out(point_mm) if frame is not None else np.asarray(point_mm, dtype=np.float64))
-        hint = reading_hint(frame, given, lambda x: float(closest_on_triangles(surface, x[None])[1][0]) <= limit_mm)
+        # every reading (units x frames) in one query: one search tree over the surface, not one a reading
+        hint = reading_hint(frame, as_entered(frame, point_mm),
+                            lambda X: closest_on_triangles(surface, X.reshape(-1, 3))[1] <= limit_mm)
     return (f"the exertion point is {d_mm:.3g} mm off {what} (at most {limit_mm:g} mm): it was given as "
             f"{as_given(frame, point_mm)} ({declared_as(frame)}); the nearest point of the surface is "
             f"{as_given(frame, nearest_mm)}: " + (hint or "put the exertion point on the surface (where the tool "
@@ -433,7 +434,8 @@ def check_thickness(arrays: dict, i: int, scale: TrainingScale, limits: Limits, 
     t = float(_vector("tool_thickness_mm", np.atleast_1d(arrays["tool_thickness_mm"][i]), 1)[0])
     if not t > 0:
         raise PredictionInputError(f"{label}tool_thickness_mm = {t:.4g} mm: it must be positive")
-    if scale.thickness_mm is not None and _outside(t, scale.thickness_mm[0], scale.thickness_mm[1], limits.scale_factor):
+    if scale.thickness_mm is not None and _outside(t, scale.thickness_mm[0], scale.thickness_mm[1],
+                                                   limits.scale_factor):
         raise PredictionInputError(
             f"{label}tool_thickness_mm = {t:.4g} mm is far outside the training range "
             f"({_fmt_range(*scale.thickness_mm)} mm): is it in mm?")

@@ -66,7 +66,7 @@ from liverforce.learn.cloud_features import _MIN_POINT_SD
 from liverforce.learn.representation import interpolate_to_grid
 from liverforce.serve.checks import Limits, TrainingScale
 from liverforce.serve.errors import PredictionInputError
-from liverforce.serve.input_frame import declared_as, reading_hint, written
+from liverforce.serve.input_frame import as_entered, declared_as, reading_hint, written
 from liverforce.serve.preop import Preop, _points
 
 
@@ -100,8 +100,8 @@ def camera_checks(model, x: np.ndarray, limits: Limits) -> list[str]:
             f"{100 * lo:.0f} %); too much is hidden (tool, view angle) or the cloud is not registered to the liver")
     if seen < lo:
         out.append(f"the cloud covers {100 * seen:.0f} % of the grid, less than any training case ({100 * lo:.0f} %)")
-    for name, val, top, unit in (("height change over the pre-operative surface", height, rec["height_abs_max_mm"], "mm"),
-                                 ("tool tip displacement", tip, rec["tip_displacement_max_mm"], "mm")):
+    for name, val, top, unit in (("height change over the pre-operative surface", height, rec["height_abs_max_mm"],
+                                  "mm"), ("tool tip displacement", tip, rec["tip_displacement_max_mm"], "mm")):
         if val > limits.scale_factor * top:
             raise PredictionInputError(
                 f"cloud: the {name} is {val:.3g} {unit}, more than {limits.scale_factor:g} x the largest in training "
@@ -135,12 +135,11 @@ def cloud_to_arrays(model, cloud_mm, preop: Preop, *, approximate: bool, scale: 
     ``tool_tip_mm``: the tool tip's position (camera-cloud models need it).
     ``frame``: the units and frame the user declared for the points (an
     :class:`~liverforce.serve.input_frame.InputFrame`; None: none, RAS mm), for the refusals, which give the
-    inputs back as entered; ``given``: a function returning the cloud and the tip as entered (default: the
-    ones passed, taken back through ``frame``), called for a refusal only.
+    inputs back as entered; ``given``: the cloud and the tip as the caller got them, in the model's frame
+    (before a registration moved them; default: the ones passed), taken back through ``frame`` for a refusal only
+    (:func:`~liverforce.serve.input_frame.as_entered`).
     """
-    if given is None:
-        def given():
-            return (_entered(frame, cloud_mm), None if tool_tip_mm is None else _entered(frame, tool_tip_mm))
+    given = (cloud_mm, tool_tip_mm) if given is None else given
     if model.representation.is_camera:
         return _camera_arrays(model, cloud_mm, preop, tool_tip_mm, limits, frame, given)
     support = cloud_support(model)
@@ -166,7 +165,7 @@ def cloud_to_arrays(model, cloud_mm, preop: Preop, *, approximate: bool, scale: 
     n_used = int(keep.sum())
     if n_used < limits.min_cloud_points:
         med = float(np.median(np.linalg.norm(O - p, axis=1)))
-        hint = cloud_hint(frame, given()[0], p, scale.half_width_mm, limits.min_cloud_points)
+        hint = cloud_hint(frame, as_entered(frame, given[0]), p, scale.half_width_mm, limits.min_cloud_points)
         raise PredictionInputError(
             f"cloud: only {n_used} of {len(O)} points lie on the ROI footprint near the pre-operative surface "
             f"(at least {limits.min_cloud_points} needed; the points are a median {med:.4g} mm from the exertion "
@@ -247,12 +246,6 @@ def metres_cloud(O: np.ndarray, half_width_mm: float, min_points: int, frame=Non
             "pyfunc: params units='m')")
 
 
-def _entered(frame, x_model) -> np.ndarray:
-    """Points of the model's frame as the user entered them (``frame``: the inputs'; None: RAS mm)."""
-    x = np.asarray(x_model, dtype=np.float64)
-    return x if frame is None or frame.identity else frame.points_out(x)
-
-
 def _in_what(frame) -> str:
     """The question a refusal asks of the units: none declared, "in mm and " (the model's); else nothing (the
     declared ones hold, or another reading would have been named)."""
@@ -273,7 +266,8 @@ def cloud_hint(frame, cloud_given, p: np.ndarray, half_width_mm: float, min_poin
     need = min(min_points, len(G))
     if need == 0:
         return None
-    return reading_hint(frame, G, lambda x: int((np.linalg.norm(x - p, axis=1) <= 1.5 * half_width_mm).sum()) >= need)
+    return reading_hint(frame, G,
+                        lambda X: (np.linalg.norm(X - p, axis=-1) <= 1.5 * half_width_mm).sum(axis=-1) >= need)
 
 
 def few_points(O: np.ndarray, p: np.ndarray, n_used: int, half_width_mm: float, min_points: int, frame=None,
@@ -293,20 +287,17 @@ def far_tip(d_tip: float, half_width_mm: float, p: np.ndarray, tip_given, frame=
     """Why a tool tip ``d_tip`` mm from the exertion point ``p`` (model frame), beyond the grid's half-width, is
     refused: the tip as entered (``tip_given``) with the units and frame declared (``frame``; None: none), and
     the units or frame it looks like it is in if another reading puts it on the grid."""
-    hint = reading_hint(frame, tip_given, lambda x: float(np.linalg.norm(x - p)) <= half_width_mm)
+    hint = reading_hint(frame, tip_given, lambda X: np.linalg.norm(X - p, axis=-1) <= half_width_mm)
     return (f"tool_tip_mm is {d_tip:.4g} mm from the exertion point, beyond the model's grid ({half_width_mm:.3g} "
             f"mm): it was given as {written(frame, tip_given)} ({declared_as(frame)}): "
             + (hint or f"is the tip {_in_what(frame)}in the frame of the exertion point, and is the tool at this "
                        "exertion point?"))
 
 
-def _camera_arrays(model, cloud_mm, preop: Preop, tool_tip_mm, limits: Limits, frame=None,
-                   given=None) -> tuple[dict, dict]:
+def _camera_arrays(model, cloud_mm, preop: Preop, tool_tip_mm, limits: Limits, frame,
+                   given: tuple) -> tuple[dict, dict]:
     """Arrays of a camera-cloud model: the cloud as given, the tool tip, the pre-operative context (``frame``,
     ``given``: :func:`cloud_to_arrays`)."""
-    if given is None:
-        def given():
-            return _entered(frame, cloud_mm), _entered(frame, tool_tip_mm)
     tip = tool_tip_of(tool_tip_mm)
     O = _points("cloud", cloud_mm, min_points=1)
     rep = model.representation
@@ -320,10 +311,10 @@ def _camera_arrays(model, cloud_mm, preop: Preop, tool_tip_mm, limits: Limits, f
     n_used = int((np.abs(O_loc[:, :2]) <= reach).all(axis=1).sum())
     if n_used < limits.min_cloud_points:
         raise PredictionInputError(few_points(O, p, n_used, rep.half_width_mm, limits.min_cloud_points, frame,
-                                              given()[0]))
+                                              as_entered(frame, given[0])))
     d_tip = float(np.linalg.norm(tip - p))
     if d_tip > rep.half_width_mm:
-        raise PredictionInputError(far_tip(d_tip, rep.half_width_mm, p, given()[1], frame))
+        raise PredictionInputError(far_tip(d_tip, rep.half_width_mm, p, as_entered(frame, given[1]), frame))
     info = {"mode": "exact", "points_given": len(O), "points_used": n_used}
     n_shaft = check_instrument(rep, O, tip, preop.roi_undeformed_mm, preop.roi_triangles, p, R)
     if n_shaft is not None:

@@ -103,7 +103,7 @@ from liverforce.serve.cloud import (MASKED_INSTRUMENT, SHAFT_MARGIN_MM, SHAFT_PO
                                     tool_tip_of)
 from liverforce.serve.compiled import numpy_layers, regressor_head
 from liverforce.serve.errors import PredictionInputError
-from liverforce.serve.input_frame import InputFrame
+from liverforce.serve.input_frame import InputFrame, as_entered
 from liverforce.serve.preop import Preop, _points
 
 _FILL_CODES = {"zero": 0, "laplace": 1, "nearest": 2}
@@ -1400,9 +1400,10 @@ class CompiledCloud:
                  registration=None, declared: InputFrame | None = None):
         rep = model.representation
         # the units and frame the user declared, for the refusals (they give the inputs back as entered): the
-        # input frame, or (``declared``) the one the caller converted the clouds and tips from already
+        # input frame, or (``declared``) the one the caller converted the clouds and tips from already, which a
+        # refusal converts them back from (``_converted_from``; None: they come as entered)
         self._said = frame if frame is not None else declared
-        self._converted = frame is None and declared is not None and not declared.identity
+        self._converted_from = declared if frame is None else None
         # clouds and tips in another frame or unit (a lab's own liver): read as given (the map is folded into the
         # kernel's rotation below), forces given back in that frame
         self.frame = None if frame is None or frame.identity else frame
@@ -1640,11 +1641,6 @@ class CompiledCloud:
             warnings = [w if why is not None else w + reg for w, why in zip(warnings, refused)]
         return refused, warnings
 
-    def _entered(self, x: np.ndarray) -> np.ndarray:
-        """Points as given to this path -> as the user entered them (converted back when the caller converted
-        them to the model's frame already)."""
-        return self._said.points_out(x) if self._converted else np.asarray(x, dtype=np.float64)
-
     def _model(self, x: np.ndarray) -> np.ndarray:
         """Points as given -> the model's frame (RAS mm), the registration's change of shape taken off if any."""
         x = x if self._points_frame is None else self._points_frame.points(x)
@@ -1684,10 +1680,10 @@ class CompiledCloud:
             return metres
         if n_used < self.limits.min_cloud_points:
             return few_points(O, self.p, n_used, self.half_width_mm, self.limits.min_cloud_points, self._said,
-                              self._entered(given[0]))
+                              as_entered(self._converted_from, given[0]))
         d_tip = float(np.linalg.norm(tip - self.p))
         if d_tip > self.half_width_mm:
-            return far_tip(d_tip, self.half_width_mm, self.p, self._entered(given[1]), self._said)
+            return far_tip(d_tip, self.half_width_mm, self.p, as_entered(self._converted_from, given[1]), self._said)
         if n_shaft >= SHAFT_POINTS:  # (counted for models trained without the instrument only)
             return instrument_refusal(n_shaft, self._shaft_tool_mm)
         return None

@@ -287,11 +287,21 @@ def _frame_name(fr: InputFrame) -> str:
     return fr.label if fr.label in ("RAS", "LPS") else "input frame (a 4x4)"
 
 
+def as_entered(frame: InputFrame | None, x_model) -> np.ndarray | None:
+    """Points ``(n, 3)`` or one ``(3,)`` of the model's frame (RAS mm) as the user entered them: in the units and
+    frame declared (``frame``: the inputs' :class:`InputFrame`, which :meth:`InputFrame.points` converted them
+    from; None, or one that converts nothing: as they are). None stays None. The one way a refusal takes an input
+    back to what the user typed."""
+    if x_model is None:
+        return None
+    x = np.asarray(x_model, dtype=np.float64)
+    return x if frame is None or frame.identity else frame.points_out(x)
+
+
 def as_given(frame: InputFrame | None, xyz_model) -> str:
     """A point of the model's frame written as the user gives it: ``"[0.049058, -0.079043, -0.157016] m LPS"``
     (``frame``: the inputs' :class:`InputFrame`; None: RAS mm)."""
-    fr = frame if frame is not None else InputFrame(declared=False)
-    return written(fr, fr.points_out(xyz_model))
+    return written(frame, as_entered(frame, xyz_model))
 
 
 def written(frame: InputFrame | None, xyz_given) -> str:
@@ -328,15 +338,20 @@ def _readings(frame: InputFrame | None):
 
 def reading_hint(frame: InputFrame | None, xyz_given, fits) -> str | None:
     """The hint of a refused point input given as ``xyz_given`` (the inputs' units and frame; (3,) or (n, 3)):
-    the first other reading (:func:`_readings`) under which ``fits(points in the model's frame)`` is True, said
-    against what was declared (``"it looks like mm while m was declared: give it in m"``); None if none fits, or
-    if the declared reading fits too."""
+    the first other reading (:func:`_readings`) under which it fits, said against what was declared (``"it looks
+    like mm while m was declared: give it in m"``); None if none fits, or if the declared reading fits too.
+    ``fits``: called once, with every reading's points in the model's frame stacked, ``(k, 3)`` or ``(k, n, 3)``
+    (the declared reading first); returns ``(k,)`` True where they fit (one query for all readings: a surface's
+    search tree is built once)."""
     fr, readings = _readings(frame)
     x = np.asarray(xyz_given, dtype=np.float64)
-    if not np.isfinite(x).all() or fits(fr.points(x)):
+    if not np.isfinite(x).all():
+        return None
+    ok = np.asarray(fits(np.stack([fr.points(x)] + [alt.points(x) for _, alt in readings])), dtype=bool).reshape(-1)
+    if ok[0]:
         return None  # the declared reading is not what is wrong
-    for said, alt in readings:
-        if fits(alt.points(x)):
+    for (said, alt), fit in zip(readings, ok[1:]):
+        if fit:
             if fr.declared:
                 return (f"it looks like {said} while {fr.units}, {_frame_name(fr)} was declared: give it in "
                         f"{fr.units}, {_frame_name(fr)}, as the other inputs")

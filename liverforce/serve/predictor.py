@@ -287,12 +287,7 @@ class Predictor:
         as entered, with what was declared (None: nothing declared, RAS mm).
         """
         self.check_preop(preop, frame=input_frame)
-        entered = (cloud_mm, tool_tip_mm)  # before the registration: as the user gave them, once converted back
-
-        def given():
-            return tuple(None if x is None else np.asarray(x, dtype=np.float64) if input_frame is None
-                         or input_frame.identity else input_frame.points_out(np.asarray(x, dtype=np.float64))
-                         for x in entered)
+        given = (cloud_mm, tool_tip_mm)  # before the registration: as the user gave them, once converted back
         if registration is not None:
             cloud_mm = registration.points(_points("cloud", cloud_mm, min_points=1))
             tool_tip_mm = None if tool_tip_mm is None else registration.points(_vector("tool_tip_mm", tool_tip_mm, 3))

@@ -255,7 +255,8 @@ class Preop:
         Liver centroid and inertia need a closed surface; an open one leaves
         them ``None`` (a state-vector model then refuses the context).
         """
-        from liverforce.dataset.roi import extract_roi, local_frame, roi_triangles, surface_graph, thickness_along_normal
+        from liverforce.dataset.roi import (extract_roi, local_frame, roi_triangles, surface_graph,
+                                            thickness_along_normal)
 
         pts = _points("surface points", points, min_points=4)
         try:

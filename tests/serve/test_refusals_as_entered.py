@@ -135,3 +135,50 @@ def test_the_probes_mesh_check_names_the_declared_units_not_frame_advice(monkeyp
     msg = str(exc.value)
     assert "no units or frame were declared" in msg and "it looks like m, but no units or frame" in msg, msg
     assert "--units m" in msg, msg
+
+
+def test_a_refused_point_builds_one_search_tree_for_all_its_readings(monkeypatch, trained, ellipsoid):
+    """The hint of a point off the surface reads it in every other units and frame (six readings for m LPS
+    declared): all of them are measured to the surface in one query, so one search tree is built over the
+    surface's triangles (not one a reading: seconds a refusal on a CT surface), and the reading that fits is
+    still named. The context's own distance to the surface is measured once, when it is built (cached)."""
+    import dataclasses
+    import types
+
+    import scipy.spatial
+
+    from liverforce.serve import probe
+
+    pts, tri, mid, n = _coarse(ellipsoid)
+    pred = Predictor.load(trained("deformed"))
+    fr = InputFrame.resolve("LPS", "m")
+    ctx = pred.preop_from_surface(pts, tri, mid + 0.5 * n)
+    real = scipy.spatial.cKDTree
+
+    def refused(call) -> tuple[int, str]:
+        """How many search trees ``call`` builds before it refuses, and why it refuses."""
+        builds = []
+
+        def counted(*args, **kwargs):
+            builds.append(1)
+            return real(*args, **kwargs)
+
+        with monkeypatch.context() as m:
+            m.setattr(scipy.spatial, "cKDTree", counted)
+            with pytest.raises(PredictionInputError) as exc:
+                call()
+        return len(builds), str(exc.value)
+
+    for entered, said in ((mid * LPS, "it looks like mm while m, LPS was declared"),  # mm, declared m: found
+                          ((mid + 40.0 * n) * LPS / 1000.0, "put the exertion point on the surface")):  # no reading
+        wrong = dataclasses.replace(ctx, exertion_point_mm=fr.points(entered))
+        assert wrong.surface_point_mm is not None  # the context's distance: measured once, as it is built
+        builds, why = refused(lambda: pred.check_preop(wrong, frame=fr))
+        assert builds == 1 and said in why, (builds, why)
+    # the probe's mesh check: its distance, then one query for every reading
+    monkeypatch.setattr(probe, "LiverProbe", lambda *a, **k: types.SimpleNamespace(
+        surf=types.SimpleNamespace(points=pts, triangles=tri)))
+    monkeypatch.setattr(probe, "probe_settings", lambda meta: {})
+    wrong = dataclasses.replace(ctx, exertion_point_mm=fr.points(mid * LPS))
+    builds, why = refused(lambda: probe.with_probe(wrong, "liver.vtu", {}, frame=fr))
+    assert builds == 2 and "it looks like mm while m, LPS was declared" in why, (builds, why)
