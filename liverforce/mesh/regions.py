@@ -155,7 +155,7 @@ def tag_regions(points: np.ndarray, facets: np.ndarray, params: RegionParams | N
     centre = points[facets].mean(axis=1)
     raw = facet_normals(points, facets, unit=False)
     area = 0.5 * np.linalg.norm(raw, axis=1)
-    normal = _smoothed_normals(centre, raw, p.normal_smoothing_mm)
+    normal = classified_normals(points, facets, p)
     local = centre @ R.T  # (right, anterior, superior) coordinates
     lo, hi = local.min(axis=0), local.max(axis=0)
     frac = (local - lo) / np.maximum(hi - lo, 1e-12)
@@ -191,17 +191,46 @@ def visible_facets(points: np.ndarray, facets: np.ndarray, facet_region: np.ndar
     points = np.asarray(points, dtype=np.float64)
     facets = np.asarray(facets, dtype=np.int64)
     R = p.frame()
-    centre = points[facets].mean(axis=1)
-    raw = facet_normals(points, facets, unit=False)
-    area = 0.5 * np.linalg.norm(raw, axis=1)
-    n_loc = _smoothed_normals(centre, raw, p.normal_smoothing_mm) @ R.T
+    area = 0.5 * np.linalg.norm(facet_normals(points, facets, unit=False), axis=1)
+    n_loc = classified_normals(points, facets, p) @ R.T
     return _visible(points, facets, np.asarray(facet_region), n_loc, area, p)
+
+
+def classified_normals(points: np.ndarray, facets: np.ndarray, params: RegionParams | None = None) -> np.ndarray:
+    """``(k, 3)`` unit outward normals (mesh frame) of the facets as :func:`tag_regions` and
+    :func:`visible_facets` classify them: facet normals averaged over ``normal_smoothing_mm``
+    (:func:`_smoothed_normals`, over cells of facets on a dense surface). With :func:`view_cosines` they give
+    the angle to the view direction that put a facet in, or out of, the visible area."""
+    p = params or RegionParams()
+    points = np.asarray(points, dtype=np.float64)
+    facets = np.asarray(facets, dtype=np.int64)
+    return _smoothed_normals(points[facets].mean(axis=1), facet_normals(points, facets, unit=False),
+                             p.normal_smoothing_mm)
+
+
+def _view_local(p: RegionParams) -> np.ndarray:
+    """The view direction in (right, anterior, superior) coordinates: anterior tilted toward superior."""
+    return np.array([0.0, np.cos(np.deg2rad(p.visible_tilt_deg)), np.sin(np.deg2rad(p.visible_tilt_deg))])
+
+
+def view_direction(params: RegionParams | None = None) -> np.ndarray:
+    """Unit direction (mesh frame) the visible area faces: ``anterior`` tilted ``visible_tilt_deg`` toward
+    ``superior``; a facet is visible (if free and away from tagged facets) when its classified normal is within
+    ``visible_cone_deg`` of it."""
+    p = params or RegionParams()
+    return p.frame().T @ _view_local(p)
+
+
+def view_cosines(normals: np.ndarray, params: RegionParams | None = None) -> np.ndarray:
+    """Cosine of the angle between each normal (mesh frame, e.g. :func:`classified_normals`) and
+    :func:`view_direction`, computed as the visible area's classification computes it."""
+    p = params or RegionParams()
+    return (np.asarray(normals, dtype=np.float64) @ p.frame().T) @ _view_local(p)
 
 
 def _visible(points, facets, region, n_loc, area, p: RegionParams) -> np.ndarray:
     """Free facets facing the viewer, ``visible_margin_mm`` away from tagged facets, specks dropped."""
-    view = np.array([0.0, np.cos(np.deg2rad(p.visible_tilt_deg)), np.sin(np.deg2rad(p.visible_tilt_deg))])
-    visible = (region == 0) & (n_loc @ view >= np.cos(np.deg2rad(p.visible_cone_deg)))
+    visible = (region == 0) & (n_loc @ _view_local(p) >= np.cos(np.deg2rad(p.visible_cone_deg)))
     tagged = region != 0
     if p.visible_margin_mm > 0 and tagged.any() and visible.any():
         from scipy.spatial import cKDTree

@@ -829,7 +829,8 @@ def _given(a: np.ndarray) -> list:
 def snap_exertion_points(vertices, faces, region, xyz_mesh: np.ndarray, max_mm: float = MAX_SNAP_MM,
                          labels: list[str] | None = None, owner: np.ndarray | None = None,
                          supports: list[Support] | None = None, visible: np.ndarray | None = None,
-                         regions_check: str = "warn", params=None, not_visible: list | None = None):
+                         regions_check: str = "warn", params=None, not_visible: list | None = None,
+                         frame: PointFrame | None = None):
     """Closest point on the surface to each given exertion point, refusing far points and fixed supports.
 
     ``labels`` (from :func:`exertion_points_mesh`) name each point as the user gave it (the file and row, the
@@ -838,9 +839,10 @@ def snap_exertion_points(vertices, faces, region, xyz_mesh: np.ndarray, max_mm: 
     the lab's support holding its facet, else the built-in IVC region (as without them: ``region`` is then
     the auto-tagged one). ``visible`` (the facets' visible mask, what built-in sampling draws the tool's
     positions from; :func:`~liverforce.mesh.regions.visible_facets` with ``params``): a point snapped off it is
-    reported by :func:`check_exertion_facing` (a warning, refused under ``regions_check: strict``), its record
-    appended to ``not_visible``; without ``visible`` that check is not made. Returns ``(points (k, 3),
-    distances (k,))`` in mm (mesh frame).
+    reported by :func:`check_exertion_facing` (a warning; refused under ``regions_check: strict`` if it faces
+    away from the camera or looks like a frame mix-up, judged with ``frame`` and ``max_mm``), its record
+    appended to ``not_visible``; without ``visible``, or with ``regions_check: off``, that check is not made and
+    ``not_visible`` is left as it is. Returns ``(points (k, 3), distances (k,))`` in mm (mesh frame).
     """
     q = np.atleast_2d(np.asarray(xyz_mesh, float))
     pts, d, facet = closest_on_triangles(np.asarray(vertices, float)[np.asarray(faces)], q, k=16)
@@ -854,9 +856,10 @@ def snap_exertion_points(vertices, faces, region, xyz_mesh: np.ndarray, max_mm: 
         if region is not None and int(region[facet[j]]) == REGION_CODES["ivc"]:
             i = -1 if owner is None else int(owner[facet[j]])
             raise SupportError(f"{who} lies on {_fixed_support_words(supports[i] if i >= 0 else None)}")
-    if visible is not None:
+    if visible is not None and regions_check != "off":
         found = check_exertion_facing(vertices, faces, visible, q, labels=labels, regions_check=regions_check,
-                                      params=params, snapped=(pts, facet), region=region)
+                                      params=params, snapped=(pts, facet), region=region, frame=frame,
+                                      max_mm=max_mm)
         if not_visible is not None:
             not_visible.extend(found)
     return pts, d
@@ -869,18 +872,38 @@ def _who(j: int, q: np.ndarray, labels: list[str] | None) -> str:
     return f"exertion point {j} {np.round(q[j], 3).tolist()} (mesh frame, mm)"
 
 
+#: x and y mirrored: a point file in RAS read as LPS, or in LPS read as RAS
+_LPS_RAS = np.array([-1.0, -1.0, 1.0])
+
+
 def check_exertion_facing(vertices, faces, visible, xyz_mesh: np.ndarray, labels: list[str] | None = None,
-                          regions_check: str = "warn", params=None, snapped=None, region=None) -> list[dict]:
+                          regions_check: str = "warn", params=None, snapped=None, region=None,
+                          frame: PointFrame | None = None, max_mm: float = MAX_SNAP_MM) -> list[dict] | None:
     """Given exertion points that do not lie on the ``visible`` facets (the camera-facing area built-in sampling
-    draws the tool's positions from): one record each (``point``, ``as_given``, ``snapped_mm``, ``normal_ras``,
-    ``angle_to_view_deg``, ``warning``), each logged as a warning; under ``regions_check: strict`` refused
-    (:class:`SupportError` naming them all). The simulated camera looks along the outward normal at the point,
-    so one on the posterior face (often a point file read in the wrong frame, LPS for RAS, which mirrors x and y)
-    would train the camera model on views from behind the liver. ``params`` (:class:`RegionParams`, defaults if
-    None) give the view direction and normal smoothing of the visible area, for the message. ``snapped``:
-    ``(points, facet)`` as :func:`closest_on_triangles` snapped ``xyz_mesh``, else snapped here; ``region`` (the
-    facets' region codes, optional) names the region a point off the visible area lies on."""
-    from liverforce.mesh.regions import RegionParams
+    draws the tool's positions from), each logged as a warning with one record: ``point`` (its index),
+    ``as_given`` (its label, or None), ``snapped_mm`` (mesh frame), ``normal_ras`` and ``angle_to_view_deg``
+    (the facet's normal and its angle to the view direction exactly as the visible area was classified with:
+    :func:`~liverforce.mesh.regions.classified_normals`, :func:`~liverforce.mesh.regions.view_direction`),
+    ``facing`` (``"away"``: beyond 90 deg, the normal points away from the view direction; ``"oblique"``:
+    between ``visible_cone_deg`` and 90 deg, facing the camera from the side; ``"camera"``: within the cone but
+    on a tagged region, near one, or in a speck of visible area), ``frame_mix_up`` (the point mirrored in x and
+    y, as an RAS point file read as LPS or the reverse, snaps within ``max_mm`` onto a visible facet: then
+    ``{"mirrored_mm": [x, y, z] mesh frame, "distance_mm": d}``, else None), ``refused_under_strict`` (facing
+    away or a frame mix-up) and ``warning`` (the message).
+
+    The simulated camera looks along the outward normal at the point: a point facing away would train the camera
+    model on views from behind the liver, an oblique one on views from the side. ``regions_check``: ``warn``
+    logs and returns the records; ``strict`` refuses (:class:`SupportError` naming them) the points facing away
+    and the frame mix-ups, and warns of the others; ``off`` checks nothing and returns None (as the features
+    JSON's ``exertion_not_visible`` is null when the check is not made; a list, empty when all are visible,
+    when it is). ``params`` (:class:`RegionParams`, defaults if None): those the ``visible`` mask was computed
+    with. ``snapped``: ``(points, facet)`` as :func:`closest_on_triangles` snapped ``xyz_mesh``, else snapped
+    here; ``region`` (the facets' region codes, optional) names the region a point off the visible area lies on.
+    ``frame`` (:class:`PointFrame`, the geometry file's frame the points were read in): the mirror is taken in
+    its coordinates (without it, in the mesh frame, the same for RAS and LPS files)."""
+    if regions_check == "off":
+        return None
+    from liverforce.mesh.regions import RegionParams, classified_normals, view_cosines, view_direction
 
     p = params or RegionParams()
     V = np.asarray(vertices, float)
@@ -895,59 +918,87 @@ def check_exertion_facing(vertices, faces, visible, xyz_mesh: np.ndarray, labels
         off = [j for j, edge in zip(off, on_edge) if not edge]
     if not off:
         return []
-    from scipy.spatial import cKDTree
-
-    raw = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # outward, twice the area
-    centre = tri.mean(axis=1)
-    R = p.frame()
-    tilt = np.deg2rad(p.visible_tilt_deg)
-    view = R.T @ np.array([0.0, np.cos(tilt), np.sin(tilt)])  # RAS: the direction the visible area faces
-    ball = cKDTree(centre).query_ball_point(centre[[facet[j] for j in off]], max(p.normal_smoothing_mm, 0.0))
-    found, lines = [], []
-    for j, near in zip(off, ball):
-        n = raw[near].sum(axis=0) if len(near) else raw[facet[j]]
-        n = n / max(np.linalg.norm(n), 1e-300)
-        angle = float(np.degrees(np.arccos(np.clip(n @ view, -1.0, 1.0))))
+    normals = classified_normals(V, F, p)[[facet[j] for j in off]]  # as the visible area was classified
+    cosines = view_cosines(normals, p)
+    view = view_direction(p)
+    mirrored = _mirrored(q[off], frame)
+    m_pts, m_d, m_facet = closest_on_triangles(tri, mirrored, k=16)
+    found, refused, warned = [], [], []
+    for i, j in enumerate(off):
+        n, c = normals[i], float(cosines[i])
+        angle = float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+        facing = "away" if c < 0 else "oblique" if c < np.cos(np.deg2rad(p.visible_cone_deg)) else "camera"
+        mix = ({"mirrored_mm": _given(m_pts[i]), "distance_mm": round(float(m_d[i]), 3)}
+               if m_d[i] <= max_mm and visible[m_facet[i]] else None)
         code = 0 if region is None else int(region[facet[j]])
-        msg = _facing_words(_who(j, q, labels), n, angle, view, p, code)
+        msg = _facing_words(_who(j, q, labels), n, angle, view, p, facing, mix, code)
+        strict = facing == "away" or mix is not None
         found.append({"point": j, "as_given": labels[j] if labels and j < len(labels) else None,
                       "snapped_mm": _given(pts[j]), "normal_ras": [round(float(x), 3) for x in n],
-                      "angle_to_view_deg": round(angle, 1), "warning": msg})
-        lines.append(msg)
-    if regions_check == "strict":
-        raise SupportError("\n".join(lines) + "\n(mesh.regions_check=strict refuses exertion points off the visible "
-                           "area; set it to warn to go on regardless)")
-    for msg in lines:
+                      "angle_to_view_deg": round(angle, 1), "facing": facing, "frame_mix_up": mix,
+                      "refused_under_strict": strict, "warning": msg})
+        (refused if strict else warned).append(msg)
+    if regions_check == "strict" and refused:
+        raise SupportError("\n".join(refused) + "\n(mesh.regions_check=strict refuses exertion points facing away "
+                           "from the camera or read in the wrong frame; set it to warn to go on regardless)")
+    for msg in (warned if regions_check == "strict" else refused + warned):
         log.warning("%s", msg)
     return found
 
 
-def _facing_words(who: str, n: np.ndarray, angle: float, view: np.ndarray, p, code: int = 0) -> str:
+def _mirrored(q: np.ndarray, frame: PointFrame | None) -> np.ndarray:
+    """Points (mesh frame) as they would be had their file been read in the other of RAS and LPS: x and y
+    mirrored in the coordinates they were read in (``frame``'s, else the mesh frame's)."""
+    if frame is None:
+        return q * _LPS_RAS
+    return frame.to_mesh(frame.to_file(q) * _LPS_RAS)
+
+
+def _facing_words(who: str, n: np.ndarray, angle: float, view: np.ndarray, p, facing: str, mix: dict | None,
+                  code: int = 0) -> str:
     """Why a given exertion point off the visible area matters, and what to do."""
     normal = f"its outward normal there is {np.round(n, 2).tolist()} (RAS, averaged over {p.normal_smoothing_mm:g} mm)"
     cone = (f"{angle:.0f} deg from the view direction {np.round(view, 2).tolist()} (RAS: mesh.regions.anterior tilted "
             f"visible_tilt_deg={p.visible_tilt_deg:g} toward superior; the visible area takes normals within "
             f"visible_cone_deg={p.visible_cone_deg:g})")
-    if angle > p.visible_cone_deg:
+    name = next((k for k, c in REGION_CODES.items() if c == code), None) if code else None
+    on_region = (f" It also lies on the {name} region ({_BUILT_IN_KIND.get(name, name)} support, the lab's or "
+                 "auto-tagged)." if name else "")
+    if mix is not None:
+        frames = (f" Likely a frame mix-up: mirrored in x and y (the point file in RAS read as LPS, or in LPS read "
+                  f"as RAS) it lands {mix['distance_mm']:.3g} mm from the visible area, at "
+                  f"{np.round(mix['mirrored_mm'], 3).tolist()} RAS mm as meshed; state exertion_points.frame: LPS "
+                  "or RAS, or fix the geometry's frame.")
+    elif facing == "away":
+        frames = (" Mirrored in x and y (an RAS point file read as LPS, or the reverse) it would not land on the "
+                  "visible area either, so it is not that frame mix-up.")
+    else:
+        frames = ""
+    if facing == "away":
         return (f"{who} lies on the surface facing away from the camera, off the visible area where built-in "
-                f"sampling places the tool: {normal}, {cone}. The camera model is trained on views along the "
-                "outward normal at the exertion point, and a laparoscope sees the liver from the front: here it "
-                "would learn views from behind the liver. Likely a frame mix-up: is the point file in LPS or RAS? "
-                "(read in the other frame its x and y are mirrored; state exertion_points.frame: LPS or RAS, or fix "
-                "the geometry's frame). If the point is meant, widen the visible area (mesh.regions.visible_cone_deg,"
-                " visible_tilt_deg, anterior, superior)")
+                f"sampling places the tool: {normal}, {cone}, more than 90 deg. The camera model is trained on "
+                "views along the outward normal at the exertion point, and a laparoscope sees the liver from the "
+                f"front: here it would learn views from behind the liver.{on_region}{frames} If the point is meant, "
+                "widen the visible area (mesh.regions.visible_cone_deg, visible_tilt_deg, anterior, superior); "
+                "otherwise move it onto the liver's front")
+    if facing == "oblique":
+        return (f"{who} lies on an oblique part of the surface, off the visible area where built-in sampling places "
+                f"the tool: {normal}, {cone}, so it faces the camera, but from the side: outside "
+                "mesh.regions.visible_cone_deg, under 90 deg. The camera model is trained on views along the outward "
+                f"normal at the exertion point, which here would come from the side of the liver.{on_region}{frames}"
+                f" If the point is meant, widen mesh.regions.visible_cone_deg (to at least {int(np.ceil(angle))})")
     if code:
-        name = next(k for k, c in REGION_CODES.items() if c == code)
         return (f"{who} lies off the visible area where built-in sampling places the tool: {normal}, {cone}, so it "
                 f"faces the camera, but it lies on the {name} region ({_BUILT_IN_KIND.get(name, name)} support, "
                 "the lab's or auto-tagged). The camera model is trained on views along the outward normal at the "
-                "exertion point, on free surface the tool can push; move the point off that support, or shrink it")
+                f"exertion point, on free surface the tool can push.{frames} Move the point off that support, or "
+                "shrink it")
     return (f"{who} lies off the visible area where built-in sampling places the tool: {normal}, {cone}, so it faces "
             f"the camera, but the facet is within mesh.regions.visible_margin_mm={p.visible_margin_mm:g} mm of a "
             f"support or tagged region, or in a visible patch smaller than min_patch_fraction="
             f"{p.min_patch_fraction:g} of the visible area. The camera model is trained on views along the outward "
-            "normal at the exertion point; move the point away from the support, or, if it is meant, lower "
-            "mesh.regions.visible_margin_mm")
+            f"normal at the exertion point.{frames} Move the point away from the support, or, if it is meant, "
+            "lower mesh.regions.visible_margin_mm")
 
 
 def _fixed_support_words(s: Support | None) -> str:

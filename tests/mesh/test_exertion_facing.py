@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from liverforce.mesh.regions import tag_regions
-from liverforce.mesh.supports import SupportError, closest_on_triangles, snap_exertion_points
+from liverforce.mesh.supports import SupportError, check_exertion_facing, closest_on_triangles, snap_exertion_points
 from liverforce.mesh.types import REGION_CODES
 
 MIRROR = np.array([-1.0, -1.0, 1.0])  # RAS <-> LPS
@@ -104,10 +104,13 @@ def test_a_posterior_point_is_warned_naming_its_file_row_and_normal(tmp_path, li
     assert len(warned) == 1
     assert re.search(_named(tools, 2, points["posterior"]) + r" lies on the surface facing away from the camera, off "
                      r"the visible area .*outward normal there is \[-?[\d.]+, -[01]\.\d+, -?[\d.]+\] \(RAS", warned[0])
-    assert "trained on views along the outward normal" in warned[0] and "LPS or RAS" in warned[0]
+    assert "trained on views along the outward normal" in warned[0] and "from behind the liver" in warned[0]
+    # its mirror (x, y) lands nowhere near the visible area: no frame mix-up is suggested
+    assert "so it is not that frame mix-up" in warned[0] and "Likely a frame mix-up" not in warned[0]
     feats = json.loads((out / "imp-lab.features.json").read_text())
     rec = feats["exertion_not_visible"]
     assert [r["point"] for r in rec] == [1] and rec[0]["normal_ras"][1] < -0.5
+    assert rec[0]["facing"] == "away" and rec[0]["frame_mix_up"] is None and rec[0]["refused_under_strict"]
     assert rec[0]["as_given"].startswith("point 2 of") and rec[0]["warning"] == warned[0]
     assert (out / "imp-lab.vtu").exists()
 
@@ -116,7 +119,8 @@ def test_a_posterior_point_is_refused_under_strict(tmp_path, liver_surface, poin
     tools = _tools(tmp_path, [points["anterior"], points["posterior"]])
     out, run = _stage(tmp_path, liver_surface, tools, "strict")
     with pytest.raises(SupportError, match=_named(tools, 2, points["posterior"]) + r" lies on the surface facing "
-                       r"away from the camera(.|\n)*mesh\.regions_check=strict"):
+                       r"away from the camera, .* more than 90 deg\. (.|\n)*not that frame mix-up(.|\n)*"
+                       r"mesh\.regions_check=strict refuses exertion points facing away"):
         run()
     assert not (out / "imp-lab.vtu").exists() and not (out / "imp-lab.features.json").exists()
 
@@ -140,9 +144,14 @@ def test_a_ras_tool_file_read_as_lps_is_caught_at_the_mesh_stage(tmp_path, liver
         run()
     rec = json.loads((out / "imp-lab.features.json").read_text())["exertion_not_visible"]
     assert [r["point"] for r in rec] == [0] and rec[0]["normal_ras"][1] < 0
-    assert _facing_warnings(caplog)
+    assert rec[0]["frame_mix_up"]["distance_mm"] <= 5.0 and rec[0]["refused_under_strict"]
+    assert np.allclose(rec[0]["frame_mix_up"]["mirrored_mm"], intended, atol=5.0)
+    warned = _facing_warnings(caplog)
+    assert len(warned) == 1
+    assert "Likely a frame mix-up: mirrored in x and y (the point file in RAS read as LPS" in warned[0]
     _, run2 = _stage(tmp_path / "strict", liver_surface, tools, "strict", frame="LPS")
-    with pytest.raises(SupportError, match=_named(tools, 1, intended) + " lies on the surface facing away"):
+    with pytest.raises(SupportError, match=_named(tools, 1, intended) + r" lies on the surface facing away(.|\n)*"
+                       r"Likely a frame mix-up"):
         run2()
 
 
@@ -153,7 +162,8 @@ def test_the_mirror_is_caught_by_snap_exertion_points(liver_surface, points):
     found = []
     pts, d = snap_exertion_points(V, F, region, q, visible=visible, not_visible=found)
     assert d.max() < 5.0 and [r["point"] for r in found] == [1]
-    assert found[0]["angle_to_view_deg"] > 60 and "facing away from the camera" in found[0]["warning"]
+    assert found[0]["angle_to_view_deg"] > 90 and "facing away from the camera" in found[0]["warning"]
+    assert "Likely a frame mix-up: mirrored in x and y" in found[0]["warning"]
     with pytest.raises(SupportError, match=r"exertion point 1 \[.*\] \(mesh frame, mm\) lies on the surface facing"):
         snap_exertion_points(V, F, region, q, visible=visible, regions_check="strict")
     before = snap_exertion_points(V, F, region, q[:1], visible=visible, regions_check="strict", not_visible=found)
@@ -195,3 +205,122 @@ def test_a_posterior_vertex_of_a_mesh_taken_as_given_is_reported(tmp_path, mode,
         feats = run()
     assert [r["point"] for r in feats["exertion_not_visible"]] == [1]
     assert re.search(named, _facing_warnings(caplog)[0])
+
+
+#: oblique facets of procedural_liver(0), off the visible area but facing the camera (60-90 deg from the view):
+#: anterior-inferior, right-lateral, the superior dome (outward normals, RAS, and their angles to the view)
+OBLIQUE = {"anterior-inferior": ([-0.48, 0.73, -0.48], 67), "right-lateral": ([0.96, 0.2, -0.2], 86),
+           "dome": ([-0.29, -0.12, 0.95], 68)}
+
+
+def _classified(V, F):
+    """The smoothed normals and view direction the visible area is classified with, computed here as
+    ``liverforce.mesh.regions`` computes them (normals averaged over 8 mm; anterior tilted 30 deg up)."""
+    from liverforce.mesh.boundary import facet_normals
+    from liverforce.mesh.regions import RegionParams, _smoothed_normals
+
+    n = _smoothed_normals(V[F].mean(axis=1), facet_normals(V, F, unit=False), 8.0)
+    view = RegionParams().frame().T @ np.array([0.0, np.cos(np.pi / 6), np.sin(np.pi / 6)])
+    return n, view
+
+
+@pytest.fixture(scope="module")
+def oblique(liver_surface):
+    """The centroid of the facet off the visible area whose classified normal is each of ``OBLIQUE``'s."""
+    V, F = liver_surface.vertices, liver_surface.faces
+    _, visible = tag_regions(V, F)
+    n, _ = _classified(V, F)
+    off = np.flatnonzero(~visible)
+    out = {}
+    for name, (normal, _) in OBLIQUE.items():
+        t = np.asarray(normal) / np.linalg.norm(normal)
+        j = off[np.argmax(n[off] @ t)]
+        assert n[j] @ t > 0.999, name
+        out[name] = V[F[j]].mean(axis=0)
+    return out
+
+
+def test_oblique_points_are_warned_as_oblique_not_as_facing_away(liver_surface, oblique, caplog):
+    V, F = liver_surface.vertices, liver_surface.faces
+    region, visible = tag_regions(V, F)
+    q = np.vstack(list(oblique.values()))
+    found = []
+    with caplog.at_level(logging.WARNING):
+        snap_exertion_points(V, F, region, q, visible=visible, not_visible=found)
+    assert [r["point"] for r in found] == [0, 1, 2]
+    for r, (normal, angle) in zip(found, OBLIQUE.values()):
+        assert np.allclose(r["normal_ras"], normal, atol=0.01) and abs(r["angle_to_view_deg"] - angle) < 1
+        assert r["facing"] == "oblique" and r["frame_mix_up"] is None and not r["refused_under_strict"]
+        w = r["warning"]
+        assert re.match(r"exertion point \d \[.*\] \(mesh frame, mm\) lies on an oblique part of the surface, off the "
+                        r"visible area .* so it faces the camera, but from the side: outside "
+                        r"mesh\.regions\.visible_cone_deg, under 90 deg\. .*would come from the side of the liver\. "
+                        r"If the point is meant, widen mesh\.regions\.visible_cone_deg \(to at least \d+\)$", w), w
+        assert "facing away" not in w and "behind" not in w and "mix-up" not in w and "LPS" not in w
+    assert [m.getMessage() for m in caplog.records if m.levelno == logging.WARNING] == [r["warning"] for r in found]
+
+
+def test_oblique_points_are_not_refused_under_strict(liver_surface, oblique, caplog):
+    V, F = liver_surface.vertices, liver_surface.faces
+    region, visible = tag_regions(V, F)
+    q = np.vstack(list(oblique.values()))
+    found = []
+    with caplog.at_level(logging.WARNING):
+        pts, _ = snap_exertion_points(V, F, region, q, visible=visible, regions_check="strict", not_visible=found)
+    assert len(pts) == 3 and [r["facing"] for r in found] == ["oblique"] * 3
+    assert len([m for m in caplog.records if "oblique part of the surface" in m.getMessage()]) == 3
+
+
+def test_oblique_points_pass_a_strict_mesh_stage_a_posterior_one_does_not(tmp_path, liver_surface, points, oblique):
+    rows = [points["anterior"], *oblique.values()]
+    tools = _tools(tmp_path, rows)
+    out, run = _stage(tmp_path, liver_surface, tools, "strict")
+    feats = run()
+    assert (out / "imp-lab.vtu").exists()
+    rec = feats["exertion_not_visible"]
+    assert [r["point"] for r in rec] == [1, 2, 3] and {r["facing"] for r in rec} == {"oblique"}
+    (tmp_path / "b").mkdir()
+    tools2 = _tools(tmp_path / "b", [*rows, points["posterior"]])
+    _, run2 = _stage(tmp_path / "b", liver_surface, tools2, "strict")
+    with pytest.raises(SupportError) as err:
+        run2()
+    msg = str(err.value)
+    assert re.match(_named(tools2, 5, points["posterior"]) + " lies on the surface facing away from the camera", msg)
+    assert msg.count("exertion point ") == 1 and "oblique part" not in msg  # the oblique ones are only warned
+
+
+def test_regions_check_off_skips_the_check(tmp_path, liver_surface, points, caplog):
+    V, F = liver_surface.vertices, liver_surface.faces
+    region, visible = tag_regions(V, F)
+    q = np.vstack([points["anterior"], points["posterior"]])
+    found = []
+    with caplog.at_level(logging.WARNING):
+        snap_exertion_points(V, F, region, q, visible=visible, regions_check="off", not_visible=found)
+        assert check_exertion_facing(V, F, visible, q, regions_check="off") is None
+    assert found == [] and not caplog.records
+    tools = _tools(tmp_path, q)
+    out, run = _stage(tmp_path, liver_surface, tools, "off")
+    with caplog.at_level(logging.WARNING):
+        feats = run()
+    assert not [m for m in caplog.records if "exertion point" in m.getMessage()]
+    assert not feats["exertion_not_visible"]  # no record (null where the check is skipped outright)
+
+
+def test_the_reported_angle_is_the_one_that_classified_the_facet(liver_surface, points, oblique, monkeypatch):
+    """On a dense surface the classification smooths normals over cells of facets: the warning reports that
+    normal and angle, not a ball average of its own."""
+    from liverforce.mesh import regions
+
+    monkeypatch.setattr(regions, "SMOOTHING_PAIRS_AT_ONCE", 400_000)  # as for a CT surface: cell-binned
+    V, F = liver_surface.vertices, liver_surface.faces
+    region, visible = tag_regions(V, F)
+    n, view = _classified(V, F)
+    angle = np.degrees(np.arccos(np.clip(n @ view, -1.0, 1.0)))
+    q = np.vstack([points["posterior"], *oblique.values()])
+    _, _, facet = closest_on_triangles(V[F], q)
+    found = check_exertion_facing(V, F, visible, q)
+    assert [r["point"] for r in found] == [0, 1, 2, 3]
+    for r, j in zip(found, facet):
+        assert r["angle_to_view_deg"] == round(float(angle[j]), 1)
+        assert r["normal_ras"] == [round(float(x), 3) for x in n[j]]
+        assert (r["angle_to_view_deg"] > 60) == (not visible[j])
