@@ -319,7 +319,8 @@ def test_serving_takes_the_labs_points_in_the_files_frame_through_the_livers_rec
     C = with_probe(Preop(exertion_point_mm=p, frame=frame, roi_undeformed_mm=mesh.points[:10]), root / "mesh" /
                    "imp-lab.vtu", meta).probe_compliance_mm_per_n
     assert np.linalg.eigvalsh(C)[0] > 0
-    pred = SimpleNamespace(roi_fraction=0.18, frame_radius_mm=sim["tool_radius_mm"], check_preop=lambda preop: None,
+    pred = SimpleNamespace(roi_fraction=0.18, frame_radius_mm=sim["tool_radius_mm"],
+                           check_preop=lambda preop, frame=None: None,
                            model=SimpleNamespace(uses_state=True, meta=meta))
     doc = {"surface": str(scene["tmp"] / "liver.msh"), "exertion_point_mm": (p * LPS / 1000.0).tolist(),
            "mesh": str(root / "mesh" / "imp-lab.vtu"), "material_params_mpa": [0.0025]}

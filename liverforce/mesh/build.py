@@ -147,7 +147,7 @@ def build_liver_mesh(
     surface_labels = None
     candidates = None
     support_report, snap, owner = None, None, None
-    not_visible = [] if exertion_points is not None else None
+    not_visible = [] if exertion_points is not None and regions_check != "off" else None
     user = supports is not None and len(supports[1]) > 0
     if (conforming_regions or refine_visible_edge_mm or exertion_sampling or refine_ivc_edge_mm or user
             or exertion_points is not None):
@@ -179,7 +179,7 @@ def build_liver_mesh(
                                                      labels=exertion_labels, owner=owner,
                                                      supports=supports[1] if user else None, visible=s_visible,
                                                      regions_check=regions_check, params=params,
-                                                     not_visible=not_visible)
+                                                     not_visible=not_visible, frame=support_frame)
             log.info("%d given exertion points snapped to the surface (max %.3g mm)", len(candidates), snap.max())
             if refine_points is None and refine_radius_mm:
                 refine_points = candidates

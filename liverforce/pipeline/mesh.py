@@ -95,7 +95,8 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
 
             mesh.meta["exertion_not_visible"] = check_exertion_facing(
                 mesh.points, mesh.facets, mesh.facet_visible, user["exertion_points"], user["exertion_labels"],
-                mesh_cfg["regions_check"], RegionParams(**mesh_cfg["regions"]), region=mesh.facet_region)
+                mesh_cfg["regions_check"], RegionParams(**mesh_cfg["regions"]), region=mesh.facet_region,
+                frame=user["frame"])
     else:
         mesh = _remeshed(surface, user, mesh_cfg, exertion, seed, gid, auto)
     elapsed = time.perf_counter() - t0
