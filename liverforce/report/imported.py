@@ -12,6 +12,8 @@ import html
 import json
 from pathlib import Path
 
+from liverforce.layout import surface_meta_of_mesh
+
 #: how each support kind holds its facets (liverforce.mesh.supports)
 KIND_TEXT = {"fixed": "clamped", "foundation": "elastic foundation", "sliding": "no normal motion, free sliding"}
 SELECTORS = ("sphere", "box", "file", "group")
@@ -20,9 +22,10 @@ SELECTORS = ("sphere", "box", "file", "group")
 def geometry_record(features_path: str | Path) -> dict | None:
     """The geometry stage's record of the liver of ``mesh/<id>.features.json``: ``geometry/<id>.json`` of the
     same results directory, or None when there is none."""
-    p = Path(features_path)
-    gid = p.name[: -len(".features.json")] if p.name.endswith(".features.json") else p.stem
-    rec = p.parent.parent / "geometry" / f"{gid}.json"
+    try:
+        rec = surface_meta_of_mesh(features_path)  # a mesh folder's file -> its liver's geometry record
+    except ValueError:  # not in a results layout's mesh/ folder
+        return None
     if not rec.is_file():
         return None
     try:
