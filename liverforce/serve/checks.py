@@ -190,7 +190,7 @@ def off_surface(d_mm: float, point_mm, nearest_mm, limit_mm: float, frame=None, 
     units and frame (``frame``: the inputs' :class:`~liverforce.serve.input_frame.InputFrame`; None: RAS mm, none
     declared), and, with the surface's triangles ``surface`` ((m, 3, 3) mm), the units or frame under which the
     value as given would lie on it."""
-    from liverforce.serve.input_frame import as_entered, as_given, declared_as, reading_hint
+    from liverforce.serve.input_frame import as_entered, as_given, declared_as, frame_advice, reading_hint
 
     hint = None
     if surface is not None:
@@ -202,7 +202,8 @@ def off_surface(d_mm: float, point_mm, nearest_mm, limit_mm: float, frame=None, 
     return (f"the exertion point is {d_mm:.3g} mm off {what} (at most {limit_mm:g} mm): it was given as "
             f"{as_given(frame, point_mm)} ({declared_as(frame)}); the nearest point of the surface is "
             f"{as_given(frame, nearest_mm)}: " + (hint or "put the exertion point on the surface (where the tool "
-                                                          "touches it), in the units and frame of the other inputs"))
+                                                          "touches it), in the units and frame of the other inputs"
+                                                          + frame_advice(frame)))
 
 
 def check_on_surface(point_mm, nearest_mm, limits: Limits, label: str = "", frame=None, surface=None) -> None:

@@ -89,6 +89,8 @@ class InputFrame:
     source: str | None = None
     #: False when neither units nor a frame were said (:meth:`resolve` of None, None): RAS mm by default
     declared: bool = field(default=True, compare=False)
+    #: False when no frame was said (units alone, or nothing): read as RAS by default
+    frame_declared: bool = field(default=True, compare=False)
 
     @classmethod
     def resolve(cls, frame=None, units: str | None = None, *, base: Path | None = None) -> "InputFrame":
@@ -145,7 +147,7 @@ class InputFrame:
             scale = unit_scale(units)  # refuses anything but mm, cm, m
             scale_units = (scale, (units or "mm").strip().lower())
         return cls(scale=scale_units[0], units=scale_units[1], label=label, matrix=m, source=source,
-                   declared=declared)
+                   declared=declared, frame_declared=frame is not None)
 
     # -- properties ----------------------------------------------------------
 
@@ -316,7 +318,18 @@ def declared_as(frame: InputFrame | None) -> str:
     if frame is None or not frame.declared:
         return "no units or frame were declared, so it was read as mm, RAS"
     src = "" if frame.source is None else f" by {frame.source}"
+    if not frame.frame_declared:
+        return f"declared in {frame.units}{src}, no frame given, so read as RAS"
     return f"declared in {frame.units}, {_frame_name(frame)}{src}"
+
+
+def frame_advice(frame: InputFrame | None) -> str:
+    """For a point input refused where no reading fits (:func:`reading_hint` None) and no frame was given: how to
+    give one (a lab's inputs in LPS or in its scanner's frame read as RAS land off the liver); else ``""``."""
+    if frame is not None and frame.frame_declared:
+        return ""
+    return ("; if the inputs are in another frame than RAS (LPS, or a scanner's), give it with --frame: LPS, a 4x4 "
+            "matrix file, or the liver's record results/<exp>/geometry/imp-<name>.json")
 
 
 def _readings(frame: InputFrame | None):

@@ -182,3 +182,24 @@ def test_a_refused_point_builds_one_search_tree_for_all_its_readings(monkeypatch
     wrong = dataclasses.replace(ctx, exertion_point_mm=fr.points(mid * LPS))
     builds, why = refused(lambda: probe.with_probe(wrong, "liver.vtu", {}, frame=fr))
     assert builds == 2 and "it looks like mm while m, LPS was declared" in why, (builds, why)
+
+
+
+def test_units_without_a_frame_are_told_how_to_give_one(ellipsoid):
+    """A point given with units and no frame, off the surface under every reading (a lab's own frame, here the
+    surface shifted 200 mm, which neither RAS nor LPS nor other units undo): the refusal says no frame was given
+    and how to give one; with a frame declared (LPS) it does not repeat that advice; with nothing declared it
+    says so and gives the advice too."""
+    from liverforce.serve.checks import off_surface
+
+    pts, tri, mid, n = _coarse(ellipsoid)
+    surface = pts[tri]
+    shifted = mid + np.array([200.0, 0.0, 0.0])  # RAS mm, as the model reads it
+    nearest = mid
+    d = float(np.linalg.norm(shifted - nearest))
+    msg = off_surface(d, shifted, nearest, 2.0, InputFrame.resolve(None, "m"), surface)
+    assert "(declared in m, no frame given, so read as RAS)" in msg and "give it with --frame" in msg, msg
+    msg = off_surface(d, shifted, nearest, 2.0, InputFrame.resolve("LPS", "m"), surface)
+    assert "(declared in m, LPS)" in msg and "--frame" not in msg, msg
+    msg = off_surface(d, shifted, nearest, 2.0, None, surface)
+    assert "no units or frame were declared" in msg and "give it with --frame" in msg, msg
