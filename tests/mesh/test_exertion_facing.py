@@ -240,13 +240,19 @@ def oblique(liver_surface):
     return out
 
 
-def test_oblique_points_are_warned_as_oblique_not_as_facing_away(liver_surface, oblique, caplog):
+def _snap_oblique(liver_surface, oblique, caplog, **kw):
+    """The three oblique points snapped on the liver's auto-tagged regions: ``(points, records)``."""
     V, F = liver_surface.vertices, liver_surface.faces
     region, visible = tag_regions(V, F)
-    q = np.vstack(list(oblique.values()))
     found = []
     with caplog.at_level(logging.WARNING):
-        snap_exertion_points(V, F, region, q, visible=visible, not_visible=found)
+        pts, _ = snap_exertion_points(V, F, region, np.vstack(list(oblique.values())), visible=visible,
+                                      not_visible=found, **kw)
+    return pts, found
+
+
+def test_oblique_points_are_warned_as_oblique_not_as_facing_away(liver_surface, oblique, caplog):
+    _, found = _snap_oblique(liver_surface, oblique, caplog)
     assert [r["point"] for r in found] == [0, 1, 2]
     for r, (normal, angle) in zip(found, OBLIQUE.values()):
         assert np.allclose(r["normal_ras"], normal, atol=0.01) and abs(r["angle_to_view_deg"] - angle) < 1
@@ -261,12 +267,7 @@ def test_oblique_points_are_warned_as_oblique_not_as_facing_away(liver_surface, 
 
 
 def test_oblique_points_are_not_refused_under_strict(liver_surface, oblique, caplog):
-    V, F = liver_surface.vertices, liver_surface.faces
-    region, visible = tag_regions(V, F)
-    q = np.vstack(list(oblique.values()))
-    found = []
-    with caplog.at_level(logging.WARNING):
-        pts, _ = snap_exertion_points(V, F, region, q, visible=visible, regions_check="strict", not_visible=found)
+    pts, found = _snap_oblique(liver_surface, oblique, caplog, regions_check="strict")
     assert len(pts) == 3 and [r["facing"] for r in found] == ["oblique"] * 3
     assert len([m for m in caplog.records if "oblique part of the surface" in m.getMessage()]) == 3
 
