@@ -639,3 +639,33 @@ def test_the_fitted_widening_is_said_by_the_sign_of_its_exponents(g, says):
 
     text = _fitted_widening(g)
     assert says in text and " / ".join(f"{v:.2f}" for v in g) in text and "<" not in text and ">" not in text
+
+
+def test_one_split_and_one_unseen_liver_print_no_spread(stage_outputs):
+    """``train.repeats: 1`` and a validation on one unseen liver have no spread: the report prints the mean alone,
+    not "± 0.0" (the records say sd 0.0 for one split or liver, as older runs wrote)."""
+    for p in stage_outputs["metrics"]:
+        doc = json.loads(p.read_text())
+        one = {k: 0.0 for k in doc["metrics_sd"]}
+        doc.pop("outside_training", None)  # a summary over the splits
+        p.write_text(json.dumps({**doc, "n_splits": 1, "metrics_mean": doc["metrics"], "metrics_sd": one,
+                                 "repeats": doc["repeats"][:1]}))
+    path = stage_outputs["validation"]
+    val = json.loads(path.read_text())
+    per = {"val-1000": val["per_liver"]["val-1000"]}
+    keys = ("mae_vec", "rmse_vec", "accuracy_pct")
+    one = {"n": 1, "worst": "val-1000", "mean": {k: per["val-1000"][k] for k in keys}, "sd": dict.fromkeys(keys, 0.0)}
+    val.update(per_liver=per, livers=one, all_variants={"pca_sv": {**val["all_variants"]["pca_sv"], "livers": one}})
+    path.write_text(json.dumps(val))
+    html = _report(stage_outputs)
+    assert not re.search(r"±\s*0\.0*(?!\d)", html)
+    head = _section(html, "id='unseen-headline'", "</p>")
+    m = per["val-1000"]
+    assert f"MAE <b>{m['mae_vec']:.3f} N</b>, accuracy <b>{m['accuracy_pct']:.1f} %</b>" in head
+    models = html[html.index("<table class='models'>"):]
+    rows = _rows(models[:models.index("</table>")], "model")
+    assert len(rows) == 8
+    for r in rows:  # scenario, variant, encoder, state vector, accuracy mean (no sd), MAE mean (no sd), splits
+        assert "±" not in r[4] + r[5] and r[6] == "1", r[:7]
+    foot = _rows(_section(html, "id='validation'", "id='studies'"), "livers-mean")
+    assert foot[0][3:] == [f"{m['mae_vec']:.3f}", f"{m['rmse_vec']:.3f}", f"{m['accuracy_pct']:.1f}"]

@@ -827,7 +827,8 @@ def _points_needed(folds: int) -> int:
 
 
 def summarise_repeats(metrics: list[dict]) -> dict:
-    """Mean and sample standard deviation (ddof 1; 0 for one split) of every metric over the splits."""
+    """Mean and sample standard deviation (ddof 1; 0 for one split, which the report prints as the mean alone)
+    of every metric over the splits."""
     keys = [k for k in metrics[0] if all(isinstance(m.get(k), (int, float)) for m in metrics)]
     vals = {k: np.array([float(m[k]) for m in metrics]) for k in keys}
     return {"n": len(metrics),

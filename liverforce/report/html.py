@@ -151,6 +151,19 @@ def _figure(src: str | Path, out_dir: Path, caption: str = "", width: int = 420)
 # --------------------------------------------------------------------------
 
 
+def _spread(sd: dict | None, n) -> dict:
+    """The sds of a summary over ``n`` splits or livers: none (``{}``, so no ± is printed) for fewer than two (the
+    records give 0.0 for one: not a spread of zero but none measured); as recorded when the count is unknown."""
+    return dict(sd or {}) if n is None or n >= 2 else {}
+
+
+def _one_spread(summary: dict | None) -> dict | None:
+    """A summary over splits (``n_splits``, ``metrics_sd``) with its sds dropped for one split (:func:`_spread`)."""
+    if not summary:
+        return summary
+    return {**summary, "metrics_sd": _spread(summary.get("metrics_sd"), summary.get("n_splits"))}
+
+
 def collect(model_metrics: list[str | Path], manifests: list[str | Path], validation: str | Path,
             features: list[str | Path], studies: list[str | Path] = ()) -> dict:
     """Read every number the report shows (also used by the report tests)."""
@@ -164,10 +177,11 @@ def collect(model_metrics: list[str | Path], manifests: list[str | Path], valida
             "metrics": m.get("metrics", {}), "run_id": m.get("run_id"), "n_cases": m.get("n_cases"),
             "n_train": m.get("n_train"), "n_test": m.get("n_test"), "best_params": m.get("best_params"),
             "seconds": m.get("seconds"), "path": str(p),
-            "metrics_mean": m.get("metrics_mean") or {}, "metrics_sd": m.get("metrics_sd") or {},
+            "metrics_mean": m.get("metrics_mean") or {},
+            "metrics_sd": _spread(m.get("metrics_sd"), m.get("n_splits")),
             "n_splits": m.get("n_splits"), "repeats": m.get("repeats") or [],
             "model_cfg": m.get("model_cfg") or {}, "heldout_points": m.get("heldout_points"),
-            "outside_training": m.get("outside_training"), "exact_tip": m.get("exact_tip"),
+            "outside_training": m.get("outside_training"), "exact_tip": _one_spread(m.get("exact_tip")),
             "final_fit": m.get("final_fit"),
         })
     shards = []
@@ -180,6 +194,11 @@ def collect(model_metrics: list[str | Path], manifests: list[str | Path], valida
     if missing:
         raise ValueError(f"{validation}: no {', '.join(missing)} (a validation from before the set of unseen "
                          "livers); re-run the validate stage (snakemake --forcerun validate) and then the report")
+    n_livers = val["livers"].get("n")  # every variant is validated on the same livers (its record has no count)
+    val["livers"] = {**val["livers"], "sd": _spread(val["livers"].get("sd"), n_livers)}
+    for d in (val.get("all_variants") or {}).values():
+        if d.get("livers"):
+            d["livers"] = {**d["livers"], "sd": _spread(d["livers"].get("sd"), d["livers"].get("n", n_livers))}
     geoms = []
     for p in features:
         f = json.loads(Path(p).read_text())
@@ -310,9 +329,10 @@ def validation_figures(val: dict, out_dir: Path) -> dict[str, Path]:
         fig, ax = plt.subplots(figsize=(max(4.6, 0.45 * len(ids) + 1.5), 3.6), dpi=100)
         colours = ["C3" if g == lv["worst"] else "C1" for g in ids]
         ax.bar(range(len(ids)), mae, color=colours)
-        m, sd = lv["mean"]["mae_vec"], lv["sd"]["mae_vec"]
-        ax.axhspan(m - sd, m + sd, color="0.85", zorder=0, label=f"mean ± sd {m:.3f} ± {sd:.3f} N")
-        ax.axhline(m, color="0.3", lw=1)
+        m, sd = lv["mean"]["mae_vec"], (lv.get("sd") or {}).get("mae_vec")
+        if sd is not None:
+            ax.axhspan(m - sd, m + sd, color="0.85", zorder=0, label=f"mean ± sd {m:.3f} ± {sd:.3f} N")
+        ax.axhline(m, color="0.3", lw=1, **({} if sd is not None else {"label": f"mean {m:.3f} N (one liver)"}))
         ax.set_xticks(range(len(ids)))
         ax.set_xticklabels(ids, rotation=45, ha="right", fontsize=7)
         ax.set_ylabel("MAE (N)")
@@ -448,12 +468,12 @@ def camera_section(data: dict, v: dict, main_variant: str | None) -> str:
         # the validated camera model with an exact tip: its sensitivity row at tip noise 0, when it has one
         ut = next((r for r in (sens or {}).get("tip_noise_mm") or [] if float(r["value"]) == 0.0), None)
         exact_ok = ut is not None and v.get("model_variant") == cam_name
-        rows.append(["unseen livers", _pm(u[0]["mean"]["accuracy_pct"], u[0]["sd"]["accuracy_pct"], 1),
-                     _pm(u[1]["mean"]["accuracy_pct"], u[1]["sd"]["accuracy_pct"], 1),
+        rows.append(["unseen livers", _pm(u[0]["mean"]["accuracy_pct"], u[0]["sd"].get("accuracy_pct"), 1),
+                     _pm(u[1]["mean"]["accuracy_pct"], u[1]["sd"].get("accuracy_pct"), 1),
                      _gap_cell(u[0]["mean"]["accuracy_pct"] - u[1]["mean"]["accuracy_pct"]),
                      _pm(ut["accuracy_pct"], ut["accuracy_sd"], 1) if exact_ok else "–",
-                     _pm(u[0]["mean"]["mae_vec"], u[0]["sd"]["mae_vec"]),
-                     _flagged(_pm(u[1]["mean"]["mae_vec"], u[1]["sd"]["mae_vec"]),
+                     _pm(u[0]["mean"]["mae_vec"], u[0]["sd"].get("mae_vec")),
+                     _flagged(_pm(u[1]["mean"]["mae_vec"], u[1]["sd"].get("mae_vec")),
                               u[1]["mean"]["mae_vec"] > CAMERA_UNSEEN_MAE_LIMIT_N),
                      _pm(ut["mae_vec"], ut["mae_sd"]) if exact_ok else "–"])
     cam_cfg = (cams[0].get("model_cfg") or {}).get("camera") or {}
@@ -783,8 +803,8 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
         f"</code>{' (camera cloud and tool tip, no FE node ids: what surgery has)' if cam_validated else ''} "
         f"({lv['n']} liver shapes never seen in training"
         + (f", material constants × {_fmt(scale, 2)}" if scale is not None else "") + "): MAE "
-        f"<b>{_pm(lv['mean']['mae_vec'], lv['sd']['mae_vec'])} N</b>, accuracy "
-        f"<b>{_pm(lv['mean']['accuracy_pct'], lv['sd']['accuracy_pct'], 1)} %</b> (mean ± sd over the "
+        f"<b>{_pm(lv['mean']['mae_vec'], lv['sd'].get('mae_vec'))} N</b>, accuracy "
+        f"<b>{_pm(lv['mean']['accuracy_pct'], lv['sd'].get('accuracy_pct'), 1)} %</b> (mean ± sd over the "
         f"{lv['n']} livers); worst liver <code>{html.escape(str(worst))}</code> (MAE "
         f"{_fmt(v['per_liver'][worst]['mae_vec'])} N). All {v['n_cases']} cases pooled: MAE "
         f"{_fmt(vm['mae_vec'])} N, accuracy {_fmt(vm['accuracy_pct'], 1)} %. The study: MAE "
@@ -958,9 +978,9 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
     per = _table(["liver", "volume (L)", "cases", "MAE (N)", "RMSE (N)", "accuracy %"], rows, cls="per-liver",
                  row_cls="liver")
     foot = (f"<tr class='livers-mean'><th>mean ± sd ({n_liv} livers)</th><td></td><td>{v['n_cases']}</td>"
-            f"<td>{_pm(lv['mean']['mae_vec'], lv['sd']['mae_vec'])}</td>"
-            f"<td>{_pm(lv['mean']['rmse_vec'], lv['sd']['rmse_vec'])}</td>"
-            f"<td>{_pm(lv['mean']['accuracy_pct'], lv['sd']['accuracy_pct'], 1)}</td></tr>"
+            f"<td>{_pm(lv['mean']['mae_vec'], lv['sd'].get('mae_vec'))}</td>"
+            f"<td>{_pm(lv['mean']['rmse_vec'], lv['sd'].get('rmse_vec'))}</td>"
+            f"<td>{_pm(lv['mean']['accuracy_pct'], lv['sd'].get('accuracy_pct'), 1)}</td></tr>"
             f"<tr class='livers-pooled'><th>all cases pooled</th><td></td><td>{v['n_cases']}</td>"
             f"<td>{_fmt(vm['mae_vec'])}</td><td>{_fmt(vm['rmse_vec'])}</td><td>{_fmt(vm['accuracy_pct'], 1)}</td></tr>")
     vfigs = validation_figures(v, out_dir / "figures")
