@@ -70,6 +70,7 @@ supports of another kind is refused.
 
 from __future__ import annotations
 
+import functools
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -804,17 +805,35 @@ def support_stiffness(supports: list[Support], region_area_mm2: dict[int, float]
 
 
 
-def closest_on_triangles(tri: np.ndarray, q: np.ndarray, k: int = 16):
+class TriangleSet:
+    """Triangles ``tri (m, 3, 3)`` and the search tree over their centroids, built on the first query and kept:
+    several queries on one surface (a refused point and each other reading of it) build it once."""
+
+    def __init__(self, tri: np.ndarray):
+        self.tri = np.asarray(tri, dtype=np.float64)
+
+    @functools.cached_property
+    def tree(self):
+        from scipy.spatial import cKDTree
+
+        return cKDTree(self.tri.mean(axis=1))
+
+    def closest(self, q: np.ndarray, k: int = 16):
+        """:func:`closest_on_triangles` of the queries ``q (n, 3)`` on these triangles."""
+        return closest_on_triangles(self.tri, q, k, tree=self.tree)
+
+
+def closest_on_triangles(tri: np.ndarray, q: np.ndarray, k: int = 16, tree=None):
     """Closest point on a triangle set ``tri (m, 3, 3)`` to each query ``q (n, 3)``.
 
-    Searches the ``k`` triangles with the nearest centroids. Returns
-    ``(points (n, 3), distances (n,), triangle index (n,))``.
+    Searches the ``k`` triangles with the nearest centroids (``tree``: a search tree over them,
+    :attr:`TriangleSet.tree`; None: one is built). Returns ``(points (n, 3), distances (n,), triangle index (n,))``.
     """
     from scipy.spatial import cKDTree
     from trimesh.triangles import closest_point
 
     k = min(int(k), len(tri))
-    _, near = cKDTree(tri.mean(axis=1)).query(q, k=k)
+    _, near = (cKDTree(tri.mean(axis=1)) if tree is None else tree).query(q, k=k)
     near = near.reshape(len(q), k)
     cp = closest_point(tri[near.ravel()], np.repeat(q, k, axis=0)).reshape(len(q), k, 3)
     dist = np.linalg.norm(cp - q[:, None], axis=2)

@@ -188,17 +188,18 @@ def off_surface(d_mm: float, point_mm, nearest_mm, limit_mm: float, frame=None, 
     """The refusal of an exertion point ``d_mm`` from a surface (``point_mm`` and its ``nearest_mm`` point of it
     in the model's frame, RAS mm): the distance, the point as the user gave it and the nearest point in the same
     units and frame (``frame``: the inputs' :class:`~liverforce.serve.input_frame.InputFrame`; None: RAS mm, none
-    declared), and, with the surface's triangles ``surface`` ((m, 3, 3) mm), the units or frame under which the
-    value as given would lie on it."""
+    declared), and, with the surface ``surface`` (a :class:`~liverforce.mesh.supports.TriangleSet` in mm, or its
+    triangles (m, 3, 3)), the units or frame under which the value as given would lie on it."""
     from liverforce.serve.input_frame import as_entered, as_given, declared_as, frame_advice, reading_hint
 
     hint = None
     if surface is not None:
-        from liverforce.mesh.supports import closest_on_triangles
+        from liverforce.mesh.supports import TriangleSet
 
-        # every reading (units x frames) in one query: one search tree over the surface, not one a reading
+        tris = surface if isinstance(surface, TriangleSet) else TriangleSet(surface)
+        # every reading (units x frames) in one query, on the surface's one search tree (a context's, when given)
         hint = reading_hint(frame, as_entered(frame, point_mm),
-                            lambda X: closest_on_triangles(surface, X.reshape(-1, 3))[1] <= limit_mm)
+                            lambda X: tris.closest(X.reshape(-1, 3))[1] <= limit_mm)
     return (f"the exertion point is {d_mm:.3g} mm off {what} (at most {limit_mm:g} mm): it was given as "
             f"{as_given(frame, point_mm)} ({declared_as(frame)}); the nearest point of the surface is "
             f"{as_given(frame, nearest_mm)}: " + (hint or "put the exertion point on the surface (where the tool "
@@ -209,7 +210,7 @@ def off_surface(d_mm: float, point_mm, nearest_mm, limit_mm: float, frame=None, 
 def check_on_surface(point_mm, nearest_mm, limits: Limits, label: str = "", frame=None, surface=None) -> None:
     """The exertion point against the pre-operative surface's triangles (``nearest_mm``: its closest point on
     them, :attr:`Preop.surface_point_mm`): refused (:func:`off_surface`) beyond ``limits.surface_tol_mm``.
-    ``surface``: a function giving the triangles (m, 3, 3) mm, called for a refused point only."""
+    ``surface``: a function giving the surface (:func:`off_surface`'s), called for a refused point only."""
     d = float(np.linalg.norm(np.asarray(point_mm, dtype=np.float64) - np.asarray(nearest_mm, dtype=np.float64)))
     if not d <= limits.surface_tol_mm:
         raise OffSurfaceError(label + off_surface(d, point_mm, nearest_mm, limits.surface_tol_mm, frame,

@@ -167,7 +167,7 @@ class Predictor:
         exact = preop.surface_point_mm is not None
         if exact:
             check_on_surface(preop.exertion_point_mm, preop.surface_point_mm, self.limits, "", frame,
-                             lambda: preop.surface_triangles_mm)
+                             lambda: preop.surface_search)
         check_case(preop.to_arrays(preop.roi_undeformed_mm), 0, self.model, self.scale, self.limits, label="",
                    rotation=preop.rotation, on_surface=exact)
 

@@ -194,9 +194,7 @@ class Preop:
         vertex, and a fit of the nearest ones misjudges its distance to it."""
         if self.surface_mm is None:
             return None
-        from liverforce.mesh.supports import closest_on_triangles
-
-        return closest_on_triangles(self.surface_triangles_mm, self.exertion_point_mm[None])[0][0]
+        return self.surface_search.closest(self.exertion_point_mm[None])[0][0]
 
     @property
     def surface_triangles_mm(self) -> np.ndarray | None:
@@ -205,6 +203,17 @@ class Preop:
             return None
         pts, tri = self.surface_mm
         return np.asarray(pts, dtype=np.float64)[np.asarray(tri)]
+
+    @cached_property
+    def surface_search(self):
+        """The surface's triangles with their search tree (:class:`~liverforce.mesh.supports.TriangleSet`), built
+        once per context: the exertion point's closest point and a refusal's other readings share it. None
+        without :attr:`surface_mm`."""
+        if self.surface_mm is None:
+            return None
+        from liverforce.mesh.supports import TriangleSet
+
+        return TriangleSet(self.surface_triangles_mm)
 
     @cached_property
     def rotation(self) -> np.ndarray:

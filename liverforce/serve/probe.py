@@ -100,14 +100,14 @@ def with_probe(preop: Preop, mesh, meta: dict, supports: dict | None = None, fra
     :class:`~liverforce.serve.input_frame.InputFrame` (None: RAS mm, none declared), in which a refusal gives the
     point back.
     """
-    from liverforce.mesh.supports import closest_on_triangles
+    from liverforce.mesh.supports import TriangleSet
     from liverforce.serve.checks import off_surface
 
     probe = LiverProbe(mesh, probe_settings(meta), supports)
     # to the surface's triangles, not its vertices: on a coarse mesh an exertion point (a P2 node, or a point the
     # user gave) lies far from every vertex while on the surface
-    tri = probe.surf.points[probe.surf.triangles]
-    near, dist, _ = closest_on_triangles(tri, preop.exertion_point_mm[None])
+    tri = TriangleSet(probe.surf.points[probe.surf.triangles])  # one search tree: the point and a refusal's readings
+    near, dist, _ = tri.closest(preop.exertion_point_mm[None])
     d = float(dist[0])
     if d > MESH_TOL_MM:
         said = frame is not None and frame.declared

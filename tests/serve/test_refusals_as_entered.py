@@ -139,9 +139,9 @@ def test_the_probes_mesh_check_names_the_declared_units_not_frame_advice(monkeyp
 
 def test_a_refused_point_builds_one_search_tree_for_all_its_readings(monkeypatch, trained, ellipsoid):
     """The hint of a point off the surface reads it in every other units and frame (six readings for m LPS
-    declared): all of them are measured to the surface in one query, so one search tree is built over the
-    surface's triangles (not one a reading: seconds a refusal on a CT surface), and the reading that fits is
-    still named. The context's own distance to the surface is measured once, when it is built (cached)."""
+    declared): all of them are measured to the surface in one query, on the one search tree over the surface's
+    triangles that also measured the context's own distance to it (not one a reading: seconds a refusal on a CT
+    surface), and the reading that fits is still named."""
     import dataclasses
     import types
 
@@ -172,16 +172,16 @@ def test_a_refused_point_builds_one_search_tree_for_all_its_readings(monkeypatch
     for entered, said in ((mid * LPS, "it looks like mm while m, LPS was declared"),  # mm, declared m: found
                           ((mid + 40.0 * n) * LPS / 1000.0, "put the exertion point on the surface")):  # no reading
         wrong = dataclasses.replace(ctx, exertion_point_mm=fr.points(entered))
-        assert wrong.surface_point_mm is not None  # the context's distance: measured once, as it is built
-        builds, why = refused(lambda: pred.check_preop(wrong, frame=fr))
+        # the context's distance to its surface (cached), then the refusal's readings: one tree for both
+        builds, why = refused(lambda: (wrong.surface_point_mm, pred.check_preop(wrong, frame=fr)))
         assert builds == 1 and said in why, (builds, why)
-    # the probe's mesh check: its distance, then one query for every reading
+    # the probe's mesh check: its distance, then one query for every reading, on one tree
     monkeypatch.setattr(probe, "LiverProbe", lambda *a, **k: types.SimpleNamespace(
         surf=types.SimpleNamespace(points=pts, triangles=tri)))
     monkeypatch.setattr(probe, "probe_settings", lambda meta: {})
     wrong = dataclasses.replace(ctx, exertion_point_mm=fr.points(mid * LPS))
     builds, why = refused(lambda: probe.with_probe(wrong, "liver.vtu", {}, frame=fr))
-    assert builds == 2 and "it looks like mm while m, LPS was declared" in why, (builds, why)
+    assert builds == 1 and "it looks like mm while m, LPS was declared" in why, (builds, why)
 
 
 
