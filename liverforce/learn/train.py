@@ -87,6 +87,7 @@ from liverforce.learn.representation import representation_from_config
 from liverforce.learn.splits import cv_folds, group_key, train_test_split
 from liverforce.learn.torchutil import configure_torch
 from liverforce.learn.tune import FoldData, cv_force_mae, cv_score, tune
+from liverforce.pipeline.job import run_status
 from liverforce.seeds import derive
 
 log = logging.getLogger("liverforce")
@@ -308,9 +309,9 @@ def train_scenario(
             result["model_uri"] = tracker.log_force_model(run_id, result["model_path"], subset(test_arrays, [0]))
             tracker.log_metrics(run_id, {"wall_time_s": result["seconds"]})
             tracker.end_run(run_id)
-    except BaseException:
+    except BaseException as exc:
         if tracker is not None and run_id is not None:
-            tracker.end_run(run_id, status="FAILED")
+            tracker.end_run(run_id, status=run_status(exc))  # KILLED for Ctrl-C: no failure of the code
         raise
     return result
 

@@ -58,6 +58,12 @@ def interrupted_line(what: str) -> str:
             "re-run the same command to go on")
 
 
+def run_status(exc: BaseException) -> str:
+    """The MLflow status of a run that ``exc`` ended: ``KILLED`` for an interrupt (Ctrl-C, or an error raised
+    while one unwound the job), else ``FAILED``."""
+    return "KILLED" if _during_interrupt(exc) else "FAILED"
+
+
 def _during_interrupt(exc: BaseException | None) -> bool:
     """Whether ``exc`` was raised while a ``KeyboardInterrupt`` was being handled (its context chain holds one)."""
     seen = set()

@@ -171,3 +171,32 @@ def test_a_killed_writes_temporary_file_goes_without_its_final_file(tmp_path):
     assert temp in gone and not temp.exists()
     assert figure_temp in gone and not figure_temp.exists() and not figure_temp.parent.exists()
     assert other.exists() and sorted(p.name for p in variant_dir.iterdir()) == [other.name]
+
+
+class _StatusTracker:
+    """Records the status a training ends its MLflow run with (a duck-typed tracker)."""
+
+    status = None
+
+    def start_run(self, *a, **k):
+        return "run"
+
+    def end_run(self, run_id, status="FINISHED"):
+        self.status = status
+
+    def __getattr__(self, name):
+        return lambda *a, **k: "uri"
+
+
+@pytest.mark.parametrize("error, status", [(KeyboardInterrupt, "KILLED"), (MemoryError, "FAILED")])
+def test_an_interrupted_training_ends_its_run_killed_not_failed(data, tmp_path, monkeypatch, error, status):
+    """Ctrl-C is no failure of the code: the run is KILLED, as the stale-run sweep marks a killed job's; an error
+    still ends it FAILED."""
+    def stop(*args, **kwargs):
+        raise error
+
+    tracker = _StatusTracker()
+    monkeypatch.setattr(lt, "repeated_splits", stop)
+    with pytest.raises(error):
+        lt.train_scenario(data, MODEL, TRAIN, NO_TUNE, "II", "pca_sv", seed=0, out_dir=tmp_path, tracker=tracker)
+    assert tracker.status == status
