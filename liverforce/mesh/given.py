@@ -27,7 +27,7 @@ log = logging.getLogger(__name__)
 def build_given_mesh(points, tets, meta: dict | None = None, region_params: RegionParams | None = None, *,
                      supports: tuple | None = None, support_frame=None, file_vertices=None, file_groups=None,
                      exertion_points=None, exertion_sampling: dict | None = None,
-                     exertion_labels: list[str] | None = None,
+                     exertion_labels: list[str] | None = None, regions_check: str = "warn",
                      coarse_edge_mm: float | None = None) -> LiverMesh:
     """Tag the boundary of a given tet mesh; node ``i`` stays node ``i``.
 
@@ -41,6 +41,9 @@ def build_given_mesh(points, tets, meta: dict | None = None, region_params: Regi
         mesh's own boundary facets).
     exertion_points : (k, 3) given exertion points (mesh frame, mm): snapped onto the mesh surface.
     exertion_labels : each given point as the user gave it, for the refusals' messages.
+    regions_check : ``mesh.regions_check``, as :func:`liverforce.mesh.build.build_liver_mesh`: a given exertion
+        point off the visible area is warned and listed in ``meta["exertion_not_visible"]`` (refused under
+        ``strict`` if it faces away from the camera or looks like a frame mix-up; ``off``: not checked).
     exertion_sampling : ``{"n_points", "min_spacing_mm", "seed"}``: candidates sampled on the visible facets.
     coarse_edge_mm : warn when the mean boundary edge is longer (mm): the tool's few-mm traction is then
         resolved by few facets (the mesh stage passes twice ``mesh.refine_edge_mm``).
@@ -70,11 +73,14 @@ def build_given_mesh(points, tets, meta: dict | None = None, region_params: Regi
             log.info("support %s (%s, %s): %d facets of the given mesh", info["name"], info["kind"],
                      info["selector"], info["n_facets"])
     candidates, snap = None, None
+    not_visible = [] if exertion_points is not None and regions_check != "off" else None
     if exertion_points is not None:
         from liverforce.mesh.supports import snap_exertion_points
 
         candidates, snap = snap_exertion_points(points, facets, region, exertion_points, labels=exertion_labels,
-                                                owner=owner, supports=supports[1] if user else None)
+                                                owner=owner, supports=supports[1] if user else None,
+                                                visible=visible, regions_check=regions_check, params=params,
+                                                not_visible=not_visible, frame=support_frame)
         log.info("%d given exertion points snapped to the given mesh's surface (max %.3g mm)", len(candidates),
                  snap.max())
     elif exertion_sampling and visible.any():
@@ -110,6 +116,7 @@ def build_given_mesh(points, tets, meta: dict | None = None, region_params: Regi
         "exertion_candidates_mm": None if candidates is None else np.asarray(candidates).tolist(),
         "exertion_given": exertion_points is not None,
         "exertion_snap_mm": None if snap is None else snap.tolist(),
+        "exertion_not_visible": not_visible,
         "supports": support_report,
         "refine_points": None,
         "empty_regions": empty,

@@ -90,13 +90,6 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
     t0 = time.perf_counter()
     if surface.meta.get("mesh_mode") == "as_given":
         mesh = _given_mesh(surface.meta, spec, user, mesh_cfg, exertion, seed, gid)
-        if user["exertion_points"] is not None:  # off the visible area: warned, refused under strict
-            from liverforce.mesh.supports import check_exertion_facing
-
-            mesh.meta["exertion_not_visible"] = check_exertion_facing(
-                mesh.points, mesh.facets, mesh.facet_visible, user["exertion_points"], user["exertion_labels"],
-                mesh_cfg["regions_check"], RegionParams(**mesh_cfg["regions"]), region=mesh.facet_region,
-                frame=user["frame"])
     else:
         mesh = _remeshed(surface, user, mesh_cfg, exertion, seed, gid, auto)
     elapsed = time.perf_counter() - t0
@@ -125,6 +118,18 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
     return feats
 
 
+def _scene_kwargs(user: dict, mesh_cfg: dict, exertion: dict | None, seed: int) -> dict:
+    """What both mesh builders take of the lab's scene (:func:`_user_scene`): supports, given exertion points
+    (checked against the visible area under ``mesh.regions_check``), else the sampling of candidates."""
+    return dict(
+        supports=user["supports"], support_frame=user["frame"], file_vertices=user["file_vertices"],
+        file_groups=user["file_groups"], exertion_points=user["exertion_points"],
+        exertion_labels=user["exertion_labels"], regions_check=mesh_cfg["regions_check"],
+        exertion_sampling=None if exertion is None or user["exertion_points"] is not None else {
+            "n_points": exertion["n_points"], "min_spacing_mm": exertion["min_spacing_mm"],
+            "seed": derive(seed, "mesh.exertion")})
+
+
 def _remeshed(surface, user: dict, mesh_cfg: dict, exertion: dict | None, seed: int, gid: str, auto_regions=None):
     """Tetrahedralise the stage's input surface (procedural livers, surfaces, remeshed volume files); its
     auto-tagged ``auto_regions`` (region, visible) when the regions check tagged them already."""
@@ -141,13 +146,8 @@ def _remeshed(surface, user: dict, mesh_cfg: dict, exertion: dict | None, seed: 
         refine_edge_mm=mesh_cfg["refine_edge_mm"],
         refine_ivc_edge_mm=mesh_cfg["refine_ivc_edge_mm"],
         refine_growth=mesh_cfg["refine_growth"],
-        supports=user["supports"], support_frame=user["frame"], file_vertices=user["file_vertices"],
-        file_groups=user["file_groups"], exertion_points=user["exertion_points"],
-        exertion_labels=user["exertion_labels"],
-        exertion_sampling=None if exertion is None or user["exertion_points"] is not None else {
-            "n_points": exertion["n_points"], "min_spacing_mm": exertion["min_spacing_mm"],
-            "seed": derive(seed, "mesh.exertion")},
-        auto_regions=auto_regions, regions_check=mesh_cfg["regions_check"],
+        **_scene_kwargs(user, mesh_cfg, exertion, seed),
+        auto_regions=auto_regions,
     )
 
 
@@ -171,12 +171,7 @@ def _given_mesh(meta: dict, spec: dict, user: dict, mesh_cfg: dict, exertion: di
     return build_given_mesh(
         volume.points, volume.tets, {**meta, **{k: volume.meta[k] for k in ("n_nodes", "n_tets")}},
         RegionParams(**mesh_cfg["regions"]),
-        supports=user["supports"], support_frame=user["frame"], file_vertices=user["file_vertices"],
-        file_groups=user["file_groups"], exertion_points=user["exertion_points"],
-        exertion_labels=user["exertion_labels"],
-        exertion_sampling=None if exertion is None or user["exertion_points"] is not None else {
-            "n_points": exertion["n_points"], "min_spacing_mm": exertion["min_spacing_mm"],
-            "seed": derive(seed, "mesh.exertion")},
+        **_scene_kwargs(user, mesh_cfg, exertion, seed),
         coarse_edge_mm=2 * float(mesh_cfg["refine_edge_mm"] or 0) or None,
     )
 

@@ -207,6 +207,27 @@ def test_a_posterior_vertex_of_a_mesh_taken_as_given_is_reported(tmp_path, mode,
     assert re.search(named, _facing_warnings(caplog)[0])
 
 
+def test_the_given_mesh_builder_checks_its_points_itself():
+    """build_given_mesh checks given points on its own visible facets as build_liver_mesh does on its surface:
+    recorded under warn, refused under strict, not checked under off (a caller need not check again)."""
+    from liverforce.geometry.procedural import procedural_liver
+    from liverforce.mesh.build import build_liver_mesh
+    from liverforce.mesh.given import build_given_mesh
+
+    orig = build_liver_mesh(procedural_liver(0), target_nodes=400, seed=0)
+    P, Fb = orig.points, orig.facets
+    n = _vertex_normals(P, Fb)
+    vis = np.flatnonzero(_all_facets(P, Fb, orig.facet_visible))
+    back = np.flatnonzero(_all_facets(P, Fb, (orig.facet_region == 0) & ~orig.facet_visible) & (n[:, 1] < -0.8))
+    q = P[[int(vis[np.argmax(n[vis, 1])]), int(back[np.argmin(P[back, 1])])]]
+    warned = build_given_mesh(P, orig.tets, exertion_points=q)
+    assert [r["point"] for r in warned.meta["exertion_not_visible"]] == [1]
+    with pytest.raises(SupportError, match=r"exertion point 1 .* lies on the surface facing away"):
+        build_given_mesh(P, orig.tets, exertion_points=q, regions_check="strict")
+    off = build_given_mesh(P, orig.tets, exertion_points=q, regions_check="off")
+    assert off.meta["exertion_not_visible"] is None and np.allclose(off.meta["exertion_candidates_mm"], q)
+
+
 #: oblique facets of procedural_liver(0), off the visible area but facing the camera (60-90 deg from the view):
 #: anterior-inferior, right-lateral, the superior dome (outward normals, RAS, and their angles to the view)
 OBLIQUE = {"anterior-inferior": ([-0.48, 0.73, -0.48], 67), "right-lateral": ([0.96, 0.2, -0.2], 86),
