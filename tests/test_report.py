@@ -168,14 +168,14 @@ def stage_outputs(tmp_path):
             "studies": [enc, livers_study]}
 
 
-def _report(out, population_png=None, mlflow_experiments=None):
+def _report(out, population_png=None, mlflow_experiments=None, single=None):
     from liverforce.report.html import collect, write_report
 
     data = collect(out["metrics"], [out["manifest"]], out["validation"], out["features"], out["studies"])
     setup = {"main_variant": "pca_sv", "validate": {"material_scale": 1.4}, "mlflow_experiments": mlflow_experiments,
              "material": {"model": "yeoh", "params_mpa": {"C10": 0.0016}, "nu": 0.49, "vary_rel": 0.3},
              "population": {"training": ["proc-0000", "proc-0001"], "unseen": ["val-1000", "val-1001", "val-1002"],
-                            "volume_range_l": [1.0, 2.2]}}
+                            "volume_range_l": [1.0, 2.2], **({"single": single} if single else {})}}
     return write_report(data, [], "x", out["root"] / "report" / "index.html",
                         solver_stats={"overall": {"cases simulated": 10}, "per_scenario": {
                             "IV": {"solve_time_total_s": 12.5, "solve_time_median_s": 1.1}},
@@ -374,6 +374,17 @@ def test_report_shows_the_population_picture_and_each_livers_role(stage_outputs)
     roles = re.findall(r"<tr><td>([\w-]+)</td><td>(unseen|training[^<]*)</td>", setup)
     assert roles == [("proc-0000", "training, I–IV"), ("proc-0001", "training"), ("val-1000", "unseen"),
                      ("val-1001", "unseen"), ("val-1002", "unseen")]
+    assert "scenarios I–III use one of them, <code>proc-0000</code>" in setup
+
+
+def test_the_liver_of_scenarios_i_to_iii_is_the_plans_not_the_first_training_liver(stage_outputs):
+    """With a lab's liver among procedural ones, I-III run on the lab's (Plan.single_geometry, after the
+    procedural livers in the training list): the report names that one, in the text and the role column."""
+    html = _report(stage_outputs, single="proc-0001")
+    setup = html[html.index("id='setup'"):html.index("id='simulations'")]
+    assert "scenarios I–III use one of them, <code>proc-0001</code>" in setup
+    roles = dict(re.findall(r"<tr><td>([\w-]+)</td><td>(unseen|training[^<]*)</td>", setup))
+    assert roles["proc-0001"] == "training, I–IV" and roles["proc-0000"] == "training"
 
 
 def test_report_names_the_mlflow_experiments_the_plan_gives(stage_outputs):

@@ -814,10 +814,13 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
     parts.append("<h2 id='setup'>Setup</h2>")
     pop = setup.get("population") or {}
     unseen = set(pop.get("unseen") or [g["id"] for g in data["geometries"] if g["id"].startswith("val-")])
-    first = (pop.get("training") or [g["id"] for g in data["geometries"] if g["id"] not in unseen] or [None])[0]
+    # the liver of scenarios I-III: the plan's (a lab's own liver when it brings one); an older setup without it
+    # had the first training liver
+    first = pop.get("single") or (pop.get("training") or [g["id"] for g in data["geometries"]
+                                                         if g["id"] not in unseen] or [None])[0]
     n_train = sum(g["id"] not in unseen for g in data["geometries"])
     parts.append(f"<h3>Livers</h3><p>Procedural livers (seeded) or imported segmentations, meshed with "
-                 f"tetrahedra: {n_train} training livers (scenario IV; scenarios I–III use the first, "
+                 f"tetrahedra: {n_train} training livers (scenario IV; scenarios I–III use one of them, "
                  f"<code>{html.escape(str(first))}</code>) and {len(unseen)} unseen livers (<code>val-…</code>, "
                  f"held-out seeds, validation only).</p>")
     if population_png:

@@ -34,6 +34,7 @@ rule report:
                                    "studies": PLAN.experiment_name("studies")},
             "population": {
                 "training": PLAN.train_geometries,
+                "single": PLAN.single_geometry,  # the liver of scenarios I-III
                 "unseen": PLAN.validation_geometries,
                 "volume_range_l": config_slice("geometry", "procedural", "shape").get("volume_range_l"),
             },
