@@ -1221,12 +1221,18 @@ def _check_material_scale(mat: dict, key: str) -> None:
     if not mu0 > 0 or lo <= mu0 <= hi:
         return
     given = {k: v for k, v in mat.items() if k in ("E_pa", "E_mpa")} or mat["params_mpa"]
-    if key == "material.E_pa":
-        hint = (f"E_pa is in Pa: a liver's E is about 5000-50000 Pa (if {mat['E_pa']:g} is in kPa, give "
-                f"E_pa={mat['E_pa'] * 1e3:g})" if mu0 < lo else "E_pa is in Pa: a liver's E is about 5000-50000 Pa")
-    elif key == "material.E_mpa":
-        hint = (f"E_mpa is in MPa: a liver's E is about 0.005-0.05 MPa (if {mat['E_mpa']:g} is in Pa, give "
-                f"E_pa={mat['E_mpa']:g} instead)" if mu0 > hi else "E_mpa is in MPa: a liver's E is about 0.005-0.05 MPa")
+    if key in ("material.E_pa", "material.E_mpa"):
+        name = key.split(".")[1]
+        e = float(mat[name])
+        e_pa = e if name == "E_pa" else e * 1e6  # what the value means as given, in Pa
+        # the units under which the number is a plausible modulus (mu0 is proportional to E)
+        reads = [(unit, e * pa) for unit, pa in (("Pa", 1.0), ("kPa", 1e3), ("MPa", 1e6))
+                 if lo <= mu0 * e * pa / e_pa <= hi]
+        typical = "about 5000-50000 Pa" if name == "E_pa" else "about 0.005-0.05 MPa"
+        hint = f"{name} is in {'Pa' if name == 'E_pa' else 'MPa'}: a liver's E is {typical}"
+        if reads:
+            hint += "; " + " or ".join(f"if {e:g} is in {unit}, give E_pa={v:g} (E_mpa={v * 1e-6:g})"
+                                       for unit, v in reads)
     elif mu0 > hi:
         hint = (f"params_mpa is in MPa, a liver's C10 about 0.001-0.01 MPa: if these constants are in Pa, divide them "
                 f"by 1e6 (mu0 {mu0 * 1e-6:.3g} MPa), if in kPa by 1e3 (mu0 {mu0 * 1e-3:.3g} MPa)")

@@ -11,7 +11,10 @@ from liverforce.config import ConfigError, compose
 
 @pytest.mark.parametrize("overrides, key, says", [
     (["material=neo_hookean_from_e", "material.E_pa=null", "material.E_mpa=14900"], "material.E_mpa",
-     r"mu0 = 5e\+03 MPa .*if 14900 is in Pa, give E_pa=14900 instead"),
+     r"mu0 = 5e\+03 MPa .*if 14900 is in Pa, give E_pa=14900 \(E_mpa=0.0149\)"),
+    # kPa given as MPa: the fix is E_pa=14900 (not "E_pa=14.9", 14.9 Pa, a thousand times too soft in turn)
+    (["material=neo_hookean_from_e", "material.E_pa=null", "material.E_mpa=14.9"], "material.E_mpa",
+     r"mu0 = 5 MPa .*if 14.9 is in kPa, give E_pa=14900 \(E_mpa=0.0149\)$"),
     (["material=neo_hookean_from_e", "material.E_pa=14.9"], "material.E_pa",
      r"mu0 = 5e-06 MPa \(5 Pa\).*if 14.9 is in kPa, give E_pa=14900"),
     (["material=neo_hookean", "material.params_mpa.C10=2500"], "material.params_mpa",
