@@ -20,8 +20,11 @@ indices, so each axis in its own spacing) of the segment's boundary voxels
 (:class:`VolumeGroups`).
 
 The group's cells give faces and nodes: triangles (and quads, split in two) are
-faces; tetrahedra give their faces that lie on the boundary; lines and vertices
-give nodes. On a surface (the mesh's boundary facets, or the input surface of
+faces; tetrahedra give their faces that lie on the boundary (a sub-volume, e.g. the
+tets next to the vena cava; a group of tets whose faces on the boundary make up more
+than 90 % of its area, such as the Gmsh physical volume holding the whole liver, is
+refused: it would hold the whole surface); lines and vertices give nodes.
+On a surface (the mesh's boundary facets, or the input surface of
 a remeshed liver) a facet is selected when the nearest boundary triangle of the
 file is a face of the group (exact on a mesh imported as given, whose facets
 *are* the file's boundary triangles; a label transfer on a remeshed surface), or,
@@ -61,6 +64,9 @@ class FileGroups:
     cell_data: dict  # name -> [array per block]
     field_data: dict  # name -> [tag, dim]
     boundary: np.ndarray  # (b, 3) boundary triangles of the file: faces of exactly one tet, else its triangles
+
+    #: a group of tetrahedra whose faces on the boundary exceed this share of its area is refused as a support
+    WHOLE_SURFACE = 0.9
 
     def describe(self) -> str:
         names = sorted(self.field_data)
@@ -102,8 +108,43 @@ class FileGroups:
             nodes.append(sel.ravel() if t in ("vertex", "line", "line3") else sel[:, :min(sel.shape[1], 4)].ravel())
         if not nodes:
             raise GroupError(f"{where}: {spec} selects no cell of {self.path}; it holds {self.describe()}")
+        self._refuse_whole_surface(spec, masks, where)
         faces = np.concatenate(faces).astype(np.int64) if faces else np.zeros((0, 3), np.int64)
         return faces, np.unique(np.concatenate(nodes)).astype(np.int64)
+
+    def _refuse_whole_surface(self, spec: dict, masks: list[np.ndarray], where: str) -> None:
+        """Refuse a group of tetrahedra whose faces on the file's boundary make up more than
+        :attr:`WHOLE_SURFACE` of its area: a support there would hold the whole liver, tool side too.
+
+        Such a group is the liver's volume (a Gmsh physical volume, a material array), not a support; a
+        sub-volume (e.g. the tets next to the vena cava) gives its faces on the boundary and stays allowed.
+        """
+        tets = [a[m][:, :4] for (t, a), m in zip(self.cells, masks) if t in ("tetra", "tetra10") and m.any()]
+        if not tets or not len(self.boundary):
+            return
+        t = np.concatenate(tets).astype(np.int64)
+        n = len(self.points)
+        key = lambda f: np.sort(f, axis=1) @ np.array([n * n, n, 1], dtype=np.int64)  # noqa: E731
+        own = np.isin(key(self.boundary), key(t[:, [[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]]].reshape(-1, 3)))
+        P = self.points[self.boundary]
+        area = np.linalg.norm(np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), axis=1)
+        share = float(area[own].sum() / area.sum()) if area.sum() > 0 else float(own.mean())
+        if share <= self.WHOLE_SURFACE:
+            return
+        n_all = sum(len(a) for ty, a in self.cells if ty in ("tetra", "tetra10"))
+        held = f"all {n_all} tetrahedra" if len(t) == n_all else f"{len(t)} of the file's {n_all} tetrahedra"
+        surfaces = sorted(k for k, v in self.field_data.items()
+                          if "gmsh:physical" in self.cell_data and np.asarray(v).size >= 2
+                          and int(np.asarray(v).ravel()[1]) == 2)
+        listed = (f"its surface groups: {surfaces}" if surfaces else f"it holds {self.describe()}")
+        label = repr(str(spec["name"])) if "name" in spec else spec
+        raise GroupError(
+            f"{where}: {label} is a 3-D (volume) group of {self.path} holding {held}, and its boundary is "
+            f"{'the whole' if share >= 0.9995 else f'{100 * share:.1f} % of the'} liver surface "
+            f"({int(own.sum())} of {len(own)} boundary triangles): as a support it would hold the whole liver, "
+            f"under the tool too. A group of tetrahedra gives its faces on the surface, and is refused when "
+            f"they make up more than {100 * self.WHOLE_SURFACE:g} % of the surface's area. Give the support's "
+            f"surface (2-D) group instead ({listed}), or select it by sphere, box or file")
 
     def _masks(self, spec: dict, where: str) -> list[np.ndarray]:
         if "name" in spec:
