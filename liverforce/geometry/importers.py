@@ -155,6 +155,7 @@ def load_surface(
         if label is not None:
             msgs.append(f"label={label} ignored (not a label volume)")
     if len(faces) == 0:
+        _refuse_higher_order(path, name)
         raise refuse(path, "the file contains no triangles or tetrahedra",
                      "Export the liver as a closed triangle surface or a tetrahedral mesh")
     if scale is None:
@@ -246,6 +247,19 @@ def _refine_coarse(vertices: np.ndarray, faces: np.ndarray, max_edge_mm: float):
         f"coarse surface (mean edge {before:.3g} mm) smoothed by {levels} levels of Loop subdivision "
         f"(mean edge now {mean_edge(vertices, faces):.3g} mm, volume change {change:+.2g} %)"
     ]
+
+
+def _refuse_higher_order(path: Path, name: str) -> None:
+    """Refuse a volume-mesh file of second-order cells only (``tetra10``, ``triangle6``: the readers keep linear
+    cells, and find none) for what it is, naming its cells and the fix
+    (:func:`liverforce.geometry.volume_mesh.refuse_higher_order`)."""
+    from liverforce.geometry.volume_mesh import VOLUME_MESH_SUFFIXES, cell_counts, read_tet_file, refuse_higher_order
+
+    if not name.endswith(VOLUME_MESH_SUFFIXES) or (name.endswith(".vtk") and readers.is_vtk_polydata(path)):
+        return
+    quadratic = refuse_higher_order(path, cell_counts(read_tet_file(path).cells))
+    if quadratic is not None:
+        raise quadratic
 
 
 def _read_mesh_file(path: Path, name: str) -> readers.RawMesh:

@@ -24,7 +24,8 @@ Refused, with the problem and the fix named:
 
 * no tetrahedra (a surface: import it with ``mesh: remesh``);
 * quadratic tets (``tetra10``) or other volume cells (hexahedra, wedges,
-  pyramids), alone or beside tets;
+  pyramids), alone or beside tets (a second-order file, ``tetra10`` and ``triangle6``
+  only, is refused by the surface import too: :func:`refuse_higher_order`);
 * tet indices out of range; nodes used by no tet (their numbering could not be
   kept without a solver unknown of zero stiffness);
 * zero-volume (flat) tets; faces shared by more than two tets;
@@ -51,6 +52,9 @@ VOLUME_MESH_SUFFIXES = (".msh", ".vtu", ".vtk", ".xdmf", ".xmf")
 #: Volume cell types meshio may report besides linear ``tetra``.
 OTHER_VOLUME_CELLS = ("tetra10", "tetra20", "hexahedron", "hexahedron20", "hexahedron27", "wedge", "wedge15",
                       "wedge18", "pyramid", "pyramid13", "pyramid14", "polyhedron")
+#: Second- and higher-order cell types meshio reports; liverforce reads linear cells only.
+HIGHER_ORDER_CELLS = ("line3", "triangle6", "triangle7", "quad8", "quad9", "tetra10", "tetra20", "hexahedron20",
+                      "hexahedron27", "wedge15", "wedge18", "pyramid13", "pyramid14")
 #: A tet is flat when ``|V| <= FLAT_REL * mean |V|``.
 FLAT_REL = 1e-10
 _FIX = "Repair it in the mesher (e.g. gmsh: Mesh > Optimise; ParaView: Clean to Grid) or import it with mesh: remesh"
@@ -117,6 +121,33 @@ def read_tet_file(path: str | Path) -> TetFile:
                    f"meshio-{fmt}")
 
 
+def refuse_higher_order(path: str | Path, counts: dict[str, int]):
+    """The refusal (a ``GeometryError``, to raise) of a file whose cells, ``{cell type: count}``, are second
+    order (``tetra10``, ``triangle6``, ...) with no linear tetrahedra or triangles beside them; else ``None``.
+
+    Both the surface import (remesh) and the import as given call it, so such a file is refused for what it
+    is, wherever it goes, rather than as holding no triangles or tetrahedra.
+    """
+    higher = {t: n for t, n in counts.items() if t in HIGHER_ORDER_CELLS and n}
+    if not higher or any(counts.get(t) for t in ("tetra", "triangle", "quad")):
+        return None
+    what = ", ".join(f"{n} {t}" for t, n in higher.items())
+    return refuse(path, f"the mesh is second order (quadratic tetrahedra or triangles): it holds {what} and no "
+                        "linear tetrahedra or triangles; liverforce reads linear (first-order) cells only",
+                  "Export linear tetrahedra (first-order elements; liverforce raises them to the solver's quadratic "
+                  "formulation itself): in Gmsh set Mesh.ElementOrder = 1 (gmsh -3 -order 1) when meshing, or "
+                  "Mesh > Set order 1 on this mesh, then save; meshio: keep the first 4 nodes of each "
+                  "tetra10 and the first 3 of each triangle6, then mesh.remove_orphaned_nodes()")
+
+
+def cell_counts(cells) -> dict[str, int]:
+    """``{cell type: count}`` of cell blocks ``[(type, array)]``."""
+    counts: dict[str, int] = {}
+    for t, a in cells:
+        counts[t] = counts.get(t, 0) + int(len(a))
+    return counts
+
+
 def has_tetrahedra(path: str | Path) -> bool:
     """True if ``path`` is a volume-mesh file with at least one linear tet (False for other files)."""
     path = Path(path)
@@ -164,18 +195,14 @@ def load_volume_mesh(path: str | Path, units="mm", *, frame="RAS",
     frame_m, frame_label = frame_matrix(frame, path)
     tf = read_tet_file(path)
     msgs: list[str] = []
-    counts = {}
-    for t, a in tf.cells:
-        counts[t] = counts.get(t, 0) + int(len(a))
+    counts = cell_counts(tf.cells)
     others = {t: n for t, n in counts.items() if t in OTHER_VOLUME_CELLS and n}
     tets = [a for t, a in tf.cells if t == "tetra"]
     n_tets = sum(len(a) for a in tets)
+    if n_tets == 0 and (quadratic := refuse_higher_order(path, counts)) is not None:
+        raise quadratic
     if others:
         what = ", ".join(f"{n} {t}" for t, n in others.items())
-        if "tetra10" in others and n_tets == 0:
-            raise refuse(path, f"the mesh holds quadratic tetrahedra ({what}), which are not taken as given",
-                         "Export linear tetrahedra (the solver raises them to its quadratic formulation "
-                         "itself), or import the file with mesh: remesh")
         raise refuse(path, f"the mesh holds volume cells other than linear tetrahedra ({what}"
                            + (f", beside {n_tets} tetra" if n_tets else "") + "), which would be left out",
                      "Convert them to linear tetrahedra in the mesher, or import the file with mesh: remesh")
