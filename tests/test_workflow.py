@@ -52,6 +52,20 @@ def test_dry_run_lists_the_whole_dag(experiment, tmp_path):
     assert counts["train"] == len(plan.train_scenarios()) * len(plan.variants())
 
 
+def test_a_run_without_scenario_iv_gets_its_models_and_a_named_refusal_for_the_report(tmp_path):
+    """A lab's one-liver run (README: train.scenarios=[II] ~sweep.scenarios.IV): the models target plans its
+    training; the default target (the report, which needs the unseen-liver validation of a scenario-IV model) is
+    refused naming why and the fix, not with Snakemake's list of missing models/IV files."""
+    one = ["--config", "experiment=smoke", "overrides=train.scenarios=[II] ~sweep.scenarios.IV study.enabled=false"]
+    counts = job_counts(snakemake("-n", "--directory", str(tmp_path), "models", *one).stdout)
+    assert counts["models"] == 1 and counts["train"] >= 1 and "validate" not in counts
+    proc = snakemake("-n", "--directory", str(tmp_path), *one, check=False)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode != 0 and "MissingInputException" not in out, out[-2000:]
+    assert "needs scenario IV's models" in out and "trains scenarios II only" in out
+    assert "snakemake --cores 2 models" in out
+
+
 def test_overrides_reach_the_jobs(tmp_path):
     from liverforce.config import compose
 

@@ -226,6 +226,20 @@ class Plan:
     def train_scenarios(self) -> list[str]:
         return list(self.cfg["train"]["scenarios"])
 
+    def require_iv(self, what: str) -> None:
+        """Refuse, naming the fix, a target that needs scenario IV's models (``what``: the validation on the
+        unseen livers, the physics check, the report that shows them) in a run that trains none (a lab's one-liver
+        run: ``train.scenarios=[II] ~sweep.scenarios.IV``), where Snakemake would only say that
+        ``models/IV/...`` is missing."""
+        if "IV" in self.train_scenarios():
+            return
+        raise ConfigError(
+            f"{what} needs scenario IV's models (a model trained on several livers, tested on livers it never "
+            f"saw), and this run trains scenarios {', '.join(self.train_scenarios()) or 'none'} only "
+            "(train.scenarios without IV). Ask for the models target instead (snakemake --cores 2 models "
+            "--config ...), or keep scenario IV with at least two training livers (geometry.procedural.count "
+            ">= 2, or more than one liver in geometry.imported) for the validation and the report")
+
     def train_settings(self) -> dict:
         """The ``train`` settings every training job shares: the group without ``variants`` and ``scenarios``.
 

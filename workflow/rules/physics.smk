@@ -5,7 +5,7 @@ rule physics:
     input:
         cases=P.cases(plan.VALIDATION),
         mesh=P.mesh(PLAN.scenario_geometries(plan.VALIDATION)[config_slice("validate", "physics", "liver")]),
-        model=[P.model_dir("IV", v) for v in PLAN.variants()],
+        model=needs_iv("the physics check (rule physics)", [P.model_dir("IV", v) for v in PLAN.variants()]),
         metrics=[P.model_metrics("IV", v) for v in PLAN.variants()],
     output:
         study=P.physics(),
