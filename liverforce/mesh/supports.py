@@ -989,8 +989,11 @@ def _facing_words(who: str, n: np.ndarray, angle: float, view: np.ndarray, p, fa
                   f"{np.round(mix['mirrored_mm'], 3).tolist()} RAS mm as meshed; state exertion_points.frame: LPS "
                   "or RAS, or fix the geometry's frame.")
     elif facing == "away":
-        frames = (" Mirrored in x and y (an RAS point file read as LPS, or the reverse) it would not land on the "
-                  "visible area either, so it is not that frame mix-up.")
+        frames = (" Mirrored in x and y on its own (its point file in RAS read as LPS, or the reverse) it would not "
+                  "land on the visible area either, so reading the point file in the other frame would not help. "
+                  "If the liver itself was given in the wrong frame (see any warning of implausible regions for the "
+                  "stated frame), the whole liver is mirrored and its front faces away: fix the geometry's frame "
+                  "(geometry.imported[].frame), not the points'.")
     else:
         frames = ""
     if facing == "away":

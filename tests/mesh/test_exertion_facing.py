@@ -105,8 +105,10 @@ def test_a_posterior_point_is_warned_naming_its_file_row_and_normal(tmp_path, li
     assert re.search(_named(tools, 2, points["posterior"]) + r" lies on the surface facing away from the camera, off "
                      r"the visible area .*outward normal there is \[-?[\d.]+, -[01]\.\d+, -?[\d.]+\] \(RAS", warned[0])
     assert "trained on views along the outward normal" in warned[0] and "from behind the liver" in warned[0]
-    # its mirror (x, y) lands nowhere near the visible area: no frame mix-up is suggested
-    assert "so it is not that frame mix-up" in warned[0] and "Likely a frame mix-up" not in warned[0]
+    # its mirror (x, y) lands nowhere near the visible area: the point file's frame is not suggested, the liver's is
+    assert "reading the point file in the other frame would not help" in warned[0]
+    assert "If the liver itself was given in the wrong frame" in warned[0] and "fix the geometry's frame" in warned[0]
+    assert "not that frame mix-up" not in warned[0] and "Likely a frame mix-up" not in warned[0]
     feats = json.loads((out / "imp-lab.features.json").read_text())
     rec = feats["exertion_not_visible"]
     assert [r["point"] for r in rec] == [1] and rec[0]["normal_ras"][1] < -0.5
@@ -119,7 +121,7 @@ def test_a_posterior_point_is_refused_under_strict(tmp_path, liver_surface, poin
     tools = _tools(tmp_path, [points["anterior"], points["posterior"]])
     out, run = _stage(tmp_path, liver_surface, tools, "strict")
     with pytest.raises(SupportError, match=_named(tools, 2, points["posterior"]) + r" lies on the surface facing "
-                       r"away from the camera, .* more than 90 deg\. (.|\n)*not that frame mix-up(.|\n)*"
+                       r"away from the camera, .* more than 90 deg\. (.|\n)*fix the geometry's frame(.|\n)*"
                        r"mesh\.regions_check=strict refuses exertion points facing away"):
         run()
     assert not (out / "imp-lab.vtu").exists() and not (out / "imp-lab.features.json").exists()
