@@ -294,18 +294,19 @@ def far_tip(d_tip: float, half_width_mm: float, p: np.ndarray, tip_given, frame=
                        "exertion point?"))
 
 
-def _camera_arrays(model, cloud_mm, preop: Preop, tool_tip_mm, limits: Limits, frame,
-                   given: tuple) -> tuple[dict, dict]:
-    """Arrays of a camera-cloud model: the cloud as given, the tool tip, the pre-operative context (``frame``,
-    ``given``: :func:`cloud_to_arrays`)."""
-    tip = tool_tip_of(tool_tip_mm)
-    O = _points("cloud", cloud_mm, min_points=1)
-    rep = model.representation
+def check_camera_cloud(rep, O: np.ndarray, tip: np.ndarray, p: np.ndarray, R: np.ndarray, limits: Limits,
+                       frame=None, given=None) -> int:
+    """The refusals of one camera cloud ``O`` (finite points, model frame, mm) with the tool tip ``tip`` at the
+    exertion point ``p`` (local ``rotation`` R) for a camera model ``rep``, in their order: a cloud in metres read
+    as mm (:func:`metres_cloud`), too few points over the model's grid (:func:`few_points`), a tip beyond the grid
+    (:func:`far_tip`); returns the points over the grid. ``frame``: the units and frame declared (None: none);
+    ``given``: the cloud and the tip in the model's frame before a registration moved them (default ``(O, tip)``),
+    given back as entered in a refusal. Every reference path's (``Predictor.predict_cloud``, ``predict_arrays``,
+    the MLflow pyfunc); the compiled path gives the same messages (``CompiledCloud._refusal``)."""
+    given = (O, tip) if given is None else given
     metres = metres_cloud(O, rep.half_width_mm, limits.min_cloud_points, frame)
     if metres:
         raise PredictionInputError(metres)
-    p = preop.exertion_point_mm
-    R = preop.rotation
     O_loc = (O - p) @ R.T
     reach = rep.half_width_mm * (1.0 + 2.0 / (rep.grid_size - 1))
     n_used = int((np.abs(O_loc[:, :2]) <= reach).all(axis=1).sum())
@@ -315,6 +316,19 @@ def _camera_arrays(model, cloud_mm, preop: Preop, tool_tip_mm, limits: Limits, f
     d_tip = float(np.linalg.norm(tip - p))
     if d_tip > rep.half_width_mm:
         raise PredictionInputError(far_tip(d_tip, rep.half_width_mm, p, as_entered(frame, given[1]), frame))
+    return n_used
+
+
+def _camera_arrays(model, cloud_mm, preop: Preop, tool_tip_mm, limits: Limits, frame,
+                   given: tuple) -> tuple[dict, dict]:
+    """Arrays of a camera-cloud model: the cloud as given, the tool tip, the pre-operative context (``frame``,
+    ``given``: :func:`cloud_to_arrays`)."""
+    tip = tool_tip_of(tool_tip_mm)
+    O = _points("cloud", cloud_mm, min_points=1)
+    rep = model.representation
+    p = preop.exertion_point_mm
+    R = preop.rotation
+    n_used = check_camera_cloud(rep, O, tip, p, R, limits, frame, given)
     info = {"mode": "exact", "points_given": len(O), "points_used": n_used}
     n_shaft = check_instrument(rep, O, tip, preop.roi_undeformed_mm, preop.roi_triangles, p, R)
     if n_shaft is not None:

@@ -38,8 +38,8 @@ from liverforce.learn import camera
 from liverforce.learn.model import ForceModel, ModelFormatError
 from liverforce.serve.checks import (Limits, TrainingScale, check_case, check_on_surface, force_warnings,
                                      outside_training)
-from liverforce.serve.cloud import (camera_checks, check_instrument, cloud_support, cloud_warnings, metres_cloud,
-                                    registration_warnings, cloud_to_arrays)
+from liverforce.serve.cloud import (camera_checks, check_camera_cloud, check_instrument, cloud_support, cloud_warnings,
+                                    registration_warnings, cloud_to_arrays, tool_tip_of)
 from liverforce.serve.compiled import CompiledROI
 from liverforce.serve.errors import PredictionInputError
 from liverforce.serve.preop import DEFAULT_FRAME_RADIUS_MM, DEFAULT_ROI_FRACTION, Preop, _points, _vector
@@ -391,12 +391,17 @@ class Predictor:
         return out, fixes
 
     def predict_arrays(self, arrays: dict, *, observation_seed: int | None = None, fast: bool = False,
-                       min_group: int = 2, return_warnings: bool = False, registrations: list | None = None):
+                       min_group: int = 2, return_warnings: bool = False, registrations: list | None = None,
+                       input_frame=None):
         """Forces ``(n, 3)`` N for input-contract arrays (e.g. a shard), every row checked first; with
         ``return_warnings`` also each row's warnings, those :meth:`predict_cloud` gives one cloud (the context's,
         a camera cloud's, the registration's, a force beyond training's), as ``(force, warnings)``.
         ``registrations``: each row's refinement when the caller has already applied :meth:`refine_arrays`
-        (its warnings; the arrays' own ``unloaded_cloud_mm`` are refined here otherwise).
+        (its warnings; the arrays' own ``unloaded_cloud_mm`` are refined here otherwise). ``input_frame``: the
+        units and frame the user declared for the arrays (an :class:`~liverforce.serve.input_frame.InputFrame`),
+        which the caller converted them from to the model's frame already (:meth:`InputFrame.arrays`): a camera
+        cloud's refusal says what was declared and gives the cloud and tip back as entered, as
+        :meth:`predict_cloud` does (None: nothing declared, RAS mm).
 
         Parameters
         ----------
@@ -413,6 +418,8 @@ class Predictor:
         Camera clouds with ``unloaded_cloud_mm`` (and ``contact_tip_mm``) are registered first
         (:meth:`refine_arrays`).
         """
+        entered = ((arrays[camera.CLOUD_KEY], arrays[camera.TIP_KEY])  # before a registration moves them
+                   if camera.CLOUD_KEY in arrays and camera.TIP_KEY in arrays else None)
         arrays, fixes = self.refine_arrays(arrays)
         fixes = fixes if fixes is not None else registrations
         if self.model.representation.is_camera and "camera_cloud_mm" not in arrays:
@@ -439,14 +446,15 @@ class Predictor:
                     "a camera-cloud model needs the tool tip position ('tool_tip_mm', from the robot's kinematics) "
                     "with each cloud")
             ids = arrays.get("case_id")
-            for i in range(n):  # a cloud in metres, named before its other checks (predict_cloud's order)
+            for i in range(n):  # predict_cloud's refusals of a cloud and its tip, in its order and words
                 try:
+                    tip = tool_tip_of(arrays[camera.TIP_KEY][i])
                     cloud = _points("cloud", arrays[camera.CLOUD_KEY][i], min_points=1)
+                    check_camera_cloud(rep, cloud, tip, np.asarray(arrays["exertion_point_mm"][i], dtype=np.float64),
+                                       R[i], self.limits, input_frame,
+                                       None if entered is None else (entered[0][i], entered[1][i]))
                 except PredictionInputError as exc:
                     raise PredictionInputError(f"{_row_label(ids, i)}{exc}") from None
-                metres = metres_cloud(cloud, rep.half_width_mm, self.limits.min_cloud_points)
-                if metres:
-                    raise PredictionInputError(f"{_row_label(ids, i)}{metres}")
             spec, fitted, point_sd, dropped = (camera.grid_spec(rep.grid_size, rep.half_width_mm, rep.camera), [], [],
                                                [])
             x = camera.features_from_clouds(arrays[camera.CLOUD_KEY], arrays[camera.TIP_KEY], arrays, spec, R=R,

@@ -137,7 +137,8 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
             arrays = frame.arrays(arrays)
             arrays, fixes = predictor.refine_arrays(arrays)  # registration refined from unloaded clouds, if given
             force, warnings = predictor.predict_arrays(arrays, observation_seed=None if seed < 0 else seed,
-                                                       return_warnings=True, registrations=fixes)
+                                                       return_warnings=True, registrations=fixes,
+                                                       input_frame=frame)
         except PredictionInputError as exc:
             raise PyfuncInputError(str(exc)) from exc
         out = _output_frame(self.model, arrays, force, None if seed < 0 else seed, predictor, warnings)

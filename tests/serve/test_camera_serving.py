@@ -208,8 +208,8 @@ def test_the_mlflow_pyfunc_serves_the_camera_model_from_clouds(served, tmp_path)
     # kernel, and so the summation order, may depend on the batch size and on the CPU)
     np.testing.assert_allclose(got, np.stack(want), rtol=1e-6, atol=1e-9)
     far = dict(cases, tool_tip_mm=cases["tool_tip_mm"] + 100.0 * np.asarray(cases["frame_normal"]))
-    with pytest.raises(PredictionInputError, match="tool tip displacement"):
-        predict_pyfunc(pf, far)
+    with pytest.raises(PredictionInputError, match="tool_tip_mm is .* mm from the exertion point, beyond the model's"):
+        predict_pyfunc(pf, far)  # predict_cloud's refusal of a tip beyond the grid
     # the warnings column: each row's, as predict_cloud gives them (a tip pushed past every training case's is
     # predicted with the cloud's own warning, which the column once dropped)
     top = model.meta["training_scale"]["camera"]["tip_displacement_max_mm"]

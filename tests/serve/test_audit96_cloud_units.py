@@ -1,0 +1,122 @@
+"""A camera cloud in the wrong units (or off the grid, or a tip beyond it) is refused by ``predict_arrays`` and
+the MLflow pyfunc as ``predict_cloud`` (and so ``liverforce predict``) refuses it: the same checks, the same
+words, the row named. Before, ``predict_arrays`` lacked the points-over-the-grid and the far-tip checks, and
+a cloud in mm sent as metres came back from the pyfunc as a force."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from liverforce.learn.model import ForceModel, subset
+from liverforce.learn.observation import ObservationConfig, observe
+from liverforce.learn.synthetic import synthetic_surface_arrays
+from liverforce.learn.train import train_scenario
+from liverforce.serve import Predictor, Preop
+from liverforce.serve.errors import PredictionInputError
+from liverforce.serve.input_frame import InputFrame
+
+from tests.serve.test_input_frame import to_input_arrays
+
+MODEL = {"encoder": "pca", "code_size": 6, "state_vector": True, "grid_size": 8, "hidden": [16, 16],
+         "dropout": 0.0, "occlusion": {"radius_mm": 0.0, "mode": "remove"}, "noise_mm": 0.0,
+         "roi_features": "cloud", "force_scaling": "stiffness", "probe_force_radius_mm": 5.0,
+         "camera": {"observation": {"n_points": [300, 3000], "noise_sd_mm": 0.3}, "grid": {}, "tip_noise_mm": 0.1}}
+TRAIN = {"test_fraction": 0.2, "epochs": 8, "batch_size": 32, "lr": 3e-3, "weight_decay": 0.0, "seed": 0,
+         "interval": {"coverage": 0.9, "calibration_fraction": 0.25}}
+NO_TUNE = {"enabled": False, "trials": 1, "folds": 2, "sobol_trials": 1, "epochs": 1}
+LPS = np.diag([-1.0, -1.0, 1.0, 1.0])
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory):
+    """A small camera model, a held-out case's context, a camera cloud of it and its tool tip (RAS mm)."""
+    arrays = synthetic_surface_arrays(80, n_geometries=3, seed=3, material_varies=True)
+    res = train_scenario(arrays, MODEL, TRAIN, NO_TUNE, "IV", "cloud", out_dir=tmp_path_factory.mktemp("a96-cam"))
+    pred = Predictor(ForceModel.load(res["model_path"]))
+    a = subset(arrays, np.flatnonzero(np.isin(arrays["geometry_id"], res["split"]["test_geometries"])))
+    V, T = a["surface_meshes"][a["geometry_id"][0]]
+    u = np.asarray(a["surface_displacement_mm"][0], dtype=np.float64)
+    p = a["exertion_point_mm"][0]
+    tip = p + u[int(np.argmin(np.linalg.norm(V - p, axis=1)))]
+    cfg = ObservationConfig(n_points=(2000, 2000), noise_sd_mm=0.3, roi_radius_mm=40.0)
+    cloud = observe(V + u, T, tip, a["frame_normal"][0], cfg, seed=0)[0]
+    ctx = Preop.from_arrays({k: v for k, v in a.items() if k != "roi_deformed_mm"}, 0)
+    row = dict(ctx.to_arrays(ctx.roi_undeformed_mm), case_id=np.array(["lab-1"]))
+    row = {k: v for k, v in row.items() if k not in ("roi_deformed_mm", "roi_centroid_deformed_mm")}
+    return pred, ctx, cloud, tip, row
+
+
+def _refusal(call) -> str:
+    with pytest.raises(PredictionInputError) as exc:
+        call()
+    return str(exc.value)
+
+
+def _lab(row: dict, cloud_lab: np.ndarray, tip_ras_mm: np.ndarray) -> dict:
+    """The row in LPS metres (a lab's inputs), with the cloud ``cloud_lab`` as the lab sent it."""
+    lab = to_input_arrays(LPS, 1000.0, {**row, "tool_tip_mm": tip_ras_mm[None]})
+    lab["camera_cloud_mm"] = [cloud_lab]
+    return lab
+
+
+def _pyfunc(pred: Predictor, arrays: dict, **params):
+    from liverforce.tracking.model import ForceModelPyfunc, arrays_to_frame
+
+    pf = ForceModelPyfunc()
+    pf.model = pred.model
+    return pf.predict(None, arrays_to_frame(arrays, list(arrays)), params=params)
+
+
+def test_the_inputs_in_lps_metres_are_predicted_alike(served):
+    """The check is no refusal of good inputs: the lab's row in LPS metres gives predict_cloud's force, through
+    predict_arrays and the pyfunc."""
+    pred, ctx, cloud, tip, row = served
+    want = pred.predict_cloud(cloud, ctx, tool_tip_mm=tip)
+    lab = _lab(row, (cloud * [-1, -1, 1]) / 1000.0, tip)
+    fr = InputFrame.resolve("LPS", "m")
+    got = pred.predict_arrays(fr.arrays(lab), input_frame=fr)
+    np.testing.assert_allclose(got[0], want, rtol=1e-5, atol=1e-7)
+    out = _pyfunc(pred, lab, input_frame="LPS", units="m")
+    np.testing.assert_allclose(out[["fx_n", "fy_n", "fz_n"]].to_numpy()[0], want * [-1, -1, 1], rtol=1e-5, atol=1e-7)
+
+
+def test_a_cloud_in_mm_sent_as_metres_is_refused_as_the_cli_refuses_it(served):
+    """A lab's cloud in mm (LPS) sent with units m: 1000x too far once converted, no point over the grid.
+    predict_cloud (the CLI's path) refuses it naming the points over the grid and the units it looks like; so do
+    predict_arrays and the pyfunc, word for word, with the row named."""
+    pred, ctx, cloud, tip, row = served
+    fr = InputFrame.resolve("LPS", "m")
+    lab = _lab(row, cloud * [-1, -1, 1], tip)  # mm, while m was declared
+    conv = fr.arrays(lab)
+    cli = _refusal(lambda: pred.predict_cloud(conv["camera_cloud_mm"][0], ctx, tool_tip_mm=conv["tool_tip_mm"][0],
+                                              input_frame=fr))
+    assert "points lie over the model's" in cli and "it looks like mm while m, LPS was declared" in cli
+    assert _refusal(lambda: _pyfunc(pred, lab, input_frame="LPS", units="m")) == "case lab-1: " + cli
+    assert _refusal(lambda: pred.predict_arrays(conv, input_frame=fr)) == "case lab-1: " + cli
+
+
+def test_the_reverse_a_cloud_in_metres_sent_as_mm_is_refused_alike(served):
+    """The reverse: the context in mm and the cloud in metres (read as mm). Refused by every path with one
+    message, naming metres."""
+    pred, ctx, cloud, tip, row = served
+    arrays = {**row, "camera_cloud_mm": [cloud / 1000.0], "tool_tip_mm": tip[None]}
+    cli = _refusal(lambda: pred.predict_cloud(cloud / 1000.0, ctx, tool_tip_mm=tip))
+    assert "metres" in cli
+    assert _refusal(lambda: pred.predict_arrays(arrays)) == "case lab-1: " + cli
+    assert _refusal(lambda: _pyfunc(pred, arrays)) == "case lab-1: " + cli
+
+
+def test_a_cloud_off_the_grid_and_a_tip_beyond_it_are_refused_alike(served):
+    """A cloud in mm lying beside the grid (too few points over it), and a tool tip beyond the grid: refused by
+    predict_arrays and the pyfunc with predict_cloud's reasons, not predicted."""
+    pred, ctx, cloud, tip, row = served
+    h = pred.model.representation.half_width_mm
+    beside = cloud + 3 * h * ctx.frame[0]
+    far = tip + 3 * h * ctx.frame[0]
+    for c, t, what in ((beside, tip, "points lie over the model's"), (cloud, far, "from the exertion point, beyond "
+                                                                                  "the model's grid")):
+        cli = _refusal(lambda: pred.predict_cloud(c, ctx, tool_tip_mm=t))
+        assert what in cli
+        arrays = {**row, "camera_cloud_mm": [c], "tool_tip_mm": t[None]}
+        assert _refusal(lambda: pred.predict_arrays(arrays)) == "case lab-1: " + cli
+        assert _refusal(lambda: _pyfunc(pred, arrays)) == "case lab-1: " + cli
