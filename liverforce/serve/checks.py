@@ -16,7 +16,8 @@ ROI extent (units)           the ROI's centred tangent half-extent is more than
 exertion point on surface    the exertion point is more than ``surface_tol_mm``
                              from the pre-operative surface: measured to its
                              triangles when the context was built from them
-                             (``Preop.surface_point_mm``), else the undeformed
+                             (``Preop.surface_point_mm``), else to the ROI's
+                             triangles (``roi_triangles``), else the undeformed
                              ROI's height there (a quadratic fit of the nearest
                              nodes in the local frame); or it lies outside its ROI
 ROI patch                    (models that read it) ``roi_triangles`` missing, not ``(m, 3)`` whole
@@ -261,6 +262,39 @@ def check_roi(U_loc: np.ndarray, scale: TrainingScale, limits: Limits, label: st
         )
 
 
+def roi_patch(arrays: dict, i: int, n_points: int) -> np.ndarray | None:
+    """Row ``i``'s ``roi_triangles`` as ``(m, 3)`` indices into its ``n_points`` ROI nodes, or None where the
+    arrays give none (or none usable: a model that reads them refuses them by name, :func:`check_patch`)."""
+    from liverforce.learn.grid import check_triangles
+
+    tris = arrays.get("roi_triangles")
+    if tris is None or len(tris) <= i or tris[i] is None:
+        return None
+    try:
+        return check_triangles(tris[i], n_points, "roi_triangles")
+    except (TypeError, ValueError):
+        return None
+
+
+def check_on_roi_triangles(point_mm: np.ndarray, U: np.ndarray, T: np.ndarray, limits: Limits, label: str) -> None:
+    """The exertion point against the undeformed ROI's own triangles ``T`` (indices into its nodes ``U``, mm):
+    refused (:class:`OffSurfaceError`) beyond ``limits.surface_tol_mm``. Exact on any mesh, where a quadratic fit
+    of the nearest nodes (:func:`check_roi`) misreads a coarse one (nodes 20 mm and more from the point)."""
+    from trimesh.triangles import closest_point
+
+    p = np.asarray(point_mm, dtype=np.float64)
+    tri = U[T]
+    near = closest_point(tri, np.broadcast_to(p, (len(tri), 3)))  # every triangle: a ROI has a few hundred
+    dist = np.linalg.norm(near - p, axis=1)
+    j = int(np.argmin(dist))
+    nearest, d = near[j], float(dist[j])
+    if not d <= limits.surface_tol_mm:
+        raise OffSurfaceError(
+            f"{label}the exertion point is {d:.3g} mm off the undeformed surface (its distance to the ROI's "
+            f"triangles, nearest point {np.round(nearest, 3).tolist()} mm; tolerance {limits.surface_tol_mm} mm): "
+            "put it on the pre-operative surface (same frame and units as the ROI)", p)
+
+
 def check_displacement(disp_max_mm: float, scale: TrainingScale, limits: Limits, label: str) -> None:
     """The largest ROI displacement (mm) against the largest grid feature seen in training."""
     if scale.feature_abs_max is None:
@@ -283,7 +317,8 @@ def check_case(arrays: dict, i: int, model, scale: TrainingScale, limits: Limits
     (``Preop.rotation``, which checked the frame); computed from the row's frame
     otherwise. Returns the rotation, for the prediction that follows the check.
     ``on_surface``: the exertion point was checked against the pre-operative surface's triangles
-    (:func:`check_on_surface`): the ROI's quadratic fit is not read for it.
+    (:func:`check_on_surface`): the ROI's quadratic fit is not read for it. Otherwise the point is measured to the
+    row's ``roi_triangles`` where it has them (:func:`check_on_roi_triangles`), to the quadratic fit where not.
     """
     if label is None:
         ids = arrays.get("case_id")
@@ -311,7 +346,10 @@ def check_case(arrays: dict, i: int, model, scale: TrainingScale, limits: Limits
         except ValueError as exc:
             raise PredictionInputError(f"{label}{exc}") from None
     U_loc = (U - p) @ R.T
-    check_roi(U_loc, scale, limits, label, fit_height=not on_surface)
+    patch = None if on_surface else roi_patch(arrays, i, len(U))
+    check_roi(U_loc, scale, limits, label, fit_height=not on_surface and patch is None)
+    if patch is not None:  # the point's height measured to the ROI's own triangles, not to a fit of its nodes
+        check_on_roi_triangles(p, U, patch, limits, label)
     if model.representation.uses_triangles:
         check_patch(arrays, i, U_loc, model, limits, label)
     if correspondence:
