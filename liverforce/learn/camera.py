@@ -198,6 +198,30 @@ def observe_cases(arrays: dict, camera: dict, half_width_mm: float, grid_size: i
     return (clouds, tips, recs) if records else (clouds, tips)
 
 
+def tips_off_grid(arrays: dict, half_width_mm: float) -> list[tuple[str, float]]:
+    """The cases whose tool tip (the exertion point moved with the surface, as :func:`observe_cases` places it
+    before its noise) lies off the camera grid along the surface: ``(case id, its larger tangential offset in
+    the local frame, mm)`` where that offset exceeds ``half_width_mm``. Serving refuses such a tip (the grid
+    does not see the tool); a deep press along the normal keeps it over the grid. Usually a lobe swinging on
+    loose supports. Empty without full-surface displacements."""
+    from liverforce.learn.observation import surface_point_displacement
+
+    if SURFACES_KEY not in arrays or "surface_displacement_mm" not in arrays:
+        return []
+    P = np.asarray(arrays["exertion_point_mm"], dtype=np.float64)
+    geo = np.asarray(arrays["geometry_id"]).astype(str)
+    ids = np.asarray(arrays["case_id"]).astype(str)
+    R = case_rotations(arrays)
+    out = []
+    for g in sorted(set(geo)):
+        V, T = arrays[SURFACES_KEY][g]
+        sel = np.flatnonzero(geo == g)
+        u = surface_point_displacement(V, T, P[sel], [arrays["surface_displacement_mm"][i] for i in sel])
+        along = np.abs(np.einsum("nij,nj->ni", R[sel], u)[:, :2]).max(axis=1)
+        out += [(str(ids[i]), float(a)) for i, a in zip(sel, along) if a > half_width_mm]
+    return sorted(out)
+
+
 def features_from_clouds(clouds, tips, arrays: dict, spec: CloudGridSpec,
                          rows: np.ndarray | None = None, R: np.ndarray | None = None,
                          fitted: list | None = None, point_sd: list | None = None,

@@ -61,7 +61,7 @@ from threadpoolctl import threadpool_limits
 
 from liverforce.atomic import remove_stale_temps, write_bytes_atomic, write_text_atomic
 from liverforce.config import config_hash
-from liverforce.learn.camera import exact_tip
+from liverforce.learn.camera import exact_tip, tips_off_grid
 from liverforce.learn.interval import coverage_per_component, fit_conformal
 from liverforce.learn.metrics import force_metrics
 from liverforce.learn.model import (
@@ -278,6 +278,7 @@ def train_scenario(
     tr, te = train_test_split(geo, scenario=scenario, test_fraction=float(train_cfg["test_fraction"]), seed=seed)
     train_arrays, test_arrays = subset(arrays, tr), subset(arrays, te)
     rep = representation_from_config(model_cfg, train_arrays)
+    off_grid = _warn_tips_off_grid(arrays, rep, scenario, variant)
     encoder = str(model_cfg["encoder"])
     use_state = bool(model_cfg["state_vector"])
     code_size = encoder_code_size(model_cfg["code_size"], gp_code_members(model_cfg))
@@ -305,6 +306,8 @@ def train_scenario(
                 calibrate_folds,
             )
         result.update(run_id=run_id, tags=run_tags, n_cases=n, seconds=time.perf_counter() - t_start)
+        if off_grid is not None:
+            result["tips_off_grid"] = off_grid
         if tracker is not None:
             result["model_uri"] = tracker.log_force_model(run_id, result["model_path"], subset(test_arrays, [0]))
             tracker.log_metrics(run_id, {"wall_time_s": result["seconds"]})
@@ -314,6 +317,24 @@ def train_scenario(
             tracker.end_run(run_id, status=run_status(exc))  # KILLED for Ctrl-C: no failure of the code
         raise
     return result
+
+
+def _warn_tips_off_grid(arrays: dict, rep, scenario: str, variant: str) -> dict | None:
+    """A camera model's cases whose tool tip lies off its grid along the surface (:func:`camera.tips_off_grid`):
+    logged as a warning (they are trained and scored on, but serving refuses such a tip) and returned as a
+    record for the metrics (None for other models)."""
+    if rep.features != "cloud":
+        return None
+    off = tips_off_grid(arrays, rep.half_width_mm)
+    if off:
+        worst = max(off, key=lambda t: t[1])
+        log.warning("%s %s: %d of %d cases have the tool tip off the camera grid along the surface (beyond %.3g "
+                    "mm; the largest %.3g mm, %s): the model is trained and scored on them, but serving refuses "
+                    "such a tip. Usually a lobe swinging on loose supports, or a force too large for this liver",
+                    scenario, variant, len(off), len(arrays["exertion_point_mm"]), rep.half_width_mm, worst[1],
+                    worst[0])
+    return {"n": len(off), "half_width_mm": rep.half_width_mm, "cases": [c for c, _ in off],
+            "largest_mm": max((a for _, a in off), default=None)}
 
 
 def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_cfg, train_cfg, tune_cfg,
