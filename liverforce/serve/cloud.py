@@ -283,13 +283,22 @@ def few_points(O: np.ndarray, p: np.ndarray, n_used: int, half_width_mm: float, 
                        "region?"))
 
 
-def far_tip(d_tip: float, half_width_mm: float, p: np.ndarray, tip_given, frame=None) -> str:
-    """Why a tool tip ``d_tip`` mm from the exertion point ``p`` (model frame), beyond the grid's half-width, is
-    refused: the tip as entered (``tip_given``) with the units and frame declared (``frame``; None: none), and
-    the units or frame it looks like it is in if another reading puts it on the grid."""
-    hint = reading_hint(frame, tip_given, lambda X: np.linalg.norm(X - p, axis=-1) <= half_width_mm)
-    return (f"tool_tip_mm is {d_tip:.4g} mm from the exertion point, beyond the model's grid ({half_width_mm:.3g} "
-            f"mm): it was given as {written(frame, tip_given)} ({declared_as(frame)}): "
+def tip_along_surface(tip, p: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """The tool tip's offset from the exertion point ``p`` along the surface (model frame, mm): the larger of its
+    local ``t1``, ``t2`` parts (``R``: the local rotation), for one tip ``(3,)`` or many ``(..., 3)``. The grid
+    sees the tool while this is within its half-width; a deep press along the normal keeps it there (the
+    hardest training presses move the tip 20-30 mm along the normal, 5-10 mm along the surface)."""
+    return np.abs((np.asarray(tip, dtype=np.float64) - p) @ np.asarray(R, dtype=np.float64)[:2].T).max(axis=-1)
+
+
+def far_tip(along: float, half_width_mm: float, p: np.ndarray, R: np.ndarray, tip_given, frame=None) -> str:
+    """Why a tool tip ``along`` mm from the exertion point ``p`` along the surface (:func:`tip_along_surface`;
+    model frame, local rotation ``R``), beyond the grid's half-width, is refused: the tip as entered
+    (``tip_given``) with the units and frame declared (``frame``; None: none), and the units or frame it looks
+    like it is in if another reading puts it over the grid."""
+    hint = reading_hint(frame, tip_given, lambda X: tip_along_surface(X, p, R) <= half_width_mm)
+    return (f"tool_tip_mm is {along:.4g} mm from the exertion point along the surface, beyond the model's grid "
+            f"(+-{half_width_mm:.3g} mm): it was given as {written(frame, tip_given)} ({declared_as(frame)}): "
             + (hint or f"is the tip {_in_what(frame)}in the frame of the exertion point, and is the tool at this "
                        "exertion point?"))
 
@@ -299,7 +308,7 @@ def check_camera_cloud(rep, O: np.ndarray, tip: np.ndarray, p: np.ndarray, R: np
     """The refusals of one camera cloud ``O`` (finite points, model frame, mm) with the tool tip ``tip`` at the
     exertion point ``p`` (local ``rotation`` R) for a camera model ``rep``, in their order: a cloud in metres read
     as mm (:func:`metres_cloud`), too few points over the model's grid (:func:`few_points`), a tip beyond the grid
-    (:func:`far_tip`); returns the points over the grid. ``frame``: the units and frame declared (None: none);
+    along the surface (:func:`far_tip`); returns the points over the grid. ``frame``: the units and frame declared (None: none);
     ``given``: the cloud and the tip in the model's frame before a registration moved them (default ``(O, tip)``),
     given back as entered in a refusal. Every reference path's (``Predictor.predict_cloud``, ``predict_arrays``,
     the MLflow pyfunc); the compiled path gives the same messages (``CompiledCloud._refusal``)."""
@@ -313,9 +322,9 @@ def check_camera_cloud(rep, O: np.ndarray, tip: np.ndarray, p: np.ndarray, R: np
     if n_used < limits.min_cloud_points:
         raise PredictionInputError(few_points(O, p, n_used, rep.half_width_mm, limits.min_cloud_points, frame,
                                               as_entered(frame, given[0])))
-    d_tip = float(np.linalg.norm(tip - p))
-    if d_tip > rep.half_width_mm:
-        raise PredictionInputError(far_tip(d_tip, rep.half_width_mm, p, as_entered(frame, given[1]), frame))
+    along = float(tip_along_surface(tip, p, R))
+    if along > rep.half_width_mm:
+        raise PredictionInputError(far_tip(along, rep.half_width_mm, p, R, as_entered(frame, given[1]), frame))
     return n_used
 
 

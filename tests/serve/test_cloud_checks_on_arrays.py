@@ -113,8 +113,8 @@ def test_a_cloud_off_the_grid_and_a_tip_beyond_it_are_refused_alike(served):
     h = pred.model.representation.half_width_mm
     beside = cloud + 3 * h * ctx.frame[0]
     far = tip + 3 * h * ctx.frame[0]
-    for c, t, what in ((beside, tip, "points lie over the model's"), (cloud, far, "from the exertion point, beyond "
-                                                                                  "the model's grid")):
+    for c, t, what in ((beside, tip, "points lie over the model's"), (cloud, far, "from the exertion point along the "
+                                                                                  "surface, beyond the model's grid")):
         cli = _refusal(lambda: pred.predict_cloud(c, ctx, tool_tip_mm=t))
         assert what in cli
         arrays = {**row, "camera_cloud_mm": [c], "tool_tip_mm": t[None]}
