@@ -308,8 +308,8 @@ def check_camera_cloud(rep, O: np.ndarray, tip: np.ndarray, p: np.ndarray, R: np
     """The refusals of one camera cloud ``O`` (finite points, model frame, mm) with the tool tip ``tip`` at the
     exertion point ``p`` (local ``rotation`` R) for a camera model ``rep``, in their order: a cloud in metres read
     as mm (:func:`metres_cloud`), too few points over the model's grid (:func:`few_points`), a tip beyond the grid
-    along the surface (:func:`far_tip`); returns the points over the grid. ``frame``: the units and frame declared (None: none);
-    ``given``: the cloud and the tip in the model's frame before a registration moved them (default ``(O, tip)``),
+    along the surface (:func:`far_tip`); returns the points over the grid. ``frame``: the units and frame
+    declared (None: none); ``given``: the cloud and the tip in the model's frame before a registration moved them (default ``(O, tip)``),
     given back as entered in a refusal. Every reference path's (``Predictor.predict_cloud``, ``predict_arrays``,
     the MLflow pyfunc); the compiled path gives the same messages (``CompiledCloud._refusal``)."""
     given = (O, tip) if given is None else given
