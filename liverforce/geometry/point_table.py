@@ -54,6 +54,33 @@ def _quote(text: str) -> str:
     return f"'{text[:80]}'"
 
 
+#: a header column's unit: ``x_mm``, ``x mm``, ``x(m)``, ``X [mm]``, ``r_um``
+_UNIT_SUFFIX = re.compile(r"(?:^|[_\s(\[])(mm|cm|m|um|µm)[)\]]?$", re.IGNORECASE)
+#: mm per unit a header may name
+HEADER_UNIT_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "um": 1e-3, "µm": 1e-3}
+
+
+def header_units(path) -> tuple[str, str] | None:
+    """The unit a text point file's header names for every one of its columns (``x_mm,y_mm,z_mm``,
+    ``X [m], Y [m], Z [m]``): ``(unit, the header line)``; None when the file has no header, a column names no
+    unit, or the columns name different ones. An unreadable file: None (:func:`read_table` refuses it)."""
+    try:
+        text = Path(path).read_text()
+    except (OSError, UnicodeDecodeError):
+        return None
+    first = next((ln.strip() for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")), None)
+    if first is None:
+        return None
+    tokens = [t for t in re.split(r"\s*[,;\t]\s*", first) if t] if re.search(r"[,;\t]", first) \
+        else _SEPARATORS.split(first)
+    if not tokens or all(_is_number(t) for t in tokens):
+        return None
+    units = {m.group(1).lower() if m else None for m in (_UNIT_SUFFIX.search(t.strip()) for t in tokens)}
+    if len(units) != 1 or None in units:
+        return None
+    return units.pop(), first
+
+
 def read_table(path, columns: tuple[int, ...] | None = None) -> tuple[np.ndarray, list[int]]:
     """``(rows (k, c) float, line numbers (k,) from 1)`` of a text point file (module docstring); ``k >= 1``.
 

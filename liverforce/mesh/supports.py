@@ -77,7 +77,8 @@ from pathlib import Path
 
 import numpy as np
 
-from liverforce.geometry.point_table import TEXT_SUFFIXES, PointTableError, read_table
+from liverforce.geometry.point_table import (HEADER_UNIT_MM, TEXT_SUFFIXES, PointTableError, header_units,
+                                             read_table)
 from liverforce.mesh.types import REGION_CODES
 
 log = logging.getLogger(__name__)
@@ -284,7 +285,7 @@ def _check_stiffness(st: dict, key: str):
 POINT_FILE_SUFFIXES = (".npy", *TEXT_SUFFIXES, ".ply")
 
 
-def read_point_file(path, units: str | None = None) -> np.ndarray:
+def read_point_file(path, units: str | None = None, scale_mm: float | None = None) -> np.ndarray:
     """Vertex ids ``(k,)`` int or coordinates ``(k, 3)`` float (as in the file: the caller scales them).
 
     The formats and rules of ``liverforce predict``'s point files
@@ -296,6 +297,8 @@ def read_point_file(path, units: str | None = None) -> np.ndarray:
     (non-negative integers; a text file may have a header). ``units`` (as
     declared, e.g. ``"m"``) words the messages only. A refused file is named
     with the line at fault and what was expected; an empty one is said to be.
+    ``scale_mm``: mm per unit the coordinates will be read in (declared, or the geometry's); a text file whose
+    header names another unit for every column (``x_mm`` read as m) is refused, naming both.
     """
     path = Path(path)
     want = f"3 numbers per row (x, y, z in {units or 'mm'}) or one column of vertex ids"
@@ -313,6 +316,11 @@ def read_point_file(path, units: str | None = None) -> np.ndarray:
             raise SupportError(f"{exc}; expected {want}") from None
         if a.shape[1] == 1:
             return _vertex_ids(a[:, 0], path, lines)
+        said = header_units(path) if scale_mm is not None else None
+        if said is not None and not np.isclose(HEADER_UNIT_MM[said[0]], scale_mm, rtol=1e-9):
+            raise SupportError(f"{path}: its header {said[1]!r} says the coordinates are in {said[0]}, but they are "
+                               f"read in {units or 'mm'} ({scale_mm:g} mm each): declare units: {said[0]} for "
+                               "this file (or correct its header)")
     elif suffix == ".npy":
         try:
             a = np.load(path, allow_pickle=False)
@@ -571,7 +579,8 @@ def select_facets(vertices, faces, support: Support, frame: PointFrame = PointFr
         path = Path(d["path"])
         if not path.is_absolute() and base_dir is not None:
             path = Path(base_dir) / path
-        a = None if is_markups(path) else read_point_file(path, _units_words(d.get("units"), frame))
+        scale = frame.scale if d.get("units") is None else _units_scale(d["units"])
+        a = None if is_markups(path) else read_point_file(path, _units_words(d.get("units"), frame), scale)
         if a is not None and a.ndim == 1 and d.get("frame") is not None:
             raise SupportError(f"support '{support.name}' file.frame: vertex ids have no frame (they index the "
                                "file's vertices)")
@@ -590,7 +599,6 @@ def select_facets(vertices, faces, support: Support, frame: PointFrame = PointFr
             xyz = frame.to_mesh(fv[a] * frame.scale)
             read_as = f"as vertex ids of the geometry file, its vertices {frame.read_as()}"
         else:
-            scale = frame.scale if d.get("units") is None else _units_scale(d["units"])
             stated = frame.stated(d.get("frame"), f"support '{support.name}' file")
             xyz = stated.to_mesh(a * scale)
             read_as = stated.read_as(d.get("units"))
@@ -1066,11 +1074,11 @@ def exertion_points_mesh(spec, frame: PointFrame = PointFrame(), file_vertices=N
             labels[:] = [f"control point {j + 1} of {p}: {_given(x)} RAS mm" for j, x in enumerate(a)]
             return frame.from_world(a)
         units = _units_words(spec.get("units"), frame)
-        a = read_point_file(p, units)
+        scale = frame.scale if spec.get("units") is None else _units_scale(spec["units"])
+        a = read_point_file(p, units, scale)
         if a.ndim == 1 and spec.get("frame") is not None:
             raise SupportError("exertion_points.frame: vertex ids have no frame (they index the file's vertices)")
         if a.ndim == 2:
-            scale = frame.scale if spec.get("units") is None else _units_scale(spec["units"])
             labels[:] = [f"point {j + 1} of {p}: {_given(x)} in {units}" for j, x in enumerate(a)]
             return frame.to_mesh(a * scale)
         labels[:] = [f"vertex id {int(i)} (point {j + 1} of {p})" for j, i in enumerate(a)]
