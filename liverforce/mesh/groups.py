@@ -50,6 +50,19 @@ _GMSH_BOOKKEEPING = ("gmsh:geometrical",)
 _DIM = {"vertex": 0, "line": 1, "line3": 1, "triangle": 2, "triangle6": 2, "quad": 2, "tetra": 3, "tetra10": 3}
 
 
+def faces_among(faces: np.ndarray, among: np.ndarray) -> np.ndarray:
+    """Which of the triangles ``faces (k, 3)`` are among ``among (m, 3)`` (node ids, any order within a row):
+    a ``(k,)`` bool mask. The sorted rows are matched whole (``np.unique`` over rows), so it holds for any node
+    ids, where an integer key ``n^2 a + n b + c`` overflows int64 beyond about 2.09 M nodes."""
+    f = np.sort(np.asarray(faces, dtype=np.int64).reshape(-1, 3), axis=1)
+    g = np.sort(np.asarray(among, dtype=np.int64).reshape(-1, 3), axis=1)
+    if not len(f) or not len(g):
+        return np.zeros(len(f), dtype=bool)
+    _, inv = np.unique(np.concatenate([f, g]), axis=0, return_inverse=True)
+    inv = inv.ravel()
+    return np.isin(inv[:len(f)], inv[len(f):])
+
+
 class GroupError(ValueError):
     """A ``group`` selector names no group of the file."""
 
@@ -123,9 +136,7 @@ class FileGroups:
         if not tets or not len(self.boundary):
             return
         t = np.concatenate(tets).astype(np.int64)
-        n = len(self.points)
-        key = lambda f: np.sort(f, axis=1) @ np.array([n * n, n, 1], dtype=np.int64)  # noqa: E731
-        own = np.isin(key(self.boundary), key(t[:, [[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]]].reshape(-1, 3)))
+        own = faces_among(self.boundary, t[:, [[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]]].reshape(-1, 3))
         P = self.points[self.boundary]
         area = np.linalg.norm(np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), axis=1)
         share = float(area[own].sum() / area.sum()) if area.sum() > 0 else float(own.mean())

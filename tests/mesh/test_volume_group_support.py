@@ -87,3 +87,26 @@ def test_a_group_of_most_of_the_tets_is_refused_by_its_share_of_the_surface(tmp_
     with pytest.raises(SupportError, match=rf"holding {int(body.sum())} of the file's {len(tets)} tetrahedra, "
                                            r"and its boundary is 9\d\.\d % of the liver surface"):
         select_facets(points, boundary_facets(tets), s, file_groups=lambda: groups)
+
+
+def test_face_matching_holds_for_node_ids_beyond_int64_keys():
+    """The boundary faces a group of tets owns are matched by whole sorted rows: node ids above 2.1 M (where the
+    old key n^2 a + n b + c overflowed int64) give the same faces as the small mesh they are offset from."""
+    from liverforce.mesh.groups import faces_among
+
+    points, tets, _ = shuffled_box(seed=7, shape=(6, 2, 2))
+    facets = boundary_facets(tets)
+    end = tets[points[tets].mean(axis=1)[:, 0] < 5.0]
+    own_faces = end[:, [[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]]].reshape(-1, 3)
+    expected = np.array([frozenset(f) in {frozenset(g) for g in own_faces.tolist()} for f in facets.tolist()])
+    assert 0 < expected.sum() < len(facets)
+    np.testing.assert_array_equal(faces_among(facets, own_faces), expected)
+    big = 3_000_000
+    np.testing.assert_array_equal(faces_among(facets + big, own_faces[:, ::-1] + big), expected)
+    # two faces the old key mixed up at 3.1 M nodes (it wraps around): told apart here
+    n = 3_100_000
+    a, b = np.array([[n - 3, n - 2, n - 1]]), np.array([[n - 4, n - 2, n - 1]])
+    with np.errstate(over="ignore"):
+        key = lambda f: np.sort(f, axis=1) @ np.array([n * n, n, 1], dtype=np.int64)  # noqa: E731
+        assert np.any(key(np.concatenate([a, b])) < 0)  # the old key overflowed here
+    assert faces_among(a, b).tolist() == [False] and faces_among(a, np.concatenate([b, a[:, ::-1]])).tolist() == [True]
