@@ -276,23 +276,46 @@ def roi_patch(arrays: dict, i: int, n_points: int) -> np.ndarray | None:
         return None
 
 
-def check_on_roi_triangles(point_mm: np.ndarray, U: np.ndarray, T: np.ndarray, limits: Limits, label: str) -> None:
-    """The exertion point against the undeformed ROI's own triangles ``T`` (indices into its nodes ``U``, mm):
-    refused (:class:`OffSurfaceError`) beyond ``limits.surface_tol_mm``. Exact on any mesh, where a quadratic fit
-    of the nearest nodes (:func:`check_roi`) misreads a coarse one (nodes 20 mm and more from the point)."""
+def nearest_on_roi_exact(point_mm: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, float]:
+    """The point of the triangles ``tri (m, 3, 3)`` (mm) nearest ``point_mm`` and its distance: every triangle
+    tested (exact; :func:`nearest_on_roi` calls it only for a point the faster search would refuse)."""
     from trimesh.triangles import closest_point
 
     p = np.asarray(point_mm, dtype=np.float64)
-    tri = U[T]
-    near = closest_point(tri, np.broadcast_to(p, (len(tri), 3)))  # every triangle: a ROI has a few hundred
+    near = closest_point(tri, np.broadcast_to(p, (len(tri), 3)))
     dist = np.linalg.norm(near - p, axis=1)
     j = int(np.argmin(dist))
-    nearest, d = near[j], float(dist[j])
+    return near[j], float(dist[j])
+
+
+def nearest_on_roi(point_mm: np.ndarray, tri: np.ndarray, limit_mm: float) -> tuple[np.ndarray, float]:
+    """The point of the triangles ``tri (m, 3, 3)`` nearest ``point_mm`` and its distance, as far as judging it
+    against ``limit_mm`` needs: the triangles of the 16 nearest centroids first
+    (:func:`~liverforce.mesh.supports.closest_on_triangles`). Its distance bounds the true one from above, so a
+    point it finds within ``limit_mm`` is within; one it does not is measured over every triangle
+    (:func:`nearest_on_roi_exact`): accept or refuse, and a refused point's distance, are the exact search's."""
+    from liverforce.mesh.supports import closest_on_triangles
+
+    p = np.asarray(point_mm, dtype=np.float64)
+    near, dist, _ = closest_on_triangles(tri, p[None])
+    if float(dist[0]) <= limit_mm:
+        return near[0], float(dist[0])
+    return nearest_on_roi_exact(p, tri)
+
+
+def check_on_roi_triangles(point_mm: np.ndarray, U: np.ndarray, T: np.ndarray, limits: Limits, label: str,
+                           frame=None) -> None:
+    """The exertion point against the undeformed ROI's own triangles ``T`` (indices into its nodes ``U``, mm):
+    refused (:class:`OffSurfaceError`, :func:`off_surface`) beyond ``limits.surface_tol_mm``. Exact on any mesh,
+    where a quadratic fit of the nearest nodes (:func:`check_roi`) misreads a coarse one (nodes 20 mm and more
+    from the point). ``frame``: the inputs' declared :class:`~liverforce.serve.input_frame.InputFrame` (None:
+    RAS mm), in which the refusal gives the point and its nearest point of the ROI back."""
+    p = np.asarray(point_mm, dtype=np.float64)
+    tri = U[T]
+    nearest, d = nearest_on_roi(p, tri, limits.surface_tol_mm)
     if not d <= limits.surface_tol_mm:
-        raise OffSurfaceError(
-            f"{label}the exertion point is {d:.3g} mm off the undeformed surface (its distance to the ROI's "
-            f"triangles, nearest point {np.round(nearest, 3).tolist()} mm; tolerance {limits.surface_tol_mm} mm): "
-            "put it on the pre-operative surface (same frame and units as the ROI)", p)
+        raise OffSurfaceError(label + off_surface(d, p, nearest, limits.surface_tol_mm, frame, tri,
+                                                  what="the undeformed surface (the ROI's triangles)"), p)
 
 
 def check_displacement(disp_max_mm: float, scale: TrainingScale, limits: Limits, label: str) -> None:
@@ -310,7 +333,7 @@ def check_displacement(disp_max_mm: float, scale: TrainingScale, limits: Limits,
 
 def check_case(arrays: dict, i: int, model, scale: TrainingScale, limits: Limits, *, label: str | None = None,
                correspondence: bool = True, rotation: np.ndarray | None = None,
-               on_surface: bool = False) -> np.ndarray:
+               on_surface: bool = False, input_frame=None) -> np.ndarray:
     """Check row ``i`` of input-contract ``arrays`` (module table); raise :class:`PredictionInputError`.
 
     ``rotation``: the row's local rotation (3 x 3) when the caller holds it already
@@ -319,6 +342,9 @@ def check_case(arrays: dict, i: int, model, scale: TrainingScale, limits: Limits
     ``on_surface``: the exertion point was checked against the pre-operative surface's triangles
     (:func:`check_on_surface`): the ROI's quadratic fit is not read for it. Otherwise the point is measured to the
     row's ``roi_triangles`` where it has them (:func:`check_on_roi_triangles`), to the quadratic fit where not.
+    ``input_frame``: the units and frame the user declared for the arrays (an
+    :class:`~liverforce.serve.input_frame.InputFrame`, which they were converted from; None: RAS mm), in which an
+    off-surface refusal gives the point back.
     """
     if label is None:
         ids = arrays.get("case_id")
@@ -349,7 +375,7 @@ def check_case(arrays: dict, i: int, model, scale: TrainingScale, limits: Limits
     patch = None if on_surface else roi_patch(arrays, i, len(U))
     check_roi(U_loc, scale, limits, label, fit_height=not on_surface and patch is None)
     if patch is not None:  # the point's height measured to the ROI's own triangles, not to a fit of its nodes
-        check_on_roi_triangles(p, U, patch, limits, label)
+        check_on_roi_triangles(p, U, patch, limits, label, input_frame)
     if model.representation.uses_triangles:
         check_patch(arrays, i, U_loc, model, limits, label)
     if correspondence:

@@ -11,7 +11,7 @@ import pytest
 
 from liverforce.mesh.supports import closest_on_triangles
 from liverforce.serve import Predictor, Preop
-from liverforce.serve.checks import Limits, check_roi
+from liverforce.serve.checks import Limits, check_case, check_roi, nearest_on_roi, nearest_on_roi_exact
 from liverforce.serve.errors import PredictionInputError
 
 
@@ -108,3 +108,62 @@ def test_without_triangles_the_node_fit_still_judges(trained, coarse):
     with pytest.raises(PredictionInputError, match="off the undeformed surface \\(along its normal"):
         pred.predict_arrays(arrays)
 
+
+
+def test_the_nearest_centroids_search_judges_as_the_exact_one(coarse):
+    """The search over the 16 triangles of nearest centroids, falling back to every triangle for a point it would
+    refuse, accepts and refuses the points the exact search does, with the same distance for a refused one: the
+    coarse mesh's facet centres moved along their normals by -10..10 mm (around the 2 mm tolerance) and points
+    scattered about the liver."""
+    P, F, vis = coarse
+    tri = P[F]
+    tol = Limits().surface_tol_mm
+    c = tri[vis].mean(axis=1)
+    n = np.cross(tri[vis, 1] - tri[vis, 0], tri[vis, 2] - tri[vis, 0])
+    n /= np.linalg.norm(n, axis=1)[:, None]
+    offsets = np.array([0.0, 1.0, 1.9, 1.99, 2.01, 2.1, 3.0, 5.0, 10.0, -1.5, -2.5, -10.0])
+    rng = np.random.default_rng(0)
+    q = np.concatenate([(c[:, None] + offsets[None, :, None] * n[:, None]).reshape(-1, 3),
+                        rng.uniform(P.min(axis=0) - 5.0, P.max(axis=0) + 5.0, size=(300, 3))])
+    fast = [nearest_on_roi(x, tri, tol) for x in q]
+    exact = [nearest_on_roi_exact(x, tri) for x in q]
+    d_fast, d_exact = np.array([d for _, d in fast]), np.array([d for _, d in exact])
+    np.testing.assert_array_equal(d_fast <= tol, d_exact <= tol)
+    refused = d_exact > tol
+    assert 0.2 < refused.mean() < 0.9
+    np.testing.assert_allclose(d_fast[refused], d_exact[refused], rtol=1e-12, atol=1e-9)
+    assert (d_fast >= d_exact - 1e-9).all()  # an upper bound where it accepts
+
+
+def test_a_point_the_nearest_centroids_miss_is_measured_over_every_triangle():
+    """A point 1 mm over a large triangle whose centroid is far, with 16 small triangles 5 mm away nearer by
+    centroid: the first search alone would refuse it; the exact search over all triangles accepts it."""
+    big = np.array([[[-500.0, -500.0, 0.0], [1500.0, -500.0, 0.0], [-500.0, 1500.0, 0.0]]])
+    small = np.array([[[x, y, 6.0], [x + 1.0, y, 6.0], [x, y + 1.0, 6.0]] for x in range(-2, 2) for y in range(-2, 2)])
+    tri = np.concatenate([big, small])
+    p = np.array([0.2, 0.2, 1.0])
+    assert closest_on_triangles(tri, p[None])[1][0] > 4.0  # the 16 nearest centroids are the small ones
+    near, d = nearest_on_roi(p, tri, Limits().surface_tol_mm)
+    assert d == pytest.approx(1.0) and np.allclose(near, [0.2, 0.2, 0.0])
+
+
+def test_the_refusal_gives_the_point_in_the_declared_units_and_frame(trained, coarse):
+    """The same refusal with the inputs declared in LPS metres (converted to the model's RAS mm already, as
+    ``InputFrame.arrays`` does): the point and the nearest point of the ROI come back in m LPS, with what was
+    declared."""
+    from liverforce.serve.input_frame import InputFrame, as_given
+
+    pred = Predictor.from_dir(trained("deformed"))
+    arrays = _rows(pred, coarse, k=1)
+    p = np.asarray(arrays["exertion_point_mm"], dtype=np.float64) + 10.0 * np.asarray(arrays["frame_normal"])
+    moved = {**arrays, "exertion_point_mm": p}
+    fr = InputFrame.resolve("LPS", "m")
+    with pytest.raises(PredictionInputError) as exc:
+        check_case(moved, 0, pred.model, pred.scale, pred.limits, input_frame=fr)
+    msg = str(exc.value)
+    assert msg.startswith("case coarse-0: the exertion point is ") and "off the undeformed surface" in msg, msg
+    assert f"it was given as {as_given(fr, p[0])} (declared in m, LPS" in msg, msg
+    assert "] m LPS" in msg.split("the nearest point of the surface is ")[1], msg
+    with pytest.raises(PredictionInputError) as plain:  # no frame declared: RAS mm, said so
+        check_case(moved, 0, pred.model, pred.scale, pred.limits)
+    assert "no units or frame were declared" in str(plain.value) and "] mm RAS" in str(plain.value)
