@@ -68,7 +68,7 @@ import math
 import numpy as np
 
 from liverforce.learn.cloud_features import ROI_TRIANGLES_KEY, CloudGridSpec, ReferenceSurface, cloud_grid
-from liverforce.learn.frames import case_rotations
+from liverforce.learn.frames import case_rotations, tip_offsets
 from liverforce.seeds import derive
 
 #: per-run (not per-case) entry of a training arrays dict: geometry id -> (surface vertices, triangles)
@@ -154,7 +154,7 @@ def observe_cases(arrays: dict, camera: dict, half_width_mm: float, grid_size: i
     """Camera clouds and noisy tool-tip positions ``(clouds, tips)`` of the cases ``rows`` (all by default), from
     the shards. ``records``: also each cloud's :class:`~liverforce.learn.observation.ObservationRecord` (camera
     position, the tool tip it was observed with, counts), as a third item."""
-    from liverforce.learn.observation import observe_many, surface_point_displacement
+    from liverforce.learn.observation import observe_many
 
     if SURFACES_KEY not in arrays or "surface_displacement_mm" not in arrays:
         raise KeyError(
@@ -181,7 +181,7 @@ def observe_cases(arrays: dict, camera: dict, half_width_mm: float, grid_size: i
         sel = rows[pos]
         disp = [arrays["surface_displacement_mm"][i] for i in sel]
         cl, rec = observe_many(V, T, disp, P[sel], N[sel], cfg, seed=seed, case_keys=list(ids[sel]))
-        q = P[sel] + surface_point_displacement(V, T, P[sel], disp)
+        q = _moved_points(V, T, P[sel], disp)
         for k, i in enumerate(pos):
             clouds[i] = cl[k]
             recs[i] = rec[k]
@@ -198,28 +198,36 @@ def observe_cases(arrays: dict, camera: dict, half_width_mm: float, grid_size: i
     return (clouds, tips, recs) if records else (clouds, tips)
 
 
-def tips_off_grid(arrays: dict, half_width_mm: float) -> list[tuple[str, float]]:
-    """The cases whose tool tip (the exertion point moved with the surface, as :func:`observe_cases` places it
-    before its noise) lies off the camera grid along the surface: ``(case id, its larger tangential offset in
-    the local frame, mm)`` where that offset exceeds ``half_width_mm``. Serving refuses such a tip (the grid
-    does not see the tool); a deep press along the normal keeps it over the grid. Usually a lobe swinging on
-    loose supports. Empty without full-surface displacements."""
+def _moved_points(V: np.ndarray, T: np.ndarray, P: np.ndarray, disp) -> np.ndarray:
+    """Points ``P (k, 3)`` on the undeformed surface ``(V, T)`` moved with it (``disp``: one displacement field
+    per point): where :func:`observe_cases` places a case's tool tip, before its noise."""
     from liverforce.learn.observation import surface_point_displacement
 
-    if SURFACES_KEY not in arrays or "surface_displacement_mm" not in arrays:
-        return []
+    return P + surface_point_displacement(V, T, P, disp)
+
+
+def tips_off_grid(arrays: dict, half_width_mm: float) -> list[tuple[str, float]] | None:
+    """The cases whose tool tip lies off the camera grid along the surface: ``(case id, the tip's offset along
+    the surface in the local frame, mm)`` (:func:`~liverforce.learn.frames.tip_offsets`) where it exceeds
+    ``half_width_mm``. The tips given with the cases (``tool_tip_mm``), else placed as :func:`observe_cases`
+    places them (before their noise); None when neither is there (not measured). Serving refuses such a tip
+    (the grid does not see the tool); a deep press along the normal keeps it over the grid. Usually a lobe
+    swinging on loose supports."""
     P = np.asarray(arrays["exertion_point_mm"], dtype=np.float64)
-    geo = np.asarray(arrays["geometry_id"]).astype(str)
     ids = np.asarray(arrays["case_id"]).astype(str)
-    R = case_rotations(arrays)
-    out = []
-    for g in sorted(set(geo)):
-        V, T = arrays[SURFACES_KEY][g]
-        sel = np.flatnonzero(geo == g)
-        u = surface_point_displacement(V, T, P[sel], [arrays["surface_displacement_mm"][i] for i in sel])
-        along = np.abs(np.einsum("nij,nj->ni", R[sel], u)[:, :2]).max(axis=1)
-        out += [(str(ids[i]), float(a)) for i, a in zip(sel, along) if a > half_width_mm]
-    return sorted(out)
+    if "tool_tip_mm" in arrays:
+        tips = np.asarray(arrays["tool_tip_mm"], dtype=np.float64).reshape(-1, 3)
+    elif SURFACES_KEY in arrays and "surface_displacement_mm" in arrays:
+        geo = np.asarray(arrays["geometry_id"]).astype(str)
+        tips = np.empty_like(P)
+        for g in sorted(set(geo)):
+            V, T = arrays[SURFACES_KEY][g]
+            sel = np.flatnonzero(geo == g)
+            tips[sel] = _moved_points(V, T, P[sel], [arrays["surface_displacement_mm"][i] for i in sel])
+    else:
+        return None
+    along, _ = tip_offsets(tips, P, case_rotations(arrays))
+    return sorted((str(ids[i]), float(along[i])) for i in np.flatnonzero(along > half_width_mm))
 
 
 def features_from_clouds(clouds, tips, arrays: dict, spec: CloudGridSpec,

@@ -112,6 +112,18 @@ def offsets_to_local(x: np.ndarray, origin: np.ndarray, R: np.ndarray) -> np.nda
     return vectors_to_local(np.asarray(x, dtype=np.float64) - np.asarray(origin, dtype=np.float64), R)
 
 
+def tip_offsets(tip, origin, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A tool tip's offsets from the exertion point ``origin`` in its local frame ``R`` (rows ``t1, t2, n``):
+    ``(along, above)``, the larger of its ``|t1|``, ``|t2|`` parts (along the surface: the camera grid sees the
+    tool while this is within the grid's half-width) and its ``n`` part (outward positive: a press is negative).
+    One tip ``(3,)`` or many ``(..., 3)`` at one exertion point; many at their own, ``origin (n, 3)`` and ``R
+    (n, 3, 3)``."""
+    R = np.asarray(R, dtype=np.float64)
+    d = np.asarray(tip, dtype=np.float64) - np.asarray(origin, dtype=np.float64)
+    local = np.einsum("nij,nj->ni", R, d) if R.ndim == 3 else d @ R.T
+    return np.abs(local[..., :2]).max(axis=-1), local[..., 2]
+
+
 def force_to_local(force: np.ndarray, R: np.ndarray) -> np.ndarray:
     """Force ``(n, 3)`` N in the source frame -> local frame ``(F.t1, F.t2, F.n)``."""
     return vectors_to_local(force, R)

@@ -326,6 +326,8 @@ def _warn_tips_off_grid(arrays: dict, rep, scenario: str, variant: str) -> dict 
     if rep.features != "cloud":
         return None
     off = tips_off_grid(arrays, rep.half_width_mm)
+    if off is None:  # neither the tips nor the surfaces to place them on: not measured, not "none off"
+        return {"n": None, "half_width_mm": rep.half_width_mm, "cases": [], "largest_mm": None}
     if off:
         worst = max(off, key=lambda t: t[1])
         log.warning("%s %s: %d of %d cases have the tool tip off the camera grid along the surface (beyond %.3g "

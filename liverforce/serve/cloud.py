@@ -63,6 +63,7 @@ from scipy.spatial import cKDTree
 
 from liverforce.learn import camera
 from liverforce.learn.cloud_features import _MIN_POINT_SD
+from liverforce.learn.frames import tip_offsets
 from liverforce.learn.representation import interpolate_to_grid
 from liverforce.serve.checks import Limits, TrainingScale
 from liverforce.serve.errors import PredictionInputError
@@ -283,22 +284,34 @@ def few_points(O: np.ndarray, p: np.ndarray, n_used: int, half_width_mm: float, 
                        "region?"))
 
 
-def tip_along_surface(tip, p: np.ndarray, R: np.ndarray) -> np.ndarray:
-    """The tool tip's offset from the exertion point ``p`` along the surface (model frame, mm): the larger of its
-    local ``t1``, ``t2`` parts (``R``: the local rotation), for one tip ``(3,)`` or many ``(..., 3)``. The grid
-    sees the tool while this is within its half-width; a deep press along the normal keeps it there (the
-    hardest training presses move the tip 20-30 mm along the normal, 5-10 mm along the surface)."""
-    return np.abs((np.asarray(tip, dtype=np.float64) - p) @ np.asarray(R, dtype=np.float64)[:2].T).max(axis=-1)
+#: how far above the liver (outward along the exertion point's normal) a tool tip may lie: the training tips never
+#: rise above it (they press in, down to 30 mm along the normal in the default data); a tracked tip has about
+#: 0.5 mm of noise. A tip higher than this does not touch the liver at this exertion point
+TIP_ABOVE_MM = 5.0
 
 
-def far_tip(along: float, half_width_mm: float, p: np.ndarray, R: np.ndarray, tip_given, frame=None) -> str:
-    """Why a tool tip ``along`` mm from the exertion point ``p`` along the surface (:func:`tip_along_surface`;
-    model frame, local rotation ``R``), beyond the grid's half-width, is refused: the tip as entered
-    (``tip_given``) with the units and frame declared (``frame``; None: none), and the units or frame it looks
-    like it is in if another reading puts it over the grid."""
-    hint = reading_hint(frame, tip_given, lambda X: tip_along_surface(X, p, R) <= half_width_mm)
-    return (f"tool_tip_mm is {along:.4g} mm from the exertion point along the surface, beyond the model's grid "
-            f"(+-{half_width_mm:.3g} mm): it was given as {written(frame, tip_given)} ({declared_as(frame)}): "
+def tip_off_grid(tip, p: np.ndarray, R: np.ndarray, half_width_mm: float):
+    """Whether a tool tip (model frame, mm; one ``(3,)`` or many ``(..., 3)``) at the exertion point ``p`` (local
+    rotation ``R``) is refused as off the grid: more than ``half_width_mm`` from ``p`` along the surface (the grid
+    does not see the tool), or more than :data:`TIP_ABOVE_MM` above the liver (the tool does not touch it). A
+    deep press along the normal is neither (the training range of tip displacements judges it,
+    :func:`camera_checks`). Returns ``(off, along, above)`` (:func:`~liverforce.learn.frames.tip_offsets`)."""
+    along, above = tip_offsets(tip, p, R)
+    return (along > half_width_mm) | (above > TIP_ABOVE_MM), along, above
+
+
+def far_tip(tip, half_width_mm: float, p: np.ndarray, R: np.ndarray, tip_given, frame=None) -> str:
+    """Why a tool tip ``tip`` (model frame) refused by :func:`tip_off_grid` is refused: its offset along the
+    surface beyond the grid, or its height above the liver, the tip as entered (``tip_given``) with the units and
+    frame declared (``frame``; None: none), and the units or frame it looks like it is in if another reading
+    puts it on the grid."""
+    _, along, above = tip_off_grid(tip, p, R, half_width_mm)
+    hint = reading_hint(frame, tip_given, lambda X: ~tip_off_grid(X, p, R, half_width_mm)[0])
+    where = (f"is {float(along):.4g} mm from the exertion point along the surface, beyond the model's grid "
+             f"(+-{half_width_mm:.3g} mm)" if along > half_width_mm else
+             f"lies {float(above):.4g} mm above the liver at the exertion point (outward along its normal; at most "
+             f"{TIP_ABOVE_MM:g} mm): the tool does not touch it there")
+    return (f"tool_tip_mm {where}: it was given as {written(frame, tip_given)} ({declared_as(frame)}): "
             + (hint or f"is the tip {_in_what(frame)}in the frame of the exertion point, and is the tool at this "
                        "exertion point?"))
 
@@ -307,11 +320,12 @@ def check_camera_cloud(rep, O: np.ndarray, tip: np.ndarray, p: np.ndarray, R: np
                        frame=None, given=None) -> int:
     """The refusals of one camera cloud ``O`` (finite points, model frame, mm) with the tool tip ``tip`` at the
     exertion point ``p`` (local ``rotation`` R) for a camera model ``rep``, in their order: a cloud in metres read
-    as mm (:func:`metres_cloud`), too few points over the model's grid (:func:`few_points`), a tip beyond the grid
-    along the surface (:func:`far_tip`); returns the points over the grid. ``frame``: the units and frame
-    declared (None: none); ``given``: the cloud and the tip in the model's frame before a registration moved them (default ``(O, tip)``),
-    given back as entered in a refusal. Every reference path's (``Predictor.predict_cloud``, ``predict_arrays``,
-    the MLflow pyfunc); the compiled path gives the same messages (``CompiledCloud._refusal``)."""
+    as mm (:func:`metres_cloud`), too few points over the model's grid (:func:`few_points`), a tip off the grid
+    (:func:`tip_off_grid`, :func:`far_tip`); returns the points over the grid. ``frame``: the units and frame
+    declared (None: none); ``given``: the cloud and the tip in the model's frame before a registration moved
+    them (default ``(O, tip)``), given back as entered in a refusal. Every reference path's
+    (``Predictor.predict_cloud``, ``predict_arrays``, the MLflow pyfunc); the compiled path gives the same
+    messages (``CompiledCloud._refusal``)."""
     given = (O, tip) if given is None else given
     metres = metres_cloud(O, rep.half_width_mm, limits.min_cloud_points, frame)
     if metres:
@@ -322,9 +336,8 @@ def check_camera_cloud(rep, O: np.ndarray, tip: np.ndarray, p: np.ndarray, R: np
     if n_used < limits.min_cloud_points:
         raise PredictionInputError(few_points(O, p, n_used, rep.half_width_mm, limits.min_cloud_points, frame,
                                               as_entered(frame, given[0])))
-    along = float(tip_along_surface(tip, p, R))
-    if along > rep.half_width_mm:
-        raise PredictionInputError(far_tip(along, rep.half_width_mm, p, R, as_entered(frame, given[1]), frame))
+    if tip_off_grid(tip, p, R, rep.half_width_mm)[0]:
+        raise PredictionInputError(far_tip(tip, rep.half_width_mm, p, R, as_entered(frame, given[1]), frame))
     return n_used
 
 

@@ -100,7 +100,7 @@ from liverforce.serve.checks import Limits, TrainingScale, force_warnings, outsi
 from liverforce.serve.cloud import (MASKED_INSTRUMENT, SHAFT_MARGIN_MM, SHAFT_POINTS, SHAFT_RING_MM, SHAFT_RISE_MM,
                                     camera_checks, far_tip, few_points, instrument_check_radius, instrument_refusal,
                                     metres_cloud, noisy_cloud, noisy_threshold_mm, outlier_cloud, registration_warnings,
-                                    tip_along_surface, tool_tip_of)
+                                    tip_off_grid, tool_tip_of)
 from liverforce.serve.compiled import numpy_layers, regressor_head
 from liverforce.serve.errors import PredictionInputError
 from liverforce.serve.input_frame import InputFrame, as_entered
@@ -1651,9 +1651,9 @@ class CompiledCloud:
         the others pass its checks by construction). ``tips`` as given."""
         tips = self._model(tips)
         tip_ok = np.isfinite(tips).all(axis=1)
-        along = tip_along_surface(np.where(tip_ok[:, None], tips, self.p), self.p, self.R)
+        off = tip_off_grid(np.where(tip_ok[:, None], tips, self.p), self.p, self.R, self.half_width_mm)[0]
         return ((counts == 0) | (n_bad > 0) | (n_used < self.limits.min_cloud_points) | ~tip_ok
-                | (along > self.half_width_mm) | (n_tool[:, 0] >= SHAFT_POINTS))
+                | off | (n_tool[:, 0] >= SHAFT_POINTS))
 
     @staticmethod
     def _tip_refusal(tip: np.ndarray) -> str | None:
@@ -1681,9 +1681,8 @@ class CompiledCloud:
         if n_used < self.limits.min_cloud_points:
             return few_points(O, self.p, n_used, self.half_width_mm, self.limits.min_cloud_points, self._said,
                               as_entered(self._converted_from, given[0]))
-        along = float(tip_along_surface(tip, self.p, self.R))
-        if along > self.half_width_mm:
-            return far_tip(along, self.half_width_mm, self.p, self.R, as_entered(self._converted_from, given[1]),
+        if tip_off_grid(tip, self.p, self.R, self.half_width_mm)[0]:
+            return far_tip(tip, self.half_width_mm, self.p, self.R, as_entered(self._converted_from, given[1]),
                            self._said)
         if n_shaft >= SHAFT_POINTS:  # (counted for models trained without the instrument only)
             return instrument_refusal(n_shaft, self._shaft_tool_mm)

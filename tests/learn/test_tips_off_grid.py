@@ -42,7 +42,25 @@ def test_only_tips_moved_off_the_grid_along_the_surface_are_named():
     assert [c for c, _ in off] == ["II-000002", "II-000003"]
     assert np.allclose([a for _, a in off], [31.0, 24.5])
     assert tips_off_grid(_plate_cases(MOVES), 35.0) == []
-    assert tips_off_grid({k: v for k, v in _plate_cases(MOVES).items() if k != "surface_meshes"}, 20.0) == []
+
+
+
+def test_the_offsets_are_in_each_cases_local_frame_and_given_tips_are_read_as_given():
+    """The plate and its frames turned and moved as a whole: the same cases named with the same offsets. Tips
+    given with the cases (tool_tip_mm) are judged as given; neither tips nor surfaces: not measured (None)."""
+    a = _plate_cases(MOVES)
+    Q, _ = np.linalg.qr(np.random.default_rng(3).normal(size=(3, 3)))
+    t = np.array([120.0, -40.0, 900.0])
+    V, T = a["surface_meshes"]["plate"]
+    b = {**a, "surface_meshes": {"plate": (V @ Q.T + t, T)}, "exertion_point_mm": a["exertion_point_mm"] @ Q.T + t,
+         "surface_displacement_mm": [u @ Q.T for u in a["surface_displacement_mm"]],
+         **{k: a[k] @ Q.T for k in ("frame_normal", "frame_t1", "frame_t2")}}
+    got = tips_off_grid(b, 20.0)
+    assert [c for c, _ in got] == ["II-000002", "II-000003"] and np.allclose([x for _, x in got], [31.0, 24.5])
+    given = {k: v for k, v in b.items() if k not in ("surface_meshes", "surface_displacement_mm")}
+    given["tool_tip_mm"] = b["exertion_point_mm"] + np.asarray(MOVES) @ Q.T
+    assert tips_off_grid(given, 20.0) == got
+    assert tips_off_grid({k: v for k, v in given.items() if k != "tool_tip_mm"}, 20.0) is None
 
 
 def test_training_a_camera_model_warns_and_records_them(caplog):
@@ -55,3 +73,5 @@ def test_training_a_camera_model_warns_and_records_them(caplog):
     assert "the largest 31 mm, II-000002" in msg and "serving refuses such a tip" in msg
     node = types.SimpleNamespace(features="displacement", half_width_mm=20.0)
     assert _warn_tips_off_grid(_plate_cases(MOVES), node, "II", "pca_sv") is None
+    bare = {k: v for k, v in _plate_cases(MOVES).items() if k != "surface_meshes"}
+    assert _warn_tips_off_grid(bare, rep, "II", "cloud_sv")["n"] is None  # not measured, not "none off the grid"

@@ -207,10 +207,12 @@ def test_the_mlflow_pyfunc_serves_the_camera_model_from_clouds(served, tmp_path)
     # the same float32 MLP over a batch of 3 rows and over single rows: equal to float32 rounding (the BLAS
     # kernel, and so the summation order, may depend on the batch size and on the CPU)
     np.testing.assert_allclose(got, np.stack(want), rtol=1e-6, atol=1e-9)
-    far = dict(cases, tool_tip_mm=cases["tool_tip_mm"] + 100.0 * np.asarray(cases["frame_t1"]))
-    with pytest.raises(PredictionInputError, match="tool_tip_mm is .* mm from the exertion point along the surface, "
-                                                   "beyond the model's"):
-        predict_pyfunc(pf, far)  # predict_cloud's refusal of a tip beyond the grid
+    for axis, says in (("frame_t1", "tool_tip_mm is .* mm from the exertion point along the surface, beyond the "
+                                    "model's"),
+                       ("frame_normal", "tool_tip_mm lies .* mm above the liver at the exertion point")):
+        far = dict(cases, tool_tip_mm=cases["tool_tip_mm"] + 100.0 * np.asarray(cases[axis]))
+        with pytest.raises(PredictionInputError, match=says):
+            predict_pyfunc(pf, far)  # predict_cloud's refusal of a tip beyond the grid or above the liver
     # the warnings column: each row's, as predict_cloud gives them (a tip pushed past every training case's is
     # predicted with the cloud's own warning, which the column once dropped)
     top = model.meta["training_scale"]["camera"]["tip_displacement_max_mm"]
@@ -660,9 +662,9 @@ def test_refusals_give_the_tip_and_cloud_back_as_entered_on_every_path(served):
 def test_a_deep_press_along_the_normal_keeps_the_tip_over_the_grid(served):
     """The grid sees the tool while its tip lies within the grid's half-width along the surface: a press deeper
     than the half-width along the normal (the hardest presses of the default data move the tip 20-30 mm along
-    the normal, 5-10 mm along the surface) is not a tip 'beyond the model's grid' (the training range of tip
-    displacements judges its depth); a tip the half-width off along the surface is, on the reference and the
-    compiled path alike, with its offset along the surface."""
+    the normal, 5-10 mm along the surface) is predicted (within 4 x the training tips' largest displacement);
+    a tip the half-width off along the surface, or 9 mm above the liver (not touching it), is refused, on the
+    reference and the compiled path alike, with its offset."""
     from liverforce.serve.cloud import check_camera_cloud
 
     path, model, arrays = served
@@ -671,9 +673,12 @@ def test_a_deep_press_along_the_normal_keeps_the_tip_over_the_grid(served):
     hw = model.representation.half_width_mm
     p, R = ctx.exertion_point_mm, ctx.frame  # rows t1, t2, n
     deep = p - 1.3 * hw * R[2] + 0.2 * hw * R[0]
+    top = model.meta["training_scale"]["camera"]["tip_displacement_max_mm"]
+    assert np.linalg.norm(deep - p) > hw and np.linalg.norm(deep - p) < 4 * top  # beyond the old limit, in range
     assert check_camera_cloud(model.representation, cloud, deep, p, R, pred.limits) > 0  # not refused
     fast = pred.compile_cloud(ctx)
-    for tip in (deep, p + 1.1 * hw * R[1] - 0.1 * hw * R[2]):
+    side, above = p + 1.1 * hw * R[1] - 0.1 * hw * R[2], p + 9.0 * R[2]
+    for tip in (deep, side, above):
         ref_why = fast_why = None
         try:
             pred.predict_cloud(cloud, ctx, tool_tip_mm=tip)
@@ -685,7 +690,10 @@ def test_a_deep_press_along_the_normal_keeps_the_tip_over_the_grid(served):
             fast_why = str(exc)
         assert ref_why == fast_why
         if tip is deep:
-            assert ref_why is None or "beyond the model's grid" not in ref_why, ref_why
-        else:
+            assert ref_why is None, ref_why
+        elif tip is side:
             assert ref_why.startswith(f"tool_tip_mm is {1.1 * hw:.4g} mm from the exertion point along the surface, "
                                       f"beyond the model's grid (+-{hw:.3g} mm)"), ref_why
+        else:
+            assert ref_why.startswith("tool_tip_mm lies 9 mm above the liver at the exertion point (outward along "
+                                      "its normal; at most 5 mm): the tool does not touch it there"), ref_why
