@@ -169,7 +169,7 @@ class Predictor:
             check_on_surface(preop.exertion_point_mm, preop.surface_point_mm, self.limits, "", frame,
                              lambda: preop.surface_search)
         check_case(preop.to_arrays(preop.roi_undeformed_mm), 0, self.model, self.scale, self.limits, label="",
-                   rotation=preop.rotation, on_surface=exact)
+                   rotation=preop.rotation, on_surface=exact, input_frame=frame)
 
     def context_warnings(self, preop: Preop) -> list[str]:
         """Why the model extrapolates in this context: its geometric state outside the training range.
@@ -437,7 +437,8 @@ class Predictor:
         if n == 0:
             return (np.zeros((0, 3)), []) if return_warnings else np.zeros((0, 3))
         # each row's frame is checked (and its rotation computed) once, here; the model reuses the rotations
-        R = np.stack([check_case(arrays, i, self.model, self.scale, self.limits) for i in range(n)])
+        R = np.stack([check_case(arrays, i, self.model, self.scale, self.limits, input_frame=input_frame)
+                      for i in range(n)])
         rep = self.model.representation
         own_warnings = [[] for _ in range(n)]
         if rep.is_camera and "camera_cloud_mm" in arrays:  # observed clouds: features once, each row checked

@@ -11,7 +11,7 @@ import pytest
 
 from liverforce.mesh.supports import closest_on_triangles
 from liverforce.serve import Predictor, Preop
-from liverforce.serve.checks import Limits, check_case, check_roi, nearest_on_roi, nearest_on_roi_exact
+from liverforce.serve.checks import Limits, check_case, check_roi, nearest_on_roi
 from liverforce.serve.errors import PredictionInputError
 
 
@@ -110,40 +110,16 @@ def test_without_triangles_the_node_fit_still_judges(trained, coarse):
 
 
 
-def test_the_nearest_centroids_search_judges_as_the_exact_one(coarse):
-    """The search over the 16 triangles of nearest centroids, falling back to every triangle for a point it would
-    refuse, accepts and refuses the points the exact search does, with the same distance for a refused one: the
-    coarse mesh's facet centres moved along their normals by -10..10 mm (around the 2 mm tolerance) and points
-    scattered about the liver."""
-    P, F, vis = coarse
-    tri = P[F]
-    tol = Limits().surface_tol_mm
-    c = tri[vis].mean(axis=1)
-    n = np.cross(tri[vis, 1] - tri[vis, 0], tri[vis, 2] - tri[vis, 0])
-    n /= np.linalg.norm(n, axis=1)[:, None]
-    offsets = np.array([0.0, 1.0, 1.9, 1.99, 2.01, 2.1, 3.0, 5.0, 10.0, -1.5, -2.5, -10.0])
-    rng = np.random.default_rng(0)
-    q = np.concatenate([(c[:, None] + offsets[None, :, None] * n[:, None]).reshape(-1, 3),
-                        rng.uniform(P.min(axis=0) - 5.0, P.max(axis=0) + 5.0, size=(300, 3))])
-    fast = [nearest_on_roi(x, tri, tol) for x in q]
-    exact = [nearest_on_roi_exact(x, tri) for x in q]
-    d_fast, d_exact = np.array([d for _, d in fast]), np.array([d for _, d in exact])
-    np.testing.assert_array_equal(d_fast <= tol, d_exact <= tol)
-    refused = d_exact > tol
-    assert 0.2 < refused.mean() < 0.9
-    np.testing.assert_allclose(d_fast[refused], d_exact[refused], rtol=1e-12, atol=1e-9)
-    assert (d_fast >= d_exact - 1e-9).all()  # an upper bound where it accepts
-
-
-def test_a_point_the_nearest_centroids_miss_is_measured_over_every_triangle():
+def test_a_point_over_a_large_triangle_with_far_centroid_is_measured_to_it():
     """A point 1 mm over a large triangle whose centroid is far, with 16 small triangles 5 mm away nearer by
-    centroid: the first search alone would refuse it; the exact search over all triangles accepts it."""
+    centroid (a search of the nearest centroids' triangles would refuse it): measured to every triangle, it is
+    1 mm from the large one."""
     big = np.array([[[-500.0, -500.0, 0.0], [1500.0, -500.0, 0.0], [-500.0, 1500.0, 0.0]]])
     small = np.array([[[x, y, 6.0], [x + 1.0, y, 6.0], [x, y + 1.0, 6.0]] for x in range(-2, 2) for y in range(-2, 2)])
     tri = np.concatenate([big, small])
     p = np.array([0.2, 0.2, 1.0])
     assert closest_on_triangles(tri, p[None])[1][0] > 4.0  # the 16 nearest centroids are the small ones
-    near, d = nearest_on_roi(p, tri, Limits().surface_tol_mm)
+    near, d = nearest_on_roi(p, tri)
     assert d == pytest.approx(1.0) and np.allclose(near, [0.2, 0.2, 0.0])
 
 
