@@ -672,11 +672,14 @@ def test_one_split_and_one_unseen_liver_print_no_spread(stage_outputs):
     assert not re.search(r"±\s*0\.0*(?!\d)", html)
     head = _section(html, "id='unseen-headline'", "</p>")
     m = per["val-1000"]
-    assert f"MAE <b>{m['mae_vec']:.3f} N</b>, accuracy <b>{m['accuracy_pct']:.1f} %</b>" in head
+    assert f"MAE <b>{m['mae_vec']:.3f} N</b>, accuracy <b>{m['accuracy_pct']:.1f} %</b> (one liver); worst liver " \
+           "<code>val-1000</code> (MAE" in head
+    assert "over the 1 livers" not in html and "(1 livers)" not in html and "the band is" not in html
     models = html[html.index("<table class='models'>"):]
     rows = _rows(models[:models.index("</table>")], "model")
     assert len(rows) == 8
     for r in rows:  # scenario, variant, encoder, state vector, accuracy mean (no sd), MAE mean (no sd), splits
         assert "±" not in r[4] + r[5] and r[6] == "1", r[:7]
     foot = _rows(_section(html, "id='validation'", "id='studies'"), "livers-mean")
+    assert foot[0][0] == "the one liver"
     assert foot[0][3:] == [f"{m['mae_vec']:.3f}", f"{m['rmse_vec']:.3f}", f"{m['accuracy_pct']:.1f}"]

@@ -237,8 +237,9 @@ class Plan:
             f"{what} needs scenario IV's models (a model trained on several livers, tested on livers it never "
             f"saw), and this run trains scenarios {', '.join(self.train_scenarios()) or 'none'} only "
             "(train.scenarios without IV). Ask for the models target instead (snakemake --cores 2 models "
-            "--config ...), or keep scenario IV with at least two training livers (geometry.procedural.count "
-            ">= 2, or more than one liver in geometry.imported) for the validation and the report")
+            "--config ...), or, for the validation and the report, keep scenario IV (drop both overrides, "
+            "train.scenarios=[...] and ~sweep.scenarios.IV) with at least two training livers, procedural and "
+            "imported together (geometry.procedural.count, geometry.imported)")
 
     def train_settings(self) -> dict:
         """The ``train`` settings every training job shares: the group without ``variants`` and ``scenarios``.

@@ -804,8 +804,9 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
         f"({lv['n']} liver shapes never seen in training"
         + (f", material constants × {_fmt(scale, 2)}" if scale is not None else "") + "): MAE "
         f"<b>{_pm(lv['mean']['mae_vec'], lv['sd'].get('mae_vec'))} N</b>, accuracy "
-        f"<b>{_pm(lv['mean']['accuracy_pct'], lv['sd'].get('accuracy_pct'), 1)} %</b> (mean ± sd over the "
-        f"{lv['n']} livers); worst liver <code>{html.escape(str(worst))}</code> (MAE "
+        f"<b>{_pm(lv['mean']['accuracy_pct'], lv['sd'].get('accuracy_pct'), 1)} %</b> ("
+        + (f"mean ± sd over the {lv['n']} livers" if lv['n'] != 1 else "one liver")
+        + f"); worst liver <code>{html.escape(str(worst))}</code> (MAE "
         f"{_fmt(v['per_liver'][worst]['mae_vec'])} N). All {v['n_cases']} cases pooled: MAE "
         f"{_fmt(vm['mae_vec'])} N, accuracy {_fmt(vm['accuracy_pct'], 1)} %. The study: MAE "
         f"{_fmt(STUDY_VALIDATION_MAE_N)} N on one liver. {_small_run(v.get('run_id'))}</p>")
@@ -980,7 +981,8 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
                      _fmt(m["accuracy_pct"], 1)])
     per = _table(["liver", "volume (L)", "cases", "MAE (N)", "RMSE (N)", "accuracy %"], rows, cls="per-liver",
                  row_cls="liver")
-    foot = (f"<tr class='livers-mean'><th>mean ± sd ({n_liv} livers)</th><td></td><td>{v['n_cases']}</td>"
+    mean_row = f"mean ± sd ({n_liv} livers)" if n_liv != 1 else "the one liver"
+    foot = (f"<tr class='livers-mean'><th>{mean_row}</th><td></td><td>{v['n_cases']}</td>"
             f"<td>{_pm(lv['mean']['mae_vec'], lv['sd'].get('mae_vec'))}</td>"
             f"<td>{_pm(lv['mean']['rmse_vec'], lv['sd'].get('rmse_vec'))}</td>"
             f"<td>{_pm(lv['mean']['accuracy_pct'], lv['sd'].get('accuracy_pct'), 1)}</td></tr>"
@@ -988,7 +990,8 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
             f"<td>{_fmt(vm['mae_vec'])}</td><td>{_fmt(vm['rmse_vec'])}</td><td>{_fmt(vm['accuracy_pct'], 1)}</td></tr>")
     vfigs = validation_figures(v, out_dir / "figures")
     table = per.replace("</tbody>", "</tbody><tfoot>" + foot + "</tfoot>")
-    fig = (_figure(vfigs["per_liver"], out_dir, "MAE per unseen liver; the band is the mean ± sd over the livers, "
+    fig = (_figure(vfigs["per_liver"], out_dir, "MAE per unseen liver; " + ("the band is the mean ± sd over the "
+                   "livers, " if n_liv != 1 else "the line is its MAE, ") +
                    "the worst liver in red.", 460) if "per_liver" in vfigs else "")
     parts.append(f"<h3>Per unseen liver</h3><div class='side'>{table}{fig}</div>")
     parts.append(f"<p>Worst liver: <code>{html.escape(str(worst))}</code> (largest MAE). The study's single "

@@ -4,7 +4,8 @@
 rule validate:
     input:
         # every scenario-IV variant (validate.variant=auto picks by cross-validation score) or the one named
-        model=needs_iv("the unseen-liver validation (rule validate, which the report and the default target need)", [P.model_dir("IV", v) for v in PLAN.variants()]),
+        model=needs_iv("the unseen-liver validation (rule validate, which the report and the default target need)",
+                       [P.model_dir("IV", v) for v in PLAN.variants()]),
         metrics=[P.model_metrics("IV", v) for v in PLAN.variants()],
         manifest=P.manifest(plan.VALIDATION),
         train_manifest=P.manifest("IV"),
