@@ -392,7 +392,7 @@ class Predictor:
 
     def predict_arrays(self, arrays: dict, *, observation_seed: int | None = None, fast: bool = False,
                        min_group: int = 2, return_warnings: bool = False, registrations: list | None = None,
-                       input_frame=None):
+                       input_frame=None, entered: tuple | None = None):
         """Forces ``(n, 3)`` N for input-contract arrays (e.g. a shard), every row checked first; with
         ``return_warnings`` also each row's warnings, those :meth:`predict_cloud` gives one cloud (the context's,
         a camera cloud's, the registration's, a force beyond training's), as ``(force, warnings)``.
@@ -401,7 +401,9 @@ class Predictor:
         units and frame the user declared for the arrays (an :class:`~liverforce.serve.input_frame.InputFrame`),
         which the caller converted them from to the model's frame already (:meth:`InputFrame.arrays`): a camera
         cloud's refusal says what was declared and gives the cloud and tip back as entered, as
-        :meth:`predict_cloud` does (None: nothing declared, RAS mm).
+        :meth:`predict_cloud` does (None: nothing declared, RAS mm). ``entered``: the clouds and tips
+        (``camera_cloud_mm``, ``tool_tip_mm``, in the model's frame) before the caller's :meth:`refine_arrays`
+        moved them, given back in a refusal (default: the arrays' own, before this call's refinement).
 
         Parameters
         ----------
@@ -418,8 +420,9 @@ class Predictor:
         Camera clouds with ``unloaded_cloud_mm`` (and ``contact_tip_mm``) are registered first
         (:meth:`refine_arrays`).
         """
-        entered = ((arrays[camera.CLOUD_KEY], arrays[camera.TIP_KEY])  # before a registration moves them
-                   if camera.CLOUD_KEY in arrays and camera.TIP_KEY in arrays else None)
+        if entered is None:  # the clouds and tips before a registration moves them
+            entered = ((arrays[camera.CLOUD_KEY], arrays[camera.TIP_KEY])
+                       if camera.CLOUD_KEY in arrays and camera.TIP_KEY in arrays else None)
         arrays, fixes = self.refine_arrays(arrays)
         fixes = fixes if fixes is not None else registrations
         if self.model.representation.is_camera and "camera_cloud_mm" not in arrays:

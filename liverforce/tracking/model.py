@@ -37,6 +37,7 @@ from mlflow.models import infer_signature
 from mlflow.protos.databricks_pb2 import INVALID_PARAMETER_VALUE
 from mlflow.types import ColSpec, Schema
 
+from liverforce.learn.camera import CLOUD_KEY, TIP_KEY
 from liverforce.learn.model import ForceModel
 from liverforce.serve.errors import PredictionInputError
 from liverforce.serve.input_frame import InputFrame, is_named
@@ -135,10 +136,12 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
             except (TypeError, ValueError) as exc:  # a flattened point set not 3 k long, a non-number
                 raise PredictionInputError(f"input columns: {exc}") from None
             arrays = frame.arrays(arrays)
+            entered = ((arrays[CLOUD_KEY], arrays[TIP_KEY])  # a refusal gives them back before the registration
+                       if CLOUD_KEY in arrays and TIP_KEY in arrays else None)
             arrays, fixes = predictor.refine_arrays(arrays)  # registration refined from unloaded clouds, if given
             force, warnings = predictor.predict_arrays(arrays, observation_seed=None if seed < 0 else seed,
                                                        return_warnings=True, registrations=fixes,
-                                                       input_frame=frame)
+                                                       input_frame=frame, entered=entered)
         except PredictionInputError as exc:
             raise PyfuncInputError(str(exc)) from exc
         out = _output_frame(self.model, arrays, force, None if seed < 0 else seed, predictor, warnings)

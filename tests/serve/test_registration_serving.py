@@ -161,6 +161,14 @@ def test_the_mlflow_pyfunc_refines_rows_that_bring_their_unloaded_cloud(served, 
     assert np.linalg.norm(got[0] - honest[0]) < 0.1 and np.linalg.norm(got[2] - honest[2]) > 0.3
     with pytest.raises(PredictionInputError, match="goes with unloaded_cloud_mm"):
         predict_pyfunc(pf, {k: v for k, v in cases.items() if k != "unloaded_cloud_mm"})
+    # a refused row's tip is given back as the user sent it, not as the refined registration moved it
+    far = cases["tool_tip_mm"].copy()
+    far[0] = far[0] + 3.0 * model.representation.half_width_mm * np.asarray(cases["frame_t1"][0])
+    with pytest.raises(PredictionInputError) as exc:
+        predict_pyfunc(pf, {**cases, "tool_tip_mm": far})
+    sent = ", ".join(f"{x:.6g}" for x in far[0])
+    assert "from the exertion point along the surface" in str(exc.value) and f"[{sent}]" in str(exc.value), \
+        str(exc.value)
 
 
 def test_without_the_tip_at_contact_only_the_height_is_refined_and_a_warning_says_so(served):  # noqa: F811
