@@ -22,7 +22,6 @@ checked for a liver-like size.  What was converted is logged and recorded in
 
 from __future__ import annotations
 
-import hashlib
 import logging
 from pathlib import Path
 
@@ -31,6 +30,7 @@ import numpy as np
 from liverforce.geometry import readers
 from liverforce.geometry.errors import GeometryError, refuse
 from liverforce.geometry.frames import describe_frame, frame_matrix, to_ras
+from liverforce.geometry.readers import sha256_file  # re-exported (__all__)
 from liverforce.geometry.repair import repair_surface
 from liverforce.geometry.surface import Surface
 from liverforce.geometry.units import LIVER_EXTENT_MM, check_liver_size, guess_units, parse_units
@@ -42,15 +42,6 @@ log = logging.getLogger(__name__)
 
 SUPPORTED_SUFFIXES = (".stl", ".obj", ".ply", ".off", ".vtk", ".vtu", ".msh", ".xdmf", ".xmf", ".nii", ".nii.gz",
                       ".nrrd", ".nhdr")
-
-
-def sha256_file(path: str | Path) -> str:
-    """Hex SHA-256 of a file's bytes."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def load_surface(

@@ -188,7 +188,6 @@ def load_volume_mesh(path: str | Path, units="mm", *, frame="RAS",
     GeometryError
         See the module docstring; the message names the problem and the fix.
     """
-    from liverforce.geometry.importers import sha256_file
 
     path = Path(path)
     scale, unit_label = parse_units(units, path)
@@ -281,7 +280,7 @@ def load_volume_mesh(path: str | Path, units="mm", *, frame="RAS",
         "winding_reversed": bool(det < 0), "rigid": finfo["rigid"], "summary": summary,
     }
     meta = {
-        "source": str(path), "sha256": sha256_file(path), "format": tf.format, "units": unit_label,
+        "source": str(path), "sha256": readers.sha256_file(path), "format": tf.format, "units": unit_label,
         "scale_to_mm": float(scale), "frame": frame_label, "label": None, "repairs": list(msgs),
         "conversion": conversion, "n_nodes": int(n), "n_tets": int(len(tets)),
         "reoriented_in_file": int(inverted.sum()), "cell_types": counts, "node_numbering": "file",
