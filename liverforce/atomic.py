@@ -16,6 +16,7 @@ PosixPath('.../a.json')  # doctest: +SKIP
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
@@ -100,3 +101,13 @@ def write_json_atomic(path: str | Path, obj: Any, *, fsync: bool = False, indent
     """Write ``obj`` as key-sorted JSON to ``path`` atomically (NaN allowed, as Python's json writes it)."""
     return write_text_atomic(path, json.dumps(obj, indent=indent, sort_keys=True, allow_nan=True) + "\n",
                              fsync=fsync)
+
+
+def file_sha256(path: str | Path) -> str:
+    """Hex SHA-256 of a file's bytes: the shard manifests' and the import records' check that a file is the one
+    written or read (one helper for both)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()

@@ -19,7 +19,7 @@ import pyarrow as pa
 import pyarrow.dataset as pads
 import pyarrow.parquet as pq
 
-from liverforce.atomic import atomic_path
+from liverforce.atomic import atomic_path, file_sha256
 from liverforce.dataset.schema import (
     CASE_SCHEMA,
     NONDETERMINISTIC_COLUMNS,
@@ -110,14 +110,6 @@ def write_case_table(rows: Sequence[dict], path: str | Path, extra_meta: dict | 
 # --------------------------------------------------------------------------
 # hashing and manifest
 # --------------------------------------------------------------------------
-
-
-def file_sha256(path: str | Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def payload_sha256(table: pa.Table) -> str:

@@ -27,10 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
+from liverforce.atomic import file_sha256 as sha256_file  # re-exported (__all__)
 from liverforce.geometry import readers
 from liverforce.geometry.errors import GeometryError, refuse
 from liverforce.geometry.frames import describe_frame, frame_matrix, to_ras
-from liverforce.geometry.readers import sha256_file  # re-exported (__all__)
 from liverforce.geometry.repair import repair_surface
 from liverforce.geometry.surface import Surface
 from liverforce.geometry.units import LIVER_EXTENT_MM, check_liver_size, guess_units, parse_units

@@ -15,7 +15,6 @@ meshio's ``sys.exit`` on unknown content becomes a ``GeometryError``.
 
 from __future__ import annotations
 
-import hashlib
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,15 +22,6 @@ from pathlib import Path
 import numpy as np
 
 from liverforce.geometry.errors import refuse
-
-
-def sha256_file(path: str | Path) -> str:
-    """Hex SHA-256 of a file's bytes (the import records' and the mesh stage's check that a file is unchanged)."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 #: File suffixes read as triangle surfaces by trimesh.
 TRIMESH_SUFFIXES = (".stl", ".obj", ".ply", ".off")

@@ -40,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
+from liverforce.atomic import file_sha256
 from liverforce.geometry import readers
 from liverforce.geometry.errors import refuse
 from liverforce.geometry.frames import describe_frame, frame_matrix
@@ -280,7 +281,7 @@ def load_volume_mesh(path: str | Path, units="mm", *, frame="RAS",
         "winding_reversed": bool(det < 0), "rigid": finfo["rigid"], "summary": summary,
     }
     meta = {
-        "source": str(path), "sha256": readers.sha256_file(path), "format": tf.format, "units": unit_label,
+        "source": str(path), "sha256": file_sha256(path), "format": tf.format, "units": unit_label,
         "scale_to_mm": float(scale), "frame": frame_label, "label": None, "repairs": list(msgs),
         "conversion": conversion, "n_nodes": int(n), "n_tets": int(len(tets)),
         "reoriented_in_file": int(inverted.sum()), "cell_types": counts, "node_numbering": "file",
