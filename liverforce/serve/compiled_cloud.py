@@ -98,7 +98,7 @@ from liverforce.learn.encoders import PCAEncoder
 from liverforce.learn.state import THICKNESS_COLUMN, compliance_matrices, state_vector
 from liverforce.serve.checks import Limits, TrainingScale, force_warnings, outside_training
 from liverforce.serve.cloud import (MASKED_INSTRUMENT, SHAFT_MARGIN_MM, SHAFT_POINTS, SHAFT_RING_MM, SHAFT_RISE_MM,
-                                    camera_checks, far_tip, few_points, instrument_check_radius, instrument_refusal,
+                                    camera_checks, check_camera_cloud, instrument_check_radius, instrument_refusal,
                                     metres_cloud, noisy_cloud, noisy_threshold_mm, outlier_cloud, registration_warnings,
                                     tip_off_grid, tool_tip_of)
 from liverforce.serve.compiled import numpy_layers, regressor_head
@@ -1662,28 +1662,19 @@ class CompiledCloud:
         return None
 
     def _refusal(self, O: np.ndarray, tip: np.ndarray, n_used: int, n_shaft: int) -> str | None:
-        """The reference path's message (``liverforce.serve.cloud._camera_arrays``, ``preop._points``); the cloud
-        ``O`` and ``tip`` as given, distances in the model's frame (mm)."""
+        """The reference path's message, from its own checks in its order (``preop._points``,
+        :func:`~liverforce.serve.cloud.check_camera_cloud`, then the instrument); the cloud ``O`` and ``tip`` as
+        given, ``n_used`` the kernel's count of points over the grid."""
         why = self._tip_refusal(tip)
         if why:
             return why
-        given = (O, tip)
-        O, tip = self._model(O), self._model(tip)
-        if len(O) == 0:
-            return "cloud: 0 points; at least 1 are needed (the cloud is empty)"
-        bad = ~np.isfinite(O).all(axis=1)
-        if bad.any():
-            return (f"cloud: {int(bad.sum())} of {len(O)} points contain NaN or inf (first at row "
-                    f"{int(np.argmax(bad))}); drop invalid points (e.g. missing depth) before predicting")
-        metres = metres_cloud(O, self.half_width_mm, self.limits.min_cloud_points, self._said)
-        if metres:
-            return metres
-        if n_used < self.limits.min_cloud_points:
-            return few_points(O, self.p, n_used, self.half_width_mm, self.limits.min_cloud_points, self._said,
-                              as_entered(self._converted_from, given[0]))
-        if tip_off_grid(tip, self.p, self.R, self.half_width_mm)[0]:
-            return far_tip(tip, self.half_width_mm, self.p, self.R, as_entered(self._converted_from, given[1]),
-                           self._said)
+        try:
+            _points("cloud", O, min_points=1)  # an empty cloud, NaN / inf points
+            check_camera_cloud(self.model.representation, self._model(O), self._model(tip), self.p, self.R,
+                               self.limits, self._said, n_used=n_used,
+                               entered=(as_entered(self._converted_from, O), as_entered(self._converted_from, tip)))
+        except PredictionInputError as exc:
+            return str(exc)
         if n_shaft >= SHAFT_POINTS:  # (counted for models trained without the instrument only)
             return instrument_refusal(n_shaft, self._shaft_tool_mm)
         return None
