@@ -299,7 +299,7 @@ class TrackingConfig:
 @dataclass
 class PhysicsConfig:
     enabled: bool = MISSING  # the physics study (liverforce.pipeline.physics): off -> no rule, no report section
-    liver: int = MISSING  # which unseen liver (index among validate.livers)
+    liver: int = MISSING  # which unseen liver (index among the procedural ones, then validate.imported)
     n_cases: int = MISSING  # its first cases, simulated again under each changed choice
     foundation_scale: list[float] = MISSING  # both foundations' stiffness x each
     tangential_ratio: list[float] = MISSING  # k_t / k_n values
@@ -313,7 +313,8 @@ class PhysicsConfig:
 @dataclass
 class ValidateConfig:
     seed: int = MISSING  # unseen liver i has the procedural seed seed + i
-    livers: int = MISSING  # unseen livers
+    livers: int = MISSING  # unseen procedural livers
+    imported: list[str] = MISSING  # names of geometry.imported livers held out of training: unseen livers too
     n_cases: int = MISSING  # cases per unseen liver
     material_scale: float = MISSING
     variant: str = MISSING  # auto: lowest CV MAE (N) on the training livers | main: the first variant | a name
@@ -698,6 +699,7 @@ def _check_ranges(cfg: dict, run: bool = True) -> None:
     g = cfg["geometry"]
     if g["procedural"]["count"] < 1 and not g["imported"]:
         _fail("geometry.procedural.count", "needs at least one geometry", "set count >= 1 or list imported livers")
+    _check_held_out(cfg)
     try:
         from liverforce.geometry.procedural import LiverShapeParams
 
@@ -917,11 +919,15 @@ def _check_ranges(cfg: dict, run: bool = True) -> None:
     v = cfg["validate"]
     if v["n_cases"] < 1:
         _fail("validate.n_cases", "must be >= 1")
-    if v["livers"] < 1:
-        _fail("validate.livers", "must be >= 1")
+    n_unseen = v["livers"] + len(v["imported"])
+    if v["livers"] < 0 or n_unseen < 1:
+        _fail("validate.livers", f"needs at least one unseen liver (got validate.livers={v['livers']} and "
+              f"{len(v['imported'])} imported livers held out)",
+              "set validate.livers >= 1, or hold out an imported liver: validate.imported=[<its name>]")
     ph = v["physics"]
-    if not 0 <= ph["liver"] < v["livers"]:
-        _fail("validate.physics.liver", f"must index an unseen liver, 0 .. {v['livers'] - 1} (got {ph['liver']})")
+    if not 0 <= ph["liver"] < n_unseen:
+        _fail("validate.physics.liver", f"must index an unseen liver, 0 .. {n_unseen - 1} (the {v['livers']} "
+              f"procedural ones, then validate.imported) (got {ph['liver']})")
     if ph["n_cases"] < 1 or ph["n_cases"] > v["n_cases"]:
         _fail("validate.physics.n_cases", f"must be 1 .. validate.n_cases ({v['n_cases']}) (got {ph['n_cases']})")
     if any(not f > 0 for f in ph["foundation_scale"]) or any(r < 0 for r in ph["tangential_ratio"]):
@@ -1047,6 +1053,30 @@ def _fmt_list(items) -> str:
     return "[" + ",".join(items) + "]"
 
 
+def held_out(cfg: dict) -> list[str]:
+    """The names of the imported livers held out of training (``validate.imported``): unseen livers, validated
+    beside the procedural ones (an old config without the key: none)."""
+    return [str(n) for n in (cfg["validate"].get("imported") or [])]
+
+
+def _check_held_out(cfg: dict) -> None:
+    """``validate.imported`` names imported livers, each once, and leaves at least one liver to train on."""
+    g = cfg["geometry"]
+    names = [imp["name"] for imp in g["imported"]]
+    held = held_out(cfg)
+    for i, name in enumerate(held):
+        if name not in names:
+            _fail(f"validate.imported[{i}]", f"'{name}' names no liver of geometry.imported "
+                  f"({', '.join(names) if names else 'none is imported'})",
+                  "give the name of an imported liver to hold it out of training as an unseen liver")
+        if name in held[:i]:
+            _fail(f"validate.imported[{i}]", f"'{name}' is listed twice", "list each held-out liver once")
+    if g["procedural"]["count"] < 1 and not g["cube"]["enabled"] and len(held) == len(names):
+        _fail("validate.imported", f"holds out every imported liver ({', '.join(names)}) and no procedural liver is "
+              "left to train on (geometry.procedural.count=0)",
+              "keep at least one imported liver for training, or set geometry.procedural.count >= 1")
+
+
 def _check_grouped_livers(cfg: dict) -> None:
     """A scenario split by liver (IV, :data:`liverforce.learn.splits.GROUPED_SCENARIOS`) needs 2 training livers.
 
@@ -1057,7 +1087,9 @@ def _check_grouped_livers(cfg: dict) -> None:
     from liverforce.learn.splits import GROUPED_SCENARIOS
 
     g, s, t = cfg["geometry"], cfg["sweep"], cfg["train"]
-    n_proc, n_imp, cube = g["procedural"]["count"], len(g["imported"]), bool(g["cube"]["enabled"])
+    held = held_out(cfg)
+    training = [imp for imp in g["imported"] if imp["name"] not in held]  # the held-out ones are unseen livers
+    n_proc, n_imp, cube = g["procedural"]["count"], len(training), bool(g["cube"]["enabled"])
     n_train = n_proc + n_imp + int(cube)
     for sc in GROUPED_SCENARIOS:
         spec = s["scenarios"].get(sc)
@@ -1075,8 +1107,9 @@ def _check_grouped_livers(cfg: dict) -> None:
         if n_livers >= 2:
             continue
         have = [f"geometry.procedural.count={n_proc}",
-                f"geometry.imported: {n_imp} liver{'s' * (n_imp != 1)}"
-                + (f" ({', '.join('imp-' + imp['name'] for imp in g['imported'])})" if n_imp else "")]
+                f"geometry.imported: {n_imp} liver{'s' * (n_imp != 1)}" + (" to train on" if held else "")
+                + (f" ({', '.join('imp-' + imp['name'] for imp in training)})" if n_imp else "")
+                + (f" and {len(held)} held out as unseen (validate.imported: {', '.join(held)})" if held else "")]
         if cube:
             have.append("geometry.cube.enabled=true")
         needed_by = ["the validation on the unseen livers (target validate)"]

@@ -16,12 +16,15 @@ Geometry ids
 ``imp-<name>``       an imported liver
 ``val-<seed:04d>``   an unseen validation liver (procedural, held-out seeds ``validate.seed + i``)
 
+An imported liver named in ``validate.imported`` is held out of training: it is
+an unseen liver of the validation (after the procedural ones), not a training one.
+
 Scenarios I–III (``sweep.scenarios.<s>.geometries: 1``) use one liver
 (:attr:`Plan.single_geometry`): the first imported liver when the lab brings
 any (``geometry.imported[0]``), else the first training geometry (``proc-0000``
 of the embedded default). IV (``geometries: all``) uses every training geometry,
 and the validation scenario ``V`` the unseen livers
-(``validate.livers`` of them, ``validate.n_cases`` cases each).
+(``validate.livers`` of them and the held-out imported ones, ``validate.n_cases`` cases each).
 :meth:`Plan.scenario_livers` says which livers each scenario uses; the sweep
 params and the case table's metadata record them (``geometries``).
 """
@@ -34,7 +37,7 @@ import re
 from pathlib import Path
 
 from liverforce import layout
-from liverforce.config import SCENARIOS, ConfigError, results_root, variant_model
+from liverforce.config import SCENARIOS, ConfigError, held_out, results_root, variant_model
 from liverforce.seeds import derive, liver_seeds
 from liverforce.sweep.design import n_shards
 
@@ -69,15 +72,20 @@ class Plan:
         self.train_geometries: list[str] = [
             f"proc-{s:04d}" for s in liver_seeds(g["procedural"]["seed"], g["procedural"]["count"])
         ]
-        self.train_geometries += [f"imp-{imp['name']}" for imp in g["imported"]]
+        #: the imported livers held out of training (``validate.imported``): unseen livers of the validation
+        self.held_out: list[str] = [f"imp-{name}" for name in held_out(cfg)]
+        imported = [f"imp-{imp['name']}" for imp in g["imported"]]
+        self.train_geometries += [gid for gid in imported if gid not in self.held_out]
         if g["cube"]["enabled"]:
             self.train_geometries.append("cube")
-        #: the liver of the single-liver scenarios (I-III): a lab's own liver when it brings one, for the
-        #: procedural ones come first in :attr:`train_geometries` (whose order IV and the seeds keep)
-        self.single_geometry: str = (f"imp-{g['imported'][0]['name']}" if g["imported"]
-                                     else self.train_geometries[0])
+        #: the liver of the single-liver scenarios (I-III): a lab's own (training) liver when it brings one, for
+        #: the procedural ones come first in :attr:`train_geometries` (whose order IV and the seeds keep)
+        self.single_geometry: str = next((gid for gid in imported if gid not in self.held_out),
+                                         self.train_geometries[0])
         v = cfg["validate"]
+        #: the unseen livers: the procedural ones (held-out seeds), then the held-out imported ones
         self.validation_geometries: list[str] = [f"val-{s:04d}" for s in liver_seeds(v["seed"], v["livers"])]
+        self.validation_geometries += self.held_out
         self.scenarios = [s for s in SCENARIOS if s in cfg["sweep"]["scenarios"]]
         if g["imported"]:
             log.info("livers per scenario (I-III on the first imported liver, %s): %s", self.single_geometry,
@@ -172,8 +180,8 @@ class Plan:
         """The geometry ids each scenario of this run simulates (the training scenarios, then ``V``).
 
         With an imported liver the single-liver scenarios (I-III) are on the lab's
-        liver (``geometry.imported[0]``), not on ``proc-0000``; the procedural livers
-        serve IV and the unseen livers the validation.
+        liver (the first of ``geometry.imported`` not held out), not on ``proc-0000``; the
+        procedural livers serve IV and the unseen livers (with ``validate.imported``) the validation.
         """
         return {s: self.scenario_geometries(s) for s in self.all_scenarios()}
 
@@ -181,8 +189,8 @@ class Plan:
     def scenario_spec(self, scenario: str) -> dict:
         if scenario == VALIDATION:
             v = self.cfg["validate"]
-            return {"n_cases": v["n_cases"] * v["livers"], "geometries": "all", "exertion": "varies",
-                    "material": "fixed"}
+            return {"n_cases": v["n_cases"] * len(self.validation_geometries), "geometries": "all",
+                    "exertion": "varies", "material": "fixed"}
         return dict(self.cfg["sweep"]["scenarios"][scenario])
 
     def sweep_params(self, scenario: str) -> dict:

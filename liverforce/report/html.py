@@ -151,6 +151,19 @@ def _figure(src: str | Path, out_dir: Path, caption: str = "", width: int = 420)
 # --------------------------------------------------------------------------
 
 
+def _unseen_kinds(unseen) -> str:
+    """The unseen livers in words: the procedural ones (``val-…``, held-out seeds) and a lab's own livers held
+    out of training (``validate.imported``, named)."""
+    ids = sorted(str(g) for g in unseen)
+    proc = [g for g in ids if g.startswith("val-")]
+    own = [g for g in ids if not g.startswith("val-")]
+    words = [f"{len(proc)} procedural, <code>val-…</code>, held-out seeds"] if proc else []
+    if own:
+        words.append(f"{len(own)} imported and held out of training: "
+                     + ", ".join(f"<code>{html.escape(g)}</code>" for g in own))
+    return "; ".join(words) or "none"
+
+
 def _spread(sd: dict | None, n) -> dict:
     """The sds of a summary over ``n`` splits or livers: none (``{}``, so no ± is printed) for fewer than two (the
     records give 0.0 for one: not a spread of zero but none measured); as recorded when the count is unknown."""
@@ -822,8 +835,8 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
     n_train = sum(g["id"] not in unseen for g in data["geometries"])
     parts.append(f"<h3>Livers</h3><p>Procedural livers (seeded) or imported segmentations, meshed with "
                  f"tetrahedra: {n_train} training livers (scenario IV; scenarios I–III use one of them, "
-                 f"<code>{html.escape(str(first))}</code>) and {len(unseen)} unseen livers (<code>val-…</code>, "
-                 f"held-out seeds, validation only).</p>")
+                 f"<code>{html.escape(str(first))}</code>) and {len(unseen)} unseen livers ({_unseen_kinds(unseen)}, "
+                 "validation only).</p>")
     if population_png:
         vr = pop.get("volume_range_l")
         parts.append("<figure class='population'>" + f"<img src='{_rel(population_png, out_dir)}' "
@@ -967,7 +980,8 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
     why = v.get("variant_choice")
     n_liv = lv["n"]
     parts.append(f"<p>A scenario-IV model predicts every case simulated on {n_liv} liver shapes it never saw in "
-                 "training (held-out seeds; no seed, geometry or case shared with training), with material "
+                 f"training ({_unseen_kinds(v['per_liver'])}; no seed, geometry or case shared with training), "
+                 "with material "
                  "constants outside the training range"
                  + (f": variant <code>{html.escape(str(chosen))}</code>, chosen by {html.escape(str(why))}"
                     if chosen else "") + ". Each liver weighs the same in the mean ± sd (sample sd over the "
