@@ -25,7 +25,7 @@ Every path method's arguments default to the Snakemake wildcard of the same
 name, so ``Layout(root).mesh()`` is the rule pattern
 ``<root>/mesh/{gid}.vtu`` and ``Layout(root).mesh("proc-0000")`` one file.
 Module-level functions read the names back from a path
-(:func:`gid_of`, :func:`scenario_of_manifest`, :func:`model_of_metrics`) or
+(:func:`gid_of`, :func:`scenario_of_manifest`, :func:`root_of_manifest`, :func:`model_of_metrics`) or
 name a file beside another (:func:`features_of_mesh`, :func:`progress_of_shard`).
 
 MLflow experiments (:func:`experiment_name`): ``<prefix>-<experiment>-<scenario>``
@@ -39,6 +39,7 @@ from pathlib import Path
 
 __all__ = [
     "Layout", "experiment_name", "shard_id", "case_id", "scenario_of_case", "gid_of", "scenario_of_manifest",
+    "root_of_manifest",
     "model_of_metrics", "features_of_mesh", "surface_meta_of", "surface_meta_of_mesh", "progress_of_shard",
     "study_picture_of",
     "physics_variant_files",
@@ -170,6 +171,16 @@ def gid_of(path: str | Path) -> str:
 def scenario_of_manifest(path: str | Path) -> str:
     """The scenario of a shard manifest or a shard (``shards/<scenario>/...``)."""
     return Path(path).parent.name
+
+
+def root_of_manifest(path: str | Path) -> Path:
+    """The results root (``<results_dir>/<experiment>``) of a shard manifest
+    (``<root>/shards/<scenario>/manifest.json``) or a shard beside it; ``ValueError`` for a file outside a results
+    layout's ``shards/`` folder."""
+    p = Path(path)
+    if p.parent.parent.name != "shards":
+        raise ValueError(f"{path}: not in a results layout's shards/<scenario>/ folder")
+    return p.parent.parent.parent
 
 
 def model_of_metrics(path: str | Path) -> tuple[str, str]:

@@ -50,6 +50,10 @@ def test_names_read_back_from_paths():
     assert str(layout.features_of_mesh(p.mesh("proc-0001"))) == p.features("proc-0001")
     assert str(layout.surface_meta_of(p.surface("proc-0001"))) == p.surface_meta("proc-0001")
     assert layout.scenario_of_manifest(p.manifest("III")) == "III"
+    assert str(layout.root_of_manifest(p.manifest("III"))) == "/abs/results/x"
+    assert str(layout.root_of_manifest(p.shard("III", 2))) == "/abs/results/x"
+    with pytest.raises(ValueError, match="not in a results layout's shards/<scenario>/ folder"):
+        layout.root_of_manifest("/abs/elsewhere/manifest.json")
     assert layout.model_of_metrics(p.model_metrics("IV", "ae_sv")) == ("IV", "ae_sv")
     assert str(layout.progress_of_shard(p.shard("II", 7))) == p.progress("II", 7)
     assert str(layout.study_picture_of(p.study("noise"))) == p.study_picture("noise")
