@@ -82,6 +82,8 @@ from liverforce.learn.model import (
     view_seeds,
 )
 from liverforce.learn.plots import evaluation_figures
+from liverforce.learn.provenance import ARTIFACT as PROVENANCE_ARTIFACT
+from liverforce.learn.provenance import provenance_params, provenance_tags
 from liverforce.learn.regressor import fit_params, gp_code_members
 from liverforce.learn.representation import representation_from_config
 from liverforce.learn.splits import cv_folds, group_key, train_test_split
@@ -223,6 +225,7 @@ def train_scenario(
     out_dir: str | Path,
     tags: dict | None = None,
     model_meta: dict | None = None,
+    provenance: dict | None = None,
     calibrate_folds: tuple[int, ...] = (),
 ) -> dict:
     """Train and evaluate one scenario + variant; returns the result dict (the pipeline writes ``metrics.json``).
@@ -249,6 +252,15 @@ def train_scenario(
         Output folder.
     tags : dict, optional
         Run tags, e.g. ``{"rule": "train", "config_hash": ..., "data_version": ...}``.
+    model_meta : dict, optional
+        Entries of the saved model's ``meta`` (e.g. ROI fraction, frame radius for serving); also run params
+        (``model._meta.*``).
+    provenance : dict, optional
+        What the model was trained on: the livers and the material
+        (:func:`liverforce.pipeline.provenance.training_provenance`). Saved as the model's
+        ``meta["provenance"]``; the run gets its searchable tags and params
+        (:func:`liverforce.learn.provenance.provenance_tags`, :func:`~liverforce.learn.provenance.provenance_params`)
+        and the whole record as the artifact ``training_provenance.json``.
     calibrate_folds : tuple of int
         Without ``train.final_fit`` only (an experiment's): the split model's calibration predictions again with
         each of these cross-conformal fold counts, written to ``out_dir/interval_calibration_folds{k}.npz``
@@ -262,9 +274,10 @@ def train_scenario(
     """
     t_start = time.perf_counter()
     configure_torch(threads)
-    if model_meta:
-        # provenance stored in the model bundle (e.g. ROI fraction, frame radius for serving)
-        model_cfg = {**model_cfg, "_meta": dict(model_meta)}
+    if model_meta or provenance:
+        # stored in the model bundle (e.g. ROI fraction, frame radius for serving; the training livers)
+        meta = {**(model_meta or {}), **({"provenance": provenance} if provenance else {})}
+        model_cfg = {**model_cfg, "_meta": meta}
     seed = int(train_cfg.get("seed", 0) if seed is None else seed)
     out_dir = Path(out_dir)
     if calibrate_folds and (train_cfg.get("final_fit") or not (train_cfg.get("interval") or {}).get("coverage")):
@@ -288,17 +301,24 @@ def train_scenario(
     run_tags = {"scenario": scenario, "variant": variant, "config_hash": config_hash(
         {"model": {k: v for k, v in model_cfg.items() if k != "_meta"}, "train": train_cfg, "tune": tune_cfg})}
     run_tags.update({k: str(v) for k, v in (tags or {}).items()})
+    run_tags.update(provenance_tags(provenance))
     run_id = None
     if tracker is not None:
+        logged_cfg = dict(model_cfg)
+        if "_meta" in logged_cfg:  # the provenance record goes to the run as its own params and artifact
+            logged_cfg["_meta"] = {k: v for k, v in logged_cfg["_meta"].items() if k != "provenance"}
         params = {
-            **_flatten("model", model_cfg), **_flatten("train", train_cfg), **_flatten("tune", tune_cfg),
+            **_flatten("model", logged_cfg), **_flatten("train", train_cfg), **_flatten("tune", tune_cfg),
             "scenario": scenario, "variant": variant, "seed": seed, "threads": threads,
             "n_cases": n, "n_train": len(tr), "n_test": len(te), "split_by": group_key(scenario),
             "grid_half_width_mm": rep.half_width_mm, "roi_features": rep.features,
             "encoder_code_size": code_size,  # the PCA GP ensemble's largest member, else model.code_size
+            **provenance_params(provenance),
         }
         run_id = tracker.start_run(f"{scenario}-{variant}", params=params, tags=run_tags)
     try:
+        if tracker is not None and provenance:
+            tracker.log_dict(run_id, provenance, PROVENANCE_ARTIFACT)
         with threadpool_limits(limits=int(threads)):  # BLAS (SVD, scipy) as well as torch
             result = _train(
             tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_cfg, train_cfg, tune_cfg,

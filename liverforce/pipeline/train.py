@@ -10,6 +10,7 @@ import numpy as np
 
 from liverforce.atomic import write_json_atomic
 from liverforce.dataset import io as dio
+from liverforce.pipeline.provenance import training_provenance
 from liverforce.pipeline.shared import camera_arrays, load_study_arrays, surface_graphs
 
 log = logging.getLogger("liverforce")
@@ -32,8 +33,13 @@ def train_model(manifest_path, scenario: str, variant: str, model_cfg: dict, tra
     re-grown at that area fraction from the stored full-surface displacements
     (``mesh_paths``: the scenario's meshes) and the model is trained and saved
     for that fraction.
+
+    The model and its run record what it was trained on (``meta["provenance"]``: each liver's origin, the
+    material as configured), read from the results layout the manifest sits in
+    (:func:`liverforce.pipeline.provenance.training_provenance`); what is missing there is recorded as unknown.
     """
     from liverforce.config import config_hash
+    from liverforce.learn.provenance import provenance_lines
     from liverforce.learn.train import clear_outputs, train_scenario
     from liverforce.tracking import Tracker
 
@@ -89,9 +95,13 @@ def train_model(manifest_path, scenario: str, variant: str, model_cfg: dict, tra
         model_meta["probe"] = {"reference": shard_meta["probe"], "boundary": shard_meta["boundary"],
                                "simulate": shard_meta["simulate"],
                                "tool_radius_mm": float(shard_meta["simulate"]["tool_radius_mm"])}
+    # what it was trained on, from the geometry records and the case table the earlier stages wrote
+    provenance = training_provenance(manifest_path, arrays["geometry_id"], shard_meta)
+    for line in provenance_lines(provenance):
+        log.info("scenario %s / %s: trained on %s", scenario, variant, line)
     result = train_scenario(arrays, model_cfg, train_cfg, tune_cfg, scenario, variant, tracker=tracker,
                             threads=threads, seed=seed, out_dir=out_dir, tags=tags,
-                            model_meta=model_meta)
+                            model_meta=model_meta, provenance=provenance)
     result.update(encoder=model_cfg["encoder"], state_vector=bool(model_cfg["state_vector"]), model_cfg=model_cfg)
     write_json_atomic(metrics_path, result)
     log.info("scenario %s / %s: test %s", scenario, variant,

@@ -36,6 +36,7 @@ import numpy as np
 
 from liverforce.learn import camera
 from liverforce.learn.model import ForceModel, ModelFormatError
+from liverforce.learn.provenance import provenance_lines
 from liverforce.serve.checks import (Limits, TrainingScale, check_case, check_on_surface, force_warnings,
                                      outside_training)
 from liverforce.serve.cloud import (camera_checks, check_camera_cloud, check_instrument, cloud_support, cloud_warnings,
@@ -516,7 +517,9 @@ class Predictor:
 
     # ------------------------------------------------------------------ info
     def describe(self) -> dict:
-        """What the model needs and how it was trained (JSON-ready)."""
+        """What the model needs and how it was trained (JSON-ready); ``trained_on``: one line per training liver
+        (its file, SHA-256 prefix, units and frame, or procedural with its seed) and the material's
+        (:func:`liverforce.learn.provenance.provenance_lines`)."""
         m = self.model
         return {
             "source": self.source,
@@ -533,6 +536,7 @@ class Predictor:
             "scenario": m.meta.get("scenario"),
             "variant": m.meta.get("variant"),
             "test_metrics": m.meta.get("test_metrics"),
+            "trained_on": provenance_lines(m.meta.get("provenance")),
         }
 
     def command_line(self) -> list[str]:

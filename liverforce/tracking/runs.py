@@ -162,6 +162,10 @@ class Tracker:
     def log_artifacts(self, run_id: str, local_dir: str | Path, artifact_path: str | None = None) -> None:
         self._call(self.client.log_artifacts, run_id, str(local_dir), artifact_path)
 
+    def log_dict(self, run_id: str, obj: dict, artifact_file: str) -> None:
+        """``obj`` as the JSON artifact ``artifact_file`` (e.g. ``training_provenance.json``) of run ``run_id``."""
+        self._call(self.client.log_dict, run_id, obj, artifact_file)
+
     def log_force_model(self, run_id: str, model_dir: str | Path, example_arrays: dict) -> str:
         """Log the bundle as an MLflow pyfunc model of run ``run_id`` (signature + input example).
 
