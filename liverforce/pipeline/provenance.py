@@ -77,7 +77,8 @@ def training_provenance(manifest_path: str | Path, geometry_ids, shard_meta: dic
 def liver_record(gid: str, record_path: str | Path) -> dict:
     """Where one liver came from, from the geometry stage's record ``record_path`` (``geometry/<gid>.json``).
 
-    ``kind`` is ``imported`` (``name``, ``file``, ``path`` as given, ``sha256`` of the file, ``format``,
+    ``kind`` is ``imported`` (``name``, ``file`` (its name: no folder leaves the lab), ``sha256`` of the file,
+    ``format``,
     ``units`` (as read; ``units_declared``: as configured, e.g. ``auto``), ``scale_to_mm``, ``frame`` (as
     given: ``RAS``, ``LPS`` or ``matrix``), ``converted`` (the conversion to RAS mm in words), ``conversion``
     (the record's, matrices included), ``mesh_mode``, ``label`` / ``segment`` of a label volume),
@@ -96,12 +97,14 @@ def liver_record(gid: str, record_path: str | Path) -> dict:
         return _unknown(gid, f"geometry record {record_path} is not a JSON object")
     spec = rec.get("spec") if isinstance(rec.get("spec"), dict) else {}
     kind = spec.get("kind") or {"procedural": "procedural", "cube_phantom": "cube"}.get(rec.get("source"))
-    out = {"geometry_id": gid, "kind": kind or "unknown", "record": str(record_path)}
+    # the record by its place in the results layout, and an imported file by its name and hash: a model travels,
+    # and the lab's folder names (a patient's name in them, say) stay on its machine
+    out = {"geometry_id": gid, "kind": kind or "unknown", "record": f"{record_path.parent.name}/{record_path.name}"}
     if kind == "imported":
         source = rec.get("source")
         conversion = rec.get("conversion") or {}
         out.update(
-            name=spec.get("name"), file=Path(source).name if source else None, path=source,
+            name=spec.get("name"), file=Path(source).name if source else None,
             sha256=rec.get("sha256"), format=rec.get("format"), units=rec.get("units"),
             units_declared=spec.get("units"), scale_to_mm=rec.get("scale_to_mm"), frame=rec.get("frame"),
             converted=conversion.get("summary"), conversion=conversion or None, mesh_mode=rec.get("mesh_mode"),
