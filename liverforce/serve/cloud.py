@@ -317,20 +317,22 @@ def far_tip(tip, half_width_mm: float, p: np.ndarray, R: np.ndarray, tip_given, 
 
 
 def check_camera_cloud(rep, O: np.ndarray, tip: np.ndarray, p: np.ndarray, R: np.ndarray, limits: Limits,
-                       frame=None, given=None, *, n_used: int | None = None, entered: tuple | None = None) -> int:
+                       frame=None, given=None, *, n_used: int | None = None, entered=None) -> int:
     """The refusals of one camera cloud ``O`` (finite points, model frame, mm) with the tool tip ``tip`` at the
     exertion point ``p`` (local ``rotation`` R) for a camera model ``rep``, in their order: a cloud in metres read
     as mm (:func:`metres_cloud`), too few points over the model's grid (:func:`few_points`), a tip off the grid
     (:func:`tip_off_grid`, :func:`far_tip`); returns the points over the grid. ``frame``: the units and frame
     declared (None: none); ``given``: the cloud and the tip in the model's frame before a registration moved
-    them (default ``(O, tip)``), given back as entered in a refusal; ``entered``: the cloud and the tip as the
-    user entered them, when the caller holds them (default: ``given`` converted back, :func:`as_entered`);
+    them (default ``(O, tip)``), given back as entered in a refusal; ``entered``: a function giving the cloud and
+    the tip as the user entered them, when the caller holds them (default: ``given`` converted back,
+    :func:`as_entered`; only a refusal calls it);
     ``n_used``: the points over the grid when the caller counted them already (the compiled kernel does).
     The one order and wording of every path: the reference ones (``Predictor.predict_cloud``,
     ``predict_arrays``, the MLflow pyfunc) and the compiled one (``CompiledCloud._refusal``)."""
     given = (O, tip) if given is None else given
     if entered is None:
-        entered = (as_entered(frame, given[0]), as_entered(frame, given[1]))
+        def entered():
+            return as_entered(frame, given[0]), as_entered(frame, given[1])
     metres = metres_cloud(O, rep.half_width_mm, limits.min_cloud_points, frame)
     if metres:
         raise PredictionInputError(metres)
@@ -340,9 +342,9 @@ def check_camera_cloud(rep, O: np.ndarray, tip: np.ndarray, p: np.ndarray, R: np
         n_used = int((np.abs(O_loc[:, :2]) <= reach).all(axis=1).sum())
     if n_used < limits.min_cloud_points:
         raise PredictionInputError(few_points(O, p, n_used, rep.half_width_mm, limits.min_cloud_points, frame,
-                                              entered[0]))
+                                              entered()[0]))
     if tip_off_grid(tip, p, R, rep.half_width_mm)[0]:
-        raise PredictionInputError(far_tip(tip, rep.half_width_mm, p, R, entered[1], frame))
+        raise PredictionInputError(far_tip(tip, rep.half_width_mm, p, R, entered()[1], frame))
     return int(n_used)
 
 

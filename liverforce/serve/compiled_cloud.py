@@ -1669,10 +1669,11 @@ class CompiledCloud:
         if why:
             return why
         try:
-            _points("cloud", O, min_points=1)  # an empty cloud, NaN / inf points
-            check_camera_cloud(self.model.representation, self._model(O), self._model(tip), self.p, self.R,
+            O_model = _points("cloud", self._model(O), min_points=1)  # empty; NaN / inf in the model's frame
+            check_camera_cloud(self.model.representation, O_model, self._model(tip), self.p, self.R,
                                self.limits, self._said, n_used=n_used,
-                               entered=(as_entered(self._converted_from, O), as_entered(self._converted_from, tip)))
+                               entered=lambda: (as_entered(self._converted_from, O),
+                                                as_entered(self._converted_from, tip)))
         except PredictionInputError as exc:
             return str(exc)
         if n_shaft >= SHAFT_POINTS:  # (counted for models trained without the instrument only)

@@ -659,6 +659,27 @@ def test_refusals_give_the_tip_and_cloud_back_as_entered_on_every_path(served):
     assert pred.compile_cloud(ctx).predict_batch([cloud], (tip / 1000.0)[None]).refused == [why]
 
 
+def test_a_point_finite_as_given_but_not_in_the_models_frame_is_refused_on_both_paths(served):
+    """A cloud point of 1e306 m is finite as given and infinite in mm: the reference path converts first, then
+    refuses the point; the compiled path, which reads clouds in the lab's frame, refuses it in the same words."""
+    from liverforce.serve.input_frame import InputFrame
+
+    path, model, a = served
+    pred = Predictor.from_dir(path)
+    ctx, cloud, tip = _case(a, 4)
+    fr = InputFrame.resolve("LPS", "m")
+    cloud_in, tip_in = fr.points_out(cloud), fr.points_out(tip)
+    bad = np.vstack([cloud_in, [[1e306, 0.0, 0.0]]])
+    assert np.isfinite(bad).all()
+    with np.errstate(over="ignore", invalid="ignore"), pytest.raises(PredictionInputError) as exc:
+        pred.predict_cloud(fr.points(bad), ctx, tool_tip_mm=fr.points(tip_in), input_frame=fr)
+    why = str(exc.value)
+    assert why.startswith(f"cloud: 1 of {len(bad)} points contain NaN or inf (first at row {len(cloud)})"), why
+    with np.errstate(over="ignore", invalid="ignore"):
+        got = pred.compile_cloud(ctx, frame=fr).predict_batch([bad], tip_in[None])
+    assert got.refused == [why] and not np.isfinite(got.force).any()
+
+
 def test_a_deep_press_along_the_normal_keeps_the_tip_over_the_grid(served):
     """The grid sees the tool while its tip lies within the grid's half-width along the surface: a press deeper
     than the half-width along the normal (the hardest presses of the default data move the tip 20-30 mm along
