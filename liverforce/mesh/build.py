@@ -225,6 +225,7 @@ def build_liver_mesh(
     else:
         region, visible = tag_regions(points, facets, params)
         region_source = "mesh facets"
+    held = None if owner is None else _support_owner(points, facets, region, surface, s_region, owner)
     empty = [name for name, code in REGION_CODES.items() if code and not (region == code).any()]
     if not visible.any():
         empty.append("visible")
@@ -256,7 +257,7 @@ def build_liver_mesh(
         "empty_regions": empty,
         "units": "mm",
     }
-    return LiverMesh(points, tets, facets, region, visible, meta)
+    return LiverMesh(points, tets, facets, region, visible, meta, facet_support=held)
 
 
 def _surface_samples(surface: Surface, mask: np.ndarray, spacing_mm: float) -> np.ndarray:
@@ -300,6 +301,27 @@ def _transfer_labels(points, facets, surface: Surface, labels: np.ndarray) -> np
     votes = np.stack([(lab == c).sum(axis=1) for c in range(n)], axis=1) * 2
     votes[np.arange(len(lab)), lab[:, 0]] += 1
     return votes.argmax(axis=1)
+
+
+def _support_owner(points, facets, region, surface: Surface, s_region, owner) -> np.ndarray:
+    """Which user support holds each mesh facet (:attr:`LiverMesh.facet_support`): the owner of the nearest
+    input-surface facet of the same region code (centroid distance), -1 on free facets and where that facet
+    is held by none (an auto-tagged region under ``mode: add``)."""
+    from scipy.spatial import cKDTree
+
+    out = np.full(len(facets), -1, dtype=np.int64)
+    cent = points[facets].mean(axis=1)
+    s_cent = surface.vertices[surface.faces].mean(axis=1)
+    for code in np.unique(region[region != 0]):
+        src, dst = np.flatnonzero(s_region == code), np.flatnonzero(region == code)
+        if src.size == 0:
+            continue
+        if (owner[src] == owner[src[0]]).all():  # one holder of this code: no search
+            out[dst] = owner[src[0]]
+            continue
+        _, j = cKDTree(s_cent[src]).query(cent[dst])
+        out[dst] = owner[src[j]]
+    return out
 
 
 def _plain(obj):

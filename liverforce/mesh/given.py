@@ -122,7 +122,7 @@ def build_given_mesh(points, tets, meta: dict | None = None, region_params: Regi
         "empty_regions": empty,
         "units": "mm",
     }
-    return LiverMesh(points, tets, facets, region, visible, out_meta)
+    return LiverMesh(points, tets, facets, region, visible, out_meta, facet_support=owner)
 
 
 def _plain(params) -> dict:

@@ -60,8 +60,9 @@ a label volume (:class:`PointFrame`):
 
 Supports are applied in order (a later one overrides an earlier one) onto zero
 regions (``mode: replace``) or onto the auto-tagged ones (``mode: add``). Each
-support's report counts the facets it finally holds (``n_facets``; ``n_selected``
-and ``taken_by`` when later ones took some); one left with none by a later support
+support's report says how it was selected (``selected_by``, :func:`selector_words`,
+as the regions picture's legend names it) and counts the facets it finally holds
+(``n_facets``; ``n_selected`` and ``taken_by`` when later ones took some); one left with none by a later support
 of another kind or region is refused, naming both (:func:`apply_supports`). Under
 ``mode: add`` the same holds for the auto-tagged regions beneath: a lab support
 taking some of one lists them (``took_built_in``), one wholly covered by lab
@@ -553,7 +554,7 @@ def select_facets(vertices, faces, support: Support, frame: PointFrame = PointFr
     vertices = np.asarray(vertices, float)
     faces = np.asarray(faces, np.int64)
     kind, d = support.selector
-    info: dict = {"name": support.name, "kind": support.kind, "selector": kind}
+    info: dict = {"name": support.name, "kind": support.kind, "selector": kind, "selected_by": selector_words(support)}
     if kind == "group":
         if file_groups is None:
             raise SupportError(f"support '{support.name}': a group selector needs the geometry's mesh file "
@@ -611,6 +612,23 @@ def select_facets(vertices, faces, support: Support, frame: PointFrame = PointFr
         raise SupportError(f"support '{support.name}': its {kind} selector {d} selects no surface facet")
     info["n_facets"] = int(mask.sum())
     return mask, info
+
+
+def selector_words(support: Support) -> str:
+    """A support's selector in a few words, as the lab gave it: ``group vena_cava``, ``group tag=3``,
+    ``sphere r 20 mm``, ``box``, ``file cava.csv`` (the legend of the regions picture, the support's report)."""
+    kind, d = support.selector
+    if kind == "group":
+        if "name" in d:
+            return f"group {d['name']}"
+        if "array" in d:
+            return f"group {d['array']}={d['value']}" if "value" in d else f"group {d['array']}"
+        return f"group {d['value']}"
+    if kind == "sphere":
+        return f"sphere r {float(d['radius_mm']):g} mm"
+    if kind == "file":
+        return f"file {Path(str(d['path'])).name}"
+    return kind
 
 
 def _select_group(vertices, faces, support: Support, frame: PointFrame, groups) -> tuple[np.ndarray, dict]:

@@ -38,6 +38,12 @@ class LiverMesh:
     meta : dict
         JSON-serialisable provenance (surface source/seed, meshing
         parameters, region parameters, quality).
+    facet_support : numpy.ndarray, optional
+        ``(k,)`` int64, which of the user's supports (``meta["supports"]``,
+        in order) holds each facet, -1 where none does (a free facet, or an
+        auto-tagged region beneath them under ``mode: add``); None for a mesh
+        without user supports. What the regions picture names each support's
+        facets by; not stored in the VTU (a mesh read back has None).
     """
 
     points: np.ndarray
@@ -46,6 +52,7 @@ class LiverMesh:
     facet_region: np.ndarray
     facet_visible: np.ndarray
     meta: dict[str, Any] = field(default_factory=dict)
+    facet_support: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.points = np.ascontiguousarray(self.points, dtype=np.float64)
@@ -53,6 +60,8 @@ class LiverMesh:
         self.facets = np.ascontiguousarray(self.facets, dtype=np.int64)
         self.facet_region = np.ascontiguousarray(self.facet_region, dtype=np.int8)
         self.facet_visible = np.ascontiguousarray(self.facet_visible, dtype=bool)
+        if self.facet_support is not None:
+            self.facet_support = np.ascontiguousarray(self.facet_support, dtype=np.int64)
 
     @property
     def n_nodes(self) -> int:
@@ -84,6 +93,11 @@ class LiverMesh:
             raise ValueError("facets are not the outward-oriented boundary faces of the tets")
         if (self.facet_visible & (self.facet_region != 0)).any():
             raise ValueError("visible facets must all be free (region 0)")
+        if self.facet_support is not None:
+            if self.facet_support.shape != (k,):
+                raise ValueError("facet_support must have one entry per facet")
+            if ((self.facet_support >= 0) & (self.facet_region == 0)).any():
+                raise ValueError("facets held by a user support (facet_support >= 0) must not be free (region 0)")
 
 
 def _canonical(tris: np.ndarray) -> np.ndarray:

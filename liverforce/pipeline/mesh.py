@@ -19,6 +19,10 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
               exertion: dict | None = None) -> dict:
     """Tetrahedralise a surface, tag regions, compute features, draw the regions.
 
+    The picture (``picture_path``, :func:`liverforce.mesh.plot.plot_regions`) names each support in its own
+    colour (a lab's by its name, kind and selector; the built-in ones by their anatomy) and draws the tool
+    positions the sweep presses at, numbered by ``exertion_id``, in the views that see them.
+
     ``mesh_cfg`` is the composed ``mesh`` group (every key; its values come from
     ``config/mesh/``, none is defaulted here). ``seed`` is the geometry's mesh
     seed (:meth:`liverforce.pipeline.plan.Plan.seed` ``("mesh", gid)``): the
