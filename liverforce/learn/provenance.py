@@ -39,8 +39,10 @@ def liver_line(rec: dict) -> str:
         units, frame = units_and_frame(rec)
         declared = rec.get("units_declared")
         guessed = f", declared {declared}" if declared is not None and str(declared) != units else ""
-        return (f"{gid}: imported {rec.get('file')} (sha256 {sha}), units {units} (x{_num(rec.get('scale_to_mm'))} "
-                f"to mm{guessed}), frame {frame}" + ("" if frame == "RAS" else " -> RAS"))
+        scale = rec.get("scale_to_mm")
+        return (f"{gid}: imported {rec.get('file') or 'file unknown'} (sha256 {sha}), units {units} "
+                f"({'scale unknown' if scale is None else f'x{_num(scale)}'} to mm{guessed}), frame {frame}"
+                + ("" if frame == "RAS" else " -> RAS"))
     if kind == "procedural":
         return f"{gid}: procedural ({rec.get('generator', 'generator unknown')}, seed {rec.get('seed', '?')})"
     if kind == "cube":

@@ -274,10 +274,6 @@ def train_scenario(
     """
     t_start = time.perf_counter()
     configure_torch(threads)
-    if model_meta or provenance:
-        # stored in the model bundle (e.g. ROI fraction, frame radius for serving; the training livers)
-        meta = {**(model_meta or {}), **({"provenance": provenance} if provenance else {})}
-        model_cfg = {**model_cfg, "_meta": meta}
     seed = int(train_cfg.get("seed", 0) if seed is None else seed)
     out_dir = Path(out_dir)
     if calibrate_folds and (train_cfg.get("final_fit") or not (train_cfg.get("interval") or {}).get("coverage")):
@@ -289,6 +285,15 @@ def train_scenario(
     geo = np.asarray(arrays["geometry_id"]).astype(str)
 
     tr, te = train_test_split(geo, scenario=scenario, test_fraction=float(train_cfg["test_fraction"]), seed=seed)
+    if provenance and not train_cfg.get("final_fit"):
+        # the saved model is the split model: its training livers are the train split's (IV splits by liver)
+        fitted = set(geo[tr].tolist())
+        provenance = {**provenance, "livers": [r for r in provenance["livers"] if r.get("geometry_id") in fitted],
+                      "test_livers": sorted({r.get("geometry_id") for r in provenance["livers"]} - fitted)}
+    if model_meta or provenance:
+        # stored in the model bundle (e.g. ROI fraction, frame radius for serving; the training livers)
+        meta = {**(model_meta or {}), **({"provenance": provenance} if provenance else {})}
+        model_cfg = {**model_cfg, "_meta": meta}
     train_arrays, test_arrays = subset(arrays, tr), subset(arrays, te)
     rep = representation_from_config(model_cfg, train_arrays)
     off_grid = _warn_tips_off_grid(arrays, rep, scenario, variant)

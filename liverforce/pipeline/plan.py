@@ -88,7 +88,9 @@ class Plan:
         self.validation_geometries += self.held_out
         self.scenarios = [s for s in SCENARIOS if s in cfg["sweep"]["scenarios"]]
         if g["imported"]:
-            log.info("livers per scenario (I-III on the first imported liver, %s): %s", self.single_geometry,
+            first = ("the first imported liver" if self.single_geometry.startswith("imp-")
+                     else "the first procedural liver: every imported one is held out")
+            log.info("livers per scenario (I-III on %s, %s): %s", first, self.single_geometry,
                      "; ".join(f"{s} {', '.join(ids) if len(ids) <= 3 else f'{len(ids)} livers'}"
                                for s, ids in self.scenario_livers().items()))
 

@@ -54,8 +54,9 @@ def training_provenance(manifest_path: str | Path, geometry_ids, shard_meta: dic
     root, why = None, None
     try:
         root = root_of_manifest(manifest_path)
-    except ValueError as exc:
-        why = str(exc)
+    except ValueError:
+        why = (f"the shards' manifest ({Path(manifest_path).name}) lies outside a results layout's "
+               "shards/<scenario>/ folder")
     paths = Layout(root) if root is not None else None
     livers = []
     for gid in sorted({str(g) for g in geometry_ids}):
@@ -86,15 +87,16 @@ def liver_record(gid: str, record_path: str | Path) -> dict:
     (``reason``: the record is missing or unreadable).
     """
     record_path = Path(record_path)
+    shown = _shown(record_path, 2)  # geometry/<gid>.json: the lab's folders stay on its machine
     if not record_path.is_file():
-        return _unknown(gid, f"no geometry record at {record_path} (a run made before, or its geometry folder "
+        return _unknown(gid, f"no geometry record at {shown} (a run made before, or its geometry folder "
                              "removed)")
     try:
         rec = json.loads(record_path.read_text())
     except (OSError, json.JSONDecodeError) as exc:
-        return _unknown(gid, f"geometry record {record_path} unreadable ({exc})")
+        return _unknown(gid, f"geometry record {shown} unreadable ({_error(exc, record_path, shown)})")
     if not isinstance(rec, dict):
-        return _unknown(gid, f"geometry record {record_path} is not a JSON object")
+        return _unknown(gid, f"geometry record {shown} is not a JSON object")
     spec = rec.get("spec") if isinstance(rec.get("spec"), dict) else {}
     kind = spec.get("kind") or {"procedural": "procedural", "cube_phantom": "cube"}.get(rec.get("source"))
     # the record by its place in the results layout, and an imported file by its name and hash: a model travels,
@@ -113,7 +115,7 @@ def liver_record(gid: str, record_path: str | Path) -> dict:
     elif kind in ("procedural", "cube"):
         out.update({k: rec[k] for k in ("generator", "seed", "params") if k in rec})
     else:
-        out["reason"] = f"geometry record {record_path} names no known kind of liver"
+        out["reason"] = f"geometry record {shown} names no known kind of liver"
     return out
 
 
@@ -134,16 +136,17 @@ def material_record(cases_path: str | Path | None, shard_meta: dict | None = Non
             try:
                 mat = (dio.read_metadata(cases_path).get("sweep") or {}).get("material")
             except Exception as exc:  # noqa: BLE001 - an unreadable table: the record says so, training goes on
-                mat, reason = None, f"case table {cases_path} unreadable ({type(exc).__name__}: {exc})"
+                shown = _shown(cases_path, 3)
+                mat, reason = None, f"case table {shown} unreadable ({_error(exc, cases_path, shown)})"
             else:
-                reason = None if mat else f"case table {cases_path} records no material"
+                reason = None if mat else f"case table {_shown(cases_path, 3)} records no material"
             if isinstance(mat, dict):
                 entered = {k: mat[k] for k in ("E_pa", "E_mpa") if mat.get(k) is not None}
                 return {"source": "config", "model": mat.get("model"), "params_mpa": mat.get("params_mpa"),
                         "nu": mat.get("nu"), "vary_rel": mat.get("vary_rel"), "entered": entered or None,
                         "conversion": mat.get("conversion")}
         else:
-            reason = f"no case table at {cases_path}"
+            reason = f"no case table at {_shown(cases_path, 3)}"
     probe = (shard_meta or {}).get("probe")
     if isinstance(probe, dict) and probe.get("model"):
         return {"source": "shards", "model": probe["model"], "params_mpa": probe.get("params_mpa"),
@@ -151,6 +154,19 @@ def material_record(cases_path: str | Path | None, shard_meta: dict | None = Non
                 "note": f"{reason}: the shards' stiffness-probe reference (the configured constants in MPa); how "
                         "they were entered is not recorded"}
     return {"source": "unknown", "reason": reason or "no case table and no material in the shards' metadata"}
+
+
+def _shown(path: Path, parts: int) -> str:
+    """A file of the results layout by its last ``parts`` path components (``sweep/IV/cases.parquet``): a model
+    travels, and a lab's folder names (a patient's name in them, say) stay on its machine."""
+    return "/".join(Path(path).parts[-parts:])
+
+
+def _error(exc: Exception, path: Path, shown: str) -> str:
+    """An error in words without the file's full path (an OSError's message names it; a reader's may)."""
+    if isinstance(exc, OSError) and exc.strerror:
+        return f"{type(exc).__name__}: {exc.strerror}"
+    return f"{type(exc).__name__}: {str(exc).replace(str(path), shown)}"
 
 
 def _unknown(gid: str, reason: str) -> dict:

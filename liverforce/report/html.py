@@ -151,6 +151,17 @@ def _figure(src: str | Path, out_dir: Path, caption: str = "", width: int = 420)
 # --------------------------------------------------------------------------
 
 
+def _scale_words(setup: dict) -> str:
+    """Whether the unseen livers' constants (the material's x ``validate.material_scale``) lie outside the
+    training range (each constant drawn within +-``material.vary_rel``), in words."""
+    scale = (setup.get("validate") or {}).get("material_scale")
+    rel = (setup.get("material") or {}).get("vary_rel")
+    if scale is None or rel is None:
+        return "outside the training range"  # an older setup without them: the default's 1.4 against +-30 %
+    inside = 1.0 - float(rel) <= float(scale) <= 1.0 + float(rel)
+    return "within the training range" if inside else "outside the training range"
+
+
 def _unseen_kinds(unseen) -> str:
     """The unseen livers in words: the procedural ones (``val-…``, held-out seeds) and a lab's own livers held
     out of training (``validate.imported``, named)."""
@@ -873,7 +884,8 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
                      f"{html.escape(consts)}; Poisson ratio {_fmt(mat.get('nu'), 3)} (nearly incompressible). "
                      f"Where the material varies, each constant is drawn within ±{100 * mat.get('vary_rel', 0):.0f} %"
                      f" (unstable sets refused before solving). Unseen validation livers: constants × "
-                     f"{_fmt((setup.get('validate') or {}).get('material_scale'), 2)} (outside the training range)."
+                     f"{_fmt((setup.get('validate') or {}).get('material_scale'), 2)} "
+                     f"({_scale_words(setup)})."
                      "</p>")
     bnd = setup.get("boundary")
     if bnd:
@@ -889,8 +901,10 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
         rows = [[sc, s["n_cases"], html.escape(str(s["geometries"])), s["exertion"], s["material"]]
                 for sc, s in sw.get("scenarios", {}).items()]
         val_cfg = setup.get("validate") or {}
-        n_val = (val_cfg["n_cases"] * val_cfg.get("livers", 1)) if "n_cases" in val_cfg else "–"
-        rows.append(["V (validation)", n_val, f"{val_cfg.get('livers', 1)} unseen", "varies", "unseen"])
+        # the unseen livers: the procedural ones and a lab's own held out of training (validate.imported)
+        n_unseen = val_cfg.get("livers", 1) + len(val_cfg.get("imported") or [])
+        n_val = (val_cfg["n_cases"] * n_unseen) if "n_cases" in val_cfg else "–"
+        rows.append(["V (validation)", n_val, f"{n_unseen} unseen", "varies", "unseen"])
         f = sw.get("force", {})
         parts.append(f"<h3>Simulation sweep</h3><p>Force magnitude {_fmt(f.get('min_n'), 1)}–"
                      f"{_fmt(f.get('max_n'), 1)} N within {_fmt(f.get('cone_deg'), 0)}° of the inward normal; "
@@ -981,8 +995,7 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
     n_liv = lv["n"]
     parts.append(f"<p>A scenario-IV model predicts every case simulated on {n_liv} liver shapes it never saw in "
                  f"training ({_unseen_kinds(v['per_liver'])}; no seed, geometry or case shared with training), "
-                 "with material "
-                 "constants outside the training range"
+                 f"with material constants {_scale_words(setup)}"
                  + (f": variant <code>{html.escape(str(chosen))}</code>, chosen by {html.escape(str(why))}"
                     if chosen else "") + ". Each liver weighs the same in the mean ± sd (sample sd over the "
                  "livers), whatever its number of converged cases.</p>")

@@ -69,6 +69,19 @@ def test_a_wrong_held_out_list_is_refused_naming_the_key(overrides, key, words):
     assert f"config key '{key}'" in msg and words in msg, msg
 
 
+def test_the_physics_check_refuses_a_held_out_liver_with_its_own_supports():
+    own = ("geometry.imported=[{name:a,path:a.stl,units:mm},{name:b,path:b.stl,units:mm,supports:{mode:add,"
+           "list:[{name:cava,kind:fixed,sphere:{center_mm:[0,0,0],radius_mm:10}}]}}]")
+    with pytest.raises(ConfigError) as err:
+        compose(["experiment=smoke", own, "validate.imported=[b]", "validate.physics.liver=2"])
+    msg = str(err.value)
+    assert "config key 'validate.physics.liver': picks the held-out liver b, which has its own supports" in msg
+    assert "pick a procedural unseen liver (0 .. 1)" in msg, msg
+    compose(["experiment=smoke", own, "validate.imported=[b]", "validate.physics.liver=1"])  # a procedural one
+    compose(["experiment=smoke", own, "validate.imported=[b]", "validate.physics.liver=2",
+             "validate.physics.enabled=false"])
+
+
 def test_scenario_iv_counts_only_the_livers_left_to_train_on():
     with pytest.raises(ConfigError) as err:
         compose(["experiment=smoke", TWO, "geometry.procedural.count=1", "validate.imported=[a,b]"])

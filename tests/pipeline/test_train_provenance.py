@@ -190,7 +190,9 @@ def test_missing_records_are_recorded_as_unknown_and_training_goes_on(tmp_path, 
     (liver,) = prov["livers"]
     assert liver["kind"] == "unknown" and "no geometry record at" in liver["reason"]
     assert prov["material"]["source"] == "shards" and prov["material"]["entered"] == "unknown"
-    assert "no case table at" in prov["material"]["note"]
+    assert "no case table at sweep/" in prov["material"]["note"]
+    assert "no geometry record at geometry/proc-0000.json" in liver["reason"]
+    assert str(tmp_path) not in json.dumps(prov)  # the reasons name the layout's files, not the lab's folders
     assert got["run"].data.tags["training.kinds"] == "unknown"
     lines = Predictor.load(got["model_path"]).describe()["trained_on"]
     assert lines[0].startswith("proc-0000: origin unknown (no geometry record at")
@@ -209,6 +211,27 @@ def test_shards_outside_a_results_layout_leave_every_record_unknown(tmp_path):
 
     prov = training_provenance(tmp_path / "manifest.json", ["proc-0001", "proc-0000", "proc-0001"])
     assert [r["geometry_id"] for r in prov["livers"]] == ["proc-0000", "proc-0001"]
-    assert all(r["kind"] == "unknown" and "not in a results layout" in r["reason"] for r in prov["livers"])
-    assert prov["material"]["source"] == "unknown" and "not in a results layout" in prov["material"]["reason"]
+    assert all(r["kind"] == "unknown" and "outside a results layout" in r["reason"] for r in prov["livers"])
+    assert prov["material"]["source"] == "unknown" and "outside a results layout" in prov["material"]["reason"]
+    assert str(tmp_path) not in json.dumps(prov)
 
+
+
+def test_a_split_model_records_only_the_livers_it_was_fitted_on(tmp_path):
+    """With ``train.final_fit`` off the saved model is the split model: in IV (split by liver) its test livers are
+    not training livers, and the record says which they are."""
+    from liverforce.learn.splits import train_test_split
+    from liverforce.learn.train import train_scenario
+
+    arrays = synthetic_arrays(48, seed=3, n_geometries=4, nodes=(60, 90))
+    geo = np.asarray(arrays["geometry_id"]).astype(str)
+    ids = sorted(set(geo.tolist()))
+    prov = {"version": 1, "livers": [{"geometry_id": g, "kind": "procedural", "seed": i} for i, g in enumerate(ids)],
+            "material": {"source": "unknown", "reason": "test"}}
+    res = train_scenario(arrays, MODEL, TRAIN, NO_TUNE, "IV", "pca_sv", threads=1, seed=0, out_dir=tmp_path,
+                         provenance=prov)
+    tr, te = train_test_split(geo, scenario="IV", test_fraction=TRAIN["test_fraction"], seed=0)
+    fitted, held = sorted(set(geo[tr].tolist())), sorted(set(geo[te].tolist()))
+    assert held and not set(held) & set(fitted)
+    got = ForceModel.load(res["model_path"]).meta["provenance"]
+    assert [r["geometry_id"] for r in got["livers"]] == fitted and got["test_livers"] == held
