@@ -81,6 +81,22 @@ def header_units(path) -> tuple[str, str] | None:
     return units.pop(), first
 
 
+def header_unit_clash(path, scale_mm: float, read_in: str) -> tuple[str, str] | None:
+    """``(the unit the header names, the words)`` when a text point file's header names a unit for every column
+    (:func:`header_units`) other than the one its coordinates are read in: ``scale_mm`` mm per unit, ``read_in``
+    those units in words (``"m"``); None when the header agrees or names no unit.
+
+    The words, ``"<path>: its header '<line>' says the coordinates are in <unit>, but they are read in <read_in>
+    (<scale_mm> mm each)"``, are every stage's (the mesh stage's point files, ``liverforce predict``'s clouds and
+    tool tips); the caller adds what to declare there.
+    """
+    said = header_units(path)
+    if said is None or np.isclose(HEADER_UNIT_MM[said[0]], scale_mm, rtol=1e-9):
+        return None
+    return said[0], (f"{path}: its header {said[1]!r} says the coordinates are in {said[0]}, but they are read in "
+                     f"{read_in} ({scale_mm:g} mm each)")
+
+
 def read_table(path, columns: tuple[int, ...] | None = None) -> tuple[np.ndarray, list[int]]:
     """``(rows (k, c) float, line numbers (k,) from 1)`` of a text point file (module docstring); ``k >= 1``.
 

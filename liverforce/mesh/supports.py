@@ -78,8 +78,7 @@ from pathlib import Path
 
 import numpy as np
 
-from liverforce.geometry.point_table import (HEADER_UNIT_MM, TEXT_SUFFIXES, PointTableError, header_units,
-                                             read_table)
+from liverforce.geometry.point_table import TEXT_SUFFIXES, PointTableError, header_unit_clash, read_table
 from liverforce.mesh.types import REGION_CODES
 
 log = logging.getLogger(__name__)
@@ -317,11 +316,9 @@ def read_point_file(path, units: str | None = None, scale_mm: float | None = Non
             raise SupportError(f"{exc}; expected {want}") from None
         if a.shape[1] == 1:
             return _vertex_ids(a[:, 0], path, lines)
-        said = header_units(path) if scale_mm is not None else None
-        if said is not None and not np.isclose(HEADER_UNIT_MM[said[0]], scale_mm, rtol=1e-9):
-            raise SupportError(f"{path}: its header {said[1]!r} says the coordinates are in {said[0]}, but they are "
-                               f"read in {units or 'mm'} ({scale_mm:g} mm each): declare units: {said[0]} for "
-                               "this file (or correct its header)")
+        clash = None if scale_mm is None else header_unit_clash(path, scale_mm, units or "mm")
+        if clash is not None:
+            raise SupportError(f"{clash[1]}: declare units: {clash[0]} for this file (or correct its header)")
     elif suffix == ".npy":
         try:
             a = np.load(path, allow_pickle=False)

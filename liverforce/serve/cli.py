@@ -211,7 +211,7 @@ def _run(args) -> int:
     if args.mesh:
         overrides["mesh"] = str(Path(args.mesh).absolute())
     preop, frame = read_context(args.context, predictor, overrides=overrides)
-    pts = None if sequence else frame.points(read_points(args.points[0]))
+    pts = None if sequence else frame.points(read_points(args.points[0], frame=frame))
     info: dict = {"mode": args.mode}
     if (args.unloaded or args.contact_tip) and args.mode != "cloud":
         return _error("--unloaded and --contact-tip refine a camera cloud's registration: --mode cloud only")
@@ -221,7 +221,7 @@ def _run(args) -> int:
         return _error("--contact-tip goes with --unloaded (the camera's cloud before the tool pushed)")
     fix = None
     if args.unloaded:
-        fix = predictor.refine_registration(frame.points(read_points(args.unloaded)), preop,
+        fix = predictor.refine_registration(frame.points(read_points(args.unloaded, frame=frame)), preop,
                                             None if args.contact_tip is None else frame.points(args.contact_tip),
                                             shape_degree=args.shape_degree)
     if sequence:
@@ -267,9 +267,9 @@ def _sequence(args, predictor, preop, frame, fix) -> int:
 
     if args.out and Path(args.out).suffix.lower() not in (".csv", ".parquet", ".json"):
         return _error(f"--out {args.out}: a sequence's rows are written as .csv, .parquet or .json")
-    names, clouds = read_sequence(args.points, skip=(args.tool_tips, args.out))  # if kept beside the clouds
+    names, clouds = read_sequence(args.points, skip=(args.tool_tips, args.out), frame=frame)  # skip: if kept there
     if args.tool_tips is not None:
-        tips = read_tips(args.tool_tips, len(clouds))
+        tips = read_tips(args.tool_tips, len(clouds), frame)
     elif args.tool_tip is not None:
         tips = np.tile(np.asarray(args.tool_tip, dtype=np.float64), (len(clouds), 1))
     else:

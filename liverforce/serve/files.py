@@ -11,6 +11,13 @@ Point clouds (``read_points``), one point per row, mm unless ``units`` says othe
   ``x y z`` properties (other vertex properties and other elements ignored;
   :mod:`liverforce.geometry.ply`, the reader the mesh stage reads its point files with).
 
+A text file whose header names a unit for every column (``x_mm,y_mm,z_mm``, ``X [m]``) is refused when the
+coordinates are read in another one (``--units``, the context's ``units`` or the ``--frame`` record's; mm when
+none says), naming the header, as the mesh stage refuses its point files
+(:func:`liverforce.geometry.point_table.header_unit_clash`); a header that agrees, or names no unit, is read as
+declared. ``.npy`` and ``.ply`` files name no unit (a PLY vertex's properties are ``x y z``, and PLY has no
+units line).
+
 Surfaces (``read_surface``): ``.ply`` with faces, ``.npz`` with ``points`` and
 ``facets``, or anything meshio reads (STL, OBJ, OFF, VTU, VTK, ...); a
 tetrahedral mesh gives its boundary triangles (its triangle cells, often only
@@ -54,7 +61,7 @@ import numpy as np
 
 from liverforce.atomic import atomic_path
 from liverforce.serve.errors import OffSurfaceError, PredictionInputError
-from liverforce.serve.input_frame import InputFrame, unit_scale
+from liverforce.serve.input_frame import UNITS_MM, InputFrame, unit_scale
 from liverforce.serve.preop import Preop
 
 
@@ -71,8 +78,13 @@ def _read_ply(path: Path):
 
 
 # --------------------------------------------------------------------------- clouds and surfaces
-def read_points(path: str | Path, units: str | None = "mm") -> np.ndarray:
-    """An ``(n, 3)`` point cloud in mm from ``.npy``, ``.csv``/``.txt`` or ``.ply`` (module docstring)."""
+def read_points(path: str | Path, units: str | None = "mm", *, frame: InputFrame | None = None) -> np.ndarray:
+    """An ``(n, 3)`` point cloud in mm from ``.npy``, ``.csv``/``.txt`` or ``.ply`` (module docstring).
+
+    ``units``: the units the points are scaled from here. ``frame``: the inputs' frame the caller converts the
+    points with instead (:meth:`InputFrame.points`; ``units`` left at mm): a text file's header naming a unit is
+    checked against its units (:func:`check_header_units`), else against ``units``.
+    """
     path = Path(path)
     if not path.is_file():
         raise PredictionInputError(f"{path}: no such point-cloud file")
@@ -84,6 +96,7 @@ def read_points(path: str | Path, units: str | None = "mm") -> np.ndarray:
             pts = np.load(path, allow_pickle=False)
         elif suffix in TEXT_SUFFIXES:
             pts = _read_table(path)
+            check_header_units(path, frame if frame is not None else InputFrame.resolve(None, units))
         elif suffix == ".ply":
             pts = _read_ply(path).points
         else:
@@ -107,6 +120,26 @@ def _read_table(path: Path) -> np.ndarray:
         return read_table(path, columns=(3,))[0]
     except PointTableError as exc:
         raise PredictionInputError(f"{exc}; expected exactly x, y, z numbers per row") from None
+
+
+def check_header_units(path: str | Path, frame: InputFrame) -> None:
+    """Refuse a text point file whose header names a unit for every column (``x_mm,y_mm,z_mm``) other than the
+    units ``frame`` reads every point input in (``--units``, the context's ``units``, the ``--frame`` record's;
+    mm when none says), in the mesh stage's words (:func:`liverforce.geometry.point_table.header_unit_clash`).
+    A header that agrees or names no unit, and a file that is not a text point file, pass."""
+    from liverforce.geometry.point_table import TEXT_SUFFIXES, header_unit_clash
+
+    path = Path(path)
+    if path.suffix.lower() not in TEXT_SUFFIXES:
+        return
+    clash = header_unit_clash(path, frame.scale, frame.units)
+    if clash is None:
+        return
+    said = clash[0]
+    fix = f"convert this file to {frame.units}" if said not in UNITS_MM else (
+        f"declare --units {said} (units: {said} in a context file) if every point input is in {said}, else "
+        f"convert this file to {frame.units}")
+    raise PredictionInputError(f"{clash[1]}: {fix} (or correct its header)")
 
 
 def read_surface(path: str | Path, units: str | None = "mm") -> tuple[np.ndarray, np.ndarray]:
@@ -271,7 +304,7 @@ def read_context(source: str | Path | dict, predictor, *, overrides: dict | None
         except (KeyError, TypeError, ValueError) as exc:
             raise PredictionInputError(f"context: frame must be {{normal: [3], t1: [3], t2: [3]}} ({exc})") from exc
         roi = doc["roi_undeformed"]
-        roi = fr.points(read_points(rel(roi)) if isinstance(roi, (str, Path)) else roi)
+        roi = fr.points(read_points(rel(roi), frame=fr) if isinstance(roi, (str, Path)) else roi)
         tris = doc.get("roi_triangles")
         if isinstance(tris, (str, Path)):
             tris = _read_triangles(rel(tris))

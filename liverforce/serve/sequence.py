@@ -52,12 +52,14 @@ def is_sequence(paths: list[str | Path]) -> bool:
     return len(paths) > 1 or any(Path(p).is_dir() for p in paths) or _stack(Path(paths[0])) is not None
 
 
-def read_sequence(paths: list[str | Path], skip=()) -> tuple[list[str], list[np.ndarray]]:
+def read_sequence(paths: list[str | Path], skip=(), frame=None) -> tuple[list[str], list[np.ndarray]]:
     """The clouds of a sequence as given (the file's units and frame) and a name for each.
 
     ``paths``: several cloud files (in the order given); one folder (its ``.ply``, ``.csv``, ``.txt``, ``.xyz``
     and ``.npy`` files in natural name order, but the files ``skip``: the tips and the output, if they are kept
-    there); or one ``.npy`` file of shape (T, N, 3) (names ``file.npy[k]``).
+    there); or one ``.npy`` file of shape (T, N, 3) (names ``file.npy[k]``). ``frame``: the inputs'
+    :class:`~liverforce.serve.input_frame.InputFrame` (None: mm), whose units a text file's header may not
+    contradict (:func:`~liverforce.serve.files.check_header_units`).
     """
     paths = [Path(p) for p in paths]
     if len(paths) == 1 and paths[0].is_dir():
@@ -68,7 +70,7 @@ def read_sequence(paths: list[str | Path], skip=()) -> tuple[list[str], list[np.
         if not files:
             raise PredictionInputError(f"{paths[0]}: no point-cloud files ({', '.join(CLOUD_SUFFIXES)}) in this folder")
         try:
-            return [f.name for f in files], [read_points(f) for f in files]
+            return [f.name for f in files], [read_points(f, frame=frame) for f in files]
         except PredictionInputError as exc:
             raise PredictionInputError(f"{exc}. A sequence's folder is read as its clouds: keep only the clouds "
                                        f"in {folder} (the tips and the output may stay), or name the cloud "
@@ -80,15 +82,16 @@ def read_sequence(paths: list[str | Path], skip=()) -> tuple[list[str], list[np.
                                        f"{stack.shape}")
         return ([f"{paths[0].name}[{k}]" for k in range(stack.shape[0])],
                 [np.asarray(c, dtype=np.float64) for c in stack])
-    return [p.name for p in paths], [read_points(p) for p in paths]
+    return [p.name for p in paths], [read_points(p, frame=frame) for p in paths]
 
 
-def read_tips(path: str | Path, n: int) -> np.ndarray:
-    """The tool tip of each of ``n`` clouds: ``n`` rows of x, y, z (``.csv``/``.txt``/``.npy``, as given)."""
+def read_tips(path: str | Path, n: int, frame=None) -> np.ndarray:
+    """The tool tip of each of ``n`` clouds: ``n`` rows of x, y, z (``.csv``/``.txt``/``.npy``, as given; a text
+    file's header may not name another unit than ``frame``'s, as :func:`read_sequence`)."""
     if not Path(path).is_file():
         raise PredictionInputError(f"--tool-tips {path}: no such file of tool tips")
     try:
-        tips = read_points(path)
+        tips = read_points(path, frame=frame)
     except PredictionInputError as exc:
         raise PredictionInputError(f"--tool-tips: {str(exc).replace('point cloud', 'tool tips')}") from None
     if len(tips) != n:

@@ -183,6 +183,47 @@ def test_cli_predicts_a_camera_cloud_with_the_tool_tip(served, tmp_path, capsys)
     assert "roi_triangles" in capsys.readouterr().err
 
 
+def test_cli_reads_clouds_tips_and_the_unloaded_view_in_the_units_their_header_names(served, tmp_path, capsys):
+    """Camera clouds, a sequence's --tool-tips and the --unloaded view as CSV headed with a unit: read when it is the
+    declared one (--units m), refused naming the file and its header when it is not (the lab's files in mm)."""
+    path, model, a = served
+    ctx, cloud, tip = _case(a, 3)
+    (tmp_path / "ctx.json").write_text(json.dumps(_context_in_metres(ctx, tmp_path)))
+    parser = argparse.ArgumentParser(prog="liverforce")
+    register_predict(parser.add_subparsers(dest="command", required=True))
+
+    def run(*argv):
+        args = parser.parse_args(["predict", "-m", str(path), *map(str, argv), "--context", str(tmp_path / "ctx.json"),
+                                  "--units", "m"])
+        got = args.func(args)
+        return got, capsys.readouterr()
+
+    def csv(name, header, pts):
+        np.savetxt(tmp_path / name, pts, delimiter=",", header=header, comments="")
+        return tmp_path / name
+
+    said = "its header 'x_mm,y_mm,z_mm' says the coordinates are in mm, but they are read in m (1000 mm each)"
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for k in range(2):
+        np.savetxt(frames / f"f{k}.csv", cloud[k::2] / 1000.0, delimiter=",", header="x_m,y_m,z_m", comments="")
+    one = csv("cloud.csv", "x_m,y_m,z_m", cloud / 1000.0)
+    rc, out = run(one, "--tool-tip", *(tip / 1000.0))
+    assert rc == 0, out.err
+    np.testing.assert_allclose(json.loads(out.out)["force_n"], Predictor.from_dir(path).predict_cloud(
+        cloud, ctx, tool_tip_mm=tip), atol=1e-6)
+    rc, out = run(one, "--tool-tip", *(tip / 1000.0), "--unloaded", csv("before.csv", "x_mm,y_mm,z_mm", cloud))
+    assert rc == 2 and f"{tmp_path / 'before.csv'}: {said}" in out.err
+    rc, out = run(frames, "--tool-tips", csv("tips.csv", "x_mm,y_mm,z_mm", np.stack([tip, tip])))
+    assert rc == 2 and f"--tool-tips: {tmp_path / 'tips.csv'}: {said}" in out.err
+    rc, out = run(frames, "--tool-tips", csv("tips.csv", "x_m,y_m,z_m", np.stack([tip, tip]) / 1000.0))
+    assert rc == 0, out.err
+    assert json.loads(out.out)["clouds"] == 2
+    np.savetxt(frames / "f1.csv", cloud[1::2], delimiter=",", header="x_mm,y_mm,z_mm", comments="")
+    rc, out = run(frames, "--tool-tips", tmp_path / "tips.csv")
+    assert rc == 2 and f"{frames / 'f1.csv'}: {said}" in out.err
+
+
 def test_the_mlflow_pyfunc_serves_the_camera_model_from_clouds(served, tmp_path):
     """Logged with an observed cloud as its input example; predicts from camera_cloud_mm + tool_tip_mm rows."""
     from liverforce.tracking import Tracker, load_pyfunc, predict_pyfunc
