@@ -6,11 +6,18 @@ by :mod:`liverforce.dataset.io` (schema version checked); failed simulation
 cases are skipped (their ROI carries no deformation) and counted.
 
 Output columns: ``case_id, geometry_id, scenario, fx_n, fy_n, fz_n`` (the
-predicted force, liver frame, N), ``warnings`` (the case's geometric state
+predicted force, liver frame, N), ``refused`` (why the serving checks refused the row, in the words
+``Predictor.predict_arrays`` and the MLflow pyfunc raise, ``"case <id>: ..."``; empty when predicted),
+``warnings`` (the case's geometric state
 outside the training range, a predicted force beyond the training forces; ``"; "``-joined, empty when none) and,
 when the shards carry labels,
 ``fx_true_n, fy_true_n, fz_true_n, error_n`` (``|F̂ − F|``); the returned
-summary adds the metrics of :func:`liverforce.learn.metrics.force_metrics`.
+summary adds the metrics of :func:`liverforce.learn.metrics.force_metrics` over the predicted rows.
+
+A refused row does not stop the batch: its forces (and ``error_n``) are NaN, its reason is in ``refused``, and
+the other rows are predicted (``Predictor.predict_arrays(return_refused=True)``; the compiled and the reference
+path refuse the same rows in the same words), as a recorded sequence's refused clouds are
+(:mod:`liverforce.serve.sequence`). The summary counts them.
 """
 
 from __future__ import annotations
@@ -84,33 +91,39 @@ def predict_shards(predictor, inputs: Sequence[str | Path], out_path: str | Path
     Returns
     -------
     dict
-        ``rows``, ``skipped_failed``, ``shards``, ``seconds``,
-        ``predictions_per_s``, ``out`` and, with labels, ``metrics``; the
-        DataFrame itself under ``frame``.
+        ``rows``, ``predicted``, ``refused`` (rows refused by the serving checks: NaN forces, the reason in
+        the ``refused`` column), ``skipped_failed``, ``shards``, ``seconds``, ``predictions_per_s`` (predicted
+        rows), ``out`` and, with labels, ``metrics`` (of the predicted rows); the DataFrame itself under
+        ``frame``.
     """
     paths = shard_paths(inputs)
     arrays, skipped = load_shards(paths)
     t0 = time.perf_counter()
-    force, warnings = predictor.predict_arrays(arrays, observation_seed=observation_seed, fast=fast,
-                                               return_warnings=True)
+    force, warnings, refused = predictor.predict_arrays(arrays, observation_seed=observation_seed, fast=fast,
+                                                        return_warnings=True, return_refused=True)
     seconds = time.perf_counter() - t0
     n = len(force)
+    ok = np.array([not r for r in refused], dtype=bool)
     cols = {
         "case_id": [str(c) for c in arrays["case_id"]],
         "geometry_id": [str(c) for c in arrays["geometry_id"]],
         "scenario": [str(c) for c in arrays.get("scenario", [""] * n)],
         "fx_n": force[:, 0], "fy_n": force[:, 1], "fz_n": force[:, 2],
+        "refused": list(refused),  # why the row was refused ("case <id>: ..."); "" when predicted
         # each row's warnings, as Predictor.predict_cloud gives one case's (the context outside the training
         # range, a camera cloud's, a force beyond training's), "; "-joined; "" when none
         "warnings": ["; ".join(w) for w in warnings],
     }
-    summary: dict = {"rows": n, "skipped_failed": int(skipped), "shards": [str(p) for p in paths],
-                     "seconds": seconds, "predictions_per_s": n / seconds if seconds > 0 else None}
+    n_ok = int(ok.sum())
+    summary: dict = {"rows": n, "predicted": n_ok, "refused": n - n_ok, "skipped_failed": int(skipped),
+                     "shards": [str(p) for p in paths], "seconds": seconds,
+                     "predictions_per_s": n_ok / seconds if seconds > 0 else None}
     true = np.asarray(arrays.get("force_n", np.zeros((0, 3))), dtype=np.float64)
     if n and true.shape == (n, 3) and np.isfinite(true).all():
         cols.update({"fx_true_n": true[:, 0], "fy_true_n": true[:, 1], "fz_true_n": true[:, 2],
                      "error_n": np.linalg.norm(force - true, axis=1)})
-        summary["metrics"] = force_metrics(true, force)
+        if n_ok:
+            summary["metrics"] = force_metrics(true[ok], force[ok])
     df = pd.DataFrame(cols)
     summary["out"] = None if out_path is None else str(write_frame(df, out_path))
     summary["frame"] = df

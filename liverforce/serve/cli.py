@@ -26,6 +26,13 @@ mesh: every node, interior ones too, in the file's order). A sequence of clouds
 per cloud, a refused cloud with its reason (:mod:`liverforce.serve.sequence`).
 Exit codes: 0 done, 2 input refused (the message says why).
 
+``--shards``: a case the serving checks refuse does not stop the batch. Its
+forces are NaN and its reason is in the ``refused`` column (empty when
+predicted); the summary counts the refused rows, and how many there were and
+the first reasons are printed on stderr. The exit code is 0 while at least one
+row is predicted, and 2 when every row is refused (the file is still written,
+with every reason).
+
 Point inputs are in the model's frame (RAS mm) unless ``--units`` and
 ``--frame`` (or the context's ``units`` and ``input_frame``) say otherwise
 (:mod:`liverforce.serve.input_frame`): then they are converted to it, the
@@ -145,6 +152,21 @@ def _error(msg: str) -> int:
     return 2
 
 
+#: ``--shards``: the refused rows' reasons printed (all are in the output's ``refused`` column)
+REFUSED_SHOWN = 3
+
+
+def _refused_rows(reasons: list[str], rows: int, out: str | None) -> None:
+    """Say on stderr how many of the ``rows`` were refused and the first reasons."""
+    where = f"in the 'refused' column of {out}" if out else "give --out to keep them"
+    every = len(reasons) == rows
+    first = "; ".join(reasons[:REFUSED_SHOWN])
+    more = f" (and {len(reasons) - REFUSED_SHOWN} more)" if len(reasons) > REFUSED_SHOWN else ""
+    print(f"liverforce predict: {'error: ' if every else ''}{len(reasons)} of {rows} rows refused, their forces NaN "
+          f"({'every row' if every else 'the other rows were predicted'}; each reason {where}). The first: "
+          f"{first}{more}", file=sys.stderr)
+
+
 def cmd_predict(args) -> int:
     """Run ``liverforce predict``; returns the exit code."""
     import torch
@@ -179,9 +201,11 @@ def _run(args) -> int:
                           "already")
         summary = predict_shards(predictor, args.shards, args.out, observation_seed=args.observation_seed,
                                  fast=not args.reference)
-        summary.pop("frame")
+        reasons = [r for r in summary.pop("frame")["refused"] if r]
         print(json.dumps(summary, indent=2, default=float))
-        return 0
+        if reasons:
+            _refused_rows(reasons, summary["rows"], args.out)
+        return 2 if reasons and not summary["predicted"] else 0
     if not args.points:
         return _error("give a point-cloud file (or --shards for batch prediction)")
     from liverforce.serve.sequence import is_sequence

@@ -35,7 +35,7 @@ from typing import Callable
 import numpy as np
 
 from liverforce.learn import camera
-from liverforce.learn.model import ForceModel, ModelFormatError
+from liverforce.learn.model import ForceModel, ModelFormatError, subset
 from liverforce.learn.provenance import provenance_lines
 from liverforce.serve.checks import (Limits, TrainingScale, check_case, check_on_surface, force_warnings,
                                      outside_training)
@@ -343,12 +343,14 @@ class Predictor:
         self.check_preop(preop)
         return CompiledROI(self.model, preop, limits=self.limits, scale=self.scale)
 
-    def refine_arrays(self, arrays: dict) -> tuple[dict, list | None]:
+    def refine_arrays(self, arrays: dict, *, refused: list | None = None) -> tuple[dict, list | None]:
         """Input-contract arrays with the columns ``unloaded_cloud_mm`` (per row, the camera's cloud before the
         tool pushed; an empty one: none for that row) and optionally ``contact_tip_mm`` (the tool tip at contact,
         NaN where unknown): each row's registration refined (:meth:`refine_registration`, from the row's context)
         and applied to its ``camera_cloud_mm`` and ``tool_tip_mm``. Returns the arrays without those two columns
-        and each row's refinement (None where none), or the arrays unchanged and None without the columns."""
+        and each row's refinement (None where none), or the arrays unchanged and None without the columns.
+        ``refused``: a list of one ``""`` per row; a row whose refinement is refused gets the message it would
+        raise there instead (it is left as given, its refinement None), and the other rows go on."""
         if UNLOADED_KEY not in arrays:
             if CONTACT_KEY in arrays:
                 raise PredictionInputError(f"{CONTACT_KEY} (the tool tip at contact) goes with {UNLOADED_KEY}, the "
@@ -370,6 +372,9 @@ class Predictor:
         fixes: list = []
         for i in range(n):
             row = _row_label(ids, i)
+            if refused is not None and refused[i]:
+                fixes.append(None)
+                continue
             try:
                 empty = unloaded[i] is None or np.size(unloaded[i]) == 0
                 u = None if empty else _points(UNLOADED_KEY, unloaded[i], min_points=1)
@@ -384,16 +389,18 @@ class Predictor:
                 clouds[i] = fix.points(_points(camera.CLOUD_KEY, clouds[i], min_points=1))
                 tips[i] = fix.points(_vector(camera.TIP_KEY, tips[i], 3))
             except PredictionInputError as exc:
-                raise PredictionInputError(row + str(exc)) from None
+                if refused is None:
+                    raise PredictionInputError(row + str(exc)) from None
+                refused[i], fix = row + str(exc), None
             fixes.append(fix)
         out = {k: v for k, v in arrays.items() if k not in (UNLOADED_KEY, CONTACT_KEY)}
         out[camera.CLOUD_KEY] = clouds
-        out[camera.TIP_KEY] = np.stack([_vector(camera.TIP_KEY, t, 3) for t in tips])
+        out[camera.TIP_KEY] = _tips_column(tips, refused, ids)
         return out, fixes
 
     def predict_arrays(self, arrays: dict, *, observation_seed: int | None = None, fast: bool = False,
                        min_group: int = 2, return_warnings: bool = False, registrations: list | None = None,
-                       input_frame=None, entered: tuple | None = None):
+                       input_frame=None, entered: tuple | None = None, return_refused: bool = False):
         """Forces ``(n, 3)`` N for input-contract arrays (e.g. a shard), every row checked first; with
         ``return_warnings`` also each row's warnings, those :meth:`predict_cloud` gives one cloud (the context's,
         a camera cloud's, the registration's, a force beyond training's), as ``(force, warnings)``.
@@ -406,6 +413,15 @@ class Predictor:
         (``camera_cloud_mm``, ``tool_tip_mm``, in the model's frame) before the caller's :meth:`refine_arrays`
         moved them, given back in a refusal (default: the arrays' own, before this call's refinement).
 
+        A row its checks refuse raises :class:`PredictionInputError` (``"case <id>: <reason>"``, the MLflow
+        pyfunc's words; the first refused row). With ``return_refused`` the other rows go on instead: a refused
+        row's force is NaN, its warnings empty, and each row's reason (the message the call would raise for it;
+        ``""`` when predicted) is returned last, as ``(force, refused)`` or ``(force, warnings, refused)``. Inputs
+        that are wrong for every row (a column missing, columns of different lengths, a camera model given no
+        clouds) raise either way. The compiled (``fast``) and reference paths refuse the same rows in the same
+        words: every refusal is made by the checks before either path runs. With a stochastic observation model
+        (``observation_seed``) the draws go to the predicted rows only, so they differ from a call on all rows.
+
         Parameters
         ----------
         arrays : dict
@@ -417,6 +433,8 @@ class Predictor:
             may differ) in groups of at least ``min_group`` go through
             :class:`CompiledROI` (equal to the reference to ~1e-6 N); needs
             ``roi_features: displacement`` and no stochastic observation.
+        return_refused : bool
+            Refused rows get NaN forces and their reason instead of raising (above).
 
         Camera clouds with ``unloaded_cloud_mm`` (and ``contact_tip_mm``) are registered first
         (:meth:`refine_arrays`).
@@ -424,7 +442,9 @@ class Predictor:
         if entered is None:  # the clouds and tips before a registration moves them
             entered = ((arrays[camera.CLOUD_KEY], arrays[camera.TIP_KEY])
                        if camera.CLOUD_KEY in arrays and camera.TIP_KEY in arrays else None)
-        arrays, fixes = self.refine_arrays(arrays)
+        n_rows = len(arrays["exertion_point_mm"]) if "exertion_point_mm" in arrays else 0
+        refused = [""] * n_rows if return_refused else None
+        arrays, fixes = self.refine_arrays(arrays, refused=refused)
         fixes = fixes if fixes is not None else registrations
         if self.model.representation.is_camera and "camera_cloud_mm" not in arrays:
             raise PredictionInputError(
@@ -438,20 +458,41 @@ class Predictor:
         bad = {k: len(arrays[k]) for k in self.model.required_inputs() if len(arrays[k]) != n}
         if bad:
             raise PredictionInputError(f"inputs disagree on the number of cases ({n} exertion points): {bad}")
+        if refused is None:
+            refused = [""] * n
+            keep_going = False
+        else:
+            keep_going = True
+
+        def out(force, warnings):
+            got = (force, warnings) if return_warnings else (force,)
+            got = got + (refused,) if return_refused else got
+            return got if len(got) > 1 else got[0]
+
         if n == 0:
-            return (np.zeros((0, 3)), []) if return_warnings else np.zeros((0, 3))
+            return out(np.zeros((0, 3)), [])
         # each row's frame is checked (and its rotation computed) once, here; the model reuses the rotations
-        R = np.stack([check_case(arrays, i, self.model, self.scale, self.limits, input_frame=input_frame)
-                      for i in range(n)])
+        R = np.full((n, 3, 3), np.nan)
+        for i in range(n):
+            if refused[i]:
+                continue
+            try:
+                R[i] = check_case(arrays, i, self.model, self.scale, self.limits, input_frame=input_frame)
+            except PredictionInputError as exc:
+                if not keep_going:
+                    raise
+                refused[i] = str(exc)
         rep = self.model.representation
+        ids = arrays.get("case_id")
         own_warnings = [[] for _ in range(n)]
         if rep.is_camera and "camera_cloud_mm" in arrays:  # observed clouds: features once, each row checked
             if camera.TIP_KEY not in arrays:
                 raise PredictionInputError(
                     "a camera-cloud model needs the tool tip position ('tool_tip_mm', from the robot's kinematics) "
                     "with each cloud")
-            ids = arrays.get("case_id")
             for i in range(n):  # predict_cloud's refusals of a cloud and its tip, in its order and words
+                if refused[i]:
+                    continue
                 try:
                     tip = tool_tip_of(arrays[camera.TIP_KEY][i])
                     cloud = _points("cloud", arrays[camera.CLOUD_KEY][i], min_points=1)
@@ -459,29 +500,49 @@ class Predictor:
                                        R[i], self.limits, input_frame,
                                        None if entered is None else (entered[0][i], entered[1][i]))
                 except PredictionInputError as exc:
-                    raise PredictionInputError(f"{_row_label(ids, i)}{exc}") from None
+                    if not keep_going:
+                        raise PredictionInputError(f"{_row_label(ids, i)}{exc}") from None
+                    refused[i] = f"{_row_label(ids, i)}{exc}"
+            rows = [i for i in range(n) if not refused[i]]  # the features of the rows not refused
+            sub = arrays if len(rows) == n else subset(arrays, rows)
             spec, fitted, point_sd, dropped = (camera.grid_spec(rep.grid_size, rep.half_width_mm, rep.camera), [], [],
                                                [])
-            x = camera.features_from_clouds(arrays[camera.CLOUD_KEY], arrays[camera.TIP_KEY], arrays, spec, R=R,
-                                            fitted=fitted, point_sd=point_sd, outliers=dropped)
+            x = np.zeros((n, 0))
+            if rows:
+                x_rows = camera.features_from_clouds(sub[camera.CLOUD_KEY], sub[camera.TIP_KEY], sub, spec, R=R[rows],
+                                                     fitted=fitted, point_sd=point_sd, outliers=dropped)
+                x = x_rows
+                if len(rows) < n:  # refused rows' features: NaN (never read)
+                    x = np.full((n, x_rows.shape[1]), np.nan, dtype=x_rows.dtype)
+                    x[rows] = x_rows
             tris = arrays.get("roi_triangles")
-            for i in range(n):
+            for j, i in enumerate(rows):
                 try:  # the instrument in a cloud for a model trained without it, then the features' ranges
                     check_instrument(rep, arrays["camera_cloud_mm"][i], arrays["tool_tip_mm"][i],
                                      arrays["roi_undeformed_mm"][i], None if tris is None else tris[i],
                                      arrays["exertion_point_mm"][i], R[i])
                     checked = camera_checks(self.model, x[i], self.limits)
                 except PredictionInputError as exc:
-                    raise PredictionInputError(f"{_row_label(ids, i)}{exc}") from None
-                own_warnings[i] = cloud_warnings(spec, fitted[i] if fitted else None,  # predict_cloud's order
-                                                 point_sd[i] if point_sd else None, dropped[i]) + checked
+                    if not keep_going:
+                        raise PredictionInputError(f"{_row_label(ids, i)}{exc}") from None
+                    refused[i] = f"{_row_label(ids, i)}{exc}"
+                    continue
+                own_warnings[i] = cloud_warnings(spec, fitted[j] if fitted else None,  # predict_cloud's order
+                                                 point_sd[j] if point_sd else None, dropped[j]) + checked
             arrays = {**arrays, camera.FEATURES_KEY: x}
-        force = self._forces(arrays, R, observation_seed, fast, min_group)
+        rows = [i for i in range(n) if not refused[i]]
+        force = np.full((n, 3), np.nan)
+        warnings: list[list[str]] = [[] for _ in range(n)]
+        if not rows:
+            return out(force, warnings)
+        sub = arrays if len(rows) == n else subset(arrays, rows)
+        force[rows] = self._forces(sub, R[rows], observation_seed, fast, min_group)
         if not return_warnings:
-            return force
-        regs = [registration_warnings(f) for f in fixes] if fixes is not None else [[] for _ in range(n)]
-        return force, [c + w + g + f for c, w, g, f in zip(self.arrays_warnings(arrays), own_warnings, regs,
-                                                             self.force_warnings(force))]
+            return out(force, warnings)
+        regs = [registration_warnings(fixes[i]) for i in rows] if fixes is not None else [[] for _ in rows]
+        for i, c, g, f in zip(rows, self.arrays_warnings(sub), regs, self.force_warnings(force[rows])):
+            warnings[i] = c + own_warnings[i] + g + f
+        return out(force, warnings)
 
     def _forces(self, arrays: dict, R: np.ndarray, observation_seed, fast: bool, min_group: int) -> np.ndarray:
         """:meth:`predict_arrays`' forces of checked rows (``R``: their rotations), by the compiled node path
@@ -491,8 +552,6 @@ class Predictor:
         can_fast = fast and rep.features == "displacement" and not (observation_seed is not None and rep.stochastic)
         if not can_fast:
             return self.model.predict(arrays, observation_seed=observation_seed, rotations=R)
-        from liverforce.learn.model import subset
-
         groups: dict[bytes, list[int]] = {}
         for i in range(n):
             groups.setdefault(_context_key(arrays, i), []).append(i)
@@ -576,6 +635,22 @@ def _row_label(ids, i: int) -> str:
     """``"case <id>: "`` of row ``i`` (``ids``: the arrays' ``case_id``, or None: ``"row <i>: "``), the prefix of a
     row's refusal."""
     return f"case {ids[i]}: " if ids is not None else f"row {i}: "
+
+
+def _tips_column(tips: list, refused: list | None, ids) -> np.ndarray:
+    """The ``(n, 3)`` ``tool_tip_mm`` column of :meth:`Predictor.refine_arrays`; a malformed tip raises, or with
+    ``refused`` (one ``""`` per row) refuses its row (NaN; rows refused already are NaN too)."""
+    out = np.full((len(tips), 3), np.nan)
+    for i, t in enumerate(tips):
+        if refused is not None and refused[i]:
+            continue
+        try:
+            out[i] = _vector(camera.TIP_KEY, t, 3)
+        except PredictionInputError as exc:
+            if refused is None:
+                raise
+            refused[i] = _row_label(ids, i) + str(exc)
+    return out
 
 
 def _context_key(arrays: dict, i: int) -> bytes:

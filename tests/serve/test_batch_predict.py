@@ -101,3 +101,86 @@ def test_bad_shards_are_refused(trained, shards, tmp_path):
         predict_shards(pred, [shards / "manifest-bad.json"])
     with pytest.raises(PredictionInputError, match=r"\.parquet or \.csv"):
         predict_shards(pred, [shards / "shard-0000.parquet"], tmp_path / "x.xlsx")
+
+
+@pytest.fixture(scope="module")
+def shard_with_refused_rows(test_cases, tmp_path_factory, make_shard_rows):
+    """A shard of the held-out cases, two of them pushed at two more force levels (shared contexts: the compiled
+    path), and two rows the serving checks refuse: case 1 pushed 60x too far (in a compiled group) and case 4's
+    exertion point 10 mm off its surface. Returns the folder, the refused case ids and the shard without them."""
+    n = len(test_cases["case_id"])
+    rows = make_shard_rows(test_cases, range(n))
+    for s in (0.5, 0.8):
+        rows += make_shard_rows(test_cases, [1, 2], scale=s, suffix=f"-x{s}")
+    rows += make_shard_rows(test_cases, [1], scale=60.0, suffix="-x60")
+    off = rows[4]
+    off["exertion_point_mm"] = np.asarray(off["exertion_point_mm"]) + 10.0 * np.asarray(off["frame_normal"])
+    d = tmp_path_factory.mktemp("refused")
+    dio.write_shard(rows, d / "shard-0000.parquet")
+    bad = [rows[4]["case_id"], rows[-1]["case_id"]]
+    dio.write_shard([r for r in rows if r["case_id"] not in bad], d.parent / "clean.parquet")
+    return d, bad, d.parent / "clean.parquet"
+
+
+def test_a_refused_case_does_not_stop_the_batch(trained, shard_with_refused_rows, tmp_path):
+    """Two refused rows among the held-out cases: NaN forces and their reason in `refused` (the words
+    predict_arrays raises for that row alone), the others predicted as without them, on the compiled and the
+    reference path alike; the summary counts them and the metrics are the predicted rows'."""
+    from liverforce.learn.metrics import force_metrics
+    from liverforce.learn.model import subset
+
+    pred = Predictor.load(trained("disp"))
+    folder, bad, clean = shard_with_refused_rows
+    arrays = dio.load_training_arrays([folder / "shard-0000.parquet"])
+    ids = [str(c) for c in arrays["case_id"]]
+    want = {}
+    for c in bad:
+        with pytest.raises(PredictionInputError) as exc:
+            pred.predict_arrays(subset(arrays, [ids.index(c)]))
+        want[c] = str(exc.value)
+    assert want[bad[0]].startswith(f"case {bad[0]}: the exertion point is 10")
+    assert want[bad[1]].startswith(f"case {bad[1]}: the ROI moved by up to")
+    with pytest.raises(PredictionInputError) as first:  # predict_arrays still raises by default: the first refused
+        pred.predict_arrays(arrays)
+    assert str(first.value) == want[min(bad, key=ids.index)]
+    frames = {}
+    for fast in (True, False):
+        out = tmp_path / f"pred-{fast}.parquet"
+        summary = predict_shards(pred, [folder], out, fast=fast)
+        df = pd.read_parquet(out)
+        frames[fast] = df
+        assert summary["rows"] == len(df) == len(ids) and summary["refused"] == 2
+        assert summary["predicted"] == len(ids) - 2
+        refused = df.set_index("case_id")["refused"]
+        assert refused[bad[0]] == want[bad[0]] and refused[bad[1]] == want[bad[1]]
+        assert (refused.drop(bad) == "").all()
+        is_bad = df["case_id"].isin(bad).to_numpy()
+        F = df[["fx_n", "fy_n", "fz_n"]].to_numpy()
+        assert np.isnan(F[is_bad]).all() and np.isfinite(F[~is_bad]).all()
+        assert np.isnan(df["error_n"].to_numpy()[is_bad]).all() and (df["warnings"][is_bad] == "").all()
+        ok = predict_shards(pred, [clean], None, fast=fast)["frame"]
+        assert list(ok["case_id"]) == list(df["case_id"][~is_bad])
+        np.testing.assert_allclose(F[~is_bad], ok[["fx_n", "fy_n", "fz_n"]].to_numpy(), atol=1e-12)
+        assert list(df["warnings"][~is_bad]) == list(ok["warnings"])
+        true = df[["fx_true_n", "fy_true_n", "fz_true_n"]].to_numpy()
+        assert summary["metrics"] == pytest.approx(force_metrics(true[~is_bad], F[~is_bad]))
+    # the compiled and the reference path: the same rows refused in the same words, the same forces
+    assert list(frames[True]["refused"]) == list(frames[False]["refused"])
+    np.testing.assert_allclose(frames[True][["fx_n", "fy_n", "fz_n"]].to_numpy(),
+                               frames[False][["fx_n", "fy_n", "fz_n"]].to_numpy(), atol=1e-6)
+
+
+def test_predict_arrays_opts_in_to_refused_rows(trained, shard_with_refused_rows):
+    """``return_refused``: the reasons come last, after the warnings; a batch of refused rows only is all NaN."""
+    from liverforce.learn.model import subset
+
+    pred = Predictor.load(trained("disp"))
+    folder, bad, _ = shard_with_refused_rows
+    arrays = dio.load_training_arrays([folder / "shard-0000.parquet"])
+    force, refused = pred.predict_arrays(arrays, return_refused=True)
+    force_w, warned, refused_w = pred.predict_arrays(arrays, return_warnings=True, return_refused=True)
+    assert refused == refused_w and sum(bool(r) for r in refused) == 2 and len(warned) == len(refused)
+    np.testing.assert_array_equal(force, force_w)
+    rows = [i for i, c in enumerate(arrays["case_id"]) if str(c) in bad]
+    got, why = pred.predict_arrays(subset(arrays, rows), return_refused=True, fast=True)
+    assert np.isnan(got).all() and why == [refused[i] for i in rows]

@@ -120,3 +120,29 @@ def test_a_cloud_off_the_grid_and_a_tip_beyond_it_are_refused_alike(served):
         arrays = {**row, "camera_cloud_mm": [c], "tool_tip_mm": t[None]}
         assert _refusal(lambda: pred.predict_arrays(arrays)) == "case lab-1: " + cli
         assert _refusal(lambda: _pyfunc(pred, arrays)) == "case lab-1: " + cli
+
+
+def test_refused_camera_rows_go_on_with_the_reason_they_would_raise(served):
+    """``predict_arrays(return_refused=True)`` on camera rows: rows refused before the features (a cloud beside the
+    grid, a tip beyond it) and after them (a cloud that sees a quarter of the grid) get NaN, no warnings and the
+    words predict_arrays raises for each alone; the rows between are predicted as on their own. By default, and
+    in the pyfunc, the first refused row still refuses the call."""
+    pred, ctx, cloud, tip, row = served
+    h = pred.model.representation.half_width_mm
+    loc = (cloud - ctx.exertion_point_mm) @ ctx.rotation.T
+    clouds = [cloud, cloud + 3 * h * ctx.frame[0], cloud, cloud[(loc[:, 0] > 0) & (loc[:, 1] > 0)], cloud[::2]]
+    tips = [tip, tip, tip + 3 * h * ctx.frame[0], tip, tip]
+    n = len(clouds)
+    arrays = {k: [v[0]] * n if isinstance(v, list) else np.repeat(np.asarray(v), n, axis=0) for k, v in row.items()}
+    arrays.update(case_id=np.array([f"lab-{k}" for k in range(n)]), camera_cloud_mm=clouds, tool_tip_mm=np.stack(tips))
+    alone = [_refusal(lambda: pred.predict_arrays(subset(arrays, [k]))) for k in (1, 2, 3)]
+    assert "points lie over the model's" in alone[0] and "beyond the model's grid" in alone[1]
+    assert "sees only" in alone[2] and all(a.startswith(f"case lab-{k}: ") for a, k in zip(alone, (1, 2, 3)))
+    force, warned, refused = pred.predict_arrays(arrays, return_warnings=True, return_refused=True)
+    assert refused == ["", *alone, ""]
+    assert np.isnan(force[1:4]).all() and warned[1:4] == [[], [], []]
+    good, good_warned = pred.predict_arrays(subset(arrays, [0, 4]), return_warnings=True)
+    np.testing.assert_allclose(force[[0, 4]], good, atol=1e-12)
+    assert [warned[0], warned[4]] == good_warned
+    assert _refusal(lambda: pred.predict_arrays(arrays)) == alone[0]
+    assert _refusal(lambda: _pyfunc(pred, arrays)) == alone[0]

@@ -202,6 +202,38 @@ def test_describe_and_shards(trained, test_cases, tmp_path, capsys, make_shard_r
     assert json.loads(out)["rows"] == 6 and len(pd.read_parquet(tmp_path / "p.parquet")) == 6
 
 
+def test_shards_with_refused_cases_go_on_and_exit_2_only_when_every_row_is_refused(trained, test_cases, tmp_path,
+                                                                                  capsys, make_shard_rows):
+    """--shards: refused cases get NaN and their reason, the rest are predicted (exit 0); stderr says how many and
+    the first reasons; a batch of refused cases only exits 2, its file still written with every reason."""
+    from liverforce.dataset import io as dio
+
+    model = trained("disp")
+    rows = make_shard_rows(test_cases, range(8))
+    for k in (2, 5, 6, 7):  # pushed 60x further than in training: refused
+        rows[k] = make_shard_rows(test_cases, [k], scale=60.0)[0]
+    (tmp_path / "s").mkdir()
+    dio.write_shard(rows, tmp_path / "s" / "shard-0000.parquet")
+    rc, out, err = run(["-m", model, "--shards", tmp_path / "s", "--out", tmp_path / "p.parquet"], capsys)
+    assert rc == 0, err
+    summary, df = json.loads(out), pd.read_parquet(tmp_path / "p.parquet")
+    assert summary["rows"] == 8 and summary["refused"] == 4 and summary["predicted"] == 4
+    bad = df["refused"] != ""
+    assert sorted(df["case_id"][bad]) == sorted(str(test_cases["case_id"][k]) for k in (2, 5, 6, 7))
+    F = df[["fx_n", "fy_n", "fz_n"]].to_numpy()
+    assert np.isnan(F[bad]).all() and np.isfinite(F[~bad]).all()
+    reasons = list(df["refused"][bad])
+    assert all("the ROI moved by up to" in r for r in reasons)
+    assert err.startswith("liverforce predict: 4 of 8 rows refused, their forces NaN (the other rows were predicted; "
+                          f"each reason in the 'refused' column of {tmp_path / 'p.parquet'}). The first: "
+                          + "; ".join(reasons[:3]) + " (and 1 more)")
+    dio.write_shard([rows[k] for k in (2, 5)], tmp_path / "s" / "shard-0000.parquet")
+    rc, out, err = run(["-m", model, "--shards", tmp_path / "s", "--out", tmp_path / "all.csv"], capsys)
+    assert rc == 2 and json.loads(out)["predicted"] == 0
+    assert err.startswith("liverforce predict: error: 2 of 2 rows refused, their forces NaN (every row;")
+    assert list(pd.read_csv(tmp_path / "all.csv")["refused"]) == reasons[:2]
+
+
 @pytest.mark.parametrize("ext", ["stl", "obj", "vtu-tets"])
 def test_surface_files(tmp_path, ext, ellipsoid):
     import meshio

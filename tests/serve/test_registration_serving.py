@@ -205,8 +205,12 @@ def test_unloaded_columns_on_arrays_are_checked_row_by_row(served, trained):  # 
     with pytest.raises(PredictionInputError, match=f"case {cases['case_id'][0]}: unloaded_cloud_mm"):
         pred.predict_arrays(bad)
     bad = {**cases, "unloaded_cloud_mm": [_unloaded(a, 0), None], "contact_tip_mm": [[1.0, 2.0], None]}
-    with pytest.raises(PredictionInputError, match="contact_tip_mm"):
+    with pytest.raises(PredictionInputError, match="contact_tip_mm") as exc:
         pred.predict_arrays(bad)
+    # return_refused: the row whose registration step is refused gets NaN and that reason; the other is predicted
+    force, refused = pred.predict_arrays(bad, return_refused=True)
+    assert refused == [str(exc.value), ""] and np.isnan(force[0]).all()
+    np.testing.assert_allclose(force[1], plain[1], atol=1e-6)  # a batch of one row: float32 sums in another order
     with pytest.raises(PredictionInputError, match="refines a camera-cloud model"):
         Predictor.from_dir(trained("disp")).refine_arrays({**cases, "unloaded_cloud_mm": [None, None]})
 
