@@ -458,11 +458,14 @@ class Predictor:
         bad = {k: len(arrays[k]) for k in self.model.required_inputs() if len(arrays[k]) != n}
         if bad:
             raise PredictionInputError(f"inputs disagree on the number of cases ({n} exertion points): {bad}")
-        if refused is None:
-            refused = [""] * n
-            keep_going = False
-        else:
-            keep_going = True
+        keep_going = refused is not None
+        refused = refused if keep_going else [""] * n
+
+        def refuse(i: int, why: str) -> None:
+            """Row ``i`` refused: raise its message, or (``return_refused``) record it and go on."""
+            if not keep_going:
+                raise PredictionInputError(why) from None
+            refused[i] = why
 
         def out(force, warnings):
             got = (force, warnings) if return_warnings else (force,)
@@ -480,7 +483,7 @@ class Predictor:
                 R[i] = check_case(arrays, i, self.model, self.scale, self.limits, input_frame=input_frame)
             except PredictionInputError as exc:
                 if not keep_going:
-                    raise
+                    raise  # as raised (an OffSurfaceError stays one)
                 refused[i] = str(exc)
         rep = self.model.representation
         ids = arrays.get("case_id")
@@ -500,9 +503,7 @@ class Predictor:
                                        R[i], self.limits, input_frame,
                                        None if entered is None else (entered[0][i], entered[1][i]))
                 except PredictionInputError as exc:
-                    if not keep_going:
-                        raise PredictionInputError(f"{_row_label(ids, i)}{exc}") from None
-                    refused[i] = f"{_row_label(ids, i)}{exc}"
+                    refuse(i, f"{_row_label(ids, i)}{exc}")
             rows = [i for i in range(n) if not refused[i]]  # the features of the rows not refused
             sub = arrays if len(rows) == n else subset(arrays, rows)
             spec, fitted, point_sd, dropped = (camera.grid_spec(rep.grid_size, rep.half_width_mm, rep.camera), [], [],
@@ -511,10 +512,8 @@ class Predictor:
             if rows:
                 x_rows = camera.features_from_clouds(sub[camera.CLOUD_KEY], sub[camera.TIP_KEY], sub, spec, R=R[rows],
                                                      fitted=fitted, point_sd=point_sd, outliers=dropped)
-                x = x_rows
-                if len(rows) < n:  # refused rows' features: NaN (never read)
-                    x = np.full((n, x_rows.shape[1]), np.nan, dtype=x_rows.dtype)
-                    x[rows] = x_rows
+                x = np.full((n, x_rows.shape[1]), np.nan, dtype=x_rows.dtype)  # refused rows: NaN, never read
+                x[rows] = x_rows
             tris = arrays.get("roi_triangles")
             for j, i in enumerate(rows):
                 try:  # the instrument in a cloud for a model trained without it, then the features' ranges
@@ -523,9 +522,7 @@ class Predictor:
                                      arrays["exertion_point_mm"][i], R[i])
                     checked = camera_checks(self.model, x[i], self.limits)
                 except PredictionInputError as exc:
-                    if not keep_going:
-                        raise PredictionInputError(f"{_row_label(ids, i)}{exc}") from None
-                    refused[i] = f"{_row_label(ids, i)}{exc}"
+                    refuse(i, f"{_row_label(ids, i)}{exc}")
                     continue
                 own_warnings[i] = cloud_warnings(spec, fitted[j] if fitted else None,  # predict_cloud's order
                                                  point_sd[j] if point_sd else None, dropped[j]) + checked
