@@ -81,6 +81,11 @@ class ImportedGeometry:
     # auto (a file holding tetrahedra: as_given; anything else: remesh) | as_given (the file's tets and node
     # numbering, linear tets raised to P2 by the solver) | remesh (tetrahedralise its surface, as for an STL)
     mesh: str = "auto"
+    # the liver's own material (the run's material.model): {E_pa: ...} | {E_mpa: ...} (neo_hookean, the run's nu)
+    # | {params_mpa: {C10: ...}} | {scale: s} (the run's constants x s); none: the run's material. Held out
+    # (validate.imported): its cases take these constants as given (validate.material_scale is not applied);
+    # a training liver: the constants its scenarios draw around (material.vary_rel). See liver_material.
+    material: Optional[Any] = None
 
 
 @dataclass
@@ -750,6 +755,9 @@ def _check_ranges(cfg: dict, run: bool = True) -> None:
     if len(lo_hi) != 2 or not 0 < lo_hi[0] < 1 < lo_hi[1]:
         _fail("material.stability_stretch", f"must be [lo, hi] with 0 < lo < 1 < hi (got {lo_hi})")
     _check_choice("material.on_unstable", mat["on_unstable"], ("refuse", "clip"))
+    for i, imp in enumerate(g["imported"]):
+        if imp.get("material") is not None:
+            liver_material(imp["material"], mat, f"geometry.imported[{i}].material")
 
     b = cfg["boundary"]
     for k in ("ligament_total_n_per_mm", "visceral_total_n_per_mm", "tangential_ratio", "rib_normal_n_per_mm3"):
@@ -1249,7 +1257,64 @@ def _k_over_mu(nu: float) -> float:
 MU0_PLAUSIBLE_MPA = (1e-5, 1.0)
 
 
-def _check_material_scale(mat: dict, key: str) -> None:
+#: the forms of ``geometry.imported[].material`` (one key each)
+LIVER_MATERIAL_KEYS = ("E_pa", "E_mpa", "params_mpa", "scale")
+
+
+def liver_material(spec: Any, mat: dict, key: str) -> tuple[dict[str, float], str]:
+    """An imported liver's own constants (MPa) from ``geometry.imported[].material`` and the run's ``material``.
+
+    ``spec`` is one of ``{E_pa: E}`` / ``{E_mpa: E}`` (a neo_hookean run; the run's ``nu``,
+    :func:`liverforce.fem.materials.neo_hookean_from_young`), ``{params_mpa: {...}}`` (the run's model and
+    constant names) or ``{scale: s}`` (the run's constants x ``s``). Returns ``(params_mpa, note)``, ``note``
+    saying what was converted. Refuses (:class:`ConfigError` naming ``key``) another form, another model's
+    constants, a non-positive scale, and constants no liver has (:func:`_check_material_scale`). ``mat`` is
+    the run's resolved slice (``params_mpa`` set).
+    """
+    if not isinstance(spec, dict) or len(spec) != 1 or next(iter(spec)) not in LIVER_MATERIAL_KEYS:
+        got = sorted(spec) if isinstance(spec, dict) else repr(spec)
+        _fail(key, f"give one of {', '.join(LIVER_MATERIAL_KEYS)} (got {got})",
+              f"e.g. {key}={{E_pa: 9000}} (a neo_hookean run), {{params_mpa: {{C10: 0.004}}}} or {{scale: 1.5}} "
+              "(the run's constants x 1.5)")
+    (form, value), = spec.items()
+    run = {k: float(v) for k, v in mat["params_mpa"].items()}
+    if form in ("E_pa", "E_mpa"):
+        if mat["model"] != "neo_hookean":
+            _fail(f"{key}.{form}", f"Young's modulus defines a neo_hookean material; this run's is "
+                  f"'{mat['model']}'", f"give the liver's {mat['model']} constants: {key}.params_mpa={{...}} "
+                  f"({', '.join(sorted(run))}), or {key}.scale")
+        from liverforce.fem.materials import neo_hookean_from_young
+
+        try:
+            params, note = neo_hookean_from_young(float(value), mat["nu"], unit="Pa" if form == "E_pa" else "MPa")
+        except (TypeError, ValueError) as exc:
+            _fail(f"{key}.{form}", str(exc))
+        _check_material_scale({"model": mat["model"], "params_mpa": params, form: float(value)}, f"material.{form}",
+                              shown=f"{key}.{form}")
+        return params, note
+    if form == "scale":
+        try:
+            s = float(value)
+        except (TypeError, ValueError):
+            s = float("nan")
+        if not 0 < s < float("inf"):
+            _fail(f"{key}.scale", f"must be a number > 0 (got {value!r})")
+        params = {k: v * s for k, v in run.items()}
+        return params, f"the run's constants x {s:g}: " + ", ".join(f"{k} {v:.4g} MPa" for k, v in params.items())
+    if not isinstance(value, dict) or set(value) != set(run):
+        got = sorted(value) if isinstance(value, dict) else repr(value)
+        _fail(f"{key}.params_mpa", f"must give the run's {mat['model']} constants {sorted(run)} (got {got})",
+              "a liver's own material is the run's model with its own constants (material.model is one per run)")
+    try:
+        params = {k: float(value[k]) for k in sorted(run)}
+    except (TypeError, ValueError) as exc:
+        _fail(f"{key}.params_mpa", f"constants must be numbers in MPa ({exc})")
+    _check_material_scale({"model": mat["model"], "params_mpa": params}, "material.params_mpa",
+                          shown=f"{key}.params_mpa")
+    return params, ", ".join(f"{k} {v:.4g} MPa" for k, v in params.items()) + " (given)"
+
+
+def _check_material_scale(mat: dict, key: str, shown: str | None = None) -> None:
     """Refuse constants whose initial shear modulus is no tissue's: Pa or kPa given as MPa (``E_mpa=14900``,
     ``params_mpa.C10=2500``) make a liver a million times too stiff, kPa given as Pa one a thousand times too
     soft, and both are stable, so nothing later would say it. Non-positive moduli are left to the stability
@@ -1281,7 +1346,7 @@ def _check_material_scale(mat: dict, key: str) -> None:
                 f"by 1e6 (mu0 {mu0 * 1e-6:.3g} MPa), if in kPa by 1e3 (mu0 {mu0 * 1e-3:.3g} MPa)")
     else:  # too soft: no unit makes a plausible liver by a factor of 1e3 or 1e6 downwards
         hint = "params_mpa is in MPa, a liver's C10 about 0.001-0.01 MPa"
-    _fail(key, f"{given} gives an initial shear modulus mu0 = {mu0:.3g} MPa ({mu0 * 1e6:.3g} Pa), outside the "
+    _fail(shown or key, f"{given} gives an initial shear modulus mu0 = {mu0:.3g} MPa ({mu0 * 1e6:.3g} Pa), outside the "
                f"{lo:g}-{hi:g} MPa of any liver or liver phantom", hint)
 
 

@@ -73,7 +73,21 @@ def provenance_lines(prov: dict | None) -> list[str]:
     if not prov:
         return ["unknown: the model records no training livers (trained before liverforce recorded them, or "
                 "outside the pipeline)"]
-    return [liver_line(r) for r in prov.get("livers") or []] + [material_line(prov.get("material"))]
+    return ([liver_line(r) for r in prov.get("livers") or []] + [material_line(prov.get("material"))]
+            + own_material_lines(prov.get("material")))
+
+
+def own_material_lines(mat: dict | None) -> list[str]:
+    """One line per training liver with its own material (``geometry.imported[].material``): its constants in
+    MPa, the centre of its cases' constants in place of the run's, and as the lab entered them."""
+    lines = []
+    for gid, own in sorted(((mat or {}).get("per_liver") or {}).items()):
+        params = ", ".join(f"{k} {_num(v)}" for k, v in (own.get("params_mpa") or {}).items())
+        entered = own.get("entered")
+        shown = (" (entered as " + ", ".join(f"{k} {_num(v)}" for k, v in entered.items()) + ")"
+                 if isinstance(entered, dict) else "")
+        lines.append(f"material of {gid}: its own, {params} MPa{shown}")
+    return lines
 
 
 def _clip(text: str) -> str:
@@ -124,4 +138,6 @@ def provenance_params(prov: dict | None) -> dict[str, str]:
     entered = mat.get("entered")
     if isinstance(entered, dict):
         out.update({f"material.{k}": _num(v) for k, v in entered.items()})
+    for gid, own in sorted((mat.get("per_liver") or {}).items()):  # a liver's own constants
+        out.update({f"material.{gid}.params_mpa.{k}": _num(v) for k, v in (own.get("params_mpa") or {}).items()})
     return {k: _clip(v) for k, v in out.items()}

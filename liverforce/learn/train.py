@@ -290,6 +290,10 @@ def train_scenario(
         fitted = set(geo[tr].tolist())
         provenance = {**provenance, "livers": [r for r in provenance["livers"] if r.get("geometry_id") in fitted],
                       "test_livers": sorted({r.get("geometry_id") for r in provenance["livers"]} - fitted)}
+        own = (provenance.get("material") or {}).get("per_liver")
+        if own:  # a liver's own material (geometry.imported[].material): the fitted livers' only
+            mat = {**provenance["material"], "per_liver": {g: m for g, m in own.items() if g in fitted}}
+            provenance["material"] = mat if mat["per_liver"] else {k: v for k, v in mat.items() if k != "per_liver"}
     if model_meta or provenance:
         # stored in the model bundle (e.g. ROI fraction, frame radius for serving; the training livers)
         meta = {**(model_meta or {}), **({"provenance": provenance} if provenance else {})}

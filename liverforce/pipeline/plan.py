@@ -37,7 +37,7 @@ import re
 from pathlib import Path
 
 from liverforce import layout
-from liverforce.config import SCENARIOS, ConfigError, held_out, results_root, variant_model
+from liverforce.config import SCENARIOS, ConfigError, held_out, liver_material, results_root, variant_model
 from liverforce.seeds import derive, liver_seeds
 from liverforce.sweep.design import n_shards
 
@@ -130,8 +130,8 @@ class Plan:
         if gid.startswith("imp-"):
             name = gid[4:]
             for imp in g["imported"]:
-                if imp["name"] == name:
-                    return {"kind": "imported", **imp}
+                if imp["name"] == name:  # its material is the sweep's (a new one re-simulates, never re-meshes)
+                    return {"kind": "imported", **{k: v for k, v in imp.items() if k != "material"}}
         raise KeyError(f"unknown geometry id '{gid}'")
 
     def geometry_files(self, gid: str, stage: str = "mesh") -> list[str]:
@@ -202,6 +202,9 @@ class Plan:
         if scenario == VALIDATION:
             scale = self.cfg["validate"]["material_scale"]
             material["params_mpa"] = {k: v * scale for k, v in material["params_mpa"].items()}
+        own = {gid: m for gid, m in self.liver_materials().items() if gid in self.scenario_geometries(scenario)}
+        if own:  # absent otherwise: a run without such livers keeps its sweep params (and its results)
+            material["per_liver"] = own
         return {
             "scenario": scenario,
             "spec": self.scenario_spec(scenario),
@@ -214,6 +217,22 @@ class Plan:
             "material": material,
             "tool_radius_mm": self.cfg["simulate"]["tool_radius_mm"],
         }
+
+    def liver_materials(self) -> dict[str, dict]:
+        """The imported livers' own materials (``geometry.imported[].material``), by geometry id:
+        ``{"params_mpa": {...} (MPa), "entered": <as given>, "note": <the conversion in words>}``.
+
+        A held-out liver's cases take these constants as they are (``validate.material_scale`` scales the
+        others); a training liver's scenarios draw around them (``material.vary_rel``) where the material
+        varies (:func:`liverforce.sweep.design.build_cases`).
+        """
+        out = {}
+        for i, imp in enumerate(self.cfg["geometry"]["imported"]):
+            if imp.get("material") is not None:
+                params, note = liver_material(imp["material"], self.cfg["material"],
+                                              f"geometry.imported[{i}].material")
+                out[f"imp-{imp['name']}"] = {"params_mpa": params, "entered": dict(imp["material"]), "note": note}
+        return out
 
     def all_scenarios(self) -> list[str]:
         return self.scenarios + [VALIDATION]

@@ -68,6 +68,10 @@ def training_provenance(manifest_path: str | Path, geometry_ids, shard_meta: dic
         material = material_record(None, shard_meta, why)
     else:
         material = material_record(paths.cases(scenario_of_manifest(manifest_path)), shard_meta)
+    if material.get("per_liver"):  # only the livers this model was fitted on
+        material["per_liver"] = {g: m for g, m in material["per_liver"].items() if g in {str(x) for x in geometry_ids}}
+        if not material["per_liver"]:
+            del material["per_liver"]
     for rec in livers:
         if rec["kind"] == "unknown":
             log.warning("training liver %s: origin unknown (%s); recorded as unknown in the model", rec["geometry_id"],
@@ -125,7 +129,9 @@ def material_record(cases_path: str | Path | None, shard_meta: dict | None = Non
 
     From the case table's metadata (``cases_path``: ``source: config``): ``model``, ``params_mpa``, ``nu``,
     ``vary_rel``, ``entered`` (``{"E_pa": ...}`` or ``{"E_mpa": ...}`` when Young's modulus was given, else
-    None: the constants were given in MPa) and ``conversion`` (the derivation in words). Without a readable
+    None: the constants were given in MPa), ``conversion`` (the derivation in words) and, when imported livers
+    bring their own material (``geometry.imported[].material``), ``per_liver``: geometry id -> ``params_mpa``,
+    ``entered``, ``note``. Without a readable
     case table, from the shards' stiffness-probe reference (``source: shards``; ``entered`` unknown), else
     ``source: unknown`` with the ``reason``.
     """
@@ -142,9 +148,13 @@ def material_record(cases_path: str | Path | None, shard_meta: dict | None = Non
                 reason = None if mat else f"case table {_shown(cases_path, 3)} records no material"
             if isinstance(mat, dict):
                 entered = {k: mat[k] for k in ("E_pa", "E_mpa") if mat.get(k) is not None}
-                return {"source": "config", "model": mat.get("model"), "params_mpa": mat.get("params_mpa"),
-                        "nu": mat.get("nu"), "vary_rel": mat.get("vary_rel"), "entered": entered or None,
-                        "conversion": mat.get("conversion")}
+                out = {"source": "config", "model": mat.get("model"), "params_mpa": mat.get("params_mpa"),
+                       "nu": mat.get("nu"), "vary_rel": mat.get("vary_rel"), "entered": entered or None,
+                       "conversion": mat.get("conversion")}
+                if mat.get("per_liver"):  # imported livers' own constants (geometry.imported[].material)
+                    out["per_liver"] = {str(g): {k: m.get(k) for k in ("params_mpa", "entered", "note")}
+                                        for g, m in mat["per_liver"].items()}
+                return out
         else:
             reason = f"no case table at {_shown(cases_path, 3)}"
     probe = (shard_meta or {}).get("probe")

@@ -153,13 +153,58 @@ def _figure(src: str | Path, out_dir: Path, caption: str = "", width: int = 420)
 
 def _scale_words(setup: dict) -> str:
     """Whether the unseen livers' constants (the material's x ``validate.material_scale``) lie outside the
-    training range (each constant drawn within +-``material.vary_rel``), in words."""
+    training range (each constant drawn within +-``material.vary_rel``), in words; then each held-out liver
+    with its own material (``geometry.imported[].material``), which is not scaled."""
     scale = (setup.get("validate") or {}).get("material_scale")
     rel = (setup.get("material") or {}).get("vary_rel")
     if scale is None or rel is None:
         return "outside the training range"  # an older setup without them: the default's 1.4 against +-30 %
     inside = 1.0 - float(rel) <= float(scale) <= 1.0 + float(rel)
-    return "within the training range" if inside else "outside the training range"
+    own = _own_materials(setup)["unseen"]
+    words = [] if own and not _scaled_unseen(setup) else ["within the training range" if inside
+                                                          else "outside the training range"]
+    words += [f"<code>{html.escape(g)}</code>: its own, {html.escape(p)} MPa, {'within' if ok else 'outside'} the "
+              "training range" for g, p, ok in own]
+    return "; ".join(words)
+
+
+def _scaled_unseen(setup: dict) -> bool:
+    """Whether some unseen liver takes the run's constants x ``validate.material_scale`` (not its own)."""
+    unseen = (setup.get("population") or {}).get("unseen")
+    return unseen is None or any(g not in (setup.get("liver_materials") or {}) for g in unseen)
+
+
+def _own_materials(setup: dict) -> dict:
+    """The imported livers with their own material (``setup["liver_materials"]``, :meth:`Plan.liver_materials`):
+    ``{"unseen": [(gid, constants in words, inside the training range)], "training": [(gid, words, entered)]}``.
+
+    The training range of a constant: each training liver's centre (its own constants, else the run's) +-
+    ``material.vary_rel`` where scenario IV varies the material, the centres alone where it does not.
+    """
+    own = setup.get("liver_materials") or {}
+    pop = setup.get("population") or {}
+    mat = setup.get("material") or {}
+    unseen, training = set(pop.get("unseen") or []), list(pop.get("training") or [])
+    varies = str(((setup.get("sweep") or {}).get("scenarios") or {}).get("IV", {}).get("material")) == "varies"
+    rel = float(mat.get("vary_rel") or 0.0) if varies else 0.0
+    run = mat.get("params_mpa") or {}
+    centres = [(own.get(g) or {}).get("params_mpa") or run for g in training] or [run]
+
+    def words(p):
+        return ", ".join(f"{k} {float(v):.4g}" for k, v in p.items())
+
+    def inside(p):
+        return all(any(c.get(k) is not None and (1 - rel) * c[k] * (1 - 1e-9) <= v <= (1 + rel) * c[k] * (1 + 1e-9)
+                       for c in centres) for k, v in p.items())
+
+    out = {"unseen": [], "training": []}
+    for gid, m in sorted(own.items()):
+        p = m.get("params_mpa") or {}
+        if gid in unseen:
+            out["unseen"].append((gid, words(p), inside(p)))
+        else:
+            out["training"].append((gid, words(p), m.get("entered")))
+    return out
 
 
 def _unseen_kinds(unseen) -> str:
@@ -826,7 +871,9 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
         f"<p id='unseen-headline'><b>Unseen-liver validation</b> of <code>{html.escape(str(v.get('model_variant')))}"
         f"</code>{' (camera cloud and tool tip, no FE node ids: what surgery has)' if cam_validated else ''} "
         f"({lv['n']} liver shapes never seen in training"
-        + (f", material constants × {_fmt(scale, 2)}" if scale is not None else "") + "): MAE "
+        + (f", material constants × {_fmt(scale, 2)}" if scale is not None and _scaled_unseen(setup) else "")
+        + "".join(f"; <code>{html.escape(g)}</code> its own material" for g, _, _ in _own_materials(setup)["unseen"])
+        + "): MAE "
         f"<b>{_pm(lv['mean']['mae_vec'], lv['sd'].get('mae_vec'))} N</b>, accuracy "
         f"<b>{_pm(lv['mean']['accuracy_pct'], lv['sd'].get('accuracy_pct'), 1)} %</b> ("
         + (f"mean ± sd over the {lv['n']} livers" if lv['n'] != 1 else "one liver")
@@ -883,10 +930,14 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
         parts.append(f"<h3>Material</h3><p>{html.escape(str(mat.get('model')))} hyperelastic, constants (MPa): "
                      f"{html.escape(consts)}; Poisson ratio {_fmt(mat.get('nu'), 3)} (nearly incompressible). "
                      f"Where the material varies, each constant is drawn within ±{100 * mat.get('vary_rel', 0):.0f} %"
-                     f" (unstable sets refused before solving). Unseen validation livers: constants × "
-                     f"{_fmt((setup.get('validate') or {}).get('material_scale'), 2)} "
-                     f"({_scale_words(setup)})."
-                     "</p>")
+                     f" (unstable sets refused before solving). Unseen validation livers: "
+                     + (f"constants × {_fmt((setup.get('validate') or {}).get('material_scale'), 2)} "
+                        if _scaled_unseen(setup) else "") + f"({_scale_words(setup)})."
+                     + "".join(f" <code>{html.escape(g)}</code> has its own constants ({html.escape(p)} MPa"
+                               + (f", entered as {html.escape(', '.join(f'{k} {x}' for k, x in e.items()))}"
+                                  if isinstance(e, dict) else "") + "): its cases are drawn around them."
+                               for g, p, e in _own_materials(setup)["training"])
+                     + "</p>")
     bnd = setup.get("boundary")
     if bnd:
         num = lambda v: isinstance(v, (int, float)) and not isinstance(v, bool)  # noqa: E731

@@ -18,7 +18,9 @@ Material model
 ``fixed``: the configured constants. ``varies``: each constant ``p`` uniform in
 ``[p (1 − r), p (1 + r)]`` with ``r = vary_rel``; every sampled set is checked
 for Drucker stability before any solve (refused, or dropped and reported with
-``on_unstable: clip``).
+``on_unstable: clip``). A liver with its own material (``material["per_liver"]``,
+an imported liver's ``geometry.imported[].material``) takes its own constants
+for ``p``.
 """
 
 from __future__ import annotations
@@ -167,7 +169,8 @@ def build_cases(
     exertion : dict
         Candidate exertion points per geometry id.
     material : dict
-        The ``material`` config slice (model, params_mpa, nu, vary_rel, on_unstable).
+        The ``material`` config slice (model, params_mpa, nu, vary_rel, on_unstable), and optionally
+        ``per_liver``: geometry id -> ``{"params_mpa": ...}``, a liver's own constants in place of params_mpa.
     force : dict
         ``min_n``, ``max_n``, ``cone_deg``.
     stability_check : callable(model, params) -> (bool, str)
@@ -184,14 +187,22 @@ def build_cases(
     """
     n = int(spec["n_cases"])
     names = sorted(material["params_mpa"])
-    base = np.array([material["params_mpa"][k] for k in names], dtype=float)
     model = material["model"]
-    ok, why = stability_check(model, dict(zip(names, base)))
-    if not ok:
-        raise SweepError(
-            f"material '{model}' with constants {dict(zip(names, base.tolist()))} MPa is not Drucker-stable: {why}. "
-            "Fit stable constants (liverforce.fem.fitting) or choose another material (config group material/)."
-        )
+    own = material.get("per_liver") or {}
+    bases = {}  # geometry id -> the constants its cases take or draw around
+    for gid in dict.fromkeys(geometry_ids):
+        given = (own.get(gid) or {}).get("params_mpa")
+        if given is not None and set(given) != set(names):
+            raise SweepError(f"{gid}: its own material gives {sorted(given)}, the run's {model} has {names}")
+        bases[gid] = np.array([(given or material["params_mpa"])[k] for k in names], dtype=float)
+        ok, why = stability_check(model, dict(zip(names, bases[gid])))
+        if not ok:
+            whose = (f"the liver {gid}'s own material (geometry.imported[].material)" if given is not None
+                     else f"material '{model}'")
+            raise SweepError(
+                f"{whose} with constants {dict(zip(names, bases[gid].tolist()))} MPa is not Drucker-stable: {why}. "
+                "Fit stable constants (liverforce.fem.fitting) or choose another material (config group material/)."
+            )
     d = 5 + len(names)
     u = _unit_samples(design, n, d, seed)
     g_idx = np.minimum((np.arange(n) * len(geometry_ids)) // n, len(geometry_ids) - 1)
@@ -201,6 +212,7 @@ def build_cases(
         gid = geometry_ids[g_idx[i]]
         ex = exertion[gid]
         k = 0 if spec["exertion"] == "fixed" else min(int(u[i, 3] * len(ex.points)), len(ex.points) - 1)
+        base = bases[gid]
         if spec["material"] == "fixed":
             params = base.copy()
         else:

@@ -100,8 +100,11 @@ def _write_livers(tmp: Path) -> None:
 
 
 def _overrides(tmp: Path) -> str:
-    return (f"overrides=geometry.procedural.count=1 geometry.imported=[{{name:a,path:{tmp}/a.stl,units:mm}},"
-            f"{{name:b,path:{tmp}/b.stl,units:mm}}] validate.imported=[b] validate.livers=0 validate.input=any "
+    # each lab liver with its own material (geometry.imported[].material): a's cases drawn around the run's
+    # constants x 1.2, b's (held out) at x 0.8 as given
+    return (f"overrides=geometry.procedural.count=1 geometry.imported=[{{name:a,path:{tmp}/a.stl,units:mm,"
+            f"material:{{scale:1.2}}}},{{name:b,path:{tmp}/b.stl,units:mm,material:{{scale:0.8}}}}] "
+            "validate.imported=[b] validate.livers=0 validate.input=any "
             "validate.physics.enabled=false study.enabled=false train.scenarios=[IV] ~sweep.scenarios.I "
             "~sweep.scenarios.II ~sweep.scenarios.III train.variants=[{name:pca_sv,encoder:pca,state_vector:true}]")
 
@@ -142,3 +145,19 @@ def test_a_held_out_lab_liver_is_scored_as_unseen_and_never_trained_on(tmp_path)
     iv = np.unique(np.concatenate([pq.read_table(p, columns=["geometry_id"]).column(0).to_numpy(zero_copy_only=False)
                                    for p in sorted((res / "shards" / "IV").glob("*.parquet"))]).astype(str))
     assert "imp-b" not in iv and {"imp-a", "proc-0000"} <= set(iv)
+    # the livers' own materials: b's validation cases at the run's constants x 0.8 (not x validate.material_scale),
+    # a's IV cases within +-vary_rel of x 1.2, the procedural liver's of x 1
+    cfg = compose(["experiment=smoke"])
+    run, r = np.array([cfg["material"]["params_mpa"][k] for k in sorted(cfg["material"]["params_mpa"])]), \
+        cfg["material"]["vary_rel"]
+
+    def constants(scenario, gid):
+        t = pq.read_table(res / "sweep" / scenario / "cases.parquet").to_pylist()
+        return np.array([c["material_params_mpa"] for c in t if c["geometry_id"] == gid])
+
+    b = constants("V", "imp-b")
+    assert len(b) == cfg["validate"]["n_cases"]
+    np.testing.assert_allclose(b, np.tile(0.8 * run, (len(b), 1)), rtol=1e-12)
+    for gid, centre in (("imp-a", 1.2), ("proc-0000", 1.0)):
+        c = constants("IV", gid) / run
+        assert len(c) and (c >= centre * (1 - r) - 1e-12).all() and (c <= centre * (1 + r) + 1e-12).all(), gid

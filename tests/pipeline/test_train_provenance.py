@@ -227,7 +227,8 @@ def test_a_split_model_records_only_the_livers_it_was_fitted_on(tmp_path):
     geo = np.asarray(arrays["geometry_id"]).astype(str)
     ids = sorted(set(geo.tolist()))
     prov = {"version": 1, "livers": [{"geometry_id": g, "kind": "procedural", "seed": i} for i, g in enumerate(ids)],
-            "material": {"source": "unknown", "reason": "test"}}
+            "material": {"source": "config", "model": "neo_hookean", "params_mpa": {"C10": 0.0025},
+                         "per_liver": {g: {"params_mpa": {"C10": 0.003}} for g in ids}}}
     res = train_scenario(arrays, MODEL, TRAIN, NO_TUNE, "IV", "pca_sv", threads=1, seed=0, out_dir=tmp_path,
                          provenance=prov)
     tr, te = train_test_split(geo, scenario="IV", test_fraction=TRAIN["test_fraction"], seed=0)
@@ -235,3 +236,24 @@ def test_a_split_model_records_only_the_livers_it_was_fitted_on(tmp_path):
     assert held and not set(held) & set(fitted)
     got = ForceModel.load(res["model_path"]).meta["provenance"]
     assert [r["geometry_id"] for r in got["livers"]] == fitted and got["test_livers"] == held
+    assert sorted(got["material"]["per_liver"]) == fitted  # a test liver's own material is no training fact
+
+
+def test_a_training_livers_own_material_is_recorded_with_the_run_material(tmp_path, uri, capsys):
+    """A lab liver with its own material (``geometry.imported[].material``): the model names its constants and
+    how they were entered beside the run's; the run gets them as params."""
+    from liverforce.geometry.procedural import LiverShapeParams, procedural_liver
+
+    src = tmp_path / "lab" / "liver.stl"
+    src.parent.mkdir()
+    procedural_liver(2, LiverShapeParams(voxel_mm=6.0)).to_trimesh().export(src)
+    got = run_stages(tmp_path, uri, [f"geometry.imported=[{{name:lab,path:{src},units:mm,material:{{E_pa:9000}}}}]",
+                                     "geometry.procedural.count=1", "material=neo_hookean"], "imp-lab")
+    mat = got["meta"]["provenance"]["material"]
+    own = mat["per_liver"]["imp-lab"]
+    assert own["entered"] == {"E_pa": 9000} and own["params_mpa"]["C10"] == pytest.approx(9000e-6 / 2.98 / 2)
+    assert "E 9 kPa" in own["note"]
+    lines = describe_cli(got["model_path"], capsys)["trained_on"]
+    assert lines[-1] == f"material of imp-lab: its own, C10 {own['params_mpa']['C10']:.12g} MPa (entered as E_pa 9000)"
+    params = got["run"].data.params
+    assert float(params["material.imp-lab.params_mpa.C10"]) == pytest.approx(own["params_mpa"]["C10"], rel=1e-11)

@@ -30,7 +30,7 @@ def _refuse_unstable_material(cfg):
     The sweep rule checks them again with every sampled set; checking here
     means unstable constants stop the workflow before geometry and meshing.
     """
-    from liverforce.config import ConfigError
+    from liverforce.config import ConfigError, liver_material
     from liverforce.pipeline.sweep import material_checks
 
     mat = cfg["material"]
@@ -38,6 +38,13 @@ def _refuse_unstable_material(cfg):
     ok, why = stable(mat["model"], dict(mat["params_mpa"]))
     if not ok:
         raise ConfigError(f"config key 'material.params_mpa': {why}")
+    for i, imp in enumerate(cfg["geometry"]["imported"]):  # a lab liver's own constants (config.liver_material)
+        if imp.get("material") is not None:
+            key = f"geometry.imported[{i}].material"
+            params, note = liver_material(imp["material"], mat, key)
+            ok, why = stable(mat["model"], params)
+            if not ok:
+                raise ConfigError(f"config key '{key}': {note}: {why}")
 
 
 _refuse_unstable_material(CFG)

@@ -18,6 +18,7 @@ rule report:
         setup={
             "main_variant": PLAN.chosen_variant(),
             "material": config_slice("material"),
+            "liver_materials": PLAN.liver_materials(),  # imported livers' own constants (geometry.imported[].material)
             "boundary": config_slice("boundary"),
             "sweep": config_slice("sweep"),
             "mesh": config_slice("mesh"),
