@@ -1,11 +1,21 @@
 """Read and write :class:`~liverforce.mesh.types.LiverMesh` as VTU (meshio).
 
 File layout: one VTU with two cell blocks, ``tetra`` then ``triangle`` (the
-boundary facets), and two cell-data arrays, ``region`` (int8 codes, 0 on the
-tets) and ``visible`` (int8 0/1, 0 on the tets).  ``meta`` is not stored in
-the VTU: it goes into the features JSON (:func:`write_json`).  Writes are
-atomic: a dot-prefixed temporary file in the same folder, then
-``os.replace``.
+boundary facets), and the cell-data arrays ``region`` (int8 codes, 0 on the
+tets) and ``visible`` (int8 0/1, 0 on the tets). A liver with its own supports
+(``geometry.imported[].supports``) also has ``support`` (int32): which of the
+lab's supports holds each facet, -1 on the tets and on the facets no lab
+support holds (free ones, and under ``mode: add`` the auto-tagged regions
+beneath). Its value is the support's place in the lab's list, which is the
+order of the features JSON's ``supports``: each entry there states it as
+``index``, with ``n_mesh_facets``, the number of facets with ``support ==
+index`` (its ``n_facets`` counts the facets it holds on the input surface,
+which for a remeshed liver is not the mesh); :func:`support_records` makes the
+entries. A mesh without the lab's supports (every built-in liver) is written
+without ``support``, and a file without it reads back with
+``facet_support=None``. ``meta`` is not stored in the VTU: it goes into the
+features JSON (:func:`write_json`). Writes are atomic: a dot-prefixed
+temporary file in the same folder, then ``os.replace``.
 """
 
 from __future__ import annotations
@@ -30,21 +40,29 @@ def write_mesh(path: str | Path, mesh: LiverMesh) -> None:
     path : str or Path
         Target ``.vtu`` file; its folder is created if needed.
     mesh : LiverMesh
-        The mesh; ``meta`` is not written (use :func:`write_json`).
+        The mesh; ``meta`` is not written (use :func:`write_json`). Its
+        ``facet_support``, when set, is written as the ``support`` array.
+
+    Raises
+    ------
+    ValueError
+        If ``facet_support`` does not have one entry per facet.
     """
     import meshio
 
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     m = len(mesh.tets)
-    out = meshio.Mesh(
-        mesh.points,
-        [("tetra", mesh.tets), ("triangle", mesh.facets)],
-        cell_data={
-            "region": [np.zeros(m, dtype=np.int8), mesh.facet_region.astype(np.int8)],
-            "visible": [np.zeros(m, dtype=np.int8), mesh.facet_visible.astype(np.int8)],
-        },
-    )
+    cell_data = {
+        "region": [np.zeros(m, dtype=np.int8), mesh.facet_region.astype(np.int8)],
+        "visible": [np.zeros(m, dtype=np.int8), mesh.facet_visible.astype(np.int8)],
+    }
+    if mesh.facet_support is not None:
+        if mesh.facet_support.shape != (len(mesh.facets),):
+            raise ValueError(f"{path}: facet_support has shape {mesh.facet_support.shape}, the mesh "
+                             f"{len(mesh.facets)} facets: give one support index (or -1) per facet")
+        cell_data["support"] = [np.full(m, -1, dtype=np.int32), mesh.facet_support.astype(np.int32)]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    out = meshio.Mesh(mesh.points, [("tetra", mesh.tets), ("triangle", mesh.facets)], cell_data=cell_data)
     with atomic_path(path) as tmp:
         meshio.write(tmp, out, file_format="vtu")
 
@@ -55,13 +73,15 @@ def read_mesh(path: str | Path) -> LiverMesh:
     Returns
     -------
     LiverMesh
-        With ``meta = {"mesh_file": str(path)}``.
+        With ``meta = {"mesh_file": str(path)}``; ``facet_support`` from the
+        ``support`` array, None in a file without it.
 
     Raises
     ------
     MeshFileError
         If the file is unreadable (meshio's ``SystemExit`` included) or lacks
-        the tetra/triangle blocks or the region/visible arrays.
+        the tetra/triangle blocks or the region/visible arrays, or if its
+        ``support`` array is malformed (:func:`_facet_support`).
     """
     import meshio
 
@@ -72,8 +92,12 @@ def read_mesh(path: str | Path) -> LiverMesh:
         raise MeshFileError(f"{path}: meshio could not read the file (sys.exit({exc.code})). "
                             "Re-create it with liverforce.mesh.io.write_mesh") from None
     except Exception as exc:  # meshio raises many types
-        raise MeshFileError(f"{path}: could not read the mesh ({type(exc).__name__}: {exc}). "
-                            "Re-create it with liverforce.mesh.io.write_mesh") from None
+        redo = "Re-create it with liverforce.mesh.io.write_mesh"
+        if "Incompatible cell data" in str(exc):  # meshio's words for a cell-data array of the wrong length
+            redo = ("A cell-data array (region, visible or support) does not hold one value per cell: was it "
+                    "edited? Re-run the mesh stage (e.g. snakemake --forcerun mesh), or re-create it with "
+                    "liverforce.mesh.io.write_mesh")
+        raise MeshFileError(f"{path}: could not read the mesh ({type(exc).__name__}: {exc}). {redo}") from None
     types = [b.type for b in m.cells]
     if "tetra" not in types or "triangle" not in types:
         raise MeshFileError(f"{path}: expected 'tetra' and 'triangle' cell blocks, found {types}. "
@@ -82,14 +106,66 @@ def read_mesh(path: str | Path) -> LiverMesh:
         if name not in m.cell_data:
             raise MeshFileError(f"{path}: cell data '{name}' missing. Re-create it with write_mesh")
     it, itri = types.index("tetra"), types.index("triangle")
+    region = np.asarray(m.cell_data["region"][itri]).astype(np.int8)
     return LiverMesh(
         points=np.asarray(m.points, dtype=np.float64),
         tets=np.asarray(m.cells[it].data, dtype=np.int64),
         facets=np.asarray(m.cells[itri].data, dtype=np.int64),
-        facet_region=np.asarray(m.cell_data["region"][itri]).astype(np.int8),
+        facet_region=region,
         facet_visible=np.asarray(m.cell_data["visible"][itri]).astype(bool),
         meta={"mesh_file": str(path)},
+        facet_support=(_facet_support(path, m.cell_data["support"][itri], region)
+                       if "support" in m.cell_data else None),
     )
+
+
+def _facet_support(path: Path, raw, region: np.ndarray) -> np.ndarray:
+    """The ``support`` array on the facets, checked: one integer per facet, -1 or a support index, no index on a
+    free facet (region 0), one region code per support (a lab support sets one code on all it holds)."""
+    a = np.asarray(raw)
+    redo = ("Re-run the mesh stage (e.g. snakemake --forcerun mesh) to write it again, or delete the 'support' "
+            "array to read the mesh without the lab's supports")
+    if a.ndim != 1 or len(a) != len(region):
+        raise MeshFileError(f"{path}: cell data 'support' has shape {a.shape} on the triangles, expected one value "
+                            f"per facet ({len(region)},). {redo}")
+    if not (np.issubdtype(a.dtype, np.integer) or np.isfinite(a).all() and np.array_equal(a, np.round(a))):
+        raise MeshFileError(f"{path}: cell data 'support' holds non-integer values (dtype {a.dtype}); it gives the "
+                            f"index of the lab's support holding each facet, -1 for none. {redo}")
+    a = a.astype(np.int64)
+    if (a < -1).any():
+        raise MeshFileError(f"{path}: cell data 'support' holds {int(a.min())} on facet {int(np.argmin(a))}; values "
+                            f"are a support's index (0, 1, ...) or -1 where none holds the facet. {redo}")
+    free = np.flatnonzero((a >= 0) & (region == 0))
+    if free.size:
+        raise MeshFileError(f"{path}: {free.size} free facets (region 0, e.g. facet {int(free[0])}) are held by a "
+                            f"support (cell data 'support' = {int(a[free[0]])}); a held facet has its support's "
+                            f"region code. {redo}")
+    for i in np.unique(a[a >= 0]):
+        codes = np.unique(region[a == i])
+        if codes.size > 1:
+            raise MeshFileError(f"{path}: support {int(i)} holds facets of region codes {codes.tolist()}; a support "
+                                f"sets one code on every facet it holds. {redo}")
+    return a
+
+
+def support_records(mesh: LiverMesh) -> list[dict] | None:
+    """The lab's supports as the features JSON lists them: each entry of ``mesh.meta["supports"]`` (in the lab's
+    order) with its ``index``, the value of the VTU's ``support`` array on the facets it holds, and
+    ``n_mesh_facets``, how many mesh facets those are (without ``facet_support``, only the ``index``). None for
+    a mesh without the lab's supports.
+
+    ``meta["supports"]`` itself is left as it is (new dicts are returned).
+    """
+    records = mesh.meta.get("supports")
+    if records is None:
+        return None
+    if mesh.facet_support is None:
+        return [{**r, "index": i} for i, r in enumerate(records)]
+    held = np.bincount(mesh.facet_support[mesh.facet_support >= 0], minlength=len(records))
+    if len(held) != len(records):
+        raise ValueError(f"facet_support holds support index {len(held) - 1}, but meta['supports'] lists "
+                         f"{len(records)} supports: they must come from the same assign_supports call")
+    return [{**r, "index": i, "n_mesh_facets": int(held[i])} for i, r in enumerate(records)]
 
 
 def write_json(path: str | Path, obj: dict) -> None:

@@ -43,7 +43,8 @@ class LiverMesh:
         in order) holds each facet, -1 where none does (a free facet, or an
         auto-tagged region beneath them under ``mode: add``); None for a mesh
         without user supports. What the regions picture names each support's
-        facets by; not stored in the VTU (a mesh read back has None).
+        facets by; stored in the VTU as the cell-data array ``support``
+        (:mod:`liverforce.mesh.io`; a file without it reads back as None).
     """
 
     points: np.ndarray

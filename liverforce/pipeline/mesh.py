@@ -66,7 +66,7 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
     ``mesher`` and ``refine_*`` do not apply to it.
     """
     from liverforce.mesh.features import compute_features
-    from liverforce.mesh.io import write_mesh
+    from liverforce.mesh.io import support_records, write_mesh
     from liverforce.mesh.plot import plot_regions
     from liverforce.mesh.regions import RegionParams
 
@@ -111,7 +111,7 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
     feats["exertion_given"] = bool(mesh.meta.get("exertion_given"))
     feats["exertion_snap_mm"] = mesh.meta.get("exertion_snap_mm")
     feats["exertion_not_visible"] = mesh.meta.get("exertion_not_visible")
-    feats["supports"] = mesh.meta.get("supports")
+    feats["supports"] = support_records(mesh)  # meta["supports"] with each one's index in the VTU's support array
     feats["support_boundary"] = _support_boundary(mesh, user["supports"][1])
     feats["refine_points"] = mesh.meta.get("refine_points")
     feats["regions_tagged_on"] = mesh.meta.get("regions_tagged_on")
