@@ -17,6 +17,18 @@ choice changed at a time:
 * the tool as a rigid sphere (``tool: sphere``, when the simulate stage offers
   it: ``simulate.tool_model``).
 
+A lab's liver held out with its own supports (``geometry.imported[].supports``,
+:mod:`liverforce.mesh.supports`) keeps them: every choice, the baseline too, is
+simulated with its foundations' stiffness (``support_boundary`` of its features
+JSON, as the validation's simulation of it, ``simulate_shard``), changed as the
+configured ones are: foundation x f scales the lab's foundations' stiffness with
+the configured totals, k_t/k_n = r sets each lab foundation's ``kt = r kn``; fixed
+and sliding supports are not springs and stay as they are. The rib choices act on
+the rib region (a lab's sliding supports are rib region); a liver without one (a
+lab's under ``mode: replace`` with no sliding support) skips them, as it skips the
+foundation choices without a foundation region: the choice would change nothing.
+The study's JSON lists each skipped choice with the reason under ``skipped``.
+
 For every choice it reports what the physics does (the displacement under the
 tool at the same force, relative to the baseline's: the force at a given
 indentation moves by about the inverse; and how much the displacement field over
@@ -38,34 +50,77 @@ import numpy as np
 
 from liverforce.atomic import write_json_atomic
 from liverforce.dataset import io as dio
-from liverforce.layout import gid_of, model_of_metrics, physics_variant_files
+from liverforce.layout import features_of_mesh, gid_of, model_of_metrics, physics_variant_files
+from liverforce.mesh.supports import FOUNDATION_SLOTS
+from liverforce.mesh.types import REGION_CODES
 
 log = logging.getLogger("liverforce")
 
 BASELINE = "baseline (config)"
+#: the baseline's name for a lab's liver simulated with its own supports
+LAB_BASELINE = "baseline (the lab's supports)"
 
 
-def physics_variants(boundary: dict, sim: dict, spec: dict) -> list[dict]:
-    """The changed choices, each ``{"name", "what", "boundary", "simulate"}`` (full config slices).
+def physics_variants(boundary: dict, sim: dict, spec: dict, supports: dict | None = None,
+                     lab: list[dict] | None = None, areas: dict | None = None) -> list[dict]:
+    """The changed choices, each ``{"name", "what", "boundary", "simulate", "supports"}`` (full config slices).
 
-    ``spec`` is ``validate.physics``; the baseline (the configured supports and tool) comes first.
+    ``spec`` is ``validate.physics``; the baseline (the configured supports and tool, or the lab's) comes first.
+
+    Parameters
+    ----------
+    supports : the liver's own foundation stiffness (``support_boundary`` of its features JSON, N/mm³:
+        ``ligament_kn`` ...), passed to ``simulate_cases(supports=)`` in place of the config's; None or empty:
+        none. Each choice carries its own (``"supports"``): foundation x f scales every foundation's ``*_kn``
+        and ``*_kt``, k_t/k_n = r sets each foundation's ``kt = r kn``, the other choices keep them.
+    lab : the lab's supports as the features JSON lists them (``supports``: ``name``, ``kind``, ``region_code``);
+        given, the baseline is named :data:`LAB_BASELINE` and the choices' ``what`` say what becomes of them.
+    areas : the liver's region areas (region code -> mm², :func:`liverforce.fem.boundary.region_areas`); given, a
+        choice that would change nothing on this liver (the rib choices without a rib region, the foundation
+        choices without a foundation region) gets ``"skip"``: why, and is not to be simulated. None: none skipped.
     """
-    out = [{"name": BASELINE, "what": "the configured supports and tool", "boundary": boundary, "simulate": sim}]
+    own = {k: float(v) for k, v in (supports or {}).items()}
+    base = {"name": LAB_BASELINE if lab else BASELINE, "boundary": boundary, "simulate": sim, "supports": own,
+            "what": (f"the lab's supports of this liver ({_lab_words(lab)}; under supports mode: add the "
+                     "auto-tagged regions beneath them keep the configured stiffness) and the configured tool")
+            if lab else "the configured supports and tool"}
+    out = [base]
+    n_stay = sum(s.get("kind") in ("fixed", "sliding") for s in lab or [])
+    stay = (f"; the lab's {_lab_words(lab, ('fixed', 'sliding'))} "
+            + ("is not a spring: it stays as it is" if n_stay == 1 else "are not springs: they stay as they are")
+            if n_stay else "")
+    no_rib = areas is not None and not areas.get(REGION_CODES["rib"], 0.0) > 0
+    no_foundation = areas is not None and not sum(areas.get(REGION_CODES[s], 0.0) for s in FOUNDATION_SLOTS) > 0
 
-    def add(name, what, b=None, s=None):
-        out.append({"name": name, "what": what, "boundary": {**boundary, **(b or {})}, "simulate": {**sim, **(s or {})}})
+    def add(name, what, b=None, s=None, own_changed=None, skip=None):
+        out.append({"name": name, "what": what, "boundary": {**boundary, **(b or {})},
+                    "simulate": {**sim, **(s or {})}, "supports": own if own_changed is None else own_changed,
+                    **({"skip": skip} if skip else {})})
 
+    lab_found = _lab_words(lab, ("foundation",))
+    found_skip = ("the liver has no foundation region (ligament or visceral): its stiffness would change nothing"
+                  if no_foundation else None)
     for f in spec.get("foundation_scale", []):
-        add(f"foundation x{f:g}", f"both foundations' stiffness x{f:g}",
+        add(f"foundation x{f:g}", (f"every foundation's stiffness x{f:g}: the lab's {lab_found} and the configured "
+                                   "totals" if lab_found else f"both foundations' stiffness x{f:g}") + stay,
             {"ligament_total_n_per_mm": f * boundary["ligament_total_n_per_mm"],
-             "visceral_total_n_per_mm": f * boundary["visceral_total_n_per_mm"]})
+             "visceral_total_n_per_mm": f * boundary["visceral_total_n_per_mm"]},
+            own_changed={k: (f * v if _is_foundation_key(k) else v) for k, v in own.items()}, skip=found_skip)
     for r in spec.get("tangential_ratio", []):
-        add(f"kt/kn {r:g}", f"tangential foundation stiffness {r:g} x the normal one", {"tangential_ratio": float(r)})
+        add(f"kt/kn {r:g}", f"tangential foundation stiffness {r:g} x the normal one" + (
+            f", the lab's {lab_found} and the configured ones" if lab_found else "") + stay,
+            {"tangential_ratio": float(r)},
+            own_changed={**own, **{f"{s}_kt": float(r) * own[f"{s}_kn"] for s in FOUNDATION_SLOTS
+                                   if f"{s}_kn" in own}}, skip=found_skip)
+    sliding = _lab_words(lab, ("sliding",))
+    on_rib = f" (the rib region: the lab's {sliding})" if sliding else ""
+    rib_skip = ("the liver has no rib region" + (" (the lab's supports hold no sliding one)" if lab else "")
+                + ": the rib's contact would change nothing") if no_rib else None
     for rib in spec.get("rib_contact", []):
         if rib == "off":
-            add("rib off", "no rib support", {"rib_normal_n_per_mm3": 0.0})
+            add("rib off", "no rib support" + on_rib, {"rib_normal_n_per_mm3": 0.0}, skip=rib_skip)
         else:
-            add(f"rib {rib}", f"rib contact {rib}", {"rib_contact": rib})
+            add(f"rib {rib}", f"rib contact {rib}" + on_rib, {"rib_contact": rib}, skip=rib_skip)
     for d in spec.get("gravity", []):
         d = [float(x) for x in d]
         name = {(0.0, -1.0, 0.0): "gravity supine", (0.0, 0.0, -1.0): "gravity upright"}.get(tuple(d), f"gravity {d}")
@@ -76,6 +131,20 @@ def physics_variants(boundary: dict, sim: dict, spec: dict) -> list[dict]:
         add("tool: rigid sphere", f"a rigid frictionless sphere of radius {sim.get('tool_tip_radius_mm', 2.5)} mm "
                                   "in place of the Gaussian traction", s={"tool_model": "sphere"})
     return out
+
+
+def _is_foundation_key(key: str) -> bool:
+    """A foundation's stiffness in ``support_boundary``: ``<slot>_kn`` or ``<slot>_kt``, slot ligament or visceral."""
+    slot, _, k = key.rpartition("_")
+    return slot in FOUNDATION_SLOTS and k in ("kn", "kt")
+
+
+def _lab_words(lab: list[dict] | None, kinds=("fixed", "foundation", "sliding")) -> str:
+    """The lab's supports of ``kinds`` for a choice's ``what``: ``fixed 'cava', foundation (visceral) 'bed'``."""
+    slots = {REGION_CODES[s]: s for s in FOUNDATION_SLOTS}
+    return ", ".join(f"{s.get('kind')}" + (f" ({slots[s['region_code']]})" if s.get("region_code") in slots
+                                           and s.get("kind") == "foundation" else "") + f" '{s.get('name')}'"
+                     for s in lab or [] if s.get("kind") in kinds)
 
 
 def tool_displacement_mm(rows) -> np.ndarray:
@@ -89,26 +158,35 @@ def tool_displacement_mm(rows) -> np.ndarray:
     return np.asarray(out)
 
 
-def _sag_max(mesh, boundary: dict, sim: dict, case: dict) -> float:
-    """The largest displacement (mm) of the liver under gravity alone, with ``case``'s constants."""
+def _sag_max(mesh, boundary: dict, sim: dict, case: dict, supports: dict | None = None) -> float:
+    """The largest displacement (mm) of the liver under gravity alone, with ``case``'s constants.
+
+    ``supports``: the liver's own foundation stiffness (``support_boundary``), as ``simulate_cases`` takes it."""
     from liverforce.fem.materials import make_material
     from liverforce.fem.problem import LiverModel, ToolLoad
     from liverforce.pipeline.simulate import _sag, boundary_params, solver_options
 
     mat = make_material(case["material_model"], dict(zip(case["material_param_names"], case["material_params_mpa"])),
                         bulk_mpa=case["bulk_modulus_mpa"])
-    fe = LiverModel(mesh.points, mesh.tets, mesh.facets, mesh.facet_region, mat, boundary_params(mesh, boundary),
-                    solver_options(sim))
+    fe = LiverModel(mesh.points, mesh.tets, mesh.facets, mesh.facet_region, mat,
+                    boundary_params(mesh, boundary).with_supports(supports), solver_options(sim))
     u = _sag(fe, ToolLoad(np.asarray(case["exertion_point_mm"], float), np.zeros(3), sim["tool_radius_mm"]), mat)
     return float(np.linalg.norm(u, axis=1).max())
 
 
 def physics_study(cases_path, mesh_path, model_dirs, model_metrics, sim: dict, boundary: dict, dataset: dict,
-                  material: dict, spec: dict, out_path, shard_dir) -> dict:
+                  material: dict, spec: dict, out_path, shard_dir, features_path=None) -> dict:
     """Simulate one unseen liver's first cases under each :func:`physics_variants` choice and score every model.
 
     ``model_dirs`` / ``model_metrics``: the scenario-IV models (all variants). Writes one shard per choice
     under ``shard_dir`` and the study as JSON to ``out_path``; returns it.
+
+    ``features_path``: the liver's features JSON (the mesh stage's); None: the one beside the mesh
+    (``features_of_mesh``), if any, as the simulate stage reads it. A lab's liver with its own supports (its
+    ``supports`` and ``support_boundary``) keeps them in every choice (:func:`physics_variants`), so the
+    baseline is the validation's simulation of these cases; the JSON records them under ``own_supports``
+    (None for the configured supports) and the choices that would change nothing on this liver under
+    ``skipped`` (``name``, ``what``, ``reason``).
 
     The sphere (``tool: sphere``) runs the liver's first ``tool_cases`` cases of at most ``tool_max_force_n`` (a
     contact case costs tens of traction cases, and a 5 mm tip sinks deeper than the default mesh resolves
@@ -116,6 +194,7 @@ def physics_study(cases_path, mesh_path, model_dirs, model_metrics, sim: dict, b
     direction, so it is compared with the traction carrying the *same* force vectors (the sphere's own,
     simulated as an extra choice "traction at the sphere's forces"), not with the baseline's inclined ones.
     """
+    from liverforce.fem.boundary import region_areas
     from liverforce.learn.model import ForceModel
     from liverforce.mesh.io import read_mesh
     from liverforce.pipeline.simulate import probe_reference, simulate_cases
@@ -127,19 +206,30 @@ def physics_study(cases_path, mesh_path, model_dirs, model_metrics, sim: dict, b
     if not cases:
         raise ValueError(f"{cases_path}: no case on the liver {gid}")
     mesh = read_mesh(mesh_path)
+    feats = _features(mesh_path, features_path)
+    own, lab = feats.get("support_boundary") or {}, feats.get("supports") or []
+    variants = physics_variants(boundary, sim, spec, own, lab,
+                                region_areas(mesh.points, mesh.facets, mesh.facet_region))
+    baseline = variants[0]["name"]
     probe = probe_reference(material)
     models = {model_of_metrics(mp)[1]: ForceModel.load(Path(d)) for d, mp in zip(model_dirs, model_metrics)}
     shard_dir = Path(shard_dir)
     out = {"liver": gid, "n_cases": len(cases), "case_ids": [c["case_id"] for c in cases],
-           "forces_n": [float(np.linalg.norm(c["force_n"])) for c in cases], "variants": []}
+           "forces_n": [float(np.linalg.norm(c["force_n"])) for c in cases],
+           "own_supports": {"supports": lab, "support_boundary": own} if lab else None, "variants": [], "skipped": []}
+    if lab:
+        log.info("physics: %s keeps the lab's supports (%s) in every choice, as the validation simulated it",
+                 gid, _lab_words(lab))
     done: dict = {}  # name -> (rows, measured fields) of the choices simulated so far
 
     def run(k, v, these, ref_name):
         t0 = time.perf_counter()
-        rows = simulate_cases(these, {gid: mesh}, v["simulate"], v["boundary"], dataset, probe=probe)
-        sag = _sag_max(mesh, v["boundary"], v["simulate"], these[0]) if v["boundary"]["gravity"]["enabled"] else None
-        if done:  # a model in surgery assumes the configured supports: its stiffness probe is the baseline's
-            base = {tuple(r["exertion_point_mm"]): r["probe_compliance_mm_per_n"] for r in done[BASELINE][0]}
+        rows = simulate_cases(these, {gid: mesh}, v["simulate"], v["boundary"], dataset, probe=probe,
+                              supports={gid: v["supports"]})
+        sag = (_sag_max(mesh, v["boundary"], v["simulate"], these[0], v["supports"])
+               if v["boundary"]["gravity"]["enabled"] else None)
+        if done:  # a model in surgery assumes the baseline's supports: its stiffness probe is the baseline's
+            base = {tuple(r["exertion_point_mm"]): r["probe_compliance_mm_per_n"] for r in done[baseline][0]}
             for r in rows:  # (a point the baseline did not probe was probed here with the baseline's supports)
                 r["probe_compliance_mm_per_n"] = base.get(tuple(r["exertion_point_mm"]), r["probe_compliance_mm_per_n"])
         entry = {"name": v["name"], "what": v["what"], "n_cases": len(rows),
@@ -154,7 +244,11 @@ def physics_study(cases_path, mesh_path, model_dirs, model_metrics, sim: dict, b
         return rows
 
     k = 0
-    for v in physics_variants(boundary, sim, spec):  # the baseline first
+    for v in variants:  # the baseline first
+        if v.get("skip"):
+            log.warning("physics %s: not simulated, %s", v["name"], v["skip"])
+            out["skipped"].append({"name": v["name"], "what": v["what"], "reason": v["skip"]})
+            continue
         if v["simulate"].get("tool_model") == "sphere":
             cap = float(spec.get("tool_max_force_n", np.inf))
             these = [c for c in liver_cases if c["force_magnitude_n"] <= cap][: int(spec.get("tool_cases", len(cases)))]
@@ -177,10 +271,22 @@ def physics_study(cases_path, mesh_path, model_dirs, model_metrics, sim: dict, b
                 log.info("physics %s%s", v["name"], _comparison(sph, f"the {trac['name']}")
                          or f": no comparison with the {trac['name']} (no case converged in both)")
             continue
-        run(k, v, cases, None if k == 0 else BASELINE)
+        run(k, v, cases, None if k == 0 else baseline)
         k += 1
     write_json_atomic(out_path, out)
     return out
+
+
+def _features(mesh_path, features_path=None) -> dict:
+    """The liver's features JSON (``features_path``, else the one beside the mesh if any, as ``simulate_shard``
+    reads it); {} when there is none beside the mesh."""
+    p = Path(features_path) if features_path is not None else features_of_mesh(mesh_path)
+    if not p.exists():
+        if features_path is not None:
+            raise FileNotFoundError(f"{p}: the features JSON of the liver {gid_of(mesh_path)} is missing (the mesh "
+                                    "stage writes it beside the mesh): re-run the mesh stage for it")
+        return {}
+    return json.loads(p.read_text())
 
 
 def _comparison(entry: dict, ref: str) -> str:
@@ -221,7 +327,7 @@ def _score(k, v, rows, ref, models, mesh_path, dataset, probe, shard_dir) -> dic
     shard.parent.mkdir(parents=True, exist_ok=True)
     dio.write_shard(rows, shard, compression=dataset["compression"],
                     extra_meta={"simulate": v["simulate"], "boundary": v["boundary"], "dataset": dataset,
-                                "probe": probe, "physics_variant": v["name"]})
+                                "probe": probe, "physics_variant": v["name"], "support_boundary": v["supports"]})
     make_manifest([str(shard)], manifest)
     out = {"models": {}, "_fields": {}}
     if not any(r["converged"] for r in rows):

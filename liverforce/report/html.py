@@ -709,18 +709,24 @@ def physics_section(phys: dict | None, validated: str | None) -> str:
             "ROI displacement change %: mean / max", "sag (mm)"]
     head += [f"MAE (N) {n}" + (" (validated)" if n == validated else "") for n in names]
     fmin, fmax = min(phys["forces_n"]), max(phys["forces_n"])
+    lab = [s.get("name") for s in (phys.get("own_supports") or {}).get("supports") or []]
+    assumes = (f"the lab's supports of this liver (<code>geometry.imported[].supports</code>: "
+               f"{html.escape(', '.join(map(str, lab)))}; its validation was simulated with them) and the configured "
+               "tool" if lab else "the configured supports and tool")
+    skipped = "".join(f" Not simulated: {html.escape(e['name'])} ({html.escape(e['reason'])})."
+                      for e in phys.get("skipped") or [])
     return ("<h3 id='physics'>What the modelling choices cost</h3>"
             f"<p>The first {phys['n_cases']} cases of the unseen liver <code>{html.escape(phys['liver'])}</code> "
             f"(|F| {fmin:.2f}–{fmax:.2f} N, the validation's constants) simulated again with one modelling choice "
             "changed at a time, and every scenario-IV model scored on them. The models were trained on the "
             "baseline and keep assuming it (their stiffness probe is the baseline supports'), as a model in "
-            "surgery assumes the configured supports and tool: the change in MAE against the reference (in "
+            f"surgery assumes {assumes}: the change in MAE against the reference (in "
             "brackets) is what getting that choice wrong costs. The displacement under the tool at the same force "
             "shows what the physics does (the force at a given indentation moves by about its inverse); the ROI "
             "change is |u − u_reference| / |u_reference| over the ROI nodes, per case. With gravity, displacements "
             "are over the sagged state (the pre-operative image shows the sagged liver). A frictionless sphere "
             "exerts a force close to the surface normal whatever way it is pushed, so it runs the light cases "
-            "only and is compared with the traction carrying the very forces it exerted.</p>"
+            f"only and is compared with the traction carrying the very forces it exerted.{skipped}</p>"
             + _table(head, rows, cls="physics", row_cls="physics"))
 
 
