@@ -69,17 +69,16 @@ def test_a_wrong_held_out_list_is_refused_naming_the_key(overrides, key, words):
     assert f"config key '{key}'" in msg and words in msg, msg
 
 
-def test_the_physics_check_refuses_a_held_out_liver_with_its_own_supports():
-    own = ("geometry.imported=[{name:a,path:a.stl,units:mm},{name:b,path:b.stl,units:mm,supports:{mode:add,"
-           "list:[{name:cava,kind:fixed,sphere:{center_mm:[0,0,0],radius_mm:10}}]}}]")
-    with pytest.raises(ConfigError) as err:
-        compose(["experiment=smoke", own, "validate.imported=[b]", "validate.physics.liver=2"])
-    msg = str(err.value)
-    assert "config key 'validate.physics.liver': picks the held-out liver b, which has its own supports" in msg
-    assert "pick a procedural unseen liver (0 .. 1)" in msg, msg
-    compose(["experiment=smoke", own, "validate.imported=[b]", "validate.physics.liver=1"])  # a procedural one
-    compose(["experiment=smoke", own, "validate.imported=[b]", "validate.physics.liver=2",
-             "validate.physics.enabled=false"])
+OWN = ("geometry.imported=[{name:a,path:a.stl,units:mm},{name:b,path:b.stl,units:mm,supports:{mode:add,"
+       "list:[{name:cava,kind:fixed,sphere:{center_mm:[0,0,0],radius_mm:10}}]}}]")
+
+
+def test_the_physics_check_takes_a_held_out_liver_with_its_own_supports():
+    """It simulates that liver with its own supports (liverforce.pipeline.physics; tests/pipeline/test_physics_lab.py),
+    so the config no longer refuses it."""
+    plan = _plan(OWN, "validate.imported=[b]", "validate.physics.liver=2")
+    assert plan.scenario_geometries(VALIDATION)[plan.cfg["validate"]["physics"]["liver"]] == "imp-b"
+    _plan(OWN, "validate.imported=[b]", "validate.livers=0", "validate.physics.liver=0")  # the only unseen liver
 
 
 def test_scenario_iv_counts_only_the_livers_left_to_train_on():
@@ -99,19 +98,21 @@ def _write_livers(tmp: Path) -> None:
         procedural_liver(seed, LiverShapeParams(voxel_mm=6.0)).to_trimesh().export(tmp / f"{name}.stl")
 
 
-def _overrides(tmp: Path) -> str:
-    # each lab liver with its own material (geometry.imported[].material): a's cases drawn around the run's
-    # constants x 1.2, b's (held out) at x 0.8 as given
+def _overrides(tmp: Path, b: str = "", physics: str = "validate.physics.enabled=false") -> str:
+    """The run's overrides: liver ``b`` held out (``b``: more of its geometry.imported entry, e.g. its supports).
+
+    Each lab liver has its own material (geometry.imported[].material): a's cases are drawn around the run's
+    constants x 1.2, b's (held out) are at x 0.8 as given."""
     return (f"overrides=geometry.procedural.count=1 geometry.imported=[{{name:a,path:{tmp}/a.stl,units:mm,"
-            f"material:{{scale:1.2}}}},{{name:b,path:{tmp}/b.stl,units:mm,material:{{scale:0.8}}}}] "
-            "validate.imported=[b] validate.livers=0 validate.input=any "
-            "validate.physics.enabled=false study.enabled=false train.scenarios=[IV] ~sweep.scenarios.I "
+            f"material:{{scale:1.2}}}},{{name:b,path:{tmp}/b.stl,units:mm,material:{{scale:0.8}}{b}}}] "
+            f"validate.imported=[b] validate.livers=0 validate.input=any "
+            f"{physics} study.enabled=false train.scenarios=[IV] ~sweep.scenarios.I "
             "~sweep.scenarios.II ~sweep.scenarios.III train.variants=[{name:pca_sv,encoder:pca,state_vector:true}]")
 
 
-def _snakemake(work: Path, tmp: Path, *args) -> subprocess.CompletedProcess:
+def _snakemake(work: Path, tmp: Path, *args, overrides: str | None = None) -> subprocess.CompletedProcess:
     cmd = [SNAKEMAKE, "--snakefile", str(ROOT / "Snakefile"), "--directory", str(work), "--cores", "2", *args,
-           "--config", "experiment=smoke", _overrides(tmp)]
+           "--config", "experiment=smoke", overrides or _overrides(tmp)]
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=1500,
                           env={**os.environ, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"})
     if proc.returncode != 0:
@@ -126,6 +127,20 @@ def test_the_dry_run_meshes_the_held_out_liver_for_the_validation_only(tmp_path)
     text = (lambda p: p.stdout + p.stderr)(_snakemake(work, tmp_path, "-n", "validate"))
     assert "results/smoke/mesh/imp-b.vtu" in text and "results/smoke/shards/V/" in text
     assert "results/smoke/shards/II" not in text  # the run asked for IV and the validation only
+
+
+def test_the_physics_job_reads_the_held_out_livers_own_supports(tmp_path):
+    """The physics rule takes the liver's features JSON (its support_boundary, as the simulate stage reads it)."""
+    _write_livers(tmp_path)
+    work = tmp_path / "work"
+    work.mkdir()
+    own = ",supports:{mode:add,list:[{name:cava,kind:fixed,sphere:{center_mm:[0,0,0],radius_mm:10}}]}"
+    proc = _snakemake(work, tmp_path, "-n", "results/smoke/validate/physics.json",
+                      overrides=_overrides(tmp_path, own, "validate.physics.liver=0"))
+    text = proc.stdout + proc.stderr
+    job = text[text.index("rule physics:"):]
+    inputs = next(line for line in job.splitlines() if line.strip().startswith("input:"))
+    assert "results/smoke/mesh/imp-b.vtu" in inputs and "results/smoke/mesh/imp-b.features.json" in inputs, inputs
 
 
 @pytest.mark.slow
