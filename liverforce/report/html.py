@@ -699,6 +699,7 @@ def physics_section(phys: dict | None, validated: str | None) -> str:
                  "–" if ratio is None or ref is None else f"{ratio:.2f}" + (f" ({rng[0]:.2f}–{rng[1]:.2f})" if rng else ""),
                  "–" if e.get("roi_change_pct_mean") is None or ref is None else
                  f"{e['roi_change_pct_mean']:.0f} / {e['roi_change_pct_max']:.0f}",
+                 ("failed: " + html.escape(e["sag_error"])) if e.get("sag_error") else
                  "–" if e.get("sag_max_mm") is None else _fmt(e["sag_max_mm"], 1)]
         for n in names:
             m, b = (e.get("models") or {}).get(n), ((ref or {}).get("models") or {}).get(n)

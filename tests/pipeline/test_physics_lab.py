@@ -185,3 +185,36 @@ def test_gravity_sags_the_liver_on_the_labs_supports(study, lab):
     mesh, case = read_mesh(lab["mesh"]), dio.read_table(lab["cases"]).to_pylist()[0]
     assert sag == pytest.approx(_sag_max(mesh, grav, cfg["simulate"], case, OWN), rel=1e-9)
     assert sag > 1.2 * _sag_max(mesh, grav, cfg["simulate"], case)  # the lab's bed is softer than the config's
+
+
+@pytest.mark.slow  # the lab fixture's FE (~10 s): CI runs it with -m slow
+def test_a_gravity_state_that_fails_fails_that_choice_only(lab, monkeypatch):
+    """A liver not held against its weight (a lab's liver on sliding supports alone, say): the gravity choice is
+    recorded as failed with the reason, and the study's other choices and its JSON survive."""
+    import liverforce.pipeline.physics as physics
+
+    def no_sag(*args, **kwargs):
+        raise RuntimeError("the gravity-only state did not converge (test)")
+
+    monkeypatch.setattr(physics, "_sag_max", no_sag)
+    cfg = lab["cfg"]
+    spec = {**SPEC, "n_cases": 2, "foundation_scale": [], "tangential_ratio": [], "rib_contact": [], "tool": "none"}
+    out = physics_study(lab["cases"], lab["mesh"], [], [], cfg["simulate"], cfg["boundary"], cfg["dataset"],
+                        cfg["material"], spec, lab["tmp"] / "sagless.json", lab["tmp"] / "sagless",
+                        features_path=lab["tmp"] / "mesh" / "imp-lab.features.json")
+    by = {e["name"]: e for e in out["variants"]}
+    assert by[LAB_BASELINE]["converged"] == 2 and "sag_error" not in by[LAB_BASELINE]
+    grav = by["gravity upright"]
+    assert grav["sag_max_mm"] is None and "RuntimeError: the gravity-only state did not converge" in grav["sag_error"]
+    assert json.loads((lab["tmp"] / "sagless.json").read_text())["variants"][1]["sag_error"] == grav["sag_error"]
+
+
+def test_the_report_says_why_a_gravity_choice_failed():
+    from liverforce.report.html import physics_section
+
+    phys = {"liver": "imp-lab", "n_cases": 2, "forces_n": [0.5, 1.0], "variants": [
+        {"name": LAB_BASELINE, "what": "the lab's supports", "converged": 2, "n_cases": 2, "models": {}},
+        {"name": "gravity upright", "what": "self-weight", "converged": 0, "n_cases": 2, "models": {},
+         "compared_with": LAB_BASELINE, "sag_max_mm": None,
+         "sag_error": "RuntimeError: the gravity-only state did not converge"}]}
+    assert "failed: RuntimeError: the gravity-only state did not converge" in physics_section(phys, None)
