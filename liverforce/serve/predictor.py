@@ -505,11 +505,11 @@ class Predictor:
                 except PredictionInputError as exc:
                     refuse(i, f"{_row_label(ids, i)}{exc}")
             rows = [i for i in range(n) if not refused[i]]  # the features of the rows not refused
-            sub = arrays if len(rows) == n else subset(arrays, rows)
             spec, fitted, point_sd, dropped = (camera.grid_spec(rep.grid_size, rep.half_width_mm, rep.camera), [], [],
                                                [])
             x = np.zeros((n, 0))
-            if rows:
+            if rows:  # (none: every row refused, subset() of no rows would index with floats)
+                sub = arrays if len(rows) == n else subset(arrays, rows)
                 x_rows = camera.features_from_clouds(sub[camera.CLOUD_KEY], sub[camera.TIP_KEY], sub, spec, R=R[rows],
                                                      fitted=fitted, point_sd=point_sd, outliers=dropped)
                 x = np.full((n, x_rows.shape[1]), np.nan, dtype=x_rows.dtype)  # refused rows: NaN, never read

@@ -145,4 +145,6 @@ def test_refused_camera_rows_go_on_with_the_reason_they_would_raise(served):
     np.testing.assert_allclose(force[[0, 4]], good, atol=1e-12)
     assert [warned[0], warned[4]] == good_warned
     assert _refusal(lambda: pred.predict_arrays(arrays)) == alone[0]
+    force, why = pred.predict_arrays(subset(arrays, [1, 2]), return_refused=True)  # every row refused before
+    assert np.isnan(force).all() and why == alone[:2]  # the features (subset() of no rows indexed with floats)
     assert _refusal(lambda: _pyfunc(pred, arrays)) == alone[0]
