@@ -4,8 +4,10 @@ A logged model is an MLflow pyfunc (reloadable by run id:
 ``mlflow.pyfunc.load_model(f"runs:/{run_id}/model")``) written as "models from
 code" (no cloudpickle) with a signature and an input example, so
 ``mlflow models serve -m runs:/<id>/model --host 127.0.0.1 --env-manager local``
-serves it. Its ``predict`` runs the serving checks of :mod:`liverforce.serve`
-(a refused row becomes HTTP 400 with the reason).
+serves it. Its ``predict`` runs the serving checks of :mod:`liverforce.serve`:
+a refused row gets NaN forces and its reason in the ``refused`` column while the
+other rows are predicted, as ``liverforce predict --shards`` does (param
+``on_refused="request"``: the first refused row refuses the whole request, HTTP 400).
 
 For serving, :func:`download_force_model` fetches the bundle of a logged model
 (run id, ``runs:/``/``models:/`` URI or registered name) for
@@ -38,10 +40,10 @@ from mlflow.protos.databricks_pb2 import INVALID_PARAMETER_VALUE
 from mlflow.types import ColSpec, Schema
 
 from liverforce.learn.camera import CLOUD_KEY, TIP_KEY
-from liverforce.learn.model import ForceModel
+from liverforce.learn.model import ForceModel, subset
 from liverforce.serve.errors import PredictionInputError
 from liverforce.serve.input_frame import InputFrame, is_named
-from liverforce.serve.predictor import Predictor
+from liverforce.serve.predictor import Predictor, _row_label
 from liverforce.tracking.store import with_retry
 
 MODEL_NAME = "model"
@@ -52,6 +54,12 @@ INTERVAL_COLUMNS = ("ft1_n", "ft2_n", "fn_n", "ft1_half_n", "ft2_half_n", "fn_ha
 #: the last column: each row's warnings (Predictor.predict_arrays: the case's geometric state outside the training
 #: range, a camera cloud's departures from the training clouds, a force beyond training's), "; "-joined, "" when none
 WARNINGS_COLUMN = "warnings"
+#: the column before it: why the serving checks refused the row (the words ``Predictor.predict_arrays`` raises,
+#: ``"case <id>: ..."``), "" when predicted; the column ``liverforce predict --shards`` writes
+REFUSED_COLUMN = "refused"
+#: values of the pyfunc param ``on_refused``: a refused row answered with NaN and its reason (the default), or the
+#: whole request refused with the first refused row's reason (HTTP 400)
+ON_REFUSED = ("row", "request")
 _ROI_KEYS = ("roi_undeformed_mm", "roi_deformed_mm", "camera_cloud_mm", "unloaded_cloud_mm", "roi_triangles")  # ragged
 # (k, 3) point sets and triangles (vertex indices), flattened
 
@@ -77,18 +85,45 @@ def arrays_to_frame(arrays: dict, keys: tuple[str, ...] | list[str]) -> pd.DataF
     return pd.DataFrame(cols)
 
 
-def frame_to_arrays(df: pd.DataFrame) -> dict:
-    """Inverse of :func:`arrays_to_frame`."""
+def frame_to_arrays(df: pd.DataFrame, *, refused: list | None = None) -> dict:
+    """Inverse of :func:`arrays_to_frame`.
+
+    A flattened point set (or the ROI patch's triangles) that is not ``3 k`` numbers is refused with a
+    :class:`PredictionInputError` naming its row and column (``"case <id>: camera_cloud_mm: ..."``). With
+    ``refused`` (one ``""`` per row, as :meth:`~liverforce.serve.Predictor.refine_arrays` takes it) that row gets
+    the message there instead, its cell is read as an empty ``(0, 3)`` set, and the other rows are read. The other
+    columns are stacked, one ``(n, width)`` array each: a non-number there, or rows of different widths, raise
+    ``ValueError`` for the whole frame either way (which of two widths is the wrong one is not for the column to
+    say).
+    """
+    ids = [str(x) for x in df["case_id"]] if "case_id" in df.columns else None
     out: dict = {}
     for k in df.columns:
         col = list(df[k])
         if k in _ROI_KEYS:
-            out[k] = [np.asarray(x, dtype=np.float64).reshape(-1, 3) for x in col]
+            out[k] = [_point_set(k, x, _row_label(ids, i), refused, i) for i, x in enumerate(col)]
         elif k in ("case_id", "geometry_id"):
             out[k] = np.array([str(x) for x in col], dtype=object)
         else:
             out[k] = np.stack([np.asarray(x, dtype=np.float64).ravel() for x in col])
     return out
+
+
+def _point_set(key: str, x, label: str, refused: list | None, i: int) -> np.ndarray:
+    """One flattened cell of a ragged column as ``(k, 3)``: refused (:func:`frame_to_arrays`) unless ``3 k``
+    numbers."""
+    try:
+        a = np.asarray(x, dtype=np.float64).ravel()
+        if a.size % 3:
+            each = "three vertex indices per triangle" if key == "roi_triangles" else "x, y, z per point"
+            raise ValueError(f"{a.size} numbers, not a multiple of 3 ({each}, flattened)")
+        return a.reshape(-1, 3)
+    except (TypeError, ValueError) as exc:
+        why = f"{label}{key}: {exc}"
+        if refused is None:
+            raise PredictionInputError(why) from None
+        refused[i] = why
+        return np.zeros((0, 3))
 
 
 # --------------------------------------------------------------------------
@@ -103,10 +138,26 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
     writes them. Output: a DataFrame ``fx_n, fy_n, fz_n`` (N; the liver's frame, or the inputs' frame below),
     and for a model with a calibrated interval also the local force
     ``ft1_n, ft2_n, fn_n`` and its interval half-widths ``ft1_half_n, ft2_half_n,
-    fn_half_n`` (nominal coverage in the bundle's ``meta["interval"]``), and ``warnings``
+    fn_half_n`` (nominal coverage in the bundle's ``meta["interval"]``), ``refused`` (why the serving checks
+    refused the row, ``"case <id>: ..."`` or ``"row <i>: ..."``; ``""`` when predicted) and ``warnings``
     (the case's geometric state outside the training range, a camera cloud's departures from the training
     clouds, a predicted force beyond the training forces: those of ``Predictor.predict_cloud``; ``"; "``-joined,
-    ``""`` when none).
+    ``""`` when none, and for a refused row).
+
+    Param ``on_refused``: ``"row"`` (the default) answers a request whose rows the serving checks refuse (a NaN or
+    inf point, a cloud too sparse or off the grid, a tip beyond it, an exertion point off the surface, units off
+    the training scale, a flattened point set not ``3 k`` long, a failed registration) as ``liverforce predict
+    --shards`` does: such a row's forces and interval columns are NaN (over HTTP the bare token ``NaN``, as MLflow's
+    scoring server writes it: Python's ``json`` reads it, a strict JSON parser does not) and its
+    reason is in ``refused``, and the other rows are predicted as in a request of them alone (a stochastic
+    observation model's draws go to them only). A request whose every row is refused is still answered, every
+    reason given, as ``--shards`` still writes its file. ``"request"``: the first refused row refuses the whole
+    request (:class:`PyfuncInputError`, HTTP 400 from MLflow's scoring server, its reason the message), as before
+    the param existed. Either way the request as a whole is refused when it is not the input contract: a bad
+    ``input_frame``, ``units`` or ``on_refused``, a required column missing, a column MLflow's schema refuses, a
+    fixed-width column (exertion point, frame, material, tool tip ...) whose rows differ in width. Models logged
+    before the param existed ignore it (MLflow drops params outside the signature with a warning) and answer per
+    row, as ``"row"``.
 
     A camera-cloud model also takes the optional columns ``unloaded_cloud_mm`` (per row the camera's cloud
     before the tool pushed, flattened; empty: none) and ``contact_tip_mm`` (the tool tip at contact): the
@@ -130,24 +181,56 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
         # surface) refuse bad rows with a PredictionInputError naming the row; then the reference path
         predictor = Predictor(self.model)
         try:
+            per_row = pyfunc_on_refused(params.get("on_refused"))
             frame = pyfunc_input_frame(params.get("input_frame"), params.get("units"))
+            df = pd.DataFrame(model_input)
+            refused = [""] * len(df) if per_row else None  # each row's reason so far, "" while it goes on
             try:
-                arrays = frame_to_arrays(pd.DataFrame(model_input))
-            except (TypeError, ValueError) as exc:  # a flattened point set not 3 k long, a non-number
+                arrays = frame_to_arrays(df, refused=refused)
+            except PredictionInputError:
+                raise  # a flattened point set not 3 k long, its row named
+            except (TypeError, ValueError) as exc:  # a non-number, rows of different widths
                 raise PredictionInputError(f"input columns: {exc}") from None
             arrays = frame.arrays(arrays)
             entered = ((arrays[CLOUD_KEY], arrays[TIP_KEY])  # a refusal gives them back before the registration
                        if CLOUD_KEY in arrays and TIP_KEY in arrays else None)
-            arrays, fixes = predictor.refine_arrays(arrays)  # registration refined from unloaded clouds, if given
-            force, warnings = predictor.predict_arrays(arrays, observation_seed=None if seed < 0 else seed,
-                                                       return_warnings=True, registrations=fixes,
-                                                       input_frame=frame, entered=entered)
+            # registration refined from unloaded clouds, if given
+            arrays, fixes = predictor.refine_arrays(arrays, refused=refused)
+            got = predictor.predict_arrays(_held_back(arrays, refused), observation_seed=None if seed < 0 else seed,
+                                           return_warnings=True, registrations=fixes, input_frame=frame,
+                                           entered=entered, return_refused=per_row)
         except PredictionInputError as exc:
             raise PyfuncInputError(str(exc)) from exc
-        out = _output_frame(self.model, arrays, force, None if seed < 0 else seed, predictor, warnings)
+        force, warnings = got[:2]
+        if per_row:  # a row refused before predict_arrays keeps that reason (predict_arrays' is of its NaN point)
+            refused = [r or why for r, why in zip(refused, got[2])]
+        out = _output_frame(self.model, arrays, force, None if seed < 0 else seed, predictor, warnings, refused)
         if not frame.same_axes:  # the force back in the inputs' frame; the local columns have no global axes
             out[list(OUTPUT_COLUMNS)] = frame.vectors_out(out[list(OUTPUT_COLUMNS)].to_numpy(dtype=np.float64))
         return out
+
+
+def pyfunc_on_refused(on_refused: str | None) -> bool:
+    """Whether the pyfunc's param ``on_refused`` (:data:`ON_REFUSED`; default ``""``: ``"row"``) answers refused
+    rows one by one (``"row"``: True) or refuses the whole request (``"request"``: False)."""
+    said = str(on_refused or "").strip().lower() or ON_REFUSED[0]
+    if said not in ON_REFUSED:
+        raise PredictionInputError(
+            f"on_refused {str(on_refused)[:80]!r}: give 'row' (a refused row's forces NaN and its reason in the "
+            "'refused' column, the other rows predicted) or 'request' (the first refused row refuses the whole "
+            "request)")
+    return said == "row"
+
+
+def _held_back(arrays: dict, refused: list | None) -> dict:
+    """``arrays`` with a NaN exertion point in each row ``refused`` already (an unreadable point set, a failed
+    registration): ``Predictor.predict_arrays`` checks every row first and refuses these, before either path or
+    any later check reads their placeholder cells."""
+    if not refused or not any(refused) or "exertion_point_mm" not in arrays:
+        return arrays
+    p = np.array(arrays["exertion_point_mm"], dtype=np.float64)
+    p[[i for i, r in enumerate(refused) if r]] = np.nan
+    return {**arrays, "exertion_point_mm": p}
 
 
 def pyfunc_input_frame(input_frame: str | None, units: str | None) -> InputFrame:
@@ -176,21 +259,30 @@ def pyfunc_input_frame(input_frame: str | None, units: str | None) -> InputFrame
 
 
 def _output_frame(model: ForceModel, arrays: dict, force: np.ndarray, seed: int | None,
-                  predictor: Predictor | None = None, warnings: list | None = None) -> pd.DataFrame:
+                  predictor: Predictor | None = None, warnings: list | None = None,
+                  refused: list | None = None) -> pd.DataFrame:
     """The output columns: ``force`` (already computed), the interval columns when the model has one,
-    and ``warnings`` (each row's, from :meth:`Predictor.predict_arrays`; without them the context's and the
-    force's, from ``predictor``'s training scale, else a new one's)."""
-    out = pd.DataFrame(force, columns=list(OUTPUT_COLUMNS))
+    ``refused`` (each row's reason, ``""`` when predicted; None: every row predicted) and ``warnings`` (each
+    row's, from :meth:`Predictor.predict_arrays`; without them the context's and the force's, from
+    ``predictor``'s training scale, else a new one's). A refused row's forces and interval are NaN, its warnings
+    empty: the interval is computed for the other rows only."""
+    n = len(force)
+    refused = list(refused) if refused is not None else [""] * n
+    bad = np.array([bool(r) for r in refused], dtype=bool)
+    rows = np.flatnonzero(~bad)
+    out = pd.DataFrame(np.where(bad[:, None], np.nan, force), columns=list(OUTPUT_COLUMNS))
     if model.interval is not None:
-        got = model.predict_interval(arrays, observation_seed=seed)
-        for j, c in enumerate(INTERVAL_COLUMNS[:3]):
-            out[c] = got["force_local_n"][:, j]
-        for j, c in enumerate(INTERVAL_COLUMNS[3:]):
-            out[c] = got["half_width_local_n"][:, j]
+        local = np.full((n, len(INTERVAL_COLUMNS)), np.nan)
+        if len(rows):
+            got = model.predict_interval(arrays if len(rows) == n else subset(arrays, rows), observation_seed=seed)
+            local[rows] = np.hstack([got["force_local_n"], got["half_width_local_n"]])
+        for j, c in enumerate(INTERVAL_COLUMNS):
+            out[c] = local[:, j]
     if warnings is None:
         p = predictor or Predictor(model)
         warnings = [w + f for w, f in zip(p.arrays_warnings(arrays), p.force_warnings(force))]
-    out[WARNINGS_COLUMN] = ["; ".join(w) for w in warnings]
+    out[REFUSED_COLUMN] = refused
+    out[WARNINGS_COLUMN] = ["" if r else "; ".join(w) for r, w in zip(refused, warnings)]
     return out
 
 
@@ -259,7 +351,8 @@ def log_force_model(uri: str, run_id: str, model_dir: str | Path, example_arrays
     example = arrays_to_frame(example_arrays, keys)
     ex = frame_to_arrays(example)
     output = _output_frame(model, ex, model.predict(ex), None)
-    signature = infer_signature(example, output, params={"observation_seed": -1, "input_frame": "", "units": ""})
+    signature = infer_signature(example, output, params={"observation_seed": -1, "input_frame": "", "units": "",
+                                                         "on_refused": ON_REFUSED[0]})
     # case_id only seeds the per-case observation noise: optional
     cols = [ColSpec(c.type, c.name, required=c.name != "case_id") for c in signature.inputs.inputs]
     if model.representation.is_camera:  # optional: the camera's registration refined from its unloaded view
@@ -394,7 +487,8 @@ def predict_pyfunc(pyfunc_model, arrays: dict, observation_seed: int | None = No
                    input_frame: str = "", units: str = "") -> np.ndarray:
     """Run a loaded pyfunc model on input-contract ``arrays`` (in ``units`` and ``input_frame``: the pyfunc's
     params, :func:`pyfunc_input_frame`; a 4x4 or a record may be given as a list, array or dict); returns
-    ``(n, 3)`` N in the inputs' frame."""
+    ``(n, 3)`` N in the inputs' frame. A row the serving checks refuse raises :class:`PredictionInputError` with
+    its reason (the first refused row's, from the answer's ``refused`` column)."""
     inputs = _pyfunc_inputs(pyfunc_model)
     dropped = sorted({"unloaded_cloud_mm", "contact_tip_mm"} & set(arrays) - inputs)
     if dropped:  # MLflow would drop them and the clouds would be predicted as registered, unrefined
@@ -414,8 +508,11 @@ def predict_pyfunc(pyfunc_model, arrays: dict, observation_seed: int | None = No
                 f"this model was logged before it took {' and '.join(missing)}: convert the inputs to RAS mm "
                 "(liverforce.serve.input_frame.InputFrame.arrays) or log the model again")
         params.update(said)
-    out = pyfunc_model.predict(df, params=params)
-    return np.asarray(pd.DataFrame(out)[list(OUTPUT_COLUMNS)], dtype=np.float64)
+    out = pd.DataFrame(pyfunc_model.predict(df, params=params))
+    why = [r for r in out.get(REFUSED_COLUMN, []) if r]
+    if why:
+        raise PredictionInputError(why[0])
+    return np.asarray(out[list(OUTPUT_COLUMNS)], dtype=np.float64)
 
 
 def _pyfunc_inputs(pyfunc_model) -> set[str]:

@@ -5,6 +5,7 @@ a cloud in mm sent as metres came back from the pyfunc as a force."""
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from liverforce.learn.model import ForceModel, subset
@@ -64,7 +65,17 @@ def _pyfunc(pred: Predictor, arrays: dict, **params):
 
     pf = ForceModelPyfunc()
     pf.model = pred.model
-    return pf.predict(None, arrays_to_frame(arrays, list(arrays)), params=params)
+    return pf.predict(None, arrays if isinstance(arrays, pd.DataFrame) else arrays_to_frame(arrays, list(arrays)),
+                      params=params)
+
+
+def _pyfunc_refusal(pred: Predictor, arrays: dict, **params) -> str:
+    """The pyfunc's refusal of a one-row request: raised with ``on_refused="request"``, and by default the row's
+    ``refused`` column in the same words, its forces NaN."""
+    raised = _refusal(lambda: _pyfunc(pred, arrays, on_refused="request", **params))
+    out = _pyfunc(pred, arrays, **params)
+    assert list(out["refused"]) == [raised] and out[["fx_n", "fy_n", "fz_n"]].isna().all().all()
+    return raised
 
 
 def test_the_inputs_in_lps_metres_are_predicted_alike(served):
@@ -91,7 +102,7 @@ def test_a_cloud_in_mm_sent_as_metres_is_refused_as_the_cli_refuses_it(served):
     cli = _refusal(lambda: pred.predict_cloud(conv["camera_cloud_mm"][0], ctx, tool_tip_mm=conv["tool_tip_mm"][0],
                                               input_frame=fr))
     assert "points lie over the model's" in cli and "it looks like mm while m, LPS was declared" in cli
-    assert _refusal(lambda: _pyfunc(pred, lab, input_frame="LPS", units="m")) == "case lab-1: " + cli
+    assert _pyfunc_refusal(pred, lab, input_frame="LPS", units="m") == "case lab-1: " + cli
     assert _refusal(lambda: pred.predict_arrays(conv, input_frame=fr)) == "case lab-1: " + cli
 
 
@@ -103,7 +114,7 @@ def test_the_reverse_a_cloud_in_metres_sent_as_mm_is_refused_alike(served):
     cli = _refusal(lambda: pred.predict_cloud(cloud / 1000.0, ctx, tool_tip_mm=tip))
     assert "metres" in cli
     assert _refusal(lambda: pred.predict_arrays(arrays)) == "case lab-1: " + cli
-    assert _refusal(lambda: _pyfunc(pred, arrays)) == "case lab-1: " + cli
+    assert _pyfunc_refusal(pred, arrays) == "case lab-1: " + cli
 
 
 def test_a_cloud_off_the_grid_and_a_tip_beyond_it_are_refused_alike(served):
@@ -119,14 +130,14 @@ def test_a_cloud_off_the_grid_and_a_tip_beyond_it_are_refused_alike(served):
         assert what in cli
         arrays = {**row, "camera_cloud_mm": [c], "tool_tip_mm": t[None]}
         assert _refusal(lambda: pred.predict_arrays(arrays)) == "case lab-1: " + cli
-        assert _refusal(lambda: _pyfunc(pred, arrays)) == "case lab-1: " + cli
+        assert _pyfunc_refusal(pred, arrays) == "case lab-1: " + cli
 
 
 def test_refused_camera_rows_go_on_with_the_reason_they_would_raise(served):
     """``predict_arrays(return_refused=True)`` on camera rows: rows refused before the features (a cloud beside the
     grid, a tip beyond it) and after them (a cloud that sees a quarter of the grid) get NaN, no warnings and the
     words predict_arrays raises for each alone; the rows between are predicted as on their own. By default, and
-    in the pyfunc, the first refused row still refuses the call."""
+    in the pyfunc with ``on_refused="request"``, the first refused row still refuses the call."""
     pred, ctx, cloud, tip, row = served
     h = pred.model.representation.half_width_mm
     loc = (cloud - ctx.exertion_point_mm) @ ctx.rotation.T
@@ -147,4 +158,44 @@ def test_refused_camera_rows_go_on_with_the_reason_they_would_raise(served):
     assert _refusal(lambda: pred.predict_arrays(arrays)) == alone[0]
     force, why = pred.predict_arrays(subset(arrays, [1, 2]), return_refused=True)  # every row refused before
     assert np.isnan(force).all() and why == alone[:2]  # the features (subset() of no rows indexed with floats)
-    assert _refusal(lambda: _pyfunc(pred, arrays)) == alone[0]
+    assert _refusal(lambda: _pyfunc(pred, arrays, on_refused="request")) == alone[0]
+
+
+def test_the_pyfunc_answers_refused_camera_rows_and_predicts_the_others(served):
+    """The pyfunc's default (``on_refused="row"``) on camera rows: a cloud with a NaN point, a cloud too sparse
+    over the grid, a tip above the liver, a flattened cloud not 3 k long and an unloaded cloud with a NaN point
+    (its registration refused) get NaN forces and interval, no warnings, and the reason the pyfunc raises for each
+    alone; the good rows every column as in a request of them alone. ``on_refused="request"``: the first refused
+    row, the unreadable cloud (read before any check), refuses the request."""
+    from liverforce.tracking.model import PyfuncInputError, arrays_to_frame
+
+    pred, ctx, cloud, tip, row = served
+    bad_point = cloud.copy()
+    bad_point[7] = np.nan
+    clouds = [cloud, bad_point, cloud[::80], cloud, cloud, cloud, cloud[::2]]
+    tips = [tip, tip, tip, tip + 30.0 * ctx.frame[2], tip, tip, tip]  # frame: rows t1, t2, n
+    n = len(clouds)
+    arrays = {k: [v[0]] * n if isinstance(v, list) else np.repeat(np.asarray(v), n, axis=0) for k, v in row.items()}
+    arrays.update(case_id=np.array([f"lab-{k}" for k in range(n)]), camera_cloud_mm=clouds, tool_tip_mm=np.stack(tips),
+                  unloaded_cloud_mm=[np.zeros((0, 3))] * 5 + [bad_point, np.zeros((0, 3))])
+    df = arrays_to_frame(arrays, list(arrays))
+    df.at[4, "camera_cloud_mm"] = df.at[4, "camera_cloud_mm"][:-2]
+    out = _pyfunc(pred, df)
+    good, bad = [0, 6], [1, 2, 3, 4, 5]
+    alone = {i: _refusal(lambda: _pyfunc(pred, df.iloc[[i]].reset_index(drop=True), on_refused="request"))
+             for i in bad}
+    assert "cloud: 1 of " in alone[1] and "NaN or inf" in alone[1]
+    assert "the camera sees only" in alone[2] and "above the liver" in alone[3]
+    assert alone[4] == f"case lab-4: camera_cloud_mm: {3 * len(cloud) - 2} numbers, not a multiple of 3 (x, y, z " \
+                       "per point, flattened)"
+    assert "unloaded_cloud_mm: 1 of " in alone[5]
+    assert all(alone[i].startswith(f"case lab-{i}: ") for i in bad)
+    assert list(out["refused"]) == [alone.get(i, "") for i in range(n)]
+    values = [c for c in out.columns if c not in ("refused", "warnings")]
+    assert len(values) == 9 and out.loc[bad, values].isna().all().all() and (out.loc[bad, "warnings"] == "").all()
+    ok = _pyfunc(pred, df.iloc[good].reset_index(drop=True))
+    assert np.isfinite(ok[values].to_numpy()).all()
+    pd.testing.assert_frame_equal(out.iloc[good].reset_index(drop=True), ok)
+    with pytest.raises(PyfuncInputError) as exc:
+        _pyfunc(pred, df, on_refused="request")
+    assert str(exc.value) == alone[4]

@@ -52,12 +52,12 @@ def _rows(pred: Predictor, coarse, k: int = 3) -> dict:
     return out
 
 
-def _pyfunc(pred: Predictor, arrays: dict):
+def _pyfunc(pred: Predictor, arrays: dict, **params):
     from liverforce.tracking.model import ForceModelPyfunc, arrays_to_frame
 
     pf = ForceModelPyfunc()
     pf.model = pred.model
-    return pf.predict(None, arrays_to_frame(arrays, list(arrays)), params={})
+    return pf.predict(None, arrays_to_frame(arrays, list(arrays)), params=params)
 
 
 def test_a_point_on_the_triangles_of_a_coarse_roi_is_accepted_on_every_path(trained, coarse, tmp_path, monkeypatch):
@@ -85,7 +85,8 @@ def test_a_point_on_the_triangles_of_a_coarse_roi_is_accepted_on_every_path(trai
 
 def test_the_same_point_moved_off_the_surface_is_refused_with_its_distance(trained, coarse):
     """The same row with its exertion point moved 10 mm out along the normal: refused by predict_arrays, the
-    pyfunc and predict_cloud, with its distance to the ROI's triangles."""
+    pyfunc (the whole request with ``on_refused="request"``, else the row: NaN and the reason) and predict_cloud,
+    with its distance to the ROI's triangles."""
     pred = Predictor.from_dir(trained("deformed"))
     arrays = _rows(pred, coarse, k=1)
     p = np.asarray(arrays["exertion_point_mm"], dtype=np.float64) + 10.0 * np.asarray(arrays["frame_normal"])
@@ -93,10 +94,12 @@ def test_the_same_point_moved_off_the_surface_is_refused_with_its_distance(train
     d = closest_on_triangles(arrays["roi_undeformed_mm"][0][arrays["roi_triangles"][0]], p)[1][0]
     assert d > 2 * Limits().surface_tol_mm
     said = f"case coarse-0: the exertion point is {d:.3g} mm off the undeformed surface"
-    for call in (lambda: pred.predict_arrays(moved), lambda: _pyfunc(pred, moved)):
+    for call in (lambda: pred.predict_arrays(moved), lambda: _pyfunc(pred, moved, on_refused="request")):
         with pytest.raises(PredictionInputError) as exc:
             call()
         assert str(exc.value).startswith(said) and "ROI's triangles" in str(exc.value)
+    row = _pyfunc(pred, moved)
+    assert list(row["refused"]) == [str(exc.value)] and row[["fx_n", "fy_n", "fz_n"]].isna().all().all()
     with pytest.raises(PredictionInputError, match=f"the exertion point is {d:.3g} mm off the undeformed surface"):
         pred.predict_cloud(arrays["roi_undeformed_mm"][0], Preop.from_arrays(moved, 0))
 

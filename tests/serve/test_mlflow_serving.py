@@ -45,7 +45,11 @@ def test_the_logged_model_has_a_signature_an_example_and_no_pickle(logged, tmp_p
     assert {"roi_undeformed_mm", "roi_deformed_mm", "exertion_point_mm", "material_params_mpa"} <= inputs
     assert [c["name"] for c in json.loads(mlmodel["signature"]["outputs"])] == [
         "fx_n", "fy_n", "fz_n", "ft1_n", "ft2_n", "fn_n", "ft1_half_n", "ft2_half_n", "fn_half_n",  # + the interval
+        "refused",  # why a row was refused ("" when predicted)
         "warnings"]  # the context outside the training range
+    params = {p["name"]: p for p in json.loads(mlmodel["signature"]["params"])}
+    assert set(params) == {"observation_seed", "input_frame", "units", "on_refused"}
+    assert params["on_refused"]["default"] == "row" and params["on_refused"]["type"] == "string"
     assert (model_dir / "serving_input_example.json").is_file()
     assert not list(model_dir.rglob("*.pkl"))  # models from code: nothing to unpickle
     assert (bundle / "model.json").is_file()
@@ -110,6 +114,22 @@ def test_pyfunc_predicts_like_the_predictor_and_refuses_bad_rows(logged, data, t
     bad["material_params_mpa"] = cases["material_params_mpa"] * 1e6  # Pa, not MPa
     with pytest.raises(PredictionInputError, match=r"case S-000060: material_params_mpa\[0\].*must be in MPa"):
         predict_pyfunc(pf, bad)
+    # through MLflow's params schema: one row in Pa among good ones is answered with its reason, the others
+    # predicted; asked to, the whole request is refused
+    from liverforce.tracking import PyfuncInputError, arrays_to_frame
+
+    mixed = {k: (np.array(v, copy=True) if isinstance(v, np.ndarray) else v) for k, v in cases.items()}
+    mixed["material_params_mpa"][2] = bad["material_params_mpa"][2]
+    frame = arrays_to_frame(mixed, ["case_id", *local.model.required_inputs()])
+    out = pf.predict(frame)
+    why = out["refused"][2]
+    assert why.startswith("case S-000062: material_params_mpa[0]") and "must be in MPa" in why
+    assert list(out["refused"].drop(index=2)) == [""] * 5
+    force = out[["fx_n", "fy_n", "fz_n"]].to_numpy()
+    assert np.isnan(force[2]).all()
+    np.testing.assert_array_equal(np.delete(force, 2, axis=0), local.predict_arrays(subset(cases, [0, 1, 3, 4, 5])))
+    with pytest.raises(PyfuncInputError, match=r"^case S-000062: material_params_mpa\[0\]"):
+        pf.predict(frame, params={"on_refused": "request"})
 
 
 def _free_port() -> int:
@@ -158,7 +178,7 @@ def test_mlflow_models_serve_answers_over_http(logged, data, tmp_path):
         status, body = _post(f"{base}/invocations", example)
         assert status == 200, body
         assert set(body["predictions"][0]) == {"fx_n", "fy_n", "fz_n", "ft1_n", "ft2_n", "fn_n", "ft1_half_n",
-                                               "ft2_half_n", "fn_half_n", "warnings"}
+                                               "ft2_half_n", "fn_half_n", "refused", "warnings"}
         # a request built from new cases equals the local predictor
         from liverforce.tracking import arrays_to_frame
 
@@ -189,11 +209,26 @@ def test_mlflow_models_serve_answers_over_http(logged, data, tmp_path):
         local = [[p[c] for c in ("ft1_n", "ft2_n", "fn_n", "ft1_half_n")] for p in body_lps["predictions"]]
         np.testing.assert_allclose(local, [[p[c] for c in ("ft1_n", "ft2_n", "fn_n", "ft1_half_n")]
                                            for p in body["predictions"]], atol=1e-6)
-        # bad input: a clear refusal, not a force
-        cases["roi_deformed_mm"] = [d * 0.1 for d in cases["roi_deformed_mm"]]
+        # bad input: a clear refusal, not a force. One bad row among good ones: that row NaN (JSON's NaN) with its
+        # reason, the others predicted; with on_refused "request" the whole request refused (HTTP 400)
+        want = pred.predict_arrays(cases)
+        cases["roi_deformed_mm"] = [d * (0.1 if i == 1 else 1.0) for i, d in enumerate(cases["roi_deformed_mm"])]
         frame = arrays_to_frame(cases, list(pred.model.required_inputs()))
         status, body = _post(f"{base}/invocations", {"dataframe_split": frame.to_dict(orient="split")})
-        assert status >= 400 and "moved by up to" in body.get("message", ""), body
+        assert status == 200, body
+        rows = body["predictions"]
+        assert rows[1]["refused"].startswith("row 1: ") and "moved by up to" in rows[1]["refused"], rows[1]
+        assert [rows[0]["refused"], rows[2]["refused"]] == ["", ""]
+        assert all(rows[1][c] is None or np.isnan(rows[1][c]) for c in rows[1] if c not in ("refused", "warnings"))
+        got = np.array([[p["fx_n"], p["fy_n"], p["fz_n"]] for p in rows])
+        np.testing.assert_allclose(got[[0, 2]], want[[0, 2]], atol=1e-9)
+        status, body = _post(f"{base}/invocations", {"dataframe_split": frame.to_dict(orient="split"),
+                                                     "params": {"on_refused": "request"}})
+        said = body.get("message", "")
+        assert status == 400 and "row 1: the ROI moved by up to" in said, body  # after MLflow's "Failed to predict"
+        status, body = _post(f"{base}/invocations", {"dataframe_split": frame.to_dict(orient="split"),
+                                                     "params": {"on_refused": "never"}})
+        assert status == 400 and "on_refused 'never'" in body.get("message", ""), body
     finally:
         os.killpg(proc.pid, signal.SIGTERM)
         try:
