@@ -1284,18 +1284,22 @@ def liver_material(spec: Any, mat: dict, key: str) -> tuple[dict[str, float], st
         return params, note
     if form == "scale":
         try:
-            s = float(value)
+            s = float("nan") if isinstance(value, bool) else float(value)
         except (TypeError, ValueError):
             s = float("nan")
         if not 0 < s < float("inf"):
             _fail(f"{key}.scale", f"must be a number > 0 (got {value!r})")
         params = {k: v * s for k, v in run.items()}
+        _check_material_scale({"model": mat["model"], "params_mpa": params}, "material.params_mpa",
+                              shown=f"{key}.scale")
         return params, f"the run's constants x {s:g}: " + ", ".join(f"{k} {v:.4g} MPa" for k, v in params.items())
     if not isinstance(value, dict) or set(value) != set(run):
         got = sorted(value) if isinstance(value, dict) else repr(value)
         _fail(f"{key}.params_mpa", f"must give the run's {mat['model']} constants {sorted(run)} (got {got})",
               "a liver's own material is the run's model with its own constants (material.model is one per run)")
     try:
+        if any(isinstance(value[k], bool) for k in run):
+            raise TypeError("true/false is no constant")
         params = {k: float(value[k]) for k in sorted(run)}
     except (TypeError, ValueError) as exc:
         _fail(f"{key}.params_mpa", f"constants must be numbers in MPa ({exc})")

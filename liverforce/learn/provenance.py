@@ -73,8 +73,19 @@ def provenance_lines(prov: dict | None) -> list[str]:
     if not prov:
         return ["unknown: the model records no training livers (trained before liverforce recorded them, or "
                 "outside the pipeline)"]
-    return ([liver_line(r) for r in prov.get("livers") or []] + [material_line(prov.get("material"))]
-            + own_material_lines(prov.get("material")))
+    line = material_line(prov.get("material"))
+    if run_material_unused(prov):
+        line = line.replace("material: ", "material: not used (every training liver has its own, below); the run's ",
+                            1)
+    return [liver_line(r) for r in prov.get("livers") or []] + [line] + own_material_lines(prov.get("material"))
+
+
+def run_material_unused(prov: dict | None) -> bool:
+    """Whether every training liver of the record has its own material (``per_liver``), so that no training case
+    took the run's constants."""
+    livers = [r.get("geometry_id") for r in (prov or {}).get("livers") or []]
+    own = ((prov or {}).get("material") or {}).get("per_liver") or {}
+    return bool(livers) and all(g in own for g in livers)
 
 
 def own_material_lines(mat: dict | None) -> list[str]:
@@ -84,8 +95,9 @@ def own_material_lines(mat: dict | None) -> list[str]:
     for gid, own in sorted(((mat or {}).get("per_liver") or {}).items()):
         params = ", ".join(f"{k} {_num(v)}" for k, v in (own.get("params_mpa") or {}).items())
         entered = own.get("entered")
-        shown = (" (entered as " + ", ".join(f"{k} {_num(v)}" for k, v in entered.items()) + ")"
-                 if isinstance(entered, dict) else "")
+        shown = (" (entered as " + ", ".join(
+            f"{k} " + (", ".join(f"{n} {_num(x)}" for n, x in v.items()) if isinstance(v, dict) else _num(v))
+            for k, v in entered.items()) + ")" if isinstance(entered, dict) else "")
         lines.append(f"material of {gid}: its own, {params} MPa{shown}")
     return lines
 
@@ -125,19 +137,24 @@ def provenance_tags(prov: dict | None) -> dict[str, str]:
 def provenance_params(prov: dict | None) -> dict[str, str]:
     """Run params of the material as configured: ``material.source`` (config, shards or unknown),
     ``material.model``, ``material.params_mpa.<name>``, ``material.nu`` and what the user entered
-    (``material.E_pa`` or ``material.E_mpa``). Empty without a record."""
+    (``material.E_pa`` or ``material.E_mpa``); the run's constants are left out, and ``material.run_constants``
+    is ``unused``, when every training liver has its own; each liver's own constants as
+    ``material.<gid>.params_mpa.<name>``. Empty without a record."""
     if not prov:
         return {}
     mat = prov.get("material") or {}
     out = {"material.source": str(mat.get("source", "unknown"))}
     if mat.get("model") is not None:
         out["material.model"] = str(mat["model"])
-    out.update({f"material.params_mpa.{k}": _num(v) for k, v in (mat.get("params_mpa") or {}).items()})
+    if run_material_unused(prov):  # no training case took the run's constants: a search by them must not find it
+        out["material.run_constants"] = "unused"
+    else:
+        out.update({f"material.params_mpa.{k}": _num(v) for k, v in (mat.get("params_mpa") or {}).items()})
+        entered = mat.get("entered")
+        if isinstance(entered, dict):
+            out.update({f"material.{k}": _num(v) for k, v in entered.items()})
     if mat.get("nu") is not None:
         out["material.nu"] = _num(mat["nu"])
-    entered = mat.get("entered")
-    if isinstance(entered, dict):
-        out.update({f"material.{k}": _num(v) for k, v in entered.items()})
     for gid, own in sorted((mat.get("per_liver") or {}).items()):  # a liver's own constants
         out.update({f"material.{gid}.params_mpa.{k}": _num(v) for k, v in (own.get("params_mpa") or {}).items()})
     return {k: _clip(v) for k, v in out.items()}

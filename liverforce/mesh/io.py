@@ -46,7 +46,8 @@ def write_mesh(path: str | Path, mesh: LiverMesh) -> None:
     Raises
     ------
     ValueError
-        If ``facet_support`` does not have one entry per facet.
+        If ``facet_support`` does not have one entry per facet, or holds what :func:`read_mesh` would refuse
+        (a value below -1, a support on a free facet, one support over two region codes).
     """
     import meshio
 
@@ -60,7 +61,12 @@ def write_mesh(path: str | Path, mesh: LiverMesh) -> None:
         if mesh.facet_support.shape != (len(mesh.facets),):
             raise ValueError(f"{path}: facet_support has shape {mesh.facet_support.shape}, the mesh "
                              f"{len(mesh.facets)} facets: give one support index (or -1) per facet")
-        cell_data["support"] = [np.full(m, -1, dtype=np.int32), mesh.facet_support.astype(np.int32)]
+        try:  # what read_mesh would refuse is never written
+            held = _facet_support(path, mesh.facet_support, mesh.facet_region,
+                                  redo="Not written: the mesh's facet_support and facet_region disagree")
+        except MeshFileError as exc:
+            raise ValueError(str(exc)) from None
+        cell_data["support"] = [np.full(m, -1, dtype=np.int32), held.astype(np.int32)]
     path.parent.mkdir(parents=True, exist_ok=True)
     out = meshio.Mesh(mesh.points, [("tetra", mesh.tets), ("triangle", mesh.facets)], cell_data=cell_data)
     with atomic_path(path) as tmp:
@@ -119,12 +125,13 @@ def read_mesh(path: str | Path) -> LiverMesh:
     )
 
 
-def _facet_support(path: Path, raw, region: np.ndarray) -> np.ndarray:
+def _facet_support(path: Path, raw, region: np.ndarray, redo: str | None = None) -> np.ndarray:
     """The ``support`` array on the facets, checked: one integer per facet, -1 or a support index, no index on a
-    free facet (region 0), one region code per support (a lab support sets one code on all it holds)."""
+    free facet (region 0), one region code per support (a lab support sets one code on all it holds). ``redo``:
+    what to do, in the error (default: a file's reader's)."""
     a = np.asarray(raw)
-    redo = ("Re-run the mesh stage (e.g. snakemake --forcerun mesh) to write it again, or delete the 'support' "
-            "array to read the mesh without the lab's supports")
+    redo = redo or ("Re-run the mesh stage (e.g. snakemake --forcerun mesh) to write it again, or delete the "
+                    "'support' array to read the mesh without the lab's supports")
     if a.ndim != 1 or len(a) != len(region):
         raise MeshFileError(f"{path}: cell data 'support' has shape {a.shape} on the triangles, expected one value "
                             f"per facet ({len(region)},). {redo}")

@@ -82,7 +82,9 @@ def physics_variants(boundary: dict, sim: dict, spec: dict, supports: dict | Non
     own = {k: float(v) for k, v in (supports or {}).items()}
     base = {"name": LAB_BASELINE if lab else BASELINE, "boundary": boundary, "simulate": sim, "supports": own,
             "what": (f"the lab's supports of this liver ({_lab_words(lab)}; under supports mode: add the "
-                     "auto-tagged regions beneath them keep the configured stiffness) and the configured tool")
+                     "auto-tagged regions beneath them keep the configured stiffness, except in a foundation slot "
+                     "(ligament, visceral) one of the lab's foundations takes: its stiffness holds the whole slot) "
+                     "and the configured tool")
             if lab else "the configured supports and tool"}
     out = [base]
     n_stay = sum(s.get("kind") in ("fixed", "sliding") for s in lab or [])

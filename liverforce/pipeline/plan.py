@@ -220,7 +220,8 @@ class Plan:
 
     def liver_materials(self) -> dict[str, dict]:
         """The imported livers' own materials (``geometry.imported[].material``), by geometry id:
-        ``{"params_mpa": {...} (MPa), "entered": <as given>, "note": <the conversion in words>}``.
+        ``{"params_mpa": {...} (MPa), "entered": <as given>}`` (no derived words: these are rule params, and a
+        rewording must not re-run a sweep).
 
         A held-out liver's cases take these constants as they are (``validate.material_scale`` scales the
         others); a training liver's scenarios draw around them (``material.vary_rel``) where the material
@@ -229,9 +230,8 @@ class Plan:
         out = {}
         for i, imp in enumerate(self.cfg["geometry"]["imported"]):
             if imp.get("material") is not None:
-                params, note = liver_material(imp["material"], self.cfg["material"],
-                                              f"geometry.imported[{i}].material")
-                out[f"imp-{imp['name']}"] = {"params_mpa": params, "entered": dict(imp["material"]), "note": note}
+                params, _ = liver_material(imp["material"], self.cfg["material"], f"geometry.imported[{i}].material")
+                out[f"imp-{imp['name']}"] = {"params_mpa": params, "entered": dict(imp["material"])}
         return out
 
     def all_scenarios(self) -> list[str]:

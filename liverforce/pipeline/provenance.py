@@ -131,7 +131,7 @@ def material_record(cases_path: str | Path | None, shard_meta: dict | None = Non
     ``vary_rel``, ``entered`` (``{"E_pa": ...}`` or ``{"E_mpa": ...}`` when Young's modulus was given, else
     None: the constants were given in MPa), ``conversion`` (the derivation in words) and, when imported livers
     bring their own material (``geometry.imported[].material``), ``per_liver``: geometry id -> ``params_mpa``,
-    ``entered``, ``note``. Without a readable
+    ``entered``. Without a readable
     case table, from the shards' stiffness-probe reference (``source: shards``; ``entered`` unknown), else
     ``source: unknown`` with the ``reason``.
     """
@@ -152,7 +152,7 @@ def material_record(cases_path: str | Path | None, shard_meta: dict | None = Non
                        "nu": mat.get("nu"), "vary_rel": mat.get("vary_rel"), "entered": entered or None,
                        "conversion": mat.get("conversion")}
                 if mat.get("per_liver"):  # imported livers' own constants (geometry.imported[].material)
-                    out["per_liver"] = {str(g): {k: m.get(k) for k in ("params_mpa", "entered", "note")}
+                    out["per_liver"] = {str(g): {k: m.get(k) for k in ("params_mpa", "entered")}
                                         for g, m in mat["per_liver"].items()}
                 return out
         else:

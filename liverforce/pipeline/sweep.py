@@ -91,8 +91,8 @@ def make_sweep(params: dict, mesh_paths: list[str], cases_path, report_path) -> 
     if params["material"].get("conversion"):  # constants derived from a Young's modulus (liverforce.config)
         log.info("material: %s", params["material"]["conversion"])
     for gid, own in sorted((params["material"].get("per_liver") or {}).items()):
-        log.info("material of %s: its own (geometry.imported[].material %s): %s", gid, own.get("entered"),
-                 own.get("note"))
+        log.info("material of %s: its own (geometry.imported[].material %s): %s MPa (nu %g)", gid, own.get("entered"),
+                 ", ".join(f"{k} {v:.4g}" for k, v in own["params_mpa"].items()), params["material"]["nu"])
     by_gid = {gid_of(p): p for p in mesh_paths}
     stable, bulk = material_checks(params["material"]["stability_stretch"], params["material"]["nu"])
     ex, given_by = {}, {}

@@ -159,8 +159,11 @@ def _scale_words(setup: dict) -> str:
     rel = (setup.get("material") or {}).get("vary_rel")
     if scale is None or rel is None:
         return "outside the training range"  # an older setup without them: the default's 1.4 against +-30 %
-    inside = 1.0 - float(rel) <= float(scale) <= 1.0 + float(rel)
-    own = _own_materials(setup)["unseen"]
+    mats = _own_materials(setup)
+    run = (setup.get("material") or {}).get("params_mpa") or {}
+    inside = (mats["inside"]({k: float(v) * float(scale) for k, v in run.items()}) if run and mats["centred"]
+              else 1.0 - float(rel) <= float(scale) <= 1.0 + float(rel))
+    own = mats["unseen"]
     words = [] if own and not _scaled_unseen(setup) else ["within the training range" if inside
                                                           else "outside the training range"]
     words += [f"<code>{html.escape(g)}</code>: its own, {html.escape(p)} MPa, {'within' if ok else 'outside'} the "
@@ -174,12 +177,22 @@ def _scaled_unseen(setup: dict) -> bool:
     return unseen is None or any(g not in (setup.get("liver_materials") or {}) for g in unseen)
 
 
+def _entered_words(entered: dict) -> str:
+    """A liver's material as the lab entered it (``{"E_pa": 9000}``, ``{"params_mpa": {"C10": 0.0015}}``), in
+    words: ``E_pa 9000``, ``params_mpa C10 0.0015``."""
+    return ", ".join(f"{k} " + (", ".join(f"{n} {x:g}" if isinstance(x, (int, float)) else f"{n} {x}"
+                                          for n, x in v.items()) if isinstance(v, dict) else f"{v}")
+                     for k, v in entered.items())
+
+
 def _own_materials(setup: dict) -> dict:
     """The imported livers with their own material (``setup["liver_materials"]``, :meth:`Plan.liver_materials`):
-    ``{"unseen": [(gid, constants in words, inside the training range)], "training": [(gid, words, entered)]}``.
+    ``{"unseen": [(gid, constants in words, inside the training range)], "training": [(gid, words, entered)],
+    "inside": <constants -> bool>, "centred": <some training liver has its own>}``.
 
-    The training range of a constant: each training liver's centre (its own constants, else the run's) +-
-    ``material.vary_rel`` where scenario IV varies the material, the centres alone where it does not.
+    The training range: around each training liver's centre (its own constants, else the run's), every constant
+    within +-``material.vary_rel`` of that one centre where scenario IV varies the material, the centres alone
+    where it does not. A set is inside when one training liver's range holds all its constants.
     """
     own = setup.get("liver_materials") or {}
     pop = setup.get("population") or {}
@@ -194,10 +207,10 @@ def _own_materials(setup: dict) -> dict:
         return ", ".join(f"{k} {float(v):.4g}" for k, v in p.items())
 
     def inside(p):
-        return all(any(c.get(k) is not None and (1 - rel) * c[k] * (1 - 1e-9) <= v <= (1 + rel) * c[k] * (1 + 1e-9)
-                       for c in centres) for k, v in p.items())
+        return any(all(c.get(k) is not None and (1 - rel) * c[k] * (1 - 1e-9) <= v <= (1 + rel) * c[k] * (1 + 1e-9)
+                       for k, v in p.items()) for c in centres)
 
-    out = {"unseen": [], "training": []}
+    out = {"unseen": [], "training": [], "inside": inside, "centred": any(g in own for g in training)}
     for gid, m in sorted(own.items()):
         p = m.get("params_mpa") or {}
         if gid in unseen:
@@ -719,9 +732,12 @@ def physics_section(phys: dict | None, validated: str | None) -> str:
     return ("<h3 id='physics'>What the modelling choices cost</h3>"
             f"<p>The first {phys['n_cases']} cases of the unseen liver <code>{html.escape(phys['liver'])}</code> "
             f"(|F| {fmin:.2f}–{fmax:.2f} N, the validation's constants) simulated again with one modelling choice "
-            "changed at a time, and every scenario-IV model scored on them. The models were trained on the "
-            "baseline and keep assuming it (their stiffness probe is the baseline supports'), as a model in "
-            f"surgery assumes {assumes}: the change in MAE against the reference (in "
+            "changed at a time, and every scenario-IV model scored on them. "
+            + ("The models were trained on the configured supports (their training livers'); here they assume this "
+               "liver's baseline (their stiffness probe is the baseline supports'), as a model in "
+               if lab else "The models were trained on the baseline and keep assuming it (their stiffness probe is "
+               "the baseline supports'), as a model in ")
+            + f"surgery assumes {assumes}: the change in MAE against the reference (in "
             "brackets) is what getting that choice wrong costs. The displacement under the tool at the same force "
             "shows what the physics does (the force at a given indentation moves by about its inverse); the ROI "
             "change is |u − u_reference| / |u_reference| over the ROI nodes, per case. With gravity, displacements "
@@ -941,8 +957,9 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
                      + (f"constants × {_fmt((setup.get('validate') or {}).get('material_scale'), 2)} "
                         if _scaled_unseen(setup) else "") + f"({_scale_words(setup)})."
                      + "".join(f" <code>{html.escape(g)}</code> has its own constants ({html.escape(p)} MPa"
-                               + (f", entered as {html.escape(', '.join(f'{k} {x}' for k, x in e.items()))}"
-                                  if isinstance(e, dict) else "") + "): its cases are drawn around them."
+                               + (f", entered as {html.escape(_entered_words(e))}" if isinstance(e, dict) else "")
+                               + "): its cases take them where the material is fixed and are drawn around them "
+                               "where it varies."
                                for g, p, e in _own_materials(setup)["training"])
                      + "</p>")
     bnd = setup.get("boundary")

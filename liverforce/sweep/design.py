@@ -193,7 +193,8 @@ def build_cases(
     for gid in dict.fromkeys(geometry_ids):
         given = (own.get(gid) or {}).get("params_mpa")
         if given is not None and set(given) != set(names):
-            raise SweepError(f"{gid}: its own material gives {sorted(given)}, the run's {model} has {names}")
+            raise SweepError(f"{gid}: its own material gives {sorted(given)}, the run's {model} has {names}: give "
+                             "geometry.imported[].material.params_mpa with the run's constant names, or a scale")
         bases[gid] = np.array([(given or material["params_mpa"])[k] for k in names], dtype=float)
         ok, why = stability_check(model, dict(zip(names, bases[gid])))
         if not ok:

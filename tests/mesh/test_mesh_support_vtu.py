@@ -158,3 +158,18 @@ def test_the_mesh_stage_writes_which_support_holds_each_facet_as_its_features_js
             d = np.linalg.norm(cent[support == i] - s["sphere"]["center_mm"], axis=1)
             assert (d <= s["sphere"]["radius_mm"] + slack).all()
         assert (cent[support == 2][:, 2] <= lab_supports[2]["box"]["max_mm"][2] + slack).all()
+
+
+@pytest.mark.parametrize("how", ["below", "two codes"])
+def test_a_support_array_read_mesh_would_refuse_is_never_written(tmp_path, held, how):
+    import dataclasses
+
+    s = held.facet_support.copy()
+    if how == "below":
+        s[0] = -2
+    else:
+        s[held.facet_support == 2] = 0  # the floor's facets (visceral) given to the cava (fixed)
+    bad = dataclasses.replace(held, facet_support=s)
+    with pytest.raises(ValueError, match=r"lab\.vtu: .*Not written: the mesh's facet_support and facet_region"):
+        write_mesh(tmp_path / "lab.vtu", bad)
+    assert not (tmp_path / "lab.vtu").exists()

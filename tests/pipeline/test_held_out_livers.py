@@ -129,8 +129,9 @@ def test_the_dry_run_meshes_the_held_out_liver_for_the_validation_only(tmp_path)
     assert "results/smoke/shards/II" not in text  # the run asked for IV and the validation only
 
 
-def test_the_physics_job_reads_the_held_out_livers_own_supports(tmp_path):
-    """The physics rule takes the liver's features JSON (its support_boundary, as the simulate stage reads it)."""
+def test_the_physics_job_takes_the_held_out_lab_liver(tmp_path):
+    """The physics rule runs on the held-out liver with its own supports; it reads them from the features JSON the
+    mesh rule writes beside that liver's mesh (as the simulate rule does), so its inputs are the default run's."""
     _write_livers(tmp_path)
     work = tmp_path / "work"
     work.mkdir()
@@ -140,20 +141,30 @@ def test_the_physics_job_reads_the_held_out_livers_own_supports(tmp_path):
     text = proc.stdout + proc.stderr
     job = text[text.index("rule physics:"):]
     inputs = next(line for line in job.splitlines() if line.strip().startswith("input:"))
-    assert "results/smoke/mesh/imp-b.vtu" in inputs and "results/smoke/mesh/imp-b.features.json" in inputs, inputs
+    assert "results/smoke/mesh/imp-b.vtu" in inputs and "features.json" not in inputs, inputs
 
 
 @pytest.mark.slow
 @pytest.mark.workflow
 def test_a_held_out_lab_liver_is_scored_as_unseen_and_never_trained_on(tmp_path):
-    """The smoke loop to the validation with liver b held out: its cases are the validation's, none is IV's."""
+    """The smoke loop to the validation with liver b held out: its cases are the validation's, none is IV's; b has
+    its own material and its own foundation, and the physics check runs on it with that foundation."""
     import pyarrow.parquet as pq
+
+    from liverforce.pipeline.physics import LAB_BASELINE
 
     _write_livers(tmp_path)
     work = tmp_path / "work"
     work.mkdir()
-    _snakemake(work, tmp_path, "validate")
+    own = (",supports:{mode:add,list:[{name:bed,kind:foundation,region:visceral,stiffness:{total_n_per_mm:20.0},"
+           "box:{min_mm:[-40,-40,-60],max_mm:[40,40,-35]}}]}")
+    _snakemake(work, tmp_path, "validate", "results/smoke/validate/physics.json",
+               overrides=_overrides(tmp_path, own, "validate.physics.liver=0"))
     res = work / "results" / "smoke"
+    phys = json.loads((res / "validate" / "physics.json").read_text())
+    assert phys["liver"] == "imp-b" and phys["variants"][0]["name"] == LAB_BASELINE
+    assert [s["name"] for s in phys["own_supports"]["supports"]] == ["bed"]
+    assert all(e["converged"] == e["n_cases"] for e in phys["variants"]), phys["variants"]
     val = json.loads((work / Plan(compose(["experiment=smoke"])).paths.validation_metrics()).read_text())
     assert list(val["per_liver"]) == ["imp-b"]
     assert val["livers"]["n"] == 1 and val["per_liver"]["imp-b"]["n"] >= 1

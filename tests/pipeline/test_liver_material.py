@@ -38,7 +38,7 @@ def test_each_form_gives_the_livers_constants(spec, expected):
     mats = Plan(cfg).liver_materials()
     assert list(mats) == ["imp-a"]  # b brings none
     assert mats["imp-a"]["params_mpa"]["C10"] == pytest.approx(expected(_run_c10(cfg)), rel=1e-12)
-    assert mats["imp-a"]["note"]  # what was converted, in words (logged by the sweep)
+    assert set(mats["imp-a"]) == {"params_mpa", "entered"}  # rule params: no derived words
 
 
 def test_young_modulus_uses_the_runs_poisson_ratio():
@@ -58,6 +58,9 @@ def test_young_modulus_uses_the_runs_poisson_ratio():
      "Young's modulus defines a neo_hookean material; this run's is 'yeoh'"),
     ("{E_pa:0.009}", [], "geometry.imported[0].material.E_pa", "if 0.009 is in MPa, give E_pa=9000"),
     ("{params_mpa:{C10:2.5}}", [], "geometry.imported[0].material.params_mpa", "if these constants are in Pa"),
+    ("{scale:1000}", [], "geometry.imported[0].material.scale", "outside the 1e-05-1 MPa of any liver"),
+    ("{scale:true}", [], "geometry.imported[0].material.scale", "must be a number > 0"),
+    ("{params_mpa:{C10:true}}", [], "geometry.imported[0].material.params_mpa", "constants must be numbers"),
 ])
 def test_a_wrong_material_is_refused_naming_the_key(spec, more, key, words):
     with pytest.raises(ConfigError) as err:
@@ -103,7 +106,8 @@ def test_a_held_out_livers_cases_take_its_constants_as_given():
     plan = Plan(_cfg("", ",material:{E_pa:9000}", "validate.imported=[b]", "validate.livers=2"))
     params = plan.sweep_params(VALIDATION)
     rows = _build(params["material"], params["spec"], params["geometries"]).rows
-    c10 = {g: sorted({r["material_params_mpa"][0] for r in rows if r["geometry_id"] == g}) for g in params["geometries"]}
+    c10 = {g: sorted({r["material_params_mpa"][0] for r in rows if r["geometry_id"] == g})
+           for g in params["geometries"]}
     scale = plan.cfg["validate"]["material_scale"]
     assert c10["imp-b"] == [neo_hookean_from_young(9000.0, 0.49)[0]["C10"]]  # not x material_scale
     assert c10["val-1000"] == c10["val-1001"] == [pytest.approx(scale * _run_c10(plan.cfg), rel=1e-12)]
@@ -167,3 +171,37 @@ def test_the_report_names_a_training_livers_own_constants():
     got = _own_materials(_setup(Plan(_cfg(",material:{scale:2.0}"))))
     assert got["unseen"] == [] and [g for g, _, _ in got["training"]] == ["imp-a"]
     assert got["training"][0][2] == {"scale": 2.0}
+
+
+def test_the_scaled_unseen_livers_are_judged_against_the_training_livers_own_ranges():
+    """A training liver with its own constants x 1.4 widens the training range to hold the unseen livers' x 1.4."""
+    from liverforce.report.html import _scale_words
+
+    plan = Plan(_cfg(",material:{scale:1.4}", "", "validate.material_scale=1.4"))
+    assert _scale_words(_setup(plan)) == "within the training range"
+    plain = Plan(_cfg("", "", "validate.material_scale=1.4"))
+    assert _scale_words(_setup(plain)) == "outside the training range"
+
+
+def test_one_training_liver_must_hold_every_constant():
+    """A Yeoh set whose C10 lies in one liver's range and C20 in another's was no training liver's."""
+    from liverforce.report.html import _own_materials
+
+    setup = {"material": {"params_mpa": {"C10": 1.0, "C20": 1.0}, "vary_rel": 0.1},
+             "sweep": {"scenarios": {"IV": {"material": "varies"}}},
+             "liver_materials": {"imp-a": {"params_mpa": {"C10": 2.0, "C20": 1.0}}},
+             "population": {"training": ["imp-a", "proc-0000"], "unseen": []}}
+    inside = _own_materials(setup)["inside"]
+    assert inside({"C10": 2.05, "C20": 1.05}) and inside({"C10": 1.05, "C20": 0.95})
+    assert not inside({"C10": 2.05, "C20": 2.0}) and not inside({"C10": 1.5, "C20": 1.0})
+
+
+def test_a_lab_entered_constants_read_as_words():
+    from liverforce.learn.provenance import own_material_lines
+    from liverforce.report.html import _entered_words
+
+    assert _entered_words({"params_mpa": {"C10": 0.0015}}) == "params_mpa C10 0.0015"
+    assert _entered_words({"E_pa": 9000}) == "E_pa 9000"
+    line = own_material_lines({"per_liver": {"imp-a": {"params_mpa": {"C10": 0.0015},
+                                                       "entered": {"params_mpa": {"C10": 0.0015}}}}})
+    assert line == ["material of imp-a: its own, C10 0.0015 MPa (entered as params_mpa C10 0.0015)"]

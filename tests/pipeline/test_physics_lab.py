@@ -102,9 +102,9 @@ def lab(tmp_path_factory):
 def study(lab):
     cfg = lab["cfg"]
     spec = {**SPEC, "tangential_ratio": [], "rib_contact": ["unilateral"], "tool": "none"}
+    # no features_path: the study finds the liver's features JSON beside its mesh, as the physics rule has it
     return physics_study(lab["cases"], lab["mesh"], [], [], cfg["simulate"], cfg["boundary"], cfg["dataset"],
-                         cfg["material"], spec, lab["tmp"] / "physics.json", lab["tmp"] / "physics",
-                         features_path=lab["tmp"] / "mesh" / "imp-lab.features.json")
+                         cfg["material"], spec, lab["tmp"] / "physics.json", lab["tmp"] / "physics")
 
 
 def _rows(shard, case_ids=None) -> dict:
@@ -200,8 +200,7 @@ def test_a_gravity_state_that_fails_fails_that_choice_only(lab, monkeypatch):
     cfg = lab["cfg"]
     spec = {**SPEC, "n_cases": 2, "foundation_scale": [], "tangential_ratio": [], "rib_contact": [], "tool": "none"}
     out = physics_study(lab["cases"], lab["mesh"], [], [], cfg["simulate"], cfg["boundary"], cfg["dataset"],
-                        cfg["material"], spec, lab["tmp"] / "sagless.json", lab["tmp"] / "sagless",
-                        features_path=lab["tmp"] / "mesh" / "imp-lab.features.json")
+                        cfg["material"], spec, lab["tmp"] / "sagless.json", lab["tmp"] / "sagless")
     by = {e["name"]: e for e in out["variants"]}
     assert by[LAB_BASELINE]["converged"] == 2 and "sag_error" not in by[LAB_BASELINE]
     grav = by["gravity upright"]

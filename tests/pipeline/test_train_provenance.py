@@ -252,8 +252,11 @@ def test_a_training_livers_own_material_is_recorded_with_the_run_material(tmp_pa
     mat = got["meta"]["provenance"]["material"]
     own = mat["per_liver"]["imp-lab"]
     assert own["entered"] == {"E_pa": 9000} and own["params_mpa"]["C10"] == pytest.approx(9000e-6 / 2.98 / 2)
-    assert "E 9 kPa" in own["note"]
     lines = describe_cli(got["model_path"], capsys)["trained_on"]
     assert lines[-1] == f"material of imp-lab: its own, C10 {own['params_mpa']['C10']:.12g} MPa (entered as E_pa 9000)"
+    # its only liver has its own material: the run's constants trained nothing, and a search by them must miss it
+    assert lines[-2].startswith("material: not used (every training liver has its own, below); the run's "
+                                "neo_hookean C10 0.0025")
     params = got["run"].data.params
     assert float(params["material.imp-lab.params_mpa.C10"]) == pytest.approx(own["params_mpa"]["C10"], rel=1e-11)
+    assert params["material.run_constants"] == "unused" and "material.params_mpa.C10" not in params

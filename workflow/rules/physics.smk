@@ -1,14 +1,10 @@
 # Stage 7b: what the modelling choices (supports, gravity, tool) cost every scenario-IV model, on one unseen liver.
 
-PHYSICS_LIVER = PLAN.scenario_geometries(plan.VALIDATION)[config_slice("validate", "physics", "liver")]
-
 
 rule physics:
     input:
         cases=P.cases(plan.VALIDATION),
-        mesh=P.mesh(PHYSICS_LIVER),
-        # a lab's liver's own supports (support_boundary): the validation simulated it with them (rule simulate)
-        features=P.features(PHYSICS_LIVER),
+        mesh=P.mesh(PLAN.scenario_geometries(plan.VALIDATION)[config_slice("validate", "physics", "liver")]),
         model=needs_iv("the physics check (rule physics)", [P.model_dir("IV", v) for v in PLAN.variants()]),
         metrics=[P.model_metrics("IV", v) for v in PLAN.variants()],
     output:

@@ -18,7 +18,6 @@ rule report:
         setup={
             "main_variant": PLAN.chosen_variant(),
             "material": config_slice("material"),
-            "liver_materials": PLAN.liver_materials(),  # imported livers' own constants (geometry.imported[].material)
             "boundary": config_slice("boundary"),
             "sweep": config_slice("sweep"),
             "mesh": config_slice("mesh"),
@@ -33,6 +32,9 @@ rule report:
             "mlflow_experiments": {"models": PLAN.experiment_name("<scenario>"),
                                    "validation": PLAN.experiment_name("validation"),
                                    "studies": PLAN.experiment_name("studies")},
+            # imported livers' own constants (geometry.imported[].material); absent without them, so a run
+            # without such livers keeps its report params (and is not re-rendered after a pull)
+            **({"liver_materials": PLAN.liver_materials()} if PLAN.liver_materials() else {}),
             "population": {
                 "training": PLAN.train_geometries,
                 "single": PLAN.single_geometry,  # the liver of scenarios I-III

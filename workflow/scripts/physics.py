@@ -6,4 +6,4 @@ sm = snakemake  # noqa: F821
 setup_job(sm.log[0], sm.threads, outputs=sm.output)
 physics_study(sm.input.cases, sm.input.mesh, list(sm.input.model), list(sm.input.metrics), sm.params.simulate,
               sm.params.boundary, sm.params.dataset, sm.params.material, sm.params.spec, sm.output.study,
-              sm.output.shards, features_path=sm.input.features)
+              sm.output.shards)
