@@ -27,3 +27,25 @@ def fake_row(i: int, rng, converged: bool = True, k: int | None = None) -> dict:
         "load_steps": 3, "newton_iterations": 9, "final_residual": 1e-9, "linear_solver": "cholmod",
         "wall_time_s": float(rng.random()),
     }
+
+
+def top_face_cases(mesh, material: dict, gid: str, n_cases: int, n_points: int, max_n: float, rng) -> list[dict]:
+    """``n_cases`` case-table rows on liver ``gid`` (a ``LiverMesh``): pushes at the ``n_points`` highest visible
+    nodes in turn, forces of 0.3-``max_n`` N within about 17 degrees of straight down, ``material`` the config's
+    slice (for the physics tests, whose small ellipsoid livers have their top face visible)."""
+    from liverforce.fem.materials import make_material
+
+    visible = np.unique(mesh.facets[mesh.facet_visible])
+    tops = visible[np.argsort(-mesh.points[visible, 2])[:n_points]]
+    bulk = make_material(material["model"], material["params_mpa"], nu=material["nu"]).bulk
+    cases = []
+    for i in range(n_cases):
+        d = np.array([0.3 * rng.standard_normal(), 0.3 * rng.standard_normal(), -1.0])
+        f = rng.uniform(0.3, max_n) * d / np.linalg.norm(d)
+        cases.append({"case_id": f"V-{i:06d}", "scenario": "V", "geometry_id": gid, "shard_index": 0, "seed": i,
+                      "material_model": material["model"], "material_param_names": list(material["params_mpa"]),
+                      "material_params_mpa": list(material["params_mpa"].values()), "bulk_modulus_mpa": bulk,
+                      "exertion_id": int(i % n_points), "exertion_point_mm": mesh.points[tops[i % n_points]].tolist(),
+                      "exertion_normal": [0.0, 0.0, 1.0], "force_n": f.tolist(),
+                      "force_magnitude_n": float(np.linalg.norm(f))})
+    return cases

@@ -6,6 +6,9 @@ the run's constants x ``validate.material_scale``; a training liver's scenarios 
 """
 from __future__ import annotations
 
+import copy
+import functools
+
 import numpy as np
 import pytest
 
@@ -19,7 +22,13 @@ TWO = "geometry.imported=[{name:a,path:a.stl,units:mm%s},{name:b,path:b.stl,unit
 
 
 def _cfg(a: str = "", b: str = "", *more: str) -> dict:
-    """The smoke experiment on two imported livers, neo-Hookean unless ``more`` picks another material."""
+    """The smoke experiment on two imported livers, neo-Hookean unless ``more`` picks another material (a copy of
+    one composition per arguments: composing takes about a second)."""
+    return copy.deepcopy(_composed(a, b, *more))
+
+
+@functools.lru_cache(maxsize=None)
+def _composed(a: str, b: str, *more: str) -> dict:
     return compose(["experiment=smoke", "material=neo_hookean", TWO % (a, b), *more])
 
 

@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from fake_rows import top_face_cases
 
 from liverforce.config import ConfigError, compose
 from liverforce.pipeline.physics import BASELINE, physics_study, physics_variants
@@ -56,7 +57,6 @@ def setup(tmp_path_factory):
     """An ellipsoid liver, 40 cases on it (the first 6 the study's), and a small PCA model trained on the
     other 34 cases' baseline simulation."""
     from liverforce.dataset import io as dio
-    from liverforce.fem.materials import make_material
     from liverforce.fem.testing import ellipsoid_liver
     from liverforce.learn.train import train_scenario
     from liverforce.mesh.io import write_mesh
@@ -71,19 +71,7 @@ def setup(tmp_path_factory):
     write_mesh(mesh_path, mesh)
     mat = cfg["material"]
     rng = np.random.default_rng(0)
-    visible = np.unique(mesh.facets[mesh.facet_visible])
-    tops = visible[np.argsort(-mesh.points[visible, 2])[:3]]  # three exertion points on the top face
-    cases = []
-    for i in range(40):
-        x0 = mesh.points[tops[i % 3]]
-        d = np.array([0.3 * rng.standard_normal(), 0.3 * rng.standard_normal(), -1.0])
-        f = rng.uniform(0.3, 3.0) * d / np.linalg.norm(d)
-        cases.append({"case_id": f"V-{i:06d}", "scenario": "V", "geometry_id": "val-1000", "shard_index": 0,
-                      "seed": i, "material_model": mat["model"], "material_param_names": list(mat["params_mpa"]),
-                      "material_params_mpa": list(mat["params_mpa"].values()),
-                      "bulk_modulus_mpa": make_material(mat["model"], mat["params_mpa"], nu=mat["nu"]).bulk,
-                      "exertion_id": int(i % 3), "exertion_point_mm": x0.tolist(), "exertion_normal": [0.0, 0.0, 1.0],
-                      "force_n": f.tolist(), "force_magnitude_n": float(np.linalg.norm(f))})
+    cases = top_face_cases(mesh, mat, "val-1000", 40, 3, 3.0, rng)
     cases_path = tmp / "cases.parquet"
     dio.write_case_table(cases, cases_path)
     rows = simulate_cases(cases[6:], {"val-1000": mesh}, cfg["simulate"], cfg["boundary"], cfg["dataset"],

@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from fake_rows import top_face_cases
 
 from liverforce.config import compose
 from liverforce.pipeline.physics import LAB_BASELINE, physics_study, physics_variants
@@ -57,7 +58,6 @@ def lab(tmp_path_factory):
     fixed support, no ligament, no rib), its features JSON as the mesh stage writes it, 8 cases on its top face,
     and the validation's shard of them (simulate_shard, which reads the liver's support_boundary)."""
     from liverforce.dataset import io as dio
-    from liverforce.fem.materials import make_material
     from liverforce.fem.testing import ellipsoid_liver
     from liverforce.mesh.io import write_mesh
     from liverforce.mesh.types import LiverMesh
@@ -76,19 +76,7 @@ def lab(tmp_path_factory):
     (tmp / "mesh" / "imp-lab.features.json").write_text(json.dumps({"supports": bed, "support_boundary": OWN}))
     mat = cfg["material"]
     rng = np.random.default_rng(1)
-    visible = np.unique(mesh.facets[mesh.facet_visible])
-    tops = visible[np.argsort(-mesh.points[visible, 2])[:2]]
-    cases = []
-    for i in range(8):
-        d = np.array([0.3 * rng.standard_normal(), 0.3 * rng.standard_normal(), -1.0])
-        f = rng.uniform(0.3, 1.5) * d / np.linalg.norm(d)
-        cases.append({"case_id": f"V-{i:06d}", "scenario": "V", "geometry_id": "imp-lab", "shard_index": 0,
-                      "seed": i, "material_model": mat["model"], "material_param_names": list(mat["params_mpa"]),
-                      "material_params_mpa": list(mat["params_mpa"].values()),
-                      "bulk_modulus_mpa": make_material(mat["model"], mat["params_mpa"], nu=mat["nu"]).bulk,
-                      "exertion_id": int(i % 2), "exertion_point_mm": mesh.points[tops[i % 2]].tolist(),
-                      "exertion_normal": [0.0, 0.0, 1.0], "force_n": f.tolist(),
-                      "force_magnitude_n": float(np.linalg.norm(f))})
+    cases = top_face_cases(mesh, mat, "imp-lab", 8, 2, 1.5, rng)
     cases_path = tmp / "cases.parquet"
     dio.write_case_table(cases, cases_path)
     val = tmp / "V" / "shard-0000.parquet"
