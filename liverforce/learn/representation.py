@@ -122,6 +122,11 @@ from liverforce.seeds import derive
 FEATURE_KINDS = names.roi_features()
 OCCLUSION_MODES = names.OCCLUSION_MODES
 INTERPOLATIONS = ("surface", "points")
+#: input-contract key of each row's place in a request (whole numbers): without ``case_id`` it keys the row's
+#: observation draw (and names the row in messages) instead of its index in the arrays, so that a row of a
+#: request draws the same whatever other rows are left out before it (:func:`liverforce.learn.model.subset`
+#: carries it; the served model sets it, ``Predictor.predict_arrays`` too where neither is given)
+ROW_KEY = "request_row"
 
 
 @dataclass(frozen=True)
@@ -331,7 +336,8 @@ class Representation:
             Needs ``exertion_point_mm``, ``frame_normal``, ``frame_t1``,
             ``frame_t2`` (n, 3) and ``roi_undeformed_mm``,
             ``roi_deformed_mm`` (lists of ``(k_i, 3)``); ``case_id`` seeds the
-            per-case noise when present (else the row index).
+            per-case noise when present (else the row's :data:`ROW_KEY`, else
+            the row index).
         observation_seed : int, optional
             Seed of the stochastic observation model (occlusion mode
             ``noise``, point noise). ``None``: no stochastic corruption.
@@ -357,6 +363,7 @@ class Representation:
                 f"roi_undeformed_mm ({len(und)}) and roi_deformed_mm ({len(dfm)}) need one point cloud per case ({n})"
             )
         ids = arrays.get("case_id")
+        rows = arrays.get(ROW_KEY) if ids is None else None  # each row's place in the request, without case_id
         tris = None
         if self.uses_triangles:
             tris = arrays.get("roi_triangles")
@@ -379,7 +386,8 @@ class Representation:
                     f"case row {i}: undeformed ROI has {len(U)} nodes but deformed has {len(D)}; "
                     "they must list the same nodes in the same order"
                 )
-            label = str(ids[i]) if ids is not None else f"row {i}"
+            row = i if rows is None else int(rows[i])
+            label = str(ids[i]) if ids is not None else f"row {row}"
             patch = None
             if tris is not None:  # the top sheet's nodes are chosen on the whole patch, before any occlusion
                 T = check_triangles(tris[i], len(U), f"case {label}: roi_triangles")
@@ -387,7 +395,7 @@ class Representation:
             if not clean:
                 rng = None
                 if observation_seed is not None and self.stochastic:
-                    key = ids[i] if ids is not None else i
+                    key = ids[i] if ids is not None else row
                     rng = np.random.default_rng(derive(observation_seed, "observation", key))
                 U, D, patch = self._observe(U, D, rng, label, patch)
             out[i] = self._resample(U, D, grid, label, patch)

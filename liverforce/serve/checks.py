@@ -20,6 +20,10 @@ exertion point on surface    the exertion point is more than ``surface_tol_mm``
                              triangles (``roi_triangles``), else the undeformed
                              ROI's height there (a quadratic fit of the nearest
                              nodes in the local frame); or it lies outside its ROI
+ROI beyond the tool          (models with ``occlusion: remove``) fewer than 3 ROI nodes
+                             (the fewest the model resamples) at the occlusion radius or
+                             beyond it, from the exertion point in the tangent plane: the
+                             model drops the nodes the tool hides
 ROI patch                    (models that read it) ``roi_triangles`` missing, not ``(m, 3)`` whole
                              numbers indexing ``roi_undeformed_mm``, covering
                              none of the grid, or their top sheet more than
@@ -362,6 +366,7 @@ def check_case(arrays: dict, i: int, model, scale: TrainingScale, limits: Limits
     check_roi(U_loc, scale, limits, label, fit_height=not on_surface and patch is None)
     if patch is not None:  # the point's height measured to the ROI's own triangles, not to a fit of its nodes
         check_on_roi_triangles(p, U, patch, limits, label, input_frame)
+    check_occlusion(U_loc, model.representation, label)
     if model.representation.uses_triangles:
         check_patch(arrays, i, U_loc, model, limits, label)
     if correspondence:
@@ -385,6 +390,28 @@ def check_case(arrays: dict, i: int, model, scale: TrainingScale, limits: Limits
         check_thickness(arrays, i, scale, limits, label)
         check_compliance(arrays, i, scale, limits, label)
     return R
+
+
+#: the fewest ROI nodes left beyond the tool's occlusion radius that the model resamples (fewer:
+#: ``Representation._observe`` raises ValueError)
+MIN_VISIBLE_NODES = 3
+
+
+def check_occlusion(U_loc: np.ndarray, rep, label: str) -> None:
+    """The undeformed ROI nodes ``U_loc`` (local frame) against a model that drops those the tool hides
+    (``occlusion: remove``, :class:`~liverforce.learn.representation.Representation`): at least
+    :data:`MIN_VISIBLE_NODES` must lie at or beyond its occlusion radius (tangent distance), as the model's
+    resampling needs."""
+    r = float(rep.occlusion_radius_mm)
+    if rep.is_camera or r <= 0 or rep.occlusion_mode != "remove":
+        return
+    visible = int((~(np.hypot(U_loc[:, 0], U_loc[:, 1]) < r)).sum())
+    if visible < MIN_VISIBLE_NODES:
+        raise PredictionInputError(
+            f"{label}only {visible} of the {len(U_loc)} ROI nodes lie {r:g} mm or more from the exertion point (in "
+            f"the tangent plane): the model leaves out the nodes the tool hides (its occlusion radius, {r:g} mm) and "
+            f"needs {MIN_VISIBLE_NODES} or more to resample; give the ROI round the exertion point beyond the tool, "
+            "not only the nodes under it")
 
 
 def check_patch(arrays: dict, i: int, U_loc: np.ndarray, model, limits: Limits, label: str) -> None:

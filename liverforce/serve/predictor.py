@@ -37,6 +37,7 @@ import numpy as np
 from liverforce.learn import camera
 from liverforce.learn.model import ForceModel, ModelFormatError, subset
 from liverforce.learn.provenance import provenance_lines
+from liverforce.learn.representation import ROW_KEY
 from liverforce.serve.checks import (Limits, TrainingScale, check_case, check_on_surface, force_warnings,
                                      outside_training)
 from liverforce.serve.cloud import (camera_checks, check_camera_cloud, check_instrument, cloud_support, cloud_warnings,
@@ -413,14 +414,20 @@ class Predictor:
         (``camera_cloud_mm``, ``tool_tip_mm``, in the model's frame) before the caller's :meth:`refine_arrays`
         moved them, given back in a refusal (default: the arrays' own, before this call's refinement).
 
-        A row its checks refuse raises :class:`PredictionInputError` (``"case <id>: <reason>"``, the MLflow
-        pyfunc's words; the first refused row). With ``return_refused`` the other rows go on instead: a refused
-        row's force is NaN, its warnings empty, and each row's reason (the message the call would raise for it;
-        ``""`` when predicted) is returned last, as ``(force, refused)`` or ``(force, warnings, refused)``. Inputs
-        that are wrong for every row (a column missing, columns of different lengths, a camera model given no
-        clouds) raise either way. The compiled (``fast``) and reference paths refuse the same rows in the same
-        words: every refusal is made by the checks before either path runs. With a stochastic observation model
-        (``observation_seed``) the draws go to the predicted rows only, so they differ from a call on all rows.
+        A row its checks refuse raises :class:`PredictionInputError` (``"case <id>: <reason>"``, without
+        ``case_id`` ``"row <i>: <reason>"`` by its index in ``arrays``, a single row's too: the MLflow pyfunc's
+        words; the first refused row). With ``return_refused`` the other rows go on instead: a refused row's force
+        is NaN, its warnings empty, and each row's reason (the message the call would raise for it; ``""`` when
+        predicted) is returned last, as ``(force, refused)`` or ``(force, warnings, refused)``. A row that passes
+        every check but that the model cannot take raises the model's ``ValueError``; with ``return_refused`` the
+        rows are then predicted again in halves, down to single rows, and a row that raises alone is refused with
+        the model's reason (``"case <id>: "`` or ``"row <i>: "`` before it), the others predicted as in a call of
+        them alone. Inputs that are wrong for every row (a column missing, columns of different lengths, a camera
+        model given no clouds) raise either way. The compiled (``fast``) and reference paths refuse the same rows
+        in the same words: every refusal but the model's is made by the checks before either path runs. With a
+        stochastic observation model (``observation_seed``) each predicted row draws by its ``case_id`` (without
+        one, by its :data:`~liverforce.learn.representation.ROW_KEY`, by default its index in ``arrays``), so it
+        draws the same whether other rows are refused or not; refused rows draw nothing.
 
         Parameters
         ----------
@@ -460,6 +467,9 @@ class Predictor:
             raise PredictionInputError(f"inputs disagree on the number of cases ({n} exertion points): {bad}")
         keep_going = refused is not None
         refused = refused if keep_going else [""] * n
+        ids = arrays.get("case_id")
+        if ids is None and ROW_KEY not in arrays:  # a row's draw and name: its place here, whatever rows are refused
+            arrays = {**arrays, ROW_KEY: np.arange(n)}
 
         def refuse(i: int, why: str) -> None:
             """Row ``i`` refused: raise its message, or (``return_refused``) record it and go on."""
@@ -480,13 +490,13 @@ class Predictor:
             if refused[i]:
                 continue
             try:
-                R[i] = check_case(arrays, i, self.model, self.scale, self.limits, input_frame=input_frame)
+                R[i] = check_case(arrays, i, self.model, self.scale, self.limits, label=_row_label(ids, i),
+                                  input_frame=input_frame)
             except PredictionInputError as exc:
                 if not keep_going:
                     raise  # as raised (an OffSurfaceError stays one)
                 refused[i] = str(exc)
         rep = self.model.representation
-        ids = arrays.get("case_id")
         own_warnings = [[] for _ in range(n)]
         if rep.is_camera and "camera_cloud_mm" in arrays:  # observed clouds: features once, each row checked
             if camera.TIP_KEY not in arrays:
@@ -533,13 +543,41 @@ class Predictor:
         if not rows:
             return out(force, warnings)
         sub = arrays if len(rows) == n else subset(arrays, rows)
-        force[rows] = self._forces(sub, R[rows], observation_seed, fast, min_group)
+        try:
+            force[rows] = self._forces(sub, R[rows], observation_seed, fast, min_group)
+        except ValueError as exc:  # a row every check passed that the model cannot take (raised unless keep_going)
+            failed = self._failing_rows(arrays, rows, R, exc, observation_seed, fast, min_group) if keep_going else {}
+            if not failed:
+                raise
+            for i, why in failed.items():
+                refused[i] = _model_refusal(arrays, i, why)
+            rows = [i for i in rows if i not in failed]
+            if not rows:
+                return out(force, warnings)
+            sub = subset(arrays, rows)  # the others as in a call of them alone
+            force[rows] = self._forces(sub, R[rows], observation_seed, fast, min_group)
         if not return_warnings:
             return out(force, warnings)
         regs = [registration_warnings(fixes[i]) for i in rows] if fixes is not None else [[] for _ in rows]
         for i, c, g, f in zip(rows, self.arrays_warnings(sub), regs, self.force_warnings(force[rows])):
             warnings[i] = c + own_warnings[i] + g + f
         return out(force, warnings)
+
+    def _failing_rows(self, arrays: dict, rows: list[int], R: np.ndarray, exc: ValueError,
+                      *args) -> dict[int, ValueError]:
+        """Which of ``rows`` (indices into ``arrays`` and ``R``), which raised ``exc`` together in :meth:`_forces`,
+        raise ValueError when predicted alone, with what they raise: the rows are split in halves and a half that
+        raises is split again, down to single rows (``args``: the rest of :meth:`_forces`' arguments). Empty when
+        no row raises alone."""
+        if len(rows) == 1:
+            return {rows[0]: exc}
+        failed: dict[int, ValueError] = {}
+        for half in (rows[:len(rows) // 2], rows[len(rows) // 2:]):
+            try:
+                self._forces(subset(arrays, half), R[half], *args)
+            except ValueError as got:
+                failed.update(self._failing_rows(arrays, half, R, got, *args))
+        return failed
 
     def _forces(self, arrays: dict, R: np.ndarray, observation_seed, fast: bool, min_group: int) -> np.ndarray:
         """:meth:`predict_arrays`' forces of checked rows (``R``: their rotations), by the compiled node path
@@ -632,6 +670,16 @@ def _row_label(ids, i: int) -> str:
     """``"case <id>: "`` of row ``i`` (``ids``: the arrays' ``case_id``, or None: ``"row <i>: "``), the prefix of a
     row's refusal."""
     return f"case {ids[i]}: " if ids is not None else f"row {i}: "
+
+
+def _model_refusal(arrays: dict, i: int, exc: Exception) -> str:
+    """Row ``i``'s refusal (``"case <id>: "`` or ``"row <i>: "``, :func:`_row_label`) of what the model raised for
+    it after every check passed; the model's own name of the row (``"case <id>: "``, ``"case row <k>: "``), which
+    the label replaces, is left out."""
+    ids = arrays.get("case_id")
+    why = str(exc)
+    own = f"case {ids[i]}: " if ids is not None else f"case row {arrays[ROW_KEY][i] if ROW_KEY in arrays else i}: "
+    return _row_label(ids, i) + (why[len(own):] if why.startswith(own) else why)
 
 
 def _tips_column(tips: list, refused: list | None, ids) -> np.ndarray:

@@ -7,7 +7,9 @@ code" (no cloudpickle) with a signature and an input example, so
 serves it. Its ``predict`` runs the serving checks of :mod:`liverforce.serve`:
 a refused row gets NaN forces and its reason in the ``refused`` column while the
 other rows are predicted, as ``liverforce predict --shards`` does (param
-``on_refused="request"``: the first refused row refuses the whole request, HTTP 400).
+``on_refused="row"``, what a model logged since the param exists is served with
+unless the request says otherwise; ``"request"``, and for older models: the first
+refused row refuses the whole request, HTTP 400).
 
 For serving, :func:`download_force_model` fetches the bundle of a logged model
 (run id, ``runs:/``/``models:/`` URI or registered name) for
@@ -41,6 +43,7 @@ from mlflow.types import ColSpec, Schema
 
 from liverforce.learn.camera import CLOUD_KEY, TIP_KEY
 from liverforce.learn.model import ForceModel, subset
+from liverforce.learn.representation import ROW_KEY
 from liverforce.serve.errors import PredictionInputError
 from liverforce.serve.input_frame import InputFrame, is_named
 from liverforce.serve.predictor import Predictor, _row_label
@@ -57,8 +60,8 @@ WARNINGS_COLUMN = "warnings"
 #: the column before it: why the serving checks refused the row (the words ``Predictor.predict_arrays`` raises,
 #: ``"case <id>: ..."``), "" when predicted; the column ``liverforce predict --shards`` writes
 REFUSED_COLUMN = "refused"
-#: values of the pyfunc param ``on_refused``: a refused row answered with NaN and its reason (the default), or the
-#: whole request refused with the first refused row's reason (HTTP 400)
+#: values of the pyfunc param ``on_refused``: a refused row answered with NaN and its reason (the logged default), or
+#: the whole request refused with the first refused row's reason (HTTP 400; what a call without the param gets)
 ON_REFUSED = ("row", "request")
 _ROI_KEYS = ("roi_undeformed_mm", "roi_deformed_mm", "camera_cloud_mm", "unloaded_cloud_mm", "roi_triangles")  # ragged
 # (k, 3) point sets and triangles (vertex indices), flattened
@@ -144,20 +147,26 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
     clouds, a predicted force beyond the training forces: those of ``Predictor.predict_cloud``; ``"; "``-joined,
     ``""`` when none, and for a refused row).
 
-    Param ``on_refused``: ``"row"`` (the default) answers a request whose rows the serving checks refuse (a NaN or
-    inf point, a cloud too sparse or off the grid, a tip beyond it, an exertion point off the surface, units off
-    the training scale, a flattened point set not ``3 k`` long, a failed registration) as ``liverforce predict
-    --shards`` does: such a row's forces and interval columns are NaN (over HTTP the bare token ``NaN``, as MLflow's
-    scoring server writes it: Python's ``json`` reads it, a strict JSON parser does not) and its
-    reason is in ``refused``, and the other rows are predicted as in a request of them alone (a stochastic
-    observation model's draws go to them only). A request whose every row is refused is still answered, every
-    reason given, as ``--shards`` still writes its file. ``"request"``: the first refused row refuses the whole
-    request (:class:`PyfuncInputError`, HTTP 400 from MLflow's scoring server, its reason the message), as before
-    the param existed. Either way the request as a whole is refused when it is not the input contract: a bad
-    ``input_frame``, ``units`` or ``on_refused``, a required column missing, a column MLflow's schema refuses, a
-    fixed-width column (exertion point, frame, material, tool tip ...) whose rows differ in width. Models logged
-    before the param existed ignore it (MLflow drops params outside the signature with a warning) and answer per
-    row, as ``"row"``.
+    Param ``on_refused``: ``"row"`` answers a request whose rows the serving checks refuse (a NaN or inf point, a
+    cloud too sparse or off the grid, a tip beyond it, an exertion point off the surface, units off the training
+    scale, too few ROI nodes beyond the tool for a model that leaves out those it hides, a flattened point set not
+    ``3 k`` long, a failed registration) as ``liverforce predict --shards`` does: such a row's forces and interval
+    columns are NaN (over HTTP the bare token ``NaN``, as MLflow's scoring server writes it: Python's ``json``
+    reads it, a strict JSON parser does not) and its reason is in ``refused``, and the other rows are predicted
+    as in a request of them alone (a stochastic observation model draws each row by its ``case_id``, without one
+    by its place in the request, so the same whatever rows are refused). A row every check passes but the model
+    cannot take (its ``ValueError``) is refused so too, with the model's reason. A request whose every row is
+    refused is still answered, every reason given, as ``--shards`` still writes its file. ``"request"``: the first
+    refused row refuses the whole request (:class:`PyfuncInputError`, HTTP 400 from MLflow's scoring server, its
+    reason the message), as before the param existed. Which applies: a model logged since the param exists has
+    ``"row"`` as its signature's default, which MLflow fills in when the request does not say (so over HTTP and
+    through ``mlflow.pyfunc.load_model`` the default is ``"row"``); a model logged before has no such param,
+    MLflow drops it from the request and this method, not given the key, answers ``"request"``, as such a model
+    did when logged. A direct call of this method without the key is taken for such an older model's: pass
+    ``on_refused="row"`` for per-row answers (a blank value is the signature's default, ``"row"``). Either way
+    the request as a whole is refused when it is not the input contract: a bad ``input_frame``, ``units`` or
+    ``on_refused``, a required column missing, a column MLflow's schema refuses, a fixed-width column (exertion
+    point, frame, material, tool tip ...) whose rows differ in width.
 
     A camera-cloud model also takes the optional columns ``unloaded_cloud_mm`` (per row the camera's cloud
     before the tool pushed, flattened; empty: none) and ``contact_tip_mm`` (the tool tip at contact): the
@@ -181,7 +190,7 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
         # surface) refuse bad rows with a PredictionInputError naming the row; then the reference path
         predictor = Predictor(self.model)
         try:
-            per_row = pyfunc_on_refused(params.get("on_refused"))
+            per_row = pyfunc_on_refused(params.get("on_refused"))  # absent: a model logged before the param
             frame = pyfunc_input_frame(params.get("input_frame"), params.get("units"))
             df = pd.DataFrame(model_input)
             refused = [""] * len(df) if per_row else None  # each row's reason so far, "" while it goes on
@@ -192,6 +201,8 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
             except (TypeError, ValueError) as exc:  # a non-number, rows of different widths
                 raise PredictionInputError(f"input columns: {exc}") from None
             arrays = frame.arrays(arrays)
+            if "case_id" not in arrays:  # each row's place in the request keys its draw, whatever rows are refused
+                arrays = {**arrays, ROW_KEY: np.arange(len(df))}
             entered = ((arrays[CLOUD_KEY], arrays[TIP_KEY])  # a refusal gives them back before the registration
                        if CLOUD_KEY in arrays and TIP_KEY in arrays else None)
             # registration refined from unloaded clouds, if given
@@ -199,7 +210,8 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
             got = predictor.predict_arrays(_held_back(arrays, refused), observation_seed=None if seed < 0 else seed,
                                            return_warnings=True, registrations=fixes, input_frame=frame,
                                            entered=entered, return_refused=per_row)
-        except PredictionInputError as exc:
+        except ValueError as exc:  # a refusal (PredictionInputError), or a ValueError the model raised for a row it
+            # cannot take ("row": one predict_arrays could not pin on single rows): HTTP 400 with it, not a bare 500
             raise PyfuncInputError(str(exc)) from exc
         force, warnings = got[:2]
         if per_row:  # a row refused before predict_arrays keeps that reason (predict_arrays' is of its NaN point)
@@ -211,9 +223,13 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
 
 
 def pyfunc_on_refused(on_refused: str | None) -> bool:
-    """Whether the pyfunc's param ``on_refused`` (:data:`ON_REFUSED`; default ``""``: ``"row"``) answers refused
-    rows one by one (``"row"``: True) or refuses the whole request (``"request"``: False)."""
-    said = str(on_refused or "").strip().lower() or ON_REFUSED[0]
+    """Whether the pyfunc's param ``on_refused`` (:data:`ON_REFUSED`) answers refused rows one by one (``"row"``:
+    True) or refuses the whole request (``"request"``: False). None (the key absent: a model logged before the
+    param, whose signature MLflow fills in no default from) is ``"request"``; a blank value is the signature's
+    default, ``"row"``."""
+    if on_refused is None:
+        return False
+    said = str(on_refused).strip().lower() or ON_REFUSED[0]
     if said not in ON_REFUSED:
         raise PredictionInputError(
             f"on_refused {str(on_refused)[:80]!r}: give 'row' (a refused row's forces NaN and its reason in the "
@@ -487,8 +503,10 @@ def predict_pyfunc(pyfunc_model, arrays: dict, observation_seed: int | None = No
                    input_frame: str = "", units: str = "") -> np.ndarray:
     """Run a loaded pyfunc model on input-contract ``arrays`` (in ``units`` and ``input_frame``: the pyfunc's
     params, :func:`pyfunc_input_frame`; a 4x4 or a record may be given as a list, array or dict); returns
-    ``(n, 3)`` N in the inputs' frame. A row the serving checks refuse raises :class:`PredictionInputError` with
-    its reason (the first refused row's, from the answer's ``refused`` column)."""
+    ``(n, 3)`` N in the inputs' frame. A refused row refuses the call, as the model refuses a request with
+    ``on_refused="request"`` (sent where the model's params take it): :class:`PyfuncInputError` (a
+    :class:`PredictionInputError`) with the first refused row's reason. An older model's per-row answer (its
+    ``refused`` column) raises the same, with the first reason there."""
     inputs = _pyfunc_inputs(pyfunc_model)
     dropped = sorted({"unloaded_cloud_mm", "contact_tip_mm"} & set(arrays) - inputs)
     if dropped:  # MLflow would drop them and the clouds would be predicted as registered, unrefined
@@ -497,21 +515,24 @@ def predict_pyfunc(pyfunc_model, arrays: dict, observation_seed: int | None = No
     keys = [k for k in arrays if k in inputs]
     df = arrays_to_frame(arrays, keys)
     params = {"observation_seed": -1 if observation_seed is None else observation_seed}
+    schema = pyfunc_model.metadata.get_params_schema()
+    taken = {p.name for p in schema.params} if schema is not None else set()
+    if "on_refused" in taken:  # the first refused row refuses the call, as the server would refuse the request
+        params["on_refused"] = "request"
     if input_frame is not None and not isinstance(input_frame, str):  # a 4x4 or a record: the param is JSON text
         input_frame = json.dumps(input_frame, default=lambda a: np.asarray(a).tolist())
     said = {k: v for k, v in (("input_frame", input_frame), ("units", units)) if v}
     if said:
-        schema = pyfunc_model.metadata.get_params_schema()
-        missing = sorted(set(said) - ({p.name for p in schema.params} if schema is not None else set()))
+        missing = sorted(set(said) - taken)
         if missing:  # MLflow would drop them with a warning and the model would read the inputs as RAS mm
             raise PredictionInputError(
                 f"this model was logged before it took {' and '.join(missing)}: convert the inputs to RAS mm "
                 "(liverforce.serve.input_frame.InputFrame.arrays) or log the model again")
         params.update(said)
     out = pd.DataFrame(pyfunc_model.predict(df, params=params))
-    why = [r for r in out.get(REFUSED_COLUMN, []) if r]
-    if why:
-        raise PredictionInputError(why[0])
+    why = [r for r in out.get(REFUSED_COLUMN, []) if isinstance(r, str) and r]
+    if why:  # a model that answered per row all the same: the first refused row's reason, as the server's 400
+        raise PyfuncInputError(why[0])
     return np.asarray(out[list(OUTPUT_COLUMNS)], dtype=np.float64)
 
 

@@ -66,7 +66,7 @@ def _pyfunc(pred: Predictor, arrays: dict, **params):
     pf = ForceModelPyfunc()
     pf.model = pred.model
     return pf.predict(None, arrays if isinstance(arrays, pd.DataFrame) else arrays_to_frame(arrays, list(arrays)),
-                      params=params)
+                      params={"on_refused": "row", **params})  # as MLflow calls a model logged with the param
 
 
 def _pyfunc_refusal(pred: Predictor, arrays: dict, **params) -> str:

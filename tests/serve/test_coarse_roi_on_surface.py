@@ -57,7 +57,7 @@ def _pyfunc(pred: Predictor, arrays: dict, **params):
 
     pf = ForceModelPyfunc()
     pf.model = pred.model
-    return pf.predict(None, arrays_to_frame(arrays, list(arrays)), params=params)
+    return pf.predict(None, arrays_to_frame(arrays, list(arrays)), params={"on_refused": "row", **params})
 
 
 def test_a_point_on_the_triangles_of_a_coarse_roi_is_accepted_on_every_path(trained, coarse, tmp_path, monkeypatch):

@@ -112,11 +112,12 @@ def test_pyfunc_predicts_like_the_predictor_and_refuses_bad_rows(logged, data, t
     np.testing.assert_array_equal(predict_pyfunc(pf, cases), local.predict_arrays(cases))
     bad = dict(cases)
     bad["material_params_mpa"] = cases["material_params_mpa"] * 1e6  # Pa, not MPa
-    with pytest.raises(PredictionInputError, match=r"case S-000060: material_params_mpa\[0\].*must be in MPa"):
-        predict_pyfunc(pf, bad)
-    # through MLflow's params schema: one row in Pa among good ones is answered with its reason, the others
-    # predicted; asked to, the whole request is refused
     from liverforce.tracking import PyfuncInputError, arrays_to_frame
+
+    with pytest.raises(PyfuncInputError, match=r"^case S-000060: material_params_mpa\[0\].*must be in MPa"):
+        predict_pyfunc(pf, bad)  # what the server answers with HTTP 400
+    # through MLflow's params schema: one row in Pa among good ones is answered with its reason, the others
+    # predicted (MLflow fills in the signature's default "row"); asked to, the whole request is refused
 
     mixed = {k: (np.array(v, copy=True) if isinstance(v, np.ndarray) else v) for k, v in cases.items()}
     mixed["material_params_mpa"][2] = bad["material_params_mpa"][2]
@@ -130,6 +131,35 @@ def test_pyfunc_predicts_like_the_predictor_and_refuses_bad_rows(logged, data, t
     np.testing.assert_array_equal(np.delete(force, 2, axis=0), local.predict_arrays(subset(cases, [0, 1, 3, 4, 5])))
     with pytest.raises(PyfuncInputError, match=r"^case S-000062: material_params_mpa\[0\]"):
         pf.predict(frame, params={"on_refused": "request"})
+
+
+def test_a_model_logged_before_on_refused_still_refuses_the_whole_request(logged, data, tmp_path):
+    """A model whose signature has no ``on_refused`` (logged before it existed): MLflow drops the param from a
+    request and fills in no default, so the pyfunc is not given the key and refuses a request with a bad row as the
+    model did when logged (PyfuncInputError: HTTP 400), not a 200 with NaN tokens that strict JSON parsers
+    reject; predict_pyfunc likewise. Its good requests are answered as before."""
+    import mlflow
+
+    from liverforce.tracking import PyfuncInputError, arrays_to_frame
+
+    model_dir = download_force_model(logged["run_id"], tmp_path, tracking_uri=logged["uri"]).parent.parent
+    mlmodel = yaml.safe_load((model_dir / "MLmodel").read_text())
+    sig = mlmodel["signature"]
+    sig["params"] = json.dumps([p for p in json.loads(sig["params"]) if p["name"] != "on_refused"])
+    (model_dir / "MLmodel").write_text(yaml.safe_dump(mlmodel))
+    pf = mlflow.pyfunc.load_model(str(model_dir))
+    assert [p.name for p in pf.metadata.get_params_schema().params] == ["observation_seed", "input_frame", "units"]
+    cases = subset(data, np.arange(60, 63))
+    local = Predictor.from_dir(logged["model_path"])
+    np.testing.assert_array_equal(predict_pyfunc(pf, cases), local.predict_arrays(cases))
+    mixed = {k: (np.array(v, copy=True) if isinstance(v, np.ndarray) else v) for k, v in cases.items()}
+    mixed["material_params_mpa"][1] = mixed["material_params_mpa"][1] * 1e6  # Pa, not MPa
+    frame = arrays_to_frame(mixed, ["case_id", *local.model.required_inputs()])
+    for params in (None, {"on_refused": "row"}):  # asked for per-row answers, which it does not take
+        with pytest.raises(PyfuncInputError, match=r"^case S-000061: material_params_mpa\[0\].*must be in MPa"):
+            pf.predict(frame, params=params)
+    with pytest.raises(PyfuncInputError, match=r"^case S-000061: material_params_mpa\[0\]"):
+        predict_pyfunc(pf, mixed)
 
 
 def _free_port() -> int:
@@ -229,6 +259,10 @@ def test_mlflow_models_serve_answers_over_http(logged, data, tmp_path):
         status, body = _post(f"{base}/invocations", {"dataframe_split": frame.to_dict(orient="split"),
                                                      "params": {"on_refused": "never"}})
         assert status == 400 and "on_refused 'never'" in body.get("message", ""), body
+        # not the input contract: the whole request refused (HTTP 400) in "row" mode too, a missing column named
+        status, body = _post(f"{base}/invocations",
+                             {"dataframe_split": frame.drop(columns="material_params_mpa").to_dict(orient="split")})
+        assert status == 400 and "material_params_mpa" in body.get("message", ""), body
     finally:
         os.killpg(proc.pid, signal.SIGTERM)
         try:
