@@ -34,7 +34,7 @@ FEATURES = {"volume_mm3": 1.45e6, "extent_mm": [234.0, 165.0, 109.0], "n_nodes":
             "exertion_given": True, "exertion_candidates_mm": [[-49.0, 79.0, -157.0], [-13.2, 98.0, -165.4],
                                                                [-23.6, 85.5, -148.7]],
             "exertion_snap_mm": [1.05e-05, 0.000289, 0.000166],
-            "supports": [{"name": "cava", "kind": "fixed", "selector": "file", "n_facets": 164,
+            "supports": [{"name": "cava", "kind": "fixed", "selector": "file", "n_facets": 164, "n_mesh_facets": 31,
                           "snap_mm": {"max": 0.000627, "mean": 0.0002, "n_points": 94}},
                          {"name": "diaphragm", "kind": "foundation", "selector": "file", "n_facets": 2840,
                           "snap_mm": {"max": 0.00075, "mean": 0.0002, "n_points": 1471}},
@@ -77,9 +77,10 @@ def test_an_imported_liver_gets_its_file_conversion_supports_and_points(stage_ou
             "to RAS") in block
     assert "Supports: its own, mode replace: they replace the built-in regions" in block
     assert "built-in regions left empty: rib" in block
-    # one row per support: name, kind, selector (file basename or the sphere as given), facets held, stiffness
-    assert "cava fixed (clamped) file cava_lps_m.csv 164 0.000627 –" in block
-    assert ("diaphragm foundation (elastic foundation) file ligament_lps_m.csv 2840 0.00075 total 56.3 N/mm, "
+    # one row per support: name, kind, selector (file basename or the sphere as given), facets held on the input
+    # surface and on the mesh (the VTU's support array; a features JSON written before has none: –), stiffness
+    assert "cava fixed (clamped) file cava_lps_m.csv 164 31 0.000627 –" in block
+    assert ("diaphragm foundation (elastic foundation) file ligament_lps_m.csv 2840 – 0.00075 total 56.3 N/mm, "
             "kt/kn 1; on this mesh kn 0.0093, kt 0.0093 N/mm³ (ligament slot)") in block
     assert 'floor foundation (elastic foundation) sphere {"center_mm": [0.0, 0.01, -0.1], "radius_mm": 30.0}' \
         in block.replace("&quot;", '"')

@@ -50,7 +50,8 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
     (``geometry.imported[].supports`` / ``.exertion_points``, carried in the
     surface JSON's ``spec``; see :mod:`liverforce.mesh.supports`). Supports are
     applied to the input surface before meshing; the features JSON lists them
-    under ``supports`` (facets, snapping distances) and their foundation
+    under ``supports`` (facets on the input surface, ``index`` in the VTU's ``support``
+    array and ``n_mesh_facets`` there, snapping distances) and their foundation
     stiffness under ``support_boundary`` (N/mm³, ``BoundaryParams`` fields).
     Given exertion points replace the sampled candidates (``exertion_given``:
     true, snapping distances in ``exertion_snap_mm``); one off the visible area

@@ -104,6 +104,7 @@ def _supports_block(spec_supports, features: dict) -> str:
         rows.append(f"<tr><td>{html.escape(str(name))}</td><td>{html.escape(str(s.get('kind', '?')))} "
                     f"<small>({html.escape(KIND_TEXT.get(s.get('kind'), ''))})</small></td><td>{_selector(s)}</td>"
                     f"<td>{h['n_facets'] if 'n_facets' in h else '–'}</td>"
+                    f"<td>{h['n_mesh_facets'] if 'n_mesh_facets' in h else '–'}</td>"
                     f"<td>{'–' if snap is None else f'{float(snap):.3g}'}</td><td>{_stiffness(s, own)}</td></tr>")
     how = ("replace: they replace the built-in regions (vena cava patch, ligament, visceral face, rib contact)"
            if mode == "replace" else "add: they lie over the built-in regions, which hold the rest of the surface")
@@ -112,7 +113,8 @@ def _supports_block(spec_supports, features: dict) -> str:
             + (f"; built-in regions left empty: {html.escape(', '.join(map(str, empty)))}" if empty else "")
             + ". Its foundations use their own stiffness, not <code>boundary</code>'s.</p>"
             "<table class='supports'><thead><tr><th>support</th><th>kind</th><th>selector (file frame)</th>"
-            "<th>facets held (input surface)</th><th>max snap (mm)</th><th>stiffness</th></tr></thead><tbody>"
+            "<th>facets held (input surface)</th><th>mesh facets (VTU <code>support</code>)</th>"
+            "<th>max snap (mm)</th><th>stiffness</th></tr></thead><tbody>"
             + "".join(rows) + "</tbody></table>")
 
 
