@@ -82,6 +82,7 @@ def _dry_run(work: Path, target: list[str], overrides: list[str]) -> subprocess.
                           env={**os.environ, "OMP_NUM_THREADS": "1"})
 
 
+@pytest.mark.slow  # one of the default set's slowest (CI's --durations): run with -m slow
 def test_snakemake_refuses_one_liver_before_any_job_and_runs_the_named_target(tmp_path):
     (tmp_path / "liver.stl").write_text("")  # an input of the geometry rule: it must exist, even for -n
     lab = LAB.replace("/lab/liver_lps_m.stl", str(tmp_path / "liver.stl"))

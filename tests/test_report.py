@@ -10,6 +10,7 @@ import pytest
 from test_workflow import job_counts, snakemake
 
 
+@pytest.mark.slow  # one of the default set's slowest (CI's --durations): run with -m slow
 @pytest.mark.parametrize("experiment", ["smoke", "default"])
 def test_study_rules_are_in_the_dry_run_dag_and_feed_the_report(experiment, tmp_path):
     from liverforce.config import compose

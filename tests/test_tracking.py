@@ -126,6 +126,7 @@ def _log_many(uri: str, name: str, barrier, n_runs: int, queue) -> None:
         queue.put((name, f"{type(exc).__name__}: {exc}"))
 
 
+@pytest.mark.slow  # one of the default set's slowest (CI's --durations): run with -m slow
 def test_two_processes_log_to_a_fresh_sqlite_store_at_once(tmp_path):
     uri = f"sqlite:///{tmp_path / 'shared.db'}"
     ctx = mp.get_context("spawn")

@@ -36,6 +36,7 @@ def test_lint_is_clean():
     assert "Lints for" not in out
 
 
+@pytest.mark.slow  # one of the default set's slowest (CI's --durations): run with -m slow
 @pytest.mark.parametrize("experiment", ["smoke", "default", "thesis"])
 def test_dry_run_lists_the_whole_dag(experiment, tmp_path):
     out = snakemake("-n", "--directory", str(tmp_path), "--config", f"experiment={experiment}").stdout
@@ -52,6 +53,7 @@ def test_dry_run_lists_the_whole_dag(experiment, tmp_path):
     assert counts["train"] == len(plan.train_scenarios()) * len(plan.variants())
 
 
+@pytest.mark.slow  # one of the default set's slowest (CI's --durations): run with -m slow
 def test_a_run_without_scenario_iv_gets_its_models_and_a_named_refusal_for_the_report(tmp_path):
     """A lab's one-liver run (README: train.scenarios=[II] ~sweep.scenarios.IV): the models target plans its
     training; the default target (the report, which needs the unseen-liver validation of a scenario-IV model) is
@@ -66,6 +68,7 @@ def test_a_run_without_scenario_iv_gets_its_models_and_a_named_refusal_for_the_r
     assert "snakemake --cores 2 models" in out
 
 
+@pytest.mark.slow  # one of the default set's slowest (CI's --durations): run with -m slow
 def test_overrides_reach_the_jobs(tmp_path):
     from liverforce.config import compose
 

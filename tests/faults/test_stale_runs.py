@@ -14,6 +14,8 @@ import sys
 import textwrap
 import time
 
+import pytest
+
 from liverforce.tracking import HOST_TAG, PID_TAG, Tracker
 
 CHILD = textwrap.dedent("""
@@ -35,6 +37,7 @@ def _start(uri: str, name: str) -> tuple[subprocess.Popen, str]:
     return proc, line
 
 
+@pytest.mark.slow  # one of the default set's slowest (CI's --durations): run with -m slow
 def test_runs_of_killed_processes_are_closed_live_ones_are_not(tmp_path, fault_ledger):
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     victim, victim_run = _start(uri, "victim")

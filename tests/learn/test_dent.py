@@ -161,6 +161,7 @@ def _compiled_row(cloud, ref, sp, kin):
 
 @pytest.mark.parametrize("centre,noise,tilt", [((0.0, 0.0), 0.5, 0.0), ((-12.0, 5.0), 0.5, 0.0),
                                                ((0.0, 0.0), 1.5, 0.0), ((0.0, 0.0), 0.5, 30.0)])
+@pytest.mark.slow  # one of the default set's slowest (CI's --durations): run with -m slow
 def test_the_compiled_kernel_fits_the_dent_as_the_reference(centre, noise, tilt):
     """The numba pass's dent fit (over the sorted, distinct points, the instrument's moved off the grid) against
     cloud_grid's, on camera clouds of the punch with the tool in view, shuffled, a kinematic tip up to 1.5 mm off:
@@ -202,6 +203,7 @@ def served(tmp_path_factory):
     return train_camera_model(tmp_path_factory.mktemp("dent"), DENT_CAMERA)
 
 
+@pytest.mark.slow  # one of the default set's slowest (CI's --durations): run with -m slow
 def test_a_model_with_the_dent_reads_it_as_a_force_and_serves_it_on_both_paths(served):
     """The bundle keeps the dent columns; the regressor reads k amplitude / C_nn and the offset after f_lin and
     the strain; the compiled path gives the reference's features, forces, intervals and warnings."""

@@ -38,6 +38,7 @@ def test_the_quantile_is_the_conformal_rank():
     assert ConformalInterval.from_dict(few.to_dict()).half_width_n == (math.inf,) * 3
 
 
+@pytest.mark.slow  # one of the default set's slowest (CI's --durations): run with -m slow
 def test_coverage_on_fresh_cases_is_the_nominal_one(tmp_path):
     """Trained and calibrated on 400 cases, the 90 % interval covers 90 % of 600 fresh exchangeable cases per
     local component, within 2.5 sd of the two sources of spread: the calibration quantile's own (coverage given
@@ -320,6 +321,7 @@ def test_the_stiffness_exponent_ignores_a_growth_the_widths_already_follow_and_s
     assert abs(g[0] - 0.5) < 0.15 and abs(g[1]) < 0.15 and g[2] == 1.0, g
 
 
+@pytest.mark.slow  # one of the default set's slowest (CI's --durations): run with -m slow
 def test_calibrate_folds_recalibrates_the_same_split_model_as_a_run_with_that_fold_count(tmp_path):
     """train_scenario(calibrate_folds=(2,)) with the config's 4 folds writes the 2-fold calibration of the same
     split model: identical to the calibration of a run configured with 2 folds (the model is fitted once, the
@@ -351,6 +353,7 @@ def test_calibrate_folds_recalibrates_the_same_split_model_as_a_run_with_that_fo
                        calibrate_folds=(2,))
 
 
+@pytest.mark.slow  # one of the default set's slowest (CI's --durations): run with -m slow
 def test_cross_conformal_calibrates_on_every_training_case_and_covers_fresh_cases(tmp_path):
     """folds: 4 -> every training case is predicted once by a model that did not see it; the 90 % interval
     covers 85-95 % of 600 fresh exchangeable cases per component."""

@@ -42,6 +42,7 @@ def fitted(data, tmp_path_factory):
     return get
 
 
+@pytest.mark.slow  # one of the default set's slowest (CI's --durations): run with -m slow
 @pytest.mark.parametrize("encoder", ["pca", "ae", "dae"])
 def test_linear_force_map_is_learned_to_one_percent(fitted, encoder):
     res = fitted(encoder)

@@ -29,6 +29,7 @@ def _anterior_top(V):
     return V[np.argmax(V[:, 1] + V[:, 2])].round(1).tolist()  # anterior-superior: where a clamp is no IVC
 
 
+@pytest.mark.slow  # one of the default set's slowest (CI's --durations): run with -m slow
 @pytest.mark.parametrize("mode", ["strict", "warn"])
 def test_an_added_anterior_clamp_is_not_taken_for_a_misplaced_ivc(tmp_path, ras_file, liver_surface, mode, caplog):
     """Before: strict refused this right RAS liver ('ivc_posterior = 42.6 mm ... probably LPS, state frame: LPS'),
@@ -82,6 +83,7 @@ def test_a_built_in_region_wholly_covered_by_another_kind_is_refused(liver_surfa
     assert "ivc" not in report[0].get("took_built_in", {})
 
 
+@pytest.mark.slow  # one of the default set's slowest (CI's --durations): run with -m slow
 @pytest.mark.parametrize("mode", ["warn", "strict"])
 def test_the_mesh_stage_tags_the_regions_once_with_the_same_results(tmp_path, ras_file, liver_surface, mode,
                                                                      monkeypatch):

@@ -136,6 +136,7 @@ def test_an_anterior_visible_point_gives_no_warning(tmp_path, liver_surface, poi
     assert json.loads((out / "imp-lab.features.json").read_text())["exertion_not_visible"] == []
 
 
+@pytest.mark.slow  # one of the default set's slowest (CI's --durations): run with -m slow
 def test_a_ras_tool_file_read_as_lps_is_caught_at_the_mesh_stage(tmp_path, liver_surface, points, caplog):
     """The lab's liver is in LPS (declared), its tool file in RAS without saying so: read in the liver's frame, the
     intended anterior point is mirrored in x and y onto the posterior-left surface, within the snap limit."""
@@ -295,6 +296,7 @@ def test_oblique_points_are_not_refused_under_strict(liver_surface, oblique, cap
     assert len([m for m in caplog.records if "oblique part of the surface" in m.getMessage()]) == 3
 
 
+@pytest.mark.slow  # one of the default set's slowest (CI's --durations): run with -m slow
 def test_oblique_points_pass_a_strict_mesh_stage_a_posterior_one_does_not(tmp_path, liver_surface, points, oblique):
     rows = [points["anterior"], *oblique.values()]
     tools = _tools(tmp_path, rows)

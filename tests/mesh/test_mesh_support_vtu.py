@@ -123,6 +123,7 @@ def lab_files(tmp_path_factory, liver_surface, liver_mesh):
     return {"remesh": d / "liver.ply", "as_given": d / "liver.vtu"}
 
 
+@pytest.mark.slow  # one of the default set's slowest (CI's --durations): run with -m slow
 @pytest.mark.parametrize("kind", ["remesh", "as_given"])
 def test_the_mesh_stage_writes_which_support_holds_each_facet_as_its_features_json_reports(tmp_path, lab_files,
                                                                                           lab_supports, kind):

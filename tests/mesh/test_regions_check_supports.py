@@ -95,6 +95,7 @@ def test_mesh_stage_refuses_an_lps_file_stated_ras_with_replace_supports(tmp_pat
     assert not (out / "imp-lab.vtu").exists() and not (out / "imp-lab.features.json").exists()
 
 
+@pytest.mark.slow  # one of the default set's slowest (CI's --durations): run with -m slow
 def test_mesh_stage_checks_the_stated_lps_and_records_what_it_skipped(tmp_path, lps_file, liver_surface):
     out, run = _stage(tmp_path, lps_file, liver_surface, "LPS", "strict")
     feats = run()

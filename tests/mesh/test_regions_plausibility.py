@@ -120,6 +120,7 @@ def _mesh_cfg(mode):
     return {**cfg, "target_nodes": 200, "refine_radius_mm": 0.0, "refine_ivc_edge_mm": 0.0, "regions_check": mode}
 
 
+@pytest.mark.slow  # one of the default set's slowest (CI's --durations): run with -m slow
 def test_mesh_stage_warns_and_records_then_strict_refuses(tmp_path, lps_file):
     from liverforce.pipeline.mesh import make_mesh
 

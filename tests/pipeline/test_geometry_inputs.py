@@ -144,6 +144,7 @@ def built(tmp_path_factory):
     return {"tmp": tmp, "work": work, "imported": imported}
 
 
+@pytest.mark.slow  # one of the default set's slowest (CI's --durations): run with -m slow
 def test_editing_the_liver_file_reruns_its_geometry_and_everything_after(built):
     work, imported = built["work"], built["imported"]
     assert _scheduled(_snakemake(work, imported, "-n", MESH)) == set()  # geometry and mesh complete

@@ -177,6 +177,7 @@ def _post(url: str, doc: dict, timeout: float = 30.0) -> tuple[int, dict]:
         return e.code, json.loads(e.read() or b"{}")
 
 
+@pytest.mark.slow  # one of the default set's slowest (CI's --durations): run with -m slow
 def test_mlflow_models_serve_answers_over_http(logged, data, tmp_path):
     port = _free_port()
     # `mlflow models serve` runs `uvicorn` through the shell: the venv's bin must be on PATH
