@@ -177,14 +177,14 @@ def _sag_max(mesh, boundary: dict, sim: dict, case: dict, supports: dict | None 
 
 
 def physics_study(cases_path, mesh_path, model_dirs, model_metrics, sim: dict, boundary: dict, dataset: dict,
-                  material: dict, spec: dict, out_path, shard_dir, features_path=None) -> dict:
+                  material: dict, spec: dict, out_path, shard_dir) -> dict:
     """Simulate one unseen liver's first cases under each :func:`physics_variants` choice and score every model.
 
     ``model_dirs`` / ``model_metrics``: the scenario-IV models (all variants). Writes one shard per choice
     under ``shard_dir`` and the study as JSON to ``out_path``; returns it.
 
-    ``features_path``: the liver's features JSON (the mesh stage's); None: the one beside the mesh
-    (``features_of_mesh``), if any, as the simulate stage reads it. A lab's liver with its own supports (its
+    The liver's features JSON is the one beside its mesh (``features_of_mesh``), as the simulate stage reads
+    it. A lab's liver with its own supports (its
     ``supports`` and ``support_boundary``) keeps them in every choice (:func:`physics_variants`), so the
     baseline is the validation's simulation of these cases; the JSON records them under ``own_supports``
     (None for the configured supports) and the choices that would change nothing on this liver under
@@ -208,7 +208,7 @@ def physics_study(cases_path, mesh_path, model_dirs, model_metrics, sim: dict, b
     if not cases:
         raise ValueError(f"{cases_path}: no case on the liver {gid}")
     mesh = read_mesh(mesh_path)
-    feats = _features(mesh_path, features_path)
+    feats = _features(mesh_path)
     own, lab = feats.get("support_boundary") or {}, feats.get("supports") or []
     variants = physics_variants(boundary, sim, spec, own, lab,
                                 region_areas(mesh.points, mesh.facets, mesh.facet_region))
@@ -285,16 +285,10 @@ def physics_study(cases_path, mesh_path, model_dirs, model_metrics, sim: dict, b
     return out
 
 
-def _features(mesh_path, features_path=None) -> dict:
-    """The liver's features JSON (``features_path``, else the one beside the mesh if any, as ``simulate_shard``
-    reads it); {} when there is none beside the mesh."""
-    p = Path(features_path) if features_path is not None else features_of_mesh(mesh_path)
-    if not p.exists():
-        if features_path is not None:
-            raise FileNotFoundError(f"{p}: the features JSON of the liver {gid_of(mesh_path)} is missing (the mesh "
-                                    "stage writes it beside the mesh): re-run the mesh stage for it")
-        return {}
-    return json.loads(p.read_text())
+def _features(mesh_path) -> dict:
+    """The liver's features JSON beside its mesh, as ``simulate_shard`` reads it; {} when there is none."""
+    p = features_of_mesh(mesh_path)
+    return json.loads(p.read_text()) if p.exists() else {}
 
 
 def _comparison(entry: dict, ref: str) -> str:
