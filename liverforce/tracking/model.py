@@ -9,7 +9,8 @@ a refused row gets NaN forces and its reason in the ``refused`` column while the
 other rows are predicted, as ``liverforce predict --shards`` does (param
 ``on_refused="row"``, what a model logged since the param exists is served with
 unless the request says otherwise; ``"request"``, and for older models: the first
-refused row refuses the whole request, HTTP 400).
+refused row refuses the whole request, HTTP 400). Served over HTTP, those NaN
+are ``null`` (:func:`_json_numbers`), so the answer is strict JSON.
 
 For serving, :func:`download_force_model` fetches the bundle of a logged model
 (run id, ``runs:/``/``models:/`` URI or registered name) for
@@ -25,6 +26,7 @@ tracking and receives the MLflow download as a ``fetch`` callable.
 from __future__ import annotations
 
 import json
+import os
 import re
 import tempfile
 from importlib.metadata import PackageNotFoundError, version
@@ -151,8 +153,7 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
     cloud too sparse or off the grid, a tip beyond it, an exertion point off the surface, units off the training
     scale, too few ROI nodes beyond the tool for a model that leaves out those it hides, a flattened point set not
     ``3 k`` long, a failed registration) as ``liverforce predict --shards`` does: such a row's forces and interval
-    columns are NaN (over HTTP the bare token ``NaN``, as MLflow's scoring server writes it: Python's ``json``
-    reads it, a strict JSON parser does not) and its reason is in ``refused``, and the other rows are predicted
+    columns are NaN (over HTTP ``null``: see below) and its reason is in ``refused``, and the other rows are predicted
     as in a request of them alone (a stochastic observation model draws each row by its ``case_id``, without one
     by its place in the request, so the same whatever rows are refused). A row every check passes but the model
     cannot take (its ``ValueError``) is refused so too, with the model's reason. A request whose every row is
@@ -171,6 +172,12 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
     A camera-cloud model also takes the optional columns ``unloaded_cloud_mm`` (per row the camera's cloud
     before the tool pushed, flattened; empty: none) and ``contact_tip_mm`` (the tool tip at contact): the
     row's registration is refined from them first (:meth:`~liverforce.serve.Predictor.refine_arrays`).
+
+    Served by MLflow (``mlflow models serve``, ``mlflow models predict``: :func:`_in_mlflow_serving`) the number
+    columns hold None where the frame above has NaN or inf (a refused row's, an unbounded interval's half-width),
+    so the JSON answer has ``null`` there: MLflow's scoring server writes a float NaN as the bare token ``NaN``,
+    which a strict JSON parser (JavaScript's ``JSON.parse``, Go's ``encoding/json``) refuses. A Python caller
+    (``mlflow.pyfunc.load_model(...).predict``) gets the float columns with NaN, as the output schema says.
 
     Param ``observation_seed`` (int, -1 = none) draws the stochastic observation model as in evaluation.
     Params ``input_frame`` and ``units`` (:func:`pyfunc_input_frame`; default ``""``: RAS, and mm unless the
@@ -219,7 +226,34 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
         out = _output_frame(self.model, arrays, force, None if seed < 0 else seed, predictor, warnings, refused)
         if not frame.same_axes:  # the force back in the inputs' frame; the local columns have no global axes
             out[list(OUTPUT_COLUMNS)] = frame.vectors_out(out[list(OUTPUT_COLUMNS)].to_numpy(dtype=np.float64))
-        return out
+        return _json_numbers(out) if _in_mlflow_serving() else out
+
+
+#: the variable MLflow sets to ``"true"`` where its scoring server answers (``scoring_server.init``, which
+#: ``mlflow models serve`` runs in each worker), and while ``mlflow models predict`` and the check of a logged
+#: model's serving input example run (MLflow 3.x). MLflow's own name, internal to it: read here as text, not
+#: imported, so that a release without it leaves the answer as a Python caller gets it (NaN), not an ImportError
+MLFLOW_SERVING_ENV = "_MLFLOW_IS_IN_SERVING_ENVIRONMENT"
+
+
+def _in_mlflow_serving() -> bool:
+    """Whether the pyfunc's answer goes to MLflow's scoring server, which writes it as JSON with
+    ``json.dump(..., cls=NumpyEncoder)``: a float NaN or inf as the bare tokens ``NaN``/``Infinity``."""
+    return os.environ.get(MLFLOW_SERVING_ENV, "").strip().lower() in ("true", "1")
+
+
+def _json_numbers(out: pd.DataFrame) -> pd.DataFrame:
+    """``out`` with each float column that has a NaN or inf (a refused row's forces and interval, an unbounded
+    interval's half-width) as an object column of floats and None there: MLflow's scoring server writes None as
+    ``null``, where it writes a float NaN as the token ``NaN`` that strict JSON parsers refuse."""
+    out = out.copy()
+    for c in out.columns:
+        if pd.api.types.is_float_dtype(out[c]):
+            v = out[c].to_numpy(dtype=np.float64)
+            finite = np.isfinite(v)
+            if not finite.all():
+                out[c] = pd.Series(np.where(finite, v.astype(object), None), index=out.index, dtype=object)
+    return out
 
 
 def pyfunc_on_refused(on_refused: str | None) -> bool:

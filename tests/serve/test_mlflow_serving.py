@@ -162,6 +162,140 @@ def test_a_model_logged_before_on_refused_still_refuses_the_whole_request(logged
         predict_pyfunc(pf, mixed)
 
 
+def _strict_json(body: bytes):
+    """``body`` read as strict JSON: a bare ``NaN``/``Infinity`` token refused, as JavaScript's ``JSON.parse``
+    refuses it."""
+    def refuse(token):
+        raise ValueError(f"{token} is not JSON")
+
+    return json.loads(body, parse_constant=refuse)
+
+
+def _asgi_post(app, doc: dict) -> tuple[int, bytes]:
+    """POST ``doc`` to ``/invocations`` of MLflow's scoring-server app (ASGI), in this process: the server's
+    route, parsing, prediction and JSON writing, without a port (no HTTP client library needed)."""
+    import asyncio
+
+    body = json.dumps(doc).encode()
+    scope = {"type": "http", "asgi": {"version": "3.0"}, "http_version": "1.1", "method": "POST", "scheme": "http",
+             "path": "/invocations", "raw_path": b"/invocations", "query_string": b"", "root_path": "",
+             "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())],
+             "client": ("127.0.0.1", 1), "server": ("127.0.0.1", 80)}
+    sent: list[dict] = []
+
+    async def run():
+        done = asyncio.Event()
+        given = []
+
+        async def receive():
+            if not given:
+                given.append(True)
+                return {"type": "http.request", "body": body, "more_body": False}
+            await done.wait()  # the client stays until the answer is sent
+            return {"type": "http.disconnect"}
+
+        async def send(message):
+            sent.append(message)
+            if message["type"] == "http.response.body" and not message.get("more_body", False):
+                done.set()
+
+        await app(scope, receive, send)
+
+    asyncio.run(run())
+    status = next(m["status"] for m in sent if m["type"] == "http.response.start")
+    return status, b"".join(m.get("body", b"") for m in sent if m["type"] == "http.response.body")
+
+
+@pytest.fixture()
+def served(logged, tmp_path, monkeypatch):
+    """The logged model loaded as ``mlflow models serve`` loads it, and MLflow's scoring-server app for it
+    (``scoring_server.init``, which marks this process as serving: undone after the test)."""
+    import mlflow
+    from mlflow.pyfunc import scoring_server
+
+    from liverforce.tracking.model import MLFLOW_SERVING_ENV
+
+    monkeypatch.setenv(MLFLOW_SERVING_ENV, "false")  # unset before: unset again after the test (init sets it)
+    model_dir = download_force_model(logged["run_id"], tmp_path, tracking_uri=logged["uri"]).parent.parent
+    pf = mlflow.pyfunc.load_model(str(model_dir))
+    return pf, scoring_server.init(pf)
+
+
+NUMBER_COLUMNS = ("fx_n", "fy_n", "fz_n", "ft1_n", "ft2_n", "fn_n", "ft1_half_n", "ft2_half_n", "fn_half_n")
+
+
+def _bad_rows(data, pred):
+    """Four new cases as a request, rows 1 (material in Pa) and 3 (the ROI moved far off) refused."""
+    from liverforce.tracking import arrays_to_frame
+
+    cases = subset(data, np.arange(60, 64))
+    mixed = {k: (np.array(v, copy=True) if isinstance(v, np.ndarray) else list(v)) for k, v in cases.items()}
+    mixed["material_params_mpa"][1] = mixed["material_params_mpa"][1] * 1e6
+    mixed["roi_deformed_mm"][3] = 0.1 * np.asarray(mixed["roi_deformed_mm"][3], dtype=np.float64)
+    return arrays_to_frame(mixed, ["case_id", *pred.model.required_inputs()])
+
+
+def test_a_served_refused_row_is_null_in_strict_json_and_nan_for_python(served, logged, data, monkeypatch):
+    """Over HTTP (MLflow's scoring server, in this process) a refused row's forces and interval are ``null``,
+    so the answer is strict JSON, with its reason in ``refused``; the good rows are the numbers of a request of
+    them alone. A Python caller (``mlflow.pyfunc.load_model(...).predict``) still gets float columns with NaN
+    there. Before, the server wrote the bare token ``NaN``, which strict JSON parsers refuse."""
+    from liverforce.tracking.model import MLFLOW_SERVING_ENV
+
+    pf, app = served
+    pred = Predictor.from_dir(logged["model_path"])
+    frame = _bad_rows(data, pred)
+    monkeypatch.setenv(MLFLOW_SERVING_ENV, "false")  # init marked the process as serving: a Python caller here
+    out = pf.predict(frame)
+    assert all(out[c].dtype == np.float64 for c in NUMBER_COLUMNS)
+    assert out.loc[[1, 3], list(NUMBER_COLUMNS)].isna().all().all()
+    assert np.isfinite(out.loc[[0, 2], list(NUMBER_COLUMNS)].to_numpy()).all()
+    assert out["refused"][1].startswith("case S-000061: material_params_mpa[0]")
+    assert out["refused"][3].startswith("case S-000063: the ROI moved by up to")
+    monkeypatch.setenv(MLFLOW_SERVING_ENV, "true")  # as init set it: the server's process
+
+    status, body = _asgi_post(app, {"dataframe_split": frame.to_dict(orient="split")})
+    assert status == 200, body
+    rows = _strict_json(body)["predictions"]
+    assert [r["refused"] for r in rows] == list(out["refused"])
+    for i in (1, 3):
+        assert all(rows[i][c] is None for c in NUMBER_COLUMNS), rows[i]
+        assert rows[i]["warnings"] == ""
+    status, alone = _asgi_post(app, {"dataframe_split": frame.iloc[[0, 2]].reset_index(drop=True)
+                                     .to_dict(orient="split")})
+    assert status == 200, alone
+    assert [rows[0], rows[2]] == _strict_json(alone)["predictions"]
+    for i in (0, 2):  # the numbers a Python caller gets
+        assert [rows[i][c] for c in NUMBER_COLUMNS] == list(out.loc[i, list(NUMBER_COLUMNS)])
+    # with "request" the first refused row still refuses the whole request (HTTP 400, its reason)
+    status, refused = _asgi_post(app, {"dataframe_split": frame.to_dict(orient="split"),
+                                       "params": {"on_refused": "request"}})
+    assert status == 400 and out["refused"][1] in _strict_json(refused)["message"]
+
+
+def test_an_unbounded_half_width_is_served_as_null(served, logged, data, monkeypatch):
+    """An interval too few calibration cases left unbounded (an infinite half-width) is ``null`` over HTTP
+    too, not the token ``Infinity``; its force and the other numbers as given; a Python caller gets inf."""
+    from liverforce.tracking.model import MLFLOW_SERVING_ENV
+
+    pf, app = served
+    meta = pf.unwrap_python_model().model.meta
+    half = meta["interval"]["half_width_n"]  # the normal's as model.json writes an unbounded one: null
+    monkeypatch.setitem(meta, "interval", {**meta["interval"], "half_width_n": [*half[:2], None]})
+    pred = Predictor.from_dir(logged["model_path"])
+    frame = _bad_rows(data, pred).iloc[[0, 2]].reset_index(drop=True)
+    monkeypatch.setenv(MLFLOW_SERVING_ENV, "false")
+    out = pf.predict(frame)
+    assert np.isinf(out["fn_half_n"]).all() and np.isfinite(out[list(NUMBER_COLUMNS[:-1])].to_numpy()).all()
+    monkeypatch.setenv(MLFLOW_SERVING_ENV, "true")
+    status, body = _asgi_post(app, {"dataframe_split": frame.to_dict(orient="split")})
+    assert status == 200, body
+    rows = _strict_json(body)["predictions"]
+    assert [r["fn_half_n"] for r in rows] == [None, None]
+    for i, r in enumerate(rows):
+        assert [r[c] for c in NUMBER_COLUMNS[:-1]] == list(out.loc[i, list(NUMBER_COLUMNS[:-1])])
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -172,9 +306,9 @@ def _post(url: str, doc: dict, timeout: float = 30.0) -> tuple[int, dict]:
     req = urllib.request.Request(url, data=json.dumps(doc).encode(), headers={"Content-Type": "application/json"})
     try:
         with urllib.request.urlopen(req, timeout=timeout) as r:
-            return r.status, json.loads(r.read())
+            return r.status, _strict_json(r.read())
     except urllib.error.HTTPError as e:
-        return e.code, json.loads(e.read() or b"{}")
+        return e.code, _strict_json(e.read() or b"{}")
 
 
 @pytest.mark.slow  # one of the default set's slowest (CI's --durations): run with -m slow
@@ -240,7 +374,7 @@ def test_mlflow_models_serve_answers_over_http(logged, data, tmp_path):
         local = [[p[c] for c in ("ft1_n", "ft2_n", "fn_n", "ft1_half_n")] for p in body_lps["predictions"]]
         np.testing.assert_allclose(local, [[p[c] for c in ("ft1_n", "ft2_n", "fn_n", "ft1_half_n")]
                                            for p in body["predictions"]], atol=1e-6)
-        # bad input: a clear refusal, not a force. One bad row among good ones: that row NaN (JSON's NaN) with its
+        # bad input: a clear refusal, not a force. One bad row among good ones: that row null (strict JSON) with its
         # reason, the others predicted; with on_refused "request" the whole request refused (HTTP 400)
         want = pred.predict_arrays(cases)
         cases["roi_deformed_mm"] = [d * (0.1 if i == 1 else 1.0) for i, d in enumerate(cases["roi_deformed_mm"])]
@@ -250,7 +384,7 @@ def test_mlflow_models_serve_answers_over_http(logged, data, tmp_path):
         rows = body["predictions"]
         assert rows[1]["refused"].startswith("row 1: ") and "moved by up to" in rows[1]["refused"], rows[1]
         assert [rows[0]["refused"], rows[2]["refused"]] == ["", ""]
-        assert all(rows[1][c] is None or np.isnan(rows[1][c]) for c in rows[1] if c not in ("refused", "warnings"))
+        assert all(rows[1][c] is None for c in rows[1] if c not in ("refused", "warnings"))
         got = np.array([[p["fx_n"], p["fy_n"], p["fz_n"]] for p in rows])
         np.testing.assert_allclose(got[[0, 2]], want[[0, 2]], atol=1e-9)
         status, body = _post(f"{base}/invocations", {"dataframe_split": frame.to_dict(orient="split"),
