@@ -86,14 +86,15 @@ def read_mesh(path: str | Path) -> LiverMesh:
     ------
     MeshFileError
         If the file is unreadable (meshio's ``SystemExit`` included) or lacks
-        the tetra/triangle blocks or the region/visible arrays, or if its
-        ``support`` array is malformed (:func:`_facet_support`).
+        the tetra/triangle blocks or the region/visible arrays, if a cell-data
+        array does not hold one value per cell (:func:`_check_cell_data_lengths`),
+        or if its ``support`` array is malformed (:func:`_facet_support`).
     """
-    import meshio
-
     path = Path(path)
     try:
-        m = meshio.read(path, file_format="vtu")
+        m = _read_vtu(path)
+    except MeshFileError:
+        raise
     except SystemExit as exc:
         raise MeshFileError(f"{path}: meshio could not read the file (sys.exit({exc.code})). "
                             "Re-create it with liverforce.mesh.io.write_mesh") from None
@@ -125,13 +126,70 @@ def read_mesh(path: str | Path) -> LiverMesh:
     )
 
 
+#: what to do about a malformed ``support`` array in a file read
+_SUPPORT_REDO = ("Re-run the mesh stage (e.g. snakemake --forcerun mesh) to write it again, or delete the "
+                 "'support' array to read the mesh without the lab's supports")
+
+
+def _read_vtu(path: Path):
+    """The VTU as ``meshio.read(path, file_format="vtu")`` reads it, its cell-data arrays' lengths in the file
+    checked first (:func:`_check_cell_data_lengths`)."""
+    import meshio
+    from meshio.vtu._vtu import VtuReader
+
+    reader = VtuReader(path)
+    _check_cell_data_lengths(path, reader)
+    return meshio.Mesh(reader.points, reader.cells, point_data=reader.point_data, cell_data=reader.cell_data,
+                       field_data=reader.field_data)
+
+
+def _check_cell_data_lengths(path: Path, reader) -> None:
+    """Refuse a cell-data array of the VTU that does not hold one value per cell (the tets', then the facets'),
+    naming the file, the array and both counts.
+
+    meshio's VTU reader (5.3.5) hands each cell block its slice of an array: one longer than the cells loses its
+    values beyond the last cell without a word, so a ``support`` array edited by hand (a value inserted in
+    ParaView) or by a broken writer would read as supports that look right and are not; a shorter one fails with
+    words that name no array. The lengths are the file's own, decoded as meshio decodes them (``reader``: its
+    ``VtuReader`` of ``path``; ASCII, inline or appended binary, compressed or not).
+    """
+    from xml.etree import ElementTree as ET
+
+    from meshio.vtu._vtu import _parse_raw_binary
+
+    try:
+        root = ET.parse(str(path)).getroot()
+    except ET.ParseError:  # raw binary appended data, as meshio's reader takes it
+        root = _parse_raw_binary(str(path))
+    blocks = ", ".join(f"{len(b)} {b.type}" for b in reader.cells)
+    for piece in root.iter("Piece"):
+        cells = int(piece.attrib["NumberOfCells"])
+        for array in piece.iterfind("CellData/DataArray"):
+            name = array.attrib.get("Name", "")
+            n = len(reader.read_data(array))
+            if n == cells:
+                continue
+            if name == "support":
+                redo = _SUPPORT_REDO
+            elif name in ("region", "visible"):
+                redo = ("Re-run the mesh stage (e.g. snakemake --forcerun mesh) to write it again, or re-create it "
+                        "with liverforce.mesh.io.write_mesh")
+            else:
+                redo = (f"liverforce does not read '{name}': delete that array, or give it one value per cell; or "
+                        "re-run the mesh stage (e.g. snakemake --forcerun mesh) to write the file again")
+            beyond = (f" (meshio would keep the first {cells} without a word: the wrong ones if a value was "
+                      "inserted)" if n > cells else "")
+            raise MeshFileError(f"{path}: cell data '{name}' holds {n} values, but the file has {cells} cells "
+                                f"({blocks}) and takes one value per cell, the tets' then the facets'{beyond}. "
+                                f"Was it edited (e.g. in ParaView)? {redo}")
+
+
 def _facet_support(path: Path, raw, region: np.ndarray, redo: str | None = None) -> np.ndarray:
     """The ``support`` array on the facets, checked: one integer per facet, -1 or a support index, no index on a
     free facet (region 0), one region code per support (a lab support sets one code on all it holds). ``redo``:
     what to do, in the error (default: a file's reader's)."""
     a = np.asarray(raw)
-    redo = redo or ("Re-run the mesh stage (e.g. snakemake --forcerun mesh) to write it again, or delete the "
-                    "'support' array to read the mesh without the lab's supports")
+    redo = redo or _SUPPORT_REDO
     if a.ndim != 1 or len(a) != len(region):
         raise MeshFileError(f"{path}: cell data 'support' has shape {a.shape} on the triangles, expected one value "
                             f"per facet ({len(region)},). {redo}")
