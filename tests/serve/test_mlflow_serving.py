@@ -136,8 +136,8 @@ def test_pyfunc_predicts_like_the_predictor_and_refuses_bad_rows(logged, data, t
 def test_a_model_logged_before_on_refused_still_refuses_the_whole_request(logged, data, tmp_path):
     """A model whose signature has no ``on_refused`` (logged before it existed): MLflow drops the param from a
     request and fills in no default, so the pyfunc is not given the key and refuses a request with a bad row as the
-    model did when logged (PyfuncInputError: HTTP 400), not a 200 with NaN tokens that strict JSON parsers
-    reject; predict_pyfunc likewise. Its good requests are answered as before."""
+    model did when logged (PyfuncInputError: HTTP 400), not a 200 with rows its clients never had to read;
+    predict_pyfunc likewise. Its good requests are answered as before."""
     import mlflow
 
     from liverforce.tracking import PyfuncInputError, arrays_to_frame

@@ -251,8 +251,8 @@ def test_without_case_id_a_row_draws_the_same_whatever_rows_before_it_are_refuse
 def test_without_the_param_the_pyfunc_refuses_the_whole_request_as_an_older_model_did(request_rows):
     """The key ``on_refused`` absent: MLflow fills in the signature's default ``"row"`` for a model logged with
     the param, so only a model logged before it (MLflow drops the param) gets here; such a model refused the
-    whole request (HTTP 400) and still does, rather than answer a 200 with bare NaN tokens. A blank value is the
-    signature's default, ``"row"``."""
+    whole request (HTTP 400) and still does, rather than answer a 200 with refused rows its clients never had to
+    read. A blank value is the signature's default, ``"row"``."""
     pred, _, df = request_rows
     pf = ForceModelPyfunc()
     pf.model = pred.model
