@@ -173,9 +173,9 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
     before the tool pushed, flattened; empty: none) and ``contact_tip_mm`` (the tool tip at contact): the
     row's registration is refined from them first (:meth:`~liverforce.serve.Predictor.refine_arrays`).
 
-    Served by MLflow (``mlflow models serve``, ``mlflow models predict``: :func:`_in_mlflow_serving`) the number
-    columns hold None where the frame above has NaN or inf (a refused row's, an unbounded interval's half-width),
-    so the JSON answer has ``null`` there: MLflow's scoring server writes a float NaN as the bare token ``NaN``,
+    Served by MLflow (its scoring server, as in the serve command above; ``mlflow models predict``:
+    :func:`_in_mlflow_serving`) the number columns hold None where the frame above has NaN or inf (a refused
+    row's, an unbounded interval's half-width), so the JSON answer has ``null`` there: MLflow's scoring server writes a float NaN as the bare token ``NaN``,
     which a strict JSON parser (JavaScript's ``JSON.parse``, Go's ``encoding/json``) refuses. A Python caller
     (``mlflow.pyfunc.load_model(...).predict``) gets the float columns with NaN, as the output schema says.
 
@@ -230,7 +230,7 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
 
 
 #: the variable MLflow sets to ``"true"`` where its scoring server answers (``scoring_server.init``, which
-#: ``mlflow models serve`` runs in each worker), and while ``mlflow models predict`` and the check of a logged
+#: the serve command runs in each worker), and while ``mlflow models predict`` and the check of a logged
 #: model's serving input example run (MLflow 3.x). MLflow's own name, internal to it: read here as text, not
 #: imported, so that a release without it leaves the answer as a Python caller gets it (NaN), not an ImportError
 MLFLOW_SERVING_ENV = "_MLFLOW_IS_IN_SERVING_ENVIRONMENT"
