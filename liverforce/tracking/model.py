@@ -175,9 +175,10 @@ class ForceModelPyfunc(mlflow.pyfunc.PythonModel):
 
     Served by MLflow (its scoring server, as in the serve command above; ``mlflow models predict``:
     :func:`_in_mlflow_serving`) the number columns hold None where the frame above has NaN or inf (a refused
-    row's, an unbounded interval's half-width), so the JSON answer has ``null`` there: MLflow's scoring server writes a float NaN as the bare token ``NaN``,
-    which a strict JSON parser (JavaScript's ``JSON.parse``, Go's ``encoding/json``) refuses. A Python caller
-    (``mlflow.pyfunc.load_model(...).predict``) gets the float columns with NaN, as the output schema says.
+    row's, an unbounded interval's half-width), so the JSON answer has ``null`` there: MLflow's scoring server
+    writes a float NaN as the bare token ``NaN``, which a strict JSON parser (JavaScript's ``JSON.parse``, Go's
+    ``encoding/json``) refuses. A Python caller (``mlflow.pyfunc.load_model(...).predict``) gets the float
+    columns with NaN, as the output schema says.
 
     Param ``observation_seed`` (int, -1 = none) draws the stochastic observation model as in evaluation.
     Params ``input_frame`` and ``units`` (:func:`pyfunc_input_frame`; default ``""``: RAS, and mm unless the
