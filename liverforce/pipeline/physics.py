@@ -192,9 +192,12 @@ def physics_study(cases_path, mesh_path, model_dirs, model_metrics, sim: dict, b
 
     The sphere (``tool: sphere``) runs the liver's first ``tool_cases`` cases of at most ``tool_max_force_n`` (a
     contact case costs tens of traction cases, and a 5 mm tip sinks deeper than the default mesh resolves
-    beyond about 1 N: Hertz gives ~7 mm at 1 N for R 2.5 mm in this tissue). A frictionless tip exerts a force close to the surface normal whatever the push
-    direction, so it is compared with the traction carrying the *same* force vectors (the sphere's own,
-    simulated as an extra choice "traction at the sphere's forces"), not with the baseline's inclined ones.
+    beyond about 1 N: Hertz gives ~7 mm at 1 N for R 2.5 mm in this tissue). On a held-out liver of its own
+    material the cap is scaled by its stiffness (``spec["tool_force_scale"]``, :func:`_tool_cap`); the cap used
+    is recorded as ``tool_max_force_n``, and no case under it skips the sphere (listed under ``skipped``).
+    A frictionless tip exerts a force close to the surface normal whatever the push direction, so it is compared
+    with the traction carrying the *same* force vectors (the sphere's own, simulated as an extra choice "traction
+    at the sphere's forces"), not with the baseline's inclined ones.
     """
     from liverforce.fem.boundary import region_areas
     from liverforce.learn.model import ForceModel
@@ -258,10 +261,21 @@ def physics_study(cases_path, mesh_path, model_dirs, model_metrics, sim: dict, b
             out["skipped"].append({"name": v["name"], "what": v["what"], "reason": v["skip"]})
             continue
         if v["simulate"].get("tool_model") == "sphere":
-            cap = float(spec.get("tool_max_force_n", np.inf))
+            cap, scaled = _tool_cap(spec)
             these = [c for c in liver_cases if c["force_magnitude_n"] <= cap][: int(spec.get("tool_cases", len(cases)))]
+            out["tool_max_force_n"] = cap if np.isfinite(cap) else None
+            if scaled:
+                out["tool_force_scale"] = float(spec["tool_force_scale"])
+                log.info("physics: the sphere's cases of at most %.3g N (validate.physics.tool_max_force_n %g x "
+                         "%.3g, %s's own first constant over the procedural unseen livers')", cap,
+                         spec["tool_max_force_n"], spec["tool_force_scale"], gid)
             if not these:
-                log.warning("physics: no case of at most %g N for the sphere (validate.physics.tool_max_force_n)", cap)
+                why = (f"no case of {gid} of at most {cap:.3g} N for the sphere (validate.physics.tool_max_force_n"
+                       + (f" {spec['tool_max_force_n']:g} x {spec['tool_force_scale']:.3g}, this liver's own "
+                          "stiffness" if scaled else "") + "): give validate.n_cases more cases, or a larger cap "
+                       "with a finer mesh at the exertion points (mesh.refine_edge_mm)")
+                log.warning("physics %s: not simulated, %s", v["name"], why)
+                out["skipped"].append({"name": v["name"], "what": v["what"], "reason": why})
                 continue
             sphere = run(k, v, these, None)
             k += 1
@@ -283,6 +297,16 @@ def physics_study(cases_path, mesh_path, model_dirs, model_metrics, sim: dict, b
         k += 1
     write_json_atomic(out_path, out)
     return out
+
+
+def _tool_cap(spec: dict) -> tuple[float, bool]:
+    """The sphere's force cap (N) on this liver, and whether it was scaled: ``tool_max_force_n`` x
+    ``tool_force_scale`` (:meth:`liverforce.pipeline.plan.Plan.physics_spec`: a held-out liver of its own
+    material, its stiffness over the procedural unseen livers' for which the cap is set), else as configured."""
+    cap = float(spec.get("tool_max_force_n", np.inf))
+    if "tool_force_scale" not in spec:
+        return cap, False
+    return cap * float(spec["tool_force_scale"]), True
 
 
 def _features(mesh_path) -> dict:

@@ -234,6 +234,25 @@ class Plan:
                 out[f"imp-{imp['name']}"] = {"params_mpa": params, "entered": dict(imp["material"])}
         return out
 
+    def physics_spec(self) -> dict:
+        """``validate.physics`` as the physics rule takes it, and where its liver is a held-out liver with its own
+        material (``geometry.imported[].material``), ``tool_force_scale``: that liver's first constant over the
+        procedural unseen livers' (the run's x ``validate.material_scale``), which ``tool_max_force_n`` is set
+        for. The sphere's force cap takes it: a softer liver sinks deeper at the same force (Hertz: the depth
+        follows F / E), beyond what the mesh resolves under a 2.5 mm tip. Absent otherwise, so a run without such
+        a liver keeps its params (and its results)."""
+        spec = dict(self.cfg["validate"]["physics"])
+        gids = self.scenario_geometries(VALIDATION)
+        if not 0 <= int(spec["liver"]) < len(gids):
+            return spec  # refused where the rule's input indexes it (the config check names the range)
+        own = self.liver_materials().get(gids[int(spec["liver"])])
+        if own is not None:
+            run = self.cfg["material"]["params_mpa"]
+            first = next(iter(run))
+            spec["tool_force_scale"] = float(own["params_mpa"][first]
+                                             / (run[first] * self.cfg["validate"]["material_scale"]))
+        return spec
+
     def all_scenarios(self) -> list[str]:
         return self.scenarios + [VALIDATION]
 

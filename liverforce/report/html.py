@@ -743,8 +743,22 @@ def physics_section(phys: dict | None, validated: str | None) -> str:
             "change is |u − u_reference| / |u_reference| over the ROI nodes, per case. With gravity, displacements "
             "are over the sagged state (the pre-operative image shows the sagged liver). A frictionless sphere "
             "exerts a force close to the surface normal whatever way it is pushed, so it runs the light cases "
-            f"only and is compared with the traction carrying the very forces it exerted.{skipped}</p>"
+            f"only{_tool_cap_words(phys)} and is compared with the traction carrying the very forces it exerted."
+            f"{skipped}</p>"
             + _table(head, rows, cls="physics", row_cls="physics"))
+
+
+def _tool_cap_words(phys: dict) -> str:
+    """" (at most C N ...)" for the physics text: the sphere's force cap as used, scaled on a lab liver of its own
+    material; "" for a study written before the cap was recorded."""
+    cap = phys.get("tool_max_force_n")
+    if cap is None:
+        return ""
+    if phys.get("tool_force_scale") is None:
+        return f" (at most {cap:.2f} N)"
+    return (f" (at most {cap:.2f} N: <code>validate.physics.tool_max_force_n</code> x "
+            f"{phys['tool_force_scale']:.3g}, this liver's own first constant over the procedural unseen livers', "
+            "for which the cap is set: a softer liver sinks deeper at the same force)")
 
 
 def stretch_section(shards: list[dict], solver_stats: dict) -> str:

@@ -214,3 +214,20 @@ def test_a_lab_entered_constants_read_as_words():
     line = own_material_lines({"per_liver": {"imp-a": {"params_mpa": {"C10": 0.0015},
                                                        "entered": {"params_mpa": {"C10": 0.0015}}}}})
     assert line == ["material of imp-a: its own, C10 0.0015 MPa (entered as params_mpa C10 0.0015)"]
+
+
+def test_the_physics_check_scales_the_spheres_cap_by_a_held_out_livers_own_stiffness():
+    """validate.physics.tool_max_force_n is set for the procedural unseen livers (the run's constants x
+    validate.material_scale); a held-out lab liver with its own constants takes it in their ratio, and a run
+    without such a liver keeps validate.physics as it is (its physics rule's params, and its results)."""
+    held = ("validate.imported=[b]", "validate.livers=1", "validate.physics.liver=1")
+    cfg = _cfg("", ",material:{scale:0.8}", *held)
+    spec = Plan(cfg).physics_spec()
+    assert spec["tool_force_scale"] == pytest.approx(0.8 / cfg["validate"]["material_scale"], rel=1e-12)
+    assert {k: v for k, v in spec.items() if k != "tool_force_scale"} == cfg["validate"]["physics"]
+    procedural = _cfg("", ",material:{scale:0.8}", *held[:2], "validate.physics.liver=0")
+    assert Plan(procedural).physics_spec() == procedural["validate"]["physics"]
+    no_own = _cfg("", "", *held)
+    assert Plan(no_own).physics_spec() == no_own["validate"]["physics"]
+    own_a = _cfg(",material:{E_pa:9000}", "", *held)  # a training liver's own material: not the checked liver
+    assert "tool_force_scale" not in Plan(own_a).physics_spec()

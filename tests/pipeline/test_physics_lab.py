@@ -205,3 +205,40 @@ def test_the_report_says_why_a_gravity_choice_failed():
          "compared_with": LAB_BASELINE, "sag_max_mm": None,
          "sag_error": "RuntimeError: the gravity-only state did not converge"}]}
     assert "failed: RuntimeError: the gravity-only state did not converge" in physics_section(phys, None)
+
+
+@pytest.mark.slow  # the lab fixture's FE and one baseline case (~15 s): CI runs it with -m slow
+def test_the_spheres_cap_follows_a_lab_livers_own_stiffness(lab):
+    """``tool_max_force_n`` is set for the procedural unseen livers' stiffness; on a lab liver of its own material
+    the rule scales it (``tool_force_scale``, Plan.physics_spec): a liver so soft that no case is under the scaled
+    cap skips the sphere, saying why, instead of pushing a 2.5 mm tip deeper than the mesh resolves."""
+    cfg = lab["cfg"]
+    spec = {**SPEC, "n_cases": 1, "foundation_scale": [], "tangential_ratio": [], "rib_contact": [], "gravity": [],
+            "tool": "sphere", "tool_max_force_n": 1.0, "tool_force_scale": 0.01}
+    from liverforce.dataset import io as dio
+
+    forces = [np.linalg.norm(c["force_n"]) for c in dio.read_table(lab["cases"]).to_pylist()]
+    assert min(forces) <= 1.0 < min(forces) / 0.01  # unscaled, the sphere would have run
+    out = physics_study(lab["cases"], lab["mesh"], [], [], cfg["simulate"], cfg["boundary"], cfg["dataset"],
+                        cfg["material"], spec, lab["tmp"] / "soft.json", lab["tmp"] / "soft")
+    assert [e["name"] for e in out["variants"]] == [LAB_BASELINE]
+    assert out["tool_max_force_n"] == pytest.approx(0.01) and out["tool_force_scale"] == 0.01
+    (skip,) = out["skipped"]
+    assert skip["name"] == "tool: rigid sphere"
+    assert "of at most 0.01 N" in skip["reason"] and "x 0.01, this liver's own stiffness" in skip["reason"]
+    assert json.loads((lab["tmp"] / "soft.json").read_text())["skipped"] == out["skipped"]
+
+
+def test_the_report_gives_the_spheres_cap_and_its_scale():
+    from liverforce.pipeline.physics import _tool_cap
+    from liverforce.report.html import physics_section
+
+    assert _tool_cap({"tool_max_force_n": 1.2}) == (1.2, False)
+    assert _tool_cap({"tool_max_force_n": 1.2, "tool_force_scale": 0.5}) == (0.6, True)
+    phys = {"liver": "imp-lab", "n_cases": 2, "forces_n": [0.5, 1.0], "tool_max_force_n": 0.6,
+            "tool_force_scale": 0.5, "variants": [
+                {"name": LAB_BASELINE, "what": "the lab's supports", "converged": 2, "n_cases": 2, "models": {}}]}
+    text = physics_section(phys, None)
+    assert "runs the light cases only (at most 0.60 N: <code>validate.physics.tool_max_force_n</code> x 0.5" in text
+    assert "(at most 1.20 N)" in physics_section({**phys, "tool_max_force_n": 1.2, "tool_force_scale": None}, None)
+    assert "at most" not in physics_section({k: v for k, v in phys.items() if k != "tool_max_force_n"}, None)

@@ -15,7 +15,7 @@ rule physics:
         boundary=config_slice("boundary"),
         dataset=config_slice("dataset"),
         material=config_slice("material"),
-        spec=config_slice("validate", "physics"),
+        spec=PLAN.physics_spec(),  # validate.physics (+ the sphere's force scale on a lab liver of its own material)
     log:
         P.log("validate", "physics"),
     conda:
