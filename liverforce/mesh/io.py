@@ -113,17 +113,24 @@ def read_mesh(path: str | Path) -> LiverMesh:
         if name not in m.cell_data:
             raise MeshFileError(f"{path}: cell data '{name}' missing. Re-create it with write_mesh")
     it, itri = types.index("tetra"), types.index("triangle")
-    region = np.asarray(m.cell_data["region"][itri]).astype(np.int8)
+    cell = {k: [_one_value_per_cell(a) for a in v] for k, v in m.cell_data.items()}
+    region = np.asarray(cell["region"][itri]).astype(np.int8)
     return LiverMesh(
         points=np.asarray(m.points, dtype=np.float64),
         tets=np.asarray(m.cells[it].data, dtype=np.int64),
         facets=np.asarray(m.cells[itri].data, dtype=np.int64),
         facet_region=region,
-        facet_visible=np.asarray(m.cell_data["visible"][itri]).astype(bool),
+        facet_visible=np.asarray(cell["visible"][itri]).astype(bool),
         meta={"mesh_file": str(path)},
-        facet_support=(_facet_support(path, m.cell_data["support"][itri], region)
-                       if "support" in m.cell_data else None),
+        facet_support=(_facet_support(path, cell["support"][itri], region) if "support" in cell else None),
     )
+
+
+def _one_value_per_cell(a):
+    """A cell-data array of one component as a vector: VTK writers that state ``NumberOfComponents="1"`` (which
+    ParaView and ours leave out) make meshio read it as a column, shape (n, 1)."""
+    a = np.asarray(a)
+    return a[:, 0] if a.ndim == 2 and a.shape[1] == 1 else a
 
 
 #: what to do about a malformed ``support`` array in a file read

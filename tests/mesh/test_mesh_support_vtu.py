@@ -182,6 +182,21 @@ def test_a_cell_data_array_not_one_value_per_cell_is_refused_naming_it_and_the_c
                         rf"\(e\.g\. snakemake --forcerun mesh\) to write it again, {redo}", str(exc.value)), exc.value
 
 
+def test_one_component_arrays_stated_as_columns_read_as_written(tmp_path, held):
+    """A VTK writer that states ``NumberOfComponents="1"`` on the cell data (ours and ParaView leave it out) makes
+    meshio read each array as a column, shape (n, 1): the mesh still reads back as written, supports included."""
+    write_mesh(tmp_path / "lab.vtu", held)
+    raw = meshio.read(tmp_path / "lab.vtu")
+    raw.cell_data = {k: [np.asarray(a).reshape(-1, 1) for a in v] for k, v in raw.cell_data.items()}
+    meshio.write(tmp_path / "cols.vtu", raw, file_format="vtu")
+    assert b'NumberOfComponents="1"' in (tmp_path / "cols.vtu").read_bytes()
+    assert meshio.read(tmp_path / "cols.vtu").cell_data["support"][1].shape == (len(held.facets), 1)
+    back = read_mesh(tmp_path / "cols.vtu")
+    for k in ("facets", "facet_region", "facet_visible", "facet_support"):
+        np.testing.assert_array_equal(getattr(back, k), getattr(held, k))
+        assert getattr(back, k).shape == getattr(held, k).shape
+
+
 def test_support_records_give_each_support_its_index_and_mesh_facets(held):
     records = support_records(held)
     assert [r["name"] for r in records] == ["cava", "left vein", "floor"]
