@@ -18,6 +18,12 @@ At the end of the session pytest prints
 
 and writes the same numbers, one record per fault, to ``faults.json`` in
 pytest's base temporary folder (and to ``$LIVERFORCE_FAULT_REPORT`` if set).
+
+Under pytest-xdist the faults are injected in the workers: each worker keeps
+its own records (and its own ``faults.json`` in its ``popen-gw<N>`` folder),
+hands them to the controller when it finishes (``config.workeroutput``), and
+the controller prints and writes the whole ledger (the hooks that gather and
+print are in ``tests/conftest.py``: the controller never loads this file).
 """
 from __future__ import annotations
 
@@ -29,8 +35,12 @@ from pathlib import Path
 
 import pytest
 
+from liverforce.atomic import write_text_atomic
+
 _RECORDS: list["FaultRecord"] = []
 _REPORT_PATH: list[Path] = []
+_GATHERED: set[str] = set()  # the xdist workers whose records the controller has (or lost)
+_LOST: list[str] = []  # xdist workers that died before handing over their records
 
 
 @dataclass
@@ -92,15 +102,25 @@ def summary() -> dict:
 def _write() -> None:
     text = json.dumps(summary(), indent=2, default=str)
     for p in _REPORT_PATH:
-        p.write_text(text)
+        write_text_atomic(p, text)
+
+
+def _report_paths(basetemp: Path, *, whole: bool) -> None:
+    """Write the ledger to ``basetemp/faults.json``, and to ``$LIVERFORCE_FAULT_REPORT`` if it holds ``whole``."""
+    _REPORT_PATH.clear()
+    _REPORT_PATH.append(Path(basetemp) / "faults.json")
+    if whole and os.environ.get("LIVERFORCE_FAULT_REPORT"):
+        _REPORT_PATH.append(Path(os.environ["LIVERFORCE_FAULT_REPORT"]))
+
+
+def _is_worker(config) -> bool:
+    return hasattr(config, "workerinput")
 
 
 @pytest.fixture(scope="session", autouse=True)
-def _fault_report_path(tmp_path_factory):
-    _REPORT_PATH.clear()
-    _REPORT_PATH.append(tmp_path_factory.getbasetemp() / "faults.json")
-    if os.environ.get("LIVERFORCE_FAULT_REPORT"):
-        _REPORT_PATH.append(Path(os.environ["LIVERFORCE_FAULT_REPORT"]))
+def _fault_report_path(tmp_path_factory, pytestconfig):
+    # a worker's ledger is a part: $LIVERFORCE_FAULT_REPORT is the controller's to write, with every worker's
+    _report_paths(tmp_path_factory.getbasetemp(), whole=not _is_worker(pytestconfig))
     yield
 
 
@@ -109,12 +129,38 @@ def fault_ledger(request) -> FaultLedger:
     return FaultLedger(request.node.nodeid)
 
 
-def pytest_terminal_summary(terminalreporter, exitstatus, config):
-    if not _RECORDS:
+def pytest_sessionfinish(session):
+    """On an xdist worker: hand this worker's records to the controller (:func:`gather` there)."""
+    if hasattr(session.config, "workeroutput"):
+        session.config.workeroutput["fault_records"] = json.dumps([asdict(r) for r in _RECORDS], default=str)
+
+
+def gather(config, node) -> None:
+    """On the xdist controller: add the records of the worker ``node`` that finished; write the whole ledger."""
+    if not _REPORT_PATH:
+        # the folder xdist gives each worker a subfolder of (the controller runs no fixture)
+        _report_paths(config._tmp_path_factory.getbasetemp(), whole=True)
+    worker = node.gateway.id
+    if worker in _GATHERED:  # xdist reports a worker stopped by Ctrl-C twice
+        return
+    _GATHERED.add(worker)
+    output = getattr(node, "workeroutput", None)
+    if output is None:  # the worker crashed: its records up to then are only in its own faults.json
+        _LOST.append(worker)
+        return
+    _RECORDS.extend(FaultRecord(**r) for r in json.loads(output.get("fault_records", "[]")))
+    _write()
+
+
+def terminal_summary(terminalreporter) -> None:
+    """The session's ledger: one line per fault, then the totals (called by ``tests/conftest.py``)."""
+    if not _RECORDS and not _LOST:
         return
     s = summary()
     tr = terminalreporter
     tr.section("fault injection")
+    for worker in _LOST:
+        tr.write_line(f"records of worker {worker} lost (it crashed): see its popen-{worker}/faults.json", red=True)
     for r in _RECORDS:
         tr.write_line(f"{'survived' if r.survived else 'NOT SURVIVED'}: {r.fault} "
                       f"(rows {r.rows_found}/{r.rows_expected}) [{r.test}]")

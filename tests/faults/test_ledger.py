@@ -2,6 +2,10 @@
 from __future__ import annotations
 
 import ast
+import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -37,3 +41,51 @@ def test_check_records_a_failed_check_as_not_survived_and_reraises():
         seen.rows_found = 2
     assert _RECORDS[n + 1].survived and _RECORDS[n + 1].rows_lost == 0
     del _RECORDS[n:]  # probes, not injected faults: keep them out of the session's totals
+
+
+_PROBE_ONE = '''import os
+
+
+def test_one(fault_ledger):
+    with fault_ledger.check("probe one: all rows kept", rows_expected=4,
+                            worker=os.environ["PYTEST_XDIST_WORKER"]) as seen:
+        seen.rows_found = 4
+'''
+_PROBE_TWO = '''import os
+
+
+def test_two(fault_ledger):
+    found = 3
+    fault_ledger.record("probe two: rows lost", survived=found == 5, rows_expected=5, rows_found=found,
+                        worker=os.environ["PYTEST_XDIST_WORKER"])
+'''
+
+
+def test_the_controller_gathers_the_records_of_every_xdist_worker(tmp_path):
+    """Under ``-n 2`` each worker holds its own records: the controller's totals and ``faults.json`` hold both."""
+    root = HERE.parent.parent
+    (tmp_path / "tests" / "faults").mkdir(parents=True)
+    (tmp_path / "tests" / "conftest.py").write_text((root / "tests" / "conftest.py").read_text())
+    for name in ("__init__.py", "conftest.py"):
+        (tmp_path / "tests" / "faults" / name).write_text((HERE / name).read_text())
+    (tmp_path / "tests" / "faults" / "test_one.py").write_text(_PROBE_ONE)
+    (tmp_path / "tests" / "faults" / "test_two.py").write_text(_PROBE_TWO)
+    (tmp_path / "pytest.ini").write_text("[pytest]\ntestpaths = tests\n")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST_")}  # not this session's worker
+    env["PYTHONPATH"] = os.pathsep.join([str(root), *filter(None, [env.get("PYTHONPATH")])])
+    env["LIVERFORCE_FAULT_REPORT"] = str(tmp_path / "report" / "faults.json")
+    (tmp_path / "report").mkdir()
+    basetemp = tmp_path / "basetemp"
+    proc = subprocess.run([sys.executable, "-m", "pytest", "-n", "2", "--dist", "loadfile", "-p", "no:cacheprovider",
+                           f"--basetemp={basetemp}"], cwd=tmp_path, env=env, capture_output=True, text=True,
+                          timeout=300)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out[-3000:]
+    assert "2 workers [2 items]" in out, out[-3000:]
+    assert "faults injected: 2, runs survived: 1, rows lost: 2" in out, out[-3000:]
+    for report in (basetemp / "faults.json", tmp_path / "report" / "faults.json"):
+        ledger = json.loads(report.read_text())
+        assert (ledger["faults_injected"], ledger["runs_survived"], ledger["rows_lost"]) == (2, 1, 2), report
+        seen = {(r["fault"], r["detail"]["worker"]) for r in ledger["faults"]}
+        assert {f for f, _ in seen} == {"probe one: all rows kept", "probe two: rows lost"}, report
+        assert {w for _, w in seen} == {"gw0", "gw1"}, report  # one record from each worker
