@@ -29,11 +29,13 @@ def job_counts(text: str) -> dict[str, int]:
     return {m.group(1): int(m.group(2)) for m in re.finditer(r"^(\w+)\s+(\d+)$", block, re.M) if m.group(1) != "total"}
 
 
-def test_lint_is_clean():
-    proc = snakemake("--lint", check=False)
+def test_lint_is_clean(tmp_path):
+    proc = snakemake("--lint", "--directory", str(tmp_path), check=False)
     out = proc.stdout + proc.stderr
     assert proc.returncode == 0, out
     assert "Lints for" not in out
+    # its log in the test's folder, not in the repository's .snakemake (no test writes into the repository)
+    assert list((tmp_path / ".snakemake" / "log").glob("*.snakemake.log")), out
 
 
 @pytest.mark.slow  # one of the default set's slowest (CI's --durations): run with -m slow
