@@ -4,6 +4,7 @@ from __future__ import annotations
 import ast
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -61,15 +62,26 @@ def test_two(fault_ledger):
 '''
 
 
-def test_the_controller_gathers_the_records_of_every_xdist_worker(tmp_path):
-    """Under ``-n 2`` each worker holds its own records: the controller's totals and ``faults.json`` hold both."""
+_PROBE_CRASH = '''import os
+
+
+def test_crash(fault_ledger):
+    with fault_ledger.check("probe crash: recorded, then the worker dies", rows_expected=1) as seen:
+        seen.rows_found = 1
+    os._exit(3)
+'''
+
+
+def _session(tmp_path: Path, probes: dict[str, str], *args: str) -> tuple[subprocess.CompletedProcess, Path]:
+    """A copy of the test set's conftests with ``probes`` (file name -> text) in tests/faults, run on 2 workers;
+    ``(the run, its base temporary folder)``; ``$LIVERFORCE_FAULT_REPORT`` is ``tmp_path/report/faults.json``."""
     root = HERE.parent.parent
     (tmp_path / "tests" / "faults").mkdir(parents=True)
     (tmp_path / "tests" / "conftest.py").write_text((root / "tests" / "conftest.py").read_text())
     for name in ("__init__.py", "conftest.py"):
         (tmp_path / "tests" / "faults" / name).write_text((HERE / name).read_text())
-    (tmp_path / "tests" / "faults" / "test_one.py").write_text(_PROBE_ONE)
-    (tmp_path / "tests" / "faults" / "test_two.py").write_text(_PROBE_TWO)
+    for name, text in probes.items():
+        (tmp_path / "tests" / "faults" / name).write_text(text)
     (tmp_path / "pytest.ini").write_text("[pytest]\ntestpaths = tests\n")
     env = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST_")}  # not this session's worker
     env["PYTHONPATH"] = os.pathsep.join([str(root), *filter(None, [env.get("PYTHONPATH")])])
@@ -77,8 +89,14 @@ def test_the_controller_gathers_the_records_of_every_xdist_worker(tmp_path):
     (tmp_path / "report").mkdir()
     basetemp = tmp_path / "basetemp"
     proc = subprocess.run([sys.executable, "-m", "pytest", "-n", "2", "--dist", "loadfile", "-p", "no:cacheprovider",
-                           f"--basetemp={basetemp}"], cwd=tmp_path, env=env, capture_output=True, text=True,
+                           f"--basetemp={basetemp}", *args], cwd=tmp_path, env=env, capture_output=True, text=True,
                           timeout=300)
+    return proc, basetemp
+
+
+def test_the_controller_gathers_the_records_of_every_xdist_worker(tmp_path):
+    """Under ``-n 2`` each worker holds its own records: the controller's totals and ``faults.json`` hold both."""
+    proc, basetemp = _session(tmp_path, {"test_one.py": _PROBE_ONE, "test_two.py": _PROBE_TWO})
     out = proc.stdout + proc.stderr
     assert proc.returncode == 0, out[-3000:]
     assert "2 workers [2 items]" in out, out[-3000:]
@@ -89,3 +107,18 @@ def test_the_controller_gathers_the_records_of_every_xdist_worker(tmp_path):
         seen = {(r["fault"], r["detail"]["worker"]) for r in ledger["faults"]}
         assert {f for f, _ in seen} == {"probe one: all rows kept", "probe two: rows lost"}, report
         assert {w for _, w in seen} == {"gw0", "gw1"}, report  # one record from each worker
+
+
+def test_a_crashed_workers_records_are_said_to_be_lost_not_left_out_silently(tmp_path):
+    """A worker that dies hands nothing over: the summary names it and where its own ``faults.json`` is."""
+    proc, basetemp = _session(tmp_path, {"test_crash.py": _PROBE_CRASH, "test_one.py": _PROBE_ONE},
+                              "--max-worker-restart=0")
+    out = proc.stdout + proc.stderr
+    assert proc.returncode != 0 and "crashed" in out, out[-3000:]
+    lost = re.search(r"records of worker (gw\d) lost \(it crashed\): see its popen-(gw\d)/faults.json", out)
+    assert lost and lost.group(1) == lost.group(2), out[-3000:]
+    assert "faults injected: 1, runs survived: 1, rows lost: 0" in out, out[-3000:]  # the other worker's
+    own = json.loads((basetemp / f"popen-{lost.group(1)}" / "faults.json").read_text())
+    assert [r["fault"] for r in own["faults"]] == ["probe crash: recorded, then the worker dies"]
+    whole = json.loads((tmp_path / "report" / "faults.json").read_text())
+    assert [r["fault"] for r in whole["faults"]] == ["probe one: all rows kept"]
