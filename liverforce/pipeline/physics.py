@@ -267,7 +267,7 @@ def physics_study(cases_path, mesh_path, model_dirs, model_metrics, sim: dict, b
             if scaled:
                 out["tool_force_scale"] = float(spec["tool_force_scale"])
                 log.info("physics: the sphere's cases of at most %.3g N (validate.physics.tool_max_force_n %g x "
-                         "%.3g, %s's own first constant over the procedural unseen livers')", cap,
+                         "%.3g, %s's own initial shear modulus over the procedural unseen livers')", cap,
                          spec["tool_max_force_n"], spec["tool_force_scale"], gid)
             if not these:
                 why = (f"no case of {gid} of at most {cap:.3g} N for the sphere (validate.physics.tool_max_force_n"

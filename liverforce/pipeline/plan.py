@@ -236,21 +236,25 @@ class Plan:
 
     def physics_spec(self) -> dict:
         """``validate.physics`` as the physics rule takes it, and where its liver is a held-out liver with its own
-        material (``geometry.imported[].material``), ``tool_force_scale``: that liver's first constant over the
-        procedural unseen livers' (the run's x ``validate.material_scale``), which ``tool_max_force_n`` is set
-        for. The sphere's force cap takes it: a softer liver sinks deeper at the same force (Hertz: the depth
-        follows F / E), beyond what the mesh resolves under a 2.5 mm tip. Absent otherwise, so a run without such
-        a liver keeps its params (and its results)."""
+        material (``geometry.imported[].material``), ``tool_force_scale``: that liver's initial shear modulus over
+        the procedural unseen livers' (the run's constants x ``validate.material_scale``), which
+        ``tool_max_force_n`` is set for. The sphere's force cap takes it: a softer liver sinks deeper at the same
+        force (Hertz: the depth follows F / E), beyond what the mesh resolves under a 2.5 mm tip. Absent
+        otherwise, so a run without such a liver keeps its params (and its results)."""
         spec = dict(self.cfg["validate"]["physics"])
         gids = self.scenario_geometries(VALIDATION)
         if not 0 <= int(spec["liver"]) < len(gids):
             return spec  # refused where the rule's input indexes it (the config check names the range)
         own = self.liver_materials().get(gids[int(spec["liver"])])
         if own is not None:
-            run = self.cfg["material"]["params_mpa"]
-            first = next(iter(run))
-            spec["tool_force_scale"] = float(own["params_mpa"][first]
-                                             / (run[first] * self.cfg["validate"]["material_scale"]))
+            from liverforce.fem.materials import make_material
+
+            model, scale = self.cfg["material"]["model"], self.cfg["validate"]["material_scale"]
+            procedural = {k: v * scale for k, v in self.cfg["material"]["params_mpa"].items()}  # as sweep_params
+            # the initial shear moduli (nu does not enter them): 2 C10 for neo-Hookean and Yeoh, 2 (C10 + C01)
+            # for Mooney-Rivlin, an Ogden's sum
+            spec["tool_force_scale"] = float(make_material(model, own["params_mpa"], nu=0.45).mu0
+                                             / make_material(model, procedural, nu=0.45).mu0)
         return spec
 
     def all_scenarios(self) -> list[str]:

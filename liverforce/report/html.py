@@ -757,8 +757,8 @@ def _tool_cap_words(phys: dict) -> str:
     if phys.get("tool_force_scale") is None:
         return f" (at most {cap:.2f} N)"
     return (f" (at most {cap:.2f} N: <code>validate.physics.tool_max_force_n</code> x "
-            f"{phys['tool_force_scale']:.3g}, this liver's own first constant over the procedural unseen livers', "
-            "for which the cap is set: a softer liver sinks deeper at the same force)")
+            f"{phys['tool_force_scale']:.3g}, this liver's own initial shear modulus over the procedural unseen "
+            "livers', for which the cap is set: a softer liver sinks deeper at the same force)")
 
 
 def stretch_section(shards: list[dict], solver_stats: dict) -> str:

@@ -231,3 +231,13 @@ def test_the_physics_check_scales_the_spheres_cap_by_a_held_out_livers_own_stiff
     assert Plan(no_own).physics_spec() == no_own["validate"]["physics"]
     own_a = _cfg(",material:{E_pa:9000}", "", *held)  # a training liver's own material: not the checked liver
     assert "tool_force_scale" not in Plan(own_a).physics_spec()
+
+
+def test_the_spheres_cap_scale_is_the_initial_shear_modulus_ratio_for_mooney_rivlin():
+    """For Mooney-Rivlin the small-strain stiffness is 2 (C10 + C01), not C10: a lab liver with all of it in C10
+    is a little softer than the procedural unseen livers (0.0020 against 1.4 x 0.0015 MPa), not 1.43x stiffer."""
+    cfg = _cfg("", ",material:{params_mpa:{C10:0.002,C01:0.0}}", "validate.imported=[b]", "validate.livers=1",
+               "validate.physics.liver=1", "material.model=mooney_rivlin_2",
+               "material.params_mpa.C10=0.001", "+material.params_mpa.C01=0.0005")
+    scale = cfg["validate"]["material_scale"]
+    assert Plan(cfg).physics_spec()["tool_force_scale"] == pytest.approx(0.002 / (scale * 0.0015), rel=1e-12)
