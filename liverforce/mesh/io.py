@@ -86,14 +86,15 @@ def read_mesh(path: str | Path) -> LiverMesh:
     ------
     MeshFileError
         If the file is unreadable (meshio's ``SystemExit`` included) or lacks
-        the tetra/triangle blocks or the region/visible arrays, if a cell-data
-        array does not hold one value per cell (:func:`_check_cell_data_lengths`),
+        the tetra/triangle blocks or the region/visible arrays, if it holds more
+        than one piece or a cell-data array does not hold one value per cell
+        (:func:`_check_cell_data_lengths`),
         or if its ``support`` array is malformed (:func:`_facet_support`).
     """
     path = Path(path)
     try:
         m = _read_vtu(path)
-    except MeshFileError:
+    except (MeshFileError, ImportError):  # ours; or meshio's private reader moved (pinned 5.3.5): not the file
         raise
     except SystemExit as exc:
         raise MeshFileError(f"{path}: meshio could not read the file (sys.exit({exc.code})). "
@@ -159,6 +160,9 @@ def _check_cell_data_lengths(path: Path, reader) -> None:
     ParaView) or by a broken writer would read as supports that look right and are not; a shorter one fails with
     words that name no array. The lengths are the file's own, decoded as meshio decodes them (``reader``: its
     ``VtuReader`` of ``path``; ASCII, inline or appended binary, compressed or not).
+
+    A file of more than one ``Piece`` is refused too: meshio 5.3.5 keeps the last piece's cells only (on all the
+    pieces' points), without a word.
     """
     from xml.etree import ElementTree as ET
 
@@ -168,8 +172,14 @@ def _check_cell_data_lengths(path: Path, reader) -> None:
         root = ET.parse(str(path)).getroot()
     except ET.ParseError:  # raw binary appended data, as meshio's reader takes it
         root = _parse_raw_binary(str(path))
+    pieces = list(root.iter("Piece"))
+    if len(pieces) > 1:
+        raise MeshFileError(f"{path}: the file holds {len(pieces)} pieces (<Piece> elements); a mesh is read from one "
+                            "(meshio would keep the last piece's cells only, without a word). Write it as one piece "
+                            "(in ParaView: Merge Blocks, then save), or re-run the mesh stage (e.g. snakemake "
+                            "--forcerun mesh) to write it again")
     blocks = ", ".join(f"{len(b)} {b.type}" for b in reader.cells)
-    for piece in root.iter("Piece"):
+    for piece in pieces:
         cells = int(piece.attrib["NumberOfCells"])
         for array in piece.iterfind("CellData/DataArray"):
             name = array.attrib.get("Name", "")

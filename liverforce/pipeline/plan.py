@@ -236,25 +236,28 @@ class Plan:
 
     def physics_spec(self) -> dict:
         """``validate.physics`` as the physics rule takes it, and where its liver is a held-out liver with its own
-        material (``geometry.imported[].material``), ``tool_force_scale``: that liver's initial shear modulus over
-        the procedural unseen livers' (the run's constants x ``validate.material_scale``), which
+        material (``geometry.imported[].material``), ``tool_force_scale``: that liver's initial shear modulus
+        ``mu0`` over the procedural unseen livers' (the run's constants x ``validate.material_scale``), which
         ``tool_max_force_n`` is set for. The sphere's force cap takes it: a softer liver sinks deeper at the same
-        force (Hertz: the depth follows F / E), beyond what the mesh resolves under a 2.5 mm tip. Absent
-        otherwise, so a run without such a liver keeps its params (and its results)."""
+        force (Hertz: the depth follows F / E), beyond what the mesh resolves under a 2.5 mm tip. ``mu0`` is the
+        model's (``2 C10`` for neo_hookean and yeoh, ``2 (C10 + C01)`` for Mooney-Rivlin, where the first
+        constant alone may be small, zero or negative). Absent otherwise, and without the sphere
+        (``tool: none``), so a run without such a liver or sphere keeps its params (and its results)."""
+        from liverforce.fem.materials import make_material
+
         spec = dict(self.cfg["validate"]["physics"])
         gids = self.scenario_geometries(VALIDATION)
         if not 0 <= int(spec["liver"]) < len(gids):
             return spec  # refused where the rule's input indexes it (the config check names the range)
         own = self.liver_materials().get(gids[int(spec["liver"])])
-        if own is not None:
-            from liverforce.fem.materials import make_material
+        if own is not None and spec.get("tool") == "sphere":
+            mat, scale = self.cfg["material"], self.cfg["validate"]["material_scale"]
 
-            model, scale = self.cfg["material"]["model"], self.cfg["validate"]["material_scale"]
-            procedural = {k: v * scale for k, v in self.cfg["material"]["params_mpa"].items()}  # as sweep_params
-            # the initial shear moduli (nu does not enter them): 2 C10 for neo-Hookean and Yeoh, 2 (C10 + C01)
-            # for Mooney-Rivlin, an Ogden's sum
-            spec["tool_force_scale"] = float(make_material(model, own["params_mpa"], nu=0.45).mu0
-                                             / make_material(model, procedural, nu=0.45).mu0)
+            def mu0(params: dict) -> float:
+                return make_material(mat["model"], params, nu=mat["nu"]).mu0
+
+            unseen = {k: v * scale for k, v in mat["params_mpa"].items()}  # as the sweep's V scenario takes them
+            spec["tool_force_scale"] = float(mu0(own["params_mpa"]) / mu0(unseen))
         return spec
 
     def all_scenarios(self) -> list[str]:

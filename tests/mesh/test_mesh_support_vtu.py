@@ -197,6 +197,32 @@ def test_one_component_arrays_stated_as_columns_read_as_written(tmp_path, held):
         assert getattr(back, k).shape == getattr(held, k).shape
 
 
+def test_a_vtu_of_two_pieces_is_refused_not_read_as_its_last(tmp_path, held):
+    """A VTU whose mesh is split into two ``Piece`` elements (each a whole, valid mesh here): meshio keeps the last
+    piece's cells only, on the points of both, without a word; read_mesh refuses it, saying what to do."""
+    write_mesh(tmp_path / "lab.vtu", held)
+    meshio.write(tmp_path / "one.vtu", meshio.read(tmp_path / "lab.vtu"), file_format="vtu", binary=False)
+    text = (tmp_path / "one.vtu").read_text()
+    start, end = text.index("<Piece"), text.index("</Piece>") + len("</Piece>")
+    (tmp_path / "two.vtu").write_text(text[:end] + "\n" + text[start:end] + text[end:])
+    got = meshio.read(tmp_path / "two.vtu")  # what meshio alone reads: one piece's cells on twice the points
+    assert len(got.points) == 2 * len(held.points) and len(got.cells[0]) == len(held.tets)
+    with pytest.raises(MeshFileError, match=r"two\.vtu: the file holds 2 pieces \(<Piece> elements\); a mesh is "
+                       r"read from one .*Merge Blocks.*snakemake --forcerun mesh"):
+        read_mesh(tmp_path / "two.vtu")
+
+
+def test_a_meshio_without_the_reader_read_mesh_uses_is_no_corrupt_file(tmp_path, held, monkeypatch):
+    """read_mesh decodes the VTU with meshio's private ``VtuReader`` (meshio is pinned): a meshio without it raises
+    the ImportError, not a MeshFileError telling the user to re-create a file that is fine."""
+    import meshio.vtu._vtu as vtu
+
+    write_mesh(tmp_path / "lab.vtu", held)
+    monkeypatch.delattr(vtu, "VtuReader")
+    with pytest.raises(ImportError, match="VtuReader"):
+        read_mesh(tmp_path / "lab.vtu")
+
+
 def test_support_records_give_each_support_its_index_and_mesh_facets(held):
     records = support_records(held)
     assert [r["name"] for r in records] == ["cava", "left vein", "floor"]

@@ -219,25 +219,31 @@ def test_a_lab_entered_constants_read_as_words():
 def test_the_physics_check_scales_the_spheres_cap_by_a_held_out_livers_own_stiffness():
     """validate.physics.tool_max_force_n is set for the procedural unseen livers (the run's constants x
     validate.material_scale); a held-out lab liver with its own constants takes it in their ratio, and a run
-    without such a liver keeps validate.physics as it is (its physics rule's params, and its results)."""
-    held = ("validate.imported=[b]", "validate.livers=1", "validate.physics.liver=1")
+    without such a liver, or without the sphere, keeps validate.physics as it is (its physics rule's params, and
+    its results)."""
+    held = ("validate.imported=[b]", "validate.livers=1", "validate.physics.liver=1", "validate.physics.tool=sphere")
     cfg = _cfg("", ",material:{scale:0.8}", *held)
     spec = Plan(cfg).physics_spec()
     assert spec["tool_force_scale"] == pytest.approx(0.8 / cfg["validate"]["material_scale"], rel=1e-12)
     assert {k: v for k, v in spec.items() if k != "tool_force_scale"} == cfg["validate"]["physics"]
-    procedural = _cfg("", ",material:{scale:0.8}", *held[:2], "validate.physics.liver=0")
+    procedural = _cfg("", ",material:{scale:0.8}", *held[:2], "validate.physics.liver=0", held[3])
     assert Plan(procedural).physics_spec() == procedural["validate"]["physics"]
     no_own = _cfg("", "", *held)
     assert Plan(no_own).physics_spec() == no_own["validate"]["physics"]
     own_a = _cfg(",material:{E_pa:9000}", "", *held)  # a training liver's own material: not the checked liver
     assert "tool_force_scale" not in Plan(own_a).physics_spec()
+    no_sphere = _cfg("", ",material:{scale:0.8}", *held[:3], "validate.physics.tool=none")  # no cap to scale
+    assert Plan(no_sphere).physics_spec() == no_sphere["validate"]["physics"]
 
 
-def test_the_spheres_cap_scale_is_the_initial_shear_modulus_ratio_for_mooney_rivlin():
-    """For Mooney-Rivlin the small-strain stiffness is 2 (C10 + C01), not C10: a lab liver with all of it in C10
-    is a little softer than the procedural unseen livers (0.0020 against 1.4 x 0.0015 MPa), not 1.43x stiffer."""
-    cfg = _cfg("", ",material:{params_mpa:{C10:0.002,C01:0.0}}", "validate.imported=[b]", "validate.livers=1",
-               "validate.physics.liver=1", "material.model=mooney_rivlin_2",
-               "material.params_mpa.C10=0.001", "+material.params_mpa.C01=0.0005")
+def test_the_spheres_cap_scale_is_the_initial_shear_modulus_ratio_whatever_the_model():
+    """Mooney-Rivlin's small-strain stiffness is mu0 = 2 (C10 + C01), not C10: a held-out liver stiffer in C01
+    alone is stiffer (a larger cap, not a smaller one), and a run with C10 = 0 (stable, its mu0 from C01) still
+    plans its physics check (the first constant's ratio divided by zero when the workflow was read)."""
+    held = ("validate.imported=[b]", "validate.livers=1", "validate.physics.liver=1", "validate.physics.tool=sphere")
+    mr = ("material.model=mooney_rivlin_2", "+material.params_mpa.C01=0.002", "material.params_mpa.C10=0.0005")
+    cfg = _cfg("", ",material:{params_mpa:{C10:0.0005,C01:0.004}}", *held, *mr)
     scale = cfg["validate"]["material_scale"]
-    assert Plan(cfg).physics_spec()["tool_force_scale"] == pytest.approx(0.002 / (scale * 0.0015), rel=1e-12)
+    assert Plan(cfg).physics_spec()["tool_force_scale"] == pytest.approx(0.009 / (0.005 * scale), rel=1e-12)
+    zero = _cfg("", ",material:{scale:0.8}", *held, *mr[:2], "material.params_mpa.C10=0.0")
+    assert Plan(zero).physics_spec()["tool_force_scale"] == pytest.approx(0.8 / scale, rel=1e-12)
