@@ -38,8 +38,9 @@ def _one_file(config) -> bool:
 @pytest.hookimpl(wrapper=True)
 def pytest_cmdline_main(config):
     """``pytest`` runs on ``-n auto`` workers with ``--dist loadfile`` (a test file stays on one worker, so its
-    module-scoped fixtures are built once); ``-n 0``, ``-n N``, ``--dist``, ``--tx`` or ``-p no:xdist`` decide
-    otherwise, and the tests of one file run in this process (one worker would run them all anyway).
+    module-scoped fixtures are built once); ``-n 0``, ``-n N``, ``--tx`` or ``-p no:xdist`` decide otherwise, and
+    the tests of one file run in this process (one worker would run them all anyway). ``-n N`` keeps ``loadfile``
+    too unless ``--dist`` says otherwise (xdist alone would take ``load`` and build a file's fixtures per worker).
 
     Set here, not in ``addopts``: with ``-n`` there, ``-p no:xdist`` (or a venv without pytest-xdist) would stop
     on an unknown option instead of running in one process.
@@ -48,8 +49,9 @@ def pytest_cmdline_main(config):
     if (config.pluginmanager.hasplugin("xdist") and not hasattr(config, "workerinput")
             and opt.numprocesses is None and not opt.tx and not _one_file(config)):
         opt.numprocesses = "auto"
-        if opt.dist == "no":
-            opt.dist = "loadfile"
+    if (config.pluginmanager.hasplugin("xdist") and not hasattr(config, "workerinput") and opt.numprocesses
+            and opt.dist == "no"):
+        opt.dist = "loadfile"
     return (yield)
 
 

@@ -71,7 +71,8 @@ def test_auto_leaves_the_environment_variable_and_logical_to_xdist(root_conftest
     ({"args": ["tests/fem", "tests/mesh"]}, ("auto", "loadfile")),
     ({"dist": "load"}, ("auto", "load")),  # a --dist of one's own is kept
     ({"numprocesses": 0}, (0, "no")),  # -n 0: one process
-    ({"numprocesses": 3}, (3, "no")),  # -n 3: xdist's own default dist (load)
+    ({"numprocesses": 3}, (3, "loadfile")),  # -n 3: a file per worker too (xdist alone would deal out tests)
+    ({"numprocesses": 3, "dist": "load"}, (3, "load")),  # ... unless --dist says otherwise
     ({"args": ["tests/test_atomic.py"]}, (None, "no")),  # one file: one worker would run it all anyway
     ({"args": ["tests/test_atomic.py::test_a", "tests/test_atomic.py::test_b"]}, (None, "no")),
     ({"tx": ["popen"]}, (None, "no")),  # --tx: the user's own gateways

@@ -23,7 +23,8 @@ Under pytest-xdist the faults are injected in the workers: each worker keeps
 its own records (and its own ``faults.json`` in its ``popen-gw<N>`` folder),
 hands them to the controller when it finishes (``config.workeroutput``), and
 the controller prints and writes the whole ledger (the hooks that gather and
-print are in ``tests/conftest.py``: the controller never loads this file).
+print are in ``tests/conftest.py``, which the controller always loads; this
+file's hooks act only in a worker, or without workers).
 """
 from __future__ import annotations
 
@@ -149,7 +150,8 @@ def gather(config, node) -> None:
         _LOST.append(worker)
         return
     _RECORDS.extend(FaultRecord(**r) for r in json.loads(output.get("fault_records", "[]")))
-    _write()
+    if _RECORDS:  # as in one process: no fault injected, no report (an empty one would overwrite the last)
+        _write()
 
 
 def terminal_summary(terminalreporter) -> None:

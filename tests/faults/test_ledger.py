@@ -86,7 +86,7 @@ def _session(tmp_path: Path, probes: dict[str, str], *args: str) -> tuple[subpro
     env = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST_")}  # not this session's worker
     env["PYTHONPATH"] = os.pathsep.join([str(root), *filter(None, [env.get("PYTHONPATH")])])
     env["LIVERFORCE_FAULT_REPORT"] = str(tmp_path / "report" / "faults.json")
-    (tmp_path / "report").mkdir()
+    (tmp_path / "report").mkdir(exist_ok=True)
     basetemp = tmp_path / "basetemp"
     proc = subprocess.run([sys.executable, "-m", "pytest", "-n", "2", "--dist", "loadfile", "-p", "no:cacheprovider",
                            f"--basetemp={basetemp}", *args], cwd=tmp_path, env=env, capture_output=True, text=True,
@@ -122,3 +122,21 @@ def test_a_crashed_workers_records_are_said_to_be_lost_not_left_out_silently(tmp
     assert [r["fault"] for r in own["faults"]] == ["probe crash: recorded, then the worker dies"]
     whole = json.loads((tmp_path / "report" / "faults.json").read_text())
     assert [r["fault"] for r in whole["faults"]] == ["probe one: all rows kept"]
+
+
+_PROBE_NONE = '''def test_{name}():
+    assert True
+'''
+
+
+def test_workers_without_a_fault_leave_the_last_report_alone(tmp_path):
+    """As in one process, a session that injects no fault writes no ledger: an empty one from the controller would
+    overwrite the last run's ``$LIVERFORCE_FAULT_REPORT`` with zeros."""
+    report = tmp_path / "report" / "faults.json"
+    report.parent.mkdir()
+    report.write_text('{"faults_injected": 7}')
+    probes = {f"test_{n}.py": _PROBE_NONE.format(name=n) for n in ("a", "b")}
+    proc, basetemp = _session(tmp_path, probes)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0 and "2 workers [2 items]" in out and "faults injected" not in out, out[-3000:]
+    assert report.read_text() == '{"faults_injected": 7}' and not (basetemp / "faults.json").exists()
