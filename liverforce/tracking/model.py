@@ -411,6 +411,9 @@ def log_force_model(uri: str, run_id: str, model_dir: str | Path, example_arrays
         cols += [ColSpec(kind["camera_cloud_mm"], "unloaded_cloud_mm", required=False),
                  ColSpec(kind["tool_tip_mm"], "contact_tip_mm", required=False)]
     signature.inputs = Schema(cols)
+    # a refused row's forces and interval are NaN (null when served): only its reason and warnings are always there
+    signature.outputs = Schema([ColSpec(c.type, c.name, required=c.name in (REFUSED_COLUMN, WARNINGS_COLUMN))
+                                for c in signature.outputs.inputs])
 
     def _log():
         mlflow.set_tracking_uri(uri)

@@ -47,6 +47,9 @@ def test_the_logged_model_has_a_signature_an_example_and_no_pickle(logged, tmp_p
         "fx_n", "fy_n", "fz_n", "ft1_n", "ft2_n", "fn_n", "ft1_half_n", "ft2_half_n", "fn_half_n",  # + the interval
         "refused",  # why a row was refused ("" when predicted)
         "warnings"]  # the context outside the training range
+    required = {c["name"]: c.get("required", True) for c in json.loads(mlmodel["signature"]["outputs"])}
+    assert required.pop("refused") and required.pop("warnings")  # always there
+    assert not any(required.values()), required  # a refused row's numbers are NaN (null served): optional
     params = {p["name"]: p for p in json.loads(mlmodel["signature"]["params"])}
     assert set(params) == {"observation_seed", "input_frame", "units", "on_refused"}
     assert params["on_refused"]["default"] == "row" and params["on_refused"]["type"] == "string"
