@@ -9,6 +9,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
+from conftest_tree import conftest_tree
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
@@ -95,13 +96,7 @@ def test_{name}():
 def test_plain_pytest_runs_on_workers_and_p_no_xdist_in_one_process(tmp_path):
     """A copy of the test set's conftests and two probe files: plain ``pytest`` deals the files out to 2 workers
     (the count from ``$PYTEST_XDIST_AUTO_NUM_WORKERS``, as on a 2-core host); ``-p no:xdist`` runs them here."""
-    (tmp_path / "tests" / "faults").mkdir(parents=True)
-    (tmp_path / "tests" / "conftest.py").write_text((HERE / "conftest.py").read_text())
-    for name in ("__init__.py", "conftest.py"):
-        (tmp_path / "tests" / "faults" / name).write_text((HERE / "faults" / name).read_text())
-    (tmp_path / "pytest.ini").write_text("[pytest]\ntestpaths = tests\naddopts = -p no:cacheprovider\n")
-    env = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST_")}  # not this session's worker
-    env["PYTHONPATH"] = os.pathsep.join([str(ROOT), *filter(None, [env.get("PYTHONPATH")])])
+    env = conftest_tree(tmp_path, "[pytest]\ntestpaths = tests\naddopts = -p no:cacheprovider\n")
 
     def run(op, *args):
         for name in ("one", "two"):

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import ast
 import json
-import os
 import re
 import subprocess
 import sys
@@ -11,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from conftest_tree import conftest_tree
 from faults.conftest import _RECORDS, FaultLedger
 
 HERE = Path(__file__).parent
@@ -75,16 +75,9 @@ def test_crash(fault_ledger):
 def _session(tmp_path: Path, probes: dict[str, str], *args: str) -> tuple[subprocess.CompletedProcess, Path]:
     """A copy of the test set's conftests with ``probes`` (file name -> text) in tests/faults, run on 2 workers;
     ``(the run, its base temporary folder)``; ``$LIVERFORCE_FAULT_REPORT`` is ``tmp_path/report/faults.json``."""
-    root = HERE.parent.parent
-    (tmp_path / "tests" / "faults").mkdir(parents=True)
-    (tmp_path / "tests" / "conftest.py").write_text((root / "tests" / "conftest.py").read_text())
-    for name in ("__init__.py", "conftest.py"):
-        (tmp_path / "tests" / "faults" / name).write_text((HERE / name).read_text())
+    env = conftest_tree(tmp_path, "[pytest]\ntestpaths = tests\n")
     for name, text in probes.items():
         (tmp_path / "tests" / "faults" / name).write_text(text)
-    (tmp_path / "pytest.ini").write_text("[pytest]\ntestpaths = tests\n")
-    env = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST_")}  # not this session's worker
-    env["PYTHONPATH"] = os.pathsep.join([str(root), *filter(None, [env.get("PYTHONPATH")])])
     env["LIVERFORCE_FAULT_REPORT"] = str(tmp_path / "report" / "faults.json")
     (tmp_path / "report").mkdir(exist_ok=True)
     basetemp = tmp_path / "basetemp"
@@ -124,8 +117,11 @@ def test_a_crashed_workers_records_are_said_to_be_lost_not_left_out_silently(tmp
     assert [r["fault"] for r in whole["faults"]] == ["probe one: all rows kept"]
 
 
-_PROBE_NONE = '''def test_{name}():
-    assert True
+_PROBE_NONE = '''import os
+
+
+def test_{name}():  # injects no fault; runs on a worker
+    assert os.environ["PYTEST_XDIST_WORKER"].startswith("gw")
 '''
 
 
