@@ -42,8 +42,9 @@ def test_liverforce_ui_binds_to_loopback_by_default(monkeypatch, tmp_path):
 
 
 def test_documented_server_commands_bind_to_loopback():
-    texts = {p: p.read_text() for p in [ROOT / "README.md", *PACKAGE.rglob("*.py"), *(ROOT / "workflow").rglob("*"),
-                                        *(ROOT / "scripts").rglob("*")] if p.is_file() and p.suffix != ".pyc"}
+    texts = {p: p.read_text() for p in [ROOT / "README.md", *(ROOT / "docs").glob("*.md"), *PACKAGE.rglob("*.py"),
+                                        *(ROOT / "workflow").rglob("*"), *(ROOT / "scripts").rglob("*")]
+             if p.is_file() and p.suffix != ".pyc"}
     commands = 0
     for path, text in texts.items():
         assert "0.0.0.0" not in text, f"{path} binds to every interface"
