@@ -76,7 +76,7 @@ def register(subparsers, *, fetch: Callable[..., str | Path] | None = None) -> a
     p.add_argument("-m", "--model", required=True,
                    help="model directory, MLflow run id, runs:/<id>/model, models:/<name>/<version> "
                         "or a registered name")
-    p.add_argument("points", nargs="*", help="point-cloud file (.ply, .csv, .npy), in --units and --frame. A "
+    p.add_argument("points", nargs="*", help="point-cloud file (.ply, .pcd, .csv, .npy), in --units and --frame. A "
                                              "recorded sequence at one exertion point: several files, a folder "
                                              "(its cloud files in natural name order) or one .npy of shape (T, N, "
                                              "3), with --tool-tips: one row per cloud (liverforce.serve.sequence)")
@@ -104,8 +104,8 @@ def register(subparsers, *, fetch: Callable[..., str | Path] | None = None) -> a
                    help="a sequence of clouds: grid them in N threads at once (the compiled path; at most the cores; "
                         "default 1)")
     p.add_argument("--unloaded", metavar="FILE",
-                   help="camera-cloud models: the camera's cloud (.ply, .csv, .npy) of the same region before the tool "
-                        "pushed, the tool touching at the exertion point (--units and --frame apply). The "
+                   help="camera-cloud models: the camera's cloud (.ply, .pcd, .csv, .npy) of the same region before "
+                        "the tool pushed, the tool touching at the exertion point (--units and --frame apply). The "
                         "registration is refined first: the rigid correction that puts this cloud on the "
                         "pre-operative surface moves the cloud and the tool tip, and the liver's smooth change of "
                         "shape since the scan is taken off their height (liverforce.learn.registration); the "
@@ -181,7 +181,7 @@ def cmd_predict(args) -> int:
 
 def _run(args) -> int:
     from liverforce.atomic import write_text_atomic
-    from liverforce.serve.files import read_context, read_points
+    from liverforce.serve.files import read_cloud, read_context, read_points
     from liverforce.serve.input_frame import is_named
     from liverforce.serve.predictor import Predictor
 
@@ -235,7 +235,14 @@ def _run(args) -> int:
     if args.mesh:
         overrides["mesh"] = str(Path(args.mesh).absolute())
     preop, frame = read_context(args.context, predictor, overrides=overrides)
-    pts = None if sequence else frame.points(read_points(args.points[0], frame=frame))
+    notes = []  # what reading the camera clouds did (a PCD's NaN points dropped): the output's warnings
+    pts = None
+    if not sequence and args.mode == "cloud":
+        pts, note = read_cloud(args.points[0], frame=frame)
+        notes += [note] if note else []
+    elif not sequence:  # ordered nodes or surface vertices: none may be dropped (a NaN is refused by the checks)
+        pts = read_points(args.points[0], frame=frame)
+    pts = None if pts is None else frame.points(pts)
     info: dict = {"mode": args.mode}
     if (args.unloaded or args.contact_tip) and args.mode != "cloud":
         return _error("--unloaded and --contact-tip refine a camera cloud's registration: --mode cloud only")
@@ -245,16 +252,19 @@ def _run(args) -> int:
         return _error("--contact-tip goes with --unloaded (the camera's cloud before the tool pushed)")
     fix = None
     if args.unloaded:
-        fix = predictor.refine_registration(frame.points(read_points(args.unloaded, frame=frame)), preop,
+        unloaded, note = read_cloud(args.unloaded, frame=frame)
+        notes += [note] if note else []
+        fix = predictor.refine_registration(frame.points(unloaded), preop,
                                             None if args.contact_tip is None else frame.points(args.contact_tip),
                                             shape_degree=args.shape_degree)
     if sequence:
-        return _sequence(args, predictor, preop, frame, fix)
+        return _sequence(args, predictor, preop, frame, fix, notes)
     if args.mode == "cloud":
         tip = None if args.tool_tip is None else frame.points(args.tool_tip)
         force, extra = predictor.predict_cloud(pts, preop, approximate=args.approximate, tool_tip_mm=tip,
                                                return_info=True, registration=fix, input_frame=frame)
         info.update(extra)
+        info["warnings"] = notes + info["warnings"]
     else:
         nodes = preop.roi_of_surface(pts) if args.mode == "surface" else pts
         iv = predictor.interval(nodes, preop)  # the force and its interval in one pass (None: no interval)
@@ -282,16 +292,20 @@ def _run(args) -> int:
     return 0
 
 
-def _sequence(args, predictor, preop, frame, fix) -> int:
+def _sequence(args, predictor, preop, frame, fix, notes: list[str]) -> int:
     """``liverforce predict`` of a recorded sequence of clouds (:mod:`liverforce.serve.sequence`): one row per
-    cloud to ``--out`` (.csv, .parquet or .json), a summary (and the rows, without ``--out``) on stdout."""
+    cloud to ``--out`` (.csv, .parquet or .json), a summary (and the rows, without ``--out``) on stdout. ``notes``:
+    what reading ``--unloaded`` did (the summary's ``warnings``); a cloud's own (a PCD's NaN points dropped) lead its
+    row's warnings."""
     from liverforce.atomic import write_text_atomic
     from liverforce.serve.files import write_frame
     from liverforce.serve.sequence import predict_sequence, read_sequence, read_tips
 
     if args.out and Path(args.out).suffix.lower() not in (".csv", ".parquet", ".json"):
         return _error(f"--out {args.out}: a sequence's rows are written as .csv, .parquet or .json")
-    names, clouds = read_sequence(args.points, skip=(args.tool_tips, args.out), frame=frame)  # skip: if kept there
+    read: dict[int, str] = {}
+    names, clouds = read_sequence(args.points, skip=(args.tool_tips, args.out), frame=frame,  # skip: if kept there
+                                  notes=read)
     if args.tool_tips is not None:
         tips = read_tips(args.tool_tips, len(clouds), frame)
     elif args.tool_tip is not None:
@@ -302,12 +316,16 @@ def _sequence(args, predictor, preop, frame, fix) -> int:
     rows, summary = predict_sequence(predictor, preop, frame, clouds, tips, registration=fix, threads=args.threads,
                                      reference=args.reference)
     rows = [{"cloud": name, **row} for name, row in zip(names, rows)]
+    for k, note in read.items():
+        rows[k]["warnings"] = "; ".join([note] + ([rows[k]["warnings"]] if rows[k]["warnings"] else []))
     plain = [{k: None if isinstance(v, float) and v != v else v for k, v in r.items()} for r in rows]  # JSON: null
     summary.update({"frame": _frame_label(frame),
                     "input_frame": frame.describe(), "model": predictor.source,
                     "context_warnings": predictor.context_warnings(preop)})
     if fix is not None:
         summary["registration"] = {**fix.to_dict(), "description": fix.describe()}
+    if notes:
+        summary["warnings"] = notes
     if args.out:
         if args.out.lower().endswith(".json"):
             write_text_atomic(args.out, json.dumps({**summary, "rows": plain}, indent=2) + "\n")

@@ -9,14 +9,21 @@ Point clouds (``read_points``), one point per row, mm unless ``units`` says othe
   mesh stage reads its point files with, :mod:`liverforce.geometry.point_table`);
 - ``.ply``: ASCII or binary (little/big endian), the ``vertex`` element's
   ``x y z`` properties (other vertex properties and other elements ignored;
-  :mod:`liverforce.geometry.ply`, the reader the mesh stage reads its point files with).
+  :mod:`liverforce.geometry.ply`, the reader the mesh stage reads its point files with);
+- ``.pcd``: PCL's Point Cloud Data v0.7 (ROS ``bag_to_pcd``, PCL, Open3D), ``ascii``, ``binary`` or
+  ``binary_compressed``, read with pypcd4: the ``x y z`` fields (float32 or float64, in any order; the other
+  fields, rgb, intensity, normals, ignored). Its ``VIEWPOINT`` is the sensor's pose when it recorded, not a
+  transform of the points: it is not applied (the points are taken as they are, in ``--units`` and ``--frame``).
+  An organised cloud (``HEIGHT`` > 1, a depth camera's image) marks a pixel without depth with NaN
+  coordinates: :func:`read_cloud`, the camera clouds' reader, drops those points and says how many
+  (:func:`read_points` keeps them, so ordered nodes are refused for them as for any other file).
 
 A text file whose header names a unit for every column (``x_mm,y_mm,z_mm``, ``X [m]``) is refused when the
 coordinates are read in another one (``--units``, the context's ``units`` or the ``--frame`` record's; mm when
 none says), naming the header, as the mesh stage refuses its point files
 (:func:`liverforce.geometry.point_table.header_unit_clash`); a header that agrees, or names no unit, is read as
-declared. ``.npy`` and ``.ply`` files name no unit (a PLY vertex's properties are ``x y z``, and PLY has no
-units line).
+declared. ``.npy``, ``.ply`` and ``.pcd`` files name no unit (a PLY vertex's properties are ``x y z``, and PLY has
+no units line; nor has PCD).
 
 Surfaces (``read_surface``): ``.ply`` with faces, ``.npz`` with ``points`` and
 ``facets``, or anything meshio reads (STL, OBJ, OFF, VTU, VTK, ...); a
@@ -77,9 +84,61 @@ def _read_ply(path: Path):
         raise PredictionInputError(str(exc)) from None
 
 
+# --------------------------------------------------------------------------- PCD
+#: the header lines of a PCD v0.7 file, in their order (https://pointclouds.org/documentation/tutorials/
+#: pcd_file_format.html)
+PCD_HEADER = "VERSION, FIELDS, SIZE, TYPE, COUNT, WIDTH, HEIGHT, VIEWPOINT, POINTS and DATA"
+
+
+def _read_pcd(path: Path) -> tuple[np.ndarray, int, int]:
+    """``(points (n, 3) float64, WIDTH, HEIGHT)`` of a PCD file (pypcd4), NaN points kept; its ``x y z``
+    fields only. The ``VIEWPOINT`` (the sensor's pose) is not applied. A file pypcd4 cannot read, a header
+    whose ``POINTS`` is not the data's (a truncated file) or not ``WIDTH`` x ``HEIGHT``, and a cloud without
+    an ``x``, ``y`` or ``z`` field are refused, naming the file and what is wrong."""
+    from pypcd4 import PointCloud
+
+    try:
+        pc = PointCloud.from_path(path)
+    except UnicodeDecodeError:
+        raise PredictionInputError(f"{path}: not a PCD file (its header is not text; a PCD v0.7 header gives "
+                                   f"{PCD_HEADER})") from None
+    except Exception as exc:  # noqa: BLE001 - pypcd4 raises many types; re-raised with the file named
+        errors = getattr(exc, "errors", None)
+        if callable(errors):  # pydantic's ValidationError: the header's lines
+            said = "; ".join(f"{' '.join(str(k) for k in e['loc']).upper()}: {e['msg']}" for e in errors())
+            raise PredictionInputError(f"{path}: not a PCD file pypcd4 can read, its header wrong ({said}); a PCD "
+                                       f"v0.7 header gives {PCD_HEADER} (ascii, binary or binary_compressed)"
+                                       ) from None
+        with open(path, "rb") as fh:
+            ascii_ = b"\nDATA ascii" in fh.read(4096)
+        hint = ("; an ascii PCD holds a line per point, its values separated by single spaces, as PCL writes them"
+                if ascii_ else "")
+        raise PredictionInputError(f"{path}: cannot read this PCD file's data ({type(exc).__name__}: {exc}): a "
+                                   f"truncated or damaged file{hint}") from None
+    meta = pc.metadata
+    data = np.atleast_1d(pc.pc_data)
+    if len(data) != meta.points:
+        raise PredictionInputError(f"{path}: its header says POINTS {meta.points}, its {meta.data.value} data holds "
+                                   f"{len(data)}: a truncated file (or a damaged header)")
+    if meta.width * meta.height != meta.points:
+        raise PredictionInputError(f"{path}: its header's WIDTH {meta.width} x HEIGHT {meta.height} is not its "
+                                   f"POINTS {meta.points}: a damaged header")
+    for axis in "xyz":
+        if axis not in meta.fields:
+            raise PredictionInputError(f"{path}: no '{axis}' field (FIELDS {' '.join(meta.fields)}); a point cloud's "
+                                       "PCD has x, y and z")
+        if meta.count[meta.fields.index(axis)] != 1:
+            raise PredictionInputError(f"{path}: its '{axis}' field has COUNT {meta.count[meta.fields.index(axis)]}; "
+                                       "x, y and z are one number each")
+    if not len(data):
+        return np.zeros((0, 3)), meta.width, meta.height
+    return np.column_stack([data[a] for a in "xyz"]).astype(np.float64), meta.width, meta.height
+
+
 # --------------------------------------------------------------------------- clouds and surfaces
 def read_points(path: str | Path, units: str | None = "mm", *, frame: InputFrame | None = None) -> np.ndarray:
-    """An ``(n, 3)`` point cloud in mm from ``.npy``, ``.csv``/``.txt`` or ``.ply`` (module docstring).
+    """An ``(n, 3)`` point cloud in mm from ``.npy``, ``.csv``/``.txt``/``.xyz``, ``.ply`` or ``.pcd`` (module
+    docstring; a PCD's NaN points kept: :func:`read_cloud` drops them).
 
     ``units``: the units the points are scaled from here. ``frame``: the inputs' frame the caller converts the
     points with instead (:meth:`InputFrame.points`; ``units`` left at mm): a text file's header naming a unit is
@@ -99,8 +158,11 @@ def read_points(path: str | Path, units: str | None = "mm", *, frame: InputFrame
             check_header_units(path, frame if frame is not None else InputFrame.resolve(None, units))
         elif suffix == ".ply":
             pts = _read_ply(path).points
+        elif suffix == ".pcd":
+            pts = _read_pcd(path)[0]
         else:
-            raise PredictionInputError(f"{path}: unknown point-cloud format '{suffix}' (use .npy, .csv or .ply)")
+            raise PredictionInputError(f"{path}: unknown point-cloud format '{suffix}' (use .npy, .csv/.txt/.xyz, "
+                                       ".ply or .pcd)")
     except (ValueError, OSError) as exc:
         if isinstance(exc, PredictionInputError):
             raise
@@ -109,6 +171,31 @@ def read_points(path: str | Path, units: str | None = "mm", *, frame: InputFrame
     if pts.ndim != 2 or pts.shape[1] != 3 or not np.issubdtype(pts.dtype, np.number):
         raise PredictionInputError(f"{path}: expected n rows of x, y, z numbers, got an array of shape {pts.shape}")
     return pts.astype(np.float64) * unit_scale(units)
+
+
+def read_cloud(path: str | Path, units: str | None = "mm", *,
+               frame: InputFrame | None = None) -> tuple[np.ndarray, str | None]:
+    """A camera cloud: :func:`read_points`, and for a ``.pcd`` file its NaN points dropped (an organised cloud's
+    pixels without depth, PCL's convention), with a note that says how many of how many (None when none were).
+
+    Other formats are read as :func:`read_points` reads them (a NaN in them is refused by the checks, as before). A
+    PCD whose every point is NaN is refused.
+    """
+    path = Path(path)
+    if path.suffix.lower() != ".pcd" or not path.is_file():
+        return read_points(path, units, frame=frame), None
+    pts, width, height = _read_pcd(path)
+    pts = pts * unit_scale(units)
+    nan = np.isnan(pts).any(axis=1)
+    if not nan.any():
+        return pts, None
+    why = (f"PCL's mark of a pixel without depth in an organised cloud, here {width} x {height}" if height > 1
+           else "PCL's mark of a point without a measurement")
+    if nan.all():
+        raise PredictionInputError(f"{path}: every one of its {len(pts)} points is NaN ({why}): the camera saw no "
+                                   "surface in this frame; give a frame that sees the liver")
+    return pts[~nan], (f"{path}: {int(nan.sum())} of {len(pts)} points dropped, their coordinates NaN ({why}); "
+                       f"{int((~nan).sum())} read")
 
 
 def _read_table(path: Path) -> np.ndarray:

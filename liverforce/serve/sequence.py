@@ -23,9 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from liverforce.serve.errors import PredictionInputError
-from liverforce.serve.files import read_points
+from liverforce.serve.files import read_cloud, read_points
 
-CLOUD_SUFFIXES = (".ply", ".csv", ".txt", ".xyz", ".npy")
+CLOUD_SUFFIXES = (".ply", ".pcd", ".csv", ".txt", ".xyz", ".npy")
 COMPONENTS = ("t1", "t2", "n")  # the interval's local components
 
 
@@ -52,14 +52,17 @@ def is_sequence(paths: list[str | Path]) -> bool:
     return len(paths) > 1 or any(Path(p).is_dir() for p in paths) or _stack(Path(paths[0])) is not None
 
 
-def read_sequence(paths: list[str | Path], skip=(), frame=None) -> tuple[list[str], list[np.ndarray]]:
+def read_sequence(paths: list[str | Path], skip=(), frame=None,
+                  notes: dict | None = None) -> tuple[list[str], list[np.ndarray]]:
     """The clouds of a sequence as given (the file's units and frame) and a name for each.
 
-    ``paths``: several cloud files (in the order given); one folder (its ``.ply``, ``.csv``, ``.txt``, ``.xyz``
-    and ``.npy`` files in natural name order, but the files ``skip``: the tips and the output, if they are kept
-    there); or one ``.npy`` file of shape (T, N, 3) (names ``file.npy[k]``). ``frame``: the inputs'
+    ``paths``: several cloud files (in the order given); one folder (its ``.ply``, ``.pcd``, ``.csv``, ``.txt``,
+    ``.xyz`` and ``.npy`` files in natural name order, but the files ``skip``: the tips and the output, if they are
+    kept there); or one ``.npy`` file of shape (T, N, 3) (names ``file.npy[k]``). ``frame``: the inputs'
     :class:`~liverforce.serve.input_frame.InputFrame` (None: mm), whose units a text file's header may not
-    contradict (:func:`~liverforce.serve.files.check_header_units`).
+    contradict (:func:`~liverforce.serve.files.check_header_units`). Each file is read as a camera cloud
+    (:func:`~liverforce.serve.files.read_cloud`: a PCD's NaN points dropped); ``notes``, a dict given here, gets
+    the note of each cloud that had some dropped, by its position (from 0).
     """
     paths = [Path(p) for p in paths]
     if len(paths) == 1 and paths[0].is_dir():
@@ -70,7 +73,7 @@ def read_sequence(paths: list[str | Path], skip=(), frame=None) -> tuple[list[st
         if not files:
             raise PredictionInputError(f"{paths[0]}: no point-cloud files ({', '.join(CLOUD_SUFFIXES)}) in this folder")
         try:
-            return [f.name for f in files], [read_points(f, frame=frame) for f in files]
+            return [f.name for f in files], [_read(f, k, frame, notes) for k, f in enumerate(files)]
         except PredictionInputError as exc:
             raise PredictionInputError(f"{exc}. A sequence's folder is read as its clouds: keep only the clouds "
                                        f"in {folder} (the tips and the output may stay), or name the cloud "
@@ -82,7 +85,15 @@ def read_sequence(paths: list[str | Path], skip=(), frame=None) -> tuple[list[st
                                        f"{stack.shape}")
         return ([f"{paths[0].name}[{k}]" for k in range(stack.shape[0])],
                 [np.asarray(c, dtype=np.float64) for c in stack])
-    return [p.name for p in paths], [read_points(p, frame=frame) for p in paths]
+    return [p.name for p in paths], [_read(p, k, frame, notes) for k, p in enumerate(paths)]
+
+
+def _read(path: Path, k: int, frame, notes: dict | None) -> np.ndarray:
+    """One cloud of a sequence (:func:`~liverforce.serve.files.read_cloud`), its note kept in ``notes[k]``."""
+    cloud, note = read_cloud(path, frame=frame)
+    if note is not None and notes is not None:
+        notes[k] = note
+    return cloud
 
 
 def read_tips(path: str | Path, n: int, frame=None) -> np.ndarray:

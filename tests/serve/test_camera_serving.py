@@ -224,6 +224,54 @@ def test_cli_reads_clouds_tips_and_the_unloaded_view_in_the_units_their_header_n
     assert rc == 2 and f"{frames / 'f1.csv'}: {said}" in out.err
 
 
+def test_cli_reads_a_depth_cameras_pcd_frames_dropping_their_nan_pixels(served, tmp_path, capsys):
+    """One cloud and a sequence folder of PCD frames (metres, NaN where a pixel had no depth): the forces of their
+    finite points, and each output says how many points were dropped from which file."""
+    from tests.serve.test_read_pcd import write_pcd, xyz
+
+    path, model, a = served
+    ctx, cloud, tip = _case(a, 3)
+    (tmp_path / "ctx.json").write_text(json.dumps(_context_in_metres(ctx, tmp_path)))
+    parser = argparse.ArgumentParser(prog="liverforce")
+    register_predict(parser.add_subparsers(dest="command", required=True))
+
+    def run(*argv):
+        args = parser.parse_args(["predict", "-m", str(path), *map(str, argv), "--context", str(tmp_path / "ctx.json"),
+                                  "--units", "m"])
+        return args.func(args), capsys.readouterr()
+
+    def organised(points, holes):  # 50 pixels a row, the holes' rows of NaN first
+        grid = np.vstack([np.full((holes, 3), np.nan), points / 1000.0])
+        return xyz(grid[: len(grid) // 50 * 50]), len(grid) // 50
+
+    pred = Predictor.from_dir(path)
+    columns, rows = organised(cloud, 100)
+    one = write_pcd(tmp_path / "cloud.pcd", columns, "binary_compressed", width=50, height=rows)
+    kept = rows * 50 - 100
+    rc, out = run(one, "--tool-tip", *(tip / 1000.0))
+    assert rc == 0, out.err
+    doc = json.loads(out.out)
+    np.testing.assert_allclose(doc["force_n"], pred.predict_cloud(cloud[:kept], ctx, tool_tip_mm=tip), atol=1e-6)
+    assert doc["warnings"][0] == (f"{one}: 100 of {rows * 50} points dropped, their coordinates NaN (PCL's mark of "
+                                  f"a pixel without depth in an organised cloud, here 50 x {rows}); {kept} read")
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    halves = [cloud[k::2] for k in range(2)]
+    write_pcd(frames / "f10.pcd", xyz(halves[1] / 1000.0), "binary")
+    columns, rows = organised(halves[0], 50)
+    write_pcd(frames / "f9.pcd", columns, "ascii", width=50, height=rows)
+    kept = rows * 50 - 50
+    rc, out = run(frames, "--tool-tip", *(tip / 1000.0))
+    assert rc == 0, out.err
+    got = json.loads(out.out)["rows"]
+    assert [r["cloud"] for r in got] == ["f9.pcd", "f10.pcd"]
+    for r, c in zip(got, (halves[0][:kept], halves[1])):
+        np.testing.assert_allclose([r["fx_n"], r["fy_n"], r["fz_n"]], pred.predict_cloud(c, ctx, tool_tip_mm=tip),
+                                   atol=1e-6)
+    assert got[0]["warnings"].startswith(f"{frames / 'f9.pcd'}: 50 of {rows * 50} points dropped")
+    assert "dropped" not in got[1]["warnings"]
+
+
 def test_the_mlflow_pyfunc_serves_the_camera_model_from_clouds(served, tmp_path):
     """Logged with an observed cloud as its input example; predicts from camera_cloud_mm + tool_tip_mm rows."""
     from liverforce.tracking import Tracker, load_pyfunc, predict_pyfunc

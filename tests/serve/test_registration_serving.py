@@ -90,6 +90,16 @@ def test_cli_refines_the_registration_from_the_unloaded_cloud(served, tmp_path, 
     np.testing.assert_allclose(np.asarray(reg["matrix"]), fix.matrix, atol=1e-9)
     assert np.linalg.norm(out["force_n"] - pred.predict_cloud(cloud, ctx, tool_tip_mm=tip)) < 0.1
     assert reg["shape_degree"] == 3 and len(reg["shape_coefficients"]) == 10 and len(reg["shape_R"]) == 3
+    # the unloaded view as a PCD with points of no measurement (NaN): the same refinement, and said
+    from tests.serve.test_read_pcd import write_pcd, xyz
+
+    before = np.vstack([np.full((20, 3), np.nan), move(_unloaded(a, i)) / 1000.0])
+    pcd = write_pcd(tmp_path / "before.pcd", xyz(before), "binary")
+    args = parser.parse_args(base + ["--unloaded", str(pcd)] + contact)
+    assert args.func(args) == 0
+    got = json.loads(capsys.readouterr().out)
+    np.testing.assert_allclose(got["force_n"], out["force_n"], atol=1e-9)
+    assert got["warnings"][0].startswith(f"{pcd}: 20 of {len(before)} points dropped, their coordinates NaN")
     # rigid only on request; --shape-degree without --unloaded is refused
     args = parser.parse_args(base + ["--unloaded", str(tmp_path / "before.npy"), "--shape-degree", "0"] + contact)
     assert args.func(args) == 0

@@ -1,0 +1,245 @@
+"""A camera's PCD files (PCL's Point Cloud Data, as ROS, PCL and Open3D write them) in ``liverforce predict``: each
+encoding read back to the points, the x y z fields of any layout, an organised cloud's NaN pixels dropped and said,
+the refusals, a sequence folder of frames, and the force of a PCD equal to that of the same cloud as .npy."""
+from __future__ import annotations
+
+import json
+import struct
+
+import numpy as np
+import pytest
+from pypcd4 import Encoding, PointCloud
+
+from liverforce.serve import Predictor, Preop
+from liverforce.serve.errors import PredictionInputError
+from liverforce.serve.files import read_cloud, read_points
+from liverforce.serve.sequence import read_sequence
+
+from tests.serve.test_predict_cli import context_doc, run
+
+ENCODINGS = ("ascii", "binary", "binary_compressed")
+
+
+def cloud(n=300, seed=0) -> np.ndarray:
+    """``n`` points in mm, 3 decimals (exact through an ascii PCD's ``%.10f``; repeated enough to compress)."""
+    return np.round(np.random.default_rng(seed).normal(scale=40.0, size=(n, 3)), 3)
+
+
+def write_pcd(path, columns: dict, encoding: str, width=None, height=1):
+    """A PCD file of ``columns`` (field name -> 1D array, their dtypes kept) with pypcd4, in ``encoding``.
+
+    pypcd4 writes ``binary`` instead of ``binary_compressed`` when LZF does not make the data smaller (a camera's
+    noisy coordinates): PCL writes them compressed all the same, the compressed and uncompressed sizes (two
+    uint32) and the LZF stream of the fields one after the other, as done here then."""
+    pc = PointCloud.from_points(list(columns.values()), tuple(columns), tuple(a.dtype for a in columns.values()))
+    if height != 1:
+        pc.metadata = pc.metadata.derive(width=width, height=height)
+    pc.save(path, encoding=Encoding(encoding))
+    if encoding == "binary_compressed" and b"\nDATA binary\n" in path.read_bytes()[:1000]:
+        import lzf
+
+        raw = b"".join(np.ascontiguousarray(pc.pc_data[f]).tobytes() for f in pc.pc_data.dtype.names)
+        packed = lzf.compress(raw, 2 * len(raw) + 16)
+        path.write_bytes(pc.metadata.compose_header(Encoding.BINARY_COMPRESSED).encode()
+                         + struct.pack("<II", len(packed), len(raw)) + packed)
+    assert f"\nDATA {encoding}\n".encode() in path.read_bytes()[:1000]
+    return path
+
+
+def xyz(P: np.ndarray, dtype=np.float64) -> dict:
+    return {"x": P[:, 0].astype(dtype), "y": P[:, 1].astype(dtype), "z": P[:, 2].astype(dtype)}
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("encoding", ENCODINGS)
+def test_each_encoding_reads_back_the_points(tmp_path, encoding, dtype):
+    P = cloud()
+    path = write_pcd(tmp_path / "cam.pcd", xyz(P, dtype), encoding)
+    got = read_points(path)
+    assert got.dtype == np.float64 and got.shape == P.shape
+    np.testing.assert_array_equal(got, P.astype(dtype).astype(np.float64))
+    got, note = read_cloud(path)  # a camera cloud without NaN: the same points, nothing said
+    np.testing.assert_array_equal(got, P.astype(dtype).astype(np.float64))
+    assert note is None
+    # the suffix in any case, as the other formats
+    path.rename(tmp_path / "CAM.PCD")
+    np.testing.assert_array_equal(read_points(tmp_path / "CAM.PCD"), P.astype(dtype).astype(np.float64))
+
+
+def test_an_ascii_file_written_by_hand_ignores_its_viewpoint_and_other_fields(tmp_path):
+    """The format as PCL documents it, independent of pypcd4's writer: a comment, packed rgb, a sensor pose."""
+    text = ("# .PCD v0.7 - Point Cloud Data file format\n"
+            "VERSION 0.7\n"
+            "FIELDS x y z rgb\n"
+            "SIZE 4 4 4 4\n"
+            "TYPE F F F F\n"
+            "COUNT 1 1 1 1\n"
+            "WIDTH 3\n"
+            "HEIGHT 1\n"
+            "VIEWPOINT 100 -50 20 0 1 0 0\n"  # the sensor 100 mm away, turned 180 degrees about x: not applied
+            "POINTS 3\n"
+            "DATA ascii\n"
+            "12.5 -3.25 40 4.2108e+06\n"
+            "0 0 0 4.2108e+06\n"
+            "-7.75 8 -1.5 4.808e+06\n")
+    (tmp_path / "hand.pcd").write_text(text)
+    want = np.array([[12.5, -3.25, 40.0], [0.0, 0.0, 0.0], [-7.75, 8.0, -1.5]])
+    np.testing.assert_array_equal(read_points(tmp_path / "hand.pcd"), want)
+    np.testing.assert_array_equal(read_points(tmp_path / "hand.pcd", units="cm"), want * 10.0)
+    # one point: a cloud of one row, not a scalar
+    (tmp_path / "one.pcd").write_text(text.replace("WIDTH 3", "WIDTH 1").replace("POINTS 3", "POINTS 1")
+                                      .rsplit("\n", 3)[0] + "\n")
+    np.testing.assert_array_equal(read_points(tmp_path / "one.pcd"), want[:1])
+
+
+def test_fields_in_another_order_with_extra_fields(tmp_path):
+    P = cloud(seed=1)
+    n = len(P)
+    columns = {"intensity": np.linspace(0, 1, n, dtype=np.float32), "z": P[:, 2], "normal_x": np.ones(n, np.float32),
+               "ring": np.arange(n, dtype=np.uint16) % 16, "y": P[:, 1].astype(np.float32), "x": P[:, 0],
+               "rgb": np.full(n, 4.2108e6, np.float32)}
+    for encoding in ENCODINGS:
+        got = read_points(write_pcd(tmp_path / f"{encoding}.pcd", columns, encoding))
+        np.testing.assert_array_equal(got, np.column_stack([P[:, 0], P[:, 1].astype(np.float32), P[:, 2]]))
+
+
+@pytest.mark.parametrize("encoding", ENCODINGS)
+def test_an_organised_cloud_drops_its_nan_pixels_and_says_how_many(tmp_path, encoding):
+    P = cloud(n=48, seed=2)
+    holes = np.zeros(48, bool)
+    holes[[0, 5, 6, 7, 20, 33, 40, 41, 46, 47]] = True
+    Q = P.copy()
+    Q[holes] = np.nan  # PCL's mark of a pixel without depth: x, y and z NaN
+    path = write_pcd(tmp_path / "depth.pcd", xyz(Q), encoding, width=8, height=6)
+    got, note = read_cloud(path)
+    np.testing.assert_array_equal(got, P[~holes])  # the finite points, in their order
+    assert note.startswith(f"{path}: 10 of 48 points dropped, their coordinates NaN") and "8 x 6" in note
+    assert note.endswith("38 read")
+    # read as ordered points (nodes), none is dropped: the NaN reach the checks, which refuse them
+    assert np.isnan(read_points(path)).any(axis=1).sum() == 10
+    # metres: the finite points scaled, the same note
+    got_m, note_m = read_cloud(write_pcd(tmp_path / "depth_m.pcd", xyz(Q / 1000.0), encoding, 8, 6), units="m")
+    np.testing.assert_allclose(got_m, P[~holes], rtol=1e-12, atol=1e-9)
+    assert "10 of 48 points dropped" in note_m
+
+
+def test_metres_are_read_with_units_m(tmp_path):
+    P = cloud(seed=3)
+    path = write_pcd(tmp_path / "m.pcd", xyz(P / 1000.0), "binary")
+    np.testing.assert_allclose(read_points(path, units="m"), P, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(read_cloud(path, units="m")[0], P, rtol=1e-12, atol=1e-9)
+
+
+def test_refusals_name_the_file_and_what_is_wrong(tmp_path):
+    P = cloud(n=200, seed=4)
+
+    def refused(path, match, reader=read_points):
+        with pytest.raises(PredictionInputError, match=match) as exc:
+            reader(path)
+        assert str(exc.value).startswith(f"{path}: ")
+        return str(exc.value)
+
+    nan = write_pcd(tmp_path / "blind.pcd", xyz(np.full((12, 3), np.nan)), "binary", width=4, height=3)
+    refused(nan, r"every one of its 12 points is NaN \(PCL's mark of a pixel without depth in an organised "
+                 r"cloud, here 4 x 3\): the camera saw no surface", read_cloud)
+    refused(write_pcd(tmp_path / "xy.pcd", {"x": P[:, 0], "y": P[:, 1], "intensity": P[:, 2]}, "binary"),
+            r"no 'z' field \(FIELDS x y intensity\)")
+    binary = write_pcd(tmp_path / "b.pcd", xyz(P), "binary").read_bytes()
+    (tmp_path / "cut.pcd").write_bytes(binary[:-24])  # one point short: pypcd4 alone reads 199 points
+    refused(tmp_path / "cut.pcd", r"its header says POINTS 200, its binary data holds 199: a truncated file")
+    (tmp_path / "cut_odd.pcd").write_bytes(binary[:-5])
+    assert "ascii" not in refused(tmp_path / "cut_odd.pcd", r"cannot read this PCD file's data \(ValueError: .*\): "
+                                                            r"a truncated or damaged file$")
+    ascii_ = write_pcd(tmp_path / "a.pcd", xyz(P), "ascii").read_bytes()
+    (tmp_path / "cut_a.pcd").write_bytes(ascii_.rsplit(b"\n", 2)[0] + b"\n")
+    refused(tmp_path / "cut_a.pcd", r"its header says POINTS 200, its ascii data holds 199")
+    packed = write_pcd(tmp_path / "c.pcd", xyz(P), "binary_compressed").read_bytes()
+    (tmp_path / "cut_c.pcd").write_bytes(packed[:-40])
+    refused(tmp_path / "cut_c.pcd", r"cannot read this PCD file's data .*: a truncated or damaged file$")
+    (tmp_path / "tabs.pcd").write_bytes(ascii_.replace(b" ", b"\t").replace(b"DATA\tascii", b"DATA ascii"))
+    refused(tmp_path / "tabs.pcd", r"a truncated or damaged file; an ascii PCD holds a line per point, its values "
+                                   r"separated by single spaces")
+    (tmp_path / "ply.pcd").write_text("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
+                                      "property float z\nend_header\n1 2 3\n")
+    said = refused(tmp_path / "ply.pcd", r"not a PCD file pypcd4 can read, its header wrong")
+    assert "FIELDS: Field required" in said and "COUNT: Field required" in said
+    (tmp_path / "noise.pcd").write_bytes(bytes(range(256)) * 4)
+    refused(tmp_path / "noise.pcd", r"not a PCD file \(its header is not text")
+    (tmp_path / "wh.pcd").write_bytes(binary.replace(b"WIDTH 200\n", b"WIDTH 20\n"))
+    refused(tmp_path / "wh.pcd", r"WIDTH 20 x HEIGHT 1 is not its POINTS 200")
+    (tmp_path / "q.pcd").write_bytes(binary.replace(b"FIELDS x y z", b"FIELDS x y q"))
+    refused(tmp_path / "q.pcd", r"no 'z' field \(FIELDS x y q\)")
+    (tmp_path / "x3.pcd").write_text("VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 3 1 1\nWIDTH 1\n"
+                                     "HEIGHT 1\nPOINTS 1\nDATA ascii\n1 2 3 4 5\n")
+    refused(tmp_path / "x3.pcd", r"its 'x' field has COUNT 3")
+    refused(tmp_path / "missing.pcd", "no such point-cloud file", read_cloud)
+
+
+def test_a_sequence_folder_of_pcd_frames_in_natural_order(tmp_path):
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    want = {}
+    for k in (10, 2, 1, 0):
+        P = cloud(n=60, seed=10 + k)
+        Q = P.copy()
+        if k == 2:
+            Q[:5] = np.nan
+        write_pcd(frames / f"frame_{k}.pcd", xyz(Q), ENCODINGS[k % 3], width=10, height=6)
+        want[f"frame_{k}.pcd"] = P[5:] if k == 2 else P
+    (frames / "tips.csv").write_text("0,0,0\n")  # skipped, as the command line skips its --tool-tips
+    notes: dict = {}
+    names, clouds = read_sequence([frames], skip=(frames / "tips.csv",), notes=notes)
+    assert names == ["frame_0.pcd", "frame_1.pcd", "frame_2.pcd", "frame_10.pcd"]
+    for name, c in zip(names, clouds):
+        np.testing.assert_array_equal(c, want[name])
+    assert list(notes) == [2] and notes[2].startswith(f"{frames / 'frame_2.pcd'}: 5 of 60 points dropped")
+    # files named one by one keep their order, and their notes their positions
+    notes = {}
+    names, _ = read_sequence([frames / "frame_2.pcd", frames / "frame_0.pcd"], notes=notes)
+    assert names == ["frame_2.pcd", "frame_0.pcd"] and list(notes) == [0]
+
+
+def test_predict_from_a_pcd_gives_the_force_of_the_same_cloud_as_npy(trained, test_cases, tmp_path, capsys):
+    model = trained("deformed")
+    ctx = Preop.from_arrays(test_cases, 1)
+    D = np.asarray(test_cases["roi_deformed_mm"][1], dtype=np.float64)
+    np.save(tmp_path / "roi.npy", ctx.roi_undeformed_mm)
+    (tmp_path / "ctx.json").write_text(json.dumps(context_doc(ctx, "roi.npy", with_state=False)))
+    np.save(tmp_path / "cloud.npy", D)
+    rc, out, err = run(["-m", model, tmp_path / "cloud.npy", "--context", tmp_path / "ctx.json"], capsys)
+    assert rc == 0, err
+    ref = json.loads(out)
+    assert ref["force_n"] == pytest.approx(Predictor.load(model).predict_cloud(D, ctx), abs=1e-12)
+    for encoding in ENCODINGS:
+        pcd = write_pcd(tmp_path / f"cloud_{encoding}.pcd", xyz(D), encoding)
+        rc, out, err = run(["-m", model, pcd, "--context", tmp_path / "ctx.json"], capsys)
+        assert rc == 0, err
+        doc = json.loads(out)
+        np.testing.assert_allclose(doc["force_n"], ref["force_n"], rtol=0, atol=1e-12)
+        assert doc["points_used"] == ref["points_used"] and doc["warnings"] == ref["warnings"]
+    # an organised cloud with holes: the same force from its finite points, and the output says what was dropped
+    n = len(D)
+    holes = np.full((n + 7, 3), np.nan)
+    holes[np.r_[0:3, 10:n + 7]] = D
+    pcd = write_pcd(tmp_path / "holes.pcd", xyz(holes), "binary_compressed", width=n + 7, height=1)
+    rc, out, err = run(["-m", model, pcd, "--context", tmp_path / "ctx.json", "--out", tmp_path / "f.json"], capsys)
+    assert rc == 0, err
+    doc = json.loads((tmp_path / "f.json").read_text())
+    np.testing.assert_allclose(doc["force_n"], ref["force_n"], rtol=0, atol=1e-12)
+    assert doc["warnings"] == [f"{pcd}: 7 of {n + 7} points dropped, their coordinates NaN (PCL's mark of a point "
+                               f"without a measurement); {n} read"] + ref["warnings"]
+    # ... but ordered nodes are not dropped: the same file as --mode nodes is refused for its NaN
+    rc, _, err = run(["-m", model, pcd, "--mode", "nodes", "--context", tmp_path / "ctx.json"], capsys)
+    assert rc == 2 and "NaN or inf" in err
+    # the same cloud in metres with --units m (the context in metres too)
+    in_m = Preop.from_dict({**ctx.to_dict(), "exertion_point_mm": ctx.exertion_point_mm / 1000})
+    np.save(tmp_path / "roi_m.npy", ctx.roi_undeformed_mm / 1000)
+    (tmp_path / "ctx_m.json").write_text(json.dumps(context_doc(in_m, "roi_m.npy", with_state=False)))
+    pcd = write_pcd(tmp_path / "cloud_m.pcd", xyz(D / 1000), "binary")
+    rc, out, err = run(["-m", model, pcd, "--context", tmp_path / "ctx_m.json", "--units", "m"], capsys)
+    assert rc == 0, err
+    np.testing.assert_allclose(json.loads(out)["force_n"], ref["force_n"], atol=1e-6)
+    # a PCD that is not one: exit 2, the file named
+    (tmp_path / "bad.pcd").write_text("not a point cloud\n")
+    rc, _, err = run(["-m", model, tmp_path / "bad.pcd", "--context", tmp_path / "ctx.json"], capsys)
+    assert rc == 2 and f"{tmp_path / 'bad.pcd'}: not a PCD file" in err
