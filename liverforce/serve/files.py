@@ -173,13 +173,14 @@ def read_points(path: str | Path, units: str | None = "mm", *, frame: InputFrame
     return pts.astype(np.float64) * unit_scale(units)
 
 
-def read_cloud(path: str | Path, units: str | None = "mm", *,
-               frame: InputFrame | None = None) -> tuple[np.ndarray, str | None]:
+def read_cloud(path: str | Path, units: str | None = "mm", *, frame: InputFrame | None = None,
+               empty: bool = False) -> tuple[np.ndarray, str | None]:
     """A camera cloud: :func:`read_points`, and for a ``.pcd`` file its NaN points dropped (an organised cloud's
     pixels without depth, PCL's convention), with a note that says how many of how many (None when none were).
 
     Other formats are read as :func:`read_points` reads them (a NaN in them is refused by the checks, as before). A
-    PCD whose every point is NaN is refused.
+    PCD whose every point is NaN is refused; with ``empty`` (a frame of a sequence, whose other frames go on) it
+    is read as no points, which the predictor refuses as that frame's row, and the note says why.
     """
     path = Path(path)
     if path.suffix.lower() != ".pcd" or not path.is_file():
@@ -192,8 +193,10 @@ def read_cloud(path: str | Path, units: str | None = "mm", *,
     why = (f"PCL's mark of a pixel without depth in an organised cloud, here {width} x {height}" if height > 1
            else "PCL's mark of a point without a measurement")
     if nan.all():
-        raise PredictionInputError(f"{path}: every one of its {len(pts)} points is NaN ({why}): the camera saw no "
-                                   "surface in this frame; give a frame that sees the liver")
+        said = f"{path}: every one of its {len(pts)} points is NaN ({why}): the camera saw no surface in this frame"
+        if empty:
+            return pts[:0], said
+        raise PredictionInputError(f"{said}; give a frame that sees the liver")
     return pts[~nan], (f"{path}: {int(nan.sum())} of {len(pts)} points dropped, their coordinates NaN ({why}); "
                        f"{int((~nan).sum())} read")
 

@@ -90,7 +90,7 @@ def read_sequence(paths: list[str | Path], skip=(), frame=None,
 
 def _read(path: Path, k: int, frame, notes: dict | None) -> np.ndarray:
     """One cloud of a sequence (:func:`~liverforce.serve.files.read_cloud`), its note kept in ``notes[k]``."""
-    cloud, note = read_cloud(path, frame=frame)
+    cloud, note = read_cloud(path, frame=frame, empty=True)  # a frame without a point is refused as its row
     if note is not None and notes is not None:
         notes[k] = note
     return cloud

@@ -261,10 +261,15 @@ def test_cli_reads_a_depth_cameras_pcd_frames_dropping_their_nan_pixels(served, 
     columns, rows = organised(halves[0], 50)
     write_pcd(frames / "f9.pcd", columns, "ascii", width=50, height=rows)
     kept = rows * 50 - 50
+    write_pcd(frames / "f11.pcd", xyz(np.full((100, 3), np.nan)), "binary", width=50, height=2)  # nothing seen
     rc, out = run(frames, "--tool-tip", *(tip / 1000.0))
     assert rc == 0, out.err
     got = json.loads(out.out)["rows"]
-    assert [r["cloud"] for r in got] == ["f9.pcd", "f10.pcd"]
+    assert [r["cloud"] for r in got] == ["f9.pcd", "f10.pcd", "f11.pcd"]
+    assert got[2]["refused"] and got[2]["fx_n"] is None  # that frame's row only: the others go on
+    assert got[2]["warnings"].startswith(f"{frames / 'f11.pcd'}: every one of its 100 points is NaN")
+    assert not got[0]["refused"] and not got[1]["refused"]
+    got = got[:2]
     for r, c in zip(got, (halves[0][:kept], halves[1])):
         np.testing.assert_allclose([r["fx_n"], r["fy_n"], r["fz_n"]], pred.predict_cloud(c, ctx, tool_tip_mm=tip),
                                    atol=1e-6)
