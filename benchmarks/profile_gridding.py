@@ -237,8 +237,8 @@ def against(pred, preop, fast, batch, tips) -> None:
         for what in ("grid", "head"):
             ratios = np.array(t[f"{what} new"]) / np.array(t[f"{what} old"])
             print(f"  {what}: new {med[what + ' new']:.1f}, old {med[what + ' old']:.1f}, new / old "
-                  f"{med[what + ' new'] / med[what + ' old']:.3f} (per round {np.min(ratios):.3f} - "
-                  f"{np.max(ratios):.3f})")
+                  f"{med[what + ' new'] / med[what + ' old']:.3f}; per round median {np.median(ratios):.3f}, "
+                  f"quartiles {np.percentile(ratios, 25):.3f} - {np.percentile(ratios, 75):.3f}")
         print(f"  feature rows: max |diff| {dx:.1e}, masks {'identical' if same_mask else 'DIFFERENT'}; head "
               f"forces max |diff| {dF:.1e} N")
 
