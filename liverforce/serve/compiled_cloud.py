@@ -812,57 +812,131 @@ _H2 = 2246822519
 _TINY = 1e-280  # added to the dent fit's last two diagonal entries: a zero pivot becomes 1e-140, not a 0 division
 
 
-@njit(cache=True)
-def _dent_fit(GUs, GVs, Zs, n, h, gstep, tu, tv, a, rd, min_points, cloud_tol):
-    """``(amplitude, offset)`` of :func:`liverforce.learn.cloud_features.fit_dent` from the sorted, distinct points
-    ``[0, n)`` (grid-index coordinates ``GUs, GVs``, the instrument's moved far off the grid; height change
-    ``Zs``), round the axis ``(tu, tv)``: the same least squares, by its normal equations in the same scaled
-    columns and the same pivot test (``cloud_tol``: ``DENT_PIVOT_TOL``). Fewer than ``min_points`` points or a
-    singular system: zeros."""
+# asin by fdlibm's rational approximations (e_asin.c; within 1 ulp of the C library's): branch-free, so the dent
+# fit's loop runs in SIMD lanes (numba's wheels have no vector asin: a libm call per point took 16 ns)
+_PIO2_HI = 1.57079632679489655800e+00
+_PIO2_LO = 6.12323399573676603587e-17
+_PIO4_HI = 7.85398163397448278999e-01
+_PS0, _PS1, _PS2 = 1.66666666666666657415e-01, -3.25565818622400915405e-01, 2.01212532134862925881e-01
+_PS3, _PS4, _PS5 = -4.00555345006794114027e-02, 7.91534994289814532176e-04, 3.47933107596021167570e-05
+_QS1, _QS2 = -2.40339491173441421878e+00, 2.02094576023350569471e+00
+_QS3, _QS4 = -6.88283971605453293030e-01, 7.70381505559019352791e-02
+
+
+@njit(cache=True, error_model="numpy", fastmath=False)  # not a caller's fast-math (numba passes it on to a
+# function that sets none): the split of s below needs exact IEEE steps
+def _asin01(x):
+    """``asin(x)`` for ``0 <= x <= 1``, as fdlibm's ``__ieee754_asin`` computes it (its three ranges, each
+    evaluated and one selected: no branch), within 1 ulp of ``math.asin``. In ``[0.5, 0.975)`` fdlibm splits
+    ``s = sqrt(t)`` by clearing its low word; here by Veltkamp's split (``w`` its high 26 bits: ``w * w`` exact)."""
+    big = x >= 0.5
+    t = (1.0 - x) * 0.5 if big else x * x
+    p = t * (_PS0 + t * (_PS1 + t * (_PS2 + t * (_PS3 + t * (_PS4 + t * _PS5)))))
+    q = 1.0 + t * (_QS1 + t * (_QS2 + t * (_QS3 + t * _QS4)))
+    r = p / q
+    s = math.sqrt(t)
+    sh = s * 134217729.0  # 2^27 + 1
+    w = sh - (sh - s)
+    c = (t - w * w) / (s + w)  # (0 / 0 at x = 1: NaN, not selected)
+    mid = _PIO4_HI - ((2.0 * s * r - (_PIO2_LO - 2.0 * c)) - (_PIO4_HI - 2.0 * w))
+    top = _PIO2_HI - (2.0 * (s + s * r) - _PIO2_LO)
+    return (top if x >= 0.975 else mid) if big else x + x * r
+
+
+@njit(cache=True, fastmath={"reassoc", "nsz"}, error_model="numpy")  # reassociated sums: vectorised
+def _dent_sums(GUs, GVs, Zs, a0, e0, h, gstep, tu, tv, a, rd, S):
+    """Add to ``S`` (14) the normal equations' sums of :func:`_dent_fit` over the points ``[a0, e0)``, branch-free
+    (a point beyond ``rd`` of the axis adds exact zeros; :func:`_asin01`); returns the points within ``rd``."""
     rd2 = rd * rd
     inv = 1.0 / rd
     c = 2.0 / math.pi
     a00 = a01 = a02 = a03 = a11 = a12 = a13 = a22 = a23 = a33 = 0.0
     b0 = b1 = b2 = b3 = 0.0
     k = 0
-    for s in range(n):
+    for s in range(np.uint64(a0), np.uint64(e0)):
         du = GUs[s] * gstep - h - tu
         dv = GVs[s] * gstep - h - tv
         r2 = du * du + dv * dv
-        if r2 < rd2:
-            r = math.sqrt(r2)
-            gq = c * math.asin(min(1.0, a / max(r, 1e-12)))
-            p1 = du * inv
-            p2 = dv * inv
-            z = Zs[s]
-            a00 += 1.0
-            a01 += p1
-            a02 += p2
-            a03 += gq
-            a11 += p1 * p1
-            a12 += p1 * p2
-            a13 += p1 * gq
-            a22 += p2 * p2
-            a23 += p2 * gq
-            a33 += gq * gq
-            b0 += z
-            b1 += p1 * z
-            b2 += p2 * z
-            b3 += gq * z
-            k += 1
+        inside = r2 < rd2
+        gq = c * _asin01(min(1.0, a / max(math.sqrt(r2), 1e-12)))
+        p1 = du * inv if inside else 0.0
+        p2 = dv * inv if inside else 0.0
+        gq = gq if inside else 0.0
+        z = Zs[s] if inside else 0.0
+        a00 += 1.0 if inside else 0.0
+        a01 += p1
+        a02 += p2
+        a03 += gq
+        a11 += p1 * p1
+        a12 += p1 * p2
+        a13 += p1 * gq
+        a22 += p2 * p2
+        a23 += p2 * gq
+        a33 += gq * gq
+        b0 += z
+        b1 += p1 * z
+        b2 += p2 * z
+        b3 += gq * z
+        k += inside
+    S[0] += a00
+    S[1] += a01
+    S[2] += a02
+    S[3] += a03
+    S[4] += a11
+    S[5] += a12
+    S[6] += a13
+    S[7] += a22
+    S[8] += a23
+    S[9] += a33
+    S[10] += b0
+    S[11] += b1
+    S[12] += b2
+    S[13] += b3
+    return k
+
+
+@njit(cache=True)
+def _dent_solve(S, k, min_points, cloud_tol):
+    """``(amplitude, offset)`` from the sums ``S`` of :func:`_dent_sums` over ``k`` points (:func:`_dent_fit`)."""
     if k < min_points:
         return 0.0, 0.0
+    a00, a01, a02, a03, a11, a12, a13, a22, a23, a33 = S[0], S[1], S[2], S[3], S[4], S[5], S[6], S[7], S[8], S[9]
     # a pivot of the normal matrix's Cholesky factor at most cloud_tol of its diagonal entry: singular (e.g. the
     # points on one line through the axis, or on one circle round it), as cloud_features.fit_dent decides. The
     # last two pivots come from the solve, on a matrix nudged by _TINY so that a zero pivot divides nothing
     if not a11 - a01 * a01 / a00 > cloud_tol * a11:
         return 0.0, 0.0
-    x0, _, _, x3, l22, _, l33 = _spd4_solve(a00, a01, a02, a03, a11, a12, a13, a22 + _TINY, a23, a33 + _TINY, b0, b1,
-                                            b2, b3)
+    x0, _, _, x3, l22, _, l33 = _spd4_solve(a00, a01, a02, a03, a11, a12, a13, a22 + _TINY, a23, a33 + _TINY, S[10],
+                                            S[11], S[12], S[13])
     if not (l22 * l22 - _TINY > cloud_tol * a22 and l33 * l33 - _TINY > cloud_tol * a33
             and math.isfinite(x0) and math.isfinite(x3)):
         return 0.0, 0.0
     return x3, x0
+
+
+@njit(cache=True)
+def _dent_fit(GUs, GVs, Zs, n, h, gstep, tu, tv, a, rd, min_points, cloud_tol):
+    """``(amplitude, offset)`` of :func:`liverforce.learn.cloud_features.fit_dent` from the points ``[0, n)``
+    (grid-index coordinates ``GUs, GVs``, the instrument's moved far off the grid; height change ``Zs``), round
+    the axis ``(tu, tv)``: the same least squares, by its normal equations in the same scaled columns and the same
+    pivot test (``cloud_tol``: ``DENT_PIVOT_TOL``), the sums in SIMD lanes (:func:`_dent_sums`; the reference's
+    to rounding). Fewer than ``min_points`` points or a singular system: zeros."""
+    S = np.zeros(14)
+    return _dent_solve(S, _dent_sums(GUs, GVs, Zs, 0, n, h, gstep, tu, tv, a, rd, S), min_points, cloud_tol)
+
+
+@njit(cache=True)
+def _dent_fit_bins(GUs, GVs, Zs, first, sb, pad, nc, h, gstep, tu, tv, a, rd, min_points, cloud_tol):
+    """:func:`_dent_fit` of the sorted points (bins as :func:`_grid_one` sorts them), reading only the bins within
+    ``rd`` of the axis (and a bin of margin): one run per group of ``sb`` bin rows."""
+    S = np.zeros(14)
+    r_lo, r_hi, c_lo, c_hi = _bin_box(tu, tv, rd / gstep + 1.0 / sb, h, gstep, sb, pad, nc)
+    row = nc * sb
+    k = 0
+    for p in range(r_lo // sb, r_hi // sb + 1):
+        k += _dent_sums(GUs, GVs, Zs, first[p * row + c_lo * sb], first[p * row + (c_hi + 1) * sb], h, gstep, tu,
+                        tv, a, rd, S)
+    return _dent_solve(S, k, min_points, cloud_tol)
 
 
 @njit(cache=True)
@@ -1163,8 +1237,8 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
             _cell_moments(GUs, GVs, Zs, first, g, kr, sb, pad, nc, exact, M)
             n_valid = _cell_planes(M, g, kr, linear, min_points, max_leverage, Hc, valid, Bu, Bv)
     if inst[10] > 0.0:  # the dent round the tool's axis, from the liver's distinct points
-        x[2 * gg], x[2 * gg + 1] = _dent_fit(GUs, GVs, Zs, first[nc * nc], h, gstep, tu, tv, inst[0], inst[10],
-                                             inst[11], inst[12])
+        x[2 * gg], x[2 * gg + 1] = _dent_fit_bins(GUs, GVs, Zs, first, sb, pad, nc, h, gstep, tu, tv, inst[0],
+                                                  inst[10], inst[11], inst[12])
     # 5. fill of the cells the camera does not see
     if fill == 1 and 0 < n_valid < gg:
         _laplace_fill(Hc, valid, g, idx, unk, Lb, rhs, y)

@@ -270,3 +270,52 @@ def test_the_compiled_fit_gives_no_dent_where_the_reference_gives_none():
     got, want = both(ru, rv, punch(ru, rv, 2.0) + 0.3 * ru + rng.normal(0, 0.5, ru.size))
     np.testing.assert_allclose(got, want, atol=1e-9)
     assert want[0] == pytest.approx(-2.0, abs=0.5)
+
+
+def test_the_compiled_asin_is_the_c_librarys_to_one_ulp():
+    """serve.compiled_cloud._asin01 (fdlibm's approximations, branch-free, for the dent fit's SIMD loop) against
+    math.asin over [0, 1]: within 1 ulp everywhere, exact at the ends of its ranges (0, 0.5, 0.975, 1) and at
+    the points next to them, and in each of its three ranges."""
+    from liverforce.serve.compiled_cloud import _asin01
+
+    rng = np.random.default_rng(3)
+    ends = [0.0, 0.5, 0.975, 1.0]
+    x = np.concatenate([rng.uniform(0.0, 1.0, 20000), rng.uniform(0.5, 0.975, 20000), rng.uniform(0.975, 1.0, 5000),
+                        ends, [np.nextafter(e, 0.5) for e in ends], [1e-300, 1e-8, np.nextafter(1.0, 0.0)]])
+    got = np.array([_asin01(float(t)) for t in x])
+    want = np.array([math.asin(float(t)) for t in x])
+    ulp = np.spacing(np.maximum(np.abs(want), 1e-300))
+    assert (np.abs(got - want) <= ulp).all(), x[np.abs(got - want) > ulp][:5]
+    assert got[-10:-7].tolist() == [math.asin(e) for e in ends[1:]] and got[-11] == 0.0
+
+
+def test_the_compiled_dent_fit_reads_every_point_within_its_radius_from_the_sort_bins():
+    """serve.compiled_cloud._dent_fit_bins (the bins within the dent radius of the axis, as _grid_one sorts the
+    points) against _dent_fit over every point: the same fit to rounding, for axes in the middle, near and off
+    the grid's edge, and on points placed just inside and just outside the dent radius on the bins' edges."""
+    from liverforce.serve import compiled_cloud as cc
+
+    sp = spec()
+    g, h, step, kr = sp.grid_size, sp.half_width_mm, sp.spacing_mm, sp.kernel_radius_cells
+    sb, pad, nc, _ = cc._bins(g, kr)
+    rng = np.random.default_rng(5)
+    reach = h + kr * step
+    for tu, tv in ((0.0, 0.0), (3.3, -7.1), (-18.0, 16.5), (reach - 1.0, 0.0)):
+        u, v = rng.uniform(-reach, reach, 6000), rng.uniform(-reach, reach, 6000)
+        t = rng.uniform(0.0, 2.0 * math.pi, 400)
+        rim = np.concatenate([np.full(200, np.nextafter(sp.dent_radius_mm, 0.0)), np.full(200, sp.dent_radius_mm)])
+        u = np.concatenate([u, tu + rim * np.cos(t)])
+        v = np.concatenate([v, tv + rim * np.sin(t)])
+        keep = (np.abs(u) < reach) & (np.abs(v) < reach)
+        u, v = u[keep], v[keep]
+        GU, GV = (u + h) / step, (v + h) / step
+        z = punch(u, v, 2.0, (tu, tv)) + 0.3 * u + rng.normal(0.0, 0.3, u.size)
+        key = np.array([cc._bin_key(a, b, sb, pad, nc) for a, b in zip(GU, GV)])
+        order = np.argsort(key, kind="stable")
+        first = np.zeros(nc * nc + 1, dtype=np.int32)
+        first[1:] = np.cumsum(np.bincount(key, minlength=nc * nc))
+        args = (h, step, tu, tv, R_TOOL, sp.dent_radius_mm, DENT_MIN_POINTS, 1e-10)
+        want = cc._dent_fit(GU, GV, z, len(GU), *args)
+        got = cc._dent_fit_bins(GU[order], GV[order], z[order], first, sb, pad, nc, *args)
+        assert want[0] < -1.0
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
