@@ -235,7 +235,7 @@ def _run(args) -> int:
     if args.mesh:
         overrides["mesh"] = str(Path(args.mesh).absolute())
     preop, frame = read_context(args.context, predictor, overrides=overrides)
-    notes = []  # what reading the camera clouds did (a PCD's NaN points dropped): the output's warnings
+    notes = []  # what reading the camera clouds did (a PCD's NaN or inf points dropped): the output's warnings
     pts = None
     if not sequence and args.mode == "cloud":
         pts, note = read_cloud(args.points[0], frame=frame)
@@ -295,8 +295,8 @@ def _run(args) -> int:
 def _sequence(args, predictor, preop, frame, fix, notes: list[str]) -> int:
     """``liverforce predict`` of a recorded sequence of clouds (:mod:`liverforce.serve.sequence`): one row per
     cloud to ``--out`` (.csv, .parquet or .json), a summary (and the rows, without ``--out``) on stdout. ``notes``:
-    what reading ``--unloaded`` did (the summary's ``warnings``); a cloud's own (a PCD's NaN points dropped) lead its
-    row's warnings."""
+    what reading ``--unloaded`` did (the summary's ``warnings``); a cloud's own (a PCD's NaN or inf points dropped)
+    lead its row's warnings."""
     from liverforce.atomic import write_text_atomic
     from liverforce.serve.files import write_frame
     from liverforce.serve.sequence import predict_sequence, read_sequence, read_tips

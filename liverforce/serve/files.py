@@ -15,7 +15,8 @@ Point clouds (``read_points``), one point per row, mm unless ``units`` says othe
   fields, rgb, intensity, normals, ignored). Its ``VIEWPOINT`` is the sensor's pose when it recorded, not a
   transform of the points: it is not applied (the points are taken as they are, in ``--units`` and ``--frame``).
   An organised cloud (``HEIGHT`` > 1, a depth camera's image) marks a pixel without depth with NaN
-  coordinates: :func:`read_cloud`, the camera clouds' reader, drops those points and says how many
+  coordinates (a stereo camera's driver a depth out of its range with inf): :func:`read_cloud`, the camera clouds'
+  reader, drops every point with a coordinate that is not finite, as PCL's ``isFinite`` does, and says how many
   (:func:`read_points` keeps them, so ordered nodes are refused for them as for any other file).
 
 A text file whose header names a unit for every column (``x_mm,y_mm,z_mm``, ``X [m]``) is refused when the
@@ -175,30 +176,37 @@ def read_points(path: str | Path, units: str | None = "mm", *, frame: InputFrame
 
 def read_cloud(path: str | Path, units: str | None = "mm", *, frame: InputFrame | None = None,
                empty: bool = False) -> tuple[np.ndarray, str | None]:
-    """A camera cloud: :func:`read_points`, and for a ``.pcd`` file its NaN points dropped (an organised cloud's
-    pixels without depth, PCL's convention), with a note that says how many of how many (None when none were).
+    """A camera cloud: :func:`read_points`, and for a ``.pcd`` file its points that are not finite dropped (NaN: an
+    organised cloud's pixels without depth, PCL's convention; inf: a stereo camera's depth out of its range, as
+    some drivers mark it; a point with any such coordinate, as PCL's ``isFinite``), with a note that says how many
+    of how many (None when none were).
 
     Other formats are read as :func:`read_points` reads them (a NaN in them is refused by the checks, as before). A
-    PCD whose every point is NaN is refused; with ``empty`` (a frame of a sequence, whose other frames go on) it
-    is read as no points, which the predictor refuses as that frame's row, and the note says why.
+    PCD none of whose points is finite is refused; with ``empty`` (a frame of a sequence, whose other frames go on)
+    it is read as no points, which the predictor refuses as that frame's row, and the note says why.
     """
     path = Path(path)
     if path.suffix.lower() != ".pcd" or not path.is_file():
         return read_points(path, units, frame=frame), None
     pts, width, height = _read_pcd(path)
     pts = pts * unit_scale(units)
-    nan = np.isnan(pts).any(axis=1)
-    if not nan.any():
+    bad = ~np.isfinite(pts).all(axis=1)
+    if not bad.any():
         return pts, None
-    why = (f"PCL's mark of a pixel without depth in an organised cloud, here {width} x {height}" if height > 1
-           else "PCL's mark of a point without a measurement")
-    if nan.all():
-        said = f"{path}: every one of its {len(pts)} points is NaN ({why}): the camera saw no surface in this frame"
+    nan, inf = np.isnan(pts).any(), np.isinf(pts).any()
+    what = " or ".join(w for w, found in (("NaN", nan), ("inf", inf)) if found)
+    why = "; ".join(w for w, found in (
+        (f"PCL's mark of a pixel without depth in an organised cloud, here {width} x {height}" if height > 1
+         else "PCL's mark of a point without a measurement", nan),
+        (f"{'inf: ' if nan else ''}a depth camera's mark of a depth out of its range", inf)) if found)
+    if bad.all():
+        said = (f"{path}: every one of its {len(pts)} points is {what} ({why}): the camera saw no surface in this "
+                "frame")
         if empty:
             return pts[:0], said
         raise PredictionInputError(f"{said}; give a frame that sees the liver")
-    return pts[~nan], (f"{path}: {int(nan.sum())} of {len(pts)} points dropped, their coordinates NaN ({why}); "
-                       f"{int((~nan).sum())} read")
+    return pts[~bad], (f"{path}: {int(bad.sum())} of {len(pts)} points dropped, their coordinates {what} ({why}); "
+                       f"{int((~bad).sum())} read")
 
 
 def _read_table(path: Path) -> np.ndarray:

@@ -61,7 +61,7 @@ def read_sequence(paths: list[str | Path], skip=(), frame=None,
     kept there); or one ``.npy`` file of shape (T, N, 3) (names ``file.npy[k]``). ``frame``: the inputs'
     :class:`~liverforce.serve.input_frame.InputFrame` (None: mm), whose units a text file's header may not
     contradict (:func:`~liverforce.serve.files.check_header_units`). Each file is read as a camera cloud
-    (:func:`~liverforce.serve.files.read_cloud`: a PCD's NaN points dropped); ``notes``, a dict given here, gets
+    (:func:`~liverforce.serve.files.read_cloud`: a PCD's NaN or inf points dropped); ``notes``, a dict given here, gets
     the note of each cloud that had some dropped, by its position (from 0).
     """
     paths = [Path(p) for p in paths]

@@ -123,6 +123,35 @@ def test_an_organised_cloud_drops_its_nan_pixels_and_says_how_many(tmp_path, enc
     assert "10 of 48 points dropped" in note_m
 
 
+def test_points_at_inf_are_dropped_too_as_pcl_drops_what_is_not_finite(tmp_path):
+    """A stereo camera's driver marks a pixel whose depth is out of its range with inf (the ZED's: +inf too far,
+    -inf too close; NaN occluded): such a point is no measurement either, and one inf in a cloud kept for the
+    checks refused the whole cloud ("drop invalid points before predicting") though the reader says it drops them."""
+    P = cloud(n=48, seed=5)
+    Q = P.copy()
+    Q[[1, 2]] = np.nan
+    Q[[10, 11, 12], 2] = np.inf
+    Q[30, 0] = -np.inf  # one coordinate alone
+    for encoding in ENCODINGS:
+        path = write_pcd(tmp_path / f"zed_{encoding}.pcd", xyz(Q / 1000.0), encoding, width=8, height=6)
+        got, note = read_cloud(path, units="m")
+        keep = np.isfinite(Q).all(axis=1)
+        np.testing.assert_allclose(got, P[keep], rtol=1e-12, atol=1e-9)
+        assert note == (f"{path}: 6 of 48 points dropped, their coordinates NaN or inf (PCL's mark of a pixel "
+                        "without depth in an organised cloud, here 8 x 6; inf: a depth camera's mark of a depth out "
+                        "of its range); 42 read")
+    # inf alone, and a frame that saw nothing but the too-far
+    path = write_pcd(tmp_path / "far.pcd", xyz(np.where(np.arange(48)[:, None] < 8, np.inf, P)), "binary", 8, 6)
+    assert read_cloud(path)[1] == (f"{path}: 8 of 48 points dropped, their coordinates inf (a depth camera's mark "
+                                   "of a depth out of its range); 40 read")
+    path = write_pcd(tmp_path / "void.pcd", xyz(np.full((12, 3), np.inf)), "binary", width=4, height=3)
+    with pytest.raises(PredictionInputError, match=r"every one of its 12 points is inf \(a depth camera's mark of a "
+                                                   r"depth out of its range\): the camera saw no surface"):
+        read_cloud(path)
+    got, note = read_cloud(path, empty=True)  # a sequence's frame: no points, refused as its own row
+    assert got.shape == (0, 3) and note.startswith(f"{path}: every one of its 12 points is inf")
+
+
 def test_metres_are_read_with_units_m(tmp_path):
     P = cloud(seed=3)
     path = write_pcd(tmp_path / "m.pcd", xyz(P / 1000.0), "binary")
@@ -228,6 +257,12 @@ def test_predict_from_a_pcd_gives_the_force_of_the_same_cloud_as_npy(trained, te
     np.testing.assert_allclose(doc["force_n"], ref["force_n"], rtol=0, atol=1e-12)
     assert doc["warnings"] == [f"{pcd}: 7 of {n + 7} points dropped, their coordinates NaN (PCL's mark of a point "
                                f"without a measurement); {n} read"] + ref["warnings"]
+    # points at inf (a stereo camera's depth out of range) are dropped as well: the same force
+    holes[3:6] = np.inf
+    pcd_inf = write_pcd(tmp_path / "inf.pcd", xyz(holes), "binary", width=n + 7, height=1)
+    rc, out, err = run(["-m", model, pcd_inf, "--context", tmp_path / "ctx.json"], capsys)
+    assert rc == 0, err
+    np.testing.assert_allclose(json.loads(out)["force_n"], ref["force_n"], rtol=0, atol=1e-12)
     # ... but ordered nodes are not dropped: the same file as --mode nodes is refused for its NaN
     rc, _, err = run(["-m", model, pcd, "--mode", "nodes", "--context", tmp_path / "ctx.json"], capsys)
     assert rc == 2 and "NaN or inf" in err
