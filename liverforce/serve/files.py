@@ -126,8 +126,10 @@ def _read_pcd(path: Path) -> tuple[np.ndarray, int, int]:
                                    f"POINTS {meta.points}: a damaged header")
     for axis in "xyz":
         if axis not in meta.fields:
-            raise PredictionInputError(f"{path}: no '{axis}' field (FIELDS {' '.join(meta.fields)}); a point cloud's "
-                                       "PCD has x, y and z")
+            # the header's own names: pypcd4 renames each of PCL's padding fields '_' to '#$%&~~' + 6 random letters
+            fields = " ".join("_" if f.startswith("#$%&~~") else f for f in meta.fields)
+            raise PredictionInputError(f"{path}: no '{axis}' field (FIELDS {fields}); a point cloud's PCD has x, y "
+                                       "and z")
         if meta.count[meta.fields.index(axis)] != 1:
             raise PredictionInputError(f"{path}: its '{axis}' field has COUNT {meta.count[meta.fields.index(axis)]}; "
                                        "x, y and z are one number each")

@@ -103,6 +103,36 @@ def test_fields_in_another_order_with_extra_fields(tmp_path):
         np.testing.assert_array_equal(got, np.column_stack([P[:, 0], P[:, 1].astype(np.float32), P[:, 2]]))
 
 
+def test_pcls_binary_padding_fields_are_skipped_and_named_as_written(tmp_path):
+    """PCL's binary writer (savePCDFileBinary) keeps a point type's padding as fields named '_' of U bytes: a
+    PointXYZ is ``x y z _`` (COUNT 1 1 1 4), a PointXYZRGB ``x y z _ rgb _``. The points read as written, and a
+    header that lacks a coordinate is quoted as written, not with the names pypcd4 gives '_' inside."""
+    P = np.array([[1.5, -2.25, 30.0], [4.0, 5.0, -6.5], [np.nan] * 3, [7.0, 8.0, 9.0]], np.float32)
+
+    def pcl_binary(name, fields, sizes, types, counts, dtype):
+        rec = np.zeros(len(P), dtype=dtype)
+        for k, axis in enumerate("xyz"):
+            if axis in rec.dtype.names:
+                rec[axis] = P[:, k]
+        head = (f"# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS {fields}\nSIZE {sizes}\n"
+                f"TYPE {types}\nCOUNT {counts}\nWIDTH 2\nHEIGHT 2\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 4\nDATA binary\n")
+        (tmp_path / name).write_bytes(head.encode() + rec.tobytes())
+        return tmp_path / name
+
+    xyz_ = pcl_binary("xyz.pcd", "x y z _", "4 4 4 1", "F F F U", "1 1 1 4",
+                      [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("pad", "u1", 4)])
+    rgb = pcl_binary("rgb.pcd", "x y z _ rgb _", "4 4 4 1 4 1", "F F F U F U", "1 1 1 4 1 12",
+                     [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("p", "u1", 4), ("rgb", "<f4"), ("q", "u1", 12)])
+    for path in (xyz_, rgb):
+        got, note = read_cloud(path)
+        np.testing.assert_array_equal(got, P[[0, 1, 3]].astype(np.float64))
+        assert "1 of 4 points dropped" in note
+    no_z = pcl_binary("noz.pcd", "x y _ rgb _", "4 4 1 4 1", "F F U F U", "1 1 4 1 12",
+                      [("x", "<f4"), ("y", "<f4"), ("p", "u1", 4), ("rgb", "<f4"), ("q", "u1", 12)])
+    with pytest.raises(PredictionInputError, match=r"no 'z' field \(FIELDS x y _ rgb _\); a point cloud's PCD has"):
+        read_points(no_z)
+
+
 @pytest.mark.parametrize("encoding", ENCODINGS)
 def test_an_organised_cloud_drops_its_nan_pixels_and_says_how_many(tmp_path, encoding):
     P = cloud(n=48, seed=2)
