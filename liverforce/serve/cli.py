@@ -52,6 +52,7 @@ import argparse
 import json
 import re
 import sys
+from contextlib import contextmanager
 from functools import partial
 from pathlib import Path
 from typing import Callable
@@ -254,15 +255,17 @@ def _run(args) -> int:
     if args.unloaded:
         unloaded, note = read_cloud(args.unloaded, frame=frame)
         notes += [note] if note else []
-        fix = predictor.refine_registration(frame.points(unloaded), preop,
-                                            None if args.contact_tip is None else frame.points(args.contact_tip),
-                                            shape_degree=args.shape_degree)
+        with _saying(notes):
+            fix = predictor.refine_registration(frame.points(unloaded), preop,
+                                                None if args.contact_tip is None else frame.points(args.contact_tip),
+                                                shape_degree=args.shape_degree)
     if sequence:
         return _sequence(args, predictor, preop, frame, fix, notes)
     if args.mode == "cloud":
         tip = None if args.tool_tip is None else frame.points(args.tool_tip)
-        force, extra = predictor.predict_cloud(pts, preop, approximate=args.approximate, tool_tip_mm=tip,
-                                               return_info=True, registration=fix, input_frame=frame)
+        with _saying(notes):
+            force, extra = predictor.predict_cloud(pts, preop, approximate=args.approximate, tool_tip_mm=tip,
+                                                   return_info=True, registration=fix, input_frame=frame)
         info.update(extra)
         info["warnings"] = notes + info["warnings"]
     else:
@@ -290,6 +293,18 @@ def _run(args) -> int:
         write_text_atomic(args.out, json.dumps(doc, indent=2) + "\n")
     print(json.dumps(doc))
     return 0
+
+
+@contextmanager
+def _saying(notes: list[str]):
+    """A refusal raised inside says what reading the clouds did (a PCD's points dropped), after its own reason:
+    a cloud refused for too few points may be a depth camera's frame that was mostly pixels without depth."""
+    try:
+        yield
+    except PredictionInputError as exc:
+        if not notes:
+            raise
+        raise PredictionInputError(f"{exc} (reading the clouds: {'; '.join(notes)})") from None
 
 
 def _sequence(args, predictor, preop, frame, fix, notes: list[str]) -> int:

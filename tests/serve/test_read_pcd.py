@@ -293,6 +293,13 @@ def test_predict_from_a_pcd_gives_the_force_of_the_same_cloud_as_npy(trained, te
     rc, out, err = run(["-m", model, pcd_inf, "--context", tmp_path / "ctx.json"], capsys)
     assert rc == 0, err
     np.testing.assert_allclose(json.loads(out)["force_n"], ref["force_n"], rtol=0, atol=1e-12)
+    # a depth camera's frame that was mostly pixels without depth: refused for the points left, and the refusal
+    # says that the file held more, and why they were dropped (its 1,000 points are not what the model saw)
+    blind = np.full((1000, 3), np.nan)
+    blind[:2] = D[:2]
+    pcd_blind = write_pcd(tmp_path / "blind.pcd", xyz(blind), "binary", width=50, height=20)
+    rc, _, err = run(["-m", model, pcd_blind, "--context", tmp_path / "ctx.json"], capsys)
+    assert rc == 2 and f"(reading the clouds: {pcd_blind}: 998 of 1000 points dropped, their coordinates NaN" in err
     # ... but ordered nodes are not dropped: the same file as --mode nodes is refused for its NaN
     rc, _, err = run(["-m", model, pcd, "--mode", "nodes", "--context", tmp_path / "ctx.json"], capsys)
     assert rc == 2 and "NaN or inf" in err
