@@ -17,7 +17,7 @@ For every test case a 5,000-point camera cloud (0.5 mm noise, the instrument in 
 the exertion point are written in LPS metres and predicted with ``liverforce predict`` three ways:
 
 - the model on the shard row's own context (Python, RAS mm): what the data factory made;
-- ``--frame <import record> --mesh <mesh stage's copy>`` and no ``--surface`` (the README's advice);
+- ``--frame <import record> --mesh <mesh stage's copy>`` and no ``--surface`` (the advice of docs/use-a-model.md);
 - the same with the lab's STL as ``--surface``.
 
 With ``--input segmentation`` the lab brings a 3D Slicer segmentation instead: the same liver voxelised at

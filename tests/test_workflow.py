@@ -57,7 +57,7 @@ def test_dry_run_lists_the_whole_dag(experiment, tmp_path):
 
 @pytest.mark.slow  # one of the default set's slowest (CI's --durations): run with -m slow
 def test_a_run_without_scenario_iv_gets_its_models_and_a_named_refusal_for_the_report(tmp_path):
-    """A lab's one-liver run (README: train.scenarios=[II] ~sweep.scenarios.IV): the models target plans its
+    """A lab's one-liver run (docs/own-liver.md: train.scenarios=[II] ~sweep.scenarios.IV): the models target plans its
     training; the default target (the report, which needs the unseen-liver validation of a scenario-IV model) is
     refused naming why and the fix, not with Snakemake's list of missing models/IV files."""
     one = ["--config", "experiment=smoke", "overrides=train.scenarios=[II] ~sweep.scenarios.IV study.enabled=false"]

@@ -281,7 +281,8 @@ def _check_stiffness(st: dict, key: str):
 
 
 #: Point files: the formats ``liverforce predict`` reads a point cloud in (``liverforce.serve.files.read_points``;
-#: text files by the same reader, :func:`liverforce.geometry.point_table.read_table`), suffixes in any case
+#: text files by the same reader, :func:`liverforce.geometry.point_table.read_table`), suffixes in any case; not
+#: PCD, a camera's format, which predict reads for clouds only
 POINT_FILE_SUFFIXES = (".npy", *TEXT_SUFFIXES, ".ply")
 
 
