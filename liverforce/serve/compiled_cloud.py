@@ -55,6 +55,9 @@ loading runs contiguously: the moments took 2.4x longer), and the pass lets
 LLVM fuse multiply-adds (``R (x - p)`` then matches NumPy/BLAS's bits more
 often, 80 % of coordinates against 68 %; with an input frame folded into ``R`` and
 ``p``, the local coordinates agree with the converted cloud's to rounding only).
+Every kernel names its own fast-math flags and error model, so that its machine
+code does not depend on which caller compiled it first (numba passes a caller's
+on to a function that names none).
 
 The features agree with ``cloud_grid`` to rounding (sums in another order:
 about 1e-14 mm; tests check 1e-9 mm and identical masks). The
@@ -119,11 +122,17 @@ _CLOUD_TYPE = types.Array(types.float64, 2, "C", readonly=True)  # items of the 
 
 
 # --------------------------------------------------------------------------
-# compiled kernels (numba; serial and deterministic; the batch entries release the GIL for predict_batch threads)
+# compiled kernels (numba; serial and deterministic; the batch entries release the GIL for predict_batch threads).
+# Each names its fast-math flags and error model: numba gives a function that names none its caller's, and the
+# first caller to compile a signature fixes its machine code for all (on disk too), so a test that called
+# _dent_fit before the pass was compiled moved the pass's dent columns by ~1e-14 (_spd4_solve without FMAs).
+# The flags are those each kernel had when compiled from _grid_one: "contract" for the pass and what it calls
+# (the sums' loops, the entry points and the MLP's rows their own; _dent_solve none); error model "python" (the
+# dent's sums "numpy").
 # --------------------------------------------------------------------------
 
 
-@njit(cache=True, fastmath={"reassoc", "nsz", "contract", "arcp"})
+@njit(cache=True, fastmath={"reassoc", "nsz", "contract", "arcp"}, error_model="python")
 def _cell_moments(GU, GV, Z, first, g, kr, sb, pad, nc, exact, M):
     """Biweight moments of every grid point ``(I, J)`` from the points sorted by bin (:func:`_bins`).
 
@@ -194,7 +203,7 @@ def _cell_moments(GU, GV, Z, first, g, kr, sb, pad, nc, exact, M):
             M[cell, 9] = s9
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False, error_model="python")
 def _bins(g, kr):
     """Sort bins of :func:`_grid_one`: bins per grid step ``sb``, padding ``pad``, bins per row ``nc``, ``exact``.
 
@@ -215,7 +224,7 @@ def _bins(g, kr):
     return sb, pad, g * sb + 2 * pad, False
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"}, error_model="python")
 def _bin_key(gu, gv, sb, pad, nc):
     """Bin of grid-index coordinates ``(gu, gv)`` (clamped to the bins; a kept point never is): bin row ``r``,
     column ``c``; key ``(r // sb, c, r % sb)`` row-major (groups of ``sb`` rows, column by column within one).
@@ -226,13 +235,13 @@ def _bin_key(gu, gv, sb, pad, nc):
     return _key(r, c, sb, nc)
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"}, error_model="python")
 def _key(r, c, sb, nc):
     """Sort key of bin row ``r``, column ``c`` (:func:`_bin_key`)."""
     return (r >> (sb >> 1)) * (nc * sb) + c * sb + (r & (sb - 1))  # sb is 1, 2 or 4: shifts, not divisions
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False, error_model="python")
 def _workspace(nmax, g, kr):
     """Scratch arrays of :func:`_grid_one` for clouds of up to ``nmax`` points (allocated once per call)."""
     gg = g * g
@@ -253,7 +262,7 @@ def _workspace(nmax, g, kr):
             np.zeros(gg), np.zeros(gg), np.zeros(gg), np.zeros(gg))  # rhs, y; the planes' slopes
 
 
-@njit(cache=True, fastmath={"reassoc", "nsz", "contract", "arcp"})  # reassociated sums: vectorised
+@njit(cache=True, fastmath={"reassoc", "nsz", "contract", "arcp"}, error_model="python")  # sums in SIMD lanes
 def _axis_system(P, k, cu, cv, r):
     """The Gauss-Newton sums of ``cloud_features._fit_axis`` at ``(cu, cv)`` on the points ``P[:, :k]`` (rows
     ``u, v``, contiguous, so the loop runs in SIMD lanes): ``J^T J`` (upper triangle) and ``J^T res``."""
@@ -274,7 +283,7 @@ def _axis_system(P, k, cu, cv, r):
     return hxx, hxy, hyy, gx, gy
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"}, error_model="python")
 def _axis_steps(P, k, cu, cv, c0u, c0v, r, wp, wk):
     """Gauss-Newton steps of the instrument's axis on the points ``P[:, :k]`` (rows: local ``u, v``), from
     ``(cu, cv)``, the kinematic tip ``(c0u, c0v)`` the prior: ``cloud_features._fit_axis``."""
@@ -295,7 +304,7 @@ def _axis_steps(P, k, cu, cv, c0u, c0v, r, wp, wk):
     return cu, cv
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"}, error_model="python")
 def _fit_axis_points(U, V, orig, idx, k, c0u, c0v, inst):
     """The instrument's axis fitted to the candidate points ``orig[idx[:k]]`` (local ``U, V``; the sorted indices
     ``idx[:k]`` are reordered, the outliers behind the others), the kinematic tip ``(c0u, c0v)`` the prior, as
@@ -333,7 +342,7 @@ def _fit_axis_points(U, V, orig, idx, k, c0u, c0v, inst):
     return cu, cv, k
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"}, error_model="python")
 def _instrument_point(u, v, z, cu, cv, c0u, c0v, inst, rf):
     """Is the point ``(u, v)`` (local, mm; height change ``z``) the instrument's, to be dropped: a candidate
     (within the search radius of the kinematic tip ``(c0u, c0v)``, ``rise`` above the surface), within the
@@ -349,7 +358,7 @@ def _instrument_point(u, v, z, cu, cv, c0u, c0v, inst, rf):
             or (z > rise and ex * ex + ey * ey < search * search))
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"}, error_model="python")
 def _bin_box(u, v, reach, h, gstep, sb, pad, nc):
     """Sort-bin rows and columns ``(r_lo, r_hi, c_lo, c_hi)`` (clamped) holding every point within ``reach`` grid
     units of the local point ``(u, v)`` mm (:func:`_bin_key`'s rows ``floor(gv sb) + pad``)."""
@@ -362,7 +371,7 @@ def _bin_box(u, v, reach, h, gstep, sb, pad, nc):
     return r_lo, r_hi, c_lo, c_hi
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"}, error_model="python")
 def _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, search, rise, idx):
     """The instrument's candidates' sorted positions into ``idx``, in the bins' order; returns how many: the points
     ``rise`` above the surface within ``search`` mm of the kinematic tip's axis ``(c0u, c0v)``."""
@@ -383,7 +392,7 @@ def _collect_candidates(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, 
     return k
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"}, error_model="python")
 def _point_sd(U, V, orig, idx, k, cu, cv, r):
     """``cloud_features.instrument_point_sd`` of the candidates ``orig[idx[:k]]`` about the axis ``(cu, cv)``."""
     a = np.empty(k)
@@ -395,7 +404,7 @@ def _point_sd(U, V, orig, idx, k, cu, cv, r):
     return _MAD_SD * np.median(a)
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"}, error_model="python")
 def _normal_axis(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, inst, idx):
     """The axis along the normal of :func:`_fit_instrument`, nothing dropped: ``(cu, cv, n_fit, sd, inst)`` (the
     ``inst`` the last pass used: a noisy cloud's own point sd and search radius)."""
@@ -418,7 +427,7 @@ def _normal_axis(U, V, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, inst, i
     return cu, cv, n_fit, sd, inst
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"}, error_model="python")
 def _drop_normal(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, cu, cv, inst):
     """The instrument's points of the axis ``(cu, cv)`` along the normal (``inst`` as :func:`_normal_axis` returns
     it) moved far off the grid; returns how many."""
@@ -442,7 +451,7 @@ def _drop_normal(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0
     return n_drop
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"}, error_model="python")
 def _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, inst, idx):
     """The instrument's axis from the sorted, distinct points (``orig[s] >= 0``; local ``U[orig[s]], V[orig[s]]``,
     height change ``Zs[s]``; bins as :func:`_grid_one` sorts them), as
@@ -459,7 +468,7 @@ def _fit_instrument(U, V, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u,
     return cu, cv, n_fit, n_drop, sd
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"}, error_model="python")
 def _tilt_terms(u, v, hh, x, r):
     """``cloud_features._tilt_residuals`` of one point: its distance minus ``r`` from the axis ``x`` and the
     Jacobian's row."""
@@ -477,7 +486,7 @@ def _tilt_terms(u, v, hh, x, r):
             (-hh * gy - kap * p * dv + kp * sv) / d)
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"}, error_model="python")
 def _spd4_solve(a00, a01, a02, a03, a11, a12, a13, a22, a23, a33, b0, b1, b2, b3):
     """``x = A^-1 b`` for a symmetric positive definite 4 x 4 ``A`` (upper triangle ``aij``), by its Cholesky factor
     ``L`` (no allocation: the tilted fit solves one per Gauss-Newton step). Returns ``(x0, x1, x2, x3, l22, l32,
@@ -505,7 +514,7 @@ def _spd4_solve(a00, a01, a02, a03, a11, a12, a13, a22, a23, a33, b0, b1, b2, b3
     return x0, x1, x2, x3, l22, l32, l33
 
 
-@njit(cache=True, fastmath={"reassoc", "nsz", "contract", "arcp"})  # reassociated sums: vectorised
+@njit(cache=True, fastmath={"reassoc", "nsz", "contract", "arcp"}, error_model="python")  # sums in SIMD lanes
 def _tilt_normal(Q, k, x, prior, r, wp, W):
     """The Gauss-Newton system of ``cloud_features._fit_tilted`` at ``x`` on the points ``Q[:, :k]`` (rows: local
     ``u, v``, height): ``wp J^T J + diag(W)`` (its upper triangle) and ``wp J^T res + W (x - prior)``, in scalars
@@ -558,7 +567,7 @@ def _tilt_normal(Q, k, x, prior, r, wp, W):
             wp * b3 + W[3] * e3, wp * c + (W[0] * e0 * e0 + W[1] * e1 * e1 + W[2] * e2 * e2 + W[3] * e3 * e3))
 
 
-@njit(cache=True, fastmath={"nsz", "contract", "arcp"})
+@njit(cache=True, fastmath={"nsz", "contract", "arcp"}, error_model="python")
 def _tilt_near(Q, k, x, r, thr):
     """How many of the points ``Q[:, :k]`` are within ``thr`` of the cylinder of radius ``r`` about the axis ``x``
     (:func:`_tilt_terms`'s residual); ``Q[3, j]`` set to 1 for those, else 0."""
@@ -579,7 +588,7 @@ def _tilt_near(Q, k, x, r, thr):
     return n
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"}, error_model="python")
 def _tilt_steps(Q, k, x, prior, r, wp, W, iterations=_FIT_ITERATIONS):
     """``cloud_features._fit_tilted`` on the points ``Q[:, :k]`` (:func:`_tilt_normal`), from ``x`` (updated in
     place, and returned): damped, a step that raises the objective halved, as there. (The objective's sum, in the
@@ -619,7 +628,7 @@ def _tilt_steps(Q, k, x, prior, r, wp, W, iterations=_FIT_ITERATIONS):
     return x
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"}, error_model="python")
 def _tilted_pass(U, V, Hs, orig, raised, n_raised, c0u, c0v, S, sdp, inst, idx):
     """``cloud_features._tilted_pass``: the candidates within ``S + tan(max tilt) x height`` of the kinematic tip's
     axis among the points standing ``rise`` above the surface (sorted positions ``raised[:n_raised]``), the slope's
@@ -692,7 +701,7 @@ def _tilted_pass(U, V, Hs, orig, raised, n_raised, c0u, c0v, S, sdp, inst, idx):
     return x, k, e2 * e2 + e3 * e3
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"}, error_model="python")
 def _tilt_credible(x, c0u, c0v, S):
     """``cloud_features.tilt_credible``: the kinematic tip ``(c0u, c0v)`` projected onto the fitted axis ``x``
     within ``S`` of it along the surface."""
@@ -704,7 +713,7 @@ def _tilt_credible(x, c0u, c0v, S):
     return du * du + dv * dv <= S * S
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"}, error_model="python")
 def _axis_box(x, h_lo, h_hi, reach, h, gstep, sb, pad, nc):
     """Sort-bin rows and columns holding every point within ``reach`` grid units of the axis ``x`` at heights
     ``h_lo`` to ``h_hi`` (the box of the segment's two ends)."""
@@ -713,7 +722,7 @@ def _axis_box(x, h_lo, h_hi, reach, h, gstep, sb, pad, nc):
     return min(a_lo, e_lo), max(a_hi, e_hi), min(b_lo, f_lo), max(b_hi, f_hi)
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"}, error_model="python")
 def _tilted_sd(U, V, Hs, orig, raised, n_raised, x, S, r, a):
     """``cloud_features._tilted_point_sd``: ``1.4826`` times the median ``|d - r|`` of the points standing ``rise``
     above the surface (sorted positions ``raised[:n_raised]``) within ``S`` of the axis ``x`` (NaN without one);
@@ -729,7 +738,7 @@ def _tilted_sd(U, V, Hs, orig, raised, n_raised, x, S, r, a):
     return _MAD_SD * np.median(a[:k]) if k else np.nan
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"}, error_model="python")
 def _fit_instrument_tilted(U, V, Wl, GUs, GVs, Zs, orig, first, sb, pad, nc, h, gstep, c0u, c0v, tw, inst, idx,
                            Hs, scr, raised):
     """:func:`liverforce.learn.cloud_features.fit_instrument_tilted` on the sorted, distinct points (as
@@ -895,7 +904,9 @@ def _dent_sums(GUs, GVs, Zs, a0, e0, h, gstep, tu, tv, a, rd, S):
     return k
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=False, error_model="python")  # not the pass's "contract": l22 * l22 - _TINY fused keeps
+# the exact square of sqrt(_TINY), which can exceed _TINY (a singular system, e.g. every point on one line through
+# the axis, taken as solvable: amplitude -2 where the reference gives 0); the solution's bits are _spd4_solve's
 def _dent_solve(S, k, min_points, cloud_tol):
     """``(amplitude, offset)`` from the sums ``S`` of :func:`_dent_sums` over ``k`` points (:func:`_dent_fit`)."""
     if k < min_points:
@@ -914,7 +925,7 @@ def _dent_solve(S, k, min_points, cloud_tol):
     return x3, x0
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"}, error_model="python")
 def _dent_fit(GUs, GVs, Zs, n, h, gstep, tu, tv, a, rd, min_points, cloud_tol):
     """``(amplitude, offset)`` of :func:`liverforce.learn.cloud_features.fit_dent` from the points ``[0, n)``
     (grid-index coordinates ``GUs, GVs``, the instrument's moved far off the grid; height change ``Zs``), round
@@ -925,7 +936,7 @@ def _dent_fit(GUs, GVs, Zs, n, h, gstep, tu, tv, a, rd, min_points, cloud_tol):
     return _dent_solve(S, _dent_sums(GUs, GVs, Zs, 0, n, h, gstep, tu, tv, a, rd, S), min_points, cloud_tol)
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"}, error_model="python")
 def _dent_fit_bins(GUs, GVs, Zs, first, sb, pad, nc, h, gstep, tu, tv, a, rd, min_points, cloud_tol):
     """:func:`_dent_fit` of the sorted points (bins as :func:`_grid_one` sorts them), reading only the bins within
     ``rd`` of the axis (and a bin of margin): one run per group of ``sb`` bin rows."""
@@ -939,7 +950,7 @@ def _dent_fit_bins(GUs, GVs, Zs, first, sb, pad, nc, h, gstep, tu, tv, a, rd, mi
     return _dent_solve(S, k, min_points, cloud_tol)
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"}, error_model="python")
 def _cell_planes(M, g, kr, linear, min_points, max_leverage, Hc, valid, Bu, Bv):
     """Per grid point from its moments ``M`` (:func:`_cell_moments`): the estimate ``Hc`` (0 where not valid), the
     validity and the plane's slopes ``Bu, Bv`` per grid spacing (0 where no plane was fitted), as
@@ -979,7 +990,7 @@ def _cell_planes(M, g, kr, linear, min_points, max_leverage, Hc, valid, Bu, Bv):
     return n_valid
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"}, error_model="python")
 def _drop_off_plane(GUs, GVs, Zs, first, nc, g, kr, tol, Hc, valid, Bu, Bv, flag):
     """Drop, in place, the sorted points whose height change lies more than ``tol`` from the plane of a valid grid
     point within ``kr`` of them: their nearest grid point (``np.rint``, clamped to the grid) where it is valid and
@@ -1036,7 +1047,7 @@ def _drop_off_plane(GUs, GVs, Zs, first, nc, g, kr, tol, Hc, valid, Bu, Bv, flag
     return n_off, n_test
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"}, error_model="python")
 def _compact(GUs, GVs, Zs, first, nc, mark):
     """Keep, in place and in the bins' order, the sorted points ``t`` with ``mark[t] >= 0`` (``first``: the bins'
     starts, updated)."""
@@ -1054,7 +1065,7 @@ def _compact(GUs, GVs, Zs, first, nc, mark):
     first[nc * nc] = w
 
 
-@njit(cache=True, fastmath={"contract"})  # FMAs: u, v, w as BLAS computes R (x - p) more often
+@njit(cache=True, fastmath={"contract"}, error_model="python")  # FMAs: u, v, w as BLAS computes R (x - p) more often
 def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_abs, min_points, max_leverage,
               linear, fill, reach_count, shaft, inst, ws, x):
     """Feature row ``x = [height (g^2), mask (g^2), (dent (2),) R (tip - p) (3)]`` of the cloud ``P[s0:s0 + n]``.
@@ -1252,7 +1263,7 @@ def _grid_one(P, s0, n, tip, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
     return nu, nb, ns, nf, sd, n_off, n_test
 
 
-@njit(cache=True, nogil=True)  # threads: predict_batch(threads=)
+@njit(cache=True, nogil=True, fastmath=False, error_model="python")  # threads: predict_batch(threads=)
 def _grid_clouds(P, starts, counts, tips, origin, R, raster, lo, rstep, g, h, gstep, kr, max_abs, min_points,
                  max_leverage, linear, fill, reach_count, shaft, inst, X, n_used, n_bad, n_tool):
     """Feature rows ``X[b]`` of the clouds ``P[starts[b]:starts[b] + counts[b]]`` (float64 or float32 points),
@@ -1268,7 +1279,7 @@ def _grid_clouds(P, starts, counts, tips, origin, R, raster, lo, rstep, g, h, gs
             max_leverage, linear, fill, reach_count, shaft, inst, ws, X[b])
 
 
-@njit(cache=True, nogil=True)  # threads: predict_batch(threads=)
+@njit(cache=True, nogil=True, fastmath=False, error_model="python")  # threads: predict_batch(threads=)
 def _grid_list(clouds, tips, origin, R, raster, lo, rstep, g, h, gstep, kr, max_abs, min_points, max_leverage,
                linear, fill, reach_count, shaft, inst, X, n_used, n_bad, n_tool):
     """:func:`_grid_clouds` of a typed list of (n_b, 3) float64 clouds, read in place (no concatenation)."""
@@ -1283,7 +1294,7 @@ def _grid_list(clouds, tips, origin, R, raster, lo, rstep, g, h, gstep, kr, max_
             max_leverage, linear, fill, reach_count, shaft, inst, ws, X[b])
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"}, error_model="python")
 def _laplace_fill(H, valid, g, idx, unk, Lb, rhs, y):
     """Harmonic fill of the invalid cells (the system of ``cloud_features._fill``), banded Cholesky, in place."""
     gg = g * g
@@ -1340,7 +1351,7 @@ def _laplace_fill(H, valid, g, idx, unk, Lb, rhs, y):
         H[unk[ii]] = rhs[ii]
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, fastmath=False, error_model="python")
 def _affine_rows(X, AT, b, out):
     """``out[r, :n] = A X[r] + b`` (``AT = A^T``, n = its columns), row by row in a fixed order (independent of
     the batch size)."""
@@ -1356,7 +1367,7 @@ def _affine_rows(X, AT, b, out):
             out[r, i] += b[i]
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, fastmath=False, error_model="python")
 def _dense_rows(Hin, WT, b, slope, act):
     """float32 ``act(Hin W^T + b)`` row by row in a fixed order; ``act``: 0 none, 1 ReLU, 2 LeakyReLU(slope)."""
     n, k_in = Hin.shape

@@ -256,7 +256,7 @@ def test_the_compiled_fit_gives_no_dent_where_the_reference_gives_none():
 
     def both(u, v, z):
         got = _dent_fit((u + h) / step, (v + h) / step, z, len(u), h, step, 0.0, 0.0, R_TOOL, sp.dent_radius_mm,
-                        DENT_MIN_POINTS, 1e-10)
+                        float(DENT_MIN_POINTS), 1e-10)  # a float, as the pass passes it: the pass's compiled code
         return np.array(got), fit_dent(u, v, z, (0.0, 0.0), sp)
 
     t = np.linspace(4.0, 12.0, 50)

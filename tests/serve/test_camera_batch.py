@@ -180,6 +180,38 @@ def _check_moments(GU, GV, Z, g, kr, sb, pad, nc, exact):
     return want[:, 1], on_edge
 
 
+def test_every_kernel_names_its_fast_math_flags():
+    """Every numba kernel of the compiled camera path (compiled_cloud's, and the GP head's gp._rq_power_mean)
+    names its fast-math flags and error model: numba gives a function that names none its caller's, and the
+    first caller to compile a signature fixes its machine code for every caller (on disk too, cache=True), so
+    the pass's bits would depend on which test or caller compiled a kernel first. On an input where the pass's
+    fused multiply-adds change the last bits of _spd4_solve (the dent fit's and the tilted fit's 4 x 4 solve),
+    a copy of it with its own options, compiled through a caller without fast-math and through one with every
+    flag, gives the bits it has in the pass (compiled with "contract") both times."""
+    from numba import njit
+    from numba.core.registry import CPUDispatcher
+
+    from liverforce.learn import gp
+    from liverforce.serve import compiled_cloud as cc
+
+    kernels = {name: f for name, f in vars(cc).items()
+               if isinstance(f, CPUDispatcher) and f.py_func.__module__ == cc.__name__}
+    kernels["gp._rq_power_mean"] = gp._rq_power_mean
+    assert len(kernels) > 30 and "_grid_one" in kernels and "_spd4_solve" in kernels
+    unnamed = sorted(name for name, f in kernels.items() if not {"fastmath", "error_model"} <= f.targetoptions.keys())
+    assert not unnamed, f"kernels that inherit their caller's fast-math flags or error model: {unnamed}"
+    rng = np.random.default_rng(0)
+    M = rng.normal(size=(4, 4))
+    args = (*(M @ M.T + np.eye(4))[np.triu_indices(4)], *rng.normal(size=4))  # upper triangle, then b
+    solve = cc._spd4_solve.py_func
+    fused = njit(fastmath={"contract"}, error_model="python")(solve)(*args)
+    assert fused != njit(fastmath=False, error_model="python")(solve)(*args)  # the flag changes these bits
+    opts = {k: v for k, v in cc._spd4_solve.targetoptions.items() if k not in ("cache", "nopython")}
+    for caller_flags in (False, True):
+        callee = njit(**opts)(solve)  # a fresh copy: compiled by its first caller, below
+        assert njit(fastmath=caller_flags)(lambda *a: callee(*a))(*args) == fused, caller_flags
+
+
 def test_compiled_predict_equals_the_reference_path(served):
     pred, a, ctx, fast = served
     for cloud, tip in _clouds(a):
