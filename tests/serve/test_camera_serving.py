@@ -183,9 +183,9 @@ def test_cli_predicts_a_camera_cloud_with_the_tool_tip(served, tmp_path, capsys)
     assert "roi_triangles" in capsys.readouterr().err
 
 
-def test_cli_reads_clouds_tips_and_the_unloaded_view_in_the_units_their_header_names(served, tmp_path, capsys):
-    """Camera clouds, a sequence's --tool-tips and the --unloaded view as CSV headed with a unit: read when it is the
-    declared one (--units m), refused naming the file and its header when it is not (the lab's files in mm)."""
+def _cli_in_metres(served, tmp_path, capsys):
+    """``(run, path, ctx, cloud, tip)``: case 3's context written in metres, and ``run(*argv)`` calling ``liverforce
+    predict -m <model> *argv --context <it> --units m``, giving ``(exit code, captured output)``."""
     path, model, a = served
     ctx, cloud, tip = _case(a, 3)
     (tmp_path / "ctx.json").write_text(json.dumps(_context_in_metres(ctx, tmp_path)))
@@ -195,8 +195,14 @@ def test_cli_reads_clouds_tips_and_the_unloaded_view_in_the_units_their_header_n
     def run(*argv):
         args = parser.parse_args(["predict", "-m", str(path), *map(str, argv), "--context", str(tmp_path / "ctx.json"),
                                   "--units", "m"])
-        got = args.func(args)
-        return got, capsys.readouterr()
+        return args.func(args), capsys.readouterr()
+    return run, path, ctx, cloud, tip
+
+
+def test_cli_reads_clouds_tips_and_the_unloaded_view_in_the_units_their_header_names(served, tmp_path, capsys):
+    """Camera clouds, a sequence's --tool-tips and the --unloaded view as CSV headed with a unit: read when it is the
+    declared one (--units m), refused naming the file and its header when it is not (the lab's files in mm)."""
+    run, path, ctx, cloud, tip = _cli_in_metres(served, tmp_path, capsys)
 
     def csv(name, header, pts):
         np.savetxt(tmp_path / name, pts, delimiter=",", header=header, comments="")
@@ -229,16 +235,7 @@ def test_cli_reads_a_depth_cameras_pcd_frames_dropping_their_nan_pixels(served, 
     finite points, and each output says how many points were dropped from which file."""
     from tests.serve.test_read_pcd import write_pcd, xyz
 
-    path, model, a = served
-    ctx, cloud, tip = _case(a, 3)
-    (tmp_path / "ctx.json").write_text(json.dumps(_context_in_metres(ctx, tmp_path)))
-    parser = argparse.ArgumentParser(prog="liverforce")
-    register_predict(parser.add_subparsers(dest="command", required=True))
-
-    def run(*argv):
-        args = parser.parse_args(["predict", "-m", str(path), *map(str, argv), "--context", str(tmp_path / "ctx.json"),
-                                  "--units", "m"])
-        return args.func(args), capsys.readouterr()
+    run, path, ctx, cloud, tip = _cli_in_metres(served, tmp_path, capsys)
 
     def organised(points, holes):  # 50 pixels a row, the holes' rows of NaN first
         grid = np.vstack([np.full((holes, 3), np.nan), points / 1000.0])
