@@ -75,9 +75,9 @@ def read_sequence(paths: list[str | Path], skip=(), frame=None,
         try:
             return [f.name for f in files], [_read(f, k, frame, notes) for k, f in enumerate(files)]
         except PredictionInputError as exc:
-            raise PredictionInputError(f"{exc}. A sequence's folder is read as its clouds: keep only the clouds "
-                                       f"in {folder} (the tips and the output may stay), or name the cloud "
-                                       "files") from None
+            raise PredictionInputError(f"{exc}. A sequence's folder is read as its clouds: repair or remove a "
+                                       f"damaged cloud, keep only the clouds in {folder} (the tips and the output "
+                                       "may stay), or name the cloud files") from None
     stack = _stack(paths[0]) if len(paths) == 1 else None
     if stack is not None:
         if stack.shape[0] == 0 or stack.shape[2] != 3 or not np.issubdtype(stack.dtype, np.number):

@@ -256,6 +256,12 @@ def test_a_sequence_folder_of_pcd_frames_in_natural_order(tmp_path):
     notes = {}
     names, _ = read_sequence([frames / "frame_2.pcd", frames / "frame_0.pcd"], notes=notes)
     assert names == ["frame_2.pcd", "frame_0.pcd"] and list(notes) == [0]
+    # a damaged frame (cut short) is named, with what to do
+    data = (frames / "frame_1.pcd").read_bytes()
+    (frames / "frame_1.pcd").write_bytes(data[: len(data) - 100])
+    with pytest.raises(PredictionInputError, match="frame_1.pcd") as exc:
+        read_sequence([frames], skip=(frames / "tips.csv",))
+    assert "repair or remove a damaged cloud" in str(exc.value)
 
 
 def test_predict_from_a_pcd_gives_the_force_of_the_same_cloud_as_npy(trained, test_cases, tmp_path, capsys):
