@@ -238,12 +238,13 @@ def _run(args) -> int:
     preop, frame = read_context(args.context, predictor, overrides=overrides)
     notes = []  # what reading the camera clouds did (a PCD's NaN or inf points dropped): the output's warnings
     pts = None
-    if not sequence and args.mode == "cloud":
-        pts, note = read_cloud(args.points[0], frame=frame)
-        notes += [note] if note else []
-    elif not sequence:  # ordered nodes or surface vertices: none may be dropped (a NaN is refused by the checks)
-        pts = read_points(args.points[0], frame=frame)
-    pts = None if pts is None else frame.points(pts)
+    if not sequence:
+        if args.mode == "cloud":
+            pts, note = read_cloud(args.points[0], frame=frame)
+            notes += [note] if note else []
+        else:  # ordered nodes or surface vertices: none may be dropped (a NaN is refused by the checks)
+            pts = read_points(args.points[0], frame=frame)
+        pts = frame.points(pts)
     info: dict = {"mode": args.mode}
     if (args.unloaded or args.contact_tip) and args.mode != "cloud":
         return _error("--unloaded and --contact-tip refine a camera cloud's registration: --mode cloud only")
