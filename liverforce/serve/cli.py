@@ -23,7 +23,9 @@ cloud; ``nodes`` the deformed ROI nodes in the context's ROI order; ``surface``
 the deformed positions of every vertex of the context's surface file (of a tet
 mesh: every node, interior ones too, in the file's order). A sequence of clouds
 (several files, a folder, a (T, N, 3) .npy) with ``--tool-tips`` gives one row
-per cloud, a refused cloud with its reason (:mod:`liverforce.serve.sequence`).
+per cloud, a refused cloud with its reason (:mod:`liverforce.serve.sequence`); a
+file that cannot be read (a damaged frame) is a refused row too, said on stderr,
+unless none can be.
 Exit codes: 0 done, 2 input refused (the message says why).
 
 ``--shards``: a case the serving checks refuse does not stop the batch. Its
@@ -312,7 +314,8 @@ def _sequence(args, predictor, preop, frame, fix, notes: list[str]) -> int:
     """``liverforce predict`` of a recorded sequence of clouds (:mod:`liverforce.serve.sequence`): one row per
     cloud to ``--out`` (.csv, .parquet or .json), a summary (and the rows, without ``--out``) on stdout. ``notes``:
     what reading ``--unloaded`` did (the summary's ``warnings``); a cloud's own (a PCD's NaN or inf points dropped)
-    lead its row's warnings."""
+    lead its row's warnings. A file that cannot be read is its row's refusal (counted in the summary's
+    ``unreadable``, said on stderr); its tool tip keeps its row of ``--tool-tips``."""
     from liverforce.atomic import write_text_atomic
     from liverforce.serve.files import write_frame
     from liverforce.serve.sequence import predict_sequence, read_sequence, read_tips
@@ -320,17 +323,18 @@ def _sequence(args, predictor, preop, frame, fix, notes: list[str]) -> int:
     if args.out and Path(args.out).suffix.lower() not in (".csv", ".parquet", ".json"):
         return _error(f"--out {args.out}: a sequence's rows are written as .csv, .parquet or .json")
     read: dict[int, str] = {}
+    unreadable: dict[int, str] = {}  # the files that could not be read: each its own refused row
     names, clouds = read_sequence(args.points, skip=(args.tool_tips, args.out), frame=frame,  # skip: if kept there
-                                  notes=read)
-    if args.tool_tips is not None:
-        tips = read_tips(args.tool_tips, len(clouds), frame)
+                                  notes=read, errors=unreadable)
+    if args.tool_tips is not None:  # one tip per file, a damaged frame's too
+        tips = read_tips(args.tool_tips, len(clouds), frame, unreadable=[names[k] for k in sorted(unreadable)])
     elif args.tool_tip is not None:
         tips = np.tile(np.asarray(args.tool_tip, dtype=np.float64), (len(clouds), 1))
     else:
         return _error("a camera-cloud model needs the tool tip of each cloud: --tool-tips FILE (one x y z row per "
                       "cloud, robot kinematics), or --tool-tip X Y Z if the tool stood still")
     rows, summary = predict_sequence(predictor, preop, frame, clouds, tips, registration=fix, threads=args.threads,
-                                     reference=args.reference)
+                                     reference=args.reference, unreadable=unreadable)
     rows = [{"cloud": name, **row} for name, row in zip(names, rows)]
     for k, note in read.items():
         rows[k]["warnings"] = "; ".join([note] + ([rows[k]["warnings"]] if rows[k]["warnings"] else []))
@@ -353,4 +357,16 @@ def _sequence(args, predictor, preop, frame, fix, notes: list[str]) -> int:
     else:
         summary["rows"] = plain
     print(json.dumps(summary))
+    if unreadable:
+        _unreadable_files([unreadable[k] for k in sorted(unreadable)], len(rows), args.out)
     return 0
+
+
+def _unreadable_files(reasons: list[str], clouds: int, out: str | None) -> None:
+    """Say on stderr how many of a sequence's ``clouds`` files could not be read, and the first reasons."""
+    where = f"in the 'refused' column of {out}" if out else "in its row's 'refused'"
+    first = "; ".join(reasons[:REFUSED_SHOWN])
+    more = f" (and {len(reasons) - REFUSED_SHOWN} more)" if len(reasons) > REFUSED_SHOWN else ""
+    print(f"liverforce predict: {len(reasons)} of {clouds} files could not be read as clouds, their rows refused "
+          f"with NaN forces (the other clouds were predicted; each reason {where}). The first: {first}{more}",
+          file=sys.stderr)

@@ -201,7 +201,8 @@ def _cli_in_metres(served, tmp_path, capsys):
 
 def test_cli_reads_clouds_tips_and_the_unloaded_view_in_the_units_their_header_names(served, tmp_path, capsys):
     """Camera clouds, a sequence's --tool-tips and the --unloaded view as CSV headed with a unit: read when it is the
-    declared one (--units m), refused naming the file and its header when it is not (the lab's files in mm)."""
+    declared one (--units m), refused naming the file and its header when it is not (the lab's files in mm): a
+    sequence's frame as its row, every frame so as the command."""
     run, path, ctx, cloud, tip = _cli_in_metres(served, tmp_path, capsys)
 
     def csv(name, header, pts):
@@ -227,7 +228,13 @@ def test_cli_reads_clouds_tips_and_the_unloaded_view_in_the_units_their_header_n
     assert json.loads(out.out)["clouds"] == 2
     np.savetxt(frames / "f1.csv", cloud[1::2], delimiter=",", header="x_mm,y_mm,z_mm", comments="")
     rc, out = run(frames, "--tool-tips", tmp_path / "tips.csv")
-    assert rc == 2 and f"{frames / 'f1.csv'}: {said}" in out.err
+    assert rc == 0, out.err
+    rows = json.loads(out.out)["rows"]
+    assert not rows[0]["refused"] and rows[1]["refused"].startswith(f"{frames / 'f1.csv'}: {said}")
+    np.savetxt(frames / "f0.csv", cloud[::2], delimiter=",", header="x_mm,y_mm,z_mm", comments="")
+    rc, out = run(frames, "--tool-tips", tmp_path / "tips.csv")
+    assert rc == 2 and f"none of the 2 files of the sequence could be read as a point cloud; the first: " \
+                       f"{frames / 'f0.csv'}: {said}" in out.err
 
 
 def test_cli_reads_a_depth_cameras_pcd_frames_dropping_their_nan_pixels(served, tmp_path, capsys):
@@ -685,7 +692,7 @@ def test_cli_predicts_a_recorded_sequence_of_clouds(served, tmp_path, capsys, tr
         again = run(frames, "--tool-tips", frames / "tips.csv", *base, "--out", frames / "rows.csv")
         assert again["clouds"] == 5 and (frames / "rows.csv").read_text() == (tmp_path / "rows.csv").read_text()
     err = run(frames, "--tool-tips", frames / "tips.csv", *base, rc=2)  # another file there: named, and what to do
-    assert "rows.csv" in err and "keep only the clouds" in err
+    assert "5 tips for 6 clouds" in err and "(rows.csv)" in err and "move it out of the clouds' folder" in err
     (frames / "rows.csv").unlink()
     (frames / "tips.csv").unlink()
     for f in files[:2]:
@@ -714,6 +721,103 @@ def test_cli_predicts_a_recorded_sequence_of_clouds(served, tmp_path, capsys, tr
     node = parser.parse_args(["predict", "-m", trained("disp"), str(frames), "--tool-tips", str(tmp_path / "tips.csv"),
                               "--exertion-point", "0", "0", "0", "--material", "0.002", "0.01"])
     assert node.func(node) == 2 and "camera-cloud model" in capsys.readouterr().err
+
+
+def test_cli_predicts_a_sequence_around_its_damaged_frames(served, tmp_path, capsys):
+    """A frame that cannot be read (a PCD cut short, a CSV with a broken line; among files named, a PLY cut short)
+    is its own refused row in its place, naming the file in ``read_cloud``'s words, its tip kept: the other rows are
+    the folder's without it, on the compiled and the reference path, and the rows written keep it (NaN; null in
+    JSON). Every frame unreadable is refused; a tips count that does not match names the files not read."""
+    import pandas as pd
+
+    from liverforce.serve.files import read_cloud
+    from liverforce.serve.input_frame import InputFrame
+    from tests.serve.test_predict_cli import write_ply
+    from tests.serve.test_read_pcd import write_pcd, xyz
+
+    run, path, ctx, cloud, tip = _cli_in_metres(served, tmp_path, capsys)
+    seq = [_case(served[2], 3, n_points=n, seed=s)[1:] for s, n in enumerate([900, 700, 800])]
+    good, full = tmp_path / "good", tmp_path / "full"
+    good.mkdir()
+    full.mkdir()
+    for k, (c, _) in zip((0, 2, 4), seq):
+        for folder in (good, full):
+            np.save(folder / f"f{k}.npy", c / 1000.0)
+    pcd = write_pcd(full / "f1.pcd", xyz(cloud[:500] / 1000.0), "binary")
+    pcd.write_bytes(pcd.read_bytes()[:-100])  # the camera's driver cut it short
+    np.savetxt(full / "f3.csv", cloud[:50] / 1000.0, delimiter=",")
+    lines = (full / "f3.csv").read_text().splitlines()
+    (full / "f3.csv").write_text("\n".join(lines[:20] + [lines[20][:12]] + lines[21:]) + "\n")  # a line broken
+    tips = np.stack([t for _, t in seq]) / 1000.0
+    np.savetxt(tmp_path / "tips3.csv", tips, delimiter=",")
+    np.savetxt(tmp_path / "tips5.csv", np.vstack([tips[0], tip / 1000.0, tips[1], tip / 1000.0, tips[2]]),
+               delimiter=",")
+    metres = InputFrame.resolve(None, "m")
+    said = {}
+    for name in ("f1.pcd", "f3.csv"):  # what one cloud's predict would say of each
+        with pytest.raises(PredictionInputError) as exc:
+            read_cloud(full / name, frame=metres)
+        said[name] = str(exc.value)
+    assert "truncated" in said["f1.pcd"] and "line 21" in said["f3.csv"]
+
+    def rows(rc, out, damaged=()):
+        assert rc == 0, out.err
+        doc = json.loads(out.out)
+        assert doc["unreadable"] == len(damaged) and doc["refused"] == len(damaged)
+        assert doc["clouds"] == doc["predicted"] + len(damaged) and doc["predicted"] == 3
+        return doc["rows"]
+
+    paths = {}
+    for flags in ((), ("--reference",)):
+        want = rows(*run(good, "--tool-tips", tmp_path / "tips3.csv", *flags))
+        assert [r["cloud"] for r in want] == ["f0.npy", "f2.npy", "f4.npy"] and not any(r["refused"] for r in want)
+        rc, out = run(full, "--tool-tips", tmp_path / "tips5.csv", *flags)
+        got = rows(rc, out, damaged=(1, 3))
+        assert [r["cloud"] for r in got] == ["f0.npy", "f1.pcd", "f2.npy", "f3.csv", "f4.npy"]
+        assert [got[k] for k in (0, 2, 4)] == want  # the same rows as the folder without the damaged frames
+        for k, name in ((1, "f1.pcd"), (3, "f3.csv")):
+            assert got[k]["refused"].startswith(said[name]) and str(full / name) in got[k]["refused"]
+            assert "remove it and its row of tool tips" in got[k]["refused"]
+            assert all(got[k][c] is None for c in ("fx_n", "fy_n", "fz_n", "magnitude_n", "half_width_t1_n",
+                                                  "half_width_t2_n", "half_width_n_n"))
+        assert "2 of 5 files could not be read as clouds" in out.err and said["f1.pcd"] in out.err
+        paths[flags] = want, got
+    want, got = paths[()]  # the compiled path's
+    # the rows written: the damaged ones in their places, NaN (null in JSON) with their reasons
+    for ext in ("csv", "parquet", "json"):
+        rc, out = run(full, "--tool-tips", tmp_path / "tips5.csv", "--out", tmp_path / f"rows.{ext}")
+        assert rc == 0, out.err
+        assert f"in the 'refused' column of {tmp_path / f'rows.{ext}'}" in out.err
+        if ext == "json":
+            assert json.loads((tmp_path / "rows.json").read_text())["rows"] == got
+            continue
+        df = pd.read_csv(tmp_path / "rows.csv") if ext == "csv" else pd.read_parquet(tmp_path / "rows.parquet")
+        assert list(df["cloud"]) == [r["cloud"] for r in got]
+        assert df["refused"].fillna("").tolist() == [r["refused"] for r in got]
+        assert df[["fx_n", "fy_n", "fz_n"]].isna().all(axis=1).tolist() == [False, True, False, True, False]
+    # files named one by one: a PLY cut short among them
+    write_ply(tmp_path / "cut.ply", cloud[:300] / 1000.0, binary=True)
+    (tmp_path / "cut.ply").write_bytes((tmp_path / "cut.ply").read_bytes()[:-50])
+    with pytest.raises(PredictionInputError) as exc:
+        read_cloud(tmp_path / "cut.ply", frame=metres)
+    np.savetxt(tmp_path / "tips4.csv", np.vstack([tips[0], tip / 1000.0, tips[1:]]), delimiter=",")
+    named = rows(*run(good / "f0.npy", tmp_path / "cut.ply", good / "f2.npy", good / "f4.npy", "--tool-tips",
+                      tmp_path / "tips4.csv"), damaged=(1,))
+    assert [named[k] for k in (0, 2, 3)] == want and named[1]["refused"].startswith(str(exc.value))
+    # every frame unreadable: refused, the first file's problem said with the count
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    for name in ("f1.pcd", "f3.csv"):
+        (bad / name).write_bytes((full / name).read_bytes())
+    rc, out = run(bad, "--tool-tips", tmp_path / "tips3.csv")
+    assert rc == 2 and "none of the 2 files of the sequence could be read" in out.err
+    assert said["f1.pcd"].replace(str(full), str(bad)) in out.err and "keep only the clouds" in out.err
+    # a stray file in the folder counts as a frame: a tips count that does not match names it, and what to do
+    (full / "notes.txt").write_text("frames 0-4, the tool pressed twice\n")
+    rc, out = run(full, "--tool-tips", tmp_path / "tips5.csv")
+    assert rc == 2 and "5 tips for 6 clouds" in out.err
+    assert "3 of the 6 files could not be read as clouds (f1.pcd, f3.csv, notes.txt)" in out.err
+    assert "if one is not a frame of the recording, move it out of the clouds' folder" in out.err
 
 
 def test_refusals_give_the_tip_and_cloud_back_as_entered_on_every_path(served):

@@ -63,3 +63,96 @@ def test_natural_order_is_total_and_takes_only_ascii_digits(tmp_path):
         np.save(tmp_path / n, np.zeros((2, 3)))
     got, _ = read_sequence([tmp_path])
     assert got == sorted(names, key=_natural) == ["cam1\u00b2.npy", "f01.npy", "f1.npy", "f2.npy", "f10.npy"]
+
+
+def _damaged_folder(folder):
+    """A folder of 5 frames, 3 of them damaged (a binary PCD, a CSV with a line broken, a binary PLY cut short);
+    returns the good clouds by position."""
+    from tests.serve.test_predict_cli import write_ply
+    from tests.serve.test_read_pcd import write_pcd, xyz
+
+    folder.mkdir()
+    rng = np.random.default_rng(3)
+    good = {0: rng.normal(size=(40, 3)), 4: rng.normal(size=(30, 3))}
+    np.save(folder / "f0.npy", good[0])
+    np.save(folder / "f4.npy", good[4])
+    pcd = write_pcd(folder / "f1.pcd", xyz(rng.normal(size=(60, 3))), "binary")
+    pcd.write_bytes(pcd.read_bytes()[:-100])
+    np.savetxt(folder / "f2.csv", rng.normal(size=(20, 3)), delimiter=",")
+    lines = (folder / "f2.csv").read_text().splitlines()
+    (folder / "f2.csv").write_text("\n".join(lines[:5] + ["1.0,2.0,"] + lines[6:]) + "\n")
+    write_ply(folder / "f3.ply", rng.normal(size=(50, 3)), binary=True)
+    (folder / "f3.ply").write_bytes((folder / "f3.ply").read_bytes()[:-40])
+    return good
+
+
+def test_a_file_that_cannot_be_read_is_its_frames_reason_when_errors_are_taken(tmp_path):
+    from liverforce.serve.files import read_cloud
+
+    frames = tmp_path / "frames"
+    good = _damaged_folder(frames)
+    said = {}
+    for name in ("f1.pcd", "f2.csv", "f3.ply"):  # what one cloud's predict says of each
+        with pytest.raises(PredictionInputError) as exc:
+            read_cloud(frames / name)
+        said[name] = str(exc.value)
+    with pytest.raises(PredictionInputError, match="f1.pcd"):  # without errors: the first refuses them all
+        read_sequence([frames])
+    errors: dict = {}
+    names, clouds = read_sequence([frames], errors=errors)
+    assert names == ["f0.npy", "f1.pcd", "f2.csv", "f3.ply", "f4.npy"] and sorted(errors) == [1, 2, 3]
+    for k, c in enumerate(clouds):
+        if k in good:
+            np.testing.assert_array_equal(c, good[k])
+        else:
+            assert c is None and errors[k].startswith(said[names[k]]) and str(frames / names[k]) in errors[k]
+            assert "remove it and its row of tool tips" in errors[k]
+    # files named one by one: the same, in their order; a file named that is not there is still refused
+    errors = {}
+    names, clouds = read_sequence([frames / "f4.npy", frames / "f3.ply", frames / "f0.npy"], errors=errors)
+    assert list(errors) == [1] and errors[1].startswith(said["f3.ply"]) and clouds[1] is None
+    with pytest.raises(PredictionInputError, match="missing.npy: no such point-cloud file"):
+        read_sequence([frames / "f0.npy", frames / "missing.npy"], errors={})
+    # none readable: refused, naming the first file's problem and the count; one file: its own words
+    for name in ("f0.npy", "f4.npy"):
+        (frames / name).unlink()
+    with pytest.raises(PredictionInputError) as exc:
+        read_sequence([frames], errors={})
+    assert str(exc.value).startswith(f"none of the 3 files of the sequence could be read as a point cloud; the "
+                                     f"first: {said['f1.pcd']}. A sequence's folder")
+    with pytest.raises(PredictionInputError) as exc:
+        read_sequence([frames / "f2.csv"], errors={})
+    assert str(exc.value) == said["f2.csv"]
+
+
+def test_a_tips_count_that_does_not_match_names_the_files_not_read(tmp_path):
+    np.savetxt(tmp_path / "tips.csv", np.zeros((4, 3)), delimiter=",")
+    assert read_tips(tmp_path / "tips.csv", 4, unreadable=["notes.txt"]).shape == (4, 3)
+    with pytest.raises(PredictionInputError) as exc:
+        read_tips(tmp_path / "tips.csv", 5)
+    assert "could not be read" not in str(exc.value)
+    with pytest.raises(PredictionInputError, match=r"4 tips for 5 clouds; .*\. 1 of the 5 files could not be read "
+                                                   r"as clouds \(notes\.txt\), each counted as a frame: if one is "
+                                                   r"not a frame of the recording, move it out"):
+        read_tips(tmp_path / "tips.csv", 5, unreadable=["notes.txt"])
+    with pytest.raises(PredictionInputError, match=r"4 of the 6 files could not be read as clouds \(a, b, c and 1 "
+                                                   r"more\)"):
+        read_tips(tmp_path / "tips.csv", 6, unreadable=["a", "b", "c", "d"])
+
+
+def test_predict_sequence_takes_the_files_not_read_only_with_their_reasons():
+    from types import SimpleNamespace
+
+    from liverforce.serve.sequence import predict_sequence
+
+    camera = SimpleNamespace(model=SimpleNamespace(representation=SimpleNamespace(is_camera=True)))
+    clouds, tips = [np.zeros((5, 3)), None], np.zeros((2, 3))
+    with pytest.raises(ValueError, match=r"clouds: \[1\] are None without their reason"):
+        predict_sequence(camera, None, None, clouds, tips)
+    with pytest.raises(ValueError, match=r"positions \[2\]"):
+        predict_sequence(camera, None, None, clouds, tips, unreadable={1: "cut short", 2: "?"})
+    with pytest.raises(PredictionInputError, match=r"one x, y, z tip per cloud \(2, the unreadable ones too\), got 1"):
+        predict_sequence(camera, None, None, clouds, tips[:1], unreadable={1: "cut short"})
+    with pytest.raises(PredictionInputError, match="none of the 2 clouds of the sequence could be read; the first: "
+                                                   "f0 cut short"):
+        predict_sequence(camera, None, None, [None, None], tips, unreadable={1: "f1 cut short", 0: "f0 cut short"})
