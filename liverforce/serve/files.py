@@ -17,7 +17,10 @@ Point clouds (``read_points``), one point per row, mm unless ``units`` says othe
   An organised cloud (``HEIGHT`` > 1, a depth camera's image) marks a pixel without depth with NaN
   coordinates (a stereo camera's driver a depth out of its range with inf): :func:`read_cloud`, the camera clouds'
   reader, drops every point with a coordinate that is not finite, as PCL's ``isFinite`` does, and says how many
-  (:func:`read_points` keeps them, so ordered nodes are refused for them as for any other file).
+  (:func:`read_points` keeps them, so ordered nodes are refused for them as for any other file). An ``ascii``
+  file's values may be separated by any run of spaces or tabs, its lines end in LF or CRLF (a lab's own script,
+  MATLAB, a file edited on Windows), as PCL's own reader splits them; a line with another number of values than a
+  point's is refused, naming it.
 
 A text file whose header names a unit for every column (``x_mm,y_mm,z_mm``, ``X [m]``) is refused when the
 coordinates are read in another one (``--units``, the context's ``units`` or the ``--frame`` record's; mm when
@@ -62,7 +65,9 @@ Context files (``read_context`` / ``load_context``): JSON or YAML with
 
 from __future__ import annotations
 
+import io
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -91,15 +96,81 @@ def _read_ply(path: Path):
 PCD_HEADER = "VERSION, FIELDS, SIZE, TYPE, COUNT, WIDTH, HEIGHT, VIEWPOINT, POINTS and DATA"
 
 
+def _pcd_header(fh) -> tuple[bytes, list[str]]:
+    """The header of the PCD file ``fh`` (opened binary, at its start) as pypcd4's ``PointCloud.from_fileobj`` reads
+    it: its bytes, and its lines stripped (a CRLF's CR too), comments and blank lines skipped, up to ``DATA`` or the
+    tenth line; a UTF-8 byte-order mark before it dropped. ``fh`` is left at the data's first byte."""
+    raw, lines = [], []
+    for bline in fh:
+        if not raw and bline.startswith(b"\xef\xbb\xbf"):  # UTF-8's byte-order mark, as Windows' Notepad writes it
+            bline = bline[3:]
+        raw.append(bline)
+        if (line := bline.decode("utf-8").strip()).startswith("#") or not line:
+            continue
+        lines.append(line)
+        if line.startswith("DATA") or len(lines) >= 10:
+            break
+    return b"".join(raw), lines
+
+
+def _ascii_pcd_lines(fh, out) -> None:
+    """Copy an ascii PCD's data lines from ``fh`` to ``out``, a line for a line, each one's values separated by a
+    single space, as PCL writes them and as pypcd4 splits them (on each space): runs of spaces and tabs, the blanks
+    at either end and a CRLF's CR dropped; read 1 MB of lines at a time."""
+    while lines := fh.readlines(1 << 20):
+        out.write(b"".join(b" ".join(line.split()) + b"\n" for line in lines))
+
+
+def _pcd_fields(meta) -> str:
+    """The header's FIELDS as written (pypcd4 renames each of PCL's padding fields '_' to '#$%&~~' + 6 random
+    letters)."""
+    return " ".join("_" if f.startswith("#$%&~~") else f for f in meta.fields)
+
+
+def _ascii_pcd_misfit(data, first: int, meta, exc: Exception) -> str:
+    """Which line of an ascii PCD's data pypcd4's ``np.loadtxt`` refused with ``exc``, and why (``data``: the
+    lines as :func:`_ascii_pcd_lines` wrote them, the first the file's line ``first``): the first line that holds
+    another number of values than a point of the header's (comments after '#' and blank lines skipped, as
+    ``np.loadtxt`` skips them), else the first whose value in the column ``exc`` names is the one it could not
+    convert. Empty when neither is found."""
+    per_point = sum(meta.count)
+    said = re.search(r"could not convert string '(.*)' to (\w+) at row \d+, column (\d+)", str(exc))
+    for n, line in enumerate(data, first):
+        values = line.split(b"#", 1)[0].split()
+        if not values:
+            continue
+        if len(values) != per_point:
+            return (f"its line {n} holds {len(values)} value{'s' * (len(values) != 1)}, where a point of its FIELDS "
+                    f"{_pcd_fields(meta)} (COUNT {' '.join(str(c) for c in meta.count)}) has {per_point}")
+        if said and values[int(said.group(3)) - 1] == said.group(1).encode("latin-1", "replace"):
+            return f"its line {n}: its value {said.group(3)}, '{said.group(1)}', is not a {said.group(2)} number"
+    return ""
+
+
 def _read_pcd(path: Path) -> tuple[np.ndarray, int, int]:
     """``(points (n, 3) float64, WIDTH, HEIGHT)`` of a PCD file (pypcd4), NaN points kept; its ``x y z``
-    fields only. The ``VIEWPOINT`` (the sensor's pose) is not applied. A file pypcd4 cannot read, a header
-    whose ``POINTS`` is not the data's (a truncated file) or not ``WIDTH`` x ``HEIGHT``, and a cloud without
-    an ``x``, ``y`` or ``z`` field are refused, naming the file and what is wrong."""
-    from pypcd4 import PointCloud
+    fields only. The ``VIEWPOINT`` (the sensor's pose) is not applied. An ascii file's values may be separated by
+    any run of spaces or tabs and its lines end in LF or CRLF: its data lines are handed to pypcd4 as PCL writes
+    them, one space between values (:func:`_ascii_pcd_lines`); binary data is read as it is. A file pypcd4 cannot
+    read, an ascii line with another number of values than a point's (the line named), a header whose ``POINTS``
+    is not the data's (a truncated file) or not ``WIDTH`` x ``HEIGHT``, and a cloud without an ``x``, ``y`` or
+    ``z`` field are refused, naming the file and what is wrong."""
+    from pypcd4 import Encoding, MetaData, PointCloud
 
+    text = None  # an ascii file's header and data lines, made PCL's (binary data is read from the file)
     try:
-        pc = PointCloud.from_path(path)
+        with open(path, "rb") as fh:
+            head, lines = _pcd_header(fh)
+            header = MetaData.parse_header(lines)
+            if header.data == Encoding.ASCII:
+                text = io.BytesIO()
+                text.write(head)
+                _ascii_pcd_lines(fh, text)
+                text.seek(0)
+                pc = PointCloud.from_fileobj(text)
+            else:
+                fh.seek(0)
+                pc = PointCloud.from_fileobj(fh)
     except UnicodeDecodeError:
         raise PredictionInputError(f"{path}: not a PCD file (its header is not text; a PCD v0.7 header gives "
                                    f"{PCD_HEADER})") from None
@@ -110,12 +181,15 @@ def _read_pcd(path: Path) -> tuple[np.ndarray, int, int]:
             raise PredictionInputError(f"{path}: not a PCD file pypcd4 can read, its header wrong ({said}); a PCD "
                                        f"v0.7 header gives {PCD_HEADER} (ascii, binary or binary_compressed)"
                                        ) from None
-        with open(path, "rb") as fh:
-            ascii_ = b"\nDATA ascii" in fh.read(4096)
-        hint = ("; an ascii PCD holds a line per point, its values separated by single spaces, as PCL writes them"
-                if ascii_ else "")
-        raise PredictionInputError(f"{path}: cannot read this PCD file's data ({type(exc).__name__}: {exc}): a "
-                                   f"truncated or damaged file{hint}") from None
+        hint = ("; an ascii PCD holds a line per point, its values numbers separated by spaces or tabs"
+                if text is not None else "")
+        where = ""
+        if text is not None and isinstance(exc, ValueError):  # np.loadtxt's: the line named
+            text.seek(len(head))
+            where = _ascii_pcd_misfit(text, head.count(b"\n") + 1, header, exc)
+        said = f": {where}:" if where else f" ({type(exc).__name__}: {exc}):"
+        raise PredictionInputError(f"{path}: cannot read this PCD file's data{said} a truncated or damaged file{hint}"
+                                   ) from None
     meta = pc.metadata
     data = np.atleast_1d(pc.pc_data)
     if len(data) != meta.points:
@@ -126,10 +200,8 @@ def _read_pcd(path: Path) -> tuple[np.ndarray, int, int]:
                                    f"POINTS {meta.points}: a damaged header")
     for axis in "xyz":
         if axis not in meta.fields:
-            # the header's own names: pypcd4 renames each of PCL's padding fields '_' to '#$%&~~' + 6 random letters
-            fields = " ".join("_" if f.startswith("#$%&~~") else f for f in meta.fields)
-            raise PredictionInputError(f"{path}: no '{axis}' field (FIELDS {fields}); a point cloud's PCD has x, y "
-                                       "and z")
+            raise PredictionInputError(f"{path}: no '{axis}' field (FIELDS {_pcd_fields(meta)}); a point "
+                                       "cloud's PCD has x, y and z")
         if meta.count[meta.fields.index(axis)] != 1:
             raise PredictionInputError(f"{path}: its '{axis}' field has COUNT {meta.count[meta.fields.index(axis)]}; "
                                        "x, y and z are one number each")

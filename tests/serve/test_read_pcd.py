@@ -92,6 +92,87 @@ def test_an_ascii_file_written_by_hand_ignores_its_viewpoint_and_other_fields(tm
     np.testing.assert_array_equal(read_points(tmp_path / "one.pcd"), want[:1])
 
 
+#: an ascii PCD as PCL writes it (single spaces, LF): x and z float32 (0.1 is not a float32), y float64, NaN (PCL's
+#: nan, spelled NaN too) and inf, a padding field '_' of 4 bytes, normals (COUNT 3), rgb and an int16 ring
+PCL_HEAD = ("# .PCD v0.7 - Point Cloud Data file format\n"
+            "VERSION 0.7\n"
+            "FIELDS x y z _ normal rgb ring\n"
+            "SIZE 4 8 4 1 4 4 2\n"
+            "TYPE F F F U F F I\n"
+            "COUNT 1 1 1 4 3 1 1\n"
+            "WIDTH 2\n"
+            "HEIGHT 2\n"
+            "VIEWPOINT 0 0 0 1 0 0 0\n"
+            "POINTS 4\n"
+            "DATA ascii\n")
+PCL_DATA = ("0.1 -2.25 40 0 0 0 0 0 0 1 4.2108e+06 -3\n"
+            "nan NaN nan 0 0 0 0 0.5 0.5 0.7071 4.2108e+06 12\n"
+            "12.5 0.1 -1e-3 0 0 0 0 1 0 0 4.808e+06 7\n"
+            "inf 8 -7.75 0 0 0 0 0 1 0 0 0\n")
+PCL_XYZ = np.array([[np.float32(0.1), -2.25, 40.0], [np.nan] * 3, [12.5, 0.1, np.float32(-1e-3)],
+                    [np.inf, 8.0, -7.75]])
+
+
+def blanks(text: str, sep: str = " ", before: str = "", after: str = "", eol: str = "\n") -> str:
+    """``text``'s lines with ``sep`` between values, ``before`` and ``after`` each line, ending in ``eol``."""
+    return "".join(before + sep.join(line.split(" ")) + after + eol for line in text.splitlines())
+
+
+def test_an_ascii_file_with_other_blanks_reads_as_pcls(tmp_path):
+    """Tabs, runs of spaces, blanks at either end of a line and Windows' CRLF, in the data and in the header (a lab's
+    own script, MATLAB, a file edited on Windows): PCL's own reader splits each line on any run of spaces, tabs and
+    CR; each reads as the single-space file, the same dtypes (float32 x and z, float64 y), NaN and inf kept for
+    read_cloud to drop (pypcd4 split a data line on each space: tabs, two spaces, a blank at either end refused)."""
+    (tmp_path / "pcl.pcd").write_bytes((PCL_HEAD + PCL_DATA).encode())
+    np.testing.assert_array_equal(read_points(tmp_path / "pcl.pcd"), PCL_XYZ)
+    pcl_cloud, pcl_note = read_cloud(tmp_path / "pcl.pcd")
+    assert "2 of 4 points dropped" in pcl_note
+    variants = {
+        "tabs": PCL_HEAD + blanks(PCL_DATA, "\t"),
+        "two spaces": PCL_HEAD + blanks(PCL_DATA, "  "),
+        "a trailing space": PCL_HEAD + blanks(PCL_DATA, after=" "),
+        "blanks at either end, space-tab runs": PCL_HEAD + blanks(PCL_DATA, " \t ", before="\t  ", after="\t"),
+        "CRLF data": PCL_HEAD + blanks(PCL_DATA, eol="\r\n"),
+        "CRLF throughout, tabs": blanks(PCL_HEAD, eol="\r\n") + blanks(PCL_DATA, "\t", eol="\r\n"),
+        "a header of tabs and runs of spaces": blanks(PCL_HEAD, "\t ", after="  ") + blanks(PCL_DATA, "\t"),
+        "Notepad: a byte-order mark, CRLF, two spaces": "\ufeff" + blanks(PCL_HEAD + PCL_DATA, "  ", eol="\r\n"),
+        "blank lines between points": PCL_HEAD + blanks(PCL_DATA, "\t", eol="\n\t\n"),
+    }
+    for name, text in variants.items():
+        path = tmp_path / f"{name}.pcd"
+        path.write_bytes(text.encode())
+        np.testing.assert_array_equal(read_points(path), PCL_XYZ, err_msg=name)
+        got, note = read_cloud(path)
+        np.testing.assert_array_equal(got, pcl_cloud, err_msg=name)
+        assert note == pcl_note.replace(str(tmp_path / "pcl.pcd"), str(path)), name
+
+
+def test_an_ascii_line_with_another_number_of_values_is_refused_naming_it(tmp_path):
+    """A short line, a file cut inside its last line, a value that is not a number, values separated by commas:
+    refused naming the file's line (its header's 11 lines, then the points); a file cut after a line is refused
+    for its points, as before. The lines are tab-separated with CRLF, read as PCL's otherwise."""
+    lines = blanks(PCL_DATA, "\t", eol="\r\n").splitlines(keepends=True)
+
+    def refused(name, data, match):
+        (tmp_path / name).write_bytes((blanks(PCL_HEAD, eol="\r\n") + data).encode())
+        with pytest.raises(PredictionInputError, match=match) as exc:
+            read_points(tmp_path / name)
+        assert str(exc.value).startswith(f"{tmp_path / name}: cannot read this PCD file's data: its line ")
+        assert str(exc.value).endswith(": a truncated or damaged file; an ascii PCD holds a line per point, its "
+                                       "values numbers separated by spaces or tabs")
+
+    refused("short.pcd", "".join(lines[:1] + [lines[1].replace("\t12\r", "\r")] + lines[2:]),
+            r"its line 13 holds 11 values, where a point of its FIELDS x y z _ normal rgb ring \(COUNT 1 1 1 4 3 1 "
+            r"1\) has 12: a truncated")
+    refused("cut.pcd", "".join(lines)[:-20], r"its line 15 holds 3 values, where")  # inf 8 -7.75
+    refused("word.pcd", "".join(lines[:2] + [lines[2].replace("\t0.1\t", "\t0,1\t")] + lines[3:]),
+            r"its line 14: its value 2, '0,1', is not a float64 number: a truncated")
+    refused("commas.pcd", PCL_DATA.replace(" ", ","), r"its line 12 holds 1 value, where a point")
+    (tmp_path / "cut_line.pcd").write_bytes((PCL_HEAD + "".join(lines[:3])).encode())
+    with pytest.raises(PredictionInputError, match=r"its header says POINTS 4, its ascii data holds 3: a truncated "):
+        read_points(tmp_path / "cut_line.pcd")
+
+
 def test_fields_in_another_order_with_extra_fields(tmp_path):
     P = cloud(seed=1)
     n = len(P)
@@ -215,9 +296,6 @@ def test_refusals_name_the_file_and_what_is_wrong(tmp_path):
     packed = write_pcd(tmp_path / "c.pcd", xyz(P), "binary_compressed").read_bytes()
     (tmp_path / "cut_c.pcd").write_bytes(packed[:-40])
     refused(tmp_path / "cut_c.pcd", r"cannot read this PCD file's data .*: a truncated or damaged file$")
-    (tmp_path / "tabs.pcd").write_bytes(ascii_.replace(b" ", b"\t").replace(b"DATA\tascii", b"DATA ascii"))
-    refused(tmp_path / "tabs.pcd", r"a truncated or damaged file; an ascii PCD holds a line per point, its values "
-                                   r"separated by single spaces")
     (tmp_path / "ply.pcd").write_text("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
                                       "property float z\nend_header\n1 2 3\n")
     said = refused(tmp_path / "ply.pcd", r"not a PCD file pypcd4 can read, its header wrong")
