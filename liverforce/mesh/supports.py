@@ -323,8 +323,9 @@ def read_point_file(path, units: str | None = None, scale_mm: float | None = Non
     elif suffix == ".npy":
         try:
             a = np.load(path, allow_pickle=False)
-        except (OSError, ValueError) as exc:
-            raise SupportError(f"{path}: cannot read the array ({exc}; expected {want})") from None
+        except (OSError, ValueError, EOFError) as exc:  # EOFError: numpy's for an empty or cut-short .npy
+            raise SupportError(f"{path}: cannot read the array ({type(exc).__name__}: {exc}; expected {want})"
+                               ) from None
         if not np.issubdtype(a.dtype, np.number) or a.ndim not in (1, 2) or a.ndim == 2 and a.shape[1] not in (1, 3):
             raise SupportError(f"{path}: an array of shape {a.shape} ({a.dtype}); expected {want}")
         if a.ndim == 1 or a.shape[1] == 1:

@@ -68,6 +68,7 @@ from __future__ import annotations
 import io
 import json
 import re
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -174,6 +175,8 @@ def _read_pcd(path: Path) -> tuple[np.ndarray, int, int]:
     except UnicodeDecodeError:
         raise PredictionInputError(f"{path}: not a PCD file (its header is not text; a PCD v0.7 header gives "
                                    f"{PCD_HEADER})") from None
+    except OSError as exc:  # the file itself (permissions, a disk error), not its data
+        raise PredictionInputError(f"{path}: cannot read the file ({type(exc).__name__}: {exc})") from None
     except Exception as exc:  # noqa: BLE001 - pypcd4 raises many types; re-raised with the file named
         errors = getattr(exc, "errors", None)
         if callable(errors):  # pydantic's ValidationError: the header's lines
@@ -238,10 +241,10 @@ def read_points(path: str | Path, units: str | None = "mm", *, frame: InputFrame
         else:
             raise PredictionInputError(f"{path}: unknown point-cloud format '{suffix}' (use .npy, .csv/.txt/.xyz, "
                                        ".ply or .pcd)")
-    except (ValueError, OSError) as exc:
+    except (ValueError, OSError, EOFError) as exc:  # EOFError: numpy's for an empty or cut-short .npy
         if isinstance(exc, PredictionInputError):
             raise
-        raise PredictionInputError(f"{path}: cannot read the point cloud ({exc})") from exc
+        raise PredictionInputError(f"{path}: cannot read the point cloud ({type(exc).__name__}: {exc})") from exc
     pts = np.asarray(pts)
     if pts.ndim != 2 or pts.shape[1] != 3 or not np.issubdtype(pts.dtype, np.number):
         raise PredictionInputError(f"{path}: expected n rows of x, y, z numbers, got an array of shape {pts.shape}")
@@ -330,8 +333,12 @@ def read_surface(path: str | Path, units: str | None = "mm") -> tuple[np.ndarray
             raise PredictionInputError(f"{path}: a surface needs faces; this PLY file holds only points")
         return ply.points * scale, ply.faces
     if suffix == ".npz":
-        with np.load(path, allow_pickle=False) as z:
-            return np.asarray(z["points"], dtype=np.float64) * scale, np.asarray(z["facets"], dtype=np.int64)
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                return np.asarray(z["points"], dtype=np.float64) * scale, np.asarray(z["facets"], dtype=np.int64)
+        except (ValueError, OSError, EOFError, KeyError, zipfile.BadZipFile) as exc:  # KeyError: without those arrays
+            raise PredictionInputError(f"{path}: cannot read the surface ({type(exc).__name__}: {exc}); an .npz "
+                                       "surface holds 'points' (s, 3) and 'facets' (m, 3)") from None
     import meshio
 
     try:
@@ -393,8 +400,8 @@ def _read_triangles(path: Path) -> np.ndarray:
         if path.suffix.lower() == ".npy":
             return np.load(path, allow_pickle=False)
         return np.loadtxt(path, delimiter="," if path.suffix.lower() == ".csv" else None, ndmin=2)
-    except (OSError, ValueError) as exc:
-        raise PredictionInputError(f"{path}: cannot read the triangles ({exc})") from None
+    except (OSError, ValueError, EOFError) as exc:
+        raise PredictionInputError(f"{path}: cannot read the triangles ({type(exc).__name__}: {exc})") from None
 
 
 CONTEXT_KEYS = {"exertion_point_mm", "material_params_mpa", "surface", "roi_undeformed", "frame", "liver_centroid_mm",

@@ -45,8 +45,8 @@ def _stack(path: Path) -> np.ndarray | None:
         return None
     try:
         arr = np.load(path, allow_pickle=False, mmap_mode="r")
-    except (ValueError, OSError) as exc:
-        raise PredictionInputError(f"{path}: cannot read the point clouds ({exc})") from None
+    except (ValueError, OSError, EOFError) as exc:  # EOFError: numpy's for an empty or cut-short .npy
+        raise PredictionInputError(f"{path}: cannot read the point clouds ({type(exc).__name__}: {exc})") from None
     return arr if arr.ndim == 3 else None
 
 
