@@ -28,6 +28,10 @@ calibration's stiffness range (``train.interval.widen``,
 :meth:`liverforce.learn.interval.ConformalInterval.extrapolation_factor`; ``none``: the same interval with its
 ``stiffness_range`` removed); ``--unwidened`` adds ``none``.
 
+With ``--spread`` (betas; 0: none) every interval is also scored scaled by the GP ensemble members' spread
+(``train.interval.spread``, :mod:`liverforce.learn.interval`): the calibration file holds the members' sd of each
+calibration prediction (``spread_local``), so every beta is fitted on the same predictions.
+
 With ``--train-stiffness LO HI`` the split model and its calibration see only the training livers' cases whose
 stiffness factor (first constant over the mean) lies in ``[LO, HI]``; the test livers' cases outside it are
 scored apart (``test outside``): a liver stiffer or softer than every calibration case, as the unseen livers
@@ -81,13 +85,15 @@ def interval_form(cal: dict, cfg: dict, widen: str = "proportional") -> dict:
 WIDEN_NAMES = {"proportional": "", "fitted": " widen fitted", "none": " unwidened"}  # suffix of a printed name
 
 
-def interval_forms(fold_counts, scales, bins, widenings=("proportional",)) -> dict:
-    """Every interval the experiment scores, ``(folds, scale, bins or None, widen)`` -> its printed name: each
-    scale once per fold count, ``force_bins`` once per number of bins, each with every widening of ``widenings``
-    (``proportional``, ``fitted``, ``none``: :func:`interval_form`)."""
-    return {(k, s, b, w): (s if b is None else f"{s}:{b}") + f" {k} folds" + WIDEN_NAMES[w]
+def interval_forms(fold_counts, scales, bins, widenings=("proportional",), spreads=(None,)) -> dict:
+    """Every interval the experiment scores, ``(folds, scale, bins or None, widen, spread beta or None)`` -> its
+    printed name: each scale once per fold count, ``force_bins`` once per number of bins, each with every widening
+    of ``widenings`` (``proportional``, ``fitted``, ``none``: :func:`interval_form`) and every spread beta of
+    ``spreads`` (None: not scaled by the members' spread)."""
+    return {(k, s, b, w, p): (s if b is None else f"{s}:{b}") + f" {k} folds" + WIDEN_NAMES[w]
+            + ("" if p is None else f" spread {p:g}")
             for k in fold_counts for s in scales for b in (bins if s == "force_bins" else [None])
-            for w in widenings}
+            for w in widenings for p in spreads}
 
 
 def stiffness_factors(arrays: dict) -> np.ndarray:
@@ -111,6 +117,8 @@ def main() -> None:
                     "calibration's stiffness range (the same interval, its stiffness_range removed)")
     ap.add_argument("--widen", nargs="+", default=None, choices=[*interval_widenings(), "none"],
                     help="widenings outside the stiffness range to score (default: the config's)")
+    ap.add_argument("--spread", nargs="+", type=float, default=None,
+                    help="spread betas to score (train.interval.spread; 0: none; default: the config's)")
     ap.add_argument("--train-stiffness", nargs=2, type=float, default=None, metavar=("LO", "HI"),
                     help="fit and calibrate the split model on the training livers' cases with stiffness factor "
                     "in [LO, HI] only, and also score the test livers' cases outside it (a training-side stand-in "
@@ -133,7 +141,9 @@ def main() -> None:
     fold_counts = args.folds or [int(base["folds"])]
     widenings = list(dict.fromkeys([*(args.widen or [str(base.get("widen", "proportional"))]),
                                     *(["none"] if args.unwidened else [])]))
-    forms = interval_forms(fold_counts, args.scales, args.bins, widenings)
+    spreads = ([base.get("spread")] if args.spread is None
+               else list(dict.fromkeys(None if p == 0 else float(p) for p in args.spread)))
+    forms = interval_forms(fold_counts, args.scales, args.bins, widenings, spreads)
     parts = ["test", "unseen"]
     fit_arrays, outside_rows = arrays, None
     if args.train_stiffness is not None:
@@ -173,7 +183,9 @@ def main() -> None:
             if int(cal["folds"]) != k:
                 raise SystemExit(f"split {r}: the calibration file holds {int(cal['folds'])} folds, not {k}")
             for f in (f for f in forms if f[0] == k):
-                cfg = {**base, "folds": k, "scale": f[1], **({} if f[2] is None else {"bins": f[2]})}
+                cfg = {**base, "folds": k, "scale": f[1], **({} if f[2] is None else {"bins": f[2]}), "spread": f[4]}
+                if f[4] is not None and "spread_local" not in cal:
+                    raise SystemExit(f"split {r}: no members' spread in the calibration (not a GP ensemble)")
                 m.meta["interval"] = interval_form(cal, cfg, widen=f[3])
                 for part, cases in scored.items():
                     if len(cases["case_id"]):  # (a split's test livers may have no case outside the range)

@@ -214,7 +214,7 @@ def against(pred, preop, fast, batch, tips) -> None:
         g2 = fast.g * fast.g
         same_mask = np.array_equal(Xn[:, g2:2 * g2], Xo[:, g2:2 * g2])
         dx = float(np.nanmax(np.abs(Xn - Xo)))
-        Fn, Fo = fast._head(Xn), old._head(Xn)
+        Fn, Fo = (h[0] if isinstance(h, tuple) else h for h in (fast._head(Xn), old._head(Xn)))  # (F, sd) since 17
         dF = float(np.abs(Fn - Fo).max())
         rows = slice(0, (n // cc._HEAD_ROWS) * cc._HEAD_ROWS or n)
 

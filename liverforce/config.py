@@ -209,6 +209,8 @@ class IntervalConfig:
     bins: int = MISSING  # scale: force_bins: bins at the quantiles of the calibration cases' predicted |force|
     widen: str = MISSING  # outside the calibration's stiffness range: proportional (x k / k_hi) | fitted (x (k /
     # k_hi)^g, g the calibration residuals' growth with the stiffness)
+    spread: Optional[float] = MISSING  # beta > 0: widths x (the GP ensemble members' sd + beta x its calibration
+    # median); null: not scaled by the members' spread (liverforce.learn.interval)
 
 
 @dataclass
@@ -913,6 +915,11 @@ def _check_ranges(cfg: dict, run: bool = True) -> None:
         _fail("train.interval.folds", f"must be >= 1 (got {t['interval']['folds']})", "e.g. 4 (1: one held-out split)")
     _check_choice("train.interval.scale", t["interval"]["scale"], interval_scales(), "interval scale")
     _check_choice("train.interval.widen", t["interval"]["widen"], interval_widenings(), "interval widening")
+    spread = t["interval"].get("spread")
+    if spread is not None and not (isinstance(spread, (int, float)) and not isinstance(spread, bool)
+                                   and math.isfinite(spread) and spread > 0):
+        _fail("train.interval.spread", f"must be a positive number or null, got {spread!r}",
+              "e.g. 4 (the members' median sd x 4 added to each case's), or null for no spread")
     if t["interval"]["bins"] < 1:
         _fail("train.interval.bins", f"must be >= 1 (got {t['interval']['bins']})", "e.g. 4 (with scale: force_bins)")
     if t["heldout_points"]["folds"] < 2:

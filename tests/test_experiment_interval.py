@@ -55,14 +55,17 @@ def test_interval_form_unwidened_drops_only_the_widening_outside_the_stiffness_r
 
 def test_interval_forms_score_every_scale_once_per_fold_count_and_force_bins_once_per_bin_count():
     forms = interval_forms([4, 8], ["force", "force_bins"], [3, 5])
-    assert list(forms) == [(4, "force", None, "proportional"), (4, "force_bins", 3, "proportional"),
-                           (4, "force_bins", 5, "proportional"), (8, "force", None, "proportional"),
-                           (8, "force_bins", 3, "proportional"), (8, "force_bins", 5, "proportional")]
-    assert forms[(8, "force_bins", 5, "proportional")] == "force_bins:5 8 folds"
+    assert list(forms) == [(4, "force", None, "proportional", None), (4, "force_bins", 3, "proportional", None),
+                           (4, "force_bins", 5, "proportional", None), (8, "force", None, "proportional", None),
+                           (8, "force_bins", 3, "proportional", None), (8, "force_bins", 5, "proportional", None)]
+    assert forms[(8, "force_bins", 5, "proportional", None)] == "force_bins:5 8 folds"
     both = interval_forms([4], ["none"], [5], ["proportional", "fitted", "none"])
-    assert both == {(4, "none", None, "proportional"): "none 4 folds",
-                    (4, "none", None, "fitted"): "none 4 folds widen fitted",
-                    (4, "none", None, "none"): "none 4 folds unwidened"}
+    assert both == {(4, "none", None, "proportional", None): "none 4 folds",
+                    (4, "none", None, "fitted", None): "none 4 folds widen fitted",
+                    (4, "none", None, "none", None): "none 4 folds unwidened"}
+    spread = interval_forms([4], ["force_bins"], [5], ["fitted"], [None, 4.0])
+    assert spread == {(4, "force_bins", 5, "fitted", None): "force_bins:5 4 folds widen fitted",
+                      (4, "force_bins", 5, "fitted", 4.0): "force_bins:5 4 folds widen fitted spread 4"}
 
 
 def test_stiffness_factors_are_the_first_constant_over_its_mean():

@@ -351,6 +351,17 @@ def test_report_says_the_interval_has_a_width_per_force_bin_and_names_no_quintil
     iv = _section(html, "<h3>Calibrated interval</h3>", "</p>")
     assert "a width per bin of the predicted force's magnitude" in iv and "scaled per case" not in iv
     assert "each bin of the predicted force has its own width" in html and "The lowest is" not in html
+    assert "GP members disagree" not in iv  # no spread_beta recorded: not scaled by the members' spread
+
+
+def test_report_says_the_interval_is_scaled_by_the_gp_members_spread(stage_outputs):
+    path = stage_outputs["validation"]
+    doc = json.loads(path.read_text())
+    doc["interval"].update(scale="force_bins", spread_beta=4.0)
+    path.write_text(json.dumps(doc))
+    iv = _section(_report(stage_outputs), "<h3>Calibrated interval</h3>", "</p>")
+    assert ("a width per bin of the predicted force's magnitude" in iv and "each width also scaled by how far the "
+            "model's GP members disagree on the case (their sd plus 4 x its median over the calibration)" in iv)
 
 
 def test_report_refuses_a_validation_without_per_liver_metrics(stage_outputs):

@@ -565,14 +565,21 @@ class GPEnsemble(nn.Module):
         return self.members[0].n_train
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
-        z = z.double()
-        return torch.stack([m(z[:, self.columns(i)]) for i, m in enumerate(self.members)]).mean(0)
+        return self.forward_members(z).mean(0)
 
-    def numpy_head(self, fixed: dict | None = None):
+    def forward_members(self, z: torch.Tensor) -> torch.Tensor:
+        """Each member's prediction ``(members, n, outputs)``; :meth:`forward` is their mean. How far they
+        disagree is what the interval's ``spread`` reads (:mod:`liverforce.learn.interval`)."""
+        z = z.double()
+        return torch.stack([m(z[:, self.columns(i)]) for i, m in enumerate(self.members)])
+
+    def numpy_head(self, fixed: dict | None = None, members: bool = False):
         """The members' :meth:`GPRegressor.numpy_head` on their columns, averaged (the compiled paths).
 
         ``fixed``: ``{input column: value}`` as for :meth:`GPRegressor.numpy_head`; the head then takes the
-        other input columns, in their order, and each member gets its share of the fixed inputs."""
+        other input columns, in their order, and each member gets its share of the fixed inputs. ``members``:
+        the head returns ``(mean, sd)``, ``sd`` the members' standard deviation (ddof 1) per output, the mean
+        the same bits as without."""
         cols = [self.columns(i).numpy() for i in range(len(self.members))]
         n_in = 1 + max(int(c.max()) for c in cols)  # the inputs: every column up to the last a member reads
         fixed = _fixed_inputs(fixed, n_in)
@@ -582,14 +589,20 @@ class GPEnsemble(nn.Module):
                  for i, m in enumerate(self.members)]
         w = 1.0 / len(heads)
 
-        def head(Z: np.ndarray) -> np.ndarray:
+        def head(Z: np.ndarray):
             Z = np.asarray(Z, dtype=np.float64)
             if fixed and (Z.ndim != 2 or Z.shape[1] != len(free)):  # (else each member checks its columns)
                 raise ValueError(f"the GP head takes rows of {len(free)} inputs, got an array of shape {Z.shape}")
-            out = heads[0][0](Z[:, heads[0][1]])
-            for h, c in heads[1:]:
-                out += h(Z[:, c])
+            if members:
+                each = [h(Z[:, c]) for h, c in heads]
+                out = each[0].copy()
+            else:
+                out = heads[0][0](Z[:, heads[0][1]])
+            for k, (h, c) in enumerate(heads[1:], start=1):
+                out += each[k] if members else h(Z[:, c])
             out *= w
+            if members:
+                return out, (np.std(np.stack(each), axis=0, ddof=1) if len(each) > 1 else np.zeros_like(out))
             return out
 
         return head

@@ -138,6 +138,26 @@ components and splits):
   smallest fifth of the forces covered in 82 / 71 / 91 %; 5 bins 91.1 / 90.0 /
   94.3 %, spread 10.4 points, the smallest fifth 89 / 85 / 97 %, at mean
   half-widths within 0.007 N of ``force``'s.
+
+Scaled by how far the GP ensemble's members disagree (``spread: beta``, the default since session 59;
+normalised conformal, Papadopoulos et al. 2008, Lei et al. 2018 section 5.2). The camera and node models'
+GP is a mean of members over code sizes (:class:`liverforce.learn.gp.GPEnsemble`); where the members
+disagree, the model is less sure of the case. Each residual is divided by
+
+    u_ij = d_ij + beta m_j,      d_ij the sd of the members' local forces (N, ddof 1),
+                                 m_j the median of d_.j over the calibration cases
+
+before everything above (the scale's bins or line, the stiffness widening, all on ``r / u``), and the width is
+multiplied by it again: ``half_ij = q_b(i)j u_ij x ...`` (``q`` then has no unit). ``beta m_j`` keeps the
+width from vanishing where the members happen to agree; a large ``beta`` is the interval without the spread.
+A model without an ensemble (one GP, an MLP) records no spread and gets the interval without it. Measured on
+the f67 clone's shards (2936f9e; cloud_sv, IV, 5 seeded splits, the split models' own cross-conformal
+calibration; ``benchmarks/experiment_interval.py --spread``): on the IV test livers, with 5 force bins, beta 4
+gave the same coverage as the bins alone (90.9 / 91.6 / 90.8 against 90.8 / 91.9 / 91.0 %) with half-widths
+7-10 % narrower on every split (0.147 / 0.155 / 0.303 against 0.161 / 0.166 / 0.329 N), and the per-liver
+coverage's sd over the test livers 5.8 / 5.4 / 6.3 against 6.7 / 5.8 / 6.6 points; beta 1 and 2 were as
+narrow with a point less coverage on some splits, 0.25 and 0.5 wider. On the unseen livers (a check, not the
+choice) beta 4 covered 91.0 / 92.0 / 91.4 % against 92.0 / 92.5 / 92.3 %, 9-12 % narrower on every split.
 """
 
 from __future__ import annotations
@@ -172,14 +192,35 @@ class ConformalInterval:
     widen: str = "proportional"  # outside the stiffness range: "proportional" (k / k_hi) or "fitted" (^g_j)
     stiffness_exponent: tuple[float, float, float] | None = None  # widen: fitted: g_j of q_c(s_j) ~ k^g_j (None:
     # nothing to fit, the proportional rule)
+    spread_beta: float | None = None  # spread: the widths are multiples of u = d + beta m (module docstring);
+    # None: not scaled by the members' spread (and half_width_n, bin_half_width_n are in N)
+    spread_median_n: tuple[float, float, float] | None = None  # m_j: the calibration's median member sd (N)
 
-    def half_widths(self, stiffness: np.ndarray, force: np.ndarray | None = None) -> np.ndarray:
+    def half_widths(self, stiffness: np.ndarray, force: np.ndarray | None = None,
+                    spread: np.ndarray | None = None) -> np.ndarray:
         """Half-widths ``(n, 3)`` N for rows with stiffness factors ``(n, 1)`` and predicted forces ``(n, 3)``
         (any frame; ``scale: force`` and ``force_bins`` only): times ``k`` with ``scale: stiffness``; with
         ``scale: none`` fixed inside the calibration's stiffness range, widened outside it; with ``scale: force``
         times ``sigma_j(|f^|)``, with ``force_bins`` the width of the bin of ``|f^|``, both widened the same way
-        (module docstring)."""
-        return self.stiffness_factor(stiffness) * self.force_widths(force)
+        (module docstring); with ``spread_beta``, times ``u = spread + beta m``, ``spread`` ``(n, 3)`` the
+        members' sd of each row's local force (:attr:`liverforce.learn.model.Forward.spread_local`)."""
+        return self.stiffness_factor(stiffness) * self.force_widths(force, spread)
+
+    @property
+    def uses_spread(self) -> bool:
+        """Whether the widths read the ensemble members' spread (``spread_beta``)."""
+        return self.spread_beta is not None
+
+    def spread_unit(self, spread: np.ndarray | None) -> np.ndarray:
+        """``u = d + beta m`` ``(n, 3)`` N of the members' sd ``d`` ``(n, 3)`` (module docstring); ones without
+        ``spread_beta``. A row whose spread is not finite gets NaN (no width)."""
+        if not self.uses_spread:
+            return np.ones((1, 3)) if spread is None else np.ones_like(np.asarray(spread, dtype=np.float64))
+        if spread is None:
+            raise ValueError("this interval is scaled by the spread of the model's GP ensemble members "
+                             "(spread_beta): pass each row's members' sd (Forward.spread_local)")
+        d = np.asarray(spread, dtype=np.float64).reshape(-1, 3)
+        return d + self.spread_beta * np.asarray(self.spread_median_n, dtype=np.float64)[None, :]
 
     def stiffness_factor(self, stiffness: np.ndarray) -> np.ndarray:
         """What the widths are multiplied by for each row's stiffness factor ``(n, 1)``: ``k`` with
@@ -188,9 +229,16 @@ class ConformalInterval:
         k = np.asarray(stiffness, dtype=np.float64).reshape(-1, 1)
         return k if self.scale == "stiffness" else self.extrapolation_factor(k)
 
-    def force_widths(self, force: np.ndarray | None = None) -> np.ndarray:
+    def force_widths(self, force: np.ndarray | None = None, spread: np.ndarray | None = None) -> np.ndarray:
         """The half-widths before the stiffness factor: ``(n, 3)`` for predicted forces ``(n, 3)`` (any frame:
-        only ``|f^|`` is read), ``(1, 3)`` without forces for a scale that does not read them."""
+        only ``|f^|`` is read), ``(1, 3)`` without forces for a scale that does not read them; times
+        :meth:`spread_unit` with ``spread_beta`` (``spread``: the members' sd, ``(n, 3)`` N)."""
+        if self.uses_spread:
+            return self._scaled_widths(force) * self.spread_unit(spread)
+        return self._scaled_widths(force)
+
+    def _scaled_widths(self, force: np.ndarray | None) -> np.ndarray:
+        """:meth:`force_widths` before the spread's unit."""
         q = np.asarray(self.half_width_n, dtype=np.float64)[None, :]
         if self.scale not in FORCE_SCALES:
             return q if force is None else np.repeat(q, len(np.asarray(force).reshape(-1, 3)), axis=0)
@@ -247,7 +295,10 @@ class ConformalInterval:
                 [[float(v) if math.isfinite(v) else None for v in row] for row in self.bin_half_width_n],
                 "widen": self.widen,
                 "stiffness_exponent": None if self.stiffness_exponent is None else
-                [float(v) for v in self.stiffness_exponent]}
+                [float(v) for v in self.stiffness_exponent],
+                "spread_beta": None if self.spread_beta is None else float(self.spread_beta),
+                "spread_median_n": None if self.spread_median_n is None else
+                [float(v) for v in self.spread_median_n]}
 
     @classmethod
     def from_dict(cls, d: dict) -> "ConformalInterval":
@@ -260,7 +311,9 @@ class ConformalInterval:
                    None if fs is None else tuple((float(a), float(b)) for a, b in fs),
                    None if edges is None else tuple(float(v) for v in edges),
                    None if bins is None else tuple(_widths(row) for row in bins),
-                   str(d.get("widen", "proportional")), None if g is None else tuple(float(v) for v in g))
+                   str(d.get("widen", "proportional")), None if g is None else tuple(float(v) for v in g),
+                   None if d.get("spread_beta") is None else float(d["spread_beta"]),  # before format 17: none
+                   None if d.get("spread_median_n") is None else tuple(float(v) for v in d["spread_median_n"]))
 
 
 def _widths(row) -> tuple[float, ...]:
@@ -270,10 +323,13 @@ def _widths(row) -> tuple[float, ...]:
 
 def fit_conformal(true_local: np.ndarray, pred_local: np.ndarray, stiffness: np.ndarray, coverage: float,
                   grouping: str, scale: str = "stiffness", folds: int = 1, bins: int = 5,
-                  widen: str = "proportional") -> ConformalInterval:
+                  widen: str = "proportional", spread: np.ndarray | None = None,
+                  spread_beta: float | None = None) -> ConformalInterval:
     """The split-conformal quantile per component (module docstring) from calibration predictions; ``bins``:
     the bins of the predicted ``|f^|`` with ``scale: force_bins`` (fewer when a bin would hold too few cases);
-    ``widen``: the widening outside the calibration's stiffness range (not with ``scale: stiffness``)."""
+    ``widen``: the widening outside the calibration's stiffness range (not with ``scale: stiffness``).
+    ``spread``: the calibration cases' members' sd ``(n, 3)`` N and ``spread_beta`` > 0: every residual over
+    ``u = spread + beta median(spread)`` first (module docstring); either None: not scaled by it."""
     if not 0.0 < coverage < 1.0:
         raise ValueError(f"interval coverage must be in (0, 1), got {coverage}")
     if scale not in SCALES:
@@ -287,12 +343,16 @@ def fit_conformal(true_local: np.ndarray, pred_local: np.ndarray, stiffness: np.
     pred = np.asarray(pred_local, float)
     r = np.abs(np.asarray(true_local, float) - pred)
     n = len(r)
+    beta = med = None
+    if spread is not None and spread_beta is not None:
+        beta, med = _spread_median(spread, pred, r, spread_beta)
+        r = r / (np.asarray(spread, dtype=np.float64) + beta * np.asarray(med)[None, :])
     rng = (float(k_rows.min()), float(k_rows.max())) if scale != "stiffness" and k_rows.size else None
     rank = _rank(n, coverage)
     if rank > n:  # too few cases for this coverage: the honest split-conformal interval is unbounded
         unbounded = ((), ((math.inf,) * 3,)) if scale == "force_bins" else (None, None)
         return ConformalInterval(float(coverage), (math.inf,) * 3, int(n), grouping, scale, int(folds), rng,
-                                 None, *unbounded, widen)
+                                 None, *unbounded, widen, None, beta, med)
     ok = np.isfinite(pred).all(axis=1) & np.isfinite(r).all(axis=1)  # a non-finite row sorts last, as before
     fs = force_scale_fit(pred[ok], r[ok]) if scale == "force" and ok.any() else None
     s = r / k if fs is None else r / force_sigma(fs, pred)
@@ -308,7 +368,27 @@ def fit_conformal(true_local: np.ndarray, pred_local: np.ndarray, stiffness: np.
             score = np.where(np.isfinite(w) & (w > 0), score / np.where(w > 0, w, 1.0), score)
         g = stiffness_exponent_fit(k_rows[ok], score, coverage)
     return ConformalInterval(float(coverage), tuple(float(v) for v in q), int(n), grouping, scale, int(folds), rng,
-                             fs, edges, widths, widen, g)
+                             fs, edges, widths, widen, g, beta, med)
+
+
+def _spread_median(spread, pred: np.ndarray, r: np.ndarray, beta) -> tuple[float, tuple[float, ...]]:
+    """``(beta, m)`` of :func:`fit_conformal`'s ``spread``: ``m_j`` the median members' sd of the calibration
+    cases whose prediction, residual and spread are finite. Refused (ValueError): a spread of another shape than
+    the predictions, a negative one, ``beta <= 0``, or a zero median (the members agree on most cases: nothing to
+    scale by; ``train.interval.spread: null``)."""
+    d = np.asarray(spread, dtype=np.float64)
+    if d.shape != pred.shape:
+        raise ValueError(f"interval spread: one members' sd per prediction, shape {pred.shape}; got {d.shape}")
+    if not (isinstance(beta, (int, float)) and math.isfinite(beta) and beta > 0):
+        raise ValueError(f"interval spread: beta must be a positive number, got {beta!r}")
+    ok = np.isfinite(pred).all(axis=1) & np.isfinite(r).all(axis=1) & np.isfinite(d).all(axis=1)
+    if (d[ok] < 0).any():
+        raise ValueError("interval spread: a members' sd is negative")
+    med = np.median(d[ok], axis=0) if ok.any() else np.zeros(3)
+    if not (med > 0).all():
+        raise ValueError(f"interval spread: the members' median sd is {med.tolist()} N; with zero, nothing scales "
+                         "the widths (set train.interval.spread: null)")
+    return float(beta), tuple(float(v) for v in med)
 
 
 def stiffness_exponent_fit(stiffness: np.ndarray, score: np.ndarray, coverage: float,

@@ -97,6 +97,7 @@ from liverforce.learn.camera import N_DENT
 from liverforce.learn.cloud_features import ROI_TRIANGLES_KEY
 from liverforce.learn.encoders import AutoEncoder, Encoder, PCAEncoder
 from liverforce.learn.frames import case_rotations, force_to_local, force_to_source
+from liverforce.learn.gp import GPEnsemble
 from liverforce.learn.names import FORCE_SCALINGS
 from liverforce.learn.regressor import (
     FitParams,
@@ -117,11 +118,11 @@ from liverforce.learn.state import (
     recorded_ranges,
     state_vector,
 )
-from liverforce.learn.torchutil import EpochCallback
+from liverforce.learn.torchutil import EpochCallback, as_tensor
 from liverforce.seeds import derive
 
 FORMAT = "liverforce.force_model"
-FORMAT_VERSION = 16  # 3: probe compliance in the state vector (material from column 22), linear force estimate;
+FORMAT_VERSION = 17  # 3: probe compliance in the state vector (material from column 22), linear force estimate;
 #                     4: the GP regressor may be a GPEnsemble (model.gp.code_members), which a reader of 3 cannot load;
 #                     5: the state features may end with the indentation strain, which a reader of 4 would misread;
 #                     6: a GP's kernel may be the rational quadratic (a ``shape`` buffer), which a reader of 5 would
@@ -148,7 +149,9 @@ FORMAT_VERSION = 16  # 3: probe compliance in the state vector (material from co
 #                        grid records the range's most (instrument_point_sd_max_mm), which a reader of 14 cannot load
 #                     16: a camera model's grid may drop a cloud's gross depth errors (camera.grid.outlier_mm) and its
 #                        observation may add them (observation.outlier_fraction), keys a reader of 15 cannot load
-READ_VERSIONS = (3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16)
+#                     17: the interval may be scaled by the GP ensemble members' spread (train.interval.spread), which
+#                        a reader of 16 would read as widths in N
+READ_VERSIONS = (3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17)
 # a version-3 bundle is a version-4 bundle with a single GP (or an MLP); 4 is 5
 #                                     without the indentation strain; 5 is 6 with squared-exponential GPs (no shape
 #                                     buffer); 6 is 7 with camera models on the ROI points' reference (reference:
@@ -556,6 +559,8 @@ class Forward:
     R: np.ndarray  # (n, 3, 3) local rotations, rows t1, t2, n
     force_local: np.ndarray  # (n, 3) N, (F.t1, F.t2, F.n)
     stiffness: np.ndarray  # (n, 1) the case's stiffness factor k = c_1 / c_1,ref (ones without force scaling)
+    spread_local: np.ndarray | None = None  # (n, 3) N: the sd of a GP ensemble's members' local forces (ddof 1;
+    # the interval's spread, liverforce.learn.interval); None for one GP or an MLP
 
     @property
     def force_source(self) -> np.ndarray:
@@ -638,8 +643,18 @@ class ForceModel:
         s = state_vector(self.representation.state_arrays(arrays), R=R) if self.uses_state else None
         z = self.pre.inputs(x, s)
         k = self.pre.stiffness(s, len(z))
-        f_local = self.pre.target_scaler.inverse_transform(predict_regressor(self.regressor, z)) * k
-        return Forward(R, f_local, self.pre.material_factor(s, len(z)))
+        ts = self.pre.target_scaler
+        if isinstance(self.regressor, GPEnsemble) and len(self.regressor.members) > 1:
+            self.regressor.eval()
+            with torch.no_grad():
+                each = self.regressor.forward_members(as_tensor(z)).double()  # float32 inputs, as predict_regressor
+                mean = each.mean(0).numpy()  # what predict_regressor gives (GPEnsemble.forward): the same bits
+            f_local = ts.inverse_transform(mean) * k
+            spread = np.std(ts.inverse_transform(each.numpy()) * k, axis=0, ddof=1)
+        else:
+            f_local = ts.inverse_transform(predict_regressor(self.regressor, z)) * k
+            spread = None
+        return Forward(R, f_local, self.pre.material_factor(s, len(z)), spread)
 
     def predict_local(self, arrays: dict, observation_seed: int | None = None) -> np.ndarray:
         """Force in the local frame ``(n, 3)`` N (``F.t1, F.t2, F.n``)."""
@@ -667,7 +682,7 @@ class ForceModel:
         if ci is None:
             raise ValueError("this model has no calibrated interval (trained without train.interval)")
         fw = self.forward(arrays, observation_seed, rotations=rotations)
-        half = ci.half_widths(fw.stiffness, fw.force_local)
+        half = ci.half_widths(fw.stiffness, fw.force_local, fw.spread_local)
         return {"force_n": fw.force_source, "force_local_n": fw.force_local, "half_width_local_n": half,
                 "coverage": ci.coverage, "frame": fw.R}
 

@@ -605,10 +605,13 @@ def interval_from_calibration(cal: dict, interval_cfg, scenario):
     config sets it, ``force_bins`` by default, with ``interval_cfg["bins"]`` bins; a dict without the key gets
     ``stiffness``, what it meant before the key existed); ``interval_cfg["widen"]``: ``proportional`` (without
     the key) or ``fitted``, the widening outside the calibration's stiffness range."""
+    beta = interval_cfg.get("spread")
+    spread = cal.get("spread_local")
     return fit_conformal(cal["true_local"], cal["pred_local"], cal["stiffness"], float(interval_cfg["coverage"]),
                          group_key(scenario), scale=str(interval_cfg.get("scale", "stiffness")),
                          folds=int(cal["folds"]), bins=int(interval_cfg.get("bins", 5)),
-                         widen=str(interval_cfg.get("widen", "proportional")))
+                         widen=str(interval_cfg.get("widen", "proportional")),
+                         spread=None if beta is None else spread, spread_beta=None if spread is None else beta)
 
 
 def _write_calibration(path: Path, cal: dict) -> None:
@@ -621,7 +624,8 @@ def _write_calibration(path: Path, cal: dict) -> None:
 
 def calibration_predictions(train_arrays, model_cfg, interval_cfg, scenario, seed, encoder, use_state, code_size,
                             dae_noise, hidden, dropout, fit) -> dict:
-    """The calibration cases' true and predicted local forces and stiffness factors, from the training split alone.
+    """The calibration cases' true and predicted local forces and stiffness factors, from the training split alone,
+    and (``spread_local``) a GP ensemble's members' sd of each prediction (the interval's ``spread``).
 
     ``interval_cfg["folds"]`` > 1: cross-conformal, the training cases cut into
     that many folds (by liver in IV, as the test split), each predicted by a model
@@ -642,7 +646,7 @@ def calibration_predictions(train_arrays, model_cfg, interval_cfg, scenario, see
                                             test_fraction=float(interval_cfg["calibration_fraction"]),
                                             seed=derive(seed, "split.calibration"))
         pairs = [(fit_idx, cal_idx)]
-    true, pred, stiff = [], [], []
+    true, pred, stiff, spread = [], [], [], []
     for fit_idx, cal_idx in pairs:
         a_fit, a_cal = subset(train_arrays, fit_idx), subset(train_arrays, cal_idx)
         rep_c = representation_from_config(model_cfg, a_fit)
@@ -651,12 +655,16 @@ def calibration_predictions(train_arrays, model_cfg, interval_cfg, scenario, see
                                    hidden=hidden, dropout=dropout, fit=fit, seed=cal_seed, dae_input_noise=dae_noise,
                                    **state_options(model_cfg))
         prep_cal = prepare(a_cal, rep_c, observation_seeds=[eval_seed(seed)])
-        f_cal = model.predict_local(a_cal, observation_seed=eval_seed(seed))
+        fw = model.forward(a_cal, observation_seed=eval_seed(seed))
         true.append(prep_cal.y_local)
-        pred.append(f_cal)
-        stiff.append(model.pre.material_factor(prep_cal.state if use_state else None, len(f_cal)))
-    return {"true_local": np.vstack(true), "pred_local": np.vstack(pred), "stiffness": np.vstack(stiff),
-            "folds": len(pairs)}
+        pred.append(fw.force_local)
+        stiff.append(model.pre.material_factor(prep_cal.state if use_state else None, len(fw.force_local)))
+        spread.append(fw.spread_local)
+    out = {"true_local": np.vstack(true), "pred_local": np.vstack(pred), "stiffness": np.vstack(stiff),
+           "folds": len(pairs)}
+    if all(d is not None for d in spread):  # a GP ensemble's members' sd (the interval's spread)
+        out["spread_local"] = np.vstack(spread)
+    return out
 
 
 def _geometries(arrays: dict) -> list[str]:

@@ -84,7 +84,7 @@ def interval_coverage(m, arrays: dict) -> dict | None:
             for lo, hi, sel in force_bins(mag, np.quantile(mag, np.linspace(0.0, 1.0, 6)))]
     return {"nominal": ci.coverage, "bounded": ci.bounded, "n_calibration": ci.n_calibration, "scale": ci.scale,
             "widen": ci.widen, "stiffness_exponent": None if ci.stiffness_exponent is None else
-            [float(v) for v in ci.stiffness_exponent],
+            [float(v) for v in ci.stiffness_exponent], "spread_beta": ci.spread_beta,
             "coverage": coverage_per_component(true_local, got["force_local_n"], half),
             "coverage_by_force": bins,
             "coverage_per_liver": per,

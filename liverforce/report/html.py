@@ -1132,6 +1132,10 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
                              "calibration cases, and " + widened,
                "stiffness": "scaled by each case's stiffness factor C10 / C10_ref"}.get(
             scale, "fixed per component, " + widened)
+        if iv.get("spread_beta") is not None:  # normalised conformal on the GP ensemble members' disagreement
+            how = (f"{how}; each width also scaled by how far the model's GP members disagree on the case (their sd "
+                   f"plus {iv['spread_beta']:g} x its median over the calibration), so a case the members disagree "
+                   "on gets a wider interval")
         parts.append(
             "<h3>Calibrated interval</h3><p>Every prediction comes with an interval per local force component "
             f"(conformal, calibrated on the training livers' predictions by models that did not see them: "

@@ -32,13 +32,15 @@ def served(request, tmp_path_factory):
     """The compiled camera path of a small camera model, with each regressor (the MLP, the GP ensemble over
     PCA code sizes, and one GP) and force scaling (the predicted force or the linear force estimate scaled by
     the stiffness, or neither). The GP ensemble has the shipped camera model's settings: no force scaling,
-    a grid kernel of 1.5 cells, and an interval scaled by the predicted force (a half-width per cloud)."""
+    a grid kernel of 1.5 cells, and an interval scaled by the predicted force and by the members' spread (a
+    half-width per cloud)."""
     arrays = synthetic_surface_arrays(80, n_geometries=3, seed=3, material_varies=True)
     regressor, scaling = request.param
     members = [2, 4, 6] if regressor == "gp_ensemble" else None
     camera = MODEL["camera"] if members is None else {**MODEL["camera"], "grid": {"kernel_radius_cells": 1.5}}
     # the shipped interval (scaled by the predicted force) with the shipped camera settings
-    train = TRAIN if members is None else {**TRAIN, "interval": {**TRAIN["interval"], "scale": "force"}}
+    train = TRAIN if members is None else {**TRAIN, "interval": {**TRAIN["interval"], "scale": "force",
+                                                                  "spread": 4.0}}
     res = train_scenario(arrays, {**MODEL, "regressor": "mlp" if regressor == "mlp" else "gp",
                                   "force_scaling": scaling, "camera": camera,
                                   "gp": {"max_points": 2000, "iterations": 100, "code_members": members}},
@@ -46,6 +48,7 @@ def served(request, tmp_path_factory):
     pred = Predictor(ForceModel.load(res["model_path"]))
     assert pred.model.pre.indentation_strain
     assert (type(pred.model.regressor).__name__ == "GPEnsemble") == (members is not None)
+    assert pred.model.interval.uses_spread == (members is not None)
     test = np.flatnonzero(np.isin(arrays["geometry_id"], res["split"]["test_geometries"]))
     a = subset(arrays, test)
     ctx = Preop.from_arrays({k: v for k, v in a.items() if k != "roi_deformed_mm"}, 0)
@@ -238,17 +241,19 @@ def test_batch_equals_per_cloud_predictions(served):
         model.meta = {**model.meta, "interval": interval}
         return Predictor(model).compile_cloud(ctx)
 
-    # each cloud's own width from its force, whatever scale the fixture's model was calibrated with
+    # each cloud's own width from its force, whatever scale the fixture's model was calibrated with (the scales
+    # without the members' spread: the widths then read the force alone)
     m = np.linalg.norm(res.force, axis=1)
     assert np.ptp(m) > 0
     k_rows = np.full((len(m), 1), fast.k_material)
-    sloped = compiled_with({**fast.interval.to_dict(), "scale": "force", "force_scale": [[0.1, 0.05]] * 3})
+    sloped = compiled_with({**fast.interval.to_dict(), "scale": "force", "force_scale": [[0.1, 0.05]] * 3,
+                            "spread_beta": None})
     h2 = sloped.predict_batch(clouds, tips).half_width  # with a positive slope, wider for a larger force
     assert (h2[np.argmax(m)] > h2[np.argmin(m)]).all()
     np.testing.assert_allclose(h2, sloped.interval.half_widths(k_rows, res.force), rtol=1e-12)
     edge = float(np.median(m))  # force_bins: one width below the median |F|, three times it above
     binned = compiled_with({**fast.interval.to_dict(), "scale": "force_bins", "bin_edges_n": [edge],
-                            "bin_half_width_n": [[0.1, 0.1, 0.2], [0.3, 0.3, 0.6]]})
+                            "bin_half_width_n": [[0.1, 0.1, 0.2], [0.3, 0.3, 0.6]], "spread_beta": None})
     h3 = binned.predict_batch(clouds, tips).half_width
     np.testing.assert_allclose(h3, binned.interval.half_widths(k_rows, res.force), rtol=1e-12)
     kf = binned.interval.stiffness_factor(np.array([[fast.k_material]]))[0, 0]
@@ -447,7 +452,14 @@ def test_gp_head_equals_the_regressors_posterior_mean(served):
         Z[:, nz:nz + ns] = fast.s_base.astype(np.float32)  # the context's state
         with torch.no_grad():
             want = gp(torch.from_numpy(Z.astype(np.float64))).numpy()
-        np.testing.assert_allclose(fast.gp(Z[:, free]), want, rtol=0, atol=1e-9 * np.abs(want).max())
+        got = fast.gp(Z[:, free])
+        if fast._spread:  # the ensemble's head also gives its members' sd (the interval's spread)
+            got, sd = got
+            with torch.no_grad():
+                each = gp.forward_members(torch.from_numpy(Z.astype(np.float64))).numpy()
+            assert sd.shape == want.shape and (sd > 0).all()
+            np.testing.assert_allclose(sd, each.std(axis=0, ddof=1), rtol=1e-6, atol=1e-9 * np.abs(want).max())
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-9 * np.abs(want).max())
     with pytest.raises(ValueError, match=f"rows of {free.size} inputs"):  # the full row is not what it takes
         fast.gp(Z)
 
@@ -569,3 +581,32 @@ def test_gross_depth_errors_are_dropped_and_warned_about_alike_on_every_path(ser
     plain_gap = np.linalg.norm(pred.predict_cloud(dirty, ctx, tool_tip_mm=tip)
                                - pred.predict_cloud(clean, ctx, tool_tip_mm=tip))
     assert np.linalg.norm(f - f_clean) < plain_gap
+
+
+def test_the_forward_paths_spread_is_the_members_sd_of_the_local_force(served):
+    """ForceModel.forward's spread_local (what the interval with ``spread`` reads) is the standard deviation over
+    the GP ensemble's members of each member's own local force, each member run alone as the whole model; the
+    mean of those forces is the model's force."""
+    pred, a, ctx, fast = served
+    model = pred.model
+    fw = model.forward(a, observation_seed=0)
+    reg = model.regressor
+    if type(reg).__name__ != "GPEnsemble":
+        assert fw.spread_local is None
+        return
+    from liverforce.learn.gp import GPEnsemble
+
+    each = []
+    for i, member in enumerate(reg.members):
+        model.regressor = GPEnsemble([member], [reg.columns(i)])  # this member alone as the model's GP
+        try:
+            each.append(model.forward(a, observation_seed=0).force_local)
+        finally:
+            model.regressor = reg
+    each = np.stack(each)
+    np.testing.assert_allclose(each.mean(axis=0), fw.force_local, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(fw.spread_local, each.std(axis=0, ddof=1), rtol=1e-9, atol=1e-12)
+    assert (fw.spread_local > 0).all()
+    got = model.predict_interval(a, observation_seed=0)["half_width_local_n"]
+    want = model.interval.half_widths(fw.stiffness, fw.force_local, each.std(axis=0, ddof=1))
+    np.testing.assert_allclose(got, want, rtol=1e-9)
