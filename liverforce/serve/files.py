@@ -20,7 +20,8 @@ Point clouds (``read_points``), one point per row, mm unless ``units`` says othe
   (:func:`read_points` keeps them, so ordered nodes are refused for them as for any other file). An ``ascii``
   file's values may be separated by any run of spaces or tabs, its lines end in LF or CRLF (a lab's own script,
   MATLAB, a file edited on Windows), as PCL's own reader splits them; a line with another number of values than a
-  point's is refused, naming it.
+  point's is refused, naming it. A header keyword not in capitals (``data ascii``), lines that end in CR alone and
+  an ascii data of more or fewer lines of values than ``POINTS`` are refused, saying so (PCL reads none of them).
 
 A text file whose header names a unit for every column (``x_mm,y_mm,z_mm``, ``X [m]``) is refused when the
 coordinates are read in another one (``--units``, the context's ``units`` or the ``--frame`` record's; mm when
@@ -97,29 +98,63 @@ def _read_ply(path: Path):
 PCD_HEADER = "VERSION, FIELDS, SIZE, TYPE, COUNT, WIDTH, HEIGHT, VIEWPOINT, POINTS and DATA"
 
 
+#: the keywords of a PCD header's lines, as PCL reads them (in capitals only)
+PCD_KEYWORDS = ("VERSION", "FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWPOINT", "POINTS", "DATA")
+#: a PCD file whose lines end in CR alone: its refusal ('its' or 'its data's' before it, the file named before that)
+PCD_CR_ALONE = ("lines end in CR alone (a classic Mac OS text file), which neither PCL nor pypcd4 reads as lines: "
+                "convert its line ends to LF (or CRLF), e.g. tr '\\r' '\\n' < old.pcd > new.pcd for an ascii file")
+
+
+def _pcd_line(bline: bytes) -> bool:
+    """Whether ``bline`` begins as a PCD header's line does: a comment, or a keyword in any case."""
+    word = bline.split(None, 1)[:1]
+    return bool(word) and (word[0].startswith(b"#") or word[0].upper().decode("latin-1") in PCD_KEYWORDS)
+
+
 def _pcd_header(fh) -> tuple[bytes, list[str]]:
     """The header of the PCD file ``fh`` (opened binary, at its start) as pypcd4's ``PointCloud.from_fileobj`` reads
     it: its bytes, and its lines stripped (a CRLF's CR too), comments and blank lines skipped, up to ``DATA`` or the
-    tenth line; a UTF-8 byte-order mark before it dropped. ``fh`` is left at the data's first byte."""
+    tenth line; a UTF-8 byte-order mark before it dropped. ``fh`` is left at the data's first byte.
+
+    Refused (:class:`PredictionInputError`, the file not named: the caller names it): lines that end in CR alone (a
+    classic Mac OS file: the header would be one line, its keywords reported missing) and a keyword not in capitals
+    (``data ascii``: neither PCL nor pypcd4 ends the header there, which then took a line of data for the header's
+    and read the points from the next one)."""
     raw, lines = [], []
-    for bline in fh:
+    for n, bline in enumerate(fh, 1):
         if not raw and bline.startswith(b"\xef\xbb\xbf"):  # UTF-8's byte-order mark, as Windows' Notepad writes it
             bline = bline[3:]
+        before, cr, after = bline.partition(b"\r")
+        if cr and after.strip(b"\n") and _pcd_line(before):  # a header line, CR, then more: not a CRLF
+            raise PredictionInputError(f"its {PCD_CR_ALONE}")
         raw.append(bline)
         if (line := bline.decode("utf-8").strip()).startswith("#") or not line:
             continue
+        word = line.split(None, 1)[0]
+        if word.upper() in PCD_KEYWORDS and word != word.upper():
+            raise PredictionInputError(f"its header's line {n}, '{line}': the keyword '{word}' is not in capitals, "
+                                       "which PCL reads only (and pypcd4 ends the header at 'DATA' only, else reads "
+                                       f"the points from the wrong line); write '{word.upper()}'")
         lines.append(line)
         if line.startswith("DATA") or len(lines) >= 10:
             break
     return b"".join(raw), lines
 
 
-def _ascii_pcd_lines(fh, out) -> None:
+def _ascii_pcd_lines(fh, out) -> int:
     """Copy an ascii PCD's data lines from ``fh`` to ``out``, a line for a line, each one's values separated by a
     single space, as PCL writes them and as pypcd4 splits them (on each space): runs of spaces and tabs, the blanks
-    at either end and a CRLF's CR dropped; read 1 MB of lines at a time."""
+    at either end and a CRLF's CR dropped; read 1 MB of lines at a time. Returns the number of lines that hold
+    values (blank lines and lines of a comment, which ``np.loadtxt`` skips, not counted). Data lines that end in CR
+    alone (its first line seen) are refused, as :func:`_pcd_header` refuses such a header."""
+    held = 0
     while lines := fh.readlines(1 << 20):
-        out.write(b"".join(b" ".join(line.split()) + b"\n" for line in lines))
+        if not held and b"\r" in lines[0].rstrip(b"\r\n"):  # else read as one line of every point's values
+            raise PredictionInputError(f"its data's {PCD_CR_ALONE}")
+        lines = [b" ".join(line.split()) for line in lines]
+        out.write(data := b"\n".join(lines) + b"\n")
+        held += len(lines) - lines.count(b"") - (sum(line.startswith(b"#") for line in lines) if b"#" in data else 0)
+    return held
 
 
 def _pcd_fields(meta) -> str:
@@ -132,14 +167,18 @@ def _ascii_pcd_misfit(data, first: int, meta, exc: Exception) -> str:
     """Which line of an ascii PCD's data pypcd4's ``np.loadtxt`` refused with ``exc``, and why (``data``: the
     lines as :func:`_ascii_pcd_lines` wrote them, the first the file's line ``first``): the first line that holds
     another number of values than a point of the header's (comments after '#' and blank lines skipped, as
-    ``np.loadtxt`` skips them), else the first whose value in the column ``exc`` names is the one it could not
-    convert. Empty when neither is found."""
+    ``np.loadtxt`` skips them) or a comment after its values, else the first whose value in the column ``exc``
+    names is the one it could not convert. Empty when none is found."""
     per_point = sum(meta.count)
     said = re.search(r"could not convert string '(.*)' to (\w+) at row \d+, column (\d+)", str(exc))
     for n, line in enumerate(data, first):
-        values = line.split(b"#", 1)[0].split()
+        before, comment, note = line.partition(b"#")
+        values = before.split()
         if not values:
             continue
+        if comment and before.endswith(b" ") and len(values) == per_point:  # np.loadtxt: the blank before '#' is
+            note = note.rstrip().decode("utf-8", "replace")  # one more (empty) value
+            return f"its line {n} holds a comment after its values ('#{note}'): a data line holds only numbers"
         if len(values) != per_point:
             return (f"its line {n} holds {len(values)} value{'s' * (len(values) != 1)}, where a point of its FIELDS "
                     f"{_pcd_fields(meta)} (COUNT {' '.join(str(c) for c in meta.count)}) has {per_point}")
@@ -153,9 +192,10 @@ def _read_pcd(path: Path) -> tuple[np.ndarray, int, int]:
     fields only. The ``VIEWPOINT`` (the sensor's pose) is not applied. An ascii file's values may be separated by
     any run of spaces or tabs and its lines end in LF or CRLF: its data lines are handed to pypcd4 as PCL writes
     them, one space between values (:func:`_ascii_pcd_lines`); binary data is read as it is. A file pypcd4 cannot
-    read, an ascii line with another number of values than a point's (the line named), a header whose ``POINTS``
-    is not the data's (a truncated file) or not ``WIDTH`` x ``HEIGHT``, and a cloud without an ``x``, ``y`` or
-    ``z`` field are refused, naming the file and what is wrong."""
+    read, a header keyword not in capitals or lines that end in CR alone (:func:`_pcd_header`), an ascii line with
+    another number of values than a point's (the line named), a header whose ``POINTS`` is not the data's (a
+    truncated file; for ascii data, more lines too) or not ``WIDTH`` x ``HEIGHT``, and a cloud without an ``x``,
+    ``y`` or ``z`` field are refused, naming the file and what is wrong."""
     from pypcd4 import Encoding, MetaData, PointCloud
 
     text = None  # an ascii file's header and data lines, made PCL's (binary data is read from the file)
@@ -166,7 +206,13 @@ def _read_pcd(path: Path) -> tuple[np.ndarray, int, int]:
             if header.data == Encoding.ASCII:
                 text = io.BytesIO()
                 text.write(head)
-                _ascii_pcd_lines(fh, text)
+                held = _ascii_pcd_lines(fh, text)
+                if held != header.points:  # before np.loadtxt, which warns of no data and reads every line
+                    raise PredictionInputError(
+                        f"its header says POINTS {header.points}, its ascii data holds {held}: " + (
+                            "a truncated file (or a damaged header)" if held < header.points else
+                            "more lines of values than its points (lines added after them, or a damaged header): "
+                            "correct POINTS (and WIDTH x HEIGHT) or remove the lines that are not points"))
                 text.seek(0)
                 pc = PointCloud.from_fileobj(text)
             else:
@@ -175,6 +221,8 @@ def _read_pcd(path: Path) -> tuple[np.ndarray, int, int]:
     except UnicodeDecodeError:
         raise PredictionInputError(f"{path}: not a PCD file (its header is not text; a PCD v0.7 header gives "
                                    f"{PCD_HEADER})") from None
+    except PredictionInputError as exc:  # the header's lines or the ascii data's count: the file named here
+        raise PredictionInputError(f"{path}: {exc}") from None
     except OSError as exc:  # the file itself (permissions, a disk error), not its data
         raise PredictionInputError(f"{path}: cannot read the file ({type(exc).__name__}: {exc})") from None
     except Exception as exc:  # noqa: BLE001 - pypcd4 raises many types; re-raised with the file named

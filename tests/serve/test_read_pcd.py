@@ -173,6 +173,78 @@ def test_an_ascii_line_with_another_number_of_values_is_refused_naming_it(tmp_pa
         read_points(tmp_path / "cut_line.pcd")
 
 
+def test_a_header_in_lower_case_or_with_cr_line_ends_is_refused_saying_so(tmp_path):
+    """PCL reads a header's keywords in capitals only, and lines that end in LF (a CRLF's CR is split off). pypcd4
+    ends the header at 'DATA' or its tenth line: a header of ten lines in lower case read, a shorter one took its
+    first data lines for the header's and read the points from the wrong line ('a truncated file', or points
+    shifted when there were lines over). A file whose lines end in CR alone was one line: 'FIELDS: Field required'.
+    Each is refused naming what is wrong and what to do, in any encoding."""
+    def refused(name, data: bytes, match):
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(PredictionInputError, match=match) as exc:
+            read_points(tmp_path / name)
+        assert str(exc.value).startswith(f"{tmp_path / name}: ")
+        return str(exc.value)
+
+    text = PCL_HEAD + PCL_DATA  # its header's ten lines and a comment
+    refused("data.pcd", text.replace("DATA ascii", "data ascii").encode(),
+            r"its header's line 11, 'data ascii': the keyword 'data' is not in capitals, which PCL reads only \(and "
+            r"pypcd4 ends the header at 'DATA' only, else reads the points from the wrong line\); write 'DATA'$")
+    short = text.replace("VIEWPOINT 0 0 0 1 0 0 0\n", "")  # nine lines: read from the wrong line
+    refused("Fields.pcd", short.replace("FIELDS", "Fields").encode(), r"its header's line 3, 'Fields x y z _ normal "
+                                                                      r"rgb ring': the keyword 'Fields' is not in")
+    refused("points.pcd", short.replace("POINTS 4", "points 3").encode(), r"line 9, 'points 3'.* write 'POINTS'$")
+    P = cloud(n=50, seed=8)
+    binary = write_pcd(tmp_path / "b.pcd", xyz(P), "binary").read_bytes()
+    head, data = binary.split(b"DATA binary\n", 1)
+    refused("b_lower.pcd", head.replace(b"WIDTH", b"width") + b"DATA binary\n" + data, r"'width 50'.* write 'WIDTH'")
+    said = "lines end in CR alone \\(a classic Mac OS text file\\), which neither PCL nor pypcd4 reads as lines: " \
+           "convert its line ends to LF \\(or CRLF\\), e.g. tr '\\\\r' '\\\\n' < old.pcd > new.pcd for an ascii file$"
+    refused("mac.pcd", text.replace("\n", "\r").encode(), f": its {said}")
+    refused("mac_bom.pcd", ("\ufeff" + text.replace("\n", "\r")).encode(), f": its {said}")
+    refused("mac_data.pcd", (PCL_HEAD + PCL_DATA.replace("\n", "\r")).encode(), f": its data's {said}")
+    refused("mac_b.pcd", head.replace(b"\n", b"\r") + b"DATA binary\r" + data, f": its {said}")
+    # capitals, LF or CRLF: read (a keyword's value in lower case is its own: 'ascii', field names)
+    for name, data_ in (("lf", text), ("crlf", text.replace("\n", "\r\n"))):
+        (tmp_path / f"{name}.pcd").write_bytes(data_.encode())
+        np.testing.assert_array_equal(read_points(tmp_path / f"{name}.pcd"), PCL_XYZ)
+
+
+def test_an_ascii_data_of_another_count_than_points_is_refused_in_its_own_words(tmp_path):
+    """More lines of values than POINTS is not 'a truncated file' (as it was said); lines under POINTS 0 were read
+    as no points, the lines dropped; no data under POINTS 4 is refused without numpy's warning 'input contained no
+    data' of an object in memory on stderr; a comment after a point's values is named (numpy's 'use usecols' was)."""
+    import warnings
+
+    def refused(name, data: str, match):
+        (tmp_path / name).write_bytes((PCL_HEAD + data).encode())
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            with pytest.raises(PredictionInputError, match=match) as exc:
+                read_cloud(tmp_path / name)
+        assert not caught, [str(w.message) for w in caught]
+        assert str(exc.value).startswith(f"{tmp_path / name}: ")
+        return str(exc.value)
+
+    more = ("its header says POINTS 4, its ascii data holds 5: more lines of values than its points (lines added "
+            "after them, or a damaged header): correct POINTS (and WIDTH x HEIGHT) or remove the lines that are not "
+            "points")
+    said = refused("more.pcd", PCL_DATA + "1 2 3 0 0 0 0 0 0 1 0 0\n", "more lines")
+    assert said == f"{tmp_path / 'more.pcd'}: {more}"
+    zero = PCL_HEAD.replace("WIDTH 2", "WIDTH 0").replace("HEIGHT 2", "HEIGHT 1").replace("POINTS 4", "POINTS 0")
+    (tmp_path / "zero.pcd").write_bytes((zero + PCL_DATA).encode())
+    with pytest.raises(PredictionInputError, match="its header says POINTS 0, its ascii data holds 4: more lines"):
+        read_cloud(tmp_path / "zero.pcd")
+    (tmp_path / "none.pcd").write_bytes((zero + "\n# no points\n").encode())  # no points, said so: read as none
+    assert read_cloud(tmp_path / "none.pcd")[0].shape == (0, 3)
+    refused("empty.pcd", "", r"its header says POINTS 4, its ascii data holds 0: a truncated file \(or a damaged "
+                             r"header\)$")
+    refused("blank.pcd", "\n\t\n", "its ascii data holds 0: a truncated file")
+    lines = PCL_DATA.splitlines(keepends=True)
+    refused("note.pcd", "".join(lines[:2] + [lines[2].replace("\n", " # the tool's shadow\n")] + lines[3:]),
+            r"its line 14 holds a comment after its values \('# the tool's shadow'\): a data line holds only numbers")
+
+
 def test_fields_in_another_order_with_extra_fields(tmp_path):
     P = cloud(seed=1)
     n = len(P)
