@@ -31,6 +31,9 @@ from liverforce.serve.files import read_cloud, read_points
 CLOUD_SUFFIXES = (".ply", ".pcd", ".csv", ".txt", ".xyz", ".npy")
 COMPONENTS = ("t1", "t2", "n")  # the interval's local components
 UNREADABLE_NAMED = 3  # the files that could not be read named in a refusal of the tool tips' count
+#: a sequence's file that was there when the folder was listed (or the names checked) and is not when it is read
+GONE = ("{}: this file was listed with the sequence's files but was gone when it was read: moved or deleted "
+        "meanwhile; is the recording still being written or copied?")
 
 
 def _natural(name: str) -> tuple:
@@ -44,7 +47,10 @@ def _stack(path: Path) -> np.ndarray | None:
     if path.suffix.lower() != ".npy" or not path.is_file():
         return None
     try:
-        arr = np.load(path, allow_pickle=False, mmap_mode="r")
+        try:
+            arr = np.load(path, allow_pickle=False, mmap_mode="r")
+        except ValueError:  # numpy's map of a file cut short says 'mmap length is greater than file size': its
+            arr = np.load(path, allow_pickle=False)  # reading says how many values it could not read
     except (ValueError, OSError, EOFError) as exc:  # EOFError: numpy's for an empty or cut-short .npy
         raise PredictionInputError(f"{path}: cannot read the point clouds ({type(exc).__name__}: {exc})") from None
     return arr if arr.ndim == 3 else None
@@ -71,9 +77,9 @@ def read_sequence(paths: list[str | Path], skip=(), frame=None, notes: dict | No
     ``errors``: None (default), the first file that cannot be read (a truncated PCD or PLY, a CSV with a broken
     line, a file that is not a cloud) refuses the whole sequence. A dict given here takes each such file as its
     frame's refusal instead: its cloud is None and ``errors`` gets, by its position, the reason (``read_cloud``'s,
-    which names the file, and what to do), the other files read on; still refused are a file named that does not
-    exist and a sequence none of whose files can be read (naming the first file's problem and the count). A stack
-    ``.npy`` is one file: read whole or refused.
+    which names the file, or :data:`GONE` for a file moved or deleted since it was listed, and what to do), the
+    other files read on; still refused are a file named that does not exist and a sequence none of whose files can
+    be read (naming the first file's problem and the count). A stack ``.npy`` is one file: read whole or refused.
     """
     paths = [Path(p) for p in paths]
     if len(paths) == 1 and paths[0].is_dir():
@@ -119,14 +125,14 @@ def _read_all(files: list[Path], frame, notes: dict | None, errors: dict | None)
             clouds.append(_read(f, k, frame, notes))
         except PredictionInputError as exc:
             clouds.append(None)
-            failed[k] = str(exc)
+            failed[k] = str(exc) if f.exists() else GONE.format(f)
     if len(failed) == len(files):
         first = failed[0]
         raise PredictionInputError(first if len(files) == 1 else
                                    f"none of the {len(files)} files of the sequence could be read as a point cloud; "
                                    f"the first: {first}")
-    errors.update({k: f"{why} (this file could not be read as a cloud: its row has no force, the other clouds are "
-                      "predicted; repair or export it again, or remove it and its row of tool tips)"
+    errors.update({k: f"{why} (this file could not be read as a cloud: its row has no force, the other files are "
+                      "read on; repair or export it again, or remove it and its row of tool tips)"
                    for k, why in failed.items()})
     return clouds
 

@@ -70,3 +70,17 @@ def test_a_surface_npz_without_its_arrays_names_them(tmp_path):
 def test_a_support_points_npy_is_refused_naming_the_file(tmp_path, how):
     with pytest.raises(SupportError, match="pins.npy: cannot read the array"):
         read_point_file(_broken(tmp_path, "pins.npy", how), units="mm")
+
+
+def test_a_single_npy_cut_inside_its_data_says_so_not_its_memory_map(tmp_path):
+    """A cloud or a stack given alone is first looked at as a stack, memory-mapped: numpy's map of a file cut inside
+    its data said only 'mmap length is greater than file size'; its reading says how many values it lacks."""
+    for name, shape in (("cloud.npy", (50, 3)), ("stack.npy", (4, 50, 3))):
+        full = tmp_path / f"full_{name}"
+        np.save(full, np.ones(shape))
+        (tmp_path / name).write_bytes(full.read_bytes()[:-100])
+        with pytest.raises(PredictionInputError) as exc:
+            read_sequence([tmp_path / name])
+        said = str(exc.value)
+        assert said.startswith(f"{tmp_path / name}: cannot read the point clouds (ValueError: ") and "mmap" not in said
+        assert "not fully written" in said

@@ -156,3 +156,30 @@ def test_predict_sequence_takes_the_files_not_read_only_with_their_reasons():
     with pytest.raises(PredictionInputError, match="none of the 2 clouds of the sequence could be read; the first: "
                                                    "f0 cut short"):
         predict_sequence(camera, None, None, [None, None], tips, unreadable={1: "f1 cut short", 0: "f0 cut short"})
+
+
+def test_a_file_gone_between_listing_and_reading_is_its_row_saying_so(tmp_path, monkeypatch):
+    """A frame moved or deleted after the folder was listed (a recording still being copied) is its own row, which
+    says so: 'no such point-cloud file' and 'repair or export it again' named a file the folder had just listed."""
+    from pathlib import Path
+
+    import liverforce.serve.sequence as sequence
+
+    for k in range(4):
+        np.save(tmp_path / f"f{k}.npy", np.full((5, 3), float(k)))
+    read = sequence.read_cloud
+
+    def moved(path, *args, **kwargs):
+        if Path(path).name in ("f0.npy", "f2.npy"):  # the first one too: each its own row
+            Path(path).unlink()
+        return read(path, *args, **kwargs)
+
+    monkeypatch.setattr(sequence, "read_cloud", moved)
+    errors: dict = {}
+    names, clouds = read_sequence([tmp_path], errors=errors)
+    assert names == ["f0.npy", "f1.npy", "f2.npy", "f3.npy"] and sorted(errors) == [0, 2]
+    assert clouds[0] is None and clouds[2] is None and clouds[3][0, 0] == 3.0
+    for k in (0, 2):
+        assert errors[k].startswith(f"{tmp_path / f'f{k}.npy'}: this file was listed with the sequence's files but "
+                                    "was gone when it was read: moved or deleted meanwhile; is the recording still "
+                                    "being written or copied? (this file could not be read as a cloud")
