@@ -358,15 +358,18 @@ def _sequence(args, predictor, preop, frame, fix, notes: list[str]) -> int:
         summary["rows"] = plain
     print(json.dumps(summary))
     if unreadable:
-        _unreadable_files([unreadable[k] for k in sorted(unreadable)], len(rows), args.out)
+        _unreadable_files([unreadable[k] for k in sorted(unreadable)], len(rows), summary["predicted"], args.out)
     return 0
 
 
-def _unreadable_files(reasons: list[str], clouds: int, out: str | None) -> None:
-    """Say on stderr how many of a sequence's ``clouds`` files could not be read, and the first reasons."""
+def _unreadable_files(reasons: list[str], clouds: int, predicted: int, out: str | None) -> None:
+    """Say on stderr how many of a sequence's ``clouds`` files could not be read, how many of the others were
+    ``predicted`` (the rest refused by the model's checks), and the first reasons."""
     where = f"in the 'refused' column of {out}" if out else "in its row's 'refused'"
     first = "; ".join(reasons[:REFUSED_SHOWN])
     more = f" (and {len(reasons) - REFUSED_SHOWN} more)" if len(reasons) > REFUSED_SHOWN else ""
+    read = clouds - len(reasons)
+    others = (f"the other {read} predicted" if predicted == read else
+              f"of the other {read}, {predicted} predicted and {read - predicted} refused by the model's checks")
     print(f"liverforce predict: {len(reasons)} of {clouds} files could not be read as clouds, their rows refused "
-          f"with NaN forces (the other clouds were predicted; each reason {where}). The first: {first}{more}",
-          file=sys.stderr)
+          f"with NaN forces ({others}; each reason {where}). The first: {first}{more}", file=sys.stderr)

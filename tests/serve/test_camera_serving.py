@@ -820,6 +820,42 @@ def test_cli_predicts_a_sequence_around_its_damaged_frames(served, tmp_path, cap
     assert "if one is not a frame of the recording, move it out of the clouds' folder" in out.err
 
 
+def test_a_sequences_stderr_counts_the_clouds_the_checks_refused_beside_the_unreadable(served, tmp_path, capsys):
+    """Beside a damaged frame (first) and an empty one (last), a frame the model's checks refuse (too few points) is
+    not predicted: stderr counts the other clouds as they went (it said 'the other clouds were predicted'), on
+    either path, and all but the unreadable predicted says so in its words; the stdout JSON is strict."""
+    run, path, ctx, cloud, tip = _cli_in_metres(served, tmp_path, capsys)
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    np.save(frames / "f0.npy", cloud / 1000.0)
+    (frames / "f0.npy").write_bytes((frames / "f0.npy").read_bytes()[:-200])  # cut short
+    np.save(frames / "f1.npy", cloud / 1000.0)
+    np.save(frames / "f2.npy", cloud[:5] / 1000.0)  # five points: refused by the checks
+    np.save(frames / "f3.npy", cloud[::2] / 1000.0)
+    (frames / "f4.npy").write_bytes(b"")
+    np.savetxt(tmp_path / "tips.csv", np.tile(tip / 1000.0, (5, 1)), delimiter=",")
+
+    def strict(text):
+        return json.loads(text, parse_constant=lambda token: pytest.fail(f"not strict JSON: {token}"))
+
+    for flags in ((), ("--reference",), ("--threads", "2")):
+        rc, out = run(frames, "--tool-tips", tmp_path / "tips.csv", *flags)
+        assert rc == 0, out.err
+        doc = strict(out.out)
+        assert (doc["clouds"], doc["predicted"], doc["refused"], doc["unreadable"]) == (5, 2, 3, 2)
+        assert [bool(r["refused"]) for r in doc["rows"]] == [True, False, True, False, True]
+        assert "of 5 points" in doc["rows"][2]["refused"]
+        assert out.err.startswith("liverforce predict: 2 of 5 files could not be read as clouds, their rows refused "
+                                  "with NaN forces (of the other 3, 2 predicted and 1 refused by the model's checks; "
+                                  "each reason in its row's 'refused'). The first: " + str(frames / "f0.npy"))
+    (frames / "f2.npy").unlink()
+    np.savetxt(tmp_path / "tips.csv", np.tile(tip / 1000.0, (4, 1)), delimiter=",")
+    rc, out = run(frames, "--tool-tips", tmp_path / "tips.csv", "--out", tmp_path / "rows.json")
+    assert rc == 0 and strict(out.out)["predicted"] == 2 and strict((tmp_path / "rows.json").read_text())["rows"]
+    assert "2 of 4 files could not be read as clouds, their rows refused with NaN forces (the other 2 predicted; " \
+           f"each reason in the 'refused' column of {tmp_path / 'rows.json'})" in out.err
+
+
 def test_refusals_give_the_tip_and_cloud_back_as_entered_on_every_path(served):
     """A tool tip or a cloud in mm while m and LPS were declared, and a tip in metres with nothing declared: the
     reference path, the compiled path (compiled with the frame, or given points converted already with the frame
