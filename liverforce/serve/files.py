@@ -262,6 +262,13 @@ def _read_pcd(path: Path) -> tuple[np.ndarray, int, int]:
 
 
 # --------------------------------------------------------------------------- clouds and surfaces
+def _refuse_empty(path: Path) -> None:
+    """Refuse a PLY or PCD point file of 0 bytes as empty (its reader would say its header lacks every line)."""
+    if path.suffix.lower() in (".ply", ".pcd") and path.stat().st_size == 0:
+        raise PredictionInputError(f"{path}: the file is empty (0 bytes: no header, no points; a writer or a copy "
+                                   "that stopped, a camera's driver for a frame): write or export it again")
+
+
 def read_points(path: str | Path, units: str | None = "mm", *, frame: InputFrame | None = None) -> np.ndarray:
     """An ``(n, 3)`` point cloud in mm from ``.npy``, ``.csv``/``.txt``/``.xyz``, ``.ply`` or ``.pcd`` (module
     docstring; a PCD's NaN points kept: :func:`read_cloud` drops them).
@@ -276,6 +283,7 @@ def read_points(path: str | Path, units: str | None = "mm", *, frame: InputFrame
     from liverforce.geometry.point_table import TEXT_SUFFIXES
 
     suffix = path.suffix.lower()
+    _refuse_empty(path)
     try:
         if suffix == ".npy":
             pts = np.load(path, allow_pickle=False)
@@ -313,6 +321,7 @@ def read_cloud(path: str | Path, units: str | None = "mm", *, frame: InputFrame 
     path = Path(path)
     if path.suffix.lower() != ".pcd" or not path.is_file():
         return read_points(path, units, frame=frame), None
+    _refuse_empty(path)
     pts, width, height = _read_pcd(path)
     pts = pts * unit_scale(units)
     bad = ~np.isfinite(pts).all(axis=1)

@@ -471,3 +471,16 @@ def test_predict_from_a_pcd_gives_the_force_of_the_same_cloud_as_npy(trained, te
     (tmp_path / "bad.pcd").write_text("not a point cloud\n")
     rc, _, err = run(["-m", model, tmp_path / "bad.pcd", "--context", tmp_path / "ctx.json"], capsys)
     assert rc == 2 and f"{tmp_path / 'bad.pcd'}: not a PCD file" in err
+
+
+def test_an_empty_pcd_or_ply_file_is_refused_as_empty(tmp_path):
+    """A frame of 0 bytes (a camera's driver or a copy that stopped): it was said to be a PCD header without FIELDS,
+    SIZE, TYPE, COUNT, POINTS and WIDTH, or a PLY without its magic line; a CSV's says 'the file is empty'."""
+    for name in ("frame.pcd", "frame.PLY"):
+        (tmp_path / name).write_bytes(b"")
+        for read in (read_points, read_cloud):
+            with pytest.raises(PredictionInputError) as exc:
+                read(tmp_path / name)
+            assert str(exc.value) == (f"{tmp_path / name}: the file is empty (0 bytes: no header, no points; a "
+                                      "writer or a copy that stopped, a camera's driver for a frame): write or export "
+                                      "it again")
