@@ -28,12 +28,12 @@ file that cannot be read (a damaged frame) is a refused row too, said on stderr,
 unless none can be.
 Exit codes: 0 done, 2 input refused (the message says why).
 
-``--shards``: a case the serving checks refuse does not stop the batch. Its
-forces are NaN and its reason is in the ``refused`` column (empty when
-predicted); the summary counts the refused rows, and how many there were and
-the first reasons are printed on stderr. The exit code is 0 while at least one
-row is predicted, and 2 when every row is refused (the file is still written,
-with every reason).
+``--shards`` and a sequence of clouds: a case the serving checks refuse does
+not stop the batch. Its forces are NaN and its reason is in the ``refused``
+column (empty when predicted); the summary counts the refused rows, and how
+many there were and the first reasons are printed on stderr. The exit code is 0
+while at least one row is predicted, and 2 when every row is refused (the file
+is still written, with every reason).
 
 Point inputs are in the model's frame (RAS mm) unless ``--units`` and
 ``--frame`` (or the context's ``units`` and ``input_frame``) say otherwise
@@ -159,9 +159,10 @@ def _error(msg: str) -> int:
 REFUSED_SHOWN = 3
 
 
-def _refused_rows(reasons: list[str], rows: int, out: str | None) -> None:
-    """Say on stderr how many of the ``rows`` were refused and the first reasons."""
-    where = f"in the 'refused' column of {out}" if out else "give --out to keep them"
+def _refused_rows(reasons: list[str], rows: int, out: str | None, shown: str = "give --out to keep them") -> None:
+    """Say on stderr how many of the ``rows`` were refused and the first reasons (``shown``: where the reasons are
+    without ``--out``)."""
+    where = f"in the 'refused' column of {out}" if out else shown
     every = len(reasons) == rows
     first = "; ".join(reasons[:REFUSED_SHOWN])
     more = f" (and {len(reasons) - REFUSED_SHOWN} more)" if len(reasons) > REFUSED_SHOWN else ""
@@ -359,7 +360,9 @@ def _sequence(args, predictor, preop, frame, fix, notes: list[str]) -> int:
     print(json.dumps(summary))
     if unreadable:
         _unreadable_files([unreadable[k] for k in sorted(unreadable)], len(rows), summary["predicted"], args.out)
-    return 0
+    elif summary["refused"]:  # as --shards: how many the model's checks refused, and the first reasons
+        _refused_rows([r["refused"] for r in rows if r["refused"]], len(rows), args.out, "in its row's 'refused'")
+    return 2 if summary["refused"] and not summary["predicted"] else 0
 
 
 def _unreadable_files(reasons: list[str], clouds: int, predicted: int, out: str | None) -> None:

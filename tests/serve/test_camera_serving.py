@@ -640,10 +640,13 @@ def test_cli_predicts_a_recorded_sequence_of_clouds(served, tmp_path, capsys, tr
     parser = argparse.ArgumentParser(prog="liverforce")
     register_predict(parser.add_subparsers(dest="command", required=True))
 
+    errs = []
+
     def run(*argv, rc=0):
         args = parser.parse_args(["predict", "-m", str(path), *map(str, argv)])
         got = args.func(args)
         out, err = capsys.readouterr()
+        errs.append(err)
         assert got == rc, err
         return json.loads(out) if rc == 0 else err
 
@@ -652,6 +655,15 @@ def test_cli_predicts_a_recorded_sequence_of_clouds(served, tmp_path, capsys, tr
     out = run(frames, "--tool-tips", tmp_path / "tips.csv", *base)
     assert [r["cloud"] for r in out["rows"]] == ["f1.npy", "f2.npy", "f10.npy", "f11.npy", "f20.npy"]
     assert out["clouds"] == 5 and out["predicted"] == 4 and out["refused"] == 1 and out["path"] == "compiled"
+    # the refused cloud said on stderr as --shards says it (exit 0: the others were predicted)
+    assert "1 of 5 rows refused" in errs[-1] and "the other rows were predicted" in errs[-1]
+    assert "in its row's 'refused'" in errs[-1] and out["rows"][4]["refused"][:40] in errs[-1]
+    # every cloud refused by the checks: the rows still printed, and exit 2
+    few = tmp_path / "few"
+    few.mkdir()
+    np.save(few / "only.npy", clouds[4] * lps / 1000.0)
+    every = run(few, "--tool-tip", *(tips[4] * lps / 1000), *base, rc=2)
+    assert "error: 1 of 1 rows refused" in every and "every row" in every
     assert "frame LPS" in out["input_frame"]
     for k, (c, t) in enumerate(zip(clouds[:4], tips)):
         want, info = pred.predict_cloud(c, ctx, tool_tip_mm=t, return_info=True)
