@@ -579,7 +579,11 @@ class GPEnsemble(nn.Module):
         ``fixed``: ``{input column: value}`` as for :meth:`GPRegressor.numpy_head`; the head then takes the
         other input columns, in their order, and each member gets its share of the fixed inputs. ``members``:
         the head returns ``(mean, sd)``, ``sd`` the members' standard deviation (ddof 1) per output, the mean
-        the same bits as without."""
+        the same bits as without; ValueError for an ensemble of one member (no spread, as
+        :meth:`liverforce.learn.model.ForceModel.forward` gives none)."""
+        if members and len(self.members) < 2:
+            raise ValueError("the members' spread of a GP ensemble of one member is undefined (the sd of one "
+                             "prediction); an interval scaled by it needs two or more members")
         cols = [self.columns(i).numpy() for i in range(len(self.members))]
         n_in = 1 + max(int(c.max()) for c in cols)  # the inputs: every column up to the last a member reads
         fixed = _fixed_inputs(fixed, n_in)
@@ -602,7 +606,7 @@ class GPEnsemble(nn.Module):
                 out += each[k] if members else h(Z[:, c])
             out *= w
             if members:
-                return out, (np.std(np.stack(each), axis=0, ddof=1) if len(each) > 1 else np.zeros_like(out))
+                return out, np.std(np.stack(each), axis=0, ddof=1)
             return out
 
         return head

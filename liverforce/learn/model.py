@@ -97,7 +97,7 @@ from liverforce.learn.camera import N_DENT
 from liverforce.learn.cloud_features import ROI_TRIANGLES_KEY
 from liverforce.learn.encoders import AutoEncoder, Encoder, PCAEncoder
 from liverforce.learn.frames import case_rotations, force_to_local, force_to_source
-from liverforce.learn.gp import GPEnsemble
+from liverforce.learn.gp import GPEnsemble, GPRegressor
 from liverforce.learn.names import FORCE_SCALINGS
 from liverforce.learn.regressor import (
     FitParams,
@@ -644,7 +644,7 @@ class ForceModel:
         z = self.pre.inputs(x, s)
         k = self.pre.stiffness(s, len(z))
         ts = self.pre.target_scaler
-        if isinstance(self.regressor, GPEnsemble) and len(self.regressor.members) > 1:
+        if self.member_spread:
             self.regressor.eval()
             with torch.no_grad():
                 each = self.regressor.forward_members(as_tensor(z)).double()  # float32 inputs, as predict_regressor
@@ -661,12 +661,36 @@ class ForceModel:
         return self.forward(arrays, observation_seed).force_local
 
     @property
+    def member_spread(self) -> bool:
+        """Whether the regressor is a GP ensemble of two or more members, whose disagreement :meth:`forward` gives
+        (``Forward.spread_local``) and an interval with ``spread_beta`` reads; one GP, an ensemble of one member
+        and an MLP have none."""
+        return isinstance(self.regressor, GPEnsemble) and len(self.regressor.members) > 1
+
+    @property
     def interval(self):
-        """The calibrated interval (:class:`liverforce.learn.interval.ConformalInterval`), or None."""
+        """The calibrated interval (:class:`liverforce.learn.interval.ConformalInterval`), or None.
+
+        :class:`ModelFormatError` for an interval scaled by the GP ensemble members' spread (``spread_beta``) on a
+        regressor without members' spread (:attr:`member_spread`, a bundle edited or put together by hand): no path
+        can give its widths, and every one that would says so here."""
         from liverforce.learn.interval import ConformalInterval
 
         d = self.meta.get("interval")
-        return None if not d else ConformalInterval.from_dict(d)
+        if not d:
+            return None
+        ci = ConformalInterval.from_dict(d)
+        if ci.uses_spread and not self.member_spread:
+            reg = self.regressor
+            what = ("a GP ensemble of one member" if isinstance(reg, GPEnsemble)
+                    else "one GP" if isinstance(reg, GPRegressor) else "an MLP")
+            raise ModelFormatError(
+                f"the model's interval (meta.interval) is scaled by the spread of a GP ensemble's members "
+                f"(spread_beta {ci.spread_beta:g}), but its regressor is {what}, which has no members' spread: its "
+                "widths cannot be computed. Use the bundle as it was trained, or retrain it (such an interval is "
+                "calibrated on a GP ensemble of two or more code sizes, model.gp.code_members; "
+                "train.interval.spread: null for one without)")
+        return ci
 
     def predict_interval(self, arrays: dict, observation_seed: int | None = None, *,
                          rotations: np.ndarray | None = None) -> dict:

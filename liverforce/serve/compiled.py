@@ -89,7 +89,7 @@ def regressor_head(module: nn.Module, fixed: dict | None = None, members: bool =
     :meth:`liverforce.learn.gp.GPEnsemble.numpy_head`; ``fixed``: ``{input column: value}`` of inputs the same
     in every row, folded in once: the head then takes the other columns); None for an MLP (served layer by
     layer from :func:`numpy_layers`). ``members``: a GP ensemble's head returns ``(mean, members' sd)`` (the
-    interval's spread); ValueError for a regressor that is not one."""
+    interval's spread); ValueError for a regressor that is not one, or an ensemble of one member."""
     from liverforce.learn.gp import GPEnsemble, GPRegressor
 
     if members:

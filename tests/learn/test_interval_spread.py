@@ -100,3 +100,63 @@ def test_the_config_and_the_calibration_decide_together():
     assert not interval_from_calibration(cal, cfg, "IV").uses_spread  # a config before the key
     no_members = {k: v for k, v in cal.items() if k != "spread_local"}  # one GP or an MLP: nothing to scale by
     assert not interval_from_calibration(no_members, {**cfg, "spread": 4.0}, "IV").uses_spread
+
+
+@pytest.fixture(scope="module")
+def ensemble_model():
+    """A node model whose GP is an ensemble of two code sizes (a few seconds: 12 cases), and test cases."""
+    from liverforce.learn.model import fit_force_model, prepare, view_seeds
+    from liverforce.learn.regressor import FitParams
+    from liverforce.learn.representation import representation_from_config
+    from liverforce.learn.synthetic import synthetic_arrays
+
+    arrays = synthetic_arrays(12, n_geometries=2, seed=4, material_varies=True)
+    cfg = {"grid_size": 6, "occlusion": {"radius_mm": 0.0, "mode": "remove"}, "noise_mm": 0.0}
+    rep = representation_from_config(cfg, arrays)
+    prep = prepare(arrays, rep, observation_seeds=view_seeds(0, 1))
+    fit = FitParams(0.0, 1, 0, regressor="gp", gp_iterations=20, gp_code_members=(2, 4))
+    model, _ = fit_force_model(prep, rep, encoder="pca", code_size=4, use_state=True, hidden=[], dropout=0.0,
+                               fit=fit, seed=0)
+    true, pred, d = _cases(300, 7)
+    ci = fit_conformal(true, pred, np.ones((300, 1)), 0.9, "case", scale="force_bins", bins=2, spread=d,
+                       spread_beta=4.0)
+    model.meta["interval"] = ci.to_dict()
+    return model, arrays
+
+
+def test_an_interval_scaled_by_the_spread_on_a_regressor_without_members_is_refused_on_every_path(ensemble_model):
+    """The spread is the members' sd: an ensemble of one member (or one GP, an MLP) has none. A bundle whose
+    interval reads it on such a regressor is refused, in the same words, wherever the interval is read: the
+    reference path said 'pass each row's members' sd (Forward.spread_local)', which its user cannot, and the
+    compiled camera path's head gave one member's spread as 0 (a width of q beta m, as if calibrated so)."""
+    from liverforce.learn.gp import GPEnsemble
+    from liverforce.learn.model import ModelFormatError
+    from liverforce.serve.compiled import regressor_head
+
+    model, arrays = ensemble_model
+    reg = model.regressor
+    assert isinstance(reg, GPEnsemble) and len(reg.members) == 2
+    assert reg.columns(1).tolist() == list(range(model.pre.n_inputs))
+    fw = model.forward(arrays)
+    got = model.predict_interval(arrays)["half_width_local_n"]
+    np.testing.assert_allclose(got, model.interval.half_widths(fw.stiffness, fw.force_local, fw.spread_local))
+    assert np.isfinite(got).all() and (fw.spread_local > 0).all()
+    try:
+        for one, what in ((GPEnsemble([reg.members[0]], [reg.columns(0)]), "a GP ensemble of one member"),
+                          (reg.members[1], "one GP")):  # (member 1, code size 4, reads every input)
+            model.regressor = one
+            assert model.forward(arrays).spread_local is None
+            for read in (lambda: model.interval, lambda: model.predict_interval(arrays)):
+                with pytest.raises(ModelFormatError, match=f"its regressor is {what}, which has no members' spread"):
+                    read()
+        with pytest.raises(ValueError, match="one member is undefined"):
+            regressor_head(GPEnsemble([reg.members[0]], [reg.columns(0)]), members=True)
+    finally:
+        model.regressor = reg
+    # without the spread the same regressors read their interval as before
+    model.meta["interval"] = {**model.meta["interval"], "spread_beta": None, "spread_median_n": None}
+    model.regressor = GPEnsemble([reg.members[0]], [reg.columns(0)])
+    try:
+        assert np.isfinite(model.predict_interval(arrays)["half_width_local_n"]).all()
+    finally:
+        model.regressor = reg

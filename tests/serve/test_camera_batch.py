@@ -610,3 +610,33 @@ def test_the_forward_paths_spread_is_the_members_sd_of_the_local_force(served):
     got = model.predict_interval(a, observation_seed=0)["half_width_local_n"]
     want = model.interval.half_widths(fw.stiffness, fw.force_local, each.std(axis=0, ddof=1))
     np.testing.assert_allclose(got, want, rtol=1e-9)
+
+
+def test_an_interval_scaled_by_the_spread_on_a_regressor_without_members_is_refused_alike_on_both_paths(served):
+    """A bundle whose interval reads the GP ensemble members' spread on a regressor without it (an ensemble of
+    one member, one GP, an MLP): the compiled camera path refused one GP or an MLP in other words than the
+    reference path, and gave an ensemble of one member a width as if its spread were 0; both now refuse it in
+    the same words, and the force alone is still predicted."""
+    from liverforce.learn.gp import GPEnsemble
+    from liverforce.learn.model import ModelFormatError
+
+    pred, a, ctx, fast = served
+    cloud, tip = _observe(a, 0, 1000, 0)
+    model = copy.copy(pred.model)
+    reg = model.regressor
+    if isinstance(reg, GPEnsemble):  # its interval reads the spread: keep one member
+        assert model.interval.uses_spread
+        model.regressor = GPEnsemble([reg.members[-1]], [reg.columns(len(reg.members) - 1)])
+        what = "a GP ensemble of one member"
+    else:
+        assert not model.interval.uses_spread
+        model.meta = {**model.meta, "interval": {**model.meta["interval"], "spread_beta": 4.0,
+                                                 "spread_median_n": [0.1, 0.1, 0.2]}}
+        what = "one GP" if type(reg).__name__ == "GPRegressor" else "an MLP"
+    p = Predictor(model)
+    with pytest.raises(ModelFormatError, match=f"its regressor is {what}, which has no members' spread") as compiled:
+        p.compile_cloud(ctx)
+    with pytest.raises(ModelFormatError) as reference:
+        p.predict_cloud(cloud, ctx, tool_tip_mm=tip, return_info=True)
+    assert str(compiled.value) == str(reference.value)
+    assert np.isfinite(p.predict_cloud(cloud, ctx, tool_tip_mm=tip)).all()
