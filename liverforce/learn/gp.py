@@ -605,8 +605,14 @@ class GPEnsemble(nn.Module):
             for k, (h, c) in enumerate(heads[1:], start=1):
                 out += each[k] if members else h(Z[:, c])
             out *= w
-            if members:
-                return out, np.std(np.stack(each), axis=0, ddof=1)
+            if members:  # the sd about the mean, in a few small in-place operations (np.std on the stacked
+                ss = np.zeros_like(out)  # members took ~15 us more per call: a tenth of one cloud's latency)
+                for e in each:
+                    e -= out
+                    e *= e
+                    ss += e
+                ss *= 1.0 / (len(each) - 1)
+                return out, np.sqrt(ss, out=ss)
             return out
 
         return head
