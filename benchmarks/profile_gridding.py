@@ -207,7 +207,8 @@ def against(pred, preop, fast, batch, tips) -> None:
             from liverforce.learn.gp import GPEnsemble
 
             cls = old_gp.GPEnsemble if isinstance(reg, GPEnsemble) else old_gp.GPRegressor
-            old.gp = cls.from_state_dict(reg.state_dict()).numpy_head(fixed)
+            spread = {"members": True} if getattr(old, "_spread", False) else {}  # a revision with the spread
+            old.gp = cls.from_state_dict(reg.state_dict()).numpy_head(fixed, **spread)
         n = len(batch)
         Xn = fast._grid(batch, None, None, tips)[0]
         Xo = old._grid(batch, None, None, tips)[0]

@@ -305,6 +305,10 @@ class ConformalInterval:
         rng, fs = d.get("stiffness_range"), d.get("force_scale")
         edges, bins = d.get("bin_edges_n"), d.get("bin_half_width_n")
         g = d.get("stiffness_exponent")  # a bundle before the key: widen proportional, what it meant then
+        med = d.get("spread_median_n")
+        if d.get("spread_beta") is not None and (med is None or len(med) != 3):
+            raise ValueError(f"the interval's spread_beta {d['spread_beta']} needs spread_median_n, 3 values (got "
+                             f"{med!r}): the model's model.json was edited or damaged; train the model again")
         return cls(float(d["coverage"]), _widths(d["half_width_n"]),
                    int(d["n_calibration"]), str(d["grouping"]), str(d.get("scale", "stiffness")),
                    int(d.get("folds", 1)), None if rng is None else (float(rng[0]), float(rng[1])),
@@ -371,6 +375,10 @@ def fit_conformal(true_local: np.ndarray, pred_local: np.ndarray, stiffness: np.
                              fs, edges, widths, widen, g, beta, med)
 
 
+class SpreadUnusable(ValueError):
+    """The calibration's members agree on most cases (median sd 0): nothing to scale the widths by."""
+
+
 def _spread_median(spread, pred: np.ndarray, r: np.ndarray, beta) -> tuple[float, tuple[float, ...]]:
     """``(beta, m)`` of :func:`fit_conformal`'s ``spread``: ``m_j`` the median members' sd of the calibration
     cases whose prediction, residual and spread are finite. Refused (ValueError): a spread of another shape than
@@ -386,8 +394,8 @@ def _spread_median(spread, pred: np.ndarray, r: np.ndarray, beta) -> tuple[float
         raise ValueError("interval spread: a members' sd is negative")
     med = np.median(d[ok], axis=0) if ok.any() else np.zeros(3)
     if not (med > 0).all():
-        raise ValueError(f"interval spread: the members' median sd is {med.tolist()} N; with zero, nothing scales "
-                         "the widths (set train.interval.spread: null)")
+        raise SpreadUnusable(f"interval spread: the members' median sd is {med.tolist()} N; with zero, nothing "
+                             "scales the widths (set train.interval.spread: null)")
     return float(beta), tuple(float(v) for v in med)
 
 

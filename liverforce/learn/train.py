@@ -459,7 +459,7 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
         try:
             cal = calibration_predictions(train_arrays, model_cfg, train_cfg["interval"], scenario, seed, encoder,
                                           use_state, code_size, dae_noise, hidden, dropout, fit)
-            ci = interval_from_calibration(cal, train_cfg["interval"], scenario)
+            ci = interval_from_calibration(cal, train_cfg["interval"], scenario, notes)
             if not final:
                 _write_calibration(out_dir / "interval_calibration.npz", cal)
         except ValueError as exc:  # e.g. one training liver in IV: nothing to hold out by liver
@@ -589,29 +589,48 @@ def fit_final(train_arrays, test_arrays, model_cfg, train_cfg, scenario, seed, e
     if split_interval is not None:  # the split was calibrated, so the full set can be
         cal = calibration_predictions(cases, model_cfg, train_cfg["interval"], scenario, seed, encoder, use_state,
                                       code_size, dae_noise, hidden, dropout, fit)
-        ci = interval_from_calibration(cal, train_cfg["interval"], scenario)
+        said: list = []
+        ci = interval_from_calibration(cal, train_cfg["interval"], scenario, said)
         _write_calibration(out_dir / "interval_calibration.npz", cal)
         model.meta["interval"] = ci.to_dict()
+        if said:  # e.g. the interval without the members' spread: kept with the model
+            model.meta["interval_notes"] = said
         model.meta["interval_test_coverage"] = split_interval["test_coverage"]
         interval = {**ci.to_dict(), "test_coverage": split_interval["test_coverage"]}
     info = {"n_cases": len(cases["case_id"]), "geometries": _geometries(cases)}
     return model, rep, interval, info
 
 
-def interval_from_calibration(cal: dict, interval_cfg, scenario):
+def interval_from_calibration(cal: dict, interval_cfg, scenario, notes: list | None = None):
     """Conformal interval (:mod:`liverforce.learn.interval`) of ``interval_cfg`` (coverage, scale, bins) fitted on
     :func:`calibration_predictions`' output: the same calibration predictions give every scale, with no new fit.
     ``interval_cfg["scale"]``: ``none``, ``stiffness``, ``force`` or ``force_bins`` (the module docstring; the
     config sets it, ``force_bins`` by default, with ``interval_cfg["bins"]`` bins; a dict without the key gets
     ``stiffness``, what it meant before the key existed); ``interval_cfg["widen"]``: ``proportional`` (without
-    the key) or ``fitted``, the widening outside the calibration's stiffness range."""
+    the key) or ``fitted``, the widening outside the calibration's stiffness range; ``interval_cfg["spread"]``:
+    the members' spread's beta (None: not scaled by it; a calibration without ``spread_local``, a model without a GP
+    ensemble, is fitted without it). Members that agree on most calibration cases (median sd 0) leave nothing to
+    scale by: the interval is fitted without the spread, and ``notes`` (a list, if given) says so."""
+    from liverforce.learn.interval import SpreadUnusable
+
     beta = interval_cfg.get("spread")
     spread = cal.get("spread_local")
-    return fit_conformal(cal["true_local"], cal["pred_local"], cal["stiffness"], float(interval_cfg["coverage"]),
-                         group_key(scenario), scale=str(interval_cfg.get("scale", "stiffness")),
-                         folds=int(cal["folds"]), bins=int(interval_cfg.get("bins", 5)),
-                         widen=str(interval_cfg.get("widen", "proportional")),
-                         spread=None if beta is None else spread, spread_beta=None if spread is None else beta)
+
+    def fit(use_spread: bool):
+        return fit_conformal(cal["true_local"], cal["pred_local"], cal["stiffness"], float(interval_cfg["coverage"]),
+                             group_key(scenario), scale=str(interval_cfg.get("scale", "stiffness")),
+                             folds=int(cal["folds"]), bins=int(interval_cfg.get("bins", 5)),
+                             widen=str(interval_cfg.get("widen", "proportional")),
+                             spread=spread if use_spread else None, spread_beta=beta if use_spread else None)
+
+    if beta is None or spread is None:
+        return fit(False)
+    try:
+        return fit(True)
+    except SpreadUnusable as exc:
+        if notes is not None:
+            notes.append(f"interval without the members' spread: {exc}")
+        return fit(False)
 
 
 def _write_calibration(path: Path, cal: dict) -> None:

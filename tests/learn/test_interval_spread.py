@@ -160,3 +160,23 @@ def test_an_interval_scaled_by_the_spread_on_a_regressor_without_members_is_refu
         assert np.isfinite(model.predict_interval(arrays)["half_width_local_n"]).all()
     finally:
         model.regressor = reg
+
+
+def test_members_that_agree_leave_the_interval_without_the_spread_and_say_so():
+    true, pred, d = _cases(300, 7)
+    cal = {"true_local": true, "pred_local": pred, "stiffness": np.ones((300, 1)), "folds": 4,
+           "spread_local": np.zeros_like(d)}
+    cfg = {"coverage": 0.9, "scale": "force_bins", "bins": 3, "widen": "fitted", "spread": 4.0}
+    notes: list = []
+    ci = interval_from_calibration(cal, cfg, "IV", notes)
+    assert not ci.uses_spread and ci.bounded
+    assert ci == interval_from_calibration(cal, {**cfg, "spread": None}, "IV")
+    assert len(notes) == 1 and "without the members' spread" in notes[0] and "median sd" in notes[0]
+
+
+def test_a_bundle_with_a_beta_but_no_median_is_refused_in_words():
+    true, pred, d = _cases(300, 8)
+    doc = fit_conformal(true, pred, np.ones((300, 1)), 0.9, "case", spread=d, spread_beta=4.0).to_dict()
+    doc["spread_median_n"] = None
+    with pytest.raises(ValueError, match="needs spread_median_n.*edited or damaged"):
+        ConformalInterval.from_dict(doc)

@@ -280,6 +280,7 @@ def test_batch_equals_per_cloud_predictions(served):
         pad[k, :len(c)] = c
     res2 = fast.predict_batch(pad, tips, counts=[len(c) for c in clouds])
     np.testing.assert_allclose(res2.force, single, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(res2.half_width, half, rtol=1e-9)  # and the widths (the spread's too)
     c32 = [c.astype(np.float32) for c in clouds]
     single32 = np.stack([fast.predict(c, t)[0] for c, t in zip(c32, tips)])
     np.testing.assert_allclose(fast.predict_batch(c32, tips).force, single32, rtol=0, atol=1e-9)
