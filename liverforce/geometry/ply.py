@@ -65,6 +65,9 @@ def read_ply(path: str | Path) -> PlyData:
     """The vertices (and triangles) of a PLY file (module docstring); :class:`PlyError` if unreadable."""
     path = Path(path)
     try:
+        if path.stat().st_size == 0:  # plyfile would say it lacks the 'ply' magic line
+            raise PlyError(f"{path}: the file is empty (0 bytes: no header, no points; a writer or a copy that "
+                           "stopped, a camera's driver for a frame): write or export it again")
         ply = _read(path)
     except OSError as exc:
         raise PlyError(f"{path}: cannot read the file ({exc.strerror or exc})") from None

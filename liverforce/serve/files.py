@@ -263,7 +263,8 @@ def _read_pcd(path: Path) -> tuple[np.ndarray, int, int]:
 
 # --------------------------------------------------------------------------- clouds and surfaces
 def _refuse_empty(path: Path) -> None:
-    """Refuse a PLY or PCD point file of 0 bytes as empty (its reader would say its header lacks every line)."""
+    """Refuse a PLY or PCD point file of 0 bytes as empty (pypcd4 would say its header lacks every line; for a PLY,
+    in these words without :func:`_read_ply`'s 'not a readable PLY file' around the PLY reader's own)."""
     if path.suffix.lower() in (".ply", ".pcd") and path.stat().st_size == 0:
         raise PredictionInputError(f"{path}: the file is empty (0 bytes: no header, no points; a writer or a copy "
                                    "that stopped, a camera's driver for a frame): write or export it again")
