@@ -184,3 +184,143 @@ def test_predict_arrays_opts_in_to_refused_rows(trained, shard_with_refused_rows
     rows = [i for i, c in enumerate(arrays["case_id"]) if str(c) in bad]
     got, why = pred.predict_arrays(subset(arrays, rows), return_refused=True, fast=True)
     assert np.isnan(got).all() and why == [refused[i] for i in rows]
+
+
+# --------------------------------------------------------------------------- the interval of every predicted row
+COMPONENTS = ("t1", "t2", "n")
+HALF = [f"half_width_{c}_n" for c in COMPONENTS]
+COVERED = [f"covered_{c}" for c in COMPONENTS]
+
+
+def _with_interval(pred, **changes):
+    """``pred``'s model with its interval's fields ``changes`` (nothing else refitted), or without an interval
+    (``interval=None``)."""
+    import copy
+    import dataclasses
+
+    model = copy.copy(pred.model)
+    model.meta = copy.deepcopy(pred.model.meta)
+    if changes.get("interval", True) is None:
+        model.meta.pop("interval")
+    else:
+        model.meta["interval"] = dataclasses.replace(pred.model.interval, **changes).to_dict()
+    return Predictor(model)
+
+
+#: an interval scaled by the predicted force: sigma_j = 0.05 N + 0.1 |F|, half-width 1.5 sigma_j; its widths
+#: move by 1.5 x 0.1 = 0.15 N per N of |F| (times the widening outside the calibration's stiffness range)
+BY_FORCE = {"scale": "force", "force_scale": ((0.05, 0.1),) * 3, "half_width_n": (1.5, 1.5, 1.5)}
+
+
+@pytest.mark.parametrize("scale", ["own", "force"])
+def test_every_row_carries_the_models_interval_of_its_force(trained, shards, scale):
+    """--shards' half-widths per local component are ForceModel.predict_interval's on the same rows: exactly on the
+    reference path; on the compiled path those of its own forces, which an interval scaled by the force reads
+    (|F| within 1e-6 N of the reference's, the test above), so within 0.15 N/N x 1e-6 N x the widening."""
+    pred = Predictor.load(trained("disp"))
+    assert pred.model.interval is not None and pred.model.interval.scale == "stiffness"
+    pred = pred if scale == "own" else _with_interval(pred, **BY_FORCE)
+    arrays = dio.load_training_arrays(sorted(shards.glob("shard-*.parquet")))
+    want = pred.model.predict_interval(arrays)
+    widen = float(np.max(pred.model.interval.stiffness_factor(pred.model.forward(arrays).stiffness)))
+    for fast in (False, True):
+        df = predict_shards(pred, [shards], None, fast=fast)["frame"]
+        got = df[HALF].to_numpy()
+        assert np.isfinite(got).all() and (got > 0).all()
+        if not fast:
+            np.testing.assert_allclose(got, want["half_width_local_n"], rtol=1e-12, atol=0)
+        else:
+            np.testing.assert_allclose(got, want["half_width_local_n"], rtol=0, atol=0.15 * 1e-6 * widen)
+    if scale == "force":  # the widths do follow the force
+        assert np.ptp(got[:, 0]) > 0.1 * np.ptp(np.linalg.norm(want["force_n"], axis=1))
+
+
+def test_a_refused_row_has_no_interval(trained, shard_with_refused_rows, tmp_path):
+    """The two refused rows' half-widths and coverage are missing (NaN, NA), on both paths; the other rows' are
+    predict_interval's of them alone, and the file keeps the missing coverage missing."""
+    pred = _with_interval(Predictor.load(trained("disp")), **BY_FORCE)
+    folder, bad, clean = shard_with_refused_rows
+    arrays = dio.load_training_arrays([clean])
+    want = pred.model.predict_interval(arrays)["half_width_local_n"]
+    widen = float(np.max(pred.model.interval.stiffness_factor(pred.model.forward(arrays).stiffness)))
+    for fast in (False, True):
+        out = tmp_path / f"pred-{fast}.parquet"
+        predict_shards(pred, [folder], out, fast=fast)
+        df = pd.read_parquet(out)
+        is_bad = df["case_id"].isin(bad).to_numpy()
+        assert is_bad.sum() == 2
+        assert np.isnan(df[HALF].to_numpy()[is_bad]).all()
+        np.testing.assert_allclose(df[HALF].to_numpy()[~is_bad], want, rtol=1e-12,
+                                   atol=0 if not fast else 0.15 * 1e-6 * widen)  # as in the test above
+        covered = df[COVERED]
+        assert covered[is_bad].isna().all().all() and covered[~is_bad].notna().all().all()
+
+
+def test_labelled_shards_say_which_rows_the_interval_covers(trained, shards, tmp_path):
+    """``covered_*``: the true local component within its interval, row by row, and the summary's coverage per
+    component over the rows; a narrow interval (the median residual of each component) covers some rows and
+    misses others, so a wrong frame or sign would show."""
+    from liverforce.learn.frames import force_to_local
+
+    pred = Predictor.load(trained("disp"))
+    arrays = dio.load_training_arrays(sorted(shards.glob("shard-*.parquet")))
+    got = pred.model.predict_interval(arrays)
+    true_local = force_to_local(np.asarray(arrays["force_n"], float), got["frame"])
+    median = tuple(float(v) for v in np.median(np.abs(true_local - got["force_local_n"]), axis=0))
+    pred = _with_interval(pred, scale="none", half_width_n=median, stiffness_range=None)
+    want = np.abs(true_local - got["force_local_n"]) <= np.asarray(median)[None, :]
+    assert 0.2 < want.mean() < 0.8
+    for fast in (False, True):
+        summary = predict_shards(pred, [shards], tmp_path / "pred.csv", fast=fast)
+        df = summary["frame"]
+        np.testing.assert_array_equal(df[COVERED].to_numpy(dtype=bool), want)
+        cov = summary["interval_coverage"]
+        assert cov["nominal"] == pred.model.interval.coverage and cov["rows"] == len(df)
+        assert [cov[c] for c in COMPONENTS] == pytest.approx(list(want.mean(axis=0)), abs=1e-12)
+        back = pd.read_csv(tmp_path / "pred.csv")
+        np.testing.assert_array_equal(back[COVERED].to_numpy(dtype=bool), want)
+
+
+def test_a_model_without_an_interval_gives_no_width(trained, shards):
+    """The half-widths are NaN in every row (a sequence's rows too), no coverage is claimed, the forces are
+    unchanged."""
+    pred = Predictor.load(trained("disp"))
+    bare = _with_interval(pred, interval=None)
+    assert bare.model.interval is None
+    with_ci = predict_shards(pred, [shards], None)["frame"]
+    summary = predict_shards(bare, [shards], None)
+    df = summary["frame"]
+    assert np.isnan(df[HALF].to_numpy()).all() and not set(COVERED) & set(df.columns)
+    assert summary["interval_coverage"] is None and len(df) == len(with_ci)
+    np.testing.assert_array_equal(df[["fx_n", "fy_n", "fz_n"]].to_numpy(), with_ci[["fx_n", "fy_n", "fz_n"]].to_numpy())
+
+
+@pytest.fixture(scope="module")
+def ensemble(data, configs, tmp_path_factory):
+    """The ``disp`` model's settings with a GP ensemble over two code sizes and an interval scaled by the members'
+    spread (train.interval.spread), as the shipped models'."""
+    from liverforce.learn.train import train_scenario
+
+    base, train, no_tune = configs
+    res = train_scenario(data, {**base, "regressor": "gp",
+                                "gp": {"max_points": 2000, "iterations": 30, "code_members": [2, 4]}},
+                         {**train, "interval": {**train["interval"], "scale": "force_bins", "bins": 2,
+                                                "spread": 4.0}},
+                         no_tune, "III", "ens", out_dir=tmp_path_factory.mktemp("serve-ens"))
+    pred = Predictor.load(res["model_path"])
+    assert pred.model.member_spread and pred.model.interval.uses_spread
+    return pred
+
+
+def test_the_interval_of_a_gp_ensemble_reads_its_members_spread(ensemble, shards):
+    """Each row's width is predict_interval's, which reads the members' spread of that row (it raises without it).
+    The widths are constant within each of the 2 bins of |F|, and no row's |F| is within 1e-5 N of the edge
+    (checked), so the compiled path's forces (within 1e-6 N of the reference's) give the same widths too."""
+    arrays = dio.load_training_arrays(sorted(shards.glob("shard-*.parquet")))
+    want = ensemble.model.predict_interval(arrays)
+    edge = np.asarray(ensemble.model.interval.bin_edges_n)
+    assert len(edge) == 1 and np.min(np.abs(np.linalg.norm(want["force_n"], axis=1) - edge[0])) > 1e-5
+    for fast in (False, True):
+        got = predict_shards(ensemble, [shards], None, fast=fast)["frame"][HALF].to_numpy()
+        np.testing.assert_allclose(got, want["half_width_local_n"], rtol=1e-12, atol=0)
+    assert np.ptp(got[:, 2]) > 0  # the spread makes the widths differ per row
