@@ -44,7 +44,7 @@ import pandas as pd
 
 from liverforce.layout import shards_in
 from liverforce.learn.metrics import force_metrics
-from liverforce.learn.model import subset
+from liverforce.learn.model import ModelFormatError, subset
 from liverforce.serve.errors import PredictionInputError
 from liverforce.serve.files import write_frame
 from liverforce.serve.sequence import COMPONENTS
@@ -175,9 +175,15 @@ def interval_of_rows(model, arrays: dict, force: np.ndarray, ok: np.ndarray, obs
     half-widths (NaN for the other rows; every row's for a model without an interval, then ``interval`` None).
     ``forward`` and ``force_local`` are None when no row was predicted. The widths are those of the shown forces
     (a scale by the force reads ``|F|``), not of ``forward``'s own. ``arrays``: as ``Predictor.predict_arrays``
-    read them (node displacements; a shard carries no camera clouds, which a camera model's refinement moves)."""
+    read them (node displacements; a shard carries no camera clouds, which a camera model's refinement moves).
+    An interval that cannot be read (:attr:`~liverforce.learn.model.ForceModel.interval`'s
+    :class:`~liverforce.learn.model.ModelFormatError`) is refused as a :class:`PredictionInputError`, as
+    ``Predictor.from_dir`` refuses a bundle."""
     half = np.full((len(force), 3), np.nan)
-    ci = model.interval
+    try:
+        ci = model.interval
+    except ModelFormatError as exc:  # an interval no path can give (a bundle edited by hand): as a model's load
+        raise PredictionInputError(f"model: {exc}") from exc
     rows = np.flatnonzero(ok)
     if ci is None or not len(rows):
         return ci, None, None, half

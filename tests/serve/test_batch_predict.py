@@ -324,3 +324,12 @@ def test_the_interval_of_a_gp_ensemble_reads_its_members_spread(ensemble, shards
         got = predict_shards(ensemble, [shards], None, fast=fast)["frame"][HALF].to_numpy()
         np.testing.assert_allclose(got, want["half_width_local_n"], rtol=1e-12, atol=0)
     assert np.ptp(got[:, 2]) > 0  # the spread makes the widths differ per row
+
+
+def test_an_interval_no_path_can_give_is_refused_in_words(trained, shards):
+    """A bundle edited by hand: an interval scaled by the GP ensemble members' spread on an MLP. --shards says what
+    is wrong with the model (a PredictionInputError, which the command prints) instead of a traceback."""
+    pred = _with_interval(Predictor.load(trained("disp")), spread_beta=4.0, spread_median_n=(0.1, 0.1, 0.1))
+    with pytest.raises(PredictionInputError, match=r"^model: the model's interval .* its regressor is an MLP, which "
+                                                   r"has no members' spread"):
+        predict_shards(pred, [shards], None)
