@@ -177,10 +177,14 @@ def cmd_predict(args) -> int:
 
     if torch.get_num_threads() != 1:
         torch.set_num_threads(1)
+    from liverforce.learn.model import ModelFormatError
+
     try:
         return _run(args)
     except PredictionInputError as exc:
         return _error(str(exc))
+    except ModelFormatError as exc:  # e.g. an interval no path can give (a bundle edited by hand), read on use
+        return _error(f"model {args.model}: {exc}")
 
 
 def _run(args) -> int:

@@ -271,3 +271,21 @@ def test_coordinates_in_scientific_notation_parse_as_numbers():
     assert args.material == [-1e-3]
     with pytest.raises(SystemExit):  # a real unknown option is still refused
         parser.parse_args(["predict", "-m", "model", "--exertion-pt", "1", "2", "3"])
+
+
+def test_a_model_whose_interval_cannot_be_given_is_refused_in_words(trained, test_cases, tmp_path, capsys):
+    """A bundle edited by hand (an interval scaled by the GP ensemble members' spread on an MLP): predict of one
+    cloud says what is wrong with the model and exits 2, not a traceback."""
+    from liverforce.learn.model import ForceModel
+
+    model = ForceModel.load(trained("deformed"))
+    model.meta["interval"] = {**model.meta["interval"], "spread_beta": 4.0, "spread_median_n": [0.1, 0.1, 0.1]}
+    path = model.save(tmp_path / "edited")
+    ctx = Preop.from_arrays(test_cases, 1)
+    np.save(tmp_path / "roi.npy", ctx.roi_undeformed_mm)
+    (tmp_path / "ctx.json").write_text(json.dumps(context_doc(ctx, "roi.npy", with_state=False)))
+    np.save(tmp_path / "cloud.npy", np.asarray(test_cases["roi_deformed_mm"][1]))
+    rc, out, err = run(["-m", path, tmp_path / "cloud.npy", "--context", tmp_path / "ctx.json"], capsys)
+    assert rc == 2 and out == ""
+    assert f"model {path}: the model's interval" in err and "its regressor is an MLP" in err
+    assert "Traceback" not in err
