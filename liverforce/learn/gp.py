@@ -600,10 +600,12 @@ class GPEnsemble(nn.Module):
             if members:
                 each = [h(Z[:, c]) for h, c in heads]
                 out = each[0].copy()
+                for e in each[1:]:
+                    out += e
             else:
                 out = heads[0][0](Z[:, heads[0][1]])
-            for k, (h, c) in enumerate(heads[1:], start=1):
-                out += each[k] if members else h(Z[:, c])
+                for h, c in heads[1:]:
+                    out += h(Z[:, c])
             out *= w
             if members:  # the sd about the mean, in a few small in-place operations (np.std on the stacked
                 ss = np.zeros_like(out)  # members took ~15 us more per call: a tenth of one cloud's latency)
