@@ -103,8 +103,12 @@ def dry_runs(tmp_path_factory) -> dict[tuple[str, ...], tuple[int, str]]:
     from concurrent.futures import ThreadPoolExecutor
 
     unique = list(dict.fromkeys(tuple(c) for c in COMMANDS))
+    # The folders are made here, before the threads: pytest's tmp_path_factory is not thread-safe. On an xdist worker
+    # its first call empties and remakes the worker's base folder, so two threads making it at once could delete it
+    # under the other (CI at 9a81de3: all 16 dry runs failed with FileNotFoundError for popen-gw0).
+    folders = [tmp_path_factory.mktemp("readme") for _ in unique]
     with ThreadPoolExecutor(max_workers=2) as pool:
-        results = pool.map(lambda c: dry_run(list(c), tmp_path_factory.mktemp("readme")), unique)
+        results = pool.map(lambda c, d: dry_run(list(c), d), unique, folders)
         return dict(zip(unique, results))
 
 
