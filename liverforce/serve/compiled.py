@@ -38,6 +38,16 @@ Per call only cheap checks run: the input's shape, a finite output (a NaN or
 inf anywhere in ``D`` makes every output non-finite, which is then reported
 with the row that caused it) and the displacement magnitude. The context
 (ROI, frame, liver, material) is checked once, when compiling.
+
+The calibrated interval (:mod:`liverforce.learn.interval`) comes with the force on request:
+:meth:`CompiledROI.predict_interval` and ``predict_batch(..., with_interval=True)`` give the half-widths per
+local component (t1, t2, n) that :meth:`~liverforce.learn.model.ForceModel.predict_interval` gives, from the
+context's stiffness factor ``C10 / C10_ref`` (:meth:`~liverforce.learn.model.Preprocessor.material_factor`,
+with :meth:`CompiledROI.with_material` or each row's ``material_params_mpa``), the predicted force and, for an
+interval scaled by the GP ensemble members' spread, the members' sd of the local force (a second GP head, built
+on the first call that asks for it). :meth:`CompiledROI.predict` and ``predict_batch`` without it compute none
+of that (the force alone, at its own per-call cost); a model trained without ``train.interval`` gives no interval
+and says so.
 """
 
 from __future__ import annotations
@@ -240,6 +250,9 @@ class CompiledROI:
         else:
             self._stiff = 1.0
         self._pre = pre
+        self._model = model  # its interval and the GP ensemble's members' head, read on the first call asking
+        self._interval = self._member_head = self._kf = None  # for an interval (_interval_parts)
+        self._kmat = float(pre.material_factor(s_state, 1)[0, 0]) if self.uses_state else 1.0  # the interval's k
         self._gp = regressor_head(model.regressor)
         self._reg = [] if self._gp is not None else numpy_layers(model.regressor)
         self._tmean, self._tscale = pre.target_scaler.mean, pre.target_scaler.scale
@@ -282,6 +295,8 @@ class CompiledROI:
         full = np.zeros((1, sl.stop))
         full[0, sl] = mat
         self._stiff = float(self._pre.stiffness(full, 1)[0, 0])
+        self._kmat = float(self._pre.material_factor(full, 1)[0, 0])
+        self._kf = None  # the interval's widening for this material: computed again when asked
         self._s0[sl] = (self._pre.base_state_features(full)[0, sl] - self._s_mean[sl]) / self._s_scale[sl]
         if self._lin_slice is not None:
             self._k_lin = float(self._pre.linear_factor(full, 1)[0, 0])
@@ -290,8 +305,41 @@ class CompiledROI:
         return self
 
     # ------------------------------------------------------------------
-    def _network(self, z: np.ndarray) -> np.ndarray:
-        """Rows ``z`` (float64, first-stage outputs) -> local force (float64), float32 like the reference."""
+    @property
+    def interval(self):
+        """The model's calibrated interval (:class:`liverforce.learn.interval.ConformalInterval`), or None for a
+        model trained without ``train.interval``; :class:`~liverforce.learn.model.ModelFormatError` for a bundle
+        whose interval cannot be computed (:attr:`liverforce.learn.model.ForceModel.interval`)."""
+        if self._interval is None:
+            self._interval = self._model.interval
+        return self._interval
+
+    @property
+    def coverage(self) -> float | None:
+        """The interval's nominal coverage (None without an interval)."""
+        ci = self.interval
+        return None if ci is None else ci.coverage
+
+    def _interval_parts(self):
+        """``(interval, widening of the context's material (1, 1) or (1, 3), whether the members' sd is read)``;
+        PredictionInputError for a model without an interval (the words of ``ForceModel.predict_interval``)."""
+        ci = self.interval
+        if ci is None:
+            raise PredictionInputError(
+                "this model has no calibrated interval (trained without train.interval): predict and predict_batch "
+                "without with_interval give the force alone; train the model with train.interval for its interval")
+        if ci.uses_spread and self._member_head is None:  # the GP ensemble's head that also gives the members' sd
+            self._member_head = regressor_head(self._model.regressor, members=True)
+        if self._kf is None:
+            self._kf = ci.stiffness_factor(np.array([[self._kmat]]))
+        return ci, self._kf, ci.uses_spread
+
+    def _network(self, z: np.ndarray, members: bool = False):
+        """Rows ``z`` (float64, first-stage outputs) -> local force (float64), float32 like the reference.
+
+        ``members`` (a GP ensemble, an interval scaled by its spread): ``(local force, sd)``, ``sd`` the members'
+        sd of the local force before the force scaling's factor (what ``Forward.spread_local`` is over it), the
+        force the same bits as without."""
         nc = self._n_code
         if self._pca:
             h = z.astype(np.float32)
@@ -302,6 +350,11 @@ class CompiledROI:
             code = (e.astype(np.float64) - self._cs[0]) / self._cs[1]
             h = np.concatenate([code, z[..., nc:]], axis=-1).astype(np.float32) if self.uses_state else \
                 code.astype(np.float32)
+        if members:
+            h, sd = self._member_head(h.reshape(-1, h.shape[-1]))
+            h = h.reshape(*z.shape[:-1], -1)
+            # the sd of (h tscale + tmean) over the members (Forward.spread_local, before its stiffness factor)
+            return h * self._tscale + self._tmean, (sd * np.abs(self._tscale)).reshape(h.shape)
         if self._gp is not None:
             h = self._gp(h.reshape(-1, h.shape[-1])).reshape(*h.shape[:-1], -1)
         for W, b, s in self._reg32:
@@ -325,6 +378,20 @@ class CompiledROI:
         z, dmax = self.first_stage(D)
         return self.finish(z, dmax, D)
 
+    def predict_interval(self, deformed_roi_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Force ``(3,)`` N in the liver frame (:meth:`predict`'s) and its calibrated interval's half-widths ``(3,)``
+        N per local component (t1, t2, n; the interval is ``force_local +- half``, ``force_local = R force``), as
+        :meth:`liverforce.learn.model.ForceModel.predict_interval` gives them (module docstring).
+        :class:`PredictionInputError` for a model trained without ``train.interval``."""
+        ci, kf, members = self._interval_parts()
+        D = np.asarray(deformed_roi_mm, dtype=np.float64)
+        z, dmax = self.first_stage(D)
+        f, sd = self._network(z, members=True) if members else (self._network(z), None)
+        f_loc = f * self._stiff
+        F = self._checked(f_loc @ self.R, dmax, D)
+        half = kf * ci.force_widths(f_loc[None], None if sd is None else sd[None] * self._stiff)
+        return F, half[0]
+
     def first_stage(self, D: np.ndarray) -> tuple[np.ndarray, float]:
         """Preprocessing of one call: shape check, displacement, ``z = A Δ + b`` and the largest displacement."""
         if D.shape != (self.k, 3):
@@ -343,7 +410,10 @@ class CompiledROI:
 
     def finish(self, z: np.ndarray, dmax: float, D: np.ndarray) -> np.ndarray:
         """Network of one call: MLP (and AE encoder), target scaling, rotation to the liver frame, checks."""
-        f = (self._network(z) * self._stiff) @ self.R
+        return self._checked((self._network(z) * self._stiff) @ self.R, dmax, D)
+
+    def _checked(self, f: np.ndarray, dmax: float, D: np.ndarray) -> np.ndarray:
+        """The force ``f`` of one call, once it is finite and the displacement within the training's scale."""
         if not (np.isfinite(f).all() and np.isfinite(dmax)):
             self._fail(D)
         if dmax > self._dlim:
@@ -358,13 +428,18 @@ class CompiledROI:
         return self.limits.scale_factor * max(max(fam[:3]), 1e-6)
 
     def predict_batch(self, deformed_roi_mm: np.ndarray, *, roi_centroid_deformed_mm: np.ndarray | None = None,
-                      material_params_mpa: np.ndarray | None = None) -> np.ndarray:
+                      material_params_mpa: np.ndarray | None = None, with_interval: bool = False):
         """Forces ``(n, 3)`` N for ``n`` deformed ROIs ``(n, k, 3)`` of the compiled context.
 
         ``roi_centroid_deformed_mm`` ``(n, 3)`` overrides the mean of each
         deformed ROI (shards store it from float64 positions);
         ``material_params_mpa`` ``(n, p)`` gives per-row material constants.
+        ``with_interval``: ``(forces (n, 3), half-widths (n, 3))``, the half-widths of each row's calibrated
+        interval per local component (:meth:`predict_interval`; each row's own stiffness factor with
+        ``material_params_mpa``); :class:`PredictionInputError` for a model trained without ``train.interval``.
         """
+        if with_interval:
+            ci, kf, members = self._interval_parts()
         D = np.asarray(deformed_roi_mm, dtype=np.float64)
         if D.ndim != 3 or D.shape[1:] != (self.k, 3):
             raise PredictionInputError(f"roi_deformed_mm: expected shape (n, {self.k}, 3), got {D.shape}")
@@ -377,6 +452,7 @@ class CompiledROI:
         if self.uses_state and not self._centroid_from_d:  # an observed model never reads a given centroid
             roi_centroid_deformed_mm = None
         stiff = np.full((n, 1), self._stiff)
+        kmat = None  # the rows' stiffness factors (the interval's), when they differ from the context's
         if self.uses_state and (roi_centroid_deformed_mm is not None or material_params_mpa is not None):
             nc = self._n_code
             z = np.empty((n, self.A.shape[0]))
@@ -402,6 +478,7 @@ class CompiledROI:
                 full = np.zeros((n, ms.stop))
                 full[:, ms] = mat
                 stiff = self._pre.stiffness(full, n)
+                kmat = self._pre.material_factor(full, n)
                 z[:, nc + ms.start:nc + ms.stop] = (self._pre.base_state_features(full)[:, ms] - self._s_mean[ms]) \
                     / self._s_scale[ms]
                 if self._lin_slice is not None:  # f_lin of each row's own material (force_scaling: linear)
@@ -413,7 +490,12 @@ class CompiledROI:
             z = np.empty((n, len(self.bU)))
             z[:] = self.bU
             z[:, self._dyn] += X @ self._A_dyn.T
-        F = (self._network(z) * stiff) @ self.R
+        if with_interval:
+            f, sd = self._network(z, members=True) if members else (self._network(z), None)
+            f_loc = f * stiff
+            F = f_loc @ self.R
+        else:
+            F = (self._network(z) * stiff) @ self.R
         bad = ~(np.isfinite(F).all(axis=1) & np.isfinite(dmax))
         if bad.any():
             i = int(np.argmax(bad))
@@ -422,5 +504,8 @@ class CompiledROI:
         if over.any():
             i = int(np.argmax(over))
             check_displacement(float(dmax[i]), self.scale, self.limits, f"row {i}: ")
-        return F
+        if not with_interval:
+            return F
+        k = kf if kmat is None else ci.stiffness_factor(kmat)
+        return F, k * ci.force_widths(f_loc, None if sd is None else sd * stiff)
 

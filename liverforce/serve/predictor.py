@@ -5,6 +5,7 @@
 >>> pred.predict(deformed_roi_nodes, ctx)          # (a) tracked ROI nodes -> (Fx, Fy, Fz) N
 >>> pred.predict_cloud(camera_points, ctx)         # (b) unordered cloud (see serve.cloud)
 >>> fast = pred.compile(ctx); fast.predict(deformed_roi_nodes)   # (a) at haptic rates
+>>> force, half = fast.predict_interval(deformed_roi_nodes)      # (a) with its interval (local t1, t2, n)
 
 Inputs are in the liver (source) frame, mm; material constants in MPa; the
 force comes back in the liver frame, N. The preprocessing of training (local
@@ -340,7 +341,9 @@ class Predictor:
                              declared=declared)
 
     def compile(self, preop: Preop) -> CompiledROI:
-        """The fixed-topology fast path for ``preop`` (checked once here)."""
+        """The fixed-topology fast path for ``preop`` (checked once here): :class:`CompiledROI`, whose ``predict`` and
+        ``predict_batch`` give the force alone and ``predict_interval`` (``predict_batch(..., with_interval=True)``)
+        the force with its calibrated interval's half-widths per local component, as :meth:`interval` gives them."""
         self.check_preop(preop)
         return CompiledROI(self.model, preop, limits=self.limits, scale=self.scale)
 
