@@ -713,10 +713,16 @@ def _check_ranges(cfg: dict, run: bool = True) -> None:
         LiverShapeParams(**g["procedural"]["shape"])
     except (TypeError, ValueError) as exc:
         _fail("geometry.procedural.shape", str(exc))
+    first: dict[str, int] = {}
     for i, imp in enumerate(g["imported"]):
         name = imp["name"]
         if not name or not all(c.isalnum() or c in "-_" for c in name):
             _fail(f"geometry.imported[{i}].name", f"'{name}' must be letters, digits, '-' or '_' (it names output files)")
+        if name in first:  # imp-<name> would name both livers' files: the second dropped, the first trained twice
+            _fail(f"geometry.imported[{i}].name", f"'{name}' is already the name of geometry.imported[{first[name]}] "
+                  f"({g['imported'][first[name]]['path']})", "give each imported liver its own name (it names the "
+                  f"liver's files, imp-{name}.*, and validate.imported refers to it)")
+        first[name] = i
         _check_units(f"geometry.imported[{i}].units", imp["units"])
         _check_mesh_mode(f"geometry.imported[{i}]", imp)
         _check_frame(f"geometry.imported[{i}].frame", imp["frame"])
@@ -1379,7 +1385,7 @@ def _check_frame(key: str, frame: Any) -> None:
 
 def _check_user_scene(key: str, imp: dict) -> None:
     """Syntax of an imported geometry's own supports and exertion points (files are read at the mesh stage)."""
-    from liverforce.mesh.supports import SupportError, parse_supports
+    from liverforce.mesh.supports import SupportError, coordinate_list, parse_supports, vertex_id_list
 
     try:
         parse_supports(imp.get("supports"), where=f"{key}.supports")
@@ -1388,6 +1394,9 @@ def _check_user_scene(key: str, imp: dict) -> None:
     ep = imp.get("exertion_points")
     if ep is None:
         return
+    if isinstance(ep, (str, bytes)) or not hasattr(ep, "keys"):
+        _fail(f"{key}.exertion_points", f"give a mapping, got {ep!r}", "e.g. {coordinates_mm: [[x, y, z], ...]}, "
+              "{vertex_ids: [245, 184]} or {path: points.csv, units: m}")
     ep = dict(ep)
     keys = set(ep) - {"units", "frame"}
     if keys not in ({"coordinates_mm"}, {"vertex_ids"}, {"path"}):
@@ -1404,16 +1413,19 @@ def _check_user_scene(key: str, imp: dict) -> None:
                 check_markups_spec(ep, f"{key}.exertion_points")
             except SupportError as exc:
                 _fail(f"{key}.exertion_points", str(exc).split(": ", 1)[1])
-    if "coordinates_mm" in ep:
-        import numpy as np
-
-        a = np.asarray(ep["coordinates_mm"], dtype=float)
-        if a.ndim != 2 or a.shape[1] != 3 or len(a) == 0:
-            _fail(f"{key}.exertion_points.coordinates_mm", f"must be a list of [x, y, z] in mm (shape {a.shape})")
-    if "vertex_ids" in ep and (len(ep["vertex_ids"]) == 0 or min(int(v) for v in ep["vertex_ids"]) < 0):
-        _fail(f"{key}.exertion_points.vertex_ids", "must be a non-empty list of vertex ids >= 0")
+    try:
+        if "coordinates_mm" in ep:
+            coordinate_list(ep["coordinates_mm"], f"{key}.exertion_points.coordinates_mm")
+        if "vertex_ids" in ep:
+            vertex_id_list(ep["vertex_ids"], f"{key}.exertion_points.vertex_ids")
+    except SupportError as exc:
+        _fail(*str(exc).split(": ", 1))
     if ep.get("units") is not None:
         _check_units(f"{key}.exertion_points.units", ep["units"])
+        if str(ep["units"]).strip().lower() == "auto":
+            _fail(f"{key}.exertion_points.units", "auto is for a liver file (guessed from its size); a few points "
+                  "have no size to guess from", "give mm, cm, m or a number of mm per file unit (default: the "
+                  "geometry's units)")
 
 
 def _check_units(key: str, units: str) -> None:
@@ -1423,8 +1435,8 @@ def _check_units(key: str, units: str) -> None:
         scale = float(units)
     except ValueError:
         _fail(key, f"unknown units '{units}'", "use mm, cm, m, auto or a number (scale to mm)")
-    if scale <= 0:
-        _fail(key, f"scale must be > 0 (got {units})")
+    if not 0 < scale < float("inf"):  # nan and inf too: no scale to mm
+        _fail(key, f"scale must be a number > 0 (got {units})")
 
 
 # --------------------------------------------------------------------------

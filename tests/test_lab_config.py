@@ -47,6 +47,20 @@ def test_each_fix_the_refusal_names_composes():
     compose(["experiment=smoke", *ONE_LIVER[1:], two_labs])
 
 
+def test_two_imported_livers_of_one_name_are_refused_naming_the_second():
+    """Both would be imp-lab01: the plan kept the first's files for both and trained scenario IV on it twice."""
+    twice = LAB[:-1] + ",{name:lab01,path:/lab/b.stl,units:mm}]"
+    with pytest.raises(ConfigError, match=r"config key 'geometry.imported\[1\].name': 'lab01' is already the name of "
+                                          r"geometry.imported\[0\] \(/lab/liver_lps_m.stl\).*its own name"):
+        compose(["experiment=smoke", twice])
+
+
+@pytest.mark.parametrize("units", ["nan", "inf"])
+def test_a_units_scale_that_is_no_number_is_refused_by_the_config(units):
+    with pytest.raises(ConfigError, match=r"config key 'geometry.imported\[0\].units': scale must be a number > 0"):
+        compose(["experiment=smoke", f"geometry.imported=[{{name:lab01,path:/lab/a.stl,units:{units}}}]"])
+
+
 def test_iv_in_train_scenarios_and_the_studies_are_named_with_their_fix():
     with pytest.raises(ConfigError) as err:
         compose(["experiment=smoke", LAB, "geometry.procedural.count=0"])

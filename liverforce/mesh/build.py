@@ -43,6 +43,7 @@ def build_liver_mesh(
     file_groups=None,
     auto_regions: tuple | None = None,
     regions_check: str = "warn",
+    require_held: str | None = None,
 ) -> LiverMesh:
     """Tetrahedralise ``surface``, extract and tag its boundary facets.
 
@@ -127,6 +128,10 @@ def build_liver_mesh(
         ``mesh.regions_check``: a given exertion point off the visible area (where built-in sampling places
         the tool) is logged as a warning and listed in ``meta["exertion_not_visible"]``, or, under ``strict``,
         refused (:func:`~liverforce.mesh.supports.check_exertion_facing`).
+    require_held : str, optional
+        Refuse ``supports`` that leave the liver free to move as a rigid body, on the input surface before
+        meshing (:func:`~liverforce.mesh.supports.check_held`; the string says where they were given, for the
+        message). The mesh stage asks it of a lab's supports; ``None`` (default) does not check.
     require_regions : bool
         Raise ``ValueError`` if a region (1–4) or the visible set is empty;
         otherwise empty ones are only logged and listed in
@@ -165,6 +170,10 @@ def build_liver_mesh(
             s_region, support_report, owner = assign_supports(
                 surface.vertices, surface.faces, s_region, supports[0], supports[1],
                 support_frame or PointFrame(), file_vertices, file_groups=file_groups)
+            if require_held:
+                from liverforce.mesh.supports import require_held_by
+
+                require_held_by(surface.vertices, surface.faces, s_region, supports[1], require_held)
             s_visible = visible_facets(surface.vertices, surface.faces, s_region, params)
             for info in support_report:
                 log.info("support %s (%s, %s): %d facets%s", info["name"], info["kind"], info["selector"],
@@ -186,6 +195,10 @@ def build_liver_mesh(
         elif exertion_sampling:
             from liverforce.sweep.design import sample_exertion_points
 
+            if user and not s_visible.any():
+                from liverforce.mesh.supports import no_tool_area
+
+                raise no_tool_area(supports[1], support_report)
             candidates = sample_exertion_points(
                 surface.vertices, surface.faces, s_visible, int(exertion_sampling["n_points"]),
                 float(exertion_sampling["min_spacing_mm"]), int(exertion_sampling["seed"]))

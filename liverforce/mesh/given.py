@@ -28,7 +28,7 @@ def build_given_mesh(points, tets, meta: dict | None = None, region_params: Regi
                      supports: tuple | None = None, support_frame=None, file_vertices=None, file_groups=None,
                      exertion_points=None, exertion_sampling: dict | None = None,
                      exertion_labels: list[str] | None = None, regions_check: str = "warn",
-                     coarse_edge_mm: float | None = None) -> LiverMesh:
+                     coarse_edge_mm: float | None = None, require_held: str | None = None) -> LiverMesh:
     """Tag the boundary of a given tet mesh; node ``i`` stays node ``i``.
 
     Parameters
@@ -47,6 +47,8 @@ def build_given_mesh(points, tets, meta: dict | None = None, region_params: Regi
     exertion_sampling : ``{"n_points", "min_spacing_mm", "seed"}``: candidates sampled on the visible facets.
     coarse_edge_mm : warn when the mean boundary edge is longer (mm): the tool's few-mm traction is then
         resolved by few facets (the mesh stage passes twice ``mesh.refine_edge_mm``).
+    require_held : refuse supports that leave the mesh free to move as a rigid body, as
+        :func:`liverforce.mesh.build.build_liver_mesh` (``None``: not checked).
 
     Returns
     -------
@@ -68,6 +70,10 @@ def build_given_mesh(points, tets, meta: dict | None = None, region_params: Regi
         region, support_report, owner = assign_supports(points, facets, region, supports[0], supports[1],
                                                         support_frame or PointFrame(), file_vertices,
                                                         file_groups=file_groups)
+        if require_held:
+            from liverforce.mesh.supports import require_held_by
+
+            require_held_by(points, facets, region, supports[1], require_held)
         visible = visible_facets(points, facets, region, params)
         for info in support_report:
             log.info("support %s (%s, %s): %d facets of the given mesh", info["name"], info["kind"],
@@ -83,6 +89,10 @@ def build_given_mesh(points, tets, meta: dict | None = None, region_params: Regi
                                                 not_visible=not_visible, frame=support_frame)
         log.info("%d given exertion points snapped to the given mesh's surface (max %.3g mm)", len(candidates),
                  snap.max())
+    elif exertion_sampling and user and not visible.any():
+        from liverforce.mesh.supports import no_tool_area
+
+        raise no_tool_area(supports[1], support_report)
     elif exertion_sampling and visible.any():
         from liverforce.sweep.design import sample_exertion_points
 

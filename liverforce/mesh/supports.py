@@ -66,7 +66,9 @@ as the regions picture's legend names it) and counts the facets it finally holds
 of another kind or region is refused, naming both (:func:`apply_supports`). Under
 ``mode: add`` the same holds for the auto-tagged regions beneath: a lab support
 taking some of one lists them (``took_built_in``), one wholly covered by lab
-supports of another kind is refused.
+supports of another kind is refused. The supports must hold the liver: without a
+fixed one, a rigid motion that only sliding supports and foundations without
+tangential stiffness resist (along their normals) is refused (:func:`check_held`).
 """
 
 from __future__ import annotations
@@ -183,10 +185,25 @@ def points_frame(frame, where: str) -> np.ndarray:
         raise SupportError(f"{where}.frame: {exc}") from None
 
 
+#: what a ``supports`` entry looks like, for the messages refusing one of another shape
+_SUPPORTS_SHAPE = ("{mode: replace, list: [{name: cava, kind: fixed, sphere: {center_mm: [x, y, z], radius_mm: r}}, "
+                   "...]}")
+
+
 def parse_supports(cfg, where: str = "supports") -> tuple[str, list[Support]]:
-    """``{mode, list}`` config → ``(mode, [Support])``; ``ValueError`` naming the key on a bad entry."""
+    """``{mode, list}`` config → ``(mode, [Support])``; ``ValueError`` naming the key on a bad entry.
+
+    Refused (:class:`SupportError` naming the key): a ``supports`` that is no mapping (a bare list of supports
+    without ``mode`` and ``list``), a ``list`` that is no list, an entry that is no mapping, two supports of one
+    name (each names its facets in the features JSON, the regions picture and the messages), and ``mode:
+    replace`` with no support listed (it would replace the built-in supports by nothing: the liver held by
+    none, or, as before, the built-in ones kept without a word).
+    """
     if cfg is None:
         return "add", []
+    if isinstance(cfg, (str, bytes)) or not hasattr(cfg, "keys"):
+        hint = " (a list of supports goes under list:)" if isinstance(cfg, (list, tuple)) else ""
+        raise SupportError(f"{where}: give a mapping {_SUPPORTS_SHAPE}, got {cfg!r}{hint}")
     cfg = dict(cfg)
     mode = cfg.get("mode", "replace")
     if mode not in ("replace", "add"):
@@ -194,9 +211,22 @@ def parse_supports(cfg, where: str = "supports") -> tuple[str, list[Support]]:
     extra = set(cfg) - {"mode", "list"}
     if extra:
         raise SupportError(f"{where}: unknown keys {sorted(extra)} (use mode and list)")
-    out = []
-    for i, s in enumerate(cfg.get("list") or []):
+    items = cfg.get("list")
+    if items is not None and (isinstance(items, (str, bytes)) or hasattr(items, "keys")
+                              or not hasattr(items, "__iter__")):
+        raise SupportError(f"{where}.list: give a list of supports, each {{name, kind, and one selector of "
+                           f"{list(SELECTORS)}}}, got {items!r}")
+    items = list(items or [])
+    if mode == "replace" and not items:
+        raise SupportError(f"{where}.list: no support listed, and mode replace would replace the built-in "
+                           "supports (the fixed IVC, the ligaments, the viscera, the ribs) by none: list the "
+                           "liver's supports, or leave supports out to keep the built-in ones")
+    out, names = [], {}
+    for i, s in enumerate(items):
         key = f"{where}.list[{i}]"
+        if isinstance(s, (str, bytes)) or not hasattr(s, "keys"):
+            raise SupportError(f"{key}: give a support as a mapping {{name, kind: fixed|foundation|sliding, and "
+                               f"one selector of {list(SELECTORS)}}}, got {s!r}")
         s = dict(s)
         kind = s.get("kind")
         if kind not in ("fixed", "foundation", "sliding"):
@@ -217,7 +247,13 @@ def parse_supports(cfg, where: str = "supports") -> tuple[str, list[Support]]:
             _check_stiffness(stiffness, f"{key}.stiffness")
         elif stiffness or "region" in s:
             raise SupportError(f"{key}: stiffness and region are for kind foundation only")
-        out.append(Support(str(s.get("name") or f"support{i}"), kind, selector, region, stiffness, key))
+        name = str(s.get("name") or f"support{i}")
+        if name in names:
+            raise SupportError(f"{key}.name: '{name}' is already the name of {where}.list[{names[name]}]: give "
+                               "each support its own name (it names the support's facets in the features JSON, "
+                               "the regions picture and the messages)")
+        names[name] = i
+        out.append(Support(name, kind, selector, region, stiffness, key))
     return mode, out
 
 
@@ -247,6 +283,41 @@ def _group_spec(value, key: str) -> dict:
     return d
 
 
+def finite_numbers(value, shape: tuple, key: str, what: str) -> np.ndarray:
+    """``value`` as a float array of ``shape`` (``-1``: any length) of finite numbers, else :class:`SupportError`
+    naming ``key`` and ``what`` was expected (``true``/``false`` and words are no numbers, NaN and inf no place)."""
+    try:
+        if any(isinstance(x, (bool, np.bool_, str, bytes)) for x in np.asarray(value, dtype=object).ravel()):
+            raise TypeError
+        a = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise SupportError(f"{key}: must be {what}, got {value!r}") from None
+    if a.ndim != len(shape) or any(n != -1 and n != m for n, m in zip(shape, a.shape)):
+        raise SupportError(f"{key}: must be {what}, got {value!r} (shape {a.shape})")
+    if not np.isfinite(a).all():
+        raise SupportError(f"{key}: must be {what}, got {value!r} (a value is not a finite number)")
+    return a
+
+
+def coordinate_list(value, key: str) -> np.ndarray:
+    """``value`` as a non-empty ``(k, 3)`` array of finite coordinates, else :class:`SupportError` naming ``key``."""
+    a = finite_numbers(value, (-1, 3), key, "a non-empty list of [x, y, z] (numbers, mm)")
+    if not len(a):
+        raise SupportError(f"{key}: must be a non-empty list of [x, y, z] (numbers, mm), got {value!r}")
+    return a
+
+
+def vertex_id_list(value, key: str) -> np.ndarray:
+    """``value`` as a non-empty 1-D array of non-negative integer vertex ids, else :class:`SupportError` naming
+    ``key`` (``4690.7`` is refused, not cut to 4690; ``true`` is no vertex id)."""
+    a = finite_numbers(value, (-1,), key, "a non-empty list of vertex ids (integers >= 0)")
+    bad = np.flatnonzero((a < 0) | (a != np.round(a)))
+    if not len(a) or len(bad):
+        got = f" (entry {bad[0]} is {a[bad[0]]:g})" if len(bad) else ""
+        raise SupportError(f"{key}: must be a non-empty list of vertex ids (integers >= 0){got}")
+    return a.astype(np.int64)
+
+
 def _check_selector(selector, key):
     kind, d = selector
     if kind == "group":
@@ -257,13 +328,27 @@ def _check_selector(selector, key):
         raise SupportError(f"{key}: needs keys {sorted(need)} (optional {sorted(allowed - need)}), got {sorted(d)}")
     if kind == "file" and is_markups(d["path"]):
         check_markups_spec(d, key)
+    if kind == "file" and d.get("units") is not None:
+        from liverforce.geometry.units import parse_units
+
+        try:
+            scale, _ = parse_units(d["units"])
+        except ValueError:
+            scale = 0.0
+        if not scale:  # unknown, or auto: a few points have no liver size to guess a unit from
+            raise SupportError(f"{key}.units: '{d['units']}' is no unit for a point file: give mm, cm, m or a "
+                               "number of mm per file unit (default: the geometry's units)")
     if d.get("frame") is not None:
         points_frame(d["frame"], key)
-    if kind == "sphere" and (np.shape(d["center_mm"]) != (3,) or not float(d["radius_mm"]) > 0):
-        raise SupportError(f"{key}: center_mm must be [x, y, z] and radius_mm > 0")
-    if kind == "box" and (np.shape(d["min_mm"]) != (3,) or np.shape(d["max_mm"]) != (3,)
-                          or not (np.asarray(d["max_mm"], float) > np.asarray(d["min_mm"], float)).all()):
-        raise SupportError(f"{key}: min_mm and max_mm must be [x, y, z] with max > min on every axis")
+    if kind == "sphere":
+        finite_numbers(d["center_mm"], (3,), f"{key}.center_mm", "[x, y, z] in mm")
+        if not finite_numbers(d["radius_mm"], (), f"{key}.radius_mm", "a radius in mm (a number > 0)") > 0:
+            raise SupportError(f"{key}: center_mm must be [x, y, z] and radius_mm > 0")
+    if kind == "box":
+        lo = finite_numbers(d["min_mm"], (3,), f"{key}.min_mm", "[x, y, z] in mm")
+        hi = finite_numbers(d["max_mm"], (3,), f"{key}.max_mm", "[x, y, z] in mm")
+        if not (hi > lo).all():
+            raise SupportError(f"{key}: min_mm and max_mm must be [x, y, z] with max > min on every axis")
 
 
 def _check_stiffness(st: dict, key: str):
@@ -276,8 +361,12 @@ def _check_stiffness(st: dict, key: str):
     else:
         raise SupportError(f"{key}: give {{normal_n_per_mm3, tangential_n_per_mm3}} (N/mm³) or "
                            f"{{total_n_per_mm, tangential_ratio}} (N/mm over the region), got {sorted(st)}")
-    if any(not float(v) >= 0 for v in vals):
-        raise SupportError(f"{key}: stiffness values must be >= 0 (got {st})")
+    try:
+        ok = all(finite_numbers(v, (), key, "") >= 0 for v in vals)
+    except SupportError:
+        ok = False
+    if not ok:
+        raise SupportError(f"{key}: stiffness values must be finite numbers >= 0 (got {st})")
 
 
 #: Point files: the formats ``liverforce predict`` reads a point cloud in (``liverforce.serve.files.read_points``;
@@ -830,6 +919,119 @@ def support_stiffness(supports: list[Support], region_area_mm2: dict[int, float]
 
 
 
+def no_tool_area(supports: list[Support], report: list[dict] | None) -> SupportError:
+    """The refusal of a lab's supports that leave no free facet facing the camera, where the sweep samples the
+    tool's positions (the visible area: free facets within ``mesh.regions.visible_cone_deg`` of the view, away
+    from the supports by ``visible_margin_mm``); ``report`` (:func:`assign_supports`) gives their facet counts."""
+    held = {r["name"]: r.get("n_facets") for r in report or []}
+    names = ", ".join(f"'{s.name}' ({s.kind}{_slot(s)}, {selector_words(s)}"
+                      + (f", {held[s.name]} facets" if held.get(s.name) is not None else "") + ")" for s in supports)
+    return SupportError(
+        f"the lab's supports {names} leave no free surface facing the camera: the tool's positions are sampled "
+        "there (the visible area: free facets facing the view direction, mesh.regions.visible_cone_deg, at least "
+        "mesh.regions.visible_margin_mm from a support), and none is left. Shrink the supports so free surface "
+        "faces the camera, or give the tool's positions (geometry.imported[].exertion_points)")
+
+
+#: the weakest rigid motion of the liver its supports must resist, as a fraction of what the supports' area would
+#: resist pressing straight against it (:func:`check_held`); a liver on a sliding patch of its posterior surface
+#: (1e-3) failed every FE case after 30 s, one wrapped in sliding supports over its whole posterior half (1.2e-2)
+#: solved in 2 s
+HOLD_MIN = 5e-3
+
+
+def check_held(points, facets, facet_region, support_boundary: dict | None, supports: list[Support],
+               where: str = "supports") -> dict:
+    """Refuse supports that leave the liver free to move as a rigid body.
+
+    A fixed facet (region ``ivc``) holds it. Else every rigid motion, three translations and three rotations
+    about the supported facets' centroid (scaled by their RMS distance from it, so a rotation moves them as far
+    as a translation), is resisted only by the springs: a foundation along the facet normal (``kn > 0``) and
+    across it (``kt > 0``), a sliding support along the normal only. With unit weights the 6 x 6 matrix
+    ``sum(area * (wn (phi . n)^2 + wt |phi_t|^2)) / area`` has eigenvalue 1 for a motion every support resists
+    with its full area; its smallest eigenvalue below :data:`HOLD_MIN` (a sliding patch lets the liver slide
+    along it, a foundation of zero stiffness holds nothing) is refused with :class:`SupportError`, naming the
+    supports and the motion; the solver would fail every case of the sweep, or swing the liver instead of
+    deforming it.
+
+    ``support_boundary`` : the lab's foundation stiffness (:func:`support_stiffness`, N/mm³); a foundation slot
+    it does not give is the built-in one (springs both ways). Returns ``{"held_by": "fixed" | "springs",
+    "weakest": eigenvalue or None}``.
+    """
+    points = np.asarray(points, float)
+    facets = np.asarray(facets, np.int64)
+    region = np.asarray(facet_region)
+    if (region == REGION_CODES["ivc"]).any():
+        return {"held_by": "fixed", "weakest": None}
+    sb = support_boundary or {}
+    wn = np.zeros(len(facets))
+    wt = np.zeros(len(facets))
+    for slot in FOUNDATION_SLOTS:
+        on = region == REGION_CODES[slot]
+        wn[on] = float(sb.get(f"{slot}_kn", 1.0) > 0)
+        wt[on] = float(sb.get(f"{slot}_kt", 1.0) > 0)
+    wn[region == REGION_CODES["rib"]] = 1.0
+    tri = points[facets]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = 0.5 * np.linalg.norm(cross, axis=1)
+    n = cross / np.maximum(2.0 * area, 1e-300)[:, None]
+    held = area * ((wn + wt) > 0)
+    weakest, problem = 0.0, "no support is fixed and none has any stiffness: nothing resists any motion"
+    if held.sum() > 0:
+        centre = tri.mean(axis=1)
+        c = (centre * held[:, None]).sum(axis=0) / held.sum()
+        L = max(float(np.sqrt((held * ((centre - c) ** 2).sum(axis=1)).sum() / held.sum())), 1e-9)
+        eye = np.eye(3)
+        phi = np.stack([np.broadcast_to(e, centre.shape) for e in eye]
+                       + [np.cross(e, centre - c) / L for e in eye], axis=1)  # (k, 6, 3)
+        pn = np.einsum("kmd,kd->km", phi, n)
+        pt = phi - pn[:, :, None] * n[:, None, :]
+        K = (np.einsum("k,km,kl->ml", area * wn, pn, pn) + np.einsum("k,kmd,kld->ml", area * wt, pt, pt)) / held.sum()
+        ev, vec = np.linalg.eigh(K)
+        weakest, free = max(float(ev[0]), 0.0), int((ev < HOLD_MIN).sum())
+        problem = (f"no support is fixed, and {_rigid_motion_words(vec[:, 0], c, L)} is resisted at "
+                   f"{100 * weakest:.2g} % of the supports' area (below {100 * HOLD_MIN:g} %"
+                   + (f"; {free} independent rigid motions are as free" if free > 1 else "") + ")")
+    if weakest >= HOLD_MIN:
+        return {"held_by": "springs", "weakest": weakest}
+    names = ", ".join(f"'{s.name}' ({_hold_words(s, sb)})" for s in supports) or "none"
+    raise SupportError(
+        f"{where}: the supports do not hold the liver: {problem}; the supports: {names}. "
+        "Sliding supports and foundations without tangential stiffness resist motion along their normals only, "
+        "a foundation of zero stiffness none: the FE cases would fail, or move the liver as a whole instead of "
+        "deforming it. Add a fixed support (kind: fixed, e.g. at the vena cava), a foundation with tangential "
+        "stiffness, or use mode: add to keep the built-in supports (the fixed IVC) beneath yours")
+
+
+def require_held_by(vertices, faces, region, supports: list[Support], where: str) -> dict:
+    """:func:`check_held` on a surface whose facets carry the region codes ``region`` after ``supports``
+    (:func:`assign_supports`), their foundation stiffness spread over its own areas (:func:`support_stiffness`)."""
+    from liverforce.fem.boundary import region_areas
+
+    sb = support_stiffness(supports, region_areas(np.asarray(vertices, float), np.asarray(faces), region))
+    return check_held(vertices, faces, region, sb, supports, where)
+
+
+def _rigid_motion_words(v: np.ndarray, c: np.ndarray, L: float) -> str:
+    """A rigid motion ``u(x) = t + w x (x - c)`` (``t = v[:3]``, ``w = v[3:] / L``) in words, RAS mm."""
+    t, w = v[:3], v[3:] / L
+    if float(v[3:] @ v[3:]) < 0.5:
+        return f"a translation along {np.round(t / np.linalg.norm(t), 2).tolist()} (RAS)"
+    p = c + np.cross(w, t) / float(w @ w)
+    return (f"a rotation about the axis {np.round(w / np.linalg.norm(w), 2).tolist()} through "
+            f"{np.round(p, 1).tolist()} mm (RAS)")
+
+
+def _hold_words(s: Support, sb: dict) -> str:
+    """How a support holds its facets, for :func:`check_held`'s message."""
+    if s.kind != "foundation":
+        return s.kind
+    kn, kt = sb.get(f"{s.region}_kn", 1.0), sb.get(f"{s.region}_kt", 1.0)
+    how = "no stiffness" if not kn > 0 and not kt > 0 else "no tangential stiffness" if not kt > 0 else (
+        "no normal stiffness" if not kn > 0 else "springs both ways")
+    return f"foundation {s.region}, {how}"
+
+
 class TriangleSet:
     """Triangles ``tri (m, 3, 3)`` and the search tree over their centroids, built on the first query and kept:
     several queries on one surface (a refused point and each other reading of it) build it once."""
@@ -889,6 +1091,9 @@ def snap_exertion_points(vertices, faces, region, xyz_mesh: np.ndarray, max_mm: 
     ``not_visible`` is left as it is. Returns ``(points (k, 3), distances (k,))`` in mm (mesh frame).
     """
     q = np.atleast_2d(np.asarray(xyz_mesh, float))
+    bad = np.flatnonzero(~np.isfinite(q).all(axis=1))
+    if len(bad):
+        raise SupportError(f"{_who(int(bad[0]), q, labels)}: a coordinate is not a finite number; give x, y, z")
     pts, d, facet = closest_on_triangles(np.asarray(vertices, float)[np.asarray(faces)], q, k=16)
     for j in range(len(q)):
         who = _who(j, q, labels)
@@ -900,6 +1105,7 @@ def snap_exertion_points(vertices, faces, region, xyz_mesh: np.ndarray, max_mm: 
         if region is not None and int(region[facet[j]]) == REGION_CODES["ivc"]:
             i = -1 if owner is None else int(owner[facet[j]])
             raise SupportError(f"{who} lies on {_fixed_support_words(supports[i] if i >= 0 else None)}")
+    _refuse_repeated_points(pts, q, labels)
     if visible is not None and regions_check != "off":
         found = check_exertion_facing(vertices, faces, visible, q, labels=labels, regions_check=regions_check,
                                       params=params, snapped=(pts, facet), region=region, frame=frame,
@@ -907,6 +1113,27 @@ def snap_exertion_points(vertices, faces, region, xyz_mesh: np.ndarray, max_mm: 
         if not_visible is not None:
             not_visible.extend(found)
     return pts, d
+
+
+#: two given exertion points snapped closer than this (mm) are one tool position given twice
+SAME_POINT_MM = 1.0
+
+
+def _refuse_repeated_points(snapped: np.ndarray, q: np.ndarray, labels: list[str] | None) -> None:
+    """Refuse two given exertion points that snap to one place (closer than :data:`SAME_POINT_MM`): each would
+    get its own ``exertion_id`` and its own cases, so a fold of ``train.heldout_points`` would hold one out while
+    training on the other, the same position, and score a seen point as unseen."""
+    from scipy.spatial import cKDTree
+
+    pairs = sorted(cKDTree(snapped).query_pairs(SAME_POINT_MM))
+    if pairs:
+        i, j = pairs[0]
+        gap = float(np.linalg.norm(snapped[i] - snapped[j]))
+        raise SupportError(f"{_who(j, q, labels)} is the tool position of {_who(i, q, labels)} again ({gap:.3g} mm "
+                           f"apart on the surface, under {SAME_POINT_MM:g} mm; {len(pairs)} such pair"
+                           f"{'s' * (len(pairs) != 1)}): the sweep would press there as two positions, and a "
+                           "held-out position (train.heldout_points) would be trained on under the other's id. "
+                           "List each tool position once")
 
 
 def _who(j: int, q: np.ndarray, labels: list[str] | None) -> str:
@@ -1075,13 +1302,11 @@ def exertion_points_mesh(spec, frame: PointFrame = PointFrame(), file_vertices=N
         raise SupportError("exertion_points.frame: vertex ids have no frame (they index the file's vertices)")
     frame = frame.stated(spec.get("frame"), "exertion_points")
     if keys == {"coordinates_mm"}:
-        a = np.asarray(spec["coordinates_mm"], float)
-        if a.ndim != 2 or a.shape[1] != 3 or not len(a):
-            raise SupportError(f"exertion_points.coordinates_mm must be a list of [x, y, z], got shape {a.shape}")
+        a = coordinate_list(spec["coordinates_mm"], "exertion_points.coordinates_mm")
         labels[:] = [f"exertion_points.coordinates_mm[{j}] {_given(x)} mm" for j, x in enumerate(a)]
         return frame.to_mesh(a)
     if keys == {"vertex_ids"}:
-        a = np.asarray(spec["vertex_ids"], np.int64).reshape(-1)
+        a = vertex_id_list(spec["vertex_ids"], "exertion_points.vertex_ids")
         labels[:] = [f"exertion_points.vertex_ids[{j}] = {int(i)}" for j, i in enumerate(a)]
     elif keys == {"path"}:
         p = Path(spec["path"])

@@ -52,9 +52,13 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
     applied to the input surface before meshing; the features JSON lists them
     under ``supports`` (facets on the input surface, ``index`` in the VTU's ``support``
     array and ``n_mesh_facets`` there, snapping distances) and their foundation
-    stiffness under ``support_boundary`` (N/mm³, ``BoundaryParams`` fields).
+    stiffness under ``support_boundary`` (N/mm³, ``BoundaryParams`` fields). Supports that leave the liver free
+    to move as a rigid body (no fixed support, and a rigid motion only sliding supports or foundations without
+    tangential stiffness resist) are refused before meshing (:func:`liverforce.mesh.supports.check_held`), as
+    are supports that leave no visible area to sample the tool's positions on when the lab gives none.
     Given exertion points replace the sampled candidates (``exertion_given``:
-    true, snapping distances in ``exertion_snap_mm``); one off the visible area
+    true, snapping distances in ``exertion_snap_mm``; two snapped within 1 mm of
+    each other are one position given twice, refused); one off the visible area
     (facing away from the camera, e.g. a point file read as LPS for RAS) is logged
     as a warning and listed under ``exertion_not_visible``, refused under
     ``mesh.regions_check: strict`` (:func:`liverforce.mesh.supports.check_exertion_facing`).
@@ -128,6 +132,7 @@ def _scene_kwargs(user: dict, mesh_cfg: dict, exertion: dict | None, seed: int) 
     (checked against the visible area under ``mesh.regions_check``), else the sampling of candidates."""
     return dict(
         supports=user["supports"], support_frame=user["frame"], file_vertices=user["file_vertices"],
+        require_held=user["where"] if user["supports"][1] else None,  # a lab's may leave out the fixed IVC
         file_groups=user["file_groups"], exertion_points=user["exertion_points"],
         exertion_labels=user["exertion_labels"], regions_check=mesh_cfg["regions_check"],
         exertion_sampling=None if exertion is None or user["exertion_points"] is not None else {
@@ -225,6 +230,7 @@ def _user_scene(spec: dict, surface_meta: dict) -> dict:
     if points is not None:
         points = exertion_points_mesh(points, frame, file_vertices if spec.get("path") else None, labels=labels)
     return {"supports": supports, "exertion_points": points, "exertion_labels": labels, "frame": frame,
+            "where": f"geometry.imported[{name}].supports",
             "file_vertices": file_vertices if spec.get("path") else None,
             "file_groups": file_groups if spec.get("path") else None}
 

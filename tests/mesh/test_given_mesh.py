@@ -70,3 +70,27 @@ def test_tets_given_in_either_orientation_are_reoriented_and_counted(given):
     mesh = build_given_mesh(vm.points, flipped, vm.meta)
     assert mesh.meta["meshing"]["reoriented_here"] == 5
     mesh.validate()
+
+
+def test_supports_leaving_no_visible_facet_are_refused_when_the_tool_positions_are_sampled(given):
+    """Not a mesh without candidates, refused at the sweep as a geometry with no visible facets."""
+    from liverforce.mesh.supports import SupportError
+
+    vm, _, _ = given
+    mould = parse_supports({"mode": "replace", "list": [
+        {"name": "mould", "kind": "fixed", "box": {"min_mm": [-1, -1, -1], "max_mm": [31, 21, 21]}}]})
+    with pytest.raises(SupportError, match=r"the lab's supports 'mould' \(fixed, box, \d+ facets\) leave no free "
+                                           r"surface facing the camera.*\(geometry.imported\[\].exertion_points\)"):
+        build_given_mesh(vm.points, vm.tets, vm.meta, supports=mould,
+                         exertion_sampling={"n_points": 2, "min_spacing_mm": 5.0, "seed": 1})
+
+
+def test_a_given_mesh_on_a_sliding_face_alone_is_refused_when_asked(given):
+    from liverforce.mesh.supports import SupportError
+
+    vm, _, _ = given
+    floor = parse_supports({"mode": "replace", "list": [
+        {"name": "floor", "kind": "sliding", "box": {"min_mm": [-1, -1, -1], "max_mm": [31, 21, 1]}}]})
+    with pytest.raises(SupportError, match=r"^lab: the supports do not hold the liver: .*'floor' \(sliding\)"):
+        build_given_mesh(vm.points, vm.tets, vm.meta, supports=floor, require_held="lab")
+    build_given_mesh(vm.points, vm.tets, vm.meta, supports=floor)  # not asked: the Python API as before

@@ -115,6 +115,42 @@ def test_point_on_a_fixed_support_is_refused():
         build_liver_mesh(cube, target_nodes=300, supports=sup, exertion_points=[[0.0, 0.0, 25.5]])
 
 
+def test_a_tool_position_given_twice_is_refused_naming_both():
+    """Two ids for one position: a held-out-points fold would test one while training on the other."""
+    cube = cube_phantom(50.0)
+    with pytest.raises(SupportError, match=r"exertion point 2 \(\[0\.3, 0\.0, 25\.0\];.*\) is the tool position of "
+                                           r"exertion point 0 \(\[0\.0, 0\.0, 25\.0\];.*\) again \(0\.3 mm apart.*"
+                                           r"List each tool position once"):
+        build_liver_mesh(cube, target_nodes=300, exertion_points=[[0.0, 0.0, 25.0], [10.0, 0.0, 25.0],
+                                                                  [0.3, 0.0, 25.0]],
+                         exertion_labels=["[0.0, 0.0, 25.0]", "[10.0, 0.0, 25.0]", "[0.3, 0.0, 25.0]"])
+    mesh = build_liver_mesh(cube, target_nodes=300, exertion_points=[[0.0, 0.0, 25.0], [1.5, 0.0, 25.0]])
+    assert len(mesh.meta["exertion_candidates_mm"]) == 2  # 1.5 mm apart: two positions
+
+
+@pytest.mark.parametrize("spec, text", [
+    ({"vertex_ids": [2, 4690.7]}, r"exertion_points.vertex_ids: must be .*integers >= 0\) \(entry 1 is 4690\.7\)"),
+    ({"vertex_ids": [True]}, r"exertion_points.vertex_ids: must be a non-empty list of vertex ids"),
+    ({"coordinates_mm": [[float("nan"), 1.0, 2.0]]}, r"exertion_points.coordinates_mm: .*not a finite number"),
+])
+def test_given_points_that_are_no_vertex_ids_or_coordinates_are_refused_at_the_mesh_stage(spec, text):
+    """Not cut to vertex 4690, not a NaN handed to the nearest-point search (a traceback from scipy)."""
+    from liverforce.mesh.supports import exertion_points_mesh
+
+    with pytest.raises(SupportError, match=text):
+        exertion_points_mesh(spec, file_vertices=lambda: np.zeros((5000, 3)))
+
+
+def test_supports_leaving_no_visible_surface_are_named_when_the_tool_positions_are_sampled():
+    cube = cube_phantom(50.0)
+    sup = parse_supports({"list": [{"name": "tray", "kind": "fixed",
+                                    "box": {"min_mm": [-30, -30, -30], "max_mm": [30, 30, 30]}}]})
+    sampling = {"n_points": 2, "min_spacing_mm": 5.0, "seed": 0}
+    with pytest.raises(SupportError, match=r"the lab's supports 'tray' \(fixed, box, \d+ facets\) leave no free "
+                                           r"surface facing the camera.*give the tool's positions"):
+        build_liver_mesh(cube, target_nodes=300, supports=sup, exertion_sampling=sampling)
+
+
 def _hydra(v) -> str:
     """A value in Hydra's override grammar (unquoted keys and words)."""
     if isinstance(v, dict):
@@ -130,6 +166,36 @@ def _hydra(v) -> str:
      "geometry.imported[0].supports.list[0].sphere"),
     ({"exertion_points": {"coordinates_mm": [[0, 0]]}}, "geometry.imported[0].exertion_points.coordinates_mm"),
     ({"exertion_points": {"points": [[0, 0, 0]]}}, "geometry.imported[0].exertion_points"),
+    # a lab's typing mistakes: refused naming the key, not a traceback from float() or dict(), nor accepted
+    ({"supports": [{"name": "cava", "kind": "fixed", "sphere": {"center_mm": [0, 0, 0], "radius_mm": 5}}]},
+     "geometry.imported[0].supports"),  # the list without mode and list:
+    ({"supports": {"list": ["cava"]}}, "geometry.imported[0].supports.list[0]"),
+    ({"supports": {"list": {"name": "cava"}}}, "geometry.imported[0].supports.list"),
+    ({"supports": {"list": [{"kind": "fixed", "sphere": {"center_mm": [0, 0, 0], "radius_mm": "big"}}]}},
+     "geometry.imported[0].supports.list[0].sphere.radius_mm"),
+    ({"supports": {"list": [{"kind": "fixed", "box": {"min_mm": [0, "nan", 0], "max_mm": [1, 1, 1]}}]}},
+     "geometry.imported[0].supports.list[0].box.min_mm"),
+    ({"supports": {"list": [{"kind": "foundation", "stiffness": {"total_n_per_mm": "high"},
+                             "sphere": {"center_mm": [0, 0, 0], "radius_mm": 5}}]}},
+     "geometry.imported[0].supports.list[0].stiffness"),
+    ({"supports": {"list": [{"kind": "foundation", "stiffness": {"total_n_per_mm": "inf"},
+                             "sphere": {"center_mm": [0, 0, 0], "radius_mm": 5}}]}},
+     "geometry.imported[0].supports.list[0].stiffness"),
+    ({"supports": {"list": [{"kind": "fixed", "file": {"path": "cava.csv", "units": "inches"}}]}},
+     "geometry.imported[0].supports.list[0].file.units"),
+    ({"supports": {"list": [{"kind": "fixed", "file": {"path": "cava.csv", "units": "auto"}}]}},
+     "geometry.imported[0].supports.list[0].file.units"),
+    ({"supports": {"mode": "replace", "list": []}}, "geometry.imported[0].supports.list"),
+    ({"supports": {"list": [{"name": "x", "kind": "fixed", "sphere": {"center_mm": [0, 0, 0], "radius_mm": 5}},
+                            {"name": "x", "kind": "sliding", "sphere": {"center_mm": [9, 0, 0], "radius_mm": 5}}]}},
+     "geometry.imported[0].supports.list[1].name"),
+    ({"exertion_points": [[0, 0, 0]]}, "geometry.imported[0].exertion_points"),
+    ({"exertion_points": {"vertex_ids": [4690.7]}}, "geometry.imported[0].exertion_points.vertex_ids"),
+    ({"exertion_points": {"vertex_ids": ["a"]}}, "geometry.imported[0].exertion_points.vertex_ids"),
+    ({"exertion_points": {"vertex_ids": ["true"]}}, "geometry.imported[0].exertion_points.vertex_ids"),
+    ({"exertion_points": {"coordinates_mm": [["nan", 1, 2]]}}, "geometry.imported[0].exertion_points.coordinates_mm"),
+    ({"exertion_points": {"coordinates_mm": [["a", "b", "c"]]}}, "geometry.imported[0].exertion_points.coordinates_mm"),
+    ({"exertion_points": {"path": "pts.csv", "units": "auto"}}, "geometry.imported[0].exertion_points.units"),
 ])
 def test_config_names_the_bad_key(imp, key):
     base = {"name": "x", "path": "x.stl"}
