@@ -64,7 +64,8 @@ def load_surface(
         Unit of the file's coordinates, or mm per file unit (e.g. ``40``),
         or ``"auto"``: guessed from the largest bounding-box extent so that
         the liver is 100–450 mm (label volumes: the unit stated in the
-        header, mm if none); the guess is logged and reported.
+        header; guessed from the size if it states none); the guess is logged
+        and reported.
     label : int or str, optional
         Label value of the liver in a label volume (required if the volume
         holds several labels), or for a 3D Slicer segmentation (``.seg.nrrd``)
@@ -131,11 +132,11 @@ def load_surface(
             log.warning("%s: %s", path, m)
         vertices, faces, vmsgs, used_label, used_segment = label_surface(volume, label, path)
         msgs += volume.messages + vmsgs
-        if scale is None:
-            file_unit = volume.units or "mm"
-            scale, unit_label = {"mm": 1.0, "m": 1000.0, "um": 1e-3}[file_unit], file_unit
-            msgs.append(f"units '{file_unit}' taken from the image header" if volume.units
-                        else "units assumed mm (the image header states none)")
+        if scale is None and volume.units:
+            scale, unit_label = {"mm": 1.0, "m": 1000.0, "um": 1e-3}[volume.units], volume.units
+            msgs.append(f"units '{volume.units}' taken from the image header")
+        elif scale is None:  # guessed from the liver's size below, as a mesh's (an affine in metres, no unit)
+            msgs.append("the image header states no units: guessed from the liver's size")
         fmt = volume.format
         check_si = False
     else:

@@ -299,6 +299,22 @@ def test_nifti_without_the_label(tmp_path):
         load_surface(empty)
 
 
+def test_auto_units_of_a_label_volume_whose_header_states_none_are_guessed_from_its_size(tmp_path):
+    """An affine in metres with no unit in the header: units auto guesses m, as for a mesh (not mm, then refused
+    as 0.24 mm across, with 'auto' among the fixes the message named)."""
+    import nibabel as nib
+
+    data = np.zeros((30, 20, 20), dtype=np.int16)
+    data[5:25, 5:15, 5:15] = 1  # 20 x 10 x 10 voxels of 12 mm: 240 mm across (marching cubes, half-voxel rims)
+    path = tmp_path / "liver_m.nii.gz"
+    nib.save(nib.Nifti1Image(data, np.diag([0.012, 0.012, 0.012, 1.0])), path)  # xyzt_units: unknown
+    surface, msgs = load_surface(path, units="auto")
+    assert surface.meta["conversion"]["units"] == "m" and surface.meta["scale_to_mm"] == 1000.0
+    assert 200 < float(np.ptp(surface.vertices, axis=0).max()) < 260
+    assert msgs[1:3] == ["the image header states no units: guessed from the liver's size",
+                         "units guessed as 'm' (largest extent 0.24 file units -> 240 mm)"]
+
+
 def test_missing_file(tmp_path):
     with pytest.raises(GeometryError, match=r"nowhere\.stl: file not found"):
         load(tmp_path / "nowhere.stl")
