@@ -1385,7 +1385,8 @@ def _check_frame(key: str, frame: Any) -> None:
 
 def _check_user_scene(key: str, imp: dict) -> None:
     """Syntax of an imported geometry's own supports and exertion points (files are read at the mesh stage)."""
-    from liverforce.mesh.supports import SupportError, coordinate_list, parse_supports, vertex_id_list
+    from liverforce.mesh.supports import (SupportError, check_point_file_units, coordinate_list, parse_supports,
+                                          vertex_id_list)
 
     try:
         parse_supports(imp.get("supports"), where=f"{key}.supports")
@@ -1421,11 +1422,10 @@ def _check_user_scene(key: str, imp: dict) -> None:
     except SupportError as exc:
         _fail(*str(exc).split(": ", 1))
     if ep.get("units") is not None:
-        _check_units(f"{key}.exertion_points.units", ep["units"])
-        if str(ep["units"]).strip().lower() == "auto":
-            _fail(f"{key}.exertion_points.units", "auto is for a liver file (guessed from its size); a few points "
-                  "have no size to guess from", "give mm, cm, m or a number of mm per file unit (default: the "
-                  "geometry's units)")
+        try:
+            check_point_file_units(ep["units"], f"{key}.exertion_points.units")
+        except SupportError as exc:
+            _fail(*str(exc).split(": ", 1))
 
 
 def _check_units(key: str, units: str) -> None:

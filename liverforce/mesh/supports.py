@@ -318,6 +318,20 @@ def vertex_id_list(value, key: str) -> np.ndarray:
     return a.astype(np.int64)
 
 
+def check_point_file_units(units, key: str) -> None:
+    """Refuse ``units`` of a point file (a support's or the exertion points') that are no unit, or ``auto`` (a few
+    points have no liver size to guess a unit from), with :class:`SupportError` naming ``key``."""
+    from liverforce.geometry.units import parse_units
+
+    try:
+        scale, _ = parse_units(units)
+    except ValueError:
+        scale = 0.0
+    if not scale:
+        raise SupportError(f"{key}: '{units}' is no unit for a point file (auto is for a liver file, guessed from its "
+                           "size): give mm, cm, m or a number of mm per file unit (default: the geometry's units)")
+
+
 def _check_selector(selector, key):
     kind, d = selector
     if kind == "group":
@@ -329,15 +343,7 @@ def _check_selector(selector, key):
     if kind == "file" and is_markups(d["path"]):
         check_markups_spec(d, key)
     if kind == "file" and d.get("units") is not None:
-        from liverforce.geometry.units import parse_units
-
-        try:
-            scale, _ = parse_units(d["units"])
-        except ValueError:
-            scale = 0.0
-        if not scale:  # unknown, or auto: a few points have no liver size to guess a unit from
-            raise SupportError(f"{key}.units: '{d['units']}' is no unit for a point file: give mm, cm, m or a "
-                               "number of mm per file unit (default: the geometry's units)")
+        check_point_file_units(d["units"], f"{key}.units")
     if d.get("frame") is not None:
         points_frame(d["frame"], key)
     if kind == "sphere":
