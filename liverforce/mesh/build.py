@@ -127,7 +127,9 @@ def build_liver_mesh(
     regions_check : {"warn", "strict", "off"}
         ``mesh.regions_check``: a given exertion point off the visible area (where built-in sampling places
         the tool) is logged as a warning and listed in ``meta["exertion_not_visible"]``, or, under ``strict``,
-        refused (:func:`~liverforce.mesh.supports.check_exertion_facing`).
+        refused (:func:`~liverforce.mesh.supports.check_exertion_facing`); a support's file of points that fits
+        the surface better mirrored in x and y (read in the wrong of RAS and LPS) likewise, recorded on its
+        report in ``meta["supports"]`` (``frame_check``, :mod:`liverforce.mesh.support_frame`).
     require_held : str, optional
         Refuse ``supports`` that leave the liver free to move as a rigid body, on the input surface before
         meshing (:func:`~liverforce.mesh.supports.check_held`; the string says where they were given, for the
@@ -169,7 +171,7 @@ def build_liver_mesh(
 
             s_region, support_report, owner = assign_supports(
                 surface.vertices, surface.faces, s_region, supports[0], supports[1],
-                support_frame or PointFrame(), file_vertices, file_groups=file_groups)
+                support_frame or PointFrame(), file_vertices, file_groups=file_groups, regions_check=regions_check)
             if require_held:
                 from liverforce.mesh.supports import require_held_by
 

@@ -43,7 +43,9 @@ def build_given_mesh(points, tets, meta: dict | None = None, region_params: Regi
     exertion_labels : each given point as the user gave it, for the refusals' messages.
     regions_check : ``mesh.regions_check``, as :func:`liverforce.mesh.build.build_liver_mesh`: a given exertion
         point off the visible area is warned and listed in ``meta["exertion_not_visible"]`` (refused under
-        ``strict`` if it faces away from the camera or looks like a frame mix-up; ``off``: not checked).
+        ``strict`` if it faces away from the camera or looks like a frame mix-up; ``off``: not checked); a
+        support's file of points read in the wrong frame is warned (refused under ``strict``) and recorded on
+        its report (``frame_check``).
     exertion_sampling : ``{"n_points", "min_spacing_mm", "seed"}``: candidates sampled on the visible facets.
     coarse_edge_mm : warn when the mean boundary edge is longer (mm): the tool's few-mm traction is then
         resolved by few facets (the mesh stage passes twice ``mesh.refine_edge_mm``).
@@ -69,7 +71,7 @@ def build_given_mesh(points, tets, meta: dict | None = None, region_params: Regi
 
         region, support_report, owner = assign_supports(points, facets, region, supports[0], supports[1],
                                                         support_frame or PointFrame(), file_vertices,
-                                                        file_groups=file_groups)
+                                                        file_groups=file_groups, regions_check=regions_check)
         if require_held:
             from liverforce.mesh.supports import require_held_by
 

@@ -46,6 +46,11 @@ a label volume (:class:`PointFrame`):
   few landmarks select the area they span (:func:`points_patch`). A 3D Slicer markups file
   (``.mrk.json``, ``.fcsv``) gives its control points in the coordinate system
   and units it states (LPS or RAS world, mm), so it takes no ``units`` or ``frame``.
+  Points that fit the surface clearly better mirrored in x and y (a file in RAS read as
+  LPS, or the reverse, still within 5 mm on a liver near symmetric about the file's
+  superior axis) are warned of, naming both fits and the ``frame`` to state, and
+  refused under ``mesh.regions_check: strict`` (:mod:`liverforce.mesh.support_frame`;
+  the report's ``frame_check``).
 
 * ``group: <name or number>`` or ``group: {array: <cell-data name>, value: <n>}``:
   a Gmsh physical group or a VTU/VTK/XDMF cell-data tag of the geometry file
@@ -132,6 +137,9 @@ class PointFrame:
     #: for messages: the units of the geometry file (what ``scale`` converts) and where coordinates are read
     units: str = "mm"
     frame_label: str = "the geometry file's frame (RAS)"
+    #: the frame the coordinates are read in: RAS, LPS or "a 4x4"; for a label volume its world's RAS; None:
+    #: not said, told from ``matrix`` (:meth:`read_in`)
+    frame_name: str | None = None
 
     @classmethod
     def from_surface_meta(cls, meta: dict) -> "PointFrame":
@@ -145,7 +153,17 @@ class PointFrame:
         where = (f"the label volume's world (its header's RAS, then the geometry's frame, {name})" if label
                  else f"the geometry file's frame ({name})")
         return cls(float(conv.get("scale_to_mm", 1.0)), matrix, world,
-                   str(conv.get("units") or meta.get("units") or "mm"), where)
+                   str(conv.get("units") or meta.get("units") or "mm"), where,
+                   "RAS" if label else name)
+
+    def read_in(self) -> str | None:
+        """The frame coordinates are read in, RAS or LPS, for messages; None for a 4x4 (``frame_name``, else
+        told from ``matrix``: the identity is RAS, the turn of x and y LPS)."""
+        if self.frame_name is not None:
+            return self.frame_name if self.frame_name in ("RAS", "LPS") else None
+        M = np.asarray(self.matrix, float)
+        return next((k for k, d in (("RAS", [1, 1, 1, 1]), ("LPS", [-1, -1, 1, 1])) if np.allclose(M, np.diag(d))),
+                    None)
 
     def read_as(self, units=None) -> str:
         """How coordinates are read, for messages: e.g. ``in m, in the geometry file's frame (LPS)``."""
@@ -166,8 +184,8 @@ class PointFrame:
         if frame is None:
             return self
         m = np.asarray(self.world, float) @ points_frame(frame, where)
-        name = frame.upper() if isinstance(frame, str) else "a 4x4"
-        return PointFrame(self.scale, tuple(map(tuple, m)), self.world, self.units, f"the stated frame {name}")
+        name = frame.strip().upper() if isinstance(frame, str) else "a 4x4"
+        return PointFrame(self.scale, tuple(map(tuple, m)), self.world, self.units, f"the stated frame {name}", name)
 
     def from_world(self, xyz_ras_mm: np.ndarray) -> np.ndarray:
         """World RAS mm (e.g. a markups file's points) to mesh mm."""
@@ -525,7 +543,7 @@ PATCH_TOL = 0.1
 PATCH_COS = 0.5
 
 
-def points_patch(vertices, faces, xyz, what: str, read_as: str, max_mm: float = MAX_SNAP_MM):
+def points_patch(vertices, faces, xyz, what: str, read_as: str, max_mm: float = MAX_SNAP_MM, triangles=None):
     """Facets of the surface ``(vertices, faces)`` (mesh mm) marked by the points ``xyz (k, 3)`` (mesh mm).
 
     The points mark a surface patch, whatever the surface's resolution (the geometry stage may have refined a
@@ -539,7 +557,8 @@ def points_patch(vertices, faces, xyz, what: str, read_as: str, max_mm: float = 
     points are selected too (points that are the surface's own vertices select the facets between them).
     Gaps in the points narrower than the link are filled; fewer than three points mark nothing.
     Returns ``(mask, info)``, ``info`` with ``snap_mm`` (distances to the surface), ``spacing_mm`` and
-    ``link_mm``.
+    ``link_mm``. ``triangles``: the surface's :class:`TriangleSet` when the caller has one (its search tree is
+    built once for the caller's other queries).
     """
     from itertools import combinations
 
@@ -549,7 +568,7 @@ def points_patch(vertices, faces, xyz, what: str, read_as: str, max_mm: float = 
     faces = np.asarray(faces, np.int64)
     xyz = np.atleast_2d(np.asarray(xyz, float))
     tri = vertices[faces]
-    on, dist, near_facet = closest_on_triangles(tri, xyz, k=16)
+    on, dist, near_facet = (TriangleSet(tri) if triangles is None else triangles).closest(xyz, k=16)
     if (dist > max_mm).any():
         j = int(np.argmax(dist))
         raise SupportError(f"{what}: point {j} {np.round(xyz[j], 3).tolist()} (mm on the mesh; the file's "
@@ -610,8 +629,10 @@ def points_patch(vertices, faces, xyz, what: str, read_as: str, max_mm: float = 
     return mask, info
 
 
-def _no_patch(what: str, n: int, read_as: str, pinfo: dict) -> SupportError:
-    """The error of a point file (or group of nodes) that marks no facet, saying how its points were read."""
+def _no_patch(what: str, n: int, read_as: str, pinfo: dict, frame_check: dict | None = None) -> SupportError:
+    """The error of a point file (or group of nodes) that marks no facet, saying how its points were read and,
+    from ``frame_check`` (:func:`liverforce.mesh.support_frame.check_support_frame`; None: not checked, as for
+    the geometry file's own nodes), what their fit tells of their frame."""
     if pinfo.get("link_mm") is None:
         why = (f"its {n} point(s) make no patch: a file of points marks the surface patch spanned by "
                "neighbouring points, so give at least three around the area (or use a sphere or box)")
@@ -620,7 +641,23 @@ def _no_patch(what: str, n: int, read_as: str, pinfo: dict) -> SupportError:
                f"at most {pinfo['link_mm']:.3g} mm over the surface (in a line, or scattered): give points "
                "covering the area, or use a sphere or box")
     return SupportError(f"{what}: selects no surface facet: {why} (coordinates read {read_as}; all lie within "
-                        f"{pinfo['snap_mm']['max']:.3g} mm of the surface, so units and frame look right)")
+                        f"{pinfo['snap_mm']['max']:.3g} mm of the surface, so the units look right"
+                        f"{_frame_fit_words(frame_check)})")
+
+
+def _frame_fit_words(check: dict | None) -> str:
+    """What a point file's fit as read and mirrored tells of its frame, for :func:`_no_patch`."""
+    if check is None:
+        return ""
+    g, m = check["as_given_mm"]["mean"], check["mirrored_mm"]["mean"]
+    fits = f"mirrored in x and y (the other of RAS and LPS) they fit it {{}} ({m:.3g} mm on average, {g:.3g} as read)"
+    if check["likely_mix_up"]:
+        return "; the frame does not: " + fits.format("better") + ", see the warning of the wrong frame"
+    from liverforce.mesh.support_frame import FRAME_FIT_MARGIN_MM, FRAME_FIT_RATIO
+
+    if m - g >= FRAME_FIT_MARGIN_MM and g <= FRAME_FIT_RATIO * m:
+        return "; " + fits.format("worse") + ", so the frame looks right too"
+    return "; " + fits.format("about as well") + ", so the fit cannot tell the frame"
 
 
 def _markups_systems(path: Path) -> str:
@@ -636,7 +673,8 @@ def _markups_systems(path: Path) -> str:
 
 
 def select_facets(vertices, faces, support: Support, frame: PointFrame = PointFrame(),
-                  file_vertices=None, base_dir=None, file_groups=None) -> tuple[np.ndarray, dict]:
+                  file_vertices=None, base_dir=None, file_groups=None,
+                  regions_check: str = "warn") -> tuple[np.ndarray, dict]:
     """Facets of the surface ``(vertices, faces)`` (mesh frame, mm) selected by ``support``.
 
     ``file_vertices`` : callable returning the geometry file's vertices as read
@@ -644,6 +682,10 @@ def select_facets(vertices, faces, support: Support, frame: PointFrame = PointFr
     returning the file's :class:`~liverforce.mesh.groups.FileGroups`, for ``group``
     selectors. Returns ``(mask, info)``, ``info`` with the count and, for files,
     the distances of the points to the surface (mm) and the patch they mark (:func:`points_patch`).
+    A file of coordinates (or a 3D Slicer markups file) is checked for a frame mix-up, its points fitting the
+    surface better mirrored in x and y (RAS read as LPS, or the reverse): ``info["frame_check"]``
+    (:func:`liverforce.mesh.support_frame.check_support_frame`), warned, or refused under ``regions_check``
+    (``mesh.regions_check``) ``strict``; None under ``off``.
     """
     vertices = np.asarray(vertices, float)
     faces = np.asarray(faces, np.int64)
@@ -679,11 +721,14 @@ def select_facets(vertices, faces, support: Support, frame: PointFrame = PointFr
         if a is not None and a.ndim == 1 and d.get("frame") is not None:
             raise SupportError(f"support '{support.name}' file.frame: vertex ids have no frame (they index the "
                                "file's vertices)")
+        mirror = None  # the points' frame check: (the frame they were read in, its name, a markups file?)
         if a is None:  # a Slicer markups file: world RAS mm
             where = f"support '{support.name}' file"
             xyz = frame.from_world(read_markups(path, d, where))
-            read_as = f"in mm, in the markups file's own coordinate system ({_markups_systems(path)})"
-        elif a.ndim == 1:
+            systems = _markups_systems(path)
+            read_as = f"in mm, in the markups file's own coordinate system ({systems})"
+            mirror = (PointFrame(matrix=frame.world), systems if systems in ("RAS", "LPS") else None, True)
+        elif a.ndim == 1:  # the geometry file's own vertices, in its frame: nothing to mirror
             if file_vertices is None:
                 raise SupportError(f"support '{support.name}': vertex ids need the geometry file's vertices "
                                    "(an imported geometry)")
@@ -697,11 +742,20 @@ def select_facets(vertices, faces, support: Support, frame: PointFrame = PointFr
             stated = frame.stated(d.get("frame"), f"support '{support.name}' file")
             xyz = stated.to_mesh(a * scale)
             read_as = stated.read_as(d.get("units"))
+            mirror = (stated, stated.read_in(), False)
         what = f"support '{support.name}' ({path})"
-        mask, pinfo = points_patch(vertices, faces, xyz, what, read_as)
+        triangles = TriangleSet(vertices[faces])
+        mask, pinfo = points_patch(vertices, faces, xyz, what, read_as, triangles=triangles)
         info.update(pinfo)
+        checked = None
+        if mirror is not None:
+            from liverforce.mesh.support_frame import check_support_frame
+
+            checked = check_support_frame(support, what, triangles, xyz, mirror[0], read_as, mirror[1],
+                                          markups=mirror[2], regions_check=regions_check)
+            info["frame_check"] = checked
         if not mask.any():
-            raise _no_patch(what, len(xyz), read_as, pinfo)
+            raise _no_patch(what, len(xyz), read_as, pinfo, checked)
     if not mask.any():  # a group of faces transferred onto no facet
         raise SupportError(f"support '{support.name}': its {kind} selector {d} selects no surface facet")
     info["n_facets"] = int(mask.sum())
@@ -804,23 +858,25 @@ def _units_scale(units) -> float:
 
 def apply_supports(vertices, faces, auto_region: np.ndarray, mode: str, supports: list[Support],
                    frame: PointFrame = PointFrame(), file_vertices=None, base_dir=None,
-                   file_groups=None) -> tuple[np.ndarray, list]:
+                   file_groups=None, regions_check: str = "warn") -> tuple[np.ndarray, list]:
     """Region codes of the input surface's facets after the user supports (in order; later override).
 
     Each report's ``n_facets`` counts the facets the support finally holds; ``n_selected`` the facets its
     selector selected and, when later supports took some, ``taken_by`` ``{name: facets}``. A support left
     with no facet by later ones of another kind or region is refused (:class:`SupportError` naming them):
     a fixed support or a foundation vanishing silently would change the physics. One wholly inside later
-    supports of its own kind and region (the same boundary term) is only logged.
+    supports of its own kind and region (the same boundary term) is only logged. A file of points read in the
+    wrong frame (RAS as LPS, or the reverse) is warned, or refused under ``regions_check`` ``strict``
+    (:func:`select_facets`).
     """
     region, report, _ = assign_supports(vertices, faces, auto_region, mode, supports, frame, file_vertices,
-                                        base_dir, file_groups)
+                                        base_dir, file_groups, regions_check)
     return region, report
 
 
 def assign_supports(vertices, faces, auto_region: np.ndarray, mode: str, supports: list[Support],
                     frame: PointFrame = PointFrame(), file_vertices=None, base_dir=None,
-                    file_groups=None) -> tuple[np.ndarray, list, np.ndarray]:
+                    file_groups=None, regions_check: str = "warn") -> tuple[np.ndarray, list, np.ndarray]:
     """:func:`apply_supports`, and which support holds each facet: ``(region, report, owner)``, ``owner[i]``
     the index in ``supports`` of the one holding facet ``i``, -1 where none does (an auto-tagged region under
     ``mode: add``, or a free facet); what :func:`snap_exertion_points` names a refused point's support by."""
@@ -828,7 +884,7 @@ def assign_supports(vertices, faces, auto_region: np.ndarray, mode: str, support
     owner = np.full(len(faces), -1, np.int64)
     report, masks = [], []
     for i, s in enumerate(supports):
-        mask, info = select_facets(vertices, faces, s, frame, file_vertices, base_dir, file_groups)
+        mask, info = select_facets(vertices, faces, s, frame, file_vertices, base_dir, file_groups, regions_check)
         region[mask] = s.code
         owner[mask] = i
         info["region_code"] = int(s.code)
