@@ -3,6 +3,7 @@ a run with no imported liver has no such block and the same sentences as before.
 
 import json
 import re
+from html import unescape
 
 import test_report
 from test_report import _write
@@ -117,3 +118,45 @@ def test_a_lab_liver_without_its_own_supports_or_points_says_so(stage_outputs):
     assert "Supports: none of its own; the built-in regions are tagged on it" in text
     assert "Exertion points: none of its own; 8 sampled on its visible surface" in text
     assert "8 candidate exertion points per liver;" in text and "Boundary: ligament" in text
+
+
+#: the frame check of a support's file of points (liverforce.mesh.support_frame), as the features JSON records it
+WRONG_FRAME = {"read_in": "RAS", "as_given_mm": {"mean": 2.91, "max": 4.62},
+               "mirrored_mm": {"mean": 0.213, "max": 0.74}, "likely_mix_up": True, "refused_under_strict": True,
+               "warning": "support 'cava' (/data/lab/cava_lps_m.csv) looks read in the wrong frame: ...",
+               "advice": "The file states no frame, so its points are read in the geometry's: if the file is in LPS, "
+                         "state geometry.imported[lab01].supports.list[0].file.frame: LPS (changing "
+                         "geometry.imported[].frame would turn the liver and these points alike)"}
+RIGHT_FRAME = {"read_in": "LPS", "as_given_mm": {"mean": 0.000201, "max": 0.00075},
+               "mirrored_mm": {"mean": 3.4, "max": 9.8}, "likely_mix_up": False, "refused_under_strict": False,
+               "warning": None, "advice": None}
+
+
+def _supports_rows(html: str) -> str:
+    block = html[html.index("<div class='imported'"):]
+    return block[block.index("<table class='supports'"):block.index("<p>Exertion points")]
+
+
+def test_the_supports_table_shows_the_frame_check_and_flags_a_likely_mix_up(stage_outputs):
+    """A support given by a file of points shows its fit as read and mirrored (mean mm) under its max snap; one that
+    looks read in the wrong frame is flagged there, with a row under it giving the advice (what to state), never the
+    lab's full path; a support with no check (the sphere) shows what it showed before."""
+    out = _with_lab_liver(stage_outputs)
+    before = unescape(_plain(_supports_rows(_report(out))))
+    feats = json.loads(out["features"][0].read_text())
+    feats["supports"][0].update(frame_check=WRONG_FRAME, snap_mm={"max": 4.62, "mean": 2.91, "n_points": 94})
+    feats["supports"][1]["frame_check"] = RIGHT_FRAME
+    out["features"][0].write_text(json.dumps(feats))
+    html = _supports_rows(_report(out))
+    rows = unescape(_plain(html))
+    assert "cava fixed (clamped) file cava_lps_m.csv 164 31 4.62mean 2.91 as read, 0.213 mirrored ⚠ frame –" in rows
+    assert ("⚠ cava: likely read in the wrong frame (read in RAS; mirrored, its points fit the surface 0.213 mm on "
+            "average, 2.91 as read). The file states no frame, so its points are read in the geometry's: if the file "
+            "is in LPS, state geometry.imported[lab01].supports.list[0].file.frame: LPS (changing") in rows
+    assert html.count("<tr class='frame-flag'><td colspan='7'>") == 1 and "/data/lab" not in html
+    assert "diaphragm foundation (elastic foundation) file ligament_lps_m.csv 2840 – 0.00075mean 0.000201 as read, " \
+           "3.4 mirrored total 56.3 N/mm" in rows
+    assert "Frame check of a file of points" in rows and "at most 0.5 times as far and 0.5 mm closer" in rows
+    # the sphere's row is as before; without any check, the table is as before (no note)
+    floor = before[before.index("floor "):before.index("(visceral slot)")]
+    assert floor in rows and "Frame check" not in before and "mirrored" not in before

@@ -35,7 +35,8 @@ import logging
 
 import numpy as np
 
-from liverforce.mesh.supports import MAX_SNAP_MM, PointFrame, Support, SupportError, TriangleSet, _mirrored
+from liverforce.mesh.supports import (MAX_SNAP_MM, PointFrame, PointReading, Support, SupportError, TriangleSet,
+                                      _mirrored)
 
 #: mirrored, the points' mean distance to the surface must be at most this fraction of the mean as read ...
 FRAME_FIT_RATIO = 0.5
@@ -69,7 +70,8 @@ def check_support_frame(support: Support, what: str, triangles: TriangleSet, xyz
     """The frame check of a support given by a file of points (:func:`frame_fits`), as recorded on its report
     (``frame_check``): the fits, ``read_in`` (the frame its coordinates were read in: ``frame_name``, RAS or LPS;
     ``a 4x4``; for a markups file of no one system, ``the markups file's own``), ``refused_under_strict`` (a likely
-    mix-up) and ``warning`` (None when the frame looks right or cannot be told).
+    mix-up), ``warning`` (None when the frame looks right or cannot be told) and ``advice`` (its last part, what
+    to state or correct, for the report; None with it).
 
     ``what`` names the support and its file, ``read_as`` how its coordinates were read (units and frame);
     ``markups``: a 3D Slicer markups file (it states its own coordinate system, ``frame_name`` that one).
@@ -78,10 +80,11 @@ def check_support_frame(support: Support, what: str, triangles: TriangleSet, xyz
     if regions_check == "off":
         return None
     fits = frame_fits(triangles, xyz_mesh, read_in)
-    msg = _words(support, what, fits, read_as, frame_name, markups, len(np.atleast_2d(xyz_mesh)))
+    fix = _frame_fix(support, frame_name, markups) if fits["likely_mix_up"] else None
+    msg = _words(what, fits, read_as, fix, len(np.atleast_2d(xyz_mesh)))
     read_in_name = frame_name or ("the markups file's own" if markups else "a 4x4")
     record = {"read_in": read_in_name, **fits, "refused_under_strict": fits["likely_mix_up"],
-              "warning": msg}
+              "warning": msg, "advice": fix}
     if msg is None:
         return record
     if regions_check == "strict":
@@ -91,12 +94,29 @@ def check_support_frame(support: Support, what: str, triangles: TriangleSet, xyz
     return record
 
 
-def _words(support: Support, what: str, fits: dict, read_as: str, frame_name: str | None, markups: bool,
-           n: int) -> str | None:
-    """The warning of a support whose points fit the surface better mirrored, naming both fits and the fix."""
-    if not fits["likely_mix_up"]:
+def _words(what: str, fits: dict, read_as: str, fix: str | None, n: int) -> str | None:
+    """The warning of a support whose points fit the surface better mirrored, naming both fits and the ``fix``
+    (:func:`_frame_fix`; None: not flagged, no warning)."""
+    if fix is None:
         return None
     g, m = fits["as_given_mm"], fits["mirrored_mm"]
+    return (f"{what} looks read in the wrong frame: its {n} points, read {read_as}, lie {g['mean']:.3g} mm from "
+            f"the surface on average (max {g['max']:.3g} mm); mirrored in x and y ({_MIRROR_WORDS}) they would lie "
+            f"{m['mean']:.3g} mm (max {m['max']:.3g} mm) from it. Points marked on the liver's surface fit it within "
+            f"a fraction of a mm, so the support is likely put on the wrong side of the liver. {fix}. (Flagged "
+            f"when, mirrored, the points fit at most {FRAME_FIT_RATIO:g} times as far and {FRAME_FIT_MARGIN_MM:g} "
+            "mm closer on average.)")
+
+
+#: what mirroring a point file in x and y stands for, in the messages
+_MIRROR_WORDS = ("a file in RAS read as LPS, or in LPS read as RAS: half a turn about the superior axis through the "
+                 "file's origin")
+
+
+def _frame_fix(support: Support, frame_name: str | None, markups: bool) -> str:
+    """What to do when a support's file of points looks read in the other of RAS and LPS than ``frame_name`` (None:
+    a 4x4): the setting to state where the lab gave the support, or the markups file to correct; or, if the file
+    is right, the liver's frame to check."""
     other = _OTHER.get(frame_name or "")
     liver = ("the liver may be the one read in the wrong frame: check geometry.imported[].frame (and any warning "
              "of implausible regions)")
@@ -108,25 +128,73 @@ def _words(support: Support, what: str, fits: dict, read_as: str, frame_name: st
         setting = (_setting(support, "that 4x4 with its first two columns negated")
                    + " (or RAS or LPS, for a file in those world coordinates)")
     if markups:
-        fix = (f"The markups file states coordinateSystem {frame_name or 'LPS or RAS'}: if its points are in "
-               f"{other or 'the other'}, correct that in the file (export it again from 3D Slicer); if the file "
-               f"is right, {liver}")
-    elif support.selector[1].get("frame") is not None:
-        fix = f"If the file is {in_other}, state {setting}; if {frame_name or 'its 4x4'} is right, {liver}"
-    else:
-        fix = (f"The file states no frame, so its points are read in the geometry's: if the file is {in_other}, "
-               f"state {setting} (changing geometry.imported[].frame would turn the liver and these points alike)")
-    return (f"{what} looks read in the wrong frame: its {n} points, read {read_as}, lie {g['mean']:.3g} mm from "
-            f"the surface on average (max {g['max']:.3g} mm); mirrored in x and y (a file in RAS read as LPS, or "
-            "in LPS read as RAS: half a turn about the superior axis through the file's origin) they would lie "
-            f"{m['mean']:.3g} mm (max {m['max']:.3g} mm) from it. Points marked on the liver's surface fit it within "
-            f"a fraction of a mm, so the support is likely put on the wrong side of the liver. {fix}. (Flagged "
-            f"when, mirrored, the points fit at most {FRAME_FIT_RATIO:g} times as far and {FRAME_FIT_MARGIN_MM:g} "
-            "mm closer on average.)")
+        return (f"The markups file states coordinateSystem {frame_name or 'LPS or RAS'}: if its points are in "
+                f"{other or 'the other'}, correct that in the file (export it again from 3D Slicer); if the file "
+                f"is right, {liver}")
+    if support.selector[1].get("frame") is not None:
+        return f"If the file is {in_other}, state {setting}; if {frame_name or 'its 4x4'} is right, {liver}"
+    return (f"The file states no frame, so its points are read in the geometry's: if the file is {in_other}, "
+            f"state {setting} (changing geometry.imported[].frame would turn the liver and these points alike)")
 
 
-def _setting(support: Support, value: str) -> str:
-    """The setting that states a support file's frame, where the lab gave the support."""
+def far_words(reading: PointReading, triangles: TriangleSet, xyz_mesh: np.ndarray, max_mm: float) -> str:
+    """For the refusal of a support's file of points some of which lie beyond ``max_mm`` of the surface
+    (:func:`~liverforce.mesh.supports.points_patch`): the other readings of the file under which all of them
+    would lie within it, and what to state for each, or ``""`` when none would.
+
+    The readings: mirrored in x and y in the coordinates the file was read in (the other of RAS and LPS, as
+    :func:`frame_fits`), and, but for a 3D Slicer markups file (it states its units, mm or um), the file's
+    numbers in each other of mm, cm and m than they were read in (scaled about the file's origin by 10, 1000,
+    0.1, 0.001, or 100 and 0.01 between cm and m). One query of all the readings' points on the surface's
+    search tree."""
+    from liverforce.geometry.units import UNIT_TO_MM
+
+    q = np.atleast_2d(np.asarray(xyz_mesh, float))
+    fr = reading.frame
+    names = [None]  # None: mirrored; else the unit the numbers would be in
+    stacked = [_mirrored(q, fr)]
+    if not reading.markups:
+        in_file = fr.to_file(q)  # the file's numbers times the mm per number they were read with
+        for unit, mm in UNIT_TO_MM.items():
+            if not np.isclose(mm, reading.scale_mm, rtol=1e-9):
+                names.append(unit)
+                stacked.append(fr.to_mesh(in_file * (mm / reading.scale_mm)))
+    dist = triangles.closest(np.concatenate(stacked))[1].reshape(len(stacked), len(q))
+    said, n = [], len(q)
+    for unit, d in zip(names, dist):
+        if float(d.max()) > max_mm:
+            continue
+        fit = (f"all {n} points would lie within {max_mm:g} mm of the surface ({d.mean():.3g} mm on average, "
+               f"max {d.max():.3g} mm)")
+        if unit is None:
+            other = _OTHER.get(reading.frame_name or "", "the other of RAS and LPS")
+            said.append(f"mirrored in x and y ({_MIRROR_WORDS}) {fit}, so the file is likely in {other}. "
+                        f"{_frame_fix(reading.support, reading.frame_name, reading.markups)}")
+        else:
+            said.append(f"scaled by {UNIT_TO_MM[unit] / reading.scale_mm:g} (its numbers in {unit}, read "
+                        f"{_units_read(reading)}) {fit}, so the file is likely in {unit}: "
+                        f"{_units_fix(reading.support, unit)}")
+    return "".join(f". {s[0].upper()}{s[1:]}" for s in said)
+
+
+def _units_read(reading: PointReading) -> str:
+    """The units a support's file of points was read in, for messages: ``in mm`` or ``as 40 mm each``."""
+    from liverforce.geometry.units import UNIT_TO_MM
+
+    unit = next((u for u, mm in UNIT_TO_MM.items() if np.isclose(mm, reading.scale_mm, rtol=1e-9)), None)
+    return f"in {unit}" if unit else f"as {reading.scale_mm:g} mm each"
+
+
+def _units_fix(support: Support, unit: str) -> str:
+    """The setting that states a support file's units, and what the file is read in without it."""
+    if support.selector[1].get("units") is not None:
+        return f"state {_setting(support, unit, 'units')}"
+    return (f"the file states no units, so its numbers are read in the geometry's: state "
+            f"{_setting(support, unit, 'units')}")
+
+
+def _setting(support: Support, value: str, key: str = "frame") -> str:
+    """The setting that states a support file's ``frame`` (or ``units``), where the lab gave the support."""
     if support.key:
-        return f"{support.key}.file.frame: {value}"
-    return f"frame: {value} in the file selector of the support '{support.name}'"
+        return f"{support.key}.file.{key}: {value}"
+    return f"{key}: {value} in the file selector of the support '{support.name}'"

@@ -37,7 +37,9 @@ a label volume (:class:`PointFrame`):
   geometry's units). The points mark a **patch** of the surface, however the
   geometry stage refined it (a coarse file is Loop-subdivided, so its vertices are
   no longer the surface's): each point is placed at its closest surface point
-  (refused beyond 5 mm; distances reported as ``snap_mm``), the patch is
+  (refused beyond 5 mm, saying when all would land within it read in the other of
+  RAS and LPS, or in other units of mm, cm and m, and what to state; distances
+  reported as ``snap_mm``), the patch is
   triangulated between neighbouring points (sides at most twice their spacing,
   the median distance of a point to its 6th nearest: ``spacing_mm``, ``link_mm``)
   and a facet is selected when its centroid lies on it, facing the same way (never
@@ -50,7 +52,7 @@ a label volume (:class:`PointFrame`):
   LPS, or the reverse, still within 5 mm on a liver near symmetric about the file's
   superior axis) are warned of, naming both fits and the ``frame`` to state, and
   refused under ``mesh.regions_check: strict`` (:mod:`liverforce.mesh.support_frame`;
-  the report's ``frame_check``).
+  the features JSON's ``frame_check``, shown and flagged in the report's supports table).
 
 * ``group: <name or number>`` or ``group: {array: <cell-data name>, value: <n>}``:
   a Gmsh physical group or a VTU/VTK/XDMF cell-data tag of the geometry file
@@ -191,6 +193,21 @@ class PointFrame:
         """World RAS mm (e.g. a markups file's points) to mesh mm."""
         W = np.asarray(self.world, float)
         return np.asarray(xyz_ras_mm, float) @ W[:3, :3].T + W[:3, 3]
+
+
+@dataclass(frozen=True)
+class PointReading:
+    """How a support's file of points was read, for the checks of its frame and units
+    (:mod:`liverforce.mesh.support_frame`): ``frame`` maps the coordinates it was read in (mm) to the mesh (they are
+    mirrored in x and y in those); ``frame_name`` is theirs, RAS or LPS (None: a 4x4, or a markups file stating
+    no one system); ``markups``: a 3D Slicer markups file (it states its own frame and units); ``scale_mm``: mm
+    per number of the file (its declared units, else the geometry's; 1 for a markups file, read in mm)."""
+
+    support: Support
+    frame: PointFrame
+    frame_name: str | None
+    markups: bool = False
+    scale_mm: float = 1.0
 
 
 def points_frame(frame, where: str) -> np.ndarray:
@@ -543,7 +560,8 @@ PATCH_TOL = 0.1
 PATCH_COS = 0.5
 
 
-def points_patch(vertices, faces, xyz, what: str, read_as: str, max_mm: float = MAX_SNAP_MM, triangles=None):
+def points_patch(vertices, faces, xyz, what: str, read_as: str, max_mm: float = MAX_SNAP_MM, triangles=None,
+                 reading: PointReading | None = None):
     """Facets of the surface ``(vertices, faces)`` (mesh mm) marked by the points ``xyz (k, 3)`` (mesh mm).
 
     The points mark a surface patch, whatever the surface's resolution (the geometry stage may have refined a
@@ -558,7 +576,10 @@ def points_patch(vertices, faces, xyz, what: str, read_as: str, max_mm: float = 
     Gaps in the points narrower than the link are filled; fewer than three points mark nothing.
     Returns ``(mask, info)``, ``info`` with ``snap_mm`` (distances to the surface), ``spacing_mm`` and
     ``link_mm``. ``triangles``: the surface's :class:`TriangleSet` when the caller has one (its search tree is
-    built once for the caller's other queries).
+    built once for the caller's other queries). ``reading``: how a support's file of points was read; the refusal
+    of points beyond ``max_mm`` then says which other reading would land them all within it: the other of RAS
+    and LPS, or other units (:func:`liverforce.mesh.support_frame.far_words`). None (the geometry file's own
+    vertices or nodes: no other frame or units to read them in): the refusal says to check both.
     """
     from itertools import combinations
 
@@ -568,12 +589,18 @@ def points_patch(vertices, faces, xyz, what: str, read_as: str, max_mm: float = 
     faces = np.asarray(faces, np.int64)
     xyz = np.atleast_2d(np.asarray(xyz, float))
     tri = vertices[faces]
-    on, dist, near_facet = (TriangleSet(tri) if triangles is None else triangles).closest(xyz, k=16)
+    triangles = TriangleSet(tri) if triangles is None else triangles
+    on, dist, near_facet = triangles.closest(xyz, k=16)
     if (dist > max_mm).any():
         j = int(np.argmax(dist))
+        other = ""
+        if reading is not None:
+            from liverforce.mesh.support_frame import far_words
+
+            other = far_words(reading, triangles, xyz, max_mm)
         raise SupportError(f"{what}: point {j} {np.round(xyz[j], 3).tolist()} (mm on the mesh; the file's "
                            f"coordinates read {read_as}) is {dist[j]:.3g} mm from the surface (limit {max_mm} mm): "
-                           "check its units and frame")
+                           f"check its units and frame{other}")
     fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     fn /= np.maximum(np.linalg.norm(fn, axis=1, keepdims=True), 1e-300)
     _, ids = cKDTree(vertices).query(xyz)
@@ -721,13 +748,14 @@ def select_facets(vertices, faces, support: Support, frame: PointFrame = PointFr
         if a is not None and a.ndim == 1 and d.get("frame") is not None:
             raise SupportError(f"support '{support.name}' file.frame: vertex ids have no frame (they index the "
                                "file's vertices)")
-        mirror = None  # the points' frame check: (the frame they were read in, its name, a markups file?)
+        reading = None  # how the points were read, for the checks of their frame (and units)
         if a is None:  # a Slicer markups file: world RAS mm
             where = f"support '{support.name}' file"
             xyz = frame.from_world(read_markups(path, d, where))
             systems = _markups_systems(path)
             read_as = f"in mm, in the markups file's own coordinate system ({systems})"
-            mirror = (PointFrame(matrix=frame.world), systems if systems in ("RAS", "LPS") else None, True)
+            reading = PointReading(support, PointFrame(matrix=frame.world),
+                                   systems if systems in ("RAS", "LPS") else None, markups=True)
         elif a.ndim == 1:  # the geometry file's own vertices, in its frame: nothing to mirror
             if file_vertices is None:
                 raise SupportError(f"support '{support.name}': vertex ids need the geometry file's vertices "
@@ -742,17 +770,17 @@ def select_facets(vertices, faces, support: Support, frame: PointFrame = PointFr
             stated = frame.stated(d.get("frame"), f"support '{support.name}' file")
             xyz = stated.to_mesh(a * scale)
             read_as = stated.read_as(d.get("units"))
-            mirror = (stated, stated.read_in(), False)
+            reading = PointReading(support, stated, stated.read_in(), scale_mm=scale)
         what = f"support '{support.name}' ({path})"
         triangles = TriangleSet(vertices[faces])
-        mask, pinfo = points_patch(vertices, faces, xyz, what, read_as, triangles=triangles)
+        mask, pinfo = points_patch(vertices, faces, xyz, what, read_as, triangles=triangles, reading=reading)
         info.update(pinfo)
         checked = None
-        if mirror is not None:
+        if reading is not None:
             from liverforce.mesh.support_frame import check_support_frame
 
-            checked = check_support_frame(support, what, triangles, xyz, mirror[0], read_as, mirror[1],
-                                          markups=mirror[2], regions_check=regions_check)
+            checked = check_support_frame(support, what, triangles, xyz, reading.frame, read_as, reading.frame_name,
+                                          markups=reading.markups, regions_check=regions_check)
             info["frame_check"] = checked
         if not mask.any():
             raise _no_patch(what, len(xyz), read_as, pinfo, checked)

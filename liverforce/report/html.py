@@ -1286,7 +1286,7 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
              "tfoot th{text-align:left}.population img{border:1px solid #ddd}summary{cursor:pointer;margin:6px 0}"
              ".models .why{white-space:normal;display:block;width:260px;text-align:left}"
              ".imported{border-left:3px solid #4a7ab5;padding-left:10px;margin:10px 0}"
-             ".imported td,.imported th{text-align:left}.imported h4{margin:6px 0}"
+             ".imported td,.imported th{text-align:left}.imported h4{margin:6px 0}.frame-flag td{background:#fdf0f0}"
              ".pics{display:flex;flex-wrap:wrap;gap:8px}figure{margin:4px}figcaption{font-size:small}</style>")
     doc = (f"<!doctype html><html><head><meta charset='utf-8'><title>liverforce {html.escape(experiment)}</title>"
            f"{style}</head><body>{''.join(parts)}</body></html>")

@@ -3,7 +3,9 @@
 Read from the geometry stage's record (``geometry/<id>.json``: the source file, the declared units and frame,
 the conversion applied, the config entry under ``spec``) and the mesh stage's features
 (``mesh/<id>.features.json``: the facets each support holds, its own foundation stiffness under
-``support_boundary``, the exertion points given and how far they were snapped).
+``support_boundary``, a file of points' frame check (``frame_check``: its fit as read and mirrored, flagged with
+what to state when it looks read in the other of RAS and LPS), the exertion points given and how far they were
+snapped).
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import json
 from pathlib import Path
 
 from liverforce.layout import surface_meta_of_mesh
+from liverforce.mesh.support_frame import FRAME_FIT_MARGIN_MM, FRAME_FIT_RATIO
 
 #: how each support kind holds its facets (liverforce.mesh.supports)
 KIND_TEXT = {"fixed": "clamped", "foundation": "elastic foundation", "sliding": "no normal motion, free sliding"}
@@ -96,16 +99,19 @@ def _supports_block(spec_supports, features: dict) -> str:
         mode, items = spec_supports.get("mode", "replace"), spec_supports.get("list") or []
     held = {s.get("name"): s for s in features.get("supports") or []}
     own = features.get("support_boundary") or {}
-    rows = []
+    rows, checked = [], False
     for i, s in enumerate(items):
         name = s.get("name") or f"support{i}"
         h = held.get(name) or {}
         snap = (h.get("snap_mm") or {}).get("max")
+        fit, flag = _frame_fit(h.get("frame_check"), name)
+        checked = checked or bool(fit)
         rows.append(f"<tr><td>{html.escape(str(name))}</td><td>{html.escape(str(s.get('kind', '?')))} "
                     f"<small>({html.escape(KIND_TEXT.get(s.get('kind'), ''))})</small></td><td>{_selector(s)}</td>"
                     f"<td>{h['n_facets'] if 'n_facets' in h else '–'}</td>"
                     f"<td>{h['n_mesh_facets'] if 'n_mesh_facets' in h else '–'}</td>"
-                    f"<td>{'–' if snap is None else f'{float(snap):.3g}'}</td><td>{_stiffness(s, own)}</td></tr>")
+                    f"<td>{'–' if snap is None else f'{float(snap):.3g}'}{fit}</td><td>{_stiffness(s, own)}</td></tr>"
+                    + flag)
     how = ("replace: they replace the built-in regions (vena cava patch, ligament, visceral face, rib contact)"
            if mode == "replace" else "add: they lie over the built-in regions, which hold the rest of the surface")
     empty = ((features.get("provenance") or {}).get("empty_regions") or [])
@@ -115,7 +121,39 @@ def _supports_block(spec_supports, features: dict) -> str:
             "<table class='supports'><thead><tr><th>support</th><th>kind</th><th>selector (file frame)</th>"
             "<th>facets held (input surface)</th><th>mesh facets (VTU <code>support</code>)</th>"
             "<th>max snap (mm)</th><th>stiffness</th></tr></thead><tbody>"
-            + "".join(rows) + "</tbody></table>")
+            + "".join(rows) + "</tbody></table>" + (FRAME_FIT_NOTE if checked else ""))
+
+
+#: under the supports table when a support's file of points had its frame checked
+FRAME_FIT_NOTE = ("<p><small>Frame check of a file of points (<code>frame_check</code> in the features JSON): under "
+                  "its max snap, the points' mean distance to the surface (mm) as read and mirrored in x and y (as "
+                  "if read in the other of RAS and LPS). Points marked on the liver's surface fit it within a "
+                  "fraction of a mm; a mirrored fit clearly closer (at most "
+                  f"{FRAME_FIT_RATIO:g} times as far and {FRAME_FIT_MARGIN_MM:g} mm closer) means the file was "
+                  "likely read in the wrong frame and the support put on the wrong side of the liver (⚠, with "
+                  "what to state).</small></p>")
+
+
+def _frame_fit(check: dict | None, name) -> tuple[str, str]:
+    """A support's frame check (``frame_check``, :mod:`liverforce.mesh.support_frame`) for the supports table:
+    its fits as read and mirrored (mean mm) under the max snap, and, when the file looks read in the wrong
+    frame, a flag there and a row under the support's with the warning's advice; ``("", "")`` unchecked (a
+    sphere, box, group or vertex ids; ``mesh.regions_check: off``)."""
+    if not check:
+        return "", ""
+    g, m = (check.get(k) or {} for k in ("as_given_mm", "mirrored_mm"))
+    if g.get("mean") is None or m.get("mean") is None:
+        return "", ""
+    fit = f"<br><small>mean {_g(g['mean'])} as read, {_g(m['mean'])} mirrored</small>"
+    if not check.get("likely_mix_up"):
+        return fit, ""
+    advice = str(check.get("advice") or check.get("warning") or "check the file's frame").rstrip(".")
+    read_in = str(check.get("read_in", "?"))
+    read_in = read_in if read_in in ("RAS", "LPS") else f"{read_in} frame"  # a 4x4, the markups file's own
+    flag = (f"<tr class='frame-flag'><td colspan='7'><b class='flag'>⚠ {html.escape(str(name))}: likely read in "
+            f"the wrong frame</b> (read in {html.escape(read_in)}; mirrored, its points fit the surface "
+            f"{_g(m['mean'])} mm on average, {_g(g['mean'])} as read). {html.escape(advice)}.</td></tr>")
+    return fit + " <b class='flag'>⚠ frame</b>", flag
 
 
 def _exertion_text(spec_points, features: dict, n_sampled) -> str:

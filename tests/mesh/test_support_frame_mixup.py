@@ -251,6 +251,15 @@ def test_the_features_json_records_the_check(ellipsoid, tmp_path, caplog):
     assert f"{KEY}.list[0].file.frame: LPS" in wrong["warning"]
     assert wrong["as_given_mm"]["mean"] > 2 * wrong["mirrored_mm"]["mean"]
     assert right["likely_mix_up"] is False and right["read_in"] == "LPS" and right["warning"] is None
+    # the advice (what to state) is recorded apart for the report, whose supports table flags the support with it
+    assert wrong["advice"].startswith("The file states no frame") and f"{wrong['advice']}. (Flagged" in wrong["warning"]
+    assert right["advice"] is None
+    from liverforce.report.imported import _supports_block
+
+    block = _supports_block(supports, feats)
+    assert block.count("<tr class='frame-flag'>") == 1 and "⚠ cava: likely read in the wrong frame" in block
+    assert f"state {KEY}.list[0].file.frame: LPS" in block
+    assert block.index("cava_lps.csv") < block.index("frame-flag") < block.index("bed_lps.csv")  # under cava's row
 
 
 def test_the_check_costs_two_queries_of_the_points_on_a_large_surface(tmp_path, monkeypatch):
@@ -291,3 +300,118 @@ def test_assign_supports_passes_strict_on(ellipsoid, tmp_path):
     with pytest.raises(SupportError, match="looks read in the wrong frame"):
         assign_supports(V, F, region, "replace", [_support(tmp_path / "cava.csv")], PointFrame(),
                         regions_check="strict")
+
+
+#: the ellipsoid moved off the file's origin: mirrored in x and y, or scaled, its points land far off the surface
+SHIFT = np.array([30.0, 20.0, 0.0])
+
+
+def _far(V, F, path, geometry=PointFrame(), **spec) -> str:
+    """The refusal of the support's file at ``path`` (``spec``: its ``frame``, ``units``; ``geometry``: how the
+    geometry file's coordinates map to the mesh), some of its points beyond the 5 mm snap limit."""
+    _, (s,) = parse_supports({"mode": "replace", "list": [{"name": "cava", "kind": "fixed",
+                                                           "file": {"path": str(path), **spec}}]}, where=KEY)
+    with pytest.raises(SupportError) as err:
+        select_facets(V, F, s, geometry, regions_check="strict")
+    msg = str(err.value)
+    assert "mm from the surface (limit 5.0 mm): check its units and frame" in msg
+    return msg
+
+
+def test_points_beyond_the_limit_that_fit_mirrored_are_said_to_be_in_the_other_frame(ellipsoid, tmp_path):
+    """Far off the file's origin a file in LPS read as RAS lands 50 mm off the surface: refused by distance, the
+    refusal now says that mirrored they all fit, so the file is likely in LPS, and which setting states it."""
+    V, F = ellipsoid[0] + SHIFT, ellipsoid[1]
+    pts = _posterior_patch(V, F, 0.5)
+    np.savetxt(tmp_path / "lps.csv", pts * MIRROR, delimiter=",")
+    msg = _far(V, F, tmp_path / "lps.csv")
+    assert "Mirrored in x and y (a file in RAS read as LPS, or in LPS read as RAS" in msg
+    assert "all 40 points would lie within 5 mm of the surface" in msg and "so the file is likely in LPS" in msg
+    assert f"The file states no frame, so its points are read in the geometry's: if the file is in LPS, state " \
+           f"{KEY}.list[0].file.frame: LPS" in msg
+    assert "scaled by" not in msg.lower()  # no unit lands them on the surface
+    # the frame stated wrong: the same, with the stated frame's advice
+    msg = _far(V, F, tmp_path / "lps.csv", frame="RAS")
+    assert f"If the file is in LPS, state {KEY}.list[0].file.frame: LPS; if RAS is right, the liver may be" in msg
+    # points off the surface for another reason (20 mm above it) get no guess
+    np.savetxt(tmp_path / "off.csv", pts + [0.0, 0.0, 20.0], delimiter=",")
+    assert _far(V, F, tmp_path / "off.csv").endswith("check its units and frame")
+
+
+def test_the_mirror_beyond_the_limit_is_taken_in_the_files_own_coordinates(ellipsoid, tmp_path):
+    """The liver file read with a 4x4 shifting it 100 mm (a registration): the file's points are mirrored about
+    the file's origin, not the mesh's (there they would land nowhere near the surface)."""
+    V, F = ellipsoid[0] + SHIFT, ellipsoid[1]
+    M = np.eye(4)
+    M[:3, 3] = [100.0, 50.0, -20.0]
+    frame = PointFrame(matrix=tuple(map(tuple, M)), frame_label="the geometry file's frame (a 4x4)",
+                       frame_name="a 4x4")
+    np.savetxt(tmp_path / "lps.csv", _posterior_patch(V, F, 0.5) * MIRROR, delimiter=",")  # the file's own
+    msg = _far(V + M[:3, 3], F, tmp_path / "lps.csv", frame)
+    assert "so the file is likely in the other of RAS and LPS" in msg
+    assert f"state {KEY}.list[0].file.frame: that 4x4 with its first two columns negated" in msg
+
+
+@pytest.mark.parametrize("numbers, spec, frame, unit, words", [
+    (1e-3, {}, PointFrame(), "m", "scaled by 1000 (its numbers in m, read in mm)"),  # metres read in mm
+    (0.1, {"units": "m"}, PointFrame(), "cm", "scaled by 0.01 (its numbers in cm, read in m)"),  # cm stated m
+    (1.0, {}, PointFrame(scale=1000.0, units="m"), "mm", "scaled by 0.001 (its numbers in mm, read in m)"),
+    (1.0, {"units": "cm"}, PointFrame(), "mm", "scaled by 0.1 (its numbers in mm, read in cm)"),
+])
+def test_points_beyond_the_limit_that_fit_in_other_units_name_the_unit(ellipsoid, tmp_path, numbers, spec, frame,
+                                                                       unit, words):
+    """A file in m read in mm (its own units not stated, or the geometry's in m), in cm stated m, in mm stated cm:
+    scaled to the unit that fits, all its points land on the surface; the refusal names that unit and the setting
+    (``units`` of the support's file)."""
+    V, F = ellipsoid[0] + SHIFT, ellipsoid[1]
+    np.savetxt(tmp_path / "cava.csv", _posterior_patch(V, F, 0.5) * numbers, delimiter=",")
+    msg = _far(V, F, tmp_path / "cava.csv", frame, **spec)
+    assert f"{words.capitalize()} all 40 points would lie within 5 mm of the surface" in msg
+    assert f"so the file is likely in {unit}: " in msg and msg.endswith(f"state {KEY}.list[0].file.units: {unit}")
+    assert ("the file states no units, so its numbers are read in the geometry's" in msg) is ("units" not in spec)
+    assert "Mirrored" not in msg
+
+
+def test_units_beyond_the_limit_are_scaled_in_the_files_own_coordinates(ellipsoid, tmp_path):
+    """A file in m read in mm through a 4x4 that shifts it 100 mm: scaled about the file's origin (its numbers
+    times 1000, then the 4x4) its points fit; scaled about the mesh's they would land 100 m away."""
+    V, F = ellipsoid[0] + SHIFT, ellipsoid[1]
+    M = np.eye(4)
+    M[:3, 3] = [100.0, 50.0, -20.0]
+    frame = PointFrame(matrix=tuple(map(tuple, M)), frame_label="the geometry file's frame (a 4x4)",
+                       frame_name="a 4x4")
+    np.savetxt(tmp_path / "m.csv", _posterior_patch(V, F, 0.5) / 1000.0, delimiter=",")
+    msg = _far(V + M[:3, 3], F, tmp_path / "m.csv", frame)
+    assert "Scaled by 1000 (its numbers in m, read in mm) all 40 points would lie within 5 mm" in msg
+
+
+def test_a_markups_file_beyond_the_limit_is_said_to_state_the_wrong_system(ellipsoid, tmp_path):
+    """RAS control points in a markups file stating LPS, on the shifted liver: refused by distance, the refusal
+    says to correct the file's coordinateSystem (a markups file states its own units: no other unit is tried)."""
+    V, F = ellipsoid[0] + SHIFT, ellipsoid[1]
+    pts = _posterior_patch(V, F, 0.5)
+    doc = {"markups": [{"type": "Fiducial", "coordinateSystem": "LPS", "coordinateUnits": "mm",
+                        "controlPoints": [{"label": f"F-{i}", "position": p.tolist()} for i, p in enumerate(pts)]}]}
+    (tmp_path / "cava.mrk.json").write_text(json.dumps(doc))
+    msg = _far(V, F, tmp_path / "cava.mrk.json")
+    assert "so the file is likely in RAS. The markups file states coordinateSystem LPS: if its points are in RAS, " \
+           "correct that in the file" in msg and "Scaled" not in msg
+
+
+def test_the_refusal_beyond_the_limit_builds_no_second_search_tree(tmp_path, monkeypatch):
+    """The other readings of a refused file are measured on the surface's one search tree (built for the patch):
+    its points once each more, mirrored and in each other unit, no loop over the facets."""
+    m = trimesh.creation.icosphere(subdivisions=6, radius=1.0)
+    V, F = np.asarray(m.vertices) * AXES + CENTRE + SHIFT, np.asarray(m.faces, np.int64)
+    np.savetxt(tmp_path / "lps.csv", _posterior_patch(V, F, 0.5) * MIRROR, delimiter=",")
+    import scipy.spatial
+
+    built, queried = [], []
+    real_tree = scipy.spatial.cKDTree
+    monkeypatch.setattr(scipy.spatial, "cKDTree", lambda *a, **k: built.append(len(a[0])) or real_tree(*a, **k))
+    closest = TriangleSet.closest
+    monkeypatch.setattr(TriangleSet, "closest", lambda self, q, k=16: queried.append(len(q)) or closest(self, q, k))
+    msg = _far(V, F, tmp_path / "lps.csv")
+    assert "so the file is likely in LPS" in msg
+    assert built.count(len(F)) == 1, f"trees over the facets: {built}"
+    assert queried[0] == 40 and sum(queried) == 4 * 40, f"as read, then mirrored, in cm and in m: {queried}"
