@@ -120,7 +120,7 @@ def test_a_lab_liver_without_its_own_supports_or_points_says_so(stage_outputs):
     assert "8 candidate exertion points per liver;" in text and "Boundary: ligament" in text
 
 
-#: the frame check of a support's file of points (liverforce.mesh.support_frame), as the features JSON records it
+#: the frame check of a support's file of points (liverforce.mesh.supports), as the features JSON records it
 WRONG_FRAME = {"read_in": "RAS", "as_given_mm": {"mean": 2.91, "max": 4.62},
                "mirrored_mm": {"mean": 0.213, "max": 0.74}, "likely_mix_up": True, "refused_under_strict": True,
                "warning": "support 'cava' (/data/lab/cava_lps_m.csv) looks read in the wrong frame: ...",

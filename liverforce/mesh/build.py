@@ -129,7 +129,7 @@ def build_liver_mesh(
         the tool) is logged as a warning and listed in ``meta["exertion_not_visible"]``, or, under ``strict``,
         refused (:func:`~liverforce.mesh.supports.check_exertion_facing`); a support's file of points that fits
         the surface better mirrored in x and y (read in the wrong of RAS and LPS) likewise, recorded on its
-        report in ``meta["supports"]`` (``frame_check``, :mod:`liverforce.mesh.support_frame`).
+        report in ``meta["supports"]`` (``frame_check``, :func:`liverforce.mesh.supports.check_support_frame`).
     require_held : str, optional
         Refuse ``supports`` that leave the liver free to move as a rigid body, on the input surface before
         meshing (:func:`~liverforce.mesh.supports.check_held`; the string says where they were given, for the

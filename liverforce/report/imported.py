@@ -15,7 +15,7 @@ import json
 from pathlib import Path
 
 from liverforce.layout import surface_meta_of_mesh
-from liverforce.mesh.support_frame import FRAME_FIT_MARGIN_MM, FRAME_FIT_RATIO
+from liverforce.mesh.supports import FRAME_FIT_MARGIN_MM, FRAME_FIT_RATIO
 
 #: how each support kind holds its facets (liverforce.mesh.supports)
 KIND_TEXT = {"fixed": "clamped", "foundation": "elastic foundation", "sliding": "no normal motion, free sliding"}
@@ -135,7 +135,8 @@ FRAME_FIT_NOTE = ("<p><small>Frame check of a file of points (<code>frame_check<
 
 
 def _frame_fit(check: dict | None, name) -> tuple[str, str]:
-    """A support's frame check (``frame_check``, :mod:`liverforce.mesh.support_frame`) for the supports table:
+    """A support's frame check (``frame_check``, :func:`liverforce.mesh.supports.check_support_frame`) for the
+    supports table:
     its fits as read and mirrored (mean mm) under the max snap, and, when the file looks read in the wrong
     frame, a flag there and a row under the support's with the warning's advice; ``("", "")`` unchecked (a
     sphere, box, group or vertex ids; ``mesh.regions_check: off``)."""

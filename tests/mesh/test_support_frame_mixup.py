@@ -270,10 +270,10 @@ def test_the_check_costs_two_queries_of_the_points_on_a_large_surface(tmp_path, 
     np.savetxt(tmp_path / "cava.csv", _posterior_patch(V, F) * MIRROR, delimiter=",")
     import scipy.spatial
 
-    from liverforce.mesh import support_frame
+    from liverforce.mesh import supports
 
     built, queried = [], []
-    real_tree, real_fits = scipy.spatial.cKDTree, support_frame.frame_fits
+    real_tree, real_fits = scipy.spatial.cKDTree, supports.frame_fits
     monkeypatch.setattr(scipy.spatial, "cKDTree", lambda *a, **k: built.append(len(a[0])) or real_tree(*a, **k))
     closest = TriangleSet.closest
     monkeypatch.setattr(TriangleSet, "closest", lambda self, q, k=16: queried.append(len(q)) or closest(self, q, k))
@@ -285,7 +285,7 @@ def test_the_check_costs_two_queries_of_the_points_on_a_large_surface(tmp_path, 
         timed.append(time.perf_counter() - t0)
         return out
 
-    monkeypatch.setattr(support_frame, "frame_fits", fits)
+    monkeypatch.setattr(supports, "frame_fits", fits)
     _, info = select_facets(V, F, _support(tmp_path / "cava.csv"), PointFrame())
     assert info["frame_check"]["likely_mix_up"] is True
     assert built.count(len(F)) == 1, f"trees over the facets: {built}"
