@@ -773,8 +773,7 @@ def select_facets(vertices, faces, support: Support, frame: PointFrame = PointFr
         info.update(pinfo)
         checked = None
         if reading is not None:
-            checked = check_support_frame(support, what, triangles, xyz, reading.frame, read_as, reading.frame_name,
-                                          markups=reading.markups, regions_check=regions_check)
+            checked = check_support_frame(reading, what, triangles, xyz, read_as, regions_check)
             info["frame_check"] = checked
         if not mask.any():
             raise _no_patch(what, len(xyz), read_as, pinfo, checked)
@@ -1474,25 +1473,25 @@ def frame_fits(triangles: TriangleSet, xyz_mesh: np.ndarray, read_in: PointFrame
             "likely_mix_up": bool(likely)}
 
 
-def check_support_frame(support: Support, what: str, triangles: TriangleSet, xyz_mesh: np.ndarray,
-                        read_in: PointFrame, read_as: str, frame_name: str | None, markups: bool = False,
-                        regions_check: str = "warn") -> dict | None:
+def check_support_frame(reading: PointReading, what: str, triangles: TriangleSet, xyz_mesh: np.ndarray,
+                        read_as: str, regions_check: str = "warn") -> dict | None:
     """The frame check of a support given by a file of points (:func:`frame_fits`), as recorded on its report
-    (``frame_check``): the fits, ``read_in`` (the frame its coordinates were read in: ``frame_name``, RAS or LPS;
-    ``a 4x4``; for a markups file of no one system, ``the markups file's own``), ``refused_under_strict`` (a likely
-    mix-up), ``warning`` (None when the frame looks right or cannot be told) and ``advice`` (its last part, what
-    to state or correct, for the report; None with it).
+    (``frame_check``): the fits, ``read_in`` (the frame its coordinates were read in: ``reading.frame_name``, RAS
+    or LPS; ``a 4x4``; for a markups file of no one system, ``the markups file's own``), ``refused_under_strict``
+    (a likely mix-up), ``warning`` (None when the frame looks right or cannot be told) and ``advice`` (its last
+    part, what to state or correct, for the report; None with it).
 
-    ``what`` names the support and its file, ``read_as`` how its coordinates were read (units and frame);
-    ``markups``: a 3D Slicer markups file (it states its own coordinate system, ``frame_name`` that one).
-    ``regions_check`` (``mesh.regions_check``): ``warn`` logs the warning; ``strict`` refuses
-    (:class:`~liverforce.mesh.supports.SupportError`); ``off`` checks nothing and returns None."""
+    ``reading``: how the file was read (:class:`PointReading`: the support, the frame its coordinates map to the
+    mesh with, that frame's name, a 3D Slicer markups file?); ``what`` names the support and its file, ``read_as``
+    how its coordinates were read (units and frame). ``regions_check`` (``mesh.regions_check``): ``warn``
+    logs the warning; ``strict`` refuses (:class:`~liverforce.mesh.supports.SupportError`); ``off`` checks
+    nothing and returns None."""
     if regions_check == "off":
         return None
-    fits = frame_fits(triangles, xyz_mesh, read_in)
-    fix = _frame_fix(support, frame_name, markups) if fits["likely_mix_up"] else None
+    fits = frame_fits(triangles, xyz_mesh, reading.frame)
+    fix = _frame_fix(reading.support, reading.frame_name, reading.markups) if fits["likely_mix_up"] else None
     msg = _words(what, fits, read_as, fix, len(np.atleast_2d(xyz_mesh)))
-    read_in_name = frame_name or ("the markups file's own" if markups else "a 4x4")
+    read_in_name = reading.frame_name or ("the markups file's own" if reading.markups else "a 4x4")
     record = {"read_in": read_in_name, **fits, "refused_under_strict": fits["likely_mix_up"],
               "warning": msg, "advice": fix}
     if msg is None:
