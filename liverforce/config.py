@@ -211,6 +211,8 @@ class IntervalConfig:
     # k_hi)^g, g the calibration residuals' growth with the stiffness)
     spread: Optional[float] = MISSING  # beta > 0: widths x (the GP ensemble members' sd + beta x its calibration
     # median); null: not scaled by the members' spread (liverforce.learn.interval)
+    distance_quantile: Optional[float] = MISSING  # a GP model's prediction warns when its inputs lie farther from
+    # every training row than this quantile of the calibration cases' (liverforce.learn.interval); null: no such flag
 
 
 @dataclass
@@ -926,6 +928,10 @@ def _check_ranges(cfg: dict, run: bool = True) -> None:
                                    and math.isfinite(spread) and spread > 0):
         _fail("train.interval.spread", f"must be a positive number or null, got {spread!r}",
               "e.g. 4 (the members' median sd x 4 added to each case's), or null for no spread")
+    dq = t["interval"].get("distance_quantile")
+    if dq is not None and not (isinstance(dq, (int, float)) and not isinstance(dq, bool) and 0.5 <= dq < 1.0):
+        _fail("train.interval.distance_quantile", f"must be a quantile in [0.5, 1) or null, got {dq!r}",
+              "e.g. 0.9 (a prediction farther from training than 90 % of the calibration cases warns)")
     if t["interval"]["bins"] < 1:
         _fail("train.interval.bins", f"must be >= 1 (got {t['interval']['bins']})", "e.g. 4 (with scale: force_bins)")
     if t["heldout_points"]["folds"] < 2:

@@ -112,6 +112,17 @@ class GPRegressor(nn.Module):
         return GPRegressor(self.X, self.alpha[:, k:k + 1], self.inv_length[k], self.signal_var[k],
                            self.linear_var[k], self.noise_var[k], self.shape)
 
+    def nearest_distance(self, z) -> np.ndarray:
+        """``(n,)``: each row of ``z`` ``(n, d)``'s distance to the nearest training row, in inputs scaled by the
+        inverse length scales (the kernel's ``r``); a per-output GP's mean over its outputs. How far a case lies
+        from every case the GP learned from (:func:`nearest_scaled`), the input distance a prediction is flagged
+        by (:mod:`liverforce.learn.interval`)."""
+        z = np.asarray(z, dtype=np.float64)
+        X = self.X.numpy()
+        il = self.inv_length.numpy()
+        rows = il if self.per_output else il[None]
+        return np.mean([nearest_scaled(z * r, X * r) for r in rows], axis=0)
+
     def forward(self, z: torch.Tensor) -> torch.Tensor:
         z = z.double()
         if self.per_output:
@@ -120,7 +131,7 @@ class GPRegressor(nn.Module):
                               for k in range(self.alpha.shape[1])], 1)
         return _kernel(z, self.X, self.inv_length, self.signal_var, self.linear_var, float(self.shape)) @ self.alpha
 
-    def numpy_head(self, fixed: dict | None = None):
+    def numpy_head(self, fixed: dict | None = None, distance: bool = False):
         """A float64 NumPy function ``Z (n, d) -> scaled outputs (n, 3)`` (the compiled serving paths).
 
         The same posterior mean as :meth:`forward` in fewer passes over the (rows x training rows)
@@ -141,12 +152,18 @@ class GPRegressor(nn.Module):
 
         A per-output GP (``model.gp.per_output``) runs one such head per output, each on its own length
         scales, and returns their columns side by side.
+
+        ``distance``: the head returns ``(outputs, distances (n,))``, the distances of :meth:`nearest_distance`
+        read off the same matrix (``d2 = -2 max_j E_ij``: one pass more over it, no other product).
         """
         if self.per_output:
-            heads = [self.output(k).numpy_head(fixed) for k in range(self.alpha.shape[1])]
+            heads = [self.output(k).numpy_head(fixed, distance) for k in range(self.alpha.shape[1])]
 
-            def head_per_output(Z: np.ndarray) -> np.ndarray:
-                return np.concatenate([h(Z) for h in heads], axis=1)
+            def head_per_output(Z: np.ndarray):
+                if not distance:
+                    return np.concatenate([h(Z) for h in heads], axis=1)
+                got = [h(Z) for h in heads]
+                return np.concatenate([g[0] for g in got], axis=1), np.mean([g[1] for g in got], axis=0)
 
             return head_per_output
         Xs = (self.X * self.inv_length).numpy()
@@ -185,13 +202,14 @@ class GPRegressor(nn.Module):
             Za[:, d] = -0.5 * np.einsum("ij,ij->i", Zs, Zs)
             Za[:, d + 1] = 1.0
             E = Za @ XaT  # -d2 / 2, not clamped at 0: where it rounds above 0 (~1e-13) the kernel is 1 + 1e-13
+            near = np.sqrt(np.maximum(-2.0 * E.max(axis=1), 0.0)) if distance else None  # before E is reused
             if power:  # a small whole a: (1 + d2 / (2 a))^-a = 1 / B^a, B = 1 - E / a, no exp or log1p, and the
                 # product with alpha in the same pass over E (_rq_power_mean)
                 out = Z @ beta
                 _rq_power_mean(E, 1.0 / a, power, alpha_sT, out)
                 if b0 is not None:
                     out += b0
-                return out
+                return (out, near) if distance else out
             # exp and log1p in place, with the faster of NumPy and torch on this CPU (_exp_, _log1p_)
             if rq:  # (1 + d2 / (2 a))^-a = exp(-a log1p(-E / a))
                 E *= -1.0 / a
@@ -201,7 +219,7 @@ class GPRegressor(nn.Module):
             out = E @ alpha_s + Z @ beta
             if b0 is not None:
                 out += b0
-            return out
+            return (out, near) if distance else out
 
         if power:  # load (or compile) the fused pass now, with the signature of every call, not on the first row
             m = alpha_sT.shape[0]  # a compiled path serves (CompiledROI, CompiledCloud)
@@ -293,6 +311,20 @@ def _fixed_inputs(fixed: dict | None, n_in: int) -> dict:
         if not math.isfinite(float(v)):
             raise ValueError(f"numpy_head: the fixed input {int(c)} must be finite; got {v!r}")
         out[int(c)] = float(v)
+    return out
+
+
+def nearest_scaled(A: np.ndarray, B: np.ndarray, block: int = 1024) -> np.ndarray:
+    """``(len(A),)``: each row of ``A``'s Euclidean distance to the nearest row of ``B`` (float64, in blocks of
+    ``block`` rows of ``A``: the ``(block, len(B))`` matrix at a time)."""
+    A = np.asarray(A, dtype=np.float64)
+    B = np.asarray(B, dtype=np.float64)
+    bb = np.einsum("ij,ij->i", B, B)
+    out = np.empty(len(A))
+    for a in range(0, len(A), block):
+        P = A[a:a + block]
+        d2 = np.einsum("ij,ij->i", P, P)[:, None] + bb[None] - 2.0 * (P @ B.T)
+        out[a:a + block] = np.sqrt(np.maximum(d2.min(axis=1), 0.0))
     return out
 
 
@@ -573,14 +605,23 @@ class GPEnsemble(nn.Module):
         z = z.double()
         return torch.stack([m(z[:, self.columns(i)]) for i, m in enumerate(self.members)])
 
-    def numpy_head(self, fixed: dict | None = None, members: bool = False):
+    def nearest_distance(self, z) -> np.ndarray:
+        """``(n,)``: the members' :meth:`GPRegressor.nearest_distance` of ``z``'s rows on their columns, averaged
+        (each member measures in its own length scales)."""
+        z = np.asarray(z, dtype=np.float64)
+        return np.mean([m.nearest_distance(z[:, self.columns(i).numpy()]) for i, m in enumerate(self.members)],
+                       axis=0)
+
+    def numpy_head(self, fixed: dict | None = None, members: bool = False, distance: bool = False):
         """The members' :meth:`GPRegressor.numpy_head` on their columns, averaged (the compiled paths).
 
         ``fixed``: ``{input column: value}`` as for :meth:`GPRegressor.numpy_head`; the head then takes the
         other input columns, in their order, and each member gets its share of the fixed inputs. ``members``:
         the head returns ``(mean, sd)``, ``sd`` the members' standard deviation (ddof 1) per output, the mean
         the same bits as without; ValueError for an ensemble of one member (no spread, as
-        :meth:`liverforce.learn.model.ForceModel.forward` gives none)."""
+        :meth:`liverforce.learn.model.ForceModel.forward` gives none). ``distance``: the head's result is followed
+        by the members' mean of their :meth:`GPRegressor.nearest_distance` (``(mean, distances)``, or
+        ``(mean, sd, distances)``), read off each member's kernel matrix."""
         if members and len(self.members) < 2:
             raise ValueError("the members' spread of a GP ensemble of one member is undefined (the sd of one "
                              "prediction); an interval scaled by it needs two or more members")
@@ -588,7 +629,7 @@ class GPEnsemble(nn.Module):
         n_in = 1 + max(int(c.max()) for c in cols)  # the inputs: every column up to the last a member reads
         fixed = _fixed_inputs(fixed, n_in)
         free = {c: k for k, c in enumerate(c for c in range(n_in) if c not in fixed)}  # input -> head column
-        heads = [(m.numpy_head({p: fixed[c] for p, c in enumerate(cols[i]) if c in fixed} or None),
+        heads = [(m.numpy_head({p: fixed[c] for p, c in enumerate(cols[i]) if c in fixed} or None, distance),
                   np.array([free[c] for c in cols[i] if c not in fixed], dtype=np.int64))
                  for i, m in enumerate(self.members)]
         w = 1.0 / len(heads)
@@ -597,15 +638,28 @@ class GPEnsemble(nn.Module):
             Z = np.asarray(Z, dtype=np.float64)
             if fixed and (Z.ndim != 2 or Z.shape[1] != len(free)):  # (else each member checks its columns)
                 raise ValueError(f"the GP head takes rows of {len(free)} inputs, got an array of shape {Z.shape}")
+            near = None
             if members:
                 each = [h(Z[:, c]) for h, c in heads]
+                if distance:
+                    near = sum(e[1] for e in each) * w
+                    each = [e[0] for e in each]
                 out = each[0].copy()
                 for e in each[1:]:
                     out += e
             else:
                 out = heads[0][0](Z[:, heads[0][1]])
+                if distance:
+                    out, near = out
                 for h, c in heads[1:]:
-                    out += h(Z[:, c])
+                    if distance:
+                        o, d = h(Z[:, c])
+                        out += o
+                        near = near + d
+                    else:
+                        out += h(Z[:, c])
+                if distance:
+                    near = near * w
             out *= w
             if members:  # the sd about the mean, in a few small in-place operations (np.std on the stacked
                 ss = np.zeros_like(out)  # members took ~15 us more per call: a tenth of one cloud's latency)
@@ -614,8 +668,8 @@ class GPEnsemble(nn.Module):
                     e *= e
                     ss += e
                 ss *= 1.0 / (len(each) - 1)
-                return out, np.sqrt(ss, out=ss)
-            return out
+                return (out, np.sqrt(ss, out=ss), near) if distance else (out, np.sqrt(ss, out=ss))
+            return (out, near) if distance else out
 
         return head
 

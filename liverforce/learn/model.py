@@ -561,6 +561,8 @@ class Forward:
     stiffness: np.ndarray  # (n, 1) the case's stiffness factor k = c_1 / c_1,ref (ones without force scaling)
     spread_local: np.ndarray | None = None  # (n, 3) N: the sd of a GP ensemble's members' local forces (ddof 1;
     # the interval's spread, liverforce.learn.interval); None for one GP or an MLP
+    input_distance: np.ndarray | None = None  # (n,): a GP's inputs' distance to its nearest training row, in its
+    # length scales (the members' mean; liverforce.learn.interval, the input-distance flag); None for an MLP
 
     @property
     def force_source(self) -> np.ndarray:
@@ -654,7 +656,8 @@ class ForceModel:
         else:
             f_local = ts.inverse_transform(predict_regressor(self.regressor, z)) * k
             spread = None
-        return Forward(R, f_local, self.pre.material_factor(s, len(z)), spread)
+        dist = self.regressor.nearest_distance(z) if isinstance(self.regressor, (GPRegressor, GPEnsemble)) else None
+        return Forward(R, f_local, self.pre.material_factor(s, len(z)), spread, dist)
 
     def predict_local(self, arrays: dict, observation_seed: int | None = None) -> np.ndarray:
         """Force in the local frame ``(n, 3)`` N (``F.t1, F.t2, F.n``)."""
@@ -692,14 +695,22 @@ class ForceModel:
                 "train.interval.spread: null for one without)")
         return ci
 
+    @property
+    def input_distance(self) -> dict | None:
+        """The input-distance flag fitted with the interval (``meta["input_distance"]``:
+        :func:`liverforce.learn.interval.fit_input_distance`), or None (an MLP, a bundle before it, no interval)."""
+        rec = self.meta.get("input_distance")
+        return rec if rec and isinstance(self.regressor, (GPRegressor, GPEnsemble)) else None
+
     def predict_interval(self, arrays: dict, observation_seed: int | None = None, *,
                          rotations: np.ndarray | None = None) -> dict:
         """Force with its calibrated interval per local component.
 
         Returns ``force_n`` ``(n, 3)`` (source frame), ``force_local_n`` ``(n, 3)``
         (``F.t1, F.t2, F.n``), ``half_width_local_n`` ``(n, 3)`` (the interval is
-        ``force_local_n +- half_width_local_n``), ``coverage`` (nominal) and
-        ``frame`` ``(n, 3, 3)`` (rows t1, t2, n). A model without a calibrated
+        ``force_local_n +- half_width_local_n``), ``coverage`` (nominal),
+        ``frame`` ``(n, 3, 3)`` (rows t1, t2, n) and ``input_distance`` ``(n,)`` (a GP's,
+        :attr:`Forward.input_distance`; None for an MLP). A model without a calibrated
         interval raises ``ValueError``. ``rotations`` as in :meth:`forward`.
         """
         ci = self.interval
@@ -708,7 +719,7 @@ class ForceModel:
         fw = self.forward(arrays, observation_seed, rotations=rotations)
         half = ci.half_widths(fw.stiffness, fw.force_local, fw.spread_local)
         return {"force_n": fw.force_source, "force_local_n": fw.force_local, "half_width_local_n": half,
-                "coverage": ci.coverage, "frame": fw.R}
+                "coverage": ci.coverage, "frame": fw.R, "input_distance": fw.input_distance}
 
     def predict(self, arrays: dict, observation_seed: int | None = None, *,
                 rotations: np.ndarray | None = None) -> np.ndarray:

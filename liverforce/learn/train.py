@@ -475,6 +475,11 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
         interval = {**ci.to_dict(), "test_coverage": coverage_per_component(
             prep_test.y_local, got["force_local_n"], got["half_width_local_n"])}
         model.meta["interval_test_coverage"] = interval["test_coverage"]
+        flag = set_input_distance(model, cal, train_cfg["interval"], notes)
+        if flag is not None:
+            interval["input_distance"] = {**flag, **flagged_errors(
+                model.forward(test_arrays, observation_seed=eval_seed(seed)).input_distance, flag,
+                prep_test.force, pred)}
     repeats = [{"split_seed": seed, "test_geometries": _geometries(test_arrays), "metrics": metrics,
                 "outside_training": outside_training_split(model, test_arrays, pred),
                 **exact_tip_metrics(model, test_arrays, seed)}]
@@ -593,6 +598,7 @@ def fit_final(train_arrays, test_arrays, model_cfg, train_cfg, scenario, seed, e
         ci = interval_from_calibration(cal, train_cfg["interval"], scenario, said)
         _write_calibration(out_dir / "interval_calibration.npz", cal)
         model.meta["interval"] = ci.to_dict()
+        set_input_distance(model, cal, train_cfg["interval"], said)
         if said:  # e.g. the interval without the members' spread: kept with the model
             model.meta["interval_notes"] = said
         model.meta["interval_test_coverage"] = split_interval["test_coverage"]
@@ -633,6 +639,37 @@ def interval_from_calibration(cal: dict, interval_cfg, scenario, notes: list | N
         return fit(False)
 
 
+def set_input_distance(model, cal: dict, interval_cfg, notes: list | None = None) -> dict | None:
+    """Fit the input-distance flag (:func:`liverforce.learn.interval.fit_input_distance`) on the calibration cases'
+    distances ``cal["input_distance"]`` at ``interval_cfg["distance_quantile"]`` and record it in
+    ``model.meta["input_distance"]``; returns it, or None (the key null or missing, a model without a GP: no
+    distances; ``notes`` says why when the key asked for one)."""
+    from liverforce.learn.interval import fit_input_distance
+
+    q = interval_cfg.get("distance_quantile")
+    if q is None:
+        return None
+    if cal.get("input_distance") is None:
+        if notes is not None:
+            notes.append("no input-distance flag: the regressor is not a GP (its distances are a GP's)")
+        return None
+    rec = fit_input_distance(cal["input_distance"], q)
+    model.meta["input_distance"] = rec
+    return rec
+
+
+def flagged_errors(distance, record: dict, true_force: np.ndarray, pred: np.ndarray) -> dict:
+    """How the input-distance flag ``record`` splits the cases ``(n,)`` distances: ``n``, ``n_flagged``, and the
+    mean error ``|F - F^|`` (N) of the flagged cases and of the others (None where there are none)."""
+    from liverforce.learn.interval import distance_flags
+
+    f = distance_flags(distance, record)
+    err = np.linalg.norm(np.asarray(pred, float) - np.asarray(true_force, float), axis=1)
+    return {"n": int(f.size), "n_flagged": int(f.sum()),
+            "mae_flagged_n": float(err[f].mean()) if f.any() else None,
+            "mae_others_n": float(err[~f].mean()) if (~f).any() else None}
+
+
 def _write_calibration(path: Path, cal: dict) -> None:
     """The calibration predictions an interval was fitted on, next to the model (atomic): another scale or
     coverage can be fitted on them later without retraining (``benchmarks/experiment_interval.py``)."""
@@ -644,7 +681,8 @@ def _write_calibration(path: Path, cal: dict) -> None:
 def calibration_predictions(train_arrays, model_cfg, interval_cfg, scenario, seed, encoder, use_state, code_size,
                             dae_noise, hidden, dropout, fit) -> dict:
     """The calibration cases' true and predicted local forces and stiffness factors, from the training split alone,
-    and (``spread_local``) a GP ensemble's members' sd of each prediction (the interval's ``spread``).
+    and (``spread_local``) a GP ensemble's members' sd of each prediction (the interval's ``spread``) and
+    (``input_distance``) a GP's inputs' distance to the fold model's training rows (the input-distance flag).
 
     ``interval_cfg["folds"]`` > 1: cross-conformal, the training cases cut into
     that many folds (by liver in IV, as the test split), each predicted by a model
@@ -665,7 +703,7 @@ def calibration_predictions(train_arrays, model_cfg, interval_cfg, scenario, see
                                             test_fraction=float(interval_cfg["calibration_fraction"]),
                                             seed=derive(seed, "split.calibration"))
         pairs = [(fit_idx, cal_idx)]
-    true, pred, stiff, spread = [], [], [], []
+    true, pred, stiff, spread, dist = [], [], [], [], []
     for fit_idx, cal_idx in pairs:
         a_fit, a_cal = subset(train_arrays, fit_idx), subset(train_arrays, cal_idx)
         rep_c = representation_from_config(model_cfg, a_fit)
@@ -679,10 +717,13 @@ def calibration_predictions(train_arrays, model_cfg, interval_cfg, scenario, see
         pred.append(fw.force_local)
         stiff.append(model.pre.material_factor(prep_cal.state if use_state else None, len(fw.force_local)))
         spread.append(fw.spread_local)
+        dist.append(fw.input_distance)
     out = {"true_local": np.vstack(true), "pred_local": np.vstack(pred), "stiffness": np.vstack(stiff),
            "folds": len(pairs)}
     if all(d is not None for d in spread):  # a GP ensemble's members' sd (the interval's spread)
         out["spread_local"] = np.vstack(spread)
+    if all(d is not None for d in dist):  # a GP's inputs' distance to the fold model's training rows
+        out["input_distance"] = np.concatenate(dist)
     return out
 
 

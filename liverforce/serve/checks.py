@@ -39,7 +39,9 @@ material (units)             a constant outside its training range by more
 
 After the prediction, a force larger than every training case's (``|F|`` above the largest of
 ``meta["training_scale"]["force_magnitude_n"]``) is returned with a warning (:func:`force_warnings`): the
-regressor extrapolates there, and the interval's widths were calibrated on smaller forces. A wrong exertion
+regressor extrapolates there, and the interval's widths were calibrated on smaller forces. So is a GP model's
+case whose inputs lie farther from every training case than the model's calibration quantile
+(``meta["input_distance"]``, :mod:`liverforce.learn.interval`; :func:`distance_warnings`). A wrong exertion
 point is one way to get there: on the default run's unseen liver val-1000, the exertion point given 5 mm from
 where the tool pressed turned a 3.8 N case into 7.5 N, with every input check passed.
 
@@ -501,6 +503,30 @@ def force_warnings(force: np.ndarray, scale: TrainingScale, camera: bool = True)
     for i in np.flatnonzero(mag > top):  # NaN compares False
         out[i] = [f"the predicted force ({mag[i]:.4g} N) exceeds every training case's (at most {top:.4g} N): the "
                   f"model extrapolates there and its interval was calibrated on smaller forces; check the exertion "
+                  f"point, {check}"]
+    return out
+
+
+def distance_warnings(distance, record: dict | None, camera: bool = True) -> list[list[str]]:
+    """Per row of input distances ``(n,)`` (``Forward.input_distance``; None: none known): a warning where the
+    case's GP inputs lie farther from every training row than the model's calibration quantile
+    (``record``: ``ForceModel.input_distance``, :func:`liverforce.learn.interval.fit_input_distance`). No record,
+    or no distances: no warning. ``camera`` words the advice as :func:`force_warnings` does."""
+    from liverforce.learn.interval import distance_flags
+
+    if distance is None:
+        return []
+    d = np.asarray(distance, dtype=np.float64).reshape(-1)
+    out: list[list[str]] = [[] for _ in range(len(d))]
+    if not record:
+        return out
+    thr, q = float(record["threshold"]), float(record["quantile"])
+    check = "the tool tip and the registration" if camera else "the ROI nodes and their order"
+    for i in np.flatnonzero(distance_flags(d, record)):
+        out[i] = [f"the case lies far from every training case: its distance to the nearest, in the model's length "
+                  f"scales, is {d[i]:.3g}, above {thr:.3g} ({q:.0%} of the calibration cases lie nearer to the "
+                  f"training cases of the model that did not see them); the force and its interval are less "
+                  f"reliable there (cases past this line had several times the others' error); check the exertion "
                   f"point, {check}"]
     return out
 

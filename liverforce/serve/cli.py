@@ -282,7 +282,8 @@ def _run(args) -> int:
         force = predictor.predict(nodes, preop) if iv is None else np.asarray(iv.pop("force_n"))
         if iv is not None:
             info["interval"] = iv
-        info["warnings"] = predictor.context_warnings(preop) + predictor.force_warnings(force)[0]
+        far = predictor.distance_warnings(None if iv is None else [iv.get("input_distance")])
+        info["warnings"] = predictor.context_warnings(preop) + predictor.force_warnings(force)[0] + (far or [[]])[0]
     force_in = frame.vectors_out(force)
     doc = {"force_n": [float(v) for v in force_in], "magnitude_n": float(np.linalg.norm(force)),
            "frame": _frame_label(frame),

@@ -94,20 +94,21 @@ def numpy_layers(seq: nn.Sequential) -> list[tuple[np.ndarray, np.ndarray, float
     return [(W, b, s) for W, b, s in out]
 
 
-def regressor_head(module: nn.Module, fixed: dict | None = None, members: bool = False):
+def regressor_head(module: nn.Module, fixed: dict | None = None, members: bool = False, distance: bool = False):
     """The GP regressor's NumPy posterior mean (:meth:`liverforce.learn.gp.GPRegressor.numpy_head`, or
     :meth:`liverforce.learn.gp.GPEnsemble.numpy_head`; ``fixed``: ``{input column: value}`` of inputs the same
     in every row, folded in once: the head then takes the other columns); None for an MLP (served layer by
     layer from :func:`numpy_layers`). ``members``: a GP ensemble's head returns ``(mean, members' sd)`` (the
-    interval's spread); ValueError for a regressor that is not one, or an ensemble of one member."""
+    interval's spread); ValueError for a regressor that is not one, or an ensemble of one member. ``distance``:
+    the GP head's result is followed by each row's input distance (``GPEnsemble.numpy_head``)."""
     from liverforce.learn.gp import GPEnsemble, GPRegressor
 
     if members:
         if not isinstance(module, GPEnsemble):
             raise ValueError(f"the interval reads a GP ensemble's members' spread; this regressor is a "
                              f"{type(module).__name__}")
-        return module.numpy_head(fixed, members=True)
-    return module.numpy_head(fixed) if isinstance(module, (GPRegressor, GPEnsemble)) else None
+        return module.numpy_head(fixed, members=True, distance=distance)
+    return module.numpy_head(fixed, distance=distance) if isinstance(module, (GPRegressor, GPEnsemble)) else None
 
 
 def _act(h: np.ndarray, slope: float | None) -> np.ndarray:

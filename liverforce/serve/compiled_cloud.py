@@ -99,7 +99,7 @@ from liverforce.learn.cloud_features import (_COST_RTOL, _FIT_ITERATIONS, _MAD_S
                                              ReferenceSurface, _fill, instrument_search_radius, shaft_fit_radius)
 from liverforce.learn.encoders import PCAEncoder
 from liverforce.learn.state import THICKNESS_COLUMN, compliance_matrices, state_vector
-from liverforce.serve.checks import Limits, TrainingScale, force_warnings, outside_training
+from liverforce.serve.checks import Limits, TrainingScale, distance_warnings, force_warnings, outside_training
 from liverforce.serve.cloud import (MASKED_INSTRUMENT, SHAFT_MARGIN_MM, SHAFT_POINTS, SHAFT_RING_MM, SHAFT_RISE_MM,
                                     camera_checks, check_camera_cloud, instrument_check_radius, instrument_refusal,
                                     metres_cloud, noisy_cloud, noisy_threshold_mm, outlier_cloud, registration_warnings,
@@ -1393,9 +1393,13 @@ def _dense_rows(Hin, WT, b, slope, act):
 # --------------------------------------------------------------------------
 
 
-def _with_force(warnings: list, force: np.ndarray, scale: TrainingScale) -> list:
-    """Each cloud's warnings, a force beyond the training forces' appended (a refused cloud's NaN gets none)."""
-    return [w + f for w, f in zip(warnings, force_warnings(force, scale, camera=True))]
+def _with_force(warnings: list, force: np.ndarray, scale: TrainingScale, distance: np.ndarray | None = None,
+                record: dict | None = None) -> list:
+    """Each cloud's warnings, a force beyond the training forces' appended (a refused cloud's NaN gets none), then
+    an input distance beyond the model's calibration quantile (``distance`` (B,), NaN for a refused cloud;
+    ``record``: ``ForceModel.input_distance``; None: none)."""
+    far = distance_warnings(distance, record) or [[] for _ in warnings]
+    return [w + f + d for w, f, d in zip(warnings, force_warnings(force, scale, camera=True), far)]
 
 
 def instrument_params(sp) -> np.ndarray:
@@ -1565,9 +1569,10 @@ class CompiledCloud:
         # row's distance and of the linear term is computed here, and the head reads the code and f_lin only
         iv = model.interval
         self._spread = iv is not None and iv.uses_spread  # the head also gives the members' sd (the interval's)
+        self._far = model.input_distance  # the input-distance flag (a GP's; None: none): the head gives distances
         self.gp = regressor_head(model.regressor, {nz + k: float(v) for k, v in
                                                    enumerate(self.s_base.astype(np.float32))} or None,
-                                 members=self._spread)
+                                 members=self._spread, distance=self._far is not None)
         self._state_cols = self.s_base.size if self.gp is None else 0  # state columns _head writes into Z
         for W, b, sl in ([] if self.gp is not None else numpy_layers(model.regressor)):
             act, slope = (0, 0.0) if sl is None else ((1, 0.0) if sl == 0.0 else (2, float(sl)))
@@ -1649,10 +1654,11 @@ class CompiledCloud:
                     X[r, :gg] = _fill(X[r, :gg].reshape(g, g), X[r, gg:2 * gg].reshape(g, g) > 0.5, "nearest").ravel()
         return X, n_used, n_bad, n_tool
 
-    def _head(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-        """Forces (n, 3) N in the liver frame of feature rows ``X`` (affine map, state, MLP or GP, scaling), and
-        for an interval scaled by the spread the GP ensemble members' sd of the local force (n, 3) N (else None),
-        as :meth:`liverforce.learn.model.ForceModel.forward` gives them."""
+    def _head(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """Forces (n, 3) N in the liver frame of feature rows ``X`` (affine map, state, MLP or GP, scaling), for an
+        interval scaled by the spread the GP ensemble members' sd of the local force (n, 3) N (else None), and for a
+        model with the input-distance flag each row's input distance (n,) (else None), as
+        :meth:`liverforce.learn.model.ForceModel.forward` gives them."""
         n = len(X)
         nz = self.A.shape[0]
         ns = self._state_cols  # 0 for the GP: its head holds the state (__init__)
@@ -1678,9 +1684,12 @@ class CompiledCloud:
                     Z[:, o + j] = (d[:, 0] * self.dent_k - self.lin_mean[j]) / self.lin_scale[j]
                     Z[:, o + j + 1] = (d[:, 1] - self.lin_mean[j + 1]) / self.lin_scale[j + 1]
         h = Z.astype(np.float32)
-        sd = None
+        sd = near = None
         if self.gp is not None:
             h = self.gp(h)
+            if self._far is not None:
+                *h, near = h
+                h = h[0] if len(h) == 1 else tuple(h)
             if self._spread:
                 h, sd = h
                 sd = sd * np.abs(self.tscale * self.k)  # the sd of (h tscale + tmean) k over the members
@@ -1688,7 +1697,7 @@ class CompiledCloud:
             h = _dense_rows(h, WT, b, slope, act)
         f = (h.astype(np.float64) * self.tscale + self.tmean) * self.k  # local frame
         R = self.R
-        return (f[:, 0:1] * R[0] + f[:, 1:2] * R[1]) + f[:, 2:3] * R[2], sd  # R^T f, row by row
+        return (f[:, 0:1] * R[0] + f[:, 1:2] * R[1]) + f[:, 2:3] * R[2], sd, near  # R^T f, row by row
 
     def _reasons(self, cloud_of, counts, tips, X, n_used, n_bad, n_tool) -> tuple[list, list]:
         """Per cloud: the refusal reason (None if predicted) and the warnings, in the reference path's order.
@@ -1777,24 +1786,29 @@ class CompiledCloud:
             return instrument_refusal(n_shaft, self._shaft_tool_mm)
         return None
 
-    def _forces(self, X: np.ndarray, ok: np.ndarray, threads: int = 1) -> tuple[np.ndarray, np.ndarray | None]:
+    def _forces(self, X: np.ndarray, ok: np.ndarray,
+                threads: int = 1) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
         """Forces (B, 3) N of the feature rows ``X[ok]`` (NaN elsewhere), the head in blocks of ``_HEAD_ROWS``
-        (``threads`` > 1: the blocks in that many threads; the same blocks, so the same bits), and the members'
-        sd (B, 3) N for an interval scaled by the spread (NaN elsewhere; None without)."""
+        (``threads`` > 1: the blocks in that many threads; the same blocks, so the same bits), the members'
+        sd (B, 3) N for an interval scaled by the spread (NaN elsewhere; None without) and the input distances
+        (B,) for a model with the input-distance flag (NaN elsewhere; None without)."""
         F = np.full((len(X), 3), np.nan)
         S = np.full((len(X), 3), np.nan) if self._spread else None
+        D = np.full(len(X), np.nan) if self._far is not None else None
         rows = np.flatnonzero(ok)
         every = len(rows) == len(X)  # then blocks of rows are views, not copies
         blocks = [(slice(a, a + _HEAD_ROWS) if every else rows[a:a + _HEAD_ROWS],)
                   for a in range(0, len(rows), _HEAD_ROWS)]
 
-        def block(r) -> None:  # its own rows of F (and S)
-            F[r], sd = self._head(X[r])
+        def block(r) -> None:  # its own rows of F (and S, D)
+            F[r], sd, near = self._head(X[r])
             if S is not None:
                 S[r] = sd
+            if D is not None:
+                D[r] = near
 
         _in_threads(block, blocks, threads)
-        return F, S
+        return F, S, D
 
     def _half(self, F: np.ndarray, S: np.ndarray | None = None) -> np.ndarray | None:
         """Half-widths ``(B, 3)`` (local frame) of forces ``(B, 3)`` (any frame: the scale reads ``|F|``) and the
@@ -1856,9 +1870,10 @@ class CompiledCloud:
         X, why, warnings = self._one(cloud_mm, tool_tip_mm)
         if why is not None:
             raise PredictionInputError(why)
-        F, S = self._head(X)
+        F, S, D = self._head(X)
         half = self._half(F, S)
-        return self._out(F[0]), None if half is None else half[0], _with_force([warnings], F, self.scale)[0]
+        return (self._out(F[0]), None if half is None else half[0],
+                _with_force([warnings], F, self.scale, D, self._far)[0])
 
     def predict_batch(self, clouds, tool_tips, counts=None, *, threads: int = 1) -> CloudBatch:
         """Forces of many clouds at this exertion point in one go (a :class:`CloudBatch`).
@@ -1912,8 +1927,9 @@ class CompiledCloud:
                 X[a:e], n_used[a:e], n_bad[a:e], n_tool[a:e] = self._grid(
                     P.reshape(-1, 3), np.arange(e - a, dtype=np.int64) * N, cnt[a:e], tips[a:e], threads)
             refused, warnings = self._reasons(lambda r: clouds[r, :cnt[r]], cnt, tips, X, n_used, n_bad, n_tool)
-            F, S = self._forces(X, np.array([r is None for r in refused], dtype=bool), threads)
-            return CloudBatch(self._out(F), self._half(F, S), _with_force(warnings, F, self.scale), refused)
+            F, S, D = self._forces(X, np.array([r is None for r in refused], dtype=bool), threads)
+            return CloudBatch(self._out(F), self._half(F, S), _with_force(warnings, F, self.scale, D, self._far),
+                              refused)
         if counts is not None:
             raise PredictionInputError("counts: only with one padded (B, N, 3) array of clouds")
         refused: list = [None] * B
@@ -1927,15 +1943,18 @@ class CompiledCloud:
         good = [i for i in range(B) if arrays[i] is not None]
         force = np.full((B, 3), np.nan)
         spread = np.full((B, 3), np.nan) if self._spread else None
+        far = np.full(B, np.nan) if self._far is not None else None
         if good:
             P = [arrays[i] for i in good]
             X, n_used, n_bad, n_tool = self._grid(P, None, None, tips[good], threads)
             why, warn = self._reasons(lambda r: P[r], np.array([len(c) for c in P]), tips[good], X, n_used, n_bad,
                                       n_tool)
-            force[good], S = self._forces(X, np.array([r is None for r in why], dtype=bool), threads)
+            force[good], S, D = self._forces(X, np.array([r is None for r in why], dtype=bool), threads)
             if spread is not None:
                 spread[good] = S
+            if far is not None:
+                far[good] = D
             for k, i in enumerate(good):
                 refused[i], warnings[i] = why[k], warn[k]
-        return CloudBatch(self._out(force), self._half(force, spread), _with_force(warnings, force, self.scale),
-                          refused)
+        return CloudBatch(self._out(force), self._half(force, spread),
+                          _with_force(warnings, force, self.scale, far, self._far), refused)

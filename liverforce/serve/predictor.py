@@ -39,8 +39,8 @@ from liverforce.learn import camera
 from liverforce.learn.model import ForceModel, ModelFormatError, subset
 from liverforce.learn.provenance import provenance_lines
 from liverforce.learn.representation import ROW_KEY
-from liverforce.serve.checks import (Limits, TrainingScale, check_case, check_on_surface, force_warnings,
-                                     outside_training)
+from liverforce.serve.checks import (Limits, TrainingScale, check_case, check_on_surface, distance_warnings,
+                                     force_warnings, outside_training)
 from liverforce.serve.cloud import (camera_checks, check_camera_cloud, check_instrument, cloud_support, cloud_warnings,
                                     registration_warnings, cloud_to_arrays, tool_tip_of)
 from liverforce.serve.compiled import CompiledROI
@@ -197,6 +197,12 @@ class Predictor:
         case's (:func:`liverforce.serve.checks.force_warnings`); every path adds it after the inputs' warnings."""
         return force_warnings(force, self.scale, camera=self.model.representation.is_camera)
 
+    def distance_warnings(self, distance) -> list[list[str]]:
+        """Per input distance ``(n,)`` (``Forward.input_distance``; None: none): a warning where the case lies
+        farther from every training case than the model's calibration quantile
+        (:func:`liverforce.serve.checks.distance_warnings`); every path adds it after the force's."""
+        return distance_warnings(distance, self.model.input_distance, camera=self.model.representation.is_camera)
+
     def _check_state_inputs(self, preop: Preop) -> None:
         if self.model.uses_state:
             missing = [k for k in ("liver_centroid_mm", "inertia_mm5", "material_params_mpa", "tool_thickness_mm",
@@ -311,10 +317,12 @@ class Predictor:
             arrays["camera_features"] = x  # computed once: the model reads them instead of the cloud
         else:
             info["warnings"] = self.context_warnings(preop)
-        force = self.model.predict(arrays, rotations=R)[0]
+        fw = self.model.forward(arrays, rotations=R)
+        force = fw.force_source[0]
         if registration is not None:
             info["registration"] = {**registration.to_dict(), "description": registration.describe()}
-        info["warnings"] = info["warnings"] + registration_warnings(registration) + self.force_warnings(force)[0]
+        info["warnings"] = (info["warnings"] + registration_warnings(registration) + self.force_warnings(force)[0]
+                            + (self.distance_warnings(fw.input_distance) or [[]])[0])
         if return_info and self.model.interval is not None:
             info["interval"] = interval_doc(self.model, arrays, rotations=R)
         return (force, info) if return_info else force
@@ -546,10 +554,13 @@ class Predictor:
         if not rows:
             return out(force, warnings)
         sub = arrays if len(rows) == n else subset(arrays, rows)
+        dist = np.full(n, np.nan)  # the rows' input distances (NaN: none known), for their warnings
         try:
-            force[rows] = self._forces(sub, R[rows], observation_seed, fast, min_group)
+            force[rows], dist[rows] = self._forces(sub, R[rows], observation_seed, fast, min_group,
+                                                          return_warnings)
         except ValueError as exc:  # a row every check passed that the model cannot take (raised unless keep_going)
-            failed = self._failing_rows(arrays, rows, R, exc, observation_seed, fast, min_group) if keep_going else {}
+            failed = (self._failing_rows(arrays, rows, R, exc, observation_seed, fast, min_group, return_warnings)
+                      if keep_going else {})
             if not failed:
                 raise
             for i, why in failed.items():
@@ -558,12 +569,14 @@ class Predictor:
             if not rows:
                 return out(force, warnings)
             sub = subset(arrays, rows)  # the others as in a call of them alone
-            force[rows] = self._forces(sub, R[rows], observation_seed, fast, min_group)
+            force[rows], dist[rows] = self._forces(sub, R[rows], observation_seed, fast, min_group,
+                                                          return_warnings)
         if not return_warnings:
             return out(force, warnings)
         regs = [registration_warnings(fixes[i]) for i in rows] if fixes is not None else [[] for _ in rows]
-        for i, c, g, f in zip(rows, self.arrays_warnings(sub), regs, self.force_warnings(force[rows])):
-            warnings[i] = c + own_warnings[i] + g + f
+        far = self.distance_warnings(dist[rows]) or [[] for _ in rows]
+        for i, c, g, f, d in zip(rows, self.arrays_warnings(sub), regs, self.force_warnings(force[rows]), far):
+            warnings[i] = c + own_warnings[i] + g + f + d
         return out(force, warnings)
 
     def _failing_rows(self, arrays: dict, rows: list[int], R: np.ndarray, exc: ValueError,
@@ -582,14 +595,21 @@ class Predictor:
                 failed.update(self._failing_rows(arrays, half, R, got, *args))
         return failed
 
-    def _forces(self, arrays: dict, R: np.ndarray, observation_seed, fast: bool, min_group: int) -> np.ndarray:
-        """:meth:`predict_arrays`' forces of checked rows (``R``: their rotations), by the compiled node path
-        where ``fast`` allows it."""
+    def _forces(self, arrays: dict, R: np.ndarray, observation_seed, fast: bool, min_group: int,
+                distances: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`predict_arrays`' forces ``(n, 3)`` of checked rows (``R``: their rotations), by the compiled node
+        path where ``fast`` allows it, and their input distances ``(n,)`` (``Forward.input_distance``; NaN for a
+        model without an input-distance flag). The compiled node path has no distance: for a model with the flag
+        its rows' distances come from one more pass of the reference path's features and GP, unless ``distances``
+        is False (no warnings asked for: NaN)."""
         n = len(R)
         rep = self.model.representation
         can_fast = fast and rep.features == "displacement" and not (observation_seed is not None and rep.stochastic)
+        flagged = self.model.input_distance is not None
         if not can_fast:
-            return self.model.predict(arrays, observation_seed=observation_seed, rotations=R)
+            fw = self.model.forward(arrays, observation_seed=observation_seed, rotations=R)
+            dist = fw.input_distance if flagged and fw.input_distance is not None else np.full(n, np.nan)
+            return fw.force_source, dist
         groups: dict[bytes, list[int]] = {}
         for i in range(n):
             groups.setdefault(_context_key(arrays, i), []).append(i)
@@ -610,7 +630,10 @@ class Predictor:
         if slow:
             slow = np.array(sorted(slow))
             out[slow] = self.model.predict(subset(arrays, slow), observation_seed=observation_seed, rotations=R[slow])
-        return out
+        dist = np.full(n, np.nan)
+        if flagged and distances:
+            dist = self.model.forward(arrays, observation_seed=observation_seed, rotations=R).input_distance
+        return out, dist
 
     # ------------------------------------------------------------------ info
     def describe(self) -> dict:
@@ -722,6 +745,8 @@ def interval_doc(model, arrays: dict, *, rotations: np.ndarray | None = None) ->
     def fl(v):
         return [float(x) if np.isfinite(x) else None for x in v]
 
+    dist = got.get("input_distance")
     return {"force_n": got["force_n"][0].tolist(), "coverage": got["coverage"], "frame": got["frame"][0].tolist(),
             "force_local_n": fl(f),
-            "half_width_local_n": fl(h), "lower_local_n": fl(f - h), "upper_local_n": fl(f + h)}
+            "half_width_local_n": fl(h), "lower_local_n": fl(f - h), "upper_local_n": fl(f + h),
+            "input_distance": None if dist is None else float(dist[0])}
