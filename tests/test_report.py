@@ -695,3 +695,30 @@ def test_one_split_and_one_unseen_liver_print_no_spread(stage_outputs):
     foot = _rows(_section(html, "id='validation'", "id='studies'"), "livers-mean")
     assert foot[0][0] == "the one liver"
     assert foot[0][3:] == [f"{m['mae_vec']:.3f}", f"{m['rmse_vec']:.3f}", f"{m['accuracy_pct']:.1f}"]
+
+
+def test_report_says_which_unseen_cases_the_input_distance_flag_warns_about(stage_outputs):
+    """The validation's ``interval.input_distance`` (liverforce.pipeline.validate.distance_flag_on_unseen): the
+    flagged count, their MAE against the others', the large errors caught and the coverage of each group."""
+    path = stage_outputs["validation"]
+    doc = json.loads(path.read_text())
+    doc["interval"]["input_distance"] = {
+        "quantile": 0.9, "threshold": 0.512, "n_calibration": 64, "n_cases": 11, "n_flagged": 2,
+        "mae_flagged_n": 0.81, "mae_others_n": 0.23, "large_error_n": 0.4, "n_large": 3, "n_large_flagged": 2,
+        "coverage_flagged": [0.5, 1.0, 0.5], "coverage_others": [0.889, 0.889, 1.0], "median_distance": 0.3,
+        "per_liver": {"val-1000": 2}}
+    path.write_text(json.dumps(doc))
+    far = _section(_report(stage_outputs), "<h3>Far from every training case</h3>", "</p>")
+    assert "than 90 % of its calibration cases" in far and "threshold 0.512, from 64 calibration cases" in far
+    assert "It flags <b>2 of 11</b> unseen cases (18.2 %)" in far
+    assert ("Their MAE is <b>0.810 N</b>, against 0.230 N for the other 9; they hold 2 of the 3 errors above "
+            "0.4 N") in far
+    assert "flagged cases' components in 50 / 100 / 50 % (t1 / t2 / n), the others' in 89 / 89 / 100 %" in far
+    doc["interval"]["input_distance"].update(n_flagged=0, mae_flagged_n=None, mae_others_n=0.3, n_large_flagged=0,
+                                             coverage_flagged=None)
+    path.write_text(json.dumps(doc))
+    far = _section(_report(stage_outputs), "<h3>Far from every training case</h3>", "</p>")
+    assert "No unseen case lies beyond it (median distance 0.300)" in far
+    del doc["interval"]["input_distance"]
+    path.write_text(json.dumps(doc))
+    assert "Far from every training case" not in _report(stage_outputs)

@@ -69,6 +69,11 @@ def test_every_stage_produced_its_outputs(smoke_run):
     # a width per bin of the predicted force (the default), with its coverage per quintile of |F|
     assert iv["scale"] == "force_bins" and 1 <= len(iv["coverage_by_force"]) <= 5
     assert sum(b["n"] for b in iv["coverage_by_force"]) == val["n_cases"]
+    # the unseen cases the input-distance flag warns about (the validated camera model is a GP ensemble)
+    far = iv["input_distance"]
+    assert far["quantile"] == 0.9 and far["n_cases"] == val["n_cases"] and far["threshold"] > 0
+    assert sum(far["per_liver"].values()) == far["n_flagged"]
+    assert (far["mae_flagged_n"] is None) == (far["n_flagged"] == 0)
     # the unseen cases serving would warn about (state outside the training range), counted per input and liver
     ext = val["outside_training"]
     assert ext["n_cases"] == val["n_cases"] and sum(ext["per_liver"].values()) == ext["n_outside"]

@@ -82,6 +82,7 @@ def interval_coverage(m, arrays: dict) -> dict | None:
              "coverage": coverage_per_component(true_local[sel], got["force_local_n"][sel], half[sel]),
              "half_width_mean_n": [float(v) if np.isfinite(v) else None for v in half[sel].mean(axis=0)]}
             for lo, hi, sel in force_bins(mag, np.quantile(mag, np.linspace(0.0, 1.0, 6)))]
+    far = distance_flag_on_unseen(m, got, true_local, np.asarray(arrays["force_n"], float), half, geo)
     return {"nominal": ci.coverage, "bounded": ci.bounded, "n_calibration": ci.n_calibration, "scale": ci.scale,
             "widen": ci.widen, "stiffness_exponent": None if ci.stiffness_exponent is None else
             [float(v) for v in ci.stiffness_exponent], "spread_beta": ci.spread_beta,
@@ -90,7 +91,42 @@ def interval_coverage(m, arrays: dict) -> dict | None:
             "coverage_per_liver": per,
             "coverage_band_by_liver": coverage_band_by_liver(per),
             "half_width_mean_n": [float(v) if np.isfinite(v) else None for v in half.mean(axis=0)],
-            "test_coverage": m.meta.get("interval_test_coverage")}
+            "test_coverage": m.meta.get("interval_test_coverage"),
+            "input_distance": far}
+
+
+#: an unseen case's error (N) above this is one the input-distance flag should catch (the report's "large errors")
+LARGE_ERROR_N = 0.4
+
+
+def distance_flag_on_unseen(m, got: dict, true_local: np.ndarray, true_force: np.ndarray, half: np.ndarray,
+                            geo: np.ndarray) -> dict | None:
+    """What the model's input-distance flag (``m.input_distance``, :mod:`liverforce.learn.interval`) does on the
+    unseen livers, from their :meth:`~liverforce.learn.model.ForceModel.predict_interval` ``got``: the threshold
+    and quantile, how many cases it flags (per liver too), the mean error (N) of the flagged cases and of the
+    others, how many errors above :data:`LARGE_ERROR_N` it catches, and the interval's coverage per component of
+    each group. None for a model without the flag."""
+    from liverforce.learn.interval import coverage_per_component, distance_flags
+
+    rec = m.input_distance
+    d = got.get("input_distance")
+    if rec is None or d is None:
+        return None
+    f = distance_flags(d, rec)
+    err = np.linalg.norm(np.asarray(got["force_n"], float) - true_force, axis=1)
+    big = err > LARGE_ERROR_N
+
+    def cov(sel):
+        return coverage_per_component(true_local[sel], got["force_local_n"][sel], half[sel]) if sel.any() else None
+
+    return {"quantile": rec["quantile"], "threshold": rec["threshold"], "n_calibration": rec["n_calibration"],
+            "n_cases": int(f.size), "n_flagged": int(f.sum()),
+            "mae_flagged_n": float(err[f].mean()) if f.any() else None,
+            "mae_others_n": float(err[~f].mean()) if (~f).any() else None,
+            "large_error_n": LARGE_ERROR_N, "n_large": int(big.sum()), "n_large_flagged": int((big & f).sum()),
+            "coverage_flagged": cov(f), "coverage_others": cov(~f),
+            "median_distance": float(np.median(d)),
+            "per_liver": {g: int(f[geo == g].sum()) for g in sorted(set(geo.tolist()))}}
 
 
 def coverage_band_by_liver(per_liver: dict, level: float = 0.95) -> list | None:

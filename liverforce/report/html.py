@@ -510,6 +510,31 @@ def _extrapolation_paragraph(ext: dict | None) -> str:
             f"<code>Predictor.context_warnings</code>). {err}</p>")
 
 
+def _distance_paragraph(interval: dict | None) -> str:
+    """The unseen cases the input-distance flag warns about (``validation.interval.input_distance``), and their
+    error and interval coverage against the others'."""
+    far = (interval or {}).get("input_distance")
+    if not far:
+        return ""
+    n, k = far["n_cases"], far["n_flagged"]
+    head = (f"<h3>Far from every training case</h3><p>Serving warns when a case's inputs lie farther from the "
+            f"model's nearest training case (in the GP's length scales) than {100 * far['quantile']:.0f} % of its "
+            f"calibration cases lie from the fold model that did not see their liver (threshold "
+            f"{_fmt(far['threshold'])}, from {far['n_calibration']} calibration cases). ")
+    if not k:
+        return head + f"No unseen case lies beyond it (median distance {_fmt(far['median_distance'])}).</p>"
+    cov = ""
+    if far.get("coverage_flagged") and far.get("coverage_others"):
+        cov = (" The interval covers the flagged cases' components in "
+               + " / ".join(f"{100 * c:.0f}" for c in far["coverage_flagged"]) + " % (t1 / t2 / n), the others' in "
+               + " / ".join(f"{100 * c:.0f}" for c in far["coverage_others"]) + " %.")
+    others = (f", against {_fmt(far['mae_others_n'])} N for the other {n - k}" if far["mae_others_n"] is not None
+              else "")
+    return (head + f"It flags <b>{k} of {n}</b> unseen cases ({100 * k / n:.1f} %). Their MAE is "
+            f"<b>{_fmt(far['mae_flagged_n'])} N</b>{others}; they hold {far['n_large_flagged']} of the "
+            f"{far['n_large']} errors above {far['large_error_n']:g} N.{cov}</p>")
+
+
 def _gap_cell(gap: float | None) -> str:
     """The camera's accuracy gap to the reference (points), flagged above :data:`CAMERA_GAP_LIMIT`."""
     if gap is None:
@@ -1172,6 +1197,7 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
                          + _table(["|F| (N)", "cases", "t1 %", "t2 %", "n %", "mean half-widths t1, t2, n (N)"],
                                   rows, cls="interval-bins"))
     parts.append(_extrapolation_paragraph(v.get("outside_training")))
+    parts.append(_distance_paragraph(v.get("interval")))
     allv = v.get("all_variants") or {}
     if len(allv) > 1:
         parts.append("<h3>Every scenario-IV variant on the same unseen livers</h3>")
