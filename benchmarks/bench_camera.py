@@ -21,7 +21,8 @@ Gaussian process, and ``mlp``), prints, on one core (1 BLAS / torch / numba thre
 4. with ``--profile``: where a batch's time goes, per cloud (the largest batch, medians of ``--repeats`` calls):
    the gridding pass (``CompiledCloud._grid``), again with the dent fit, the tilted instrument fit and both
    switched off in the kernel's parameters, and without the drop of gross depth errors (what each costs; the
-   features then differ, only the time is read), the head (affine map, regressor: ``_head``) and the checks
+   features then differ, only the time is read), the head (affine map, regressor: ``_head``; for a GP with the
+   input-distance flag also without it, the same model compiled without the flag, and the ratio) and the checks
    (``_reasons``).
 
 The models are trained here on synthetic cases with whole surfaces
@@ -171,10 +172,11 @@ def describe(model) -> str:
     return f"MLP {model.regressor_spec.hidden}"
 
 
-def profile(fast, batch: list, tips: np.ndarray) -> None:
+def profile(fast, batch: list, tips: np.ndarray, plain=None) -> None:
     """Per-cloud time of the compiled batch's stages (module docstring, 4.): gridding with the shipped kernel
     parameters and with the dent (``inst[10]``), the tilted fit (``inst[8]``) or both off, and without the drop of
-    gross depth errors (``inst[14]``, when the model drops them), head, checks."""
+    gross depth errors (``inst[14]``, when the model drops them), head, checks. ``plain``: the same model compiled
+    without the input-distance flag (its head computes no distance), whose head is timed beside."""
     nb = len(batch)
 
     def per_cloud(fn) -> float:  # us per cloud, from the median of the runs' rates (as the batches')
@@ -192,13 +194,17 @@ def profile(fast, batch: list, tips: np.ndarray) -> None:
     fast._inst[:] = inst
     X, n_used, n_bad, n_tool = fast._grid(P, None, None, tips)
     head = per_cloud(lambda: fast._head(X))
+    bare = ""
+    if plain is not None:  # the input-distance flag's share of the head (a max over the kernel matrix per member)
+        head_plain = per_cloud(lambda: plain._head(X))
+        bare = f" (without the input distance {head_plain:.1f}: x{head / head_plain:.2f})"
     counts = np.array([len(c) for c in P])
     checks = per_cloud(lambda: fast._reasons(lambda r: P[r], counts, tips, X, n_used, n_bad, n_tool))
     total = per_cloud(lambda: fast.predict_batch(batch, tips))
     print(f"profile, batch of {nb} clouds, us per cloud (medians of {REPEATS}): predict_batch {total:.1f}; "
           f"gridding {grid['as shipped']:.1f} (" + ", ".join(f"{k} {v:.1f}" for k, v in grid.items()
                                                          if k != "as shipped") +
-          f"); head {head:.1f}; checks {checks:.1f}")
+          f"); head {head:.1f}{bare}; checks {checks:.1f}")
 
 
 def measure(kind: str, model, arrays: dict, ctx, tip, clouds, batch_pool) -> dict:
@@ -269,7 +275,12 @@ def measure(kind: str, model, arrays: dict, ctx, tip, clouds, batch_pool) -> dic
           f"clouds/s ({r_lab / rates[nb]:.2f}x the same clouds in RAS mm); max |dF| against RAS mm {d_lab:.1e} N")
     print(f"reference ForceModel.predict, list of {REF_BATCH} clouds (peer): {r_ref:,.0f} clouds/s")
     if ARGS.profile:
-        profile(fast, [batch_pool[k % len(batch_pool)] for k in range(nb)], np.tile(tip, (nb, 1)))
+        plain = None
+        if model.input_distance is not None:
+            meta = {k: v for k, v in model.meta.items() if k != "input_distance"}
+            plain = Predictor(ForceModel(model.representation, model.pre, model.regressor_spec, model.regressor,
+                                         meta)).compile_cloud(ctx)
+        profile(fast, [batch_pool[k % len(batch_pool)] for k in range(nb)], np.tile(tip, (nb, 1)), plain)
     best = max(rates.values())
     print(f"targets on this machine: p99 {1e3 * t_fast[1]:.3f} ms <= 2 ms: "
           f"{'met' if t_fast[1] <= 2e-3 else 'NOT met'}; batch {best:,.0f} clouds/s >= 10,000: "
