@@ -276,7 +276,7 @@ def measure(kind: str, model, arrays: dict, ctx, tip, clouds, batch_pool) -> dic
     print(f"reference ForceModel.predict, list of {REF_BATCH} clouds (peer): {r_ref:,.0f} clouds/s")
     if ARGS.profile:
         plain = None
-        if model.input_distance is not None:
+        if model.distance_flag is not None:
             meta = {k: v for k, v in model.meta.items() if k != "input_distance"}
             plain = Predictor(ForceModel(model.representation, model.pre, model.regressor_spec, model.regressor,
                                          meta)).compile_cloud(ctx)

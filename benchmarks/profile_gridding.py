@@ -208,6 +208,8 @@ def against(pred, preop, fast, batch, tips) -> None:
 
             cls = old_gp.GPEnsemble if isinstance(reg, GPEnsemble) else old_gp.GPRegressor
             spread = {"members": True} if getattr(old, "_spread", False) else {}  # a revision with the spread
+            if getattr(old, "_far", None) is not None:  # a revision with the input-distance flag
+                spread["distance"] = True
             old.gp = cls.from_state_dict(reg.state_dict()).numpy_head(fixed, **spread)
         n = len(batch)
         Xn = fast._grid(batch, None, None, tips)[0]

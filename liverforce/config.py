@@ -212,7 +212,8 @@ class IntervalConfig:
     spread: Optional[float] = MISSING  # beta > 0: widths x (the GP ensemble members' sd + beta x its calibration
     # median); null: not scaled by the members' spread (liverforce.learn.interval)
     distance_quantile: Optional[float] = MISSING  # a GP model's prediction warns when its inputs lie farther from
-    # every training row than this quantile of the calibration cases' (liverforce.learn.interval); null: no such flag
+    # every training row than this quantile of the training cases' from the other livers' rows
+    # (liverforce.learn.interval); null: no such flag
 
 
 @dataclass

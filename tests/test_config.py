@@ -71,6 +71,9 @@ def test_thesis_is_the_study_scale():
         ("model.camera.grid.instrument_radius_mm=2.5", "model.camera.grid.instrument_radius_mm"),
         ("validate.seed=1", "validate.seed"),
         ("geometry.procedural.shape.lobe_ratio=9", "geometry.procedural.shape"),
+        ("train.interval.distance_quantile=1.0", "train.interval.distance_quantile"),
+        ("train.interval.distance_quantile=0.2", "train.interval.distance_quantile"),
+        ("train.interval.distance_quantile=true", "train.interval.distance_quantile"),
     ],
 )
 def test_bad_values_name_their_key(override, key):

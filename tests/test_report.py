@@ -706,14 +706,19 @@ def test_report_says_which_unseen_cases_the_input_distance_flag_warns_about(stag
         "quantile": 0.9, "threshold": 0.512, "n_calibration": 64, "n_cases": 11, "n_flagged": 2,
         "mae_flagged_n": 0.81, "mae_others_n": 0.23, "large_error_n": 0.4, "n_large": 3, "n_large_flagged": 2,
         "coverage_flagged": [0.5, 1.0, 0.5], "coverage_others": [0.889, 0.889, 1.0], "median_distance": 0.3,
-        "per_liver": {"val-1000": 2}}
+        "per_liver": {"val-1000": 2}, "left_out": "liver",
+        "flagged_at": {"0.5": 6, "0.9": 2, "0.95": 1, "0.99": 0}}
     path.write_text(json.dumps(doc))
     far = _section(_report(stage_outputs), "<h3>Far from every training case</h3>", "</p>")
-    assert "than 90 % of its calibration cases" in far and "threshold 0.512, from 64 calibration cases" in far
+    assert ("than 90 % of its training cases lie from the other livers' (threshold 0.512, from 64 training "
+            "cases)") in far
     assert "It flags <b>2 of 11</b> unseen cases (18.2 %)" in far
     assert ("Their MAE is <b>0.810 N</b>, against 0.230 N for the other 9; they hold 2 of the 3 errors above "
             "0.4 N") in far
     assert "flagged cases' components in 50 / 100 / 50 % (t1 / t2 / n), the others' in 89 / 89 / 100 %" in far
+    assert ("A liver like the training livers puts 10 % of its cases beyond it; the unseen livers: 18.2 % beyond "
+            "the training side's 90 % quantile; 9.1 % beyond the training side's 95 % quantile; 0.0 % beyond the "
+            "training side's 99 % quantile.") in far
     doc["interval"]["input_distance"].update(n_flagged=0, mae_flagged_n=None, mae_others_n=0.3, n_large_flagged=0,
                                              coverage_flagged=None)
     path.write_text(json.dumps(doc))

@@ -112,16 +112,17 @@ class GPRegressor(nn.Module):
         return GPRegressor(self.X, self.alpha[:, k:k + 1], self.inv_length[k], self.signal_var[k],
                            self.linear_var[k], self.noise_var[k], self.shape)
 
-    def nearest_distance(self, z) -> np.ndarray:
+    def nearest_distance(self, z, groups=None, row_groups=None) -> np.ndarray:
         """``(n,)``: each row of ``z`` ``(n, d)``'s distance to the nearest training row, in inputs scaled by the
         inverse length scales (the kernel's ``r``); a per-output GP's mean over its outputs. How far a case lies
         from every case the GP learned from (:func:`nearest_scaled`), the input distance a prediction is flagged
-        by (:mod:`liverforce.learn.interval`)."""
+        by (:mod:`liverforce.learn.interval`). ``groups`` ``(n,)`` and ``row_groups`` (one label per training
+        row): a training row with the case's own label is left out (the training side's distances)."""
         z = np.asarray(z, dtype=np.float64)
         X = self.X.numpy()
         il = self.inv_length.numpy()
         rows = il if self.per_output else il[None]
-        return np.mean([nearest_scaled(z * r, X * r) for r in rows], axis=0)
+        return np.mean([nearest_scaled(z * r, X * r, groups_a=groups, groups_b=row_groups) for r in rows], axis=0)
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
         z = z.double()
@@ -314,16 +315,31 @@ def _fixed_inputs(fixed: dict | None, n_in: int) -> dict:
     return out
 
 
-def nearest_scaled(A: np.ndarray, B: np.ndarray, block: int = 1024) -> np.ndarray:
+def training_rows(n: int, seed: int, max_points: int) -> np.ndarray:
+    """The rows of ``n`` training rows that :func:`fit_gp` keeps (sorted): all of them, or above ``max_points`` a
+    subset of that size drawn with ``seed``."""
+    if n <= int(max_points):
+        return np.arange(n)
+    rng = np.random.default_rng(derive(seed, "gp.subset"))
+    return np.sort(rng.choice(n, size=int(max_points), replace=False))
+
+
+def nearest_scaled(A: np.ndarray, B: np.ndarray, block: int = 1024, groups_a=None, groups_b=None) -> np.ndarray:
     """``(len(A),)``: each row of ``A``'s Euclidean distance to the nearest row of ``B`` (float64, in blocks of
-    ``block`` rows of ``A``: the ``(block, len(B))`` matrix at a time)."""
+    ``block`` rows of ``A``: the ``(block, len(B))`` matrix at a time). ``groups_a`` ``(len(A),)`` and ``groups_b``
+    ``(len(B),)``: labels; a row of ``B`` with the label of the row of ``A`` is left out (its own liver; inf when
+    every row is)."""
     A = np.asarray(A, dtype=np.float64)
     B = np.asarray(B, dtype=np.float64)
+    if (groups_a is None) != (groups_b is None):
+        raise ValueError("nearest_scaled: give the labels of both A's and B's rows, or of neither")
     bb = np.einsum("ij,ij->i", B, B)
     out = np.empty(len(A))
     for a in range(0, len(A), block):
         P = A[a:a + block]
         d2 = np.einsum("ij,ij->i", P, P)[:, None] + bb[None] - 2.0 * (P @ B.T)
+        if groups_a is not None:
+            d2[np.asarray(groups_a)[a:a + block, None] == np.asarray(groups_b)[None, :]] = np.inf
         out[a:a + block] = np.sqrt(np.maximum(d2.min(axis=1), 0.0))
     return out
 
@@ -472,10 +488,7 @@ def fit_gp(z: np.ndarray, y: np.ndarray, *, seed: int, max_points: int = 2000,
             raise ValueError(f"fit_gp: groups must label every row ({len(z)}); got shape {groups.shape}")
         if len(np.unique(groups)) < 2:
             raise ValueError("fit_gp: the groups name a single case; need at least 2 cases")
-    rows = np.arange(len(z))
-    if len(z) > int(max_points):
-        rng = np.random.default_rng(derive(seed, "gp.subset"))
-        rows = np.sort(rng.choice(len(z), size=int(max_points), replace=False))
+    rows = training_rows(len(z), seed, max_points)
     X = torch.from_numpy(z[rows])
     Y = torch.from_numpy(y[rows])
     n = X.shape[0]
@@ -605,12 +618,13 @@ class GPEnsemble(nn.Module):
         z = z.double()
         return torch.stack([m(z[:, self.columns(i)]) for i, m in enumerate(self.members)])
 
-    def nearest_distance(self, z) -> np.ndarray:
+    def nearest_distance(self, z, groups=None, row_groups=None) -> np.ndarray:
         """``(n,)``: the members' :meth:`GPRegressor.nearest_distance` of ``z``'s rows on their columns, averaged
-        (each member measures in its own length scales)."""
+        (each member measures in its own length scales; ``groups``, ``row_groups`` as there: the members share
+        their training rows)."""
         z = np.asarray(z, dtype=np.float64)
-        return np.mean([m.nearest_distance(z[:, self.columns(i).numpy()]) for i, m in enumerate(self.members)],
-                       axis=0)
+        return np.mean([m.nearest_distance(z[:, self.columns(i).numpy()], groups, row_groups)
+                        for i, m in enumerate(self.members)], axis=0)
 
     def numpy_head(self, fixed: dict | None = None, members: bool = False, distance: bool = False):
         """The members' :meth:`GPRegressor.numpy_head` on their columns, averaged (the compiled paths).

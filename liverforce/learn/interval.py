@@ -164,15 +164,19 @@ How far a case lies from what the GP learned from (``distance_quantile``, the co
 training livers' and cannot know that a new case lies where no training case does. Each prediction's GP inputs
 are measured against the regressor's training rows, in the kernel's own units (each input divided by its length
 scale), and the distance to the nearest is averaged over the ensemble's members
-(:meth:`liverforce.learn.gp.GPEnsemble.nearest_distance`). The calibration cases give the distances of cases
-the model has not seen: each is measured by the fold model fitted without it (without its liver in IV), as an
-unseen liver's case is by the served model. Above the calibration's ``distance_quantile`` (0.9) a prediction is
-returned with a warning (:func:`distance_flags`; :func:`liverforce.serve.checks.distance_warnings` words it).
-Measured before it was built (``benchmarks/experiment_input_distance.py``, the f70 clone's camera model, its own
-liver left out on the training side): the 9 % of the unseen livers' cases above the training side's 90 %
-quantile had a mean error of 0.51 N against 0.13 N for the others, and held 10 of the 15 errors above 0.4 N;
-the distance ranked the errors better (Spearman 0.63) than the GP's posterior sd (0.60) or the members'
-spread (0.58).
+(:meth:`liverforce.learn.gp.GPEnsemble.nearest_distance`). The training side gives the distances of cases of
+livers the model has not seen, in the served model's own space: each training case (its evaluation view) is
+measured against the GP's rows of the other livers (IV; of the other cases in the scenarios split by case), as
+an unseen liver's case is against all of them (:func:`liverforce.learn.model.training_distances`). Above their
+``distance_quantile`` (0.9) a prediction is returned with a warning (:func:`distance_flags`;
+:func:`liverforce.serve.checks.distance_warnings` words it). Measuring each calibration case against the fold
+model that did not see it (``fold_quantiles`` in the record, for comparison) gives far larger distances: a fold
+model has fewer livers and its own length scales (on a 4-liver test model the 90 % quantile was 0.84 against
+0.28), and it would flag almost nothing. Measured before it was built (``benchmarks/experiment_input_distance.py``,
+the f70 clone's camera model, its own liver left out on the training side): the 9 % of the unseen livers' cases
+above the training side's 90 % quantile had a mean error of 0.51 N against 0.13 N for the others, and held 10 of
+the 15 errors above 0.4 N; the distance ranked the errors better (Spearman 0.63) than the GP's posterior sd
+(0.60) or the members' spread (0.58).
 """
 
 from __future__ import annotations
@@ -531,10 +535,10 @@ DISTANCE_QUANTILES = (0.5, 0.9, 0.95, 0.99)  #: recorded with the threshold (``m
 
 
 def fit_input_distance(distance: np.ndarray, quantile: float) -> dict:
-    """The input-distance flag of the module docstring, from the calibration cases' distances (``(n,)``, each to
-    the nearest training row of the fold model that did not see it): ``{"quantile", "threshold", "n_calibration",
-    "calibration_quantiles"}`` (JSON-ready, ``meta["input_distance"]``). ValueError for a quantile outside
-    [0.5, 1) or no finite distance."""
+    """The input-distance flag of the module docstring, from the training side's distances (``(n,)``, each training
+    case's to the GP's rows of the other livers): ``{"quantile", "threshold", "n_calibration",
+    "calibration_quantiles"}`` (JSON-ready, ``meta["input_distance"]``; ``n_calibration``: the cases measured).
+    ValueError for a quantile outside [0.5, 1) or no finite distance."""
     q = float(quantile)
     if not 0.5 <= q < 1.0:
         raise ValueError(f"distance_quantile must be in [0.5, 1), got {quantile!r}")

@@ -97,7 +97,7 @@ from liverforce.learn.camera import N_DENT
 from liverforce.learn.cloud_features import ROI_TRIANGLES_KEY
 from liverforce.learn.encoders import AutoEncoder, Encoder, PCAEncoder
 from liverforce.learn.frames import case_rotations, force_to_local, force_to_source
-from liverforce.learn.gp import GPEnsemble, GPRegressor
+from liverforce.learn.gp import GPEnsemble, GPRegressor, training_rows
 from liverforce.learn.names import FORCE_SCALINGS
 from liverforce.learn.regressor import (
     FitParams,
@@ -656,8 +656,24 @@ class ForceModel:
         else:
             f_local = ts.inverse_transform(predict_regressor(self.regressor, z)) * k
             spread = None
-        dist = self.regressor.nearest_distance(z) if isinstance(self.regressor, (GPRegressor, GPEnsemble)) else None
+        dist = self.regressor.nearest_distance(np.float32(z)) if self.is_gp else None  # the float32 inputs it reads
         return Forward(R, f_local, self.pre.material_factor(s, len(z)), spread, dist)
+
+    @property
+    def is_gp(self) -> bool:
+        """Whether the regressor is a GP (one or an ensemble): it has training rows to measure a case against."""
+        return isinstance(self.regressor, (GPRegressor, GPEnsemble))
+
+    def input_distances(self, arrays: dict, observation_seed: int | None = None, *,
+                        rotations: np.ndarray | None = None) -> np.ndarray | None:
+        """:attr:`Forward.input_distance` of ``arrays``' cases without the force: the features, the state and the GP
+        inputs only (the compiled node path's rows, whose forces come from elsewhere). None for an MLP."""
+        if not self.is_gp:
+            return None
+        R = case_rotations(arrays) if rotations is None else np.asarray(rotations, dtype=np.float64)
+        x = self.representation.features_of(arrays, observation_seed=observation_seed, R=R)
+        s = state_vector(self.representation.state_arrays(arrays), R=R) if self.uses_state else None
+        return self.regressor.nearest_distance(np.float32(self.pre.inputs(x, s)))
 
     def predict_local(self, arrays: dict, observation_seed: int | None = None) -> np.ndarray:
         """Force in the local frame ``(n, 3)`` N (``F.t1, F.t2, F.n``)."""
@@ -696,11 +712,12 @@ class ForceModel:
         return ci
 
     @property
-    def input_distance(self) -> dict | None:
-        """The input-distance flag fitted with the interval (``meta["input_distance"]``:
-        :func:`liverforce.learn.interval.fit_input_distance`), or None (an MLP, a bundle before it, no interval)."""
+    def distance_flag(self) -> dict | None:
+        """The input-distance flag fitted with the model (``meta["input_distance"]``:
+        :func:`liverforce.learn.interval.fit_input_distance`), or None (an MLP, a bundle before it, a model trained
+        without ``train.interval.distance_quantile``)."""
         rec = self.meta.get("input_distance")
-        return rec if rec and isinstance(self.regressor, (GPRegressor, GPEnsemble)) else None
+        return rec if rec and self.is_gp else None
 
     def predict_interval(self, arrays: dict, observation_seed: int | None = None, *,
                          rotations: np.ndarray | None = None) -> dict:
@@ -845,6 +862,31 @@ def outside_training_range(model: "ForceModel", arrays: dict) -> tuple[np.ndarra
     for v in masks.values():
         out |= v
     return out, masks
+
+
+def training_distances(model: "ForceModel", prep: Prepared, prep_eval: Prepared, labels,
+                       seed: int) -> np.ndarray | None:
+    """Each training case's input distance (:attr:`Forward.input_distance`, its evaluation view ``prep_eval``) to
+    the GP's training rows of other ``labels`` (one per case: its liver in IV, else the case itself, whose other
+    views are then left out): what a case of a liver the model never saw is to it, in the served model's own
+    space (the input-distance flag's training side, :mod:`liverforce.learn.interval`). ``prep``: the rows the
+    model was fitted on (all views), ``seed`` its fit's (the GP's subset of rows). None for an MLP. RuntimeError
+    when the GP's rows are not ``prep``'s (the labels could not be put on them)."""
+    reg = model.regressor
+    if not model.is_gp:
+        return None
+    z_all, _ = regressor_data(model.pre, prep)
+    members = list(reg.members) if isinstance(reg, GPEnsemble) else [reg]
+    cols = [reg.columns(i).numpy() for i in range(len(members))] if isinstance(reg, GPEnsemble) \
+        else [np.arange(z_all.shape[1])]
+    n_used = members[0].n_train
+    rows = training_rows(len(z_all), seed, n_used)
+    if not all(np.array_equal(m.X.numpy(), z_all[rows][:, c]) for m, c in zip(members, cols)):
+        raise RuntimeError("training_distances: the GP's training rows are not the given training rows (another "
+                           "seed, cap or data): the training side's distances cannot be measured")
+    labels = np.asarray(labels).astype(str)
+    z_eval, _ = regressor_data(model.pre, prep_eval, all_views=False)
+    return reg.nearest_distance(np.float32(z_eval), groups=labels, row_groups=labels[view_groups(prep)][rows])
 
 
 def training_scale(prep: Prepared, rep: Representation) -> dict:

@@ -78,6 +78,7 @@ from liverforce.learn.model import (
     regressor_data,
     state_options,
     subset,
+    training_distances,
     view_groups,
     view_seeds,
 )
@@ -475,11 +476,10 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
         interval = {**ci.to_dict(), "test_coverage": coverage_per_component(
             prep_test.y_local, got["force_local_n"], got["half_width_local_n"])}
         model.meta["interval_test_coverage"] = interval["test_coverage"]
-        flag = set_input_distance(model, cal, train_cfg["interval"], notes)
+        flag = set_input_distance(model, cal, train_cfg["interval"], train_arrays, prep_train, scenario, seed)
         if flag is not None:
-            interval["input_distance"] = {**flag, **flagged_errors(
-                model.forward(test_arrays, observation_seed=eval_seed(seed)).input_distance, flag,
-                prep_test.force, pred)}
+            interval["input_distance"] = {**flag, **flagged_errors(got["input_distance"], flag, prep_test.force,
+                                                                    pred)}
     repeats = [{"split_seed": seed, "test_geometries": _geometries(test_arrays), "metrics": metrics,
                 "outside_training": outside_training_split(model, test_arrays, pred),
                 **exact_tip_metrics(model, test_arrays, seed)}]
@@ -598,11 +598,13 @@ def fit_final(train_arrays, test_arrays, model_cfg, train_cfg, scenario, seed, e
         ci = interval_from_calibration(cal, train_cfg["interval"], scenario, said)
         _write_calibration(out_dir / "interval_calibration.npz", cal)
         model.meta["interval"] = ci.to_dict()
-        set_input_distance(model, cal, train_cfg["interval"], said)
+        set_input_distance(model, cal, train_cfg["interval"], cases, prep, scenario, seed)
         if said:  # e.g. the interval without the members' spread: kept with the model
             model.meta["interval_notes"] = said
         model.meta["interval_test_coverage"] = split_interval["test_coverage"]
         interval = {**ci.to_dict(), "test_coverage": split_interval["test_coverage"]}
+        if split_interval.get("input_distance") is not None:  # the split model's flag on its test livers
+            interval["split_input_distance"] = split_interval["input_distance"]
     info = {"n_cases": len(cases["case_id"]), "geometries": _geometries(cases)}
     return model, rep, interval, info
 
@@ -639,21 +641,26 @@ def interval_from_calibration(cal: dict, interval_cfg, scenario, notes: list | N
         return fit(False)
 
 
-def set_input_distance(model, cal: dict, interval_cfg, notes: list | None = None) -> dict | None:
-    """Fit the input-distance flag (:func:`liverforce.learn.interval.fit_input_distance`) on the calibration cases'
-    distances ``cal["input_distance"]`` at ``interval_cfg["distance_quantile"]`` and record it in
-    ``model.meta["input_distance"]``; returns it, or None (the key null or missing, a model without a GP: no
-    distances; ``notes`` says why when the key asked for one)."""
-    from liverforce.learn.interval import fit_input_distance
+def set_input_distance(model, cal: dict, interval_cfg, arrays: dict, prep, scenario: str, seed: int) -> dict | None:
+    """Fit the input-distance flag (:func:`liverforce.learn.interval.fit_input_distance`) at
+    ``interval_cfg["distance_quantile"]`` on the training side's distances (:func:`training_distances`: each of
+    ``arrays``' cases, in its evaluation view, to the GP's rows of other livers in IV, of other cases elsewhere;
+    ``prep``: the rows the model was fitted on, with ``seed``) and record it in ``model.meta["input_distance"]``,
+    with the calibration's distances (``cal["input_distance"]``, each to the fold model that did not see the
+    case) as ``fold_quantiles`` for comparison. Returns it, or None: the key null or missing, or an MLP (no
+    training rows to measure against; nothing is said, as an MLP has no members' spread either)."""
+    from liverforce.learn.interval import DISTANCE_QUANTILES, fit_input_distance
 
     q = interval_cfg.get("distance_quantile")
-    if q is None:
+    if q is None or not model.is_gp:
         return None
-    if cal.get("input_distance") is None:
-        if notes is not None:
-            notes.append("no input-distance flag: the regressor is not a GP (its distances are a GP's)")
-        return None
-    rec = fit_input_distance(cal["input_distance"], q)
+    labels = np.asarray(arrays["geometry_id" if group_key(scenario) == "geometry" else "case_id"]).astype(str)
+    prep_eval = prepare(arrays, model.representation, observation_seeds=[eval_seed(seed)])
+    rec = fit_input_distance(training_distances(model, prep, prep_eval, labels, seed), q)
+    rec["left_out"] = "liver" if group_key(scenario) == "geometry" else "case"
+    fold = cal.get("input_distance")
+    if fold is not None:
+        rec["fold_quantiles"] = {f"{p:g}": float(np.quantile(fold, p)) for p in DISTANCE_QUANTILES}
     model.meta["input_distance"] = rec
     return rec
 

@@ -101,31 +101,38 @@ LARGE_ERROR_N = 0.4
 
 def distance_flag_on_unseen(m, got: dict, true_local: np.ndarray, true_force: np.ndarray, half: np.ndarray,
                             geo: np.ndarray) -> dict | None:
-    """What the model's input-distance flag (``m.input_distance``, :mod:`liverforce.learn.interval`) does on the
+    """What the model's input-distance flag (``m.distance_flag``, :mod:`liverforce.learn.interval`) does on the
     unseen livers, from their :meth:`~liverforce.learn.model.ForceModel.predict_interval` ``got``: the threshold
     and quantile, how many cases it flags (per liver too), the mean error (N) of the flagged cases and of the
-    others, how many errors above :data:`LARGE_ERROR_N` it catches, and the interval's coverage per component of
-    each group. None for a model without the flag."""
+    others (:func:`~liverforce.learn.train.flagged_errors`), how many errors above :data:`LARGE_ERROR_N` it
+    catches, the interval's coverage per component of each group, and how many cases lie above each recorded
+    quantile of the training side (``flagged_at``; a liver like the training livers puts 1 - q of its cases
+    there) and above the calibration folds' 90 % (``flagged_at_fold_0.9``, the threshold fitted before session
+    62, for comparison). None for a model without the flag."""
     from liverforce.learn.interval import coverage_per_component, distance_flags
+    from liverforce.learn.train import flagged_errors
 
-    rec = m.input_distance
+    rec = m.distance_flag
     d = got.get("input_distance")
     if rec is None or d is None:
         return None
     f = distance_flags(d, rec)
+    counts = flagged_errors(d, rec, true_force, got["force_n"])
     err = np.linalg.norm(np.asarray(got["force_n"], float) - true_force, axis=1)
     big = err > LARGE_ERROR_N
 
     def cov(sel):
         return coverage_per_component(true_local[sel], got["force_local_n"][sel], half[sel]) if sel.any() else None
 
+    fold = (rec.get("fold_quantiles") or {}).get("0.9")
     return {"quantile": rec["quantile"], "threshold": rec["threshold"], "n_calibration": rec["n_calibration"],
-            "n_cases": int(f.size), "n_flagged": int(f.sum()),
-            "mae_flagged_n": float(err[f].mean()) if f.any() else None,
-            "mae_others_n": float(err[~f].mean()) if (~f).any() else None,
+            "left_out": rec.get("left_out"), "n_cases": counts["n"], "n_flagged": counts["n_flagged"],
+            "mae_flagged_n": counts["mae_flagged_n"], "mae_others_n": counts["mae_others_n"],
             "large_error_n": LARGE_ERROR_N, "n_large": int(big.sum()), "n_large_flagged": int((big & f).sum()),
             "coverage_flagged": cov(f), "coverage_others": cov(~f),
             "median_distance": float(np.median(d)),
+            "flagged_at": {q: int((d > v).sum()) for q, v in rec["calibration_quantiles"].items()},
+            "flagged_at_fold_0.9": None if fold is None else int((d > fold).sum()),
             "per_liver": {g: int(f[geo == g].sum()) for g in sorted(set(geo.tolist()))}}
 
 

@@ -516,13 +516,18 @@ def _distance_paragraph(interval: dict | None) -> str:
     far = (interval or {}).get("input_distance")
     if not far:
         return ""
-    n, k = far["n_cases"], far["n_flagged"]
+    n, k, q = far["n_cases"], far["n_flagged"], 100 * far["quantile"]
+    other = "the other livers'" if far.get("left_out", "liver") == "liver" else "the other cases'"
     head = (f"<h3>Far from every training case</h3><p>Serving warns when a case's inputs lie farther from the "
-            f"model's nearest training case (in the GP's length scales) than {100 * far['quantile']:.0f} % of its "
-            f"calibration cases lie from the fold model that did not see their liver (threshold "
-            f"{_fmt(far['threshold'])}, from {far['n_calibration']} calibration cases). ")
+            f"model's nearest training case (in the GP's length scales) than {q:.0f} % of its training cases lie "
+            f"from {other} (threshold {_fmt(far['threshold'])}, from {far['n_calibration']} training cases). ")
+    at = far.get("flagged_at") or {}
+    beyond = "; ".join(f"{100 * c / n:.1f} % beyond the training side's {100 * float(p):.0f} % quantile"
+                       for p, c in at.items() if float(p) >= 0.9)
+    rate = f" A liver like the training livers puts {100 - q:.0f} % of its cases beyond it; the unseen livers: " \
+           f"{beyond}." if beyond else ""
     if not k:
-        return head + f"No unseen case lies beyond it (median distance {_fmt(far['median_distance'])}).</p>"
+        return head + f"No unseen case lies beyond it (median distance {_fmt(far['median_distance'])}).{rate}</p>"
     cov = ""
     if far.get("coverage_flagged") and far.get("coverage_others"):
         cov = (" The interval covers the flagged cases' components in "
@@ -532,7 +537,7 @@ def _distance_paragraph(interval: dict | None) -> str:
               else "")
     return (head + f"It flags <b>{k} of {n}</b> unseen cases ({100 * k / n:.1f} %). Their MAE is "
             f"<b>{_fmt(far['mae_flagged_n'])} N</b>{others}; they hold {far['n_large_flagged']} of the "
-            f"{far['n_large']} errors above {far['large_error_n']:g} N.{cov}</p>")
+            f"{far['n_large']} errors above {far['large_error_n']:g} N.{cov}{rate}</p>")
 
 
 def _gap_cell(gap: float | None) -> str:

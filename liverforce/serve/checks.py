@@ -40,7 +40,7 @@ material (units)             a constant outside its training range by more
 After the prediction, a force larger than every training case's (``|F|`` above the largest of
 ``meta["training_scale"]["force_magnitude_n"]``) is returned with a warning (:func:`force_warnings`): the
 regressor extrapolates there, and the interval's widths were calibrated on smaller forces. So is a GP model's
-case whose inputs lie farther from every training case than the model's calibration quantile
+case whose inputs lie farther from every training case than the model's training-side quantile
 (``meta["input_distance"]``, :mod:`liverforce.learn.interval`; :func:`distance_warnings`). A wrong exertion
 point is one way to get there: on the default run's unseen liver val-1000, the exertion point given 5 mm from
 where the tool pressed turned a 3.8 N case into 7.5 N, with every input check passed.
@@ -509,8 +509,8 @@ def force_warnings(force: np.ndarray, scale: TrainingScale, camera: bool = True)
 
 def distance_warnings(distance, record: dict | None, camera: bool = True) -> list[list[str]]:
     """Per row of input distances ``(n,)`` (``Forward.input_distance``; None: none known): a warning where the
-    case's GP inputs lie farther from every training row than the model's calibration quantile
-    (``record``: ``ForceModel.input_distance``, :func:`liverforce.learn.interval.fit_input_distance`). No record,
+    case's GP inputs lie farther from every training row than the model's training-side quantile
+    (``record``: ``ForceModel.distance_flag``, :func:`liverforce.learn.interval.fit_input_distance`). No record,
     or no distances: no warning. ``camera`` words the advice as :func:`force_warnings` does."""
     from liverforce.learn.interval import distance_flags
 
@@ -520,14 +520,14 @@ def distance_warnings(distance, record: dict | None, camera: bool = True) -> lis
     out: list[list[str]] = [[] for _ in range(len(d))]
     if not record:
         return out
-    thr, q = float(record["threshold"]), float(record["quantile"])
+    thr, q = float(record["threshold"]), 100.0 * float(record["quantile"])
+    other = "the other livers'" if record.get("left_out", "liver") == "liver" else "the other cases'"
     check = "the tool tip and the registration" if camera else "the ROI nodes and their order"
     for i in np.flatnonzero(distance_flags(d, record)):
-        out[i] = [f"the case lies far from every training case: its distance to the nearest, in the model's length "
-                  f"scales, is {d[i]:.3g}, above {thr:.3g} ({q:.0%} of the calibration cases lie nearer to the "
-                  f"training cases of the model that did not see them); the force and its interval are less "
-                  f"reliable there (cases past this line had several times the others' error); check the exertion "
-                  f"point, {check}"]
+        out[i] = [f"the case lies far from every training case: its inputs are {d[i]:.3g} from the nearest (in the "
+                  f"model's GP length scales, no unit), farther than {q:.0f} % of the training cases lie from "
+                  f"{other} ({thr:.3g}); the force and its interval are less reliable there. Check the exertion "
+                  f"point, {check}; if they are right, read the force as an extrapolation"]
     return out
 
 

@@ -1396,8 +1396,8 @@ def _dense_rows(Hin, WT, b, slope, act):
 def _with_force(warnings: list, force: np.ndarray, scale: TrainingScale, distance: np.ndarray | None = None,
                 record: dict | None = None) -> list:
     """Each cloud's warnings, a force beyond the training forces' appended (a refused cloud's NaN gets none), then
-    an input distance beyond the model's calibration quantile (``distance`` (B,), NaN for a refused cloud;
-    ``record``: ``ForceModel.input_distance``; None: none)."""
+    an input distance beyond the model's training-side quantile (``distance`` (B,), NaN for a refused cloud;
+    ``record``: ``ForceModel.distance_flag``; None: none)."""
     far = distance_warnings(distance, record) or [[] for _ in warnings]
     return [w + f + d for w, f, d in zip(warnings, force_warnings(force, scale, camera=True), far)]
 
@@ -1569,7 +1569,7 @@ class CompiledCloud:
         # row's distance and of the linear term is computed here, and the head reads the code and f_lin only
         iv = model.interval
         self._spread = iv is not None and iv.uses_spread  # the head also gives the members' sd (the interval's)
-        self._far = model.input_distance  # the input-distance flag (a GP's; None: none): the head gives distances
+        self._far = model.distance_flag  # the input-distance flag (a GP's; None: none): the head gives distances
         self.gp = regressor_head(model.regressor, {nz + k: float(v) for k, v in
                                                    enumerate(self.s_base.astype(np.float32))} or None,
                                  members=self._spread, distance=self._far is not None)

@@ -199,9 +199,9 @@ class Predictor:
 
     def distance_warnings(self, distance) -> list[list[str]]:
         """Per input distance ``(n,)`` (``Forward.input_distance``; None: none): a warning where the case lies
-        farther from every training case than the model's calibration quantile
+        farther from every training case than the model's training-side quantile
         (:func:`liverforce.serve.checks.distance_warnings`); every path adds it after the force's."""
-        return distance_warnings(distance, self.model.input_distance, camera=self.model.representation.is_camera)
+        return distance_warnings(distance, self.model.distance_flag, camera=self.model.representation.is_camera)
 
     def _check_state_inputs(self, preop: Preop) -> None:
         if self.model.uses_state:
@@ -239,10 +239,12 @@ class Predictor:
         """The force of :meth:`predict` with its calibrated interval (None for a model without one).
 
         ``{"force_n" (liver frame), "coverage", "frame" (rows t1, t2, n), "force_local_n",
-        "half_width_local_n", "lower_local_n", "upper_local_n"}``: per local component, the
+        "half_width_local_n", "lower_local_n", "upper_local_n", "input_distance"}``: per local component, the
         interval ``force_local_n +- half_width_local_n`` covers the true component with the
         nominal probability on livers like the calibration livers (the unseen-liver
-        validation reports the coverage actually reached).
+        validation reports the coverage actually reached); ``input_distance``: a GP's distance from the case's
+        inputs to its nearest training row (``Forward.input_distance``; None for an MLP), which
+        :meth:`distance_warnings` words when it is beyond the model's threshold.
         """
         if self.model.interval is None:
             return None
@@ -600,12 +602,13 @@ class Predictor:
         """:meth:`predict_arrays`' forces ``(n, 3)`` of checked rows (``R``: their rotations), by the compiled node
         path where ``fast`` allows it, and their input distances ``(n,)`` (``Forward.input_distance``; NaN for a
         model without an input-distance flag). The compiled node path has no distance: for a model with the flag
-        its rows' distances come from one more pass of the reference path's features and GP, unless ``distances``
-        is False (no warnings asked for: NaN)."""
+        its rows' distances come from one more pass of the reference path's features and GP inputs
+        (:meth:`~liverforce.learn.model.ForceModel.input_distances`, no GP mean), unless ``distances`` is False (no
+        warnings asked for: NaN)."""
         n = len(R)
         rep = self.model.representation
         can_fast = fast and rep.features == "displacement" and not (observation_seed is not None and rep.stochastic)
-        flagged = self.model.input_distance is not None
+        flagged = self.model.distance_flag is not None
         if not can_fast:
             fw = self.model.forward(arrays, observation_seed=observation_seed, rotations=R)
             dist = fw.input_distance if flagged and fw.input_distance is not None else np.full(n, np.nan)
@@ -632,7 +635,7 @@ class Predictor:
             out[slow] = self.model.predict(subset(arrays, slow), observation_seed=observation_seed, rotations=R[slow])
         dist = np.full(n, np.nan)
         if flagged and distances:
-            dist = self.model.forward(arrays, observation_seed=observation_seed, rotations=R).input_distance
+            dist = self.model.input_distances(arrays, observation_seed=observation_seed, rotations=R)
         return out, dist
 
     # ------------------------------------------------------------------ info

@@ -114,30 +114,54 @@ def trained(tmp_path_factory):
     return arrays, res, out
 
 
-def test_training_fits_the_threshold_on_the_calibration_cases_distances(trained):
+def test_training_fits_the_threshold_on_each_training_cases_distance_to_the_other_livers_rows(trained):
+    """The threshold is the quantile of the training cases' distances, each (in its evaluation view) to the served
+    GP's training rows of the other livers, measured here by brute force with the rows' livers found by matching
+    them to the training views; the calibration's fold-model distances are kept beside it for comparison."""
+    from liverforce.learn.model import eval_seed, n_views_for, prepare, regressor_data, subset, view_groups, view_seeds
+
     arrays, res, out = trained
     m = ForceModel.load(res["model_path"])
-    rec = m.input_distance
+    rec = m.distance_flag
+    assert rec["quantile"] == 0.8 and rec["left_out"] == "liver"
+    test = set(m.meta["test_case_ids"])
+    a = subset(arrays, [i for i, c in enumerate(arrays["case_id"]) if c not in test])
+    rep = m.representation
+    prep = prepare(a, rep, observation_seeds=view_seeds(0, n_views_for(rep)))
+    z_all, _ = regressor_data(m.pre, prep)
+    liver_of = {z_all[r].tobytes(): a["geometry_id"][k] for r, k in enumerate(view_groups(prep))}
+    full = m.regressor.members[-1]  # the largest member reads every input column
+    assert m.regressor.columns(len(m.regressor.members) - 1).numel() == z_all.shape[1]
+    row_liver = np.array([liver_of[x.tobytes()] for x in full.X.numpy()])
+    z_eval = np.float32(regressor_data(m.pre, prepare(a, rep, observation_seeds=[eval_seed(0)]),
+                                       all_views=False)[0]).astype(np.float64)
+    own = np.asarray(a["geometry_id"])
+    each = []
+    for i, g in enumerate(m.regressor.members):
+        c = m.regressor.columns(i).numpy()
+        il = g.inv_length.numpy()
+        each.append([brute(z_eval[k:k + 1, c], g.X.numpy()[row_liver != own[k]], il)[0] for k in range(len(own))])
+    d = np.mean(each, axis=0)
+    assert rec["n_calibration"] == len(own)
+    assert rec["threshold"] == pytest.approx(np.quantile(d, 0.8), rel=1e-9)
+    assert rec["calibration_quantiles"]["0.5"] == pytest.approx(np.median(d), rel=1e-9)
     with np.load(out / "interval_calibration.npz") as z:
-        cal = z["input_distance"]
-        n_cal = len(z["true_local"])
-    assert len(cal) == n_cal and rec["n_calibration"] == n_cal and rec["quantile"] == 0.8
-    assert rec["threshold"] == pytest.approx(np.quantile(cal, 0.8))
-    # each calibration case was measured by a model that did not see it: none sits on a training row
-    assert cal.min() > 1e-3
+        fold = z["input_distance"]
+        assert len(fold) == len(z["true_local"])
+    assert rec["fold_quantiles"]["0.9"] == pytest.approx(np.quantile(fold, 0.9))
+    # each calibration case was measured by a fold model that did not see it: none sits on a training row
+    assert fold.min() > 1e-3
     # the split's test livers: how the flag splits them is in the result, from the served model's distances
     flag = res["interval"]["input_distance"]
-    test = [list(arrays["case_id"]).index(c) for c in m.meta["test_case_ids"]]
-    from liverforce.learn.model import eval_seed, subset
-
-    d = m.forward(subset(arrays, test), observation_seed=eval_seed(0)).input_distance
-    assert flag["n"] == len(test) and flag["n_flagged"] == int((d > rec["threshold"]).sum())
+    idx = [list(arrays["case_id"]).index(c) for c in m.meta["test_case_ids"]]
+    dt = m.forward(subset(arrays, idx), observation_seed=eval_seed(0)).input_distance
+    assert flag["n"] == len(idx) and flag["n_flagged"] == int((dt > rec["threshold"]).sum())
 
 
 def test_a_case_far_from_the_training_inputs_is_flagged(trained):
     arrays, res, _ = trained
     m = ForceModel.load(res["model_path"])
-    rec = m.input_distance
+    rec = m.distance_flag
     from liverforce.learn.model import eval_seed, subset
 
     test = [list(arrays["case_id"]).index(c) for c in m.meta["test_case_ids"]]
@@ -169,7 +193,7 @@ def test_an_mlp_has_no_distance_and_no_flag(trained, tmp_path):
 
     spec = RegressorSpec(m.pre.n_inputs, (8,), 0.0)
     mlp = ForceModel(m.representation, m.pre, spec, build_mlp(spec), m.meta)
-    assert mlp.input_distance is None and "input_distance" in mlp.meta
+    assert mlp.distance_flag is None and "input_distance" in mlp.meta
     assert mlp.forward(arrays, observation_seed=0).input_distance is None
 
 
@@ -201,3 +225,37 @@ def test_the_validation_counts_the_flagged_unseen_cases_and_their_error(trained)
     meta.pop("input_distance")
     bare = ForceModel(m.representation, m.pre, m.regressor_spec, m.regressor, meta)
     assert interval_coverage(bare, a)["input_distance"] is None
+
+
+def test_the_final_fit_measures_every_case_and_keeps_the_split_models_test_counts(tmp_path):
+    """``train.final_fit``: the saved model's threshold rests on every case of the scenario (each against the other
+    livers' rows of the model fitted on all of them); the main split's counts on its test livers are kept beside
+    it. An MLP gets no flag and no note."""
+    from liverforce.learn.model import eval_seed, n_views_for, prepare, training_distances, view_seeds
+
+    arrays = synthetic_arrays(90, n_geometries=4, seed=5, nodes=(150, 200), material_varies=True)
+    model = {"encoder": "pca", "code_size": 4, "state_vector": True, "grid_size": 6, "hidden": [16], "dropout": 0.0,
+             "occlusion": {"radius_mm": 0.0, "mode": "remove"}, "noise_mm": 0.0, "regressor": "gp",
+             "gp": {"max_points": 2000, "iterations": 30, "code_members": [2, 4]}}
+    train = {"test_fraction": 0.25, "epochs": 2, "batch_size": 32, "lr": 3e-3, "weight_decay": 0.0, "seed": 0,
+             "final_fit": True, "interval": {"coverage": 0.9, "calibration_fraction": 0.25, "folds": 3,
+                                              "scale": "none", "distance_quantile": 0.9}}
+    tune = {"enabled": False, "trials": 1, "folds": 2, "sobol_trials": 1, "epochs": 1}
+    res = train_scenario(arrays, model, train, tune, "IV", "gp", out_dir=tmp_path / "gp")
+    m = ForceModel.load(res["model_path"])
+    rec = m.distance_flag
+    assert m.meta["final_fit"] and rec["n_calibration"] == len(arrays["case_id"])
+    rep = m.representation
+    prep = prepare(arrays, rep, observation_seeds=view_seeds(0, n_views_for(rep)))
+    d = training_distances(m, prep, prepare(arrays, rep, observation_seeds=[eval_seed(0)]),
+                           arrays["geometry_id"], 0)
+    assert rec["threshold"] == pytest.approx(np.quantile(d, 0.9), rel=1e-12)
+    split = res["interval"]["split_input_distance"]
+    assert split["n"] == len(m.meta["split_test_case_ids"]) and "n_flagged" in split
+    with pytest.raises(RuntimeError, match="not the given training rows"):  # rows other than the fitted ones
+        training_distances(m, prep.rows(np.arange(60)), prep, arrays["geometry_id"][:60], 0)
+    mlp = train_scenario(arrays, {**model, "regressor": "mlp"}, {**train, "final_fit": False}, tune, "IV", "mlp",
+                         out_dir=tmp_path / "mlp")
+    m2 = ForceModel.load(mlp["model_path"])
+    assert "input_distance" not in m2.meta and "input_distance" not in mlp["interval"]
+    assert not any("input-distance" in n for n in mlp.get("notes", []))

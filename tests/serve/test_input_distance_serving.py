@@ -50,7 +50,7 @@ def camera(tmp_path_factory):
     arrays = synthetic_surface_arrays(80, n_geometries=3, seed=3, material_varies=True)
     res = train_scenario(arrays, MODEL, TRAIN, NO_TUNE, "IV", "cloud", out_dir=tmp_path_factory.mktemp("far-cam"))
     model = ForceModel.load(res["model_path"])
-    assert model.input_distance is not None and model.input_distance["quantile"] == 0.9
+    assert model.distance_flag is not None and model.distance_flag["quantile"] == 0.9
     a = subset(arrays, np.flatnonzero(np.isin(arrays["geometry_id"], res["split"]["test_geometries"])))
     V, T = a["surface_meshes"][a["geometry_id"][0]]
     clouds, tips = [], []
@@ -76,7 +76,7 @@ def test_every_camera_path_flags_the_cases_beyond_the_threshold(camera):
     pred = Predictor(with_threshold(model, thr))
     got = [pred.predict_cloud(c, ctx, tool_tip_mm=t, return_info=True)[1] for c, t in zip(clouds, tips)]
     assert [far(i["warnings"]) for i in got] == want.tolist()
-    assert [far(i["warnings"]) for i in infos] == (d > model.input_distance["threshold"]).tolist()
+    assert [far(i["warnings"]) for i in infos] == (d > model.distance_flag["threshold"]).tolist()
     fast = pred.compile_cloud(ctx)
     assert [far(fast.predict(c, t)[2]) for c, t in zip(clouds, tips)] == want.tolist()
     batch = fast.predict_batch(clouds, tips)
@@ -100,10 +100,13 @@ def test_every_camera_path_flags_the_cases_beyond_the_threshold(camera):
 
 def test_without_a_record_no_path_warns(camera):
     model, ctx, clouds, tips = camera
+    deep = clouds[-1], tips[-1]
+    low = Predictor(with_threshold(model, 0.0))  # with a record any case above 0 warns, on both paths
+    assert far(low.predict_cloud(deep[0], ctx, tool_tip_mm=deep[1], return_info=True)[1]["warnings"])
+    assert far(low.compile_cloud(ctx).predict(*deep)[2])
     meta = {k: v for k, v in model.meta.items() if k != "input_distance"}
     bare = Predictor(ForceModel(model.representation, model.pre, model.regressor_spec, model.regressor, meta))
-    assert bare.model.input_distance is None
-    deep = clouds[-1], tips[-1]
+    assert bare.model.distance_flag is None
     assert not far(bare.predict_cloud(*deep[:1], ctx, tool_tip_mm=deep[1], return_info=True)[1]["warnings"])
     fast = bare.compile_cloud(ctx)
     assert fast._head(fast.features(*deep)[None])[2] is None
