@@ -520,7 +520,7 @@ def _distance_paragraph(interval: dict | None) -> str:
     other = "the other livers'" if far.get("left_out", "liver") == "liver" else "the other cases'"
     head = (f"<h3>Far from every training case</h3><p>Serving warns when a case's inputs lie farther from the "
             f"model's nearest training case (in the GP's length scales) than {q:.0f} % of its training cases lie "
-            f"from {other} (threshold {_fmt(far['threshold'])}, from {far['n_calibration']} training cases). ")
+            f"from {other} (threshold {_fmt(far['threshold'])}, from {far['n_calibration']:,} training cases). ")
     at = far.get("flagged_at") or {}
     beyond = "; ".join(f"{100 * c / n:.1f} % beyond the training side's {100 * float(p):.0f} % quantile"
                        for p, c in at.items() if float(p) >= 0.9)
