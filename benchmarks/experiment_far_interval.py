@@ -8,8 +8,10 @@ against 91-95 % for the others (fresh clone f73). On a finished run's results, n
    far from its fold model's training rows (its distance above the calibration's own 90 % quantile,
    ``fold_quantiles["0.9"]`` of the record: the flag's rule in the fold models' space);
 2. a Mondrian split of the calibration on that taxonomy: per component the split-conformal quantile of ``s`` among
-   the far cases and among the others (:func:`mondrian_factors`), the factors their half-widths are multiplied by;
-3. on the unseen livers: the shipped model's interval, and the same with the far factor on the cases the served
+   the far cases and among the others (:func:`liverforce.learn.interval.mondrian_factors`), the factors their
+   half-widths are multiplied by (what ``train.interval.far_widths`` fits since session 62; a model trained with
+   them is read without them first, and the factors found here are checked against its own);
+3. on the unseen livers: the interval with one width, and the same with the far factor on the cases the served
    flag fires on and the near factor on the others; coverage overall, of the flagged cases and of the others, per
    liver (min and sd), and the mean half-widths.
 
@@ -28,25 +30,12 @@ lowest liver's coverage 73.3 / 76.7 / 76.7 % against 83.3 / 76.7 / 76.7 % shippe
 from __future__ import annotations
 
 import argparse
-import math
+import dataclasses
 from pathlib import Path
 
 import numpy as np
 
-
-def mondrian_factors(scores: np.ndarray, far: np.ndarray, coverage: float) -> tuple[np.ndarray, np.ndarray]:
-    """Per component, the split-conformal quantile (rank ``ceil((n + 1) c)``) of ``scores`` ``(n, k)`` among the rows
-    ``far`` and among the others: ``(far factors (k,), near factors (k,))``. A group too small to bound the
-    quantile (``ceil((n + 1) c) > n``) gets inf."""
-    s = np.asarray(scores, dtype=np.float64)
-    f = np.asarray(far, dtype=bool)
-
-    def q(rows):
-        n = len(rows)
-        k = math.ceil((n + 1) * coverage - 1e-9)
-        return np.full(s.shape[1], np.inf) if k > n else np.sort(rows, axis=0)[k - 1]
-
-    return q(s[f]), q(s[~f])
+from liverforce.learn.interval import mondrian_factors
 
 
 def main() -> None:
@@ -62,7 +51,8 @@ def main() -> None:
     root = Path(args.results)
     d = root / "models" / "IV" / args.variant
     m = ForceModel.load(d / "model")
-    ci, rec = m.interval, m.distance_flag
+    shipped, rec = m.interval, m.distance_flag
+    ci = dataclasses.replace(shipped, far_threshold=None, far_factor=None, near_factor=None) if shipped else None
     if ci is None or rec is None or "fold_quantiles" not in rec:
         raise SystemExit(f"{d}: the model needs an interval and the input-distance flag with the fold quantiles "
                          "(train.interval.distance_quantile, session 62 and later)")
@@ -75,17 +65,22 @@ def main() -> None:
     print(f"calibration: {int(far_cal.sum())} far cases of {len(far_cal)}, covered {pct((s[far_cal] <= 1).mean(0))} % "
           f"(t1 / t2 / n) against {pct((s[~far_cal] <= 1).mean(0))} % for the others")
     far_k, near_k = mondrian_factors(s, far_cal, ci.coverage)
-    print("factors: far " + " / ".join(f"{v:.2f}" for v in far_k) + ", near " + " / ".join(f"{v:.2f}" for v in near_k))
+    print("factors: far " + " / ".join(f"{v:.2f}" for v in far_k) + ", near " + " / ".join(f"{v:.2f}" for v in near_k)
+          + ("" if not shipped.uses_distance else "; the model's own: far " + " / ".join(
+              f"{v:.2f}" for v in shipped.far_factor) + ", near "
+              + " / ".join(f"{v:.2f}" for v in shipped.near_factor)))
     meshes = sorted(str(p) for p in (root / "mesh").glob("*.vtu"))
     a = camera_arrays(root / "shards" / "V" / "manifest.json", meshes, "the unseen livers")
-    got = m.predict_interval(a, observation_seed=int(m.meta.get("eval_observation_seed", 0)))
-    true = force_to_local(np.asarray(a["force_n"], float), got["frame"])
-    pred, h = got["force_local_n"], got["half_width_local_n"]
+    fw = m.forward(a, int(m.meta.get("eval_observation_seed", 0)))
+    true = force_to_local(np.asarray(a["force_n"], float), fw.R)
+    pred = fw.force_local
+    h = ci.half_widths(fw.stiffness, pred, fw.spread_local)
+    got = {"input_distance": fw.input_distance}
     f = got["input_distance"] > rec["threshold"]
     h2 = h * near_k
     h2[f] = h[f] * far_k
     geo = np.asarray(a["geometry_id"]).astype(str)
-    for name, hh in (("shipped", h), ("Mondrian on the flag", h2)):
+    for name, hh in (("one width", h), ("Mondrian on the flag", h2)):
         per = np.array([coverage_per_component(true[geo == g], pred[geo == g], hh[geo == g]) for g in sorted(set(geo))])
         print(f"{name}: unseen {pct(coverage_per_component(true, pred, hh))} %; flagged ({int(f.sum())}) "
               f"{pct(coverage_per_component(true[f], pred[f], hh[f]))} %, the others "

@@ -214,6 +214,8 @@ class IntervalConfig:
     distance_quantile: Optional[float] = MISSING  # a GP model's prediction warns when its inputs lie farther from
     # every training row than this quantile of the training cases' from the other livers' rows
     # (liverforce.learn.interval); null: no such flag
+    far_widths: bool = MISSING  # with distance_quantile: the cases beyond it get a width of their own, the others
+    # theirs (Mondrian conformal on the flag; liverforce.learn.interval)
 
 
 @dataclass
@@ -933,6 +935,8 @@ def _check_ranges(cfg: dict, run: bool = True) -> None:
     if dq is not None and not (isinstance(dq, (int, float)) and not isinstance(dq, bool) and 0.5 <= dq < 1.0):
         _fail("train.interval.distance_quantile", f"must be a quantile in [0.5, 1) or null, got {dq!r}",
               "e.g. 0.9 (a prediction farther from training than 90 % of the calibration cases warns)")
+    if not isinstance(t["interval"].get("far_widths"), bool):
+        _fail("train.interval.far_widths", f"must be true or false, got {t['interval'].get('far_widths')!r}")
     if t["interval"]["bins"] < 1:
         _fail("train.interval.bins", f"must be >= 1 (got {t['interval']['bins']})", "e.g. 4 (with scale: force_bins)")
     if t["heldout_points"]["folds"] < 2:

@@ -74,6 +74,7 @@ def test_thesis_is_the_study_scale():
         ("train.interval.distance_quantile=1.0", "train.interval.distance_quantile"),
         ("train.interval.distance_quantile=0.2", "train.interval.distance_quantile"),
         ("train.interval.distance_quantile=true", "train.interval.distance_quantile"),
+        ("train.interval.far_widths=maybe", "train.interval.far_widths"),
     ],
 )
 def test_bad_values_name_their_key(override, key):

@@ -727,3 +727,13 @@ def test_report_says_which_unseen_cases_the_input_distance_flag_warns_about(stag
     del doc["interval"]["input_distance"]
     path.write_text(json.dumps(doc))
     assert "Far from every training case" not in _report(stage_outputs)
+
+
+def test_report_says_the_interval_has_far_widths(stage_outputs):
+    path = stage_outputs["validation"]
+    doc = json.loads(path.read_text())
+    doc["interval"].update(far_factor=[1.7, 1.68, 1.96], near_factor=[0.88, 0.93, 0.86])
+    path.write_text(json.dumps(doc))
+    iv = _section(_report(stage_outputs), "<h3>Calibrated interval</h3>", "</p>")
+    assert ("a case beyond the input-distance threshold (below) gets its own width, x 1.70 / 1.68 / 1.96, the others "
+            "x 0.88 / 0.93 / 0.86 (t1 / t2 / n; each group's conformal quantile on the calibration)") in iv

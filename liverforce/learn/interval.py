@@ -173,19 +173,37 @@ an unseen liver's case is against all of them (:func:`liverforce.learn.model.tra
 model that did not see it instead (``fold_quantiles`` in the record, for comparison) gives larger distances: a
 fold model has fewer livers and its own length scales. On a 4-liver test model the 90 % quantile was 0.84
 against 0.28 and would have flagged almost nothing; on the default run's camera model (40 training livers, fresh
-clone f73) 0.516 against 0.459, which flagged 12 of the 240 unseen cases instead of 18. Measured before it was built (``benchmarks/experiment_input_distance.py``,
-the f70 clone's camera model, its own liver left out on the training side): the 9 % of the unseen livers' cases
-above the training side's 90 % quantile had a mean error of 0.51 N against 0.13 N for the others, and held 10 of
-the 15 errors above 0.4 N; the distance ranked the errors better (Spearman 0.63) than the GP's posterior sd
-(0.60) or the members' spread (0.58). As built, from the fresh clone f73 (6362e9e, the validation's
-``interval.input_distance``): threshold 0.459 from the 1,200 training cases; 18 of the 240 unseen cases flagged
-(7.5 %; 4.6 % above the 95 % quantile, none above the 99 %), MAE 0.583 N against 0.132 N, 10 of the 15 errors
-above 0.4 N. The interval covers the flagged cases' components in 78 / 78 / 72 % (t1 / t2 / n), the others' in
-95 / 91 / 94 %: it is too narrow where the flag fires, which the warning says.
+clone f73) 0.516 against 0.459, which flagged 12 of the 240 unseen cases instead of 18. Measured before it was
+built (``benchmarks/experiment_input_distance.py``, the f70 clone's camera model, its own liver left out on the
+training side): the 9 % of the unseen livers' cases above the training side's 90 % quantile had a mean error of
+0.51 N against 0.13 N for the others, and held 10 of the 15 errors above 0.4 N; the distance ranked the errors
+better (Spearman 0.63) than the GP's posterior sd (0.60) or the members' spread (0.58). As built, from the fresh
+clone f73 (6362e9e, the validation's ``interval.input_distance``): threshold 0.459 from the 1,200 training cases;
+18 of the 240 unseen cases flagged (7.5 %; 4.6 % above the 95 % quantile, none above the 99 %), MAE 0.583 N
+against 0.132 N, 10 of the 15 errors above 0.4 N. The interval of one width covered the flagged cases'
+components in 78 / 78 / 72 % (t1 / t2 / n), the others' in 95 / 91 / 94 %.
+
+Far widths (``far_widths``, the config's ``train.interval.far_widths``: the default since session 62; Mondrian
+conformal with the flag as the taxonomy, Vovk et al. 2005 section 4.5). The calibration shows the same: its
+cases far from the fold model that did not see them (above the calibration's own ``distance_quantile`` of
+those distances, the flag's rule in the fold models' space) were covered in 67.5 / 74.2 / 71.7 % by the one
+width, the others in 93.0 / 92.2 / 92.5 % (f73). So each group gets its own factor on the widths above (the
+split-conformal quantile of its residuals over them, :func:`mondrian_factors`): ``far_factor`` for a case whose
+distance to the served model is above the flag's threshold (``far_threshold``), ``near_factor`` for the others::
+
+    half_ij = (the widths above)_ij x (far_factor_j if distance_i > far_threshold else near_factor_j)
+
+On f73's calibration the factors were 1.70 / 1.68 / 1.96 and 0.88 / 0.93 / 0.86; applied to the unseen livers
+(``benchmarks/experiment_far_interval.py``; these unseen figures were seen before it was built, its only choice
+is the flag's own quantile) the coverage went from 94.2 / 90.4 / 92.1 % to 91.7 / 89.6 / 92.1 %, the flagged
+cases' from 78 / 78 / 72 % to 89 / 83 / 94 %, at mean half-widths 0.139 / 0.145 / 0.271 N against 0.138 / 0.138 /
+0.265 N; the lowest liver's t1 coverage fell from 83.3 to 73.3 %. A calibration with too few cases in a group
+(:func:`min_calibration_cases`) keeps the one width, and says so in the model's notes.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -219,16 +237,42 @@ class ConformalInterval:
     spread_beta: float | None = None  # spread: the widths are multiples of u = d + beta m (module docstring);
     # None: not scaled by the members' spread (and half_width_n, bin_half_width_n are in N)
     spread_median_n: tuple[float, float, float] | None = None  # m_j: the calibration's median member sd (N)
+    far_threshold: float | None = None  # far widths: the input distance above which a case is far (the model's
+    # input-distance threshold); None: one width for every distance (module docstring)
+    far_factor: tuple[float, float, float] | None = None  # far widths: the far cases' factor per component
+    near_factor: tuple[float, float, float] | None = None  # far widths: the other cases' factor per component
 
     def half_widths(self, stiffness: np.ndarray, force: np.ndarray | None = None,
-                    spread: np.ndarray | None = None) -> np.ndarray:
+                    spread: np.ndarray | None = None, distance: np.ndarray | None = None) -> np.ndarray:
         """Half-widths ``(n, 3)`` N for rows with stiffness factors ``(n, 1)`` and predicted forces ``(n, 3)``
         (any frame; ``scale: force`` and ``force_bins`` only): times ``k`` with ``scale: stiffness``; with
         ``scale: none`` fixed inside the calibration's stiffness range, widened outside it; with ``scale: force``
         times ``sigma_j(|f^|)``, with ``force_bins`` the width of the bin of ``|f^|``, both widened the same way
         (module docstring); with ``spread_beta``, times ``u = spread + beta m``, ``spread`` ``(n, 3)`` the
-        members' sd of each row's local force (:attr:`liverforce.learn.model.Forward.spread_local`)."""
-        return self.stiffness_factor(stiffness) * self.force_widths(force, spread)
+        members' sd of each row's local force (:attr:`liverforce.learn.model.Forward.spread_local`); with far
+        widths, times the far or the near factor by each row's input distance ``(n,)``
+        (:attr:`liverforce.learn.model.Forward.input_distance`, :meth:`distance_factor`)."""
+        return self.stiffness_factor(stiffness) * self.force_widths(force, spread, distance)
+
+    @property
+    def uses_distance(self) -> bool:
+        """Whether the widths read each case's input distance (far widths: ``far_factor``)."""
+        return self.far_factor is not None
+
+    def distance_factor(self, distance: np.ndarray | None) -> np.ndarray:
+        """The far widths' factor ``(n, 3)`` of input distances ``(n,)``: ``far_factor`` above ``far_threshold``,
+        ``near_factor`` at or below it, NaN for a distance that is not finite (no width); ones ``(1, 3)`` without far
+        widths. ValueError when the interval has far widths and no distance is given."""
+        if not self.uses_distance:
+            return np.ones((1, 3))
+        if distance is None:
+            raise ValueError("this interval's widths depend on how far each case lies from the training cases (far "
+                             "widths): pass each row's input distance (Forward.input_distance)")
+        d = np.asarray(distance, dtype=np.float64).reshape(-1, 1)
+        out = np.where(d > self.far_threshold, np.asarray(self.far_factor)[None, :],
+                       np.asarray(self.near_factor)[None, :])
+        out[~np.isfinite(d[:, 0])] = np.nan
+        return out
 
     @property
     def uses_spread(self) -> bool:
@@ -253,13 +297,18 @@ class ConformalInterval:
         k = np.asarray(stiffness, dtype=np.float64).reshape(-1, 1)
         return k if self.scale == "stiffness" else self.extrapolation_factor(k)
 
-    def force_widths(self, force: np.ndarray | None = None, spread: np.ndarray | None = None) -> np.ndarray:
+    def force_widths(self, force: np.ndarray | None = None, spread: np.ndarray | None = None,
+                     distance: np.ndarray | None = None) -> np.ndarray:
         """The half-widths before the stiffness factor: ``(n, 3)`` for predicted forces ``(n, 3)`` (any frame:
         only ``|f^|`` is read), ``(1, 3)`` without forces for a scale that does not read them; times
-        :meth:`spread_unit` with ``spread_beta`` (``spread``: the members' sd, ``(n, 3)`` N)."""
+        :meth:`spread_unit` with ``spread_beta`` (``spread``: the members' sd, ``(n, 3)`` N) and
+        :meth:`distance_factor` with far widths (``distance``: the input distances ``(n,)``)."""
+        w = self._scaled_widths(force)
         if self.uses_spread:
-            return self._scaled_widths(force) * self.spread_unit(spread)
-        return self._scaled_widths(force)
+            w = w * self.spread_unit(spread)
+        if self.uses_distance:
+            w = w * self.distance_factor(distance)
+        return w
 
     def _scaled_widths(self, force: np.ndarray | None) -> np.ndarray:
         """:meth:`force_widths` before the spread's unit."""
@@ -322,7 +371,10 @@ class ConformalInterval:
                 [float(v) for v in self.stiffness_exponent],
                 "spread_beta": None if self.spread_beta is None else float(self.spread_beta),
                 "spread_median_n": None if self.spread_median_n is None else
-                [float(v) for v in self.spread_median_n]}
+                [float(v) for v in self.spread_median_n],
+                "far_threshold": None if self.far_threshold is None else float(self.far_threshold),
+                "far_factor": None if self.far_factor is None else [float(v) for v in self.far_factor],
+                "near_factor": None if self.near_factor is None else [float(v) for v in self.near_factor]}
 
     @classmethod
     def from_dict(cls, d: dict) -> "ConformalInterval":
@@ -341,7 +393,22 @@ class ConformalInterval:
                    None if bins is None else tuple(_widths(row) for row in bins),
                    str(d.get("widen", "proportional")), None if g is None else tuple(float(v) for v in g),
                    None if d.get("spread_beta") is None else float(d["spread_beta"]),  # before format 17: none
-                   None if d.get("spread_median_n") is None else tuple(float(v) for v in d["spread_median_n"]))
+                   None if d.get("spread_median_n") is None else tuple(float(v) for v in d["spread_median_n"]),
+                   *_far_widths(d))
+
+
+def _far_widths(d: dict) -> tuple:
+    """``(far_threshold, far_factor, near_factor)`` of a stored interval: all three or none (a bundle before
+    them: none)."""
+    keys = ("far_threshold", "far_factor", "near_factor")
+    got = [d.get(k) for k in keys]
+    if all(v is None for v in got):
+        return None, None, None
+    if any(v is None for v in got) or len(got[1]) != 3 or len(got[2]) != 3:
+        raise ValueError(f"the interval's far widths need far_threshold and two factors of 3 values (got "
+                         f"{dict(zip(keys, got))!r}): the model's model.json was edited or damaged; train the model "
+                         "again")
+    return float(got[0]), tuple(float(v) for v in got[1]), tuple(float(v) for v in got[2])
 
 
 def _widths(row) -> tuple[float, ...]:
@@ -564,3 +631,41 @@ def distance_flags(distance, record: dict | None) -> np.ndarray:
     if not record:
         return np.zeros(d.shape, dtype=bool)
     return d > float(record["threshold"])
+
+
+def mondrian_factors(scores: np.ndarray, far: np.ndarray, coverage: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per component, the split-conformal quantile (rank ``ceil((n + 1) c)``) of ``scores`` ``(n, k)`` among the rows
+    ``far`` and among the others: ``(far factors (k,), near factors (k,))``. A group too small to bound the
+    quantile (:func:`min_calibration_cases`) gets inf."""
+    s = np.asarray(scores, dtype=np.float64)
+    f = np.asarray(far, dtype=bool)
+
+    def q(rows):
+        k = _rank(len(rows), coverage)
+        return np.full(s.shape[1], np.inf) if k > len(rows) else np.sort(rows, axis=0)[k - 1]
+
+    return q(s[f]), q(s[~f])
+
+
+def with_far_widths(ci: ConformalInterval, cal: dict, threshold: float, quantile: float) -> ConformalInterval:
+    """``ci`` with far widths (module docstring), fitted on its calibration ``cal`` (``true_local``,
+    ``pred_local``, ``stiffness``, ``spread_local`` as its widths read them, and ``input_distance``: each case's
+    distance to the fold model that did not see it). A calibration case is far when its distance lies above the
+    calibration's own ``quantile`` of them (the flag's rule in the fold models' space); each group's scores are
+    its residuals over ``ci``'s half-widths, and its factor their split-conformal quantile per component
+    (:func:`mondrian_factors`). Serving calls a case far when its distance to the served model lies above
+    ``threshold`` (the model's input-distance threshold). ValueError when a group is too small to bound its
+    quantile, or the calibration has no distances."""
+    d = cal.get("input_distance")
+    if d is None:
+        raise ValueError("far widths need the calibration cases' input distances (a GP regressor)")
+    d = np.asarray(d, dtype=np.float64)
+    half = ci.half_widths(cal["stiffness"], cal["pred_local"], cal.get("spread_local"))
+    scores = np.abs(np.asarray(cal["true_local"], float) - np.asarray(cal["pred_local"], float)) / half
+    far = d > np.quantile(d, quantile)
+    fk, nk = mondrian_factors(scores, far, ci.coverage)
+    if not (np.isfinite(fk).all() and np.isfinite(nk).all()):
+        raise ValueError(f"far widths: {int(far.sum())} far and {int((~far).sum())} other calibration cases; each "
+                         f"group needs {min_calibration_cases(ci.coverage)} to bound a {100 * ci.coverage:.0f} % width")
+    return dataclasses.replace(ci, far_threshold=float(threshold), far_factor=tuple(float(v) for v in fk),
+                               near_factor=tuple(float(v) for v in nk))

@@ -734,7 +734,7 @@ class ForceModel:
         if ci is None:
             raise ValueError("this model has no calibrated interval (trained without train.interval)")
         fw = self.forward(arrays, observation_seed, rotations=rotations)
-        half = ci.half_widths(fw.stiffness, fw.force_local, fw.spread_local)
+        half = ci.half_widths(fw.stiffness, fw.force_local, fw.spread_local, fw.input_distance)
         return {"force_n": fw.force_source, "force_local_n": fw.force_local, "half_width_local_n": half,
                 "coverage": ci.coverage, "frame": fw.R, "input_distance": fw.input_distance}
 

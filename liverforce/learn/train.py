@@ -471,12 +471,13 @@ def _train(tracker, run_id, rep, train_arrays, test_arrays, tr, te, geo, model_c
                                         fit)
         _write_calibration(out_dir / f"interval_calibration_folds{int(k)}.npz", cal_k)
     if ci is not None:
+        flag = set_input_distance(model, cal, train_cfg["interval"], train_arrays, prep_train, scenario, seed)
+        ci = far_widths(ci, cal, flag, train_cfg["interval"], notes)
         model.meta["interval"] = ci.to_dict()
         got = model.predict_interval(test_arrays, observation_seed=eval_seed(seed))
         interval = {**ci.to_dict(), "test_coverage": coverage_per_component(
             prep_test.y_local, got["force_local_n"], got["half_width_local_n"])}
         model.meta["interval_test_coverage"] = interval["test_coverage"]
-        flag = set_input_distance(model, cal, train_cfg["interval"], train_arrays, prep_train, scenario, seed)
         if flag is not None:
             interval["input_distance"] = {**flag, **flagged_errors(got["input_distance"], flag, prep_test.force,
                                                                     pred)}
@@ -597,8 +598,9 @@ def fit_final(train_arrays, test_arrays, model_cfg, train_cfg, scenario, seed, e
         said: list = []
         ci = interval_from_calibration(cal, train_cfg["interval"], scenario, said)
         _write_calibration(out_dir / "interval_calibration.npz", cal)
+        flag = set_input_distance(model, cal, train_cfg["interval"], cases, prep, scenario, seed)
+        ci = far_widths(ci, cal, flag, train_cfg["interval"], said)
         model.meta["interval"] = ci.to_dict()
-        set_input_distance(model, cal, train_cfg["interval"], cases, prep, scenario, seed)
         if said:  # e.g. the interval without the members' spread: kept with the model
             model.meta["interval_notes"] = said
         model.meta["interval_test_coverage"] = split_interval["test_coverage"]
@@ -663,6 +665,22 @@ def set_input_distance(model, cal: dict, interval_cfg, arrays: dict, prep, scena
         rec["fold_quantiles"] = {f"{p:g}": float(np.quantile(fold, p)) for p in DISTANCE_QUANTILES}
     model.meta["input_distance"] = rec
     return rec
+
+
+def far_widths(ci, cal: dict, flag: dict | None, interval_cfg, notes: list | None = None):
+    """``ci`` with far widths (:func:`liverforce.learn.interval.with_far_widths`) when ``interval_cfg["far_widths"]``
+    and the input-distance flag ``flag`` exists, fitted on the calibration ``cal`` at the flag's quantile; ``ci``
+    itself otherwise, and when a group of the calibration is too small (``notes`` says so)."""
+    from liverforce.learn.interval import with_far_widths
+
+    if not interval_cfg.get("far_widths") or flag is None:
+        return ci
+    try:
+        return with_far_widths(ci, cal, flag["threshold"], flag["quantile"])
+    except ValueError as exc:
+        if notes is not None:
+            notes.append(f"no far widths: {exc}")
+        return ci
 
 
 def flagged_errors(distance, record: dict, true_force: np.ndarray, pred: np.ndarray) -> dict:

@@ -84,6 +84,8 @@ def interval_coverage(m, arrays: dict) -> dict | None:
             for lo, hi, sel in force_bins(mag, np.quantile(mag, np.linspace(0.0, 1.0, 6)))]
     far = distance_flag_on_unseen(m, got, true_local, np.asarray(arrays["force_n"], float), half, geo)
     return {"nominal": ci.coverage, "bounded": ci.bounded, "n_calibration": ci.n_calibration, "scale": ci.scale,
+            "far_factor": None if ci.far_factor is None else list(ci.far_factor),
+            "near_factor": None if ci.near_factor is None else list(ci.near_factor),
             "widen": ci.widen, "stiffness_exponent": None if ci.stiffness_exponent is None else
             [float(v) for v in ci.stiffness_exponent], "spread_beta": ci.spread_beta,
             "coverage": coverage_per_component(true_local, got["force_local_n"], half),

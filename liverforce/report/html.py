@@ -1166,6 +1166,11 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
             how = (f"{how}; each width also scaled by how far the model's GP members disagree on the case (their sd "
                    f"plus {iv['spread_beta']:g} x its median over the calibration), so a case the members disagree "
                    "on gets a wider interval")
+        if iv.get("far_factor"):  # far widths: a width of its own beyond the input-distance threshold
+            how = (f"{how}; a case beyond the input-distance threshold (below) gets its own width, x "
+                   + " / ".join(f"{v:.2f}" for v in iv["far_factor"]) + ", the others x "
+                   + " / ".join(f"{v:.2f}" for v in iv["near_factor"])
+                   + " (t1 / t2 / n; each group's conformal quantile on the calibration)")
         parts.append(
             "<h3>Calibrated interval</h3><p>Every prediction comes with an interval per local force component "
             f"(conformal, calibrated on the training livers' predictions by models that did not see them: "

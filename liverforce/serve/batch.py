@@ -189,6 +189,6 @@ def interval_of_rows(model, arrays: dict, force: np.ndarray, ok: np.ndarray, obs
         return ci, None, None, half
     fw = model.forward(arrays if len(rows) == len(force) else subset(arrays, rows), observation_seed)
     local = np.einsum("nij,nj->ni", fw.R, force[rows])
-    half[rows] = ci.half_widths(fw.stiffness, local, fw.spread_local)
+    half[rows] = ci.half_widths(fw.stiffness, local, fw.spread_local, fw.input_distance)
     return ci, fw, local, half
 

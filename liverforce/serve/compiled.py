@@ -329,18 +329,22 @@ class CompiledROI:
             raise PredictionInputError(
                 "this model has no calibrated interval (trained without train.interval): predict and predict_batch "
                 "without with_interval give the force alone; train the model with train.interval for its interval")
-        if ci.uses_spread and self._member_head is None:  # the GP ensemble's head that also gives the members' sd
-            self._member_head = regressor_head(self._model.regressor, members=True)
+        wide = ci.uses_spread or ci.uses_distance  # the widths read the members' sd, the input distance or both
+        if wide and self._member_head is None:  # the GP's head that also gives them
+            self._member_head = regressor_head(self._model.regressor, members=ci.uses_spread,
+                                               distance=ci.uses_distance)
         if self._kf is None:
             self._kf = ci.stiffness_factor(np.array([[self._kmat]]))
-        return ci, self._kf, ci.uses_spread
+        return ci, self._kf, wide
 
     def _network(self, z: np.ndarray, members: bool = False):
         """Rows ``z`` (float64, first-stage outputs) -> local force (float64), float32 like the reference.
 
-        ``members`` (a GP ensemble, an interval scaled by its spread): ``(local force, sd)``, ``sd`` the members'
-        sd of the local force before the force scaling's factor (what ``Forward.spread_local`` is over it), the
-        force the same bits as without."""
+        ``members`` (a GP whose interval reads the members' spread, the input distance or both):
+        ``(local force, sd, distance)``, ``sd`` the members' sd of the local force before the force scaling's
+        factor (what ``Forward.spread_local`` is over it; None when the interval does not read it), ``distance``
+        each row's input distance (``Forward.input_distance``; None likewise), the force the same bits as
+        without."""
         nc = self._n_code
         if self._pca:
             h = z.astype(np.float32)
@@ -352,10 +356,13 @@ class CompiledROI:
             h = np.concatenate([code, z[..., nc:]], axis=-1).astype(np.float32) if self.uses_state else \
                 code.astype(np.float32)
         if members:
-            h, sd = self._member_head(h.reshape(-1, h.shape[-1]))
+            ci = self.interval
+            got = self._member_head(h.reshape(-1, h.shape[-1]))
+            h, sd, near = got[0], got[1] if ci.uses_spread else None, got[-1] if ci.uses_distance else None
             h = h.reshape(*z.shape[:-1], -1)
             # the sd of (h tscale + tmean) over the members (Forward.spread_local, before its stiffness factor)
-            return h * self._tscale + self._tmean, (sd * np.abs(self._tscale)).reshape(h.shape)
+            sd = None if sd is None else (sd * np.abs(self._tscale)).reshape(h.shape)
+            return h * self._tscale + self._tmean, sd, near
         if self._gp is not None:
             h = self._gp(h.reshape(-1, h.shape[-1])).reshape(*h.shape[:-1], -1)
         for W, b, s in self._reg32:
@@ -387,10 +394,10 @@ class CompiledROI:
         ci, kf, members = self._interval_parts()
         D = np.asarray(deformed_roi_mm, dtype=np.float64)
         z, dmax = self.first_stage(D)
-        f, sd = self._network(z, members=True) if members else (self._network(z), None)
+        f, sd, near = self._network(z, members=True) if members else (self._network(z), None, None)
         f_loc = f * self._stiff
         F = self._checked(f_loc @ self.R, dmax, D)
-        half = kf * ci.force_widths(f_loc[None], None if sd is None else sd[None] * self._stiff)
+        half = kf * ci.force_widths(f_loc[None], None if sd is None else sd[None] * self._stiff, near)
         return F, half[0]
 
     def first_stage(self, D: np.ndarray) -> tuple[np.ndarray, float]:
@@ -492,7 +499,7 @@ class CompiledROI:
             z[:] = self.bU
             z[:, self._dyn] += X @ self._A_dyn.T
         if with_interval:
-            f, sd = self._network(z, members=True) if members else (self._network(z), None)
+            f, sd, near = self._network(z, members=True) if members else (self._network(z), None, None)
             f_loc = f * stiff
             F = f_loc @ self.R
         else:
@@ -508,5 +515,5 @@ class CompiledROI:
         if not with_interval:
             return F
         k = kf if kmat is None else ci.stiffness_factor(kmat)
-        return F, k * ci.force_widths(f_loc, None if sd is None else sd * stiff)
+        return F, k * ci.force_widths(f_loc, None if sd is None else sd * stiff, near)
 

@@ -1569,10 +1569,12 @@ class CompiledCloud:
         # row's distance and of the linear term is computed here, and the head reads the code and f_lin only
         iv = model.interval
         self._spread = iv is not None and iv.uses_spread  # the head also gives the members' sd (the interval's)
-        self._far = model.distance_flag  # the input-distance flag (a GP's; None: none): the head gives distances
+        self._far = model.distance_flag  # the input-distance flag (a GP's; None: none, no warning)
+        # the head gives each cloud's input distance for the flag's warning and for an interval's far widths
+        self._dist = self._far is not None or (iv is not None and iv.uses_distance)
         self.gp = regressor_head(model.regressor, {nz + k: float(v) for k, v in
                                                    enumerate(self.s_base.astype(np.float32))} or None,
-                                 members=self._spread, distance=self._far is not None)
+                                 members=self._spread, distance=self._dist)
         self._state_cols = self.s_base.size if self.gp is None else 0  # state columns _head writes into Z
         for W, b, sl in ([] if self.gp is not None else numpy_layers(model.regressor)):
             act, slope = (0, 0.0) if sl is None else ((1, 0.0) if sl == 0.0 else (2, float(sl)))
@@ -1657,7 +1659,7 @@ class CompiledCloud:
     def _head(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
         """Forces (n, 3) N in the liver frame of feature rows ``X`` (affine map, state, MLP or GP, scaling), for an
         interval scaled by the spread the GP ensemble members' sd of the local force (n, 3) N (else None), and for a
-        model with the input-distance flag each row's input distance (n,) (else None), as
+        model with the input-distance flag or an interval with far widths each row's input distance (n,) (else None), as
         :meth:`liverforce.learn.model.ForceModel.forward` gives them."""
         n = len(X)
         nz = self.A.shape[0]
@@ -1687,7 +1689,7 @@ class CompiledCloud:
         sd = near = None
         if self.gp is not None:
             h = self.gp(h)
-            if self._far is not None:
+            if self._dist:
                 *h, near = h
                 h = h[0] if len(h) == 1 else tuple(h)
             if self._spread:
@@ -1791,10 +1793,10 @@ class CompiledCloud:
         """Forces (B, 3) N of the feature rows ``X[ok]`` (NaN elsewhere), the head in blocks of ``_HEAD_ROWS``
         (``threads`` > 1: the blocks in that many threads; the same blocks, so the same bits), the members'
         sd (B, 3) N for an interval scaled by the spread (NaN elsewhere; None without) and the input distances
-        (B,) for a model with the input-distance flag (NaN elsewhere; None without)."""
+        (B,) for a model with the flag or far widths (NaN elsewhere; None without)."""
         F = np.full((len(X), 3), np.nan)
         S = np.full((len(X), 3), np.nan) if self._spread else None
-        D = np.full(len(X), np.nan) if self._far is not None else None
+        D = np.full(len(X), np.nan) if self._dist else None
         rows = np.flatnonzero(ok)
         every = len(rows) == len(X)  # then blocks of rows are views, not copies
         blocks = [(slice(a, a + _HEAD_ROWS) if every else rows[a:a + _HEAD_ROWS],)
@@ -1810,13 +1812,14 @@ class CompiledCloud:
         _in_threads(block, blocks, threads)
         return F, S, D
 
-    def _half(self, F: np.ndarray, S: np.ndarray | None = None) -> np.ndarray | None:
+    def _half(self, F: np.ndarray, S: np.ndarray | None = None, D: np.ndarray | None = None) -> np.ndarray | None:
         """Half-widths ``(B, 3)`` (local frame) of forces ``(B, 3)`` (any frame: the scale reads ``|F|``) and the
-        members' sd ``S`` ``(B, 3)`` (an interval scaled by the spread), as :meth:`ConformalInterval.half_widths`
-        gives them; NaN for a refused cloud whatever the scale; None without an interval."""
+        members' sd ``S`` ``(B, 3)`` (an interval scaled by the spread) and the input distances ``D`` ``(B,)`` (an
+        interval with far widths), as :meth:`ConformalInterval.half_widths` gives them; NaN for a refused cloud
+        whatever the scale; None without an interval."""
         if self.interval is None:
             return None
-        half = self._kf * self.interval.force_widths(F, S)  # the same widths per cloud for a scale without them
+        half = self._kf * self.interval.force_widths(F, S, D)  # the same widths per cloud for a scale without them
         half[~np.isfinite(F).all(axis=1)] = np.nan  # a refused cloud: no force, no interval
         return half
 
@@ -1871,7 +1874,7 @@ class CompiledCloud:
         if why is not None:
             raise PredictionInputError(why)
         F, S, D = self._head(X)
-        half = self._half(F, S)
+        half = self._half(F, S, D)
         return (self._out(F[0]), None if half is None else half[0],
                 _with_force([warnings], F, self.scale, D, self._far)[0])
 
@@ -1928,7 +1931,7 @@ class CompiledCloud:
                     P.reshape(-1, 3), np.arange(e - a, dtype=np.int64) * N, cnt[a:e], tips[a:e], threads)
             refused, warnings = self._reasons(lambda r: clouds[r, :cnt[r]], cnt, tips, X, n_used, n_bad, n_tool)
             F, S, D = self._forces(X, np.array([r is None for r in refused], dtype=bool), threads)
-            return CloudBatch(self._out(F), self._half(F, S), _with_force(warnings, F, self.scale, D, self._far),
+            return CloudBatch(self._out(F), self._half(F, S, D), _with_force(warnings, F, self.scale, D, self._far),
                               refused)
         if counts is not None:
             raise PredictionInputError("counts: only with one padded (B, N, 3) array of clouds")
@@ -1943,7 +1946,7 @@ class CompiledCloud:
         good = [i for i in range(B) if arrays[i] is not None]
         force = np.full((B, 3), np.nan)
         spread = np.full((B, 3), np.nan) if self._spread else None
-        far = np.full(B, np.nan) if self._far is not None else None
+        far = np.full(B, np.nan) if self._dist else None
         if good:
             P = [arrays[i] for i in good]
             X, n_used, n_bad, n_tool = self._grid(P, None, None, tips[good], threads)
@@ -1956,5 +1959,5 @@ class CompiledCloud:
                 far[good] = D
             for k, i in enumerate(good):
                 refused[i], warnings[i] = why[k], warn[k]
-        return CloudBatch(self._out(force), self._half(force, spread),
+        return CloudBatch(self._out(force), self._half(force, spread, far),
                           _with_force(warnings, force, self.scale, far, self._far), refused)

@@ -24,7 +24,8 @@ MODEL = {"encoder": "pca", "code_size": 6, "state_vector": True, "grid_size": 8,
          "gp": {"max_points": 2000, "iterations": 60, "code_members": [2, 4, 6]},
          "camera": {"observation": {"n_points": [300, 3000], "noise_sd_mm": 0.3},
                     "grid": {"kernel_radius_cells": 1.5}, "tip_noise_mm": 0.1}}
-INTERVAL = {"coverage": 0.9, "calibration_fraction": 0.25, "scale": "force", "spread": 4.0, "distance_quantile": 0.9}
+INTERVAL = {"coverage": 0.9, "calibration_fraction": 0.25, "folds": 3, "scale": "force", "spread": 4.0,
+            "distance_quantile": 0.8, "far_widths": True}  # a fifth of the calibration far: enough for its width
 TRAIN = {"test_fraction": 0.2, "epochs": 1, "batch_size": 32, "lr": 3e-3, "weight_decay": 0.0, "seed": 0,
          "interval": INTERVAL}
 NO_TUNE = {"enabled": False, "trials": 1, "folds": 2, "sobol_trials": 1, "epochs": 1}
@@ -35,6 +36,13 @@ def far(warnings) -> bool:
     hits = [w for w in warnings if FAR in w]
     assert len(hits) <= 1
     return bool(hits)
+
+
+def between(d) -> float:
+    """A threshold midway between the two middle distances of ``d``: no case sits on it, where rounding could put
+    it on either side on different paths."""
+    s = np.sort(np.asarray(d, dtype=np.float64))
+    return float(0.5 * (s[len(s) // 2 - 1] + s[len(s) // 2]))
 
 
 def with_threshold(model: ForceModel, threshold: float) -> ForceModel:
@@ -50,7 +58,8 @@ def camera(tmp_path_factory):
     arrays = synthetic_surface_arrays(80, n_geometries=3, seed=3, material_varies=True)
     res = train_scenario(arrays, MODEL, TRAIN, NO_TUNE, "IV", "cloud", out_dir=tmp_path_factory.mktemp("far-cam"))
     model = ForceModel.load(res["model_path"])
-    assert model.distance_flag is not None and model.distance_flag["quantile"] == 0.9
+    assert model.distance_flag is not None and model.distance_flag["quantile"] == 0.8
+    assert model.interval.uses_distance and model.interval.far_threshold == model.distance_flag["threshold"]
     a = subset(arrays, np.flatnonzero(np.isin(arrays["geometry_id"], res["split"]["test_geometries"])))
     V, T = a["surface_meshes"][a["geometry_id"][0]]
     clouds, tips = [], []
@@ -70,7 +79,7 @@ def test_every_camera_path_flags_the_cases_beyond_the_threshold(camera):
     ref = Predictor(model)
     infos = [ref.predict_cloud(c, ctx, tool_tip_mm=t, return_info=True)[1] for c, t in zip(clouds, tips)]
     d = np.array([i["interval"]["input_distance"] for i in infos])
-    thr = float(np.median(d))
+    thr = between(d)
     want = d > thr
     assert 0 < want.sum() < len(d)
     pred = Predictor(with_threshold(model, thr))
@@ -104,7 +113,11 @@ def test_without_a_record_no_path_warns(camera):
     low = Predictor(with_threshold(model, 0.0))  # with a record any case above 0 warns, on both paths
     assert far(low.predict_cloud(deep[0], ctx, tool_tip_mm=deep[1], return_info=True)[1]["warnings"])
     assert far(low.compile_cloud(ctx).predict(*deep)[2])
+    import dataclasses
+
     meta = {k: v for k, v in model.meta.items() if k != "input_distance"}
+    meta["interval"] = dataclasses.replace(model.interval, far_threshold=None, far_factor=None,
+                                           near_factor=None).to_dict()  # nor far widths: the head measures nothing
     bare = Predictor(ForceModel(model.representation, model.pre, model.regressor_spec, model.regressor, meta))
     assert bare.model.distance_flag is None
     assert not far(bare.predict_cloud(*deep[:1], ctx, tool_tip_mm=deep[1], return_info=True)[1]["warnings"])
@@ -128,7 +141,7 @@ def nodes(data, configs, tmp_path_factory):
 def test_the_node_paths_flag_the_same_cases(nodes, tmp_path, capsys):
     path, model, test = nodes
     d = model.forward(test).input_distance
-    thr = float(np.median(d))
+    thr = between(d)
     pred = Predictor(with_threshold(model, thr))
     want = (d > thr).tolist()
     for fast in (True, False):  # the compiled node path takes its distances from one more reference pass
@@ -150,3 +163,62 @@ def test_the_node_paths_flag_the_same_cases(nodes, tmp_path, capsys):
     doc = json.loads((tmp_path / "f.json").read_text())
     assert doc["interval"]["input_distance"] == pytest.approx(d[i], rel=1e-6)
     assert far(doc["warnings"])
+
+
+def test_the_far_widths_are_the_same_on_every_camera_path(camera):
+    """An interval with far widths (a width of its own beyond the flag's threshold): the compiled path's
+    half-widths, one cloud and a batch, equal the reference's (ForceModel.predict_interval) for clouds on both
+    sides of the threshold, and a far cloud's are the far factor's multiple of what the one width would give."""
+    import dataclasses
+
+    model, ctx, clouds, tips = camera
+    ref = Predictor(model)
+    infos = [ref.predict_cloud(c, ctx, tool_tip_mm=t, return_info=True)[1]["interval"] for c, t in zip(clouds, tips)]
+    d = np.array([i["input_distance"] for i in infos])
+    srt = np.sort(d)
+    line = float(0.5 * (srt[3] + srt[4]))  # between two clouds' distances: none on the line
+    pred = Predictor(with_threshold(model, line))
+    ci = dataclasses.replace(pred.model.interval, far_threshold=line)
+    pred.model.meta["interval"] = ci.to_dict()
+    got = [pred.predict_cloud(c, ctx, tool_tip_mm=t, return_info=True)[1]["interval"] for c, t in zip(clouds, tips)]
+    h_ref = np.array([g["half_width_local_n"] for g in got])
+    fast = pred.compile_cloud(ctx)
+    h1 = np.array([fast.predict(c, t)[1] for c, t in zip(clouds, tips)])
+    hb = fast.predict_batch(clouds, tips).half_width
+    np.testing.assert_allclose(h1, h_ref, rtol=1e-5)
+    np.testing.assert_allclose(hb, h_ref, rtol=1e-5)
+    far = d > line
+    one = dataclasses.replace(ci, far_threshold=None, far_factor=None, near_factor=None)
+    X = np.stack([fast.features(c, t) for c, t in zip(clouds, tips)])
+    F, S, D = fast._head(X)
+    h_one = fast._kf * one.force_widths(F, S)
+    np.testing.assert_allclose(h_ref[far], h_one[far] * np.asarray(ci.far_factor), rtol=1e-5)
+    np.testing.assert_allclose(h_ref[~far], h_one[~far] * np.asarray(ci.near_factor), rtol=1e-5)
+
+
+def test_the_compiled_node_path_gives_the_far_widths(nodes):
+    """CompiledROI.predict_interval and predict_batch(with_interval=True) read the input distance for an interval
+    with far widths, and equal the reference on rows both sides of the threshold."""
+    import dataclasses
+
+    from liverforce.serve.compiled import CompiledROI
+
+    path, model, test = nodes
+    assert model.interval.uses_distance
+    i = 0
+    ctx = Preop.from_arrays(test, i)
+    D = np.asarray(test["roi_deformed_mm"][i])
+    Ds = np.stack([ctx.roi_undeformed_mm + s * (D - ctx.roi_undeformed_mm) for s in (0.3, 0.7, 1.0, 1.6, 2.2)])
+    each = np.sort([model.input_distances(ctx.to_arrays(x), rotations=ctx.rotation[None])[0] for x in Ds])
+    line = float(0.5 * (each[2] + each[3]))  # between two rows' distances: no row on the line
+    m2 = with_threshold(model, line)
+    m2.meta["interval"] = dataclasses.replace(m2.interval, far_threshold=line).to_dict()
+    comp = CompiledROI(m2, ctx)
+    refs = [m2.predict_interval(ctx.to_arrays(x), rotations=ctx.rotation[None]) for x in Ds]
+    h_ref = np.array([r["half_width_local_n"][0] for r in refs])
+    dists = np.array([r["input_distance"][0] for r in refs])
+    assert (dists > line).sum() == 2 and (dists < line).sum() == 3
+    h1 = np.array([comp.predict_interval(x)[1] for x in Ds])
+    _, hb = comp.predict_batch(Ds, with_interval=True)
+    np.testing.assert_allclose(h1, h_ref, rtol=1e-5)
+    np.testing.assert_allclose(hb, h_ref, rtol=1e-5)
