@@ -46,6 +46,7 @@ Measured (2-core VM shared with other jobs, 1 thread; figures vary by tens of % 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import tempfile
 import time
@@ -276,8 +277,11 @@ def measure(kind: str, model, arrays: dict, ctx, tip, clouds, batch_pool) -> dic
     print(f"reference ForceModel.predict, list of {REF_BATCH} clouds (peer): {r_ref:,.0f} clouds/s")
     if ARGS.profile:
         plain = None
-        if model.distance_flag is not None:
+        if model.distance_flag is not None:  # nor far widths, which read the distance too
             meta = {k: v for k, v in model.meta.items() if k != "input_distance"}
+            if model.interval is not None:
+                meta["interval"] = dataclasses.replace(model.interval, far_threshold=None, far_factor=None,
+                                                       near_factor=None).to_dict()
             plain = Predictor(ForceModel(model.representation, model.pre, model.regressor_spec, model.regressor,
                                          meta)).compile_cloud(ctx)
         profile(fast, [batch_pool[k % len(batch_pool)] for k in range(nb)], np.tile(tip, (nb, 1)), plain)

@@ -1,12 +1,12 @@
 """Experiment: would a width of its own for the cases the input-distance flag fires on restore the interval's coverage?
 
-The shipped interval covers the unseen livers' flagged cases (``meta.input_distance``) in 72-78 % per component
+The interval of one width covers the unseen livers' flagged cases (``meta.input_distance``) in 72-78 % per component
 against 91-95 % for the others (fresh clone f73). On a finished run's results, nothing refitted:
 
 1. the calibration (``models/IV/<variant>/interval_calibration.npz``, cross-conformal by liver): each case's
-   residual over the shipped interval's half-width, per component (``s <= 1``: covered), and whether the case is
-   far from its fold model's training rows (its distance above the calibration's own 90 % quantile,
-   ``fold_quantiles["0.9"]`` of the record: the flag's rule in the fold models' space);
+   residual over the one width's half-width, per component (``s <= 1``: covered), and whether the case is far
+   from its fold model's training rows (its distance above the calibration's own quantile at the flag's
+   ``distance_quantile``, 90 %: the flag's rule in the fold models' space);
 2. a Mondrian split of the calibration on that taxonomy: per component the split-conformal quantile of ``s`` among
    the far cases and among the others (:func:`liverforce.learn.interval.mondrian_factors`), the factors their
    half-widths are multiplied by (what ``train.interval.far_widths`` fits since session 62; a model trained with
@@ -60,7 +60,7 @@ def main() -> None:
         cal = {k: z[k] for k in z.files}
     half = ci.half_widths(cal["stiffness"], cal["pred_local"], cal.get("spread_local"))
     s = np.abs(cal["true_local"] - cal["pred_local"]) / half
-    far_cal = cal["input_distance"] > rec["fold_quantiles"]["0.9"]
+    far_cal = cal["input_distance"] > np.nanquantile(cal["input_distance"], rec["quantile"])
     pct = lambda v: " / ".join(f"{100 * x:.1f}" for x in v)  # noqa: E731
     print(f"calibration: {int(far_cal.sum())} far cases of {len(far_cal)}, covered {pct((s[far_cal] <= 1).mean(0))} % "
           f"(t1 / t2 / n) against {pct((s[~far_cal] <= 1).mean(0))} % for the others")
@@ -75,8 +75,7 @@ def main() -> None:
     true = force_to_local(np.asarray(a["force_n"], float), fw.R)
     pred = fw.force_local
     h = ci.half_widths(fw.stiffness, pred, fw.spread_local)
-    got = {"input_distance": fw.input_distance}
-    f = got["input_distance"] > rec["threshold"]
+    f = fw.input_distance > rec["threshold"]
     h2 = h * near_k
     h2[f] = h[f] * far_k
     geo = np.asarray(a["geometry_id"]).astype(str)

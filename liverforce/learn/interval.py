@@ -404,7 +404,8 @@ def _far_widths(d: dict) -> tuple:
     got = [d.get(k) for k in keys]
     if all(v is None for v in got):
         return None, None, None
-    if any(v is None for v in got) or len(got[1]) != 3 or len(got[2]) != 3:
+    if any(v is None for v in got) or np.ndim(got[1]) != 1 or np.ndim(got[2]) != 1 or len(got[1]) != 3 \
+            or len(got[2]) != 3:
         raise ValueError(f"the interval's far widths need far_threshold and two factors of 3 values (got "
                          f"{dict(zip(keys, got))!r}): the model's model.json was edited or damaged; train the model "
                          "again")
@@ -660,10 +661,13 @@ def with_far_widths(ci: ConformalInterval, cal: dict, threshold: float, quantile
     if d is None:
         raise ValueError("far widths need the calibration cases' input distances (a GP regressor)")
     d = np.asarray(d, dtype=np.float64)
+    ok = np.isfinite(d)  # a case without a distance (a prediction that was not finite) is in neither group
+    if not ok.any():
+        raise ValueError("far widths: no calibration case has a finite input distance")
     half = ci.half_widths(cal["stiffness"], cal["pred_local"], cal.get("spread_local"))
     scores = np.abs(np.asarray(cal["true_local"], float) - np.asarray(cal["pred_local"], float)) / half
-    far = d > np.quantile(d, quantile)
-    fk, nk = mondrian_factors(scores, far, ci.coverage)
+    far = d[ok] > np.quantile(d[ok], quantile)
+    fk, nk = mondrian_factors(scores[ok], far, ci.coverage)
     if not (np.isfinite(fk).all() and np.isfinite(nk).all()):
         raise ValueError(f"far widths: {int(far.sum())} far and {int((~far).sum())} other calibration cases; each "
                          f"group needs {min_calibration_cases(ci.coverage)} to bound a {100 * ci.coverage:.0f} % width")

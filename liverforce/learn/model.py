@@ -122,7 +122,7 @@ from liverforce.learn.torchutil import EpochCallback, as_tensor
 from liverforce.seeds import derive
 
 FORMAT = "liverforce.force_model"
-FORMAT_VERSION = 17  # 3: probe compliance in the state vector (material from column 22), linear force estimate;
+FORMAT_VERSION = 18  # 3: probe compliance in the state vector (material from column 22), linear force estimate;
 #                     4: the GP regressor may be a GPEnsemble (model.gp.code_members), which a reader of 3 cannot load;
 #                     5: the state features may end with the indentation strain, which a reader of 4 would misread;
 #                     6: a GP's kernel may be the rational quadratic (a ``shape`` buffer), which a reader of 5 would
@@ -151,7 +151,9 @@ FORMAT_VERSION = 17  # 3: probe compliance in the state vector (material from co
 #                        observation may add them (observation.outlier_fraction), keys a reader of 15 cannot load
 #                     17: the interval may be scaled by the GP ensemble members' spread (train.interval.spread), which
 #                        a reader of 16 would read as widths in N
-READ_VERSIONS = (3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17)
+#                     18: the interval may have far widths (train.interval.far_widths: a factor beyond the
+#                        input-distance threshold, another below it), which a reader of 17 would ignore
+READ_VERSIONS = (3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15, 16, 17, 18)
 # a version-3 bundle is a version-4 bundle with a single GP (or an MLP); 4 is 5
 #                                     without the indentation strain; 5 is 6 with squared-exponential GPs (no shape
 #                                     buffer); 6 is 7 with camera models on the ROI points' reference (reference:
@@ -699,6 +701,11 @@ class ForceModel:
         if not d:
             return None
         ci = ConformalInterval.from_dict(d)
+        if ci.uses_distance and not self.is_gp:
+            raise ModelFormatError(
+                f"the model's interval (meta.interval) has far widths, which read each case's distance to the GP's "
+                f"training rows, but its regressor is {type(self.regressor).__name__}, which has none: its widths "
+                "cannot be computed. Use the bundle as it was trained, or retrain it")
         if ci.uses_spread and not self.member_spread:
             reg = self.regressor
             what = ("a GP ensemble of one member" if isinstance(reg, GPEnsemble)

@@ -662,7 +662,7 @@ def set_input_distance(model, cal: dict, interval_cfg, arrays: dict, prep, scena
     rec["left_out"] = "liver" if group_key(scenario) == "geometry" else "case"
     fold = cal.get("input_distance")
     if fold is not None:
-        rec["fold_quantiles"] = {f"{p:g}": float(np.quantile(fold, p)) for p in DISTANCE_QUANTILES}
+        rec["fold_quantiles"] = {f"{p:g}": float(np.nanquantile(fold, p)) for p in DISTANCE_QUANTILES}
     model.meta["input_distance"] = rec
     return rec
 

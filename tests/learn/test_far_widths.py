@@ -101,3 +101,38 @@ def test_a_calibration_too_small_for_a_group_keeps_the_one_width_and_says_so():
     assert notes and "no far widths" in notes[0]
     assert far_widths(ci, cal, {"threshold": 0.3, "quantile": 0.9}, {"far_widths": False}) is ci
     assert far_widths(ci, cal, None, {"far_widths": True}) is ci  # no flag (an MLP): nothing to split on
+
+
+def test_a_calibration_case_without_a_distance_is_in_neither_group():
+    from liverforce.learn.interval import fit_conformal, with_far_widths
+
+    cal = _cal(600)
+    ci = fit_conformal(cal["true_local"], cal["pred_local"], cal["stiffness"], 0.9, "geometry", scale="none")
+    want = with_far_widths(ci, cal, threshold=0.4, quantile=0.8)
+    holed = {**cal, "input_distance": np.append(cal["input_distance"], np.nan),
+             "true_local": np.vstack([cal["true_local"], [[9.0, 9.0, 9.0]]]),
+             "pred_local": np.vstack([cal["pred_local"], [[0.0, 0.0, 0.0]]]),
+             "stiffness": np.vstack([cal["stiffness"], [[1.0]]])}
+    assert with_far_widths(ci, holed, threshold=0.4, quantile=0.8) == want  # before: the NaN quantile, no far case
+
+
+def test_far_widths_on_a_regressor_without_distances_are_refused_by_the_bundle(tmp_path):
+    """A bundle edited to put far widths on an MLP: its interval cannot be computed, and says so on loading it."""
+    from liverforce.learn.interval import fit_conformal, with_far_widths
+    from liverforce.learn.model import ModelFormatError
+    from liverforce.learn.synthetic import synthetic_arrays
+    from liverforce.learn.train import train_scenario
+
+    arrays = synthetic_arrays(40, n_geometries=2, seed=1, nodes=(120, 160))
+    model = {"encoder": "pca", "code_size": 3, "state_vector": True, "grid_size": 6, "hidden": [8], "dropout": 0.0,
+             "occlusion": {"radius_mm": 0.0, "mode": "remove"}, "noise_mm": 0.0}
+    train = {"test_fraction": 0.25, "epochs": 2, "batch_size": 32, "lr": 3e-3, "weight_decay": 0.0, "seed": 0}
+    tune = {"enabled": False, "trials": 1, "folds": 2, "sobol_trials": 1, "epochs": 1}
+    from liverforce.learn.model import ForceModel
+
+    m = ForceModel.load(train_scenario(arrays, model, train, tune, "III", "mlp", out_dir=tmp_path)["model_path"])
+    cal = _cal()
+    ci = fit_conformal(cal["true_local"], cal["pred_local"], cal["stiffness"], 0.9, "geometry", scale="none")
+    m.meta["interval"] = with_far_widths(ci, cal, threshold=0.4, quantile=0.8).to_dict()
+    with pytest.raises(ModelFormatError, match="far widths.*has none"):
+        m.interval

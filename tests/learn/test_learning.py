@@ -107,7 +107,7 @@ def test_an_older_bundle_still_loads(fitted, tmp_path, old_version):
     model = ForceModel.load(fitted("pca")["model_path"])
     path = model.save(tmp_path / "m")
     doc = json.loads((path / "model.json").read_text())
-    assert doc["format_version"] == FORMAT_VERSION == 17
+    assert doc["format_version"] == FORMAT_VERSION == 18
     assert doc["scalers"].pop("indentation_strain") is False
     doc["format_version"] = old_version
     (path / "model.json").write_text(json.dumps(doc))
