@@ -656,10 +656,14 @@ def set_input_distance(model, cal: dict, interval_cfg, arrays: dict, prep, scena
     q = interval_cfg.get("distance_quantile")
     if q is None or not model.is_gp:
         return None
-    labels = np.asarray(arrays["geometry_id" if group_key(scenario) == "geometry" else "case_id"]).astype(str)
+    by_liver = group_key(scenario) == "geometry" and len(set(np.asarray(arrays["geometry_id"]).tolist())) > 1
+    labels = np.asarray(arrays["geometry_id" if by_liver else "case_id"]).astype(str)  # one liver: its other cases
     prep_eval = prepare(arrays, model.representation, observation_seeds=[eval_seed(seed)])
-    rec = fit_input_distance(training_distances(model, prep, prep_eval, labels, seed), q)
-    rec["left_out"] = "liver" if group_key(scenario) == "geometry" else "case"
+    dist = training_distances(model, prep, prep_eval, labels, seed)
+    if not np.isfinite(dist).any():  # one case: nothing to measure it against
+        return None
+    rec = fit_input_distance(dist, q)
+    rec["left_out"] = "liver" if by_liver else "case"
     fold = cal.get("input_distance")
     if fold is not None:
         rec["fold_quantiles"] = {f"{p:g}": float(np.nanquantile(fold, p)) for p in DISTANCE_QUANTILES}
