@@ -160,3 +160,28 @@ def test_the_supports_table_shows_the_frame_check_and_flags_a_likely_mix_up(stag
     # the sphere's row is as before; without any check, the table is as before (no note)
     floor = before[before.index("floor "):before.index("(visceral slot)")]
     assert floor in rows and "Frame check" not in before and "mirrored" not in before
+
+
+#: the frame check of a sphere support (liverforce.mesh.supports.check_sphere_frame): its centre's distances
+SPHERE_WRONG = {"of": "centre", "read_in": "LPS", "as_given_mm": {"mean": 11.2, "max": 11.2},
+                "mirrored_mm": {"mean": 0.0004, "max": 0.0004}, "likely_mix_up": True, "refused_under_strict": True,
+                "warning": "support 'floor' (sphere r 30 mm) looks read in the wrong frame: ...",
+                "advice": "The sphere states no frame, so its coordinates are read in the geometry's: if the "
+                          "sphere's coordinates are in RAS, state geometry.imported[lab01].supports.list[2].sphere."
+                          "frame: RAS (changing geometry.imported[].frame would turn the liver and the sphere alike)"}
+
+
+def test_the_supports_table_shows_a_sphere_centres_frame_check(stage_outputs):
+    """A sphere's check shows its centre's distance as read and mirrored (not a mean over points), flagged with the
+    advice when the centre lies on the surface only mirrored; the note under the table says the sphere's rule."""
+    out = _with_lab_liver(stage_outputs)
+    feats = json.loads(out["features"][0].read_text())
+    feats["supports"][2]["frame_check"] = SPHERE_WRONG
+    out["features"][0].write_text(json.dumps(feats))
+    html = _supports_rows(_report(out))
+    rows = unescape(_plain(html))
+    assert "12815 – –centre 11.2 as read, 0.0004 mirrored ⚠ frame" in rows
+    assert ("⚠ floor: likely read in the wrong frame (read in LPS; mirrored, its centre lies 0.0004 mm from the "
+            "surface, 11.2 as read). The sphere states no frame") in rows
+    assert html.count("<tr class='frame-flag'><td colspan='7'>") == 1
+    assert "For a sphere, its centre's distance" in rows and "flagged within 1 mm mirrored and 5 mm or more" in rows

@@ -15,7 +15,8 @@ import json
 from pathlib import Path
 
 from liverforce.layout import surface_meta_of_mesh
-from liverforce.mesh.supports import FRAME_FIT_MARGIN_MM, FRAME_FIT_RATIO
+from liverforce.mesh.supports import (FRAME_FIT_MARGIN_MM, FRAME_FIT_RATIO, SPHERE_OFF_SURFACE_MM,
+                                      SPHERE_ON_SURFACE_MM)
 
 #: how each support kind holds its facets (liverforce.mesh.supports)
 KIND_TEXT = {"fixed": "clamped", "foundation": "elastic foundation", "sliding": "no normal motion, free sliding"}
@@ -124,36 +125,42 @@ def _supports_block(spec_supports, features: dict) -> str:
             + "".join(rows) + "</tbody></table>" + (FRAME_FIT_NOTE if checked else ""))
 
 
-#: under the supports table when a support's file of points had its frame checked
+#: under the supports table when a support's file of points (or sphere) had its frame checked
 FRAME_FIT_NOTE = ("<p><small>Frame check of a file of points (<code>frame_check</code> in the features JSON): under "
                   "its max snap, the points' mean distance to the surface (mm) as read and mirrored in x and y (as "
                   "if read in the other of RAS and LPS). Points marked on the liver's surface fit it within a "
                   "fraction of a mm; a mirrored fit clearly closer (at most "
                   f"{FRAME_FIT_RATIO:g} times as far and {FRAME_FIT_MARGIN_MM:g} mm closer) means the file was "
                   "likely read in the wrong frame and the support put on the wrong side of the liver (⚠, with "
-                  "what to state).</small></p>")
+                  "what to state). For a sphere, its centre's distance: one picked on the surface and read in the "
+                  f"wrong frame lies on it only mirrored (flagged within {SPHERE_ON_SURFACE_MM:g} mm mirrored and "
+                  f"{SPHERE_OFF_SURFACE_MM:g} mm or more off it as read).</small></p>")
 
 
 def _frame_fit(check: dict | None, name) -> tuple[str, str]:
     """A support's frame check (``frame_check``, :func:`liverforce.mesh.supports.check_support_frame`) for the
     supports table:
     its fits as read and mirrored (mean mm) under the max snap, and, when the file looks read in the wrong
-    frame, a flag there and a row under the support's with the warning's advice; ``("", "")`` unchecked (a
-    sphere, box, group or vertex ids; ``mesh.regions_check: off``)."""
+    frame, a flag there and a row under the support's with the warning's advice; for a sphere
+    (:func:`liverforce.mesh.supports.check_sphere_frame`, ``of: centre``) its centre's distance as read and
+    mirrored; ``("", "")`` unchecked (a box, group or vertex ids; ``mesh.regions_check: off``)."""
     if not check:
         return "", ""
     g, m = (check.get(k) or {} for k in ("as_given_mm", "mirrored_mm"))
     if g.get("mean") is None or m.get("mean") is None:
         return "", ""
-    fit = f"<br><small>mean {_g(g['mean'])} as read, {_g(m['mean'])} mirrored</small>"
+    centre = check.get("of") == "centre"  # a sphere's centre: one distance, not a mean over points
+    fit = f"<br><small>{'centre' if centre else 'mean'} {_g(g['mean'])} as read, {_g(m['mean'])} mirrored</small>"
     if not check.get("likely_mix_up"):
         return fit, ""
     advice = str(check.get("advice") or check.get("warning") or "check the file's frame").rstrip(".")
     read_in = str(check.get("read_in", "?"))
     read_in = read_in if read_in in ("RAS", "LPS") else f"{read_in} frame"  # a 4x4, the markups file's own
     flag = (f"<tr class='frame-flag'><td colspan='7'><b class='flag'>⚠ {html.escape(str(name))}: likely read in "
-            f"the wrong frame</b> (read in {html.escape(read_in)}; mirrored, its points fit the surface "
-            f"{_g(m['mean'])} mm on average, {_g(g['mean'])} as read). {html.escape(advice)}.</td></tr>")
+            f"the wrong frame</b> (read in {html.escape(read_in)}; mirrored, "
+            + (f"its centre lies {_g(m['mean'])} mm from the surface, {_g(g['mean'])} as read" if centre else
+               f"its points fit the surface {_g(m['mean'])} mm on average, {_g(g['mean'])} as read")
+            + f"). {html.escape(advice)}.</td></tr>")
     return fit + " <b class='flag'>⚠ frame</b>", flag
 
 

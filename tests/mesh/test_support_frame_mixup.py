@@ -325,7 +325,7 @@ def test_points_beyond_the_limit_that_fit_mirrored_are_said_to_be_in_the_other_f
     pts = _posterior_patch(V, F, 0.5)
     np.savetxt(tmp_path / "lps.csv", pts * MIRROR, delimiter=",")
     msg = _far(V, F, tmp_path / "lps.csv")
-    assert "Mirrored in x and y (a file in RAS read as LPS, or in LPS read as RAS" in msg
+    assert "Mirrored in x and y (coordinates in RAS read as LPS, or in LPS read as RAS" in msg
     assert "all 40 points would lie within 5 mm of the surface" in msg and "so the file is likely in LPS" in msg
     assert f"The file states no frame, so its points are read in the geometry's: if the file is in LPS, state " \
            f"{KEY}.list[0].file.frame: LPS" in msg
