@@ -33,7 +33,8 @@ from liverforce.geometry.errors import GeometryError, refuse
 from liverforce.geometry.frames import describe_frame, frame_matrix, to_ras
 from liverforce.geometry.repair import repair_surface
 from liverforce.geometry.surface import Surface
-from liverforce.geometry.units import LIVER_EXTENT_MM, check_liver_size, guess_units, parse_units
+from liverforce.geometry.units import (LIVER_EXTENT_MM, check_liver_size, guess_units, guessed_words,
+                                       parse_units)
 from liverforce.geometry.volumes import is_volume_file, label_surface, read_label_volume
 
 __all__ = ["GeometryError", "SUPPORTED_SUFFIXES", "load_surface", "sha256_file"]
@@ -150,11 +151,12 @@ def load_surface(
         _refuse_higher_order(path, name)
         raise refuse(path, "the file contains no triangles or tetrahedra",
                      "Export the liver as a closed triangle surface or a tetrahedral mesh")
+    guess = None  # units: auto's choice, said in the conversion's summary too
     if scale is None:
         used = np.unique(faces)
         extent = float(np.ptp(vertices[used], axis=0).max())
         scale, unit_label = guess_units(extent, path)
-        guess = f"units guessed as '{unit_label}' (largest extent {extent:.4g} file units -> {extent * scale:.4g} mm)"
+        guess = guessed_words(extent, scale, unit_label)
         log.info("%s: %s", path, guess)
         msgs.append(guess)
     vertices = np.asarray(vertices, dtype=np.float64) * scale
@@ -170,7 +172,8 @@ def load_surface(
         vertices, faces, smsg = _refine_coarse(vertices, faces, max_edge_mm)
         msgs += smsg
     to_ras_mm = frame_m @ np.diag([scale, scale, scale, 1.0])
-    summary = (f"units {unit_label} (x{scale:g} to mm); " + describe_frame(frame_label, frame_m, finfo)
+    summary = (f"units {unit_label} (x{scale:g} to mm); " + (f"{guess}; " if guess else "")
+               + describe_frame(frame_label, frame_m, finfo)
                + ("; label volume: header frame converted to RAS first" if is_volume_file(path) else ""))
     conversion = {
         "units": unit_label,

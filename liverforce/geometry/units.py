@@ -11,6 +11,10 @@ UNIT_TO_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
 #: Largest bounding-box extent (mm) a human liver plausibly has; used by
 #: ``units="auto"`` to pick a unit and to refuse wrong units.
 LIVER_EXTENT_MM = (100.0, 450.0)
+#: mm per inch. ``units="auto"`` never picks inches (a SOFA liver, of arbitrary units about 6 across, would pass
+#: as one); it names them when they too would make the liver liver-sized, and a file in inches states
+#: ``units: 25.4``.
+INCH_MM = 25.4
 
 
 def parse_units(units, path=None) -> tuple[float | None, str]:
@@ -59,13 +63,29 @@ def guess_units(extent: float, path=None) -> tuple[float, str]:
         if lo <= extent * scale <= hi:
             return scale, name
     options = ", ".join(f"{extent * s:.3g} mm if {n}" for n, s in UNIT_TO_MM.items())
+    inches = extent * INCH_MM
+    fits = (f"; in inches it would be {inches:.3g} mm: if the file is in inches, state units: {INCH_MM:g}"
+            if lo <= inches <= hi else "")
     raise refuse(
         path,
         f"cannot guess the units: the largest extent is {extent:.4g} file units ({options}); "
-        f"none is liver-sized ({lo:g}-{hi:g} mm)",
+        f"none is liver-sized ({lo:g}-{hi:g} mm){fits}",
         "State the units explicitly: 'mm', 'cm', 'm' or a number of mm per file unit "
-        "(e.g. units=40 for the SOFA livers, about 6 units across)",
+        f"(e.g. units={INCH_MM:g} for inches, units=40 for the SOFA livers, about 6 units across)",
     )
+
+
+def guessed_words(extent: float, scale: float, label: str) -> str:
+    """What ``units="auto"`` chose (:func:`guess_units`), for the conversion's messages: the unit and the
+    extent in mm, and, when inches would make the liver liver-sized too (a file 10-17.7 units across, taken as
+    cm), that they would and what to state if so."""
+    text = f"units guessed as '{label}' (largest extent {extent:.4g} file units -> {extent * scale:.4g} mm)"
+    lo, hi = LIVER_EXTENT_MM
+    inches = extent * INCH_MM
+    if lo <= inches <= hi:
+        text += (f"; in inches it would be {inches:.4g} mm across, liver-sized too: if the file is in inches, "
+                 f"state units: {INCH_MM:g}")
+    return text
 
 
 def check_liver_size(extent_mm: float, scale: float, label: str, path=None, size_range_mm=LIVER_EXTENT_MM) -> None:

@@ -44,7 +44,8 @@ from liverforce.atomic import file_sha256
 from liverforce.geometry import readers
 from liverforce.geometry.errors import refuse
 from liverforce.geometry.frames import describe_frame, frame_matrix
-from liverforce.geometry.units import LIVER_EXTENT_MM, check_liver_size, guess_units, parse_units
+from liverforce.geometry.units import (LIVER_EXTENT_MM, check_liver_size, guess_units, guessed_words,
+                                       parse_units)
 
 log = logging.getLogger(__name__)
 
@@ -254,11 +255,12 @@ def load_volume_mesh(path: str | Path, units="mm", *, frame="RAS",
                            f"{sorted(sizes.tolist(), reverse=True)[:8]}); a piece without support has no "
                            "equilibrium", "Keep the liver piece only (ParaView: Connectivity, then Threshold on "
                            "RegionId; gmsh: delete the other volumes) or import the file with mesh: remesh")
+    guess = None  # units: auto's choice, said in the conversion's summary too
     if scale is None:
         extent = float(np.ptp(points, axis=0).max())
         scale, unit_label = guess_units(extent, path)
-        msgs.append(f"units guessed as '{unit_label}' (largest extent {extent:.4g} file units -> "
-                    f"{extent * scale:.4g} mm)")
+        guess = guessed_words(extent, scale, unit_label)
+        msgs.append(guess)
     lin, shift = frame_m[:3, :3], frame_m[:3, 3]
     det = float(np.linalg.det(lin))
     sv = np.linalg.svd(lin, compute_uv=False)
@@ -268,7 +270,8 @@ def load_volume_mesh(path: str | Path, units="mm", *, frame="RAS",
     check_liver_size(float(np.ptp(out, axis=0).max()), scale, unit_label, path, size_range_mm)
     finfo = {"determinant": det, "winding_reversed": det < 0, "rigid": bool(np.allclose(sv, 1.0, atol=1e-6)),
              "singular_values": [float(s) for s in sv]}
-    summary = (f"units {unit_label} (x{scale:g} to mm); " + describe_frame(frame_label, frame_m, finfo)
+    summary = (f"units {unit_label} (x{scale:g} to mm); " + (f"{guess}; " if guess else "")
+               + describe_frame(frame_label, frame_m, finfo)
                + ("; tetrahedra reoriented for the reflection" if det < 0 else "")
                + f"; volume mesh as given: {n} nodes (numbering kept), {len(tets)} linear tetrahedra")
     ignored = {t: c for t, c in counts.items() if t != "tetra"}

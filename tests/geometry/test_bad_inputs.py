@@ -276,6 +276,34 @@ def test_liver_with_wrong_units_is_refused(tmp_path):
     assert 240 < ok.extent_mm.max() < 280
 
 
+def test_auto_units_name_inches_where_they_would_fit(tmp_path):
+    """``units: auto`` never picks inches (a SOFA liver of arbitrary units would pass as one), but says so where
+    inches too would make the liver liver-sized, and what to state: in the note and the conversion's summary of a
+    257 mm liver written in inches (10.1 units across, taken as cm: 101 mm), and in the refusal of one 9 units
+    across (no unit fits; in inches 229 mm)."""
+    from liverforce.geometry.procedural import procedural_liver
+
+    s = procedural_liver(0)
+    extent = float(np.ptp(s.vertices, axis=0).max())
+    path = save(tmp_path, "liver_in.stl", s.vertices / 25.4, s.faces)
+    surface, msgs = load(path, units="auto")
+    note = (f"units guessed as 'cm' (largest extent {extent / 25.4:.4g} file units -> {extent / 2.54:.4g} mm); in "
+            f"inches it would be {extent:.4g} mm across, liver-sized too: if the file is in inches, state units: 25.4")
+    assert surface.meta["conversion"]["units"] == "cm" and note in msgs
+    assert surface.meta["conversion"]["summary"].startswith(f"units cm (x10 to mm); {note}; frame RAS")
+    ok, _ = load(path, units=25.4)
+    assert ok.extent_mm.max() == pytest.approx(extent, rel=1e-6)
+    path = save(tmp_path, "liver_9.stl", s.vertices * (9.0 / extent), s.faces)
+    with pytest.raises(GeometryError, match=r"liver_9\.stl: cannot guess the units: .* none is liver-sized "
+                                            r"\(100-450 mm\); in inches it would be 229 mm: if the file is "
+                                            r"in inches, state units: 25\.4"):
+        load(path, units="auto")
+    path = save(tmp_path, "liver_m.stl", s.vertices / 1000.0, s.faces)  # metres: inches would be 6.5 mm
+    surface, msgs = load(path, units="auto")
+    assert surface.meta["conversion"]["units"] == "m" and not any("inches" in m for m in msgs)
+    assert "inches" not in surface.meta["conversion"]["summary"]
+
+
 @pytest.mark.parametrize("units", ["inch", -2.0, 0, "", True])
 def test_invalid_units_are_refused(tmp_path, units):
     v, f = cube()
