@@ -34,7 +34,7 @@ from liverforce.geometry.frames import describe_frame, frame_matrix, to_ras
 from liverforce.geometry.repair import repair_surface
 from liverforce.geometry.surface import Surface
 from liverforce.geometry.units import (LIVER_EXTENT_MM, check_liver_size, guess_units, guessed_words,
-                                       parse_units)
+                                       inches_fit, parse_units)
 from liverforce.geometry.volumes import is_volume_file, label_surface, read_label_volume
 
 __all__ = ["GeometryError", "SUPPORTED_SUFFIXES", "load_surface", "sha256_file"]
@@ -157,7 +157,7 @@ def load_surface(
         extent = float(np.ptp(vertices[used], axis=0).max())
         scale, unit_label = guess_units(extent, path)
         guess = guessed_words(extent, scale, unit_label)
-        log.info("%s: %s", path, guess)
+        (log.warning if inches_fit(extent) else log.info)("%s: %s", path, guess)
         msgs.append(guess)
     vertices = np.asarray(vertices, dtype=np.float64) * scale
     vertices, faces, finfo = to_ras(vertices, faces, frame_m)

@@ -63,9 +63,8 @@ def guess_units(extent: float, path=None) -> tuple[float, str]:
         if lo <= extent * scale <= hi:
             return scale, name
     options = ", ".join(f"{extent * s:.3g} mm if {n}" for n, s in UNIT_TO_MM.items())
-    inches = extent * INCH_MM
-    fits = (f"; in inches it would be {inches:.3g} mm: if the file is in inches, state units: {INCH_MM:g}"
-            if lo <= inches <= hi else "")
+    fits = (f"; in inches it would be {extent * INCH_MM:.3g} mm: if the file is in inches, state units: "
+            f"{INCH_MM:g}" if inches_fit(extent) else "")
     raise refuse(
         path,
         f"cannot guess the units: the largest extent is {extent:.4g} file units ({options}); "
@@ -80,12 +79,17 @@ def guessed_words(extent: float, scale: float, label: str) -> str:
     extent in mm, and, when inches would make the liver liver-sized too (a file 10-17.7 units across, taken as
     cm), that they would and what to state if so."""
     text = f"units guessed as '{label}' (largest extent {extent:.4g} file units -> {extent * scale:.4g} mm)"
-    lo, hi = LIVER_EXTENT_MM
-    inches = extent * INCH_MM
-    if lo <= inches <= hi:
-        text += (f"; in inches it would be {inches:.4g} mm across, liver-sized too: if the file is in inches, "
-                 f"state units: {INCH_MM:g}")
+    if inches_fit(extent):
+        text += (f"; in inches it would be {extent * INCH_MM:.4g} mm across, liver-sized too: if the file is in "
+                 f"inches, state units: {INCH_MM:g}")
     return text
+
+
+def inches_fit(extent: float) -> bool:
+    """Whether a largest extent of ``extent`` file units would be liver-sized in inches (the guess of
+    :func:`guess_units` is then doubtful, and logged as a warning)."""
+    lo, hi = LIVER_EXTENT_MM
+    return bool(lo <= extent * INCH_MM <= hi)
 
 
 def check_liver_size(extent_mm: float, scale: float, label: str, path=None, size_range_mm=LIVER_EXTENT_MM) -> None:

@@ -45,7 +45,7 @@ from liverforce.geometry import readers
 from liverforce.geometry.errors import refuse
 from liverforce.geometry.frames import describe_frame, frame_matrix
 from liverforce.geometry.units import (LIVER_EXTENT_MM, check_liver_size, guess_units, guessed_words,
-                                       parse_units)
+                                       inches_fit, parse_units)
 
 log = logging.getLogger(__name__)
 
@@ -260,6 +260,8 @@ def load_volume_mesh(path: str | Path, units="mm", *, frame="RAS",
         extent = float(np.ptp(points, axis=0).max())
         scale, unit_label = guess_units(extent, path)
         guess = guessed_words(extent, scale, unit_label)
+        if inches_fit(extent):
+            log.warning("%s: %s", path, guess)
         msgs.append(guess)
     lin, shift = frame_m[:3, :3], frame_m[:3, 3]
     det = float(np.linalg.det(lin))

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 import trimesh
@@ -276,7 +278,7 @@ def test_liver_with_wrong_units_is_refused(tmp_path):
     assert 240 < ok.extent_mm.max() < 280
 
 
-def test_auto_units_name_inches_where_they_would_fit(tmp_path):
+def test_auto_units_name_inches_where_they_would_fit(tmp_path, caplog):
     """``units: auto`` never picks inches (a SOFA liver of arbitrary units would pass as one), but says so where
     inches too would make the liver liver-sized, and what to state: in the note and the conversion's summary of a
     257 mm liver written in inches (10.1 units across, taken as cm: 101 mm), and in the refusal of one 9 units
@@ -286,10 +288,12 @@ def test_auto_units_name_inches_where_they_would_fit(tmp_path):
     s = procedural_liver(0)
     extent = float(np.ptp(s.vertices, axis=0).max())
     path = save(tmp_path, "liver_in.stl", s.vertices / 25.4, s.faces)
-    surface, msgs = load(path, units="auto")
+    with caplog.at_level(logging.WARNING):
+        surface, msgs = load(path, units="auto")
     note = (f"units guessed as 'cm' (largest extent {extent / 25.4:.4g} file units -> {extent / 2.54:.4g} mm); in "
             f"inches it would be {extent:.4g} mm across, liver-sized too: if the file is in inches, state units: 25.4")
     assert surface.meta["conversion"]["units"] == "cm" and note in msgs
+    assert [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING] == [f"{path}: {note}"]
     assert surface.meta["conversion"]["summary"].startswith(f"units cm (x10 to mm); {note}; frame RAS")
     ok, _ = load(path, units=25.4)
     assert ok.extent_mm.max() == pytest.approx(extent, rel=1e-6)
@@ -299,7 +303,10 @@ def test_auto_units_name_inches_where_they_would_fit(tmp_path):
                                             r"in inches, state units: 25\.4"):
         load(path, units="auto")
     path = save(tmp_path, "liver_m.stl", s.vertices / 1000.0, s.faces)  # metres: inches would be 6.5 mm
-    surface, msgs = load(path, units="auto")
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        surface, msgs = load(path, units="auto")
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
     assert surface.meta["conversion"]["units"] == "m" and not any("inches" in m for m in msgs)
     assert "inches" not in surface.meta["conversion"]["summary"]
 
@@ -346,3 +353,18 @@ def test_auto_units_of_a_label_volume_whose_header_states_none_are_guessed_from_
 def test_missing_file(tmp_path):
     with pytest.raises(GeometryError, match=r"nowhere\.stl: file not found"):
         load(tmp_path / "nowhere.stl")
+
+
+def test_auto_units_of_a_volume_mesh_name_inches_too(tmp_path, caplog):
+    """A tetrahedral mesh taken as given guesses its units as a surface does, with the same note on inches."""
+    from liverforce.geometry.volume_mesh import load_volume_mesh
+    from tests.test_byo_volume_files import shuffled_box, write_volume
+
+    points, tets, _ = shuffled_box(seed=1, size=(254.0, 150.0, 120.0))  # mm
+    write_volume(tmp_path / "box_in.vtu", "vtu", points / 25.4, tets)  # in inches: 10 units across
+    with caplog.at_level(logging.WARNING):
+        vm, msgs = load_volume_mesh(tmp_path / "box_in.vtu", units="auto")
+    note = ("units guessed as 'cm' (largest extent 10 file units -> 100 mm); in inches it would be 254 mm across, "
+            "liver-sized too: if the file is in inches, state units: 25.4")
+    assert note in msgs and vm.meta["conversion"]["summary"].startswith(f"units cm (x10 to mm); {note}; frame RAS")
+    assert any(r.levelno == logging.WARNING and note in r.getMessage() for r in caplog.records)
