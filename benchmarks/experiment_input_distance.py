@@ -35,7 +35,7 @@ import torch
 from scipy.stats import spearmanr
 
 from liverforce.learn.frames import case_rotations
-from liverforce.learn.gp import GPEnsemble, _kernel
+from liverforce.learn.gp import GPEnsemble, _kernel, nearest_scaled
 from liverforce.learn.model import ForceModel
 from liverforce.learn.state import state_vector
 from liverforce.pipeline.shared import camera_arrays
@@ -47,14 +47,6 @@ def gp_inputs(m: ForceModel, arrays: dict, seed: int) -> np.ndarray:
     x = m.representation.features_of(arrays, observation_seed=seed, R=rot)
     s = state_vector(m.representation.state_arrays(arrays), R=rot) if m.uses_state else None
     return m.pre.inputs(x, s)
-
-
-def nearest(A: np.ndarray, B: np.ndarray, exclude: np.ndarray | None = None) -> np.ndarray:
-    """Distance of each row of ``A`` to the nearest row of ``B`` (``exclude``: (len(A), len(B)) pairs left out)."""
-    d2 = (A ** 2).sum(1)[:, None] + (B ** 2).sum(1)[None] - 2.0 * A @ B.T
-    if exclude is not None:
-        d2[exclude] = np.inf
-    return np.sqrt(np.maximum(d2.min(1), 0.0))
 
 
 def posterior_sd(g, z: np.ndarray) -> np.ndarray:
@@ -92,8 +84,8 @@ def main() -> None:
     for i, g in enumerate(m.regressor.members):
         cols = m.regressor.columns(i).numpy()
         il = g.inv_length.numpy()
-        dt.append(nearest(zt[:, cols] * il, zt[:, cols] * il, exclude=liver[:, None] == liver[None, :]))
-        dv.append(nearest(zv[:, cols] * il, zt[:, cols] * il))
+        dt.append(nearest_scaled(zt[:, cols] * il, zt[:, cols] * il, groups_a=liver, groups_b=liver))
+        dv.append(nearest_scaled(zv[:, cols] * il, zt[:, cols] * il))
         sd.append(posterior_sd(g, zv[:, cols]))
     dt, dv, sd = np.mean(dt, 0), np.mean(dv, 0), np.mean(sd, 0)
     print(f"distance to the nearest training case (scaled GP inputs, mean over {len(m.regressor.members)} members): "

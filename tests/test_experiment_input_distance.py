@@ -1,23 +1,13 @@
-"""benchmarks/experiment_input_distance.py: the nearest training case's distance, its own liver left out, and a GP
-member's posterior sd (zero at its data, the prior's far from it)."""
+"""benchmarks/experiment_input_distance.py: a GP member's posterior sd (zero at its data, the prior's far from it).
+The nearest training case's distance, its own liver left out, is liverforce.learn.gp.nearest_scaled's
+(tests/learn/test_input_distance.py)."""
 from __future__ import annotations
 
 import numpy as np
 import torch
 
-from benchmarks.experiment_input_distance import nearest, posterior_sd
+from benchmarks.experiment_input_distance import posterior_sd
 from liverforce.learn.gp import GPRegressor
-
-
-def test_nearest_is_the_brute_force_minimum_with_the_excluded_pairs_left_out():
-    rng = np.random.default_rng(3)
-    A, B = rng.normal(size=(30, 4)), rng.normal(size=(50, 4))
-    group_a, group_b = rng.integers(0, 5, 30), rng.integers(0, 5, 50)
-    exclude = group_a[:, None] == group_b[None, :]
-    got = nearest(A, B, exclude=exclude)
-    want = [min(np.linalg.norm(a - b) for b, gb in zip(B, group_b) if gb != ga) for a, ga in zip(A, group_a)]
-    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
-    np.testing.assert_allclose(nearest(A, A), 0.0, atol=1e-6)  # a point is its own nearest without the exclusion
 
 
 def test_posterior_sd_vanishes_at_the_data_and_is_the_prior_sd_far_from_it():

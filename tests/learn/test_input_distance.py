@@ -52,6 +52,21 @@ def test_nearest_scaled_in_blocks_is_the_whole_matrix():
     np.testing.assert_allclose(nearest_scaled(A, B, block=5), brute(A, B, np.ones(4)), rtol=1e-10)
 
 
+def test_nearest_scaled_leaves_out_the_rows_of_the_same_group():
+    """With labels, each row's nearest is among the other groups' rows (a case against the other livers), in
+    blocks as whole; inf for a row whose group holds every row of ``B``."""
+    rng = np.random.default_rng(3)
+    A, B = rng.normal(size=(30, 4)), rng.normal(size=(50, 4))
+    group_a, group_b = rng.integers(0, 5, 30), rng.integers(0, 5, 50)
+    got = nearest_scaled(A, B, block=7, groups_a=group_a, groups_b=group_b)
+    want = [min(np.linalg.norm(a - b) for b, gb in zip(B, group_b) if gb != ga) for a, ga in zip(A, group_a)]
+    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(nearest_scaled(A, A), 0.0, atol=1e-6)  # a row is its own nearest without labels
+    assert np.isinf(nearest_scaled(A[:2], B, groups_a=[9, 9], groups_b=np.full(50, 9))).all()
+    with pytest.raises(ValueError, match="labels of both"):
+        nearest_scaled(A, B, groups_a=group_a)
+
+
 @pytest.mark.parametrize("members", [False, True])
 def test_the_heads_distance_is_the_modules_and_leaves_the_force_unchanged(ensemble, members):
     X, gp = ensemble
