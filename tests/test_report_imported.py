@@ -184,4 +184,5 @@ def test_the_supports_table_shows_a_sphere_centres_frame_check(stage_outputs):
     assert ("⚠ floor: likely read in the wrong frame (read in LPS; mirrored, its centre lies 0.0004 mm from the "
             "surface, 11.2 as read). The sphere states no frame") in rows
     assert html.count("<tr class='frame-flag'><td colspan='7'>") == 1
-    assert "For a sphere, its centre's distance" in rows and "flagged within 1 mm mirrored and 5 mm or more" in rows
+    assert "Frame check of a sphere" in rows and "flagged within 1 mm mirrored and 5 mm or more" in rows
+    assert "Frame check of a file of points" not in rows

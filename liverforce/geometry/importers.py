@@ -151,7 +151,6 @@ def load_surface(
         _refuse_higher_order(path, name)
         raise refuse(path, "the file contains no triangles or tetrahedra",
                      "Export the liver as a closed triangle surface or a tetrahedral mesh")
-    guess = None  # units: auto's choice, said in the conversion's summary too
     if scale is None:
         used = np.unique(faces)
         extent = float(np.ptp(vertices[used], axis=0).max())
@@ -172,8 +171,7 @@ def load_surface(
         vertices, faces, smsg = _refine_coarse(vertices, faces, max_edge_mm)
         msgs += smsg
     to_ras_mm = frame_m @ np.diag([scale, scale, scale, 1.0])
-    summary = (f"units {unit_label} (x{scale:g} to mm); " + (f"{guess}; " if guess else "")
-               + describe_frame(frame_label, frame_m, finfo)
+    summary = (f"units {unit_label} (x{scale:g} to mm); " + describe_frame(frame_label, frame_m, finfo)
                + ("; label volume: header frame converted to RAS first" if is_volume_file(path) else ""))
     conversion = {
         "units": unit_label,

@@ -255,7 +255,6 @@ def load_volume_mesh(path: str | Path, units="mm", *, frame="RAS",
                            f"{sorted(sizes.tolist(), reverse=True)[:8]}); a piece without support has no "
                            "equilibrium", "Keep the liver piece only (ParaView: Connectivity, then Threshold on "
                            "RegionId; gmsh: delete the other volumes) or import the file with mesh: remesh")
-    guess = None  # units: auto's choice, said in the conversion's summary too
     if scale is None:
         extent = float(np.ptp(points, axis=0).max())
         scale, unit_label = guess_units(extent, path)
@@ -272,8 +271,7 @@ def load_volume_mesh(path: str | Path, units="mm", *, frame="RAS",
     check_liver_size(float(np.ptp(out, axis=0).max()), scale, unit_label, path, size_range_mm)
     finfo = {"determinant": det, "winding_reversed": det < 0, "rigid": bool(np.allclose(sv, 1.0, atol=1e-6)),
              "singular_values": [float(s) for s in sv]}
-    summary = (f"units {unit_label} (x{scale:g} to mm); " + (f"{guess}; " if guess else "")
-               + describe_frame(frame_label, frame_m, finfo)
+    summary = (f"units {unit_label} (x{scale:g} to mm); " + describe_frame(frame_label, frame_m, finfo)
                + ("; tetrahedra reoriented for the reflection" if det < 0 else "")
                + f"; volume mesh as given: {n} nodes (numbering kept), {len(tets)} linear tetrahedra")
     ignored = {t: c for t, c in counts.items() if t != "tetra"}

@@ -128,8 +128,9 @@ def build_liver_mesh(
         ``mesh.regions_check``: a given exertion point off the visible area (where built-in sampling places
         the tool) is logged as a warning and listed in ``meta["exertion_not_visible"]``, or, under ``strict``,
         refused (:func:`~liverforce.mesh.supports.check_exertion_facing`); a support's file of points that fits
-        the surface better mirrored in x and y (read in the wrong of RAS and LPS) likewise, recorded on its
-        report in ``meta["supports"]`` (``frame_check``, :func:`liverforce.mesh.supports.check_support_frame`).
+        the surface better mirrored in x and y (read in the wrong of RAS and LPS), or a sphere whose centre lies
+        on the surface only mirrored, likewise, recorded on its report in ``meta["supports"]`` (``frame_check``,
+        :func:`liverforce.mesh.supports.check_support_frame`, :func:`~liverforce.mesh.supports.check_sphere_frame`).
     require_held : str, optional
         Refuse ``supports`` that leave the liver free to move as a rigid body, on the input surface before
         meshing (:func:`~liverforce.mesh.supports.check_held`; the string says where they were given, for the

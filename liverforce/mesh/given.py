@@ -44,8 +44,8 @@ def build_given_mesh(points, tets, meta: dict | None = None, region_params: Regi
     regions_check : ``mesh.regions_check``, as :func:`liverforce.mesh.build.build_liver_mesh`: a given exertion
         point off the visible area is warned and listed in ``meta["exertion_not_visible"]`` (refused under
         ``strict`` if it faces away from the camera or looks like a frame mix-up; ``off``: not checked); a
-        support's file of points read in the wrong frame is warned (refused under ``strict``) and recorded on
-        its report (``frame_check``).
+        support's file of points (or sphere) read in the wrong frame is warned (refused under ``strict``) and
+        recorded on its report (``frame_check``).
     exertion_sampling : ``{"n_points", "min_spacing_mm", "seed"}``: candidates sampled on the visible facets.
     coarse_edge_mm : warn when the mean boundary edge is longer (mm): the tool's few-mm traction is then
         resolved by few facets (the mesh stage passes twice ``mesh.refine_edge_mm``).

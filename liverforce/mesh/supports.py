@@ -712,7 +712,9 @@ def select_facets(vertices, faces, support: Support, frame: PointFrame = PointFr
     A file of coordinates (or a 3D Slicer markups file) is checked for a frame mix-up, its points fitting the
     surface better mirrored in x and y (RAS read as LPS, or the reverse): ``info["frame_check"]``
     (:func:`check_support_frame`), warned, or refused under ``regions_check``
-    (``mesh.regions_check``) ``strict``; None under ``off``.
+    (``mesh.regions_check``) ``strict``; None under ``off``. So is a sphere whose centre lies on the surface
+    only mirrored (:func:`check_sphere_frame`). A sphere or box that selects nothing is refused naming what it
+    would select mirrored or in cm or m (:func:`_shape_readings`).
     """
     vertices = np.asarray(vertices, float)
     faces = np.asarray(faces, np.int64)
@@ -739,7 +741,7 @@ def select_facets(vertices, faces, support: Support, frame: PointFrame = PointFr
             raise SupportError(f"support '{support.name}': its {kind} selector {d} selects no surface facet "
                                f"({miss}; coordinates read {frame.read_as('mm')}): enlarge it or check the frame"
                                + _shape_readings(support, cent, frame))
-        if kind == "sphere" and regions_check != "off":
+        if kind == "sphere":
             info["frame_check"] = check_sphere_frame(support, frame, TriangleSet(vertices[faces]),
                                                      frame.read_as("mm"), regions_check)
     else:
@@ -903,9 +905,9 @@ def apply_supports(vertices, faces, auto_region: np.ndarray, mode: str, supports
     selector selected and, when later supports took some, ``taken_by`` ``{name: facets}``. A support left
     with no facet by later ones of another kind or region is refused (:class:`SupportError` naming them):
     a fixed support or a foundation vanishing silently would change the physics. One wholly inside later
-    supports of its own kind and region (the same boundary term) is only logged. A file of points read in the
-    wrong frame (RAS as LPS, or the reverse) is warned, or refused under ``regions_check`` ``strict``
-    (:func:`select_facets`).
+    supports of its own kind and region (the same boundary term) is only logged. A file of points (or a sphere)
+    read in the wrong frame (RAS as LPS, or the reverse) is warned, or refused under ``regions_check``
+    ``strict`` (:func:`select_facets`).
     """
     region, report, _ = assign_supports(vertices, faces, auto_region, mode, supports, frame, file_vertices,
                                         base_dir, file_groups, regions_check)
@@ -1514,11 +1516,18 @@ def check_support_frame(reading: PointReading, what: str, triangles: TriangleSet
     read_in_name = reading.frame_name or ("the markups file's own" if reading.markups else "a 4x4")
     record = {"read_in": read_in_name, **fits, "refused_under_strict": fits["likely_mix_up"],
               "warning": msg, "advice": fix}
+    return _frame_flagged(record, regions_check)
+
+
+def _frame_flagged(record: dict, regions_check: str) -> dict:
+    """A frame check's ``record``, its warning (if any) logged, or refused when ``refused_under_strict`` under
+    ``regions_check: strict``."""
+    msg = record["warning"]
     if msg is None:
         return record
-    if regions_check == "strict":
-        raise SupportError(msg + "\n(mesh.regions_check=strict refuses a support whose points look read in the "
-                                 "wrong frame; set it to warn to go on regardless)")
+    if regions_check == "strict" and record["refused_under_strict"]:
+        raise SupportError(msg + "\n(mesh.regions_check=strict refuses a support that looks read in the wrong "
+                                 "frame; set it to warn to go on regardless)")
     log.warning("%s", msg)
     return record
 
@@ -1539,7 +1548,7 @@ def _words(what: str, fits: dict, read_as: str, fix: str | None, n: int) -> str 
 
 #: what mirroring coordinates in x and y stands for, in the messages
 _MIRROR_WORDS = ("coordinates in RAS read as LPS, or in LPS read as RAS: half a turn about the superior axis "
-                 "through the file's origin")
+                 "through the origin of the coordinates as read")
 
 
 def _frame_fix(support: Support, frame_name: str | None, markups: bool) -> str:
@@ -1555,7 +1564,8 @@ def _frame_fix(support: Support, frame_name: str | None, markups: bool) -> str:
         setting = _setting(support, other)
     else:
         setting = (_setting(support, "that 4x4 with its first two columns negated")
-                   + " (or RAS or LPS, for a file in those world coordinates)")
+                   + f" (or RAS or LPS, for {'a file' if support.selector[0] == 'file' else 'coordinates'} in those "
+                   "world coordinates)")
     if markups:
         return (f"The markups file states coordinateSystem {frame_name or 'LPS or RAS'}: if its points are in "
                 f"{other or 'the other'}, correct that in the file (export it again from 3D Slicer); if the file "
@@ -1662,39 +1672,45 @@ def check_sphere_frame(support: Support, frame: PointFrame, triangles: TriangleS
     (``frame_check``, the keys of :func:`check_support_frame`'s with the centre's distance to the surface as both
     ``mean`` and ``max``, and ``of: centre``): flagged by the rule above. ``frame`` maps the coordinates the sphere
     is read in (mm) to the mesh; ``read_as`` says how, for the warning. ``regions_check``: ``warn`` logs it,
-    ``strict`` refuses, ``off`` checks nothing (None)."""
+    ``strict`` refuses it unless the sphere states its ``frame`` (the lab's word for it: a centre off the surface
+    whose mirror lands on it by chance, 1.7 % of such centres, is then only warned), ``off`` checks nothing (None)."""
     if regions_check == "off":
         return None
     centre = frame.to_mesh(np.asarray(support.selector[1]["center_mm"], float)[None])
     read, mirrored = (float(x) for x in triangles.closest(np.concatenate([centre, _mirrored(centre, frame)]))[1])
     likely = mirrored <= SPHERE_ON_SURFACE_MM and read >= SPHERE_OFF_SURFACE_MM
-    fix = _frame_fix(support, frame.read_in(), False) if likely else None
-    msg = None
+    stated = support.selector[1].get("frame") is not None
+    fix = msg = None
     if likely:
+        fix = _frame_fix(support, frame.read_in(), False)
+        if not stated:
+            fix += (f"; if the centre is right (a point off the surface whose mirror lands on it by chance), state "
+                    f"{_setting(support, frame.read_in() or 'its 4x4')} to say so")
         msg = (f"support '{support.name}' ({selector_words(support)}) looks read in the wrong frame: its centre, "
                f"read {read_as}, lies {read:.3g} mm from the surface; mirrored in x and y ({_MIRROR_WORDS}) it "
                f"would lie {mirrored:.3g} mm from it, as a point picked on the liver's surface does, so the sphere "
                f"likely holds the wrong side of the liver. {fix}. (Flagged when, mirrored, the centre lies within "
                f"{SPHERE_ON_SURFACE_MM:g} mm of the surface and, as read, {SPHERE_OFF_SURFACE_MM:g} mm or more off "
-               "it.)")
+               "it; a sphere that states its frame is not refused for it under mesh.regions_check: strict.)")
     record = {"of": "centre", "read_in": frame.read_in() or "a 4x4",
               "as_given_mm": {"mean": round(read, 4), "max": round(read, 4)},
               "mirrored_mm": {"mean": round(mirrored, 4), "max": round(mirrored, 4)},
-              "likely_mix_up": bool(likely), "refused_under_strict": bool(likely), "warning": msg, "advice": fix}
-    if msg is None:
-        return record
-    if regions_check == "strict":
-        raise SupportError(msg + "\n(mesh.regions_check=strict refuses a support that looks read in the wrong "
-                                 "frame; set it to warn to go on regardless)")
-    log.warning("%s", msg)
-    return record
+              "likely_mix_up": bool(likely), "refused_under_strict": bool(likely and not stated), "warning": msg,
+              "advice": fix}
+    return _frame_flagged(record, regions_check)
+
+
+#: a reading of a sphere's or box's numbers in cm or m is named only when it selects at most this fraction of the
+#: facets: scaled by 10 or 1000 about the origin, a small shape left there would swallow the liver
+SHAPE_READING_MAX_FRACTION = 0.5
 
 
 def _shape_readings(support: Support, cent: np.ndarray, frame: PointFrame) -> str:
     """For the refusal of a sphere or box that selects no facet: the other readings of its numbers under which it
     would select some, and what to do for each, or ``""`` when none would. The readings: mirrored in x and y in
-    the coordinates it is read in (the other of RAS and LPS), and its numbers in cm or m rather than mm.
-    ``cent``: the facets' centroids in those coordinates (mm)."""
+    the coordinates it is read in (the other of RAS and LPS), and its numbers in cm or m rather than mm (when
+    they select at most :data:`SHAPE_READING_MAX_FRACTION` of the facets). ``cent``: the facets' centroids in
+    those coordinates (mm)."""
     from liverforce.geometry.units import UNIT_TO_MM
 
     kind, d = support.selector
@@ -1707,7 +1723,7 @@ def _shape_readings(support: Support, cent: np.ndarray, frame: PointFrame) -> st
     keys = "center_mm, radius_mm" if kind == "sphere" else "min_mm, max_mm"
     for unit, mm in UNIT_TO_MM.items():
         n = int(_inside(kind, d, cent, mm).sum()) if mm != 1.0 else 0
-        if n:
+        if 0 < n <= SHAPE_READING_MAX_FRACTION * len(cent):  # scaled up about the origin, a small shape there
             said.append(f"its numbers taken in {unit} (x{mm:g}) would select {n} facets, so they are likely in "
                         f"{unit}: a {kind}'s numbers ({keys}) are mm, so give them in mm")
     return "".join(f". {x[0].upper()}{x[1:]}" for x in said)

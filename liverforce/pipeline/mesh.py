@@ -53,7 +53,8 @@ def make_mesh(surface_path, mesh_cfg: dict, seed: int, mesh_path, features_path,
     under ``supports`` (facets on the input surface, ``index`` in the VTU's ``support``
     array and ``n_mesh_facets`` there, snapping distances; for a file of points, ``frame_check``: how it fits the
     surface as read and mirrored in x and y, a likely RAS/LPS mix-up warned, refused under
-    ``mesh.regions_check: strict``, :func:`liverforce.mesh.supports.check_support_frame`) and their foundation
+    ``mesh.regions_check: strict``, :func:`liverforce.mesh.supports.check_support_frame`; for a sphere, its
+    centre's distances, :func:`liverforce.mesh.supports.check_sphere_frame`) and their foundation
     stiffness under ``support_boundary`` (N/mm³, ``BoundaryParams`` fields). Supports that leave the liver free
     to move as a rigid body (no fixed support, and a rigid motion only sliding supports or foundations without
     tangential stiffness resist) are refused before meshing (:func:`liverforce.mesh.supports.check_held`), as

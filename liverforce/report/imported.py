@@ -100,13 +100,14 @@ def _supports_block(spec_supports, features: dict) -> str:
         mode, items = spec_supports.get("mode", "replace"), spec_supports.get("list") or []
     held = {s.get("name"): s for s in features.get("supports") or []}
     own = features.get("support_boundary") or {}
-    rows, checked = [], False
+    rows, checked = [], set()  # the kinds of frame check shown: "points" (a file's), "centre" (a sphere's)
     for i, s in enumerate(items):
         name = s.get("name") or f"support{i}"
         h = held.get(name) or {}
         snap = (h.get("snap_mm") or {}).get("max")
         fit, flag = _frame_fit(h.get("frame_check"), name)
-        checked = checked or bool(fit)
+        if fit:
+            checked.add((h.get("frame_check") or {}).get("of", "points"))
         rows.append(f"<tr><td>{html.escape(str(name))}</td><td>{html.escape(str(s.get('kind', '?')))} "
                     f"<small>({html.escape(KIND_TEXT.get(s.get('kind'), ''))})</small></td><td>{_selector(s)}</td>"
                     f"<td>{h['n_facets'] if 'n_facets' in h else '–'}</td>"
@@ -122,19 +123,25 @@ def _supports_block(spec_supports, features: dict) -> str:
             "<table class='supports'><thead><tr><th>support</th><th>kind</th><th>selector (file frame)</th>"
             "<th>facets held (input surface)</th><th>mesh facets (VTU <code>support</code>)</th>"
             "<th>max snap (mm)</th><th>stiffness</th></tr></thead><tbody>"
-            + "".join(rows) + "</tbody></table>" + (FRAME_FIT_NOTE if checked else ""))
+            + "".join(rows) + "</tbody></table>"
+            + ("<p><small>" + " ".join(FRAME_FIT_NOTES[k] for k in ("points", "centre") if k in checked)
+               + "</small></p>" if checked else ""))
 
 
-#: under the supports table when a support's file of points (or sphere) had its frame checked
-FRAME_FIT_NOTE = ("<p><small>Frame check of a file of points (<code>frame_check</code> in the features JSON): under "
-                  "its max snap, the points' mean distance to the surface (mm) as read and mirrored in x and y (as "
-                  "if read in the other of RAS and LPS). Points marked on the liver's surface fit it within a "
-                  "fraction of a mm; a mirrored fit clearly closer (at most "
-                  f"{FRAME_FIT_RATIO:g} times as far and {FRAME_FIT_MARGIN_MM:g} mm closer) means the file was "
-                  "likely read in the wrong frame and the support put on the wrong side of the liver (⚠, with "
-                  "what to state). For a sphere, its centre's distance: one picked on the surface and read in the "
-                  f"wrong frame lies on it only mirrored (flagged within {SPHERE_ON_SURFACE_MM:g} mm mirrored and "
-                  f"{SPHERE_OFF_SURFACE_MM:g} mm or more off it as read).</small></p>")
+#: under the supports table, per kind of frame check shown: a support's file of points, a sphere's centre
+FRAME_FIT_NOTES = {
+    "points": ("Frame check of a file of points (<code>frame_check</code> in the features JSON): under its max snap, "
+               "the points' mean distance to the surface (mm) as read and mirrored in x and y (as if read in the "
+               "other of RAS and LPS). Points marked on the liver's surface fit it within a fraction of a mm; a "
+               f"mirrored fit clearly closer (at most {FRAME_FIT_RATIO:g} times as far and {FRAME_FIT_MARGIN_MM:g} "
+               "mm closer) means the file was likely read in the wrong frame and the support put on the wrong side "
+               "of the liver (⚠, with what to state)."),
+    "centre": ("Frame check of a sphere (<code>frame_check</code>, of its centre): its centre's distance to the "
+               "surface (mm) as read and mirrored in x and y. A centre picked on the liver's surface and read in "
+               "the wrong frame lies on it only mirrored (flagged within "
+               f"{SPHERE_ON_SURFACE_MM:g} mm mirrored and {SPHERE_OFF_SURFACE_MM:g} mm or more off it as read, ⚠); a "
+               "centre off the surface (the middle of a vessel) tells nothing."),
+}
 
 
 def _frame_fit(check: dict | None, name) -> tuple[str, str]:

@@ -74,6 +74,8 @@ def test_a_sphere_picked_on_the_surface_in_the_other_frame_is_warned_and_refused
                           "in the geometry file's frame (RAS), lies ")
     assert f"lies {off:.3g} mm from the surface; mirrored in x and y" in msg
     assert f"state {KEY}.list[0].sphere.frame: LPS" in msg and "The sphere states no frame" in msg
+    assert (f"if the centre is right (a point off the surface whose mirror lands on it by chance), state "
+            f"{KEY}.list[0].sphere.frame: RAS to say so") in msg
     assert f"within {SPHERE_ON_SURFACE_MM:g} mm of the surface and, as read, {SPHERE_OFF_SURFACE_MM:g} mm" in msg
     with pytest.raises(SupportError, match="(?s)looks read in the wrong frame.*strict refuses"):
         select_facets(V, F, _support(sphere), PointFrame(), regions_check="strict")
@@ -89,14 +91,21 @@ def test_a_sphere_picked_on_the_surface_in_the_other_frame_is_warned_and_refused
     assert info["frame_check"]["as_given_mm"]["mean"] < 1e-6
 
 
-def test_a_stated_frame_that_looks_wrong_names_both_settings(near_origin, caplog):
+def test_a_stated_frame_that_looks_wrong_is_warned_never_refused(near_origin, caplog):
+    """A sphere that states its frame has the lab's word for it: flagged, it is warned naming both settings, and
+    under strict still only warned (a centre off the surface whose mirror lands on it by chance is kept so)."""
     V, F = near_origin
     p, _ = _picked(V, F, 8.0, 14.0)
     sphere = {"sphere": {"center_mm": p.tolist(), "radius_mm": 25.0, "frame": "LPS"}}  # RAS numbers stated LPS
-    with caplog.at_level(logging.WARNING):
-        select_facets(V, F, _support(sphere), PointFrame())
-    (msg,) = _warnings(caplog)
-    assert f"If the sphere's coordinates are in RAS, state {KEY}.list[0].sphere.frame: RAS; if LPS is right" in msg
+    for check in ("warn", "strict"):
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            mask, info = select_facets(V, F, _support(sphere), PointFrame(), regions_check=check)
+        (msg,) = _warnings(caplog)
+        assert mask.any() and info["frame_check"]["likely_mix_up"] is True
+        assert info["frame_check"]["refused_under_strict"] is False
+        assert f"If the sphere's coordinates are in RAS, state {KEY}.list[0].sphere.frame: RAS; if LPS is right" in msg
+        assert "to say so" not in msg
 
 
 def test_sphere_centres_not_picked_on_the_surface_are_not_flagged(near_origin, caplog):
@@ -152,6 +161,18 @@ def test_a_box_or_sphere_in_other_units_says_which(off_origin, unit, mm):
                       PointFrame())
 
 
+@pytest.mark.parametrize("shape", [{"sphere": {"center_mm": [0.0, 0.0, 0.0], "radius_mm": 20.0}},
+                                   {"sphere": {"center_mm": [10.0, 0.0, 0.0], "radius_mm": 30.0}},
+                                   {"box": {"min_mm": [-20.0, -20.0, -20.0], "max_mm": [20.0, 20.0, 20.0]}}])
+def test_a_small_shape_at_the_origin_is_not_said_to_be_in_cm_or_m(off_origin, shape):
+    """Scaled by 10 or 1000 about the origin, a small sphere or box left there would swallow most of the liver:
+    that reading is not named (it selects more than half the surface)."""
+    V, F = off_origin
+    with pytest.raises(SupportError) as err:
+        select_facets(V, F, _support(shape), PointFrame())
+    assert "would select" not in str(err.value) and str(err.value).endswith("enlarge it or check the frame")
+
+
 def test_a_sphere_nothing_would_rescue_is_refused_as_before(off_origin):
     V, F = off_origin
     with pytest.raises(SupportError) as err:
@@ -181,7 +202,7 @@ def test_the_features_json_and_the_report_record_the_sphere_check(near_origin, t
     block = _supports_block(supports, feats)
     assert block.count("<tr class='frame-flag'>") == 1 and "⚠ cava: likely read in the wrong frame" in block
     assert "mirrored, its centre lies 0 mm from the surface" in block and "centre 0 as read" in block
-    assert "For a sphere, its centre&#x27;s distance" in block or "For a sphere, its centre's distance" in block
+    assert "Frame check of a sphere" in block and "Frame check of a file of points" not in block
 
 
 def test_the_shipped_rule_flags_no_centre_picked_on_the_surface_in_the_right_frame():
