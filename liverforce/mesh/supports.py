@@ -1196,14 +1196,16 @@ def snap_exertion_points(vertices, faces, region, xyz_mesh: np.ndarray, max_mm: 
     bad = np.flatnonzero(~np.isfinite(q).all(axis=1))
     if len(bad):
         raise SupportError(f"{_who(int(bad[0]), q, labels)}: a coordinate is not a finite number; give x, y, z")
-    pts, d, facet = closest_on_triangles(np.asarray(vertices, float)[np.asarray(faces)], q, k=16)
+    triangles = TriangleSet(np.asarray(vertices, float)[np.asarray(faces)])
+    pts, d, facet = triangles.closest(q)
     for j in range(len(q)):
         who = _who(j, q, labels)
         if d[j] > max_mm:
             raise SupportError(f"{who} is {d[j]:.3g} mm from the surface (limit {max_mm} mm): check its units and "
                                "frame (points are read in the geometry file's frame, a label volume's being its "
                                "header's world in RAS then the geometry's frame, unless they state frame: LPS, "
-                               "RAS or a 4x4; a 3D Slicer markups file states its own), or move it onto the liver")
+                               "RAS or a 4x4; a 3D Slicer markups file states its own), or move it onto the liver"
+                               + _far_points_words(triangles, q, frame, max_mm))
         if region is not None and int(region[facet[j]]) == REGION_CODES["ivc"]:
             i = -1 if owner is None else int(owner[facet[j]])
             raise SupportError(f"{who} lies on {_fixed_support_words(supports[i] if i >= 0 else None)}")
@@ -1215,6 +1217,39 @@ def snap_exertion_points(vertices, faces, region, xyz_mesh: np.ndarray, max_mm: 
         if not_visible is not None:
             not_visible.extend(found)
     return pts, d
+
+
+#: factors an exertion point file's numbers may be off by, tried when a point lies too far: one of mm, cm and m read
+#: as another
+_UNIT_FACTORS = (10.0, 1000.0, 0.1, 0.001, 100.0, 0.01)
+
+
+def _far_points_words(triangles: TriangleSet, q: np.ndarray, frame: PointFrame | None, max_mm: float) -> str:
+    """For the refusal of given exertion points some of which lie beyond ``max_mm``: the readings under which all
+    of them would lie within it, or ``""``: mirrored in x and y (the other of RAS and LPS, in the coordinates of
+    ``frame``, the geometry file's, as :func:`check_exertion_facing` mirrors), or their numbers scaled by 10, 1000,
+    0.1, 0.001, 100 or 0.01 about that frame's origin (one of mm, cm and m read as another). One query of all
+    the readings' points on the surface's search tree, as :func:`far_words` for a support's file."""
+    factors = [None, *_UNIT_FACTORS]  # None: mirrored
+    in_file = q if frame is None else frame.to_file(q)
+    stacked = [_mirrored(q, frame)] + [in_file * f if frame is None else frame.to_mesh(in_file * f)
+                                       for f in _UNIT_FACTORS]
+    dist = triangles.closest(np.concatenate(stacked))[1].reshape(len(stacked), len(q))
+    said, n = [], len(q)
+    for f, d in zip(factors, dist):
+        if float(d.max()) > max_mm:
+            continue
+        fit = (f"all {n} given point{'s' * (n != 1)} would lie within {max_mm:g} mm of the surface "
+               f"({d.mean():.3g} mm on average, max {d.max():.3g} mm)")
+        if f is None:
+            said.append(f"mirrored in x and y ({_MIRROR_WORDS}) {fit}, so they are likely in the other of RAS and "
+                        "LPS: state exertion_points.frame (LPS or RAS), or, if the liver is the one read in the wrong "
+                        "frame, fix geometry.imported[].frame")
+        else:
+            said.append(f"with their numbers scaled by {f:g} {fit}, so they are likely in units {f:g} times those "
+                        "they were read in (m read as mm is 1000): state exertion_points.units for a point file, or "
+                        "give coordinates_mm in mm")
+    return "".join(f". {x[0].upper()}{x[1:]}" for x in said)
 
 
 #: two given exertion points snapped closer than this (mm) are one tool position given twice

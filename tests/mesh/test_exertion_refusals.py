@@ -98,3 +98,56 @@ def test_a_point_on_a_fixed_support_names_which_support_at_the_mesh_stage(tmp_pa
     with pytest.raises(SupportError, match=rf"{given}; .* RAS mm as meshed\) lies on {which}"):
         make_mesh(surface, cfg, 0, out / "imp-lab.vtu", out / "imp-lab.features.json", out / "imp-lab.regions.png")
     assert not (out / "imp-lab.vtu").exists()
+
+
+# --------------------------------------------------------------------------- too far: the other readings
+def _anterior(V, k=3):
+    """``k`` vertices on the liver's front, well apart."""
+    order = np.argsort(-V[:, 1])
+    return V[order[[0, 60, 120][:k]]]
+
+
+def test_far_points_that_fit_mirrored_say_to_state_the_frame(liver_surface):
+    """Points given in LPS for a liver in RAS 150 mm off the origin land far off it: the refusal says that,
+    mirrored in x and y, all would lie on the surface, and which setting states their frame."""
+    V, F = liver_surface.vertices + [150.0, 80.0, 0.0], liver_surface.faces
+    labels = []
+    xyz = exertion_points_mesh({"coordinates_mm": (_anterior(V) * LPS_M).tolist()}, PointFrame(), labels=labels)
+    with pytest.raises(SupportError) as err:
+        snap_exertion_points(V, F, None, xyz, labels=labels, frame=PointFrame())
+    msg = str(err.value)
+    assert "exertion point 0 (exertion_points.coordinates_mm[0]" in msg and "mm from the surface (limit 5.0" in msg
+    assert ". Mirrored in x and y (coordinates in RAS read as LPS, or in LPS read as RAS" in msg
+    assert "all 3 given points would lie within 5 mm of the surface (0 mm on average, max 0 mm)" in msg
+    assert "state exertion_points.frame (LPS or RAS)" in msg and "scaled by" not in msg
+
+
+@pytest.mark.parametrize("factor", [0.001, 0.1])
+def test_far_points_in_other_units_say_by_how_much(liver_surface, tmp_path, factor):
+    """A point file in m (or cm) read in mm: the refusal says that with their numbers scaled by 1000 (or 10) all
+    would lie on the surface, and to state exertion_points.units; the geometry's own scale (a file in m) is the
+    frame the numbers are read in."""
+    V, F = liver_surface.vertices, liver_surface.faces
+    path = tmp_path / "tools.csv"
+    np.savetxt(path, _anterior(V) * factor, delimiter=",")
+    labels = []
+    xyz = exertion_points_mesh({"path": str(path), "units": "mm"}, PointFrame(), labels=labels)
+    with pytest.raises(SupportError) as err:
+        snap_exertion_points(V, F, None, xyz, labels=labels, frame=PointFrame())
+    msg = str(err.value)
+    assert f"With their numbers scaled by {1 / factor:g} all 3 given points would lie within 5 mm" in msg
+    assert "state exertion_points.units for a point file" in msg and "Mirrored" not in msg
+    # the liver itself in m (the geometry's scale 1000): the file's numbers in mm read as m are scaled by 0.001
+    frame = PointFrame(scale=1000.0)
+    np.savetxt(path, _anterior(V), delimiter=",")  # mm numbers
+    xyz = exertion_points_mesh({"path": str(path)}, frame, labels=labels)  # read in the geometry's m
+    with pytest.raises(SupportError, match=r"With their numbers scaled by 0\.001 all 3 given points would lie"):
+        snap_exertion_points(V, F, None, xyz, labels=labels, frame=frame)
+
+
+def test_a_point_truly_off_the_liver_gets_no_other_reading(liver_surface):
+    V, F = liver_surface.vertices, liver_surface.faces
+    xyz = _anterior(V) + [0.0, 30.0, 0.0]  # 30 mm in front of the liver
+    with pytest.raises(SupportError) as err:
+        snap_exertion_points(V, F, None, xyz, frame=PointFrame())
+    assert str(err.value).endswith("or move it onto the liver")
