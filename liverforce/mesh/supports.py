@@ -1224,19 +1224,26 @@ def snap_exertion_points(vertices, faces, region, xyz_mesh: np.ndarray, max_mm: 
 _UNIT_FACTORS = (10.0, 1000.0, 0.1, 0.001, 100.0, 0.01)
 
 
+def _reading_distances(triangles: TriangleSet, q: np.ndarray, frame: PointFrame | None, factors) -> np.ndarray:
+    """``(1 + len(factors), len(q))``: the distances to the surface of the points ``q`` (mesh mm) read mirrored in
+    x and y in the coordinates of ``frame`` (:func:`_mirrored`; None: the mesh's), then with their numbers scaled
+    by each of ``factors`` about that frame's origin; one query of all the readings on the surface's search tree
+    (:func:`far_words`, :func:`_far_points_words`)."""
+    in_file = q if frame is None else frame.to_file(q)  # the numbers times the mm per number they were read with
+    back = (lambda x: x) if frame is None else frame.to_mesh
+    stacked = [_mirrored(q, frame)] + [back(in_file * f) for f in factors]
+    return triangles.closest(np.concatenate(stacked))[1].reshape(len(stacked), len(q))
+
+
 def _far_points_words(triangles: TriangleSet, q: np.ndarray, frame: PointFrame | None, max_mm: float) -> str:
     """For the refusal of given exertion points some of which lie beyond ``max_mm``: the readings under which all
     of them would lie within it, or ``""``: mirrored in x and y (the other of RAS and LPS, in the coordinates of
     ``frame``, the geometry file's, as :func:`check_exertion_facing` mirrors), or their numbers scaled by 10, 1000,
     0.1, 0.001, 100 or 0.01 about that frame's origin (one of mm, cm and m read as another). One query of all
     the readings' points on the surface's search tree, as :func:`far_words` for a support's file."""
-    factors = [None, *_UNIT_FACTORS]  # None: mirrored
-    in_file = q if frame is None else frame.to_file(q)
-    stacked = [_mirrored(q, frame)] + [in_file * f if frame is None else frame.to_mesh(in_file * f)
-                                       for f in _UNIT_FACTORS]
-    dist = triangles.closest(np.concatenate(stacked))[1].reshape(len(stacked), len(q))
+    dist = _reading_distances(triangles, q, frame, _UNIT_FACTORS)
     said, n = [], len(q)
-    for f, d in zip(factors, dist):
+    for f, d in zip([None, *_UNIT_FACTORS], dist):  # None: mirrored
         if float(d.max()) > max_mm:
             continue
         fit = (f"all {n} given point{'s' * (n != 1)} would lie within {max_mm:g} mm of the surface "
@@ -1629,16 +1636,10 @@ def far_words(reading: PointReading, triangles: TriangleSet, xyz_mesh: np.ndarra
     from liverforce.geometry.units import UNIT_TO_MM
 
     q = np.atleast_2d(np.asarray(xyz_mesh, float))
-    fr = reading.frame
-    names = [None]  # None: mirrored; else the unit the numbers would be in
-    stacked = [_mirrored(q, fr)]
-    if not reading.markups:
-        in_file = fr.to_file(q)  # the file's numbers times the mm per number they were read with
-        for unit, mm in UNIT_TO_MM.items():
-            if not np.isclose(mm, reading.scale_mm, rtol=1e-9):
-                names.append(unit)
-                stacked.append(fr.to_mesh(in_file * (mm / reading.scale_mm)))
-    dist = triangles.closest(np.concatenate(stacked))[1].reshape(len(stacked), len(q))
+    units = [] if reading.markups else [u for u, mm in UNIT_TO_MM.items()
+                                        if not np.isclose(mm, reading.scale_mm, rtol=1e-9)]
+    dist = _reading_distances(triangles, q, reading.frame, [UNIT_TO_MM[u] / reading.scale_mm for u in units])
+    names = [None, *units]  # None: mirrored; else the unit the numbers would be in
     said, n = [], len(q)
     for unit, d in zip(names, dist):
         if float(d.max()) > max_mm:
