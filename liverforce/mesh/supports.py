@@ -1220,8 +1220,10 @@ def snap_exertion_points(vertices, faces, region, xyz_mesh: np.ndarray, max_mm: 
 
 
 #: factors an exertion point file's numbers may be off by, tried when a point lies too far: one of mm, cm and m read
-#: as another
-_UNIT_FACTORS = (10.0, 1000.0, 0.1, 0.001, 100.0, 0.01)
+#: as another (the factor, what it is)
+_UNIT_MIX_UPS = {10.0: "cm read as mm", 1000.0: "m read as mm", 0.1: "mm read as cm", 0.001: "mm read as m",
+                 100.0: "m read as cm", 0.01: "cm read as m"}
+_UNIT_FACTORS = tuple(_UNIT_MIX_UPS)
 
 
 def _reading_distances(triangles: TriangleSet, q: np.ndarray, frame: PointFrame | None, factors) -> np.ndarray:
@@ -1253,9 +1255,9 @@ def _far_points_words(triangles: TriangleSet, q: np.ndarray, frame: PointFrame |
                         "LPS: state exertion_points.frame (LPS or RAS), or, if the liver is the one read in the wrong "
                         "frame, fix geometry.imported[].frame")
         else:
-            said.append(f"with their numbers scaled by {f:g} {fit}, so they are likely in units {f:g} times those "
-                        "they were read in (m read as mm is 1000): state exertion_points.units for a point file, or "
-                        "give coordinates_mm in mm")
+            said.append(f"with their numbers scaled by {f:g} {fit}, so they were likely {_UNIT_MIX_UPS[f]}: state "
+                        "exertion_points.units for a point file (its default is the geometry's units), or give "
+                        "coordinates_mm in mm")
     return "".join(f". {x[0].upper()}{x[1:]}" for x in said)
 
 

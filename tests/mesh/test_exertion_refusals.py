@@ -136,12 +136,14 @@ def test_far_points_in_other_units_say_by_how_much(liver_surface, tmp_path, fact
         snap_exertion_points(V, F, None, xyz, labels=labels, frame=PointFrame())
     msg = str(err.value)
     assert f"With their numbers scaled by {1 / factor:g} all 3 given points would lie within 5 mm" in msg
+    assert f"so they were likely {'m' if factor == 0.001 else 'cm'} read as mm" in msg
     assert "state exertion_points.units for a point file" in msg and "Mirrored" not in msg
     # the liver itself in m (the geometry's scale 1000): the file's numbers in mm read as m are scaled by 0.001
     frame = PointFrame(scale=1000.0)
     np.savetxt(path, _anterior(V), delimiter=",")  # mm numbers
     xyz = exertion_points_mesh({"path": str(path)}, frame, labels=labels)  # read in the geometry's m
-    with pytest.raises(SupportError, match=r"With their numbers scaled by 0\.001 all 3 given points would lie"):
+    with pytest.raises(SupportError, match=r"With their numbers scaled by 0\.001 all 3 given points would lie .* "
+                                           r"so they were likely mm read as m: state exertion_points\.units"):
         snap_exertion_points(V, F, None, xyz, labels=labels, frame=frame)
 
 
