@@ -300,7 +300,8 @@ def test_report_validates_on_every_unseen_liver_with_mean_sd_and_the_worst_named
     assert "The lowest is 60.0 % (n, 1.50–4.90 N): below 88 %" in sec  # the worst quintile-component, named
     # the unseen cases outside the training range, named by input, and their error against the others'
     ext = _section(sec, "<h3>Outside the training range</h3>", "</p>")
-    assert "3 of 11 unseen cases" in ext and "tissue thickness under the tool 1, distance from the liver centroid 2" in ext
+    assert "3 of 11 unseen cases" in ext
+    assert "tissue thickness under the tool: 1 case, distance from the liver centroid: 2 cases" in ext
     assert "probe compliance" not in ext and "<b>0.710 N</b>, against 0.200 N for the other 8" in ext
     # every variant: mean ± sd over the livers and its worst liver
     variants = _rows(sec, "variant")
@@ -362,6 +363,19 @@ def test_report_says_the_interval_is_scaled_by_the_gp_members_spread(stage_outpu
     iv = _section(_report(stage_outputs), "<h3>Calibrated interval</h3>", "</p>")
     assert ("a width per bin of the predicted force's magnitude" in iv and "each width also scaled by how far the "
             "model's GP members disagree on the case (their sd plus 4 x its median over the calibration)" in iv)
+
+
+@pytest.mark.parametrize("coverage, says", [
+    ([0.9167, 0.8958, 0.9208], "(<b class='flag'>n outside</b> the 88–92 % band"),  # f75's: n is 92.08 %
+    ([0.95, 0.8958, 0.87], "(<b class='flag'>t1 and n outside</b> the 88–92 % band"),
+    ([0.90, 0.88, 0.92], "(each within the 88–92 % band")])
+def test_report_names_the_components_outside_the_coverage_band(stage_outputs, coverage, says):
+    path = stage_outputs["validation"]
+    doc = json.loads(path.read_text())
+    doc["interval"]["coverage"] = coverage
+    path.write_text(json.dumps(doc))
+    iv = _section(_report(stage_outputs), "<h3>Calibrated interval</h3>", "</p>")
+    assert says in iv
 
 
 def test_report_refuses_a_validation_without_per_liver_metrics(stage_outputs):

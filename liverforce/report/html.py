@@ -497,7 +497,8 @@ def _extrapolation_paragraph(ext: dict | None) -> str:
     if not ext:
         return ""
     n, k = ext["n_cases"], ext["n_outside"]
-    by = ", ".join(f"{_STATE_INPUT_WORDS.get(name, name)} {c}" for name, c in ext["by_input"].items() if c)
+    by = ", ".join(f"{_STATE_INPUT_WORDS.get(name, name)}: {c} case{'s' * (c != 1)}"
+                   for name, c in ext["by_input"].items() if c)
     if not k:
         return ("<h3>Outside the training range</h3><p>No unseen case lies outside the training cases' range of the "
                 "geometric state (thickness under the tool, probe compliance, liver size, distance from the "
@@ -1147,7 +1148,8 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
     iv = v.get("interval")
     if iv:
         cov = iv["coverage"]
-        band = "within" if all(0.88 <= c <= 0.92 for c in cov) else "<b class='flag'>outside</b>"
+        out = [k for k, c in zip(("t1", "t2", "n"), cov) if not 0.88 <= c <= 0.92]
+        band = ("each within" if not out else "<b class='flag'>" + " and ".join(out) + " outside</b>")
         test = iv.get("test_coverage")
         lb = iv.get("coverage_band_by_liver")  # how well the livers measure it (runs before this field: absent)
         scale = iv.get("scale")
