@@ -1433,6 +1433,9 @@ def _check_user_scene(key: str, imp: dict) -> None:
     except SupportError as exc:
         _fail(*str(exc).split(": ", 1))
     if ep.get("units") is not None:
+        if "path" not in ep:  # coordinates_mm are mm; vertex ids have none (it was ignored)
+            _fail(f"{key}.exertion_points.units", f"{next(iter(keys))} take no units (coordinates_mm are mm; vertex "
+                  "ids index the file's vertices)", "units applies to a point file (path); drop it")
         try:
             check_point_file_units(ep["units"], f"{key}.exertion_points.units")
         except SupportError as exc:

@@ -368,7 +368,8 @@ def test_report_says_the_interval_is_scaled_by_the_gp_members_spread(stage_outpu
 @pytest.mark.parametrize("coverage, says", [
     ([0.9167, 0.8958, 0.9208], "(<b class='flag'>n outside</b> the 88–92 % band"),  # f75's: n is 92.08 %
     ([0.95, 0.8958, 0.87], "(<b class='flag'>t1 and n outside</b> the 88–92 % band"),
-    ([0.90, 0.88, 0.92], "(each within the 88–92 % band")])
+    ([0.95, 0.87, 0.93], "(<b class='flag'>t1, t2 and n outside</b> the 88–92 % band"),
+    ([0.90, 0.88, 0.92049], "(each within the 88–92 % band")])  # 92.049 % prints as 92.0: within, as printed
 def test_report_names_the_components_outside_the_coverage_band(stage_outputs, coverage, says):
     path = stage_outputs["validation"]
     doc = json.loads(path.read_text())

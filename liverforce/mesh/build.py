@@ -40,6 +40,7 @@ def build_liver_mesh(
     file_vertices=None,
     exertion_points=None,
     exertion_labels: list[str] | None = None,
+    exertion_reading=None,
     file_groups=None,
     auto_regions: tuple | None = None,
     regions_check: str = "warn",
@@ -119,6 +120,9 @@ def build_liver_mesh(
     exertion_labels : list of str, optional
         Each given point as the user gave it (:func:`liverforce.mesh.supports.exertion_points_mesh`), for the
         refusals' messages.
+    exertion_reading : ExertionReading, optional
+        How they were read (:func:`~liverforce.mesh.supports.exertion_points_mesh`): a point too far from the
+        surface is refused saying which other frame or units would fit.
     auto_regions : (region, visible), optional
         The auto-tagged regions of ``surface`` with ``region_params``
         (:func:`~liverforce.mesh.regions.tag_regions`), when the caller has them already (the mesh stage
@@ -191,7 +195,8 @@ def build_liver_mesh(
                                                      labels=exertion_labels, owner=owner,
                                                      supports=supports[1] if user else None, visible=s_visible,
                                                      regions_check=regions_check, params=params,
-                                                     not_visible=not_visible, frame=support_frame)
+                                                     not_visible=not_visible, frame=support_frame,
+                                                     reading=exertion_reading)
             log.info("%d given exertion points snapped to the surface (max %.3g mm)", len(candidates), snap.max())
             if refine_points is None and refine_radius_mm:
                 refine_points = candidates

@@ -27,7 +27,7 @@ log = logging.getLogger(__name__)
 def build_given_mesh(points, tets, meta: dict | None = None, region_params: RegionParams | None = None, *,
                      supports: tuple | None = None, support_frame=None, file_vertices=None, file_groups=None,
                      exertion_points=None, exertion_sampling: dict | None = None,
-                     exertion_labels: list[str] | None = None, regions_check: str = "warn",
+                     exertion_labels: list[str] | None = None, exertion_reading=None, regions_check: str = "warn",
                      coarse_edge_mm: float | None = None, require_held: str | None = None) -> LiverMesh:
     """Tag the boundary of a given tet mesh; node ``i`` stays node ``i``.
 
@@ -41,6 +41,8 @@ def build_given_mesh(points, tets, meta: dict | None = None, region_params: Regi
         mesh's own boundary facets).
     exertion_points : (k, 3) given exertion points (mesh frame, mm): snapped onto the mesh surface.
     exertion_labels : each given point as the user gave it, for the refusals' messages.
+    exertion_reading : how they were read (:func:`~liverforce.mesh.supports.exertion_points_mesh`), for the hints of
+        the refusal of a point too far from the surface.
     regions_check : ``mesh.regions_check``, as :func:`liverforce.mesh.build.build_liver_mesh`: a given exertion
         point off the visible area is warned and listed in ``meta["exertion_not_visible"]`` (refused under
         ``strict`` if it faces away from the camera or looks like a frame mix-up; ``off``: not checked); a
@@ -88,7 +90,7 @@ def build_given_mesh(points, tets, meta: dict | None = None, region_params: Regi
         candidates, snap = snap_exertion_points(points, facets, region, exertion_points, labels=exertion_labels,
                                                 owner=owner, supports=supports[1] if user else None,
                                                 visible=visible, regions_check=regions_check, params=params,
-                                                not_visible=not_visible, frame=support_frame)
+                                                not_visible=not_visible, frame=support_frame, reading=exertion_reading)
         log.info("%d given exertion points snapped to the given mesh's surface (max %.3g mm)", len(candidates),
                  snap.max())
     elif exertion_sampling and user and not visible.any():

@@ -214,6 +214,23 @@ class PointReading:
     scale_mm: float = 1.0
 
 
+@dataclass(frozen=True)
+class ExertionReading:
+    """How given exertion points were read (:func:`exertion_points_mesh`), for the hints of their refusal beyond
+    the snap limit (:func:`_far_points_words`): ``kind`` ``coordinates_mm``, ``file`` (a point file of
+    coordinates), ``markups`` (a 3D Slicer markups file: its own frame and units) or ``vertex_ids`` (the geometry
+    file's own vertices: no other reading); ``frame`` maps the coordinates they were read in (mm) to the mesh,
+    ``frame_name`` is theirs (RAS or LPS; None: a 4x4, or a markups file of no one system); ``scale_mm``: mm per
+    number; ``frame_stated``, ``units_stated``: whether the spec states them."""
+
+    kind: str
+    frame: PointFrame
+    frame_name: str | None
+    scale_mm: float = 1.0
+    frame_stated: bool = False
+    units_stated: bool = False
+
+
 def points_frame(frame, where: str) -> np.ndarray:
     """The 4x4 (point mm -> RAS mm) of a point spec's ``frame``; :class:`SupportError` naming ``where``."""
     from liverforce.geometry.frames import frame_matrix
@@ -1178,7 +1195,7 @@ def snap_exertion_points(vertices, faces, region, xyz_mesh: np.ndarray, max_mm: 
                          labels: list[str] | None = None, owner: np.ndarray | None = None,
                          supports: list[Support] | None = None, visible: np.ndarray | None = None,
                          regions_check: str = "warn", params=None, not_visible: list | None = None,
-                         frame: PointFrame | None = None):
+                         frame: PointFrame | None = None, reading: ExertionReading | None = None):
     """Closest point on the surface to each given exertion point, refusing far points and fixed supports.
 
     ``labels`` (from :func:`exertion_points_mesh`) name each point as the user gave it (the file and row, the
@@ -1190,7 +1207,9 @@ def snap_exertion_points(vertices, faces, region, xyz_mesh: np.ndarray, max_mm: 
     reported by :func:`check_exertion_facing` (a warning; refused under ``regions_check: strict`` if it faces
     away from the camera or looks like a frame mix-up, judged with ``frame`` and ``max_mm``), its record
     appended to ``not_visible``; without ``visible``, or with ``regions_check: off``, that check is not made and
-    ``not_visible`` is left as it is. Returns ``(points (k, 3), distances (k,))`` in mm (mesh frame).
+    ``not_visible`` is left as it is. ``reading`` (from :func:`exertion_points_mesh`): how the points were read;
+    a point beyond ``max_mm`` is then refused saying when all would lie within it read otherwise
+    (:func:`_far_points_words`). Returns ``(points (k, 3), distances (k,))`` in mm (mesh frame).
     """
     q = np.atleast_2d(np.asarray(xyz_mesh, float))
     bad = np.flatnonzero(~np.isfinite(q).all(axis=1))
@@ -1205,7 +1224,7 @@ def snap_exertion_points(vertices, faces, region, xyz_mesh: np.ndarray, max_mm: 
                                "frame (points are read in the geometry file's frame, a label volume's being its "
                                "header's world in RAS then the geometry's frame, unless they state frame: LPS, "
                                "RAS or a 4x4; a 3D Slicer markups file states its own), or move it onto the liver"
-                               + _far_points_words(triangles, q, frame, max_mm))
+                               + _far_points_words(triangles, q, reading, max_mm))
         if region is not None and int(region[facet[j]]) == REGION_CODES["ivc"]:
             i = -1 if owner is None else int(owner[facet[j]])
             raise SupportError(f"{who} lies on {_fixed_support_words(supports[i] if i >= 0 else None)}")
@@ -1219,46 +1238,65 @@ def snap_exertion_points(vertices, faces, region, xyz_mesh: np.ndarray, max_mm: 
     return pts, d
 
 
-#: factors an exertion point file's numbers may be off by, tried when a point lies too far: one of mm, cm and m read
-#: as another (the factor, what it is)
-_UNIT_MIX_UPS = {10.0: "cm read as mm", 1000.0: "m read as mm", 0.1: "mm read as cm", 0.001: "mm read as m",
-                 100.0: "m read as cm", 0.01: "cm read as m"}
-_UNIT_FACTORS = tuple(_UNIT_MIX_UPS)
-
-
-def _reading_distances(triangles: TriangleSet, q: np.ndarray, frame: PointFrame | None, factors) -> np.ndarray:
+def _reading_distances(triangles: TriangleSet, q: np.ndarray, frame: PointFrame, factors) -> np.ndarray:
     """``(1 + len(factors), len(q))``: the distances to the surface of the points ``q`` (mesh mm) read mirrored in
-    x and y in the coordinates of ``frame`` (:func:`_mirrored`; None: the mesh's), then with their numbers scaled
-    by each of ``factors`` about that frame's origin; one query of all the readings on the surface's search tree
+    x and y in the coordinates of ``frame`` (:func:`_mirrored`), then with their numbers scaled by each of
+    ``factors`` about that frame's origin; one query of all the readings on the surface's search tree
     (:func:`far_words`, :func:`_far_points_words`)."""
-    in_file = q if frame is None else frame.to_file(q)  # the numbers times the mm per number they were read with
-    back = (lambda x: x) if frame is None else frame.to_mesh
-    stacked = [_mirrored(q, frame)] + [back(in_file * f) for f in factors]
+    in_file = frame.to_file(q)  # the numbers times the mm per number they were read with
+    stacked = [_mirrored(q, frame)] + [frame.to_mesh(in_file * f) for f in factors]
     return triangles.closest(np.concatenate(stacked))[1].reshape(len(stacked), len(q))
 
 
-def _far_points_words(triangles: TriangleSet, q: np.ndarray, frame: PointFrame | None, max_mm: float) -> str:
-    """For the refusal of given exertion points some of which lie beyond ``max_mm``: the readings under which all
-    of them would lie within it, or ``""``: mirrored in x and y (the other of RAS and LPS, in the coordinates of
-    ``frame``, the geometry file's, as :func:`check_exertion_facing` mirrors), or their numbers scaled by 10, 1000,
-    0.1, 0.001, 100 or 0.01 about that frame's origin (one of mm, cm and m read as another). One query of all
-    the readings' points on the surface's search tree, as :func:`far_words` for a support's file."""
-    dist = _reading_distances(triangles, q, frame, _UNIT_FACTORS)
+def _far_points_words(triangles: TriangleSet, q: np.ndarray, reading: ExertionReading | None,
+                      max_mm: float) -> str:
+    """For the refusal of given exertion points some of which lie beyond ``max_mm``: the other readings under which
+    all of them would lie within it, and what to state for each, or ``""`` (no ``reading``, or vertex ids: the
+    geometry file's own vertices). The readings, as :func:`far_words`' for a support's file: mirrored in x and y
+    in the coordinates they were read in (the other of RAS and LPS), and, but for a markups file (its own units),
+    their numbers in each other of mm, cm and m (about the origin of those coordinates)."""
+    from liverforce.geometry.units import UNIT_TO_MM
+
+    if reading is None or reading.kind == "vertex_ids":
+        return ""
+    units = [] if reading.kind == "markups" else [u for u, mm in UNIT_TO_MM.items()
+                                                   if not np.isclose(mm, reading.scale_mm, rtol=1e-9)]
+    dist = _reading_distances(triangles, q, reading.frame, [UNIT_TO_MM[u] / reading.scale_mm for u in units])
     said, n = [], len(q)
-    for f, d in zip([None, *_UNIT_FACTORS], dist):  # None: mirrored
+    for unit, d in zip([None, *units], dist):  # None: mirrored
         if float(d.max()) > max_mm:
             continue
         fit = (f"all {n} given point{'s' * (n != 1)} would lie within {max_mm:g} mm of the surface "
                f"({d.mean():.3g} mm on average, max {d.max():.3g} mm)")
-        if f is None:
-            said.append(f"mirrored in x and y ({_MIRROR_WORDS}) {fit}, so they are likely in the other of RAS and "
-                        "LPS: state exertion_points.frame (LPS or RAS), or, if the liver is the one read in the wrong "
-                        "frame, fix geometry.imported[].frame")
+        if unit is None:
+            other = _OTHER.get(reading.frame_name or "", "the other of RAS and LPS")
+            said.append(f"mirrored in x and y ({_MIRROR_WORDS}) {fit}, so they are likely in {other}: "
+                        f"{_exertion_frame_fix(reading, other)}")
         else:
-            said.append(f"with their numbers scaled by {f:g} {fit}, so they were likely {_UNIT_MIX_UPS[f]}: state "
-                        "exertion_points.units for a point file (its default is the geometry's units), or give "
-                        "coordinates_mm in mm")
+            fix = ("coordinates_mm are mm: give them in mm" if reading.kind == "coordinates_mm"
+                   else f"state exertion_points.units: {unit}" if reading.units_stated
+                   else f"the file states no units, so its numbers are read in the geometry's: state "
+                        f"exertion_points.units: {unit}")
+            said.append(f"scaled by {UNIT_TO_MM[unit] / reading.scale_mm:g} (their numbers in {unit}, read "
+                        f"{_units_read(reading)}) {fit}, so they are likely in {unit}: {fix}")
     return "".join(f". {x[0].upper()}{x[1:]}" for x in said)
+
+
+def _exertion_frame_fix(reading: ExertionReading, other: str) -> str:
+    """What to do when given exertion points look read in the other of RAS and LPS (:func:`_far_points_words`)."""
+    liver = ("the liver may be the one read in the wrong frame: check geometry.imported[].frame (and any warning "
+             "of implausible regions)")
+    if reading.kind == "markups":
+        return (f"the markups file states coordinateSystem {reading.frame_name or 'LPS or RAS'}: if its points are "
+                f"in {other}, correct that in the file (export it again from 3D Slicer); if the file is right, "
+                f"{liver}")
+    setting = (f"exertion_points.frame: {other}" if reading.frame_name else "exertion_points.frame: that 4x4 with "
+               "its first two columns negated (or RAS or LPS, for coordinates in those world coordinates)")
+    if reading.frame_stated:
+        return (f"if they are {'in ' + other if reading.frame_name else 'so'}, state {setting}; if "
+                f"{reading.frame_name or 'its 4x4'} is right, {liver}")
+    return (f"they state no frame, so they are read in the geometry's: state {setting} (changing "
+            "geometry.imported[].frame would turn the liver and the points alike)")
 
 
 #: two given exertion points snapped closer than this (mm) are one tool position given twice
@@ -1435,21 +1473,30 @@ def _fixed_support_words(s: Support | None) -> str:
 
 
 def exertion_points_mesh(spec, frame: PointFrame = PointFrame(), file_vertices=None, base_dir=None,
-                         labels: list | None = None) -> np.ndarray:
+                         labels: list | None = None, reading: list | None = None) -> np.ndarray:
     """Given exertion points → mesh-frame mm: ``{coordinates_mm: [[x,y,z],..]}``,
     ``{vertex_ids: [..]}`` or ``{path: ..., units: ...}`` (a point file, as support files).
 
     A ``labels`` list is filled with one phrase per point naming it as given (``coordinates_mm[1] [x, y, z]``,
-    ``vertex_ids[0] = 245``, ``row 2 of pts.csv: [x, y, z] m``), for :func:`snap_exertion_points`' messages."""
+    ``vertex_ids[0] = 245``, ``row 2 of pts.csv: [x, y, z] m``), for :func:`snap_exertion_points`' messages; a
+    ``reading`` list with how they were read (one :class:`ExertionReading`), for the hints of its refusals.
+    ``units`` beside ``coordinates_mm`` or ``vertex_ids`` is refused: it applies to a point file only (it was
+    ignored)."""
     spec = dict(spec)
     labels = labels if labels is not None else []
+    reading = reading if reading is not None else []
     keys = set(spec) - {"units", "frame"}
     if spec.get("frame") is not None and keys == {"vertex_ids"}:
         raise SupportError("exertion_points.frame: vertex ids have no frame (they index the file's vertices)")
+    if spec.get("units") is not None and keys in ({"coordinates_mm"}, {"vertex_ids"}):
+        raise SupportError(f"exertion_points.units: {next(iter(keys))} take no units (coordinates_mm are mm; vertex "
+                           "ids index the file's vertices); units applies to a point file (path)")
+    stated = spec.get("frame") is not None
     frame = frame.stated(spec.get("frame"), "exertion_points")
     if keys == {"coordinates_mm"}:
         a = coordinate_list(spec["coordinates_mm"], "exertion_points.coordinates_mm")
         labels[:] = [f"exertion_points.coordinates_mm[{j}] {_given(x)} mm" for j, x in enumerate(a)]
+        reading[:] = [ExertionReading("coordinates_mm", frame, frame.read_in(), 1.0, stated)]
         return frame.to_mesh(a)
     if keys == {"vertex_ids"}:
         a = vertex_id_list(spec["vertex_ids"], "exertion_points.vertex_ids")
@@ -1460,6 +1507,9 @@ def exertion_points_mesh(spec, frame: PointFrame = PointFrame(), file_vertices=N
         if is_markups(p):  # a Slicer markups file: world RAS mm
             a = read_markups(p, spec, "exertion_points")
             labels[:] = [f"control point {j + 1} of {p}: {_given(x)} RAS mm" for j, x in enumerate(a)]
+            systems = _markups_systems(p)
+            reading[:] = [ExertionReading("markups", PointFrame(matrix=frame.world),
+                                          systems if systems in ("RAS", "LPS") else None)]
             return frame.from_world(a)
         units = _units_words(spec.get("units"), frame)
         scale = frame.scale if spec.get("units") is None else _units_scale(spec["units"])
@@ -1468,11 +1518,14 @@ def exertion_points_mesh(spec, frame: PointFrame = PointFrame(), file_vertices=N
             raise SupportError("exertion_points.frame: vertex ids have no frame (they index the file's vertices)")
         if a.ndim == 2:
             labels[:] = [f"point {j + 1} of {p}: {_given(x)} in {units}" for j, x in enumerate(a)]
+            reading[:] = [ExertionReading("file", frame, frame.read_in(), scale, stated,
+                                          spec.get("units") is not None)]
             return frame.to_mesh(a * scale)
         labels[:] = [f"vertex id {int(i)} (point {j + 1} of {p})" for j, i in enumerate(a)]
     else:
         raise SupportError("exertion_points: give one of coordinates_mm, vertex_ids or path "
                            f"(with optional units and frame), got {sorted(spec)}")
+    reading[:] = [ExertionReading("vertex_ids", frame, None)]
     if file_vertices is None:
         raise SupportError("exertion_points.vertex_ids need the geometry file's vertices (an imported geometry)")
     fv = np.asarray(file_vertices(), float)

@@ -137,7 +137,8 @@ def _scene_kwargs(user: dict, mesh_cfg: dict, exertion: dict | None, seed: int) 
         supports=user["supports"], support_frame=user["frame"], file_vertices=user["file_vertices"],
         require_held=user["where"] if user["supports"][1] else None,  # a lab's may leave out the fixed IVC
         file_groups=user["file_groups"], exertion_points=user["exertion_points"],
-        exertion_labels=user["exertion_labels"], regions_check=mesh_cfg["regions_check"],
+        exertion_labels=user["exertion_labels"], exertion_reading=user.get("exertion_reading"),
+        regions_check=mesh_cfg["regions_check"],
         exertion_sampling=None if exertion is None or user["exertion_points"] is not None else {
             "n_points": exertion["n_points"], "min_spacing_mm": exertion["min_spacing_mm"],
             "seed": derive(seed, "mesh.exertion")})
@@ -229,10 +230,12 @@ def _user_scene(spec: dict, surface_meta: dict) -> dict:
 
     name = spec.get("name", "?")
     supports = parse_supports(spec.get("supports"), where=f"geometry.imported[{name}].supports")
-    points, labels = spec.get("exertion_points"), []
+    points, labels, reading = spec.get("exertion_points"), [], []
     if points is not None:
-        points = exertion_points_mesh(points, frame, file_vertices if spec.get("path") else None, labels=labels)
-    return {"supports": supports, "exertion_points": points, "exertion_labels": labels, "frame": frame,
+        points = exertion_points_mesh(points, frame, file_vertices if spec.get("path") else None, labels=labels,
+                                      reading=reading)
+    return {"supports": supports, "exertion_points": points, "exertion_labels": labels,
+            "exertion_reading": reading[0] if reading else None, "frame": frame,
             "where": f"geometry.imported[{name}].supports",
             "file_vertices": file_vertices if spec.get("path") else None,
             "file_groups": file_groups if spec.get("path") else None}

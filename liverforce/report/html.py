@@ -1148,8 +1148,9 @@ def write_report(data: dict, pictures: list[str | Path], experiment: str, out_ht
     iv = v.get("interval")
     if iv:
         cov = iv["coverage"]
-        out = [k for k, c in zip(("t1", "t2", "n"), cov) if not 0.88 <= c <= 0.92]
-        band = ("each within" if not out else "<b class='flag'>" + " and ".join(out) + " outside</b>")
+        out = [k for k, c in zip(("t1", "t2", "n"), cov) if not 88.0 <= round(100 * c, 1) <= 92.0]  # as printed
+        band = ("each within" if not out else "<b class='flag'>" + (", ".join(out[:-1]) + " and " if out[1:] else "")
+                + out[-1] + " outside</b>")
         test = iv.get("test_coverage")
         lb = iv.get("coverage_band_by_liver")  # how well the livers measure it (runs before this field: absent)
         scale = iv.get("scale")

@@ -107,49 +107,91 @@ def _anterior(V, k=3):
     return V[order[[0, 60, 120][:k]]]
 
 
+def _refusal(V, F, spec, frame=PointFrame(), base_dir=None) -> str:
+    """The refusal of the exertion points ``spec`` as the mesh stage reads and snaps them."""
+    labels, reading = [], []
+    xyz = exertion_points_mesh(spec, frame, lambda: V, base_dir=base_dir, labels=labels, reading=reading)
+    with pytest.raises(SupportError) as err:
+        snap_exertion_points(V, F, None, xyz, labels=labels, frame=frame, reading=reading[0])
+    msg = str(err.value)
+    assert "mm from the surface (limit 5.0 mm): check its units and frame" in msg
+    return msg
+
+
 def test_far_points_that_fit_mirrored_say_to_state_the_frame(liver_surface):
     """Points given in LPS for a liver in RAS 150 mm off the origin land far off it: the refusal says that,
     mirrored in x and y, all would lie on the surface, and which setting states their frame."""
     V, F = liver_surface.vertices + [150.0, 80.0, 0.0], liver_surface.faces
-    labels = []
-    xyz = exertion_points_mesh({"coordinates_mm": (_anterior(V) * LPS_M).tolist()}, PointFrame(), labels=labels)
-    with pytest.raises(SupportError) as err:
-        snap_exertion_points(V, F, None, xyz, labels=labels, frame=PointFrame())
-    msg = str(err.value)
-    assert "exertion point 0 (exertion_points.coordinates_mm[0]" in msg and "mm from the surface (limit 5.0" in msg
+    msg = _refusal(V, F, {"coordinates_mm": (_anterior(V) * LPS_M).tolist()})
+    assert "exertion point 0 (exertion_points.coordinates_mm[0]" in msg
     assert ". Mirrored in x and y (coordinates in RAS read as LPS, or in LPS read as RAS" in msg
-    assert "all 3 given points would lie within 5 mm of the surface (0 mm on average, max 0 mm)" in msg
-    assert "state exertion_points.frame (LPS or RAS)" in msg and "scaled by" not in msg
+    assert "all 3 given points would lie within 5 mm of the surface (0 mm on average, max 0 mm), so they are " \
+           "likely in LPS: they state no frame, so they are read in the geometry's: state exertion_points.frame: " \
+           "LPS (changing geometry.imported[].frame would turn the liver and the points alike)" in msg
+    assert "Scaled by" not in msg
 
 
-@pytest.mark.parametrize("factor", [0.001, 0.1])
-def test_far_points_in_other_units_say_by_how_much(liver_surface, tmp_path, factor):
-    """A point file in m (or cm) read in mm: the refusal says that with their numbers scaled by 1000 (or 10) all
-    would lie on the surface, and to state exertion_points.units; the geometry's own scale (a file in m) is the
-    frame the numbers are read in."""
+def test_a_stated_frame_is_mirrored_in_its_own_coordinates(liver_surface):
+    """Points stating frame: LPS beside a liver whose frame is a 4x4 with a translation are read in the world's
+    RAS (the translation does not apply to them): they are mirrored there, not about the 4x4's origin."""
+    V, F = liver_surface.vertices + [150.0, 80.0, 0.0], liver_surface.faces
+    shift = np.eye(4)
+    shift[:3, 3] = [100.0, 50.0, 0.0]  # the geometry file's frame: RAS mm shifted
+    frame = PointFrame(matrix=tuple(map(tuple, shift)), frame_name=None)
+    msg = _refusal(V, F, {"coordinates_mm": _anterior(V).tolist(), "frame": "LPS"}, frame)  # RAS numbers
+    assert "all 3 given points would lie within 5 mm of the surface (0 mm on average" in msg
+    assert "so they are likely in RAS: if they are in RAS, state exertion_points.frame: RAS; if LPS is right" in msg
+    cm = _refusal(V, F, {"coordinates_mm": (_anterior(V) / 10.0).tolist(), "frame": "RAS"}, frame)
+    assert "Scaled by 10 (their numbers in cm, read in mm) all 3 given points would lie within 5 mm" in cm
+    assert "so they are likely in cm: coordinates_mm are mm: give them in mm" in cm and "Mirrored" not in cm
+
+
+@pytest.mark.parametrize("factor, unit", [(0.001, "m"), (0.1, "cm")])
+def test_far_points_in_other_units_say_which(liver_surface, tmp_path, factor, unit):
+    """A point file in m (or cm) read in mm, stated or as the geometry's units: the refusal names the units that
+    fit and the setting; a liver in m with a file of mm numbers read in its m likewise."""
     V, F = liver_surface.vertices, liver_surface.faces
     path = tmp_path / "tools.csv"
     np.savetxt(path, _anterior(V) * factor, delimiter=",")
-    labels = []
-    xyz = exertion_points_mesh({"path": str(path), "units": "mm"}, PointFrame(), labels=labels)
-    with pytest.raises(SupportError) as err:
-        snap_exertion_points(V, F, None, xyz, labels=labels, frame=PointFrame())
-    msg = str(err.value)
-    assert f"With their numbers scaled by {1 / factor:g} all 3 given points would lie within 5 mm" in msg
-    assert f"so they were likely {'m' if factor == 0.001 else 'cm'} read as mm" in msg
-    assert "state exertion_points.units for a point file" in msg and "Mirrored" not in msg
-    # the liver itself in m (the geometry's scale 1000): the file's numbers in mm read as m are scaled by 0.001
-    frame = PointFrame(scale=1000.0)
-    np.savetxt(path, _anterior(V), delimiter=",")  # mm numbers
-    xyz = exertion_points_mesh({"path": str(path)}, frame, labels=labels)  # read in the geometry's m
-    with pytest.raises(SupportError, match=r"With their numbers scaled by 0\.001 all 3 given points would lie .* "
-                                           r"so they were likely mm read as m: state exertion_points\.units"):
-        snap_exertion_points(V, F, None, xyz, labels=labels, frame=frame)
+    msg = _refusal(V, F, {"path": str(path), "units": "mm"})
+    assert (f"Scaled by {1 / factor:g} (their numbers in {unit}, read in mm) all 3 given points would lie within "
+            f"5 mm of the surface") in msg
+    assert f"so they are likely in {unit}: state exertion_points.units: {unit}" in msg and "Mirrored" not in msg
+    np.savetxt(path, _anterior(V), delimiter=",")  # mm numbers, read in the geometry's m
+    msg = _refusal(V, F, {"path": str(path)}, PointFrame(scale=1000.0, units="m"))
+    assert ("Scaled by 0.001 (their numbers in mm, read in m) all 3 given points would lie within 5 mm of the "
+            "surface") in msg
+    assert ("so they are likely in mm: the file states no units, so its numbers are read in the geometry's: state "
+            "exertion_points.units: mm") in msg
+
+
+def test_a_markups_file_is_told_to_correct_its_coordinate_system_not_given_settings(liver_surface, tmp_path):
+    """A 3D Slicer markups file states its frame and units: the hint says to correct its coordinateSystem (the
+    config refuses frame and units beside one), and names no units."""
+    import json
+
+    V, F = liver_surface.vertices + [150.0, 80.0, 0.0], liver_surface.faces
+    pts = _anterior(V)  # RAS numbers in a file that says LPS
+    doc = {"markups": [{"type": "Fiducial", "coordinateSystem": "LPS", "coordinateUnits": "mm",
+                        "controlPoints": [{"label": f"T{i}", "position": p.tolist(), "positionStatus": "defined"}
+                                          for i, p in enumerate(pts)]}]}
+    path = tmp_path / "tools.mrk.json"
+    path.write_text(json.dumps(doc))
+    msg = _refusal(V, F, {"path": str(path)})
+    assert ("so they are likely in RAS: the markups file states coordinateSystem LPS: if its points are in RAS, "
+            "correct that in the file (export it again from 3D Slicer)") in msg
+    assert "exertion_points.frame" not in msg and "exertion_points.units" not in msg
+
+
+def test_units_beside_coordinates_or_vertex_ids_are_refused(liver_surface):
+    V = liver_surface.vertices
+    for spec in ({"coordinates_mm": [V[0].tolist()], "units": "m"}, {"vertex_ids": [0], "units": "m"}):
+        with pytest.raises(SupportError, match=r"exertion_points\.units: .* take no units .* applies to a point "
+                                               r"file \(path\)"):
+            exertion_points_mesh(spec, PointFrame(), lambda: V)
 
 
 def test_a_point_truly_off_the_liver_gets_no_other_reading(liver_surface):
     V, F = liver_surface.vertices, liver_surface.faces
-    xyz = _anterior(V) + [0.0, 30.0, 0.0]  # 30 mm in front of the liver
-    with pytest.raises(SupportError) as err:
-        snap_exertion_points(V, F, None, xyz, frame=PointFrame())
-    assert str(err.value).endswith("or move it onto the liver")
+    msg = _refusal(V, F, {"coordinates_mm": (_anterior(V) + [0.0, 30.0, 0.0]).tolist()})  # 30 mm in front
+    assert msg.endswith("or move it onto the liver")

@@ -196,6 +196,9 @@ def _hydra(v) -> str:
     ({"exertion_points": {"coordinates_mm": [["nan", 1, 2]]}}, "geometry.imported[0].exertion_points.coordinates_mm"),
     ({"exertion_points": {"coordinates_mm": [["a", "b", "c"]]}}, "geometry.imported[0].exertion_points.coordinates_mm"),
     ({"exertion_points": {"path": "pts.csv", "units": "auto"}}, "geometry.imported[0].exertion_points.units"),
+    # units beside coordinates (which are mm) or vertex ids: refused, not ignored
+    ({"exertion_points": {"coordinates_mm": [[0, 0, 0]], "units": "m"}}, "geometry.imported[0].exertion_points.units"),
+    ({"exertion_points": {"vertex_ids": [4], "units": "m"}}, "geometry.imported[0].exertion_points.units"),
 ])
 def test_config_names_the_bad_key(imp, key):
     base = {"name": "x", "path": "x.stl"}
