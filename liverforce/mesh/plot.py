@@ -93,6 +93,7 @@ def plot_regions(mesh: LiverMesh, path: str | Path, views=None, title: str | Non
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
     from matplotlib.patheffects import withStroke
+    from matplotlib.ticker import NullFormatter
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
     from liverforce.atomic import atomic_path
@@ -167,9 +168,12 @@ def plot_regions(mesh: LiverMesh, path: str | Path, views=None, title: str | Non
         ax.set_zlim(mid[2] - half, mid[2] + half)
         ax.set_box_aspect((1, 1, 1))
         ax.view_init(elev=elev, azim=azim)
-        ax.set_xlabel("right (mm)")
-        ax.set_ylabel("anterior (mm)")
-        ax.set_zlabel("superior (mm)")
+        for k, (axis, name) in enumerate(zip((ax.xaxis, ax.yaxis, ax.zaxis),
+                                             ("right (mm)", "anterior (mm)", "superior (mm)"))):
+            if abs(eye[k]) > 0.95:  # the view looks along this axis: its ticks would pile up in one place
+                axis.set_major_formatter(NullFormatter())
+                name = ""
+            axis.set_label_text(name)
         ax.set_title(label, fontsize=9, pad=28)
     for handle, text in zip(handles, wrapped):
         handle.set_label(text)
