@@ -1238,14 +1238,23 @@ def snap_exertion_points(vertices, faces, region, xyz_mesh: np.ndarray, max_mm: 
     return pts, d
 
 
-def _reading_distances(triangles: TriangleSet, q: np.ndarray, frame: PointFrame, factors) -> np.ndarray:
-    """``(1 + len(factors), len(q))``: the distances to the surface of the points ``q`` (mesh mm) read mirrored in
-    x and y in the coordinates of ``frame`` (:func:`_mirrored`), then with their numbers scaled by each of
-    ``factors`` about that frame's origin; one query of all the readings on the surface's search tree
+def _fitting_readings(triangles: TriangleSet, q: np.ndarray, frame: PointFrame, scale_mm: float, own_units: bool,
+                      max_mm: float) -> list:
+    """The other readings of the points ``q`` (mesh mm, read in the coordinates ``frame`` maps to the mesh, at
+    ``scale_mm`` mm per number) under which all of them lie within ``max_mm`` of the surface: ``(unit, fit)``
+    pairs, ``unit`` None for mirrored in x and y in those coordinates (:func:`_mirrored`), else the other of mm,
+    cm and m their numbers would be in (scaled about that frame's origin; none with ``own_units``, a markups
+    file's), ``fit`` the words of how they would lie. One query of all the readings on the surface's search tree
     (:func:`far_words`, :func:`_far_points_words`)."""
+    from liverforce.geometry.units import UNIT_TO_MM
+
+    units = [] if own_units else [u for u, mm in UNIT_TO_MM.items() if not np.isclose(mm, scale_mm, rtol=1e-9)]
     in_file = frame.to_file(q)  # the numbers times the mm per number they were read with
-    stacked = [_mirrored(q, frame)] + [frame.to_mesh(in_file * f) for f in factors]
-    return triangles.closest(np.concatenate(stacked))[1].reshape(len(stacked), len(q))
+    stacked = [_mirrored(q, frame)] + [frame.to_mesh(in_file * (UNIT_TO_MM[u] / scale_mm)) for u in units]
+    dist = triangles.closest(np.concatenate(stacked))[1].reshape(len(stacked), len(q))
+    return [(unit, f"all {len(q)} {{}} would lie within {max_mm:g} mm of the surface ({d.mean():.3g} mm on "
+                   f"average, max {d.max():.3g} mm)")
+            for unit, d in zip([None, *units], dist) if float(d.max()) <= max_mm]
 
 
 def _far_points_words(triangles: TriangleSet, q: np.ndarray, reading: ExertionReading | None,
@@ -1259,15 +1268,10 @@ def _far_points_words(triangles: TriangleSet, q: np.ndarray, reading: ExertionRe
 
     if reading is None or reading.kind == "vertex_ids":
         return ""
-    units = [] if reading.kind == "markups" else [u for u, mm in UNIT_TO_MM.items()
-                                                   if not np.isclose(mm, reading.scale_mm, rtol=1e-9)]
-    dist = _reading_distances(triangles, q, reading.frame, [UNIT_TO_MM[u] / reading.scale_mm for u in units])
-    said, n = [], len(q)
-    for unit, d in zip([None, *units], dist):  # None: mirrored
-        if float(d.max()) > max_mm:
-            continue
-        fit = (f"all {n} given point{'s' * (n != 1)} would lie within {max_mm:g} mm of the surface "
-               f"({d.mean():.3g} mm on average, max {d.max():.3g} mm)")
+    said = []
+    for unit, fit in _fitting_readings(triangles, q, reading.frame, reading.scale_mm, reading.kind == "markups",
+                                       max_mm):
+        fit = fit.format("given point" + "s" * (len(q) != 1))
         if unit is None:
             other = _OTHER.get(reading.frame_name or "", "the other of RAS and LPS")
             said.append(f"mirrored in x and y ({_MIRROR_WORDS}) {fit}, so they are likely in {other}: "
@@ -1691,16 +1695,9 @@ def far_words(reading: PointReading, triangles: TriangleSet, xyz_mesh: np.ndarra
     from liverforce.geometry.units import UNIT_TO_MM
 
     q = np.atleast_2d(np.asarray(xyz_mesh, float))
-    units = [] if reading.markups else [u for u, mm in UNIT_TO_MM.items()
-                                        if not np.isclose(mm, reading.scale_mm, rtol=1e-9)]
-    dist = _reading_distances(triangles, q, reading.frame, [UNIT_TO_MM[u] / reading.scale_mm for u in units])
-    names = [None, *units]  # None: mirrored; else the unit the numbers would be in
-    said, n = [], len(q)
-    for unit, d in zip(names, dist):
-        if float(d.max()) > max_mm:
-            continue
-        fit = (f"all {n} points would lie within {max_mm:g} mm of the surface ({d.mean():.3g} mm on average, "
-               f"max {d.max():.3g} mm)")
+    said = []
+    for unit, fit in _fitting_readings(triangles, q, reading.frame, reading.scale_mm, reading.markups, max_mm):
+        fit = fit.format("points")
         if unit is None:
             other = _OTHER.get(reading.frame_name or "", "the other of RAS and LPS")
             said.append(f"mirrored in x and y ({_MIRROR_WORDS}) {fit}, so the file is likely in {other}. "
