@@ -168,12 +168,15 @@ def plot_regions(mesh: LiverMesh, path: str | Path, views=None, title: str | Non
         ax.set_zlim(mid[2] - half, mid[2] + half)
         ax.set_box_aspect((1, 1, 1))
         ax.view_init(elev=elev, azim=azim)
-        for k, (axis, name) in enumerate(zip((ax.xaxis, ax.yaxis, ax.zaxis),
-                                             ("right (mm)", "anterior (mm)", "superior (mm)"))):
+        axes = (ax.xaxis, ax.yaxis, ax.zaxis)
+        for k, (axis, name) in enumerate(zip(axes, ("right", "anterior", "superior"))):
             if abs(eye[k]) > 0.95:  # the view looks along this axis: its ticks would pile up in one place
                 axis.set_major_formatter(NullFormatter())
-                name = ""
-            axis.set_label_text(name)
+            else:
+                axis.set_label_text(f"{name} (mm)")
+        drawn_views[-1]["unlabelled_axes"] = [name for axis, name in zip(axes, ("right", "anterior", "superior"))
+                                              if isinstance(axis.get_major_formatter(), NullFormatter)
+                                              and not axis.get_label_text()]
         ax.set_title(label, fontsize=9, pad=28)
     for handle, text in zip(handles, wrapped):
         handle.set_label(text)

@@ -174,6 +174,16 @@ def test_a_mesh_read_back_without_its_support_record_names_each_region_by_its_su
     np.testing.assert_array_equal(entry["facets"], np.flatnonzero(mesh.facet_region == 1))
 
 
+def test_a_view_along_an_axis_leaves_that_axis_unlabelled(tmp_path, liver_surface):
+    """The straight posterior view looks along the anterior axis: its ticks would pile up in one spot, so that
+    axis is left without tick labels or name; the oblique views keep all three."""
+    mesh = build_liver_mesh(liver_surface, target_nodes=300, seed=0)
+    drawn = plot_regions(mesh, tmp_path / "regions.png")
+    unlabelled = {v["label"].split("\n")[0]: v["unlabelled_axes"] for v in drawn["views"]}
+    assert unlabelled == {"anterior-superior, from the right": [], "posterior-inferior, from the left": [],
+                          "posterior": ["anterior"]}
+
+
 def test_a_point_behind_another_part_of_the_surface_is_not_seen():
     square = np.array([[[0, 0, 0], [1, 0, 0], [1, 1, 0]], [[0, 0, 0], [1, 1, 0], [0, 1, 0]]], float)
     tri = np.concatenate([square, square + [0, 0, 1], square + [3, 0, 1]])  # a lid over the first square
